@@ -1,0 +1,54 @@
+"""Shared pytest fixtures: the data path (env ``ATTNLOOP_DATA``, default ``../shared/data``)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parent
+
+
+def data_root() -> Path:
+    """The folder holding the shared test and benchmark data."""
+    return Path(os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data")).resolve()
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    """The shared data folder; skips the test with a reason when it is absent."""
+    root = data_root()
+    if not root.is_dir():
+        pytest.skip(f"shared data not found at {root} (set ATTNLOOP_DATA to the folder holding it)")
+    return root
+
+
+@pytest.fixture(scope="session")
+def redkitchen_dir(data_dir: Path) -> Path:
+    path = data_dir / "7scenes-redkitchen"
+    if not (path / "frame-000000.color.jpg").is_file():
+        pytest.skip(f"7-Scenes redkitchen sequence not found at {path}")
+    return path
+
+
+@pytest.fixture(scope="session")
+def posegraph_dir(data_dir: Path) -> Path:
+    path = data_dir / "posegraph"
+    if not path.is_dir():
+        pytest.skip(f"pose-graph files not found at {path}")
+    return path
+
+
+@pytest.fixture(scope="session")
+def tum_gt_dir(data_dir: Path) -> Path:
+    path = data_dir / "tum-groundtruth"
+    if not path.is_dir():
+        pytest.skip(f"TUM ground-truth files not found at {path}")
+    return path
+
+
+@pytest.fixture(autouse=True)
+def _seed_everything():
+    torch.manual_seed(0)
+    yield

@@ -1,0 +1,377 @@
+"""SO(3) and SE(3) in plain torch.
+
+One layout everywhere:
+
+* a pose is a tensor ``(..., 7) = [tx, ty, tz, qx, qy, qz, qw]`` (the TUM line order, quaternion
+  scalar-last, Hamilton convention, unit norm);
+* a rotation alone is a unit quaternion ``(..., 4) = [qx, qy, qz, qw]``;
+* a tangent vector of SE(3) is ``(..., 6) = [rho, phi]`` (translation part first), of SO(3) ``(..., 3)``.
+
+``exp`` / ``log`` are the group exponential and logarithm, so ``compose(X, exp(xi))`` is a right
+(body-frame) perturbation. All functions broadcast over any leading shape, work in float32 and float64,
+follow the device of their inputs, and are autograd-safe near the identity (no ``0/0`` in the forward
+*or* the backward pass) and near a rotation of pi.
+
+Example:
+    >>> xi = torch.tensor([[0.1, -0.2, 0.3, 0.4, 0.5, -0.6]], dtype=torch.float64)
+    >>> pose = se3_exp(xi)
+    >>> pose.shape
+    torch.Size([1, 7])
+    >>> torch.allclose(se3_log(pose), xi)
+    True
+"""
+from __future__ import annotations
+
+import torch
+
+Tensor = torch.Tensor
+
+__all__ = [
+    "quat_normalize", "quat_mul", "quat_conj", "quat_rotate", "quat_to_rotmat", "rotmat_to_quat",
+    "quat_identity", "so3_hat", "so3_vee", "so3_exp", "so3_log", "so3_left_jacobian",
+    "so3_left_jacobian_inv", "se3_identity", "se3_exp", "se3_log", "se3_inv", "se3_compose",
+    "se3_between", "se3_act", "se3_adjoint", "se3_hat", "se3_to_matrix", "se3_from_matrix",
+    "se3_normalize", "SE3",
+]
+
+
+def _small(dtype: torch.dtype) -> float:
+    # Below this angle the series expansions are used: their truncation error is far below eps there.
+    return 1e-4 if dtype in (torch.float64,) else 1e-2
+
+
+def _check_last(x: Tensor, n: int, name: str) -> None:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.shape[-1:] != (n,):
+        raise ValueError(f"{name} must have shape (..., {n}), got {tuple(x.shape)}")
+
+
+# ----------------------------------------------------------------------------------------------
+# Quaternions [qx, qy, qz, qw]
+# ----------------------------------------------------------------------------------------------
+def quat_identity(*shape: int, dtype=None, device=None) -> Tensor:
+    """Identity quaternions of shape ``(*shape, 4)``."""
+    q = torch.zeros(*shape, 4, dtype=dtype, device=device)
+    q[..., 3] = 1.0
+    return q
+
+
+def quat_normalize(q: Tensor) -> Tensor:
+    """Unit quaternion ``(..., 4)``, sign chosen so that ``qw >= 0``."""
+    _check_last(q, 4, "q")
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny)
+    return torch.where(q[..., 3:4] < 0, -q, q)
+
+
+def quat_conj(q: Tensor) -> Tensor:
+    """Conjugate (= inverse for unit quaternions) ``(..., 4)``."""
+    return torch.cat([-q[..., :3], q[..., 3:]], dim=-1)
+
+
+def quat_mul(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product ``a * b`` of quaternions ``(..., 4)`` in ``[x, y, z, w]`` order."""
+    av, aw = a[..., :3], a[..., 3:]
+    bv, bw = b[..., :3], b[..., 3:]
+    av_b, bv_b = torch.broadcast_tensors(av, bv)
+    v = aw * bv + bw * av + torch.cross(av_b, bv_b, dim=-1)
+    w = aw * bw - (av * bv).sum(-1, keepdim=True)
+    return torch.cat([v, w], dim=-1)
+
+
+def quat_rotate(q: Tensor, v: Tensor) -> Tensor:
+    """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)``."""
+    qv, qw = q[..., :3], q[..., 3:]
+    qv, v = torch.broadcast_tensors(qv, v)
+    qw = qw.expand(qv.shape[:-1] + (1,))
+    t = 2.0 * torch.cross(qv, v, dim=-1)
+    return v + qw * t + torch.cross(qv, t, dim=-1)
+
+
+def quat_to_rotmat(q: Tensor) -> Tensor:
+    """Rotation matrices ``(..., 3, 3)`` from unit quaternions ``(..., 4)`` (``[x, y, z, w]``)."""
+    _check_last(q, 4, "q")
+    x, y, z, w = q.unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    rows = [
+        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+    ]
+    return torch.stack(rows, dim=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat(R: Tensor) -> Tensor:
+    """Unit quaternions ``(..., 4)`` (``[x, y, z, w]``, ``w >= 0``) from rotation matrices ``(..., 3, 3)``.
+
+    Branch-free and stable for every rotation: of the four algebraically equal formulas the one with
+    the largest denominator is selected (Shepperd's method, as in pytorch3d).
+    """
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
+    m = R.reshape(R.shape[:-2] + (9,))
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m.unbind(-1)
+    q_abs = torch.sqrt(torch.stack([
+        1.0 + m00 + m11 + m22,
+        1.0 + m00 - m11 - m22,
+        1.0 - m00 + m11 - m22,
+        1.0 - m00 - m11 + m22,
+    ], dim=-1).clamp_min(0.0))
+    # rows: candidates (w, x, y, z) * 4 * (component with the largest magnitude)
+    cand = torch.stack([
+        torch.stack([q_abs[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], dim=-1),
+        torch.stack([m21 - m12, q_abs[..., 1] ** 2, m10 + m01, m02 + m20], dim=-1),
+        torch.stack([m02 - m20, m10 + m01, q_abs[..., 2] ** 2, m12 + m21], dim=-1),
+        torch.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[..., 3] ** 2], dim=-1),
+    ], dim=-2)
+    cand = cand / (2.0 * q_abs[..., :, None].clamp_min(0.1))
+    best = torch.nn.functional.one_hot(q_abs.argmax(dim=-1), 4).to(R.dtype)
+    wxyz = (cand * best[..., :, None]).sum(dim=-2)
+    return quat_normalize(torch.cat([wxyz[..., 1:], wxyz[..., :1]], dim=-1))
+
+
+# ----------------------------------------------------------------------------------------------
+# SO(3)
+# ----------------------------------------------------------------------------------------------
+def so3_hat(phi: Tensor) -> Tensor:
+    """Skew-symmetric matrices ``(..., 3, 3)`` with ``hat(a) @ b = a x b``."""
+    _check_last(phi, 3, "phi")
+    x, y, z = phi.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(phi.shape[:-1] + (3, 3))
+
+
+def so3_vee(W: Tensor) -> Tensor:
+    """Inverse of :func:`so3_hat`: ``(..., 3, 3) -> (..., 3)``."""
+    return torch.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], dim=-1)
+
+
+def _theta(phi: Tensor):
+    theta2 = (phi * phi).sum(-1, keepdim=True)
+    small = theta2 < _small(phi.dtype) ** 2
+    # a safe value where the exact formula is not used, so its gradient stays finite
+    theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
+    return theta, theta2, small
+
+
+def so3_exp(phi: Tensor) -> Tensor:
+    """Unit quaternions ``(..., 4)`` from rotation vectors ``(..., 3)``."""
+    _check_last(phi, 3, "phi")
+    theta, theta2, small = _theta(phi)
+    half = 0.5 * theta
+    k = torch.where(small, 0.5 - theta2 / 48.0 + theta2 * theta2 / 3840.0, torch.sin(half) / theta)
+    w = torch.where(small, 1.0 - theta2 / 8.0 + theta2 * theta2 / 384.0, torch.cos(half))
+    return torch.cat([k * phi, w], dim=-1)
+
+
+def so3_log(q: Tensor) -> Tensor:
+    """Rotation vectors ``(..., 3)`` (angle in ``[0, pi]``) from unit quaternions ``(..., 4)``."""
+    _check_last(q, 4, "q")
+    q = torch.where(q[..., 3:4] < 0, -q, q)  # shortest rotation
+    v, w = q[..., :3], q[..., 3:]
+    n2 = (v * v).sum(-1, keepdim=True)
+    small = n2 < _small(q.dtype) ** 2
+    n = torch.sqrt(torch.where(small, torch.ones_like(n2), n2))
+    w_safe = torch.where(small, w, torch.ones_like(w))
+    # near the identity: 2 atan(n / w) / n = (2 / w) (1 - n^2 / (3 w^2) + ...)
+    k_small = 2.0 / w_safe * (1.0 - n2 / (3.0 * w_safe * w_safe))
+    k = torch.where(small, k_small, 2.0 * torch.atan2(n, w) / n)
+    return k * v
+
+
+def so3_left_jacobian(phi: Tensor) -> Tensor:
+    """Left Jacobian ``J_l(phi)`` of SO(3), ``(..., 3, 3)``; ``se3_exp`` uses it as ``V``."""
+    theta, theta2, small = _theta(phi)
+    theta = theta[..., None]
+    theta2 = theta2[..., None]
+    small = small[..., None]
+    ts2 = theta * theta  # safe (1 where small) for the exact branch
+    a = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / ts2)
+    b = torch.where(small, 1.0 / 6.0 - theta2 / 120.0, (theta - torch.sin(theta)) / (ts2 * theta))
+    W = so3_hat(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand_as(W)
+    return eye + a * W + b * (W @ W)
+
+
+def so3_left_jacobian_inv(phi: Tensor) -> Tensor:
+    """Inverse of the left Jacobian of SO(3), ``(..., 3, 3)``."""
+    theta, theta2, small = _theta(phi)
+    theta = theta[..., None]
+    theta2 = theta2[..., None]
+    small = small[..., None]
+    half = 0.5 * theta
+    c = torch.where(small, 1.0 / 12.0 + theta2 / 720.0,
+                    (1.0 - half * torch.cos(half) / torch.sin(half)) / (theta * theta))
+    W = so3_hat(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand_as(W)
+    return eye - 0.5 * W + c * (W @ W)
+
+
+# ----------------------------------------------------------------------------------------------
+# SE(3) on (..., 7) = [t, q_xyzw]
+# ----------------------------------------------------------------------------------------------
+def se3_identity(*shape: int, dtype=None, device=None) -> Tensor:
+    """Identity poses ``(*shape, 7)``."""
+    p = torch.zeros(*shape, 7, dtype=dtype, device=device)
+    p[..., 6] = 1.0
+    return p
+
+
+def se3_normalize(pose: Tensor) -> Tensor:
+    """Re-normalise the quaternion part (``qw >= 0``) of poses ``(..., 7)``."""
+    _check_last(pose, 7, "pose")
+    return torch.cat([pose[..., :3], quat_normalize(pose[..., 3:])], dim=-1)
+
+
+def se3_exp(xi: Tensor) -> Tensor:
+    """Poses ``(..., 7)`` from tangent vectors ``xi = [rho, phi] (..., 6)``."""
+    _check_last(xi, 6, "xi")
+    rho, phi = xi[..., :3], xi[..., 3:]
+    t = (so3_left_jacobian(phi) @ rho[..., None])[..., 0]
+    return torch.cat([t, so3_exp(phi)], dim=-1)
+
+
+def se3_log(pose: Tensor) -> Tensor:
+    """Tangent vectors ``[rho, phi] (..., 6)`` from poses ``(..., 7)``."""
+    _check_last(pose, 7, "pose")
+    phi = so3_log(pose[..., 3:])
+    rho = (so3_left_jacobian_inv(phi) @ pose[..., :3, None])[..., 0]
+    return torch.cat([rho, phi], dim=-1)
+
+
+def se3_inv(pose: Tensor) -> Tensor:
+    """Inverse poses ``(..., 7)``."""
+    _check_last(pose, 7, "pose")
+    qi = quat_conj(pose[..., 3:])
+    return torch.cat([-quat_rotate(qi, pose[..., :3]), qi], dim=-1)
+
+
+def se3_compose(a: Tensor, b: Tensor) -> Tensor:
+    """Composition ``a * b`` of poses ``(..., 7)`` (broadcasting)."""
+    _check_last(a, 7, "a")
+    _check_last(b, 7, "b")
+    t = a[..., :3] + quat_rotate(a[..., 3:], b[..., :3])
+    q = quat_mul(a[..., 3:], b[..., 3:])
+    return torch.cat([t, q], dim=-1)
+
+
+def se3_between(a: Tensor, b: Tensor) -> Tensor:
+    """Relative pose ``a^-1 * b`` (``b`` expressed in the frame of ``a``), ``(..., 7)``."""
+    return se3_compose(se3_inv(a), b)
+
+
+def se3_act(pose: Tensor, points: Tensor) -> Tensor:
+    """Transform points: ``R p + t``. ``pose (..., 7)`` broadcasts with ``points (..., 3)``.
+
+    To apply one pose to a cloud ``(N, 3)``, pass ``pose[None]`` (shape ``(1, 7)``).
+    """
+    _check_last(pose, 7, "pose")
+    _check_last(points, 3, "points")
+    return quat_rotate(pose[..., 3:], points) + pose[..., :3]
+
+
+def se3_hat(xi: Tensor) -> Tensor:
+    """4x4 Lie-algebra matrices ``(..., 4, 4)`` of tangent vectors ``[rho, phi] (..., 6)``."""
+    _check_last(xi, 6, "xi")
+    top = torch.cat([so3_hat(xi[..., 3:]), xi[..., :3, None]], dim=-1)
+    bottom = torch.zeros(xi.shape[:-1] + (1, 4), dtype=xi.dtype, device=xi.device)
+    return torch.cat([top, bottom], dim=-2)
+
+
+def se3_adjoint(pose: Tensor) -> Tensor:
+    """Adjoint matrices ``(..., 6, 6)`` for the ``[rho, phi]`` order: ``[[R, [t]x R], [0, R]]``.
+
+    ``X * exp(xi) = exp(Ad(X) xi) * X``.
+    """
+    _check_last(pose, 7, "pose")
+    R = quat_to_rotmat(pose[..., 3:])
+    tR = so3_hat(pose[..., :3]) @ R
+    zero = torch.zeros_like(R)
+    top = torch.cat([R, tR], dim=-1)
+    bottom = torch.cat([zero, R], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
+
+
+def se3_to_matrix(pose: Tensor) -> Tensor:
+    """Homogeneous matrices ``(..., 4, 4)`` from poses ``(..., 7)``."""
+    _check_last(pose, 7, "pose")
+    R = quat_to_rotmat(pose[..., 3:])
+    top = torch.cat([R, pose[..., :3, None]], dim=-1)
+    bottom = torch.zeros(pose.shape[:-1] + (1, 4), dtype=pose.dtype, device=pose.device)
+    bottom[..., 0, 3] = 1.0
+    return torch.cat([top, bottom], dim=-2)
+
+
+def se3_from_matrix(T: Tensor) -> Tensor:
+    """Poses ``(..., 7)`` from homogeneous ``(..., 4, 4)`` or ``(..., 3, 4)`` matrices."""
+    if T.shape[-2:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"T must have shape (..., 4, 4) or (..., 3, 4), got {tuple(T.shape)}")
+    return torch.cat([T[..., :3, 3], rotmat_to_quat(T[..., :3, :3])], dim=-1)
+
+
+class SE3:
+    """A thin, readable wrapper around a ``(..., 7)`` pose tensor.
+
+    Example:
+        >>> X = SE3.exp(torch.zeros(2, 6))
+        >>> (X @ X.inv()).data.shape
+        torch.Size([2, 7])
+        >>> X.act(torch.ones(2, 3)).shape
+        torch.Size([2, 3])
+    """
+
+    __slots__ = ("data",)
+
+    def __init__(self, data: Tensor):
+        _check_last(data, 7, "data")
+        self.data = data
+
+    @classmethod
+    def identity(cls, *shape: int, dtype=None, device=None) -> "SE3":
+        return cls(se3_identity(*shape, dtype=dtype, device=device))
+
+    @classmethod
+    def exp(cls, xi: Tensor) -> "SE3":
+        return cls(se3_exp(xi))
+
+    @classmethod
+    def from_matrix(cls, T: Tensor) -> "SE3":
+        return cls(se3_from_matrix(T))
+
+    def log(self) -> Tensor:
+        return se3_log(self.data)
+
+    def inv(self) -> "SE3":
+        return SE3(se3_inv(self.data))
+
+    def __matmul__(self, other: "SE3") -> "SE3":
+        return SE3(se3_compose(self.data, other.data))
+
+    def act(self, points: Tensor) -> Tensor:
+        return se3_act(self.data, points)
+
+    def adjoint(self) -> Tensor:
+        return se3_adjoint(self.data)
+
+    def matrix(self) -> Tensor:
+        return se3_to_matrix(self.data)
+
+    @property
+    def translation(self) -> Tensor:
+        return self.data[..., :3]
+
+    @property
+    def quaternion(self) -> Tensor:
+        return self.data[..., 3:]
+
+    @property
+    def shape(self) -> torch.Size:
+        return self.data.shape[:-1]
+
+    def __getitem__(self, idx) -> "SE3":
+        return SE3(self.data[idx])
+
+    def __repr__(self) -> str:
+        return f"SE3(shape={tuple(self.shape)}, dtype={self.data.dtype})"
