@@ -5,6 +5,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from attnloop.index import LoopDetectorConfig
+from attnloop.threshold import ThresholdConfig
 from slam.odometry.config import OdometryConfig, RegistrationConfig
 
 
@@ -27,10 +28,16 @@ class LoopClosureConfig:
 
     enabled: bool = True  # False = odometry only (--no-loop)
     descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
-    detector: LoopDetectorConfig = field(default_factory=LoopDetectorConfig)
+    # The system gives the detector *frame indices* as keyframe ids, so ``window`` counts input frames:
+    # 90 frames = 3 s at 30 Hz are never loop candidates (they are the odometry's business). The adaptive
+    # threshold needs 16 eligible keyframes before it proposes anything, and is set low (median + 1.5
+    # robust sigmas): in one small room many views are similar, and geometric verification rejects the
+    # false candidates (on redkitchen: 20 loops accepted, all true, vs 3 at the index's default 3 sigmas).
+    detector: LoopDetectorConfig = field(default_factory=lambda: LoopDetectorConfig(
+        window=90, threshold=ThresholdConfig(k_sigma=1.5, min_samples=16)))
     # verification re-uses the odometry's matching + RANSAC, with stricter acceptance:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
-    max_candidates: int = 3  # candidates verified per query keyframe (most similar first)
+    max_candidates: int = 5  # candidates verified per query keyframe (most similar first)
     min_inliers: int = 40  # RANSAC inliers an accepted loop needs
     min_inlier_ratio: float = 0.25  # inliers / matches
     max_translation: float = 0.5  # m: a loop edge joins views this close (measured relative pose) ...
@@ -39,7 +46,11 @@ class LoopClosureConfig:
     # contradicts odometry by more than this is a matching accident (repeated texture), not a revisit.
     max_drift_translation: float = 0.3  # m
     max_drift_rotation_deg: float = 20.0  # degrees
-    information_scale: float = 1.0  # multiplies the loop edges' information (from the inliers)
+    # The information of an edge comes from its RANSAC inliers as if their errors were independent; they
+    # are not (keypoint localisation, depth bias), and the measured frame-to-frame error is ~10x the
+    # point-based sigma. Scaling by 1/100 makes chi2 meaningful for the robust kernel (whose width is in
+    # sigmas); loop and odometry edges are scaled alike so their relative weights are untouched.
+    information_scale: float = 0.01  # multiplies the loop edges' information
 
 
 @dataclass
@@ -50,7 +61,7 @@ class BackendConfig:
     kernel: Optional[str] = "cauchy"  # robust kernel on all edges ("huber", "cauchy", ... or None)
     kernel_width: Optional[float] = None  # None: sqrt(chi2_0.95(6)) = 3.55
     max_iterations: int = 50  # LM iterations
-    odometry_information_scale: float = 1.0  # multiplies the odometry edges' information
+    odometry_information_scale: float = 0.01  # multiplies the odometry edges' information (see loop.information_scale)
     optimize_on_loop: bool = False  # also optimise (and re-anchor tracking) after every accepted loop
 
 

@@ -29,9 +29,11 @@ Tensor = torch.Tensor
 __all__ = [
     "quat_normalize", "quat_mul", "quat_conj", "quat_rotate", "quat_to_rotmat", "rotmat_to_quat",
     "quat_identity", "so3_hat", "so3_vee", "so3_exp", "so3_log", "so3_left_jacobian",
-    "so3_left_jacobian_inv", "se3_identity", "se3_exp", "se3_log", "se3_inv", "se3_compose",
+    "so3_left_jacobian_inv", "so3_right_jacobian", "so3_right_jacobian_inv", "se3_identity", "se3_exp",
+    "se3_log", "se3_inv", "se3_compose",
     "se3_between", "se3_act", "se3_adjoint", "se3_hat", "se3_to_matrix", "se3_from_matrix",
-    "se3_normalize", "SE3",
+    "se3_normalize", "se3_ad", "se3_left_jacobian", "se3_left_jacobian_inv", "se3_right_jacobian",
+    "se3_right_jacobian_inv", "SE3",
 ]
 
 
@@ -73,7 +75,7 @@ def quat_mul(a: Tensor, b: Tensor) -> Tensor:
     """Hamilton product ``a * b`` of quaternions ``(..., 4)`` in ``[x, y, z, w]`` order."""
     av, aw = a[..., :3], a[..., 3:]
     bv, bw = b[..., :3], b[..., 3:]
-    av_b, bv_b = torch.broadcast_tensors(av, bv)
+    av_b, bv_b = (av, bv) if av.shape == bv.shape else torch.broadcast_tensors(av, bv)
     v = aw * bv + bw * av + torch.cross(av_b, bv_b, dim=-1)
     w = aw * bw - (av * bv).sum(-1, keepdim=True)
     return torch.cat([v, w], dim=-1)
@@ -82,8 +84,9 @@ def quat_mul(a: Tensor, b: Tensor) -> Tensor:
 def quat_rotate(q: Tensor, v: Tensor) -> Tensor:
     """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)``."""
     qv, qw = q[..., :3], q[..., 3:]
-    qv, v = torch.broadcast_tensors(qv, v)
-    qw = qw.expand(qv.shape[:-1] + (1,))
+    if qv.shape != v.shape:  # (broadcasting costs ~10 us per call, so only when needed)
+        qv, v = torch.broadcast_tensors(qv, v)
+        qw = qw.expand(qv.shape[:-1] + (1,))
     t = 2.0 * torch.cross(qv, v, dim=-1)
     return v + qw * t + torch.cross(qv, t, dim=-1)
 
@@ -188,7 +191,9 @@ def so3_left_jacobian(phi: Tensor) -> Tensor:
     theta2 = theta2[..., None]
     small = small[..., None]
     ts2 = theta * theta  # safe (1 where small) for the exact branch
-    a = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / ts2)
+    # (1 - cos t) / t^2 written as 2 sin^2(t/2) / t^2: no cancellation just above the series threshold
+    # (1 - cos t loses ~eps / t^2 relative precision, which reached se3_exp's translation as eps / t)
+    a = torch.where(small, 0.5 - theta2 / 24.0, 2.0 * torch.sin(0.5 * theta) ** 2 / ts2)
     b = torch.where(small, 1.0 / 6.0 - theta2 / 120.0, (theta - torch.sin(theta)) / (ts2 * theta))
     W = so3_hat(phi)
     eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand_as(W)
@@ -207,6 +212,19 @@ def so3_left_jacobian_inv(phi: Tensor) -> Tensor:
     W = so3_hat(phi)
     eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand_as(W)
     return eye - 0.5 * W + c * (W @ W)
+
+
+def so3_right_jacobian(phi: Tensor) -> Tensor:
+    """Right Jacobian ``J_r(phi) = J_l(-phi)`` of SO(3), ``(..., 3, 3)``.
+
+    ``exp(phi + d) ~= exp(phi) exp(J_r(phi) d)`` for a small ``d``.
+    """
+    return so3_left_jacobian(-phi)
+
+
+def so3_right_jacobian_inv(phi: Tensor) -> Tensor:
+    """Inverse of the right Jacobian of SO(3), ``(..., 3, 3)``: ``log(exp(phi) exp(d)) ~= phi + J_r^-1 d``."""
+    return so3_left_jacobian_inv(-phi)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -292,6 +310,98 @@ def se3_adjoint(pose: Tensor) -> Tensor:
     top = torch.cat([R, tR], dim=-1)
     bottom = torch.cat([zero, R], dim=-1)
     return torch.cat([top, bottom], dim=-2)
+
+
+def se3_ad(xi: Tensor) -> Tensor:
+    """Small adjoint ``ad(xi) = [[hat(phi), hat(rho)], [0, hat(phi)]] (..., 6, 6)`` of ``xi (..., 6)``.
+
+    ``ad(a) b`` is the Lie bracket ``[a, b]`` of the tangent vectors ``a`` and ``b``.
+    """
+    _check_last(xi, 6, "xi")
+    P = so3_hat(xi[..., 3:])
+    top = torch.cat([P, so3_hat(xi[..., :3])], dim=-1)
+    bottom = torch.cat([torch.zeros_like(P), P], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
+
+
+def _se3_q_parts(xi: Tensor):
+    """Barfoot's ``Q(rho, phi)`` (the top-right block of the left Jacobian of SE(3)) split into its part
+    odd in ``xi`` (a skew matrix ``hat(v)``) and its even part, so that ``Q(xi) = hat(v) + E`` and
+    ``Q(-xi) = -hat(v) + E``. Returns ``(v (..., 3), E (..., 3, 3))``.
+
+    The nine matrix products of Barfoot's formula reduce, with ``[a]x [b]x = b a^T - (a . b) I``,
+    ``s = phi . rho`` and ``t^2 = phi . phi``, to
+    ``v = (1/2 - c2 t^2) rho + (2 c2 - c1) s phi`` and
+    ``E = c1 (rho phi^T + phi rho^T) - 2 c3 s phi phi^T + 2 s (c3 t^2 - c1) I``.
+    """
+    rho, phi = xi[..., :3], xi[..., 3:]
+    theta2 = (phi * phi).sum(-1, keepdim=True)
+    # The exact coefficients lose relative precision below this angle (the absolute error of Q would
+    # stay near eps * |rho|); the series is exact to round-off here and keeps the backward pass finite.
+    small = theta2 < (1e-2 if phi.dtype == torch.float64 else 1e-1) ** 2
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = torch.sqrt(t2)
+    sn, cs = torch.sin(t), torch.cos(t)
+    th4 = theta2 * theta2
+    c1 = torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + th4 / 5040.0, (t - sn) / (t2 * t))
+    # (t^2 + 2 cos t - 2) as (t^2 - 4 sin^2(t/2)): the absolute error stays ~eps t^2, not eps
+    c2 = torch.where(small, 1.0 / 24.0 - theta2 / 720.0 + th4 / 40320.0,
+                     (t2 - 4.0 * torch.sin(0.5 * t) ** 2) / (2.0 * t2 * t2))
+    c3 = torch.where(small, 1.0 / 120.0 - theta2 / 2520.0 + th4 / 120960.0,
+                     (2.0 * t - 3.0 * sn + t * cs) / (2.0 * t2 * t2 * t))
+    s = (phi * rho).sum(-1, keepdim=True)
+    v = (0.5 - c2 * theta2) * rho + (2.0 * c2 - c1) * s * phi
+    outer = rho[..., :, None] * phi[..., None, :]
+    E = (c1[..., None] * (outer + outer.transpose(-1, -2))
+         - (2.0 * c3 * s)[..., None] * (phi[..., :, None] * phi[..., None, :]))
+    diag = (2.0 * s * (c3 * theta2 - c1))
+    E = E + diag[..., None] * torch.eye(3, dtype=xi.dtype, device=xi.device)
+    return v, E
+
+
+def _se3_q(xi: Tensor) -> Tensor:
+    """Barfoot's ``Q(rho, phi)`` ``(..., 3, 3)``: the top-right block of the left Jacobian of SE(3)."""
+    v, E = _se3_q_parts(xi)
+    return so3_hat(v) + E
+
+
+def se3_left_jacobian(xi: Tensor) -> Tensor:
+    """Left Jacobian of SE(3) ``(..., 6, 6)`` for ``[rho, phi] (..., 6)``: ``[[J_l, Q], [0, J_l]]``.
+
+    ``exp(xi + d) ~= exp(J_l(xi) d) exp(xi)`` for a small ``d`` (Barfoot, State Estimation, 7.1.5).
+    """
+    _check_last(xi, 6, "xi")
+    J = so3_left_jacobian(xi[..., 3:])
+    Q = _se3_q(xi)
+    top = torch.cat([J, Q], dim=-1)
+    bottom = torch.cat([torch.zeros_like(J), J], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
+
+
+def se3_left_jacobian_inv(xi: Tensor) -> Tensor:
+    """Inverse left Jacobian of SE(3), ``(..., 6, 6)``: ``[[J_l^-1, -J_l^-1 Q J_l^-1], [0, J_l^-1]]``."""
+    _check_last(xi, 6, "xi")
+    Ji = so3_left_jacobian_inv(xi[..., 3:])
+    Q = _se3_q(xi)
+    top = torch.cat([Ji, -(Ji @ Q @ Ji)], dim=-1)
+    bottom = torch.cat([torch.zeros_like(Ji), Ji], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
+
+
+def se3_right_jacobian(xi: Tensor) -> Tensor:
+    """Right Jacobian ``J_r(xi) = J_l(-xi)`` of SE(3) ``(..., 6, 6)``.
+
+    ``exp(xi + d) ~= exp(xi) exp(J_r(xi) d)`` for a small ``d``.
+    """
+    return se3_left_jacobian(-xi)
+
+
+def se3_right_jacobian_inv(xi: Tensor) -> Tensor:
+    """Inverse right Jacobian of SE(3), ``(..., 6, 6)``: ``log(exp(xi) exp(d)) ~= xi + J_r^-1(xi) d``.
+
+    The derivative of a pose-graph residual ``log(E)`` under a right perturbation of ``E``.
+    """
+    return se3_left_jacobian_inv(-xi)
 
 
 def se3_to_matrix(pose: Tensor) -> Tensor:

@@ -196,6 +196,7 @@ class RGBDSLAM:
         self._loops: List[LoopClosure] = []
         self._queries: List[LoopQuery] = []
         self._kf_descriptors: Dict[int, Tensor] = {}
+        self._kf_of_frame: Dict[int, int] = {}  # the detector's ids are frame indices
         self._num_kf_seen = 0
         self._num_lost = 0
         self._num_skipped = 0
@@ -290,11 +291,13 @@ class RGBDSLAM:
             desc = self._describe(kf)
         self._kf_descriptors[kf.id] = desc.cpu()
         with self.timer("loop_detection"):
-            cands = self._detector.add_and_query(desc, keyframe_id=kf.id, timestamp=kf.timestamp)
-        top_kf = int(cands.top_ids[0]) if cands.top_ids.numel() else -1
+            # ids are frame indices so that the exclusion window counts frames, not keyframes
+            cands = self._detector.add_and_query(desc, keyframe_id=kf.frame_index, timestamp=kf.timestamp)
+        self._kf_of_frame[kf.frame_index] = kf.id
+        top_kf = self._kf_of_frame[int(cands.top_ids[0])] if cands.top_ids.numel() else -1
         top_score = float(cands.top_scores[0]) if cands.top_scores.numel() else float("-inf")
         query = LoopQuery(kf.id, top_kf, top_score, float(cands.threshold),
-                          [int(c) for c in cands.ids[: cfg.max_candidates]], [])
+                          [self._kf_of_frame[int(c)] for c in cands.ids[: cfg.max_candidates]], [])
         self._queries.append(query)
         accepted = []
         for cand_id, score in zip(query.candidates, cands.scores[: cfg.max_candidates].tolist()):

@@ -1,0 +1,70 @@
+"""attnloop: object-aware attention guided frame association (loop closure) for RGB-D SLAM.
+
+The paper's modules as drop-in PyTorch pieces:
+
+- :mod:`attnloop.backbones`: VGG16 and EfficientNet-Lite0 split at a tap layer, with preprocessing;
+- :mod:`attnloop.guided_backprop`: the softmax-seeded partial guided backprop, (L, G = dS/dL);
+- :mod:`attnloop.fusion`: the attention fusions DAM, EAM, GAF, EGA and the ``none`` baseline;
+- :mod:`attnloop.rnn_pool`: random recursive-NN pooling to a 1024-d vector;
+- :mod:`attnloop.descriptor`: :class:`AttentionDescriptor`, the whole chain, images -> (B, 1024).
+
+Example:
+    >>> import torch
+    >>> from attnloop import AttentionDescriptor
+    >>> desc = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False)
+    >>> desc(torch.rand(1, 3, 480, 640)).shape
+    torch.Size([1, 1024])
+"""
+from __future__ import annotations
+
+from .backbones import (
+    VGG16,
+    EfficientNetLite0,
+    WeightsNotFoundError,
+    build_backbone,
+    efficientnet_lite0,
+    vgg16,
+)
+from .descriptor import (
+    AttentionDescriptor,
+    DescriptorParts,
+    attention_descriptor,
+    attention_descriptor_parts,
+    descriptor_from_attention,
+)
+from .fusion import FUSION_MODES, Fusion, dam, eam, ega, fuse, gaf, minmax_normalize, no_attention
+from .guided_backprop import GuidedBackprop, clamp_negative_grad, guided_backprop, softmax_seeded_gradient
+from .rnn_pool import RandomRNNPool, merge_channels, random_rnn_pool, random_rnn_weights
+
+__all__ = [
+    "FUSION_MODES",
+    "VGG16",
+    "AttentionDescriptor",
+    "DescriptorParts",
+    "EfficientNetLite0",
+    "Fusion",
+    "GuidedBackprop",
+    "RandomRNNPool",
+    "WeightsNotFoundError",
+    "attention_descriptor",
+    "attention_descriptor_parts",
+    "build_backbone",
+    "clamp_negative_grad",
+    "dam",
+    "descriptor_from_attention",
+    "eam",
+    "efficientnet_lite0",
+    "ega",
+    "fuse",
+    "gaf",
+    "guided_backprop",
+    "merge_channels",
+    "minmax_normalize",
+    "no_attention",
+    "random_rnn_pool",
+    "random_rnn_weights",
+    "softmax_seeded_gradient",
+    "vgg16",
+]
+
+__version__ = "0.1.0"

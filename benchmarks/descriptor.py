@@ -1,0 +1,176 @@
+"""Cost of the attention descriptor vs the plain forward pass of its backbone, side by side.
+
+For each backbone (VGG16 at pool5, EfficientNet-Lite0 at stage7) and batch size (1, 8), one round
+times, in turn, the plain classifier forward ``net(images)`` (preprocessing included) and the full
+``AttentionDescriptor(...)(images)`` for every fusion mode, all on the same 640 x 480 uint8 frames
+under ``torch.no_grad()`` (as the SLAM system calls it). Rounds are interleaved so that load from
+other processes hits all variants alike; the table gives the median ms per frame, the spread
+(25th-75th percentile) and the descriptor / plain ratio, both of the medians and as the median of the
+per-round ratios (paired, less sensitive to a busy machine).
+
+A second table splits the batch-1 descriptor into its stages, and a third compares ways to resize a
+640 x 480 frame to 224 x 224.
+
+Weights do not change the cost: VGG16 uses seeded random weights (no download needed), EfficientNet-
+Lite0 the packaged ImageNet weights when installed.
+
+Usage:
+    python benchmarks/descriptor.py                       # both backbones, batch 1 and 8
+    python benchmarks/descriptor.py --backbones efficientnet_lite0 --batches 1 --rounds 30
+    python benchmarks/descriptor.py --threads 1           # steadier on a busy shared machine
+
+Prints markdown tables.
+"""
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from attnloop import AttentionDescriptor, build_backbone
+from attnloop.descriptor import _scale_to_norm, _unit_scale
+from attnloop.fusion import FUSION_MODES, fuse
+from attnloop.guided_backprop import clamp_negative_grad, softmax_seeded_gradient
+from attnloop.rnn_pool import random_rnn_pool
+
+
+def frames(batch: int, seed: int = 0) -> torch.Tensor:
+    """Smooth random 640 x 480 uint8 RGB frames (B, 3, 480, 640), channels-last like a decoded image."""
+    g = torch.Generator().manual_seed(seed)
+    small = torch.rand(batch, 3, 30, 40, generator=g)
+    big = F.interpolate(small, size=(480, 640), mode="bilinear", align_corners=False)
+    noise = 0.05 * torch.rand(batch, 3, 480, 640, generator=g)
+    img = ((big + noise).clamp(0, 1) * 255).round().to(torch.uint8)
+    return img.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)  # HWC memory, as from numpy
+
+
+def time_call(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def quartiles(values: list[float]) -> tuple[float, float, float]:
+    q = np.percentile(values, [25, 50, 75])
+    return float(q[0]), float(q[1]), float(q[2])
+
+
+def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> list[str]:
+    pretrained = name == "efficientnet_lite0"
+    try:
+        net = build_backbone(name, pretrained=pretrained)
+    except FileNotFoundError:
+        net = build_backbone(name, pretrained=False)
+    descs = {m: AttentionDescriptor(net, fusion=m) for m in FUSION_MODES}
+    rows = []
+    for batch in batches:
+        images = frames(batch)
+        variants = {"plain forward": lambda x=images: net(x)}
+        variants.update({f"descriptor {m}": (lambda d=d, x=images: d(x)) for m, d in descs.items()})
+        times = {k: [] for k in variants}
+        with torch.no_grad():
+            for r in range(warmup + rounds):
+                for key, fn in variants.items():
+                    t = time_call(fn)
+                    if r >= warmup:
+                        times[key].append(1000.0 * t / batch)
+        plain = times["plain forward"]
+        p25, p50, p75 = quartiles(plain)
+        rows.append(f"| {name} | {batch} | plain forward | {p50:.1f} | {p25:.1f}-{p75:.1f} | 1.000 | 1.000 |")
+        for key in list(variants)[1:]:
+            q25, q50, q75 = quartiles(times[key])
+            paired = statistics.median(t / b for t, b in zip(times[key], plain))
+            rows.append(f"| {name} | {batch} | {key} | {q50:.1f} | {q25:.1f}-{q75:.1f} | {q50 / p50:.3f} | {paired:.3f} |")
+    return rows
+
+
+def stage_breakdown(name: str, rounds: int) -> list[str]:
+    """Batch-1 DAM descriptor split into preprocessing, forward to L, guided backward, fusion+pooling."""
+    try:
+        net = build_backbone(name, pretrained=name == "efficientnet_lite0")
+    except FileNotFoundError:
+        net = build_backbone(name, pretrained=False)
+    desc = AttentionDescriptor(net, fusion="dam")
+    img = frames(1)
+    stages = {"preprocess (resize + normalise)": [], "forward to L (no autograd)": [],
+              "head forward + seeded backward to L": [], "fusion + RNN pooling + L2": [],
+              "plain head forward (L -> logits)": []}
+    with torch.no_grad():
+        for r in range(rounds + 2):
+            t0 = time.perf_counter()
+            x = net.preprocess(img)
+            t1 = time.perf_counter()
+            tap = net.forward_to_tap(x)
+            t2 = time.perf_counter()
+            grad = softmax_seeded_gradient(tap, lambda t: net.forward_from_tap(t, clamp_negative_grad), guided=False)
+            t3 = time.perf_counter()
+            fused = fuse(tap, _unit_scale(grad), "dam")
+            F.normalize(random_rnn_pool(_scale_to_norm(fused, 10.0), desc.pool.weights), dim=1)
+            t4 = time.perf_counter()
+            net.forward_from_tap(tap)
+            t5 = time.perf_counter()
+            if r >= 2:
+                for key, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
+                    stages[key].append(1000.0 * dt)
+    return [f"| {name} | {key} | {statistics.median(v):.2f} |" for key, v in stages.items()]
+
+
+def resize_options(rounds: int) -> list[str]:
+    import cv2
+
+    from attnloop.backbones import prepare_images
+
+    hwc = frames(1)[0].permute(1, 2, 0).contiguous().numpy()
+    img = torch.from_numpy(hwc).permute(2, 0, 1)[None]  # what a caller builds from a cv2/numpy frame
+    mean, std = (0.5,) * 3, (0.5,) * 3
+    options = {
+        "library: uint8 antialiased bilinear (F.interpolate), then float": lambda: prepare_images(img, (224, 224), mean, std),
+        "float first, then antialiased bilinear": lambda: prepare_images(img.float() / 255.0, (224, 224), mean, std),
+        "cv2.resize INTER_AREA beforehand, then the library": lambda: prepare_images(
+            torch.from_numpy(cv2.resize(hwc, (224, 224), interpolation=cv2.INTER_AREA)).permute(2, 0, 1)[None],
+            (224, 224), mean, std),
+    }
+    rows = []
+    for key, fn in options.items():
+        for _ in range(3):
+            fn()
+        vals = [1000.0 * time_call(fn) for _ in range(rounds)]
+        rows.append(f"| {key} | {statistics.median(vals):.2f} |")
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--backbones", nargs="+", default=["efficientnet_lite0", "vgg16"])
+    parser.add_argument("--batches", nargs="+", type=int, default=[1, 8])
+    parser.add_argument("--rounds", type=int, default=10)
+    parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=0,
+                        help="torch.set_num_threads for this run (0: torch's default); on a shared, busy "
+                             "machine 1 thread gives far steadier timings than oversubscribed cores")
+    args = parser.parse_args()
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    print(f"# Descriptor cost ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, "
+          f"{torch.get_num_threads()} threads, {platform.machine()}, {args.rounds} rounds)\n")
+    print("| backbone | batch | variant | ms/frame (median) | 25-75 % | ratio of medians | median paired ratio |")
+    print("|---|---|---|---|---|---|---|")
+    for name in args.backbones:
+        for row in bench_backbone(name, args.batches, args.rounds, args.warmup):
+            print(row, flush=True)
+    print("\n| backbone | batch-1 DAM descriptor stage | ms |\n|---|---|---|")
+    for name in args.backbones:
+        for row in stage_breakdown(name, max(args.rounds, 5)):
+            print(row, flush=True)
+    print("\n| 640x480 uint8 frame -> (1, 3, 224, 224) normalised | ms |\n|---|---|")
+    for row in resize_options(max(args.rounds, 20)):
+        print(row)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,56 @@
+"""Trajectory and loop-closure evaluation with TUM / evo semantics.
+
+``ate(reference, estimate)`` and ``rpe(...)`` take :class:`slam.io.Trajectory` objects or TUM file paths,
+e.g. ``ate("groundtruth.txt", "trajectory.txt").rmse`` (metres, rigid alignment, 0.02 s association).
+
+Example:
+    >>> import torch
+    >>> from slam.io import Trajectory
+    >>> t = torch.arange(10, dtype=torch.float64) / 30
+    >>> poses = torch.zeros(10, 7, dtype=torch.float64); poses[:, 6] = 1; poses[:, 0] = t; poses[:, 1] = t * t
+    >>> noisy = poses.clone(); noisy[::2, 2] += 0.01
+    >>> result = ate(Trajectory(t, poses), Trajectory(t, noisy))
+    >>> result.num_pairs, round(result.rmse, 4)
+    (10, 0.0049)
+"""
+from slam.eval.align import transform_poses, umeyama_alignment
+from slam.eval.associate import TUM_MAX_DIFFERENCE, associate, associate_trajectories
+from slam.eval.loops import (
+    LoopEvaluation,
+    LoopGroundTruthConfig,
+    PRCurve,
+    count_loop_queries,
+    evaluate_loop_candidates,
+    ground_truth_loops,
+    is_true_loop,
+    plot_pr_curves,
+    precision_recall_curve,
+)
+from slam.eval.metrics import ATEResult, ErrorStats, RPEResult, as_trajectory, ate, rotation_angle, rpe
+from slam.eval.plot import choose_plane, plot_trajectory
+
+__all__ = [
+    "TUM_MAX_DIFFERENCE",
+    "ATEResult",
+    "ErrorStats",
+    "LoopEvaluation",
+    "LoopGroundTruthConfig",
+    "PRCurve",
+    "RPEResult",
+    "as_trajectory",
+    "associate",
+    "associate_trajectories",
+    "ate",
+    "choose_plane",
+    "count_loop_queries",
+    "evaluate_loop_candidates",
+    "ground_truth_loops",
+    "is_true_loop",
+    "plot_pr_curves",
+    "plot_trajectory",
+    "precision_recall_curve",
+    "rotation_angle",
+    "rpe",
+    "transform_poses",
+    "umeyama_alignment",
+]

@@ -1,0 +1,356 @@
+"""Absolute trajectory error (ATE) and relative pose error (RPE) with TUM / evo semantics.
+
+* Both trajectories are associated by timestamp first (TUM's greedy one-to-one association, pairs
+  less than ``max_difference = 0.02`` s apart, :func:`slam.eval.associate.associate`).
+* ATE: the estimate's positions are aligned to the reference's by Umeyama (rigid SE(3) by default,
+  ``alignment="sim3"`` adds a scale, ``"none"`` compares raw), then the per-pair error is the distance
+  between camera centres. This is ``evo_ape tum REF EST -a --t_max_diff 0.02`` and TUM's
+  ``evaluate_ate.py``.
+* RPE: for index pairs ``(i, j)`` of the associated poses, ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` (``Q``
+  reference, ``P`` estimate, evo's convention); the translation error is ``|t(E)|`` in metres, the
+  rotation error the angle of ``E`` in degrees. ``delta_unit="frames"`` reproduces ``evo_rpe`` (pairs
+  ``(0, d), (d, 2d), ...``, or every ``(i, i + d)`` with ``all_pairs``); ``delta_unit="seconds"`` picks
+  pairs ``delta`` seconds apart as TUM's ``evaluate_rpe.py --fixed_delta`` (its default is 1 s): the
+  partner of ``i`` is the stamp nearest to ``t_i + delta``, used when it is within half a frame of it.
+  TUM's script measures the translation of ``(P_i^-1 P_j)(Q_i^-1 Q_j)^-1`` instead of evo's
+  ``(Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; the rotation angles are identical, the translations differ
+  only to second order.
+
+Example:
+    >>> import torch
+    >>> from slam.io.trajectory import Trajectory
+    >>> t = torch.arange(5, dtype=torch.float64)
+    >>> poses = torch.zeros(5, 7, dtype=torch.float64); poses[:, 6] = 1; poses[:, 0] = t; poses[:, 1] = t ** 2
+    >>> ref = Trajectory(t, poses)
+    >>> round(ate(ref, ref).rmse, 9), ate(ref, ref).num_pairs
+    (0.0, 5)
+    >>> rpe(ref, ref, delta=1).translation.num
+    4
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Union
+
+import torch
+
+from slam.eval.align import transform_poses, umeyama_alignment
+from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
+from slam.io.trajectory import Trajectory, read_tum_trajectory
+from slam.lie import se3_between
+
+__all__ = ["ATEResult", "ErrorStats", "RPEResult", "as_trajectory", "ate", "rotation_angle", "rpe"]
+
+TrajectoryLike = Union[str, "os.PathLike[str]", Trajectory]
+_ALIGNMENTS = ("se3", "sim3", "none")
+
+
+def as_trajectory(x: TrajectoryLike, what: str = "trajectory") -> Trajectory:
+    """A :class:`Trajectory` in float64 from a trajectory or the path of a TUM file."""
+    if isinstance(x, Trajectory):
+        traj = x
+    elif isinstance(x, (str, os.PathLike)):
+        traj = read_tum_trajectory(x)
+    else:
+        raise TypeError(f"{what} must be a Trajectory or the path of a TUM trajectory file, got {type(x).__name__}")
+    poses = traj.poses.to(torch.float64)
+    # Unit quaternions, as evo (its SE(3) matrices come from normalised quaternions).
+    poses = torch.cat([poses[:, :3], poses[:, 3:] / poses[:, 3:].norm(dim=-1, keepdim=True)], dim=-1)
+    return Trajectory(traj.timestamps.to(torch.float64), poses)
+
+
+def rotation_angle(q: torch.Tensor) -> torch.Tensor:
+    """Rotation angles in radians ``(...)`` of quaternions ``(..., 4)`` ``[x, y, z, w]``.
+
+    ``2 atan2(|v|, |w|)``: accurate for tiny and for large angles (``acos`` is not near 0).
+    """
+    return 2.0 * torch.atan2(q[..., :3].norm(dim=-1), q[..., 3].abs())
+
+
+@dataclass
+class ErrorStats:
+    """Statistics of a set of non-negative errors, named as evo names them.
+
+    Attributes:
+        rmse, mean, median, std, min, max: floats (``std`` is the population std, ``median`` the
+            average of the two middle values for an even count, as numpy).
+        sse: sum of squared errors.
+        num: number of errors.
+    """
+
+    rmse: float
+    mean: float
+    median: float
+    std: float
+    min: float
+    max: float
+    sse: float
+    num: int
+
+    @staticmethod
+    def from_errors(errors: torch.Tensor) -> ErrorStats:
+        """Statistics of ``errors (M,)``, ``M >= 1``."""
+        if errors.dim() != 1 or errors.numel() == 0:
+            raise ValueError(f"errors must have shape (M,) with M >= 1, got {tuple(errors.shape)}")
+        e = errors.detach().to(torch.float64)
+        sse = float((e * e).sum())
+        return ErrorStats(
+            rmse=math.sqrt(sse / e.numel()),
+            mean=float(e.mean()),
+            median=float(torch.quantile(e, 0.5)) if e.numel() <= 16_000_000 else float(e.median()),
+            std=float(e.std(unbiased=False)) if e.numel() > 1 else 0.0,
+            min=float(e.min()),
+            max=float(e.max()),
+            sse=sse,
+            num=int(e.numel()),
+        )
+
+    def to_dict(self) -> dict[str, float]:
+        return {"rmse": self.rmse, "mean": self.mean, "median": self.median, "std": self.std,
+                "min": self.min, "max": self.max, "sse": self.sse, "num": self.num}
+
+
+@dataclass
+class ATEResult:
+    """Absolute trajectory error after alignment (translation part, metres).
+
+    Attributes:
+        rmse, mean, median, std, min, max, sse: statistics of ``errors`` (see :class:`ErrorStats`).
+        num_pairs: number of associated pose pairs.
+        alignment: ``"se3"``, ``"sim3"`` or ``"none"``.
+        scale: the Sim(3) scale (1.0 otherwise).
+        rotation: ``(3, 3)`` and translation ``(3,)``: the alignment applied to the estimate.
+        errors: ``(K,)`` per-pair position errors.
+        timestamps: ``(K,)`` reference stamps of the pairs.
+        reference: the associated reference poses ``(K, 7)`` as a trajectory.
+        estimate_aligned: the associated estimate poses after alignment, as a trajectory.
+    """
+
+    rmse: float
+    mean: float
+    median: float
+    std: float
+    min: float
+    max: float
+    sse: float
+    num_pairs: int
+    alignment: str
+    scale: float
+    rotation: torch.Tensor = field(repr=False)
+    translation: torch.Tensor = field(repr=False)
+    errors: torch.Tensor = field(repr=False)
+    timestamps: torch.Tensor = field(repr=False)
+    reference: Trajectory = field(repr=False)
+    estimate_aligned: Trajectory = field(repr=False)
+
+    def to_dict(self) -> dict[str, object]:
+        """The scalar results (JSON-serialisable)."""
+        return {"rmse": self.rmse, "mean": self.mean, "median": self.median, "std": self.std, "min": self.min,
+                "max": self.max, "sse": self.sse, "num_pairs": self.num_pairs, "alignment": self.alignment,
+                "scale": self.scale}
+
+
+@dataclass
+class RPEResult:
+    """Relative pose error.
+
+    Attributes:
+        translation: statistics of the translation errors (metres).
+        rotation: statistics of the rotation errors (degrees).
+        delta: the pair distance, in ``delta_unit`` (``"frames"`` or ``"seconds"``).
+        all_pairs: every start index was used (otherwise consecutive, non-overlapping pairs).
+        pairs: ``(M, 2)`` int64 indices ``(i, j)`` into the associated poses.
+        timestamps: ``(M, 2)`` the estimate's stamps of each pair.
+        trans_errors: ``(M,)`` metres; rot_errors: ``(M,)`` degrees.
+    """
+
+    translation: ErrorStats
+    rotation: ErrorStats
+    delta: float
+    delta_unit: str
+    all_pairs: bool
+    pairs: torch.Tensor = field(repr=False)
+    timestamps: torch.Tensor = field(repr=False)
+    trans_errors: torch.Tensor = field(repr=False)
+    rot_errors: torch.Tensor = field(repr=False)
+
+    @property
+    def rmse(self) -> float:
+        """Translation RMSE in metres (the number usually quoted)."""
+        return self.translation.rmse
+
+    @property
+    def num_pairs(self) -> int:
+        return int(self.pairs.shape[0])
+
+    def to_dict(self) -> dict[str, object]:
+        return {"translation_m": self.translation.to_dict(), "rotation_deg": self.rotation.to_dict(),
+                "delta": self.delta, "delta_unit": self.delta_unit, "all_pairs": self.all_pairs,
+                "num_pairs": self.num_pairs}
+
+
+def _associated(reference: TrajectoryLike, estimate: TrajectoryLike, max_difference: float, offset: float):
+    ref = as_trajectory(reference, "reference")
+    est = as_trajectory(estimate, "estimate")
+    if len(ref) == 0 or len(est) == 0:
+        raise ValueError(f"cannot evaluate an empty trajectory ({len(ref)} reference, {len(est)} estimated poses)")
+    i, j = associate(ref.timestamps, est.timestamps, max_difference, offset)
+    if i.numel() == 0:
+        raise ValueError(
+            f"no timestamps of the estimate ({len(est)} poses, {float(est.timestamps[0]):.3f}..."
+            f"{float(est.timestamps[-1]):.3f} s) are within {max_difference} s of the reference "
+            f"({len(ref)} poses, {float(ref.timestamps[0]):.3f}...{float(ref.timestamps[-1]):.3f} s)"
+        )
+    return ref.subset(i.to(ref.poses.device)), est.subset(j.to(est.poses.device))
+
+
+def _align(ref: Trajectory, est: Trajectory, alignment: str):
+    if alignment not in _ALIGNMENTS:
+        raise ValueError(f"alignment must be one of {_ALIGNMENTS}, got {alignment!r}")
+    dtype, device = est.poses.dtype, est.poses.device
+    if alignment == "none":
+        R, t, s = torch.eye(3, dtype=dtype, device=device), torch.zeros(3, dtype=dtype, device=device), 1.0
+        return R, t, s, est
+    R, t, s = umeyama_alignment(est.positions, ref.positions, with_scale=alignment == "sim3")
+    return R, t, float(s), Trajectory(est.timestamps, transform_poses(est.poses, R, t, s))
+
+
+def ate(
+    reference: TrajectoryLike,
+    estimate: TrajectoryLike,
+    alignment: str = "se3",
+    max_difference: float = TUM_MAX_DIFFERENCE,
+    offset: float = 0.0,
+) -> ATEResult:
+    """Absolute trajectory error of ``estimate`` against ``reference``.
+
+    Args:
+        reference: ground truth: a :class:`Trajectory` or a TUM file path.
+        estimate: the estimated trajectory: a :class:`Trajectory` or a TUM file path.
+        alignment: ``"se3"`` (rigid, default, TUM/evo ``-a``), ``"sim3"`` (rigid + scale, evo ``-as``)
+            or ``"none"``.
+        max_difference: association tolerance in seconds (TUM: 0.02).
+        offset: seconds added to the estimate's stamps before association.
+
+    Returns:
+        an :class:`ATEResult` (``.rmse`` in metres).
+
+    Raises:
+        ValueError: empty trajectories, no associated pairs, or fewer than 3 pairs / collinear
+            positions when aligning.
+    """
+    ref, est = _associated(reference, estimate, max_difference, offset)
+    R, t, s, est_aligned = _align(ref, est, alignment)
+    errors = (est_aligned.positions - ref.positions).norm(dim=-1)
+    st = ErrorStats.from_errors(errors)
+    return ATEResult(
+        rmse=st.rmse, mean=st.mean, median=st.median, std=st.std, min=st.min, max=st.max, sse=st.sse,
+        num_pairs=st.num, alignment=alignment, scale=s, rotation=R, translation=t, errors=errors,
+        timestamps=ref.timestamps, reference=ref, estimate_aligned=est_aligned,
+    )
+
+
+def _pairs_frames(n: int, delta: int, all_pairs: bool) -> torch.Tensor:
+    # evo's filters.filter_pairs_by_index
+    if all_pairs:
+        i = torch.arange(max(n - delta, 0))
+        return torch.stack([i, i + delta], dim=-1)
+    ids = torch.arange(0, n, delta)
+    return torch.stack([ids[:-1], ids[1:]], dim=-1)
+
+
+def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool, tol: float | None) -> torch.Tensor:
+    # For a start i: j = the stamp closest to t_i + delta (TUM's find_closest_index), kept when it is
+    # later than i and within tol of the target. Consecutive mode chains j -> next start.
+    t = stamps.detach().to("cpu", torch.float64)
+    n = t.numel()
+    if n < 2:
+        return torch.zeros(0, 2, dtype=torch.long)
+    if tol is None:
+        # half a frame: the nearest stamp of a gap-free stream is always this close to the target,
+        # while a target beyond the end (or in a gap) is not
+        tol = 0.5 * float(torch.median(t[1:] - t[:-1]))
+    target = t + delta
+    k = torch.searchsorted(t, target).clamp(1, max(n - 1, 1))
+    closer_left = (target - t[k - 1]).abs() <= (t[k] - target).abs()
+    j = torch.where(closer_left, k - 1, k)
+    ok = (j > torch.arange(n)) & ((t[j] - target).abs() <= tol)
+    if all_pairs:
+        i = torch.nonzero(ok).flatten()
+        return torch.stack([i, j[i]], dim=-1)
+    out, i = [], 0
+    while i < n:
+        jj = int(j[i])
+        if jj <= i:
+            break
+        if bool(ok[i]):
+            out.append((i, jj))
+        i = jj
+    return torch.tensor(out, dtype=torch.long).reshape(-1, 2)
+
+
+def rpe(
+    reference: TrajectoryLike,
+    estimate: TrajectoryLike,
+    delta: float = 1,
+    delta_unit: str = "frames",
+    all_pairs: bool = False,
+    time_tolerance: float | None = None,
+    alignment: str = "none",
+    max_difference: float = TUM_MAX_DIFFERENCE,
+    offset: float = 0.0,
+) -> RPEResult:
+    """Relative pose error (drift per ``delta``) of ``estimate`` against ``reference``.
+
+    Args:
+        reference: ground truth: a :class:`Trajectory` or a TUM file path.
+        estimate: a :class:`Trajectory` or a TUM file path.
+        delta: pair distance: an integer number of associated poses (``"frames"``, evo's default 1) or
+            seconds (``"seconds"``; TUM's ``evaluate_rpe.py`` uses 1 s).
+        delta_unit: ``"frames"`` or ``"seconds"``.
+        all_pairs: use every start pose; otherwise consecutive non-overlapping pairs (evo's default).
+        time_tolerance: seconds mode only: a pair ``(i, j)`` is used when ``|t_j - (t_i + delta)|`` is at
+            most this; default half the median interval between the associated stamps (so on a
+            gap-free stream every start gets its nearest partner, and none past the end).
+        alignment: ``"none"`` (default; a rigid alignment does not change the RPE), ``"se3"`` or ``"sim3"``
+            (the scale matters for monocular estimates).
+        max_difference: association tolerance in seconds (TUM: 0.02).
+        offset: seconds added to the estimate's stamps before association.
+
+    Returns:
+        an :class:`RPEResult` (``.rmse`` = translation RMSE in metres).
+
+    Raises:
+        ValueError: bad ``delta``/``delta_unit``, no associated pairs, or no pose pair ``delta`` apart.
+    """
+    if delta_unit not in ("frames", "seconds"):
+        raise ValueError(f"delta_unit must be 'frames' or 'seconds', got {delta_unit!r}")
+    if delta_unit == "frames" and (delta < 1 or float(delta) != int(delta)):
+        raise ValueError(f"delta in frames must be a positive integer, got {delta}")
+    if delta_unit == "seconds" and not delta > 0:
+        raise ValueError(f"delta in seconds must be positive, got {delta}")
+    ref, est = _associated(reference, estimate, max_difference, offset)
+    if alignment != "none":
+        est = _align(ref, est, alignment)[3]
+    else:
+        _align(ref, est, alignment)  # validates the argument
+    if delta_unit == "frames":
+        pairs = _pairs_frames(len(est), int(delta), all_pairs)
+    else:
+        pairs = _pairs_seconds(est.timestamps, float(delta), all_pairs, time_tolerance)
+    if pairs.shape[0] == 0:
+        raise ValueError(
+            f"no pose pairs {delta} {delta_unit} apart among the {len(est)} associated poses; use a smaller delta"
+        )
+    pairs = pairs.to(est.poses.device)
+    Q, P = ref.poses, est.poses
+    E = se3_between(se3_between(Q[pairs[:, 0]], Q[pairs[:, 1]]), se3_between(P[pairs[:, 0]], P[pairs[:, 1]]))
+    trans = E[:, :3].norm(dim=-1)
+    rot = torch.rad2deg(rotation_angle(E[:, 3:]))
+    return RPEResult(
+        translation=ErrorStats.from_errors(trans), rotation=ErrorStats.from_errors(rot), delta=delta,
+        delta_unit=delta_unit, all_pairs=all_pairs, pairs=pairs, timestamps=est.timestamps[pairs],
+        trans_errors=trans, rot_errors=rot,
+    )

@@ -1,0 +1,69 @@
+"""Pose graphs: the :class:`PoseGraph` record, g2o I/O, residuals with robust kernels, sparse linear
+solvers and the Gauss-Newton / Levenberg-Marquardt optimiser.
+
+Example:
+    >>> import io
+    >>> from slam.graph import read_g2o, optimize
+    >>> text = "VERTEX_SE2 0 0 0 0\\nVERTEX_SE2 1 0.9 0 0\\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\\n"
+    >>> g = read_g2o(io.StringIO(text))
+    >>> res = optimize(g, method="lm")
+    >>> res.graph.poses.shape, round(res.chi2, 9), str(res.status)
+    (torch.Size([2, 7]), 0.0, 'converged')
+"""
+from slam.graph.costs import (
+    CHI2_95_6DOF,
+    Cauchy,
+    GemanMcClure,
+    Huber,
+    RobustKernel,
+    TrivialKernel,
+    Tukey,
+    edge_chi2,
+    edge_jacobians,
+    edge_residuals,
+    graph_chi2,
+    make_kernel,
+)
+from slam.graph.g2o import G2OFormatError, read_g2o, write_g2o
+from slam.graph.linear import (
+    DenseCholeskySolver,
+    LinearSolver,
+    LinearSolverError,
+    PCGSolver,
+    SparseCholeskySolver,
+    SuperLUSolver,
+    make_solver,
+)
+from slam.graph.optimizer import OptimizationResult, OptimizerConfig, PoseGraphOptimizer, Status, optimize
+from slam.graph.pose_graph import PoseGraph
+
+__all__ = [
+    "CHI2_95_6DOF",
+    "Cauchy",
+    "DenseCholeskySolver",
+    "G2OFormatError",
+    "GemanMcClure",
+    "Huber",
+    "LinearSolver",
+    "LinearSolverError",
+    "OptimizationResult",
+    "OptimizerConfig",
+    "PCGSolver",
+    "PoseGraph",
+    "PoseGraphOptimizer",
+    "RobustKernel",
+    "SparseCholeskySolver",
+    "Status",
+    "SuperLUSolver",
+    "TrivialKernel",
+    "Tukey",
+    "edge_chi2",
+    "edge_jacobians",
+    "edge_residuals",
+    "graph_chi2",
+    "make_kernel",
+    "make_solver",
+    "optimize",
+    "read_g2o",
+    "write_g2o",
+]

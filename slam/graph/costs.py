@@ -1,0 +1,295 @@
+"""Pose-graph residuals, their analytic Jacobians, and robust kernels, vectorised over edges.
+
+For an edge ``(i, j)`` with measurement ``z`` let ``D = z^-1 T_i^-1 T_j`` (the identity when the
+measurement is met exactly). The residual ``r (6,)`` in the ``[rho, phi]`` order is
+
+* chart ``"se3"``: ``r = Log(D)``, GTSAM's ``BetweenFactor<Pose3>`` error (so ``chi2 = 2 x`` GTSAM's error);
+  for planar poses it is the SE(2) logarithm GTSAM's ``BetweenFactor<Pose2>`` uses;
+* chart ``"r3so3"``: ``r = [t(D), Log_SO3(R(D))]``; for planar poses this is exactly the
+  ``(dx, dy, dtheta)`` error of g2o's ``EDGE_SE2``.
+
+Jacobians are taken w.r.t. right perturbations ``T <- T exp(delta)``. With ``C = dr/d(right perturbation
+of D)`` (``J_r^-1(r)`` for ``"se3"``, ``blockdiag(R(D), J_r^-1(r_phi))`` for ``"r3so3"``):
+``dr/d delta_j = C`` and ``dr/d delta_i = -C Ad(T_j^-1 T_i)`` because
+``z^-1 exp(-delta_i) T_i^-1 T_j = D exp(-Ad(T_j^-1 T_i) delta_i)``.
+
+The cost of an edge is ``rho(s)`` with ``s = r^T Omega r`` (``rho(s) = s`` without a kernel), so a
+robust cost is in the same units as chi2. Kernels give ``rho`` and the IRLS weight ``w = rho'(s)``.
+
+Example:
+    >>> import torch
+    >>> from slam.lie import se3_exp
+    >>> poses = se3_exp(torch.randn(4, 6, dtype=torch.float64) * 0.1)
+    >>> ii, jj = torch.tensor([0, 1, 2]), torch.tensor([1, 2, 3])
+    >>> r, D = edge_residuals(poses, ii, jj, se3_exp(torch.zeros(3, 6, dtype=torch.float64)))
+    >>> Ji, Jj = edge_jacobians(poses, ii, jj, D, r)
+    >>> r.shape, Ji.shape, Jj.shape
+    (torch.Size([3, 6]), torch.Size([3, 6, 6]), torch.Size([3, 6, 6]))
+    >>> Huber(1.0)(torch.tensor([0.25, 4.0]))
+    (tensor([0.2500, 3.0000]), tensor([1.0000, 0.5000]))
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Tuple, Union
+
+import torch
+
+from slam.lie import (
+    _se3_q_parts,
+    quat_to_rotmat,
+    se3_adjoint,
+    se3_between,
+    se3_compose,
+    se3_inv,
+    se3_log,
+    so3_hat,
+    so3_left_jacobian_inv,
+    so3_log,
+    so3_right_jacobian_inv,
+)
+
+__all__ = [
+    "CHI2_95_6DOF",
+    "Cauchy",
+    "GemanMcClure",
+    "Huber",
+    "RobustKernel",
+    "TrivialKernel",
+    "Tukey",
+    "edge_chi2",
+    "edge_jacobians",
+    "edge_residuals",
+    "graph_chi2",
+    "make_kernel",
+]
+
+Tensor = torch.Tensor
+
+# 95% quantile of the chi-square distribution with 6 degrees of freedom: an inlier edge has
+# s = r^T Omega r below this with probability 0.95, so kernels of this width leave inliers quadratic.
+CHI2_95_6DOF = 12.591587243743977
+
+
+def _check_edges(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor) -> None:
+    if poses.dim() != 2 or poses.shape[-1] != 7:
+        raise ValueError(f"poses must have shape (N, 7), got {tuple(poses.shape)}")
+    if ii.dim() != 1 or ii.shape != jj.shape:
+        raise ValueError(f"ii and jj must have shape (E,), got {tuple(ii.shape)} and {tuple(jj.shape)}")
+    if measurements.shape != (ii.shape[0], 7):
+        raise ValueError(f"measurements must have shape (E, 7) = ({ii.shape[0]}, 7), got "
+                         f"{tuple(measurements.shape)}")
+
+
+def edge_residuals(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor,
+                   chart: str = "se3") -> Tuple[Tensor, Tensor]:
+    """Residuals of all edges.
+
+    Args:
+        poses: ``(N, 7)`` poses.
+        ii: ``(E,)`` long, first pose of each edge.
+        jj: ``(E,)`` long, second pose of each edge.
+        measurements: ``(E, 7)`` measured ``z_ij ~= T_i^-1 T_j``.
+        chart: ``"se3"`` or ``"r3so3"`` (see the module docstring).
+
+    Returns:
+        ``r (E, 6)`` in the ``[rho, phi]`` order and the error poses ``D = z^-1 T_i^-1 T_j (E, 7)``
+        (reused by :func:`edge_jacobians`).
+    """
+    _check_edges(poses, ii, jj, measurements)
+    return _residuals(poses, ii, jj, se3_inv(measurements), chart)
+
+
+def _residuals(poses: Tensor, ii: Tensor, jj: Tensor, zinv: Tensor, chart: str) -> Tuple[Tensor, Tensor]:
+    """:func:`edge_residuals` with the inverted measurements ``zinv (E, 7)`` given (no checks)."""
+    D = se3_compose(zinv, se3_between(poses[ii], poses[jj]))
+    if chart == "se3":
+        r = se3_log(D)
+    elif chart == "r3so3":
+        r = torch.cat([D[:, :3], so3_log(D[:, 3:])], dim=-1)
+    else:
+        raise ValueError(f"chart must be 'se3' or 'r3so3', got {chart!r}")
+    return r, D
+
+
+def edge_jacobians(poses: Tensor, ii: Tensor, jj: Tensor, D: Tensor, r: Tensor,
+                   chart: str = "se3", measurements: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+    """Analytic Jacobians of the residuals w.r.t. right perturbations of ``T_i`` and ``T_j``.
+
+    Args:
+        poses: ``(N, 7)`` poses.
+        ii: ``(E,)`` first pose of each edge.
+        jj: ``(E,)`` second pose of each edge.
+        D: ``(E, 7)`` error poses from :func:`edge_residuals`.
+        r: ``(E, 6)`` residuals from :func:`edge_residuals`.
+        chart: the chart ``r`` was computed in.
+        measurements: ``(E, 7)``, optional: for the ``"se3"`` chart it allows the shorter form
+            ``J_i = -J_l^-1(r) Ad(z^-1)`` (from ``J_r^-1(r) Ad(exp(-r)) = J_l^-1(r)``).
+
+    Returns:
+        ``J_i (E, 6, 6)`` and ``J_j (E, 6, 6)`` with
+        ``r(T_i exp(d_i), T_j exp(d_j)) ~= r + J_i d_i + J_j d_j``.
+    """
+    if chart == "se3":
+        if measurements is None:
+            ad = se3_adjoint(D) @ se3_adjoint(se3_between(poses[jj], poses[ii]))  # = Ad(z^-1)
+        else:
+            ad = se3_adjoint(se3_inv(measurements))
+        return _se3_jacobians(r, ad)
+    if chart == "r3so3":
+        C = torch.zeros(r.shape[0], 6, 6, dtype=r.dtype, device=r.device)
+        C[:, :3, :3] = quat_to_rotmat(D[:, 3:])
+        C[:, 3:, 3:] = so3_right_jacobian_inv(r[:, 3:])
+        return -(C @ se3_adjoint(se3_between(poses[jj], poses[ii]))), C
+    raise ValueError(f"chart must be 'se3' or 'r3so3', got {chart!r}")
+
+
+def _se3_jacobians(r: Tensor, ad_zinv: Tensor) -> Tuple[Tensor, Tensor]:
+    """``J_i = -J_l^-1(r) Ad(z^-1)`` and ``J_j = J_r^-1(r) = J_l^-1(-r)`` from one evaluation of the shared
+    terms: ``J_l^-1(-phi) = J_l^-1(phi)^T`` for SO(3), and ``Q(-xi)`` differs from ``Q(xi)`` only in the
+    sign of its skew part."""
+    A = so3_left_jacobian_inv(r[:, 3:])
+    At = A.transpose(1, 2)
+    v, E = _se3_q_parts(r)
+    V = so3_hat(v)
+    n = r.shape[0]
+    Jl = r.new_zeros(n, 6, 6)
+    Jl[:, :3, :3] = A
+    Jl[:, 3:, 3:] = A
+    Jl[:, :3, 3:] = -(A @ (V + E) @ A)
+    Jj = r.new_zeros(n, 6, 6)
+    Jj[:, :3, :3] = At
+    Jj[:, 3:, 3:] = At
+    Jj[:, :3, 3:] = -(At @ (E - V) @ At)
+    return -(Jl @ ad_zinv), Jj
+
+
+def edge_chi2(r: Tensor, information: Tensor) -> Tensor:
+    """Squared Mahalanobis norms ``s = r^T Omega r`` ``(E,)`` of residuals ``(E, 6)``."""
+    return torch.einsum("ei,eij,ej->e", r, information, r)
+
+
+def graph_chi2(graph) -> float:
+    """``sum_e r_e^T Omega_e r_e`` of a :class:`~slam.graph.pose_graph.PoseGraph` at its poses.
+
+    GTSAM reports half of this (its error is ``0.5 * chi2``).
+    """
+    if graph.num_edges == 0:
+        return 0.0
+    r, _ = edge_residuals(graph.poses, graph.ii, graph.jj, graph.measurements, graph.chart)
+    return float(edge_chi2(r, graph.information).sum())
+
+
+# ----------------------------------------------------------------------------------------------
+# Robust kernels on s = r^T Omega r (rho(s) ~= s for small s, so robust costs read like chi2)
+# ----------------------------------------------------------------------------------------------
+class RobustKernel:
+    """Base class: ``kernel(s) -> (rho(s), w(s) = rho'(s))`` for squared Mahalanobis norms ``s (E,)``.
+
+    Subclasses implement :meth:`rho_and_weight`; the optimiser uses ``w`` as the IRLS weight of the edge
+    (its information becomes ``w * Omega`` in the normal equations) and ``rho`` as its cost.
+    """
+
+    name = "trivial"
+
+    def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def __call__(self, s: Tensor) -> Tuple[Tensor, Tensor]:
+        if not isinstance(s, Tensor) or s.dim() != 1:
+            raise ValueError(f"s must be a tensor of shape (E,), got {getattr(s, 'shape', type(s))}")
+        return self.rho_and_weight(s)
+
+
+class TrivialKernel(RobustKernel):
+    """No robustness: ``rho(s) = s``, ``w = 1``."""
+
+    def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
+        return s, torch.ones_like(s)
+
+
+@dataclass
+class _Width(RobustKernel):
+    width: float = math.sqrt(CHI2_95_6DOF)  # kernel width on the Mahalanobis norm sqrt(s)
+
+    def __post_init__(self) -> None:
+        if not self.width > 0:
+            raise ValueError(f"{type(self).__name__} width must be > 0, got {self.width}")
+
+
+@dataclass
+class Huber(_Width):
+    """Huber: quadratic up to ``sqrt(s) = width``, linear beyond (``rho = 2 d sqrt(s) - d^2``)."""
+
+    name = "huber"
+
+    def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
+        d2 = self.width ** 2
+        e = torch.sqrt(s.clamp_min(d2))  # >= width: no 0 division on the quadratic branch
+        inl = s <= d2
+        rho = torch.where(inl, s, 2.0 * self.width * e - d2)
+        w = torch.where(inl, torch.ones_like(s), self.width / e)
+        return rho, w
+
+
+@dataclass
+class Cauchy(_Width):
+    """Cauchy (Lorentzian): ``rho = c^2 log(1 + s / c^2)``, ``w = 1 / (1 + s / c^2)``."""
+
+    name = "cauchy"
+
+    def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
+        c2 = self.width ** 2
+        return c2 * torch.log1p(s / c2), 1.0 / (1.0 + s / c2)
+
+
+@dataclass
+class Tukey(_Width):
+    """Tukey biweight: ``rho = c^2/3 (1 - (1 - s/c^2)^3)`` inside ``s < c^2``, constant outside (w = 0)."""
+
+    name = "tukey"
+
+    def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
+        c2 = self.width ** 2
+        u = (1.0 - s / c2).clamp_min(0.0)
+        return c2 / 3.0 * (1.0 - u ** 3), u * u
+
+
+@dataclass
+class GemanMcClure(_Width):
+    """Geman-McClure: ``rho = c^2 s / (c^2 + s)``, ``w = c^4 / (c^2 + s)^2``."""
+
+    name = "geman_mcclure"
+
+    def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
+        c2 = self.width ** 2
+        den = c2 + s
+        return c2 * s / den, (c2 / den) ** 2
+
+
+_KERNELS = {"huber": Huber, "cauchy": Cauchy, "tukey": Tukey, "geman_mcclure": GemanMcClure,
+            "gm": GemanMcClure}
+
+
+def make_kernel(kernel: Union[None, str, RobustKernel],
+                width: Optional[float] = None) -> Optional[RobustKernel]:
+    """A kernel object from a name (``"huber"``, ``"cauchy"``, ``"tukey"``, ``"geman_mcclure"``), an
+    object (returned as is) or ``None``/``"none"`` (no kernel, returns ``None``).
+
+    Args:
+        kernel: the name or object.
+        width: width on ``sqrt(s)`` for a kernel made from a name (default ``sqrt(chi2_0.95(6)) = 3.55``).
+    """
+    if kernel is None or isinstance(kernel, TrivialKernel):
+        return None
+    if isinstance(kernel, RobustKernel):
+        return kernel
+    if isinstance(kernel, str):
+        key = kernel.lower().replace("-", "_")
+        if key in ("none", "l2", "trivial"):
+            return None
+        if key in _KERNELS:
+            return _KERNELS[key]() if width is None else _KERNELS[key](width)
+        raise ValueError(f"unknown robust kernel {kernel!r}; expected one of {sorted(_KERNELS)} or 'none'")
+    raise TypeError(f"kernel must be None, a name or a RobustKernel, got {type(kernel).__name__}")

@@ -1,0 +1,379 @@
+"""Sparse normal equations of a pose graph and pluggable solvers for them.
+
+The Gauss-Newton system ``H dx = -g`` has one ``k x k`` block per pair of connected free poses
+(``k = 6``, or ``3`` for planar graphs). Its sparsity pattern depends only on the edges, so it is built
+once (:func:`build_pattern`, vectorised, no Python loop over edges) as a list of blocks sorted by
+(row, column); ``H`` is then stored block-major, ``values (nb * k * k,)`` = the ``nb`` blocks one after
+the other, and every iteration only adds the four ``k x k`` blocks of each edge's
+``[J_i, J_j]^T W Omega [J_i, J_j]`` into it with one ``index_add_`` over block ids.
+
+Solvers (all ``solver.solve(pattern, values, b) -> x``):
+
+* :class:`SparseCholeskySolver` — sparse direct: a supernodal multifrontal Cholesky
+  (:mod:`slam.graph.cholesky`; symbolic analysis cached per pattern, numeric work in batched torch
+  calls plus direct LAPACK calls for single fronts on the CPU). Needs scipy (ordering, LAPACK). The
+  default when scipy is importable.
+* :class:`SuperLUSolver` — scipy's SuperLU (symmetric mode, minimum-degree ordering): a reference
+  sparse direct solver, CPU only, ~1.5-2x slower on the benchmark graphs.
+* :class:`DenseCholeskySolver` — ``torch.linalg.cholesky`` on the dense matrix: pure torch, any device,
+  for systems up to a few thousand unknowns.
+* :class:`PCGSolver` — block-Jacobi preconditioned conjugate gradient in pure torch (block-sparse
+  mat-vec), any device and size; iterative, so less exact than the direct solvers, and slow on long
+  chains (ill-conditioned).
+
+Example:
+    >>> import torch
+    >>> ii, jj = torch.tensor([0, 1, 0]), torch.tensor([1, 2, 2])
+    >>> pat = build_pattern(ii, jj, torch.tensor([False, True, True]), k=6)
+    >>> pat.num_vars, pat.num_blocks, pat.edge_blocks.shape
+    (2, 4, torch.Size([3, 4]))
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Union
+
+import torch
+
+__all__ = [
+    "BlockPattern",
+    "DenseCholeskySolver",
+    "LinearSolver",
+    "LinearSolverError",
+    "PCGSolver",
+    "SparseCholeskySolver",
+    "SuperLUSolver",
+    "assemble",
+    "assemble_blocks",
+    "build_pattern",
+    "make_solver",
+    "scipy_available",
+    "to_dense",
+]
+
+Tensor = torch.Tensor
+
+
+class LinearSolverError(RuntimeError):
+    """The linear system could not be solved (singular / indefinite / did not converge)."""
+
+
+def scipy_available() -> bool:
+    try:
+        import scipy.sparse.linalg  # noqa: F401
+    except ImportError:  # pragma: no cover - scipy is installed in dev
+        return False
+    return True
+
+
+@dataclass
+class BlockPattern:
+    """Block sparsity pattern of the reduced normal equations (free poses only), symmetric.
+
+    Attributes:
+        num_vars: number of free poses ``n``.
+        k: unknowns per pose (6, or 3 for planar problems).
+        var_index: ``(N,)`` long, the variable of each pose, ``-1`` for a fixed pose.
+        block_rows: ``(nb,)`` long block row of each stored block (sorted by row, then column).
+        block_cols: ``(nb,)`` long block column of each stored block.
+        diag_blocks: ``(n,)`` long, the block id of each diagonal block.
+        diag_pos: ``(n k,)`` long, position of each diagonal entry of ``H`` in the value array.
+        edge_blocks: ``(E, 4)`` long, block ids of an edge's ``(i, i), (i, j), (j, i), (j, j)`` blocks;
+            ``nb`` (a dump block) where a fixed pose is involved.
+        edge_vars: ``(E, 2)`` long, variables of ``i`` and ``j``; ``n`` (a dump row) for a fixed pose.
+    """
+
+    num_vars: int
+    k: int
+    var_index: Tensor
+    block_rows: Tensor
+    block_cols: Tensor
+    diag_blocks: Tensor
+    diag_pos: Tensor
+    edge_blocks: Tensor
+    edge_vars: Tensor
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def size(self) -> int:
+        return self.num_vars * self.k
+
+    @property
+    def num_blocks(self) -> int:
+        return int(self.block_rows.shape[0])
+
+    @property
+    def nnz(self) -> int:
+        return self.num_blocks * self.k * self.k
+
+
+def build_pattern(ii: Tensor, jj: Tensor, free: Tensor, k: int = 6) -> BlockPattern:
+    """Build the symmetric block pattern of ``H`` for edges ``(ii, jj)``.
+
+    Args:
+        ii: ``(E,)`` long first pose of each edge.
+        jj: ``(E,)`` long second pose of each edge.
+        free: ``(N,)`` bool, the poses that are optimised (the others are held fixed).
+        k: unknowns per pose.
+
+    Returns:
+        The :class:`BlockPattern`.
+    """
+    if ii.dim() != 1 or ii.shape != jj.shape:
+        raise ValueError(f"ii and jj must have shape (E,), got {tuple(ii.shape)} and {tuple(jj.shape)}")
+    if free.dim() != 1 or free.dtype != torch.bool:
+        raise ValueError(f"free must be a bool tensor of shape (N,), got {free.dtype} {tuple(free.shape)}")
+    dev = ii.device
+    n = int(free.sum())
+    nn = max(n, 1)
+    var = torch.where(free, torch.cumsum(free.long(), 0) - 1, torch.full_like(free, -1, dtype=torch.long))
+    vi, vj = var[ii], var[jj]
+    both = (vi >= 0) & (vj >= 0)
+    ar = torch.arange(n, device=dev)
+    keys = torch.unique(torch.cat([ar * nn + ar, vi[both] * nn + vj[both], vj[both] * nn + vi[both]]))
+    nb = keys.shape[0]
+    # block id of (r, c) by binary search in the sorted keys; the dump block nb where a pose is fixed
+    r = torch.stack([vi, vi, vj, vj], -1)
+    c = torch.stack([vi, vj, vi, vj], -1)
+    ok = (r >= 0) & (c >= 0)
+    blk = torch.searchsorted(keys, torch.where(ok, r * nn + c, torch.zeros_like(r)))
+    edge_blocks = torch.where(ok, blk, torch.full_like(blk, nb))
+    diag_blocks = torch.searchsorted(keys, ar * nn + ar)
+    a = torch.arange(k, device=dev)
+    diag_pos = ((diag_blocks * (k * k))[:, None] + a * (k + 1)).reshape(-1)
+    edge_vars = torch.stack([vi, vj], -1)
+    edge_vars = torch.where(edge_vars >= 0, edge_vars, torch.full_like(edge_vars, n))
+    return BlockPattern(n, k, var, keys // nn, keys % nn, diag_blocks, diag_pos, edge_blocks, edge_vars)
+
+
+def assemble(pattern: BlockPattern, H_edges: Tensor, g_edges: Tensor):
+    """Add the per-edge blocks into the sparse system.
+
+    Args:
+        pattern: from :func:`build_pattern`.
+        H_edges: ``(E, 2k, 2k)`` per-edge ``[J_i, J_j]^T W Omega [J_i, J_j]``.
+        g_edges: ``(E, 2k)`` per-edge ``[J_i, J_j]^T W Omega r``.
+
+    Returns:
+        ``values (nb k k,)`` of ``H`` (block-major) and the gradient ``g (n k,)``.
+    """
+    k, E = pattern.k, H_edges.shape[0]
+    blocks = H_edges.view(E, 2, k, 2, k).transpose(2, 3)  # (ii, ij, ji, jj)
+    return assemble_blocks(pattern, blocks, g_edges.view(E, 2, k))
+
+
+def assemble_blocks(pattern: BlockPattern, blocks: Tensor, g_edges: Tensor):
+    """:func:`assemble` from the blocks ``(E, 2, 2, k, k)`` (or ``(E, 4, k, k)``: ii, ij, ji, jj) and
+    ``g_edges (E, 2, k)``."""
+    k, E = pattern.k, blocks.shape[0]
+    H = torch.zeros(pattern.num_blocks + 1, k, k, dtype=blocks.dtype, device=blocks.device)
+    H.index_add_(0, pattern.edge_blocks.reshape(-1), blocks.reshape(E * 4, k, k))
+    g = torch.zeros(pattern.num_vars + 1, k, dtype=g_edges.dtype, device=g_edges.device)
+    g.index_add_(0, pattern.edge_vars.reshape(-1), g_edges.reshape(E * 2, k))
+    return H[:-1].reshape(-1), g[:-1].reshape(-1)
+
+
+def to_dense(pattern: BlockPattern, values: Tensor) -> Tensor:
+    """The dense ``(n k, n k)`` matrix of block-major ``values``."""
+    n, k = pattern.num_vars, pattern.k
+    A = torch.zeros(n, n, k, k, dtype=values.dtype, device=values.device)
+    A[pattern.block_rows.to(values.device), pattern.block_cols.to(values.device)] = values.view(-1, k, k)
+    return A.permute(0, 2, 1, 3).reshape(n * k, n * k)
+
+
+# ----------------------------------------------------------------------------------------------
+class LinearSolver:
+    """Interface: ``solve(pattern, values (nnz,), b (n k,)) -> x (n k,)`` for the SPD system ``H x = b``."""
+
+    name = "base"
+
+    def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:  # pragma: no cover
+        raise NotImplementedError
+
+
+class SparseCholeskySolver(LinearSolver):
+    """Supernodal sparse Cholesky (:class:`slam.graph.cholesky.SymbolicCholesky`), float64.
+
+    The symbolic analysis is stored on the pattern, so every further factorisation of the same pattern
+    (LM retries, later iterations) only does numeric work.
+    """
+
+    name = "sparse"
+
+    def __init__(self):
+        if not scipy_available():  # pragma: no cover
+            raise ImportError("SparseCholeskySolver needs scipy for its ordering (pip install scipy); "
+                              "use solver='dense' or 'pcg'")
+
+    def symbolic(self, pattern: BlockPattern):
+        from slam.graph.cholesky import SymbolicCholesky
+
+        if "symbolic" not in pattern._cache:
+            pattern._cache["symbolic"] = SymbolicCholesky(pattern)
+        return pattern._cache["symbolic"]
+
+    def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
+        from slam.graph.cholesky import NotPositiveDefiniteError
+
+        if pattern.size == 0:
+            return b.clone()
+        sym = self.symbolic(pattern)
+        try:
+            fac = sym.factor(values.detach().to(torch.float64))
+        except NotPositiveDefiniteError as exc:
+            raise LinearSolverError(str(exc)) from None
+        x = fac.solve(b.detach().to(torch.float64))
+        if not bool(torch.isfinite(x).all()):
+            raise LinearSolverError("sparse Cholesky produced non-finite values (singular system)")
+        return x.to(b.dtype)
+
+
+class SuperLUSolver(LinearSolver):
+    """Sparse direct solve with scipy's SuperLU (symmetric mode, multiple-minimum-degree ordering on
+    ``H``, no pivoting: for an SPD matrix this is a sparse LDL^T/Cholesky-like factorisation).
+
+    Args:
+        ordering: SuperLU column ordering; ``"MMD_AT_PLUS_A"`` (minimum degree on ``H + H^T``) gave
+            2-5x less fill than COLAMD on the benchmark graphs.
+    """
+
+    name = "superlu"
+
+    def __init__(self, ordering: str = "MMD_AT_PLUS_A"):
+        if not scipy_available():  # pragma: no cover
+            raise ImportError("SuperLUSolver needs scipy (pip install scipy); use solver='dense' or 'pcg'")
+        self.ordering = ordering
+
+    def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
+        import numpy as np
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as sla
+
+        if pattern.size == 0:
+            return b.clone()
+        n, k = pattern.num_vars, pattern.k
+        rows = pattern.block_rows.cpu().numpy()
+        indptr = np.searchsorted(rows, np.arange(n + 1))
+        data = values.detach().to("cpu", torch.float64).numpy().reshape(-1, k, k)
+        A = sp.bsr_matrix((data, pattern.block_cols.cpu().numpy(), indptr), shape=(n * k, n * k)).tocsc()
+        try:
+            lu = sla.splu(A, permc_spec=self.ordering, diag_pivot_thresh=0.0,
+                          options={"SymmetricMode": True})
+            x = lu.solve(b.detach().to("cpu", torch.float64).numpy())
+        except RuntimeError as exc:  # "Factor is exactly singular"
+            raise LinearSolverError(f"sparse factorisation failed: {exc}") from None
+        if not np.isfinite(x).all():
+            raise LinearSolverError("sparse factorisation produced non-finite values (singular system)")
+        return torch.from_numpy(x).to(device=b.device, dtype=b.dtype)
+
+
+class DenseCholeskySolver(LinearSolver):
+    """Dense ``torch.linalg.cholesky_ex`` + triangular solves (pure torch, follows the device)."""
+
+    name = "dense"
+
+    def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
+        m = pattern.size
+        if m == 0:
+            return b.clone()
+        A = to_dense(pattern, values)
+        L, info = torch.linalg.cholesky_ex(A)
+        if int(info) != 0:
+            raise LinearSolverError("dense Cholesky failed: the matrix is not positive definite "
+                                    f"(leading minor {int(info)})")
+        return torch.cholesky_solve(b[:, None], L)[:, 0]
+
+
+class PCGSolver(LinearSolver):
+    """Block-Jacobi preconditioned conjugate gradient in pure torch (block-sparse mat-vec).
+
+    Args:
+        rtol: stop when ``||H x - b|| <= rtol ||b||``.
+        max_iterations: CG iteration cap (raises :class:`LinearSolverError` if not met and ``strict``).
+        strict: raise when the tolerance is not met; otherwise return the last iterate.
+    """
+
+    name = "pcg"
+
+    def __init__(self, rtol: float = 1e-10, max_iterations: int = 2000, strict: bool = False):
+        self.rtol = rtol
+        self.max_iterations = max_iterations
+        self.strict = strict
+        self.last_iterations = 0
+
+    def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
+        m = pattern.size
+        if m == 0:
+            return b.clone()
+        dev = values.device
+        k = pattern.k
+        blocks = values.view(-1, k, k)
+        brow, bcol = pattern.block_rows.to(dev), pattern.block_cols.to(dev)
+
+        def matvec(v: Tensor) -> Tensor:  # block-sparse: y[row] += B @ x[col]
+            prod = (blocks @ v.view(-1, k)[bcol][:, :, None])[..., 0]
+            return torch.zeros_like(v).view(-1, k).index_add_(0, brow, prod).view(-1)
+
+        D = blocks[pattern.diag_blocks.to(dev)]  # (n, k, k)
+        L, info = torch.linalg.cholesky_ex(D)
+        if bool((info != 0).any()):
+            raise LinearSolverError("PCG: a diagonal block of H is not positive definite")
+
+        def precond(r: Tensor) -> Tensor:
+            return torch.cholesky_solve(r.reshape(-1, k, 1), L).reshape(-1)
+
+        x = torch.zeros_like(b)
+        r = b.clone()
+        z = precond(r)
+        p = z.clone()
+        rz = torch.dot(r, z)
+        bn = b.norm()
+        tol = self.rtol * bn
+        it = 0
+        for it in range(1, self.max_iterations + 1):
+            Ap = matvec(p)
+            pAp = torch.dot(p, Ap)
+            if not bool(pAp > 0):
+                raise LinearSolverError("PCG: the matrix is not positive definite")
+            alpha = rz / pAp
+            x = x + alpha * p
+            r = r - alpha * Ap
+            if bool(r.norm() <= tol):
+                break
+            z = precond(r)
+            rz_new = torch.dot(r, z)
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        self.last_iterations = it
+        if self.strict and bool(r.norm() > tol):
+            raise LinearSolverError(f"PCG did not reach rtol={self.rtol} in {self.max_iterations} iterations")
+        return x
+
+
+def make_solver(solver: Union[None, str, LinearSolver], size: int = 0) -> LinearSolver:
+    """A solver from a name (``"auto"``, ``"sparse"``, ``"superlu"``, ``"dense"``, ``"pcg"``) or an object.
+
+    ``"auto"``: the dense Cholesky up to 240 unknowns (40 poses; it skips the sparse symbolic analysis,
+    about 2x faster there), then the sparse direct solver when scipy is importable, else the dense
+    Cholesky up to 6000 unknowns and PCG beyond.
+    """
+    if isinstance(solver, LinearSolver):
+        return solver
+    name = "auto" if solver is None else str(solver).lower()
+    if name == "auto":
+        if size <= 240:
+            return DenseCholeskySolver()
+        if scipy_available():
+            return SparseCholeskySolver()
+        return DenseCholeskySolver() if size <= 6000 else PCGSolver()
+    if name in ("sparse", "cholesky"):
+        return SparseCholeskySolver()
+    if name in ("superlu", "splu"):
+        return SuperLUSolver()
+    if name == "dense":
+        return DenseCholeskySolver()
+    if name in ("pcg", "cg"):
+        return PCGSolver()
+    raise ValueError(f"unknown linear solver {solver!r}; expected 'auto', 'sparse', 'superlu', 'dense', "
+                     "'pcg' "
+                     "or a LinearSolver")

@@ -1,0 +1,419 @@
+"""Gauss-Newton and Levenberg-Marquardt for pose graphs over sparse normal equations.
+
+Each iteration linearises every edge at once (:mod:`slam.graph.costs`), scatters the per-edge blocks
+into a fixed sparse pattern (:mod:`slam.graph.linear`), solves ``(H + lambda D) dx = -g`` and retracts
+``T <- T exp(dx)`` (right perturbation).
+
+Gauge (a pose graph is invariant to moving all poses rigidly): ``"free"`` (default for LM) leaves the
+gauge to the LM damping, as GTSAM does without a prior: the damped step is then the smallest of the
+equally good Gauss-Newton steps, which from an odometry guess converges in fewer iterations than holding
+pose 0 (parking-garage: 4 instead of 6, the same costs per iteration as GTSAM); the result is then moved
+rigidly so that pose 0 keeps its initial value. ``"first"`` holds pose 0 constant (its unknowns are
+removed; GN always does this), ``"prior"`` adds a strong prior on pose 0. Poses listed in ``fixed`` are
+held constant too (and then anchor the result themselves).
+
+Costs: ``chi2 = sum_e r_e^T Omega_e r_e`` (GTSAM's ``graph.error`` is ``0.5 * chi2``); with a robust
+kernel the optimiser minimises ``sum_e rho(s_e)`` (reported as ``robust_cost``), ``chi2`` is still the
+plain sum. For a planar graph (z = roll = pitch = 0 everywhere, as read from a 2D g2o file) the
+problem splits exactly into (x, y, yaw) and (z, roll, pitch) parts with a zero gradient in the latter,
+so only the 3-DoF part is solved (a 4x smaller system, identical result).
+
+Example:
+    >>> import torch
+    >>> from slam.lie import se3_exp
+    >>> from slam.graph.pose_graph import PoseGraph
+    >>> step = se3_exp(torch.tensor([1.0, 0, 0, 0, 0, 0.5], dtype=torch.float64))
+    >>> g = PoseGraph.from_lists([se3_exp(0.1 * torch.ones(6, dtype=torch.float64))] * 3,
+    ...                          [(0, 1, step), (1, 2, step), (0, 2, se3_exp(torch.tensor(
+    ...                              [1.0 + 0.97, 0.48, 0, 0, 0, 1.0], dtype=torch.float64)))])
+    >>> res = optimize(g, method="lm")
+    >>> res.status, res.graph.poses.shape, res.chi2 < res.initial_chi2
+    (<Status.CONVERGED: 'converged'>, torch.Size([3, 7]), True)
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Dict, List, Optional, Tuple, Union
+
+import torch
+
+from slam.graph.cholesky import limit_blas_threads
+from slam.graph.costs import (
+    RobustKernel,
+    _residuals,
+    _se3_jacobians,
+    edge_chi2,
+    edge_jacobians,
+    make_kernel,
+)
+from slam.graph.linear import (
+    BlockPattern,
+    LinearSolver,
+    LinearSolverError,
+    assemble_blocks,
+    build_pattern,
+    make_solver,
+    scipy_available,
+)
+from slam.graph.pose_graph import PoseGraph, first_bad_information
+from slam.lie import se3_adjoint, se3_compose, se3_exp, se3_inv, se3_log, se3_right_jacobian_inv
+
+__all__ = ["OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
+
+Tensor = torch.Tensor
+
+_PLANAR_DIMS = [0, 1, 5]  # x, y, yaw in the [rho, phi] tangent order
+
+
+class Status(str, Enum):
+    """Why the optimiser stopped (a ``str``, so ``result.status == "converged"`` works)."""
+
+    CONVERGED = "converged"  # a stopping rule on the cost decrease (or the cost itself) was met
+    MAX_ITERATIONS = "max_iterations"  # the iteration cap was reached first
+    LAMBDA_LIMIT = "lambda_limit"  # LM: no damping up to lambda_max decreased the cost (minimum reached)
+    DIVERGED = "diverged"  # GN: a step increased the cost; the best poses are returned
+    SOLVER_FAILED = "solver_failed"  # the linear system could not be solved (e.g. unconstrained poses in GN)
+
+    def __str__(self) -> str:  # print as the plain word
+        return self.value
+
+
+@dataclass
+class OptimizerConfig:
+    """Settings of :func:`optimize` (all thresholds in chi2 units, i.e. 2x GTSAM's error)."""
+
+    max_iterations: int = 100  # outer iterations (accepted or GN steps); GTSAM's default is 100
+    rel_tol: float = 1e-5  # converged when (cost - new_cost) < rel_tol * cost  (GTSAM relativeErrorTol)
+    abs_tol: float = 2e-5  # converged when cost - new_cost < abs_tol  (GTSAM absoluteErrorTol 1e-5 x 2)
+    cost_tol: float = 0.0  # converged when the cost falls to this value
+    lambda_init: float = 1e-5  # initial LM damping (GTSAM's default)
+    lambda_factor: float = 10.0  # lambda /= factor after a good step, *= factor after a bad one
+    lambda_min: float = 1e-12  # lower clamp of lambda
+    lambda_max: float = 1e10  # LM gives up (status lambda_limit) beyond this damping
+    damping: str = "identity"  # "identity": H + lambda I (GTSAM's default); "diagonal": H + lambda diag(H)
+    # "free": LM damping, then re-anchored on pose 0; "first": hold pose 0; "prior": a prior on pose 0
+    gauge: str = "free"
+    prior_weight: float = 1e8  # information of the "prior" gauge (rotation and translation alike)
+    fixed: Tuple[int, ...] = ()  # further pose indices held constant (e.g. an already-optimised map)
+    kernel_width: Optional[float] = None  # width of a kernel given by name (default sqrt(chi2_0.95(6)))
+    planar: Optional[bool] = None  # solve only (x, y, yaw); None: auto-detect with PoseGraph.is_planar()
+    check_information: bool = True  # check every information matrix is SPD before optimising
+    # torch (and OpenBLAS) threads during the call (restored afterwards; None leaves them). The work is
+    # many small batched ops: on a busy CPU torch's OpenMP pool slowed them 10-40x when it had more
+    # threads than free cores, while one thread loses little on an idle machine.
+    num_threads: Optional[int] = 1
+    verbose: bool = False  # print one line per iteration
+
+
+@dataclass
+class OptimizationResult:
+    """What :func:`optimize` returns.
+
+    Attributes:
+        graph: the optimised :class:`PoseGraph` (same edges, new poses ``(N, 7)``; input dtype/device).
+        chi2: final ``sum r^T Omega r`` (GTSAM error = ``0.5 * chi2``), without the prior of the gauge.
+        initial_chi2: the same at the initial poses.
+        robust_cost: final ``sum rho(s)`` when a kernel was used, else ``None``.
+        status: a :class:`Status`.
+        iterations: outer iterations done (accepted LM steps / GN steps).
+        cost_history: the optimised cost after each iteration, starting with the initial one
+            (chi2, or the robust cost with a kernel, plus the prior of a ``"prior"`` gauge).
+        lambda_history: LM damping used for each accepted step.
+        timings: seconds spent in ``setup``, ``linearize`` (residuals, Jacobians, assembly), ``solve``,
+            ``evaluate`` (costs of trial steps) and ``total``.
+        weights: ``(E,)`` final kernel weights (all ones without a kernel): near 0 marks a rejected edge.
+    """
+
+    graph: PoseGraph
+    chi2: float
+    initial_chi2: float
+    status: Status
+    iterations: int
+    robust_cost: Optional[float] = None
+    cost_history: List[float] = field(default_factory=list)
+    lambda_history: List[float] = field(default_factory=list)
+    timings: Dict[str, float] = field(default_factory=dict)
+    weights: Optional[Tensor] = None
+    message: str = ""
+
+    @property
+    def error(self) -> float:
+        """GTSAM's error convention: ``0.5 * chi2``."""
+        return 0.5 * self.chi2
+
+    @property
+    def converged(self) -> bool:
+        return self.status in (Status.CONVERGED, Status.LAMBDA_LIMIT)
+
+
+class _Problem:
+    """The per-call state: float64 copies of the graph's tensors, the pattern and helpers."""
+
+    def __init__(self, graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str):
+        dt = torch.float64
+        P = graph.poses.to(dt)
+        # unit quaternions (validated to 1e-3) made exact; the sign is kept so that untouched poses
+        # come back as they went in
+        self.poses = torch.cat([P[:, :3], P[:, 3:] / P[:, 3:].norm(dim=-1, keepdim=True)], dim=-1)
+        self.ii, self.jj = graph.ii, graph.jj
+        self.meas = graph.measurements.to(dt)
+        self.zinv = se3_inv(self.meas)  # constant per call: inverted once
+        self.ad_zinv = se3_adjoint(self.zinv) if graph.chart == "se3" else None
+        self.info = graph.information.to(dt)
+        self.chart = graph.chart
+        self.kernel = kernel
+        N = self.poses.shape[0]
+        planar = graph.is_planar() if cfg.planar is None else bool(cfg.planar)
+        self.dims = torch.tensor(_PLANAR_DIMS, device=self.poses.device) if planar else None
+        self.k = 3 if planar else 6
+        if self.dims is not None:
+            self.info_red = self.info[:, self.dims][:, :, self.dims]
+        else:
+            self.info_red = self.info
+        free = torch.ones(N, dtype=torch.bool, device=self.poses.device)
+        fixed = list(cfg.fixed)
+        if gauge == "first":
+            fixed.append(0)
+        for f in fixed:
+            if not 0 <= int(f) < N:
+                raise ValueError(f"fixed pose index {f} is out of range [0, {N})")
+            free[int(f)] = False
+        self.pattern: BlockPattern = build_pattern(self.ii, self.jj, free, self.k)
+        self.prior = None
+        # "free": nothing held, unless the caller fixes poses (which then anchor the result)
+        self.reanchor = gauge == "free" and not fixed
+        if gauge == "prior" and bool(free[0]):
+            self.prior = (self.poses[0].clone(), cfg.prior_weight, int(self.pattern.var_index[0]))
+
+    # -- costs ----------------------------------------------------------------------------------
+    def evaluate(self, poses: Tensor):
+        """Residuals, error poses, per-edge chi2, robust cost terms and weights at ``poses``."""
+        r, D = _residuals(poses, self.ii, self.jj, self.zinv, self.chart)
+        s = edge_chi2(r, self.info)
+        if self.kernel is None:
+            rho, w = s, None
+        else:
+            rho, w = self.kernel(s)
+        cost = float(rho.sum())
+        if self.prior is not None:
+            p0, wgt, _ = self.prior
+            r0 = se3_log(se3_compose(se3_inv(p0), poses[0]))
+            cost += wgt * float((r0 * r0).sum())
+        return cost, float(s.sum()), (r, D, w)
+
+    def linearize(self, poses: Tensor, cache):
+        r, D, w = cache
+        if self.ad_zinv is not None:
+            Ji, Jj = _se3_jacobians(r, self.ad_zinv)
+        else:
+            Ji, Jj = edge_jacobians(poses, self.ii, self.jj, D, r, self.chart)
+        info = self.info
+        if self.dims is not None:
+            d = self.dims
+            Ji, Jj, r, info = Ji[:, d][:, :, d], Jj[:, d][:, :, d], r[:, d], self.info_red
+        if w is not None:
+            info = info * w[:, None, None]
+        # the four k x k blocks of [Ji, Jj]^T W [Ji, Jj] (ji is ij transposed) and the gradient
+        Jit, Jjt = Ji.transpose(1, 2), Jj.transpose(1, 2)
+        Hij = Jit @ (info @ Jj)
+        blocks = torch.stack([Jit @ (info @ Ji), Hij, Hij.transpose(1, 2), Jjt @ (info @ Jj)], 1)
+        Wr = info @ r[:, :, None]
+        gb = torch.stack([Jit @ Wr, Jjt @ Wr], 1)
+        H, g = assemble_blocks(self.pattern, blocks, gb)
+        if self.prior is not None:
+            p0, wgt, v0 = self.prior
+            r0 = se3_log(se3_compose(se3_inv(p0), poses[0]))
+            J0 = se3_right_jacobian_inv(r0)
+            if self.dims is not None:
+                J0, r0 = J0[self.dims][:, self.dims], r0[self.dims]
+            k = self.k
+            pos = int(self.pattern.diag_blocks[v0]) * k * k + torch.arange(k * k, device=H.device)
+            H = H.index_add(0, pos, (wgt * J0.T @ J0).reshape(-1))
+            g = g.index_add(0, torch.arange(v0 * k, v0 * k + k, device=g.device), wgt * J0.T @ r0)
+        return H, g
+
+    def retract(self, poses: Tensor, dx: Tensor) -> Tensor:
+        xi = dx.reshape(-1, self.k)
+        if self.dims is not None:
+            full = torch.zeros(xi.shape[0], 6, dtype=xi.dtype, device=xi.device)
+            full[:, self.dims] = xi
+            xi = full
+        var = self.pattern.var_index
+        free = var >= 0
+        out = poses.clone()
+        out[free] = se3_compose(poses[free], se3_exp(xi[var[free]]))
+        return out
+
+
+def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, RobustKernel] = None,
+             solver: Union[None, str, LinearSolver] = "auto", config: Optional[OptimizerConfig] = None,
+             **overrides) -> OptimizationResult:
+    """Optimise the poses of a pose graph.
+
+    Args:
+        graph: the :class:`PoseGraph`; its ``poses (N, 7)`` are the initial guess (they are not modified).
+        method: ``"lm"`` (Levenberg-Marquardt) or ``"gn"`` (Gauss-Newton).
+        kernel: ``None``, a name (``"huber"``, ``"cauchy"``, ``"tukey"``, ``"geman_mcclure"``) or a
+            :class:`~slam.graph.costs.RobustKernel` object.
+        solver: ``"auto"`` (sparse direct when scipy is importable), ``"sparse"``, ``"dense"``, ``"pcg"`` or a
+            :class:`~slam.graph.linear.LinearSolver`.
+        config: an :class:`OptimizerConfig`; keyword ``overrides`` replace its fields
+            (e.g. ``optimize(g, max_iterations=10, gauge="prior")``).
+
+    Returns:
+        An :class:`OptimizationResult` (``result.graph``, ``result.chi2``, ``result.status``,
+        ``result.iterations``, ``result.cost_history``, ``result.timings``).
+
+    Raises:
+        ValueError: no edges, bad settings, or a non-positive-definite information matrix.
+    """
+    t_start = time.perf_counter()
+    cfg = dataclasses.replace(config or OptimizerConfig(), **overrides)
+    prev_threads = torch.get_num_threads()
+    if cfg.num_threads is not None and cfg.num_threads != prev_threads:
+        torch.set_num_threads(int(cfg.num_threads))
+    try:
+        with limit_blas_threads(cfg.num_threads if scipy_available() else None):
+            return _optimize(graph, method, kernel, solver, cfg, t_start)
+    finally:
+        if torch.get_num_threads() != prev_threads:
+            torch.set_num_threads(prev_threads)
+
+
+def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfig,
+              t_start: float) -> OptimizationResult:
+    method = method.lower()
+    if method not in ("lm", "gn"):
+        raise ValueError(f"method must be 'lm' or 'gn', got {method!r}")
+    if cfg.damping not in ("identity", "diagonal"):
+        raise ValueError(f"damping must be 'identity' or 'diagonal', got {cfg.damping!r}")
+    if not isinstance(graph, PoseGraph):
+        raise TypeError(f"graph must be a PoseGraph, got {type(graph).__name__}")
+    if graph.num_edges == 0:
+        raise ValueError(f"the graph has no edges ({graph.num_poses} poses): there is nothing to optimise")
+    if cfg.check_information:
+        bad = first_bad_information(graph.information)
+        if bad is not None:
+            raise ValueError(f"information[{bad}] (edge {int(graph.ii[bad])} -> {int(graph.jj[bad])}) is not "
+                             f"symmetric positive definite")
+    if cfg.gauge not in ("free", "first", "prior"):
+        raise ValueError(f"gauge must be 'free', 'first' or 'prior', got {cfg.gauge!r}")
+    # GN has no damping to take care of a free gauge: it holds the first pose instead
+    gauge = "first" if (method == "gn" and cfg.gauge == "free") else cfg.gauge
+    kern = make_kernel(kernel, cfg.kernel_width)
+    prob = _Problem(graph, cfg, kern, gauge)
+    lin = make_solver(solver, prob.pattern.size)
+    tm = {"setup": time.perf_counter() - t_start, "linearize": 0.0, "solve": 0.0, "evaluate": 0.0}
+
+    t = time.perf_counter()
+    x = prob.poses
+    cost, chi2, cache = prob.evaluate(x)
+    tm["evaluate"] += time.perf_counter() - t
+    initial_chi2 = chi2
+    history, lambdas = [cost], []
+    lam = cfg.lambda_init if method == "lm" else 0.0
+    status, message, it = Status.MAX_ITERATIONS, "", 0
+    best = (cost, chi2, x, cache)
+    if prob.pattern.size == 0:
+        status, message = Status.CONVERGED, "every pose is fixed"
+    while status == Status.MAX_ITERATIONS and it < cfg.max_iterations:
+        if cost <= cfg.cost_tol:
+            status = Status.CONVERGED
+            break
+        t = time.perf_counter()
+        H, g = prob.linearize(x, cache)
+        tm["linearize"] += time.perf_counter() - t
+        if cfg.damping == "diagonal":
+            dscale = H[prob.pattern.diag_pos].clamp(1e-6, 1e32)
+        accepted = False
+        while not accepted:
+            Hd = H
+            if lam > 0:
+                Hd = H.clone()
+                Hd[prob.pattern.diag_pos] += lam * (dscale if cfg.damping == "diagonal" else 1.0)
+            t = time.perf_counter()
+            try:
+                dx = lin.solve(prob.pattern, Hd, -g)
+                ok = bool(torch.isfinite(dx).all())
+            except LinearSolverError as exc:
+                ok, message = False, str(exc)
+            tm["solve"] += time.perf_counter() - t
+            if ok:
+                t = time.perf_counter()
+                x_new = prob.retract(x, dx)
+                cost_new, chi2_new, cache_new = prob.evaluate(x_new)
+                tm["evaluate"] += time.perf_counter() - t
+                ok = not math.isnan(cost_new)
+            if method == "gn":
+                if not ok:
+                    status = Status.SOLVER_FAILED
+                    break
+                accepted = True
+                if cost_new > cost:
+                    status = Status.DIVERGED
+                    message = f"GN step increased the cost {cost:.6g} -> {cost_new:.6g}"
+            elif ok and cost_new < cost:
+                accepted = True
+            else:
+                lam *= cfg.lambda_factor
+                if lam > cfg.lambda_max:
+                    status = Status.LAMBDA_LIMIT
+                    message = message or f"no decrease of the cost with lambda up to {cfg.lambda_max:g}"
+                    break
+        if not accepted:
+            break
+        it += 1
+        decrease = cost - cost_new
+        x, cost, chi2, cache = x_new, cost_new, chi2_new, cache_new
+        history.append(cost)
+        lambdas.append(lam)
+        if cost < best[0]:
+            best = (cost, chi2, x, cache)
+        if cfg.verbose:
+            print(f"iter {it:3d}  cost {cost:.10g}  chi2 {chi2:.10g}  lambda {lam:.1e}")
+        if method == "lm":
+            lam = max(lam / cfg.lambda_factor, cfg.lambda_min)
+        if status == Status.DIVERGED:
+            break
+        if decrease < cfg.abs_tol or decrease < cfg.rel_tol * (cost + decrease) or cost <= cfg.cost_tol:
+            status = Status.CONVERGED
+    cost, chi2, x, cache = best
+    if prob.reanchor and it > 0:
+        # the costs are invariant to a common rigid motion: move pose 0 back to where it started
+        x = se3_compose(se3_compose(prob.poses[0], se3_inv(x[0]))[None], x)
+        x[0] = prob.poses[0]
+    out_poses = x.to(dtype=graph.poses.dtype, device=graph.poses.device)
+    result_graph = graph.with_poses(out_poses)
+    tm["total"] = time.perf_counter() - t_start
+    w = cache[2]
+    return OptimizationResult(
+        graph=result_graph, chi2=chi2, initial_chi2=initial_chi2, status=status, iterations=it,
+        robust_cost=cost if kern is not None else None, cost_history=history, lambda_history=lambdas,
+        timings=tm, weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w,
+        message=message,
+    )
+
+
+class PoseGraphOptimizer:
+    """A reusable optimiser holding its settings: ``PoseGraphOptimizer(method, kernel, **cfg)(graph)``.
+
+    Example:
+        >>> opt = PoseGraphOptimizer("lm", kernel="huber", max_iterations=20)
+        >>> opt.config.max_iterations
+        20
+    """
+
+    def __init__(self, method: str = "lm", kernel: Union[None, str, RobustKernel] = None,
+                 solver: Union[None, str, LinearSolver] = "auto", config: Optional[OptimizerConfig] = None,
+                 **overrides):
+        self.method = method
+        self.kernel = kernel
+        self.solver = solver
+        self.config = dataclasses.replace(config or OptimizerConfig(), **overrides)
+
+    def __call__(self, graph: PoseGraph) -> OptimizationResult:
+        return optimize(graph, self.method, self.kernel, self.solver, self.config)

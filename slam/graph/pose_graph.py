@@ -1,0 +1,287 @@
+"""The pose graph: poses, edges as index tensors, relative-pose measurements and their information.
+
+Convention (as in g2o and GTSAM): an edge ``(i, j)`` measures ``z_ij ~= T_i^-1 T_j``, the pose of ``j``
+in the frame of ``i``; poses are ``(N, 7) = [t, q_xyzw]`` (``T_i`` maps frame ``i`` to the world).
+Its information ``Omega_ij (6, 6)`` weighs the residual ``r_ij`` in the tangent order ``[rho, phi]``
+(translation first), see :mod:`slam.graph.costs`.
+
+Example:
+    >>> import torch
+    >>> from slam.lie import se3_exp
+    >>> g = PoseGraph.from_lists([se3_exp(torch.zeros(6, dtype=torch.float64))] * 3,
+    ...                          [(0, 1, se3_exp(torch.tensor([1.0, 0, 0, 0, 0, 0], dtype=torch.float64)))])
+    >>> g.add_edge(1, 2, g.measurements[0])
+    >>> g.poses.shape, g.ii.tolist(), g.jj.tolist(), g.information.shape
+    (torch.Size([3, 7]), [0, 1], [1, 2], torch.Size([2, 6, 6]))
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Optional, Sequence, Tuple
+
+import torch
+
+from slam.lie import se3_normalize
+
+__all__ = ["CHARTS", "PoseGraph", "first_bad_information"]
+
+Tensor = torch.Tensor
+
+# Residual charts (see slam.graph.costs): "se3" is r = Log(z^-1 T_i^-1 T_j) (GTSAM's Pose3 error, and on
+# planar poses GTSAM's Pose2 error); "r3so3" is r = [t(D), Log_SO3(R(D))] for D = z^-1 T_i^-1 T_j, which on
+# planar poses is exactly the (dx, dy, dtheta) error of g2o's EDGE_SE2.
+CHARTS = ("se3", "r3so3")
+
+
+def _as_tensor(x, dtype, device, name: str) -> Tensor:
+    if isinstance(x, Tensor):
+        return x.to(dtype=dtype, device=device)
+    try:
+        return torch.as_tensor(x, dtype=dtype, device=device)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be a tensor or convertible to one: {exc}") from None
+
+
+@dataclass
+class PoseGraph:
+    """A graph of ``N`` poses and ``E`` relative-pose edges.
+
+    Attributes:
+        poses: ``(N, 7)`` ``[t, q_xyzw]`` current estimate (the optimiser's initial guess).
+        ii: ``(E,)`` long, the first pose of each edge.
+        jj: ``(E,)`` long, the second pose of each edge.
+        measurements: ``(E, 7)`` measured ``z_ij ~= T_i^-1 T_j``.
+        information: ``(E, 6, 6)`` symmetric positive-definite information matrices, ``[rho, phi]`` order.
+        chart: the residual chart, one of :data:`CHARTS` (default ``"se3"``).
+        vertex_ids: ``(N,)`` long, the ids the poses had in the file they were read from (row ``k`` of
+            ``poses`` is vertex ``vertex_ids[k]``); ``arange(N)`` for graphs built in code.
+
+    Shapes and values are checked on construction (and by :meth:`validate`) with a ``ValueError`` naming
+    the field, the edge and what was expected.
+    """
+
+    poses: Tensor
+    ii: Tensor
+    jj: Tensor
+    measurements: Tensor
+    information: Tensor
+    chart: str = "se3"
+    vertex_ids: Optional[Tensor] = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.poses, Tensor):
+            raise TypeError(f"poses must be a torch.Tensor, got {type(self.poses).__name__}")
+        dtype = self.poses.dtype if self.poses.is_floating_point() else torch.float64
+        dev = self.poses.device
+        self.poses = self.poses.to(dtype)
+        self.ii = _as_tensor(self.ii, torch.long, dev, "ii")
+        self.jj = _as_tensor(self.jj, torch.long, dev, "jj")
+        self.measurements = _as_tensor(self.measurements, dtype, dev, "measurements")
+        self.information = _as_tensor(self.information, dtype, dev, "information")
+        if self.vertex_ids is None:
+            self.vertex_ids = torch.arange(self.poses.shape[0] if self.poses.dim() == 2 else 0, device=dev)
+        else:
+            self.vertex_ids = _as_tensor(self.vertex_ids, torch.long, dev, "vertex_ids")
+        self.validate(check_information=False)
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def num_poses(self) -> int:
+        return int(self.poses.shape[0])
+
+    @property
+    def num_edges(self) -> int:
+        return int(self.ii.shape[0])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.poses.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.poses.device
+
+    def __repr__(self) -> str:
+        return (f"PoseGraph(num_poses={self.num_poses}, num_edges={self.num_edges}, chart={self.chart!r}, "
+                f"dtype={self.dtype})")
+
+    # ------------------------------------------------------------------------------------------
+    def validate(self, check_information: bool = True) -> PoseGraph:
+        """Check shapes, indices and values; raise ``ValueError`` naming the first problem.
+
+        Args:
+            check_information: also check that every information matrix is symmetric positive
+                definite (one batched Cholesky, ``O(E)``).
+
+        Returns:
+            ``self``, so that ``graph.validate().poses`` chains.
+        """
+        P, E = self.poses, self.ii
+        if P.dim() != 2 or P.shape[-1] != 7:
+            raise ValueError(f"poses must have shape (N, 7), got {tuple(P.shape)}")
+        n, e = P.shape[0], E.shape[0] if E.dim() == 1 else -1
+        if self.ii.dim() != 1 or self.jj.shape != self.ii.shape:
+            raise ValueError(f"ii and jj must both have shape (E,), got {tuple(self.ii.shape)} and "
+                             f"{tuple(self.jj.shape)}")
+        if self.measurements.shape != (e, 7):
+            raise ValueError(f"measurements must have shape (E, 7) = ({e}, 7), got "
+                             f"{tuple(self.measurements.shape)}")
+        if self.information.shape != (e, 6, 6):
+            raise ValueError(f"information must have shape (E, 6, 6) = ({e}, 6, 6), got "
+                             f"{tuple(self.information.shape)}")
+        if self.vertex_ids.shape != (n,):
+            raise ValueError(f"vertex_ids must have shape (N,) = ({n},), got {tuple(self.vertex_ids.shape)}")
+        if self.chart not in CHARTS:
+            raise ValueError(f"chart must be one of {CHARTS}, got {self.chart!r}")
+        if e:
+            for name, idx in (("ii", self.ii), ("jj", self.jj)):
+                bad = (idx < 0) | (idx >= n)
+                if bool(bad.any()):
+                    k = int(bad.nonzero()[0, 0])
+                    raise ValueError(f"edge {k}: {name}[{k}] = {int(idx[k])} is not a pose index in [0, {n})")
+            loop = self.ii == self.jj
+            if bool(loop.any()):
+                k = int(loop.nonzero()[0, 0])
+                raise ValueError(f"edge {k} connects pose {int(self.ii[k])} to itself")
+        for name, x in (("poses", P), ("measurements", self.measurements), ("information", self.information)):
+            if not x.shape[0]:
+                continue
+            bad = ~torch.isfinite(x).reshape(x.shape[0], -1).all(-1)
+            if bool(bad.any()):
+                raise ValueError(f"{name}[{int(bad.nonzero()[0, 0])}] has a non-finite value")
+        for name, x in (("poses", P), ("measurements", self.measurements)):
+            qn = x[:, 3:].norm(dim=-1)
+            bad = (qn - 1.0).abs() > 1e-3
+            if bool(bad.any()):
+                k = int(bad.nonzero()[0, 0])
+                raise ValueError(f"{name}[{k}] has a quaternion of norm {float(qn[k]):.6g}, expected 1 "
+                                 f"(use slam.lie.se3_normalize)")
+        if check_information and e:
+            k = first_bad_information(self.information)
+            if k is not None:
+                raise ValueError(f"information[{k}] (edge {int(self.ii[k])} -> {int(self.jj[k])}) is not "
+                                 f"symmetric positive definite")
+        return self
+
+    # ------------------------------------------------------------------------------------------
+    def add_edge(self, i: int, j: int, measurement: Tensor, information: Optional[Tensor] = None) -> None:
+        """Append an edge ``z_ij ~= T_i^-1 T_j``: ``measurement (7,)``, ``information (6, 6)`` (default I)."""
+        meas = torch.as_tensor(measurement, dtype=self.dtype, device=self.device).reshape(1, 7)
+        info = torch.eye(6, dtype=self.dtype, device=self.device) if information is None else information
+        self.add_edges(torch.tensor([i]), torch.tensor([j]), meas, torch.as_tensor(info).reshape(1, 6, 6))
+
+    def add_edges(self, ii: Tensor, jj: Tensor, measurements: Tensor,
+                  information: Optional[Tensor] = None) -> None:
+        """Append edges: ``ii, jj (K,)``, ``measurements (K, 7)``, ``information (K, 6, 6)`` (default ``I``).
+
+        The new edges are validated (indices, quaternions, positive-definite information) before the
+        graph changes.
+        """
+        ii = _as_tensor(ii, torch.long, self.device, "ii").reshape(-1)
+        jj = _as_tensor(jj, torch.long, self.device, "jj").reshape(-1)
+        k = ii.shape[0]
+        meas = _as_tensor(measurements, self.dtype, self.device, "measurements")
+        if information is None:
+            info = torch.eye(6, dtype=self.dtype, device=self.device).expand(k, 6, 6).clone()
+        else:
+            info = _as_tensor(information, self.dtype, self.device, "information")
+        new = PoseGraph(self.poses, ii, jj, meas, info, self.chart, self.vertex_ids)
+        new.validate()
+        self.ii = torch.cat([self.ii, new.ii])
+        self.jj = torch.cat([self.jj, new.jj])
+        self.measurements = torch.cat([self.measurements, new.measurements])
+        self.information = torch.cat([self.information, new.information])
+
+    def add_pose(self, pose: Tensor) -> int:
+        """Append one pose ``(7,)``; returns its index."""
+        pose = torch.as_tensor(pose, dtype=self.dtype, device=self.device).reshape(1, 7)
+        self.poses = torch.cat([self.poses, se3_normalize(pose)])
+        nxt = int(self.vertex_ids.max()) + 1 if self.vertex_ids.numel() else 0
+        self.vertex_ids = torch.cat([self.vertex_ids, torch.tensor([nxt], device=self.device)])
+        return self.num_poses - 1
+
+    def with_poses(self, poses: Tensor) -> PoseGraph:
+        """A copy sharing the (already validated) edges, with other poses ``(N, 7)``."""
+        if not isinstance(poses, Tensor) or poses.shape != self.poses.shape:
+            raise ValueError(f"poses must have shape {tuple(self.poses.shape)}, got "
+                             f"{tuple(getattr(poses, 'shape', ()))}")
+        if not bool(torch.isfinite(poses).all()):
+            raise ValueError("poses has a non-finite value")
+        out = object.__new__(PoseGraph)  # skips re-validating the shared edges
+        out.__dict__.update(self.__dict__)
+        out.poses = poses.to(self.poses.dtype)
+        return out
+
+    def clone(self) -> PoseGraph:
+        return PoseGraph(self.poses.clone(), self.ii.clone(), self.jj.clone(), self.measurements.clone(),
+                         self.information.clone(), self.chart, self.vertex_ids.clone())
+
+    def to(self, device=None, dtype: Optional[torch.dtype] = None) -> PoseGraph:
+        """A copy on another device and/or floating dtype (indices stay long)."""
+        f = {"device": device, "dtype": dtype}
+        return PoseGraph(self.poses.to(**f), self.ii.to(device), self.jj.to(device),
+                         self.measurements.to(**f), self.information.to(**f), self.chart,
+                         self.vertex_ids.to(device))
+
+    def is_planar(self, tol: float = 1e-9) -> bool:
+        """True when every pose and measurement lies in the plane ``z = 0`` with a yaw-only rotation and
+        no information couples (x, y, yaw) with (z, roll, pitch): then the problem splits exactly and the
+        optimiser may solve the 3-DoF part only."""
+        def flat(p: Tensor) -> bool:
+            return bool((p[:, [2, 3, 4]].abs() <= tol).all()) if p.numel() else True
+        if not (flat(self.poses) and flat(self.measurements)):
+            return False
+        inp, out = [0, 1, 5], [2, 3, 4]
+        cross = self.information[:, inp][:, :, out]
+        return bool((cross.abs() <= tol * self.information.abs().amax(dim=(1, 2))[:, None, None]).all())
+
+    # ------------------------------------------------------------------------------------------
+    @staticmethod
+    def from_lists(poses: Sequence, edges: Iterable[Tuple], dtype: torch.dtype = torch.float64,
+                   device=None) -> PoseGraph:
+        """Build a graph from a list of poses ``(7,)`` and a list of edges.
+
+        Args:
+            poses: ``N`` poses ``(7,)`` (tensors or sequences), or one ``(N, 7)`` tensor.
+            edges: tuples ``(i, j, measurement (7,))`` or ``(i, j, measurement, information (6, 6))``.
+            dtype: floating dtype of the graph.
+            device: device of the graph.
+
+        Returns:
+            The validated :class:`PoseGraph` (quaternions normalised).
+        """
+        if isinstance(poses, Tensor):
+            P = poses.to(dtype=dtype, device=device).reshape(-1, 7)
+        else:
+            P = (torch.stack([torch.as_tensor(p, dtype=dtype, device=device).reshape(7) for p in poses])
+                 if len(poses) else torch.zeros(0, 7, dtype=dtype, device=device))
+        ii, jj, meas, info = [], [], [], []
+        eye = torch.eye(6, dtype=dtype, device=device)
+        for k, e in enumerate(edges):
+            if len(e) not in (3, 4):
+                raise ValueError(f"edge {k} must be (i, j, measurement) or (i, j, measurement, information), "
+                                 f"got a tuple of length {len(e)}")
+            ii.append(int(e[0]))
+            jj.append(int(e[1]))
+            meas.append(torch.as_tensor(e[2], dtype=dtype, device=device).reshape(7))
+            info.append(eye if len(e) == 3
+                        else torch.as_tensor(e[3], dtype=dtype, device=device).reshape(6, 6))
+        Z = torch.stack(meas) if meas else torch.zeros(0, 7, dtype=dtype, device=device)
+        Om = torch.stack(info) if info else torch.zeros(0, 6, 6, dtype=dtype, device=device)
+        g = PoseGraph(se3_normalize(P), torch.tensor(ii, dtype=torch.long, device=device),
+                      torch.tensor(jj, dtype=torch.long, device=device), se3_normalize(Z), Om)
+        return g.validate()
+
+
+def first_bad_information(information: Tensor, rtol: float = 1e-6) -> Optional[int]:
+    """Index of the first information matrix ``(E, 6, 6)`` that is not symmetric positive definite or None."""
+    if information.shape[0] == 0:
+        return None
+    scale = information.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(information.dtype).tiny)
+    asym = (information - information.transpose(-1, -2)).abs().amax(dim=(-2, -1)) > rtol * scale
+    _, info = torch.linalg.cholesky_ex(information.to(torch.float64))
+    bad = asym | (info != 0)
+    if bool(bad.any()):
+        return int(bad.nonzero()[0, 0])
+    return None
+

@@ -1,0 +1,235 @@
+"""The common RGB-D sequence interface and :func:`open_sequence`.
+
+Errors come at two moments:
+
+* **open time** (``open_sequence`` / the reader's constructor): the folder or a required list file is
+  missing (:class:`DatasetNotFoundError`, also a ``FileNotFoundError``), the folder is not a known
+  layout, a list file has a malformed line or lists nothing, a camera is unknown
+  (:class:`DatasetError`, a ``ValueError``).
+* **read time** (``sequence[i]``): a listed image is missing, does not decode, or a depth image has the
+  wrong type or size (:class:`slam.io.images.FrameReadError`, carrying the path). A SLAM run catches it
+  and skips the frame with a warning; :meth:`RGBDSequence.frames` with ``on_error="skip"`` does that.
+
+Depth is float32 metres with **0.0 marking invalid pixels** (never NaN), as :class:`RGBDFrame` says.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from slam.io.frame import RGBDFrame
+from slam.io.images import FrameReadError
+from slam.io.trajectory import Trajectory
+
+__all__ = ["DatasetError", "DatasetNotFoundError", "RGBDSequence", "SequenceView", "open_sequence"]
+
+logger = logging.getLogger(__name__)
+
+
+class DatasetError(ValueError):
+    """A dataset folder or list file that cannot be used (raised when the sequence is opened).
+
+    Attributes:
+        path: the folder or file concerned.
+        line_number: 1-based line of a malformed list entry, or None.
+    """
+
+    def __init__(self, path, message: str, line_number: int | None = None):
+        self.path = str(path)
+        self.line_number = line_number
+        where = f"{self.path}:{line_number}" if line_number is not None else self.path
+        super().__init__(f"{where}: {message}")
+
+
+class DatasetNotFoundError(DatasetError, FileNotFoundError):
+    """The sequence folder or one of its required list files does not exist."""
+
+
+class RGBDSequence(ABC):
+    """A lazily read RGB-D sequence: nothing but file names and timestamps is held in memory.
+
+    Subclasses set ``root`` (Path), ``name`` (str), ``K`` ``(3, 3)`` float64 and implement
+    ``__len__``, ``timestamps``, :meth:`_load` and :meth:`_groundtruth_array`.
+
+    ``len(seq)``, ``seq[i]`` (an :class:`RGBDFrame`, images decoded now), ``for frame in seq``,
+    ``seq[a:b]`` (a :class:`SequenceView`), ``seq.timestamps`` ``(N,)`` float64 numpy,
+    ``seq.groundtruth`` (a :class:`Trajectory` of the frames that have ground truth, in input order,
+    stamped with the frames' own timestamps, or None).
+    """
+
+    root: Path
+    name: str
+    K: np.ndarray
+
+    @abstractmethod
+    def __len__(self) -> int: ...
+
+    @property
+    @abstractmethod
+    def timestamps(self) -> np.ndarray:
+        """``(N,)`` float64 seconds, one per frame, in input order."""
+
+    @abstractmethod
+    def _load(self, i: int) -> RGBDFrame:
+        """Decode frame ``i`` (``0 <= i < len``); raises FrameReadError."""
+
+    @abstractmethod
+    def _groundtruth_array(self) -> np.ndarray:
+        """``(N, 7)`` float64 per-frame ground truth, NaN rows where unknown."""
+
+    def __getitem__(self, i: int | slice):
+        if isinstance(i, slice):
+            return SequenceView(self, range(len(self))[i])
+        if not isinstance(i, (int, np.integer)):
+            raise TypeError(f"sequence indices must be integers or slices, got {type(i).__name__}")
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"frame index {i} out of range for a sequence of {n} frames")
+        return self._load(int(i) % n)
+
+    def __iter__(self) -> Iterator[RGBDFrame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def frames(self, on_error: str = "raise", prefetch: int = 0) -> Iterator[RGBDFrame]:
+        """Iterate over the frames, optionally skipping unreadable ones and decoding ahead.
+
+        Args:
+            on_error: ``"raise"`` (re-raise :class:`FrameReadError`) or ``"skip"`` (log a warning and
+                go on with the next frame).
+            prefetch: decode up to this many frames ahead in background threads (OpenCV releases the
+                GIL while decoding, so reading overlaps with the caller's work); 0 reads in the caller.
+        """
+        if on_error not in ("raise", "skip"):
+            raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
+        n = len(self)
+        if prefetch <= 0:
+            for i in range(n):
+                frame = self._try_load(i, on_error)
+                if frame is not None:
+                    yield frame
+            return
+        pool = ThreadPoolExecutor(max_workers=int(prefetch), thread_name_prefix="rgbd-prefetch")
+        try:
+            pending: deque = deque()
+            for i in range(min(n, prefetch + 1)):
+                pending.append(pool.submit(self._try_load, i, on_error))
+            next_i = len(pending)
+            while pending:
+                frame = pending.popleft().result()
+                if next_i < n:
+                    pending.append(pool.submit(self._try_load, next_i, on_error))
+                    next_i += 1
+                if frame is not None:
+                    yield frame
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def _try_load(self, i: int, on_error: str) -> RGBDFrame | None:
+        try:
+            return self[i]
+        except FrameReadError as e:
+            if on_error == "raise":
+                raise
+            logger.warning("skipping frame %d of %s: %s", i, self.name, e)
+            return None
+
+    def groundtruth_pose(self, i: int) -> np.ndarray | None:
+        """``(7,)`` ground truth of frame ``i`` or None."""
+        pose = self._groundtruth_array()[i]
+        return None if np.isnan(pose).any() else pose.copy()
+
+    @property
+    def groundtruth(self) -> Trajectory | None:
+        """Per-frame ground truth of the frames that have it (input order), or None if none has."""
+        gt = self._groundtruth_array()
+        has = ~np.isnan(gt).any(axis=1)
+        if not has.any():
+            return None
+        return Trajectory(torch.from_numpy(self.timestamps[has].copy()), torch.from_numpy(gt[has].copy()))
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, frames={len(self)}, root={str(self.root)!r})"
+
+
+class SequenceView(RGBDSequence):
+    """A subset of another sequence's frames (``seq[a:b]``); frames are re-indexed from 0."""
+
+    def __init__(self, parent: RGBDSequence, indices: Sequence[int]):
+        self.parent = parent
+        self.indices = np.asarray(list(indices), dtype=np.int64)
+        self.root, self.name, self.K = parent.root, parent.name, parent.K
+
+    def __len__(self) -> int:
+        return int(self.indices.size)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self.parent.timestamps[self.indices]
+
+    def _load(self, i: int) -> RGBDFrame:
+        frame = self.parent._load(int(self.indices[i]))
+        frame.index = i
+        return frame
+
+    def _groundtruth_array(self) -> np.ndarray:
+        return self.parent._groundtruth_array()[self.indices]
+
+
+def _has_7scenes_frames(folder: Path) -> bool:
+    with os.scandir(folder) as it:
+        return any(e.name.startswith("frame-") and ".color." in e.name for e in it)
+
+
+def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **kwargs) -> RGBDSequence:
+    """Open a TUM RGB-D or 7-Scenes sequence folder, detecting the layout.
+
+    * TUM RGB-D: the folder holds ``rgb.txt`` and ``depth.txt`` (-> :class:`slam.io.tum.TUMSequence`).
+    * 7-Scenes: the folder holds ``frame-XXXXXX.color.(png|jpg)`` files
+      (-> :class:`slam.io.sevenscenes.SevenScenesSequence`).
+
+    Args:
+        path: the sequence folder.
+        camera: TUM only: ``"fr1"``, ``"fr2"``, ``"fr3"`` or ``"ros"`` (default: from the folder name).
+        K: ``(3, 3)`` intrinsics overriding the dataset's.
+        **kwargs: passed to the reader.
+
+    Raises:
+        DatasetNotFoundError: the folder does not exist.
+        DatasetError: the folder is not a sequence of either layout (the message says what was
+            expected), or the reader rejects it.
+    """
+    root = Path(path).expanduser()
+    if not root.exists():
+        raise DatasetNotFoundError(root, "sequence folder does not exist")
+    if not root.is_dir():
+        raise DatasetError(root, "expected a sequence folder, got a file")
+    has_rgb, has_depth = (root / "rgb.txt").is_file(), (root / "depth.txt").is_file()
+    if has_rgb or has_depth:
+        from slam.io.tum import TUMSequence
+
+        return TUMSequence(root, camera=camera, K=K, **kwargs)
+    if _has_7scenes_frames(root):
+        from slam.io.sevenscenes import SevenScenesSequence
+
+        if camera is not None:
+            raise DatasetError(root, f"camera={camera!r} applies to TUM sequences only; pass K for 7-Scenes")
+        return SevenScenesSequence(root, K=K, **kwargs)
+    subfolders: list[str] = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("seq-"))
+    if subfolders:
+        raise DatasetError(
+            root, f"this looks like a 7-Scenes scene folder; open one of its sequences, e.g. {root / subfolders[0]}"
+        )
+    raise DatasetError(
+        root,
+        "not an RGB-D sequence folder: expected TUM RGB-D files (rgb.txt, depth.txt, optional groundtruth.txt) "
+        "or 7-Scenes frames (frame-000000.color.png|jpg, frame-000000.depth.png, frame-000000.pose.txt)",
+    )

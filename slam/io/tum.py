@@ -1,0 +1,269 @@
+"""TUM RGB-D sequences (Sturm et al. 2012): ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``.
+
+* Frames are the rgb/depth pairs associated as TUM's ``associate.py`` does (nearest timestamps less than
+  0.02 s apart, greedy one-to-one), in rgb-time order; a frame's timestamp is its rgb stamp.
+* Ground truth of a frame: the **nearest** ``groundtruth.txt`` pose less than 0.02 s from the rgb stamp
+  (the same association, no interpolation, so it equals what TUM's ``evaluate_ate.py`` pairs with the
+  frame); frames without such a pose have none.
+* Depth: 16-bit PNG, 5000 units per metre, 0 = invalid -> float32 metres with 0.0 invalid.
+* Intrinsics: ``K`` if given, else ``camera`` (``fr1``/``fr2``/``fr3``/``ros``), else a
+  ``calibration.txt`` in the folder (first non-comment line ``fx fy cx cy`` [+ 5 distortion
+  coefficients], as the synthetic sequences of :mod:`slam.synthetic` write it), else inferred from the
+  folder name (``freiburg1`` / ``fr1`` ...), else the ROS default with a warning. TUM recommends the
+  ROS default *without undistortion* for the pre-registered depth; ``undistort=True`` remaps both
+  images with the fr1/fr2 distortion instead (depth by nearest neighbour).
+
+List files: ``# comments``, blank lines, ``timestamp filename`` per line (commas and tabs accepted; an
+uncommented ``timestamp filename`` header before the first entry is skipped).
+A repeated timestamp keeps its last line, as TUM's dictionary-based scripts do.
+"""
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
+from slam.io.frame import RGBDFrame
+from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
+from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence
+from slam.io.trajectory import read_tum_trajectory
+
+__all__ = [
+    "TUM_CAMERAS",
+    "TUM_DEPTH_FACTOR",
+    "TUMCamera",
+    "TUMSequence",
+    "camera_from_name",
+    "read_calibration_file",
+    "read_file_list",
+    "tum_camera",
+]
+
+logger = logging.getLogger(__name__)
+
+# Raw depth units per metre in every TUM RGB-D sequence.
+TUM_DEPTH_FACTOR = 5000.0
+
+
+@dataclass(frozen=True)
+class TUMCamera:
+    """Pinhole intrinsics (pixels) and OpenCV distortion ``(k1, k2, p1, p2, k3)``."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def K(self) -> np.ndarray:
+        """``(3, 3)`` float64."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+# The TUM RGB-D calibration (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats).
+TUM_CAMERAS: dict[str, TUMCamera] = {
+    "fr1": TUMCamera(517.3, 516.5, 318.6, 255.3, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+    "fr2": TUMCamera(520.9, 521.0, 325.1, 249.7, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
+    "fr3": TUMCamera(535.4, 539.2, 320.1, 247.6),
+    "ros": TUMCamera(525.0, 525.0, 319.5, 239.5),
+}
+_ALIASES = {"freiburg1": "fr1", "freiburg2": "fr2", "freiburg3": "fr3", "default": "ros", "ros_default": "ros"}
+_NAME_RE = re.compile(r"(?<![a-z])(?:freiburg|fr)[_-]?([123])(?![0-9])")
+
+
+def tum_camera(name: str) -> TUMCamera:
+    """The calibration called ``fr1``/``freiburg1``, ``fr2``, ``fr3`` or ``ros``/``default``."""
+    key = _ALIASES.get(name.lower(), name.lower())
+    if key not in TUM_CAMERAS:
+        raise DatasetError(name, f"unknown TUM camera {name!r}; expected one of fr1, fr2, fr3, ros")
+    return TUM_CAMERAS[key]
+
+
+def camera_from_name(folder_name: str) -> str | None:
+    """``"fr1"``/``"fr2"``/``"fr3"`` from a name such as ``rgbd_dataset_freiburg1_xyz`` or ``fr3_office``.
+
+    Example:
+        >>> camera_from_name("rgbd_dataset_freiburg2_desk"), camera_from_name("fr1_xyz"), camera_from_name("frames")
+        ('fr2', 'fr1', None)
+    """
+    m = _NAME_RE.search(folder_name.lower())
+    return f"fr{m.group(1)}" if m else None
+
+
+def read_calibration_file(path: Path) -> TUMCamera:
+    """A camera from ``calibration.txt``: the first non-comment line ``fx fy cx cy [k1 k2 p1 p2 k3]``.
+
+    Raises:
+        DatasetError: a malformed file (with the line number).
+    """
+    with open(path, "r", encoding="utf-8") as f:
+        for number, raw in enumerate(f, start=1):
+            line = raw.strip()
+            if not line or line.startswith("#"):
+                continue
+            try:
+                values = [float(v) for v in line.replace(",", " ").split()]
+            except ValueError:
+                raise DatasetError(path, f"expected 'fx fy cx cy [k1 k2 p1 p2 k3]', got {line!r}", number) from None
+            if len(values) not in (4, 9):
+                raise DatasetError(path, f"expected 4 or 9 numbers 'fx fy cx cy [k1 k2 p1 p2 k3]', got {len(values)}",
+                                   number)
+            dist = tuple(values[4:]) if len(values) == 9 else (0.0,) * 5
+            return TUMCamera(*values[:4], distortion=dist)
+    raise DatasetError(path, "no 'fx fy cx cy' line")
+
+
+def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
+    """Read a TUM list file (``rgb.txt``, ``depth.txt``): ``timestamp filename`` per line.
+
+    Returns:
+        timestamps ``(N,)`` float64 and the N file names (relative to the sequence folder), in file
+        order, a repeated timestamp keeping its last line.
+
+    Raises:
+        DatasetNotFoundError: the file does not exist.
+        DatasetError: a malformed line (with its number) or no entries at all.
+    """
+    if not path.is_file():
+        raise DatasetNotFoundError(path, "list file does not exist")
+    entries: dict[float, tuple[int, str]] = {}
+    with open(path, "r", encoding="utf-8") as f:
+        for number, raw in enumerate(f, start=1):
+            line = raw.strip()
+            if not line or line.startswith("#"):
+                continue
+            fields = line.replace(",", " ").replace("\t", " ").split()
+            if not entries and fields[0].lower() == "timestamp":
+                continue  # an uncommented column header before the data
+            if len(fields) < 2:
+                raise DatasetError(path, f"expected 'timestamp filename', got {line!r}", number)
+            try:
+                stamp = float(fields[0])
+            except ValueError:
+                raise DatasetError(path, f"timestamp is not a number in {line!r}", number) from None
+            if not np.isfinite(stamp):
+                raise DatasetError(path, f"non-finite timestamp in {line!r}", number)
+            if stamp in entries:
+                logger.warning("%s:%d: repeated timestamp %r, keeping this line", path, number, stamp)
+                del entries[stamp]  # re-insert below so the file order follows the kept line
+            entries[stamp] = (number, fields[1])
+    if not entries:
+        raise DatasetError(path, "the list is empty (no 'timestamp filename' lines)")
+    stamps = np.fromiter(entries.keys(), dtype=np.float64, count=len(entries))
+    names = [name for _, name in entries.values()]
+    return stamps, names
+
+
+class TUMSequence(RGBDSequence):
+    """A TUM RGB-D sequence folder, read lazily.
+
+    Args:
+        root: the folder holding ``rgb.txt`` and ``depth.txt`` (and optionally ``groundtruth.txt``).
+        camera: ``"fr1"``, ``"fr2"``, ``"fr3"`` or ``"ros"``; None: ``calibration.txt`` if present, else
+            inferred from the folder name. ``camera_name`` records the choice.
+        K: ``(3, 3)`` intrinsics overriding ``camera``.
+        max_difference: association tolerance in seconds (TUM: 0.02).
+        undistort: remap colour (bilinear) and depth (nearest) with the camera's distortion.
+
+    Raises:
+        DatasetNotFoundError: missing folder, ``rgb.txt`` or ``depth.txt``.
+        DatasetError: malformed or empty lists, no rgb/depth pair within ``max_difference``.
+        TrajectoryFormatError: a malformed ``groundtruth.txt`` line.
+
+    Example:
+        >>> seq = TUMSequence("rgbd_dataset_freiburg1_xyz")  # doctest: +SKIP
+        >>> seq[0].rgb.shape, seq[0].depth.dtype  # doctest: +SKIP
+        ((480, 640, 3), dtype('float32'))
+    """
+
+    depth_scale = TUM_DEPTH_FACTOR
+
+    def __init__(self, root, camera: str | None = None, K=None, max_difference: float = TUM_MAX_DIFFERENCE,
+                 undistort: bool = False):
+        self.root = Path(root).expanduser()
+        if not self.root.is_dir():
+            raise DatasetNotFoundError(self.root, "sequence folder does not exist")
+        self.name = self.root.resolve().name
+        rgb_stamps, rgb_names = read_file_list(self.root / "rgb.txt")
+        depth_stamps, depth_names = read_file_list(self.root / "depth.txt")
+        i, j = associate(rgb_stamps, depth_stamps, max_difference)
+        if i.numel() == 0:
+            raise DatasetError(self.root, f"no rgb.txt and depth.txt timestamps are within {max_difference} s")
+        i, j = i.numpy(), j.numpy()
+        self._timestamps = rgb_stamps[i]
+        self.depth_timestamps = depth_stamps[j]
+        self._rgb = [rgb_names[k] for k in i]
+        self._depth = [depth_names[k] for k in j]
+
+        self.camera_name = None
+        if K is not None:
+            K = np.asarray(K, dtype=np.float64)
+            if K.shape != (3, 3):
+                raise ValueError(f"K must have shape (3, 3), got {K.shape}")
+            self.K, self.distortion = K.copy(), np.zeros(5)
+        elif camera is None and (self.root / "calibration.txt").is_file():
+            cam = read_calibration_file(self.root / "calibration.txt")
+            self.camera_name = "calibration.txt"
+            self.K, self.distortion = cam.K, np.asarray(cam.distortion, dtype=np.float64)
+        else:
+            self.camera_name = camera if camera is not None else camera_from_name(self.name)
+            if self.camera_name is None:
+                logger.warning("%s: camera not given and not in the folder name (fr1/fr2/fr3); using the ROS "
+                               "default intrinsics 525, 525, 319.5, 239.5", self.root)
+                self.camera_name = "ros"
+            cam = tum_camera(self.camera_name)
+            self.K, self.distortion = cam.K, np.asarray(cam.distortion, dtype=np.float64)
+        self.undistort = bool(undistort) and bool(np.any(self.distortion != 0))
+        self._maps = None
+
+        self.groundtruth_file: Path | None = self.root / "groundtruth.txt"
+        gt = np.full((len(self._timestamps), 7), np.nan)
+        if self.groundtruth_file.is_file():
+            traj = read_tum_trajectory(self.groundtruth_file)
+            a, b = associate(self._timestamps, traj.timestamps, max_difference)
+            gt[a.numpy()] = traj.poses.numpy()[b.numpy()]
+        else:
+            self.groundtruth_file = None
+        self._gt = gt
+
+    def __len__(self) -> int:
+        return len(self._timestamps)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._timestamps
+
+    def _groundtruth_array(self) -> np.ndarray:
+        return self._gt
+
+    def paths(self, i: int) -> tuple[Path, Path]:
+        """The colour and depth files of frame ``i``."""
+        return self.root / self._rgb[i], self.root / self._depth[i]
+
+    def _load(self, i: int) -> RGBDFrame:
+        rgb_path, depth_path = self.paths(i)
+        rgb = read_rgb(str(rgb_path))
+        raw = read_depth_raw(str(depth_path), rgb.shape[:2])
+        if self.undistort:
+            rgb, raw = self._remap(rgb, raw)
+        pose = self._gt[i]
+        return RGBDFrame(
+            index=i, timestamp=float(self._timestamps[i]), rgb=rgb,
+            depth=depth_to_metres(raw, self.depth_scale), K=self.K.copy(),
+            pose_gt=None if np.isnan(pose).any() else pose.copy(),
+            rgb_path=str(rgb_path), depth_path=str(depth_path),
+        )
+
+    def _remap(self, rgb: np.ndarray, raw: np.ndarray):
+        h, w = raw.shape
+        if self._maps is None or self._maps[0].shape[:2] != (h, w):
+            self._maps = cv2.initUndistortRectifyMap(self.K, self.distortion, None, self.K, (w, h), cv2.CV_16SC2)
+        m1, m2 = self._maps
+        return (cv2.remap(rgb, m1, m2, cv2.INTER_LINEAR),
+                cv2.remap(raw, m1, m2, cv2.INTER_NEAREST))  # nearest: never blend across depth edges

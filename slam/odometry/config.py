@@ -1,0 +1,146 @@
+"""Typed settings of the RGB-D odometry: every threshold lives here, with its default explained.
+
+The defaults were chosen by measurement on the 7-Scenes ``redkitchen`` sequence (640x480 Kinect v1,
+see ``docs/benchmarks/odometry.md``); they are sensible for any 640x480 structured-light RGB-D camera.
+
+Example:
+    >>> cfg = OdometryConfig()
+    >>> cfg.features.detector, cfg.registration.ransac.confidence
+    ('orb', 0.999)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+__all__ = ["FeatureConfig", "MatchConfig", "OdometryConfig", "RansacConfig", "RegistrationConfig"]
+
+
+@dataclass
+class FeatureConfig:
+    """Keypoint detection, description and back-projection."""
+
+    # "orb" (OpenCV ORB, 256-bit binary descriptors, ~5 ms at 640x480 here) or "sift" (OpenCV SIFT,
+    # 128-d float, ~50 ms at 640x480: too slow for the 50 ms/frame budget at full resolution).
+    detector: str = "orb"
+    # Detection runs on the grey image resized by this factor; keypoints are returned in full-size pixels.
+    image_scale: float = 1.0
+    # Candidates asked from the detector before bucketing (ORB keeps the strongest FAST corners).
+    detect_features: int = 2000
+    # Cap after bucketing: the strongest keypoints of each grid cell are kept so that the features spread
+    # over the image (a RANSAC fit from one textured corner is poorly conditioned).
+    max_features: int = 1000
+    grid_rows: int = 6
+    grid_cols: int = 8
+    # ORB pyramid: scale step and number of levels (OpenCV defaults).
+    orb_scale_factor: float = 1.2
+    orb_levels: int = 8
+    # FAST threshold of ORB; 12 instead of OpenCV's 20 so low-texture kitchen walls still get corners.
+    fast_threshold: int = 12
+    # Valid depth range in metres: Kinect v1 measures from ~0.4 m; beyond ~4 m its noise exceeds 3 cm.
+    min_depth: float = 0.3
+    max_depth: float = 4.0
+    # Depth-discontinuity check: every pixel of the (2r+1)^2 window around the keypoint must be valid and
+    # within max_depth_jump * z of the centre depth, otherwise the keypoint (typically on an object
+    # silhouette, where colour and depth cameras disagree) gets no 3D point.
+    depth_window_radius: int = 1
+    max_depth_jump: float = 0.05
+    # Pixel noise (std) of a keypoint detected at pyramid level 0; level l gets sigma * scale_factor^l.
+    keypoint_sigma_px: float = 1.0
+    # Intrinsics (fx, fy, cx, cy) of the colour camera when they differ from the frame's K (the depth
+    # camera's): unregistered RGB-D such as 7-Scenes, where K is the depth camera's (585) and the Kinect v1
+    # colour camera has f ~ 525. Keypoints are then mapped into the depth image assuming zero baseline,
+    # u_d = K K_rgb^-1 u_rgb, and everything downstream lives in the depth camera's pixels. None: the
+    # frames are treated as registered (colour pixel = depth pixel).
+    rgb_intrinsics: tuple[float, float, float, float] | None = None
+
+
+@dataclass
+class MatchConfig:
+    """Descriptor matching (always Kornia's matchers, ``kornia.feature.match_*``)."""
+
+    # "smnn" (mutual nearest neighbour + ratio test both ways), "snn" (ratio test), "mnn" (mutual NN).
+    method: str = "smnn"
+    # Ratio between the best and the second-best descriptor distance for snn / smnn.
+    ratio: float = 0.9
+    # Absolute distance cap: Hamming bits for binary descriptors (64 of 256 = 25 %), L2 for unit float ones.
+    max_hamming: float = 64.0
+    max_l2: float = 0.7
+    # Guided matching around a motion prior: a keypoint may only match keypoints whose predicted
+    # position (prior pose + depth) lies within this many pixels (at 640x480). 0 disables it.
+    guided_radius_px: float = 40.0
+
+
+@dataclass
+class RansacConfig:
+    """3D-3D RANSAC over 3-point hypotheses, then a refinement on the inliers."""
+
+    # Hypotheses drawn per batch (scored at once, vectorised); stop once the adaptive count is reached.
+    batch_size: int = 64
+    min_iterations: int = 64
+    max_iterations: int = 1024
+    # Probability that at least one all-inlier sample was drawn (adaptive number of iterations).
+    confidence: float = 0.999
+    # A correspondence is an inlier when |T p_src - p_dst| < max(inlier_threshold,
+    # inlier_sigmas * sigma), sigma = the combined Kinect depth std of the two points.
+    inlier_threshold: float = 0.03
+    inlier_sigmas: float = 3.0
+    # A 3-point sample whose triangle is smaller than this (m^2) is degenerate and skipped.
+    min_sample_area: float = 1e-4
+    # Fewer inliers than this -> failure ("too few inliers").
+    min_inliers: int = 12
+    # Second singular value (m) of the centred inlier cloud below which it is called collinear.
+    min_spread: float = 0.01
+    # Gauss-Newton steps minimising the anisotropic (depth-along-the-ray) Mahalanobis 3D error with a
+    # Huber kernel on the inliers; 0 keeps the weighted Kabsch fit.
+    refine_iterations: int = 5
+    huber_delta: float = 2.0
+    # Seed of the hypothesis sampler (a fresh torch.Generator per call: results are reproducible).
+    seed: int = 0
+
+
+@dataclass
+class RegistrationConfig:
+    """Two-frame registration: matching + RANSAC + the checks that decide success."""
+
+    matching: MatchConfig = field(default_factory=MatchConfig)
+    ransac: RansacConfig = field(default_factory=RansacConfig)
+    # Fewer matches than this -> failure before RANSAC ("too few matches").
+    min_matches: int = 20
+    # Success needs at least this many inliers after refinement...
+    min_inliers: int = 20
+    # ...and an inlier RMSE (m) below this.
+    max_rmse: float = 0.05
+    # Kinect v1 depth noise sigma(z) = a + b (z - c)^2 (Nguyen et al. 2012), metres.
+    depth_sigma_a: float = 0.0012
+    depth_sigma_b: float = 0.0019
+    depth_sigma_c: float = 0.4
+
+
+@dataclass
+class OdometryConfig:
+    """Frame-to-keyframe tracking and keyframe selection."""
+
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    # A frame needs this many keypoints with valid depth to be tracked or to become a keyframe.
+    min_valid_points: int = 30
+    # New keyframe when the frame moved more than this from its keyframe (metres / degrees)...
+    keyframe_translation: float = 0.15
+    keyframe_rotation_deg: float = 12.0
+    # ...or when tracking is getting weak: fewer inliers than this, or than this fraction of the
+    # keyframe's valid keypoints (overlap proxy). ATE on redkitchen (1000 frames, colour focal 525) by
+    # keyframe_min_inliers: 80 -> 0.048 m, 120 -> 0.044, 180 -> 0.034 (84 keyframes), 250 -> 0.034 (155):
+    # a registration across a small overlap costs more than the extra keyframe-to-keyframe steps.
+    keyframe_min_inliers: int = 180
+    keyframe_min_inlier_ratio: float = 0.15
+    # Which frame becomes the keyframe when a criterion fires: "previous" promotes the last frame that
+    # still met every criterion (its edge is the stronger one) and re-tracks the current frame against it;
+    # "current" makes the current frame the keyframe (no extra registration).
+    keyframe_policy: str = "current"
+    # After this many consecutive lost frames a keyframe is forced at the constant-velocity pose, linked
+    # by a weak edge (weak_edge_information * I) so tracking can restart.
+    max_lost_frames: int = 3
+    weak_edge_information: float = 1e-2
+    # Keyframe images are stored resized by this factor (0.5: 320x240x3 = 230 kB each) to bound memory;
+    # the place-recognition descriptor resizes to 224 px anyway.
+    keyframe_rgb_scale: float = 0.5

@@ -1,0 +1,352 @@
+"""RGB-D odometry front end: frame-to-keyframe tracking, keyframe selection, tracking-loss handling.
+
+Every frame is registered against the current keyframe (drift accumulates only from keyframe to
+keyframe), with a constant-velocity motion prior for guided matching. A frame becomes a keyframe when it
+has moved far enough from the keyframe (translation / rotation) or when the overlap gets small (few
+inliers, or few relative to the keyframe's keypoints). When the registration against the keyframe fails,
+the last successfully tracked frame is promoted to a keyframe and the frame is tracked again against it.
+If that fails too, the frame is LOST: its pose is predicted by constant velocity, the reason is logged,
+and the next frame is tracked against the keyframe again; after ``max_lost_frames`` lost frames in a row a
+keyframe is forced at the predicted pose with a weak edge so that tracking can restart from it.
+``track`` never raises for a bad frame (no depth, black image, wrong shapes): it returns a LOST result.
+
+The world frame is the camera frame of the first keyframe.
+
+Example:
+    >>> import numpy as np
+    >>> from slam.io.frame import RGBDFrame
+    >>> K = np.array([[585., 0, 320], [0, 585., 240], [0, 0, 1]])
+    >>> frame = RGBDFrame(0, 0.0, np.zeros((480, 640, 3), np.uint8), np.zeros((480, 640), np.float32), K)
+    >>> odo = RGBDOdometry()
+    >>> res = odo.track(frame)
+    >>> res.status.name, res.pose.shape, len(odo.keyframes)
+    ('LOST', torch.Size([7]), 0)
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from enum import Enum
+
+import cv2
+import numpy as np
+import torch
+
+from slam.io.frame import RGBDFrame
+from slam.lie import se3_between, se3_compose, se3_identity, so3_log
+from slam.odometry.config import OdometryConfig
+from slam.odometry.features import FrameFeatures, extract_features
+from slam.odometry.registration import RegistrationResult, register
+
+Tensor = torch.Tensor
+logger = logging.getLogger(__name__)
+
+__all__ = ["Keyframe", "KeyframeEdge", "RGBDOdometry", "TrackResult", "TrackStatus"]
+
+
+class TrackStatus(Enum):
+    """State of the tracker after a frame."""
+
+    INITIALIZED = "initialized"  # the first usable frame: it became keyframe 0 at the world origin
+    OK = "ok"  # registered against its keyframe
+    LOST = "lost"  # not registered: pose predicted by constant velocity (or identity before init)
+    RECOVERED = "recovered"  # registered again after one or more LOST frames
+
+
+@dataclass
+class KeyframeEdge:
+    """Odometry constraint between consecutive keyframes ``i -> j``.
+
+    Attributes:
+        i: id of the older keyframe.
+        j: id of the new keyframe.
+        T_ij: ``(7,)`` float64 pose of keyframe j in keyframe i.
+        information: ``(6, 6)`` float64 information of ``T_ij`` for the right perturbation
+            ``T_ij exp(xi)``, ``xi = [rho, phi]`` (what a g2o / GTSAM between-edge expects).
+        weak: True for an edge forced after a tracking loss (constant-velocity guess, tiny information).
+    """
+
+    i: int
+    j: int
+    T_ij: Tensor
+    information: Tensor
+    weak: bool = False
+
+
+@dataclass
+class Keyframe:
+    """A keyframe kept by the front end.
+
+    Attributes:
+        id: 0, 1, 2, ... in creation order.
+        frame_index: index of the input frame it was made from.
+        timestamp: that frame's timestamp.
+        pose: ``(7,)`` float64 world-from-camera odometry pose.
+        features: its :class:`~slam.odometry.features.FrameFeatures` (what loop verification needs).
+        rgb: ``(h, w, 3)`` uint8 RGB image, resized by ``OdometryConfig.keyframe_rgb_scale`` (0.5 by
+            default: 320x240 for 640x480 input) to bound memory.
+    """
+
+    id: int
+    frame_index: int
+    timestamp: float
+    pose: Tensor
+    features: FrameFeatures
+    rgb: np.ndarray
+
+
+@dataclass
+class TrackResult:
+    """What :meth:`RGBDOdometry.track` reports for one frame.
+
+    Attributes:
+        index: the frame's index.
+        timestamp: the frame's timestamp.
+        pose: ``(7,)`` float64 world-from-camera estimate.
+        keyframe_id: the keyframe the frame is expressed relative to (-1 before the first keyframe).
+        T_kf_frame: ``(7,)`` float64 pose of the frame in that keyframe.
+        is_keyframe: this frame became a new keyframe.
+        status: :class:`TrackStatus`.
+        reason: why the frame is LOST / RECOVERED or a keyframe was made ("" when plainly OK).
+        num_inliers: RANSAC inliers of the registration (0 when LOST).
+        edge: the odometry edge created by this call, if any. It ends at this frame's keyframe when
+            ``is_keyframe``; when the previous frame was promoted to a keyframe (``keyframe_policy =
+            "previous"``, or tracking against the old keyframe failed) it ends at that promoted keyframe:
+            ``is_keyframe`` is False, ``keyframe_id == edge.j`` and ``keyframes[edge.j].frame_index`` is the
+            previous frame's index.
+    """
+
+    index: int
+    timestamp: float
+    pose: Tensor
+    keyframe_id: int
+    T_kf_frame: Tensor
+    is_keyframe: bool
+    status: TrackStatus
+    reason: str
+    num_inliers: int
+    edge: KeyframeEdge | None = None
+
+
+@dataclass
+class _LastFrame:
+    """The previous frame, kept so it can be promoted to a keyframe."""
+
+    index: int
+    timestamp: float
+    rgb: np.ndarray
+    features: FrameFeatures
+    T_kf: Tensor
+    information: Tensor
+    tracked: bool
+
+
+class RGBDOdometry:
+    """Frame-to-keyframe RGB-D odometry (see the module docstring).
+
+    Args:
+        config: :class:`~slam.odometry.config.OdometryConfig`.
+
+    Attributes:
+        keyframes: every keyframe created so far (features + downsized RGB).
+        edges: every odometry edge between consecutive keyframes.
+        stage_seconds: accumulated wall seconds per stage: ``features`` (detection, description,
+            back-projection), ``matching``, ``ransac`` (RANSAC + refinement) and ``tracking_other``
+            (the rest of :meth:`track`: keyframe bookkeeping, image downsizing).
+    """
+
+    def __init__(self, config: OdometryConfig | None = None):
+        self.config = config or OdometryConfig()
+        self.keyframes: list[Keyframe] = []
+        self.edges: list[KeyframeEdge] = []
+        self.stage_seconds = {"features": 0.0, "matching": 0.0, "ransac": 0.0, "tracking_other": 0.0}
+        self._T_kf_last = se3_identity(dtype=torch.float64)
+        self._velocity = se3_identity(dtype=torch.float64)
+        self._last: _LastFrame | None = None
+        self._lost_count = 0
+
+    # ------------------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget all keyframes and state."""
+        self.__init__(self.config)
+
+    @property
+    def keyframe(self) -> Keyframe | None:
+        """The current reference keyframe (None before the first one)."""
+        return self.keyframes[-1] if self.keyframes else None
+
+    def _add_keyframe(self, index: int, timestamp: float, pose: Tensor, features: FrameFeatures,
+                      rgb: np.ndarray) -> Keyframe:
+        s = self.config.keyframe_rgb_scale
+        if s != 1.0 and rgb.size:
+            h, w = rgb.shape[:2]
+            rgb = cv2.resize(rgb, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+        else:
+            rgb = rgb.copy()
+        kf = Keyframe(id=len(self.keyframes), frame_index=index, timestamp=timestamp, pose=pose,
+                      features=features, rgb=rgb)
+        self.keyframes.append(kf)
+        return kf
+
+    def _new_keyframe_with_edge(self, index, timestamp, T_kf: Tensor, information: Tensor,
+                                features: FrameFeatures, rgb: np.ndarray, weak: bool = False) -> KeyframeEdge:
+        old = self.keyframe
+        new = self._add_keyframe(index, timestamp, se3_compose(old.pose, T_kf), features, rgb)
+        edge = KeyframeEdge(i=old.id, j=new.id, T_ij=T_kf.clone(), information=information.clone(), weak=weak)
+        self.edges.append(edge)
+        self._T_kf_last = se3_identity(dtype=torch.float64)
+        return edge
+
+    # ------------------------------------------------------------------------------------------
+    def _extract(self, frame: RGBDFrame):
+        try:
+            feats = extract_features(frame.rgb, frame.depth, frame.K, self.config.features)
+        except (ValueError, TypeError, cv2.error) as exc:
+            return None, f"unusable frame: {exc}"
+        if feats.num_valid < self.config.min_valid_points:
+            return feats, (f"too few keypoints with valid depth ({feats.num_valid} of {len(feats)}; "
+                           f"need {self.config.min_valid_points})")
+        return feats, ""
+
+    def _lost(self, frame: RGBDFrame, feats: FrameFeatures | None, reason: str) -> TrackResult:
+        """LOST: constant-velocity pose; maybe force a keyframe after too many lost frames."""
+        index, ts = int(frame.index), float(frame.timestamp)
+        kf = self.keyframe
+        if kf is None:
+            logger.warning("frame %d lost before initialisation: %s", index, reason)
+            return TrackResult(index, ts, se3_identity(dtype=torch.float64), -1,
+                               se3_identity(dtype=torch.float64), False, TrackStatus.LOST, reason, 0)
+        self._lost_count += 1
+        T_kf = se3_compose(self._T_kf_last, self._velocity)
+        self._T_kf_last = T_kf
+        pose = se3_compose(kf.pose, T_kf)
+        edge = None
+        usable = feats is not None and feats.num_valid >= self.config.min_valid_points
+        # every max_lost_frames lost frames in a row (while the frame itself has usable features)
+        if self._lost_count % max(1, self.config.max_lost_frames) == 0 and usable:
+            info = self.config.weak_edge_information * torch.eye(6, dtype=torch.float64)
+            edge = self._new_keyframe_with_edge(index, ts, T_kf, info, feats, frame.rgb, weak=True)
+            reason += (f"; lost for {self._lost_count} frames: new keyframe {edge.j} at the "
+                       f"constant-velocity pose (weak edge)")
+        self._last = None  # an untracked frame must not be promoted
+        logger.warning("frame %d lost: %s", index, reason)
+        kf_now = self.keyframe
+        T_out = se3_identity(dtype=torch.float64) if edge is not None else T_kf
+        return TrackResult(index, ts, pose, kf_now.id, T_out, edge is not None, TrackStatus.LOST, reason, 0,
+                           edge)
+
+    def _add_seconds(self, res: RegistrationResult) -> None:
+        for k, v in res.seconds.items():
+            self.stage_seconds[k] = self.stage_seconds.get(k, 0.0) + v
+
+    def track(self, frame: RGBDFrame) -> TrackResult:
+        """Estimate the pose of the next frame.
+
+        Args:
+            frame: the next :class:`~slam.io.frame.RGBDFrame` (RGB ``(H, W, 3)`` uint8, depth ``(H, W)``
+                metres with 0 = invalid, ``K (3, 3)``).
+
+        Returns:
+            :class:`TrackResult`; bad frames give ``status=LOST`` with a reason, never an exception.
+        """
+        t0 = time.perf_counter()
+        before = sum(self.stage_seconds.values())
+        out = self._track(frame)
+        spent = time.perf_counter() - t0
+        self.stage_seconds["tracking_other"] += max(0.0, spent - (sum(self.stage_seconds.values()) - before))
+        return out
+
+    def _track(self, frame: RGBDFrame) -> TrackResult:
+        t0 = time.perf_counter()
+        feats, reason = self._extract(frame)
+        t1 = time.perf_counter()
+        self.stage_seconds["features"] += t1 - t0
+        index, ts = int(frame.index), float(frame.timestamp)
+        if reason:
+            return self._lost(frame, feats, reason)
+        cfg = self.config
+        if self.keyframe is None:
+            pose = se3_identity(dtype=torch.float64)
+            kf = self._add_keyframe(index, ts, pose, feats, frame.rgb)
+            self._last = _LastFrame(index, ts, frame.rgb, feats, pose, torch.zeros(6, 6, dtype=torch.float64),
+                                    tracked=True)
+            logger.info("frame %d: initialised keyframe 0 with %d points", index, feats.num_valid)
+            return TrackResult(index, ts, pose, kf.id, pose.clone(), True, TrackStatus.INITIALIZED,
+                               "first keyframe", 0)
+
+        prior = se3_compose(self._T_kf_last, self._velocity)
+        res: RegistrationResult = register(self.keyframe.features, feats, cfg.registration, prior_ab=prior)
+        self._add_seconds(res)
+        edge = None
+        notes = []
+        last = self._last
+        if not res.success and last is not None and last.tracked and last.index != self.keyframe.frame_index:
+            # the keyframe is out of reach: promote the last tracked frame and re-track against it
+            first_reason = res.reason
+            edge = self._new_keyframe_with_edge(last.index, last.timestamp, last.T_kf, last.information,
+                                                last.features, last.rgb)
+            res = register(self.keyframe.features, feats, cfg.registration, prior_ab=self._velocity)
+            self._add_seconds(res)
+            notes.append(f"keyframe {edge.i} failed ({first_reason}): previous frame {last.index} "
+                         f"promoted to keyframe {edge.j}")
+        if not res.success:
+            out = self._lost(frame, feats, "; ".join(notes + [f"registration failed: {res.reason}"]))
+            if edge is not None and out.edge is None:
+                out.edge = edge
+            return out
+
+        T_kf = res.T_ab
+        kf = self.keyframe
+        self._velocity = se3_between(self._T_kf_last, T_kf)
+        status = TrackStatus.RECOVERED if self._lost_count > 0 else TrackStatus.OK
+        if self._lost_count > 0:
+            notes.append(f"recovered after {self._lost_count} lost frames")
+        self._lost_count = 0
+        pose = se3_compose(kf.pose, T_kf)
+        is_kf = False
+        if edge is None:
+            trans = float(T_kf[:3].norm())
+            rot = math.degrees(float(so3_log(T_kf[3:]).norm()))
+            ratio = res.num_inliers / max(kf.features.num_valid, 1)
+            why = []
+            if trans > cfg.keyframe_translation:
+                why.append(f"moved {trans:.3f} m")
+            if rot > cfg.keyframe_rotation_deg:
+                why.append(f"turned {rot:.1f} deg")
+            if res.num_inliers < cfg.keyframe_min_inliers:
+                why.append(f"{res.num_inliers} inliers")
+            if ratio < cfg.keyframe_min_inlier_ratio:
+                why.append(f"inlier ratio {ratio:.2f}")
+            promote = (cfg.keyframe_policy == "previous" and last is not None and last.tracked
+                       and last.index != kf.frame_index)
+            if why and promote:
+                # the previous frame still met every criterion: it becomes the keyframe (its edge is the
+                # stronger one) and this frame is re-tracked against it
+                edge = self._new_keyframe_with_edge(last.index, last.timestamp, last.T_kf, last.information,
+                                                    last.features, last.rgb)
+                chained = se3_between(last.T_kf, T_kf)
+                res2 = register(self.keyframe.features, feats, cfg.registration, prior_ab=chained)
+                self._add_seconds(res2)
+                if res2.success:
+                    res = res2
+                    T_kf = res2.T_ab
+                else:  # keep the estimate through the old keyframe
+                    T_kf = chained
+                pose = se3_compose(self.keyframe.pose, T_kf)
+                notes.append(f"previous frame {last.index} promoted to keyframe {edge.j}: " + ", ".join(why))
+            elif why:
+                edge = self._new_keyframe_with_edge(index, ts, T_kf, res.information, feats, frame.rgb)
+                is_kf = True
+                notes.append("new keyframe: " + ", ".join(why))
+        if not is_kf:
+            self._T_kf_last = T_kf
+        self._last = _LastFrame(index, ts, frame.rgb, feats, T_kf if not is_kf else self._T_kf_last,
+                                res.information, tracked=True)
+        reason_out = "; ".join(notes)
+        if status is TrackStatus.RECOVERED:
+            logger.info("frame %d: %s", index, reason_out)
+        kf_id = self.keyframe.id
+        T_out = se3_identity(dtype=torch.float64) if is_kf else T_kf
+        return TrackResult(index, ts, pose, kf_id, T_out, is_kf, status, reason_out, res.num_inliers, edge)

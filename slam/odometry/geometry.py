@@ -1,0 +1,266 @@
+"""Geometry of sparse RGB-D registration: back-projection, rigid fits and information matrices.
+
+Conventions: a pose ``(..., 7) = [t, q_xyzw]`` maps *source* points into the *destination* frame,
+``p_dst = R p_src + t``. Tangent vectors are ``[rho, phi]`` with the **right** perturbation used by
+:mod:`slam.lie`: ``T exp(xi)``.
+
+Example:
+    >>> src = torch.tensor([[0., 0., 1.], [1., 0., 1.], [0., 1., 2.], [1., 1., 3.]], dtype=torch.float64)
+    >>> pose = kabsch(src, src + torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64))
+    >>> pose.shape
+    torch.Size([7])
+"""
+from __future__ import annotations
+
+import torch
+
+from slam.lie import quat_to_rotmat, rotmat_to_quat, so3_hat
+
+Tensor = torch.Tensor
+
+__all__ = [
+    "backproject",
+    "depth_sigma",
+    "kabsch",
+    "point_covariance",
+    "project",
+    "registration_information",
+    "rigid_jacobian",
+    "transform_points",
+]
+
+
+def _check(x: Tensor, shape: tuple, name: str) -> None:
+    """Raise a ValueError naming ``name`` unless ``x`` matches ``shape`` (None = any size)."""
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    ok = x.dim() == len(shape) and all(s is None or s == d for s, d in zip(shape, x.shape))
+    if not ok:
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+
+
+def backproject(
+    keypoints: Tensor,
+    depth: Tensor,
+    K: Tensor,
+    min_depth: float = 0.3,
+    max_depth: float = 4.0,
+    window_radius: int = 1,
+    max_depth_jump: float = 0.05,
+) -> tuple[Tensor, Tensor]:
+    """Camera-frame 3D points of keypoints from a depth image.
+
+    The depth is read at the rounded pixel. A keypoint is valid when that depth lies in
+    ``[min_depth, max_depth]`` and every pixel of the ``(2r+1) x (2r+1)`` window around it is valid and
+    within ``max_depth_jump * z`` of it (no depth discontinuity: keypoints on silhouettes, where the
+    unregistered colour and depth cameras disagree most, are dropped). ``window_radius=0`` disables it.
+
+    Args:
+        keypoints: ``(N, 2)`` pixel coordinates ``(x, y)``.
+        depth: ``(H, W)`` metres, ``0`` (or NaN) where invalid.
+        K: ``(3, 3)`` pinhole intrinsics.
+
+    Returns:
+        points ``(N, 3)`` in the dtype of ``depth`` (zeros where invalid) and valid ``(N,)`` bool.
+
+    Example:
+        >>> depth = torch.full((4, 5), 2.0)
+        >>> K = torch.tensor([[100., 0., 2.], [0., 100., 1.5], [0., 0., 1.]])
+        >>> pts, ok = backproject(torch.tensor([[2.0, 1.5], [0.0, 0.0]]), depth, K)
+        >>> pts.shape, ok.tolist()
+        (torch.Size([2, 3]), [True, False])
+    """
+    _check(keypoints, (None, 2), "keypoints")
+    _check(depth, (None, None), "depth")
+    _check(K, (3, 3), "K")
+    H, W = depth.shape
+    n = keypoints.shape[0]
+    dtype = depth.dtype if depth.is_floating_point() else torch.float32
+    depth = depth.to(dtype)
+    if n == 0:
+        return depth.new_zeros(0, 3), torch.zeros(0, dtype=torch.bool, device=depth.device)
+    uv = torch.round(keypoints.to(dtype)).long()
+    x, y = uv[:, 0], uv[:, 1]
+    r = int(window_radius)
+    # keypoints whose window leaves the image get no point (also covers out-of-image keypoints)
+    inside = (x >= r) & (x < W - r) & (y >= r) & (y < H - r)
+    xc, yc = x.clamp(r, W - 1 - r), y.clamp(r, H - 1 - r)
+    flat = torch.nan_to_num(depth, nan=0.0).reshape(-1)
+    z = flat[yc * W + xc]
+    valid = inside & (z >= min_depth) & (z <= max_depth)
+    if r > 0:
+        d = torch.arange(-r, r + 1, device=depth.device)
+        dy, dx = torch.meshgrid(d, d, indexing="ij")
+        idx = (yc[:, None] + dy.reshape(1, -1)) * W + (xc[:, None] + dx.reshape(1, -1))
+        win = flat[idx]  # (N, (2r+1)^2)
+        jump = (win - z[:, None]).abs().amax(dim=1)
+        valid = valid & (win > 0).all(dim=1) & (jump <= max_depth_jump * z)
+    Kd = K.to(dtype=dtype, device=depth.device)
+    kp = keypoints.to(dtype)
+    px = (kp[:, 0] - Kd[0, 2]) / Kd[0, 0] * z
+    py = (kp[:, 1] - Kd[1, 2]) / Kd[1, 1] * z
+    points = torch.stack([px, py, z], dim=-1) * valid[:, None].to(dtype)
+    return points, valid
+
+
+def depth_sigma(z: Tensor, a: float = 0.0012, b: float = 0.0019, c: float = 0.4) -> Tensor:
+    """Axial depth noise (std, metres) of a Kinect v1: ``a + b (z - c)^2`` (Nguyen et al., 3DIMPVT 2012).
+
+    Args:
+        z: ``(*)`` depths in metres.
+
+    Returns:
+        ``(*)`` standard deviations.
+
+    Example:
+        >>> depth_sigma(torch.tensor([0.4, 2.4]))
+        tensor([0.0012, 0.0088])
+    """
+    return a + b * (z - c) ** 2
+
+
+def point_covariance(points: Tensor, sigma_z: Tensor, sigma_px: Tensor, fx: float, fy: float) -> Tensor:
+    """Anisotropic covariance of back-projected points: depth noise along the ray, pixel noise across it.
+
+    For ``p = z K^-1 [u, v, 1]``: ``Sigma = sigma_z^2 (p/z)(p/z)^T + (sigma_px z / fx)^2 e_x e_x^T +
+    (sigma_px z / fy)^2 e_y e_y^T`` (first-order propagation of independent ``u, v, z`` noise).
+
+    Args:
+        points: ``(N, 3)`` camera-frame points with ``z > 0``.
+        sigma_z: ``(N,)`` depth std (metres).
+        sigma_px: ``(N,)`` keypoint std (pixels).
+
+    Returns:
+        ``(N, 3, 3)`` covariances.
+
+    Example:
+        >>> point_covariance(torch.ones(5, 3), torch.ones(5), torch.ones(5), 500.0, 500.0).shape
+        torch.Size([5, 3, 3])
+    """
+    _check(points, (None, 3), "points")
+    ray = points / points[:, 2:3].clamp_min(1e-6)
+    cov = (sigma_z ** 2)[:, None, None] * ray[:, :, None] * ray[:, None, :]
+    sx = (sigma_px * points[:, 2] / fx) ** 2
+    sy = (sigma_px * points[:, 2] / fy) ** 2
+    cov[:, 0, 0] += sx
+    cov[:, 1, 1] += sy
+    return cov
+
+
+def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> Tensor:
+    """Weighted least-squares rigid transform (Kabsch / Umeyama without scale), batched.
+
+    Minimises ``sum_i w_i |R src_i + t - dst_i|^2``; the reflection case is fixed by the sign of
+    ``det(U V^T)``.
+
+    Args:
+        src: ``(..., N, 3)`` source points.
+        dst: ``(..., N, 3)`` destination points.
+        weights: ``(..., N)`` non-negative weights (default: all ones).
+
+    Returns:
+        ``(..., 7)`` poses mapping ``src`` onto ``dst``. Degenerate input (fewer than 3 non-collinear
+        points) still returns a valid rotation (one of the minimisers); callers check the spread.
+
+    Example:
+        >>> kabsch(torch.randn(8, 5, 3), torch.randn(8, 5, 3)).shape
+        torch.Size([8, 7])
+    """
+    if src.shape != dst.shape or src.dim() < 2 or src.shape[-1] != 3:
+        raise ValueError(f"src and dst must both have shape (..., N, 3), got {tuple(src.shape)} "
+                         f"and {tuple(dst.shape)}")
+    if weights is None:
+        weights = torch.ones(src.shape[:-1], dtype=src.dtype, device=src.device)
+    elif weights.shape != src.shape[:-1]:
+        raise ValueError(f"weights must have shape {tuple(src.shape[:-1])}, got {tuple(weights.shape)}")
+    w = weights[..., None]
+    wsum = w.sum(dim=-2, keepdim=True).clamp_min(torch.finfo(src.dtype).tiny)
+    mu_s = (w * src).sum(dim=-2, keepdim=True) / wsum
+    mu_d = (w * dst).sum(dim=-2, keepdim=True) / wsum
+    cov = ((dst - mu_d) * w).transpose(-1, -2) @ (src - mu_s)  # (..., 3, 3) = sum w d s^T
+    U, _, Vh = torch.linalg.svd(cov)
+    sign = torch.sign(torch.linalg.det(U @ Vh))
+    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    D = torch.ones(cov.shape[:-1], dtype=src.dtype, device=src.device)
+    D[..., 2] = sign
+    R = (U * D[..., None, :]) @ Vh
+    t = mu_d[..., 0, :] - (R @ mu_s[..., 0, :, None])[..., 0]
+    return torch.cat([t, rotmat_to_quat(R)], dim=-1)
+
+
+def transform_points(pose: Tensor, points: Tensor) -> Tensor:
+    """Apply poses ``(..., 7)`` to point sets ``(..., N, 3)`` through rotation matrices (fast for many points).
+
+    Example:
+        >>> transform_points(torch.tensor([1., 0, 0, 0, 0, 0, 1]), torch.zeros(4, 3))[:, 0]
+        tensor([1., 1., 1., 1.])
+    """
+    if pose.shape[-1] != 7 or points.shape[-1] != 3:
+        raise ValueError(f"pose must be (..., 7) and points (..., N, 3), got {tuple(pose.shape)} "
+                         f"and {tuple(points.shape)}")
+    R = quat_to_rotmat(pose[..., 3:])
+    return points @ R.transpose(-1, -2) + pose[..., None, :3]
+
+
+def project(points: Tensor, K: Tensor) -> Tensor:
+    """Pinhole projection of camera-frame points ``(..., 3)`` to pixels ``(..., 2)`` (z clamped > 0).
+
+    Example:
+        >>> project(torch.tensor([[0., 0., 2.]]), torch.tensor([[100., 0, 5], [0, 100., 6], [0, 0, 1]]))
+        tensor([[5., 6.]])
+    """
+    z = points[..., 2:3].clamp_min(1e-6)
+    uv = points[..., :2] / z
+    return torch.stack([uv[..., 0] * K[0, 0] + K[0, 2], uv[..., 1] * K[1, 1] + K[1, 2]], dim=-1)
+
+
+def rigid_jacobian(points: Tensor) -> Tensor:
+    """Jacobian of ``exp(xi) p`` at ``xi = 0`` for the ``[rho, phi]`` tangent: ``[I, -[p]x]``.
+
+    Args:
+        points: ``(N, 3)``.
+
+    Returns:
+        ``(N, 3, 6)``.
+
+    Example:
+        >>> rigid_jacobian(torch.zeros(2, 3)).shape
+        torch.Size([2, 3, 6])
+    """
+    _check(points, (None, 3), "points")
+    eye = torch.eye(3, dtype=points.dtype, device=points.device).expand(points.shape[0], 3, 3)
+    return torch.cat([eye, -so3_hat(points)], dim=-1)
+
+
+def registration_information(points_src: Tensor, point_information: Tensor) -> Tensor:
+    """Information (inverse covariance) of a rigid fit, in the tangent of the right perturbation.
+
+    For a pose ``T`` fitted to ``dst_i ~ T src_i`` with residuals ``r_i = T src_i - dst_i`` of information
+    ``W_i`` (3x3, expressed in the *source* frame, i.e. ``R^T Sigma_i^-1 R``), the Gauss-Newton Hessian at
+    the optimum is ``H = sum_i J_i^T W_i J_i`` with ``J_i = [I, -[src_i]x]`` because
+    ``T exp(xi) src = T (src + rho + phi x src)``. With isotropic noise ``W_i = I / sigma_i^2`` this is the
+    textbook ``H = sum_i J_i^T J_i / sigma_i^2``. This is the information of ``T`` under ``T exp(xi)``,
+    the convention of g2o / GTSAM ``BetweenFactor`` edges. It ignores correlations between points, so it
+    is optimistic; the pose graph may rescale it.
+
+    Args:
+        points_src: ``(N, 3)`` inlier source points (frame of the pose's right-hand side).
+        point_information: ``(N, 3, 3)`` residual information matrices, or ``(N,)`` isotropic
+            ``1 / sigma_i^2``.
+
+    Returns:
+        ``(6, 6)`` symmetric positive semi-definite matrix (positive definite for >= 3 non-collinear points).
+
+    Example:
+        >>> H = registration_information(torch.randn(10, 3, dtype=torch.float64), torch.ones(10))
+        >>> H.shape
+        torch.Size([6, 6])
+    """
+    _check(points_src, (None, 3), "points_src")
+    J = rigid_jacobian(points_src)
+    if point_information.dim() == 1:
+        H = (J.transpose(-1, -2) @ J * point_information[:, None, None]).sum(dim=0)
+    else:
+        H = (J.transpose(-1, -2) @ point_information @ J).sum(dim=0)
+    return 0.5 * (H + H.transpose(0, 1))

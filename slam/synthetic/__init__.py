@@ -1,0 +1,37 @@
+"""Built-in synthetic RGB-D sequences with exact ground truth: a photo-textured room rendered by a
+ray caster in torch, camera trajectories with known revisits, Kinect-like noise, and a writer of the
+TUM RGB-D layout.
+
+Example:
+    >>> from slam.synthetic import generate_sequence  # doctest: +SKIP
+    >>> folder = generate_sequence("/tmp/synthetic_loop", trajectory="loop", num_frames=300)  # doctest: +SKIP
+"""
+from slam.synthetic.render import DepthNoiseConfig, ImageNoiseConfig, RenderOutput, render_frames
+from slam.synthetic.scene import RoomConfig, Scene, build_room_scene
+from slam.synthetic.sequence import (
+                                     DEPTH_FACTOR,
+                                     SyntheticSequence,
+                                     generate_sequence,
+                                     read_calibration,
+                                     synthetic_intrinsics,
+)
+from slam.synthetic.trajectories import TRAJECTORIES, TrajectoryConfig, make_trajectory, trajectory_rates
+
+__all__ = [
+                                     "DEPTH_FACTOR",
+                                     "TRAJECTORIES",
+                                     "DepthNoiseConfig",
+                                     "ImageNoiseConfig",
+                                     "RenderOutput",
+                                     "RoomConfig",
+                                     "Scene",
+                                     "SyntheticSequence",
+                                     "TrajectoryConfig",
+                                     "build_room_scene",
+                                     "generate_sequence",
+                                     "make_trajectory",
+                                     "read_calibration",
+                                     "render_frames",
+                                     "synthetic_intrinsics",
+                                     "trajectory_rates",
+]

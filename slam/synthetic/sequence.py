@@ -1,0 +1,309 @@
+"""Synthetic RGB-D sequences: rendered in memory (:class:`SyntheticSequence`) or written to disk in the
+TUM RGB-D layout (:func:`generate_sequence`), with exact ground truth.
+
+The folder written by :func:`generate_sequence` is read by the same code as a real TUM download::
+
+    out/
+      rgb/<timestamp>.png       8-bit RGB
+      depth/<timestamp>.png     16-bit, 5000 units per metre, 0 = no measurement
+      rgb.txt, depth.txt        "timestamp filename" lists with TUM's comment header
+      groundtruth.txt           "timestamp tx ty tz qx qy qz qw" (camera-to-world), one line per frame
+      calibration.txt           "fx fy cx cy" of the pinhole camera (no distortion)
+      synthetic.json            the generator's settings (trajectory, frames, seed, noise)
+
+At 640 x 480 the intrinsics are the ROS default (525, 525, 319.5, 239.5), so a TUM reader that ignores
+``calibration.txt`` still gets the right ``K``; other sizes scale them (``synthetic_intrinsics``).
+Frames are deterministic by ``seed`` (noise and hand shake) and do not depend on batching; the scene is
+the default room (:func:`slam.synthetic.scene.build_room_scene`, its own seed fixed).
+
+Example:
+    >>> seq = SyntheticSequence("loop", num_frames=4, width=32, height=24, scene=_tiny_scene())
+    >>> frame = seq[0]
+    >>> frame.rgb.shape, frame.rgb.dtype, frame.depth.shape, frame.depth.dtype, frame.pose_gt.shape
+    ((24, 32, 3), dtype('uint8'), (24, 32), dtype('float32'), (7,))
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from slam.io.frame import RGBDFrame
+from slam.io.images import depth_to_metres
+from slam.io.sequence import RGBDSequence
+from slam.io.trajectory import Trajectory, write_tum_trajectory
+from slam.synthetic.render import (
+    DepthNoiseConfig,
+    ImageNoiseConfig,
+    apply_depth_noise,
+    apply_image_noise,
+    render_frames,
+)
+from slam.synthetic.scene import RoomConfig, Scene, build_room_scene, default_room_scene
+from slam.synthetic.trajectories import TrajectoryConfig, make_trajectory
+
+__all__ = [
+    "DEPTH_FACTOR",
+    "SyntheticSequence",
+    "generate_sequence",
+    "read_calibration",
+    "synthetic_intrinsics",
+]
+
+logger = logging.getLogger(__name__)
+
+DEPTH_FACTOR = 5000.0  # raw depth units per metre, as in TUM RGB-D
+_MAX_RAW = 65535  # largest 16-bit value; deeper points cannot be stored and read as invalid
+
+
+def synthetic_intrinsics(width: int = 640, height: int = 480) -> np.ndarray:
+    """Pinhole ``K (3, 3)`` float64: the ROS default (525, 525, 319.5, 239.5) at 640 x 480, scaled with the
+    image size otherwise (same field of view, principal point at the image centre)."""
+    if width <= 0 or height <= 0:
+        raise ValueError(f"width and height must be positive, got {width} x {height}")
+    return np.array([[525.0 * width / 640.0, 0.0, (width - 1) / 2.0],
+                     [0.0, 525.0 * height / 480.0, (height - 1) / 2.0],
+                     [0.0, 0.0, 1.0]])
+
+
+def read_calibration(folder: str | os.PathLike) -> np.ndarray | None:
+    """``K (3, 3)`` from ``folder/calibration.txt`` (first non-comment line: ``fx fy cx cy``), or None
+    when the file does not exist.
+
+    Raises:
+        ValueError: a malformed file (naming the file and line).
+    """
+    path = Path(folder) / "calibration.txt"
+    if not path.is_file():
+        return None
+    with open(path, "r", encoding="utf-8") as f:
+        for number, raw in enumerate(f, start=1):
+            line = raw.strip()
+            if not line or line.startswith("#"):
+                continue
+            try:
+                fx, fy, cx, cy = (float(v) for v in line.replace(",", " ").split()[:4])
+            except ValueError:
+                raise ValueError(f"{path}:{number}: expected 'fx fy cx cy', got {line!r}") from None
+            return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    raise ValueError(f"{path}: no 'fx fy cx cy' line")
+
+
+def _tiny_scene() -> Scene:
+    """A low-texture-resolution room for doctests and quick tests (same geometry)."""
+    return build_room_scene(RoomConfig(texel_density=24.0, object_texel_density=24.0))
+
+
+class SyntheticSequence(RGBDSequence):
+    """A rendered RGB-D sequence held as a trajectory; frames are rendered when read.
+
+    ``seq[i]`` / ``for frame in seq`` give :class:`~slam.io.frame.RGBDFrame` s (rgb ``(H, W, 3)`` uint8,
+    depth ``(H, W)`` float32 metres quantised to 1/5000 m exactly as the written 16-bit PNG reads back,
+    ``K (3, 3)``, ``pose_gt (7,)``), identical to what :func:`generate_sequence` writes.
+
+    Args:
+        trajectory: a name from :data:`slam.synthetic.trajectories.TRAJECTORIES` or a
+            :class:`~slam.io.trajectory.Trajectory` (camera-to-world poses in the room's frame).
+        num_frames: frames of a named trajectory (ignored for a given Trajectory).
+        width: image columns W.
+        height: image rows H.
+        seed: seeds the depth/image noise of every frame and the trajectory's hand shake.
+        depth_noise: Kinect-like depth noise, quantisation and holes (``depth_noise_config``).
+        image_noise: exposure and pixel noise (``image_noise_config``).
+        scene: the scene (default: the shared :func:`default_room_scene`); rendering runs on its device.
+        trajectory_config: timing of a named trajectory (default: 30 Hz).
+        depth_noise_config: the depth noise model (default :class:`DepthNoiseConfig`).
+        image_noise_config: the image noise model (default :class:`ImageNoiseConfig`).
+        batch_size: frames rendered together when iterating.
+    """
+
+    depth_scale = DEPTH_FACTOR
+
+    def __init__(self, trajectory: str | Trajectory = "loop", num_frames: int = 300, width: int = 640,
+                 height: int = 480, seed: int = 0, depth_noise: bool = True, image_noise: bool = True,
+                 scene: Scene | None = None, trajectory_config: TrajectoryConfig | None = None,
+                 depth_noise_config: DepthNoiseConfig | None = None,
+                 image_noise_config: ImageNoiseConfig | None = None, batch_size: int = 4):
+        if isinstance(trajectory, Trajectory):
+            if trajectory.poses.ndim != 2 or trajectory.poses.shape[-1] != 7:
+                raise ValueError(f"trajectory poses must have shape (N, 7), got {tuple(trajectory.poses.shape)}")
+            self.trajectory = trajectory
+            self.trajectory_name = "custom"
+        else:
+            self.trajectory = make_trajectory(trajectory, num_frames, seed=seed, config=trajectory_config)
+            self.trajectory_name = str(trajectory)
+        self.width, self.height, self.seed = int(width), int(height), int(seed)
+        self.K = synthetic_intrinsics(self.width, self.height)
+        self.scene = scene if scene is not None else default_room_scene()
+        self.depth_noise = (depth_noise_config or DepthNoiseConfig()) if depth_noise else None
+        self.image_noise = (image_noise_config or ImageNoiseConfig()) if image_noise else None
+        self.batch_size = max(1, int(batch_size))
+        self.name = f"synthetic_{self.trajectory_name}_seed{self.seed}"
+        self.root = Path(self.name)
+        self._poses = self.trajectory.poses.to(torch.float64).cpu().numpy()
+        self._stamps = self.trajectory.timestamps.to(torch.float64).cpu().numpy()
+
+    def __len__(self) -> int:
+        return int(self._stamps.shape[0])
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._stamps.copy()
+
+    def _groundtruth_array(self) -> np.ndarray:
+        return self._poses.copy()
+
+    def render_raw(self, indices: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Render frames ``indices`` with noise: rgb ``(n, H, W, 3)`` uint8 and raw depth ``(n, H, W)``
+        uint16 (5000 per metre, 0 = invalid), exactly the PNGs :func:`generate_sequence` writes."""
+        idx = [int(i) for i in indices]
+        if not idx:
+            return (np.zeros((0, self.height, self.width, 3), np.uint8),
+                    np.zeros((0, self.height, self.width), np.uint16))
+        K = torch.from_numpy(self.K)
+        out = render_frames(self.scene, K, torch.from_numpy(self._poses[idx]), self.height, self.width)
+        seeds = [self.seed * 100_003 + i for i in idx]  # per-frame noise: independent of batching
+        depth, rgb = out.depth, out.rgb
+        if self.depth_noise is not None:
+            depth = apply_depth_noise(depth, out.cos_incidence, self.depth_noise, seeds)
+        if self.image_noise is not None:
+            rgb = apply_image_noise(rgb, self.image_noise, seeds)
+        raw = torch.round(depth.double() * DEPTH_FACTOR)
+        raw = torch.where(raw > _MAX_RAW, torch.zeros_like(raw), raw)  # not storable -> invalid
+        return rgb.cpu().numpy(), raw.cpu().numpy().astype(np.uint16)
+
+    def _frame(self, i: int, rgb: np.ndarray, raw: np.ndarray) -> RGBDFrame:
+        return RGBDFrame(index=i, timestamp=float(self._stamps[i]), rgb=rgb,
+                         depth=depth_to_metres(raw, DEPTH_FACTOR), K=self.K.copy(),
+                         pose_gt=self._poses[i].copy())
+
+    def _load(self, i: int) -> RGBDFrame:
+        rgb, raw = self.render_raw([i])
+        return self._frame(i, rgb[0], raw[0])
+
+    def __iter__(self) -> Iterator[RGBDFrame]:
+        n = len(self)
+        for start in range(0, n, self.batch_size):
+            idx = list(range(start, min(n, start + self.batch_size)))
+            rgb, raw = self.render_raw(idx)
+            for k, i in enumerate(idx):
+                yield self._frame(i, rgb[k], raw[k])
+
+    def settings(self) -> dict:
+        """The generator's settings (written to ``synthetic.json``)."""
+        return {
+            "generator": "slam.synthetic", "trajectory": self.trajectory_name, "num_frames": len(self),
+            "width": self.width, "height": self.height, "seed": self.seed,
+            "K": self.K.tolist(), "depth_factor": DEPTH_FACTOR,
+            "depth_noise": None if self.depth_noise is None else vars(self.depth_noise),
+            "image_noise": None if self.image_noise is None else vars(self.image_noise),
+            "room_size": list(self.scene.room_size),
+        }
+
+
+def _list_header(kind: str, name: str) -> list[str]:
+    return [f"# {kind}", f"# file: '{name}'", "# timestamp filename"]
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int | None):
+    """Temporarily set torch's intra-op threads (process-wide), restoring the previous value."""
+    if n is None:
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory = "loop",
+                      num_frames: int = 300, width: int = 640, height: int = 480, seed: int = 0,
+                      depth_noise: bool = True, image_noise: bool = True, scene: Scene | None = None,
+                      batch_size: int = 2, workers: int = 2, progress: bool = False, **kwargs) -> Path:
+    """Render a synthetic sequence and write it in the TUM RGB-D layout (see the module docstring).
+
+    Args:
+        out_dir: the sequence folder (created; files of the same names are overwritten).
+        trajectory: ``"loop"`` (default; ~1.1 turns, so its end revisits its start), ``"figure_eight"``,
+            ``"out_and_back"``, or a :class:`~slam.io.trajectory.Trajectory`.
+        num_frames: frames (30 Hz; 300 = 10 s). The loop stays below ~0.75 m/s and 45 deg/s at 300.
+        width: image columns.
+        height: image rows.
+        seed: noise and hand-shake seed; equal seeds give byte-identical files.
+        depth_noise: Kinect-like depth noise, quantisation and holes.
+        image_noise: exposure and pixel noise.
+        scene: the scene (default: the standard room).
+        batch_size: frames per rendering task.
+        workers: rendering threads. With more than one, each renders whole frames and torch's own
+            intra-op threads are set to 1 for the duration (restored afterwards): frame-level parallelism
+            scales better than intra-op threads on the small kernels of the renderer and does not
+            collapse on a busy machine. 1 renders in the caller with torch's settings untouched.
+        progress: log a line every ~10 % of the frames.
+        **kwargs: passed to :class:`SyntheticSequence` (noise and trajectory configs).
+
+    Returns:
+        The folder's path.
+    """
+    seq = SyntheticSequence(trajectory, num_frames=num_frames, width=width, height=height, seed=seed,
+                            depth_noise=depth_noise, image_noise=image_noise, scene=scene, batch_size=batch_size,
+                            **kwargs)
+    out = Path(out_dir).expanduser()
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+    names = [f"{t:.6f}.png" for t in seq.timestamps]
+    n = len(seq)
+    batches = [list(range(s, min(n, s + seq.batch_size))) for s in range(0, n, seq.batch_size)]
+    workers = max(1, int(workers))
+
+    def write(idx: list[int], rgb: np.ndarray, raw: np.ndarray) -> None:
+        for k, i in enumerate(idx):
+            ok = cv2.imwrite(str(out / "rgb" / names[i]), np.ascontiguousarray(rgb[k][:, :, ::-1]))
+            ok = ok and cv2.imwrite(str(out / "depth" / names[i]), raw[k])
+            if not ok:
+                raise OSError(f"could not write frame {i} into {out}")
+
+    def task(idx: list[int]) -> None:
+        write(idx, *seq.render_raw(idx))
+
+    step = max(1, len(batches) // 10)
+    with _torch_threads(1 if workers > 1 else None):
+        if workers == 1:
+            for b, idx in enumerate(batches):
+                task(idx)
+                if progress and b % step == 0:
+                    logger.info("synthetic sequence: %d / %d frames", idx[-1] + 1, n)
+        else:
+            with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="synthetic") as pool:
+                for b, fut in enumerate([pool.submit(task, idx) for idx in batches]):
+                    fut.result()  # re-raises a worker's error
+                    if progress and b % step == 0:
+                        logger.info("synthetic sequence: %d / %d frames", batches[b][-1] + 1, n)
+    stamps = seq.timestamps
+    with open(out / "rgb.txt", "w", encoding="utf-8") as f:
+        f.write("\n".join(_list_header("color images", seq.name)
+                          + [f"{t:.6f} rgb/{nm}" for t, nm in zip(stamps, names)]) + "\n")
+    with open(out / "depth.txt", "w", encoding="utf-8") as f:
+        f.write("\n".join(_list_header("depth maps", seq.name)
+                          + [f"{t:.6f} depth/{nm}" for t, nm in zip(stamps, names)]) + "\n")
+    with open(out / "groundtruth.txt", "w", encoding="utf-8") as f:
+        f.write("# ground truth trajectory\n")
+        f.write(f"# file: '{seq.name}' (exact: the rendered camera-to-world poses)\n")
+        write_tum_trajectory(f, Trajectory(torch.from_numpy(stamps), torch.from_numpy(seq._poses)), header=True)
+    K = seq.K
+    with open(out / "calibration.txt", "w", encoding="utf-8") as f:
+        f.write("# pinhole intrinsics of the rendered images: fx fy cx cy (pixels), no distortion\n")
+        f.write(f"{K[0, 0]:.6f} {K[1, 1]:.6f} {K[0, 2]:.6f} {K[1, 2]:.6f}\n")
+    with open(out / "synthetic.json", "w", encoding="utf-8") as f:
+        json.dump(seq.settings(), f, indent=2)
+    return out

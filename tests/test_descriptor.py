@@ -1,0 +1,170 @@
+"""AttentionDescriptor: shapes, determinism, composition, intermediates, errors (random weights, no files)."""
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from attnloop import AttentionDescriptor, DescriptorParts
+from attnloop.descriptor import attention_descriptor, descriptor_from_attention
+from attnloop.fusion import FUSION_MODES, fuse
+from attnloop.rnn_pool import random_rnn_pool
+
+
+@pytest.fixture(scope="module")
+def images():
+    g = torch.Generator().manual_seed(1)
+    return torch.randint(0, 256, (3, 3, 120, 160), dtype=torch.uint8, generator=g)
+
+
+@pytest.fixture(scope="module")
+def lite():
+    return AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False, seed=0)
+
+
+@pytest.mark.parametrize("fusion", FUSION_MODES)
+def test_shapes_unit_norm_all_fusions(lite, images, fusion):
+    desc = AttentionDescriptor(lite.backbone, fusion=fusion, seed=0)
+    d = desc(images)
+    assert d.shape == (3, 1024) and d.dtype == torch.float32
+    assert torch.isfinite(d).all()
+    assert torch.allclose(d.norm(dim=1), torch.ones(3), atol=1e-5)
+
+
+def test_vgg16_random_weights_end_to_end(images):
+    desc = AttentionDescriptor("vgg16", fusion="gaf", pretrained=False, seed=0)
+    assert desc.pool.weights.shape == (16, 64, 256 * 7 * 7)  # the paper's 16 RNNs of 64 x 12544
+    parts = desc.parts(images[:1])
+    assert parts.tap.shape == (1, 512, 7, 7) and parts.descriptor.shape == (1, 1024)
+    assert desc.out_dim == 1024
+
+
+def test_same_seed_identical_different_seed_different(images):
+    a = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=0)(images)
+    b = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=0)(images)
+    c = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=1)(images)
+    assert torch.equal(a, b)
+    # another seed: other RNN (and backbone) weights, nearly orthogonal descriptors
+    assert (a * c).sum(1).abs().max() < 0.5
+
+
+def test_same_seed_same_rnn_for_a_given_backbone(lite, images):
+    a = AttentionDescriptor(lite.backbone, seed=7)
+    b = AttentionDescriptor(lite.backbone, seed=7)
+    assert torch.equal(a.pool.weights, b.pool.weights)
+    assert not torch.equal(a.pool.weights, lite.pool.weights)
+
+
+def test_parts_are_consistent(lite, images):
+    parts = lite.parts(images)
+    assert isinstance(parts, DescriptorParts)
+    net = lite.backbone
+    with torch.no_grad():
+        tap = net.forward_to_tap(net.preprocess(images))
+    assert torch.allclose(parts.tap, tap, atol=1e-6)
+    assert parts.grad.shape == parts.tap.shape == (3, 320, 7, 7)
+    # random weights: a flat softmax, so G is tiny (below minmax_normalize's 1e-12 constant-map
+    # threshold); the descriptor fuses G / max|G|, which the fusions cannot tell from G otherwise.
+    assert parts.grad.abs().max() < 1e-9
+    peak = parts.grad.abs().amax(dim=(1, 2, 3), keepdim=True)
+    assert torch.allclose(parts.fused, fuse(parts.tap, parts.grad / peak, "dam"))
+    assert parts.fused.abs().sum() > 0
+    # descriptor = L2(pool(10 * fused / |fused|)), computed here without the library's helper
+    x = parts.fused.flatten(1)
+    x = (10.0 * x / x.norm(dim=1, keepdim=True)).view_as(parts.fused)
+    ref = F.normalize(random_rnn_pool(x, lite.pool.weights), dim=1)
+    assert torch.allclose(parts.descriptor, ref, atol=1e-6)
+    assert torch.allclose(lite(images), parts.descriptor)
+    assert torch.allclose(lite.from_attention(parts.tap, parts.grad), parts.descriptor)
+
+
+def test_batch_equals_single_frames(lite, images):
+    d = lite(images)
+    for i in range(images.shape[0]):
+        assert torch.allclose(lite(images[i:i + 1]), d[i:i + 1], atol=1e-5)
+
+
+def test_uint8_and_float_images_agree(lite, images):
+    a = lite(images)
+    b = lite(images.float() / 255.0)
+    assert ((a * b).sum(1) > 0.999).all()
+
+
+def test_no_grad_and_inference_mode(lite, images):
+    ref = lite(images)
+    with torch.no_grad():
+        a = lite(images)
+    with torch.inference_mode():
+        b = lite(images)
+    assert torch.equal(ref, a) and torch.equal(ref, b)
+    assert all(p.grad is None for p in lite.parameters())
+
+
+def test_composes_in_a_users_sequential(images):
+    torch.manual_seed(0)
+    model = nn.Sequential(
+        AttentionDescriptor("efficientnet_lite0", fusion="ega", pretrained=False, seed=0),
+        nn.Linear(1024, 10),
+    )
+    out = model(images)
+    assert out.shape == (3, 10)
+    out.logsumexp(1).sum().backward()  # the user's head trains; the descriptor is a frozen extractor
+    assert model[1].weight.grad is not None and model[1].weight.grad.abs().sum() > 0
+    assert all(p.grad is None for p in model[0].parameters())
+    trainable = [n for n, p in model.named_parameters() if p.requires_grad]
+    assert trainable == ["1.weight", "1.bias"]
+    model.train()
+    assert model[0].training and not model[0].backbone.training  # batch-norm stays frozen
+    assert "0.pool.weights" in model.state_dict()  # the RNN weights travel with the model
+
+
+def test_empty_batch(lite):
+    d = lite(torch.zeros(0, 3, 480, 640, dtype=torch.uint8))
+    assert d.shape == (0, 1024)
+    parts = lite.parts(torch.zeros(0, 3, 480, 640, dtype=torch.uint8))
+    assert parts.tap.shape == (0, 320, 7, 7)
+
+
+def test_raw_pool_input_option(lite, images):
+    desc = AttentionDescriptor(lite.backbone, fusion="none", pool_scale=None)
+    parts = desc.parts(images)
+    ref = F.normalize(random_rnn_pool(parts.tap, desc.pool.weights), dim=1)
+    assert torch.allclose(parts.descriptor, ref, atol=1e-6)
+    unnormalised = AttentionDescriptor(lite.backbone, fusion="none", normalize=False)(images)
+    assert (unnormalised.abs() <= 1).all() and not torch.allclose(unnormalised.norm(dim=1), torch.ones(3))
+
+
+def test_functional_form_matches_module(lite, images):
+    d = attention_descriptor(images, lite.backbone, lite.pool.weights, fusion="dam")
+    assert torch.allclose(d, lite(images))
+    _fused, d2 = descriptor_from_attention(torch.zeros(1, 320, 7, 7), torch.ones(1, 320, 7, 7),
+                                          lite.pool.weights, "gaf")
+    assert torch.equal(d2, torch.zeros(1, 1024))  # a zero map gives a zero descriptor, not NaN
+
+
+@pytest.mark.parametrize(
+    "bad, err",
+    [
+        (torch.zeros(3, 120, 160, dtype=torch.uint8), "shape \\(B, 3, H, W\\)"),
+        (torch.zeros(1, 4, 120, 160, dtype=torch.uint8), "shape \\(B, 3, H, W\\)"),
+        (torch.zeros(1, 3, 120, 160, dtype=torch.int64), "uint8"),
+        (torch.zeros(1, 3, 120, 160, device="meta"), "move one of them"),
+    ],
+)
+def test_wrong_input(lite, bad, err):
+    with pytest.raises(ValueError, match=err):
+        lite(bad)
+
+
+def test_wrong_settings(lite):
+    with pytest.raises(ValueError, match="unknown fusion"):
+        AttentionDescriptor(lite.backbone, fusion="sum")
+    with pytest.raises(ValueError, match="unknown backbone"):
+        AttentionDescriptor("resnet50", pretrained=False)
+    with pytest.raises(ValueError, match="pool_scale"):
+        AttentionDescriptor(lite.backbone, pool_scale=0.0)
+    with pytest.raises(TypeError, match="lacks 'preprocess'"):
+        AttentionDescriptor(nn.Linear(2, 2))
+    with pytest.raises(ValueError, match="tap must have shape \\(B, 320, 7, 7\\)"):
+        lite.from_attention(torch.zeros(1, 512, 7, 7), torch.zeros(1, 512, 7, 7))

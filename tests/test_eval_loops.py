@@ -1,0 +1,162 @@
+"""Loop-closure ground truth, precision/recall and the PR-curve figure."""
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from slam.eval.loops import (
+    LoopGroundTruthConfig,
+    count_loop_queries,
+    evaluate_loop_candidates,
+    ground_truth_loops,
+    is_true_loop,
+    plot_pr_curves,
+    precision_recall_curve,
+)
+from slam.eval.plot import PALETTE
+from slam.lie import quat_normalize, quat_to_rotmat, so3_exp
+
+
+def _pose(x=0.0, yaw_deg=0.0):
+    q = so3_exp(torch.tensor([0.0, math.radians(yaw_deg), 0.0], dtype=torch.float64))
+    return torch.cat([torch.tensor([x, 0.0, 0.0], dtype=torch.float64), q])
+
+
+@pytest.fixture
+def hand_poses():
+    """Frame 0 at the origin; others placed to sit just inside / outside each threshold."""
+    poses = torch.full((801, 7), float("nan"), dtype=torch.float64)
+    poses[0] = _pose()
+    poses[50] = _pose()  # identical but only 50 frames later
+    poses[200] = _pose(x=0.49)
+    poses[400] = _pose(x=0.51)
+    poses[600] = _pose(yaw_deg=44.0)
+    poses[800] = _pose(yaw_deg=46.0)
+    return poses
+
+
+def test_is_true_loop_thresholds(hand_poses):
+    pairs = torch.tensor([[200, 0], [400, 0], [600, 0], [800, 0], [0, 800], [50, 0], [300, 0], [600, 200]])
+    got = is_true_loop(hand_poses, pairs).tolist()
+    assert got == [True, False, True, False, False, False, False, True]
+    assert is_true_loop(hand_poses, torch.tensor([[50, 0]]), LoopGroundTruthConfig(min_frame_gap=10)).tolist() == [True]
+    assert is_true_loop(hand_poses, torch.tensor([[800, 0]]), LoopGroundTruthConfig(max_angle_deg=50)).tolist() == [True]
+    assert is_true_loop(hand_poses, torch.zeros(0, 2, dtype=torch.long)).shape == (0,)
+    with pytest.raises(ValueError, match=r"in \[0, 801\)"):
+        is_true_loop(hand_poses, torch.tensor([[801, 0]]))
+    with pytest.raises(ValueError, match=r"\(N, 7\)"):
+        is_true_loop(hand_poses[:, :6], torch.tensor([[1, 0]]))
+    with pytest.raises(ValueError):
+        LoopGroundTruthConfig(max_distance=-1)
+
+
+def test_ground_truth_loops_equals_brute_force():
+    g = torch.Generator().manual_seed(7)
+    n = 160
+    steps = torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.08
+    pos = torch.cumsum(steps, 0)
+    pos = pos - pos.mean(0)  # a random walk that wanders back over itself
+    q = quat_normalize(torch.cumsum(torch.randn(n, 4, generator=g, dtype=torch.float64) * 0.15, 0) + torch.tensor(
+        [0, 0, 0, 1.0], dtype=torch.float64))
+    poses = torch.cat([pos, q], -1)
+    poses[17] = float("nan")
+    cfg = LoopGroundTruthConfig(max_distance=0.3, max_angle_deg=30.0, min_frame_gap=20)
+    R = quat_to_rotmat(q).numpy()
+    P = pos.numpy()
+    expected = []
+    for i in range(n):
+        for j in range(i - cfg.min_frame_gap + 1):
+            if 17 in (i, j):
+                continue
+            ang = math.degrees(math.acos(np.clip((np.trace(R[i].T @ R[j]) - 1) / 2, -1, 1)))
+            if np.linalg.norm(P[i] - P[j]) < cfg.max_distance and ang < cfg.max_angle_deg:
+                expected.append([i, j])
+    got = ground_truth_loops(poses, cfg)
+    assert got.tolist() == expected and len(expected) > 20
+    assert torch.equal(ground_truth_loops(poses, cfg, chunk=7), got)
+    assert count_loop_queries(poses, cfg) == len({i for i, _ in expected})
+    sub = torch.arange(0, n, 2)
+    assert ground_truth_loops(poses, cfg, indices=sub).tolist() == [p for p in expected if p[0] % 2 == 0 == p[1] % 2]
+    assert is_true_loop(poses, got, cfg).all()
+
+
+def test_precision_recall_hand_example():
+    scores = torch.tensor([0.9, 0.8, 0.8, 0.5, -math.inf, math.nan], dtype=torch.float64)
+    labels = torch.tensor([True, False, True, True, True, False])
+    c = precision_recall_curve(scores, labels)  # 4 positives: the -inf one is a loop never detected
+    assert c.num_positives == 4
+    assert c.recall.tolist() == pytest.approx([0.0, 0.25, 0.5, 0.75])
+    assert c.precision.tolist() == pytest.approx([1.0, 1.0, 2 / 3, 0.75])
+    assert c.thresholds.tolist() == [math.inf, 0.9, 0.8, 0.5]
+    assert c.max_recall_at_full_precision == 0.25 and c.threshold_at_full_precision == 0.9
+    assert c.average_precision == pytest.approx(0.25 + 0.25 * 2 / 3 + 0.25 * 0.75)
+    # a false positive first: no recall at 100% precision
+    c = precision_recall_curve(torch.tensor([0.9, 0.8]), torch.tensor([False, True]), num_positives=5)
+    assert c.max_recall_at_full_precision == 0.0 and c.threshold_at_full_precision == math.inf
+    assert c.to_dict()["threshold_at_full_precision"] is None
+    assert c.recall[-1] == pytest.approx(0.2)
+    empty = precision_recall_curve(torch.zeros(0), torch.zeros(0, dtype=torch.bool))
+    assert empty.recall.shape == (1,) and empty.max_recall_at_full_precision == 0.0
+    with pytest.raises(ValueError, match="num_positives"):
+        precision_recall_curve(torch.tensor([0.9, 0.8]), torch.tensor([True, True]), num_positives=1)
+    with pytest.raises(ValueError, match="same shape"):
+        precision_recall_curve(torch.tensor([0.9]), torch.tensor([True, False]))
+
+
+def test_evaluate_candidates_modes(hand_poses):
+    pairs = torch.tensor([[200, 0], [200, 50], [400, 0], [600, 0], [600, 200], [800, 0]])
+    scores = torch.tensor([0.9, 0.95, 0.8, 0.7, 0.2, 0.6], dtype=torch.float64)
+    ev = evaluate_loop_candidates(pairs, scores, hand_poses)
+    # best per query: 200 -> 50 (0.95, true: 0.49 m, gap 150), 400 -> 0 (false), 600 -> 0 (true), 800 -> 0 (false)
+    assert ev.pairs.tolist() == [[200, 50], [400, 0], [600, 0], [800, 0]]
+    assert ev.labels.tolist() == [True, False, True, False]
+    # queries with an earlier true partner: 200 (0, 50), 400 (200: 0.02 m), 600 (0, 50, 200), 800 (600: 2 deg)
+    assert ev.curve.num_positives == 4
+    assert ev.max_recall_at_full_precision == 0.25  # 0.95 true, then 0.8 false
+    d = ev.to_dict()
+    assert d["num_predictions"] == 4 and d["max_recall_at_full_precision"] == 0.25
+    assert d["threshold_at_full_precision"] == 0.95 and d["num_positives"] == 4
+    json.dumps(d, allow_nan=False)
+    ev = evaluate_loop_candidates(pairs, scores, hand_poses, mode="all_pairs")
+    assert ev.labels.tolist() == [True, True, False, True, True, False]
+    # (200, 0), (200, 50), (400, 200), (600, 0), (600, 50), (600, 200), (800, 600)
+    assert ground_truth_loops(hand_poses).tolist() == [[200, 0], [200, 50], [400, 200], [600, 0], [600, 50],
+                                                        [600, 200], [800, 600]]
+    assert ev.curve.num_positives == 7 and ev.curve.recall[-1] == pytest.approx(4 / 7)
+    with pytest.raises(ValueError, match="mode"):
+        evaluate_loop_candidates(pairs, scores, hand_poses, mode="best")
+    with pytest.raises(ValueError, match="disagree"):
+        evaluate_loop_candidates(pairs, scores[:3], hand_poses)
+
+
+def test_redkitchen_revisit_is_a_ground_truth_loop(redkitchen_dir):
+    from slam.io import open_sequence
+
+    poses = open_sequence(redkitchen_dir).groundtruth.poses
+    pairs = ground_truth_loops(poses)
+    revisit = pairs[(pairs[:, 0] >= 940) & (pairs[:, 0] <= 960) & (pairs[:, 1] >= 240) & (pairs[:, 1] <= 270)]
+    assert revisit.shape[0] > 50
+    d = (poses[revisit[:, 0], :3] - poses[revisit[:, 1], :3]).norm(dim=-1)
+    assert float(d.max()) < 0.5
+    assert (pairs[:, 0] - pairs[:, 1]).min() >= 100
+
+
+def test_plot_pr_curves(tmp_path):
+    a = precision_recall_curve(torch.tensor([0.9, 0.8, 0.7, 0.6]), torch.tensor([True, True, False, True]))
+    b = precision_recall_curve(torch.tensor([0.9, 0.8]), torch.tensor([True, True]), num_positives=3)
+    one = plot_pr_curves(tmp_path / "one.png", {"before": a})
+    two = plot_pr_curves(tmp_path / "sub" / "two.png", [("before", a), ("after", b)], size=(500, 400))
+    assert one.shape == (520, 640, 3) and two.shape == (400, 500, 3) and one.dtype == np.uint8
+    assert np.array_equal(cv2.imread(str(tmp_path / "sub" / "two.png")), two)
+
+    def count(img, color):
+        return int((np.abs(img.astype(int) - np.array(color)).sum(-1) < 30).sum())
+
+    assert count(one, PALETTE[0]) > 200 and count(one, PALETTE[1]) == 0
+    assert count(two, PALETTE[1]) > 200
+    assert plot_pr_curves(None, {}).shape == (520, 640, 3)

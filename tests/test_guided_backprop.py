@@ -1,0 +1,196 @@
+"""Softmax-seeded partial guided backprop against independent, hand-built references."""
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+from torch.autograd.functional import vjp
+
+from attnloop.backbones import VGG16, efficientnet_lite0, vgg16
+from attnloop.guided_backprop import (
+    GuidedBackprop,
+    clamp_negative_grad,
+    guided_backprop,
+    softmax_seeded_gradient,
+)
+
+
+class TinyNet(nn.Module):
+    """A small VGG-like backbone: conv blocks ending in max-pools; tapped at the second pool."""
+
+    tap_shape = (6, 4, 4)
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.block1 = nn.Sequential(nn.Conv2d(3, 4, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2))
+        self.block2 = nn.Sequential(nn.Conv2d(4, 6, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2))
+        self.block3 = nn.Sequential(
+            nn.Conv2d(6, 8, 3, padding=1), nn.ReLU(), nn.Conv2d(8, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2)
+        )
+        self.fc = nn.Linear(8 * 2 * 2, 5)
+
+    def preprocess(self, images):
+        return images.to(self.fc.weight.dtype)
+
+    def forward_to_tap(self, x):
+        return self.block2(self.block1(x))
+
+    def forward_from_tap(self, tap, transition=None):
+        t = transition or (lambda v: v)
+        x = t(self.block3(t(tap)))  # transitions: L itself (pool2) and pool3
+        return self.fc(torch.flatten(x, 1))
+
+
+def softmax_seed(logits: torch.Tensor) -> torch.Tensor:
+    """(dS/dz)^T S in closed form: S * (S - |S|^2) (no autograd through the softmax)."""
+    s = logits.softmax(1)
+    return s * (s - (s * s).sum(1, keepdim=True))
+
+
+@pytest.fixture
+def tiny():
+    torch.manual_seed(0)
+    net = TinyNet().double().eval()
+    with torch.no_grad():
+        net.fc.weight.mul_(20.0)  # a peaky softmax, so the seed is far from uniform
+    return net
+
+
+def tiny_reference(net: TinyNet, images: torch.Tensor) -> torch.Tensor:
+    with torch.no_grad():
+        tap = net.forward_to_tap(net.preprocess(images))
+        p3 = net.block3(tap)
+        logits = net.fc(torch.flatten(p3, 1))
+        g_p3 = (softmax_seed(logits) @ net.fc.weight).view_as(p3).clamp(min=0)  # linear by hand, clamp at pool3
+    _, g_tap = vjp(net.block3, tap, g_p3)  # conv-relu-conv-relu-pool, plain backprop
+    return g_tap.clamp(min=0)  # clamp at pool2 = L
+
+
+def test_tiny_cnn_matches_manual_chain(tiny):
+    x = torch.rand(3, 3, 16, 16, dtype=torch.float64)
+    tap, grad = guided_backprop(tiny, x)
+    assert tap.shape == grad.shape == (3, 6, 4, 4)
+    ref = tiny_reference(tiny, x)
+    assert torch.allclose(grad, ref, atol=1e-14, rtol=1e-10)
+    assert (grad >= 0).all() and grad.abs().max() > 0
+    # The clamps matter: plain backprop of the seeded softmax differs (so this test can fail).
+    plain = softmax_seeded_gradient(tap, tiny.forward_from_tap, guided=False)
+    assert (plain < 0).any() and not torch.allclose(plain.clamp(min=0), grad)
+
+
+def test_seeded_backward_is_gradient_of_half_squared_norm(tiny):
+    # J^T S = d(|S|^2 / 2)/dL: an identity that does not use grad_outputs at all.
+    tap = torch.rand(2, 6, 4, 4, dtype=torch.float64)
+    head = tiny.forward_from_tap
+    got = softmax_seeded_gradient(tap, head, guided=False)
+    leaf = tap.clone().requires_grad_(True)
+    (ref,) = torch.autograd.grad(0.5 * head(leaf).softmax(1).pow(2).sum(), leaf)
+    assert torch.allclose(got, ref, atol=1e-15, rtol=1e-12)
+
+
+def test_batch_samples_do_not_mix(tiny):
+    x = torch.rand(4, 3, 16, 16, dtype=torch.float64)
+    _, grad = guided_backprop(tiny, x)
+    for i in range(4):
+        _, gi = guided_backprop(tiny, x[i:i + 1])
+        assert torch.allclose(grad[i:i + 1], gi, atol=1e-15, rtol=1e-12)
+
+
+def test_leaves_no_state_and_works_under_no_grad_and_inference_mode(tiny):
+    x = torch.rand(2, 3, 16, 16, dtype=torch.float64)
+    flags = [p.requires_grad for p in tiny.parameters()]
+    _, ref = guided_backprop(tiny, x)
+    with torch.no_grad():
+        _, g1 = guided_backprop(tiny, x)
+    with torch.inference_mode():
+        x_inf = x.clone()  # an inference tensor
+        tap2, g2 = guided_backprop(tiny, x_inf)
+    assert torch.equal(ref, g1) and torch.equal(ref, g2)
+    assert not ref.requires_grad and ref.grad_fn is None and tap2.grad_fn is None
+    assert all(p.grad is None for p in tiny.parameters())  # only input gradients were computed
+    assert [p.requires_grad for p in tiny.parameters()] == flags
+    for m in tiny.modules():
+        assert not m._forward_hooks and not m._backward_hooks and not m._forward_pre_hooks
+    assert not tiny.training
+
+
+def test_empty_batch(tiny):
+    tap, grad = guided_backprop(tiny, torch.zeros(0, 3, 16, 16, dtype=torch.float64))
+    assert tap.shape == grad.shape == (0, 6, 4, 4)
+
+
+def test_clamp_negative_grad_backward_only():
+    x = torch.tensor([[-1.0, 2.0, 0.5]], requires_grad=True)
+    y = clamp_negative_grad(x)
+    assert torch.equal(y, x)
+    (g,) = torch.autograd.grad(y, x, torch.tensor([[1.0, -3.0, -0.0]]))
+    assert g.tolist() == [[1.0, 0.0, 0.0]]
+
+
+@pytest.fixture(scope="module")
+def vgg():
+    net = vgg16(pretrained=False, seed=0)
+    with torch.no_grad():
+        net.classifier[6].weight.mul_(300.0)  # random VGG logits are tiny: make the softmax peaky
+    return net
+
+
+def vgg_reference(net: VGG16, tap: torch.Tensor) -> torch.Tensor:
+    """dS/dL by hand from L = pool4 or pool5: the classifier backward in closed form, clamps at the pools."""
+    convs = net.features[net.tap_index + 1:]
+    with torch.no_grad():
+        p5 = convs(tap) if len(convs) else tap
+        flat = torch.flatten(net.avgpool(p5), 1)
+        fc0, fc3, fc6 = net.classifier[0], net.classifier[3], net.classifier[6]
+        a1 = fc0(flat)
+        a2 = fc3(a1.relu())
+        logits = fc6(a2.relu())
+        g = softmax_seed(logits) @ fc6.weight
+        g = (g * (a2 > 0)) @ fc3.weight
+        g = (g * (a1 > 0)) @ fc0.weight
+        g_p5 = g.view_as(p5).clamp(min=0)  # avgpool is the identity at 7x7; clamp at pool5
+    if not len(convs):
+        return g_p5
+    _, g_tap = vjp(convs, tap, g_p5)  # conv5_1..conv5_3 with ReLUs, pool5: plain backprop
+    return g_tap.clamp(min=0)  # clamp at pool4 = L
+
+
+@pytest.mark.parametrize("tap_name", ["pool5", "pool4"])
+def test_vgg16_matches_manual_chain(vgg, tap_name):
+    if tap_name == "pool5":
+        net = vgg
+    else:
+        with torch.device("meta"):
+            net = VGG16(tap=tap_name)
+        net.load_state_dict(vgg.state_dict(), assign=True)  # shares the tensors
+        net.eval()
+    x = torch.rand(2, 3, 64, 80)
+    tap, grad = guided_backprop(net, x)
+    assert grad.shape == (2, *net.tap_shape)
+    probs = net.forward_from_tap(tap).softmax(1)
+    assert probs.max() > 0.05  # not a uniform softmax
+    ref = vgg_reference(net, tap)
+    scale = ref.abs().max()
+    assert scale > 0
+    assert (grad - ref).abs().max() <= 1e-4 * scale
+    assert all(p.grad is None for p in net.parameters())
+
+
+def test_efficientnet_is_plain_seeded_gradient():
+    # EfficientNet has no max-pool transitions: G is the plain gradient of |S|^2 / 2 at the tap.
+    net = efficientnet_lite0(pretrained=False, seed=0)
+    with torch.no_grad():
+        net._fc.weight.mul_(50.0)
+    x = torch.rand(2, 3, 64, 64)
+    tap, grad = GuidedBackprop(net)(x)
+    leaf = tap.clone().requires_grad_(True)
+    (ref,) = torch.autograd.grad(0.5 * net.forward_from_tap(leaf).softmax(1).pow(2).sum(), leaf)
+    assert (grad < 0).any()
+    assert (grad - ref).abs().max() <= 1e-5 * ref.abs().max()
+
+
+def test_head_must_return_logits():
+    with pytest.raises(ValueError, match="logits"):
+        softmax_seeded_gradient(torch.rand(2, 3), lambda t: t.sum())
+    with pytest.raises(ValueError, match="batch dimension"):
+        softmax_seeded_gradient(torch.tensor(1.0), lambda t: t)
