@@ -16,8 +16,12 @@ __all__ = ["MODES", "run_ablation", "markdown_table"]
 MODES = ("none", "dam", "eam", "gaf", "ega")
 
 
-def run_ablation(sequences, out_dir, backbone="vgg16", modes=MODES, max_frames=None, weights=None):
-    """Run every mode on every sequence; returns ``{mode: {sequence: metrics}}``."""
+def run_ablation(sequences, out_dir, backbone="vgg16", modes=MODES, max_frames=None, weights=None,
+                 rgb_intrinsics=None):
+    """Run every mode on every sequence; returns ``{mode: {sequence: metrics}}``.
+
+    ``rgb_intrinsics`` ``(fx, fy, cx, cy)``: the colour camera's, for unregistered colour and depth.
+    """
     out_dir = Path(out_dir)
     table = {}
     curves = {}
@@ -29,6 +33,7 @@ def run_ablation(sequences, out_dir, backbone="vgg16", modes=MODES, max_frames=N
             cfg.loop.descriptor.backbone = backbone
             cfg.loop.descriptor.fusion = mode
             cfg.loop.descriptor.weights = weights
+            cfg.odometry.features.rgb_intrinsics = tuple(rgb_intrinsics) if rgb_intrinsics else None
             run = run_slam(seq, cfg, max_frames=max_frames)
             metrics = evaluate_run(run)
             write_outputs(run, out_dir / mode / seq.name)

@@ -34,6 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-frames", type=int, default=None, help="process only the first N frames")
     p.add_argument("--camera", default=None, help="TUM camera: fr1, fr2, fr3 or ros (default: from the folder "
                                                   "name)")
+    p.add_argument("--rgb-intrinsics", nargs=4, type=float, default=None, metavar=("FX", "FY", "CX", "CY"),
+                   help="colour camera intrinsics when colour and depth are not registered (7-Scenes: "
+                        "525 525 320 240); keypoints are mapped into the depth image")
     p.add_argument("--demo", action="store_true",
                    help="generate the built-in synthetic sequence (exact ground truth) and run on it")
     p.add_argument("--demo-trajectory", default="loop", help="demo camera path (see slam.synthetic)")
@@ -78,6 +81,8 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     cfg = SLAMConfig()
     cfg.loop.enabled = not args.no_loop
+    if args.rgb_intrinsics is not None:
+        cfg.odometry.features.rgb_intrinsics = tuple(args.rgb_intrinsics)
     d = cfg.loop.descriptor
     d.backbone, d.fusion, d.weights, d.seed, d.device = (args.backbone, args.fusion, args.weights, args.seed,
                                                           args.device)

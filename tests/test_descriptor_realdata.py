@@ -6,7 +6,7 @@ to every negative: a frame that the ground truth puts more than 0.8 m away or wh
 (the angle of R_q^T R_j) exceeds 60 degrees.
 
 To stay cheap in CI the negatives come from every 5th frame (0, 5, ..., 995: 46, 49 and 52 negatives
-for the three queries) instead of all 1000 frames: 206 images through the network, ~10 s on two
+for the three queries) instead of all 1000 frames: 200 images through the network, 9-25 s on two
 cores. ``benchmarks/descriptor_margins.py`` runs the full sequence (231/241/261 negatives).
 """
 from __future__ import annotations

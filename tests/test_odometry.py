@@ -110,6 +110,20 @@ def test_feature_errors_and_empty_image():
     assert len(f) == 0 and f.points.shape == (0, 3) and f.valid.shape == (0,)
 
 
+def test_rgb_intrinsics_map_keypoints_into_the_depth_camera():
+    from slam.odometry import FeatureConfig
+    f = _planar_frame(_pose(), _texture())
+    base = extract_features(f.rgb, f.depth, f.K)
+    same = extract_features(f.rgb, f.depth, f.K, FeatureConfig(rgb_intrinsics=(585.0, 585.0, 320.0, 240.0)))
+    assert torch.allclose(same.keypoints, base.keypoints)
+    mapped = extract_features(f.rgb, f.depth, f.K, FeatureConfig(rgb_intrinsics=(525.0, 520.0, 310.0, 250.0)))
+    expected = torch.stack([(base.keypoints[:, 0] - 310.0) * 585.0 / 525.0 + 320.0,
+                            (base.keypoints[:, 1] - 250.0) * 585.0 / 520.0 + 240.0], dim=1)
+    assert torch.allclose(mapped.keypoints, expected, atol=1e-3)
+    # the 3D points are re-read at the mapped pixels, on the same plane
+    assert torch.allclose(mapped.points[mapped.valid][:, 2], torch.tensor(2.0), atol=1e-5)
+
+
 def test_hamming_distance_dense_sparse_and_bits():
     g = torch.Generator().manual_seed(0)
     a = torch.randint(0, 256, (7, 32), generator=g, dtype=torch.uint8)
@@ -208,6 +222,20 @@ def test_frontend_tracks_a_synthetic_trajectory_with_keyframes_and_edges():
         from slam.lie import se3_compose
         assert se3_log(se3_between(se3_compose(kf.pose, r.T_kf_frame), r.pose)).abs().max() < 1e-9
     assert odo.keyframes[0].rgb.shape == (240, 320, 3)  # stored at half size
+
+
+def test_frontend_previous_frame_keyframe_policy():
+    tex = _texture(3)
+    odo = RGBDOdometry(OdometryConfig(keyframe_translation=0.05, keyframe_policy="previous"))
+    poses = [_pose(0.012 * i, 0.004 * i, 0.0, 0.0, 0.004 * i, 0.002 * i) for i in range(12)]
+    results = [odo.track(_planar_frame(p, tex, i)) for i, p in enumerate(poses)]
+    assert all(r.status in (TrackStatus.OK, TrackStatus.INITIALIZED) for r in results)
+    promoted = [r for r in results[1:] if r.edge is not None]
+    assert promoted and all(not r.is_keyframe for r in promoted)
+    for r in promoted:  # the new keyframe is the previous frame, and this frame is expressed in it
+        assert odo.keyframes[r.edge.j].frame_index == r.index - 1 and r.keyframe_id == r.edge.j
+    for r, p in zip(results, poses):
+        assert _err(r.pose, p)[0] < 0.01
 
 
 def test_frontend_bad_frames_are_lost_then_recovered_and_forced_keyframe():

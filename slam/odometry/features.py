@@ -207,7 +207,8 @@ def extract_features(rgb: ArrayLike, depth: ArrayLike, K: ArrayLike,
         # unregistered colour camera: its pixel -> the depth camera's pixel along the same ray
         fx, fy, cx, cy = config.rgb_intrinsics
         sx, sy = K_np[0, 0] / fx, K_np[1, 1] / fy
-        xy = np.stack([(xy[:, 0] - cx) * sx + K_np[0, 2], (xy[:, 1] - cy) * sy + K_np[1, 2]], axis=1)
+        xy = np.stack([(xy[:, 0] - cx) * sx + K_np[0, 2], (xy[:, 1] - cy) * sy + K_np[1, 2]],
+                      axis=1).astype(np.float32)
         sigma = sigma * 0.5 * (sx + sy)
     kp_t = torch.from_numpy(xy)
     depth_t = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))
