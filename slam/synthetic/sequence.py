@@ -81,20 +81,12 @@ def read_calibration(folder: str | os.PathLike) -> np.ndarray | None:
     Raises:
         ValueError: a malformed file (naming the file and line).
     """
+    from slam.io.tum import read_calibration_file  # the TUM reader's parser: one format, one parser
+
     path = Path(folder) / "calibration.txt"
     if not path.is_file():
         return None
-    with open(path, "r", encoding="utf-8") as f:
-        for number, raw in enumerate(f, start=1):
-            line = raw.strip()
-            if not line or line.startswith("#"):
-                continue
-            try:
-                fx, fy, cx, cy = (float(v) for v in line.replace(",", " ").split()[:4])
-            except ValueError:
-                raise ValueError(f"{path}:{number}: expected 'fx fy cx cy', got {line!r}") from None
-            return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    raise ValueError(f"{path}: no 'fx fy cx cy' line")
+    return read_calibration_file(path).K
 
 
 def _tiny_scene() -> Scene:
