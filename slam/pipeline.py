@@ -86,9 +86,9 @@ def run_slam(sequence: RGBDSequence, config: Optional[SLAMConfig] = None, max_fr
     stamps = view.timestamps
     slam = RGBDSLAM(config, descriptor=descriptor)
     start = time.perf_counter()
-    # decode ahead in threads, but read each frame through _next so a bad file only skips that frame
+    # decode ahead in threads; an unreadable frame comes as its FrameReadError, so it is only skipped
     bar = Progress(range(n), total=n, desc=sequence.name, enabled=progress)
-    frames = _frames_or_errors(view, prefetch)
+    frames = view.frames(on_error="yield", prefetch=prefetch)
     for i in bar:
         with slam.timer("io_wait"):  # decoding runs ahead in threads: this is only the time waited for it
             frame_or_error = next(frames)
@@ -105,32 +105,6 @@ def run_slam(sequence: RGBDSequence, config: Optional[SLAMConfig] = None, max_fr
         p if p is not None else np.full(7, np.nan) for p in (view.groundtruth_pose(i) for i in range(n))
     ])) if gt is not None else None
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr)
-
-
-def _frames_or_errors(view: RGBDSequence, prefetch: int):
-    """Yield each frame, or the FrameReadError it raised, decoding up to ``prefetch`` frames ahead."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    def load(i):
-        try:
-            return view[i]
-        except FrameReadError as e:
-            return e
-
-    n = len(view)
-    if prefetch <= 0:
-        for i in range(n):
-            yield load(i)
-        return
-    with ThreadPoolExecutor(max_workers=prefetch, thread_name_prefix="rgbd-read") as pool:
-        pending = [pool.submit(load, i) for i in range(min(n, prefetch + 1))]
-        nxt = len(pending)
-        while pending:
-            out = pending.pop(0).result()
-            if nxt < n:
-                pending.append(pool.submit(load, nxt))
-                nxt += 1
-            yield out
 
 
 def evaluate_run(run: RunResult, loop_gt=None) -> Dict[str, object]:

@@ -195,7 +195,6 @@ class RGBDSLAM:
         self._edges: List[KeyframeEdge] = []
         self._loops: List[LoopClosure] = []
         self._queries: List[LoopQuery] = []
-        self._kf_descriptors: Dict[int, Tensor] = {}
         self._kf_of_frame: Dict[int, int] = {}  # the detector's ids are frame indices
         self._num_kf_seen = 0
         self._num_lost = 0
@@ -289,7 +288,6 @@ class RGBDSLAM:
         cfg = self.config.loop
         with self.timer("descriptor"):
             desc = self._describe(kf)
-        self._kf_descriptors[kf.id] = desc.cpu()
         with self.timer("loop_detection"):
             # ids are frame indices so that the exclusion window counts frames, not keyframes
             cands = self._detector.add_and_query(desc, keyframe_id=kf.frame_index, timestamp=kf.timestamp)

@@ -123,3 +123,21 @@ def test_outputs_written(kitchen_loop_run, tmp_path):
     for key in ("ate_rmse", "num_loops", "fps"):
         assert key in metrics
     assert (tmp_path / "trajectory.png").stat().st_size > 1000
+
+
+def test_corrupt_image_is_skipped_and_still_gets_a_pose(tmp_path):
+    """A listed image that does not decode: the run goes on, one pose per input frame, the frame counted skipped."""
+    from slam.io import open_sequence
+    from slam.pipeline import run_slam
+    from slam.synthetic import generate_sequence
+
+    folder = generate_sequence(tmp_path / "seq", num_frames=6, width=160, height=120, seed=0)
+    bad = sorted((folder / "rgb").iterdir())[3]
+    bad.write_bytes(b"not a png")
+    seq = open_sequence(folder)
+    frames = list(seq.frames(on_error="yield", prefetch=2))
+    assert len(frames) == 6 and isinstance(frames[3], Exception) and str(bad.name) in str(frames[3])
+    run = run_slam(seq, _odometry_only(), progress=False)
+    assert run.result.num_skipped == 1
+    assert run.result.trajectory.poses.shape == (6, 7)
+    assert torch.isfinite(run.result.trajectory.poses).all()

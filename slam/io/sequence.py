@@ -99,17 +99,18 @@ class RGBDSequence(ABC):
         for i in range(len(self)):
             yield self[i]
 
-    def frames(self, on_error: str = "raise", prefetch: int = 0) -> Iterator[RGBDFrame]:
+    def frames(self, on_error: str = "raise", prefetch: int = 0) -> Iterator[RGBDFrame | FrameReadError]:
         """Iterate over the frames, optionally skipping unreadable ones and decoding ahead.
 
         Args:
-            on_error: ``"raise"`` (re-raise :class:`FrameReadError`) or ``"skip"`` (log a warning and
-                go on with the next frame).
+            on_error: ``"raise"`` (re-raise :class:`FrameReadError`), ``"skip"`` (log a warning and
+                go on with the next frame) or ``"yield"`` (yield the :class:`FrameReadError` in the
+                frame's place, so a caller can keep one entry per input frame).
             prefetch: decode up to this many frames ahead in background threads (OpenCV releases the
                 GIL while decoding, so reading overlaps with the caller's work); 0 reads in the caller.
         """
-        if on_error not in ("raise", "skip"):
-            raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
+        if on_error not in ("raise", "skip", "yield"):
+            raise ValueError(f"on_error must be 'raise', 'skip' or 'yield', got {on_error!r}")
         n = len(self)
         if prefetch <= 0:
             for i in range(n):
@@ -133,12 +134,14 @@ class RGBDSequence(ABC):
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
 
-    def _try_load(self, i: int, on_error: str) -> RGBDFrame | None:
+    def _try_load(self, i: int, on_error: str) -> RGBDFrame | FrameReadError | None:
         try:
             return self[i]
         except FrameReadError as e:
             if on_error == "raise":
                 raise
+            if on_error == "yield":
+                return e
             logger.warning("skipping frame %d of %s: %s", i, self.name, e)
             return None
 
