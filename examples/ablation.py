@@ -10,7 +10,8 @@ Runs ``none`` (no attention), ``dam``, ``eam``, ``gaf`` and ``ega`` on one or mo
 
 Usage::
 
-    python examples/ablation.py ../shared/data/7scenes-redkitchen --backbone efficientnet_lite0 --out runs/ablation
+    python examples/ablation.py ../shared/data/7scenes-redkitchen --backbone efficientnet_lite0 --out runs/ablation \
+        --rgb-intrinsics 525 525 320 240 --rgb-from-depth -0.025 0 0    # 7-Scenes: unregistered Kinect v1
     python examples/ablation.py ~/data/rgbd_dataset_freiburg1_room ~/data/rgbd_dataset_freiburg2_desk \
         --out runs/table1          # the paper's setting (VGG16 weights needed)
 """
@@ -30,9 +31,14 @@ def main() -> None:
     p.add_argument("--weights", default=None)
     p.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
     p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--rgb-intrinsics", nargs=4, type=float, default=None, metavar=("FX", "FY", "CX", "CY"),
+                   help="colour camera intrinsics of unregistered RGB-D (see attnloop-slam --help)")
+    p.add_argument("--rgb-from-depth", nargs=3, type=float, default=None, metavar=("TX", "TY", "TZ"),
+                   help="depth camera position in the colour camera, metres (with --rgb-intrinsics)")
     args = p.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    table = run_ablation(args.sequences, args.out, args.backbone, args.modes, args.max_frames, args.weights)
+    table = run_ablation(args.sequences, args.out, args.backbone, args.modes, args.max_frames, args.weights,
+                         rgb_intrinsics=args.rgb_intrinsics, rgb_from_depth=args.rgb_from_depth)
     md = markdown_table(table)
     Path(args.out).mkdir(parents=True, exist_ok=True)
     (Path(args.out) / "table1.md").write_text(md)

@@ -1,6 +1,6 @@
 """The paper's ablation (Table 1): the SLAM system with each attention fusion on one or more sequences.
 
-Used by ``examples/ablation.py`` and ``benchmarks/slam.py``.
+Used by ``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``.
 """
 from __future__ import annotations
 
@@ -17,10 +17,11 @@ MODES = ("none", "dam", "eam", "gaf", "ega")
 
 
 def run_ablation(sequences, out_dir, backbone="vgg16", modes=MODES, max_frames=None, weights=None,
-                 rgb_intrinsics=None):
+                 rgb_intrinsics=None, rgb_from_depth=None):
     """Run every mode on every sequence; returns ``{mode: {sequence: metrics}}``.
 
-    ``rgb_intrinsics`` ``(fx, fy, cx, cy)``: the colour camera's, for unregistered colour and depth.
+    ``rgb_intrinsics`` ``(fx, fy, cx, cy)``: the colour camera's, for unregistered colour and depth;
+    ``rgb_from_depth`` ``(tx, ty, tz)``: the depth camera's position in the colour camera (metres).
     """
     out_dir = Path(out_dir)
     table = {}
@@ -34,6 +35,8 @@ def run_ablation(sequences, out_dir, backbone="vgg16", modes=MODES, max_frames=N
             cfg.loop.descriptor.fusion = mode
             cfg.loop.descriptor.weights = weights
             cfg.odometry.features.rgb_intrinsics = tuple(rgb_intrinsics) if rgb_intrinsics else None
+            if rgb_from_depth is not None:
+                cfg.odometry.features.rgb_from_depth_translation = tuple(rgb_from_depth)
             run = run_slam(seq, cfg, max_frames=max_frames)
             metrics = evaluate_run(run)
             write_outputs(run, out_dir / mode / seq.name)

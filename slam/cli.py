@@ -3,7 +3,8 @@
 Examples::
 
     attnloop-slam --demo --out runs/demo                                  # built-in synthetic sequence
-    attnloop-slam ../shared/data/7scenes-redkitchen --out runs/kitchen --backbone efficientnet_lite0
+    attnloop-slam ../shared/data/7scenes-redkitchen --out runs/kitchen --backbone efficientnet_lite0 \
+        --rgb-intrinsics 525 525 320 240 --rgb-from-depth -0.025 0 0
     attnloop-slam ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room   # the paper's VGG16 + DAM
 """
 from __future__ import annotations
@@ -35,8 +36,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", default=None, help="TUM camera: fr1, fr2, fr3 or ros (default: from the folder "
                                                   "name)")
     p.add_argument("--rgb-intrinsics", nargs=4, type=float, default=None, metavar=("FX", "FY", "CX", "CY"),
-                   help="colour camera intrinsics when colour and depth are not registered (7-Scenes: "
-                        "525 525 320 240); keypoints are mapped into the depth image")
+                   help="colour camera intrinsics when colour and depth are not registered (7-Scenes' "
+                        "Kinect v1: 525 525 320 240); the depth is warped into the colour camera")
+    p.add_argument("--rgb-from-depth", nargs=3, type=float, default=None, metavar=("TX", "TY", "TZ"),
+                   help="with --rgb-intrinsics: the depth camera's position in the colour camera frame, metres "
+                        "(7-Scenes' Kinect v1: -0.025 0 0); poses are reported for the depth camera")
     p.add_argument("--demo", action="store_true",
                    help="generate the built-in synthetic sequence (exact ground truth) and run on it")
     p.add_argument("--demo-trajectory", default="loop", help="demo camera path (see slam.synthetic)")
@@ -83,6 +87,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     cfg.loop.enabled = not args.no_loop
     if args.rgb_intrinsics is not None:
         cfg.odometry.features.rgb_intrinsics = tuple(args.rgb_intrinsics)
+    if args.rgb_from_depth is not None:
+        if args.rgb_intrinsics is None:
+            print("attnloop-slam: --rgb-from-depth needs --rgb-intrinsics (the colour camera's)", file=sys.stderr)
+            return 2
+        cfg.odometry.features.rgb_from_depth_translation = tuple(args.rgb_from_depth)
     d = cfg.loop.descriptor
     d.backbone, d.fusion, d.weights, d.seed, d.device = (args.backbone, args.fusion, args.weights, args.seed,
                                                           args.device)

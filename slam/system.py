@@ -38,6 +38,7 @@ from slam.io.frame import RGBDFrame
 from slam.io.trajectory import Trajectory
 from slam.lie import se3_between, se3_compose, se3_identity, so3_log
 from slam.odometry import RGBDOdometry
+from slam.odometry.depth_registration import depth_camera_poses
 from slam.odometry.frontend import Keyframe, KeyframeEdge, TrackStatus
 from slam.odometry.registration import register
 from slam.timing import StageTimer
@@ -55,7 +56,8 @@ class FrameState:
     Attributes:
         index: input order of the frame.
         timestamp: its timestamp.
-        pose: ``(7,)`` float64 current (odometry-chained) world-from-camera estimate.
+        pose: ``(7,)`` float64 current (odometry-chained) world-from-camera estimate of the depth camera
+            (the frame of the input ``K``; see ``FeatureConfig.rgb_intrinsics`` for unregistered frames).
         status: ``"initialized" | "ok" | "lost" | "recovered" | "skipped"``.
         reason: why it is lost / skipped / a keyframe ("" when plainly tracked).
         keyframe_id: the keyframe it is expressed relative to (-1 before the first keyframe).
@@ -83,7 +85,8 @@ class LoopClosure:
         timestamp_a, timestamp_b: their timestamps.
         similarity: descriptor cosine similarity of the pair.
         num_inliers: RANSAC inliers of the verification.
-        T_ab: ``(7,)`` float64 measured relative pose.
+        T_ab: ``(7,)`` float64 measured relative pose, in the tracked camera's frame (the colour camera's
+            when the frames are unregistered).
     """
 
     kf_a: int
@@ -200,6 +203,15 @@ class RGBDSLAM:
         self._num_lost = 0
         self._num_skipped = 0
         self._finished = False
+        # The front end tracks the camera whose pixels the keypoints live in: the colour camera when the
+        # frames are unregistered (``odometry.features.rgb_intrinsics``). Poses are reported for the
+        # depth camera, the frame of the input K and of depth-based ground truth (7-Scenes'), by the
+        # change of frame T_rgb_depth^-1 * P * T_rgb_depth (the world stays the first camera's).
+        feats = self.config.odometry.features
+        self._T_rgb_depth = None
+        if feats.rgb_intrinsics is not None and any(float(x) != 0.0 for x in feats.rgb_from_depth_translation):
+            self._T_rgb_depth = torch.tensor([*map(float, feats.rgb_from_depth_translation), 0.0, 0.0, 0.0, 1.0],
+                                             dtype=torch.float64)
 
     # ------------------------------------------------------------------------------------------
     def _build_descriptor(self) -> torch.nn.Module:
@@ -245,8 +257,8 @@ class RGBDSLAM:
                                          res.T_kf_frame.detach().to(torch.float64).cpu(), status))
         if res.edge is not None:
             self._edges.append(res.edge)
-        state = FrameState(int(frame.index), float(frame.timestamp), res.pose, status, res.reason,
-                           res.keyframe_id)
+        state = FrameState(int(frame.index), float(frame.timestamp), self._output_frame(res.pose), status,
+                           res.reason, res.keyframe_id)
         # every keyframe the front end created during this call (a promoted previous frame included)
         for kf in self.odometry.keyframes[self._num_kf_seen:]:
             self._kf_poses.append(kf.pose.detach().to(torch.float64).cpu())
@@ -272,7 +284,7 @@ class RGBDSLAM:
         else:
             kf_id, T = -1, se3_identity(dtype=torch.float64)
         self._frames.append(_FrameRecord(int(index), float(timestamp), kf_id, T.clone(), "skipped"))
-        pose = se3_compose(self._kf_poses[kf_id], T) if kf_id >= 0 else T.clone()
+        pose = self._output_frame(se3_compose(self._kf_poses[kf_id], T)) if kf_id >= 0 else T.clone()
         return FrameState(int(index), float(timestamp), pose, "skipped", reason, kf_id)
 
     # ------------------------------------------------------------------------------------------
@@ -356,6 +368,12 @@ class RGBDSLAM:
                          torch.tensor([e.j for e in self._edges], dtype=torch.long),
                          torch.stack([e.T_ij.to(torch.float64).cpu() for e in self._edges]), info)
 
+    def _output_frame(self, poses: Tensor) -> Tensor:
+        """Tracked-camera poses ``(..., 7)`` -> depth-camera poses (identity map for registered frames)."""
+        if self._T_rgb_depth is None:
+            return poses
+        return depth_camera_poses(poses, self._T_rgb_depth)
+
     def _frames_trajectory(self, kf_poses: Tensor) -> Trajectory:
         n = len(self._frames)
         ts = torch.tensor([f.timestamp for f in self._frames], dtype=torch.float64)
@@ -364,7 +382,7 @@ class RGBDSLAM:
         kf = torch.tensor([max(f.keyframe_id, 0) for f in self._frames], dtype=torch.long)
         T = torch.stack([f.T_kf_frame for f in self._frames])
         base = kf_poses[kf] if kf_poses.shape[0] else se3_identity(n, dtype=torch.float64)
-        return Trajectory(ts, se3_compose(base, T))
+        return Trajectory(ts, self._output_frame(se3_compose(base, T)))
 
     def finish(self) -> SLAMResult:
         """Optimise the keyframe pose graph and return every frame's pose.
@@ -391,7 +409,7 @@ class RGBDSLAM:
         return SLAMResult(
             trajectory=self._frames_trajectory(kf_final),
             odometry_trajectory=self._frames_trajectory(kf_odo),
-            keyframe_trajectory=Trajectory(kf_ts, kf_final.clone()),
+            keyframe_trajectory=Trajectory(kf_ts, self._output_frame(kf_final.clone())),
             keyframe_frames=torch.tensor([kf.frame_index for kf in self.odometry.keyframes], dtype=torch.long),
             loops=list(self._loops), queries=list(self._queries), graph=graph, optimization=opt,
             num_frames=len(self._frames), num_keyframes=len(self._kf_poses), num_lost=self._num_lost,

@@ -30,6 +30,11 @@ def test_sequence_and_demo_together_is_an_error(tmp_path, capsys):
     assert "either" in capsys.readouterr().err
 
 
+def test_rgb_from_depth_needs_rgb_intrinsics(tmp_path, capsys):
+    assert main(["somewhere", "--out", str(tmp_path), "--rgb-from-depth", "-0.025", "0", "0"]) == 2
+    assert "--rgb-intrinsics" in capsys.readouterr().err
+
+
 def test_offline_without_vgg16_weights_says_what_to_do(tmp_path, monkeypatch, capsys):
     """The paper's default backbone without its weights, offline: the message names the file and the fix."""
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch_home"))

@@ -110,18 +110,22 @@ def test_feature_errors_and_empty_image():
     assert len(f) == 0 and f.points.shape == (0, 3) and f.valid.shape == (0,)
 
 
-def test_rgb_intrinsics_map_keypoints_into_the_depth_camera():
+def test_rgb_intrinsics_lift_keypoints_in_the_colour_camera():
     from slam.odometry import FeatureConfig
-    f = _planar_frame(_pose(), _texture())
+    f = _planar_frame(_pose(), _texture())  # fronto-parallel plane at z = 2 m
     base = extract_features(f.rgb, f.depth, f.K)
-    same = extract_features(f.rgb, f.depth, f.K, FeatureConfig(rgb_intrinsics=(585.0, 585.0, 320.0, 240.0)))
-    assert torch.allclose(same.keypoints, base.keypoints)
-    mapped = extract_features(f.rgb, f.depth, f.K, FeatureConfig(rgb_intrinsics=(525.0, 520.0, 310.0, 250.0)))
-    expected = torch.stack([(base.keypoints[:, 0] - 310.0) * 585.0 / 525.0 + 320.0,
-                            (base.keypoints[:, 1] - 250.0) * 585.0 / 520.0 + 240.0], dim=1)
-    assert torch.allclose(mapped.keypoints, expected, atol=1e-3)
-    # the 3D points are re-read at the mapped pixels, on the same plane
-    assert torch.allclose(mapped.points[mapped.valid][:, 2], torch.tensor(2.0), atol=1e-5)
+    cfg = FeatureConfig(rgb_intrinsics=(525.0, 520.0, 310.0, 250.0), rgb_from_depth_translation=(-0.025, 0.0, 0.0))
+    lifted = extract_features(f.rgb, f.depth, f.K, cfg)
+    # keypoints stay colour pixels, K becomes the colour camera's
+    assert torch.allclose(lifted.keypoints, base.keypoints)
+    assert torch.allclose(lifted.K, torch.tensor([[525.0, 0, 310.0], [0, 520.0, 250.0], [0, 0, 1]], dtype=torch.float64))
+    # the plane z = 2 stays z = 2 after a sideways shift: points are z * K_rgb^-1 [u, v, 1]
+    v = lifted.valid
+    assert v.sum() > 0.8 * base.valid.sum()
+    kp, pts = lifted.keypoints[v].double(), lifted.points[v].double()
+    assert torch.allclose(pts[:, 2], torch.tensor(2.0, dtype=torch.float64), atol=1e-5)
+    assert torch.allclose(pts[:, 0], (kp[:, 0] - 310.0) / 525.0 * 2.0, atol=1e-4)
+    assert torch.allclose(pts[:, 1], (kp[:, 1] - 250.0) / 520.0 * 2.0, atol=1e-4)
 
 
 def test_hamming_distance_dense_sparse_and_bits():

@@ -46,12 +46,16 @@ class FeatureConfig:
     max_depth_jump: float = 0.05
     # Pixel noise (std) of a keypoint detected at pyramid level 0; level l gets sigma * scale_factor^l.
     keypoint_sigma_px: float = 1.0
-    # Intrinsics (fx, fy, cx, cy) of the colour camera when they differ from the frame's K (the depth
-    # camera's): unregistered RGB-D such as 7-Scenes, where K is the depth camera's (585) and the Kinect v1
-    # colour camera has f ~ 525. Keypoints are then mapped into the depth image assuming zero baseline,
-    # u_d = K K_rgb^-1 u_rgb, and everything downstream lives in the depth camera's pixels. None: the
-    # frames are treated as registered (colour pixel = depth pixel).
+    # Intrinsics (fx, fy, cx, cy) of the colour camera when the frames are unregistered, i.e. the frame's
+    # K is the depth camera's and the colour image comes from a second camera (7-Scenes: depth K f = 585,
+    # Kinect v1 colour camera f ~ 525). The depth map is then warped into the colour camera
+    # (slam.odometry.depth_registration) and keypoints are lifted there: the tracked frame is the colour
+    # camera's. None: the frames are registered (colour pixel = depth pixel, one K).
     rgb_intrinsics: tuple[float, float, float, float] | None = None
+    # With rgb_intrinsics: position (metres) of the depth camera's optical centre in the colour camera's
+    # frame, the axes taken as parallel (p_rgb = p_depth + t). A Kinect v1's IR and colour cameras sit
+    # ~2.5 cm apart along x; the warp moves the depth by the parallax f * t_x / z (~9 px at 1.5 m).
+    rgb_from_depth_translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from slam.odometry.config import FeatureConfig
+from slam.odometry.depth_registration import register_depth_to_color
 from slam.odometry.geometry import backproject
 
 Tensor = torch.Tensor
@@ -35,14 +36,15 @@ class FrameFeatures:
     """Keypoints, descriptors and 3D points of one frame (everything registration needs).
 
     Attributes:
-        keypoints: ``(N, 2)`` float32 pixel coordinates ``(x, y)`` in the full-size image of ``K`` (the
-            depth camera's pixels when ``FeatureConfig.rgb_intrinsics`` maps an unregistered colour camera).
+        keypoints: ``(N, 2)`` float32 pixel coordinates ``(x, y)`` in the full-size colour image.
         descriptors: ``(N, D)``: uint8 packed bits for binary descriptors (ORB: ``D = 32``), float32
             unit vectors otherwise (RootSIFT: ``D = 128``).
-        points: ``(N, 3)`` float32 camera-frame points in metres (zeros where ``valid`` is False).
+        points: ``(N, 3)`` float32 points in metres in the colour camera's frame (the depth camera's when
+            the frames are registered; zeros where ``valid`` is False).
         valid: ``(N,)`` bool, the keypoint has a trustworthy depth.
         sigma_px: ``(N,)`` float32 keypoint position std in pixels (grows with the pyramid level).
-        K: ``(3, 3)`` float64 intrinsics of the image the keypoints live in.
+        K: ``(3, 3)`` float64 intrinsics of the image the keypoints live in (``FeatureConfig.rgb_intrinsics``
+            when set, else the frame's ``K``).
         image_size: ``(H, W)``.
         binary: True when ``descriptors`` are packed bits (matched by Hamming distance).
     """
@@ -203,15 +205,16 @@ def extract_features(rgb: ArrayLike, depth: ArrayLike, K: ArrayLike,
         # pixel centres: x_full = (x_small + 0.5) / s - 0.5
         xy = (xy + 0.5) / s - 0.5
         sigma = sigma / s
-    if config.rgb_intrinsics is not None:
-        # unregistered colour camera: its pixel -> the depth camera's pixel along the same ray
-        fx, fy, cx, cy = config.rgb_intrinsics
-        sx, sy = K_np[0, 0] / fx, K_np[1, 1] / fy
-        xy = np.stack([(xy[:, 0] - cx) * sx + K_np[0, 2], (xy[:, 1] - cy) * sy + K_np[1, 2]],
-                      axis=1).astype(np.float32)
-        sigma = sigma * 0.5 * (sx + sy)
-    kp_t = torch.from_numpy(xy)
     depth_t = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))
+    if config.rgb_intrinsics is not None:
+        # unregistered colour camera: warp the depth into it, so that each keypoint reads the depth of its
+        # own surface point, and lift in the colour camera (its frame is the one tracked)
+        fx, fy, cx, cy = config.rgb_intrinsics
+        K_t = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        T_rgb_depth = torch.tensor([*config.rgb_from_depth_translation, 0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+        depth_t = register_depth_to_color(depth_t, torch.from_numpy(K_np), K_t, T_rgb_depth, (H, W),
+                                          min_depth=0.0)
+    kp_t = torch.from_numpy(xy)
     points, valid = backproject(kp_t, depth_t, K_t, config.min_depth, config.max_depth,
                                 config.depth_window_radius, config.max_depth_jump)
     return FrameFeatures(keypoints=kp_t, descriptors=desc_t, points=points, valid=valid,
