@@ -63,34 +63,42 @@ def register_depth_to_color(depth: Tensor, K_depth: Tensor, K_rgb: Tensor, T_rgb
     dev = depth.device
     d = torch.nan_to_num(depth.to(dtype), nan=0.0)
     H, W = d.shape
-    v, u = torch.nonzero(d > min_depth, as_tuple=True)
-    out = torch.zeros(h * w, dtype=dtype, device=dev)
-    if v.numel() == 0:
-        return out.reshape(h, w)
-    z = d[v, u]
-    Kd = K_depth.to(device=dev, dtype=torch.float64)
-    Kc = K_rgb.to(device=dev, dtype=torch.float64)
-    # float64 for the geometry: 640 px * 1e-7 relative error of float32 is harmless, but cheap to avoid
-    z64 = z.to(torch.float64)
-    p = torch.stack([(u - Kd[0, 2]) / Kd[0, 0] * z64, (v - Kd[1, 2]) / Kd[1, 1] * z64, z64], dim=-1)
-    T = T_rgb_depth.to(device=dev, dtype=torch.float64)
-    q = p @ quat_to_rotmat(T[3:]).T + T[:3]
-    zc = q[:, 2]
-    front = zc > min_depth
-    q, zc = q[front], zc[front]
-    x = Kc[0, 0] * q[:, 0] / zc + Kc[0, 2]
-    y = Kc[1, 1] * q[:, 1] / zc + Kc[1, 2]
-    x0, y0 = torch.floor(x).long(), torch.floor(y).long()
+    # Vectorised over the pixel grid (no nonzero / masking: invalid or off-image pixels go to a dummy slot
+    # past the end). p_rgb = z * (R ray) + t is affine in z; R ray is built by broadcasting (H, 1) x (1, W).
+    Kd = K_depth.to(device=dev, dtype=dtype)
+    Kc = K_rgb.to(device=dev, dtype=dtype)
+    T = T_rgb_depth.to(device=dev, dtype=dtype)
+    R = quat_to_rotmat(T[3:])
+    u = ((torch.arange(W, device=dev, dtype=dtype) - Kd[0, 2]) / Kd[0, 0])[None, :]
+    v = ((torch.arange(H, device=dev, dtype=dtype) - Kd[1, 2]) / Kd[1, 1])[:, None]
+    qx = (R[0, 0] * u + R[0, 1] * v + R[0, 2]) * d + T[0]
+    qy = (R[1, 0] * u + R[1, 1] * v + R[1, 2]) * d + T[1]
+    zc = (R[2, 0] * u + R[2, 1] * v + R[2, 2]) * d + T[2]
+    ok = (d > min_depth) & (zc > min_depth)
+    inv_z = 1.0 / torch.where(ok, zc, torch.ones_like(zc))
+    x0 = torch.floor(qx * inv_z * Kc[0, 0] + Kc[0, 2])
+    y0 = torch.floor(qy * inv_z * Kc[1, 1] + Kc[1, 2])
+    # a point lands between four colour pixels: splat it on all four (the depth camera's finer sampling
+    # would otherwise leave holes); -1 <= x0 < w keeps the ones whose right/lower neighbour is inside
+    ok = ok & (x0 >= -1) & (x0 < w) & (y0 >= -1) & (y0 < h)
+    dummy = h * w
+    base = torch.where(ok, y0 * w + x0, torch.full_like(x0, -10 * dummy)).long().reshape(-1)
+    x0 = x0.long().reshape(-1)
+    y0 = y0.long().reshape(-1)
+    left_ok, right_ok = x0 >= 0, x0 + 1 < w
+    top_ok, bottom_ok = y0 >= 0, y0 + 1 < h
+    idx = torch.cat([
+        torch.where(left_ok & top_ok, base, dummy),
+        torch.where(right_ok & top_ok, base + 1, dummy),
+        torch.where(left_ok & bottom_ok, base + w, dummy),
+        torch.where(right_ok & bottom_ok, base + w + 1, dummy),
+    ]).clamp_(-1, dummy)
+    idx = torch.where(idx < 0, dummy, idx)
     big = torch.finfo(dtype).max
-    zbuf = torch.full((h * w,), big, dtype=dtype, device=dev)
-    zc_t = zc.to(dtype)
-    for dx in (0, 1):
-        for dy in (0, 1):
-            xi, yi = x0 + dx, y0 + dy
-            ok = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
-            zbuf.scatter_reduce_(0, (yi[ok] * w + xi[ok]), zc_t[ok], reduce="amin")
-    return torch.where(zbuf < big, zbuf, out).reshape(h, w)
-
+    zbuf = torch.full((h * w + 1,), big, dtype=dtype, device=dev)
+    zbuf.scatter_reduce_(0, idx, zc.reshape(-1).repeat(4), reduce="amin")
+    zbuf = zbuf[:dummy]
+    return torch.where(zbuf < big, zbuf, torch.zeros_like(zbuf)).reshape(h, w)
 
 def depth_camera_poses(rgb_poses: Tensor, T_rgb_depth: Tensor) -> Tensor:
     """Poses of the depth camera from the tracked colour camera's, the world being the first depth camera's.
