@@ -162,15 +162,23 @@ def assemble(pattern: BlockPattern, H_edges: Tensor, g_edges: Tensor):
     return assemble_blocks(pattern, blocks, g_edges.view(E, 2, k))
 
 
-def assemble_blocks(pattern: BlockPattern, blocks: Tensor, g_edges: Tensor):
+def assemble_blocks(pattern: BlockPattern, blocks: Tensor, g_edges: Tensor, out=None):
     """:func:`assemble` from the blocks ``(E, 2, 2, k, k)`` (or ``(E, 4, k, k)``: ii, ij, ji, jj) and
-    ``g_edges (E, 2, k)``."""
+    ``g_edges (E, 2, k)``.
+
+    ``out``: optionally ``(H (nb + 1, k, k), g (n + 1, k))`` buffers to sum into (zeroed first; the
+    returned values are views of them), so that an optimiser re-assembling every iteration does not
+    allocate megabytes each time.
+    """
     k, E = pattern.k, blocks.shape[0]
-    H = torch.zeros(pattern.num_blocks + 1, k, k, dtype=blocks.dtype, device=blocks.device)
-    H.index_add_(0, pattern.edge_blocks.reshape(-1), blocks.reshape(E * 4, k, k))
-    g = torch.zeros(pattern.num_vars + 1, k, dtype=g_edges.dtype, device=g_edges.device)
-    g.index_add_(0, pattern.edge_vars.reshape(-1), g_edges.reshape(E * 2, k))
-    return H[:-1].reshape(-1), g[:-1].reshape(-1)
+    if out is None:
+        H = torch.zeros(pattern.num_blocks + 1, k, k, dtype=blocks.dtype, device=blocks.device)
+        g = torch.zeros(pattern.num_vars + 1, k, dtype=g_edges.dtype, device=g_edges.device)
+    else:
+        H, g = out[0].zero_(), out[1].zero_()
+    H.index_add_(0, pattern.edge_blocks.view(-1), blocks.reshape(E * 4, k, k))
+    g.index_add_(0, pattern.edge_vars.view(-1), g_edges.reshape(E * 2, k))
+    return H[:-1].view(-1), g[:-1].view(-1)
 
 
 def to_dense(pattern: BlockPattern, values: Tensor) -> Tensor:

@@ -1,8 +1,11 @@
 """Gauss-Newton and Levenberg-Marquardt for pose graphs over sparse normal equations.
 
-Each iteration linearises every edge at once (:mod:`slam.graph.costs`), scatters the per-edge blocks
-into a fixed sparse pattern (:mod:`slam.graph.linear`), solves ``(H + lambda D) dx = -g`` and retracts
-``T <- T exp(dx)`` (right perturbation).
+Each iteration linearises every edge at once (the closed forms of :mod:`slam.graph.fused`, checked
+against :mod:`slam.graph.costs`), scatters the per-edge blocks into a fixed sparse pattern
+(:mod:`slam.graph.linear`), solves ``(H + lambda D) dx = -g`` and retracts ``T <- T exp(dx)`` (right
+perturbation). Everything that does not change during a call is made once: the pattern and the
+symbolic Cholesky analysis, the inverted measurements and ``Ad(z^-1)``, the Cholesky factors of the
+information matrices, and the buffers the per-iteration work writes into.
 
 Gauge (a pose graph is invariant to moving all poses rigidly): ``"free"`` (default for LM) leaves the
 gauge to the LM damping, as GTSAM does without a prior: the damped step is then the smallest of the
@@ -42,14 +45,8 @@ from typing import Dict, List, Optional, Tuple, Union
 import torch
 
 from slam.graph.cholesky import limit_blas_threads
-from slam.graph.costs import (
-    RobustKernel,
-    _residuals,
-    _se3_jacobians,
-    edge_chi2,
-    edge_jacobians,
-    make_kernel,
-)
+from slam.graph.costs import RobustKernel, make_kernel
+from slam.graph.fused import bmm, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
 from slam.graph.linear import (
     BlockPattern,
     LinearSolver,
@@ -59,8 +56,8 @@ from slam.graph.linear import (
     make_solver,
     scipy_available,
 )
-from slam.graph.pose_graph import PoseGraph, first_bad_information
-from slam.lie import se3_adjoint, se3_compose, se3_exp, se3_inv, se3_log, se3_right_jacobian_inv
+from slam.graph.pose_graph import PoseGraph
+from slam.lie import se3_compose, se3_inv, se3_log, se3_right_jacobian_inv
 
 __all__ = ["OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
 
@@ -123,6 +120,8 @@ class OptimizationResult:
         cost_history: the optimised cost after each iteration, starting with the initial one
             (chi2, or the robust cost with a kernel, plus the prior of a ``"prior"`` gauge).
         lambda_history: LM damping used for each accepted step.
+        time_history: seconds since the call started at which each entry of ``cost_history`` was known
+            (setup included), e.g. to time when a given cost was first reached.
         timings: seconds spent in ``setup``, ``linearize`` (residuals, Jacobians, assembly), ``solve``,
             ``evaluate`` (costs of trial steps) and ``total``.
         weights: ``(E,)`` final kernel weights (all ones without a kernel): near 0 marks a rejected edge.
@@ -136,6 +135,7 @@ class OptimizationResult:
     robust_cost: Optional[float] = None
     cost_history: List[float] = field(default_factory=list)
     lambda_history: List[float] = field(default_factory=list)
+    time_history: List[float] = field(default_factory=list)
     timings: Dict[str, float] = field(default_factory=dict)
     weights: Optional[Tensor] = None
     message: str = ""
@@ -151,7 +151,8 @@ class OptimizationResult:
 
 
 class _Problem:
-    """The per-call state: float64 copies of the graph's tensors, the pattern and helpers."""
+    """The per-call state: float64 copies of the graph's tensors, constant per-edge factors, the pattern
+    and reused buffers."""
 
     def __init__(self, graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str):
         dt = torch.float64
@@ -162,19 +163,25 @@ class _Problem:
         self.ii, self.jj = graph.ii, graph.jj
         self.meas = graph.measurements.to(dt)
         self.zinv = se3_inv(self.meas)  # constant per call: inverted once
-        self.ad_zinv = se3_adjoint(self.zinv) if graph.chart == "se3" else None
-        self.info = graph.information.to(dt)
         self.chart = graph.chart
+        # J_i^T = -Ad(z^-1)^T J_l^-1(r)^T: the constant factor made once (the "r3so3" chart has its own)
+        self.neg_adz_t = se3_adjoint_t(self.zinv).neg_() if graph.chart == "se3" else None
+        self.info = graph.information.to(dt)
+        # Omega = L L^T: whitens the Jacobians (J^T Omega J = (L^T J)^T (L^T J)) and gives chi2 = |L^T r|^2
+        self.L = _information_factor(graph, self.info, cfg.check_information)
         self.kernel = kernel
-        N = self.poses.shape[0]
+        N, E = self.poses.shape[0], self.ii.shape[0]
+        dev = self.poses.device
         planar = graph.is_planar() if cfg.planar is None else bool(cfg.planar)
-        self.dims = torch.tensor(_PLANAR_DIMS, device=self.poses.device) if planar else None
+        self.dims = torch.tensor(_PLANAR_DIMS, device=dev) if planar else None
         self.k = 3 if planar else 6
         if self.dims is not None:
-            self.info_red = self.info[:, self.dims][:, :, self.dims]
-        else:
-            self.info_red = self.info
-        free = torch.ones(N, dtype=torch.bool, device=self.poses.device)
+            d = self.dims
+            self.rows = torch.cat([d, d + 6, torch.tensor([12], device=dev)])  # rows of [J_i^T; J_j^T; r^T]
+            self.L_red = torch.linalg.cholesky(self.info[:, d][:, :, d]).contiguous()
+        self.JT = torch.zeros(E, 13, 6, dtype=dt, device=dev)  # reused by every linearisation
+        self.ws: dict = {}  # further per-edge buffers of the linearisation (slam.graph.fused)
+        free = torch.ones(N, dtype=torch.bool, device=dev)
         fixed = list(cfg.fixed)
         if gauge == "first":
             fixed.append(0)
@@ -183,6 +190,14 @@ class _Problem:
                 raise ValueError(f"fixed pose index {f} is out of range [0, {N})")
             free[int(f)] = False
         self.pattern: BlockPattern = build_pattern(self.ii, self.jj, free, self.k)
+        k, n = self.k, self.pattern.num_vars
+        self.H_buf = (torch.empty(self.pattern.num_blocks + 1, k, k, dtype=dt, device=dev),
+                      torch.empty(n + 1, k, dtype=dt, device=dev))
+        self.H_damped = torch.empty(self.pattern.nnz, dtype=dt, device=dev)  # H + lambda D
+        self.all_free = not fixed
+        if not self.all_free:
+            self.free_idx = free.nonzero()[:, 0]
+            self.free_var = self.pattern.var_index[self.free_idx]
         self.prior = None
         # "free": nothing held, unless the caller fixes poses (which then anchor the result)
         self.reanchor = gauge == "free" and not fixed
@@ -191,39 +206,30 @@ class _Problem:
 
     # -- costs ----------------------------------------------------------------------------------
     def evaluate(self, poses: Tensor):
-        """Residuals, error poses, per-edge chi2, robust cost terms and weights at ``poses``."""
-        r, D = _residuals(poses, self.ii, self.jj, self.zinv, self.chart)
-        s = edge_chi2(r, self.info)
+        """Cost, chi2 and ``(r, aux, w)`` (residuals, terms reused by the Jacobians, kernel weights)."""
+        r, aux = se3_residuals(poses, self.ii, self.jj, self.zinv, self.chart)
+        u = bmm(r[:, None, :], self.L)  # (E, 1, 6): (L^T r)^T
+        s = u.square_().sum((1, 2))
         if self.kernel is None:
-            rho, w = s, None
+            chi2 = cost = float(s.sum())
+            w = None
         else:
             rho, w = self.kernel(s)
-        cost = float(rho.sum())
+            cost, chi2 = float(rho.sum()), float(s.sum())
         if self.prior is not None:
             p0, wgt, _ = self.prior
             r0 = se3_log(se3_compose(se3_inv(p0), poses[0]))
             cost += wgt * float((r0 * r0).sum())
-        return cost, float(s.sum()), (r, D, w)
+        return cost, chi2, (r, aux, w)
 
     def linearize(self, poses: Tensor, cache):
-        r, D, w = cache
-        if self.ad_zinv is not None:
-            Ji, Jj = _se3_jacobians(r, self.ad_zinv)
-        else:
-            Ji, Jj = edge_jacobians(poses, self.ii, self.jj, D, r, self.chart)
-        info = self.info
+        r, aux, w = cache
+        JT = se3_jacobians_t(r, aux, self.neg_adz_t, self.JT, poses, self.ii, self.jj, self.ws)
+        L = self.L
         if self.dims is not None:
-            d = self.dims
-            Ji, Jj, r, info = Ji[:, d][:, :, d], Jj[:, d][:, :, d], r[:, d], self.info_red
-        if w is not None:
-            info = info * w[:, None, None]
-        # the four k x k blocks of [Ji, Jj]^T W [Ji, Jj] (ji is ij transposed) and the gradient
-        Jit, Jjt = Ji.transpose(1, 2), Jj.transpose(1, 2)
-        Hij = Jit @ (info @ Jj)
-        blocks = torch.stack([Jit @ (info @ Ji), Hij, Hij.transpose(1, 2), Jjt @ (info @ Jj)], 1)
-        Wr = info @ r[:, :, None]
-        gb = torch.stack([Jit @ Wr, Jjt @ Wr], 1)
-        H, g = assemble_blocks(self.pattern, blocks, gb)
+            JT, L = JT[:, self.rows][:, :, self.dims], self.L_red
+        blocks, gb = normal_blocks(JT, L, w, self.ws)
+        H, g = assemble_blocks(self.pattern, blocks, gb, self.H_buf)
         if self.prior is not None:
             p0, wgt, v0 = self.prior
             r0 = se3_log(se3_compose(se3_inv(p0), poses[0]))
@@ -237,16 +243,31 @@ class _Problem:
         return H, g
 
     def retract(self, poses: Tensor, dx: Tensor) -> Tensor:
-        xi = dx.reshape(-1, self.k)
+        xi = dx.view(-1, self.k)
         if self.dims is not None:
-            full = torch.zeros(xi.shape[0], 6, dtype=xi.dtype, device=xi.device)
-            full[:, self.dims] = xi
-            xi = full
-        var = self.pattern.var_index
-        free = var >= 0
+            xi = xi.new_zeros(xi.shape[0], 6).index_copy_(1, self.dims, xi)
+        if self.all_free:  # variable v is pose v
+            return se3_retract(poses, xi)
         out = poses.clone()
-        out[free] = se3_compose(poses[free], se3_exp(xi[var[free]]))
+        out[self.free_idx] = se3_retract(poses[self.free_idx], xi[self.free_var])
         return out
+
+
+def _information_factor(graph: PoseGraph, info: Tensor, check: bool) -> Tensor:
+    """Lower Cholesky factors ``(E, 6, 6)`` of the information matrices ``info (E, 6, 6)`` (float64);
+    a ``ValueError`` names the first edge whose matrix is not symmetric positive definite (the symmetry
+    is only checked when ``check``)."""
+    L, fail = torch.linalg.cholesky_ex(info)
+    bad = fail != 0
+    if check:
+        # the largest entry of an SPD matrix is on its diagonal (any other matrix fails the Cholesky)
+        scale = info.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(info.dtype).tiny)
+        bad = bad | ((info - info.transpose(-1, -2)).abs().amax(dim=(-2, -1)) > 1e-6 * scale)
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0, 0])
+        raise ValueError(f"information[{k}] (edge {int(graph.ii[k])} -> {int(graph.jj[k])}) is not "
+                         f"symmetric positive definite")
+    return L.contiguous()  # LAPACK's factors are column-major: row-major ones multiply ~3x faster
 
 
 def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, RobustKernel] = None,
@@ -295,11 +316,6 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         raise TypeError(f"graph must be a PoseGraph, got {type(graph).__name__}")
     if graph.num_edges == 0:
         raise ValueError(f"the graph has no edges ({graph.num_poses} poses): there is nothing to optimise")
-    if cfg.check_information:
-        bad = first_bad_information(graph.information)
-        if bad is not None:
-            raise ValueError(f"information[{bad}] (edge {int(graph.ii[bad])} -> {int(graph.jj[bad])}) is not "
-                             f"symmetric positive definite")
     if cfg.gauge not in ("free", "first", "prior"):
         raise ValueError(f"gauge must be 'free', 'first' or 'prior', got {cfg.gauge!r}")
     # GN has no damping to take care of a free gauge: it holds the first pose instead
@@ -314,7 +330,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     cost, chi2, cache = prob.evaluate(x)
     tm["evaluate"] += time.perf_counter() - t
     initial_chi2 = chi2
-    history, lambdas = [cost], []
+    history, lambdas, times = [cost], [], [time.perf_counter() - t_start]
     lam = cfg.lambda_init if method == "lm" else 0.0
     status, message, it = Status.MAX_ITERATIONS, "", 0
     best = (cost, chi2, x, cache)
@@ -332,9 +348,10 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         accepted = False
         while not accepted:
             Hd = H
-            if lam > 0:
-                Hd = H.clone()
-                Hd[prob.pattern.diag_pos] += lam * (dscale if cfg.damping == "diagonal" else 1.0)
+            if lam > 0:  # into a buffer kept for the call: H (megabytes) is copied at every trial
+                Hd = prob.H_damped.copy_(H)
+                Hd.index_add_(0, prob.pattern.diag_pos, lam * dscale if cfg.damping == "diagonal"
+                              else torch.full_like(g, lam))
             t = time.perf_counter()
             try:
                 dx = lin.solve(prob.pattern, Hd, -g)
@@ -370,6 +387,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         decrease = cost - cost_new
         x, cost, chi2, cache = x_new, cost_new, chi2_new, cache_new
         history.append(cost)
+        times.append(time.perf_counter() - t_start)
         lambdas.append(lam)
         if cost < best[0]:
             best = (cost, chi2, x, cache)
@@ -393,6 +411,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     return OptimizationResult(
         graph=result_graph, chi2=chi2, initial_chi2=initial_chi2, status=status, iterations=it,
         robust_cost=cost if kern is not None else None, cost_history=history, lambda_history=lambdas,
+        time_history=times,
         timings=tm, weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w,
         message=message,
     )
