@@ -38,7 +38,7 @@ from slam.io.frame import RGBDFrame
 from slam.io.trajectory import Trajectory
 from slam.lie import se3_between, se3_compose, se3_identity, so3_log
 from slam.odometry import RGBDOdometry
-from slam.odometry.depth_registration import depth_camera_poses
+from slam.odometry.depth_registration import depth_camera_poses, rig_pose
 from slam.odometry.frontend import Keyframe, KeyframeEdge, TrackStatus
 from slam.odometry.registration import register
 from slam.timing import StageTimer
@@ -210,8 +210,7 @@ class RGBDSLAM:
         feats = self.config.odometry.features
         self._T_rgb_depth = None
         if feats.rgb_intrinsics is not None and any(float(x) != 0.0 for x in feats.rgb_from_depth_translation):
-            self._T_rgb_depth = torch.tensor([*map(float, feats.rgb_from_depth_translation), 0.0, 0.0, 0.0, 1.0],
-                                             dtype=torch.float64)
+            self._T_rgb_depth = rig_pose(feats.rgb_from_depth_translation)
 
     # ------------------------------------------------------------------------------------------
     def _build_descriptor(self) -> torch.nn.Module:

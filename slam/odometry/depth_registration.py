@@ -28,7 +28,7 @@ from slam.lie import quat_to_rotmat, se3_compose, se3_inv
 
 Tensor = torch.Tensor
 
-__all__ = ["depth_camera_poses", "register_depth_to_color"]
+__all__ = ["depth_camera_poses", "register_depth_to_color", "rig_pose"]
 
 
 def register_depth_to_color(depth: Tensor, K_depth: Tensor, K_rgb: Tensor, T_rgb_depth: Tensor,
@@ -80,25 +80,38 @@ def register_depth_to_color(depth: Tensor, K_depth: Tensor, K_rgb: Tensor, T_rgb
     y0 = torch.floor(qy * inv_z * Kc[1, 1] + Kc[1, 2])
     # a point lands between four colour pixels: splat it on all four (the depth camera's finer sampling
     # would otherwise leave holes); -1 <= x0 < w keeps the ones whose right/lower neighbour is inside
-    ok = ok & (x0 >= -1) & (x0 < w) & (y0 >= -1) & (y0 < h)
+    ok = (ok & (x0 >= -1) & (x0 < w) & (y0 >= -1) & (y0 < h)).reshape(-1)
+    x0 = torch.where(ok, x0.reshape(-1), 0).long()  # 0 where not ok: no cast of inf/NaN
+    y0 = torch.where(ok, y0.reshape(-1), 0).long()
     dummy = h * w
-    base = torch.where(ok, y0 * w + x0, torch.full_like(x0, -10 * dummy)).long().reshape(-1)
-    x0 = x0.long().reshape(-1)
-    y0 = y0.long().reshape(-1)
-    left_ok, right_ok = x0 >= 0, x0 + 1 < w
-    top_ok, bottom_ok = y0 >= 0, y0 + 1 < h
+    base = y0 * w + x0
+    left, right = ok & (x0 >= 0), ok & (x0 + 1 < w)
+    top, bottom = y0 >= 0, y0 + 1 < h
     idx = torch.cat([
-        torch.where(left_ok & top_ok, base, dummy),
-        torch.where(right_ok & top_ok, base + 1, dummy),
-        torch.where(left_ok & bottom_ok, base + w, dummy),
-        torch.where(right_ok & bottom_ok, base + w + 1, dummy),
-    ]).clamp_(-1, dummy)
-    idx = torch.where(idx < 0, dummy, idx)
+        torch.where(left & top, base, dummy),
+        torch.where(right & top, base + 1, dummy),
+        torch.where(left & bottom, base + w, dummy),
+        torch.where(right & bottom, base + w + 1, dummy),
+    ])
     big = torch.finfo(dtype).max
     zbuf = torch.full((h * w + 1,), big, dtype=dtype, device=dev)
     zbuf.scatter_reduce_(0, idx, zc.reshape(-1).repeat(4), reduce="amin")
     zbuf = zbuf[:dummy]
     return torch.where(zbuf < big, zbuf, torch.zeros_like(zbuf)).reshape(h, w)
+
+
+def rig_pose(rgb_from_depth_translation, dtype=torch.float64, device=None) -> Tensor:
+    """``(7,)`` pose ``T_rgb_depth`` of a rig whose two cameras have parallel axes.
+
+    Example:
+        >>> rig_pose((-0.025, 0.0, 0.0)).tolist()
+        [-0.025, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+    """
+    t = [float(x) for x in rgb_from_depth_translation]
+    if len(t) != 3:
+        raise ValueError(f"rgb_from_depth_translation must have 3 entries, got {len(t)}")
+    return torch.tensor([*t, 0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device)
+
 
 def depth_camera_poses(rgb_poses: Tensor, T_rgb_depth: Tensor) -> Tensor:
     """Poses of the depth camera from the tracked colour camera's, the world being the first depth camera's.

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from slam.odometry.config import FeatureConfig
-from slam.odometry.depth_registration import register_depth_to_color
+from slam.odometry.depth_registration import register_depth_to_color, rig_pose
 from slam.odometry.geometry import backproject
 
 Tensor = torch.Tensor
@@ -210,10 +210,10 @@ def extract_features(rgb: ArrayLike, depth: ArrayLike, K: ArrayLike,
         # unregistered colour camera: warp the depth into it, so that each keypoint reads the depth of its
         # own surface point, and lift in the colour camera (its frame is the one tracked)
         fx, fy, cx, cy = config.rgb_intrinsics
-        K_t = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
-        T_rgb_depth = torch.tensor([*config.rgb_from_depth_translation, 0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
-        depth_t = register_depth_to_color(depth_t, torch.from_numpy(K_np), K_t, T_rgb_depth, (H, W),
-                                          min_depth=0.0)
+        K_rgb = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        depth_t = register_depth_to_color(depth_t, K_t, K_rgb, rig_pose(config.rgb_from_depth_translation),
+                                          (H, W), min_depth=0.0)
+        K_t = K_rgb
     kp_t = torch.from_numpy(xy)
     points, valid = backproject(kp_t, depth_t, K_t, config.min_depth, config.max_depth,
                                 config.depth_window_radius, config.max_depth_jump)
