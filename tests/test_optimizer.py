@@ -1,10 +1,15 @@
 """Gauss-Newton / Levenberg-Marquardt on pose graphs: exact solutions, loop closing, solvers, gauge,
-robust kernels, the planar reduction, errors, and agreement with GTSAM on a shared benchmark file."""
+robust kernels, the planar reduction, errors, and agreement with GTSAM on a shared benchmark file.
+
+Every test runs twice: on the numpy path (slam.graph.host, what "auto" picks on the CPU) and on the
+torch path (slam.graph.fused, what runs on other devices), forced through ``slam.graph.optimizer._backend``.
+"""
 import math
 
 import pytest
 import torch
 
+import slam.graph.optimizer as optimizer_module
 from slam.graph import (
     Cauchy,
     OptimizerConfig,
@@ -20,6 +25,14 @@ from slam.graph import (
 from slam.lie import se3_between, se3_compose, se3_exp, se3_log
 
 F64 = torch.float64
+
+
+@pytest.fixture(autouse=True, params=["numpy", "torch"])
+def backend(request, monkeypatch):
+    """Run the test on both backends (numpy falls back to torch where it must, e.g. the prior gauge)."""
+    if request.param == "torch":
+        monkeypatch.setattr(optimizer_module, "_backend", lambda graph, cfg, gauge: "torch")
+    return request.param
 
 
 def _truth(n=24, radius=4.0, planar=False):
@@ -252,14 +265,14 @@ def test_fused_kernels_match_the_reference_costs(chart):
     assert torch.allclose(se3_retract(P, step), se3_compose(P, se3_exp(step)), atol=1e-12)
 
 
-def test_torch_fallback_of_the_fused_kernels_gives_the_same_result(monkeypatch):
+def test_torch_fallback_of_the_fused_kernels_gives_the_same_result(monkeypatch, backend):
     """Off the CPU the fused kernels use torch.matmul / copy_ instead of numpy: same optimum (this runs
-    the torch branch on the CPU)."""
-    import slam.graph.fused as fused
+    the torch branch on the CPU), and the same as the numpy backend's."""
+    from slam.graph import fused
 
     graph, _ = _loop_graph(20, sigma=0.05, seed=2, extra=[(3, 12), (5, 17)])
     ref = optimize(graph, kernel="huber")
     monkeypatch.setattr(fused, "_numpy_ok", lambda *ts: False)
-    res = optimize(graph, kernel="huber")
+    res = optimize(graph, kernel="huber", backend="torch")
     assert res.iterations == ref.iterations and res.chi2 == pytest.approx(ref.chi2, rel=1e-10)
     assert torch.allclose(res.graph.poses, ref.graph.poses, atol=1e-9)

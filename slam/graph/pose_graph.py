@@ -200,12 +200,13 @@ class PoseGraph:
         self.vertex_ids = torch.cat([self.vertex_ids, torch.tensor([nxt], device=self.device)])
         return self.num_poses - 1
 
-    def with_poses(self, poses: Tensor) -> PoseGraph:
-        """A copy sharing the (already validated) edges, with other poses ``(N, 7)``."""
+    def with_poses(self, poses: Tensor, check: bool = True) -> PoseGraph:
+        """A copy sharing the (already validated) edges, with other poses ``(N, 7)`` (checked to be finite
+        unless ``check`` is False)."""
         if not isinstance(poses, Tensor) or poses.shape != self.poses.shape:
             raise ValueError(f"poses must have shape {tuple(self.poses.shape)}, got "
                              f"{tuple(getattr(poses, 'shape', ()))}")
-        if not bool(torch.isfinite(poses).all()):
+        if check and not bool(torch.isfinite(poses).all()):
             raise ValueError("poses has a non-finite value")
         out = object.__new__(PoseGraph)  # skips re-validating the shared edges
         out.__dict__.update(self.__dict__)

@@ -1,0 +1,143 @@
+"""The numpy path of the optimiser (slam.graph.host) against the torch one (slam.graph.fused) and the
+reference costs (slam.graph.costs, themselves checked against finite differences in test_pose_graph)."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from slam.graph import OptimizerConfig, PoseGraph, host, optimize
+from slam.graph.costs import edge_jacobians, edge_residuals, make_kernel
+from slam.graph.fused import _qmul, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
+from slam.graph.linear import to_dense
+from slam.graph.optimizer import _host_problem, _Problem
+from slam.lie import quat_rotate, quat_to_rotmat, se3_between, se3_compose, se3_exp, se3_inv
+
+F64 = torch.float64
+
+
+def _unit(q):
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+def test_bilinear_tables_reproduce_the_torch_products():
+    g = torch.Generator().manual_seed(0)
+    a, b = _unit(torch.randn(50, 4, generator=g, dtype=F64)), _unit(torch.randn(50, 4, generator=g, dtype=F64))
+    u, v = torch.randn(50, 3, generator=g, dtype=F64), torch.randn(50, 3, generator=g, dtype=F64)
+    an, bn, un, vn = a.numpy(), b.numpy(), u.numpy(), v.numpy()
+    np.testing.assert_allclose(host.qmul(an, bn), _qmul(a, b).numpy(), atol=1e-15)
+    np.testing.assert_allclose(host.qmul_conj(an, bn), _qmul(a, b, conj_b=True).numpy(), atol=1e-15)
+    np.testing.assert_allclose(host.rotate(an, un), quat_rotate(a, u).numpy(), atol=1e-14)
+    np.testing.assert_allclose(host.rotmat(an), quat_to_rotmat(a).numpy(), atol=1e-15)
+    np.testing.assert_allclose(host.cross(un, vn), torch.linalg.cross(u, v).numpy(), atol=1e-15)
+    # hand-computed: 90 degrees about z takes x to y; i j = k
+    q = np.array([[0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)]])
+    np.testing.assert_allclose(host.rotate(q, np.array([[1.0, 0.0, 0.0]])), [[0.0, 1.0, 0.0]], atol=1e-15)
+    np.testing.assert_array_equal(host.qmul(np.array([[1.0, 0, 0, 0]]), np.array([[0, 1.0, 0, 0]])), [[0, 0, 1.0, 0]])
+
+
+def _edges(seed=3, N=12, E=40):
+    """Random poses and measurements with an exact edge, one near pi and one in the series branches."""
+    g = torch.Generator().manual_seed(seed)
+    xi = torch.randn(N, 6, generator=g, dtype=F64)
+    xi[:, 3:] *= 1.2
+    P = se3_exp(xi)
+    ii = torch.randint(0, N, (E,), generator=g)
+    jj = (ii + torch.randint(1, N, (E,), generator=g)) % N
+    dz = torch.randn(E, 6, generator=g, dtype=F64) * 0.3
+    dz[0] = 0.0  # met exactly: r = 0
+    dz[1, 3:] = torch.tensor([0.0, 0.0, math.pi - 1e-3])  # near pi
+    dz[2, 3:] = 1e-7  # below both series thresholds
+    dz[3, 3:] = 3e-3  # between them (log exact, Q series)
+    return P, ii, jj, se3_compose(se3_between(P[ii], P[jj]), se3_exp(dz))
+
+
+def test_residuals_jacobians_and_retraction_match_the_torch_kernels():
+    P, ii, jj, Z = _edges()
+    zinv = se3_inv(Z)
+    r_t, aux = se3_residuals(P, ii, jj, zinv)
+    r, theta2, c = host._residuals(P.numpy(), ii.numpy(), jj.numpy(), zinv[:, :3].numpy(), zinv[:, 3:].numpy())
+    np.testing.assert_allclose(r, r_t.numpy(), atol=1e-12)
+    np.testing.assert_allclose(r, edge_residuals(P, ii, jj, Z)[0].numpy(), atol=1e-12)
+    np.testing.assert_allclose(theta2, aux[0][:, 0].numpy(), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(c, aux[1][:, 0].numpy(), rtol=1e-9)
+    neg = (-se3_adjoint_t(zinv)).numpy()
+    JT = host._jacobians_t(r, theta2, c, neg, np.zeros((len(ii), 13, 6)))
+    np.testing.assert_allclose(JT, se3_jacobians_t(r_t, aux, -se3_adjoint_t(zinv)).numpy(), atol=1e-10)
+    Ji, Jj = edge_jacobians(P, ii, jj, edge_residuals(P, ii, jj, Z)[1], r_t)
+    np.testing.assert_allclose(JT[:, :6], Ji.mT.numpy(), atol=1e-10)
+    np.testing.assert_allclose(JT[:, 6:12], Jj.mT.numpy(), atol=1e-10)
+    step = torch.randn(P.shape[0], 6, generator=torch.Generator().manual_seed(4), dtype=F64)
+    step[0], step[1], step[2] = 0.0, 1e-9, torch.tensor([0.1, 0, 0, 0, 0, math.pi - 1e-4])
+    np.testing.assert_allclose(host.retract(P.numpy(), step.numpy()), se3_retract(P, step).numpy(), atol=1e-12)
+    np.testing.assert_allclose(host.retract(P.numpy(), step.numpy()), se3_compose(P, se3_exp(step)).numpy(),
+                               atol=1e-12)
+
+
+def _graph(planar=False, seed=5):
+    P, ii, jj, Z = _edges(seed, N=10, E=30)
+    if planar:  # project onto the plane: z = roll = pitch = 0
+        flat = torch.zeros_like(P)
+        flat[:, :2], flat[:, 5:] = P[:, :2], _unit(P[:, 5:])
+        P = flat
+        Z = se3_compose(se3_between(P[ii], P[jj]), se3_exp(torch.tensor([0.05, -0.02, 0, 0, 0, 0.03], dtype=F64)))
+    W = torch.randn(len(ii), 6, 6, generator=torch.Generator().manual_seed(seed), dtype=F64)
+    info = W @ W.mT + torch.eye(6, dtype=F64)
+    if planar:  # no coupling of (x, y, yaw) with (z, roll, pitch)
+        mask = torch.zeros(6, 6, dtype=torch.bool)
+        a, b = [0, 1, 5], [2, 3, 4]
+        mask[np.ix_(a, b)] = mask[np.ix_(b, a)] = True
+        info[:, mask] = 0.0
+    return PoseGraph(P, ii, jj, Z, info)
+
+
+@pytest.mark.parametrize("planar", [False, True])
+@pytest.mark.parametrize("dense_max", [10 ** 6, 0])  # dense and block-sparse normal equations
+def test_normal_equations_and_steps_equal_the_torch_problem(planar, dense_max):
+    graph = _graph(planar)
+    assert graph.is_planar() == planar
+    cfg = OptimizerConfig(fixed=(3,), damping="diagonal", dense_max=dense_max)
+    for kernel in (None, "huber"):
+        kern = make_kernel(kernel, None)
+        ref = _Problem(graph, cfg, kern, "first", "dense")
+        prob = _host_problem(graph, cfg, kern, "first", "auto")
+        assert prob.dense == (dense_max > 0) and prob.size == ref.size == 8 * (3 if planar else 6)
+        cost_t, chi2_t, cache_t = ref.evaluate(ref.poses)
+        cost, chi2, cache = prob.evaluate(prob.poses)
+        assert cost == pytest.approx(cost_t, rel=1e-12) and chi2 == pytest.approx(chi2_t, rel=1e-12)
+        H_t, g_t = ref.linearize(ref.poses, cache_t)
+        H, g = prob.linearize(prob.poses, cache)
+        H_dense = H.reshape(prob.size, prob.size) if prob.dense else to_dense(prob.pattern, torch.from_numpy(H)).numpy()
+        np.testing.assert_allclose(H_dense, to_dense(ref.pattern, H_t).numpy(), rtol=1e-10, atol=1e-8)
+        np.testing.assert_allclose(g, g_t.numpy(), rtol=1e-10, atol=1e-8)
+        dx = prob.solve(H, g, 1e-3)
+        np.testing.assert_allclose(dx, ref.solve(H_t, g_t, 1e-3).numpy(), rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(prob.retract(prob.poses, dx), ref.retract(ref.poses, torch.from_numpy(dx)).numpy(),
+                                   atol=1e-12)
+
+
+def test_backends_take_the_same_steps_on_a_real_sized_problem():
+    graph = _graph()
+    a = optimize(graph, kernel="cauchy", backend="numpy")
+    b = optimize(graph, kernel="cauchy", backend="torch")
+    assert a.iterations == b.iterations > 2 and a.status == b.status
+    np.testing.assert_allclose(a.cost_history, b.cost_history, rtol=1e-9)
+    assert torch.allclose(a.graph.poses, b.graph.poses, atol=1e-8)
+    assert torch.allclose(a.weights, b.weights, atol=1e-8)
+    assert torch.equal(a.graph.poses[0], graph.poses[0])  # the free gauge moved back onto pose 0
+
+
+def test_backend_setting_and_information_errors():
+    graph = _graph()
+    with pytest.raises(ValueError, match="backend must be"):
+        optimize(graph, backend="jax")
+    with pytest.raises(ValueError, match="does not support gauge 'prior'"):
+        optimize(graph, backend="numpy", gauge="prior")
+    r3 = PoseGraph(graph.poses, graph.ii, graph.jj, graph.measurements, graph.information, chart="r3so3")
+    with pytest.raises(ValueError, match="does not support chart 'r3so3'"):
+        optimize(r3, backend="numpy")
+    assert optimize(r3).status == "converged"  # "auto" takes the torch path for it
+    bad = graph.information.clone()
+    bad[2, 0, 1] += 0.5  # not symmetric
+    with pytest.raises(ValueError, match=r"information\[2\] .*not symmetric positive definite"):
+        optimize(PoseGraph(graph.poses, graph.ii, graph.jj, graph.measurements, bad), backend="numpy")
