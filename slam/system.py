@@ -63,6 +63,8 @@ class FrameState:
         keyframe_id: the keyframe it is expressed relative to (-1 before the first keyframe).
         new_keyframes: ids of keyframes created by this call.
         new_loops: loops accepted during this call.
+        num_inliers: inliers of the registration that placed the frame (0 when none did).
+        inlier_rmse: their 3D RMSE in metres (NaN when no registration placed the frame).
     """
 
     index: int
@@ -73,6 +75,8 @@ class FrameState:
     keyframe_id: int
     new_keyframes: List[int] = field(default_factory=list)
     new_loops: List["LoopClosure"] = field(default_factory=list)
+    num_inliers: int = 0
+    inlier_rmse: float = math.nan
 
 
 @dataclass
@@ -257,7 +261,7 @@ class RGBDSLAM:
         if res.edge is not None:
             self._edges.append(res.edge)
         state = FrameState(int(frame.index), float(frame.timestamp), self._output_frame(res.pose), status,
-                           res.reason, res.keyframe_id)
+                           res.reason, res.keyframe_id, num_inliers=res.num_inliers, inlier_rmse=res.inlier_rmse)
         # every keyframe the front end created during this call (a promoted previous frame included)
         for kf in self.odometry.keyframes[self._num_kf_seen:]:
             self._kf_poses.append(kf.pose.detach().to(torch.float64).cpu())

@@ -3,6 +3,7 @@
 The real-data tests read the shared redkitchen sequence through a small private loader
 (``_load_7scenes_frame``) until the project's dataset reader is used here.
 """
+import math
 from pathlib import Path
 
 import cv2
@@ -211,6 +212,9 @@ def test_frontend_tracks_a_synthetic_trajectory_with_keyframes_and_edges():
     results = [odo.track(_planar_frame(p, tex, i)) for i, p in enumerate(poses)]
     assert results[0].status is TrackStatus.INITIALIZED and results[0].is_keyframe
     assert all(r.status is TrackStatus.OK for r in results[1:]), [r.reason for r in results]
+    # the registration that placed each frame: exact synthetic depth -> sub-centimetre inlier residuals
+    assert math.isnan(results[0].inlier_rmse) and results[0].num_inliers == 0
+    assert all(0.0 < r.inlier_rmse < 0.01 and r.num_inliers > 100 for r in results[1:])
     for r, p in zip(results, poses):  # world = the first camera (identity here)
         t_err, r_err = _err(r.pose, p)
         assert t_err < 0.01 and r_err < 0.5
@@ -256,6 +260,7 @@ def test_frontend_bad_frames_are_lost_then_recovered_and_forced_keyframe():
     no_depth = RGBDFrame(3, 0.1, good.rgb, np.zeros_like(good.depth), K)
     r = odo.track(no_depth)
     assert r.status is TrackStatus.LOST and "valid depth" in r.reason
+    assert math.isnan(r.inlier_rmse) and r.num_inliers == 0
     # constant velocity: 1 cm per frame along x
     assert abs(float(r.pose[0]) - 0.02) < 0.003
     wrong_shape = RGBDFrame(4, 0.13, np.zeros((10, 10), np.uint8), np.zeros((10, 10), np.float32), K)

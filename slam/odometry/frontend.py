@@ -116,6 +116,9 @@ class TrackResult:
             "previous"``, or tracking against the old keyframe failed) it ends at that promoted keyframe:
             ``is_keyframe`` is False, ``keyframe_id == edge.j`` and ``keyframes[edge.j].frame_index`` is the
             previous frame's index.
+        inlier_rmse: 3D RMSE (metres) of the inliers of the registration that placed the frame (NaN when
+            none did: LOST, or the first frame); without ground truth it measures how well the depth and
+            the camera model explain the matches (e.g. to choose a rig's colour/depth baseline).
     """
 
     index: int
@@ -128,6 +131,7 @@ class TrackResult:
     reason: str
     num_inliers: int
     edge: KeyframeEdge | None = None
+    inlier_rmse: float = math.nan
 
 
 @dataclass
@@ -349,4 +353,5 @@ class RGBDOdometry:
             logger.info("frame %d: %s", index, reason_out)
         kf_id = self.keyframe.id
         T_out = se3_identity(dtype=torch.float64) if is_kf else T_kf
-        return TrackResult(index, ts, pose, kf_id, T_out, is_kf, status, reason_out, res.num_inliers, edge)
+        return TrackResult(index, ts, pose, kf_id, T_out, is_kf, status, reason_out, res.num_inliers, edge,
+                           res.inlier_rmse)
