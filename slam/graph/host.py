@@ -199,6 +199,19 @@ def retract(P: np.ndarray, xi: np.ndarray) -> np.ndarray:
     return np.concatenate([P[:, :3] + rotate(P[:, 3:], te), qmul(P[:, 3:], qe)], axis=1)
 
 
+_LAPACK: list = []
+
+
+def _lapack_cholesky():
+    """LAPACK's ``dpotrf`` and ``dpotrs``, imported on first use (``scipy.linalg`` takes ~0.4 s to import, and
+    a ``from ... import`` inside a function ~0.1 ms per call through scipy's lazy module loading)."""
+    if not _LAPACK:
+        from scipy.linalg import lapack
+
+        _LAPACK.extend([lapack.dpotrf, lapack.dpotrs])
+    return _LAPACK[0], _LAPACK[1]
+
+
 # -- the problem the LM loop of slam.graph.optimizer drives -------------------------------------------
 class HostProblem:
     """Per-call state of an optimisation on the CPU in numpy (the counterpart of the torch ``_Problem``
@@ -274,9 +287,7 @@ class HostProblem:
             self.buf = np.empty(dump + 1)
             self._buf_t = torch.from_numpy(self.buf)
             self.diag_pos = np.arange(m) * (m + 1)
-            from scipy.linalg import lapack  # here, not at import: scipy.linalg takes ~0.4 s to import
-
-            self._potrf, self._potrs = lapack.dpotrf, lapack.dpotrs
+            self._potrf, self._potrs = _lapack_cholesky()
         else:
             self.pattern = pattern = build_pattern(torch.from_numpy(ii), torch.from_numpy(jj), torch.from_numpy(free), k)
             nb = pattern.num_blocks

@@ -279,6 +279,8 @@ class _Problem:
             x0 = self.poses[0]
             x = se3_compose(se3_compose(x0, se3_inv(x[0]))[None], x)
             x[0] = x0
+        if not bool(torch.isfinite(x).all()):  # the LM loop only accepts finite costs: a NaN here is a bug
+            raise FloatingPointError("the optimised poses have a non-finite value")
         return x
 
     def weights(self, cache) -> Optional[Tensor]:
