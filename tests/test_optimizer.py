@@ -120,6 +120,22 @@ def test_linear_solvers_agree(solver):
     assert torch.allclose(res.graph.poses, ref.graph.poses, atol=1e-6)
 
 
+def test_nielsen_lambda_update_reaches_the_same_optimum():
+    g, _ = _loop_graph(n=20, sigma=0.05, seed=9, extra=[(2, 14), (6, 17)])
+    ref = optimize(g)
+    for damping in ("identity", "diagonal"):
+        res = optimize(g, lambda_update="nielsen", damping=damping)
+        assert res.status == "converged" and res.chi2 == pytest.approx(ref.chi2, rel=1e-7)
+        assert torch.allclose(res.graph.poses, ref.graph.poses, atol=1e-5)
+        hist = torch.tensor(res.cost_history, dtype=F64)
+        assert bool((hist[1:] < hist[:-1]).all())
+    # near the optimum the damped quadratic model predicts the decrease (gain ratio ~1): lambda shrinks 3x
+    res = optimize(g, lambda_update="nielsen", max_iterations=3)
+    assert res.lambda_history[1] == pytest.approx(res.lambda_history[0] / 3, rel=0.05)
+    with pytest.raises(ValueError, match="lambda_update must be"):
+        optimize(g, lambda_update="marquardt")
+
+
 def test_gauge_prior_and_fixed_poses():
     g, _ = _loop_graph(n=16, sigma=0.05, seed=4)
     first = optimize(g, gauge="first")

@@ -363,6 +363,11 @@ class HostProblem:
             raise LinearSolverError("the linear solve produced non-finite values (singular system)")
         return dx
 
+    def predicted_decrease(self, dx: np.ndarray, g: np.ndarray, lam: float) -> float:
+        """Decrease of the cost predicted by the damped quadratic model: ``dx^T (lambda D dx - g)``."""
+        D = self._dscale if self._dscale is not None else 1.0
+        return float(dx @ (lam * D * dx - g))
+
     def retract(self, P: np.ndarray, dx: np.ndarray) -> np.ndarray:
         xi = dx.reshape(-1, self.k)
         if self.dims is not None:

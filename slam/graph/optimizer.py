@@ -98,6 +98,10 @@ class OptimizerConfig:
     lambda_min: float = 1e-12  # lower clamp of lambda
     lambda_max: float = 1e10  # LM gives up (status lambda_limit) beyond this damping
     damping: str = "identity"  # "identity": H + lambda I (GTSAM's default); "diagonal": H + lambda diag(H)
+    # how lambda moves: "gtsam" (/= lambda_factor after a good step, *= after a bad one: GTSAM's default);
+    # "nielsen" (the gain-ratio rule of g2o and Ceres: after a good step with gain ratio rho = actual /
+    # predicted decrease, lambda *= max(1/3, 1 - (2 rho - 1)^3); after a bad one *= nu, nu doubling)
+    lambda_update: str = "gtsam"
     # "free": LM damping, then re-anchored on pose 0; "first": hold pose 0; "prior": a prior on pose 0
     gauge: str = "free"
     prior_weight: float = 1e8  # information of the "prior" gauge (rotation and translation alike)
@@ -272,6 +276,11 @@ class _Problem:
             raise LinearSolverError("the linear solve produced non-finite values (singular system)")
         return dx
 
+    def predicted_decrease(self, dx: Tensor, g: Tensor, lam: float) -> float:
+        """Decrease of the cost predicted by the damped quadratic model: ``dx^T (lambda D dx - g)``."""
+        D = self._dscale if self._dscale is not None else 1.0
+        return float(dx @ (lam * D * dx - g))
+
     def finish(self, x: Tensor, moved: bool) -> Tensor:
         """The result; with the free gauge (and ``moved``) moved rigidly so that pose 0 is back at its
         initial value (the costs are invariant to a common rigid motion)."""
@@ -403,6 +412,9 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         raise ValueError(f"method must be 'lm' or 'gn', got {method!r}")
     if cfg.damping not in ("identity", "diagonal"):
         raise ValueError(f"damping must be 'identity' or 'diagonal', got {cfg.damping!r}")
+    if cfg.lambda_update not in ("gtsam", "nielsen"):
+        raise ValueError(f"lambda_update must be 'gtsam' or 'nielsen', got {cfg.lambda_update!r}")
+    nielsen = method == "lm" and cfg.lambda_update == "nielsen"
     if not isinstance(graph, PoseGraph):
         raise TypeError(f"graph must be a PoseGraph, got {type(graph).__name__}")
     if graph.num_edges == 0:
@@ -423,6 +435,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     initial_chi2 = chi2
     history, lambdas, times = [cost], [], [time.perf_counter() - t_start]
     lam = cfg.lambda_init if method == "lm" else 0.0
+    nu = 2.0  # Nielsen's growth factor of lambda after a rejected step
     status, message, it = Status.MAX_ITERATIONS, "", 0
     best = (cost, chi2, x, cache)
     if prob.size == 0:
@@ -460,7 +473,10 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
             elif ok and cost_new < cost:
                 accepted = True
             else:
-                lam *= cfg.lambda_factor
+                if nielsen:
+                    lam, nu = lam * nu, nu * 2.0
+                else:
+                    lam *= cfg.lambda_factor
                 if lam > cfg.lambda_max:
                     status = Status.LAMBDA_LIMIT
                     message = message or f"no decrease of the cost with lambda up to {cfg.lambda_max:g}"
@@ -477,7 +493,10 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
             best = (cost, chi2, x, cache)
         if cfg.verbose:
             print(f"iter {it:3d}  cost {cost:.10g}  chi2 {chi2:.10g}  lambda {lam:.1e}")
-        if method == "lm":
+        if nielsen:
+            rho = decrease / max(prob.predicted_decrease(dx, g, lam), 1e-300)
+            lam, nu = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), cfg.lambda_min), 2.0
+        elif method == "lm":
             lam = max(lam / cfg.lambda_factor, cfg.lambda_min)
         if status == Status.DIVERGED:
             break
