@@ -261,6 +261,10 @@ class HostProblem:
             self.L_red = np.linalg.cholesky(info[:, d][:, :, d])
         self.kernel, self.solver, self.damping, self.reanchor = kernel, solver, damping, reanchor
         self.JT = np.zeros((E, 13, 6))
+        # per-iteration products in buffers made once: fresh megabyte arrays pay their page faults at every
+        # iteration (parking-garage: linearisation 13.8 -> 7.3 ms)
+        rows = 2 * k + 1
+        self._AT, self._A, self._F = np.empty((E, rows, k)), np.empty((E, k, rows)), np.empty((E, rows, rows))
         var = np.where(free, np.cumsum(free) - 1, -1)
         self.all_free = bool(free.all())
         if not self.all_free:
@@ -294,6 +298,7 @@ class HostProblem:
             self.g_buf = np.empty((n + 1, k))
             self._H_t, self._g_t = torch.from_numpy(self.H_buf), torch.from_numpy(self.g_buf)
             self._eb, self._ev = pattern.edge_blocks.reshape(-1), pattern.edge_vars.reshape(-1)
+            self._blocks, self._gb = np.empty((E, 2, 2, k, k)), np.empty((E, 2, k))
             self.diag_pos = ((pattern.diag_blocks.numpy() * (k * k))[:, None] + np.arange(k) * (k + 1)).reshape(-1)
             if solver is None:
                 self.symbolic = SparseCholeskySolver().symbolic(pattern)
@@ -319,19 +324,21 @@ class HostProblem:
         if self.dims is not None:
             JT, L = JT[:, self.rows][:, :, self.dims], self.L_red
         E, _, k = JT.shape
-        AT = JT @ L  # whitened rows [A_i^T; A_j^T; u^T]
+        AT = np.matmul(JT, L, out=self._AT)  # whitened rows [A_i^T; A_j^T; u^T]
         if w is not None:
             AT *= np.sqrt(w)[:, None, None]
         # every block, the gradient and chi2 at once (a contiguous transpose: numpy's fast matmul loop)
-        F = AT @ np.ascontiguousarray(AT.transpose(0, 2, 1))
+        np.copyto(self._A, AT.transpose(0, 2, 1))
+        F = np.matmul(AT, self._A, out=self._F)
         if self.dense:
             self._buf_t.zero_().index_add_(0, self._idx, torch.from_numpy(F.reshape(-1)))
             m = self.size
             H, g = self.buf[:m * m], self.buf[m * m:-1]
         else:
-            blocks = F[:, :2 * k, :2 * k].reshape(E, 2, k, 2, k).transpose(0, 1, 3, 2, 4).reshape(E * 4, k * k)
-            self._H_t.zero_().index_add_(0, self._eb, torch.from_numpy(blocks))
-            self._g_t.zero_().index_add_(0, self._ev, torch.from_numpy(F[:, :2 * k, 2 * k].reshape(E * 2, k)))
+            np.copyto(self._blocks, F[:, :2 * k, :2 * k].reshape(E, 2, k, 2, k).transpose(0, 1, 3, 2, 4))
+            np.copyto(self._gb, F[:, :2 * k, 2 * k].reshape(E, 2, k))
+            self._H_t.zero_().index_add_(0, self._eb, torch.from_numpy(self._blocks.reshape(E * 4, k * k)))
+            self._g_t.zero_().index_add_(0, self._ev, torch.from_numpy(self._gb.reshape(E * 2, k)))
             H, g = self.H_buf[:-1].reshape(-1), self.g_buf[:-1].reshape(-1)
         self._dscale = np.clip(H[self.diag_pos], 1e-6, 1e32) if self.damping == "diagonal" else None
         return H, g
