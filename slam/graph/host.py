@@ -239,7 +239,7 @@ class HostProblem:
 
     def __init__(self, poses: np.ndarray, ii: np.ndarray, jj: np.ndarray, meas: np.ndarray, info: np.ndarray,
                  L: np.ndarray, free: np.ndarray, planar: bool = False, kernel=None, solver=None,
-                 damping: str = "identity", reanchor: bool = False, dense_max: int = 240):
+                 damping: str = "identity", reanchor: bool = False, dense_max: int = 400):
         self.poses = poses
         self.ii, self.jj = ii, jj
         E = ii.shape[0]

@@ -113,8 +113,10 @@ class OptimizerConfig:
     # overhead, 10x faster on tiny graphs), torch (slam.graph.fused) on other devices; "torch"; "numpy"
     # (the numpy path has no "prior" gauge and no "r3so3" chart: "auto" uses torch for those)
     backend: str = "auto"
-    # solver "auto": a dense Cholesky up to this many unknowns (no symbolic analysis; ~2x faster there)
-    dense_max: int = 240
+    # solver "auto": a dense Cholesky up to this many unknowns (no symbolic analysis), the sparse one above.
+    # None: the measured crossover of the backend (sphere2500 subgraphs): 400 on numpy (dense 4.5 vs
+    # sparse 6.8 ms at 360 unknowns, 10.1 vs 6.3 at 480), 240 on torch (2.6 vs 3.1 ms at 240, 14 vs 8 at 360)
+    dense_max: Optional[int] = None
     # torch (and OpenBLAS) threads during the call (restored afterwards; None leaves them). The work is
     # many small batched ops: on a busy CPU torch's OpenMP pool slowed them 10-40x when it had more
     # threads than free cores, while one thread loses little on an idle machine.
@@ -220,7 +222,7 @@ class _Problem:
         self.reanchor = gauge == "free" and not fixed
         if gauge == "prior" and bool(free[0]):
             self.prior = (self.poses[0].clone(), cfg.prior_weight, int(self.pattern.var_index[0]))
-        self.lin = make_solver(solver, self.pattern.size, cfg.dense_max)
+        self.lin = make_solver(solver, self.pattern.size, 240 if cfg.dense_max is None else cfg.dense_max)
         self.size = self.pattern.size
         self.damping = cfg.damping
         self._dscale: Optional[Tensor] = None
@@ -339,10 +341,10 @@ def _host_problem(graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[Robus
         free[int(f)] = False
     k = 3 if planar else 6
     lin = None if solver is None or isinstance(solver, str) and solver.lower() == "auto" else \
-        make_solver(solver, int(free.sum()) * k)  # None: HostProblem's own (dense up to cfg.dense_max unknowns)
+        make_solver(solver, int(free.sum()) * k)  # None: HostProblem's own (dense up to dense_max unknowns)
     return HostProblem(P, graph.ii.numpy(), graph.jj.numpy(), graph.measurements.detach().numpy().astype(np.float64),
                        info, L, free, planar, kernel, lin, cfg.damping, reanchor=gauge == "free" and not cfg.fixed,
-                       dense_max=cfg.dense_max)
+                       dense_max=400 if cfg.dense_max is None else cfg.dense_max)
 
 
 def _symmetric(info) -> bool:
