@@ -14,7 +14,7 @@ import argparse
 import sys
 from typing import List, Optional
 
-from slam.graph import G2OFormatError, OptimizationResult, OptimizerConfig, optimize, read_g2o, write_g2o
+from slam.graph import G2OFormatError, OptimizationResult, OptimizerConfig, Status, optimize, read_g2o, write_g2o
 
 
 def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
@@ -33,7 +33,12 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("--lambda-update", choices=["gtsam", "nielsen"], default=defaults.lambda_update)
     p.add_argument("--solver", default="auto", choices=["auto", "sparse", "superlu", "dense", "pcg"])
     p.add_argument("-v", "--verbose", action="store_true", help="one line per iteration")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if args.kernel_width is not None and args.kernel is None:
+        p.error("--kernel-width needs --kernel")
+    if args.max_iterations < 0:
+        p.error("--max-iterations must be >= 0")
+    return args
 
 
 def summary(name: str, res: OptimizationResult) -> str:
@@ -62,5 +67,11 @@ def main(argv: Optional[List[str]] = None) -> OptimizationResult:
     return res
 
 
+def cli() -> None:
+    """Exit status 1 when the optimisation failed (solver failure, or a GN step that increased the cost)."""
+    res = main()
+    sys.exit(1 if res.status in (Status.SOLVER_FAILED, Status.DIVERGED) else 0)
+
+
 if __name__ == "__main__":
-    main()
+    cli()

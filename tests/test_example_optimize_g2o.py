@@ -58,6 +58,9 @@ def test_settings_reach_the_optimiser_and_bad_files_exit_with_the_line(tmp_path)
         ex.main([str(bad)])
     with pytest.raises(SystemExit, match="No such file"):
         ex.main([str(tmp_path / "missing.g2o")])
+    for bad_args in (["--kernel-width", "2"], ["-n", "-1"]):
+        with pytest.raises(SystemExit):
+            ex.parse_args([str(src), *bad_args])
 
 
 def test_real_benchmark_file_matches_gtsams_error(posegraph_dir, tmp_path):

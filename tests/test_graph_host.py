@@ -141,3 +141,43 @@ def test_backend_setting_and_information_errors():
     bad[2, 0, 1] += 0.5  # not symmetric
     with pytest.raises(ValueError, match=r"information\[2\] .*not symmetric positive definite"):
         optimize(PoseGraph(graph.poses, graph.ii, graph.jj, graph.measurements, bad), backend="numpy")
+
+
+def test_review_edge_cases_behave_alike_on_both_backends(monkeypatch):
+    """Cases found in review: slightly non-unit measurement quaternions, ``fixed`` as an array, other
+    dtypes, poses that require grad, non-finite inputs, bad LM settings, a degenerate Nielsen model."""
+    graph = _graph(seed=7)
+    unit = optimize(graph)
+    # measurement quaternions within the 1e-3 the graph validates: normalised by both, the same optimum
+    Z = graph.measurements.clone()
+    Z[:, 3:] *= 1.0005
+    off = PoseGraph(graph.poses, graph.ii, graph.jj, Z, graph.information)
+    for backend in ("numpy", "torch"):
+        res = optimize(off, backend=backend)
+        assert res.chi2 == pytest.approx(unit.chi2, rel=1e-9) and res.iterations == unit.iterations
+        assert torch.allclose(res.graph.poses, unit.graph.poses, atol=1e-9)
+        for fixed in (np.array([3, 5]), torch.tensor([3, 5]), [3, 5]):
+            fx = optimize(graph, fixed=fixed, backend=backend)
+            assert float((fx.graph.poses[[3, 5]] - graph.poses[[3, 5]]).abs().max()) < 1e-15  # held
+        grad = PoseGraph(graph.poses.clone().requires_grad_(True), graph.ii, graph.jj, graph.measurements,
+                         graph.information)
+        assert optimize(grad, backend=backend).chi2 == pytest.approx(unit.chi2, rel=1e-9)
+        bf = optimize(graph.to(dtype=torch.bfloat16), backend=backend)
+        assert bf.graph.poses.dtype == torch.bfloat16 and bf.status == "converged"
+        nan_z = graph.measurements.clone()
+        nan_z[4, 0] = float("nan")
+        bad = PoseGraph(graph.poses, graph.ii, graph.jj, graph.measurements, graph.information)
+        bad.measurements = nan_z  # after validation, as a caller mutating the tensors would
+        with pytest.raises(ValueError, match="initial cost is nan"):
+            optimize(bad, backend=backend)
+        nan_info = graph.information.clone()
+        nan_info[6, 2, 2] = float("nan")
+        bad.measurements, bad.information = graph.measurements, nan_info
+        with pytest.raises(ValueError, match=r"information\[6\]"):
+            optimize(bad, backend=backend, check_information=False)
+        with pytest.raises(ValueError, match="lambda_init > 0"):
+            optimize(graph, backend=backend, lambda_init=0.0)
+    # a model that predicts no decrease must not break the Nielsen rule (treated as a poor step)
+    monkeypatch.setattr(host.HostProblem, "predicted_decrease", lambda self, dx, g, lam: 0.0)
+    res = optimize(graph, lambda_update="nielsen")
+    assert res.status == "converged" and res.chi2 == pytest.approx(unit.chi2, rel=1e-6)

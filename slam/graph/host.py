@@ -290,7 +290,8 @@ class HostProblem:
             self.diag_pos = np.arange(m) * (m + 1)
             self._potrf, self._potrs = _lapack_cholesky()
         else:
-            self.pattern = pattern = build_pattern(torch.from_numpy(ii), torch.from_numpy(jj), torch.from_numpy(free), k)
+            self.pattern = pattern = build_pattern(torch.from_numpy(ii), torch.from_numpy(jj),
+                                                   torch.from_numpy(free), k)
             nb = pattern.num_blocks
             # assembly buffers (torch views of them: its index_add_ is the fastest scatter-add on the CPU,
             # 10x np.add.reduceat and 20x np.add.at over rows of 36 values)

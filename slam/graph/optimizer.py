@@ -9,7 +9,8 @@ information matrices, and the buffers the per-iteration work writes into.
 
 Backends: on the CPU (``OptimizerConfig.backend = "auto"``) the per-edge work runs in numpy
 (:mod:`slam.graph.host`, the same closed forms with ~3x less call overhead; tiny graphs are solved
-densely with LAPACK), elsewhere in torch (:mod:`slam.graph.fused`); both take the same steps (tested).
+densely with LAPACK), elsewhere in torch (:mod:`slam.graph.fused`); both take the same steps up to
+round-off (tested).
 
 Gauge (a pose graph is invariant to moving all poses rigidly): ``"free"`` (default for LM) leaves the
 gauge to the LM damping, as GTSAM does without a prior: the damped step is then the smallest of the
@@ -98,7 +99,8 @@ class OptimizerConfig:
     lambda_min: float = 1e-12  # lower clamp of lambda
     lambda_max: float = 1e10  # LM gives up (status lambda_limit) beyond this damping
     damping: str = "identity"  # "identity": H + lambda I (GTSAM's default); "diagonal": H + lambda diag(H)
-    # how lambda moves: "gtsam" (/= lambda_factor after a good step, *= after a bad one: GTSAM's default);
+    # how lambda moves (LM only): "gtsam" (/= lambda_factor after a good step, *= after a bad one: GTSAM's
+    # default);
     # "nielsen" (the gain-ratio rule of g2o and Ceres: after a good step with gain ratio rho = actual /
     # predicted decrease, lambda *= max(1/3, 1 - (2 rho - 1)^3); after a bad one *= nu, nu doubling)
     lambda_update: str = "gtsam"
@@ -175,17 +177,16 @@ class _Problem:
     def __init__(self, graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str,
                  solver):
         dt = torch.float64
-        P = graph.poses.to(dt)
-        # unit quaternions (validated to 1e-3) made exact; the sign is kept so that untouched poses
-        # come back as they went in
-        self.poses = torch.cat([P[:, :3], P[:, 3:] / P[:, 3:].norm(dim=-1, keepdim=True)], dim=-1)
+        # unit quaternions (validated to 1e-3) made exact, in the poses and in the measurements; the sign
+        # is kept so that untouched poses come back as they went in
+        self.poses = _unit_quaternions(graph.poses.detach().to(dt))
         self.ii, self.jj = graph.ii, graph.jj
-        self.meas = graph.measurements.to(dt)
+        self.meas = _unit_quaternions(graph.measurements.detach().to(dt))
         self.zinv = se3_inv(self.meas)  # constant per call: inverted once
         self.chart = graph.chart
         # J_i^T = -Ad(z^-1)^T J_l^-1(r)^T: the constant factor made once (the "r3so3" chart has its own)
         self.neg_adz_t = se3_adjoint_t(self.zinv).neg_() if graph.chart == "se3" else None
-        self.info = graph.information.to(dt)
+        self.info = graph.information.detach().to(dt)
         # Omega = L L^T: whitens the Jacobians (J^T Omega J = (L^T J)^T (L^T J)) and gives chi2 = |L^T r|^2
         self.L = _information_factor(graph, self.info, cfg.check_information)
         self.kernel = kernel
@@ -308,6 +309,15 @@ class _Problem:
         return out
 
 
+def _unit_quaternions(P):
+    """``(..., 7)`` poses (tensor or array) with their quaternions scaled to unit norm (a copy)."""
+    if isinstance(P, Tensor):
+        return torch.cat([P[..., :3], P[..., 3:] / P[..., 3:].norm(dim=-1, keepdim=True)], dim=-1)
+    P = P.copy()
+    P[..., 3:] /= np.sqrt((P[..., 3:] ** 2).sum(-1, keepdims=True))
+    return P
+
+
 def _backend(graph: PoseGraph, cfg: OptimizerConfig, gauge: str) -> str:
     """``"torch"`` or ``"numpy"`` (:mod:`slam.graph.host`) for this call (see ``OptimizerConfig.backend``)."""
     if cfg.backend not in ("auto", "torch", "numpy"):
@@ -322,16 +332,18 @@ def _backend(graph: PoseGraph, cfg: OptimizerConfig, gauge: str) -> str:
 
 def _host_problem(graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str, solver):
     """The :class:`slam.graph.host.HostProblem` of a CPU graph (its setup in numpy: ~30 calls)."""
-    P = graph.poses.detach().numpy().astype(np.float64)
-    P[:, 3:] /= np.sqrt((P[:, 3:] ** 2).sum(1, keepdims=True))  # unit quaternions (validated to 1e-3) made exact
-    info = graph.information.detach().numpy().astype(np.float64, copy=False)
+    dt = torch.float64
+    # unit quaternions (validated to 1e-3) made exact, as on the torch path
+    P = _unit_quaternions(graph.poses.detach().to(dt).numpy())
+    meas = _unit_quaternions(graph.measurements.detach().to(dt).numpy())
+    info = graph.information.detach().to(dt).numpy()
     L = None
     if not cfg.check_information or _symmetric(info):
         try:
             L = np.linalg.cholesky(info)
         except np.linalg.LinAlgError:
             pass
-    if L is None:  # the torch factor names the first bad edge (or agrees to factor them)
+    if L is None or not np.isfinite(L).all():  # the torch factor names the first bad edge
         L = _information_factor(graph, torch.from_numpy(info), cfg.check_information).numpy()
     planar = graph.is_planar() if cfg.planar is None else bool(cfg.planar)
     free = np.ones(graph.num_poses, dtype=bool)
@@ -342,8 +354,8 @@ def _host_problem(graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[Robus
     k = 3 if planar else 6
     lin = None if solver is None or isinstance(solver, str) and solver.lower() == "auto" else \
         make_solver(solver, int(free.sum()) * k)  # None: HostProblem's own (dense up to dense_max unknowns)
-    return HostProblem(P, graph.ii.numpy(), graph.jj.numpy(), graph.measurements.detach().numpy().astype(np.float64),
-                       info, L, free, planar, kernel, lin, cfg.damping, reanchor=gauge == "free" and not cfg.fixed,
+    return HostProblem(P, graph.ii.numpy(), graph.jj.numpy(), meas, info, L, free, planar, kernel, lin, cfg.damping,
+                       reanchor=gauge == "free" and not list(cfg.fixed),
                        dense_max=400 if cfg.dense_max is None else cfg.dense_max)
 
 
@@ -417,6 +429,11 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     if cfg.lambda_update not in ("gtsam", "nielsen"):
         raise ValueError(f"lambda_update must be 'gtsam' or 'nielsen', got {cfg.lambda_update!r}")
     nielsen = method == "lm" and cfg.lambda_update == "nielsen"
+    if method == "lm" and not (cfg.lambda_init > 0 and cfg.lambda_factor > 1 and cfg.lambda_max > cfg.lambda_init):
+        raise ValueError("LM needs lambda_init > 0, lambda_factor > 1 and lambda_max > lambda_init, got "
+                         f"{cfg.lambda_init}, {cfg.lambda_factor}, {cfg.lambda_max}")
+    if cfg.dense_max is not None and cfg.dense_max < 0:
+        raise ValueError(f"dense_max must be >= 0 or None, got {cfg.dense_max}")
     if not isinstance(graph, PoseGraph):
         raise TypeError(f"graph must be a PoseGraph, got {type(graph).__name__}")
     if graph.num_edges == 0:
@@ -434,6 +451,9 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     x = prob.poses
     cost, chi2, cache = prob.evaluate(x)
     tm["evaluate"] += time.perf_counter() - t
+    if not math.isfinite(cost):
+        raise ValueError(f"the initial cost is {cost}: a pose, measurement or information matrix holds a "
+                         "non-finite value")
     initial_chi2 = chi2
     history, lambdas, times = [cost], [], [time.perf_counter() - t_start]
     lam = cfg.lambda_init if method == "lm" else 0.0
@@ -496,7 +516,9 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         if cfg.verbose:
             print(f"iter {it:3d}  cost {cost:.10g}  chi2 {chi2:.10g}  lambda {lam:.1e}")
         if nielsen:
-            rho = decrease / max(prob.predicted_decrease(dx, g, lam), 1e-300)
+            pred = prob.predicted_decrease(dx, g, lam)
+            # gain ratio; clipped where the formula saturates anyway (and a broken model counts as poor)
+            rho = min(max(decrease / pred, -1.0), 2.0) if pred > 0 else 0.0
             lam, nu = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), cfg.lambda_min), 2.0
         elif method == "lm":
             lam = max(lam / cfg.lambda_factor, cfg.lambda_min)
