@@ -46,6 +46,8 @@ Tensor = torch.Tensor
 
 # below this rotation angle the series of (1 - (t/2) cot(t/2)) / t^2 is used, as in slam.lie
 _SMALL = {torch.float64: 1e-4, torch.float32: 1e-2}
+# below this angle the coefficients of Barfoot's Q take their series (_Q_SERIES)
+_SMALL_Q = {torch.float64: 1e-2, torch.float32: 1e-1}
 
 
 def _numpy_ok(*ts: Tensor) -> bool:
@@ -211,7 +213,7 @@ def _jl_inv_and_q(r: Tensor, theta2: Tensor, c: Tensor) -> Tuple[Tensor, Tensor]
     pp = phi_i * phi_j  # phi phi^T
     A = torch.addcmul((1.0 - c * theta2) * eye, c, pp).sub_(0.5 * phi[:, Hx] * sg)
     # coefficients of Q_B: exact where the angle is not small, their series (to theta^4) below 1e-2
-    small = theta2 < (1e-2 if r.dtype == torch.float64 else 1e-1) ** 2
+    small = theta2 < _SMALL_Q.get(r.dtype, 1e-1) ** 2
     t2 = torch.where(small, 1.0, theta2)
     t = t2.sqrt()
     sn, cs, sh = torch.sin(t), torch.cos(t), torch.sin(0.5 * t)

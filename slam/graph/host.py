@@ -35,13 +35,16 @@ from typing import Optional, Tuple
 import numpy as np
 import torch
 
+from slam.graph import fused
 from slam.graph.cholesky import NotPositiveDefiniteError
 from slam.graph.linear import LinearSolverError, SparseCholeskySolver, build_pattern
 
 __all__ = ["HostProblem", "cross", "qmul", "qmul_conj", "rotate", "rotmat"]
 
-_SMALL = 1e-4  # as slam.graph.fused for float64: below this angle the series of the logarithm's terms
-_SMALL_Q = 1e-2  # below this angle the series of the coefficients of Q (see fused._jl_inv_and_q)
+# the float64 thresholds and series of slam.graph.fused: below _SMALL the series of the logarithm's terms,
+# below _SMALL_Q those of the coefficients of Q (rows: powers 1, t^2, t^4; columns c1, c2, c3)
+_SMALL, _SMALL_Q = fused._SMALL[torch.float64], fused._SMALL_Q[torch.float64]
+_Q_SERIES = fused._Q_SERIES.numpy()
 _TINY = np.finfo(np.float64).tiny
 
 
@@ -70,7 +73,6 @@ def _quadratic_table(f, n: int) -> np.ndarray:
 
 
 def _tables():
-    from slam.graph.fused import _qmul
     from slam.lie import quat_to_rotmat, so3_hat
 
     def rot_h(q):  # homogeneous form |q|^2 R(q / |q|) of the rotation matrix, flat (9,)
@@ -78,8 +80,8 @@ def _tables():
         return n2 * quat_to_rotmat(q / n2.sqrt()).reshape(-1, 9)
 
     tables = {
-        "qmul": _bilinear_table(lambda a, b: _qmul(a, b), 4, 4),
-        "qmul_conj": _bilinear_table(lambda a, b: _qmul(a, b, conj_b=True), 4, 4),
+        "qmul": _bilinear_table(fused._qmul, 4, 4),
+        "qmul_conj": _bilinear_table(lambda a, b: fused._qmul(a, b, conj_b=True), 4, 4),
         "cross": _bilinear_table(lambda a, b: torch.linalg.cross(a, b), 3, 3),
         "rmat": _quadratic_table(rot_h, 4),  # (16, 9)
         "hat": so3_hat(torch.eye(3, dtype=torch.float64)).reshape(3, 9).numpy().copy(),  # hat(phi) = phi @ C
@@ -149,10 +151,11 @@ def _q_coefficients(theta2: np.ndarray):
     t = np.sqrt(t2)
     sn, sh = np.sin(t), np.sin(0.5 * t)
     t3 = t2 * t
-    c1 = np.where(small, 1 / 6 + theta2 * (-1 / 120 + theta2 / 5040), (t - sn) / t3)
-    c2 = np.where(small, 1 / 24 + theta2 * (-1 / 720 + theta2 / 40320), (t2 - 4.0 * sh * sh) / (2.0 * t2 * t2))
-    c3 = np.where(small, 1 / 120 + theta2 * (-1 / 2520 + theta2 / 120960),
-                  (2.0 * t - 3.0 * sn + t * np.cos(t)) / (2.0 * t3 * t2))
+    s0, s1, s2 = _Q_SERIES
+    series = s0 + theta2[:, None] * (s1 + theta2[:, None] * s2)  # (E, 3)
+    c1 = np.where(small, series[:, 0], (t - sn) / t3)
+    c2 = np.where(small, series[:, 1], (t2 - 4.0 * sh * sh) / (2.0 * t2 * t2))
+    c3 = np.where(small, series[:, 2], (2.0 * t - 3.0 * sn + t * np.cos(t)) / (2.0 * t3 * t2))
     return c1, c2, c3
 
 
@@ -244,10 +247,10 @@ class HostProblem:
         self.ii, self.jj = ii, jj
         E = ii.shape[0]
         mq = meas[:, 3:]
-        self.zq = mq * np.array([-1.0, -1.0, -1.0, 1.0])  # z^-1 = (-R^T t, q^*)
-        self.zt = -rotate(self.zq, meas[:, :3])
-        # -Ad(z^-1)^T = [[-R^T, 0], [R^T hat(t), -R^T]] with R = R(z^-1), t = t(z^-1); R(z^-1)^T = R(z)
-        Rt = rotmat(mq)
+        Rt = rotmat(mq)  # R(z) = R(z^-1)^T
+        self.zq = mq * np.array([-1.0, -1.0, -1.0, 1.0])  # z^-1 = (-R(z)^T t, q^*)
+        self.zt = -(meas[:, None, :3] @ Rt)[:, 0]
+        # -Ad(z^-1)^T = [[-R^T, 0], [R^T hat(t), -R^T]] with R = R(z^-1), t = t(z^-1)
         self.neg_adz_t = np.zeros((E, 6, 6))
         self.neg_adz_t[:, :3, :3] = -Rt
         self.neg_adz_t[:, 3:, 3:] = -Rt
@@ -390,9 +393,9 @@ class HostProblem:
         is back at its initial value: ``T <- T0_init T0^-1 T`` (the costs are invariant to it)."""
         if self.reanchor and moved:
             cq = qmul_conj(self.poses[:1, 3:], P[:1, 3:])  # rotation of T0_init T0^-1
-            ct = self.poses[:1, :3] - rotate(cq, P[:1, :3])
-            # as matrices acting on rows: t -> t R^T (rows R e_j), q -> q M (rows cq e_j)
-            RT = rotate(np.repeat(cq, 3, 0), np.eye(3))
+            RT = rotmat(cq)[0].T
+            ct = self.poses[:1, :3] - P[:1, :3] @ RT
+            # as matrices acting on rows: t -> t R^T, q -> q M (rows cq e_j: left product by cq)
             M = qmul(np.repeat(cq, 4, 0), np.eye(4))
             P = np.concatenate([ct + P[:, :3] @ RT, P[:, 3:] @ M], axis=1)
             P[0] = self.poses[0]
