@@ -1,6 +1,7 @@
 """Shared pytest fixtures: the data path (env ``ATTNLOOP_DATA``, default ``../shared/data``)."""
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 
@@ -46,6 +47,18 @@ def tum_gt_dir(data_dir: Path) -> Path:
     if not path.is_dir():
         pytest.skip(f"TUM ground-truth files not found at {path}")
     return path
+
+
+@pytest.fixture(scope="session")
+def load_script():
+    """``load_script("examples/x.py")``: a script of the repository (not a package) imported as a module."""
+    def load(relpath: str):
+        path = ROOT / relpath
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+    return load
 
 
 @pytest.fixture(autouse=True)

@@ -1,7 +1,6 @@
 """examples/optimize_g2o.py: read, optimise, write a g2o file from the command line."""
 from __future__ import annotations
 
-import importlib.util
 import math
 from pathlib import Path
 
@@ -9,14 +8,7 @@ import pytest
 
 from slam.graph import graph_chi2, read_g2o
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("optimize_g2o", ROOT / "examples" / "optimize_g2o.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+SCRIPT = "examples/optimize_g2o.py"
 
 
 def _square_with_drift(path: Path) -> None:
@@ -29,8 +21,8 @@ def _square_with_drift(path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def test_optimises_and_writes_a_2d_file(tmp_path, capsys):
-    ex = _load()
+def test_optimises_and_writes_a_2d_file(tmp_path, capsys, load_script):
+    ex = load_script(SCRIPT)
     src, out = tmp_path / "square.g2o", tmp_path / "square_opt.g2o"
     _square_with_drift(src)
     res = ex.main([str(src), "-o", str(out), "--kernel", "cauchy"])
@@ -44,8 +36,8 @@ def test_optimises_and_writes_a_2d_file(tmp_path, capsys):
     assert "4 poses, 4 edges" in printed and "converged" in printed and f"wrote {out}" in printed
 
 
-def test_settings_reach_the_optimiser_and_bad_files_exit_with_the_line(tmp_path):
-    ex = _load()
+def test_settings_reach_the_optimiser_and_bad_files_exit_with_the_line(tmp_path, load_script):
+    ex = load_script(SCRIPT)
     src = tmp_path / "square.g2o"
     _square_with_drift(src)
     args = ex.parse_args([str(src), "--method", "gn", "-n", "1", "--damping", "diagonal", "--lambda-update",
@@ -63,6 +55,6 @@ def test_settings_reach_the_optimiser_and_bad_files_exit_with_the_line(tmp_path)
             ex.parse_args([str(src), *bad_args])
 
 
-def test_real_benchmark_file_matches_gtsams_error(posegraph_dir, tmp_path):
-    res = _load().main([str(posegraph_dir / "tinyGrid3D.g2o"), "-o", str(tmp_path / "tiny.g2o")])
+def test_real_benchmark_file_matches_gtsams_error(posegraph_dir, tmp_path, load_script):
+    res = load_script(SCRIPT).main([str(posegraph_dir / "tinyGrid3D.g2o"), "-o", str(tmp_path / "tiny.g2o")])
     assert res.error == pytest.approx(9.313911, rel=1e-6)  # GTSAM 4.3 LM's final error on this file

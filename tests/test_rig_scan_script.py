@@ -1,9 +1,7 @@
 """benchmarks/rig_scan.py: argument parsing and a 20-frame smoke run (the full scan is a benchmark)."""
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import pytest
 import torch
@@ -12,18 +10,9 @@ from slam.config import SLAMConfig
 from slam.io import open_sequence
 from slam.pipeline import evaluate_run, run_slam
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def _load_script():
-    spec = importlib.util.spec_from_file_location("rig_scan", ROOT / "benchmarks" / "rig_scan.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_parse_args():
-    rs = _load_script()
+def test_parse_args(load_script):
+    rs = load_script("benchmarks/rig_scan.py")
     args = rs.parse_args([])
     assert args.tx == [0.025, 0.0, -0.015, -0.025, -0.04]
     assert args.max_frames is None and args.out is None and args.threads == 1
@@ -35,8 +24,8 @@ def test_parse_args():
         rs.parse_args(["--tx", "nan"])
 
 
-def test_smoke_20_frames(redkitchen_dir, tmp_path, capsys):
-    rs = _load_script()
+def test_smoke_20_frames(redkitchen_dir, tmp_path, capsys, load_script):
+    rs = load_script("benchmarks/rig_scan.py")
     out = tmp_path / "scan.md"
     threads = torch.get_num_threads()
     try:  # one thread, as the benchmark runs (main sets it process-wide: restored for the other tests)
