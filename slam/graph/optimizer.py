@@ -116,8 +116,8 @@ class OptimizerConfig:
     # (the numpy path has no "prior" gauge and no "r3so3" chart: "auto" uses torch for those)
     backend: str = "auto"
     # solver "auto": a dense Cholesky up to this many unknowns (no symbolic analysis), the sparse one above.
-    # None: the measured crossover of the backend (sphere2500 subgraphs): 400 on numpy (dense 4.5 vs
-    # sparse 6.8 ms at 360 unknowns, 10.1 vs 6.3 at 480), 240 on torch (2.6 vs 3.1 ms at 240, 14 vs 8 at 360)
+    # None: the crossover of the backend measured by benchmarks/posegraph_backends.py on sphere2500
+    # subgraphs: 400 on numpy (dense wins at 420 unknowns, loses at 480), 240 on torch (wins at 240, loses at 360)
     dense_max: Optional[int] = None
     # torch (and OpenBLAS) threads during the call (restored afterwards; None leaves them). The work is
     # many small batched ops: on a busy CPU torch's OpenMP pool slowed them 10-40x when it had more

@@ -1,0 +1,100 @@
+"""The optimiser's two CPU backends side by side, and where a dense solve beats the sparse one.
+
+1. ``optimize`` timed alone (no GTSAM in between; median of ``--repeats``, the backends alternating) on every
+   pose-graph file, with the numpy backend (``slam.graph.host``, the CPU default) and the torch backend
+   (``slam.graph.fused``, what runs on other devices): the effect of the numpy backend, and a check that
+   both reach the same chi2 in the same iterations.
+2. The dense/sparse crossover behind ``OptimizerConfig.dense_max = None``: sphere2500's first N poses
+   (the edges among them) solved with ``dense_max=0`` (always sparse) and with a large one (always
+   dense), for each backend.
+
+Usage:
+    python benchmarks/posegraph_backends.py [--data DIR] [--repeats 15] [--out FILE.md]
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from slam.graph import PoseGraph, optimize, read_g2o  # noqa: E402  (after the sys.path line)
+
+FILES = ["tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "input_M3500_g2o", "input_INTEL_g2o"]
+SUBGRAPH_POSES = [20, 40, 60, 70, 80, 100]
+
+
+def median_ms(fn, repeats: int) -> float:
+    fn()  # warm-up (lazy imports, first-touch allocations)
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return 1e3 * statistics.median(times)
+
+
+def first_poses(graph: PoseGraph, n: int) -> PoseGraph:
+    """The first ``n`` poses and the edges among them."""
+    keep = (graph.ii < n) & (graph.jj < n)
+    return PoseGraph(graph.poses[:n], graph.ii[keep], graph.jj[keep], graph.measurements[keep],
+                     graph.information[keep])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", default=None, help="folder holding posegraph/ (default $ATTNLOOP_DATA or ../shared/data)")
+    p.add_argument("--repeats", type=int, default=15)
+    p.add_argument("--out", default=None, help="also write the markdown here")
+    args = p.parse_args()
+    data = Path(args.data or os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data")) / "posegraph"
+    if not data.is_dir():
+        sys.exit(f"pose-graph files not found at {data} (set --data or ATTNLOOP_DATA)")
+    lines = [f"Command: `python benchmarks/posegraph_backends.py --repeats {args.repeats}`, "
+             f"{datetime.datetime.now():%Y-%m-%d %H:%M}, {os.cpu_count()} CPUs, load average "
+             f"{os.getloadavg()[0]:.1f} at start, torch {torch.__version__}.", "",
+             "| file | torch ms | numpy ms | torch / numpy | chi2/2 torch | chi2/2 numpy | iterations torch / numpy |",
+             "|---|---|---|---|---|---|---|"]
+    print("\n".join(lines), flush=True)
+    for name in FILES:
+        path = data / f"{name}.g2o"
+        if not path.exists():
+            continue
+        g = read_g2o(path)
+        reps = args.repeats if g.num_edges < 2000 else max(3, args.repeats // 3)
+        res = {b: optimize(g, backend=b) for b in ("torch", "numpy")}
+        ms = {b: median_ms(lambda b=b: optimize(g, backend=b), reps) for b in ("torch", "numpy")}
+        row = (f"| {name} | {ms['torch']:.2f} | {ms['numpy']:.2f} | {ms['torch'] / ms['numpy']:.2f} | "
+               f"{res['torch'].chi2 / 2:.6f} | {res['numpy'].chi2 / 2:.6f} | "
+               f"{res['torch'].iterations} / {res['numpy'].iterations} |")
+        lines.append(row)
+        print(row, flush=True)
+    sphere = data / "sphere2500.g2o"
+    if sphere.exists():
+        g = read_g2o(sphere)
+        head = ["", "Dense vs sparse solve, sphere2500's first N poses (ms, median):", "",
+                "| poses | unknowns | edges | numpy sparse | numpy dense | torch sparse | torch dense |",
+                "|---|---|---|---|---|---|---|"]
+        lines += head
+        print("\n".join(head), flush=True)
+        for n in SUBGRAPH_POSES:
+            sub = first_poses(g, n)
+            ms = [median_ms(lambda b=b, d=d: optimize(sub, backend=b, dense_max=d), args.repeats)
+                  for b in ("numpy", "torch") for d in (0, 10 ** 6)]
+            row = f"| {n} | {6 * n} | {sub.num_edges} | " + " | ".join(f"{m:.2f}" for m in ms) + " |"
+            lines.append(row)
+            print(row, flush=True)
+    if args.out:
+        Path(args.out).write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
