@@ -155,9 +155,9 @@ def test_not_positive_definite_raises(name):
 
 @pytest.mark.parametrize("name", ["loops_k6", "planar_loops_k3", "grid_diagonal"])
 def test_batched_path_and_copying_syrk_match_dense(name, monkeypatch):
-    """Every group through the batched torch calls (as on a GPU), and the front-by-front path with a
-    ``dsyrk`` that returns a copy instead of updating ``F22`` in place: both match the dense solve, and the
-    copying ``dsyrk`` gives the in-place result bit for bit."""
+    """Every group through the batched torch calls (as on a GPU), and the front-by-front path with LAPACK
+    calls that return copies instead of writing into the panels: both match the dense solve, and the
+    copying path gives the in-place result bit for bit."""
     import slam.graph.cholesky as chol
 
     ii, jj, n, k = CASES[name]
@@ -165,7 +165,7 @@ def test_batched_path_and_copying_syrk_match_dense(name, monkeypatch):
     b = np.random.default_rng(4).standard_normal(A.shape[0])
     ref = np.linalg.solve(A, b)
     x_in_place = SymbolicCholesky(pat).factor(vals).solve(b)
-    monkeypatch.setattr(chol, "_SYRK_IN_PLACE", [False])
+    monkeypatch.setattr(chol, "_IN_PLACE", {"all": False})
     x_copy = SymbolicCholesky(pat).factor(vals).solve(b)
     assert np.array_equal(x_copy, x_in_place)
     monkeypatch.setattr(chol, "_NUMPY_MAX_BATCH", 0)
@@ -188,3 +188,50 @@ def test_factorisation_survives_a_later_one():
     for f, A in ((f1, A1), (f2, A2)):
         ref = np.linalg.solve(A, b)
         np.testing.assert_allclose(f.solve(b), ref, rtol=0, atol=1e-9 * np.abs(ref).max())
+
+
+def test_factor_is_stored_in_panels_only():
+    """The numeric factor lives in the panels [L11; L21] of the supernodes (no update matrices kept): the
+    buffer is the factor's size (a full p x p pivot block per supernode: less than twice nnz(L)), and the
+    factor read back from it is the dense Cholesky factor of the permuted matrix."""
+    ii, jj = _loops(150, 40, 3)
+    A, pat, vals = _system(ii, jj, 150, 6, seed=8)
+    sym = SymbolicCholesky(pat)
+    p, m = np.array(sym.p), np.array(sym.m)
+    assert sym.buffer_size == int((m * p).sum())
+    assert sym.nnz_L <= sym.buffer_size < 2 * sym.nnz_L
+    f = sym.factor(vals)
+    # rebuild L (permuted order) from the panels and compare with numpy's Cholesky of P A P^T
+    perm = sym.perm_scalar
+    L_ref = np.linalg.cholesky(A[np.ix_(perm, perm)])
+    L = np.zeros_like(A)
+    buf = f.buf.numpy()
+    for g in sym.groups:
+        d = g.m - g.p
+        for b in range(g.size):
+            panel = buf[g.offset + b * g.m * g.p:g.offset + (b + 1) * g.m * g.p].reshape(g.m, g.p)
+            c0 = g.col0 + b * g.p
+            cols = np.arange(c0, c0 + g.p)
+            L[np.ix_(cols, cols)] = np.tril(panel[:g.p])
+            if d:
+                L[np.ix_(g.rows[b * d:(b + 1) * d], cols)] = panel[g.p:]
+    np.testing.assert_allclose(L, L_ref, rtol=0, atol=1e-10 * np.abs(L_ref).max())
+
+
+@pytest.mark.parametrize("d", [1, 2, 5, 6, 7, 36, 37])
+def test_packed_update_order_is_lapacks(d):
+    """The packed order (a closed form of LAPACK's rectangular full packed layout) is exactly the lower
+    triangle, equals what LAPACK's own dtrttf produces, and dsfrk writes -Y^T Y in it (what the scatter of
+    every update relies on)."""
+    from scipy.linalg.lapack import dsfrk, dtrttf
+
+    from slam.graph.cholesky import _rfp_order
+
+    order = _rfp_order(d)
+    a, b = np.divmod(order, d)
+    assert order.shape == (d * (d + 1) // 2,) and np.all(a >= b) and len(set(order.tolist())) == order.size
+    arf, info = dtrttf(np.arange(d * d, dtype=np.float64).reshape(d, d).T, transr="N", uplo="U")
+    assert info == 0 and np.array_equal(arf.astype(np.int64), order)
+    Y = np.asfortranarray(np.random.default_rng(d).standard_normal((4, d)))
+    packed = dsfrk(d, 4, -1.0, Y, 0.0, np.zeros(order.size), transr="N", uplo="U", trans="T")
+    np.testing.assert_allclose(packed, (-Y.T @ Y).reshape(-1)[order], rtol=1e-13, atol=1e-13)

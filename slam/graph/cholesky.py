@@ -1,4 +1,4 @@
-"""Supernodal multifrontal sparse Cholesky for block-sparse SPD matrices (numpy + LAPACK via scipy).
+"""Supernodal sparse Cholesky for block-sparse SPD matrices (numpy + LAPACK via scipy).
 
 Why: torch has no CPU sparse Cholesky, and scipy's SuperLU (an LU) is 5-10x slower than a Cholesky on
 pose-graph normal equations. The pattern of ``H`` is fixed during an optimisation, so the symbolic work
@@ -13,10 +13,14 @@ Steps of the symbolic analysis (all on the ``n``-node block graph, not on the ``
    supernode is a run of consecutive columns;
 3. column structures and relaxed supernode amalgamation (as CHOLMOD: merge a column into its child
    supernode when the merged block has few columns or few explicit zeros);
-4. per supernode: where its entries of ``H`` come from and where its update matrix goes in its parent.
+4. per supernode: where its entries of ``H`` come from and where each entry of its update goes.
 
-The numeric phase assembles each frontal matrix (entries of ``H`` + children's update matrices),
-factors its pivot block with ``potrf``, its rows with ``trsm``, and passes ``F22 - L21 L21^T`` up.
+The numeric phase is right-looking and works in place in the factor's panels ``[L11; L21]``: supernodes
+in order of their height in the elimination tree (those of one height and one shape as one batch), each
+factoring its pivot block with ``potrf``, its rows with ``trsm``, and adding its update ``-L21 L21^T``
+(lower triangle, packed) straight into the panels of the supernodes that own its columns. Nothing but the
+factor is stored: a multifrontal scheme keeps every update matrix until its parent is done, which took
+4x the factor's memory on a 20000-pose graph.
 
 Example:
     >>> import torch
@@ -325,26 +329,24 @@ class SymbolicCholesky:
 
         self.p = [k * c for c in ncols]
         self.m = [k * (c + r) for c, r in zip(ncols, nrows)]
-        m_a = k * (ncols_a + nrows_a)
         self.height = height
         self.sn_parent = sn_parent
-        # front storage: the fronts of a group one after the other (m * m values each), so a group is a
-        # (B, m * m) view. A front is stored by columns split at p: its left ``m x p`` panel [F11; F21]
-        # (row-major), then its right ``m x d`` columns [F12; F22] (row-major), so that F22 is one
-        # contiguous row-major block: LAPACK's syrk then updates it in place (no copy of it per front),
-        # and F11, F21 are contiguous too. Local entry (i, j) of a front lies at ``i p + j`` (j < p) or
-        # ``m p + i d + j - p`` (j >= p) from its offset.
+        # panel storage: the panels of a group one after the other (m * p values each, row-major: the
+        # pivot block F11 (p x p) above F21 (d x p)), so a group is a (B, m, p) view. The factor is computed
+        # in place in the panels. There are no frontal update matrices (F22): every supernode's update
+        # -L21 L21^T goes straight to the panels of the supernodes that own its columns (right-looking),
+        # which keeps the memory at the size of the factor (multifrontal storage of the F22 blocks took
+        # 4x the factor on a 20000-pose graph).
         off = np.zeros(ns, dtype=np.int64)
         pos = 0
         for (_, c, r), sns in group_list:
-            m = k * (c + r)
-            off[sns] = pos + m * m * np.arange(len(sns))
-            pos += m * m * len(sns)
+            off[sns] = pos + k * k * (c + r) * c * np.arange(len(sns))
+            pos += k * k * (c + r) * c * len(sns)
         self.buffer_size = int(pos)
         ar = np.arange(k)
         tick("rows")
-        # gather map from the value array of H into the fronts: entry (row, col) with row >= col (new
-        # labels) belongs to the front of col's supernode, at local (row, col)
+        # gather map from the value array of H into the panels: entry (row, col) with row >= col (new
+        # labels) belongs to the panel of col's supernode, at local (row, col)
         sn_new = np.repeat(np.arange(ns)[np.argsort(nf)], ncols_a[np.argsort(nf)])
         nb = pattern.num_blocks
         bpos = np.arange(nb * k * k, dtype=np.int64).reshape(nb, k, k)  # block-major value positions
@@ -354,18 +356,13 @@ class SymbolicCholesky:
         sn_blk = sn_new[pcol]
         lr = local(sn_blk, prow)
         lc = pcol - nf[sn_blk]
-        p_blk = k * ncols_a[sn_blk]  # H's entries lie in the left panel (row stride p) of their front
+        p_blk = k * ncols_a[sn_blk]  # row stride of the panel
         dst = (off[sn_blk][:, None, None] + (lr[:, None, None] * k + ar[None, :, None]) * p_blk[:, None, None]
                + lc[:, None, None] * k + ar[None, None, :])  # entry (a, c) of block = H[row*k + a, col*k + c]
         self.src = bpos.reshape(-1)
         self.dst = dst.reshape(-1)
         tick("gather")
-        parent_a = np.asarray(sn_parent, dtype=np.int64)
-        # where each row of R_s lands in the front of s's parent (block local index), for all s at once
-        loc_all = local(np.repeat(parent_a, nrows_a), rcat) if roff[-1] else rcat
-        # every supernode's scalar rows and their local positions in its parent's front, made for all
-        # supernodes at once in group order (per group only slices and one broadcast remain: the groups
-        # stage was ~20 numpy calls per group)
+        # every supernode's scalar rows (for the solves), made for all supernodes at once in group order
         gorder = np.fromiter(itertools.chain.from_iterable(sns for _, sns in group_list), dtype=np.int64,
                              count=ns)
         glen = nrows_a[gorder]
@@ -373,30 +370,37 @@ class SymbolicCholesky:
         gstart[1:] = np.cumsum(glen)
         at = np.repeat(roff[gorder] - gstart[:-1], glen) + np.arange(int(gstart[-1]))
         rows_all = (rcat[at][:, None] * k + ar).reshape(-1)  # block rows -> scalar rows
-        rel_all = (loc_all[at][:, None] * k + ar).reshape(-1)
         gstart *= k
-        ext_base = off[parent_a[gorder]]  # parent's front offset and size per supernode (group order)
-        ext_m = m_a[parent_a[gorder]]
-        ext_p = k * ncols_a[parent_a[gorder]]
+        # where each update goes (see _update_positions), at the level of block pairs, for all supernodes
+        # at once: pair (alpha >= beta) of supernode s is rows (alpha, beta) of R_s; its entry (alpha k,
+        # beta k) lands in the panel of the owner of column block beta at ``base``, and its rows are ``pt``
+        # apart (the owner's panel width). The first r (r + 1) / 2 row-major lower pairs of any larger
+        # triangle are those of an r x r one.
+        npair = glen * (glen + 1) // 2
+        pstart = np.zeros(ns + 1, dtype=np.int64)
+        pstart[1:] = np.cumsum(npair)
+        AL, BE = np.tril_indices(int(glen.max()) if ns else 0)
+        q = np.arange(int(pstart[-1])) - np.repeat(pstart[:-1], npair)
+        s_pair = np.repeat(gorder, npair)
+        a_blk = rcat[roff[s_pair] + AL[q]]
+        b_blk = rcat[roff[s_pair] + BE[q]]
+        own = sn_new[b_blk]
+        pair_pt = k * ncols_a[own]
+        pair_base = off[own] + local(own, a_blk) * k * pair_pt + (b_blk - nf[own]) * k
+        if self.buffer_size >= 2 ** 31:
+            raise ValueError(f"the factor has {self.buffer_size} entries: more than int32 positions address")
         self.groups = []
         i0 = 0
         for (_, c, r), sns in group_list:
             p, m = k * c, k * (c + r)
             B = len(sns)
-            s0 = sns[0]
             if r:
-                d = k * r
                 rows = rows_all[gstart[i0]:gstart[i0 + B]]
-                rel = rows_rel = rel_all[gstart[i0]:gstart[i0 + B]].reshape(B, d)
-                # where each child's update matrix lands in its parent's front (scalar local indices)
-                # entry (a, b) of the update lands at local (rel[a], rel[b]) of the parent's front
-                pp, mp = ext_p[i0:i0 + B, None, None], ext_m[i0:i0 + B, None, None]
-                ra, rb = rel[:, :, None], rows_rel[:, None, :]
-                ext_idx = (ext_base[i0:i0 + B, None, None]
-                           + np.where(rb < pp, ra * pp + rb, mp * pp + ra * (mp - pp) + rb - pp)).reshape(-1)
+                sl = slice(pstart[i0], pstart[i0 + B])
+                upd = _update_positions(pair_base[sl].reshape(B, -1), pair_pt[sl].reshape(B, -1), k * r, k)
             else:
-                rows = ext_idx = _EMPTY
-            self.groups.append(_Group(B, p, m, int(off[s0]), int(k * nf[s0]), rows, ext_idx))
+                rows, upd = _EMPTY, _EMPTY.astype(np.int32)
+            self.groups.append(_Group(B, p, m, int(off[sns[0]]), int(k * nf[sns[0]]), rows, upd))
             i0 += B
         tick("groups")
         self.perm_scalar = (self.order[:, None] * k + ar).reshape(-1)  # permuted scalar -> original scalar
@@ -419,14 +423,105 @@ class SymbolicCholesky:
         return NumericCholesky(self, values)
 
 
+def _rfp_rows_cols(d: int):
+    """Rows ``a`` and columns ``b`` (``a >= b``) of the ``d (d + 1) / 2`` entries of the lower triangle of a
+    row-major ``d x d`` matrix in LAPACK's rectangular full packed order for ``transr='N'``, ``uplo='U'``
+    (of the Fortran view, whose upper triangle is that lower one): the order ``dsfrk`` writes an update
+    in. With ``h = d // 2``: a ``(d + 1 - d % 2) x (d - h)`` Fortran array whose column ``c`` holds row
+    ``h + c`` (entries 0 to ``h + c``) and, below it, column ``c`` of the leading ``h x h`` triangle
+    (LAPACK Working Note 199; the tests check it against ``dtrttf``)."""
+    h = d // 2
+    r = np.arange(d + 1 - d % 2)[:, None]
+    c = np.arange(d - h)[None, :]
+    top = r <= h + c
+    a = np.where(top, h + c, r - h - 1)
+    b = np.where(top, r, c)
+    return a.T.reshape(-1), b.T.reshape(-1)  # Fortran order: column by column
+
+
+def _rfp_order(d: int) -> np.ndarray:
+    """Flat row-major positions ``a d + b`` of the packed lower triangle (:func:`_rfp_rows_cols`)."""
+    a, b = _rfp_rows_cols(d)
+    return a * d + b
+
+
+def _rfp_pairs(d: int, k: int):
+    """For the packed order of a ``d x d`` update (:func:`_rfp_order`): each entry's block pair (index
+    ``alpha (alpha + 1) / 2 + beta`` in the row-major list of lower block pairs) and its row and column
+    inside the ``k x k`` block. Cached for small sizes."""
+    key = (d, k)
+    if key in _RFP_PAIRS:
+        return _RFP_PAIRS[key]
+    a, b = _rfp_rows_cols(d)
+    al, be = a // k, b // k
+    out = ((al * (al + 1) // 2 + be).astype(np.int32), a - al * k, b - be * k)
+    if d <= _RFP_CACHE_MAX:  # small sizes recur across groups and graphs; large ones would only hold memory
+        _RFP_PAIRS[key] = out
+    return out
+
+
+_RFP_PAIRS: dict = {}
+_RFP_CACHE_MAX = 128  # largest update size kept (8256 entries)
+
+
+def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.ndarray:
+    """Where the update ``L21 L21^T`` of each supernode of a group lands in the panel buffer: ``(B d (d + 1)
+    / 2,)`` int32 positions, per supernode in the packed order of :func:`_rfp_order`.
+
+    Update entry ``(a, b)``, ``a >= b`` (rows ``a, b`` of the supernode's structure ``R_s``) belongs to the
+    panel of the supernode owning column ``b``, at its row ``a``: the structure of that column holds every
+    such row (the fill of the elimination). ``base, pt (B, npairs)`` give, per lower block pair, the
+    position of its first entry and the owner's row stride. The upper halves of diagonal blocks are not in
+    the packed triangle; the lower triangle of a pivot block is all LAPACK reads.
+    """
+    P, i, j = _rfp_pairs(d, k)
+    return (base[:, P] + i * pt[:, P] + j).reshape(-1).astype(np.int32)
+
+
 # On the CPU, groups of at most this many fronts are factored front by front with direct LAPACK/BLAS
 # calls (a few us each) instead of batched torch calls (10-20 us each whatever the batch size).
 _NUMPY_MAX_BATCH = 3
 
 
+def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None):
+    """Per-group views of the panel buffer ``buf`` (torch, flat): :class:`_NumpyGroup` objects for the
+    groups factored front by front (``cpu``), tuples for the batched ones. ``index`` holds the index
+    tensors already made for another buffer of the same pattern (they do not depend on the buffer)."""
+    import torch
+
+    def t(a):
+        return torch.from_numpy(np.ascontiguousarray(a)).to(device)
+
+    bufnp = buf.numpy() if cpu else None
+    out, idx = [], []
+    for g in sym.groups:
+        B, p, m = g.size, g.p, g.m
+        d = m - p
+        nl = d * (d + 1) // 2  # entries of one packed update
+        if cpu and B <= _NUMPY_MAX_BATCH:  # front by front: see _NUMPY_MAX_BATCH
+            for b in range(B):
+                o = g.offset + b * m * p
+                panel = bufnp[o:o + m * p].reshape(m, p)
+                if index is None:
+                    # rows stay numpy (fancy indexing of the numpy solve vector), the scatter is torch's
+                    idx.append((g.rows[b * d:(b + 1) * d], None, t(g.upd[b * nl:(b + 1) * nl])) if d
+                               else (None, None, None))
+                rows, _, dst = (index or idx)[len(out)]
+                S = scratch[:nl]
+                out.append(_NumpyGroup(p, d, panel[:p], panel[p:], g.col0 + b * p, rows, dst, S,
+                                       torch.from_numpy(S) if d else None))
+            continue
+        panels = buf[g.offset:g.offset + B * m * p].view(B, m, p)
+        if index is None:
+            idx.append((t(g.rows), t(_rfp_order(d)), t(g.upd)) if d else (None, None, None))
+        rows, packed, dst = (index or idx)[len(out)]
+        out.append((B, p, d, panels[:, :p], panels[:, p:], g.col0, rows, packed, dst))
+    return out, (index or idx)
+
+
 class _Workspace:
-    """Per-device state of a :class:`SymbolicCholesky`: index tensors, the buffer holding every frontal
-    matrix, the permuted right-hand side, and views into both for every group.
+    """Per-device state of a :class:`SymbolicCholesky`: index tensors, the panel buffer the factor is
+    computed in, the permuted right-hand side, and views into both for every group.
 
     On the CPU, groups of a single supernode (most groups near the root) run through numpy views of the
     same memory and direct LAPACK/BLAS calls (scipy), whose call overhead is a few microseconds against
@@ -436,132 +531,147 @@ class _Workspace:
     def __init__(self, sym: SymbolicCholesky, device):
         import torch
 
-        def t(a):
-            return torch.from_numpy(np.ascontiguousarray(a)).to(device)
-
         self.lock = threading.Lock()  # the buffers are shared by the factorisations of this pattern
+        self.owner = None  # weak reference to the NumericCholesky whose factor is in ``buf``
         k = sym.k
-        # H's entries go to the fronts in runs of k (one row of a k x k block, contiguous in both; every
-        # front offset and row stride is a multiple of k): copying rows of k values takes k times fewer
+        # H's entries go to the panels in runs of k (one row of a k x k block, contiguous in both; every
+        # panel offset and row stride is a multiple of k): copying rows of k values takes k times fewer
         # indices than copying scalars (parking-garage: the fill 1.2 -> 0.6 ms)
-        self.src, self.dst = t(sym.src[::k] // k), t(sym.dst[::k] // k)
-        self.perm = t(sym.perm_scalar)
+        self.src = torch.from_numpy(sym.src[::k] // k).to(device)
+        self.dst = torch.from_numpy(sym.dst[::k] // k).to(device)
+        self.perm = torch.from_numpy(sym.perm_scalar).to(device)
+        self.device = torch.device(device)
+        self.cpu = self.device.type == "cpu"
         self.buf = torch.zeros(sym.buffer_size, dtype=torch.float64, device=device)
-        self.buf_rows = self.buf.view(-1, k)
         self.y = torch.zeros(sym.size, dtype=torch.float64, device=device)
-        cpu = self.buf.device.type == "cpu"
-        self.bufnp = self.buf.numpy() if cpu else None
-        self.ynp = self.y.numpy() if cpu else None
-        self.groups = []
-        for g in sym.groups:
-            B, p, m = g.size, g.p, g.m
-            d = m - p
-            if cpu and B <= _NUMPY_MAX_BATCH:  # front by front: see _NUMPY_MAX_BATCH
-                for b in range(B):
-                    o = g.offset + b * m * m
-                    left = self.bufnp[o:o + m * p].reshape(m, p)  # see SymbolicCholesky: the front layout
-                    F22 = self.bufnp[o + m * p + p * d:o + m * m].reshape(d, d)
-                    self.groups.append(_NumpyGroup(p, d, left[:p], left[p:], F22, g.col0 + b * p,
-                                                   g.rows[b * d:(b + 1) * d], t(g.ext_idx[b * d * d:(b + 1) * d * d]),
-                                                   torch.from_numpy(F22.reshape(-1))))
-                continue
-            F = self.buf[g.offset:g.offset + B * m * m].view(B, m * m)
-            left = F[:, :m * p].view(B, m, p)
-            yc = self.y[g.col0:g.col0 + B * p].view(B, p, 1)
-            self.groups.append((B, p, d, left[:, :p], left[:, p:], F[:, m * p + p * d:].view(B, d, d), yc,
-                                t(g.rows) if d else None, t(g.ext_idx) if d else None))
+        self.ynp = self.y.numpy() if self.cpu else None
+        # the packed update of a front-by-front supernode: one scratch vector, as large as the largest one
+        d_max = max([g.m - g.p for g in sym.groups if g.size <= _NUMPY_MAX_BATCH] + [0])
+        self.scratch = np.zeros(d_max * (d_max + 1) // 2) if self.cpu else None
+        self.groups, self.index = _group_views(sym, self.buf, device, self.cpu, self.scratch)
 
 
-_SYRK_IN_PLACE = []
+_IN_PLACE = {}
 
 
-def _syrk_in_place() -> bool:
-    """Whether scipy's ``dsyrk(..., c=C, overwrite_c=1)`` writes into a Fortran-contiguous ``C`` (f2py
-    does, for an array of the right type and order; checked once on a 2 x 2 probe)."""
-    if not _SYRK_IN_PLACE:
-        from scipy.linalg.blas import dsyrk
+def _lapack_in_place() -> bool:
+    """Whether scipy's ``dpotrf``, ``dtrsm`` and ``dsfrk`` with ``overwrite_*=1`` write into their
+    (Fortran-contiguous) argument (f2py does, for an array of the right type and order; checked once)."""
+    if "all" not in _IN_PLACE:
+        from scipy.linalg.blas import dtrsm
+        from scipy.linalg.lapack import dpotrf, dsfrk
 
-        c = np.zeros((2, 2))
-        dsyrk(1.0, np.ones((2, 1)), beta=1.0, c=c.T, trans=0, lower=0, overwrite_c=1)
-        _SYRK_IN_PLACE.append(bool(c[1, 0] == 1.0))  # c^T's upper triangle (lower=0) is c's lower one
-    return _SYRK_IN_PLACE[0]
+        a = np.array([[4.0, 0.0], [2.0, 5.0]]).T  # Fortran, upper triangle [[4, 2], [., 5]]
+        dpotrf(a, lower=0, clean=0, overwrite_a=1)
+        b = np.ones((2, 1), order="F")
+        dtrsm(1.0, a, b, side=0, lower=0, trans_a=1, overwrite_b=1)
+        c = np.zeros(1)
+        dsfrk(1, 1, 1.0, np.ones((1, 1), order="F"), 0.0, c, transr="N", uplo="U", trans="T", overwrite_c=1)
+        _IN_PLACE["all"] = bool(a[0, 0] == 2.0 and b[0, 0] == 0.5 and c[0] == 1.0)
+    return _IN_PLACE["all"]
 
 
 class _NumpyGroup:
-    """A one-supernode group on the CPU: numpy views of its front and its index arrays."""
+    """A one-supernode group on the CPU: numpy views of its panel, its index tensors and the scratch
+    vector of its packed update."""
 
-    __slots__ = ("F11", "F21", "F22", "F22_flat", "c0", "c1", "d", "ext", "p", "rows")
+    __slots__ = ("F11", "F21", "S", "S_t", "c0", "c1", "d", "dst", "p", "rows")
 
-    def __init__(self, p, d, F11, F21, F22, c0, rows, ext, F22_flat):
-        self.p, self.d, self.F11, self.F21, self.F22 = p, d, F11, F21, F22
-        self.c0, self.c1, self.rows, self.ext = c0, c0 + p, rows, ext
-        # a torch tensor over F22's memory, made once (torch.from_numpy: ~1 us per call). It has its own
-        # storage object, so index_add_ into the buffer accepts it: the memory really is disjoint from the
-        # parent's front it is added to.
-        self.F22_flat = F22_flat
+    def __init__(self, p, d, F11, F21, c0, rows, dst, S, S_t):
+        self.p, self.d, self.F11, self.F21 = p, d, F11, F21
+        self.c0, self.c1, self.rows, self.dst = c0, c0 + p, rows, dst
+        # the scratch as numpy and as a torch view of the same memory (made once: torch.from_numpy costs
+        # ~1 us per call)
+        self.S, self.S_t = S, S_t
+
+
+def _lapack_functions():
+    """``(dpotrf, dtrsm, dsfrk)`` of scipy (imported here: scipy.linalg takes ~0.4 s to import)."""
+    from scipy.linalg.blas import dtrsm
+    from scipy.linalg.lapack import dpotrf, dsfrk
+
+    return dpotrf, dtrsm, dsfrk
+
+
+def _factor_numpy_group(grp: _NumpyGroup, buf, in_place: bool, dpotrf, dtrsm, dsfrk) -> int:
+    """Factor one supernode in place in its panel (LAPACK on the Fortran views: a row-major ``F11`` is
+    the Fortran ``F11^T``, whose upper triangle is F11's lower one) and add its update to the panels of
+    the supernodes that own its columns; returns LAPACK's ``info``."""
+    X = grp.F11.T  # upper: U = L^T
+    U, info = dpotrf(X, lower=0, clean=0, overwrite_a=1)
+    if not in_place:
+        X[...] = U
+    if grp.d and not info:
+        Y = grp.F21.T  # (p, d) Fortran: F21^T, becomes L21^T = L^-1 F21^T
+        Z = dtrsm(1.0, X, Y, side=0, lower=0, trans_a=1, overwrite_b=1)
+        if not in_place:
+            Y[...] = Z
+        # -L21 L21^T, its lower triangle only and packed (dsfrk: half the flops of a product and half the
+        # values to scatter), then into the panels
+        V = dsfrk(grp.d, grp.p, -1.0, Y, 0.0, grp.S, transr="N", uplo="U", trans="T", overwrite_c=1)
+        if not in_place:
+            grp.S[...] = V
+        buf.index_add_(0, grp.dst, grp.S_t)
+    return info
 
 
 class NumericCholesky:
     """``P H P^T = L L^T`` stored per group as batched dense panels; :meth:`solve` applies ``H^-1``.
 
-    Works on torch tensors (float64) on the device of ``values``; numpy arrays are accepted too.
+    Works on torch tensors (float64) on the device of ``values``; numpy arrays are accepted too. The
+    factor lives in the workspace buffer of its pattern; a later factorisation of the same pattern first
+    gives a factor that is still referenced a copy of its own, so both stay valid.
     """
 
     def __init__(self, sym: SymbolicCholesky, values):
+        import weakref
+
         import torch
-        from scipy.linalg.blas import dsyrk, dtrsm
-        from scipy.linalg.lapack import dpotrf
 
         self.sym = sym
         v = torch.from_numpy(values) if isinstance(values, np.ndarray) else values
         v = v.to(torch.float64)
         ws = self.ws = sym.workspace(v.device)
-        self.L11, self.L21, infos = [], [], []
+        infos = []
         failed = False
         # numpy's BLAS runs single-threaded here (see limit_blas_threads)
-        with ws.lock, limit_blas_threads(1 if ws.bufnp is not None else None):
+        with ws.lock, limit_blas_threads(1 if ws.cpu else None):
+            prev = ws.owner() if ws.owner is not None else None
+            if prev is not None:
+                prev._detach()
             buf = ws.buf
-            from_numpy = torch.from_numpy
-            in_place = _syrk_in_place()
+            k = sym.k
+            in_place = _lapack_in_place()
+            lapack = _lapack_functions()
             buf.zero_()
             # rows of k values (see _Workspace); faster than buf[dst] = v[src]
-            ws.buf_rows.index_copy_(0, ws.dst, torch.index_select(v.reshape(-1, ws.buf_rows.shape[1]), 0, ws.src))
+            buf.view(-1, k).index_copy_(0, ws.dst, torch.index_select(v.reshape(-1, k), 0, ws.src))
             for grp in ws.groups:
                 if type(grp) is _NumpyGroup:
-                    L11, info = dpotrf(grp.F11, lower=1, clean=0)
-                    failed |= info != 0
-                    self.L11.append(L11)
-                    if grp.d:
-                        L21 = dtrsm(1.0, L11, grp.F21, side=1, lower=1, trans_a=1)
-                        self.L21.append(L21)
-                        # F22 - L21 L21^T on one triangle only (syrk: half the flops of a product), in
-                        # place: the Fortran view F22^T (contiguous) is F22 itself, and its upper triangle
-                        # is F22's lower one; the other triangle keeps stale values and lands in the
-                        # parent's upper triangle, which is never read. torch's index_add_ adds the same
-                        # values as numpy's buffered ``bufnp[ext] += U`` (one addition per entry: the
-                        # indices of one update matrix are distinct) in ~60% of its time.
-                        U = dsyrk(-1.0, L21, beta=1.0, c=grp.F22.T, trans=0, lower=0, overwrite_c=1)
-                        if in_place:  # U is F22^T: F22 read row-major is the row-major update
-                            buf.index_add_(0, grp.ext, grp.F22_flat)
-                        else:  # a copy: read it in Fortran order (the row-major update)
-                            buf.index_add_(0, grp.ext, from_numpy(U.ravel(order="F")))
-                    else:
-                        self.L21.append(None)
+                    failed |= _factor_numpy_group(grp, buf, in_place, *lapack) != 0
+                    if failed:
+                        break
                     continue
-                _, _, d, F11, F21, F22, _, _, ext_idx = grp
+                B, _, d, F11, F21, _, _, packed, dst = grp
                 L11, info = torch.linalg.cholesky_ex(F11)
                 infos.append(info)
-                self.L11.append(L11)
+                F11.copy_(L11)
                 if d:
                     L21 = torch.linalg.solve_triangular(L11.mT, F21, upper=True, left=False)
-                    self.L21.append(L21)
-                    # the whole update matrix goes up: its upper triangle lands in the parent's upper
-                    # triangle, which is never read (cheaper than extracting the lower triangle first)
-                    buf.index_add_(0, ext_idx, torch.baddbmm(F22, L21, L21.mT, alpha=-1.0).view(-1))
-                else:
-                    self.L21.append(None)
+                    F21.copy_(L21)
+                    # the lower triangles of the (B, d, d) updates, packed as dsfrk would, to the panels
+                    U = torch.bmm(L21, L21.mT).view(B, d * d).index_select(1, packed)
+                    buf.index_add_(0, dst, U.view(-1), alpha=-1.0)
+            ws.owner = weakref.ref(self)
+        self.buf, self.groups = buf, ws.groups
         if failed or (infos and bool(torch.cat(infos).any())):
             raise NotPositiveDefiniteError("the matrix is not positive definite (a pivot block failed)")
+
+    def _detach(self) -> None:
+        """Move this factor to a private copy of the buffer (called before the workspace is reused)."""
+        ws = self.ws
+        self.buf = ws.buf.clone()
+        self.groups, _ = _group_views(self.sym, self.buf, ws.device, ws.cpu, ws.scratch, ws.index)
 
     def solve(self, b):
         """``x = H^-1 b`` for ``b (n k,)`` (numpy array or torch tensor; returns the same kind)."""
@@ -571,35 +681,36 @@ class NumericCholesky:
         is_np = isinstance(b, np.ndarray)
         bt = torch.from_numpy(b) if is_np else b
         ws = self.ws
-        with ws.lock, limit_blas_threads(1 if ws.ynp is not None else None):
+        with ws.lock, limit_blas_threads(1 if ws.cpu else None):
             y, ynp = ws.y, ws.ynp
             torch.index_select(bt.to(torch.float64), 0, ws.perm, out=y)
-            groups = ws.groups
-            for g, grp in enumerate(groups):
+            groups = self.groups
+            for grp in groups:
                 if type(grp) is _NumpyGroup:
-                    # in place on the (contiguous) slice: no copy back
-                    z = dtrsv(self.L11[g], ynp[grp.c0:grp.c1], lower=1, overwrite_x=1)
+                    # L z = y as U^T z = y on the Fortran view (in place on the contiguous slice)
+                    z = dtrsv(grp.F11.T, ynp[grp.c0:grp.c1], lower=0, trans=1, overwrite_x=1)
                     if grp.d:
-                        ynp[grp.rows] -= self.L21[g] @ z
+                        ynp[grp.rows] -= grp.F21 @ z
                     continue
-                _, _, d, _, _, _, yc, rows, _ = grp
-                z = torch.linalg.solve_triangular(self.L11[g], yc, upper=False)
-                yc.copy_(z)
+                B, p, d, L11, L21, c0, rows, _, _ = grp
+                yc = y[c0:c0 + B * p].view(B, p, 1)
+                yc.copy_(torch.linalg.solve_triangular(L11, yc, upper=False))
                 if d:
-                    y.index_add_(0, rows, (self.L21[g] @ z).view(-1), alpha=-1.0)
+                    y.index_add_(0, rows, (L21 @ yc).view(-1), alpha=-1.0)
             for g in range(len(groups) - 1, -1, -1):
                 grp = groups[g]
                 if type(grp) is _NumpyGroup:
                     yc = ynp[grp.c0:grp.c1]
                     if grp.d:
-                        yc -= self.L21[g].T @ ynp[grp.rows]
-                    dtrsv(self.L11[g], yc, lower=1, trans=1, overwrite_x=1)
+                        yc -= grp.F21.T @ ynp[grp.rows]
+                    dtrsv(grp.F11.T, yc, lower=0, trans=0, overwrite_x=1)
                     continue
-                B, _, d, _, _, _, yc, rows, _ = grp
+                B, p, d, L11, L21, c0, rows, _, _ = grp
+                yc = y[c0:c0 + B * p].view(B, p, 1)
                 rhs = yc
                 if d:
-                    rhs = torch.baddbmm(yc, self.L21[g].mT, y[rows].view(B, d, 1), alpha=-1.0)
-                yc.copy_(torch.linalg.solve_triangular(self.L11[g].mT, rhs, upper=True))
+                    rhs = torch.baddbmm(yc, L21.mT, y[rows].view(B, d, 1), alpha=-1.0)
+                yc.copy_(torch.linalg.solve_triangular(L11.mT, rhs, upper=True))
             x = torch.empty_like(y)
             x[ws.perm] = y
         return x.numpy() if is_np else x.to(bt.dtype)
@@ -608,8 +719,8 @@ class NumericCholesky:
 class _Group:
     """Supernodes of one height and one front shape ``(p pivots, m rows)``, factored as one batch."""
 
-    __slots__ = ("col0", "ext_idx", "m", "offset", "p", "rows", "size")
+    __slots__ = ("col0", "m", "offset", "p", "rows", "size", "upd")
 
-    def __init__(self, size, p, m, offset, col0, rows, ext_idx):
+    def __init__(self, size, p, m, offset, col0, rows, upd):
         self.size, self.p, self.m, self.offset, self.col0 = size, p, m, offset, col0
-        self.rows, self.ext_idx = rows, ext_idx
+        self.rows, self.upd = rows, upd  # scalar rows (B d,), update positions (B d (d + 1) / 2,) int32
