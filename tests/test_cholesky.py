@@ -235,3 +235,25 @@ def test_packed_update_order_is_lapacks(d):
     Y = np.asfortranarray(np.random.default_rng(d).standard_normal((4, d)))
     packed = dsfrk(d, 4, -1.0, Y, 0.0, np.zeros(order.size), transr="N", uplo="U", trans="T")
     np.testing.assert_allclose(packed, (-Y.T @ Y).reshape(-1)[order], rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("name", ["loops_k6", "grid_diagonal", "star"])
+def test_ordering_is_superlus_minimum_degree(name):
+    """The ordering comes from SuperLU's incomplete LU with everything dropped (no factorisation): the
+    same column ordering as its full LU (the pattern alone decides it)."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    from slam.graph.cholesky import _block_graph, _mmd_order
+
+    ii, jj, n, k = CASES[name]
+    _, pat, _ = _system(ii, jj, n, k, seed=0)
+    bptr, bcol = _block_graph(pat)
+    nv = pat.num_vars
+    rows = np.repeat(np.arange(nv), np.diff(bptr))
+    vals = np.where(rows == bcol, float(nv + 1), np.random.default_rng(0).uniform(0.1, 0.5, rows.shape[0]))
+    lu = sla.splu(sp.csc_matrix((vals, bcol, bptr), shape=(nv, nv)), permc_spec="MMD_AT_PLUS_A",
+                  diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    order = _mmd_order(nv, bptr, bcol)
+    assert np.array_equal(order, np.argsort(lu.perm_c))
+    assert sorted(order.tolist()) == list(range(nv))
