@@ -616,8 +616,9 @@ class NumericCholesky:
     """``P H P^T = L L^T`` stored per group as batched dense panels; :meth:`solve` applies ``H^-1``.
 
     Works on torch tensors (float64) on the device of ``values``; numpy arrays are accepted too. The
-    factor lives in the workspace buffer of its pattern; a later factorisation of the same pattern first
-    gives a factor that is still referenced a copy of its own, so both stay valid.
+    factor lives in the workspace buffer of its pattern, which the next factorisation of the same pattern
+    reuses: if this object is still referenced then, it first moves to a copy of the buffer (so both
+    factors stay valid; ``sym.factor(v).solve(b)`` in a loop never copies).
     """
 
     def __init__(self, sym: SymbolicCholesky, values):
