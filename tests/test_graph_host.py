@@ -212,3 +212,22 @@ def test_review_edge_cases_behave_alike_on_both_backends(monkeypatch):
     monkeypatch.setattr(host.HostProblem, "predicted_decrease", lambda self, dx, g, lam: 0.0)
     res = optimize(graph, lambda_update="nielsen")
     assert res.status == "converged" and res.chi2 == pytest.approx(unit.chi2, rel=1e-6)
+
+
+@pytest.mark.parametrize("dense_max", [10 ** 6, 0])
+def test_linearisation_in_chunks_of_edges_is_the_same(dense_max, monkeypatch):
+    """Large graphs are linearised in chunks of edges (bounded buffers): the normal equations of 30 edges
+    in chunks of 7 equal those of one chunk, with a robust kernel and a fixed pose."""
+    graph = _graph(seed=9)
+    cfg = OptimizerConfig(fixed=(2,), dense_max=dense_max)
+    kern = make_kernel("huber", None)
+    whole = _host_problem(graph, cfg, kern, "first", "auto")
+    _, _, cache = whole.evaluate(whole.poses)
+    H1, g1 = (a.copy() for a in whole.linearize(whole.poses, cache))
+    monkeypatch.setattr(host, "_CHUNK", 7)
+    chunked = _host_problem(graph, cfg, kern, "first", "auto")
+    assert chunked.JT.shape[0] == 7 and chunked.dense == (dense_max > 0)
+    _, _, cache = chunked.evaluate(chunked.poses)
+    H2, g2 = chunked.linearize(chunked.poses, cache)
+    np.testing.assert_allclose(H2, H1, rtol=1e-13, atol=1e-9)
+    np.testing.assert_allclose(g2, g1, rtol=1e-13, atol=1e-9)

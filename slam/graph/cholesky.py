@@ -361,10 +361,12 @@ class SymbolicCholesky:
         lr = local(sn_blk, prow)
         lc = pcol - nf[sn_blk]
         p_blk = k * ncols_a[sn_blk]  # row stride of the panel
-        dst = (off[sn_blk][:, None, None] + (lr[:, None, None] * k + ar[None, :, None]) * p_blk[:, None, None]
-               + lc[:, None, None] * k + ar[None, None, :])  # entry (a, c) of block = H[row*k + a, col*k + c]
-        self.src = bpos.reshape(-1)
-        self.dst = dst.reshape(-1)
+        # H's entries go to the panels in runs of k (row a of a k x k block, contiguous in both; every panel
+        # offset and row stride is a multiple of k): run indices, k times fewer than scalar ones (and
+        # copying rows of k values: parking-garage fill 1.2 -> 0.6 ms)
+        dst = off[sn_blk][:, None] + (lr[:, None] * k + ar) * p_blk[:, None] + lc[:, None] * k
+        self.src = bpos[:, :, 0].reshape(-1) // k  # run (block, a) of H's block-major values
+        self.dst = dst.reshape(-1) // k
         tick("gather")
         # every supernode's scalar rows (for the solves), made for all supernodes at once in group order
         gorder = np.fromiter(itertools.chain.from_iterable(sns for _, sns in group_list), dtype=np.int64,
@@ -530,12 +532,8 @@ class _Workspace:
 
         self.lock = threading.Lock()  # the buffers are shared by the factorisations of this pattern
         self.owner = None  # weak reference to the NumericCholesky whose factor is in ``buf``
-        k = sym.k
-        # H's entries go to the panels in runs of k (one row of a k x k block, contiguous in both; every
-        # panel offset and row stride is a multiple of k): copying rows of k values takes k times fewer
-        # indices than copying scalars (parking-garage: the fill 1.2 -> 0.6 ms)
-        self.src = torch.from_numpy(sym.src[::k] // k).to(device)
-        self.dst = torch.from_numpy(sym.dst[::k] // k).to(device)
+        self.src = torch.from_numpy(sym.src).to(device)  # H's values go to the panels in runs of k
+        self.dst = torch.from_numpy(sym.dst).to(device)
         self.perm = torch.from_numpy(sym.perm_scalar).to(device)
         self.device = torch.device(device)
         self.cpu = self.device.type == "cpu"

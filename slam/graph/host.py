@@ -46,6 +46,8 @@ __all__ = ["HostProblem", "cross", "qmul", "qmul_conj", "rotate", "rotmat"]
 _SMALL, _SMALL_Q = fused._SMALL[torch.float64], fused._SMALL_Q[torch.float64]
 _Q_SERIES = fused._Q_SERIES.numpy()
 _TINY = np.finfo(np.float64).tiny
+# edges linearised per chunk (bounds the per-edge buffers of large graphs; one chunk up to this size)
+_CHUNK = 16384
 
 
 # -- bilinear tables ----------------------------------------------------------------------------------
@@ -263,11 +265,13 @@ class HostProblem:
             self.rows = np.concatenate([d, d + 6, [12]])  # rows of [J_i^T; J_j^T; r^T]
             self.L_red = np.linalg.cholesky(info[:, d][:, :, d])
         self.kernel, self.solver, self.damping, self.reanchor = kernel, solver, damping, reanchor
-        self.JT = np.zeros((E, 13, 6))
         # per-iteration products in buffers made once: fresh megabyte arrays pay their page faults at every
-        # iteration (parking-garage: linearisation 13.8 -> 7.3 ms)
+        # iteration (parking-garage: linearisation 13.8 -> 7.3 ms). Large graphs are linearised in chunks of
+        # edges so that these buffers stay small (~4.4 kB per edge: 280 MB on a 65000-edge graph otherwise).
+        C = min(E, _CHUNK)
         rows = 2 * k + 1
-        self._AT, self._A, self._F = np.empty((E, rows, k)), np.empty((E, k, rows)), np.empty((E, rows, rows))
+        self.JT = np.zeros((C, 13, 6))
+        self._AT, self._A, self._F = np.empty((C, rows, k)), np.empty((C, k, rows)), np.empty((C, rows, rows))
         var = np.where(free, np.cumsum(free) - 1, -1)
         self.all_free = bool(free.all())
         if not self.all_free:
@@ -302,7 +306,7 @@ class HostProblem:
             self.g_buf = np.empty((n + 1, k))
             self._H_t, self._g_t = torch.from_numpy(self.H_buf), torch.from_numpy(self.g_buf)
             self._eb, self._ev = pattern.edge_blocks.reshape(-1), pattern.edge_vars.reshape(-1)
-            self._blocks, self._gb = np.empty((E, 2, 2, k, k)), np.empty((E, 2, k))
+            self._blocks, self._gb = np.empty((C, 2, 2, k, k)), np.empty((C, 2, k))
             self.diag_pos = ((pattern.diag_blocks.numpy() * (k * k))[:, None] + np.arange(k) * (k + 1)).reshape(-1)
             if solver is None:
                 self.symbolic = SparseCholeskySolver().symbolic(pattern)
@@ -324,28 +328,46 @@ class HostProblem:
         """``H = J^T W Omega J`` (dense ``(m m,)`` or block-major ``(nb k k,)``) and ``g = J^T W Omega r``
         ``(m,)``."""
         r, theta2, c, w = cache
-        JT, L = _jacobians_t(r, theta2, c, self.neg_adz_t, self.JT), self.L
-        if self.dims is not None:
-            JT, L = JT[:, self.rows][:, :, self.dims], self.L_red
-        E, _, k = JT.shape
-        AT = np.matmul(JT, L, out=self._AT)  # whitened rows [A_i^T; A_j^T; u^T]
-        if w is not None:
-            AT *= np.sqrt(w)[:, None, None]
-        # every block, the gradient and chi2 at once (a contiguous transpose: numpy's fast matmul loop)
-        np.copyto(self._A, AT.transpose(0, 2, 1))
-        F = np.matmul(AT, self._A, out=self._F)
+        E = r.shape[0]
         if self.dense:
-            self._buf_t.zero_().index_add_(0, self._idx, torch.from_numpy(F.reshape(-1)))
+            self._buf_t.zero_()
+        else:
+            self._H_t.zero_()
+            self._g_t.zero_()
+        for e0 in range(0, E, _CHUNK):
+            self._linearize_edges(slice(e0, min(E, e0 + _CHUNK)), r, theta2, c, w)
+        if self.dense:
             m = self.size
             H, g = self.buf[:m * m], self.buf[m * m:-1]
         else:
-            np.copyto(self._blocks, F[:, :2 * k, :2 * k].reshape(E, 2, k, 2, k).transpose(0, 1, 3, 2, 4))
-            np.copyto(self._gb, F[:, :2 * k, 2 * k].reshape(E, 2, k))
-            self._H_t.zero_().index_add_(0, self._eb, torch.from_numpy(self._blocks.reshape(E * 4, k * k)))
-            self._g_t.zero_().index_add_(0, self._ev, torch.from_numpy(self._gb.reshape(E * 2, k)))
             H, g = self.H_buf[:-1].reshape(-1), self.g_buf[:-1].reshape(-1)
         self._dscale = np.clip(H[self.diag_pos], 1e-6, 1e32) if self.damping == "diagonal" else None
         return H, g
+
+    def _linearize_edges(self, sl: slice, r, theta2, c, w) -> None:
+        """Add the edges ``sl``'s blocks of ``H`` and ``g`` (see :meth:`linearize`)."""
+        n = sl.stop - sl.start
+        JT = _jacobians_t(r[sl], theta2[sl], c[sl], self.neg_adz_t[sl], self.JT[:n])
+        L = self.L[sl]
+        if self.dims is not None:
+            JT, L = JT[:, self.rows][:, :, self.dims], self.L_red[sl]
+        k = JT.shape[2]
+        AT = np.matmul(JT, L, out=self._AT[:n])  # whitened rows [A_i^T; A_j^T; u^T]
+        if w is not None:
+            AT *= np.sqrt(w[sl])[:, None, None]
+        # every block, the gradient and chi2 at once (a contiguous transpose: numpy's fast matmul loop)
+        A = self._A[:n]
+        np.copyto(A, AT.transpose(0, 2, 1))
+        F = np.matmul(AT, A, out=self._F[:n])
+        if self.dense:
+            q = (2 * k + 1) ** 2
+            self._buf_t.index_add_(0, self._idx[sl.start * q:sl.stop * q], torch.from_numpy(F.reshape(-1)))
+        else:
+            blocks, gb = self._blocks[:n], self._gb[:n]
+            np.copyto(blocks, F[:, :2 * k, :2 * k].reshape(n, 2, k, 2, k).transpose(0, 1, 3, 2, 4))
+            np.copyto(gb, F[:, :2 * k, 2 * k].reshape(n, 2, k))
+            self._H_t.index_add_(0, self._eb[4 * sl.start:4 * sl.stop], torch.from_numpy(blocks.reshape(n * 4, k * k)))
+            self._g_t.index_add_(0, self._ev[2 * sl.start:2 * sl.stop], torch.from_numpy(gb.reshape(n * 2, k)))
 
     def solve(self, H: np.ndarray, g: np.ndarray, lam: float) -> np.ndarray:
         """``dx (m,)`` solving ``(H + lambda D) dx = -g``; raises ``LinearSolverError``."""
