@@ -1,4 +1,6 @@
 """The supernodal sparse Cholesky (slam.graph.cholesky) against dense references on random SPD systems."""
+import threading
+
 import numpy as np
 import pytest
 import torch
@@ -218,7 +220,7 @@ def test_factor_is_stored_in_panels_only():
     np.testing.assert_allclose(L, L_ref, rtol=0, atol=1e-10 * np.abs(L_ref).max())
 
 
-@pytest.mark.parametrize("d", [1, 2, 5, 6, 7, 36, 37])
+@pytest.mark.parametrize("d", [1, 2, 3, 4, 5, 6, 7, 8, 36, 37, 99, 100, 601])
 def test_packed_update_order_is_lapacks(d):
     """The packed order (a closed form of LAPACK's rectangular full packed layout) is exactly the lower
     triangle, equals what LAPACK's own dtrttf produces, and dsfrk writes -Y^T Y in it (what the scatter of
@@ -257,3 +259,180 @@ def test_ordering_is_superlus_minimum_degree(name):
     order = _mmd_order(nv, bptr, bcol)
     assert np.array_equal(order, np.argsort(lu.perm_c))
     assert sorted(order.tolist()) == list(range(nv))
+
+
+# review of the in-place factorisation (error paths, threads, NaN, autograd, empty patterns)
+def _assert_solves(f, A, b):
+    ref = np.linalg.solve(A, b)
+    np.testing.assert_allclose(f.solve(b), ref, rtol=0, atol=1e-9 * np.abs(ref).max())
+
+
+def test_interrupted_factorisation_leaves_earlier_factor_intact(monkeypatch):
+    """A factorisation that raises half way (bad input, KeyboardInterrupt) must not stay as the buffer's
+    'owner': the earlier factor, already moved to its own copy, would then be moved again at the next
+    factorisation, i.e. replaced by the half-done buffer (finite, wrong solutions)."""
+    import slam.graph.cholesky as chol
+
+    ii, jj, n, k = CASES["loops_k6"]
+    A1, pat, vals1 = _system(ii, jj, n, k, seed=1)
+    A2, _, vals2 = _system(ii, jj, n, k, seed=2)
+    sym = SymbolicCholesky(pat)
+    b = np.random.default_rng(6).standard_normal(A1.shape[0])
+    f1 = sym.factor(vals1)
+    with pytest.raises((IndexError, RuntimeError)):  # values of the wrong length
+        sym.factor(vals2[:-2 * k * k])
+    orig, calls = chol._factor_numpy_group, []
+
+    def interrupted(*args):
+        calls.append(1)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        return orig(*args)
+
+    monkeypatch.setattr(chol, "_factor_numpy_group", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        sym.factor(vals2)
+    monkeypatch.setattr(chol, "_factor_numpy_group", orig)
+    f2 = sym.factor(vals2)
+    _assert_solves(f2, A2, b)
+    _assert_solves(f1, A1, b)
+
+
+def test_failed_factorisation_is_not_copied(monkeypatch):
+    """A factorisation that fails its pivots is useless: while its exception is alive (a retry inside the
+    handler), the next factorisation must not copy the buffer to keep it."""
+    import slam.graph.cholesky as chol
+
+    ii, jj, n, k = CASES["loops_k6"]
+    A, pat, vals = _system(ii, jj, n, k, seed=3)
+    sym = SymbolicCholesky(pat)
+    copies = []
+    orig = chol.NumericCholesky._detach
+    monkeypatch.setattr(chol.NumericCholesky, "_detach", lambda self: (copies.append(1), orig(self)))
+    bad = vals.copy()
+    bad[pat.diag_pos.numpy()[:k]] = -1e3
+    b = np.ones(A.shape[0])
+    try:
+        sym.factor(bad)
+    except NotPositiveDefiniteError:
+        f = sym.factor(vals)  # the LM retry, inside the handler
+    assert copies == []
+    _assert_solves(f, A, b)
+
+
+def test_factor_made_in_another_thread_keeps_its_own_values():
+    """The factor must hold its views before the lock is released: a factorisation in another thread
+    that takes the lock right then moves the first factor to a copy, and the first thread must not
+    point it back at the shared buffer afterwards. The lock below widens that window deterministically."""
+    ii, jj, n, k = CASES["loops_k6"]
+    A1, pat, vals1 = _system(ii, jj, n, k, seed=1)
+    A2, _, vals2 = _system(ii, jj, n, k, seed=2)
+    sym = SymbolicCholesky(pat)
+    ws = sym.workspace(torch.device("cpu"))
+
+    class PausingLock:
+        """A lock after whose release thread 'A' waits until thread 'B' has factored."""
+
+        def __init__(self):
+            self.lock, self.released, self.resume = threading.Lock(), threading.Event(), threading.Event()
+
+        def __enter__(self):
+            self.lock.acquire()
+            return self
+
+        def __exit__(self, *exc):
+            self.lock.release()
+            if threading.current_thread().name == "A" and not self.released.is_set():
+                self.released.set()
+                self.resume.wait(10)
+            return False
+
+    ws.lock = lock = PausingLock()
+    out = {}
+
+    def first():
+        out[1] = sym.factor(vals1)
+
+    def second():
+        lock.released.wait(10)
+        out[2] = sym.factor(vals2)
+        lock.resume.set()
+
+    threads = [threading.Thread(target=first, name="A"), threading.Thread(target=second, name="B")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    b = np.random.default_rng(7).standard_normal(A1.shape[0])
+    _assert_solves(out[2], A2, b)
+    _assert_solves(out[1], A1, b)
+
+
+@pytest.mark.parametrize("batched", [False, True])
+@pytest.mark.parametrize("where", ["first", "middle", "last"])
+def test_nan_values_raise_on_both_paths(where, batched, monkeypatch):
+    """A NaN in H (on a diagonal or below it in a diagonal block) is not positive definite on both paths:
+    OpenBLAS's dpotrf (the front-by-front path) returns info 0 for a NaN pivot, torch's cholesky_ex
+    (the batched path) reports it. A later good factorisation of the same symbolic object is right."""
+    import slam.graph.cholesky as chol
+
+    if batched:
+        monkeypatch.setattr(chol, "_NUMPY_MAX_BATCH", 0)
+    ii, jj, n, k = CASES["loops_k6"]
+    A, pat, vals = _system(ii, jj, n, k, seed=3)
+    sym = SymbolicCholesky(pat)
+    var = sym.order[{"first": 0, "middle": pat.num_vars // 2, "last": -1}[where]]
+    start = pat.diag_pos.numpy()[var * k]  # entry (0, 0) of the variable's diagonal block
+    for pos in (start + k + 1, start + k):  # entry (1, 1), then (1, 0)
+        bad = vals.copy()
+        bad[pos] = np.nan
+        with pytest.raises(NotPositiveDefiniteError):
+            sym.factor(bad)
+    _assert_solves(sym.factor(vals), A, np.ones(A.shape[0]))
+
+
+@pytest.mark.parametrize("batched", [False, True])
+@pytest.mark.parametrize("where", ["first", "middle", "last"])
+def test_not_positive_definite_in_any_supernode_then_good_values(where, batched, monkeypatch):
+    """A failing pivot in the first, a middle or the last supernode raises on both paths; a factor made
+    before it still solves its system, and a later good factorisation of the reused buffer is right."""
+    import slam.graph.cholesky as chol
+
+    if batched:
+        monkeypatch.setattr(chol, "_NUMPY_MAX_BATCH", 0)
+    ii, jj, n, k = CASES["planar_loops_k3"]
+    A, pat, vals = _system(ii, jj, n, k, seed=3)
+    A0, _, vals0 = _system(ii, jj, n, k, seed=4)
+    sym = SymbolicCholesky(pat)
+    f0 = sym.factor(vals0)
+    var = sym.order[{"first": 0, "middle": pat.num_vars // 2, "last": -1}[where]]
+    bad = vals.copy()
+    bad[pat.diag_pos.numpy()[var * k:(var + 1) * k]] = -1e3
+    with pytest.raises(NotPositiveDefiniteError):
+        sym.factor(bad)
+    b = np.random.default_rng(8).standard_normal(A.shape[0])
+    _assert_solves(sym.factor(vals), A, b)
+    _assert_solves(f0, A0, b)
+
+
+def test_values_that_require_grad_do_not_poison_the_workspace():
+    """The workspace buffer is shared: values that require grad must not make it require grad (a later
+    factorisation then failed in numpy() when it moved the earlier factor to a copy)."""
+    ii, jj, n, k = CASES["loops_k6"]
+    A, pat, vals = _system(ii, jj, n, k, seed=1)
+    sym = SymbolicCholesky(pat)
+    b = np.random.default_rng(0).standard_normal(A.shape[0])
+    f1 = sym.factor(torch.from_numpy(vals.copy()).requires_grad_(True))
+    assert not sym.workspace(torch.device("cpu")).buf.requires_grad
+    f2 = sym.factor(vals)
+    _assert_solves(f2, A, b)
+    _assert_solves(f1, A, b)
+
+
+@pytest.mark.parametrize("k", [3, 6])
+def test_pattern_without_variables(k):
+    """Every pose fixed: an empty system, no supernode (it raised IndexError in the analysis)."""
+    pat = build_pattern(torch.tensor([0]), torch.tensor([1]), torch.zeros(2, dtype=torch.bool), k)
+    sym = SymbolicCholesky(pat)
+    assert sym.num_supernodes == 0 and sym.size == 0
+    assert sym.factor(np.zeros(0)).solve(np.zeros(0)).shape == (0,)

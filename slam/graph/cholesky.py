@@ -37,6 +37,7 @@ Example:
 from __future__ import annotations
 
 import itertools
+import math
 import threading
 
 import numpy as np
@@ -260,7 +261,7 @@ class SymbolicCholesky:
             struct[j] = s
         tick("struct")
         # relaxed supernodes: runs [first, last] of consecutive columns along etree chains
-        first = [0]
+        first = [0] if n else []  # no variables (every pose fixed): no supernode
         zeros = 0  # explicit zeros (in blocks) of the current supernode
         for j in range(1, n):
             f = first[-1]
@@ -550,10 +551,10 @@ _IN_PLACE = {}
 
 
 def _lapack_in_place() -> bool:
-    """Whether scipy's ``dpotrf``, ``dtrsm`` and ``dsfrk`` with ``overwrite_*=1`` write into their
+    """Whether scipy's ``dpotrf``, ``dtrsm``, ``dsfrk`` and ``dtrsv`` with ``overwrite_*=1`` write into their
     (Fortran-contiguous) argument (f2py does, for an array of the right type and order; checked once)."""
     if "all" not in _IN_PLACE:
-        from scipy.linalg.blas import dtrsm
+        from scipy.linalg.blas import dtrsm, dtrsv
         from scipy.linalg.lapack import dpotrf, dsfrk
 
         a = np.array([[4.0, 0.0], [2.0, 5.0]]).T  # Fortran, upper triangle [[4, 2], [., 5]]
@@ -562,7 +563,9 @@ def _lapack_in_place() -> bool:
         dtrsm(1.0, a, b, side=0, lower=0, trans_a=1, overwrite_b=1)
         c = np.zeros(1)
         dsfrk(1, 1, 1.0, np.ones((1, 1), order="F"), 0.0, c, transr="N", uplo="U", trans="T", overwrite_c=1)
-        _IN_PLACE["all"] = bool(a[0, 0] == 2.0 and b[0, 0] == 0.5 and c[0] == 1.0)
+        x = np.ones(1)
+        dtrsv(np.full((1, 1), 2.0, order="F"), x, overwrite_x=1)
+        _IN_PLACE["all"] = bool(a[0, 0] == 2.0 and b[0, 0] == 0.5 and c[0] == 1.0 and x[0] == 0.5)
     return _IN_PLACE["all"]
 
 
@@ -596,6 +599,11 @@ def _factor_numpy_group(grp: _NumpyGroup, buf, in_place: bool, dpotrf, dtrsm, ds
     U, info = dpotrf(X, lower=0, clean=0, overwrite_a=1)
     if not in_place:
         X[...] = U
+    # OpenBLAS's dpotrf does not test for NaN (reference LAPACK, and torch's cholesky_ex, report it). A NaN
+    # anywhere in the pivot block's lower triangle reaches its last diagonal entry (every later row divides
+    # by the NaN pivot), and a NaN in F21 reaches an ancestor's diagonal through the update (a, a)
+    if not info and math.isnan(X[-1, -1]):
+        info = grp.p
     if grp.d and not info:
         Y = grp.F21.T  # (p, d) Fortran: F21^T, becomes L21^T = L^-1 F21^T
         Z = dtrsm(1.0, X, Y, side=0, lower=0, trans_a=1, overwrite_b=1)
@@ -616,7 +624,8 @@ class NumericCholesky:
     Works on torch tensors (float64) on the device of ``values``; numpy arrays are accepted too. The
     factor lives in the workspace buffer of its pattern, which the next factorisation of the same pattern
     reuses: if this object is still referenced then, it first moves to a copy of the buffer (so both
-    factors stay valid; ``sym.factor(v).solve(b)`` in a loop never copies).
+    factors stay valid). ``sym.factor(v).solve(b)`` in a loop never copies; ``f = sym.factor(v)`` in a loop
+    copies at every call (the old ``f`` is alive while the new one is made: ``del f`` first).
     """
 
     def __init__(self, sym: SymbolicCholesky, values):
@@ -626,7 +635,9 @@ class NumericCholesky:
 
         self.sym = sym
         v = torch.from_numpy(values) if isinstance(values, np.ndarray) else values
-        v = v.to(torch.float64)
+        # detached: the workspace buffer is shared by every factorisation of the pattern, and in-place ops
+        # from a tensor that requires grad would make it require grad (its numpy views then fail)
+        v = v.detach().to(torch.float64)
         ws = self.ws = sym.workspace(v.device)
         infos = []
         failed = False
@@ -635,6 +646,10 @@ class NumericCholesky:
             prev = ws.owner() if ws.owner is not None else None
             if prev is not None:
                 prev._detach()
+            # no factor lives in the buffer until this one has succeeded: an exception below (bad input,
+            # KeyboardInterrupt) or a failed pivot must not leave the moved factor, or this failed one, as
+            # the owner that the next factorisation would "move" (copy the half-done buffer into)
+            ws.owner = None
             buf = ws.buf
             k = sym.k
             in_place = _lapack_in_place()
@@ -658,9 +673,13 @@ class NumericCholesky:
                     # the lower triangles of the (B, d, d) updates, packed as dsfrk would, to the panels
                     U = torch.bmm(L21, L21.mT).view(B, d * d).index_select(1, packed)
                     buf.index_add_(0, dst, U.view(-1), alpha=-1.0)
-            ws.owner = weakref.ref(self)
-        self.buf, self.groups = buf, ws.groups
-        if failed or (infos and bool(torch.cat(infos).any())):
+            failed = failed or bool(infos and bool(torch.cat(infos).any()))
+            # set before the lock is released: a factorisation in another thread may detach this factor as
+            # soon as it is the owner, and must find its views to replace
+            self.buf, self.groups = buf, ws.groups
+            if not failed:
+                ws.owner = weakref.ref(self)
+        if failed:
             raise NotPositiveDefiniteError("the matrix is not positive definite (a pivot block failed)")
 
     def _detach(self) -> None:
@@ -677,14 +696,17 @@ class NumericCholesky:
         is_np = isinstance(b, np.ndarray)
         bt = torch.from_numpy(b) if is_np else b
         ws = self.ws
+        in_place = _lapack_in_place()
         with ws.lock, limit_blas_threads(1 if ws.cpu else None):
             y, ynp = ws.y, ws.ynp
-            torch.index_select(bt.to(torch.float64), 0, ws.perm, out=y)
+            torch.index_select(bt.detach().to(torch.float64), 0, ws.perm, out=y)
             groups = self.groups
             for grp in groups:
                 if type(grp) is _NumpyGroup:
                     # L z = y as U^T z = y on the Fortran view (in place on the contiguous slice)
                     z = dtrsv(grp.F11.T, ynp[grp.c0:grp.c1], lower=0, trans=1, overwrite_x=1)
+                    if not in_place:
+                        ynp[grp.c0:grp.c1] = z
                     if grp.d:
                         ynp[grp.rows] -= grp.F21 @ z
                     continue
@@ -699,7 +721,9 @@ class NumericCholesky:
                     yc = ynp[grp.c0:grp.c1]
                     if grp.d:
                         yc -= grp.F21.T @ ynp[grp.rows]
-                    dtrsv(grp.F11.T, yc, lower=0, trans=0, overwrite_x=1)
+                    z = dtrsv(grp.F11.T, yc, lower=0, trans=0, overwrite_x=1)
+                    if not in_place:
+                        yc[...] = z
                     continue
                 B, p, d, L11, L21, c0, rows, _, _ = grp
                 yc = y[c0:c0 + B * p].view(B, p, 1)
