@@ -417,7 +417,7 @@ class SymbolicCholesky:
         self.timings = tick.times  # seconds per stage of the analysis (for profiling)
 
     def workspace(self, device) -> _Workspace:
-        """Index tensors, the front buffer and the solve vector on ``device``, with every per-group view
+        """Index tensors, the panel buffer and the solve vector on ``device``, with every per-group view
         made once (cached): a factorisation then only launches the numeric kernels."""
         key = str(device)
         if key not in self._torch_cache:

@@ -9,9 +9,9 @@ the other, and every iteration only adds the four ``k x k`` blocks of each edge'
 
 Solvers (all ``solver.solve(pattern, values, b) -> x``):
 
-* :class:`SparseCholeskySolver` — sparse direct: a supernodal multifrontal Cholesky
-  (:mod:`slam.graph.cholesky`; symbolic analysis cached per pattern, numeric work in batched torch
-  calls plus direct LAPACK calls for single fronts on the CPU). Needs scipy (ordering, LAPACK). The
+* :class:`SparseCholeskySolver` — sparse direct: a right-looking supernodal Cholesky computed in place in
+  the factor's panels (:mod:`slam.graph.cholesky`; symbolic analysis cached per pattern, numeric work in
+  batched torch calls plus direct LAPACK calls for single fronts on the CPU). Needs scipy (ordering, LAPACK). The
   default when scipy is importable.
 * :class:`SuperLUSolver` — scipy's SuperLU (symmetric mode, minimum-degree ordering): a reference
   sparse direct solver, CPU only, ~1.5-2x slower on the benchmark graphs.
