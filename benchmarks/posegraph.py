@@ -38,7 +38,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from slam.graph import PoseGraph, optimize, read_g2o  # noqa: E402  (after the sys.path line)
+from slam.eval.align import umeyama_alignment  # noqa: E402  (after the sys.path line)
+from slam.graph import PoseGraph, optimize, read_g2o  # noqa: E402
 
 FILES = ["tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "input_M3500_g2o", "input_INTEL_g2o"]
 
@@ -134,14 +135,10 @@ def measure_memory(path: Path) -> dict:
 
 
 def ate(a: torch.Tensor, b: torch.Tensor) -> float:
-    """RMSE of positions of ``a`` after the rigid (no scale) alignment onto ``b`` (Horn / Umeyama)."""
-    A, B = a[:, :3].double().numpy(), b[:, :3].double().numpy()
-    ma, mb = A.mean(0), B.mean(0)
-    U, _, Vt = np.linalg.svd((A - ma).T @ (B - mb))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ D @ U.T
-    return float(np.sqrt((((A - ma) @ R.T - (B - mb)) ** 2).sum(1).mean()))
+    """RMSE of positions of ``a`` after the rigid (no scale) alignment onto ``b`` (Umeyama)."""
+    A, B = a[:, :3].double(), b[:, :3].double()
+    R, t, _ = umeyama_alignment(A, B)
+    return float((A @ R.T + t - B).pow(2).sum(-1).mean().sqrt())
 
 
 def add_false_loops(graph: PoseGraph, fraction: float = 0.05, seed: int = 0) -> tuple[PoseGraph, int]:
