@@ -1,6 +1,6 @@
-"""The optimiser's per-edge kernels: the torch path (slam.graph.fused) and the numpy path (slam.graph.host)
-against each other and the reference costs (slam.graph.costs, themselves checked against finite
-differences in test_pose_graph)."""
+"""The optimiser's per-edge kernels: the torch path (slam.graph.fused) and the numpy path (slam.graph.host,
+also with its C kernels) against each other and the reference costs (slam.graph.costs, themselves
+checked against finite differences in test_pose_graph)."""
 import math
 
 import numpy as np
@@ -15,6 +15,8 @@ from slam.graph.optimizer import _host_problem, _Problem
 from slam.lie import quat_rotate, quat_to_rotmat, se3_between, se3_compose, se3_exp, se3_inv
 
 F64 = torch.float64
+
+needs_c = pytest.mark.skipif(not host.compiled_kernels(), reason="the C kernels slam.graph._kernels were not built")
 
 
 def _unit(q):
@@ -122,16 +124,17 @@ def _graph(planar=False, seed=5):
     return PoseGraph(P, ii, jj, Z, info)
 
 
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=needs_c)])  # numpy / C kernels
 @pytest.mark.parametrize("planar", [False, True])
 @pytest.mark.parametrize("dense_max", [10 ** 6, 0])  # dense and block-sparse normal equations
-def test_normal_equations_and_steps_equal_the_torch_problem(planar, dense_max):
+def test_normal_equations_and_steps_equal_the_torch_problem(planar, dense_max, compiled):
     graph = _graph(planar)
     assert graph.is_planar() == planar
     cfg = OptimizerConfig(fixed=(3,), damping="diagonal", dense_max=dense_max)
     for kernel in (None, "huber"):
         kern = make_kernel(kernel, None)
         ref = _Problem(graph, cfg, kern, "first", "dense")
-        prob = _host_problem(graph, cfg, kern, "first", "auto")
+        prob = _host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
         assert prob.dense == (dense_max > 0) and prob.size == ref.size == 8 * (3 if planar else 6)
         cost_t, chi2_t, cache_t = ref.evaluate(ref.poses)
         cost, chi2, cache = prob.evaluate(prob.poses)
@@ -183,7 +186,7 @@ def test_review_edge_cases_behave_alike_on_both_backends(monkeypatch):
     Z = graph.measurements.clone()
     Z[:, 3:] *= 1.0005
     off = PoseGraph(graph.poses, graph.ii, graph.jj, Z, graph.information)
-    for backend in ("numpy", "torch"):
+    for backend in ("numpy", "torch") + (("c",) if host.compiled_kernels() else ()):
         res = optimize(off, backend=backend)
         assert res.chi2 == pytest.approx(unit.chi2, rel=1e-9) and res.iterations == unit.iterations
         assert torch.allclose(res.graph.poses, unit.graph.poses, atol=1e-9)
@@ -214,22 +217,23 @@ def test_review_edge_cases_behave_alike_on_both_backends(monkeypatch):
     assert res.status == "converged" and res.chi2 == pytest.approx(unit.chi2, rel=1e-6)
 
 
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=needs_c)])
 @pytest.mark.parametrize("chunk", [1, 7, 29])
 @pytest.mark.parametrize("planar", [False, True])
 @pytest.mark.parametrize("dense_max", [10 ** 6, 0])
-def test_linearisation_in_chunks_of_edges_is_the_same(dense_max, planar, chunk, monkeypatch):
+def test_linearisation_in_chunks_of_edges_is_the_same(dense_max, planar, chunk, compiled, monkeypatch):
     """Large graphs are linearised in chunks of edges (bounded buffers): the normal equations of 30 edges
     in chunks equal those of one chunk, planar and 3D, dense and block-sparse, with a robust kernel and
-    fixed poses, also when the buffers are reused by a second linearisation."""
+    fixed poses, also when the buffers are reused by a second linearisation (numpy and C kernels)."""
     graph = _graph(planar=planar, seed=9)
     cfg = OptimizerConfig(fixed=(0, 3, 7), dense_max=dense_max, planar=planar)
     kern = make_kernel("cauchy", None)
-    whole = _host_problem(graph, cfg, kern, "first", "auto")
+    whole = _host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
     _, _, cache = whole.evaluate(whole.poses)
     H1, g1 = (a.copy() for a in whole.linearize(whole.poses, cache))
     monkeypatch.setattr(host, "_CHUNK", chunk)
-    chunked = _host_problem(graph, cfg, kern, "first", "auto")
-    assert chunked.JT.shape[0] == chunk and chunked.dense == (dense_max > 0)
+    chunked = _host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
+    assert chunked._F.shape[0] == chunk and chunked.dense == (dense_max > 0)
     _, _, cache = chunked.evaluate(chunked.poses)
     chunked.linearize(chunked.poses, cache)
     H2, g2 = chunked.linearize(chunked.poses, cache)

@@ -1,8 +1,9 @@
 """Gauss-Newton / Levenberg-Marquardt on pose graphs: exact solutions, loop closing, solvers, gauge,
 robust kernels, the planar reduction, errors, and agreement with GTSAM on a shared benchmark file.
 
-Every test runs twice: on the numpy path (slam.graph.host, what "auto" picks on the CPU) and on the
-torch path (slam.graph.fused, what runs on other devices), forced through ``slam.graph.optimizer._backend``.
+Every test runs three times: with the C kernels of slam.graph.host (what "auto" picks on the CPU when they
+were built), on its numpy functions, and on the torch path (slam.graph.fused, what runs on other devices),
+forced through ``slam.graph.optimizer._backend``.
 """
 import math
 
@@ -22,16 +23,25 @@ from slam.graph import (
     optimize,
     read_g2o,
 )
+from slam.graph.host import compiled_kernels
 from slam.lie import se3_between, se3_compose, se3_exp, se3_log
 
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, params=["numpy", "torch"])
+@pytest.fixture(autouse=True, params=["c", "numpy", "torch"])
 def backend(request, monkeypatch):
-    """Run the test on both backends (numpy falls back to torch where it must, e.g. the prior gauge)."""
-    if request.param == "torch":
-        monkeypatch.setattr(optimizer_module, "_backend", lambda graph, cfg, gauge: "torch")
+    """Run the test on every backend where ``backend="auto"`` (the C and numpy paths fall back to torch
+    where they must, e.g. the prior gauge)."""
+    if request.param == "c" and not compiled_kernels():
+        pytest.skip("the C kernels slam.graph._kernels were not built")
+    real = optimizer_module._backend
+
+    def forced(graph, cfg, gauge):
+        got = real(graph, cfg, gauge)
+        return got if cfg.backend != "auto" or got == "torch" else request.param
+
+    monkeypatch.setattr(optimizer_module, "_backend", forced)
     return request.param
 
 

@@ -25,6 +25,7 @@ from slam.graph.costs import (
     make_kernel,
 )
 from slam.graph.g2o import G2OFormatError, read_g2o, write_g2o
+from slam.graph.host import compiled_kernels
 from slam.graph.linear import (
     DenseCholeskySolver,
     LinearSolver,
@@ -57,6 +58,7 @@ __all__ = [
     "SuperLUSolver",
     "TrivialKernel",
     "Tukey",
+    "compiled_kernels",
     "edge_chi2",
     "edge_jacobians",
     "edge_residuals",

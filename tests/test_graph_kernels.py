@@ -1,0 +1,201 @@
+"""The optional C kernels of the CPU path (slam.graph._kernels) against the numpy functions of
+slam.graph.host, which test_graph_host checks against the torch path and the reference costs: residuals,
+Jacobian products, retraction, measurement terms, dense assembly and re-anchoring, to round-off, on
+random edges that include an exact edge, angles near pi and both series branches; their input checks;
+and whole optimisations on the shared g2o files with both backends."""
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from slam.graph import PoseGraph, host, optimize, read_g2o
+from slam.graph.optimizer import OptimizerConfig, _host_problem
+from slam.lie import se3_between, se3_compose, se3_exp
+
+F64 = torch.float64
+
+needs_c = pytest.mark.skipif(not host.compiled_kernels(), reason="the C kernels slam.graph._kernels were not built")
+
+
+def test_the_c_kernels_are_built_in_ci():
+    """setup.py builds them where a C compiler is found (optional=True: a failed build does not fail the
+    install), so CI checks that it did not fail silently."""
+    if os.environ.get("CI") != "true":
+        pytest.skip("only checked in CI (CI=true), whose machine has a C compiler")
+    assert host.compiled_kernels()
+
+
+def _graph(seed=3, N=12, E=40, planar=False):
+    """A PoseGraph of random poses and measurements with an exact edge, one near pi, and edges in each
+    series branch (below both thresholds, between them)."""
+    g = torch.Generator().manual_seed(seed)
+    xi = torch.randn(N, 6, generator=g, dtype=F64)
+    xi[:, 3:] *= 1.2
+    ii = torch.randint(0, N, (E,), generator=g)
+    jj = (ii + torch.randint(1, N, (E,), generator=g)) % N
+    dz = torch.randn(E, 6, generator=g, dtype=F64) * 0.3
+    if planar:
+        xi[:, [2, 3, 4]] = 0.0
+        dz[:, [2, 3, 4]] = 0.0
+    P = se3_exp(xi)
+    dz[0] = 0.0  # met exactly: r = 0
+    dz[1, 3:] = torch.tensor([0.0, 0.0, math.pi - 1e-3])  # near pi
+    dz[2, 3:] = torch.tensor([0.0, 0.0, 1e-7]) if planar else 1e-7  # below both series thresholds
+    dz[3, 3:] = torch.tensor([0.0, 0.0, 3e-3]) if planar else 3e-3  # between them (log exact, Q series)
+    Z = se3_compose(se3_between(P[ii], P[jj]), se3_exp(dz))
+    A = torch.randn(E, 6, 6, generator=g, dtype=F64)
+    info = A @ A.transpose(1, 2) + 6 * torch.eye(6, dtype=F64)
+    if planar:  # no coupling between (x, y, yaw) and (z, roll, pitch)
+        inp, out = torch.tensor([0, 1, 5]), torch.tensor([2, 3, 4])
+        info[:, inp[:, None], out] = 0.0
+        info[:, out[:, None], inp] = 0.0
+    return PoseGraph(P, ii, jj, Z, info)
+
+
+def _problems(graph, **cfg):
+    """The same HostProblem with the numpy functions and with the C kernels."""
+    c = OptimizerConfig(**cfg)
+    return (_host_problem(graph, c, None, c.gauge, "auto", compiled=False),
+            _host_problem(graph, c, None, c.gauge, "auto", compiled=True))
+
+
+@needs_c
+def test_measurement_terms_and_residuals_match_numpy():
+    graph = _graph()
+    a, b = _problems(graph)
+    for name in ("zt", "zq", "neg_adz_t"):
+        np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=0, atol=1e-14, err_msg=name)
+    # perturbed poses, so that no residual is exactly that of the generator
+    P = host.retract(a.poses, 0.05 * np.random.default_rng(0).standard_normal((graph.num_poses, 6)))
+    _, chi2_a, (r_a, t2_a, c_a, _) = a.evaluate(P)
+    cost_b, chi2_b, (r_b, t2_b, c_b, _) = b.evaluate(P)
+    np.testing.assert_allclose(r_b, r_a, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(t2_b, t2_a, rtol=1e-12, atol=1e-20)
+    np.testing.assert_allclose(c_b, c_a, rtol=1e-12)
+    assert chi2_b == pytest.approx(chi2_a, rel=1e-12) and cost_b == chi2_b
+    # at the generating poses the exact edge has r = 0 and the near-pi one an angle just below pi
+    _, _, (r0, t20, c0, _) = b.evaluate(a.poses)
+    assert np.abs(r0[0]).max() < 1e-14 and t20[0] < 1e-28 and c0[0] == pytest.approx(1 / 12)
+    assert math.sqrt(t20[1]) == pytest.approx(math.pi - 1e-3, abs=1e-3)
+    assert np.linalg.norm(r0[1, 3:]) <= math.pi
+
+
+@needs_c
+@pytest.mark.parametrize("planar", [False, True])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_normal_equations_match_numpy(planar, weighted):
+    """H and g of the dense path (C assembly) and of the block-sparse path (C products, torch scatter)."""
+    graph = _graph(planar=planar)
+    for dense_max in (400, 0):
+        # fixed poses 2 and 5: their rows and columns are dropped by both assemblies
+        a, b = _problems(graph, fixed=(2, 5), dense_max=dense_max, planar=planar)
+        assert a.dense == b.dense == (dense_max > 0) and a.k == b.k == (3 if planar else 6)
+        P = host.retract(a.poses, 0.05 * np.random.default_rng(1).standard_normal((graph.num_poses, 6)))
+        cache = list(a.evaluate(P)[2])
+        if weighted:
+            cache[3] = np.random.default_rng(2).uniform(0.1, 1.0, graph.num_edges)
+        Ha, ga = (x.copy() for x in a.linearize(P, tuple(cache)))
+        Hb, gb = b.linearize(P, tuple(cache))
+        assert Hb.shape == Ha.shape and gb.shape == ga.shape
+        scale = np.abs(Ha).max()
+        np.testing.assert_allclose(Hb, Ha, rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(gb, ga, rtol=0, atol=1e-12 * scale)
+        # and the same step out of them
+        np.testing.assert_allclose(b.solve(Hb, gb, 1e-3), a.solve(Ha, ga, 1e-3), rtol=0, atol=1e-10)
+
+
+@needs_c
+def test_retraction_matches_numpy_and_the_identity():
+    P = _graph().poses.numpy()
+    rng = np.random.default_rng(3)
+    xi = rng.standard_normal((P.shape[0], 6))
+    xi[0] = 0.0  # no step: P itself
+    xi[1, 3:] = 1e-9  # series branch of b
+    xi[2, 3:] = [0.0, 0.0, math.pi - 1e-6]  # near pi
+    out = np.empty_like(P)
+    host._C.retract(P, xi, out)
+    np.testing.assert_allclose(out, host.retract(P, xi), rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(out[0], P[0])
+
+
+@needs_c
+def test_reanchoring_matches_numpy():
+    graph = _graph()
+    a, b = _problems(graph)
+    P = host.retract(a.poses, 0.3 * np.random.default_rng(4).standard_normal((graph.num_poses, 6)))
+    out_a, out_b = a.finish(P.copy(), True), b.finish(P.copy(), True)
+    torch.testing.assert_close(out_b, out_a, rtol=0, atol=1e-13)
+    assert torch.equal(out_b[0], torch.from_numpy(a.poses[0]))  # pose 0 back at its initial value exactly
+
+
+@needs_c
+def test_kernels_check_their_inputs():
+    C = host._C
+    P, ii, jj = np.zeros((3, 7)), np.array([0, 1]), np.array([1, 2])
+    P[:, 6] = 1.0
+    zt, zq, L = np.zeros((2, 3)), np.tile([0.0, 0, 0, 1], (2, 1)), np.tile(np.eye(6), (2, 1, 1))
+    r, t2, c, s = np.empty((2, 6)), np.empty(2), np.empty(2), np.empty(2)
+    assert C.residuals(P, ii, jj, zt, zq, L, r, t2, c, s) == 0.0
+    with pytest.raises(ValueError, match=r"zq: expected 8 values, got 4"):
+        C.residuals(P, ii, jj, zt, zq[:1], L, r, t2, c, s)
+    with pytest.raises(ValueError, match="P: expected float64"):
+        C.residuals(P.astype(np.float32), ii, jj, zt, zq, L, r, t2, c, s)
+    with pytest.raises(ValueError, match="ii: expected int64"):
+        C.residuals(P, ii.astype(np.int32), jj, zt, zq, L, r, t2, c, s)
+    with pytest.raises(ValueError, match="P: expected a C-contiguous array"):
+        C.residuals(np.zeros((3, 14))[:, ::2], ii, jj, zt, zq, L, r, t2, c, s)
+    with pytest.raises(ValueError, match=r"edge 1: pose index \(1, 3\) out of range \[0, 3\)"):
+        C.residuals(P, ii, np.array([1, 3]), zt, zq, L, r, t2, c, s)
+    with pytest.raises(ValueError, match="P: expected \\(N, 7\\) values, got 20"):
+        C.residuals(np.zeros(20), ii, jj, zt, zq, L, r, t2, c, s)
+    ro = r.copy()
+    ro.flags.writeable = False
+    with pytest.raises(ValueError, match="r: expected a C-contiguous writable array"):
+        C.residuals(P, ii, jj, zt, zq, L, ro, t2, c, s)
+    with pytest.raises(TypeError, match=r"takes 10 arguments \(9 given\)"):
+        C.residuals(P, ii, jj, zt, zq, L, r, t2, c)
+    F = np.empty((2, 13, 13))
+    with pytest.raises(ValueError, match=r"rows\[0\] = 13 is out of range"):
+        C.linearize(r, t2, c, np.zeros((2, 6, 6)), L, None, np.array([13]), np.arange(6), F)
+    with pytest.raises(ValueError, match=r"F: expected 338 values, got 288"):
+        C.linearize(r, t2, c, np.zeros((2, 6, 6)), L, None, np.arange(13), np.arange(6), np.empty((2, 12, 12)))
+    with pytest.raises(ValueError, match=r"edge 0: variable \(0, 5\) out of range for 12 unknowns"):
+        C.assemble_dense(F, ii, jj, np.array([0, 5, 1]), np.zeros(144), np.zeros(12))
+    with pytest.raises(ValueError, match="out: expected 21 values, got 14"):
+        C.retract(P, np.zeros((3, 6)), np.empty((2, 7)))
+
+
+def test_backend_c_says_when_the_kernels_are_missing(monkeypatch):
+    graph = _graph(N=4, E=6)
+    monkeypatch.setattr(host, "_C", None)
+    assert not host.compiled_kernels()
+    with pytest.raises(ValueError, match="backend 'c' needs the C kernels slam.graph._kernels"):
+        optimize(graph, backend="c")
+    res = optimize(graph)  # "auto" falls back to numpy
+    assert res.status == "converged"
+    with pytest.raises(RuntimeError, match="were not built"):
+        _host_problem(graph, OptimizerConfig(), None, "free", "auto", compiled=True)
+
+
+@needs_c
+@pytest.mark.parametrize("name", ["tinyGrid3D", "smallGrid3D", "parking-garage"])
+def test_whole_optimisations_match_numpy(posegraph_dir, name):
+    graph = read_g2o(posegraph_dir / f"{name}.g2o")
+    a, b = optimize(graph, backend="numpy"), optimize(graph, backend="c")
+    assert a.iterations == b.iterations and b.status == a.status == "converged"
+    assert b.chi2 == pytest.approx(a.chi2, rel=1e-9)
+    np.testing.assert_allclose(b.cost_history, a.cost_history, rtol=1e-8)  # round-off of the early steps
+    torch.testing.assert_close(b.graph.poses, a.graph.poses, rtol=0, atol=1e-8)
+
+
+@needs_c
+def test_robust_planar_and_held_optimisations_match_numpy():
+    graph = _graph(seed=5, N=20, E=60, planar=True)
+    for kw in ({"kernel": "cauchy"}, {"fixed": (0, 7)}, {"method": "gn"}):
+        a, b = optimize(graph, backend="numpy", **kw), optimize(graph, backend="c", **kw)
+        assert a.iterations == b.iterations, kw
+        assert b.chi2 == pytest.approx(a.chi2, rel=1e-9), kw
+        torch.testing.assert_close(b.graph.poses, a.graph.poses, rtol=0, atol=1e-8)
+        torch.testing.assert_close(b.weights, a.weights, rtol=1e-7, atol=0)
