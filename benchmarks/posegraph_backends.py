@@ -1,9 +1,9 @@
-"""The optimiser's two CPU backends side by side, and where a dense solve beats the sparse one.
+"""The optimiser's CPU backends side by side, and where a dense solve beats the sparse one.
 
-1. ``optimize`` timed alone (no GTSAM in between; median of ``--repeats``, the backends alternating) on every
-   pose-graph file, with the numpy backend (``slam.graph.host``, the CPU default) and the torch backend
-   (``slam.graph.fused``, what runs on other devices): the effect of the numpy backend, and a check that
-   both reach the same chi2 in the same iterations.
+1. ``optimize`` timed alone (no GTSAM in between; median of ``--repeats``, one backend after the other) on
+   every pose-graph file, with the torch backend (``slam.graph.fused``, what runs on other devices), the
+   numpy functions of ``slam.graph.host`` and its C kernels (``slam.graph._kernels``, the CPU default when
+   they were built): the effect of each, and a check that all reach the same chi2 in the same iterations.
 2. The dense/sparse crossover behind ``OptimizerConfig.dense_max = None``: sphere2500's first N poses
    (the edges among them) solved with ``dense_max=0`` (always sparse) and with a large one (always
    dense), for each backend.
@@ -26,7 +26,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from slam.graph import PoseGraph, optimize, read_g2o  # noqa: E402  (after the sys.path line)
+from slam.graph import PoseGraph, compiled_kernels, optimize, read_g2o  # noqa: E402  (after the sys.path line)
 
 FILES = ["tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "input_M3500_g2o", "input_INTEL_g2o"]
 SUBGRAPH_POSES = [20, 40, 60, 70, 80, 100]
@@ -60,9 +60,14 @@ def main() -> None:
         sys.exit(f"pose-graph files not found at {data} (set --data or ATTNLOOP_DATA)")
     lines = [f"Command: `python benchmarks/posegraph_backends.py --repeats {args.repeats}`, "
              f"{datetime.datetime.now():%Y-%m-%d %H:%M}, {os.cpu_count()} CPUs, load average "
-             f"{os.getloadavg()[0]:.1f} at start, torch {torch.__version__}.", "",
-             "| file | torch ms | numpy ms | torch / numpy | chi2/2 torch | chi2/2 numpy | iterations torch / numpy |",
-             "|---|---|---|---|---|---|---|"]
+             f"{os.getloadavg()[0]:.1f} at start, torch {torch.__version__}.", ""]
+    backends = ("torch", "numpy", "c") if compiled_kernels() else ("torch", "numpy")
+    if not compiled_kernels():
+        lines += ["The C kernels were not built: no \"c\" columns.", ""]
+    lines += ["| file | " + " | ".join(f"{b} ms" for b in backends) + " | torch / numpy"
+              + (" | numpy / c" if "c" in backends else "") + " | " + " | ".join(f"chi2/2 {b}" for b in backends)
+              + " | iterations " + " / ".join(backends) + " |",
+              "|---" * (2 * len(backends) + 2 + ("c" in backends)) + "|"]
     print("\n".join(lines), flush=True)
     for name in FILES:
         path = data / f"{name}.g2o"
@@ -70,25 +75,26 @@ def main() -> None:
             continue
         g = read_g2o(path)
         reps = args.repeats if g.num_edges < 2000 else max(3, args.repeats // 3)
-        res = {b: optimize(g, backend=b) for b in ("torch", "numpy")}
-        ms = {b: median_ms(lambda b=b: optimize(g, backend=b), reps) for b in ("torch", "numpy")}
-        row = (f"| {name} | {ms['torch']:.2f} | {ms['numpy']:.2f} | {ms['torch'] / ms['numpy']:.2f} | "
-               f"{res['torch'].chi2 / 2:.6f} | {res['numpy'].chi2 / 2:.6f} | "
-               f"{res['torch'].iterations} / {res['numpy'].iterations} |")
+        res = {b: optimize(g, backend=b) for b in backends}
+        ms = {b: median_ms(lambda b=b: optimize(g, backend=b), reps) for b in backends}
+        row = (f"| {name} | " + " | ".join(f"{ms[b]:.2f}" for b in backends) + f" | {ms['torch'] / ms['numpy']:.2f}"
+               + (f" | {ms['numpy'] / ms['c']:.2f}" if "c" in backends else "") + " | "
+               + " | ".join(f"{res[b].chi2 / 2:.6f}" for b in backends) + " | "
+               + " / ".join(str(res[b].iterations) for b in backends) + " |")
         lines.append(row)
         print(row, flush=True)
     sphere = data / "sphere2500.g2o"
     if sphere.exists():
         g = read_g2o(sphere)
         head = ["", "Dense vs sparse solve, sphere2500's first N poses (ms, median):", "",
-                "| poses | unknowns | edges | numpy sparse | numpy dense | torch sparse | torch dense |",
-                "|---|---|---|---|---|---|---|"]
+                "| poses | unknowns | edges | " + " | ".join(f"{b} {d}" for b in backends[::-1] for d in ("sparse", "dense"))
+                + " |", "|---" * (3 + 2 * len(backends)) + "|"]
         lines += head
         print("\n".join(head), flush=True)
         for n in SUBGRAPH_POSES:
             sub = first_poses(g, n)
             ms = [median_ms(lambda b=b, d=d: optimize(sub, backend=b, dense_max=d), args.repeats)
-                  for b in ("numpy", "torch") for d in (0, 10 ** 6)]
+                  for b in backends[::-1] for d in (0, 10 ** 6)]
             row = f"| {n} | {6 * n} | {sub.num_edges} | " + " | ".join(f"{m:.2f}" for m in ms) + " |"
             lines.append(row)
             print(row, flush=True)

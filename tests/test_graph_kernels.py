@@ -199,3 +199,70 @@ def test_robust_planar_and_held_optimisations_match_numpy():
         assert b.chi2 == pytest.approx(a.chi2, rel=1e-9), kw
         torch.testing.assert_close(b.graph.poses, a.graph.poses, rtol=0, atol=1e-8)
         torch.testing.assert_close(b.weights, a.weights, rtol=1e-7, atol=0)
+
+
+@needs_c
+def test_review_cases_are_refused_or_harmless():
+    """Found in review: indices that alias an output (or change in another thread) while the loop runs
+    without the GIL, a variable index whose bound check overflowed, misaligned and foreign-endian
+    buffers. Each must raise or give (unspecified) values, never read or write out of bounds."""
+    C = host._C
+    E, N = 4, 3
+    P = np.zeros((N, 7))
+    P[:, 6] = 1.0
+    P[1, :3] = [1.0, 1.5, 2.0]
+    r = np.zeros((E, 6))
+    ii = r.reshape(-1).view(np.int64)[:E]  # the memory of r[0, :4]: valid when checked, overwritten by edge 0
+    ii[:] = [0, 1, 2, 0]
+    zt, zq, L = np.zeros((E, 3)), np.tile([0.0, 0, 0, 1], (E, 1)), np.tile(np.eye(6), (E, 1, 1))
+    with pytest.raises(ValueError, match=r"edge 1: pose index \(\d+, 2\) out of range \[0, 3\)"):
+        C.residuals(P, ii, np.array([1, 2, 0, 2]), zt, zq, L, r, np.empty(E), np.empty(E), np.empty(E))
+    # rows aliasing F: read once before the loop, so the loop's writes cannot move them out of range
+    F = np.zeros((3, 13, 13))
+    rows = F.reshape(-1).view(np.int64)[:13]
+    rows[:] = np.arange(13)
+    rr = np.random.default_rng(0).standard_normal((3, 6))
+    C.linearize(rr, (rr[:, 3:] ** 2).sum(1), np.full(3, 1 / 12), np.tile(-np.eye(6), (3, 1, 1)), L[:3], None, rows,
+                np.arange(6), F)
+    for big in (2 * 10 ** 18, np.iinfo(np.int64).max):  # (v + 1) * k overflowed past the check
+        with pytest.raises(ValueError, match=r"edge 0: variable \(0, \d+\) out of range for 12 unknowns"):
+            C.assemble_dense(np.ones((1, 13, 13)), np.array([0]), np.array([1]), np.array([0, big]), np.zeros(144),
+                             np.zeros(12))
+    raw = np.zeros(7 * N * 8 + 1, dtype=np.uint8)
+    with pytest.raises(ValueError, match="P: expected an 8-byte aligned array"):
+        C.retract(np.frombuffer(raw.data, dtype=np.float64, count=7 * N, offset=1), np.zeros((N, 6)), np.empty((N, 7)))
+    with pytest.raises(ValueError, match="P: expected float64"):
+        C.retract(P.astype(P.dtype.newbyteorder()), np.zeros((N, 6)), np.empty((N, 7)))
+    # relocate with the anchor inside the output: the copy of the anchor overlaps it
+    out = np.empty((N, 7))
+    out[0] = P[1]
+    C.relocate(P, out[0], out)
+    np.testing.assert_array_equal(out[0], P[1])
+
+
+@needs_c
+def test_host_problem_inputs_the_kernels_would_refuse_are_converted():
+    """Review: a PoseGraph keeps edge-index views as given (non-contiguous), numpy < 2 on Windows makes
+    int32 index arrays, and a caller of HostProblem may pass any square root L of the information (not
+    the lower Cholesky factor): the C path gives what the numpy path gives."""
+    graph = _graph(seed=11, N=8, E=20)
+    edges = torch.stack([graph.ii, graph.jj], 1)  # (E, 2): its columns are strided views
+    strided = PoseGraph(graph.poses, edges[:, 0], edges[:, 1], graph.measurements, graph.information)
+    assert not strided.ii.is_contiguous()
+    ref = optimize(graph, backend="numpy")
+    for backend in ("auto", "c"):
+        res = optimize(strided, backend=backend)
+        assert res.iterations == ref.iterations and res.chi2 == pytest.approx(ref.chi2, rel=1e-9)
+    a, _ = _problems(graph)
+    w, V = np.linalg.eigh(a.L @ a.L.transpose(0, 2, 1))
+    sym_root = V @ (np.sqrt(w)[:, :, None] * V.transpose(0, 2, 1))  # symmetric: L L^T = info, not triangular
+    args = (a.poses, a.ii.astype(np.int32), a.jj.astype(np.int32), graph.measurements.numpy(), None, sym_root,
+            np.ones(graph.num_poses, dtype=bool))
+    num, cc = host.HostProblem(*args, compiled=False), host.HostProblem(*args, compiled=True)
+    P = host.retract(a.poses, 0.1 * np.random.default_rng(5).standard_normal((graph.num_poses, 6)))
+    assert cc.evaluate(P)[1] == pytest.approx(num.evaluate(P)[1], rel=1e-12)
+    cache = num.evaluate(P)[2]
+    Hn, gn = (x.copy() for x in num.linearize(P, cache))
+    Hc, gc = cc.linearize(P, cache)
+    np.testing.assert_allclose(Hc, Hn, rtol=0, atol=1e-12 * np.abs(Hn).max())
+    np.testing.assert_allclose(gc, gn, rtol=0, atol=1e-12 * np.abs(Hn).max())

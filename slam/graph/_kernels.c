@@ -11,14 +11,18 @@
  *
  * The math is line for line that of slam/graph/host.py (same notation, same closed forms, same series
  * below the same angles, set by set_constants() from slam.graph.fused at import); the tests compare
- * both to round-off. Arrays are C-contiguous buffers (float64, int64 indices) whose sizes are checked
- * here: a wrong size or an index out of range raises ValueError, never reads out of bounds.
+ * both to round-off. Arrays are C-contiguous, 8-byte aligned buffers (native float64, int64 indices)
+ * whose sizes are checked here: a wrong size or format, or an index out of range, raises ValueError
+ * and nothing is read or written out of bounds. Indices are read once and that copy is checked where
+ * the loop runs without the GIL (an index array may change in another thread, or alias an output);
+ * outputs that alias inputs give unspecified values, never an out-of-bounds access.
  * No numpy headers: only the buffer protocol.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <float.h>
 #include <math.h>
+#include <stdint.h>
 #include <string.h>
 
 /* thresholds and series (slam.graph.fused._SMALL / _SMALL_Q / _Q_SERIES for float64) */
@@ -49,13 +53,21 @@ static int get_buf(PyObject *obj, Buf *b, const char *name, char kind, Py_ssize_
     }
     b->held = 1;
     const char *f = b->view.format ? b->view.format : "B";
+#if PY_BIG_ENDIAN
+    if (*f == '@' || *f == '=' || *f == '>' || *f == '!') f++;
+#else
     if (*f == '@' || *f == '=' || *f == '<') f++;
-    int ok = b->view.itemsize == 8 && f[1] == '\0' &&
+#endif
+    int ok = b->view.itemsize == 8 && f[0] != '\0' && f[1] == '\0' &&
              (kind == 'd' ? f[0] == 'd' : (f[0] == 'q' || f[0] == 'l'));
     if (!ok) {
         PyErr_Format(PyExc_ValueError, "%s: expected %s, got format '%s' with %zd-byte items", name,
                      kind == 'd' ? "float64" : "int64", b->view.format ? b->view.format : "B",
                      b->view.itemsize);
+        return -1;
+    }
+    if (b->view.len > 0 && (uintptr_t)b->view.buf % sizeof(double) != 0) {
+        PyErr_Format(PyExc_ValueError, "%s: expected an 8-byte aligned array", name);
         return -1;
     }
     if (count >= 0 && b->view.len != count * 8) {
@@ -232,22 +244,34 @@ static PyObject *py_residuals(PyObject *self, PyObject *const *args, Py_ssize_t 
             goto fail;
         }
     double chi2 = 0.0;
+    Py_ssize_t bad = -1;
+    long long bi = 0, bj = 0;
     Py_BEGIN_ALLOW_THREADS;
     for (Py_ssize_t e = 0; e < E; e++) {
+        /* each index read once and that copy checked: ii/jj may alias an output or change in another thread */
+        long long i = ii[e], j = jj[e];
+        if (i < 0 || i >= N || j < 0 || j >= N) {
+            bad = e, bi = i, bj = j;
+            break;
+        }
         double *re = r + 6 * e;
-        residual(P + 7 * ii[e], P + 7 * jj[e], zt + 3 * e, zq + 4 * e, re, theta2 + e, c + e);
+        residual(P + 7 * i, P + 7 * j, zt + 3 * e, zq + 4 * e, re, theta2 + e, c + e);
         /* s = |L^T r|^2 (the chi2 of the edge) */
         const double *Le = L + 36 * e;
         double se = 0.0;
         for (int j = 0; j < 6; j++) {
             double u = 0.0;
-            for (int i = j; i < 6; i++) u += re[i] * Le[6 * i + j]; /* L is lower triangular */
+            for (int i = 0; i < 6; i++) u += re[i] * Le[6 * i + j]; /* any L with L L^T = Omega */
             se += u * u;
         }
         s[e] = se;
         chi2 += se;
     }
     Py_END_ALLOW_THREADS;
+    if (bad >= 0) {
+        PyErr_Format(PyExc_ValueError, "edge %zd: pose index (%lld, %lld) out of range [0, %zd)", bad, bi, bj, N);
+        goto fail;
+    }
     release(b, 10);
     return PyFloat_FromDouble(chi2);
 fail:
@@ -264,21 +288,28 @@ static PyObject *py_linearize(PyObject *self, PyObject *const *args, Py_ssize_t 
     if (get_buf(args[6], &b[6], names[6], 'i', -1, 0) < 0 || get_buf(args[7], &b[7], names[7], 'i', -1, 0) < 0)
         goto fail;
     Py_ssize_t nr = nvals(&b[6]), k = nvals(&b[7]);
-    const long long *rows = b[6].view.buf, *dims = b[7].view.buf;
+    const long long *rows_in = b[6].view.buf, *dims_in = b[7].view.buf;
+    int rows[13], dims[6]; /* validated local copies: the loop below runs without the GIL */
     if (k < 1 || k > 6 || nr < 1 || nr > 13) {
         PyErr_Format(PyExc_ValueError, "rows/dims: expected 1..13 rows and 1..6 dims, got %zd and %zd", nr, k);
         goto fail;
     }
-    for (Py_ssize_t a = 0; a < nr; a++)
-        if (rows[a] < 0 || rows[a] >= 13) {
-            PyErr_Format(PyExc_ValueError, "rows[%zd] = %lld is out of range [0, 13)", a, rows[a]);
+    for (Py_ssize_t a = 0; a < nr; a++) {
+        long long v = rows_in[a];
+        if (v < 0 || v >= 13) {
+            PyErr_Format(PyExc_ValueError, "rows[%zd] = %lld is out of range [0, 13)", a, v);
             goto fail;
         }
-    for (Py_ssize_t a = 0; a < k; a++)
-        if (dims[a] < 0 || dims[a] >= 6) {
-            PyErr_Format(PyExc_ValueError, "dims[%zd] = %lld is out of range [0, 6)", a, dims[a]);
+        rows[a] = (int)v;
+    }
+    for (Py_ssize_t a = 0; a < k; a++) {
+        long long v = dims_in[a];
+        if (v < 0 || v >= 6) {
+            PyErr_Format(PyExc_ValueError, "dims[%zd] = %lld is out of range [0, 6)", a, v);
             goto fail;
         }
+        dims[a] = (int)v;
+    }
     if (get_buf(args[0], &b[0], names[0], 'd', -1, 0) < 0) goto fail;
     Py_ssize_t E = nvals(&b[0]) / 6;
     if (E * 6 != nvals(&b[0])) {
@@ -298,14 +329,14 @@ static PyObject *py_linearize(PyObject *self, PyObject *const *args, Py_ssize_t 
     double JT[13][6], AT[13][6];
     for (Py_ssize_t e = 0; e < E; e++) {
         jacobians_t(r + 6 * e, theta2[e], c[e], nadz + 36 * e, JT);
-        /* whitened rows AT = JT[rows][:, dims] L (L lower triangular), times sqrt(w) */
+        /* whitened rows AT = JT[rows][:, dims] L, times sqrt(w) */
         const double *Le = L + k * k * e;
         double sw = w ? sqrt(w[e]) : 1.0;
         for (Py_ssize_t a = 0; a < nr; a++) {
             const double *row = JT[rows[a]];
             for (Py_ssize_t j = 0; j < k; j++) {
                 double acc = 0.0;
-                for (Py_ssize_t m = j; m < k; m++) acc += row[dims[m]] * Le[k * m + j];
+                for (Py_ssize_t m = 0; m < k; m++) acc += row[dims[m]] * Le[k * m + j];
                 AT[a][j] = sw * acc;
             }
         }
@@ -427,6 +458,10 @@ static PyObject *py_assemble_dense(PyObject *self, PyObject *const *args, Py_ssi
         get_buf(args[5], &b[5], "g", 'd', -1, 1) < 0)
         goto fail;
     Py_ssize_t E = nvals(&b[1]), N = nvals(&b[3]), m = nvals(&b[5]);
+    if (m > 0 && m > PY_SSIZE_T_MAX / 8 / m) {
+        PyErr_Format(PyExc_ValueError, "g: %zd unknowns is too many for a dense H", m);
+        goto fail;
+    }
     if (get_buf(args[2], &b[2], "jj", 'i', E, 0) < 0 || get_buf(args[0], &b[0], "F", 'd', -1, 0) < 0 ||
         get_buf(args[4], &b[4], "H", 'd', m * m, 1) < 0)
         goto fail;
@@ -447,7 +482,7 @@ static PyObject *py_assemble_dense(PyObject *self, PyObject *const *args, Py_ssi
             goto fail;
         }
         long long v[2] = {var[ii[e]], var[jj[e]]};
-        if ((v[0] + 1) * k > m || (v[1] + 1) * k > m) {
+        if (v[0] >= m / k || v[1] >= m / k) { /* no (v + 1) * k: it overflows for huge v */
             PyErr_Format(PyExc_ValueError, "edge %zd: variable (%lld, %lld) out of range for %zd unknowns", e, v[0],
                          v[1], m);
             goto fail;
@@ -503,7 +538,7 @@ static PyObject *py_relocate(PyObject *self, PyObject *const *args, Py_ssize_t n
         o[0] = ct[0] + rt[0], o[1] = ct[1] + rt[1], o[2] = ct[2] + rt[2];
         o[3] = q[0], o[4] = q[1], o[5] = q[2], o[6] = q[3];
     }
-    memcpy(out, a, 7 * sizeof(double));
+    memmove(out, a, 7 * sizeof(double));
     release(b, 3);
     Py_RETURN_NONE;
 fail:

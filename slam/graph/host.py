@@ -275,6 +275,9 @@ class HostProblem:
             raise RuntimeError("the C kernels slam.graph._kernels were not built (install attnloop where a C "
                                "compiler is found); use compiled=False")
         self._c = _C if compiled else None
+        if self._c is not None:  # the C kernels take C-contiguous int64 / float64 buffers
+            ii, jj = np.ascontiguousarray(ii, dtype=np.int64), np.ascontiguousarray(jj, dtype=np.int64)
+            poses, meas, L = (np.ascontiguousarray(a, dtype=np.float64) for a in (poses, meas, L))
         self.poses = poses
         self.ii, self.jj = ii, jj
         E = ii.shape[0]
@@ -292,14 +295,15 @@ class HostProblem:
             self.neg_adz_t[:, 3:, 3:] = -Rt
             self.neg_adz_t[:, 3:, :3] = Rt @ (self.zt @ _T["hat"]).reshape(E, 3, 3)
         self.L = L
-        self.dims = np.array([0, 1, 5]) if planar else None  # x, y, yaw in the [rho, phi] order
+        # int64 index arrays throughout (the C kernels take no other; numpy < 2 on Windows defaults to int32)
+        self.dims = np.array([0, 1, 5], dtype=np.int64) if planar else None  # x, y, yaw in the [rho, phi] order
         self.k = k = 3 if planar else 6
         if planar:
             d = self.dims
-            self.rows = np.concatenate([d, d + 6, [12]])  # rows of [J_i^T; J_j^T; r^T]
+            self.rows = np.concatenate([d, d + 6, [12]]).astype(np.int64)  # rows of [J_i^T; J_j^T; r^T]
             self.L_red = np.linalg.cholesky(info[:, d][:, :, d])
         elif self._c is not None:  # the C kernel's selections (all rows and columns)
-            self.rows, self.dims_c = np.arange(13), np.arange(6)
+            self.rows, self.dims_c = np.arange(13, dtype=np.int64), np.arange(6, dtype=np.int64)
         if planar:
             self.dims_c = self.dims
         self.kernel, self.solver, self.damping, self.reanchor = kernel, solver, damping, reanchor
@@ -312,7 +316,7 @@ class HostProblem:
         if self._c is None:
             self.JT = np.zeros((C, 13, 6))
             self._AT, self._A = np.empty((C, rows, k)), np.empty((C, k, rows))
-        var = np.where(free, np.cumsum(free) - 1, -1)
+        var = np.where(free, np.cumsum(free, dtype=np.int64) - 1, -1)
         self.all_free = bool(free.all())
         if not self.all_free:
             self.free_idx = np.flatnonzero(free)
