@@ -266,3 +266,54 @@ def test_host_problem_inputs_the_kernels_would_refuse_are_converted():
     Hc, gc = cc.linearize(P, cache)
     np.testing.assert_allclose(Hc, Hn, rtol=0, atol=1e-12 * np.abs(Hn).max())
     np.testing.assert_allclose(gc, gn, rtol=0, atol=1e-12 * np.abs(Hn).max())
+
+
+@needs_c
+def test_setup_kernels_match_numpy_and_flag_bad_information():
+    """unit_poses = the numpy normalisation; information_factors = numpy's Cholesky (zeros above the
+    diagonal), and -1 or the first bad edge by the rule of slam.graph.optimizer._information_factor."""
+    from slam.graph.optimizer import _SYMMETRY_RTOL, _unit_quaternions
+
+    C = host._C
+    graph = _graph(seed=13, N=10, E=30)
+    Z = graph.measurements.numpy().copy()
+    Z[:, 3:] *= np.linspace(0.999, 1.001, Z.shape[0])[:, None]  # within the graph's 1e-3 validation
+    out = np.empty_like(Z)
+    C.unit_poses(Z, out)
+    np.testing.assert_allclose(out, _unit_quaternions(Z), rtol=0, atol=2e-16)
+    info = graph.information.numpy().copy()
+    L = np.empty_like(info)
+    assert C.information_factors(info, L, True, _SYMMETRY_RTOL) == -1
+    np.testing.assert_allclose(L, np.linalg.cholesky(info), rtol=0, atol=1e-13 * np.abs(info).max())
+    assert not L[:, np.triu_indices(6, 1)[0], np.triu_indices(6, 1)[1]].any()
+    bad = info.copy()
+    bad[7, 0, 1] += 1e-3 * bad[7].diagonal().max()  # not symmetric (flagged only when checked)
+    bad[12] = -np.eye(6)  # not positive definite
+    bad[20, 2, 2] = np.nan
+    assert C.information_factors(bad, L, True, _SYMMETRY_RTOL) == 7
+    assert C.information_factors(bad, L, False, _SYMMETRY_RTOL) == 12  # the lower triangle is still SPD
+    bad[12] = info[12]
+    assert C.information_factors(bad, L, False, _SYMMETRY_RTOL) == 20
+    bad[7, 0, 1] = info[7, 0, 1] + 1e-8 * info[7].diagonal().max()  # within the tolerance: accepted
+    bad[20] = info[20]
+    assert C.information_factors(bad, L, True, _SYMMETRY_RTOL) == -1
+    # through optimize: the torch factor names the edge, as on the numpy path
+    bad[7, 0, 1] += 1e-3 * bad[7].diagonal().max()
+    g = PoseGraph(graph.poses, graph.ii, graph.jj, graph.measurements, graph.information)
+    g.information = torch.from_numpy(bad)  # after validation, as a caller mutating the tensors would
+    for backend in ("c", "numpy"):
+        with pytest.raises(ValueError, match=r"information\[7\] \(edge \d+ -> \d+\) is not symmetric positive"):
+            optimize(g, backend=backend)
+
+
+def test_planar_rule_on_arrays_equals_the_graph_method():
+    from slam.graph.pose_graph import planar_arrays
+
+    for planar in (False, True):
+        graph = _graph(seed=2, planar=planar)
+        args = (graph.poses.numpy(), graph.measurements.numpy(), graph.information.numpy())
+        assert planar_arrays(*args) == graph.is_planar() == planar
+    info = graph.information.clone()
+    info[3, 1, 4] = info[3, 4, 1] = 1e-3  # y coupled with pitch
+    coupled = PoseGraph(graph.poses, graph.ii, graph.jj, graph.measurements, info)
+    assert not coupled.is_planar() and coupled.is_planar(tol=1.0)

@@ -2,12 +2,15 @@
  * slam.graph._kernels: the per-edge loops of slam.graph.host in C (optional, built by setup.py).
  *
  * Why: on the CPU an optimiser iteration in numpy is ~150 array calls whatever the graph's size; on a
- * 9-pose graph (tinyGrid3D) their 1-2 us of dispatch each *is* the run time (3.5x GTSAM's). These three
+ * 9-pose graph (tinyGrid3D) their 1-2 us of dispatch each *is* the run time (3.5x GTSAM's). These
  * functions do the same work in one call each, edge by edge, without temporaries:
  *
  *   residuals(P, ii, jj, zt, zq, L, r, theta2, c, s) -> chi2
  *   linearize(r, theta2, c, neg_adz_t, L, w, rows, dims, F)
  *   retract(P, xi, out)
+ *
+ * and the setup, assembly and finish of a call: unit_poses, information_factors, measurement_terms,
+ * assemble_dense, relocate.
  *
  * The math is line for line that of slam/graph/host.py (same notation, same closed forms, same series
  * below the same angles, set by set_constants() from slam.graph.fused at import); the tests compare
@@ -510,6 +513,99 @@ fail:
     return NULL;
 }
 
+/* out = P with each quaternion scaled to unit norm (P (N, 7), the rows of poses or measurements) */
+static PyObject *py_unit_poses(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs(nargs, 2, "unit_poses") < 0) return NULL;
+    Buf b[2];
+    memset(b, 0, sizeof(b));
+    if (get_buf(args[0], &b[0], "P", 'd', -1, 0) < 0) goto fail;
+    Py_ssize_t N = nvals(&b[0]) / 7;
+    if (N * 7 != nvals(&b[0])) {
+        PyErr_Format(PyExc_ValueError, "P: expected (N, 7) values, got %zd", nvals(&b[0]));
+        goto fail;
+    }
+    if (get_buf(args[1], &b[1], "out", 'd', 7 * N, 1) < 0) goto fail;
+    const double *P = b[0].view.buf;
+    double *out = b[1].view.buf;
+    for (Py_ssize_t n = 0; n < N; n++) {
+        const double *p = P + 7 * n;
+        double *o = out + 7 * n;
+        double nq = sqrt(((p[3] * p[3] + p[4] * p[4]) + p[5] * p[5]) + p[6] * p[6]);
+        o[0] = p[0], o[1] = p[1], o[2] = p[2];
+        o[3] = p[3] / nq, o[4] = p[4] / nq, o[5] = p[5] / nq, o[6] = p[6] / nq;
+    }
+    release(b, 2);
+    Py_RETURN_NONE;
+fail:
+    release(b, 2);
+    return NULL;
+}
+
+/* Lower Cholesky factors L (E, 6, 6) of the information matrices (E, 6, 6), from their lower triangles.
+ * Returns -1, or the first edge whose matrix is not positive definite (or not finite), or, when `check`,
+ * not symmetric: |A - A^T| > rtol * max(max diag, DBL_MIN) (slam.graph.optimizer._information_factor's rule,
+ * which the caller then runs to raise its error). */
+static PyObject *py_information_factors(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs(nargs, 4, "information_factors") < 0) return NULL;
+    int check = PyObject_IsTrue(args[2]);
+    double rtol = PyFloat_AsDouble(args[3]);
+    if (check < 0 || (rtol == -1.0 && PyErr_Occurred())) return NULL;
+    Buf b[2];
+    memset(b, 0, sizeof(b));
+    if (get_buf(args[0], &b[0], "info", 'd', -1, 0) < 0) goto fail;
+    Py_ssize_t E = nvals(&b[0]) / 36;
+    if (E * 36 != nvals(&b[0])) {
+        PyErr_Format(PyExc_ValueError, "info: expected (E, 6, 6) values, got %zd", nvals(&b[0]));
+        goto fail;
+    }
+    if (get_buf(args[1], &b[1], "L", 'd', 36 * E, 1) < 0) goto fail;
+    const double *info = b[0].view.buf;
+    double *Lall = b[1].view.buf;
+    Py_ssize_t bad = -1;
+    for (Py_ssize_t e = 0; e < E && bad < 0; e++) {
+        const double *A = info + 36 * e;
+        double *L = Lall + 36 * e;
+        if (check) {
+            double scale = DBL_MIN, asym = 0.0;
+            for (int i = 0; i < 6; i++)
+                if (A[7 * i] > scale) scale = A[7 * i];
+            for (int i = 0; i < 6; i++)
+                for (int j = 0; j < i; j++) {
+                    double d = fabs(A[6 * i + j] - A[6 * j + i]);
+                    if (!(d <= asym)) asym = d; /* a NaN sticks */
+                }
+            if (!(asym <= rtol * scale)) {
+                bad = e;
+                break;
+            }
+        }
+        for (int i = 0; i < 6; i++) {
+            for (int j = 0; j <= i; j++) {
+                double s = A[6 * i + j];
+                for (int m = 0; m < j; m++) s -= L[6 * i + m] * L[6 * j + m];
+                if (j < i) {
+                    L[6 * i + j] = s / L[7 * j];
+                } else if (s > 0.0 && isfinite(s)) {
+                    L[7 * i] = sqrt(s);
+                } else {
+                    bad = e;
+                }
+            }
+            for (int j = i + 1; j < 6; j++) L[6 * i + j] = 0.0;
+            if (bad >= 0) break;
+        }
+        for (int q = 0; q < 36 && bad < 0; q++)
+            if (!isfinite(L[q])) bad = e;
+    }
+    release(b, 2);
+    return PyLong_FromSsize_t(bad);
+fail:
+    release(b, 2);
+    return NULL;
+}
+
 /* Move poses P (N, 7) rigidly so that pose 0 lands on anchor (7,): out = anchor P_0^-1 P, out_0 = anchor */
 static PyObject *py_relocate(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
@@ -571,6 +667,11 @@ static PyMethodDef methods[] = {
      "measurement_terms(meas, zt, zq, neg_adz_t): z^-1 = (zt (E, 3), zq (E, 4)) and -Ad(z^-1)^T (E, 6, 6)."},
     {"assemble_dense", (PyCFunction)(void (*)(void))py_assemble_dense, METH_FASTCALL,
      "assemble_dense(F, ii, jj, var, H, g): add each edge's F (E, 2k+1, 2k+1) into H (m, m) and g (m,)."},
+    {"unit_poses", (PyCFunction)(void (*)(void))py_unit_poses, METH_FASTCALL,
+     "unit_poses(P, out): out = P (N, 7) with each quaternion scaled to unit norm."},
+    {"information_factors", (PyCFunction)(void (*)(void))py_information_factors, METH_FASTCALL,
+     "information_factors(info, L, check, rtol) -> int: lower Cholesky factors L (E, 6, 6); -1, or the first edge "
+     "whose matrix is not positive definite (or, when check, not symmetric to rtol)."},
     {"relocate", (PyCFunction)(void (*)(void))py_relocate, METH_FASTCALL,
      "relocate(P, anchor, out): out = anchor P_0^-1 P (N, 7), with out_0 = anchor exactly."},
     {"set_constants", py_set_constants, METH_VARARGS,

@@ -47,7 +47,7 @@ from slam.graph import fused
 from slam.graph.cholesky import NotPositiveDefiniteError
 from slam.graph.linear import LinearSolverError, SparseCholeskySolver, build_pattern
 
-__all__ = ["HostProblem", "compiled_kernels", "cross", "qmul", "qmul_conj", "rotate", "rotmat"]
+__all__ = ["HostProblem", "compiled_kernels", "cross", "host_kernels", "qmul", "qmul_conj", "rotate", "rotmat"]
 
 # the float64 thresholds and series of slam.graph.fused: below _SMALL the series of the logarithm's terms,
 # below _SMALL_Q those of the coefficients of Q (rows: powers 1, t^2, t^4; columns c1, c2, c3)
@@ -70,6 +70,11 @@ except ImportError:  # not built: the numpy functions below do the same work
 def compiled_kernels() -> bool:
     """Whether the C kernels of the CPU path (``slam.graph._kernels``) were built and imported."""
     return _C is not None
+
+
+def host_kernels():
+    """The C kernels module ``slam.graph._kernels``, or None when it was not built."""
+    return _C
 
 
 # -- bilinear tables ----------------------------------------------------------------------------------

@@ -53,7 +53,7 @@ import torch
 from slam.graph.cholesky import limit_blas_threads
 from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.fused import bmm, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
-from slam.graph.host import HostProblem, compiled_kernels
+from slam.graph.host import HostProblem, compiled_kernels, host_kernels
 from slam.graph.linear import (
     BlockPattern,
     LinearSolver,
@@ -63,7 +63,7 @@ from slam.graph.linear import (
     make_solver,
     scipy_available,
 )
-from slam.graph.pose_graph import PoseGraph
+from slam.graph.pose_graph import PoseGraph, planar_arrays
 from slam.lie import se3_compose, se3_inv, se3_log, se3_right_jacobian_inv
 
 __all__ = ["OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
@@ -348,21 +348,29 @@ def _host_problem(graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[Robus
     """The :class:`slam.graph.host.HostProblem` of a CPU graph (its setup in numpy: ~30 calls), with the C
     kernels when ``compiled``."""
     dt = torch.float64
-    # unit quaternions (validated to 1e-3) made exact, as on the torch path
-    P = _unit_quaternions(graph.poses.detach().to(dt).numpy())
-    meas = _unit_quaternions(graph.measurements.detach().to(dt).numpy())
-    info = graph.information.detach().to(dt).numpy()
-    # numpy's batched Cholesky first (~8 us on 11 edges against ~35 us for the torch factor, measured ~0.1 ms
-    # per call in sequence); the torch factor names the first bad edge when it fails
+    P0, meas0, info = (t.detach().to(dt).numpy() for t in (graph.poses, graph.measurements, graph.information))
+    C = host_kernels() if compiled else None
     L = None
-    if not cfg.check_information or _symmetric(info):
-        try:
-            L = np.linalg.cholesky(info)
-        except np.linalg.LinAlgError:
-            pass
-    if L is None or not np.isfinite(L).all():
+    if C is not None:  # the same steps as below in 3 calls (the setup is half of a 9-pose graph's time)
+        P0, meas0, info = np.ascontiguousarray(P0), np.ascontiguousarray(meas0), np.ascontiguousarray(info)
+        P, meas, L = np.empty_like(P0), np.empty_like(meas0), np.empty_like(info)
+        C.unit_poses(P0, P)
+        C.unit_poses(meas0, meas)
+        if C.information_factors(info, L, cfg.check_information, _SYMMETRY_RTOL) >= 0:
+            L = None  # the torch factor below names the bad edge
+    else:
+        # unit quaternions (validated to 1e-3) made exact, as on the torch path
+        P, meas = _unit_quaternions(P0), _unit_quaternions(meas0)
+        # numpy's batched Cholesky first (~8 us on 11 edges against ~35 us for the torch factor, measured
+        # ~0.1 ms per call in sequence); the torch factor names the first bad edge when it fails
+        if not cfg.check_information or _symmetric(info):
+            try:
+                L = np.linalg.cholesky(info)
+            except np.linalg.LinAlgError:
+                pass
+    if L is None or C is None and not np.isfinite(L).all():
         L = _information_factor(graph, torch.from_numpy(info), cfg.check_information).numpy()
-    planar = graph.is_planar() if cfg.planar is None else bool(cfg.planar)
+    planar = planar_arrays(P0, meas0, info) if cfg.planar is None else bool(cfg.planar)
     fixed = _held_poses(cfg, gauge, graph.num_poses)
     free = np.ones(graph.num_poses, dtype=bool)
     free[fixed] = False

@@ -20,6 +20,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
+import numpy as np
 import torch
 
 from slam.lie import se3_normalize
@@ -229,13 +230,8 @@ class PoseGraph:
         """True when every pose and measurement lies in the plane ``z = 0`` with a yaw-only rotation and
         no information couples (x, y, yaw) with (z, roll, pitch): then the problem splits exactly and the
         optimiser may solve the 3-DoF part only."""
-        def flat(p: Tensor) -> bool:  # z, qx, qy (columns 2:5; a slice: half the time of an index list)
-            return bool((p[:, 2:5].abs() <= tol).all()) if p.numel() else True
-        if not (flat(self.poses) and flat(self.measurements)):
-            return False
-        inp = [0, 1, 5]  # coupled with (z, roll, pitch) = columns 2:5
-        cross = self.information[:, inp, 2:5]
-        return bool((cross.abs() <= tol * self.information.abs().amax(dim=(1, 2))[:, None, None]).all())
+        return planar_arrays(*(t.detach().cpu().double().numpy() for t in
+                               (self.poses, self.measurements, self.information)), tol=tol)
 
     # ------------------------------------------------------------------------------------------
     @staticmethod
@@ -273,6 +269,19 @@ class PoseGraph:
         g = PoseGraph(se3_normalize(P), torch.tensor(ii, dtype=torch.long, device=device),
                       torch.tensor(jj, dtype=torch.long, device=device), se3_normalize(Z), Om)
         return g.validate()
+
+
+def planar_arrays(poses: np.ndarray, measurements: np.ndarray, information: np.ndarray, tol: float = 1e-9) -> bool:
+    """The rule of :meth:`PoseGraph.is_planar` on float64 arrays ``poses (N, 7)``, ``measurements (E, 7)``,
+    ``information (E, 6, 6)`` (numpy: the optimiser's setup runs it on the arrays it already holds)."""
+    # z, qx, qy: columns 2:5 of the poses and measurements (a NaN is not planar)
+    if not all((np.abs(p[:, 2:5]) <= tol).all() for p in (poses, measurements)):
+        return False
+    if information.shape[0] == 0:
+        return True
+    scale = np.abs(information).max(axis=(1, 2))
+    cross = np.abs(information[:, [0, 1, 5], 2:5])  # (x, y, yaw) coupled with (z, roll, pitch)
+    return bool((cross <= tol * scale[:, None, None]).all())
 
 
 def first_bad_information(information: Tensor, rtol: float = 1e-6) -> Optional[int]:
