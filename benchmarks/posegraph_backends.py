@@ -67,7 +67,7 @@ def main() -> None:
     lines += ["| file | " + " | ".join(f"{b} ms" for b in backends) + " | torch / numpy"
               + (" | numpy / c" if "c" in backends else "") + " | " + " | ".join(f"chi2/2 {b}" for b in backends)
               + " | iterations " + " / ".join(backends) + " |",
-              "|---" * (2 * len(backends) + 2 + ("c" in backends)) + "|"]
+              "|---" * (2 * len(backends) + 3 + ("c" in backends)) + "|"]
     print("\n".join(lines), flush=True)
     for name in FILES:
         path = data / f"{name}.g2o"
