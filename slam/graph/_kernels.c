@@ -82,6 +82,18 @@ static int get_buf(PyObject *obj, Buf *b, const char *name, char kind, Py_ssize_
 
 static Py_ssize_t nvals(Buf *b) { return b->view.len / 8; }
 
+/* A read-only float64 buffer of rows of `width` values (shape written in `shape`, e.g. "(N, 7)"); returns
+ * the number of rows, or -1 with an exception set. */
+static Py_ssize_t get_rows(PyObject *obj, Buf *b, const char *name, Py_ssize_t width, const char *shape) {
+    if (get_buf(obj, b, name, 'd', -1, 0) < 0) return -1;
+    Py_ssize_t n = nvals(b) / width;
+    if (n * width != nvals(b)) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %s values, got %zd", name, shape, nvals(b));
+        return -1;
+    }
+    return n;
+}
+
 /* -- geometry (slam/graph/host.py: qmul, qmul_conj, rotmat, cross) ------------------------------------ */
 static inline void qmul(const double *a, const double *b, double *o) { /* a b, [x, y, z, w] */
     double x = a[3] * b[0] + b[3] * a[0] + a[1] * b[2] - a[2] * b[1];
@@ -226,12 +238,8 @@ static PyObject *py_residuals(PyObject *self, PyObject *const *args, Py_ssize_t 
     static const char *names[10] = {"P", "ii", "jj", "zt", "zq", "L", "r", "theta2", "c", "s"};
     Buf b[10];
     memset(b, 0, sizeof(b));
-    if (get_buf(args[0], &b[0], names[0], 'd', -1, 0) < 0) goto fail;
-    Py_ssize_t N = nvals(&b[0]) / 7;
-    if (N * 7 != nvals(&b[0])) {
-        PyErr_Format(PyExc_ValueError, "P: expected (N, 7) values, got %zd", nvals(&b[0]));
-        goto fail;
-    }
+    Py_ssize_t N = get_rows(args[0], &b[0], names[0], 7, "(N, 7)");
+    if (N < 0) goto fail;
     if (get_buf(args[1], &b[1], names[1], 'i', -1, 0) < 0) goto fail;
     Py_ssize_t E = nvals(&b[1]);
     const Py_ssize_t per[10] = {0, 1, 1, 3, 4, 36, 6, 1, 1, 1};
@@ -313,12 +321,8 @@ static PyObject *py_linearize(PyObject *self, PyObject *const *args, Py_ssize_t 
         }
         dims[a] = (int)v;
     }
-    if (get_buf(args[0], &b[0], names[0], 'd', -1, 0) < 0) goto fail;
-    Py_ssize_t E = nvals(&b[0]) / 6;
-    if (E * 6 != nvals(&b[0])) {
-        PyErr_Format(PyExc_ValueError, "r: expected (E, 6) values, got %zd", nvals(&b[0]));
-        goto fail;
-    }
+    Py_ssize_t E = get_rows(args[0], &b[0], names[0], 6, "(E, 6)");
+    if (E < 0) goto fail;
     const Py_ssize_t per[6] = {6, 1, 1, 36, k * k, 1};
     for (int q = 1; q < 6; q++) {
         if (q == 5 && args[5] == Py_None) continue;
@@ -365,12 +369,8 @@ static PyObject *py_retract(PyObject *self, PyObject *const *args, Py_ssize_t na
     if (check_nargs(nargs, 3, "retract") < 0) return NULL;
     Buf b[3];
     memset(b, 0, sizeof(b));
-    if (get_buf(args[0], &b[0], "P", 'd', -1, 0) < 0) goto fail;
-    Py_ssize_t N = nvals(&b[0]) / 7;
-    if (N * 7 != nvals(&b[0])) {
-        PyErr_Format(PyExc_ValueError, "P: expected (N, 7) values, got %zd", nvals(&b[0]));
-        goto fail;
-    }
+    Py_ssize_t N = get_rows(args[0], &b[0], "P", 7, "(N, 7)");
+    if (N < 0) goto fail;
     if (get_buf(args[1], &b[1], "xi", 'd', 6 * N, 0) < 0 || get_buf(args[2], &b[2], "out", 'd', 7 * N, 1) < 0)
         goto fail;
     const double *P = b[0].view.buf, *xi = b[1].view.buf;
@@ -409,12 +409,8 @@ static PyObject *py_measurement_terms(PyObject *self, PyObject *const *args, Py_
     if (check_nargs(nargs, 4, "measurement_terms") < 0) return NULL;
     Buf b[4];
     memset(b, 0, sizeof(b));
-    if (get_buf(args[0], &b[0], "meas", 'd', -1, 0) < 0) goto fail;
-    Py_ssize_t E = nvals(&b[0]) / 7;
-    if (E * 7 != nvals(&b[0])) {
-        PyErr_Format(PyExc_ValueError, "meas: expected (E, 7) values, got %zd", nvals(&b[0]));
-        goto fail;
-    }
+    Py_ssize_t E = get_rows(args[0], &b[0], "meas", 7, "(E, 7)");
+    if (E < 0) goto fail;
     if (get_buf(args[1], &b[1], "zt", 'd', 3 * E, 1) < 0 || get_buf(args[2], &b[2], "zq", 'd', 4 * E, 1) < 0 ||
         get_buf(args[3], &b[3], "neg_adz_t", 'd', 36 * E, 1) < 0)
         goto fail;
@@ -519,12 +515,8 @@ static PyObject *py_unit_poses(PyObject *self, PyObject *const *args, Py_ssize_t
     if (check_nargs(nargs, 2, "unit_poses") < 0) return NULL;
     Buf b[2];
     memset(b, 0, sizeof(b));
-    if (get_buf(args[0], &b[0], "P", 'd', -1, 0) < 0) goto fail;
-    Py_ssize_t N = nvals(&b[0]) / 7;
-    if (N * 7 != nvals(&b[0])) {
-        PyErr_Format(PyExc_ValueError, "P: expected (N, 7) values, got %zd", nvals(&b[0]));
-        goto fail;
-    }
+    Py_ssize_t N = get_rows(args[0], &b[0], "P", 7, "(N, 7)");
+    if (N < 0) goto fail;
     if (get_buf(args[1], &b[1], "out", 'd', 7 * N, 1) < 0) goto fail;
     const double *P = b[0].view.buf;
     double *out = b[1].view.buf;
@@ -554,12 +546,8 @@ static PyObject *py_information_factors(PyObject *self, PyObject *const *args, P
     if (check < 0 || (rtol == -1.0 && PyErr_Occurred())) return NULL;
     Buf b[2];
     memset(b, 0, sizeof(b));
-    if (get_buf(args[0], &b[0], "info", 'd', -1, 0) < 0) goto fail;
-    Py_ssize_t E = nvals(&b[0]) / 36;
-    if (E * 36 != nvals(&b[0])) {
-        PyErr_Format(PyExc_ValueError, "info: expected (E, 6, 6) values, got %zd", nvals(&b[0]));
-        goto fail;
-    }
+    Py_ssize_t E = get_rows(args[0], &b[0], "info", 36, "(E, 6, 6)");
+    if (E < 0) goto fail;
     if (get_buf(args[1], &b[1], "L", 'd', 36 * E, 1) < 0) goto fail;
     const double *info = b[0].view.buf;
     double *Lall = b[1].view.buf;
@@ -612,10 +600,10 @@ static PyObject *py_relocate(PyObject *self, PyObject *const *args, Py_ssize_t n
     if (check_nargs(nargs, 3, "relocate") < 0) return NULL;
     Buf b[3];
     memset(b, 0, sizeof(b));
-    if (get_buf(args[0], &b[0], "P", 'd', -1, 0) < 0) goto fail;
-    Py_ssize_t N = nvals(&b[0]) / 7;
-    if (N * 7 != nvals(&b[0]) || N < 1) {
-        PyErr_Format(PyExc_ValueError, "P: expected (N >= 1, 7) values, got %zd", nvals(&b[0]));
+    Py_ssize_t N = get_rows(args[0], &b[0], "P", 7, "(N >= 1, 7)");
+    if (N < 0) goto fail;
+    if (N < 1) {
+        PyErr_SetString(PyExc_ValueError, "P: expected (N >= 1, 7) values, got 0");
         goto fail;
     }
     if (get_buf(args[1], &b[1], "anchor", 'd', 7, 0) < 0 || get_buf(args[2], &b[2], "out", 'd', 7 * N, 1) < 0)

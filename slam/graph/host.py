@@ -21,8 +21,9 @@ compiler is found, chosen by ``OptimizerConfig.backend = "auto"`` or ``"c"``): t
 edge in one call per step: residuals with their chi2, the Jacobian products ``F`` of every edge, the
 retraction, the measurement terms of the setup, the dense assembly and the re-anchoring. On a 9-pose graph
 the numpy functions spend ~1 ms of call overhead where GTSAM needs 0.4 ms in all; the C kernels bring the
-whole optimisation to ~0.3 ms, and large graphs gain 20-35% (no per-edge temporaries). The numpy functions
-stay the reference the C kernels are tested against (``tests/test_graph_kernels.py``) and the fallback.
+whole optimisation to ~0.3 ms (5x), and the benchmark files 1.1-1.65x (no per-edge temporaries; the sparse
+Cholesky they share dominates there). The numpy functions stay the reference the C kernels are tested
+against (``tests/test_graph_kernels.py``) and the fallback.
 
 Assembly (a scatter-add of the per-edge products into ``H`` and ``g``) goes through torch's
 ``index_add_`` on views of the same memory: numpy has no fast scatter-add (``np.add.at`` and
@@ -307,10 +308,9 @@ class HostProblem:
             d = self.dims
             self.rows = np.concatenate([d, d + 6, [12]]).astype(np.int64)  # rows of [J_i^T; J_j^T; r^T]
             self.L_red = np.linalg.cholesky(info[:, d][:, :, d])
-        elif self._c is not None:  # the C kernel's selections (all rows and columns)
-            self.rows, self.dims_c = np.arange(13, dtype=np.int64), np.arange(6, dtype=np.int64)
-        if planar:
-            self.dims_c = self.dims
+        # the C kernel's selections of rows of [J_i^T; J_j^T; r^T] and of columns (all of them in 6-DoF)
+        self._rows_c = self.rows if planar else np.arange(13, dtype=np.int64)
+        self._dims_c = self.dims if planar else np.arange(6, dtype=np.int64)
         self.kernel, self.solver, self.damping, self.reanchor = kernel, solver, damping, reanchor
         # per-iteration products in buffers made once: fresh megabyte arrays pay their page faults at every
         # iteration (parking-garage: linearisation 13.8 -> 7.3 ms). Large graphs are linearised in chunks of
@@ -411,7 +411,7 @@ class HostProblem:
         if self._c is not None:
             F = self._F[:n]
             self._c.linearize(r[sl], theta2[sl], c[sl], self.neg_adz_t[sl], L, None if w is None else w[sl],
-                              self.rows, self.dims_c, F)
+                              self._rows_c, self._dims_c, F)
         else:
             JT = _jacobians_t(r[sl], theta2[sl], c[sl], self.neg_adz_t[sl], self.JT[:n])
             if self.dims is not None:
