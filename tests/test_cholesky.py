@@ -1,12 +1,26 @@
-"""The supernodal sparse Cholesky (slam.graph.cholesky) against dense references on random SPD systems."""
+"""The supernodal sparse Cholesky (slam.graph.cholesky) against dense references on random SPD systems.
+
+Every test runs twice: with the C kernels doing the small fronts (slam.graph._kernels.factor_group /
+solve_group, the CPU default when they were built) and without them (LAPACK front by front and torch
+batched groups, as where they were not built)."""
 import threading
 
 import numpy as np
 import pytest
 import torch
 
+import slam.graph.cholesky as chol
 from slam.graph.cholesky import NotPositiveDefiniteError, SymbolicCholesky
 from slam.graph.linear import build_pattern
+
+
+@pytest.fixture(autouse=True, params=["c", "lapack"])
+def fronts(request, monkeypatch):
+    if request.param == "c" and chol._C is None:
+        pytest.skip("the C kernels slam.graph._kernels were not built")
+    if request.param == "lapack":
+        monkeypatch.setattr(chol, "_C", None)
+    return request.param
 
 
 def _chain(n):
@@ -267,11 +281,10 @@ def _assert_solves(f, A, b):
     np.testing.assert_allclose(f.solve(b), ref, rtol=0, atol=1e-9 * np.abs(ref).max())
 
 
-def test_interrupted_factorisation_leaves_earlier_factor_intact(monkeypatch):
+def test_interrupted_factorisation_leaves_earlier_factor_intact(monkeypatch, fronts):
     """A factorisation that raises half way (bad input, KeyboardInterrupt) must not stay as the buffer's
     'owner': the earlier factor, already moved to its own copy, would then be moved again at the next
     factorisation, i.e. replaced by the half-done buffer (finite, wrong solutions)."""
-    import slam.graph.cholesky as chol
 
     ii, jj, n, k = CASES["loops_k6"]
     A1, pat, vals1 = _system(ii, jj, n, k, seed=1)
@@ -281,18 +294,28 @@ def test_interrupted_factorisation_leaves_earlier_factor_intact(monkeypatch):
     f1 = sym.factor(vals1)
     with pytest.raises((IndexError, RuntimeError)):  # values of the wrong length
         sym.factor(vals2[:-2 * k * k])
-    orig, calls = chol._factor_numpy_group, []
+    calls, saved = [], (chol._C, chol._factor_numpy_group)
 
-    def interrupted(*args):
-        calls.append(1)
-        if len(calls) == 5:
-            raise KeyboardInterrupt
-        return orig(*args)
+    def interrupt_fifth(orig):
+        def call(*args):
+            calls.append(1)
+            if len(calls) == 5:
+                raise KeyboardInterrupt
+            return orig(*args)
+        return call
 
-    monkeypatch.setattr(chol, "_factor_numpy_group", interrupted)
+    if chol._C is not None:  # the small fronts go through the C kernels: interrupt those
+        class Interrupted:
+            factor_group = staticmethod(interrupt_fifth(chol._C.factor_group))
+            solve_group = staticmethod(chol._C.solve_group)
+
+        monkeypatch.setattr(chol, "_C", Interrupted)
+    else:
+        monkeypatch.setattr(chol, "_factor_numpy_group", interrupt_fifth(chol._factor_numpy_group))
     with pytest.raises(KeyboardInterrupt):
         sym.factor(vals2)
-    monkeypatch.setattr(chol, "_factor_numpy_group", orig)
+    monkeypatch.setattr(chol, "_C", saved[0])
+    monkeypatch.setattr(chol, "_factor_numpy_group", saved[1])
     f2 = sym.factor(vals2)
     _assert_solves(f2, A2, b)
     _assert_solves(f1, A1, b)

@@ -317,3 +317,35 @@ def test_planar_rule_on_arrays_equals_the_graph_method():
     info[3, 1, 4] = info[3, 4, 1] = 1e-3  # y coupled with pitch
     coupled = PoseGraph(graph.poses, graph.ii, graph.jj, graph.measurements, info)
     assert not coupled.is_planar() and coupled.is_planar(tol=1.0)
+
+
+@needs_c
+def test_supernode_kernels_check_their_inputs():
+    """factor_group / solve_group (the small fronts of slam.graph.cholesky; their results are tested in
+    tests/test_cholesky.py, which runs with and without them) refuse what would read or write outside
+    their buffers."""
+    C = host._C
+    buf = np.zeros(100)
+    upd = np.zeros(3, dtype=np.int32)  # one supernode, p = 2, m = 4: d = 2, 3 packed update entries
+    buf[[0, 3]] = 4.0  # F11 = 4 I: L11 = 2 I
+    assert C.factor_group(buf, 0, 1, 2, 4, upd) == 0 and buf[0] == buf[3] == 2.0
+    with pytest.raises(ValueError, match="do not fit a buffer of 100 values"):
+        C.factor_group(buf, 95, 1, 2, 4, upd)
+    with pytest.raises(ValueError, match="do not fit"):
+        C.factor_group(buf, 0, 2 ** 61, 2, 4, upd)  # B m p overflows
+    with pytest.raises(ValueError, match=r"upd\[1\] = 100 is out of range \[0, 100\)"):
+        C.factor_group(buf, 0, 1, 2, 4, np.array([0, 100, 0], dtype=np.int32))
+    with pytest.raises(ValueError, match="upd: expected int32"):
+        C.factor_group(buf, 0, 1, 2, 4, upd.astype(np.int64))
+    with pytest.raises(ValueError, match="upd: expected 3 values, got 2"):
+        C.factor_group(buf, 0, 1, 2, 4, upd[:2])
+    bad = np.zeros(100)
+    bad[0], bad[3] = 4.0, -1.0  # second pivot negative
+    assert C.factor_group(bad, 0, 1, 2, 4, upd) == 1
+    y = np.ones(6)
+    C.solve_group(buf, 0, 1, 2, 4, 0, np.array([4, 5]), y, True)
+    np.testing.assert_allclose(y[:2], 0.5)  # L11 = 2 I
+    with pytest.raises(ValueError, match=r"rows\[1\] = 6 is out of range \[0, 6\)"):
+        C.solve_group(buf, 0, 1, 2, 4, 0, np.array([4, 6]), y, False)
+    with pytest.raises(ValueError, match="rows/col0"):
+        C.solve_group(buf, 0, 1, 2, 4, 5, np.array([4, 5]), y, False)

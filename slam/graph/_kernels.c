@@ -46,8 +46,8 @@ static void release(Buf *b, int n) {
         if (b[i].held) PyBuffer_Release(&b[i].view);
 }
 
-/* Get a C-contiguous buffer of `count` items of 8 bytes, float ('d') or integer ('q'/'l').
- * count < 0: any multiple of 8 bytes (the caller checks the size). */
+/* Get a C-contiguous, aligned, native-endian buffer of `count` items of `kind`: 'd' float64, 'q' int64,
+ * 'i' int32. count < 0: any number (the caller checks the size). */
 static int get_buf(PyObject *obj, Buf *b, const char *name, char kind, Py_ssize_t count, int writable) {
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
     if (PyObject_GetBuffer(obj, &b->view, flags) < 0) {
@@ -61,26 +61,27 @@ static int get_buf(PyObject *obj, Buf *b, const char *name, char kind, Py_ssize_
 #else
     if (*f == '@' || *f == '=' || *f == '<') f++;
 #endif
-    int ok = b->view.itemsize == 8 && f[0] != '\0' && f[1] == '\0' &&
-             (kind == 'd' ? f[0] == 'd' : (f[0] == 'q' || f[0] == 'l'));
+    Py_ssize_t isz = kind == 'i' ? 4 : 8;
+    int fmt = kind == 'd' ? f[0] == 'd' : (kind == 'q' ? (f[0] == 'q' || f[0] == 'l') : (f[0] == 'i' || f[0] == 'l'));
+    int ok = b->view.itemsize == isz && f[0] != '\0' && f[1] == '\0' && fmt;
     if (!ok) {
         PyErr_Format(PyExc_ValueError, "%s: expected %s, got format '%s' with %zd-byte items", name,
-                     kind == 'd' ? "float64" : "int64", b->view.format ? b->view.format : "B",
-                     b->view.itemsize);
+                     kind == 'd' ? "float64" : (kind == 'q' ? "int64" : "int32"),
+                     b->view.format ? b->view.format : "B", b->view.itemsize);
         return -1;
     }
-    if (b->view.len > 0 && (uintptr_t)b->view.buf % sizeof(double) != 0) {
-        PyErr_Format(PyExc_ValueError, "%s: expected an 8-byte aligned array", name);
+    if (b->view.len > 0 && (uintptr_t)b->view.buf % (uintptr_t)isz != 0) {
+        PyErr_Format(PyExc_ValueError, "%s: expected an %zd-byte aligned array", name, isz);
         return -1;
     }
-    if (count >= 0 && b->view.len != count * 8) {
-        PyErr_Format(PyExc_ValueError, "%s: expected %zd values, got %zd", name, count, b->view.len / 8);
+    if (count >= 0 && b->view.len != count * isz) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %zd values, got %zd", name, count, b->view.len / isz);
         return -1;
     }
     return 0;
 }
 
-static Py_ssize_t nvals(Buf *b) { return b->view.len / 8; }
+static Py_ssize_t nvals(Buf *b) { return b->view.len / b->view.itemsize; }
 
 /* A read-only float64 buffer of rows of `width` values (shape written in `shape`, e.g. "(N, 7)"); returns
  * the number of rows, or -1 with an exception set. */
@@ -240,11 +241,11 @@ static PyObject *py_residuals(PyObject *self, PyObject *const *args, Py_ssize_t 
     memset(b, 0, sizeof(b));
     Py_ssize_t N = get_rows(args[0], &b[0], names[0], 7, "(N, 7)");
     if (N < 0) goto fail;
-    if (get_buf(args[1], &b[1], names[1], 'i', -1, 0) < 0) goto fail;
+    if (get_buf(args[1], &b[1], names[1], 'q', -1, 0) < 0) goto fail;
     Py_ssize_t E = nvals(&b[1]);
     const Py_ssize_t per[10] = {0, 1, 1, 3, 4, 36, 6, 1, 1, 1};
     for (int k = 2; k < 10; k++)
-        if (get_buf(args[k], &b[k], names[k], k == 2 ? 'i' : 'd', per[k] * E, k >= 6) < 0) goto fail;
+        if (get_buf(args[k], &b[k], names[k], k == 2 ? 'q' : 'd', per[k] * E, k >= 6) < 0) goto fail;
     const double *P = b[0].view.buf, *zt = b[3].view.buf, *zq = b[4].view.buf, *L = b[5].view.buf;
     const long long *ii = b[1].view.buf, *jj = b[2].view.buf;
     double *r = b[6].view.buf, *theta2 = b[7].view.buf, *c = b[8].view.buf, *s = b[9].view.buf;
@@ -296,7 +297,7 @@ static PyObject *py_linearize(PyObject *self, PyObject *const *args, Py_ssize_t 
     static const char *names[9] = {"r", "theta2", "c", "neg_adz_t", "L", "w", "rows", "dims", "F"};
     Buf b[9];
     memset(b, 0, sizeof(b));
-    if (get_buf(args[6], &b[6], names[6], 'i', -1, 0) < 0 || get_buf(args[7], &b[7], names[7], 'i', -1, 0) < 0)
+    if (get_buf(args[6], &b[6], names[6], 'q', -1, 0) < 0 || get_buf(args[7], &b[7], names[7], 'q', -1, 0) < 0)
         goto fail;
     Py_ssize_t nr = nvals(&b[6]), k = nvals(&b[7]);
     const long long *rows_in = b[6].view.buf, *dims_in = b[7].view.buf;
@@ -453,7 +454,7 @@ static PyObject *py_assemble_dense(PyObject *self, PyObject *const *args, Py_ssi
     if (check_nargs(nargs, 6, "assemble_dense") < 0) return NULL;
     Buf b[6];
     memset(b, 0, sizeof(b));
-    if (get_buf(args[1], &b[1], "ii", 'i', -1, 0) < 0 || get_buf(args[3], &b[3], "var", 'i', -1, 0) < 0 ||
+    if (get_buf(args[1], &b[1], "ii", 'q', -1, 0) < 0 || get_buf(args[3], &b[3], "var", 'q', -1, 0) < 0 ||
         get_buf(args[5], &b[5], "g", 'd', -1, 1) < 0)
         goto fail;
     Py_ssize_t E = nvals(&b[1]), N = nvals(&b[3]), m = nvals(&b[5]);
@@ -461,7 +462,7 @@ static PyObject *py_assemble_dense(PyObject *self, PyObject *const *args, Py_ssi
         PyErr_Format(PyExc_ValueError, "g: %zd unknowns is too many for a dense H", m);
         goto fail;
     }
-    if (get_buf(args[2], &b[2], "jj", 'i', E, 0) < 0 || get_buf(args[0], &b[0], "F", 'd', -1, 0) < 0 ||
+    if (get_buf(args[2], &b[2], "jj", 'q', E, 0) < 0 || get_buf(args[0], &b[0], "F", 'd', -1, 0) < 0 ||
         get_buf(args[4], &b[4], "H", 'd', m * m, 1) < 0)
         goto fail;
     Py_ssize_t q = E ? nvals(&b[0]) / E : 0, nr = 1, k;
@@ -594,6 +595,154 @@ fail:
     return NULL;
 }
 
+/* -- supernodes of slam.graph.cholesky (small fronts: plain loops beat the per-call cost of LAPACK) -- */
+static inline double dotn(const double *a, const double *b, Py_ssize_t n) {
+    double s0 = 0.0, s1 = 0.0;
+    Py_ssize_t i = 0;
+    for (; i + 2 <= n; i += 2) {
+        s0 += a[i] * b[i];
+        s1 += a[i + 1] * b[i + 1];
+    }
+    if (i < n) s0 += a[i] * b[i];
+    return s0 + s1;
+}
+
+/* Position of entry (a, b), a >= b, of a d x d lower triangle in LAPACK's rectangular full packed order
+ * (transr='N', uplo='U' of the Fortran view), the order of slam.graph.cholesky._rfp_rows_cols: with
+ * h = d / 2 and lda = d + 1 - d % 2, row a >= h is column a - h (entries 0..a), a row a < h lies in
+ * column b below it, at row a + h + 1. */
+static inline Py_ssize_t rfp_pos(Py_ssize_t a, Py_ssize_t b, Py_ssize_t d) {
+    Py_ssize_t h = d / 2, lda = d + 1 - d % 2;
+    return a >= h ? (a - h) * lda + b : b * lda + a + h + 1;
+}
+
+/* Common checks of a group of B supernodes (panels (m, p) row-major at offset + s m p of buf) */
+static int check_group(Py_ssize_t nbuf, Py_ssize_t offset, Py_ssize_t B, Py_ssize_t p, Py_ssize_t m) {
+    if (offset < 0 || B < 0 || p < 1 || m < p || m > 100000 || B > (nbuf / m) / p + 1 ||
+        offset + B * m * p > nbuf) {
+        PyErr_Format(PyExc_ValueError, "group: offset %zd, %zd supernodes of %zd x %zd panels do not fit a buffer of "
+                     "%zd values", offset, B, m, p, nbuf);
+        return -1;
+    }
+    return 0;
+}
+
+/* factor_group(buf, offset, B, p, m, upd) -> info: factor B supernodes in place in their panels
+ * [L11; L21] (L11 L11^T = F11, L21 = F21 L11^-T) and add each update -L21 L21^T (packed, in the order
+ * of rfp_pos) at its positions upd (int32, B d (d + 1) / 2) of buf; info = s + 1 for the first supernode
+ * s whose pivot block is not positive definite (or not finite), else 0 (its upper triangle is zeroed). */
+static PyObject *py_factor_group(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs(nargs, 6, "factor_group") < 0) return NULL;
+    Py_ssize_t offset = PyLong_AsSsize_t(args[1]), B = PyLong_AsSsize_t(args[2]), p = PyLong_AsSsize_t(args[3]),
+               m = PyLong_AsSsize_t(args[4]);
+    if (PyErr_Occurred()) return NULL;
+    Buf b[2];
+    memset(b, 0, sizeof(b));
+    long info = 0;
+    if (get_buf(args[0], &b[0], "buf", 'd', -1, 1) < 0 || get_buf(args[5], &b[1], "upd", 'i', -1, 0) < 0) goto fail;
+    Py_ssize_t nbuf = nvals(&b[0]), d = m - p, nl = d * (d + 1) / 2;
+    if (check_group(nbuf, offset, B, p, m) < 0) goto fail;
+    if (nvals(&b[1]) != B * nl) {
+        PyErr_Format(PyExc_ValueError, "upd: expected %zd values, got %zd", B * nl, nvals(&b[1]));
+        goto fail;
+    }
+    double *buf = b[0].view.buf;
+    const int *upd = b[1].view.buf;
+    for (Py_ssize_t q = 0; q < B * nl; q++)
+        if (upd[q] < 0 || upd[q] >= nbuf) {
+            PyErr_Format(PyExc_ValueError, "upd[%zd] = %d is out of range [0, %zd)", q, upd[q], nbuf);
+            goto fail;
+        }
+    /* the GIL stays held: upd and buf are Python arrays another thread could change after the checks */
+    for (Py_ssize_t sn = 0; sn < B && !info; sn++) {
+        double *L = buf + offset + sn * m * p; /* rows 0..p-1: L11, rows p..m-1: L21 (row stride p) */
+        for (Py_ssize_t j = 0; j < p && !info; j++) {
+            double *Lj = L + p * j;
+            double s = Lj[j] - dotn(Lj, Lj, j);
+            if (!(s > 0.0) || !isfinite(s)) {
+                info = (long)sn + 1;
+                break;
+            }
+            double djj = sqrt(s);
+            Lj[j] = djj;
+            for (Py_ssize_t c = j + 1; c < p; c++) Lj[c] = 0.0;
+            for (Py_ssize_t i = j + 1; i < m; i++) { /* the rest of column j, L11 and L21 alike */
+                double *Li = L + p * i;
+                Li[j] = (Li[j] - dotn(Li, Lj, j)) / djj;
+            }
+        }
+        if (info) break;
+        const double *L21 = L + p * p;
+        const int *u = upd + sn * nl;
+        for (Py_ssize_t a = 0; a < d; a++)
+            for (Py_ssize_t c = 0; c <= a; c++) buf[u[rfp_pos(a, c, d)]] -= dotn(L21 + p * a, L21 + p * c, p);
+    }
+    release(b, 2);
+    return PyLong_FromLong(info);
+fail:
+    release(b, 2);
+    return NULL;
+}
+
+/* solve_group(buf, offset, B, p, m, col0, rows, y, forward): for each of the B supernodes (columns
+ * col0 + s p .. + p of the permuted system, its L21 rows `rows` (int64, B d)):
+ * forward:  y_c = L11^-1 y_c, then y[rows] -= L21 y_c;  backward: y_c -= L21^T y[rows], y_c = L11^-T y_c. */
+static PyObject *py_solve_group(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs(nargs, 9, "solve_group") < 0) return NULL;
+    Py_ssize_t offset = PyLong_AsSsize_t(args[1]), B = PyLong_AsSsize_t(args[2]), p = PyLong_AsSsize_t(args[3]),
+               m = PyLong_AsSsize_t(args[4]), col0 = PyLong_AsSsize_t(args[5]);
+    if (PyErr_Occurred()) return NULL;
+    int forward = PyObject_IsTrue(args[8]);
+    if (forward < 0) return NULL;
+    Buf b[3];
+    memset(b, 0, sizeof(b));
+    if (get_buf(args[0], &b[0], "buf", 'd', -1, 0) < 0 || get_buf(args[6], &b[1], "rows", 'q', -1, 0) < 0 ||
+        get_buf(args[7], &b[2], "y", 'd', -1, 1) < 0)
+        goto fail;
+    Py_ssize_t nbuf = nvals(&b[0]), n = nvals(&b[2]), d = m - p;
+    if (check_group(nbuf, offset, B, p, m) < 0) goto fail;
+    if (nvals(&b[1]) != B * d || col0 < 0 || col0 + B * p > n) {
+        PyErr_Format(PyExc_ValueError, "rows/col0: expected %zd rows and columns %zd..%zd within %zd, got %zd rows",
+                     B * d, col0, col0 + B * p, n, nvals(&b[1]));
+        goto fail;
+    }
+    const double *buf = b[0].view.buf;
+    const long long *rows = b[1].view.buf;
+    double *y = b[2].view.buf;
+    for (Py_ssize_t q = 0; q < B * d; q++)
+        if (rows[q] < 0 || rows[q] >= n) {
+            PyErr_Format(PyExc_ValueError, "rows[%zd] = %lld is out of range [0, %zd)", q, rows[q], n);
+            goto fail;
+        }
+    for (Py_ssize_t sn = 0; sn < B; sn++) {
+        const double *L = buf + offset + sn * m * p, *L21 = L + p * p;
+        const long long *r = rows + sn * d;
+        double *yc = y + col0 + sn * p;
+        if (forward) {
+            for (Py_ssize_t j = 0; j < p; j++) yc[j] = (yc[j] - dotn(L + p * j, yc, j)) / L[p * j + j];
+            for (Py_ssize_t a = 0; a < d; a++) y[r[a]] -= dotn(L21 + p * a, yc, p);
+        } else {
+            for (Py_ssize_t a = 0; a < d; a++) {
+                double ya = y[r[a]];
+                const double *La = L21 + p * a;
+                for (Py_ssize_t c = 0; c < p; c++) yc[c] -= La[c] * ya;
+            }
+            for (Py_ssize_t j = p - 1; j >= 0; j--) {
+                double s = yc[j];
+                for (Py_ssize_t i = j + 1; i < p; i++) s -= L[p * i + j] * yc[i];
+                yc[j] = s / L[p * j + j];
+            }
+        }
+    }
+    release(b, 3);
+    Py_RETURN_NONE;
+fail:
+    release(b, 3);
+    return NULL;
+}
+
 /* Move poses P (N, 7) rigidly so that pose 0 lands on anchor (7,): out = anchor P_0^-1 P, out_0 = anchor */
 static PyObject *py_relocate(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
@@ -660,6 +809,12 @@ static PyMethodDef methods[] = {
     {"information_factors", (PyCFunction)(void (*)(void))py_information_factors, METH_FASTCALL,
      "information_factors(info, L, check, rtol) -> int: lower Cholesky factors L (E, 6, 6); -1, or the first edge "
      "whose matrix is not positive definite (or, when check, not symmetric to rtol)."},
+    {"factor_group", (PyCFunction)(void (*)(void))py_factor_group, METH_FASTCALL,
+     "factor_group(buf, offset, B, p, m, upd) -> info: Cholesky of B supernodes in their panels, updates added "
+     "at upd (int32, packed); 0 or the first failing supernode + 1."},
+    {"solve_group", (PyCFunction)(void (*)(void))py_solve_group, METH_FASTCALL,
+     "solve_group(buf, offset, B, p, m, col0, rows, y, forward): the forward (L) or backward (L^T) substitution "
+     "of B supernodes on y."},
     {"relocate", (PyCFunction)(void (*)(void))py_relocate, METH_FASTCALL,
      "relocate(P, anchor, out): out = anchor P_0^-1 P (N, 7), with out_0 = anchor exactly."},
     {"set_constants", py_set_constants, METH_VARARGS,

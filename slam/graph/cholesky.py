@@ -482,6 +482,17 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
 # calls (a few us each) instead of batched torch calls (10-20 us each whatever the batch size).
 _NUMPY_MAX_BATCH = 3
 
+# Supernodes with fronts of at most this many rows are factored and solved by the C kernels
+# (slam.graph._kernels.factor_group / solve_group: plain loops, one call per group) when they were built:
+# below it the ~20 us of LAPACK/torch calls per front cost more than the front's arithmetic. Factor +
+# solve on manhattan_world graphs, ms for a threshold of 16 / 32 / 64 / 128 / 256 rows: 500 poses 7.6 /
+# 3.4 / 2.9 / 2.6 / 3.3; 5000 poses 62 / 59 / 50 / 45 / 49; 20000 poses 476 / 486 / 437 / 395 / 422.
+_C_MAX_FRONT = 128
+try:
+    from slam.graph import _kernels as _C
+except ImportError:  # not built: LAPACK and torch do every front
+    _C = None
+
 
 def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None):
     """Per-group views of the panel buffer ``buf`` (torch, flat): :class:`_NumpyGroup` objects for the
@@ -545,6 +556,15 @@ class _Workspace:
         d_max = max([g.m - g.p for g in sym.groups if g.size <= _NUMPY_MAX_BATCH] + [0])
         self.scratch = np.zeros(d_max * (d_max + 1) // 2) if self.cpu else None
         self.groups, self.index = _group_views(sym, self.buf, device, self.cpu, self.scratch)
+        # per group of the pattern: whether the C kernels do it (CPU, small fronts), its entries in
+        # self.groups (the views the other paths use), and its rows as int64 for the C solve
+        self.spans, i = [], 0
+        for g in sym.groups:
+            n = g.size if self.cpu and g.size <= _NUMPY_MAX_BATCH else 1
+            c = _C is not None and self.cpu and g.m <= _C_MAX_FRONT
+            rows = np.ascontiguousarray(g.rows, dtype=np.int64) if c else None
+            self.spans.append((g, i, i + n, c, rows))
+            i += n
 
 
 _IN_PLACE = {}
@@ -657,22 +677,14 @@ class NumericCholesky:
             buf.zero_()
             # rows of k values (see _Workspace); faster than buf[dst] = v[src]
             buf.view(-1, k).index_copy_(0, ws.dst, torch.index_select(v.reshape(-1, k), 0, ws.src))
-            for grp in ws.groups:
-                if type(grp) is _NumpyGroup:
-                    failed |= _factor_numpy_group(grp, buf, in_place, *lapack) != 0
-                    if failed:
-                        break
-                    continue
-                B, _, d, F11, F21, _, _, packed, dst = grp
-                L11, info = torch.linalg.cholesky_ex(F11)
-                infos.append(info)
-                F11.copy_(L11)
-                if d:
-                    L21 = torch.linalg.solve_triangular(L11.mT, F21, upper=True, left=False)
-                    F21.copy_(L21)
-                    # the lower triangles of the (B, d, d) updates, packed as dsfrk would, to the panels
-                    U = torch.bmm(L21, L21.mT).view(B, d * d).index_select(1, packed)
-                    buf.index_add_(0, dst, U.view(-1), alpha=-1.0)
+            bufnp = buf.numpy() if ws.cpu else None
+            for g, i0, i1, c, _ in ws.spans:
+                if c:
+                    failed = _C.factor_group(bufnp, g.offset, g.size, g.p, g.m, g.upd) != 0
+                else:
+                    failed = self._factor_groups(ws.groups[i0:i1], buf, infos, in_place, lapack)
+                if failed:
+                    break
             failed = failed or bool(infos and bool(torch.cat(infos).any()))
             # set before the lock is released: a factorisation in another thread may detach this factor as
             # soon as it is the owner, and must find its views to replace
@@ -681,6 +693,29 @@ class NumericCholesky:
                 ws.owner = weakref.ref(self)
         if failed:
             raise NotPositiveDefiniteError("the matrix is not positive definite (a pivot block failed)")
+
+    @staticmethod
+    def _factor_groups(groups, buf, infos, in_place: bool, lapack) -> bool:
+        """Factor the groups through LAPACK (front by front) or torch (batched); True when a pivot failed
+        on the LAPACK path (the torch path's infos are collected in ``infos``)."""
+        import torch
+
+        for grp in groups:
+            if type(grp) is _NumpyGroup:
+                if _factor_numpy_group(grp, buf, in_place, *lapack) != 0:
+                    return True
+                continue
+            B, _, d, F11, F21, _, _, packed, dst = grp
+            L11, info = torch.linalg.cholesky_ex(F11)
+            infos.append(info)
+            F11.copy_(L11)
+            if d:
+                L21 = torch.linalg.solve_triangular(L11.mT, F21, upper=True, left=False)
+                F21.copy_(L21)
+                # the lower triangles of the (B, d, d) updates, packed as dsfrk would, to the panels
+                U = torch.bmm(L21, L21.mT).view(B, d * d).index_select(1, packed)
+                buf.index_add_(0, dst, U.view(-1), alpha=-1.0)
+        return False
 
     def _detach(self) -> None:
         """Move this factor to a private copy of the buffer (called before the workspace is reused)."""
@@ -701,39 +736,61 @@ class NumericCholesky:
             y, ynp = ws.y, ws.ynp
             torch.index_select(bt.detach().to(torch.float64), 0, ws.perm, out=y)
             groups = self.groups
-            for grp in groups:
-                if type(grp) is _NumpyGroup:
-                    # L z = y as U^T z = y on the Fortran view (in place on the contiguous slice)
-                    z = dtrsv(grp.F11.T, ynp[grp.c0:grp.c1], lower=0, trans=1, overwrite_x=1)
-                    if not in_place:
-                        ynp[grp.c0:grp.c1] = z
-                    if grp.d:
-                        ynp[grp.rows] -= grp.F21 @ z
+            bufnp = self.buf.numpy() if ws.cpu else None
+            for g, i0, i1, c, rows in ws.spans:
+                if c:
+                    _C.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, True)
                     continue
-                B, p, d, L11, L21, c0, rows, _, _ = grp
-                yc = y[c0:c0 + B * p].view(B, p, 1)
-                yc.copy_(torch.linalg.solve_triangular(L11, yc, upper=False))
-                if d:
-                    y.index_add_(0, rows, (L21 @ yc).view(-1), alpha=-1.0)
-            for g in range(len(groups) - 1, -1, -1):
-                grp = groups[g]
-                if type(grp) is _NumpyGroup:
-                    yc = ynp[grp.c0:grp.c1]
-                    if grp.d:
-                        yc -= grp.F21.T @ ynp[grp.rows]
-                    z = dtrsv(grp.F11.T, yc, lower=0, trans=0, overwrite_x=1)
-                    if not in_place:
-                        yc[...] = z
+                self._forward(groups[i0:i1], y, ynp, in_place, dtrsv)
+            for g, i0, i1, c, rows in reversed(ws.spans):
+                if c:
+                    _C.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, False)
                     continue
-                B, p, d, L11, L21, c0, rows, _, _ = grp
-                yc = y[c0:c0 + B * p].view(B, p, 1)
-                rhs = yc
-                if d:
-                    rhs = torch.baddbmm(yc, L21.mT, y[rows].view(B, d, 1), alpha=-1.0)
-                yc.copy_(torch.linalg.solve_triangular(L11.mT, rhs, upper=True))
+                self._backward(groups[i0:i1], y, ynp, in_place, dtrsv)
             x = torch.empty_like(y)
             x[ws.perm] = y
         return x.numpy() if is_np else x.to(bt.dtype)
+
+    @staticmethod
+    def _forward(groups, y, ynp, in_place: bool, dtrsv) -> None:
+        """``L z = y`` on the groups' columns of ``y`` (LAPACK front by front, or torch batched)."""
+        import torch
+
+        for grp in groups:
+            if type(grp) is _NumpyGroup:
+                # L z = y as U^T z = y on the Fortran view (in place on the contiguous slice)
+                z = dtrsv(grp.F11.T, ynp[grp.c0:grp.c1], lower=0, trans=1, overwrite_x=1)
+                if not in_place:
+                    ynp[grp.c0:grp.c1] = z
+                if grp.d:
+                    ynp[grp.rows] -= grp.F21 @ z
+                continue
+            B, p, d, L11, L21, c0, rows, _, _ = grp
+            yc = y[c0:c0 + B * p].view(B, p, 1)
+            yc.copy_(torch.linalg.solve_triangular(L11, yc, upper=False))
+            if d:
+                y.index_add_(0, rows, (L21 @ yc).view(-1), alpha=-1.0)
+
+    @staticmethod
+    def _backward(groups, y, ynp, in_place: bool, dtrsv) -> None:
+        """``L^T x = z`` on the groups' columns of ``y``, the groups in reverse order."""
+        import torch
+
+        for grp in reversed(groups):
+            if type(grp) is _NumpyGroup:
+                yc = ynp[grp.c0:grp.c1]
+                if grp.d:
+                    yc -= grp.F21.T @ ynp[grp.rows]
+                z = dtrsv(grp.F11.T, yc, lower=0, trans=0, overwrite_x=1)
+                if not in_place:
+                    yc[...] = z
+                continue
+            B, p, d, L11, L21, c0, rows, _, _ = grp
+            yc = y[c0:c0 + B * p].view(B, p, 1)
+            rhs = yc
+            if d:
+                rhs = torch.baddbmm(yc, L21.mT, y[rows].view(B, d, 1), alpha=-1.0)
+            yc.copy_(torch.linalg.solve_triangular(L11.mT, rhs, upper=True))
 
 
 class _Group:
