@@ -349,3 +349,41 @@ def test_supernode_kernels_check_their_inputs():
         C.solve_group(buf, 0, 1, 2, 4, 0, np.array([4, 6]), y, False)
     with pytest.raises(ValueError, match="rows/col0"):
         C.solve_group(buf, 0, 1, 2, 4, 5, np.array([4, 5]), y, False)
+    # review: sums that overflowed past the checks, index arrays inside the array written, numpy ints
+    with pytest.raises(ValueError, match="do not fit"):
+        C.factor_group(buf, 2 ** 63 - 4, 1, 2, 4, upd)
+    with pytest.raises(ValueError, match="rows/col0"):
+        C.solve_group(buf, 0, 1, 2, 4, 2 ** 63 - 2, np.array([4, 5]), y, True)
+    alias = np.zeros(100)
+    with pytest.raises(ValueError, match="upd: shares memory with buf"):
+        C.factor_group(alias, 0, 1, 2, 4, alias[96:98].view(np.int32)[:3])
+    with pytest.raises(ValueError, match="rows: shares memory with y"):
+        C.solve_group(buf, 0, 1, 2, 4, 0, y[4:6].view(np.int64), y, True)
+    fresh = np.zeros(100)
+    fresh[[0, 3]] = 4.0
+    assert C.factor_group(fresh, np.int64(0), np.int32(1), 2, 4, upd) == 0 and fresh[3] == 2.0
+
+
+def test_a_build_of_another_version_is_not_used(monkeypatch):
+    """An editable install does not rebuild _kernels when _kernels.c changes: a build of another ABI
+    (missing functions this code calls) is refused with a warning, and the numpy path runs."""
+    import importlib
+    import sys
+    import types
+
+    import slam.graph
+    from slam.graph import _compiled
+
+    stale = types.ModuleType("slam.graph._kernels")
+    stale.ABI = _compiled.ABI - 1
+    stale.__file__ = "stale.so"
+    monkeypatch.setitem(sys.modules, "slam.graph._kernels", stale)
+    monkeypatch.setattr(slam.graph, "_kernels", stale, raising=False)
+    try:
+        with pytest.warns(RuntimeWarning, match=r"built from another version of _kernels.c .*pip install -e \."):
+            reloaded = importlib.reload(_compiled)
+        assert reloaded.kernels is None
+    finally:
+        monkeypatch.undo()
+        importlib.reload(_compiled)  # back to the real build for the other tests
+    assert (_compiled.kernels is not None) == host.compiled_kernels()

@@ -10,15 +10,22 @@
  *   retract(P, xi, out)
  *
  * and the setup, assembly and finish of a call: unit_poses, information_factors, measurement_terms,
- * assemble_dense, relocate.
+ * assemble_dense, relocate; and for the sparse Cholesky (slam.graph.cholesky) the small supernodes:
+ *
+ *   factor_group(buf, offset, B, p, m, upd) -> info,  solve_group(buf, offset, B, p, m, col0, rows, y, fwd)
  *
  * The math is line for line that of slam/graph/host.py (same notation, same closed forms, same series
  * below the same angles, set by set_constants() from slam.graph.fused at import); the tests compare
- * both to round-off. Arrays are C-contiguous, 8-byte aligned buffers (native float64, int64 indices)
- * whose sizes are checked here: a wrong size or format, or an index out of range, raises ValueError
- * and nothing is read or written out of bounds. Indices are read once and that copy is checked where
- * the loop runs without the GIL (an index array may change in another thread, or alias an output);
- * outputs that alias inputs give unspecified values, never an out-of-bounds access.
+ * both to round-off. Arrays are C-contiguous, aligned, native-endian buffers (float64; int64 indices,
+ * int32 update positions) whose sizes are checked here: a wrong size or format, or an index out of
+ * range, raises ValueError and nothing is read or written out of bounds. Where a loop runs without the
+ * GIL (residuals, linearize, retract) each index is read once and that copy is checked (an index array
+ * may change in another thread, or alias an output); factor_group and solve_group keep the GIL and
+ * refuse index arrays that share memory with the array they write. Other outputs that alias inputs give
+ * unspecified values, never an out-of-bounds access.
+ *
+ * ABI: the version of this set of functions; slam.graph._compiled refuses a build of another version
+ * (an editable install does not rebuild the extension when this file changes).
  * No numpy headers: only the buffer protocol.
  */
 #define PY_SSIZE_T_CLEAN
@@ -616,10 +623,27 @@ static inline Py_ssize_t rfp_pos(Py_ssize_t a, Py_ssize_t b, Py_ssize_t d) {
     return a >= h ? (a - h) * lda + b : b * lda + a + h + 1;
 }
 
+/* Whether two buffers share memory: an index array inside the array a kernel writes would change
+ * after its check (the indices are checked once, before the loop) */
+static int overlaps(const Buf *a, const Buf *b) {
+    uintptr_t a0 = (uintptr_t)a->view.buf, b0 = (uintptr_t)b->view.buf;
+    return a->view.len > 0 && b->view.len > 0 && a0 < b0 + (uintptr_t)b->view.len &&
+           b0 < a0 + (uintptr_t)a->view.len;
+}
+
+/* Integers (anything with __index__, e.g. numpy ints) into out[0..n-1]; -1 with an exception set */
+static int as_sizes(PyObject *const *args, int n, Py_ssize_t *out) {
+    for (int i = 0; i < n; i++) {
+        out[i] = PyNumber_AsSsize_t(args[i], PyExc_OverflowError);
+        if (out[i] == -1 && PyErr_Occurred()) return -1;
+    }
+    return 0;
+}
+
 /* Common checks of a group of B supernodes (panels (m, p) row-major at offset + s m p of buf) */
 static int check_group(Py_ssize_t nbuf, Py_ssize_t offset, Py_ssize_t B, Py_ssize_t p, Py_ssize_t m) {
-    if (offset < 0 || B < 0 || p < 1 || m < p || m > 100000 || B > (nbuf / m) / p + 1 ||
-        offset + B * m * p > nbuf) {
+    /* no sum or product that can overflow: offset and B are any Python ints */
+    if (offset < 0 || B < 0 || p < 1 || m < p || m > 100000 || offset > nbuf || B > (nbuf - offset) / (m * p)) {
         PyErr_Format(PyExc_ValueError, "group: offset %zd, %zd supernodes of %zd x %zd panels do not fit a buffer of "
                      "%zd values", offset, B, m, p, nbuf);
         return -1;
@@ -634,9 +658,9 @@ static int check_group(Py_ssize_t nbuf, Py_ssize_t offset, Py_ssize_t B, Py_ssiz
 static PyObject *py_factor_group(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
     if (check_nargs(nargs, 6, "factor_group") < 0) return NULL;
-    Py_ssize_t offset = PyLong_AsSsize_t(args[1]), B = PyLong_AsSsize_t(args[2]), p = PyLong_AsSsize_t(args[3]),
-               m = PyLong_AsSsize_t(args[4]);
-    if (PyErr_Occurred()) return NULL;
+    Py_ssize_t v[4];
+    if (as_sizes(args + 1, 4, v) < 0) return NULL;
+    Py_ssize_t offset = v[0], B = v[1], p = v[2], m = v[3];
     Buf b[2];
     memset(b, 0, sizeof(b));
     long info = 0;
@@ -645,6 +669,10 @@ static PyObject *py_factor_group(PyObject *self, PyObject *const *args, Py_ssize
     if (check_group(nbuf, offset, B, p, m) < 0) goto fail;
     if (nvals(&b[1]) != B * nl) {
         PyErr_Format(PyExc_ValueError, "upd: expected %zd values, got %zd", B * nl, nvals(&b[1]));
+        goto fail;
+    }
+    if (overlaps(&b[0], &b[1])) {
+        PyErr_SetString(PyExc_ValueError, "upd: shares memory with buf");
         goto fail;
     }
     double *buf = b[0].view.buf;
@@ -691,9 +719,9 @@ fail:
 static PyObject *py_solve_group(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
     if (check_nargs(nargs, 9, "solve_group") < 0) return NULL;
-    Py_ssize_t offset = PyLong_AsSsize_t(args[1]), B = PyLong_AsSsize_t(args[2]), p = PyLong_AsSsize_t(args[3]),
-               m = PyLong_AsSsize_t(args[4]), col0 = PyLong_AsSsize_t(args[5]);
-    if (PyErr_Occurred()) return NULL;
+    Py_ssize_t v[5];
+    if (as_sizes(args + 1, 5, v) < 0) return NULL;
+    Py_ssize_t offset = v[0], B = v[1], p = v[2], m = v[3], col0 = v[4];
     int forward = PyObject_IsTrue(args[8]);
     if (forward < 0) return NULL;
     Buf b[3];
@@ -703,9 +731,13 @@ static PyObject *py_solve_group(PyObject *self, PyObject *const *args, Py_ssize_
         goto fail;
     Py_ssize_t nbuf = nvals(&b[0]), n = nvals(&b[2]), d = m - p;
     if (check_group(nbuf, offset, B, p, m) < 0) goto fail;
-    if (nvals(&b[1]) != B * d || col0 < 0 || col0 + B * p > n) {
-        PyErr_Format(PyExc_ValueError, "rows/col0: expected %zd rows and columns %zd..%zd within %zd, got %zd rows",
-                     B * d, col0, col0 + B * p, n, nvals(&b[1]));
+    if (nvals(&b[1]) != B * d || col0 < 0 || col0 > n || B > (n - col0) / p) {
+        PyErr_Format(PyExc_ValueError, "rows/col0: expected %zd rows and %zd columns from %zd within %zd, got %zd rows",
+                     B * d, B * p, col0, n, nvals(&b[1]));
+        goto fail;
+    }
+    if (overlaps(&b[1], &b[2])) {
+        PyErr_SetString(PyExc_ValueError, "rows: shares memory with y");
         goto fail;
     }
     const double *buf = b[0].view.buf;
@@ -826,4 +858,11 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",
                                     "The per-edge loops of slam.graph.host in C (see _kernels.c).", -1, methods,
                                     NULL, NULL, NULL, NULL};
 
-PyMODINIT_FUNC PyInit__kernels(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__kernels(void) {
+    PyObject *mod = PyModule_Create(&module);
+    if (mod && PyModule_AddIntConstant(mod, "ABI", 2) < 0) {
+        Py_DECREF(mod);
+        return NULL;
+    }
+    return mod;
+}

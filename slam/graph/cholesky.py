@@ -20,7 +20,10 @@ in order of their height in the elimination tree (those of one height and one sh
 factoring its pivot block with ``potrf``, its rows with ``trsm``, and adding its update ``-L21 L21^T``
 (lower triangle, packed) straight into the panels of the supernodes that own its columns. Nothing but the
 factor is stored: a multifrontal scheme keeps every update matrix until its parent is done, which took
-4x the factor's memory on a 20000-pose graph.
+4x the factor's memory on a 20000-pose graph. On the CPU, when the C kernels of ``slam.graph._kernels``
+were built, supernodes with fronts of at most ``_C_MAX_FRONT`` rows are factored and solved there, a
+group per call with plain loops (most supernodes of a pose graph are small: LAPACK's or torch's ~20 us
+per call were most of a 500-pose factorisation); the larger ones keep LAPACK.
 
 Example:
     >>> import torch
@@ -41,6 +44,8 @@ import math
 import threading
 
 import numpy as np
+
+from slam.graph import _compiled
 
 _EMPTY = np.zeros(0, dtype=np.int64)
 
@@ -488,10 +493,7 @@ _NUMPY_MAX_BATCH = 3
 # solve on manhattan_world graphs, ms for a threshold of 16 / 32 / 64 / 128 / 256 rows: 500 poses 7.6 /
 # 3.4 / 2.9 / 2.6 / 3.3; 5000 poses 62 / 59 / 50 / 45 / 49; 20000 poses 476 / 486 / 437 / 395 / 422.
 _C_MAX_FRONT = 128
-try:
-    from slam.graph import _kernels as _C
-except ImportError:  # not built: LAPACK and torch do every front
-    _C = None
+_C = _compiled.kernels  # None when not built: LAPACK and torch do every front
 
 
 def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None):
@@ -621,8 +623,10 @@ def _factor_numpy_group(grp: _NumpyGroup, buf, in_place: bool, dpotrf, dtrsm, ds
         X[...] = U
     # OpenBLAS's dpotrf does not test for NaN (reference LAPACK, and torch's cholesky_ex, report it). A NaN
     # anywhere in the pivot block's lower triangle reaches its last diagonal entry (every later row divides
-    # by the NaN pivot), and a NaN in F21 reaches an ancestor's diagonal through the update (a, a)
-    if not info and math.isnan(X[-1, -1]):
+    # by the NaN pivot), and a NaN in F21 reaches an ancestor's diagonal through the update (a, a); an
+    # infinite pivot stays on the diagonal (later rows divide by it and stay finite). Both fail, as in the C
+    # kernel (factor_group).
+    if not info and not np.isfinite(X.diagonal()).all():
         info = grp.p
     if grp.d and not info:
         Y = grp.F21.T  # (p, d) Fortran: F21^T, becomes L21^T = L^-1 F21^T

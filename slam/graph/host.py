@@ -44,7 +44,7 @@ from typing import Optional, Tuple
 import numpy as np
 import torch
 
-from slam.graph import fused
+from slam.graph import _compiled, fused
 from slam.graph.cholesky import NotPositiveDefiniteError
 from slam.graph.linear import LinearSolverError, SparseCholeskySolver, build_pattern
 
@@ -60,12 +60,9 @@ _CHUNK = 16384
 
 # The optional C kernels (slam/graph/_kernels.c, built by setup.py where a C compiler is found): the same
 # per-edge math in one call per step, with this module's constants.
-try:
-    from slam.graph import _kernels as _C
-
+_C = _compiled.kernels  # None when not built: the numpy functions below do the same work
+if _C is not None:
     _C.set_constants(_SMALL, _SMALL_Q, tuple(float(v) for v in _Q_SERIES.reshape(-1)))
-except ImportError:  # not built: the numpy functions below do the same work
-    _C = None
 
 
 def compiled_kernels() -> bool:
