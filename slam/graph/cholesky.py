@@ -40,7 +40,6 @@ Example:
 from __future__ import annotations
 
 import itertools
-import math
 import threading
 
 import numpy as np
