@@ -387,3 +387,25 @@ def test_a_build_of_another_version_is_not_used(monkeypatch):
         monkeypatch.undo()
         importlib.reload(_compiled)  # back to the real build for the other tests
     assert (_compiled.kernels is not None) == host.compiled_kernels()
+
+
+@needs_c
+def test_backend_numpy_runs_no_compiled_code(monkeypatch):
+    """backend="numpy" is what runs without the build: neither the per-edge kernels nor the sparse
+    Cholesky's small fronts go through slam.graph._kernels (here made to fail if called)."""
+    import slam.graph.cholesky as chol
+    from slam.graph.simulate import manhattan_world
+
+    graph = manhattan_world(120, seed=1).graph  # 720 unknowns: the sparse path
+    ref = optimize(graph, backend="c")
+
+    class Refuse:
+        def __getattr__(self, name):
+            raise AssertionError(f"_kernels.{name} called under backend='numpy'")
+
+    monkeypatch.setattr(chol, "_C", Refuse())
+    monkeypatch.setattr(host, "_C", Refuse())
+    res = optimize(graph, backend="numpy")
+    assert res.iterations == ref.iterations and res.chi2 == pytest.approx(ref.chi2, rel=1e-9)
+    with pytest.raises(AssertionError, match="called under backend='numpy'"):
+        optimize(graph, backend="auto")  # the C path does call them

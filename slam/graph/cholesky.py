@@ -420,18 +420,21 @@ class SymbolicCholesky:
         tick("done")
         self.timings = tick.times  # seconds per stage of the analysis (for profiling)
 
-    def workspace(self, device) -> _Workspace:
+    def workspace(self, device, compiled: bool = True) -> _Workspace:
         """Index tensors, the panel buffer and the solve vector on ``device``, with every per-group view
-        made once (cached): a factorisation then only launches the numeric kernels."""
-        key = str(device)
+        made once (cached): a factorisation then only launches the numeric kernels. ``compiled``: small
+        fronts through the C kernels when they were built (else LAPACK and torch only)."""
+        key = (str(device), bool(compiled))
         if key not in self._torch_cache:
-            self._torch_cache[key] = _Workspace(self, device)
+            self._torch_cache[key] = _Workspace(self, device, compiled)
         return self._torch_cache[key]
 
-    def factor(self, values) -> NumericCholesky:
+    def factor(self, values, compiled: bool = True) -> NumericCholesky:
         """Numeric factorisation for the values ``(nnz,)`` (torch tensor or numpy array) of the pattern;
-        raises :class:`NotPositiveDefiniteError` when a pivot block is not positive definite."""
-        return NumericCholesky(self, values)
+        raises :class:`NotPositiveDefiniteError` when a pivot block is not positive definite. ``compiled``:
+        on the CPU, supernodes with small fronts go through the C kernels when they were built (the
+        default); False keeps to LAPACK and torch (what runs without the build)."""
+        return NumericCholesky(self, values, compiled)
 
 
 def _rfp_rows_cols(d: int):
@@ -540,7 +543,7 @@ class _Workspace:
     ten or more for a batched torch call.
     """
 
-    def __init__(self, sym: SymbolicCholesky, device):
+    def __init__(self, sym: SymbolicCholesky, device, compiled: bool = True):
         import torch
 
         self.lock = threading.Lock()  # the buffers are shared by the factorisations of this pattern
@@ -562,7 +565,7 @@ class _Workspace:
         self.spans, i = [], 0
         for g in sym.groups:
             n = g.size if self.cpu and g.size <= _NUMPY_MAX_BATCH else 1
-            c = _C is not None and self.cpu and g.m <= _C_MAX_FRONT
+            c = compiled and _C is not None and self.cpu and g.m <= _C_MAX_FRONT
             rows = np.ascontiguousarray(g.rows, dtype=np.int64) if c else None
             self.spans.append((g, i, i + n, c, rows))
             i += n
@@ -651,7 +654,7 @@ class NumericCholesky:
     copies at every call (the old ``f`` is alive while the new one is made: ``del f`` first).
     """
 
-    def __init__(self, sym: SymbolicCholesky, values):
+    def __init__(self, sym: SymbolicCholesky, values, compiled: bool = True):
         import weakref
 
         import torch
@@ -661,7 +664,7 @@ class NumericCholesky:
         # detached: the workspace buffer is shared by every factorisation of the pattern, and in-place ops
         # from a tensor that requires grad would make it require grad (its numpy views then fail)
         v = v.detach().to(torch.float64)
-        ws = self.ws = sym.workspace(v.device)
+        ws = self.ws = sym.workspace(v.device, compiled)
         infos = []
         failed = False
         # numpy's BLAS runs single-threaded here (see limit_blas_threads)

@@ -448,7 +448,8 @@ class HostProblem:
             dx, _ = self._potrs(fac, -g, lower=1)
         elif self.solver is None:
             try:
-                dx = self.symbolic.factor(Hd).solve(-g)
+                # backend "numpy" keeps the Cholesky off the C kernels too: what runs without the build
+                dx = self.symbolic.factor(Hd, compiled=self._c is not None).solve(-g)
             except NotPositiveDefiniteError as exc:
                 raise LinearSolverError(str(exc)) from None
         else:
