@@ -39,6 +39,7 @@ Example:
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import threading
 
@@ -459,6 +460,17 @@ def _rfp_order(d: int) -> np.ndarray:
     return a * d + b
 
 
+@functools.lru_cache(maxsize=512)
+def _tril_and_tri(r: int, h: int):
+    """``np.tril_indices(r)`` and ``np.tri(h, dtype=bool).T`` (read-only; made once per size: numpy's
+    helpers cost ~40 us per call, and a symbolic analysis asks for the same few sizes hundreds of times)."""
+    al, be = np.tril_indices(r)
+    tri = np.tri(h, dtype=bool).T
+    for a in (al, be, tri):
+        a.flags.writeable = False
+    return al, be, tri
+
+
 def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.ndarray:
     """Where the update ``L21 L21^T`` of each supernode of a group lands in the panel buffer: ``(B d (d + 1)
     / 2,)`` int32 positions, per supernode in the packed order of :func:`_rfp_rows_cols`.
@@ -469,8 +481,8 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
     the position of its first entry and the owner's row stride. The upper halves of diagonal blocks are not
     in the packed triangle; the lower triangle of a pivot block is all LAPACK reads.
     """
-    B, r = base.shape[0], d // k
-    al, be = np.tril_indices(r)
+    B, r, h = base.shape[0], d // k, d // 2
+    al, be, tri = _tril_and_tri(r, h)
     b3 = np.zeros((B, r, r), dtype=np.int64)
     p3 = np.zeros((B, r, r), dtype=np.int64)
     b3[:, al, be], p3[:, al, be] = base, pt
@@ -478,10 +490,9 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
     full = (b3[:, :, None, :, None] + ar[:, None, None] * p3[:, :, None, :, None] + ar).reshape(B, d, d)
     # the packed layout (see _rfp_rows_cols), column c of the (lda x (d - h)) Fortran array as row c here:
     # row h + c of the triangle (entries 0..h + c), then column c of its leading h x h triangle below it
-    h = d // 2
     out = np.empty((B, d - h, d + 1 - d % 2), dtype=np.int32)
     out[:, :, :d] = full[:, h:, :]
-    np.copyto(out[:, :h, h + 1:], full[:, :h, :h].transpose(0, 2, 1), where=np.tri(h, dtype=bool).T)
+    np.copyto(out[:, :h, h + 1:], full[:, :h, :h].transpose(0, 2, 1), where=tri)
     return out.reshape(-1)
 
 
