@@ -32,6 +32,8 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("--damping", choices=["identity", "diagonal"], default=defaults.damping)
     p.add_argument("--lambda-update", choices=["gtsam", "nielsen"], default=defaults.lambda_update)
     p.add_argument("--solver", default="auto", choices=["auto", "sparse", "superlu", "dense", "pcg"])
+    p.add_argument("--backend", default=defaults.backend, choices=["auto", "c", "numpy", "torch"],
+                   help="where the per-edge work runs (auto: the C kernels when they were built, else numpy)")
     p.add_argument("-v", "--verbose", action="store_true", help="one line per iteration")
     args = p.parse_args(argv)
     if args.kernel_width is not None and args.kernel is None:
@@ -57,7 +59,7 @@ def main(argv: Optional[List[str]] = None) -> OptimizationResult:
         sys.exit(f"error: {exc}")
     res = optimize(graph, args.method, kernel=args.kernel, solver=args.solver, kernel_width=args.kernel_width,
                    max_iterations=args.max_iterations, gauge=args.gauge, damping=args.damping,
-                   lambda_update=args.lambda_update, verbose=args.verbose)
+                   lambda_update=args.lambda_update, backend=args.backend, verbose=args.verbose)
     print(summary(args.input, res))
     if res.message:
         print(f"note: {res.message}")
