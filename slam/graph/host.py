@@ -325,12 +325,13 @@ class HostProblem:
         n = int(free.sum())
         self.size = m = n * k
         self.dense = solver is None and m <= dense_max
+        if self.dense:
+            self.diag_pos = np.arange(m) * (m + 1)
+            self._potrf, self._potrs = _lapack_cholesky()
         if self.dense and self._c is not None:
             # H (m*m), then g (m): the C kernel adds each edge's entries to their places (var: -1 = fixed)
             self._var = var
             self.buf = np.empty(m * m + m)
-            self.diag_pos = np.arange(m) * (m + 1)
-            self._potrf, self._potrs = _lapack_cholesky()
         elif self.dense:
             # flat positions of each edge's (2k+1)^2 entries: H (m*m), then g (m), then a dump entry
             # (the residual row, and the rows / columns of fixed poses)
@@ -346,8 +347,6 @@ class HostProblem:
             self._idx = torch.from_numpy(idx.reshape(-1))
             self.buf = np.empty(dump + 1)
             self._buf_t = torch.from_numpy(self.buf)
-            self.diag_pos = np.arange(m) * (m + 1)
-            self._potrf, self._potrs = _lapack_cholesky()
         else:
             self.pattern = pattern = build_pattern(torch.from_numpy(ii), torch.from_numpy(jj),
                                                    torch.from_numpy(free), k)

@@ -112,7 +112,7 @@ class OptimizerConfig:
     planar: Optional[bool] = None  # solve only (x, y, yaw); None: auto-detect with PoseGraph.is_planar()
     check_information: bool = True  # check every information matrix is SPD before optimising
     # where the per-edge work runs: "auto" = for a graph on the CPU the C kernels of slam.graph.host when
-    # they were built (setup.py; one call per step: 2.5x faster than numpy on tinyGrid3D), else its numpy
+    # they were built (setup.py; one call per step: ~5x faster than numpy on tinyGrid3D), else its numpy
     # functions (~3x less call overhead than torch, 10x faster on tiny graphs); torch (slam.graph.fused) on
     # other devices; or "c", "numpy", "torch" (the C and numpy paths have no "prior" gauge and no "r3so3"
     # chart: "auto" uses torch for those)
