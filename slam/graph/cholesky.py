@@ -509,10 +509,11 @@ _C_MAX_FRONT = 128
 _C = _compiled.kernels  # None when not built: LAPACK and torch do every front
 
 
-def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None):
+def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None, in_c=None):
     """Per-group views of the panel buffer ``buf`` (torch, flat): :class:`_NumpyGroup` objects for the
-    groups factored front by front (``cpu``), tuples for the batched ones. ``index`` holds the index
-    tensors already made for another buffer of the same pattern (they do not depend on the buffer)."""
+    groups factored front by front (``cpu``), tuples for the batched ones; none for the groups flagged in
+    ``in_c`` (the C kernels work on the buffer by offsets). ``index`` holds the index tensors already made
+    for another buffer of the same pattern (they do not depend on the buffer)."""
     import torch
 
     def t(a):
@@ -520,7 +521,9 @@ def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, in
 
     bufnp = buf.numpy() if cpu else None
     out, idx = [], []
-    for g in sym.groups:
+    for gi, g in enumerate(sym.groups):
+        if in_c is not None and in_c[gi]:
+            continue
         B, p, m = g.size, g.p, g.m
         d = m - p
         nl = d * (d + 1) // 2  # entries of one packed update
@@ -567,16 +570,18 @@ class _Workspace:
         self.buf = torch.zeros(sym.buffer_size, dtype=torch.float64, device=device)
         self.y = torch.zeros(sym.size, dtype=torch.float64, device=device)
         self.ynp = self.y.numpy() if self.cpu else None
+        # the groups the C kernels do (CPU, small fronts): no views or index tensors are made for them
+        self.in_c = [compiled and _C is not None and self.cpu and g.m <= _C_MAX_FRONT for g in sym.groups]
         # the packed update of a front-by-front supernode: one scratch vector, as large as the largest one
-        d_max = max([g.m - g.p for g in sym.groups if g.size <= _NUMPY_MAX_BATCH] + [0])
+        d_max = max([g.m - g.p for g, c in zip(sym.groups, self.in_c) if g.size <= _NUMPY_MAX_BATCH and not c]
+                    + [0])
         self.scratch = np.zeros(d_max * (d_max + 1) // 2) if self.cpu else None
-        self.groups, self.index = _group_views(sym, self.buf, device, self.cpu, self.scratch)
-        # per group of the pattern: whether the C kernels do it (CPU, small fronts), its entries in
-        # self.groups (the views the other paths use), and its rows as int64 for the C solve
+        self.groups, self.index = _group_views(sym, self.buf, device, self.cpu, self.scratch, in_c=self.in_c)
+        # per group of the pattern: its entries in self.groups (the views the other paths use; none for
+        # a C group), whether the C kernels do it, and its rows as int64 for the C solve
         self.spans, i = [], 0
-        for g in sym.groups:
-            n = g.size if self.cpu and g.size <= _NUMPY_MAX_BATCH else 1
-            c = compiled and _C is not None and self.cpu and g.m <= _C_MAX_FRONT
+        for g, c in zip(sym.groups, self.in_c):
+            n = 0 if c else g.size if self.cpu and g.size <= _NUMPY_MAX_BATCH else 1
             rows = np.ascontiguousarray(g.rows, dtype=np.int64) if c else None
             self.spans.append((g, i, i + n, c, rows))
             i += n
@@ -738,7 +743,7 @@ class NumericCholesky:
         """Move this factor to a private copy of the buffer (called before the workspace is reused)."""
         ws = self.ws
         self.buf = ws.buf.clone()
-        self.groups, _ = _group_views(self.sym, self.buf, ws.device, ws.cpu, ws.scratch, ws.index)
+        self.groups, _ = _group_views(self.sym, self.buf, ws.device, ws.cpu, ws.scratch, ws.index, ws.in_c)
 
     def solve(self, b):
         """``x = H^-1 b`` for ``b (n k,)`` (numpy array or torch tensor; returns the same kind)."""
