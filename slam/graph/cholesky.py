@@ -502,9 +502,8 @@ _NUMPY_MAX_BATCH = 3
 
 # Supernodes with fronts of at most this many rows are factored and solved by the C kernels
 # (slam.graph._kernels.factor_group / solve_group: plain loops, one call per group) when they were built:
-# below it the ~20 us of LAPACK/torch calls per front cost more than the front's arithmetic. Factor +
-# solve on manhattan_world graphs, ms for a threshold of 16 / 32 / 64 / 128 / 256 rows: 500 poses 7.6 /
-# 3.4 / 2.9 / 2.6 / 3.3; 5000 poses 62 / 59 / 50 / 45 / 49; 20000 poses 476 / 486 / 437 / 395 / 422.
+# below it the ~20 us of LAPACK/torch calls per front cost more than the front's arithmetic. The sweep
+# behind 128: benchmarks/cholesky_small_fronts.py (docs/benchmarks.md; 500 poses 5.9 -> 2.7 ms).
 _C_MAX_FRONT = 128
 _C = _compiled.kernels  # None when not built: LAPACK and torch do every front
 
