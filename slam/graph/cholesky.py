@@ -46,74 +46,11 @@ import threading
 import numpy as np
 
 from slam.graph import _compiled
+from slam.graph.blas_threads import limit_blas_threads
 
 _EMPTY = np.zeros(0, dtype=np.int64)
 
-__all__ = ["NotPositiveDefiniteError", "NumericCholesky", "SymbolicCholesky", "limit_blas_threads"]
-
-_OPENBLAS = None  # (get, set) thread functions of the OpenBLAS builds loaded in this process
-
-
-def _openblas_thread_functions():
-    """Find the loaded OpenBLAS libraries (numpy's and scipy's wheels each bundle one) by their path in
-    ``/proc/self/maps`` and return their ``(get_num_threads, set_num_threads)`` (Linux only; [] else)."""
-    global _OPENBLAS
-    if _OPENBLAS is not None:
-        return _OPENBLAS
-    import ctypes
-
-    import scipy.linalg.blas  # noqa: F401  (load scipy's BLAS before looking)
-
-    found = []
-    try:
-        with open("/proc/self/maps") as fh:
-            paths = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower() and "/" in ln})
-    except OSError:
-        paths = []
-    for path in paths:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for prefix, suffix in (("scipy_openblas", "64_"), ("scipy_openblas", ""), ("openblas", "64_"),
-                               ("openblas", "")):
-            try:
-                get = getattr(lib, f"{prefix}_get_num_threads{suffix}")
-                put = getattr(lib, f"{prefix}_set_num_threads{suffix}")
-            except AttributeError:
-                continue
-            found.append((get, put))
-            break
-    _OPENBLAS = found
-    return found
-
-
-class limit_blas_threads:
-    """Context manager: OpenBLAS (numpy's and scipy's) uses ``n`` threads inside, the old count after.
-
-    The factorisation makes many small BLAS calls; OpenBLAS threads some of them (e.g. a 60 x 18
-    ``trsm``), which on a busy CPU took 16 ms instead of 3 us. ``n=None`` changes nothing.
-    """
-
-    def __init__(self, n):
-        self.n = n
-        self.saved = []
-
-    def __enter__(self):
-        if self.n is not None:
-            for get, put in _openblas_thread_functions():
-                old = get()
-                if old != self.n:
-                    put(int(self.n))
-                    self.saved.append((put, old))
-        return self
-
-    def __exit__(self, *exc):
-        for put, old in self.saved:
-            put(old)
-        self.saved = []
-        return False
-
+__all__ = ["NotPositiveDefiniteError", "NumericCholesky", "SymbolicCholesky"]
 
 class NotPositiveDefiniteError(RuntimeError):
     """The matrix is not (numerically) positive definite."""

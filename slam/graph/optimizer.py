@@ -50,7 +50,7 @@ from typing import Dict, List, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from slam.graph.cholesky import limit_blas_threads
+from slam.graph.blas_threads import limit_blas_threads
 from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.fused import bmm, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
 from slam.graph.host import HostProblem, compiled_kernels, host_kernels
