@@ -1,4 +1,4 @@
-"""The optimiser's per-edge kernels: the torch path (slam.graph.fused) and the numpy path (slam.graph.host,
+"""The optimiser's per-edge kernels: the torch path (slam.graph.fused) and the numpy path (slam.graph.accel.host,
 also with its C kernels) against each other and the reference costs (slam.graph.costs, themselves
 checked against finite differences in test_pose_graph)."""
 import math
@@ -7,16 +7,17 @@ import numpy as np
 import pytest
 import torch
 
-from slam.graph import OptimizerConfig, PoseGraph, host, optimize
+from slam.graph import OptimizerConfig, PoseGraph, compiled_kernels, optimize
+from slam.graph.accel import host
 from slam.graph.costs import edge_jacobians, edge_residuals, make_kernel
 from slam.graph.fused import _qmul, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
 from slam.graph.linear import to_dense
-from slam.graph.optimizer import _host_problem, _Problem
+from slam.graph.problem import TorchProblem
 from slam.lie import quat_rotate, quat_to_rotmat, se3_between, se3_compose, se3_exp, se3_inv
 
 F64 = torch.float64
 
-needs_c = pytest.mark.skipif(not host.compiled_kernels(), reason="the C kernels slam.graph._kernels were not built")
+needs_c = pytest.mark.skipif(not compiled_kernels(), reason="the C kernels slam.graph.accel._kernels were not built")
 
 
 def _unit(q):
@@ -133,8 +134,8 @@ def test_normal_equations_and_steps_equal_the_torch_problem(planar, dense_max, c
     cfg = OptimizerConfig(fixed=(3,), damping="diagonal", dense_max=dense_max)
     for kernel in (None, "huber"):
         kern = make_kernel(kernel, None)
-        ref = _Problem(graph, cfg, kern, "first", "dense")
-        prob = _host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
+        ref = TorchProblem(graph, cfg, kern, "first", "dense")
+        prob = host.host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
         assert prob.dense == (dense_max > 0) and prob.size == ref.size == 8 * (3 if planar else 6)
         cost_t, chi2_t, cache_t = ref.evaluate(ref.poses)
         cost, chi2, cache = prob.evaluate(prob.poses)
@@ -186,7 +187,7 @@ def test_review_edge_cases_behave_alike_on_both_backends(monkeypatch):
     Z = graph.measurements.clone()
     Z[:, 3:] *= 1.0005
     off = PoseGraph(graph.poses, graph.ii, graph.jj, Z, graph.information)
-    for backend in ("numpy", "torch") + (("c",) if host.compiled_kernels() else ()):
+    for backend in ("numpy", "torch") + (("c",) if compiled_kernels() else ()):
         res = optimize(off, backend=backend)
         assert res.chi2 == pytest.approx(unit.chi2, rel=1e-9) and res.iterations == unit.iterations
         assert torch.allclose(res.graph.poses, unit.graph.poses, atol=1e-9)
@@ -228,11 +229,11 @@ def test_linearisation_in_chunks_of_edges_is_the_same(dense_max, planar, chunk, 
     graph = _graph(planar=planar, seed=9)
     cfg = OptimizerConfig(fixed=(0, 3, 7), dense_max=dense_max, planar=planar)
     kern = make_kernel("cauchy", None)
-    whole = _host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
+    whole = host.host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
     _, _, cache = whole.evaluate(whole.poses)
     H1, g1 = (a.copy() for a in whole.linearize(whole.poses, cache))
     monkeypatch.setattr(host, "_CHUNK", chunk)
-    chunked = _host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
+    chunked = host.host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
     assert chunked._F.shape[0] == chunk and chunked.dense == (dense_max > 0)
     _, _, cache = chunked.evaluate(chunked.poses)
     chunked.linearize(chunked.poses, cache)

@@ -20,7 +20,7 @@ in order of their height in the elimination tree (those of one height and one sh
 factoring its pivot block with ``potrf``, its rows with ``trsm``, and adding its update ``-L21 L21^T``
 (lower triangle, packed) straight into the panels of the supernodes that own its columns. Nothing but the
 factor is stored: a multifrontal scheme keeps every update matrix until its parent is done, which took
-4x the factor's memory on a 20000-pose graph. On the CPU, when the C kernels of ``slam.graph._kernels``
+4x the factor's memory on a 20000-pose graph. On the CPU, when the C kernels of ``slam.graph.accel._kernels``
 were built, supernodes with fronts of at most ``_C_MAX_FRONT`` rows are factored and solved there, a
 group per call with plain loops (most supernodes of a pose graph are small: LAPACK's or torch's ~20 us
 per call were most of a 500-pose factorisation); the larger ones keep LAPACK.
@@ -45,7 +45,7 @@ import threading
 
 import numpy as np
 
-from slam.graph import _compiled
+from slam.graph.accel import _compiled
 from slam.graph.blas_threads import limit_blas_threads
 
 _EMPTY = np.zeros(0, dtype=np.int64)
@@ -438,11 +438,10 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
 _NUMPY_MAX_BATCH = 3
 
 # Supernodes with fronts of at most this many rows are factored and solved by the C kernels
-# (slam.graph._kernels.factor_group / solve_group: plain loops, one call per group) when they were built:
+# (slam.graph.accel._kernels.factor_group / solve_group: plain loops, one call per group) when they were built:
 # below it the ~20 us of LAPACK/torch calls per front cost more than the front's arithmetic. The sweep
 # behind 128: benchmarks/cholesky_small_fronts.py (docs/benchmarks.md; 500 poses 5.9 -> 2.7 ms).
 _C_MAX_FRONT = 128
-_C = _compiled.kernels  # None when not built: LAPACK and torch do every front
 
 
 def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None, in_c=None):
@@ -507,7 +506,8 @@ class _Workspace:
         self.y = torch.zeros(sym.size, dtype=torch.float64, device=device)
         self.ynp = self.y.numpy() if self.cpu else None
         # the groups the C kernels do (CPU, small fronts): no views or index tensors are made for them
-        self.in_c = [compiled and _C is not None and self.cpu and g.m <= _C_MAX_FRONT for g in sym.groups]
+        C = _compiled.kernels  # None when not built: LAPACK and torch do every front
+        self.in_c = [compiled and C is not None and self.cpu and g.m <= _C_MAX_FRONT for g in sym.groups]
         # the packed update of a front-by-front supernode: one scratch vector, as large as the largest one
         d_max = max([g.m - g.p for g, c in zip(sym.groups, self.in_c) if g.size <= _NUMPY_MAX_BATCH and not c]
                     + [0])
@@ -638,7 +638,7 @@ class NumericCholesky:
             bufnp = buf.numpy() if ws.cpu else None
             for g, i0, i1, c, _ in ws.spans:
                 if c:
-                    failed = _C.factor_group(bufnp, g.offset, g.size, g.p, g.m, g.upd) != 0
+                    failed = _compiled.kernels.factor_group(bufnp, g.offset, g.size, g.p, g.m, g.upd) != 0
                 else:
                     failed = self._factor_groups(ws.groups[i0:i1], buf, infos, in_place, lapack)
                 if failed:
@@ -697,12 +697,12 @@ class NumericCholesky:
             bufnp = self.buf.numpy() if ws.cpu else None
             for g, i0, i1, c, rows in ws.spans:
                 if c:
-                    _C.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, True)
+                    _compiled.kernels.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, True)
                     continue
                 self._forward(groups[i0:i1], y, ynp, in_place, dtrsv)
             for g, i0, i1, c, rows in reversed(ws.spans):
                 if c:
-                    _C.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, False)
+                    _compiled.kernels.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, False)
                     continue
                 self._backward(groups[i0:i1], y, ynp, in_place, dtrsv)
             x = torch.empty_like(y)
