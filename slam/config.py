@@ -6,6 +6,7 @@ from typing import Optional
 
 from attnloop.index import LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
+from slam.mapping import MapConfig
 from slam.odometry.config import OdometryConfig, RegistrationConfig
 
 
@@ -79,3 +80,4 @@ class SLAMConfig:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     loop: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
+    map: MapConfig = field(default_factory=MapConfig)  # map.ply of a run (slam.pipeline)
