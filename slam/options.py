@@ -42,6 +42,7 @@ __all__ = [
     "check_config",
     "check_device",
     "check_intrinsics",
+    "check_sequence_intrinsics",
     "config_from_args",
     "dataset_rig",
     "describe_rig",
@@ -245,6 +246,19 @@ def check_intrinsics(fx: float, fy: float, cx: float, cy: float, what: str) -> N
         raise UsageError(f"{what}: focal lengths must be positive, got fx={fx}, fy={fy}")
 
 
+def check_sequence_intrinsics(sequence) -> None:
+    """Refuse a sequence whose ``K`` cannot be a camera (not 3x3, non-finite, a focal length <= 0).
+
+    Raises:
+        UsageError: naming the sequence folder.
+    """
+    K = np.asarray(sequence.K, dtype=np.float64)
+    where = f"{sequence.root}: camera intrinsics"
+    if K.shape != (3, 3):
+        raise UsageError(f"{where} must be a 3x3 matrix, got shape {K.shape}")
+    check_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], what=where)
+
+
 def _walk(obj, prefix: str):
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
@@ -335,6 +349,8 @@ def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None
     Raises:
         UsageError: contradictory or unusable settings.
     """
+    if sequence is not None:
+        check_sequence_intrinsics(sequence)
     cfg = SLAMConfig()
     cfg.loop.enabled = not getattr(args, "no_loop", False)
     rig = resolve_rig(args, sequence)

@@ -112,7 +112,7 @@ def test_demo_writes_every_output_and_its_sequence(demo_run):
     m = _strict_json(out / "metrics.json")
     assert m["num_frames"] == 12 and m["frame_step"] == 1
     # 12 frames for a whole loop are too fast to track: a handled state, the metrics say why there is no ATE
-    assert m["ate_rmse"] is None and "degenerate" in m["ate_unavailable"] and m["num_lost"] >= 1
+    assert m["ate_rmse"] is None and m["ate_unavailable"].startswith("no frame was tracked") and m["num_lost"] == 11
     assert m["backbone"] is None and m["descriptor"] is None  # --no-loop: no descriptor was built
     assert m["rig"].startswith("registered")
 
