@@ -11,6 +11,11 @@ For a batch of images:
 4. d = random RNN pooling of F (:mod:`attnloop.rnn_pool`), (B, num_rnn * 64);
 5. d is L2-normalised (``normalize=True``), so the dot product of two descriptors is their cosine.
 
+The recipe of steps 2-5 (fusion, RNN count and size, seed, scaling, merge, L2) is one
+:class:`DescriptorRecipe`. ``AttentionDescriptor(..., differentiable=True)`` keeps the whole chain in
+autograd (:func:`attnloop.guided_backprop.guided_backprop` with ``create_graph``): the descriptor is then
+a differentiable function of the images and of the backbone's weights, for training through it.
+
 Step 3 is ours, not the paper's: it makes the descriptor independent of the fused map's overall scale
 (which differs between fusion modes and frames) and sets the operating point of the RNNs' tanh. With
 raw features at EfficientNet's stage7 the pre-activations W_r x have a standard deviation of 5 to 17
@@ -21,6 +26,9 @@ seeds (docs/attention.md).
 """
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -28,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .backbones import build_backbone
+from .backbones import HookedBackbone, build_backbone, resolve_backbone_name
 from .backbones.preprocess import check_images
 from .fusion import FUSION_MODES, Fusion, fuse
 from .guided_backprop import guided_backprop
@@ -37,10 +45,49 @@ from .rnn_pool import RandomRNNPool, random_rnn_pool
 __all__ = [
     "AttentionDescriptor",
     "DescriptorParts",
+    "DescriptorRecipe",
     "attention_descriptor",
     "attention_descriptor_parts",
     "descriptor_from_attention",
 ]
+
+
+@dataclass(frozen=True)
+class DescriptorRecipe:
+    """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seeds.
+
+    Vary one setting with :func:`dataclasses.replace` (``replace(recipe, fusion="gaf")``).
+
+    Example:
+        >>> DescriptorRecipe(fusion="gaf").out_dim
+        1024
+    """
+
+    fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega" (the paper's default: DAM)
+    num_rnn: int = 16  # random RNNs; the descriptor has num_rnn * out_features dims (1024, as in the paper)
+    out_features: int = 64  # output size of each RNN (the paper's 64)
+    seed: int = 0  # seed of the RNN weights (and of a name-built backbone's random weights when not pretrained)
+    normalize: bool = True  # L2-normalise the descriptor: a dot product is then the cosine
+    pool_scale: float | None = 10.0  # L2 norm of the fused map fed to the RNNs (ours); None: raw (the paper)
+    merge: bool = True  # average channel c with c + C/2 before the pooling (the paper's merge)
+
+    def __post_init__(self) -> None:
+        if self.fusion not in FUSION_MODES:
+            raise ValueError(f"unknown fusion {self.fusion!r}; choose one of {FUSION_MODES}")
+        for name in ("num_rnn", "out_features"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if self.pool_scale is not None and not (float(self.pool_scale) > 0 and float(self.pool_scale) < float("inf")):
+            raise ValueError(f"pool_scale must be positive and finite, or None, got {self.pool_scale}")
+
+    @property
+    def out_dim(self) -> int:
+        """Size of a descriptor, ``num_rnn * out_features``."""
+        return int(self.num_rnn) * int(self.out_features)
+
+
+_DEFAULT = DescriptorRecipe()
 
 
 class DescriptorParts(NamedTuple):
@@ -123,6 +170,7 @@ def attention_descriptor_parts(
     normalize: bool = True,
     pool_scale: float | None = 10.0,
     merge: bool = True,
+    create_graph: bool = False,
 ) -> DescriptorParts:
     """Compute the descriptor and keep every intermediate (L, G, fused, descriptor).
 
@@ -135,12 +183,14 @@ def attention_descriptor_parts(
         normalize: L2-normalise the descriptor.
         pool_scale: L2 norm the fused map is scaled to before the pooling; None feeds it raw (the paper).
         merge: average channel c with c + C/2 before the pooling (the paper's merge).
+        create_graph: keep every part differentiable w.r.t. the images and the backbone's weights
+            (see :func:`attnloop.guided_backprop.guided_backprop`).
 
     Returns:
         :class:`DescriptorParts` with the descriptor of shape :math:`(B, R \\cdot O)`.
     """
     check_images(images)
-    tap, grad = guided_backprop(backbone, images)
+    tap, grad = guided_backprop(backbone, images, create_graph=create_graph)
     fused, desc = descriptor_from_attention(tap, grad, rnn_weights, fusion, normalize, pool_scale, merge)
     return DescriptorParts(tap, grad, fused, desc)
 
@@ -153,6 +203,7 @@ def attention_descriptor(
     normalize: bool = True,
     pool_scale: float | None = 10.0,
     merge: bool = True,
+    create_graph: bool = False,
 ) -> torch.Tensor:
     """Attention-guided descriptor of a batch of images (see :func:`attention_descriptor_parts`).
 
@@ -167,33 +218,77 @@ def attention_descriptor(
         >>> attention_descriptor(torch.rand(2, 3, 96, 128), net, w, fusion="ega").shape
         torch.Size([2, 1024])
     """
-    return attention_descriptor_parts(images, backbone, rnn_weights, fusion, normalize, pool_scale, merge).descriptor
+    return attention_descriptor_parts(
+        images, backbone, rnn_weights, fusion, normalize, pool_scale, merge, create_graph=create_graph
+    ).descriptor
+
+
+_PROTOCOL = ("preprocess", "forward_to_tap", "tap_shape")
+
+
+def _is_backbone(module: nn.Module) -> bool:
+    """Whether ``module`` follows the backbone protocol of :mod:`attnloop.backbones`."""
+    return all(hasattr(module, a) for a in _PROTOCOL) and (
+        hasattr(module, "forward_from_tap") or hasattr(module, "forward_split"))
 
 
 class AttentionDescriptor(nn.Module):
     """Images -> attention-guided CNN descriptors, as a drop-in ``nn.Module``.
 
-    The backbone is frozen (no parameter requires grad) and always in eval mode, even after
-    ``.train()``: the descriptor is a fixed feature extractor, not differentiable w.r.t. the images.
-    It computes its own gradients internally, so it can be called under ``torch.no_grad()`` or
-    ``torch.inference_mode()``.
+    The backbone can be
+
+    - a name: ``"auto"`` (VGG16 when its ImageNet weights are found without a download, else
+      EfficientNet-Lite0 with a one-line notice; :func:`attnloop.backbones.resolve_backbone_name`),
+      ``"vgg16"`` (the paper's) or ``"efficientnet_lite0"`` (weights from a pip package, works offline).
+      The descriptor owns that network: frozen (no parameter requires grad, unless ``differentiable``)
+      and always in eval mode, even after ``.train()``;
+    - a backbone module of :mod:`attnloop.backbones` (or one following its protocol), used as given;
+    - any classifier ``nn.Module`` (``forward`` returns logits ``(B, K)``) with ``tap="name.of.submodule"``:
+      L is taken at that submodule by a forward hook (:class:`attnloop.backbones.HookedBackbone`;
+      ``input_size``, ``mean`` and ``std`` are its preprocessing).
+
+    A module you pass is never frozen nor switched to eval behind your back: its ``requires_grad``
+    flags are left alone, and its training flags are set to eval only during a descriptor computation
+    and restored after it (so that a descriptor never depends on the rest of its batch: batch-norm uses
+    its running statistics, dropout is off). ``.train()``/``.eval()`` on the descriptor reach it as on
+    any submodule.
+
+    By default the descriptor is a fixed feature extractor: it computes its own gradients internally,
+    works under ``torch.no_grad()`` or ``torch.inference_mode()``, and its output is detached. With
+    ``differentiable=True`` the whole chain stays in autograd (the seeded backward with
+    ``create_graph``): the output is differentiable w.r.t. the images and every backbone weight that
+    requires grad (a name-built backbone is then not frozen), so one can train through it.
 
     Args:
-        backbone: ``"vgg16"`` (the paper's), ``"efficientnet_lite0"`` (weights from a pip package,
-            works offline) or a backbone module of :mod:`attnloop.backbones`.
+        backbone: a name, a backbone module or a classifier module (see above).
         fusion: ``"none"``, ``"dam"``, ``"eam"``, ``"gaf"`` or ``"ega"``.
         num_rnn: number of random RNNs (the descriptor has ``num_rnn * out_features`` dims).
-        seed: seed of the RNN weights, and of the backbone weights when ``pretrained`` is False.
-        pretrained: load ImageNet weights; False gives seeded random weights without any file.
-        weights: explicit checkpoint path for the backbone.
+        seed: seed of the RNN weights, and of a name-built backbone's weights when not pretrained.
+        pretrained: load ImageNet weights into a name-built backbone (default True); False gives seeded
+            random weights without any file.
+        weights: explicit checkpoint path for a name-built backbone.
         normalize: L2-normalise the descriptors.
-        tap: the backbone's tap layer (default: ``pool5`` for VGG16, ``stage7`` for EfficientNet-Lite0).
+        tap: a name-built backbone's tap layer (default: ``pool5`` for VGG16, ``stage7`` for
+            EfficientNet-Lite0), or the submodule of a classifier module where L is taken.
         out_features: output size of each RNN.
         pool_scale: L2 norm of the fused map fed to the RNNs (None: raw, as in the paper).
         merge: average channel c with c + C/2 before the pooling.
+        input_size: a classifier module's input ``(height, width)``; None: images at their own size.
+        mean: a classifier module's per-channel input mean on [0, 1] RGB; None: none.
+        std: a classifier module's per-channel input std on [0, 1] RGB; None: none.
+        differentiable: keep the computation in autograd (see above). Costs a graph of the backbone
+            and a second-order backward through the head (docs/benchmarks.md, "Differentiable descriptor").
+        recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` (leave those at
+            their defaults then).
+
+    Attributes:
+        backbone_name: the backbone used: ``"vgg16"`` or ``"efficientnet_lite0"`` for a name (``"auto"``
+            resolved), the class name of a backbone module, ``"Class.tap"`` for a classifier module.
+        recipe: the :class:`DescriptorRecipe`.
 
     Shape:
-        - images: :math:`(B, 3, H, W)`, uint8 in [0, 255] or float in [0, 1], any H and W
+        - images: :math:`(B, 3, H, W)`, uint8 in [0, 255] or finite float in [0, 1] (cast to the model's
+          dtype), any H and W
         - output: :math:`(B, \\text{num\\_rnn} \\cdot \\text{out\\_features})`
 
     Example:
@@ -202,54 +297,106 @@ class AttentionDescriptor(nn.Module):
         ...     d = desc(torch.randint(0, 256, (2, 3, 240, 320), dtype=torch.uint8))
         >>> d.shape
         torch.Size([2, 1024])
+        >>> net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
+        ...                     nn.Flatten(), nn.Linear(8 * 16 * 16, 10))
+        >>> AttentionDescriptor(net, tap="2", input_size=(32, 32))(torch.rand(2, 3, 48, 64)).shape
+        torch.Size([2, 1024])
     """
 
     def __init__(
         self,
-        backbone: str | nn.Module = "vgg16",
-        fusion: str = "dam",
-        num_rnn: int = 16,
-        seed: int = 0,
-        pretrained: bool = True,
+        backbone: str | nn.Module = "auto",
+        fusion: str = _DEFAULT.fusion,
+        num_rnn: int = _DEFAULT.num_rnn,
+        seed: int = _DEFAULT.seed,
+        pretrained: bool | None = None,
         weights: str | Path | None = None,
-        normalize: bool = True,
+        normalize: bool = _DEFAULT.normalize,
         tap: str | None = None,
-        out_features: int = 64,
-        pool_scale: float | None = 10.0,
-        merge: bool = True,
+        out_features: int = _DEFAULT.out_features,
+        pool_scale: float | None = _DEFAULT.pool_scale,
+        merge: bool = _DEFAULT.merge,
+        *,
+        input_size: Sequence[int] | None = None,
+        mean: Sequence[float] | None = None,
+        std: Sequence[float] | None = None,
+        differentiable: bool = False,
+        recipe: DescriptorRecipe | None = None,
     ) -> None:
         super().__init__()
+        given = DescriptorRecipe(fusion=fusion, num_rnn=num_rnn, out_features=out_features, seed=seed,
+                                 normalize=normalize, pool_scale=pool_scale, merge=merge)
+        if recipe is not None:
+            if not isinstance(recipe, DescriptorRecipe):
+                raise TypeError(f"recipe must be a DescriptorRecipe, got {type(recipe).__name__}")
+            if given != _DEFAULT:
+                changed = [f.name for f in dataclasses.fields(given) if getattr(given, f.name) != getattr(_DEFAULT, f.name)]
+                raise ValueError(f"give either recipe= or its settings, not both (also given: {changed}); "
+                                 "dataclasses.replace(recipe, ...) varies a recipe")
+            given = recipe
+        self.recipe = given
+        self.differentiable = bool(differentiable)
+        self._owns_backbone = isinstance(backbone, str)
+        preprocessing = {"input_size": input_size, "mean": mean, "std": std}
         if isinstance(backbone, str):
-            self.backbone_name = backbone
-            net = build_backbone(backbone, pretrained=pretrained, weights=weights, tap=tap, seed=seed)
+            for key, value in preprocessing.items():
+                if value is not None:
+                    raise ValueError(f"{key}= applies to a classifier module (backbone=my_module, tap=...); "
+                                     f"the built-in backbone {backbone!r} has its own preprocessing")
+            use_pretrained = True if pretrained is None else bool(pretrained)
+            self.backbone_name = resolve_backbone_name(backbone, use_pretrained, weights)
+            net = build_backbone(backbone, pretrained=use_pretrained, weights=weights, tap=tap, seed=given.seed)
+            net.eval()
+            if not self.differentiable:
+                net.requires_grad_(False)
         elif isinstance(backbone, nn.Module):
-            for attr in ("preprocess", "forward_to_tap", "forward_from_tap", "tap_shape"):
-                if not hasattr(backbone, attr):
-                    raise TypeError(f"backbone module {type(backbone).__name__} lacks '{attr}' (see attnloop.backbones)")
-            self.backbone_name = type(backbone).__name__
-            net = backbone
+            if pretrained is not None or weights is not None:
+                raise ValueError("pretrained=/weights= apply to a backbone name; a module comes with its own weights")
+            if _is_backbone(backbone):
+                extra = [k for k, v in {"tap": tap, **preprocessing}.items() if v is not None]
+                if extra:
+                    raise ValueError(f"{type(backbone).__name__} is a backbone with its own tap and preprocessing; "
+                                     f"{', '.join(extra)}= apply to a plain classifier module")
+                net = backbone
+            elif tap is not None:
+                net = HookedBackbone(backbone, tap, input_size=input_size, mean=mean, std=std)
+            else:
+                raise TypeError(
+                    f"backbone module {type(backbone).__name__} lacks 'preprocess', 'forward_to_tap' and 'tap_shape' "
+                    "(the protocol of attnloop.backbones); for any classifier pass tap='name.of.submodule' "
+                    "to take L at that submodule")
+            self.backbone_name = str(getattr(net, "name", type(net).__name__))
         else:
             raise TypeError(f"backbone must be a name or an nn.Module, got {type(backbone).__name__}")
-        if fusion not in FUSION_MODES:
-            raise ValueError(f"unknown fusion {fusion!r}; choose one of {FUSION_MODES}")
-        if pool_scale is not None and not pool_scale > 0:
-            raise ValueError(f"pool_scale must be positive or None, got {pool_scale}")
-        self.backbone = net.eval().requires_grad_(False)
-        self.fusion = Fusion(fusion)
-        channels, height, width = self.backbone.tap_shape
-        self.pool = RandomRNNPool(channels, (height, width), num_rnn, out_features, seed=seed, merge=merge)
-        self.normalize = bool(normalize)
-        self.pool_scale = None if pool_scale is None else float(pool_scale)
+        self.backbone = net
+        self.fusion = Fusion(given.fusion)
+        channels, height, width = (int(v) for v in self.backbone.tap_shape)
+        if given.merge and channels % 2:
+            raise ValueError(f"the tap of {self.backbone_name} has {channels} channels, an odd number: merge=True "
+                             "averages channel c with c + C/2; pass merge=False or tap a layer with even channels")
+        self.pool = RandomRNNPool(channels, (height, width), given.num_rnn, given.out_features, seed=given.seed,
+                                  merge=given.merge)
 
     @property
     def out_dim(self) -> int:
         """Size of a descriptor, ``num_rnn * out_features``."""
         return self.pool.out_dim
 
+    @property
+    def normalize(self) -> bool:
+        """Whether descriptors are L2-normalised (:attr:`recipe`)."""
+        return self.recipe.normalize
+
+    @property
+    def pool_scale(self) -> float | None:
+        """L2 norm of the pooling input, None for raw (:attr:`recipe`)."""
+        return None if self.recipe.pool_scale is None else float(self.recipe.pool_scale)
+
     def train(self, mode: bool = True) -> AttentionDescriptor:
-        """Set the training flag; the frozen backbone stays in eval mode (batch-norm, dropout)."""
+        """Set the training flag; a name-built backbone stays in eval mode (batch-norm, dropout)."""
         super().train(mode)
-        self.backbone.eval()
+        if self._owns_backbone:
+            self.backbone.eval()
         return self
 
     def _check_device(self, images: torch.Tensor) -> None:
@@ -273,9 +420,10 @@ class AttentionDescriptor(nn.Module):
             dtype = self.pool.weights.dtype
             empty = images.new_zeros(shape, dtype=dtype)
             return DescriptorParts(empty, empty, empty, images.new_zeros((0, self.out_dim), dtype=dtype))
+        r = self.recipe
         return attention_descriptor_parts(
-            images, self.backbone, self.pool.weights, self.fusion.mode, self.normalize, self.pool_scale,
-            self.pool.merge,
+            images, self.backbone, self.pool.weights, r.fusion, r.normalize, self.pool_scale, r.merge,
+            create_graph=self.differentiable,
         )
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
@@ -295,10 +443,10 @@ class AttentionDescriptor(nn.Module):
         if tap.ndim != 4 or tuple(tap.shape[1:]) != tuple(self.backbone.tap_shape):
             raise ValueError(f"tap must have shape (B, {', '.join(map(str, self.backbone.tap_shape))}), "
                              f"got {tuple(tap.shape)}")
-        mode = self.fusion.mode if fusion is None else fusion
-        return descriptor_from_attention(
-            tap, grad, self.pool.weights, mode, self.normalize, self.pool_scale, self.pool.merge
-        )[1]
+        mode = self.recipe.fusion if fusion is None else fusion
+        r = self.recipe
+        return descriptor_from_attention(tap, grad, self.pool.weights, mode, r.normalize, self.pool_scale, r.merge)[1]
 
     def extra_repr(self) -> str:
-        return f"backbone={self.backbone_name!r}, normalize={self.normalize}, pool_scale={self.pool_scale}"
+        return (f"backbone={self.backbone_name!r}, differentiable={self.differentiable}, "
+                f"normalize={self.normalize}, pool_scale={self.pool_scale}")

@@ -39,8 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from slam.eval.align import umeyama_alignment
-from slam.graph import PoseGraph, optimize, read_g2o
-from slam.graph.host import compiled_kernels
+from slam.graph import PoseGraph, compiled_kernels, optimize, read_g2o
 
 FILES = ["tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "input_M3500_g2o", "input_INTEL_g2o"]
 

@@ -2,7 +2,7 @@
 
 1. ``optimize`` timed alone (no GTSAM in between; median of ``--repeats``, one backend after the other) on
    every pose-graph file, with the torch backend (``slam.graph.fused``, what runs on other devices), the
-   numpy functions of ``slam.graph.host`` and its C kernels (``slam.graph._kernels``, the CPU default when
+   numpy functions of ``slam.graph.accel.host`` and its C kernels (``slam.graph.accel._kernels``, the CPU default when
    they were built): the effect of each, and a check that all reach the same chi2 in the same iterations.
 2. The dense/sparse crossover behind ``OptimizerConfig.dense_max = None``: sphere2500's first N poses
    (the edges among them) solved with ``dense_max=0`` (always sparse) and with a large one (always

@@ -20,7 +20,7 @@ in order of their height in the elimination tree (those of one height and one sh
 factoring its pivot block with ``potrf``, its rows with ``trsm``, and adding its update ``-L21 L21^T``
 (lower triangle, packed) straight into the panels of the supernodes that own its columns. Nothing but the
 factor is stored: a multifrontal scheme keeps every update matrix until its parent is done, which took
-4x the factor's memory on a 20000-pose graph. On the CPU, when the C kernels of ``slam.graph._kernels``
+4x the factor's memory on a 20000-pose graph. On the CPU, when the C kernels of ``slam.graph.accel._kernels``
 were built, supernodes with fronts of at most ``_C_MAX_FRONT`` rows are factored and solved there, a
 group per call with plain loops (most supernodes of a pose graph are small: LAPACK's or torch's ~20 us
 per call were most of a 500-pose factorisation); the larger ones keep LAPACK.
@@ -45,75 +45,12 @@ import threading
 
 import numpy as np
 
-from slam.graph import _compiled
+from slam.graph.accel import _compiled
+from slam.graph.blas_threads import limit_blas_threads
 
 _EMPTY = np.zeros(0, dtype=np.int64)
 
-__all__ = ["NotPositiveDefiniteError", "NumericCholesky", "SymbolicCholesky", "limit_blas_threads"]
-
-_OPENBLAS = None  # (get, set) thread functions of the OpenBLAS builds loaded in this process
-
-
-def _openblas_thread_functions():
-    """Find the loaded OpenBLAS libraries (numpy's and scipy's wheels each bundle one) by their path in
-    ``/proc/self/maps`` and return their ``(get_num_threads, set_num_threads)`` (Linux only; [] else)."""
-    global _OPENBLAS
-    if _OPENBLAS is not None:
-        return _OPENBLAS
-    import ctypes
-
-    import scipy.linalg.blas  # noqa: F401  (load scipy's BLAS before looking)
-
-    found = []
-    try:
-        with open("/proc/self/maps") as fh:
-            paths = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower() and "/" in ln})
-    except OSError:
-        paths = []
-    for path in paths:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for prefix, suffix in (("scipy_openblas", "64_"), ("scipy_openblas", ""), ("openblas", "64_"),
-                               ("openblas", "")):
-            try:
-                get = getattr(lib, f"{prefix}_get_num_threads{suffix}")
-                put = getattr(lib, f"{prefix}_set_num_threads{suffix}")
-            except AttributeError:
-                continue
-            found.append((get, put))
-            break
-    _OPENBLAS = found
-    return found
-
-
-class limit_blas_threads:
-    """Context manager: OpenBLAS (numpy's and scipy's) uses ``n`` threads inside, the old count after.
-
-    The factorisation makes many small BLAS calls; OpenBLAS threads some of them (e.g. a 60 x 18
-    ``trsm``), which on a busy CPU took 16 ms instead of 3 us. ``n=None`` changes nothing.
-    """
-
-    def __init__(self, n):
-        self.n = n
-        self.saved = []
-
-    def __enter__(self):
-        if self.n is not None:
-            for get, put in _openblas_thread_functions():
-                old = get()
-                if old != self.n:
-                    put(int(self.n))
-                    self.saved.append((put, old))
-        return self
-
-    def __exit__(self, *exc):
-        for put, old in self.saved:
-            put(old)
-        self.saved = []
-        return False
-
+__all__ = ["NotPositiveDefiniteError", "NumericCholesky", "SymbolicCholesky"]
 
 class NotPositiveDefiniteError(RuntimeError):
     """The matrix is not (numerically) positive definite."""
@@ -501,11 +438,10 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
 _NUMPY_MAX_BATCH = 3
 
 # Supernodes with fronts of at most this many rows are factored and solved by the C kernels
-# (slam.graph._kernels.factor_group / solve_group: plain loops, one call per group) when they were built:
+# (slam.graph.accel._kernels.factor_group / solve_group: plain loops, one call per group) when they were built:
 # below it the ~20 us of LAPACK/torch calls per front cost more than the front's arithmetic. The sweep
 # behind 128: benchmarks/cholesky_small_fronts.py (docs/benchmarks.md; 500 poses 5.9 -> 2.7 ms).
 _C_MAX_FRONT = 128
-_C = _compiled.kernels  # None when not built: LAPACK and torch do every front
 
 
 def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None, in_c=None):
@@ -570,7 +506,8 @@ class _Workspace:
         self.y = torch.zeros(sym.size, dtype=torch.float64, device=device)
         self.ynp = self.y.numpy() if self.cpu else None
         # the groups the C kernels do (CPU, small fronts): no views or index tensors are made for them
-        self.in_c = [compiled and _C is not None and self.cpu and g.m <= _C_MAX_FRONT for g in sym.groups]
+        C = _compiled.kernels  # None when not built: LAPACK and torch do every front
+        self.in_c = [compiled and C is not None and self.cpu and g.m <= _C_MAX_FRONT for g in sym.groups]
         # the packed update of a front-by-front supernode: one scratch vector, as large as the largest one
         d_max = max([g.m - g.p for g, c in zip(sym.groups, self.in_c) if g.size <= _NUMPY_MAX_BATCH and not c]
                     + [0])
@@ -701,7 +638,7 @@ class NumericCholesky:
             bufnp = buf.numpy() if ws.cpu else None
             for g, i0, i1, c, _ in ws.spans:
                 if c:
-                    failed = _C.factor_group(bufnp, g.offset, g.size, g.p, g.m, g.upd) != 0
+                    failed = _compiled.kernels.factor_group(bufnp, g.offset, g.size, g.p, g.m, g.upd) != 0
                 else:
                     failed = self._factor_groups(ws.groups[i0:i1], buf, infos, in_place, lapack)
                 if failed:
@@ -760,12 +697,12 @@ class NumericCholesky:
             bufnp = self.buf.numpy() if ws.cpu else None
             for g, i0, i1, c, rows in ws.spans:
                 if c:
-                    _C.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, True)
+                    _compiled.kernels.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, True)
                     continue
                 self._forward(groups[i0:i1], y, ynp, in_place, dtrsv)
             for g, i0, i1, c, rows in reversed(ws.spans):
                 if c:
-                    _C.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, False)
+                    _compiled.kernels.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, False)
                     continue
                 self._backward(groups[i0:i1], y, ynp, in_place, dtrsv)
             x = torch.empty_like(y)
