@@ -96,7 +96,7 @@ def _generate_demo(args, out: Path) -> Path:
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         generate_demo(tmp, scene=args.demo_scene, trajectory=args.demo_trajectory, num_frames=args.demo_frames,
-                      seed=args.seed, width=args.demo_size[0], height=args.demo_size[1])
+                      seed=args.seed, width=args.demo_size[0], height=args.demo_size[1], progress=not args.quiet)
         tmp.rename(target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -195,6 +195,7 @@ def main(argv: list[str] | None = None) -> int:
             logging.getLogger(noisy).setLevel(logging.WARNING)
     elif not args.quiet:
         logging.getLogger("slam.system").setLevel(logging.INFO)
+        logging.getLogger("slam.synthetic").setLevel(logging.INFO)  # the demo's rendering progress
     try:
         return run_command(args)
     except KeyboardInterrupt:

@@ -116,15 +116,12 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
             (:class:`slam.options.UsageError`) or intrinsics that cannot be a camera.
         FloatingPointError: the run produced non-finite poses (never silently returned).
     """
-    from slam.options import check_config, check_intrinsics
+    from slam.options import check_config, check_sequence_intrinsics
 
     config = check_config(config if config is not None else SLAMConfig())
     if isinstance(frame_step, bool) or not isinstance(frame_step, (int, np.integer)) or frame_step < 1:
         raise ValueError(f"frame_step must be an integer >= 1, got {frame_step!r}")
-    K = np.asarray(sequence.K, dtype=np.float64)
-    if K.shape != (3, 3):
-        raise ValueError(f"{sequence.root}: intrinsics K must have shape (3, 3), got {K.shape}")
-    check_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], what=f"{sequence.root}: camera intrinsics")
+    check_sequence_intrinsics(sequence)
     n_in = len(sequence) if max_frames is None else min(int(max_frames), len(sequence))
     if n_in <= 0:
         raise ValueError(f"{sequence.name}: nothing to process (max_frames={max_frames}, {len(sequence)} frames)")
@@ -162,8 +159,8 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
     gt_arr = torch.from_numpy(np.stack([
         p if p is not None else np.full(7, np.nan) for p in (view.groundtruth_pose(i) for i in range(n))
     ])) if gt is not None else None
-    desc = getattr(slam, "_descriptor", None)
-    backbone = getattr(desc, "backbone_name", None) if config.loop.enabled and desc is not None else None
+    closer = slam.loop_closer
+    backbone = getattr(closer.descriptor, "backbone_name", None) if closer is not None else None
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
                      frame_step=int(frame_step), map=cloud, backbone=backbone)
 
@@ -227,10 +224,16 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
                            "iterations": opt.iterations}
     m["ate_rmse"] = None
     gt_len = 0 if run.groundtruth is None else len(run.groundtruth)
+    tracked = res.num_frames - res.num_lost - res.num_skipped  # the first frame counts: it sets the origin
     if run.groundtruth is None:
         m["ate_unavailable"] = "the sequence has no ground truth"
     elif gt_len < 3:
         m["ate_unavailable"] = f"only {gt_len} frame(s) with ground truth (the alignment needs 3)"
+    elif tracked <= 1:
+        m["ate_unavailable"] = (f"no frame was tracked ({res.num_lost} lost, {res.num_skipped} unreadable of "
+                                f"{res.num_frames}): nothing to align")
+    elif float((run.groundtruth.poses[:, :3] - run.groundtruth.poses[:1, :3]).norm(dim=-1).max()) < 1e-6:
+        m["ate_unavailable"] = "the ground-truth camera never moves: the alignment is not defined"
     else:
         try:
             a = ate(run.groundtruth, res.trajectory)
