@@ -283,3 +283,24 @@ def test_normalisation_settings_and_empty_batch():
     desc = AttentionDescriptor(hooked)
     assert desc(torch.zeros(0, 3, 32, 32)).shape == (0, 1024)
     assert desc.parts(torch.zeros(0, 3, 32, 32)).tap.shape == (0, 8, 16, 16)
+
+
+def test_logits_that_do_not_use_the_tap():
+    class Detached(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.conv = nn.Conv2d(3, 4, 3, padding=1)
+            self.fc = nn.Linear(4 * 8 * 8, 3)
+
+        def forward(self, x):
+            return self.fc(self.conv(x).detach().flatten(1))
+
+    class Unused(Detached):
+        def forward(self, x):
+            self.conv(x)
+            return self.fc(x[:, :1].expand(-1, 4, -1, -1).flatten(1))
+
+    for cls in (Detached, Unused):
+        desc = AttentionDescriptor(cls(), tap="conv", input_size=(8, 8))
+        with pytest.raises(ValueError, match="do not depend on the tap through autograd"):
+            desc(torch.rand(1, 3, 8, 8))
