@@ -152,7 +152,7 @@ def run_command(args: argparse.Namespace) -> int:
     print(_summary(run, metrics))
     wrote = ["trajectory.txt", "loops.txt", "metrics.json", "trajectory.png"]
     if run.map is not None:
-        wrote.append(f"map.ply ({metrics.get('map_points', 0)} points)")
+        wrote.append(f"map.ply ({metrics['map']['points']} points)")
     print(f"wrote {out / wrote[0]}, " + ", ".join(wrote[1:]))
     return 0
 
