@@ -60,11 +60,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _fail(message: str) -> int:
-    print(f"{PROG}: {message}", file=sys.stderr)
-    return 2
-
-
 def _check_demo_args(args) -> None:
     from slam.options import UsageError
     from slam.synthetic.demo import DEMO_SCENES
@@ -186,6 +181,25 @@ def user_error_message(exc: BaseException) -> str | None:
     return None
 
 
+def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
+    """``fn(*args, **kwargs)``'s exit code; an error a user can cause (:func:`user_error_message`) is one
+    line on stderr, ``prog: message``, and exit code 2; Ctrl-C is 130; anything else (a bug) propagates.
+
+    The command and the examples run through it, so that they report errors alike.
+    """
+    try:
+        return fn(*args, **kwargs)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:
+        message = user_error_message(e)
+        if message is None:
+            raise
+        print(f"{prog}: {message}", file=sys.stderr)
+        return 2
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
@@ -196,16 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     elif not args.quiet:
         logging.getLogger("slam.system").setLevel(logging.INFO)
         logging.getLogger("slam.synthetic").setLevel(logging.INFO)  # the demo's rendering progress
-    try:
-        return run_command(args)
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
-    except Exception as e:
-        message = user_error_message(e)
-        if message is None:
-            raise
-        return _fail(message)
+    return call_reporting_errors(PROG, run_command, args)
 
 
 if __name__ == "__main__":  # pragma: no cover
