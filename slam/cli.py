@@ -46,8 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--demo", action="store_true",
                    help="generate a synthetic sequence into OUT/demo_sequence and run on it")
     scenes = "; ".join(f"{k}: {v.description}" for k, v in DEMO_SCENES.items())
-    g.add_argument("--demo-scene", choices=tuple(DEMO_SCENES), default=DEFAULT_DEMO_SCENE, help=scenes)
-    g.add_argument("--demo-trajectory", default=None,
+    g.add_argument("--demo-scene", choices=tuple(DEMO_SCENES), default=DEFAULT_DEMO_SCENE,
+                   help=f"{scenes} (default: {DEFAULT_DEMO_SCENE})")
+    g.add_argument("--demo-trajectory", default=None, metavar="NAME",
                    help="camera path (room: " + ", ".join(DEMO_SCENES[DEFAULT_DEMO_SCENE].trajectories)
                         + "; default: the scene's own)")
     g.add_argument("--demo-frames", type=positive_int, default=None, metavar="N",
