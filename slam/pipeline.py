@@ -162,8 +162,8 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
     gt_arr = torch.from_numpy(np.stack([
         p if p is not None else np.full(7, np.nan) for p in (view.groundtruth_pose(i) for i in range(n))
     ])) if gt is not None else None
-    desc = getattr(slam, "_descriptor", None)
-    backbone = getattr(desc, "backbone_name", None) if config.loop.enabled and desc is not None else None
+    closer = slam.loop_closer
+    backbone = getattr(closer.descriptor, "backbone_name", None) if closer is not None else None
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
                      frame_step=int(frame_step), map=cloud, backbone=backbone)
 
