@@ -8,9 +8,9 @@ the per-edge maths behind :class:`~slam.graph.problem.PoseGraphProblem` (torch, 
 (:mod:`slam.graph.linear`) and here the outer loop with its step rules (Gauss-Newton, LM with GTSAM's
 schedule or Nielsen's gain-ratio rule).
 
-Backends (``OptimizerConfig.backend``): ``"torch"`` runs the reference on any device; ``"auto"`` runs a CPU
-graph on the accelerator (its C kernels when built, else numpy; ~3-10x less call overhead on small graphs);
-all take the same steps up to round-off (tested).
+Backends (``OptimizerConfig.backend``): ``"torch"`` (the default) runs the reference on any device;
+``"auto"`` runs a CPU graph on the accelerator (its C kernels when built, else numpy; ~3-10x less call
+overhead on small graphs); all take the same steps up to round-off (tested).
 
 Gauge (a pose graph is invariant to moving all poses rigidly): ``"free"`` (default for LM) leaves the
 gauge to the LM damping, as GTSAM does without a prior: the damped step is then the smallest of the
