@@ -125,6 +125,8 @@ def test_backends_take_the_same_steps_on_a_real_sized_problem():
     graph = _graph()
     a = optimize(graph, kernel="cauchy", backend="numpy")
     b = optimize(graph, kernel="cauchy", backend="torch")
+    assert (a.backend, b.backend, optimize(graph).backend) == ("numpy", "torch", "torch")
+    assert optimize(graph, backend="auto").backend == ("c" if compiled_kernels() else "numpy")
     assert a.iterations == b.iterations > 2 and a.status == b.status
     np.testing.assert_allclose(a.cost_history, b.cost_history, rtol=1e-9)
     assert torch.allclose(a.graph.poses, b.graph.poses, atol=1e-8)

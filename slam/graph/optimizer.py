@@ -148,7 +148,8 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         graph=result_graph, chi2=run.best.chi2, initial_chi2=run.initial_chi2, status=run.status,
         iterations=run.iterations, robust_cost=run.best.cost if kern is not None else None,
         cost_history=run.costs, lambda_history=run.lambdas, time_history=run.times, timings=tm,
-        weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message)
+        weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message,
+        backend=backend)
 
 
 # -- the outer loop ---------------------------------------------------------------------------------
