@@ -214,3 +214,21 @@ def test_linearisation_in_chunks_of_edges_is_the_same(dense_max, planar, chunk, 
     H2, g2 = chunked.linearize(chunked.poses, cache)
     np.testing.assert_allclose(H2, H1, rtol=1e-13, atol=1e-12 * np.abs(H1).max())
     np.testing.assert_allclose(g2, g1, rtol=1e-13, atol=1e-12 * np.abs(g1).max())
+
+
+def test_problems_and_accelerators_satisfy_their_protocols():
+    from slam.graph.accel import ACCELERATORS, Accelerator, accelerator_for
+    from slam.graph.problem import PoseGraphProblem
+
+    graph = _graph(seed=3)
+    cfg = OptimizerConfig()
+    assert isinstance(TorchProblem(graph, cfg, None, "free", "auto"), PoseGraphProblem)
+    for name, acc in ACCELERATORS.items():
+        assert isinstance(acc, Accelerator) and acc.name == name
+        if acc.available():
+            assert isinstance(acc.problem(graph, cfg, None, "free", "auto"), PoseGraphProblem)
+        assert acc.unsupported(graph, cfg, "prior") == ["gauge 'prior'"]
+    assert accelerator_for(graph, cfg, "free") is None  # the default backend is torch
+    auto = accelerator_for(graph, OptimizerConfig(backend="auto"), "free")
+    assert auto is ACCELERATORS["c" if compiled_kernels() else "numpy"]
+    assert accelerator_for(graph, OptimizerConfig(backend="auto"), "prior") is None  # falls back to torch
