@@ -54,6 +54,7 @@ from slam.graph.cholesky import limit_blas_threads
 from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.fused import bmm, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
 from slam.graph.host import HostProblem, compiled_kernels, host_kernels
+from slam.graph.initialization import initialize
 from slam.graph.linear import (
     BlockPattern,
     LinearSolver,
@@ -412,7 +413,7 @@ def _information_factor(graph: PoseGraph, info: Tensor, check: bool) -> Tensor:
 
 def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, RobustKernel] = None,
              solver: Union[None, str, LinearSolver] = "auto", config: Optional[OptimizerConfig] = None,
-             **overrides) -> OptimizationResult:
+             initialization: str = "none", **overrides) -> OptimizationResult:
     """Optimise the poses of a pose graph.
 
     Args:
@@ -424,6 +425,10 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
             :class:`~slam.graph.linear.LinearSolver`.
         config: an :class:`OptimizerConfig`; keyword ``overrides`` replace its fields
             (e.g. ``optimize(g, max_iterations=10, gauge="prior")``).
+        initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"`` (rotations by
+            chordal relaxation, then translations by least squares, as GTSAM's ``InitializePose3``) or
+            ``"spanning_tree"`` (composed along a breadth-first tree of the edges); see
+            :mod:`slam.graph.initialization`. ``initial_chi2`` is then the chi2 of that guess.
 
     Returns:
         An :class:`OptimizationResult` (``result.graph``, ``result.chi2``, ``result.status``,
@@ -434,11 +439,15 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
     """
     t_start = time.perf_counter()
     cfg = dataclasses.replace(config or OptimizerConfig(), **overrides)
+    if isinstance(graph, PoseGraph) and graph.fixed.numel():  # the graph's own held poses (g2o FIX lines)
+        cfg = dataclasses.replace(cfg, fixed=tuple(int(f) for f in cfg.fixed) + tuple(graph.fixed.tolist()))
     prev_threads = torch.get_num_threads()
     if cfg.num_threads is not None and cfg.num_threads != prev_threads:
         torch.set_num_threads(int(cfg.num_threads))
     try:
         with limit_blas_threads(cfg.num_threads if scipy_available() else None):
+            if initialization != "none":  # (its time counts in timings["setup"])
+                graph = initialize(graph, initialization, fixed=cfg.fixed)
             return _optimize(graph, method, kernel, solver, cfg, t_start)
     finally:
         if torch.get_num_threads() != prev_threads:
