@@ -104,13 +104,13 @@ def _open(f: PathOrFile, mode: str):
     return f, getattr(f, "name", "<stream>"), False
 
 
-def _report(notes: List[str], src: str, lines: List[int], message: str, strict: bool) -> None:
-    """Note a warning about ``lines`` for :func:`read_g2o` to give (or, when ``strict``, raise a
-    :class:`G2OFormatError` at the first)."""
+def _report(notes: List[str], src: str, lines: List[int], problem: str, action: str, strict: bool) -> None:
+    """Note the warning ``problem; action`` about ``lines`` for :func:`read_g2o` to give, or (``strict``)
+    raise a :class:`G2OFormatError` at the first line."""
     if strict:
-        raise G2OFormatError(src, lines[0], f"{message} (strict=True)")
+        raise G2OFormatError(src, lines[0], f"{problem} (refused with strict=True; otherwise {action})")
     shown = ", ".join(map(str, lines[:5])) + (f" and {len(lines) - 5} more" if len(lines) > 5 else "")
-    notes.append(f"{src}, line{'s' if len(lines) > 1 else ''} {shown}: {message}")
+    notes.append(f"{src}, line{'s' if len(lines) > 1 else ''} {shown}: {problem}; {action}")
 
 
 def _numbers(rows: List[List[str]], linenos: List[int], first: int, tag: str, src: str) -> np.ndarray:
@@ -191,22 +191,29 @@ def _positive_definite(info: np.ndarray, lines: List[int], tag: str, src: str, s
                                             "carries no information); expected a positive-definite matrix")
     _report(notes, src, [lines[k] for k in bad],
             f"{tag} information matrix is not positive definite (eigenvalues {w[0, 0]:.3g} .. {top[0]:.3g}"
-            f"{' on the first' if bad.size > 1 else ''}); replaced by the nearest positive-definite matrix "
+            f"{' on the first' if bad.size > 1 else ''})", "replaced by the nearest positive-definite matrix "
             f"(eigenvalues clipped to >= {_PD_FLOOR:g} x the largest, eigenvectors kept)", strict)
-    w = np.maximum(w, _PD_FLOOR * top[:, None])
+    # A + sum over the clipped eigenvalues of (floor - w) v v^T: the same matrix as V max(w, floor) V^T,
+    # with the part of A in the kept eigenvectors left exactly as the file gave it
+    lift = np.maximum(_PD_FLOOR * top[:, None] - w, 0.0)
     out = info.copy()
-    proj = (V * w[:, None, :]) @ V.transpose(0, 2, 1)
-    out[bad] = 0.5 * (proj + proj.transpose(0, 2, 1))
+    corr = (V * lift[:, None, :]) @ V.transpose(0, 2, 1)
+    out[bad] += 0.5 * (corr + corr.transpose(0, 2, 1))
     return out
 
 
-def _repeated(rows: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """``(k, first)``: the rows of ``rows (M, C)`` that repeat an earlier row exactly, and that row."""
-    if not rows.shape[0]:
+def _repeated(ids: np.ndarray, values: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """``(k, first)``: the rows of ``ids (M, a)`` int64 and ``values (M, b)`` float64 that repeat an earlier
+    row exactly (bit for bit), and that earlier row."""
+    m = ids.shape[0]
+    if not m:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+    raw = np.concatenate([np.ascontiguousarray(ids, dtype=np.int64).view(np.uint8).reshape(m, -1),
+                          np.ascontiguousarray(values, dtype=np.float64).view(np.uint8).reshape(m, -1)], 1)
+    rows = np.ascontiguousarray(raw).view(np.dtype((np.void, raw.shape[1]))).reshape(m)
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
-    k = np.nonzero(first[inverse] != np.arange(rows.shape[0]))[0]
+    k = np.nonzero(first[inverse] != np.arange(m))[0]
     return k, first[inverse[k]]
 
 
@@ -293,10 +300,10 @@ def read_g2o(f: PathOrFile, dtype: torch.dtype = torch.float64, allow_no_edges: 
     else:
         vid = _row_ids(vrows, vlines, 1, vtag, src)[:, 0]
         vval = _numbers(vrows, vlines, 2, vtag, src)
-        same, first = _repeated(np.concatenate([vid[:, None].astype(np.float64), vval], 1))
+        same, first = _repeated(vid[:, None], vval)
         if same.size:  # an exact copy of a vertex line: read once
             _report(notes, src, [vlines[k] for k in same], f"{vtag} repeats the line {vlines[first[0]]}"
-                    f"{' (and others repeat theirs)' if same.size > 1 else ''}; read once", strict)
+                    f"{' (and others repeat theirs)' if same.size > 1 else ''}", "read once", strict)
             keep = np.ones(len(vid), dtype=bool)
             keep[same] = False
             vid, vval, vlines = vid[keep], vval[keep], [ln for ln, k in zip(vlines, keep) if k]
@@ -315,10 +322,10 @@ def read_g2o(f: PathOrFile, dtype: torch.dtype = torch.float64, allow_no_edges: 
         k, c = map(int, np.argwhere(~found)[0])
         raise G2OFormatError(src, elines[k],
                              f"{etag} refers to vertex {eid[k, c]}, which no {vtag} line defines")
-    same, first = _repeated(np.concatenate([eid.astype(np.float64), evals], 1))
+    same, first = _repeated(eid, evals)
     if same.size:
         _report(notes, src, [elines[k] for k in same], f"{etag} repeats the line {elines[first[0]]}"
-                f"{' (and others repeat theirs)' if same.size > 1 else ''}; kept, so its information counts "
+                f"{' (and others repeat theirs)' if same.size > 1 else ''}", "kept, so its information counts "
                 "twice (as in g2o and GTSAM): delete the line if it is a copy", strict)
 
     fix_tok = [t for r in rows["FIX"] for t in r[1:]]
