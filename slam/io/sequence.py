@@ -29,7 +29,7 @@ from slam.io.frame import RGBDFrame
 from slam.io.images import FrameReadError
 from slam.io.trajectory import Trajectory
 
-__all__ = ["DatasetError", "DatasetNotFoundError", "RGBDSequence", "SequenceView", "open_sequence"]
+__all__ = ["DatasetError", "DatasetNotFoundError", "DatasetWarning", "RGBDSequence", "SequenceView", "open_sequence"]
 
 logger = logging.getLogger(__name__)
 
@@ -51,6 +51,11 @@ class DatasetError(ValueError):
 
 class DatasetNotFoundError(DatasetError, FileNotFoundError):
     """The sequence folder or one of its required list files does not exist."""
+
+
+class DatasetWarning(UserWarning):
+    """Something in a dataset was unusable and left out (e.g. a pose file that is not a pose); the message
+    names the files."""
 
 
 class RGBDSequence(ABC):
