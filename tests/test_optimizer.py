@@ -1,7 +1,7 @@
 """Gauss-Newton / Levenberg-Marquardt on pose graphs: exact solutions, loop closing, solvers, gauge,
 robust kernels, the planar reduction, errors, and agreement with GTSAM on a shared benchmark file.
 
-Every test runs three times: with the C kernels of slam.graph.host (what "auto" picks on the CPU when they
+Every test runs three times: with the C kernels of slam.graph.accel.host (what "auto" picks on the CPU when they
 were built), on its numpy functions, and on the torch path (slam.graph.fused, what runs on other devices),
 forced through ``slam.graph.optimizer._backend``.
 """
@@ -17,13 +17,13 @@ from slam.graph import (
     PoseGraph,
     PoseGraphOptimizer,
     Status,
+    compiled_kernels,
     edge_chi2,
     edge_residuals,
     graph_chi2,
     optimize,
     read_g2o,
 )
-from slam.graph.host import compiled_kernels
 from slam.lie import se3_between, se3_compose, se3_exp, se3_log
 
 F64 = torch.float64
@@ -34,7 +34,7 @@ def backend(request, monkeypatch):
     """Run the test on every backend where ``backend="auto"`` (the C and numpy paths fall back to torch
     where they must, e.g. the prior gauge)."""
     if request.param == "c" and not compiled_kernels():
-        pytest.skip("the C kernels slam.graph._kernels were not built")
+        pytest.skip("the C kernels slam.graph.accel._kernels were not built")
     real = optimizer_module._backend
 
     def forced(graph, cfg, gauge):

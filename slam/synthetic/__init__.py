@@ -6,6 +6,7 @@ Example:
     >>> from slam.synthetic import generate_sequence  # doctest: +SKIP
     >>> folder = generate_sequence("/tmp/synthetic_loop", trajectory="loop", num_frames=300)  # doctest: +SKIP
 """
+from slam.synthetic.demo import DEFAULT_DEMO_SCENE, DEMO_SCENES, DemoScene, generate_demo
 from slam.synthetic.render import DepthNoiseConfig, ImageNoiseConfig, RenderOutput, render_frames
 from slam.synthetic.scene import RoomConfig, Scene, build_room_scene
 from slam.synthetic.sequence import (
@@ -18,8 +19,11 @@ from slam.synthetic.sequence import (
 from slam.synthetic.trajectories import TRAJECTORIES, TrajectoryConfig, make_trajectory, trajectory_rates
 
 __all__ = [
+                                     "DEFAULT_DEMO_SCENE",
+                                     "DEMO_SCENES",
                                      "DEPTH_FACTOR",
                                      "TRAJECTORIES",
+                                     "DemoScene",
                                      "DepthNoiseConfig",
                                      "ImageNoiseConfig",
                                      "RenderOutput",
@@ -28,6 +32,7 @@ __all__ = [
                                      "SyntheticSequence",
                                      "TrajectoryConfig",
                                      "build_room_scene",
+                                     "generate_demo",
                                      "generate_sequence",
                                      "make_trajectory",
                                      "read_calibration",
