@@ -73,6 +73,8 @@ class RunResult:
         config: the config the run used.
         frame_step: every ``frame_step``-th input frame was used.
         map: the keyframes' points (:class:`slam.mapping.PointCloudMap`), None when the map is off.
+        map_cloud: the merged map ``(points (N, 3) float32, colours (N, 3) uint8)`` placed with the final
+            keyframe poses (filled by :func:`evaluate_run`).
         backbone: the descriptor's backbone as built (None without loop closure).
     """
 
@@ -88,6 +90,7 @@ class RunResult:
     frame_step: int = 1
     map: PointCloudMap | None = None
     backbone: str | None = None
+    map_cloud: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
@@ -184,7 +187,7 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
 
     Keys: ``sequence``, ``num_frames``, ``frame_step``, ``num_keyframes``, ``num_loops``, ``num_lost``,
     ``num_skipped``, ``fps``, ``wall_seconds``, ``time_per_stage``, ``backbone`` (as built; null without
-    loop closure), ``rig``; ``ate_rmse`` (rigid SE(3) alignment, TUM association) and ``ate``
+    loop closure), ``rig``, ``map`` (points of the merged map, keyframes, points and MB kept during the run); ``ate_rmse`` (rigid SE(3) alignment, TUM association) and ``ate``
     (statistics), ``odometry_ate_rmse`` (before the pose graph), ``rpe_1frame`` / ``rpe_1s`` (translation
     m, rotation deg) and ``loops_true`` / ``loops_false`` (accepted loops judged by ground-truth distance
     and angle, :class:`slam.eval.LoopGroundTruthConfig`) when there is ground truth to evaluate against;
@@ -217,6 +220,11 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
         m["descriptor"] = ({"backbone": run.backbone, "requested_backbone": d.backbone, "fusion": d.fusion,
                             "seed": d.seed, "weights": d.weights} if run.config.loop.enabled else None)
         m["rig"] = describe_rig(rig_of(run.config))
+    if run.map is not None:
+        run.map_cloud = run.map.points(res.keyframe_trajectory.poses)
+        m["map"] = {"points": int(run.map_cloud[0].shape[0]), "keyframes": len(run.map),
+                    "kept_points": run.map.num_points, "kept_mb": round(run.map.nbytes / 1e6, 3),
+                    "voxel_size": run.map.config.voxel_size}
     if res.optimization is not None:
         opt = res.optimization
         m["pose_graph"] = {"keyframes": res.graph.num_poses, "edges": res.graph.num_edges,
@@ -431,12 +439,11 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
         f"{lp.timestamp_a:.6f} {lp.timestamp_b:.6f}\n" for lp in res.loops)
     ply = None
     if write_map:
-        pts, cols = run.map.points(res.keyframe_trajectory.poses)
+        pts, cols = run.map_cloud if run.map_cloud is not None else run.map.points(res.keyframe_trajectory.poses)
         buf = io.BytesIO()
         write_ply(buf, pts, cols, comment=f"attnloop map of {run.sequence_name}: {len(run.map)} keyframes, "
                                           f"voxel {run.map.config.voxel_size:g} m, the trajectory's frame")
         ply = buf.getvalue()
-        run.metrics["map_points"] = int(pts.shape[0])
     png = None
     if plot:
         from slam.eval import plot_trajectory

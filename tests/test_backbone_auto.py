@@ -56,7 +56,8 @@ def test_auto_is_the_descriptors_default():
 def test_auto_without_vgg16_weights_uses_lite0_with_one_notice(empty_hub, caplog):
     caplog.set_level(logging.WARNING, logger="attnloop")
     desc = AttentionDescriptor()  # the default: "auto"
-    assert desc.backbone_name == "efficientnet_lite0" and desc.backbone.tap_shape == (320, 7, 7)
+    assert desc.backbone_name == "efficientnet_lite0"
+    assert desc.backbone.tap_shape == AttentionDescriptor("efficientnet_lite0").backbone.tap_shape  # the same recipe
     notices = [r for r in caplog.records if r.name == "attnloop"]
     assert len(notices) == 1
     msg = notices[0].getMessage()

@@ -55,7 +55,7 @@ def _room_trajectories() -> tuple[str, ...]:
 
 
 DEMO_SCENES: dict[str, DemoScene] = {
-    "room": DemoScene("one photo-textured 7 x 6 m room, a loop back to the first views (default)",
+    "room": DemoScene("one photo-textured 7 x 6 m room, a loop back to the first views",
                       _room, _room_trajectories(), "loop", 300),
 }
 DEFAULT_DEMO_SCENE = "room"
