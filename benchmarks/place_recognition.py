@@ -19,7 +19,7 @@ Methods (all L2-normalised, cosine similarity; ORB-BoW with its own score):
   average-pooled / GeM-pooled (p = 3), no attention, no RNN;
 * ``ORB-BoW``: a bag of ORB words as ORB-SLAM2 / RTAB-Map detect loops: 1000 ORB features per image,
   a 1000-word vocabulary (k-means on the descriptor bits, words binarised), tf-idf weights and DBoW2's
-  L1 score ``1 - |v1 - v2|_1 / 2``. The vocabulary and idf are learnt on images other than the
+  L1 score ``1 - |v1 - v2|_1 / 2`` (0 for an image without features). The vocabulary and idf are learnt on images other than the
   evaluated ones: the kitchen's frames for rtabmap and for user folders, rtabmap-samples plus
   scikit-image's photographs for the kitchen.
 
@@ -143,8 +143,12 @@ class OrbBagOfWords:
 
     @staticmethod
     def similarity(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        """DBoW2's L1 score, 1 - |a - b|_1 / 2, for L1-normalised non-negative vectors."""
-        return torch.stack([1.0 - 0.5 * (a[i:i + 1] - b).abs().sum(1) for i in range(a.shape[0])])
+        """DBoW2's L1 score ``(|a|_1 + |b|_1 - |a - b|_1) / 2 = sum_i min(a_i, b_i)`` (non-negative vectors).
+
+        For L1-normalised vectors it is ``1 - |a - b|_1 / 2``; an image without ORB features (an empty
+        vector) scores 0 with every image, as in DBoW2.
+        """
+        return torch.stack([torch.minimum(a[i:i + 1], b).sum(1) for i in range(a.shape[0])])
 
 
 # ------------------------------------------------------------------------------------------ descriptors
