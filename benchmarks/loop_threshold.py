@@ -29,13 +29,17 @@ from attnloop.threshold import ThresholdConfig
 from slam.eval.loops import LoopGroundTruthConfig
 from slam.eval.place_recognition import evaluate, ground_truth_from_poses, sequence_candidates
 
-SETTINGS = [("mad", k, m) for k in (2.0, 3.0, 4.0, 5.0, 6.0) for m in (0.02,)] + [("mad", 4.0, 0.05), ("std", 3.0, 0.02)]
+# (method, k_sigma, min_margin, min_similarity)
+SETTINGS = ([("mad", k, 0.02, 0.0) for k in (1.5, 2.0, 3.0, 4.0)] + [("std", 3.0, 0.02, 0.0)]
+            + [("mad", k, 0.005, 0.0) for k in (1.0, 1.5, 2.0)]
+            + [("mad", 1.0, 0.005, f) for f in (0.90, 0.93, 0.95)])
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=data_root())
     parser.add_argument("--step", type=int, default=5)
+    parser.add_argument("--presets", nargs="+", default=["default", "paper"], choices=["default", "paper"])
     args = parser.parse_args()
     torch.set_num_threads(1)
     seq = args.data / "7scenes-redkitchen"
@@ -47,16 +51,16 @@ def main() -> None:
     print(f"# Loop-detector thresholds on the kitchen stream ({time.strftime('%Y-%m-%d %H:%M')}): {len(frames)} "
           f"keyframes (every {args.step}th frame), window {gap}, {int(has.sum())} with a true earlier match\n")
     print("| descriptor | threshold | accepted | precision | recall | false accepts |\n|---|---|---|---|---|---|")
-    for label, preset in (("default dam", None), ("paper dam", "paper")):
+    for label, preset in [(f"{p} dam", None if p == "default" else p) for p in args.presets]:
         desc = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=True, preset=preset)
         with torch.no_grad():
             d = torch.cat([desc(torch.stack(images[s:s + 8])) for s in range(0, len(images), 8)])
         r = evaluate(d @ d.T, gt, candidates=sequence_candidates(len(frames), gap))
         print(f"| {label} | top-1 similarity at 100 % precision: {r.threshold_at_full_precision:.3f} | - | 1.000 | "
               f"{r.recall_at_full_precision:.3f} | 0 |")
-        for method, k, margin in SETTINGS:
+        for method, k, margin, floor in SETTINGS:
             cfg = LoopDetectorConfig(window=gap, threshold=ThresholdConfig(method=method, k_sigma=k, min_margin=margin,
-                                                                           min_samples=16),
+                                                                           min_similarity=floor, min_samples=16),
                                      threshold_samples=4096)
             det = LoopCandidateDetector(cfg)
             tp = fp = 0
@@ -66,7 +70,7 @@ def main() -> None:
                     j = int(out.ids[0])
                     tp, fp = tp + int(gt[i, j]), fp + int(not gt[i, j])
             acc = tp + fp
-            print(f"| {label} | {method} k={k:g} margin={margin:g} | {acc} | {tp / acc if acc else float('nan'):.3f} | "
+            print(f"| {label} | {method} k={k:g} margin={margin:g} floor={floor:g} | {acc} | {tp / acc if acc else float('nan'):.3f} | "
                   f"{tp / max(int(has.sum()), 1):.3f} | {fp} |", flush=True)
     print(f"\n(recall over the {int(has.sum())} keyframes with a true match; min_samples 16)")
 
