@@ -198,3 +198,30 @@ def test_an_unconstrained_pose_is_reported_in_the_backward_pass():
     held = optimize(lonely, differentiable=True, fixed=(0, 8))  # holding it is the remedy
     held.graph.poses.sum().backward()
     assert torch.isfinite(z.grad).all()
+
+
+@pytest.mark.parametrize("chart,kernel", [("se3", None), ("se3", "cauchy"), ("r3so3", "huber")])
+def test_edge_hessians_equal_direct_second_order_autograd(chart, kernel):
+    """The per-edge Hessians (through the error pose, the adjoint and the BCH bracket) against autograd's
+    Hessian in both poses' perturbations directly."""
+    from slam.graph import edge_chi2, make_kernel
+    from slam.graph.fused import se3_residuals, se3_retract
+    from slam.graph.implicit import _edge_hessians, _Spec
+    from slam.lie import se3_inv
+
+    graph = _chain_graph(seed=3)
+    x = _optimum(graph, kernel=kernel).graph.poses.clone()
+    x[1:] = se3_compose(x[1:], se3_exp(0.05 * torch.randn(x.shape[0] - 1, 6, generator=torch.Generator().manual_seed(5),
+                                                               dtype=F64)))  # away from the optimum: g != 0
+    kern = make_kernel(kernel)
+    spec = _Spec(graph.ii, graph.jj, chart, kern, [0], None, None, "auto")
+    H = _edge_hessians(spec, x, graph.measurements, graph.information, graph.poses)
+    E = graph.num_edges
+    d = torch.zeros(E, 12, dtype=F64, requires_grad=True)
+    P = torch.cat([se3_retract(x[graph.ii], d[:, :6]), se3_retract(x[graph.jj], d[:, 6:])])
+    r, _ = se3_residuals(P, torch.arange(E), torch.arange(E) + E, se3_inv(graph.measurements), chart)
+    s = edge_chi2(r, graph.information)
+    f = (s if kern is None else kern(s)[0]).sum()
+    (g,) = torch.autograd.grad(f, d, create_graph=True)
+    ref = torch.stack([torch.autograd.grad(g[:, c].sum(), d, retain_graph=True)[0] for c in range(12)], 1)
+    assert torch.allclose(H, ref, atol=1e-10 * float(ref.abs().max()), rtol=0)
