@@ -24,9 +24,18 @@ import sys
 from pathlib import Path
 
 from slam.ablation import MODES, markdown_table, run_ablation
-from slam.cli import user_error_message
+from slam.cli import call_reporting_errors
 from slam.options import add_run_arguments
 from slam.pipeline import json_safe
+
+
+def run(args: argparse.Namespace) -> int:
+    table = run_ablation(args.sequences, args.out, args, modes=args.modes)
+    md = markdown_table(table)
+    (Path(args.out) / "table1.md").write_text(md)
+    (Path(args.out) / "table1.json").write_text(json.dumps(json_safe(table), indent=2, allow_nan=False))
+    print(md)
+    return 0
 
 
 def main(argv=None) -> int:
@@ -39,19 +48,8 @@ def main(argv=None) -> int:
     add_run_arguments(p, fusion=False)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    try:
-        table = run_ablation(args.sequences, args.out, args, modes=args.modes)
-    except Exception as e:  # the command's messages: missing weights, a wrong folder, a bad flag
-        message = user_error_message(e)
-        if message is None:
-            raise
-        print(f"ablation.py: {message}", file=sys.stderr)
-        return 2
-    md = markdown_table(table)
-    (Path(args.out) / "table1.md").write_text(md)
-    (Path(args.out) / "table1.json").write_text(json.dumps(json_safe(table), indent=2, allow_nan=False))
-    print(md)
-    return 0
+    # the command's messages for missing weights, a wrong folder, a bad flag (exit code 2)
+    return call_reporting_errors("ablation.py", run, args)
 
 
 if __name__ == "__main__":

@@ -15,10 +15,22 @@ import argparse
 import logging
 import sys
 
-from slam.cli import user_error_message
+from slam.cli import call_reporting_errors
 from slam.io import open_sequence
 from slam.options import add_run_arguments, config_from_args
 from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+
+
+def run(args: argparse.Namespace) -> int:
+    sequence = open_sequence(args.sequence, camera=args.camera)
+    config = config_from_args(args, sequence)  # every threshold, with its default, lives in slam/config.py
+    out = prepare_output_dir(args.out)  # checked (and the previous run's outputs removed) before the work
+    run = run_slam(sequence, config, max_frames=args.max_frames, frame_step=args.frame_step)
+    metrics = evaluate_run(run)
+    write_outputs(run, out)
+    keys = ("num_frames", "num_keyframes", "num_loops", "fps", "backbone", "ate_rmse", "ate_unavailable")
+    print({k: metrics[k] for k in keys if k in metrics})
+    return 0
 
 
 def main(argv=None) -> int:
@@ -29,22 +41,8 @@ def main(argv=None) -> int:
     add_run_arguments(p)  # --fusion, --backbone, --weights, --frame-step, rig flags, ... as attnloop-slam
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    try:
-        sequence = open_sequence(args.sequence, camera=args.camera)
-        config = config_from_args(args, sequence)  # every threshold, with its default, lives in slam/config.py
-        out = prepare_output_dir(args.out)
-        run = run_slam(sequence, config, max_frames=args.max_frames, frame_step=args.frame_step)
-        metrics = evaluate_run(run)
-        write_outputs(run, out)
-    except Exception as e:  # the command's messages: missing weights, a wrong folder, a bad flag
-        message = user_error_message(e)
-        if message is None:
-            raise
-        print(f"tum_slam.py: {message}", file=sys.stderr)
-        return 2
-    keys = ("num_frames", "num_keyframes", "num_loops", "fps", "backbone", "ate_rmse", "ate_unavailable")
-    print({k: metrics[k] for k in keys if k in metrics})
-    return 0
+    # the command's messages for missing weights, a wrong folder, a bad flag (exit code 2)
+    return call_reporting_errors("tum_slam.py", run, args)
 
 
 if __name__ == "__main__":

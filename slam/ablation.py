@@ -77,8 +77,8 @@ def markdown_table(table) -> str:
         known = [v for v in vals if v is not None and math.isfinite(v)]
         avg = sum(known) / len(known) if len(known) == len(vals) and known else None
         lines.append(f"| {mode} | " + " | ".join(_number(v, 4) for v in vals) + f" | {_number(avg, 4)} |")
-    lines += ["", "Loop closure (per sequence: accepted true/false; max recall at 100% precision before -> after "
-                  "verification):", "", head.replace(" average |", ""), "|" + "---|" * (len(names) + 1)]
+    lines += ["", ("Loop closure (per sequence: accepted true/false; max recall at 100% precision before -> after "
+                  "verification):"), "", head.replace(" average |", ""), "|" + "---|" * (len(names) + 1)]
     for mode in modes:
         cells = []
         for n in names:

@@ -46,8 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--demo", action="store_true",
                    help="generate a synthetic sequence into OUT/demo_sequence and run on it")
     scenes = "; ".join(f"{k}: {v.description}" for k, v in DEMO_SCENES.items())
-    g.add_argument("--demo-scene", choices=tuple(DEMO_SCENES), default=DEFAULT_DEMO_SCENE, help=scenes)
-    g.add_argument("--demo-trajectory", default=None,
+    g.add_argument("--demo-scene", choices=tuple(DEMO_SCENES), default=DEFAULT_DEMO_SCENE,
+                   help=f"{scenes} (default: {DEFAULT_DEMO_SCENE})")
+    g.add_argument("--demo-trajectory", default=None, metavar="NAME",
                    help="camera path (room: " + ", ".join(DEMO_SCENES[DEFAULT_DEMO_SCENE].trajectories)
                         + "; default: the scene's own)")
     g.add_argument("--demo-frames", type=positive_int, default=None, metavar="N",
@@ -58,11 +59,6 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--quiet", action="store_true", help="no progress bar, warnings only")
     g.add_argument("--verbose", action="store_true", help="log every keyframe and loop decision")
     return p
-
-
-def _fail(message: str) -> int:
-    print(f"{PROG}: {message}", file=sys.stderr)
-    return 2
 
 
 def _check_demo_args(args) -> None:
@@ -96,7 +92,7 @@ def _generate_demo(args, out: Path) -> Path:
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         generate_demo(tmp, scene=args.demo_scene, trajectory=args.demo_trajectory, num_frames=args.demo_frames,
-                      seed=args.seed, width=args.demo_size[0], height=args.demo_size[1])
+                      seed=args.seed, width=args.demo_size[0], height=args.demo_size[1], progress=not args.quiet)
         tmp.rename(target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -152,7 +148,7 @@ def run_command(args: argparse.Namespace) -> int:
     print(_summary(run, metrics))
     wrote = ["trajectory.txt", "loops.txt", "metrics.json", "trajectory.png"]
     if run.map is not None:
-        wrote.append(f"map.ply ({metrics.get('map_points', 0)} points)")
+        wrote.append(f"map.ply ({metrics['map']['points']} points)")
     print(f"wrote {out / wrote[0]}, " + ", ".join(wrote[1:]))
     return 0
 
@@ -186,6 +182,25 @@ def user_error_message(exc: BaseException) -> str | None:
     return None
 
 
+def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
+    """``fn(*args, **kwargs)``'s exit code; an error a user can cause (:func:`user_error_message`) is one
+    line on stderr, ``prog: message``, and exit code 2; Ctrl-C is 130; anything else (a bug) propagates.
+
+    The command and the examples run through it, so that they report errors alike.
+    """
+    try:
+        return fn(*args, **kwargs)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:
+        message = user_error_message(e)
+        if message is None:
+            raise
+        print(f"{prog}: {message}", file=sys.stderr)
+        return 2
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
@@ -195,16 +210,8 @@ def main(argv: list[str] | None = None) -> int:
             logging.getLogger(noisy).setLevel(logging.WARNING)
     elif not args.quiet:
         logging.getLogger("slam.system").setLevel(logging.INFO)
-    try:
-        return run_command(args)
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
-    except Exception as e:
-        message = user_error_message(e)
-        if message is None:
-            raise
-        return _fail(message)
+        logging.getLogger("slam.synthetic").setLevel(logging.INFO)  # the demo's rendering progress
+    return call_reporting_errors(PROG, run_command, args)
 
 
 if __name__ == "__main__":  # pragma: no cover

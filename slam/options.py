@@ -42,6 +42,7 @@ __all__ = [
     "check_config",
     "check_device",
     "check_intrinsics",
+    "check_sequence_intrinsics",
     "config_from_args",
     "dataset_rig",
     "describe_rig",
@@ -136,15 +137,18 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
         parser: the parser of a command.
         fusion: add ``--fusion`` (a command that runs several modes, like the ablation, has its own).
     """
-    from attnloop.backbones import BACKBONES
+    from attnloop.backbones import AUTO, BACKBONES
 
     g = parser.add_argument_group("loop closure")
     if fusion:
         g.add_argument("--fusion", choices=FUSION_MODES, default="dam", help="attention fusion (paper: dam)")
-    g.add_argument("--backbone", choices=tuple(BACKBONES), default="vgg16",
-                   help="ImageNet CNN (paper: vgg16; offline: efficientnet_lite0 from attnloop[pretrained])")
+    g.add_argument("--backbone", choices=(AUTO, *BACKBONES), default=AUTO,
+                   help="ImageNet CNN: vgg16 (the paper's; its weights are downloaded if not cached), "
+                        "efficientnet_lite0 (offline, attnloop[pretrained]) or auto: vgg16 when its weights are "
+                        "found without a download, else efficientnet_lite0 (default)")
     g.add_argument("--weights", default=None, metavar="FILE",
-                   help="backbone checkpoint file (e.g. vgg16-397923af.pth); default: the torch hub cache")
+                   help="backbone checkpoint file (with auto: VGG16's, e.g. vgg16-397923af.pth); default: the "
+                        "torch hub cache")
     g.add_argument("--no-loop", action="store_true", help="odometry only: no loop closure")
     g.add_argument("--seed", type=int, default=0, help="seed of the random RNN weights (part of the model); with --demo also of the sequence")
     g.add_argument("--device", default=None,
@@ -245,6 +249,19 @@ def check_intrinsics(fx: float, fy: float, cx: float, cy: float, what: str) -> N
         raise UsageError(f"{what}: focal lengths must be positive, got fx={fx}, fy={fy}")
 
 
+def check_sequence_intrinsics(sequence) -> None:
+    """Refuse a sequence whose ``K`` cannot be a camera (not 3x3, non-finite, a focal length <= 0).
+
+    Raises:
+        UsageError: naming the sequence folder.
+    """
+    K = np.asarray(sequence.K, dtype=np.float64)
+    where = f"{sequence.root}: camera intrinsics"
+    if K.shape != (3, 3):
+        raise UsageError(f"{where} must be a 3x3 matrix, got shape {K.shape}")
+    check_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], what=where)
+
+
 def _walk(obj, prefix: str):
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
@@ -335,6 +352,8 @@ def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None
     Raises:
         UsageError: contradictory or unusable settings.
     """
+    if sequence is not None:
+        check_sequence_intrinsics(sequence)
     cfg = SLAMConfig()
     cfg.loop.enabled = not getattr(args, "no_loop", False)
     rig = resolve_rig(args, sequence)

@@ -73,6 +73,8 @@ class RunResult:
         config: the config the run used.
         frame_step: every ``frame_step``-th input frame was used.
         map: the keyframes' points (:class:`slam.mapping.PointCloudMap`), None when the map is off.
+        map_cloud: the merged map ``(points (N, 3) float32, colours (N, 3) uint8)`` placed with the final
+            keyframe poses (filled by :func:`evaluate_run`).
         backbone: the descriptor's backbone as built (None without loop closure).
     """
 
@@ -88,6 +90,7 @@ class RunResult:
     frame_step: int = 1
     map: PointCloudMap | None = None
     backbone: str | None = None
+    map_cloud: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
@@ -116,15 +119,12 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
             (:class:`slam.options.UsageError`) or intrinsics that cannot be a camera.
         FloatingPointError: the run produced non-finite poses (never silently returned).
     """
-    from slam.options import check_config, check_intrinsics
+    from slam.options import check_config, check_sequence_intrinsics
 
     config = check_config(config if config is not None else SLAMConfig())
     if isinstance(frame_step, bool) or not isinstance(frame_step, (int, np.integer)) or frame_step < 1:
         raise ValueError(f"frame_step must be an integer >= 1, got {frame_step!r}")
-    K = np.asarray(sequence.K, dtype=np.float64)
-    if K.shape != (3, 3):
-        raise ValueError(f"{sequence.root}: intrinsics K must have shape (3, 3), got {K.shape}")
-    check_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], what=f"{sequence.root}: camera intrinsics")
+    check_sequence_intrinsics(sequence)
     n_in = len(sequence) if max_frames is None else min(int(max_frames), len(sequence))
     if n_in <= 0:
         raise ValueError(f"{sequence.name}: nothing to process (max_frames={max_frames}, {len(sequence)} frames)")
@@ -162,8 +162,8 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
     gt_arr = torch.from_numpy(np.stack([
         p if p is not None else np.full(7, np.nan) for p in (view.groundtruth_pose(i) for i in range(n))
     ])) if gt is not None else None
-    desc = getattr(slam, "_descriptor", None)
-    backbone = getattr(desc, "backbone_name", None) if config.loop.enabled and desc is not None else None
+    closer = slam.loop_closer
+    backbone = getattr(closer.descriptor, "backbone_name", None) if closer is not None else None
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
                      frame_step=int(frame_step), map=cloud, backbone=backbone)
 
@@ -187,7 +187,7 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
 
     Keys: ``sequence``, ``num_frames``, ``frame_step``, ``num_keyframes``, ``num_loops``, ``num_lost``,
     ``num_skipped``, ``fps``, ``wall_seconds``, ``time_per_stage``, ``backbone`` (as built; null without
-    loop closure), ``rig``; ``ate_rmse`` (rigid SE(3) alignment, TUM association) and ``ate``
+    loop closure), ``rig``, ``map`` (points of the merged map, keyframes, points and MB kept during the run); ``ate_rmse`` (rigid SE(3) alignment, TUM association) and ``ate``
     (statistics), ``odometry_ate_rmse`` (before the pose graph), ``rpe_1frame`` / ``rpe_1s`` (translation
     m, rotation deg) and ``loops_true`` / ``loops_false`` (accepted loops judged by ground-truth distance
     and angle, :class:`slam.eval.LoopGroundTruthConfig`) when there is ground truth to evaluate against;
@@ -220,6 +220,11 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
         m["descriptor"] = ({"backbone": run.backbone, "requested_backbone": d.backbone, "fusion": d.fusion,
                             "seed": d.seed, "weights": d.weights} if run.config.loop.enabled else None)
         m["rig"] = describe_rig(rig_of(run.config))
+    if run.map is not None:
+        run.map_cloud = run.map.points(res.keyframe_trajectory.poses)
+        m["map"] = {"points": int(run.map_cloud[0].shape[0]), "keyframes": len(run.map),
+                    "kept_points": run.map.num_points, "kept_mb": round(run.map.nbytes / 1e6, 3),
+                    "voxel_size": run.map.config.voxel_size}
     if res.optimization is not None:
         opt = res.optimization
         m["pose_graph"] = {"keyframes": res.graph.num_poses, "edges": res.graph.num_edges,
@@ -227,10 +232,16 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
                            "iterations": opt.iterations}
     m["ate_rmse"] = None
     gt_len = 0 if run.groundtruth is None else len(run.groundtruth)
+    tracked = res.num_frames - res.num_lost - res.num_skipped  # the first frame counts: it sets the origin
     if run.groundtruth is None:
         m["ate_unavailable"] = "the sequence has no ground truth"
     elif gt_len < 3:
         m["ate_unavailable"] = f"only {gt_len} frame(s) with ground truth (the alignment needs 3)"
+    elif tracked <= 1:
+        m["ate_unavailable"] = (f"no frame was tracked ({res.num_lost} lost, {res.num_skipped} unreadable of "
+                                f"{res.num_frames}): nothing to align")
+    elif float((run.groundtruth.poses[:, :3] - run.groundtruth.poses[:1, :3]).norm(dim=-1).max()) < 1e-6:
+        m["ate_unavailable"] = "the ground-truth camera never moves: the alignment is not defined"
     else:
         try:
             a = ate(run.groundtruth, res.trajectory)
@@ -428,12 +439,11 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
         f"{lp.timestamp_a:.6f} {lp.timestamp_b:.6f}\n" for lp in res.loops)
     ply = None
     if write_map:
-        pts, cols = run.map.points(res.keyframe_trajectory.poses)
+        pts, cols = run.map_cloud if run.map_cloud is not None else run.map.points(res.keyframe_trajectory.poses)
         buf = io.BytesIO()
         write_ply(buf, pts, cols, comment=f"attnloop map of {run.sequence_name}: {len(run.map)} keyframes, "
                                           f"voxel {run.map.config.voxel_size:g} m, the trajectory's frame")
         ply = buf.getvalue()
-        run.metrics["map_points"] = int(pts.shape[0])
     png = None
     if plot:
         from slam.eval import plot_trajectory

@@ -28,7 +28,6 @@ import math
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
-import numpy as np
 import torch
 
 from slam.config import SLAMConfig
@@ -36,11 +35,12 @@ from slam.graph import PoseGraph, optimize
 from slam.graph.optimizer import OptimizationResult
 from slam.io.frame import RGBDFrame
 from slam.io.trajectory import Trajectory
-from slam.lie import se3_between, se3_compose, se3_identity, so3_log
+from slam.keyframe_graph import EdgeKind, KeyframeGraph
+from slam.lie import se3_compose, se3_identity
+from slam.loop import LoopCloser, LoopClosure, LoopQuery
 from slam.odometry import RGBDOdometry
 from slam.odometry.depth_registration import depth_camera_poses, rig_pose
-from slam.odometry.frontend import Keyframe, KeyframeEdge, TrackStatus
-from slam.odometry.registration import register
+from slam.odometry.frontend import Keyframe, TrackStatus
 from slam.timing import StageTimer
 
 logger = logging.getLogger(__name__)
@@ -77,54 +77,6 @@ class FrameState:
     new_loops: List["LoopClosure"] = field(default_factory=list)
     num_inliers: int = 0
     inlier_rmse: float = math.nan
-
-
-@dataclass
-class LoopClosure:
-    """An accepted, geometrically verified loop between keyframes ``kf_a < kf_b``.
-
-    Attributes:
-        kf_a, kf_b: keyframe ids; the edge measures ``T_ab`` (pose of b in a).
-        frame_a, frame_b: input indices of the two keyframes.
-        timestamp_a, timestamp_b: their timestamps.
-        similarity: descriptor cosine similarity of the pair.
-        num_inliers: RANSAC inliers of the verification.
-        T_ab: ``(7,)`` float64 measured relative pose, in the tracked camera's frame (the colour camera's
-            when the frames are unregistered).
-    """
-
-    kf_a: int
-    kf_b: int
-    frame_a: int
-    frame_b: int
-    timestamp_a: float
-    timestamp_b: float
-    similarity: float
-    num_inliers: int
-    T_ab: Tensor
-
-
-@dataclass
-class LoopQuery:
-    """One query of the keyframe database (for the loop-closure evaluation).
-
-    Attributes:
-        kf: query keyframe id.
-        top_kf: most similar eligible keyframe id (-1 when none was eligible).
-        top_score: its similarity (``-inf`` when none).
-        threshold: the query's adaptive threshold.
-        candidates: ids that passed the threshold (and consistency) and were sent to verification.
-        verified: ids accepted by geometric verification.
-        rejections: ``{candidate id: reason}`` for candidates that failed verification.
-    """
-
-    kf: int
-    top_kf: int
-    top_score: float
-    threshold: float
-    candidates: List[int]
-    verified: List[int]
-    rejections: Dict[int, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -168,10 +120,6 @@ class _FrameRecord:
     status: str
 
 
-def _rotation_deg(q: Tensor) -> float:
-    return math.degrees(float(so3_log(q).norm()))
-
-
 class RGBDSLAM:
     """Attention-guided loop-closing RGB-D SLAM.
 
@@ -179,7 +127,7 @@ class RGBDSLAM:
         config: :class:`slam.config.SLAMConfig`.
         descriptor: an already built descriptor model mapping ``(1, 3, H, W)`` uint8 images to ``(1, D)``
             L2-normalised descriptors (default: :class:`attnloop.AttentionDescriptor` built from
-            ``config.loop.descriptor``; built lazily at the first keyframe).
+            ``config.loop.descriptor``).
 
     Call :meth:`track` once per frame in input order (or :meth:`skip` for a frame that could not be read),
     then :meth:`finish`.
@@ -189,21 +137,12 @@ class RGBDSLAM:
         self.config = config or SLAMConfig()
         self.odometry = RGBDOdometry(self.config.odometry)
         self.timer = StageTimer()
-        self._descriptor = descriptor
-        self._detector = None
+        self.graph = KeyframeGraph()
+        self.loop_closer: Optional[LoopCloser] = None
         if self.config.loop.enabled:
-            from attnloop.index import LoopCandidateDetector
-
-            self._detector = LoopCandidateDetector(self.config.loop.detector)
-            if self._descriptor is None:
-                self._descriptor = self._build_descriptor()
+            self.loop_closer = LoopCloser(self.config.loop, descriptor=descriptor, timer=self.timer)
         self._frames: List[_FrameRecord] = []
-        self._kf_poses: List[Tensor] = []  # odometry pose of each keyframe
-        self._edges: List[KeyframeEdge] = []
         self._loops: List[LoopClosure] = []
-        self._queries: List[LoopQuery] = []
-        self._kf_of_frame: Dict[int, int] = {}  # the detector's ids are frame indices
-        self._num_kf_seen = 0
         self._num_lost = 0
         self._num_skipped = 0
         self._finished = False
@@ -217,18 +156,6 @@ class RGBDSLAM:
             self._T_rgb_depth = rig_pose(feats.rgb_from_depth_translation)
 
     # ------------------------------------------------------------------------------------------
-    def _build_descriptor(self) -> torch.nn.Module:
-        from attnloop import AttentionDescriptor
-
-        d = self.config.loop.descriptor
-        with self.timer("descriptor_init"):
-            model = AttentionDescriptor(backbone=d.backbone, fusion=d.fusion, num_rnn=d.num_rnn, seed=d.seed,
-                                        pretrained=d.pretrained, weights=d.weights)
-            model.eval()
-            if d.device:
-                model = model.to(d.device)
-        return model
-
     @property
     def keyframes(self) -> List[Keyframe]:
         """The odometry's keyframes (features and downsized RGB)."""
@@ -238,6 +165,11 @@ class RGBDSLAM:
     def loops(self) -> List[LoopClosure]:
         """Loops accepted so far."""
         return list(self._loops)
+
+    @property
+    def _information_scale(self):
+        return {EdgeKind.ODOMETRY: self.config.backend.odometry_information_scale,
+                EdgeKind.LOOP: self.config.loop.information_scale}
 
     # ------------------------------------------------------------------------------------------
     def track(self, frame: RGBDFrame) -> FrameState:
@@ -258,18 +190,29 @@ class RGBDSLAM:
             self._num_lost += 1
         self._frames.append(_FrameRecord(int(frame.index), float(frame.timestamp), res.keyframe_id,
                                          res.T_kf_frame.detach().to(torch.float64).cpu(), status))
-        if res.edge is not None:
-            self._edges.append(res.edge)
         state = FrameState(int(frame.index), float(frame.timestamp), self._output_frame(res.pose), status,
                            res.reason, res.keyframe_id, num_inliers=res.num_inliers, inlier_rmse=res.inlier_rmse)
         # every keyframe the front end created during this call (a promoted previous frame included)
-        for kf in self.odometry.keyframes[self._num_kf_seen:]:
-            self._kf_poses.append(kf.pose.detach().to(torch.float64).cpu())
+        for kf in self.odometry.keyframes[self.graph.num_keyframes:]:
+            self._add_to_graph(kf)
             state.new_keyframes.append(kf.id)
-            if self._detector is not None:
-                state.new_loops.extend(self._close_loops(kf))
-        self._num_kf_seen = len(self.odometry.keyframes)
+            if self.loop_closer is not None:
+                loops = self.loop_closer.close(kf, self.odometry.keyframes, self.graph)
+                for lp in loops:
+                    self.graph.add_loop(lp.kf_a, lp.kf_b, lp.T_ab, lp.information)
+                self._loops.extend(loops)
+                state.new_loops.extend(loops)
         return state
+
+    def _add_to_graph(self, kf: Keyframe) -> None:
+        """Enter a new keyframe with its odometry edge (the front end's edges all end at a new keyframe)."""
+        if kf.id == 0:
+            self.graph.add_keyframe(kf.pose)
+            return
+        edge = self.odometry.edges[kf.id - 1]
+        if edge.j != kf.id:
+            raise RuntimeError(f"odometry edge {edge.i} -> {edge.j} does not end at keyframe {kf.id}")
+        self.graph.add_odometry(edge.i, edge.T_ij, edge.information, estimate=kf.pose, weak=edge.weak)
 
     def skip(self, index: int, timestamp: float, reason: str) -> FrameState:
         """Record a frame that could not be read: it is placed by constant velocity like a lost frame.
@@ -287,90 +230,10 @@ class RGBDSLAM:
         else:
             kf_id, T = -1, se3_identity(dtype=torch.float64)
         self._frames.append(_FrameRecord(int(index), float(timestamp), kf_id, T.clone(), "skipped"))
-        pose = self._output_frame(se3_compose(self._kf_poses[kf_id], T)) if kf_id >= 0 else T.clone()
+        pose = self._output_frame(se3_compose(self.graph.estimate(kf_id), T)) if kf_id >= 0 else T.clone()
         return FrameState(int(index), float(timestamp), pose, "skipped", reason, kf_id)
 
     # ------------------------------------------------------------------------------------------
-    @torch.no_grad()
-    def _describe(self, kf: Keyframe) -> Tensor:
-        img = torch.from_numpy(np.ascontiguousarray(kf.rgb)).permute(2, 0, 1)[None]
-        dev = next(iter(self._descriptor.buffers()), None)
-        if dev is not None:
-            img = img.to(dev.device)
-        return self._descriptor(img)[0]
-
-    def _close_loops(self, kf: Keyframe) -> List[LoopClosure]:
-        cfg = self.config.loop
-        with self.timer("descriptor"):
-            desc = self._describe(kf)
-        with self.timer("loop_detection"):
-            # ids are frame indices so that the exclusion window counts frames, not keyframes
-            cands = self._detector.add_and_query(desc, keyframe_id=kf.frame_index, timestamp=kf.timestamp)
-        self._kf_of_frame[kf.frame_index] = kf.id
-        top_kf = self._kf_of_frame[int(cands.top_ids[0])] if cands.top_ids.numel() else -1
-        top_score = float(cands.top_scores[0]) if cands.top_scores.numel() else float("-inf")
-        query = LoopQuery(kf.id, top_kf, top_score, float(cands.threshold),
-                          [self._kf_of_frame[int(c)] for c in cands.ids[: cfg.max_candidates]], [])
-        self._queries.append(query)
-        accepted = []
-        for cand_id, score in zip(query.candidates, cands.scores[: cfg.max_candidates].tolist()):
-            with self.timer("verification"):
-                loop, why = self._verify(self.odometry.keyframes[cand_id], kf, float(score))
-            if loop is None:
-                query.rejections[cand_id] = why
-                logger.info("loop candidate %d -> %d rejected: %s", cand_id, kf.id, why)
-                continue
-            query.verified.append(cand_id)
-            self._loops.append(loop)
-            accepted.append(loop)
-            logger.info("loop accepted: keyframe %d (frame %d) <-> keyframe %d (frame %d), %d inliers",
-                        loop.kf_a, loop.frame_a, loop.kf_b, loop.frame_b, loop.num_inliers)
-        return accepted
-
-    def _verify(self, a: Keyframe, b: Keyframe, score: float):
-        """Geometric verification of the candidate pair (a older, b the query)."""
-        cfg = self.config.loop
-        res = register(a.features, b.features, cfg.registration)
-        if not res.success:
-            return None, f"registration failed: {res.reason}"
-        if res.num_inliers < cfg.min_inliers:
-            return None, f"{res.num_inliers} inliers < {cfg.min_inliers}"
-        ratio = res.num_inliers / max(res.num_matches, 1)
-        if ratio < cfg.min_inlier_ratio:
-            return None, f"inlier ratio {ratio:.2f} < {cfg.min_inlier_ratio}"
-        T_ab = res.T_ab.detach().to(torch.float64).cpu()
-        dist, rot = float(T_ab[:3].norm()), _rotation_deg(T_ab[3:])
-        if dist > cfg.max_translation or rot > cfg.max_rotation_deg:
-            return None, f"views too far apart ({dist:.2f} m, {rot:.0f} deg)"
-        odo = se3_between(self._kf_poses[a.id], self._kf_poses[b.id])
-        diff = se3_between(odo, T_ab)
-        dt, dr = float(diff[:3].norm()), _rotation_deg(diff[3:])
-        if dt > cfg.max_drift_translation or dr > cfg.max_drift_rotation_deg:
-            return None, f"contradicts odometry by {dt:.2f} m / {dr:.0f} deg"
-        info = res.information.detach().to(torch.float64).cpu() * cfg.information_scale
-        edge = KeyframeEdge(i=a.id, j=b.id, T_ij=T_ab, information=info)
-        self._edges.append(edge)
-        return LoopClosure(a.id, b.id, a.frame_index, b.frame_index, a.timestamp, b.timestamp, score,
-                           res.num_inliers, T_ab), ""
-
-    # ------------------------------------------------------------------------------------------
-    def _graph(self) -> Optional[PoseGraph]:
-        if not self._kf_poses:
-            return None
-        poses = torch.stack(self._kf_poses)
-        if not self._edges:
-            return PoseGraph(poses, torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long),
-                             torch.zeros(0, 7, dtype=torch.float64), torch.zeros(0, 6, 6, dtype=torch.float64))
-        loops = {(lp.kf_a, lp.kf_b) for lp in self._loops}
-        scale = torch.tensor([1.0 if (e.i, e.j) in loops else self.config.backend.odometry_information_scale
-                              for e in self._edges], dtype=torch.float64)
-        info = torch.stack([e.information.to(torch.float64).cpu() for e in self._edges])
-        info = 0.5 * (info + info.transpose(-1, -2)) * scale[:, None, None]
-        return PoseGraph(poses,
-                         torch.tensor([e.i for e in self._edges], dtype=torch.long),
-                         torch.tensor([e.j for e in self._edges], dtype=torch.long),
-                         torch.stack([e.T_ij.to(torch.float64).cpu() for e in self._edges]), info)
-
     def _output_frame(self, poses: Tensor) -> Tensor:
         """Tracked-camera poses ``(..., 7)`` -> depth-camera poses (identity map for registered frames)."""
         if self._T_rgb_depth is None:
@@ -394,9 +257,9 @@ class RGBDSLAM:
             :class:`SLAMResult`.
         """
         self._finished = True
-        graph = self._graph()
+        graph = self.graph.pose_graph(self._information_scale, poses=self.graph.odometry_poses())
         opt = None
-        kf_odo = torch.stack(self._kf_poses) if self._kf_poses else torch.zeros(0, 7, dtype=torch.float64)
+        kf_odo = self.graph.odometry_poses()
         kf_final = kf_odo
         if graph is not None and graph.num_edges > 0 and self._loops:
             b = self.config.backend
@@ -408,12 +271,14 @@ class RGBDSLAM:
                         opt.status)
             graph = opt.graph
             kf_final = graph.poses
+            self.graph.set_estimates(kf_final)
         kf_ts = torch.tensor([kf.timestamp for kf in self.odometry.keyframes], dtype=torch.float64)
+        queries = self.loop_closer.queries if self.loop_closer is not None else []
         return SLAMResult(
             trajectory=self._frames_trajectory(kf_final),
             odometry_trajectory=self._frames_trajectory(kf_odo),
             keyframe_trajectory=Trajectory(kf_ts, self._output_frame(kf_final.clone())),
             keyframe_frames=torch.tensor([kf.frame_index for kf in self.odometry.keyframes], dtype=torch.long),
-            loops=list(self._loops), queries=list(self._queries), graph=graph, optimization=opt,
-            num_frames=len(self._frames), num_keyframes=len(self._kf_poses), num_lost=self._num_lost,
+            loops=list(self._loops), queries=queries, graph=graph, optimization=opt,
+            num_frames=len(self._frames), num_keyframes=self.graph.num_keyframes, num_lost=self._num_lost,
             num_skipped=self._num_skipped, timings=self.timer.summary())

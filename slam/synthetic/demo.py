@@ -23,8 +23,9 @@ class DemoScene:
 
     Attributes:
         description: one line for ``--help``.
-        generate: ``generate(out_dir, trajectory=..., num_frames=..., seed=..., width=..., height=...)``
-            writes the sequence (TUM layout with ``groundtruth.txt``) into ``out_dir`` and returns it.
+        generate: ``generate(out_dir, trajectory=..., num_frames=..., seed=..., width=..., height=...,
+            progress=...)`` writes the sequence (TUM layout with ``groundtruth.txt``) into ``out_dir`` and
+            returns it; ``progress`` logs its advance (logger ``slam.synthetic``).
         trajectories: the camera paths it offers.
         default_trajectory: the one used when none is asked for.
         default_frames: its default length.
@@ -39,11 +40,12 @@ class DemoScene:
     min_frames: int = 10
 
 
-def _room(out_dir, trajectory: str, num_frames: int, seed: int, width: int, height: int) -> Path:
+def _room(out_dir, trajectory: str, num_frames: int, seed: int, width: int, height: int,
+          progress: bool = False) -> Path:
     from slam.synthetic.sequence import generate_sequence
 
     return generate_sequence(out_dir, trajectory=trajectory, num_frames=num_frames, seed=seed, width=width,
-                             height=height)
+                             height=height, progress=progress)
 
 
 def _room_trajectories() -> tuple[str, ...]:
@@ -53,14 +55,15 @@ def _room_trajectories() -> tuple[str, ...]:
 
 
 DEMO_SCENES: dict[str, DemoScene] = {
-    "room": DemoScene("one photo-textured 7 x 6 m room, a loop back to the first views (default)",
+    "room": DemoScene("one photo-textured 7 x 6 m room, a loop back to the first views",
                       _room, _room_trajectories(), "loop", 300),
 }
 DEFAULT_DEMO_SCENE = "room"
 
 
 def generate_demo(out_dir: str | os.PathLike, scene: str = DEFAULT_DEMO_SCENE, trajectory: str | None = None,
-                  num_frames: int | None = None, seed: int = 0, width: int = 640, height: int = 480) -> Path:
+                  num_frames: int | None = None, seed: int = 0, width: int = 640, height: int = 480,
+                  progress: bool = False) -> Path:
     """Generate the sequence of demo scene ``scene`` into ``out_dir`` (its defaults where None).
 
     Raises:
@@ -80,4 +83,4 @@ def generate_demo(out_dir: str | os.PathLike, scene: str = DEFAULT_DEMO_SCENE, t
     if int(width) < 16 or int(height) < 16:
         raise ValueError(f"demo images must be at least 16 x 16 pixels, got {width} x {height}")
     return s.generate(out_dir, trajectory=trajectory, num_frames=n, seed=int(seed), width=int(width),
-                      height=int(height))
+                      height=int(height), progress=bool(progress))

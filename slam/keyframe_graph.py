@@ -1,0 +1,251 @@
+"""The keyframe pose graph the SLAM system builds: keyframe poses and typed edges (odometry / loop).
+
+Each edge carries its kind, so the back end weighs and robustifies odometry and loop edges differently
+without recovering them from a set of pairs, and a loop edge can be switched off by name. Two poses are
+kept per keyframe: the *odometry* pose (the chain of odometry edges from keyframe 0, what the front end
+alone would say) and the current *estimate* (corrected by the loop closures optimised so far).
+
+Distances along the graph bound what odometry can have drifted between two keyframes
+(:meth:`KeyframeGraph.path_lengths`): along the chain of odometry edges when no loop has corrected the
+estimate, or along the shortest path through the accepted loops when it has.
+
+Example:
+    >>> import torch
+    >>> from slam.lie import se3_compose, se3_exp, se3_identity
+    >>> g = KeyframeGraph()
+    >>> step = se3_exp(torch.tensor([0.5, 0, 0, 0, 0, 0], dtype=torch.float64))
+    >>> info = torch.eye(6, dtype=torch.float64)
+    >>> g.add_keyframe(se3_identity(dtype=torch.float64))
+    0
+    >>> for k in range(1, 4):
+    ...     _ = g.add_odometry(k - 1, step, info, estimate=se3_compose(g.estimate(k - 1), step))
+    >>> g.add_loop(0, 3, se3_exp(torch.tensor([1.45, 0, 0, 0, 0, 0], dtype=torch.float64)), info)
+    3
+    >>> g.num_keyframes, g.num_edges, g.edge_kinds().tolist()
+    (4, 4, [0, 0, 0, 1])
+    >>> [round(float(d), 2) for d in g.path_lengths(0, through_loops=False)]
+    [0.0, 0.5, 1.0, 1.5]
+    >>> [round(float(d), 2) for d in g.path_lengths(0, through_loops=True)]
+    [0.0, 0.5, 1.0, 1.45]
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Dict, List, Optional
+
+import numpy as np
+import torch
+
+from slam.graph import PoseGraph
+from slam.lie import se3_compose, so3_log
+
+Tensor = torch.Tensor
+
+__all__ = ["EdgeKind", "GraphEdge", "KeyframeGraph"]
+
+
+class EdgeKind(IntEnum):
+    """What an edge of the keyframe graph measures (the integer is its code in :meth:`KeyframeGraph.edge_kinds`)."""
+
+    ODOMETRY = 0  # consecutive keyframes, from the front end's registration
+    LOOP = 1  # a verified revisit between keyframes far apart in time
+
+
+@dataclass
+class GraphEdge:
+    """One edge ``i -> j`` of the keyframe graph.
+
+    Attributes:
+        i, j: keyframe ids.
+        T_ij: ``(7,)`` float64 measured pose of keyframe j in keyframe i.
+        information: ``(6, 6)`` float64 information of ``T_ij`` as the registration computed it (right
+            perturbation, ``[rho, phi]``), before the back end's per-kind scaling.
+        kind: :class:`EdgeKind`.
+        weak: an odometry edge forced after a tracking loss (constant-velocity guess).
+        active: False once the back end has switched the (loop) edge off; inactive edges stay in the list
+            (and in :meth:`KeyframeGraph.pose_graph` only when asked for) so that ids remain stable.
+    """
+
+    i: int
+    j: int
+    T_ij: Tensor
+    information: Tensor
+    kind: EdgeKind
+    weak: bool = False
+    active: bool = True
+
+    @property
+    def length(self) -> float:
+        """Translation of the measurement (metres)."""
+        return float(self.T_ij[:3].norm())
+
+    @property
+    def rotation(self) -> float:
+        """Rotation angle of the measurement (radians)."""
+        return float(so3_log(self.T_ij[3:]).norm())
+
+
+class KeyframeGraph:
+    """Keyframe poses (odometry and estimate) and typed edges; builds the :class:`~slam.graph.PoseGraph`.
+
+    Keyframe ids are ``0 .. num_keyframes - 1`` in creation order. A keyframe other than the first enters
+    with its odometry edge (:meth:`add_odometry`), which sets its odometry pose by composition.
+    """
+
+    def __init__(self) -> None:
+        self._odometry: List[Tensor] = []
+        self._estimate: List[Tensor] = []
+        self.edges: List[GraphEdge] = []
+        # distance travelled from keyframe 0 along the odometry edges, while they form a chain (each edge
+        # from the previous keyframe, as the front end makes them): chain distances are then differences
+        self._travelled: List[float] = []
+        self._chain = True
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def num_keyframes(self) -> int:
+        return len(self._odometry)
+
+    @property
+    def num_edges(self) -> int:
+        return len(self.edges)
+
+    def add_keyframe(self, pose: Tensor) -> int:
+        """Add a keyframe with no edge (the first one; or a map's origin). Returns its id."""
+        p = pose.detach().to(torch.float64).cpu().clone()
+        self._chain = self._chain and not self._odometry
+        self._odometry.append(p)
+        self._estimate.append(p.clone())
+        self._travelled.append(0.0)
+        return len(self._odometry) - 1
+
+    def add_odometry(self, i: int, T_ij: Tensor, information: Tensor, estimate: Tensor,
+                     weak: bool = False) -> int:
+        """Add the next keyframe ``j = num_keyframes`` and its odometry edge from keyframe ``i``.
+
+        Args:
+            i: an existing keyframe (the front end's reference keyframe).
+            T_ij: ``(7,)`` pose of the new keyframe in keyframe ``i``.
+            information: ``(6, 6)`` its information.
+            estimate: ``(7,)`` the new keyframe's current world pose (the front end's, re-anchored on the
+                corrected estimate of ``i`` when loops were optimised online).
+            weak: forced after a tracking loss.
+
+        Returns:
+            the new keyframe's id.
+        """
+        if not 0 <= i < self.num_keyframes:
+            raise ValueError(f"odometry edge from keyframe {i}: only {self.num_keyframes} keyframes exist")
+        T = T_ij.detach().to(torch.float64).cpu()
+        self._odometry.append(se3_compose(self._odometry[i], T))
+        self._estimate.append(estimate.detach().to(torch.float64).cpu().clone())
+        j = len(self._odometry) - 1
+        self.edges.append(GraphEdge(i, j, T.clone(), information.detach().to(torch.float64).cpu().clone(),
+                                    EdgeKind.ODOMETRY, weak=weak))
+        self._chain = self._chain and i == j - 1
+        self._travelled.append(self._travelled[i] + self.edges[-1].length)
+        return j
+
+    def add_loop(self, i: int, j: int, T_ij: Tensor, information: Tensor) -> int:
+        """Add a loop edge between existing keyframes; returns the edge's index in :attr:`edges`."""
+        n = self.num_keyframes
+        if not (0 <= i < n and 0 <= j < n) or i == j:
+            raise ValueError(f"loop edge {i} -> {j}: need two distinct keyframes of {n}")
+        self.edges.append(GraphEdge(i, j, T_ij.detach().to(torch.float64).cpu().clone(),
+                                    information.detach().to(torch.float64).cpu().clone(), EdgeKind.LOOP))
+        return len(self.edges) - 1
+
+    # ------------------------------------------------------------------------------------------
+    def odometry_poses(self) -> Tensor:
+        """``(M, 7)`` float64 odometry-chained keyframe poses."""
+        return torch.stack(self._odometry) if self._odometry else torch.zeros(0, 7, dtype=torch.float64)
+
+    def estimates(self) -> Tensor:
+        """``(M, 7)`` float64 current keyframe pose estimates."""
+        return torch.stack(self._estimate) if self._estimate else torch.zeros(0, 7, dtype=torch.float64)
+
+    def estimate(self, k: int) -> Tensor:
+        """``(7,)`` current estimate of keyframe ``k``."""
+        return self._estimate[k]
+
+    def odometry_pose(self, k: int) -> Tensor:
+        """``(7,)`` odometry pose of keyframe ``k``."""
+        return self._odometry[k]
+
+    def set_estimates(self, poses: Tensor) -> None:
+        """Replace the estimates of keyframes ``0 .. P-1`` by ``poses (P, 7)`` (P may lag behind new keyframes)."""
+        if poses.ndim != 2 or poses.shape[-1] != 7 or poses.shape[0] > self.num_keyframes:
+            raise ValueError(f"poses must have shape (P <= {self.num_keyframes}, 7), got {tuple(poses.shape)}")
+        for k, p in enumerate(poses.detach().to(torch.float64).cpu()):
+            self._estimate[k] = p.clone()
+
+    def edge_kinds(self, active_only: bool = False) -> Tensor:
+        """``(E,)`` int64 :class:`EdgeKind` codes of the edges, in :meth:`pose_graph` order."""
+        return torch.tensor([int(e.kind) for e in self.edges if e.active or not active_only], dtype=torch.long)
+
+    def loop_edges(self, active_only: bool = True) -> List[int]:
+        """Indices into :attr:`edges` of the loop edges."""
+        return [k for k, e in enumerate(self.edges) if e.kind is EdgeKind.LOOP and (e.active or not active_only)]
+
+    def pose_graph(self, information_scale: Dict[EdgeKind, float], poses: Optional[Tensor] = None,
+                   active_only: bool = True) -> Optional[PoseGraph]:
+        """The :class:`~slam.graph.PoseGraph` over the keyframes.
+
+        Args:
+            information_scale: factor on the information of each edge kind (symmetrised after scaling).
+            poses: ``(M, 7)`` initial poses (default: the current estimates).
+            active_only: leave out the edges switched off.
+
+        Returns:
+            the graph (None when there are no keyframes); its edges are in :attr:`edges` order (the
+            inactive ones left out when ``active_only``).
+        """
+        if not self._odometry:
+            return None
+        P = self.estimates() if poses is None else poses.to(torch.float64)
+        edges = [e for e in self.edges if e.active or not active_only]
+        if not edges:
+            return PoseGraph(P, torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long),
+                             torch.zeros(0, 7, dtype=torch.float64), torch.zeros(0, 6, 6, dtype=torch.float64))
+        scale = torch.tensor([float(information_scale[e.kind]) for e in edges], dtype=torch.float64)
+        info = torch.stack([e.information for e in edges])
+        info = 0.5 * (info + info.transpose(-1, -2)) * scale[:, None, None]
+        return PoseGraph(P, torch.tensor([e.i for e in edges], dtype=torch.long),
+                         torch.tensor([e.j for e in edges], dtype=torch.long),
+                         torch.stack([e.T_ij for e in edges]), info)
+
+    # ------------------------------------------------------------------------------------------
+    def path_lengths(self, source: int, through_loops: bool = True, min_edge_length: float = 0.0) -> np.ndarray:
+        """Distance travelled ``(M,)`` (metres) from keyframe ``source`` to every keyframe along the graph.
+
+        An edge counts as ``max(|t_ij|, min_edge_length)``; without ``through_loops`` only odometry edges
+        are followed (the chain), with it the shortest path may take active loop edges. Unreachable
+        keyframes get ``inf``.
+        """
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import dijkstra
+
+        n = self.num_keyframes
+        if not 0 <= source < n:
+            raise ValueError(f"source keyframe {source} out of range for {n} keyframes")
+        if not through_loops and self._chain and min_edge_length <= 0:
+            c = np.asarray(self._travelled)
+            return np.abs(c - c[source])
+        use = [e for e in self.edges if e.active and (through_loops or e.kind is EdgeKind.ODOMETRY)]
+        if not use:
+            out = np.full(n, np.inf)
+            out[source] = 0.0
+            return out
+        # a zero-length edge would vanish from a sparse matrix: dijkstra needs explicit positive weights
+        w = np.array([max(e.length, min_edge_length, 1e-9) for e in use])
+        ii = np.array([e.i for e in use])
+        jj = np.array([e.j for e in use])
+        # parallel edges: coo sums duplicates, so keep the shortest of each pair by hand
+        key = np.minimum(ii, jj) * n + np.maximum(ii, jj)
+        order = np.lexsort((w, key))
+        first = np.ones(len(order), bool)
+        first[1:] = key[order][1:] != key[order][:-1]
+        sel = order[first]
+        A = coo_matrix((w[sel], (ii[sel], jj[sel])), shape=(n, n)).tocsr()
+        return dijkstra(A, directed=False, indices=source)
