@@ -8,20 +8,8 @@ from attnloop import AttentionDescriptor, efficientnet_lite0
 
 
 @pytest.fixture(scope="module")
-def example():
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "examples" / "finetune_descriptor.py"
-    spec = importlib.util.spec_from_file_location("finetune_descriptor", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # its dataclass looks its module up there
-    try:
-        spec.loader.exec_module(mod)
-        yield mod
-    finally:
-        sys.modules.pop(spec.name, None)
+def example(load_script):
+    return load_script("examples/finetune_descriptor.py")
 
 
 @pytest.fixture(scope="module")
