@@ -180,7 +180,7 @@ def test_backend_c_says_when_the_kernels_are_missing(monkeypatch):
     assert not compiled_kernels()
     with pytest.raises(ValueError, match="backend 'c' needs the C kernels slam.graph.accel._kernels"):
         optimize(graph, backend="c")
-    res = optimize(graph)  # "auto" falls back to numpy
+    res = optimize(graph, backend="auto")  # falls back to numpy
     assert res.status == "converged"
     with pytest.raises(RuntimeError, match="were not built"):
         host.host_problem(graph, OptimizerConfig(), None, "free", "auto", compiled=True)

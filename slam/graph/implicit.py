@@ -14,8 +14,8 @@ with ``H = d^2 f / d delta^2`` (symmetric), so a backward pass with the upstream
 ``H`` is the exact Hessian, not the Gauss-Newton ``J^T Omega J``: at a pose-graph optimum the residuals are
 not zero (smallGrid3D: chi2 = 1036 over 297 edges), and the terms ``sum (Omega r)_k d^2 r_k`` the
 Gauss-Newton matrix leaves out change the gradients by far more than a finite-difference check resolves.
-It is assembled from per-edge ``12 x 12`` Hessians, 12 vectorised second-order autograd passes over all
-edges (no loop over edges).
+It is assembled from per-edge ``12 x 12`` Hessians: 6 vectorised second-order autograd passes over all
+edges in the error pose's tangent, mapped to both poses' by the adjoint and the bracket (no loop over edges).
 
 The gauge: the free gauge's result is the optimum moved rigidly onto the initial pose 0, which is the
 optimum with pose 0 held at its initial value; so pose 0 (the ``"first"`` gauge too), or the ``fixed``
@@ -49,11 +49,11 @@ import torch
 
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, edge_chi2
-from slam.graph.fused import se3_residuals, se3_retract
+from slam.graph.fused import error_poses, se3_residuals, se3_retract
 from slam.graph.linear import LinearSolverError, assemble_blocks, build_pattern, make_solver
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.problem import PLANAR_DIMS, held_poses, unit_quaternions
-from slam.lie import se3_identity, se3_inv
+from slam.lie import se3_ad, se3_adjoint, se3_between, se3_identity, se3_inv
 
 __all__ = ["attach_gradients", "held_for_gradients", "implicit_vjp"]
 
@@ -135,19 +135,36 @@ def _prior_cost(spec: _Spec, poses: Tensor, P0: Tensor) -> Tensor:
 
 
 def _edge_hessians(spec: _Spec, x: Tensor, meas: Tensor, info: Tensor, poses: Tensor) -> Tensor:
-    """``(E, 12, 12)``: each edge's Hessian of its cost in the right perturbations ``[delta_i, delta_j]`` at
-    ``x`` (12 vectorised second-order autograd passes)."""
-    E = spec.ii.shape[0]
+    """``(E, 12, 12)``: each edge's Hessian of its cost in the right perturbations ``[delta_i, delta_j]`` at ``x``.
+
+    The cost depends on the perturbations only through the error pose: ``D = z^-1 (T_i Exp d_i)^-1 T_j Exp d_j
+    = D0 Exp(-A d_i) Exp(d_j)`` with ``A = Ad(T_j^-1 T_i)``, and ``Exp(u) Exp(v) = Exp(u + v + [u, v] / 2 + ...)``
+    (BCH). So with ``h(e) = cost(D0 Exp e)``, its gradient ``g`` and Hessian ``H_h`` at 0 (6 second-order
+    autograd passes over all edges), ``M = [-A, I]`` and ``N_mn = g . ad(e_m) e_n / 2``:
+    ``H = M^T H_h M`` plus ``-A^T N`` in the ``(i, j)`` block (and its transpose in ``(j, i)``), the bracket's
+    second-order term. Equal to differentiating ``[d_i, d_j]`` directly (12 passes) to 1e-12, in less than half
+    the time.
+    """
+    E, dt, dev = spec.ii.shape[0], x.dtype, x.device
+    tD, qD = error_poses(x, spec.ii, spec.jj, se3_inv(unit_quaternions(meas)))
+    A = se3_adjoint(se3_between(x[spec.jj], x[spec.ii]))
+    eye = se3_identity(E, dtype=dt, device=dev)
+    ar = torch.arange(E, device=dev)
     with torch.enable_grad():
-        d = torch.zeros(E, 12, dtype=x.dtype, device=x.device, requires_grad=True)
-        Pe = torch.cat([se3_retract(x[spec.ii], d[:, :6]), se3_retract(x[spec.jj], d[:, 6:])])
-        ar = torch.arange(E, device=x.device)
-        r, _ = se3_residuals(Pe, ar, ar + E, se3_inv(unit_quaternions(meas)), spec.chart)
+        e = torch.zeros(E, 6, dtype=dt, device=dev, requires_grad=True)
+        D = se3_retract(torch.cat([tD, qD], -1), e)
+        r, _ = se3_residuals(torch.cat([eye, D]), ar, ar + E, eye, spec.chart)  # the residual of D itself
         s = edge_chi2(r, 0.5 * (info + info.transpose(-1, -2)))
         f = (s if spec.kernel is None else spec.kernel(s)[0]).sum()
-        (g,) = torch.autograd.grad(f, d, create_graph=True)
-        rows = [torch.autograd.grad(g[:, c].sum(), d, retain_graph=c < 11)[0] for c in range(12)]
-    H = torch.stack(rows, 1)
+        (g,) = torch.autograd.grad(f, e, create_graph=True)
+        Hh = torch.stack([torch.autograd.grad(g[:, c].sum(), e, retain_graph=c < 5)[0] for c in range(6)], 1)
+    g = g.detach()
+    M = torch.cat([-A, torch.eye(6, dtype=dt, device=dev).expand(E, 6, 6)], -1)  # (E, 6, 12)
+    H = M.transpose(1, 2) @ Hh @ M
+    N = 0.5 * torch.einsum("ek,mkn->emn", g, se3_ad(torch.eye(6, dtype=dt, device=dev)))  # ad(e_m): (6, 6, 6)
+    X = -A.transpose(1, 2) @ N
+    H[:, :6, 6:] += X
+    H[:, 6:, :6] += X.transpose(1, 2)
     return 0.5 * (H + H.transpose(1, 2))
 
 
