@@ -208,3 +208,15 @@ def test_bad_intrinsics_are_refused_with_the_file(scenes_dir):
             SevenScenesSequence(scenes_dir)
     with pytest.raises(ValueError, match=r"K must have focal lengths"):
         SevenScenesSequence(scenes_dir, K=np.zeros((3, 3)))
+
+
+def test_a_bad_pose_file_is_warned_once(scenes_dir):
+    (scenes_dir / "frame-000002.pose.txt").write_text("not a pose\n")
+    seq = SevenScenesSequence(scenes_dir)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(3):
+            seq[2]
+        _ = seq.groundtruth
+    assert [issubclass(w.category, DatasetWarning) for w in caught] == [True]
+    assert "frame-000002.pose.txt:1: expected 4x4 numbers, got 'not a pose'" in str(caught[0].message)

@@ -117,7 +117,11 @@ def _read_pose(path: Path) -> tuple[np.ndarray, str | None]:
     return _matrices_to_poses(T[None])[0], None
 
 
-def _warn_unknown(problems: list) -> None:
+def _warn_unknown(problems: list, warned: set) -> None:
+    """One warning for the ``(file name, message)`` of ``problems`` whose file is not yet in ``warned``."""
+    fresh = [(name, msg) for name, msg in problems if name not in warned]
+    warned.update(name for name, _ in fresh)
+    problems = [msg for _, msg in fresh]
     if problems:
         more = f" (and {len(problems) - 3} more files)" if len(problems) > 3 else ""
         warnings.warn(f"ground truth unknown for {len(problems)} frame(s), whose pose file is not a pose; their "
@@ -170,6 +174,7 @@ class SevenScenesSequence(RGBDSequence):
         self._pose: list[str | None] = [p if p in names else None for p in pose_names]
         self._timestamps = self.frame_numbers.astype(np.float64) / float(fps)
         self._gt: np.ndarray | None = None
+        self._warned: set[str] = set()  # pose files already reported as not a pose (each is warned once)
 
         if K is not None:
             self.K = check_intrinsics(K, "K")
@@ -199,7 +204,7 @@ class SevenScenesSequence(RGBDSequence):
         if self._pose[i] is None:
             return np.full(7, np.nan)
         pose, problem = _read_pose(self.root / self._pose[i])
-        _warn_unknown([problem] if problem else [])
+        _warn_unknown([(self._pose[i], problem)] if problem else [], self._warned)
         return pose
 
     def _groundtruth_array(self) -> np.ndarray:
@@ -211,16 +216,16 @@ class SevenScenesSequence(RGBDSequence):
                     try:
                         Ts[i] = _read_matrix(self.root / name, (4, 4))
                     except DatasetError as e:
-                        problems.append(str(e))
+                        problems.append((name, str(e)))
             ok = np.isfinite(Ts).all(axis=(1, 2))
             for k, problem in zip(np.nonzero(ok)[0], _pose_problems(Ts[ok]) if ok.any() else []):
                 if problem is not None:
                     ok[k] = False
-                    problems.append(f"{self.root / self._pose[k]}: {problem}")
+                    problems.append((self._pose[k], f"{self.root / self._pose[k]}: {problem}"))
             gt = np.full((len(self), 7), np.nan)
             if ok.any():
                 gt[ok] = _matrices_to_poses(Ts[ok])
-            _warn_unknown(problems)
+            _warn_unknown(problems, self._warned)
             self._gt = gt
         return self._gt
 
