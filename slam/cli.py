@@ -12,6 +12,7 @@ import logging
 import os
 import shutil
 import sys
+import warnings
 from pathlib import Path
 
 EXAMPLES = """\
@@ -211,7 +212,13 @@ def main(argv: list[str] | None = None) -> int:
     elif not args.quiet:
         logging.getLogger("slam.system").setLevel(logging.INFO)
         logging.getLogger("slam.synthetic").setLevel(logging.INFO)  # the demo's rendering progress
-    return call_reporting_errors(PROG, run_command, args)
+    with warnings.catch_warnings():  # a library warning (a DatasetWarning, say) is one line, as errors are
+        warnings.showwarning = _show_warning
+        return call_reporting_errors(PROG, run_command, args)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"{PROG}: warning: {message}", file=sys.stderr if file is None else file)
 
 
 if __name__ == "__main__":  # pragma: no cover
