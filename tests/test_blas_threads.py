@@ -60,3 +60,25 @@ def test_without_threadpoolctl_nothing_changes(monkeypatch):
     assert not bt.blas_thread_control()
     with bt.limit_blas_threads(1) as lim:
         assert lim._saved == []
+
+
+def test_another_thread_can_set_the_threads_after_a_limit_ended():
+    """A process-wide OpenBLAS pool takes limits from one thread only: after the main thread's limit ended,
+    a limit in another thread still takes effect (the controlling thread was handed back)."""
+    if not bt.blas_thread_control():
+        pytest.skip("no BLAS thread control here")
+    before = _counts()
+    if before == [1] * len(before):
+        pytest.skip("BLAS already runs one thread: a limit to one changes nothing")
+    with bt.limit_blas_threads(1):  # the main thread sets (and so controls) the pool...
+        pass
+    seen = []
+
+    def worker():
+        with bt.limit_blas_threads(1):
+            seen.append(_counts())
+
+    t = threading.Thread(target=worker)
+    t.start()
+    t.join()
+    assert seen == [[1] * len(before)] and _counts() == before  # ...and handed it back: the worker's limit holds

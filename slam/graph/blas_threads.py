@@ -81,6 +81,13 @@ class limit_blas_threads:
     def __exit__(self, *exc) -> bool:
         for lib, old in reversed(self._saved):
             lib.set_num_threads(old)
+        if self._saved and self._outer is None:
+            # a process-wide OpenBLAS pool takes limits from one thread only (threadpoolctl >= 3.6): hand it
+            # back, as threadpoolctl's own limiter does when its outermost limit ends
+            for lib, _ in self._saved:
+                clear = getattr(type(lib), "clear_controlling_thread", None)
+                if clear is not None:
+                    clear()
         self._saved = []
         _LOCAL.limit = self._outer
         return False
