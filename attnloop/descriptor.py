@@ -7,16 +7,22 @@ For a batch of images:
 2. F = fusion(L, G), one of ``none``, ``dam``, ``eam``, ``gaf``, ``ega`` (:mod:`attnloop.fusion`), with
    G scaled to max |G| = 1 per sample first (the fusions are invariant to that scale; it keeps a tiny G,
    e.g. from a flat softmax, above the constant-map threshold of the min-max normalisation);
-3. F is L2-normalised per sample and scaled to norm ``pool_scale`` (10 by default; None skips it);
-4. d = random RNN pooling of F (:mod:`attnloop.rnn_pool`), (B, num_rnn * 64);
-5. d is L2-normalised (``normalize=True``), so the dot product of two descriptors is their cosine.
+3. ``pooling="regional"`` (the default, ours): F becomes its regional GeM code (:mod:`attnloop.pooling`:
+   per tap group, the whole map and a 2 x 2 grid, each region L2-normalised); ``pooling="flat"`` (the
+   paper's): F itself, flattened;
+4. that input is L2-normalised per sample and scaled to norm ``pool_scale`` (10 by default; None skips it);
+5. d = random RNN pooling of it (:mod:`attnloop.rnn_pool`), (B, num_rnn * 64);
+6. d is L2-normalised (``normalize=True``), so the dot product of two descriptors is their cosine.
 
-The recipe of steps 2-5 (fusion, RNN count and size, seed, scaling, merge, L2) is one
+``preset="paper"`` gives the paper's configuration exactly (:mod:`attnloop.presets`); the default is
+the one measured best for place recognition (docs/attention.md, "Place recognition").
+
+The recipe of steps 2-6 (fusion, RNN count and size, seed, scaling, merge, L2) is one
 :class:`DescriptorRecipe`. ``AttentionDescriptor(..., differentiable=True)`` keeps the whole chain in
 autograd (:func:`attnloop.guided_backprop.guided_backprop` with ``create_graph``): the descriptor is then
 a differentiable function of the images and of the backbone's weights, for training through it.
 
-Step 3 is ours, not the paper's: it makes the descriptor independent of the fused map's overall scale
+Step 4 is ours, not the paper's: it makes the descriptor independent of the fused map's overall scale
 (which differs between fusion modes and frames) and sets the operating point of the RNNs' tanh. With
 raw features at EfficientNet's stage7 the pre-activations W_r x have a standard deviation of 5 to 17
 (median over frames, depending on the fusion), so the tanh saturates and the 1024 dims degrade to a
@@ -38,8 +44,10 @@ from torch import nn
 
 from .backbones import HookedBackbone, build_backbone, resolve_backbone_name
 from .backbones.preprocess import check_images
-from .fusion import FUSION_MODES, Fusion, fuse
+from .fusion import FUSION_MODES, Fusion
 from .guided_backprop import guided_backprop
+from .pooling import POOLINGS, fuse_groups, regional_code, regional_code_dim
+from .presets import DEFAULT_BACKBONE_SETTINGS, PAPER_BACKBONE_SETTINGS, PAPER_RECIPE_SETTINGS, PRESETS
 from .rnn_pool import RandomRNNPool, random_rnn_pool
 
 __all__ = [
@@ -68,12 +76,25 @@ class DescriptorRecipe:
     out_features: int = 64  # output size of each RNN (the paper's 64)
     seed: int = 0  # seed of the RNN weights (and of a name-built backbone's random weights when not pretrained)
     normalize: bool = True  # L2-normalise the descriptor: a dot product is then the cosine
-    pool_scale: float | None = 10.0  # L2 norm of the fused map fed to the RNNs (ours); None: raw (the paper)
-    merge: bool = True  # average channel c with c + C/2 before the pooling (the paper's merge)
+    pool_scale: float | None = 10.0  # L2 norm of the RNNs' input (ours); None: raw (the paper)
+    merge: bool | None = None  # average element c with c + C/2 of the RNNs' input; None: for "flat" only
+    pooling: str = "regional"  # "regional": regional GeM code first (ours); "flat": the whole map (the paper)
+    gem_p: float = 2.0  # the GeM exponent of the regional pooling
+    levels: tuple[int, ...] = (1, 2)  # grids of the regional pooling: the whole map and 2 x 2 cells
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_MODES:
             raise ValueError(f"unknown fusion {self.fusion!r}; choose one of {FUSION_MODES}")
+        if self.pooling not in POOLINGS:
+            raise ValueError(f"unknown pooling {self.pooling!r}; choose one of {POOLINGS}")
+        if not (float(self.gem_p) > 0 and float(self.gem_p) < float("inf")):
+            raise ValueError(f"gem_p must be positive and finite, got {self.gem_p}")
+        levels = tuple(self.levels) if isinstance(self.levels, (tuple, list)) else (self.levels,)
+        if not levels or any(isinstance(v, bool) or int(v) != v or v < 1 for v in levels):
+            raise ValueError(f"levels must be positive grid sizes such as (1, 2), got {self.levels!r}")
+        object.__setattr__(self, "levels", tuple(int(v) for v in levels))
+        if self.pooling == "flat" and (self.gem_p != 2.0 or self.levels != (1, 2)):
+            raise ValueError("gem_p and levels apply to pooling='regional' only")
         for name in ("num_rnn", "out_features"):
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or v < 1:
@@ -85,6 +106,11 @@ class DescriptorRecipe:
     def out_dim(self) -> int:
         """Size of a descriptor, ``num_rnn * out_features``."""
         return int(self.num_rnn) * int(self.out_features)
+
+    @property
+    def merges(self) -> bool:
+        """Whether the RNNs' input is merged (``merge``, or for None: True with ``flat`` pooling only)."""
+        return (self.pooling == "flat") if self.merge is None else bool(self.merge)
 
 
 _DEFAULT = DescriptorRecipe()
@@ -128,21 +154,33 @@ def descriptor_from_attention(
     fusion: str = "dam",
     normalize: bool = True,
     pool_scale: float | None = 10.0,
-    merge: bool = True,
+    merge: bool | None = None,
+    *,
+    pooling: str = "regional",
+    gem_p: float = 2.0,
+    levels: Sequence[int] = (1, 2),
+    groups: Sequence[int] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Steps 2-5 of the descriptor: fuse (L, G), scale, random RNN pooling, L2.
+    """Steps 2-6 of the descriptor: fuse (L, G), pool, scale, random RNN pooling, L2.
 
     Useful to try several fusion modes on one (L, G) without running the backbone again.
 
     Args:
         tap: the tap activations L, :math:`(B, C, h, w)`.
         grad: the guided gradient G, :math:`(B, C, h, w)`.
-        rnn_weights: :math:`(R, O, I)` random RNN weights with ``I = C/2 * h * w`` (``C * h * w``
-            without merge).
+        rnn_weights: :math:`(R, O, I)` random RNN weights: for ``flat`` pooling ``I = C/2 * h * w``
+            (``C * h * w`` without merge); for ``regional`` ``I = regional_code_dim(groups, levels)``
+            (halved with merge).
         fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
         normalize: L2-normalise the descriptor.
-        pool_scale: L2 norm the fused map is scaled to before the pooling; None feeds it raw (the paper).
-        merge: average channel c with c + C/2 before the pooling (the paper's merge).
+        pool_scale: L2 norm the RNNs' input is scaled to; None feeds it raw (the paper).
+        merge: average element c with c + C/2 of the RNNs' input (the paper's merge); None: True for
+            ``flat``, False for ``regional`` pooling.
+        pooling: ``"regional"`` (regional GeM code, :mod:`attnloop.pooling`) or ``"flat"`` (the paper).
+        gem_p: the GeM exponent (regional pooling).
+        levels: the grids of the regional pooling.
+        groups: channel counts of a joined tap's stages (the backbone's ``tap_groups``): each group is
+            fused and pooled on its own; None: one group.
 
     Returns:
         (fused :math:`(B, C, h, w)`, descriptor :math:`(B, R \\cdot O)`).
@@ -150,13 +188,22 @@ def descriptor_from_attention(
     Example:
         >>> from attnloop.rnn_pool import random_rnn_weights
         >>> L, G = torch.rand(2, 512, 7, 7), torch.randn(2, 512, 7, 7)
-        >>> fused, d = descriptor_from_attention(L, G, random_rnn_weights(16, 256 * 49, 64), "gaf")
+        >>> w = random_rnn_weights(16, 256 * 49, 64)
+        >>> fused, d = descriptor_from_attention(L, G, w, "gaf", pooling="flat")
         >>> fused.shape, d.shape
         (torch.Size([2, 512, 7, 7]), torch.Size([2, 1024]))
+        >>> w = random_rnn_weights(16, 5 * 512, 64)
+        >>> descriptor_from_attention(L, G, w, "dam", groups=(192, 320))[1].shape
+        torch.Size([2, 1024])
     """
-    fused = fuse(tap, _unit_scale(grad), fusion)
-    pooled_in = fused if pool_scale is None else _scale_to_norm(fused, float(pool_scale))
-    desc = random_rnn_pool(pooled_in, rnn_weights, merge=merge)
+    if pooling not in POOLINGS:
+        raise ValueError(f"unknown pooling {pooling!r}; choose one of {POOLINGS}")
+    if merge is None:
+        merge = pooling == "flat"
+    fused = fuse_groups(tap, grad, fusion, groups)
+    pool_in = fused if pooling == "flat" else regional_code(fused, groups, gem_p, levels)[:, :, None, None]
+    pool_in = pool_in if pool_scale is None else _scale_to_norm(pool_in, float(pool_scale))
+    desc = random_rnn_pool(pool_in, rnn_weights, merge=merge)
     if normalize:
         desc = F.normalize(desc, dim=1)
     return fused, desc
@@ -169,8 +216,12 @@ def attention_descriptor_parts(
     fusion: str = "dam",
     normalize: bool = True,
     pool_scale: float | None = 10.0,
-    merge: bool = True,
+    merge: bool | None = None,
     create_graph: bool = False,
+    *,
+    pooling: str = "regional",
+    gem_p: float = 2.0,
+    levels: Sequence[int] = (1, 2),
 ) -> DescriptorParts:
     """Compute the descriptor and keep every intermediate (L, G, fused, descriptor).
 
@@ -182,16 +233,21 @@ def attention_descriptor_parts(
         fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
         normalize: L2-normalise the descriptor.
         pool_scale: L2 norm the fused map is scaled to before the pooling; None feeds it raw (the paper).
-        merge: average channel c with c + C/2 before the pooling (the paper's merge).
+        merge: average element c with c + C/2 of the RNNs' input; None: for ``flat`` pooling only.
         create_graph: keep every part differentiable w.r.t. the images and the backbone's weights
             (see :func:`attnloop.guided_backprop.guided_backprop`).
+        pooling: ``"regional"`` or ``"flat"`` (see :func:`descriptor_from_attention`).
+        gem_p: the GeM exponent (regional pooling).
+        levels: the grids of the regional pooling.
 
     Returns:
         :class:`DescriptorParts` with the descriptor of shape :math:`(B, R \\cdot O)`.
     """
     check_images(images)
     tap, grad = guided_backprop(backbone, images, create_graph=create_graph)
-    fused, desc = descriptor_from_attention(tap, grad, rnn_weights, fusion, normalize, pool_scale, merge)
+    fused, desc = descriptor_from_attention(tap, grad, rnn_weights, fusion, normalize, pool_scale, merge,
+                                            pooling=pooling, gem_p=gem_p, levels=levels,
+                                            groups=getattr(backbone, "tap_groups", None))
     return DescriptorParts(tap, grad, fused, desc)
 
 
@@ -202,8 +258,12 @@ def attention_descriptor(
     fusion: str = "dam",
     normalize: bool = True,
     pool_scale: float | None = 10.0,
-    merge: bool = True,
+    merge: bool | None = None,
     create_graph: bool = False,
+    *,
+    pooling: str = "regional",
+    gem_p: float = 2.0,
+    levels: Sequence[int] = (1, 2),
 ) -> torch.Tensor:
     """Attention-guided descriptor of a batch of images (see :func:`attention_descriptor_parts`).
 
@@ -215,11 +275,12 @@ def attention_descriptor(
         >>> from attnloop.rnn_pool import random_rnn_weights
         >>> net = efficientnet_lite0(pretrained=False)
         >>> w = random_rnn_weights(16, 160 * 7 * 7, 64, seed=0)
-        >>> attention_descriptor(torch.rand(2, 3, 96, 128), net, w, fusion="ega").shape
+        >>> attention_descriptor(torch.rand(2, 3, 96, 128), net, w, fusion="ega", pooling="flat").shape
         torch.Size([2, 1024])
     """
     return attention_descriptor_parts(
-        images, backbone, rnn_weights, fusion, normalize, pool_scale, merge, create_graph=create_graph
+        images, backbone, rnn_weights, fusion, normalize, pool_scale, merge, create_graph=create_graph,
+        pooling=pooling, gem_p=gem_p, levels=levels,
     ).descriptor
 
 
@@ -268,18 +329,24 @@ class AttentionDescriptor(nn.Module):
             random weights without any file.
         weights: explicit checkpoint path for a name-built backbone.
         normalize: L2-normalise the descriptors.
-        tap: a name-built backbone's tap layer (default: ``pool5`` for VGG16, ``stage7`` for
-            EfficientNet-Lite0), or the submodule of a classifier module where L is taken.
+        tap: a name-built backbone's tap layer (default: ``pool5`` for VGG16, ``stage6+stage7`` at a
+            224 x 288 input for EfficientNet-Lite0, :mod:`attnloop.presets`), or the submodule of a
+            classifier module where L is taken.
         out_features: output size of each RNN.
-        pool_scale: L2 norm of the fused map fed to the RNNs (None: raw, as in the paper).
-        merge: average channel c with c + C/2 before the pooling.
+        pool_scale: L2 norm of the RNNs' input (None: raw, as in the paper).
+        merge: average element c with c + C/2 of the RNNs' input (None: only with ``flat`` pooling).
         input_size: a classifier module's input ``(height, width)``; None: images at their own size.
         mean: a classifier module's per-channel input mean on [0, 1] RGB; None: none.
         std: a classifier module's per-channel input std on [0, 1] RGB; None: none.
         differentiable: keep the computation in autograd (see above). Costs a graph of the backbone
             and a second-order backward through the head (docs/benchmarks.md, "Differentiable descriptor").
         recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` (leave those at
-            their defaults then).
+            their defaults then); it also sets ``pooling``, ``gem_p`` and ``levels``.
+        preset: ``"paper"``: the paper's exact configuration (:mod:`attnloop.presets`: the paper's tap
+            at 224 x 224, flat RNN pooling of the raw fused map, the merge, 16 RNNs); only ``fusion``,
+            ``seed`` and the backbone choice stay free. None: the measured default.
+        pooling: ``"regional"`` (default: regional GeM code, then the RNNs) or ``"flat"`` (the paper's
+            RNNs over the whole fused map); see :mod:`attnloop.pooling`.
 
     Attributes:
         backbone_name: the backbone used: ``"vgg16"`` or ``"efficientnet_lite0"`` for a name (``"auto"``
@@ -322,10 +389,22 @@ class AttentionDescriptor(nn.Module):
         std: Sequence[float] | None = None,
         differentiable: bool = False,
         recipe: DescriptorRecipe | None = None,
+        preset: str | None = None,
+        pooling: str = _DEFAULT.pooling,
     ) -> None:
         super().__init__()
         given = DescriptorRecipe(fusion=fusion, num_rnn=num_rnn, out_features=out_features, seed=seed,
-                                 normalize=normalize, pool_scale=pool_scale, merge=merge)
+                                 normalize=normalize, pool_scale=pool_scale, merge=merge, pooling=pooling)
+        if preset is not None:
+            if preset not in PRESETS:
+                raise ValueError(f"unknown preset {preset!r}; choose one of {PRESETS}")
+            free = ("fusion", "seed")
+            changed = [f.name for f in dataclasses.fields(given)
+                       if f.name not in free and getattr(given, f.name) != getattr(_DEFAULT, f.name)]
+            if recipe is not None or changed or tap is not None:
+                raise ValueError(f"preset={preset!r} fixes the recipe and the tap; also given: "
+                                 f"{changed + (['recipe'] if recipe is not None else []) + (['tap'] if tap else [])}")
+            given = dataclasses.replace(given, **PAPER_RECIPE_SETTINGS)
         if recipe is not None:
             if not isinstance(recipe, DescriptorRecipe):
                 raise TypeError(f"recipe must be a DescriptorRecipe, got {type(recipe).__name__}")
@@ -345,7 +424,11 @@ class AttentionDescriptor(nn.Module):
                                      f"the built-in backbone {backbone!r} has its own preprocessing")
             use_pretrained = True if pretrained is None else bool(pretrained)
             self.backbone_name = resolve_backbone_name(backbone, use_pretrained, weights)
-            net = build_backbone(backbone, pretrained=use_pretrained, weights=weights, tap=tap, seed=given.seed)
+            # tap=None: the configuration's tap and input size; an explicit tap: at the backbone's own input.
+            settings = (PAPER_BACKBONE_SETTINGS if preset else DEFAULT_BACKBONE_SETTINGS).get(self.backbone_name, {})
+            settings = {"tap": tap} if tap is not None else dict(settings)
+            # the name as given: "auto" names both checkpoints it looked for when neither is found
+            net = build_backbone(backbone, pretrained=use_pretrained, weights=weights, seed=given.seed, **settings)
             net.eval()
             if not self.differentiable:
                 net.requires_grad_(False)
@@ -371,11 +454,16 @@ class AttentionDescriptor(nn.Module):
         self.backbone = net
         self.fusion = Fusion(given.fusion)
         channels, height, width = (int(v) for v in self.backbone.tap_shape)
-        if given.merge and channels % 2:
-            raise ValueError(f"the tap of {self.backbone_name} has {channels} channels, an odd number: merge=True "
-                             "averages channel c with c + C/2; pass merge=False or tap a layer with even channels")
+        #: Channel counts of a joined tap's stages (None: a single tap), fused and pooled separately.
+        self.tap_groups = tuple(getattr(self.backbone, "tap_groups", None) or (channels,))
+        if given.pooling == "regional":
+            channels, height, width = regional_code_dim(self.tap_groups, given.levels), 1, 1
+        if given.merges and channels % 2:
+            raise ValueError(f"the RNNs' input of {self.backbone_name} has {channels} channels, an odd number: "
+                             "merge=True averages channel c with c + C/2; pass merge=False or tap a layer with "
+                             "even channels")
         self.pool = RandomRNNPool(channels, (height, width), given.num_rnn, given.out_features, seed=given.seed,
-                                  merge=given.merge)
+                                  merge=given.merges)
 
     @property
     def out_dim(self) -> int:
@@ -422,8 +510,8 @@ class AttentionDescriptor(nn.Module):
             return DescriptorParts(empty, empty, empty, images.new_zeros((0, self.out_dim), dtype=dtype))
         r = self.recipe
         return attention_descriptor_parts(
-            images, self.backbone, self.pool.weights, r.fusion, r.normalize, self.pool_scale, r.merge,
-            create_graph=self.differentiable,
+            images, self.backbone, self.pool.weights, r.fusion, r.normalize, self.pool_scale, r.merges,
+            create_graph=self.differentiable, pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
         )
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
@@ -445,8 +533,10 @@ class AttentionDescriptor(nn.Module):
                              f"got {tuple(tap.shape)}")
         mode = self.recipe.fusion if fusion is None else fusion
         r = self.recipe
-        return descriptor_from_attention(tap, grad, self.pool.weights, mode, r.normalize, self.pool_scale, r.merge)[1]
+        return descriptor_from_attention(tap, grad, self.pool.weights, mode, r.normalize, self.pool_scale, r.merges,
+                                         pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
+                                         groups=self.tap_groups)[1]
 
     def extra_repr(self) -> str:
         return (f"backbone={self.backbone_name!r}, differentiable={self.differentiable}, "
-                f"normalize={self.normalize}, pool_scale={self.pool_scale}")
+                f"normalize={self.normalize}, pool_scale={self.pool_scale}, pooling={self.recipe.pooling!r}")

@@ -151,10 +151,16 @@ def _seeded_backward(logits: Tensor, wrt: Tensor, create_graph: bool) -> Tensor:
             f"the network after the tap must return logits (B, K) with B={wrt.shape[0]}, got "
             f"{tuple(logits.shape) if isinstance(logits, Tensor) else type(logits).__name__}"
         )
+    unused = ("the logits do not depend on the tap through autograd: is its output unused, detached or run "
+              "under no_grad on the way to the logits?")
+    if not logits.requires_grad:
+        raise ValueError(unused)
     probs = torch.softmax(logits, dim=1)
     # Differentiable mode keeps the seed in the graph: G(L) = J(L)^T S(L) depends on L through both.
     seed = probs if create_graph else probs.detach()
-    (grad,) = torch.autograd.grad(probs, wrt, grad_outputs=seed, create_graph=create_graph)
+    (grad,) = torch.autograd.grad(probs, wrt, grad_outputs=seed, create_graph=create_graph, allow_unused=True)
+    if grad is None:
+        raise ValueError(unused)
     return grad
 
 

@@ -169,7 +169,9 @@ def test_gradcheck_tiny_relu_cnn():
 
 @pytest.fixture(scope="module")
 def lite64():
-    desc = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=0, differentiable=True).double()
+    # the paper's flat pooling at stage7: the regional GeM's floor is a kink that central differences straddle
+    desc = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=0, differentiable=True, tap="stage7",
+                               pooling="flat").double()
     net = desc.backbone
     with torch.no_grad():
         # Random weights: the features fade to ~1e-9 by the head and the softmax is flat to 1e-10, so
@@ -192,7 +194,7 @@ def test_efficientnet_head_second_order_every_fusion(lite64):
     tap, grad = guided_backprop(net, x, create_graph=True)
     ads = []
     for mode in modes:
-        (gw,) = torch.autograd.grad((u * descriptor_from_attention(tap, grad, w, mode)[1]).sum(), weight,
+        (gw,) = torch.autograd.grad((u * descriptor_from_attention(tap, grad, w, mode, pooling="flat")[1]).sum(), weight,
                                     retain_graph=True)
         ads.append(float((gw * v).sum()))
     del tap, grad  # the graph saved the weight; it is perturbed in place below
@@ -205,7 +207,7 @@ def test_efficientnet_head_second_order_every_fusion(lite64):
         weight.copy_(base)
     assert torch.equal(tp, tm)  # the forward below the tap does not depend on the head
     for mode, ad in zip(modes, ads):
-        fd = float((u * (descriptor_from_attention(tp, gp, w, mode)[1] - descriptor_from_attention(tm, gm, w, mode)[1]))
+        fd = float((u * (descriptor_from_attention(tp, gp, w, mode, pooling="flat")[1] - descriptor_from_attention(tm, gm, w, mode, pooling="flat")[1]))
                    .sum() / (2 * EPS))
         assert abs(fd) > 1e-4 and abs(ad - fd) <= RTOL * abs(fd), (mode, ad, fd)
 
@@ -225,7 +227,7 @@ def test_every_backbone_parameter_gets_a_gradient(lite64):
 
 
 def test_differentiable_values_equal_the_fast_path(lite64):
-    fast = AttentionDescriptor(lite64.backbone, seed=0)  # the same float64 backbone, detached path
+    fast = AttentionDescriptor(lite64.backbone, seed=0, pooling="flat")  # the same float64 backbone, detached path
     x = torch.rand(2, 3, 64, 64, dtype=torch.float64)
     a, b = lite64.parts(x), fast.parts(x)
     for name in ("tap", "grad", "fused", "descriptor"):

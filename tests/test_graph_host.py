@@ -125,6 +125,8 @@ def test_backends_take_the_same_steps_on_a_real_sized_problem():
     graph = _graph()
     a = optimize(graph, kernel="cauchy", backend="numpy")
     b = optimize(graph, kernel="cauchy", backend="torch")
+    assert (a.backend, b.backend, optimize(graph).backend) == ("numpy", "torch", "torch")
+    assert optimize(graph, backend="auto").backend == ("c" if compiled_kernels() else "numpy")
     assert a.iterations == b.iterations > 2 and a.status == b.status
     np.testing.assert_allclose(a.cost_history, b.cost_history, rtol=1e-9)
     assert torch.allclose(a.graph.poses, b.graph.poses, atol=1e-8)
@@ -141,7 +143,7 @@ def test_backend_setting_and_information_errors():
     r3 = PoseGraph(graph.poses, graph.ii, graph.jj, graph.measurements, graph.information, chart="r3so3")
     with pytest.raises(ValueError, match="does not support chart 'r3so3'"):
         optimize(r3, backend="numpy")
-    assert optimize(r3).status == "converged"  # "auto" takes the torch path for it
+    assert optimize(r3, backend="auto").status == "converged"  # "auto" takes the torch path for it
     bad = graph.information.clone()
     bad[2, 0, 1] += 0.5  # not symmetric
     with pytest.raises(ValueError, match=r"information\[2\] .*not symmetric positive definite"):
@@ -184,8 +186,10 @@ def test_review_edge_cases_behave_alike_on_both_backends(monkeypatch):
             optimize(graph, backend=backend, lambda_init=0.0)
     # a model that predicts no decrease must not break the Nielsen rule (treated as a poor step)
     monkeypatch.setattr(host.HostProblem, "predicted_decrease", lambda self, dx, g, lam: 0.0)
-    res = optimize(graph, lambda_update="nielsen")
-    assert res.status == "converged" and res.chi2 == pytest.approx(unit.chi2, rel=1e-6)
+    monkeypatch.setattr(TorchProblem, "predicted_decrease", lambda self, dx, g, lam: 0.0)
+    for backend in ("numpy", "torch"):
+        res = optimize(graph, lambda_update="nielsen", backend=backend)
+        assert res.status == "converged" and res.chi2 == pytest.approx(unit.chi2, rel=1e-6)
 
 
 @pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=needs_c)])
@@ -210,3 +214,21 @@ def test_linearisation_in_chunks_of_edges_is_the_same(dense_max, planar, chunk, 
     H2, g2 = chunked.linearize(chunked.poses, cache)
     np.testing.assert_allclose(H2, H1, rtol=1e-13, atol=1e-12 * np.abs(H1).max())
     np.testing.assert_allclose(g2, g1, rtol=1e-13, atol=1e-12 * np.abs(g1).max())
+
+
+def test_problems_and_accelerators_satisfy_their_protocols():
+    from slam.graph.accel import ACCELERATORS, Accelerator, accelerator_for
+    from slam.graph.problem import PoseGraphProblem
+
+    graph = _graph(seed=3)
+    cfg = OptimizerConfig()
+    assert isinstance(TorchProblem(graph, cfg, None, "free", "auto"), PoseGraphProblem)
+    for name, acc in ACCELERATORS.items():
+        assert isinstance(acc, Accelerator) and acc.name == name
+        if acc.available():
+            assert isinstance(acc.problem(graph, cfg, None, "free", "auto"), PoseGraphProblem)
+        assert acc.unsupported(graph, cfg, "prior") == ["gauge 'prior'"]
+    assert accelerator_for(graph, cfg, "free") is None  # the default backend is torch
+    auto = accelerator_for(graph, OptimizerConfig(backend="auto"), "free")
+    assert auto is ACCELERATORS["c" if compiled_kernels() else "numpy"]
+    assert accelerator_for(graph, OptimizerConfig(backend="auto"), "prior") is None  # falls back to torch

@@ -1,8 +1,8 @@
-"""The optional C kernels of the CPU path (slam.graph.accel._kernels) against the numpy functions of
-slam.graph.accel.host, which test_graph_host checks against the torch path and the reference costs: residuals,
+"""The optional C kernels of the accelerator (slam.graph.accel._kernels) against its numpy functions
+(slam.graph.accel.host; both are checked against the torch reference in test_graph_host): residuals,
 Jacobian products, retraction, measurement terms, dense assembly and re-anchoring, to round-off, on
 random edges that include an exact edge, angles near pi and both series branches; their input checks;
-and whole optimisations on the shared g2o files with both backends."""
+and whole optimisations on the shared g2o files against the torch reference."""
 import math
 import os
 
@@ -180,7 +180,7 @@ def test_backend_c_says_when_the_kernels_are_missing(monkeypatch):
     assert not compiled_kernels()
     with pytest.raises(ValueError, match="backend 'c' needs the C kernels slam.graph.accel._kernels"):
         optimize(graph, backend="c")
-    res = optimize(graph)  # "auto" falls back to numpy
+    res = optimize(graph, backend="auto")  # falls back to numpy
     assert res.status == "converged"
     with pytest.raises(RuntimeError, match="were not built"):
         host.host_problem(graph, OptimizerConfig(), None, "free", "auto", compiled=True)
@@ -188,13 +188,14 @@ def test_backend_c_says_when_the_kernels_are_missing(monkeypatch):
 
 @needs_c
 @pytest.mark.parametrize("name", ["tinyGrid3D", "smallGrid3D", "parking-garage"])
-def test_whole_optimisations_match_numpy(posegraph_dir, name):
+def test_whole_optimisations_match_numpy_and_the_torch_reference(posegraph_dir, name):
     graph = read_g2o(posegraph_dir / f"{name}.g2o")
-    a, b = optimize(graph, backend="numpy"), optimize(graph, backend="c")
-    assert a.iterations == b.iterations and b.status == a.status == "converged"
-    assert b.chi2 == pytest.approx(a.chi2, rel=1e-9)
-    np.testing.assert_allclose(b.cost_history, a.cost_history, rtol=1e-8)  # round-off of the early steps
-    torch.testing.assert_close(b.graph.poses, a.graph.poses, rtol=0, atol=1e-8)
+    ref = optimize(graph, backend="torch")
+    for other in (optimize(graph, backend="numpy"), optimize(graph, backend="c")):
+        assert other.iterations == ref.iterations and other.status == ref.status == "converged"
+        assert other.chi2 == pytest.approx(ref.chi2, rel=1e-9)
+        np.testing.assert_allclose(other.cost_history, ref.cost_history, rtol=1e-8)  # round-off of the early steps
+        torch.testing.assert_close(other.graph.poses, ref.graph.poses, rtol=0, atol=1e-8)
 
 
 @needs_c

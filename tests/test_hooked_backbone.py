@@ -218,7 +218,7 @@ def test_differentiable_reaches_the_users_weights_without_touching_flags(images)
         (lambda: nn.Sequential(nn.Conv2d(3, 4, 3), nn.ReLU()), "0", {}, "must return class logits"),
         (vgg_like, "2", {"input_size": (64, 64)}, r"dry run .* on a \(1, 3, 64, 64\) image failed"),
         (lambda: nn.Sequential(nn.Conv2d(3, 3, 3, padding=1), nn.Flatten(), nn.Linear(3 * 32 * 32, 4)),
-         "0", {"input_size": (32, 32)}, "3 channels, an odd number"),
+         "0", {"input_size": (32, 32), "merge": True}, "channels, an odd number"),
         (vgg_like, "2", {"input_size": (32, 32), "mean": (0.5, 0.5)}, "mean must be 3 finite values"),
         (vgg_like, "2", {"input_size": (0, 32)}, "input_size must be"),
     ],
@@ -283,3 +283,24 @@ def test_normalisation_settings_and_empty_batch():
     desc = AttentionDescriptor(hooked)
     assert desc(torch.zeros(0, 3, 32, 32)).shape == (0, 1024)
     assert desc.parts(torch.zeros(0, 3, 32, 32)).tap.shape == (0, 8, 16, 16)
+
+
+def test_logits_that_do_not_use_the_tap():
+    class Detached(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.conv = nn.Conv2d(3, 4, 3, padding=1)
+            self.fc = nn.Linear(4 * 8 * 8, 3)
+
+        def forward(self, x):
+            return self.fc(self.conv(x).detach().flatten(1))
+
+    class Unused(Detached):
+        def forward(self, x):
+            self.conv(x)
+            return self.fc(x[:, :1].expand(-1, 4, -1, -1).flatten(1))
+
+    for cls in (Detached, Unused):
+        desc = AttentionDescriptor(cls(), tap="conv", input_size=(8, 8))
+        with pytest.raises(ValueError, match="do not depend on the tap through autograd"):
+            desc(torch.rand(1, 3, 8, 8))

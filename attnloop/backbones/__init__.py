@@ -110,6 +110,7 @@ def build_backbone(
     weights: str | Path | None = None,
     tap: str | None = None,
     seed: int = 0,
+    input_size: tuple[int, int] | None = None,
 ) -> nn.Module:
     """Build a backbone by name (``auto``, ``vgg16`` or ``efficientnet_lite0``), in eval mode.
 
@@ -119,6 +120,7 @@ def build_backbone(
         weights: an explicit checkpoint path.
         tap: the tap layer; the backbone's default (:data:`BACKBONES`) when None.
         seed: seed of the random weights when not pretrained.
+        input_size: EfficientNet-Lite0's network input (H, W) (default 224 x 224); VGG16 takes 224 x 224 only.
 
     Example:
         >>> build_backbone("vgg16", pretrained=False).tap_shape
@@ -127,9 +129,11 @@ def build_backbone(
     resolved = resolve_backbone_name(name, pretrained, weights)
     tap = BACKBONES[resolved] if tap is None else tap
     if resolved == "vgg16":
+        if input_size is not None and tuple(input_size) != (224, 224):
+            raise ValueError(f"VGG16's classifier takes 224 x 224 inputs, got input_size={tuple(input_size)}")
         return vgg16(pretrained=pretrained, weights=weights, tap=tap, seed=seed)
     try:
-        return efficientnet_lite0(pretrained=pretrained, weights=weights, tap=tap, seed=seed)
+        return efficientnet_lite0(pretrained=pretrained, weights=weights, tap=tap, seed=seed, input_size=input_size)
     except WeightsNotFoundError as exc:
         if name != AUTO:
             raise

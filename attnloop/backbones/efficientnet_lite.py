@@ -208,13 +208,23 @@ class EfficientNetLite(nn.Module):
         if len(size) != 2 or min(size) < 1:
             raise ValueError(f"input_size must be a positive (H, W), got {input_size!r}")
         taps = efficientnet_lite_taps(variant, size)
-        if tap not in taps:
-            raise ValueError(f"unknown EfficientNet-Lite tap {tap!r}; choose one of {list(taps)}")
+        names = tap.split("+") if isinstance(tap, str) else [tap]
+        for name in names:
+            if name not in taps or (len(names) > 1 and name == "head"):
+                raise ValueError(f"unknown EfficientNet-Lite tap {tap!r}; choose one of {list(taps)} or stages of "
+                                 "one resolution joined by '+', such as 'stage6+stage7'")
+        names = sorted(set(names), key=lambda n: taps[n][0])
+        if len({taps[n][2] for n in names}) > 1:
+            raise ValueError(f"the stages of tap {tap!r} have different resolutions "
+                             f"{[taps[n][2] for n in names]}; join stages of one resolution")
         self.variant = variant
         self.input_size = size
-        self.tap = tap
-        last_block, channels, (h, w) = taps[tap]
-        self.tap_shape = (channels, h, w)
+        self.tap = "+".join(names)
+        #: Channel counts of the stages a joined tap concatenates (one entry for a single tap).
+        self.tap_groups = tuple(taps[n][1] for n in names)
+        self._group_blocks = tuple(taps[n][0] for n in names)
+        last_block, _, (h, w) = taps[names[-1]]
+        self.tap_shape = (sum(self.tap_groups), h, w)
         stages = _stages(variant)
         self._conv_stem = SameConv2d(3, 32, 3, stride=2)
         self._bn0 = _bn(32)
@@ -260,11 +270,14 @@ class EfficientNetLite(nn.Module):
     def forward_to_tap(self, x: torch.Tensor) -> torch.Tensor:
         """Preprocessed (B, 3, *input_size) -> tap L (B, C, h, w)."""
         x = F.relu6(self._bn0(self._conv_stem(x)))
-        for block in self._blocks[: self.tap_block + 1]:
+        outs = []
+        for k, block in enumerate(self._blocks[: self.tap_block + 1]):
             x = block(x)
+            if k in self._group_blocks:
+                outs.append(x)
         if self.tap == "head":
             x = self._head_features(x)
-        return x
+        return x if len(outs) <= 1 else torch.cat(outs, dim=1)
 
     def forward_from_tap(
         self, tap: torch.Tensor, transition: Callable[[torch.Tensor], torch.Tensor] | None = None
@@ -276,11 +289,25 @@ class EfficientNetLite(nn.Module):
             transition: accepted for the backbone protocol but never applied: EfficientNet has no
                 max-pool transitions, so its partial guided backprop is plain backprop.
         """
-        x = tap
-        if self.tap != "head":
-            for block in self._blocks[self.tap_block + 1:]:
-                x = block(x)
+        if len(self.tap_groups) > 1:
+            # A joined tap (L_a, L_b, ...): the network runs on from the first stage; each later stage's
+            # output is replaced by its slice of L in the gradient only (value x, derivative identity),
+            # so that dS/dL_b is the gradient at stage b and dS/dL_a flows through the blocks in between.
+            parts = tap.split(self.tap_groups, dim=1)
+            x = parts[0]
+            first = self._group_blocks[0]
+            for k in range(first + 1, len(self._blocks)):
+                x = self._blocks[k](x)
+                if k in self._group_blocks:
+                    given = parts[self._group_blocks.index(k)]
+                    x = x + (given - given.detach())
             x = self._head_features(x)
+        else:
+            x = tap
+            if self.tap != "head":
+                for block in self._blocks[self.tap_block + 1:]:
+                    x = block(x)
+                x = self._head_features(x)
         x = torch.flatten(F.adaptive_avg_pool2d(x, 1), 1)
         return self._fc(self._dropout(x))
 

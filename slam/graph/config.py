@@ -48,8 +48,11 @@ class OptimizerConfig:
     # (slam.graph.fused; any device); "auto" = the accelerator (slam.graph.accel) for a CPU graph it supports:
     # its C kernels when they were built (setup.py), else its numpy functions, torch otherwise; "c", "numpy" =
     # require one (neither has the "prior" gauge or the "r3so3" chart). Every backend takes the same steps up
-    # to round-off; the linear solver (solver=) is chosen separately.
-    backend: str = "auto"
+    # to round-off; the linear solver (solver=) is chosen separately. The default is torch: the accelerator
+    # pays off on small graphs solved many times (tinyGrid3D ~10x) and is within ~30 % on the large files;
+    # in the SLAM pipeline its keyframe graph (87 poses on the kitchen) takes < 0.05 % of the run either way
+    # (benchmarks/posegraph_slam.py, docs/benchmarks.md)
+    backend: str = "torch"
     # solver "auto": a dense Cholesky up to this many unknowns (no symbolic analysis), the sparse one above.
     # None: the crossover of the backend measured by benchmarks/posegraph_backends.py on sphere2500
     # subgraphs: 400 on numpy (dense wins at 420 unknowns, loses at 480), 240 on torch (wins at 240, loses at 360)

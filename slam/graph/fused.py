@@ -132,7 +132,7 @@ def _log_terms(q: Tensor):
     (the coefficient of ``hat(phi)^2`` in ``J_l^-1(phi)``) from unit quaternions ``q (E, 4)``.
 
     With ``h = atan2(|v|, |w|)`` (half the angle, the sign of ``q`` chosen so that ``w >= 0``):
-    ``phi = 2 h v / |v|`` and ``(t/2) cot(t/2) = h |w| / |v|``, so no trigonometric call besides atan2.
+    ``phi = 2 h v / |v|`` and ``(t/2) cot(t/2) = h |w| / |v|``, so no trigonometric call besides one atan.
     Below the angle ``_SMALL`` the series in ``x = |v|^2 / w^2`` (``atan(sqrt x) / sqrt x = 1 - x/3 + ...``,
     the next term under round-off there): smooth, so autograd (and its second order) is exact at the
     identity, where ``|v|`` has no derivative. Each branch of a ``where`` is finite everywhere, so the
@@ -140,11 +140,16 @@ def _log_terms(q: Tensor):
     """
     v, w = q[:, :3], q[:, 3:]
     n2 = (v * v).sum(-1, keepdim=True)
-    aw = w.abs()
+    # |w| (abs's second derivative, like atan2's, is a python decomposition in torch 2.13 whose first call
+    # imports torch._dynamo: seconds)
+    aw = torch.where(w < 0, -w, w)
     # angle 2 h below _SMALL, i.e. |v| / |w| = tan(h) below tan(_SMALL / 2)
     small = n2 < _TAN2_HALF_SMALL.get(q.dtype, 2.5e-5) * (w * w)
     n = torch.where(small, 1.0, n2).sqrt()
-    h = torch.atan2(n, aw)
+    # h = atan2(n, |w|) in [0, pi/2], through atan of a ratio <= 1 (atan2: as abs above)
+    big = n > aw
+    h = torch.where(big, 0.5 * math.pi - torch.atan(aw / torch.where(big, n, 1.0)),
+                    torch.atan(n / torch.where(big, 1.0, aw)))
     ws = torch.where(small, w, 1.0)  # |w| ~ 1 where small
     x = torch.where(small, n2, 0.0) / (ws * ws)
     series = 1.0 - x / 3.0  # atan(sqrt x) / sqrt x

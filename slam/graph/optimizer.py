@@ -8,9 +8,9 @@ the per-edge maths behind :class:`~slam.graph.problem.PoseGraphProblem` (torch, 
 (:mod:`slam.graph.linear`) and here the outer loop with its step rules (Gauss-Newton, LM with GTSAM's
 schedule or Nielsen's gain-ratio rule).
 
-Backends (``OptimizerConfig.backend``): ``"torch"`` runs the reference on any device; ``"auto"`` runs a CPU
-graph on the accelerator (its C kernels when built, else numpy; ~3-10x less call overhead on small graphs);
-all take the same steps up to round-off (tested).
+Backends (``OptimizerConfig.backend``): ``"torch"`` (the default) runs the reference on any device;
+``"auto"`` runs a CPU graph on the accelerator (its C kernels when built, else numpy; ~3-10x less call
+overhead on small graphs); all take the same steps up to round-off (tested).
 
 Gauge (a pose graph is invariant to moving all poses rigidly): ``"free"`` (default for LM) leaves the
 gauge to the LM damping, as GTSAM does without a prior: the damped step is then the smallest of the
@@ -148,7 +148,8 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         graph=result_graph, chi2=run.best.chi2, initial_chi2=run.initial_chi2, status=run.status,
         iterations=run.iterations, robust_cost=run.best.cost if kern is not None else None,
         cost_history=run.costs, lambda_history=run.lambdas, time_history=run.times, timings=tm,
-        weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message)
+        weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message,
+        backend=backend)
 
 
 # -- the outer loop ---------------------------------------------------------------------------------
