@@ -85,19 +85,21 @@ class EdgeKindKernel(RobustKernel):
     def __init__(self, kinds: Tensor, kernels: Dict[int, Optional[RobustKernel]]):
         self.kinds = kinds.to(torch.long)
         self.kernels = dict(kernels)
+        # the edges of each kind, as index tensors made once (the optimiser calls the kernel every step)
+        self._rows = {k: torch.nonzero(self.kinds == k)[:, 0] for k, kern in self.kernels.items()
+                      if kern is not None and bool((self.kinds == k).any())}
 
     def rho_and_weight(self, s: Tensor):
         if s.shape != self.kinds.shape:
             raise ValueError(f"EdgeKindKernel: {tuple(s.shape)} squared norms for {self.kinds.numel()} edges")
+        if len(self._rows) == 1 and next(iter(self._rows.values())).numel() == s.numel():
+            return self.kernels[next(iter(self._rows))](s)  # one kind only: no scatter
         rho, w = s.clone(), torch.ones_like(s)
-        kinds = self.kinds.to(s.device)
-        for k, kern in self.kernels.items():
-            if kern is None:
-                continue
-            m = kinds == k
-            if bool(m.any()):
-                r_k, w_k = kern(s[m])
-                rho[m], w[m] = r_k.to(s.dtype), w_k.to(s.dtype)
+        for k, rows in self._rows.items():
+            rows = rows.to(s.device)
+            r_k, w_k = self.kernels[k](s.index_select(0, rows))
+            rho.index_copy_(0, rows, r_k.to(s.dtype))
+            w.index_copy_(0, rows, w_k.to(s.dtype))
         return rho, w
 
 
