@@ -2,7 +2,8 @@
 
 The paper's modules as drop-in PyTorch pieces:
 
-- :mod:`attnloop.backbones`: VGG16 and EfficientNet-Lite0 split at a tap layer, with preprocessing;
+- :mod:`attnloop.backbones`: VGG16 and EfficientNet-Lite0 split at a tap layer, with preprocessing, and
+  :class:`~attnloop.backbones.HookedBackbone`: any classifier tapped at a named submodule;
 - :mod:`attnloop.guided_backprop`: the softmax-seeded partial guided backprop, (L, G = dS/dL);
 - :mod:`attnloop.fusion`: the attention fusions DAM, EAM, GAF, EGA and the ``none`` baseline;
 - :mod:`attnloop.rnn_pool`: random recursive-NN pooling to a 1024-d vector;
@@ -20,20 +21,23 @@ from __future__ import annotations
 from .backbones import (
     VGG16,
     EfficientNetLite0,
+    HookedBackbone,
     WeightsNotFoundError,
     build_backbone,
     efficientnet_lite0,
+    resolve_backbone_name,
     vgg16,
 )
 from .descriptor import (
     AttentionDescriptor,
     DescriptorParts,
+    DescriptorRecipe,
     attention_descriptor,
     attention_descriptor_parts,
     descriptor_from_attention,
 )
 from .fusion import FUSION_MODES, Fusion, dam, eam, ega, fuse, gaf, minmax_normalize, no_attention
-from .guided_backprop import GuidedBackprop, clamp_negative_grad, guided_backprop, softmax_seeded_gradient
+from .guided_backprop import GuidedBackprop, clamp_negative_grad, eval_mode, guided_backprop, softmax_seeded_gradient
 from .rnn_pool import RandomRNNPool, merge_channels, random_rnn_pool, random_rnn_weights
 
 __all__ = [
@@ -41,9 +45,11 @@ __all__ = [
     "VGG16",
     "AttentionDescriptor",
     "DescriptorParts",
+    "DescriptorRecipe",
     "EfficientNetLite0",
     "Fusion",
     "GuidedBackprop",
+    "HookedBackbone",
     "RandomRNNPool",
     "WeightsNotFoundError",
     "attention_descriptor",
@@ -55,6 +61,7 @@ __all__ = [
     "eam",
     "efficientnet_lite0",
     "ega",
+    "eval_mode",
     "fuse",
     "gaf",
     "guided_backprop",
@@ -63,6 +70,7 @@ __all__ = [
     "no_attention",
     "random_rnn_pool",
     "random_rnn_weights",
+    "resolve_backbone_name",
     "softmax_seeded_gradient",
     "vgg16",
 ]

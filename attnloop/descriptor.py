@@ -7,11 +7,22 @@ For a batch of images:
 2. F = fusion(L, G), one of ``none``, ``dam``, ``eam``, ``gaf``, ``ega`` (:mod:`attnloop.fusion`), with
    G scaled to max |G| = 1 per sample first (the fusions are invariant to that scale; it keeps a tiny G,
    e.g. from a flat softmax, above the constant-map threshold of the min-max normalisation);
-3. F is L2-normalised per sample and scaled to norm ``pool_scale`` (10 by default; None skips it);
-4. d = random RNN pooling of F (:mod:`attnloop.rnn_pool`), (B, num_rnn * 64);
-5. d is L2-normalised (``normalize=True``), so the dot product of two descriptors is their cosine.
+3. ``pooling="regional"`` (the default, ours): F becomes its regional GeM code (:mod:`attnloop.pooling`:
+   per tap group, the whole map and a 2 x 2 grid, each region L2-normalised); ``pooling="flat"`` (the
+   paper's): F itself, flattened;
+4. that input is L2-normalised per sample and scaled to norm ``pool_scale`` (10 by default; None skips it);
+5. d = random RNN pooling of it (:mod:`attnloop.rnn_pool`), (B, num_rnn * 64);
+6. d is L2-normalised (``normalize=True``), so the dot product of two descriptors is their cosine.
 
-Step 3 is ours, not the paper's: it makes the descriptor independent of the fused map's overall scale
+``preset="paper"`` gives the paper's configuration exactly (:mod:`attnloop.presets`); the default is
+the one measured best for place recognition (docs/attention.md, "Place recognition").
+
+The recipe of steps 2-6 (fusion, RNN count and size, seed, scaling, merge, L2) is one
+:class:`DescriptorRecipe`. ``AttentionDescriptor(..., differentiable=True)`` keeps the whole chain in
+autograd (:func:`attnloop.guided_backprop.guided_backprop` with ``create_graph``): the descriptor is then
+a differentiable function of the images and of the backbone's weights, for training through it.
+
+Step 4 is ours, not the paper's: it makes the descriptor independent of the fused map's overall scale
 (which differs between fusion modes and frames) and sets the operating point of the RNNs' tanh. With
 raw features at EfficientNet's stage7 the pre-activations W_r x have a standard deviation of 5 to 17
 (median over frames, depending on the fusion), so the tanh saturates and the 1024 dims degrade to a
@@ -21,6 +32,9 @@ seeds (docs/attention.md).
 """
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -28,19 +42,78 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .backbones import build_backbone
+from .backbones import HookedBackbone, build_backbone, resolve_backbone_name
 from .backbones.preprocess import check_images
-from .fusion import FUSION_MODES, Fusion, fuse
+from .fusion import FUSION_MODES, Fusion
 from .guided_backprop import guided_backprop
+from .pooling import POOLINGS, fuse_groups, regional_code, regional_code_dim
+from .presets import DEFAULT_BACKBONE_SETTINGS, PAPER_BACKBONE_SETTINGS, PAPER_RECIPE_SETTINGS, PRESETS
 from .rnn_pool import RandomRNNPool, random_rnn_pool
 
 __all__ = [
     "AttentionDescriptor",
     "DescriptorParts",
+    "DescriptorRecipe",
     "attention_descriptor",
     "attention_descriptor_parts",
     "descriptor_from_attention",
 ]
+
+
+@dataclass(frozen=True)
+class DescriptorRecipe:
+    """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seeds.
+
+    Vary one setting with :func:`dataclasses.replace` (``replace(recipe, fusion="gaf")``).
+
+    Example:
+        >>> DescriptorRecipe(fusion="gaf").out_dim
+        1024
+    """
+
+    fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega" (the paper's default: DAM)
+    num_rnn: int = 16  # random RNNs; the descriptor has num_rnn * out_features dims (1024, as in the paper)
+    out_features: int = 64  # output size of each RNN (the paper's 64)
+    seed: int = 0  # seed of the RNN weights (and of a name-built backbone's random weights when not pretrained)
+    normalize: bool = True  # L2-normalise the descriptor: a dot product is then the cosine
+    pool_scale: float | None = 10.0  # L2 norm of the RNNs' input (ours); None: raw (the paper)
+    merge: bool | None = None  # average element c with c + C/2 of the RNNs' input; None: for "flat" only
+    pooling: str = "regional"  # "regional": regional GeM code first (ours); "flat": the whole map (the paper)
+    gem_p: float = 2.0  # the GeM exponent of the regional pooling
+    levels: tuple[int, ...] = (1, 2)  # grids of the regional pooling: the whole map and 2 x 2 cells
+
+    def __post_init__(self) -> None:
+        if self.fusion not in FUSION_MODES:
+            raise ValueError(f"unknown fusion {self.fusion!r}; choose one of {FUSION_MODES}")
+        if self.pooling not in POOLINGS:
+            raise ValueError(f"unknown pooling {self.pooling!r}; choose one of {POOLINGS}")
+        if not (float(self.gem_p) > 0 and float(self.gem_p) < float("inf")):
+            raise ValueError(f"gem_p must be positive and finite, got {self.gem_p}")
+        levels = tuple(self.levels) if isinstance(self.levels, (tuple, list)) else (self.levels,)
+        if not levels or any(isinstance(v, bool) or int(v) != v or v < 1 for v in levels):
+            raise ValueError(f"levels must be positive grid sizes such as (1, 2), got {self.levels!r}")
+        object.__setattr__(self, "levels", tuple(int(v) for v in levels))
+        if self.pooling == "flat" and (self.gem_p != 2.0 or self.levels != (1, 2)):
+            raise ValueError("gem_p and levels apply to pooling='regional' only")
+        for name in ("num_rnn", "out_features"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if self.pool_scale is not None and not (float(self.pool_scale) > 0 and float(self.pool_scale) < float("inf")):
+            raise ValueError(f"pool_scale must be positive and finite, or None, got {self.pool_scale}")
+
+    @property
+    def out_dim(self) -> int:
+        """Size of a descriptor, ``num_rnn * out_features``."""
+        return int(self.num_rnn) * int(self.out_features)
+
+    @property
+    def merges(self) -> bool:
+        """Whether the RNNs' input is merged (``merge``, or for None: True with ``flat`` pooling only)."""
+        return (self.pooling == "flat") if self.merge is None else bool(self.merge)
+
+
+_DEFAULT = DescriptorRecipe()
 
 
 class DescriptorParts(NamedTuple):
@@ -81,21 +154,33 @@ def descriptor_from_attention(
     fusion: str = "dam",
     normalize: bool = True,
     pool_scale: float | None = 10.0,
-    merge: bool = True,
+    merge: bool | None = None,
+    *,
+    pooling: str = "regional",
+    gem_p: float = 2.0,
+    levels: Sequence[int] = (1, 2),
+    groups: Sequence[int] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Steps 2-5 of the descriptor: fuse (L, G), scale, random RNN pooling, L2.
+    """Steps 2-6 of the descriptor: fuse (L, G), pool, scale, random RNN pooling, L2.
 
     Useful to try several fusion modes on one (L, G) without running the backbone again.
 
     Args:
         tap: the tap activations L, :math:`(B, C, h, w)`.
         grad: the guided gradient G, :math:`(B, C, h, w)`.
-        rnn_weights: :math:`(R, O, I)` random RNN weights with ``I = C/2 * h * w`` (``C * h * w``
-            without merge).
+        rnn_weights: :math:`(R, O, I)` random RNN weights: for ``flat`` pooling ``I = C/2 * h * w``
+            (``C * h * w`` without merge); for ``regional`` ``I = regional_code_dim(groups, levels)``
+            (halved with merge).
         fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
         normalize: L2-normalise the descriptor.
-        pool_scale: L2 norm the fused map is scaled to before the pooling; None feeds it raw (the paper).
-        merge: average channel c with c + C/2 before the pooling (the paper's merge).
+        pool_scale: L2 norm the RNNs' input is scaled to; None feeds it raw (the paper).
+        merge: average element c with c + C/2 of the RNNs' input (the paper's merge); None: True for
+            ``flat``, False for ``regional`` pooling.
+        pooling: ``"regional"`` (regional GeM code, :mod:`attnloop.pooling`) or ``"flat"`` (the paper).
+        gem_p: the GeM exponent (regional pooling).
+        levels: the grids of the regional pooling.
+        groups: channel counts of a joined tap's stages (the backbone's ``tap_groups``): each group is
+            fused and pooled on its own; None: one group.
 
     Returns:
         (fused :math:`(B, C, h, w)`, descriptor :math:`(B, R \\cdot O)`).
@@ -103,13 +188,22 @@ def descriptor_from_attention(
     Example:
         >>> from attnloop.rnn_pool import random_rnn_weights
         >>> L, G = torch.rand(2, 512, 7, 7), torch.randn(2, 512, 7, 7)
-        >>> fused, d = descriptor_from_attention(L, G, random_rnn_weights(16, 256 * 49, 64), "gaf")
+        >>> w = random_rnn_weights(16, 256 * 49, 64)
+        >>> fused, d = descriptor_from_attention(L, G, w, "gaf", pooling="flat")
         >>> fused.shape, d.shape
         (torch.Size([2, 512, 7, 7]), torch.Size([2, 1024]))
+        >>> w = random_rnn_weights(16, 5 * 512, 64)
+        >>> descriptor_from_attention(L, G, w, "dam", groups=(192, 320))[1].shape
+        torch.Size([2, 1024])
     """
-    fused = fuse(tap, _unit_scale(grad), fusion)
-    pooled_in = fused if pool_scale is None else _scale_to_norm(fused, float(pool_scale))
-    desc = random_rnn_pool(pooled_in, rnn_weights, merge=merge)
+    if pooling not in POOLINGS:
+        raise ValueError(f"unknown pooling {pooling!r}; choose one of {POOLINGS}")
+    if merge is None:
+        merge = pooling == "flat"
+    fused = fuse_groups(tap, grad, fusion, groups)
+    pool_in = fused if pooling == "flat" else regional_code(fused, groups, gem_p, levels)[:, :, None, None]
+    pool_in = pool_in if pool_scale is None else _scale_to_norm(pool_in, float(pool_scale))
+    desc = random_rnn_pool(pool_in, rnn_weights, merge=merge)
     if normalize:
         desc = F.normalize(desc, dim=1)
     return fused, desc
@@ -122,7 +216,12 @@ def attention_descriptor_parts(
     fusion: str = "dam",
     normalize: bool = True,
     pool_scale: float | None = 10.0,
-    merge: bool = True,
+    merge: bool | None = None,
+    create_graph: bool = False,
+    *,
+    pooling: str = "regional",
+    gem_p: float = 2.0,
+    levels: Sequence[int] = (1, 2),
 ) -> DescriptorParts:
     """Compute the descriptor and keep every intermediate (L, G, fused, descriptor).
 
@@ -134,14 +233,21 @@ def attention_descriptor_parts(
         fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
         normalize: L2-normalise the descriptor.
         pool_scale: L2 norm the fused map is scaled to before the pooling; None feeds it raw (the paper).
-        merge: average channel c with c + C/2 before the pooling (the paper's merge).
+        merge: average element c with c + C/2 of the RNNs' input; None: for ``flat`` pooling only.
+        create_graph: keep every part differentiable w.r.t. the images and the backbone's weights
+            (see :func:`attnloop.guided_backprop.guided_backprop`).
+        pooling: ``"regional"`` or ``"flat"`` (see :func:`descriptor_from_attention`).
+        gem_p: the GeM exponent (regional pooling).
+        levels: the grids of the regional pooling.
 
     Returns:
         :class:`DescriptorParts` with the descriptor of shape :math:`(B, R \\cdot O)`.
     """
     check_images(images)
-    tap, grad = guided_backprop(backbone, images)
-    fused, desc = descriptor_from_attention(tap, grad, rnn_weights, fusion, normalize, pool_scale, merge)
+    tap, grad = guided_backprop(backbone, images, create_graph=create_graph)
+    fused, desc = descriptor_from_attention(tap, grad, rnn_weights, fusion, normalize, pool_scale, merge,
+                                            pooling=pooling, gem_p=gem_p, levels=levels,
+                                            groups=getattr(backbone, "tap_groups", None))
     return DescriptorParts(tap, grad, fused, desc)
 
 
@@ -152,7 +258,12 @@ def attention_descriptor(
     fusion: str = "dam",
     normalize: bool = True,
     pool_scale: float | None = 10.0,
-    merge: bool = True,
+    merge: bool | None = None,
+    create_graph: bool = False,
+    *,
+    pooling: str = "regional",
+    gem_p: float = 2.0,
+    levels: Sequence[int] = (1, 2),
 ) -> torch.Tensor:
     """Attention-guided descriptor of a batch of images (see :func:`attention_descriptor_parts`).
 
@@ -164,36 +275,87 @@ def attention_descriptor(
         >>> from attnloop.rnn_pool import random_rnn_weights
         >>> net = efficientnet_lite0(pretrained=False)
         >>> w = random_rnn_weights(16, 160 * 7 * 7, 64, seed=0)
-        >>> attention_descriptor(torch.rand(2, 3, 96, 128), net, w, fusion="ega").shape
+        >>> attention_descriptor(torch.rand(2, 3, 96, 128), net, w, fusion="ega", pooling="flat").shape
         torch.Size([2, 1024])
     """
-    return attention_descriptor_parts(images, backbone, rnn_weights, fusion, normalize, pool_scale, merge).descriptor
+    return attention_descriptor_parts(
+        images, backbone, rnn_weights, fusion, normalize, pool_scale, merge, create_graph=create_graph,
+        pooling=pooling, gem_p=gem_p, levels=levels,
+    ).descriptor
+
+
+_PROTOCOL = ("preprocess", "forward_to_tap", "tap_shape")
+
+
+def _is_backbone(module: nn.Module) -> bool:
+    """Whether ``module`` follows the backbone protocol of :mod:`attnloop.backbones`."""
+    return all(hasattr(module, a) for a in _PROTOCOL) and (
+        hasattr(module, "forward_from_tap") or hasattr(module, "forward_split"))
 
 
 class AttentionDescriptor(nn.Module):
     """Images -> attention-guided CNN descriptors, as a drop-in ``nn.Module``.
 
-    The backbone is frozen (no parameter requires grad) and always in eval mode, even after
-    ``.train()``: the descriptor is a fixed feature extractor, not differentiable w.r.t. the images.
-    It computes its own gradients internally, so it can be called under ``torch.no_grad()`` or
-    ``torch.inference_mode()``.
+    The backbone can be
+
+    - a name: ``"auto"`` (VGG16 when its ImageNet weights are found without a download, else
+      EfficientNet-Lite0 with a one-line notice; :func:`attnloop.backbones.resolve_backbone_name`),
+      ``"vgg16"`` (the paper's) or ``"efficientnet_lite0"`` (weights from a pip package, works offline).
+      The descriptor owns that network: frozen (no parameter requires grad, unless ``differentiable``)
+      and always in eval mode, even after ``.train()``;
+    - a backbone module of :mod:`attnloop.backbones` (or one following its protocol), used as given;
+    - any classifier ``nn.Module`` (``forward`` returns logits ``(B, K)``) with ``tap="name.of.submodule"``:
+      L is taken at that submodule by a forward hook (:class:`attnloop.backbones.HookedBackbone`;
+      ``input_size``, ``mean`` and ``std`` are its preprocessing).
+
+    A module you pass is never frozen nor switched to eval behind your back: its ``requires_grad``
+    flags are left alone, and its training flags are set to eval only during a descriptor computation
+    and restored after it (so that a descriptor never depends on the rest of its batch: batch-norm uses
+    its running statistics, dropout is off). ``.train()``/``.eval()`` on the descriptor reach it as on
+    any submodule.
+
+    By default the descriptor is a fixed feature extractor: it computes its own gradients internally,
+    works under ``torch.no_grad()`` or ``torch.inference_mode()``, and its output is detached. With
+    ``differentiable=True`` the whole chain stays in autograd (the seeded backward with
+    ``create_graph``): the output is differentiable w.r.t. the images and every backbone weight that
+    requires grad (a name-built backbone is then not frozen), so one can train through it.
 
     Args:
-        backbone: ``"vgg16"`` (the paper's), ``"efficientnet_lite0"`` (weights from a pip package,
-            works offline) or a backbone module of :mod:`attnloop.backbones`.
+        backbone: a name, a backbone module or a classifier module (see above).
         fusion: ``"none"``, ``"dam"``, ``"eam"``, ``"gaf"`` or ``"ega"``.
         num_rnn: number of random RNNs (the descriptor has ``num_rnn * out_features`` dims).
-        seed: seed of the RNN weights, and of the backbone weights when ``pretrained`` is False.
-        pretrained: load ImageNet weights; False gives seeded random weights without any file.
-        weights: explicit checkpoint path for the backbone.
+        seed: seed of the RNN weights, and of a name-built backbone's weights when not pretrained.
+        pretrained: load ImageNet weights into a name-built backbone (default True); False gives seeded
+            random weights without any file.
+        weights: explicit checkpoint path for a name-built backbone.
         normalize: L2-normalise the descriptors.
-        tap: the backbone's tap layer (default: ``pool5`` for VGG16, ``stage7`` for EfficientNet-Lite0).
+        tap: a name-built backbone's tap layer (default: ``pool5`` for VGG16, ``stage6+stage7`` at a
+            224 x 288 input for EfficientNet-Lite0, :mod:`attnloop.presets`), or the submodule of a
+            classifier module where L is taken.
         out_features: output size of each RNN.
-        pool_scale: L2 norm of the fused map fed to the RNNs (None: raw, as in the paper).
-        merge: average channel c with c + C/2 before the pooling.
+        pool_scale: L2 norm of the RNNs' input (None: raw, as in the paper).
+        merge: average element c with c + C/2 of the RNNs' input (None: only with ``flat`` pooling).
+        input_size: a classifier module's input ``(height, width)``; None: images at their own size.
+        mean: a classifier module's per-channel input mean on [0, 1] RGB; None: none.
+        std: a classifier module's per-channel input std on [0, 1] RGB; None: none.
+        differentiable: keep the computation in autograd (see above). Costs a graph of the backbone
+            and a second-order backward through the head (docs/benchmarks.md, "Differentiable descriptor").
+        recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` (leave those at
+            their defaults then); it also sets ``pooling``, ``gem_p`` and ``levels``.
+        preset: ``"paper"``: the paper's exact configuration (:mod:`attnloop.presets`: the paper's tap
+            at 224 x 224, flat RNN pooling of the raw fused map, the merge, 16 RNNs); only ``fusion``,
+            ``seed`` and the backbone choice stay free. None: the measured default.
+        pooling: ``"regional"`` (default: regional GeM code, then the RNNs) or ``"flat"`` (the paper's
+            RNNs over the whole fused map); see :mod:`attnloop.pooling`.
+
+    Attributes:
+        backbone_name: the backbone used: ``"vgg16"`` or ``"efficientnet_lite0"`` for a name (``"auto"``
+            resolved), the class name of a backbone module, ``"Class.tap"`` for a classifier module.
+        recipe: the :class:`DescriptorRecipe`.
 
     Shape:
-        - images: :math:`(B, 3, H, W)`, uint8 in [0, 255] or float in [0, 1], any H and W
+        - images: :math:`(B, 3, H, W)`, uint8 in [0, 255] or finite float in [0, 1] (cast to the model's
+          dtype), any H and W
         - output: :math:`(B, \\text{num\\_rnn} \\cdot \\text{out\\_features})`
 
     Example:
@@ -202,54 +364,127 @@ class AttentionDescriptor(nn.Module):
         ...     d = desc(torch.randint(0, 256, (2, 3, 240, 320), dtype=torch.uint8))
         >>> d.shape
         torch.Size([2, 1024])
+        >>> net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
+        ...                     nn.Flatten(), nn.Linear(8 * 16 * 16, 10))
+        >>> AttentionDescriptor(net, tap="2", input_size=(32, 32))(torch.rand(2, 3, 48, 64)).shape
+        torch.Size([2, 1024])
     """
 
     def __init__(
         self,
-        backbone: str | nn.Module = "vgg16",
-        fusion: str = "dam",
-        num_rnn: int = 16,
-        seed: int = 0,
-        pretrained: bool = True,
+        backbone: str | nn.Module = "auto",
+        fusion: str = _DEFAULT.fusion,
+        num_rnn: int = _DEFAULT.num_rnn,
+        seed: int = _DEFAULT.seed,
+        pretrained: bool | None = None,
         weights: str | Path | None = None,
-        normalize: bool = True,
+        normalize: bool = _DEFAULT.normalize,
         tap: str | None = None,
-        out_features: int = 64,
-        pool_scale: float | None = 10.0,
-        merge: bool = True,
+        out_features: int = _DEFAULT.out_features,
+        pool_scale: float | None = _DEFAULT.pool_scale,
+        merge: bool = _DEFAULT.merge,
+        *,
+        input_size: Sequence[int] | None = None,
+        mean: Sequence[float] | None = None,
+        std: Sequence[float] | None = None,
+        differentiable: bool = False,
+        recipe: DescriptorRecipe | None = None,
+        preset: str | None = None,
+        pooling: str = _DEFAULT.pooling,
     ) -> None:
         super().__init__()
+        given = DescriptorRecipe(fusion=fusion, num_rnn=num_rnn, out_features=out_features, seed=seed,
+                                 normalize=normalize, pool_scale=pool_scale, merge=merge, pooling=pooling)
+        if preset is not None:
+            if preset not in PRESETS:
+                raise ValueError(f"unknown preset {preset!r}; choose one of {PRESETS}")
+            free = ("fusion", "seed")
+            changed = [f.name for f in dataclasses.fields(given)
+                       if f.name not in free and getattr(given, f.name) != getattr(_DEFAULT, f.name)]
+            if recipe is not None or changed or tap is not None:
+                raise ValueError(f"preset={preset!r} fixes the recipe and the tap; also given: "
+                                 f"{changed + (['recipe'] if recipe is not None else []) + (['tap'] if tap else [])}")
+            given = dataclasses.replace(given, **PAPER_RECIPE_SETTINGS)
+        if recipe is not None:
+            if not isinstance(recipe, DescriptorRecipe):
+                raise TypeError(f"recipe must be a DescriptorRecipe, got {type(recipe).__name__}")
+            if given != _DEFAULT:
+                changed = [f.name for f in dataclasses.fields(given) if getattr(given, f.name) != getattr(_DEFAULT, f.name)]
+                raise ValueError(f"give either recipe= or its settings, not both (also given: {changed}); "
+                                 "dataclasses.replace(recipe, ...) varies a recipe")
+            given = recipe
+        self.recipe = given
+        self.differentiable = bool(differentiable)
+        self._owns_backbone = isinstance(backbone, str)
+        preprocessing = {"input_size": input_size, "mean": mean, "std": std}
         if isinstance(backbone, str):
-            self.backbone_name = backbone
-            net = build_backbone(backbone, pretrained=pretrained, weights=weights, tap=tap, seed=seed)
+            for key, value in preprocessing.items():
+                if value is not None:
+                    raise ValueError(f"{key}= applies to a classifier module (backbone=my_module, tap=...); "
+                                     f"the built-in backbone {backbone!r} has its own preprocessing")
+            use_pretrained = True if pretrained is None else bool(pretrained)
+            self.backbone_name = resolve_backbone_name(backbone, use_pretrained, weights)
+            # tap=None: the configuration's tap and input size; an explicit tap: at the backbone's own input.
+            settings = (PAPER_BACKBONE_SETTINGS if preset else DEFAULT_BACKBONE_SETTINGS).get(self.backbone_name, {})
+            settings = {"tap": tap} if tap is not None else dict(settings)
+            # the name as given: "auto" names both checkpoints it looked for when neither is found
+            net = build_backbone(backbone, pretrained=use_pretrained, weights=weights, seed=given.seed, **settings)
+            net.eval()
+            if not self.differentiable:
+                net.requires_grad_(False)
         elif isinstance(backbone, nn.Module):
-            for attr in ("preprocess", "forward_to_tap", "forward_from_tap", "tap_shape"):
-                if not hasattr(backbone, attr):
-                    raise TypeError(f"backbone module {type(backbone).__name__} lacks '{attr}' (see attnloop.backbones)")
-            self.backbone_name = type(backbone).__name__
-            net = backbone
+            if pretrained is not None or weights is not None:
+                raise ValueError("pretrained=/weights= apply to a backbone name; a module comes with its own weights")
+            if _is_backbone(backbone):
+                extra = [k for k, v in {"tap": tap, **preprocessing}.items() if v is not None]
+                if extra:
+                    raise ValueError(f"{type(backbone).__name__} is a backbone with its own tap and preprocessing; "
+                                     f"{', '.join(extra)}= apply to a plain classifier module")
+                net = backbone
+            elif tap is not None:
+                net = HookedBackbone(backbone, tap, input_size=input_size, mean=mean, std=std)
+            else:
+                raise TypeError(
+                    f"backbone module {type(backbone).__name__} lacks 'preprocess', 'forward_to_tap' and 'tap_shape' "
+                    "(the protocol of attnloop.backbones); for any classifier pass tap='name.of.submodule' "
+                    "to take L at that submodule")
+            self.backbone_name = str(getattr(net, "name", type(net).__name__))
         else:
             raise TypeError(f"backbone must be a name or an nn.Module, got {type(backbone).__name__}")
-        if fusion not in FUSION_MODES:
-            raise ValueError(f"unknown fusion {fusion!r}; choose one of {FUSION_MODES}")
-        if pool_scale is not None and not pool_scale > 0:
-            raise ValueError(f"pool_scale must be positive or None, got {pool_scale}")
-        self.backbone = net.eval().requires_grad_(False)
-        self.fusion = Fusion(fusion)
-        channels, height, width = self.backbone.tap_shape
-        self.pool = RandomRNNPool(channels, (height, width), num_rnn, out_features, seed=seed, merge=merge)
-        self.normalize = bool(normalize)
-        self.pool_scale = None if pool_scale is None else float(pool_scale)
+        self.backbone = net
+        self.fusion = Fusion(given.fusion)
+        channels, height, width = (int(v) for v in self.backbone.tap_shape)
+        #: Channel counts of a joined tap's stages (None: a single tap), fused and pooled separately.
+        self.tap_groups = tuple(getattr(self.backbone, "tap_groups", None) or (channels,))
+        if given.pooling == "regional":
+            channels, height, width = regional_code_dim(self.tap_groups, given.levels), 1, 1
+        if given.merges and channels % 2:
+            raise ValueError(f"the RNNs' input of {self.backbone_name} has {channels} channels, an odd number: "
+                             "merge=True averages channel c with c + C/2; pass merge=False or tap a layer with "
+                             "even channels")
+        self.pool = RandomRNNPool(channels, (height, width), given.num_rnn, given.out_features, seed=given.seed,
+                                  merge=given.merges)
 
     @property
     def out_dim(self) -> int:
         """Size of a descriptor, ``num_rnn * out_features``."""
         return self.pool.out_dim
 
+    @property
+    def normalize(self) -> bool:
+        """Whether descriptors are L2-normalised (:attr:`recipe`)."""
+        return self.recipe.normalize
+
+    @property
+    def pool_scale(self) -> float | None:
+        """L2 norm of the pooling input, None for raw (:attr:`recipe`)."""
+        return None if self.recipe.pool_scale is None else float(self.recipe.pool_scale)
+
     def train(self, mode: bool = True) -> AttentionDescriptor:
-        """Set the training flag; the frozen backbone stays in eval mode (batch-norm, dropout)."""
+        """Set the training flag; a name-built backbone stays in eval mode (batch-norm, dropout)."""
         super().train(mode)
-        self.backbone.eval()
+        if self._owns_backbone:
+            self.backbone.eval()
         return self
 
     def _check_device(self, images: torch.Tensor) -> None:
@@ -273,9 +508,10 @@ class AttentionDescriptor(nn.Module):
             dtype = self.pool.weights.dtype
             empty = images.new_zeros(shape, dtype=dtype)
             return DescriptorParts(empty, empty, empty, images.new_zeros((0, self.out_dim), dtype=dtype))
+        r = self.recipe
         return attention_descriptor_parts(
-            images, self.backbone, self.pool.weights, self.fusion.mode, self.normalize, self.pool_scale,
-            self.pool.merge,
+            images, self.backbone, self.pool.weights, r.fusion, r.normalize, self.pool_scale, r.merges,
+            create_graph=self.differentiable, pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
         )
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
@@ -295,10 +531,12 @@ class AttentionDescriptor(nn.Module):
         if tap.ndim != 4 or tuple(tap.shape[1:]) != tuple(self.backbone.tap_shape):
             raise ValueError(f"tap must have shape (B, {', '.join(map(str, self.backbone.tap_shape))}), "
                              f"got {tuple(tap.shape)}")
-        mode = self.fusion.mode if fusion is None else fusion
-        return descriptor_from_attention(
-            tap, grad, self.pool.weights, mode, self.normalize, self.pool_scale, self.pool.merge
-        )[1]
+        mode = self.recipe.fusion if fusion is None else fusion
+        r = self.recipe
+        return descriptor_from_attention(tap, grad, self.pool.weights, mode, r.normalize, self.pool_scale, r.merges,
+                                         pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
+                                         groups=self.tap_groups)[1]
 
     def extra_repr(self) -> str:
-        return f"backbone={self.backbone_name!r}, normalize={self.normalize}, pool_scale={self.pool_scale}"
+        return (f"backbone={self.backbone_name!r}, differentiable={self.differentiable}, "
+                f"normalize={self.normalize}, pool_scale={self.pool_scale}, pooling={self.recipe.pooling!r}")

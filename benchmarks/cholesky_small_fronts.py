@@ -1,7 +1,7 @@
 """The sparse Cholesky's small supernodes in C: the threshold ``_C_MAX_FRONT`` and the symbolic analysis.
 
 1. Factor + solve of one damped normal-equation system (the optimiser's first, at the initial guess) with
-   supernodes of at most T rows done by the C kernels (``slam.graph._kernels.factor_group`` /
+   supernodes of at most T rows done by the C kernels (``slam.graph.accel._kernels.factor_group`` /
    ``solve_group``) and the others by LAPACK / torch, for several T (0 = no C kernels), on simulated
    graphs (``manhattan_world``) and the shared g2o files; median of ``--repeats``.
 2. The symbolic analysis (``SymbolicCholesky(pattern)``) of M3500 with the per-size index helpers of
@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 import slam.graph.cholesky as chol  # noqa: E402  (after the sys.path line)
 from slam.graph import OptimizerConfig, compiled_kernels, read_g2o  # noqa: E402
-from slam.graph.optimizer import _host_problem  # noqa: E402
+from slam.graph.accel.host import host_problem  # noqa: E402
 from slam.graph.simulate import manhattan_world  # noqa: E402
 
 THRESHOLDS = [0, 16, 32, 64, 128, 256]
@@ -38,7 +38,7 @@ FILES = ["smallGrid3D", "sphere2500", "parking-garage", "input_M3500_g2o"]
 
 def first_system(graph):
     """The sparse HostProblem of ``graph`` and its damped system ``(H + 1e-5 I, g)`` at the initial guess."""
-    prob = _host_problem(graph, OptimizerConfig(dense_max=0), None, "free", "auto", compiled=True)
+    prob = host_problem(graph, OptimizerConfig(dense_max=0), None, "free", "auto", compiled=True)
     _, _, cache = prob.evaluate(prob.poses)
     H, g = prob.linearize(prob.poses, cache)
     Hd = H.copy()
@@ -66,7 +66,7 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="also write the markdown here")
     args = ap.parse_args()
     if not compiled_kernels():
-        sys.exit("the C kernels slam.graph._kernels were not built: nothing to compare")
+        sys.exit("the C kernels slam.graph.accel._kernels were not built: nothing to compare")
     data = Path(args.data or os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data")) / "posegraph"
     default = chol._C_MAX_FRONT
     lines = [f"Command: `python benchmarks/cholesky_small_fronts.py --repeats {args.repeats}`, "

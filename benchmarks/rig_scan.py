@@ -46,10 +46,11 @@ from slam.config import SLAMConfig
 from slam.eval.metrics import ate
 from slam.io import open_sequence
 from slam.io.images import FrameReadError
+from slam.options import KINECT_V1_RIG
 from slam.system import RGBDSLAM
 
-# Kinect v1 colour camera (fx, fy, cx, cy), as `--rgb-intrinsics 525 525 320 240` of the CLI
-RGB_INTRINSICS = (525.0, 525.0, 320.0, 240.0)
+# Kinect v1 colour camera (fx, fy, cx, cy): the CLI's default for a 7-Scenes folder
+RGB_INTRINSICS = KINECT_V1_RIG.rgb_intrinsics
 DEFAULT_TX = [0.025, 0.0, -0.015, -0.025, -0.04]
 HEADER = ("| t_x (m) | mean inlier RMSE (mm) | mean inliers | registrations | keyframes | lost | ATE SE3 (m) "
           "| ATE Sim3 (m) | Sim3 scale | seconds |")

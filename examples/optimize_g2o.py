@@ -15,6 +15,7 @@ import sys
 from typing import List, Optional
 
 from slam.graph import G2OFormatError, OptimizationResult, OptimizerConfig, Status, optimize, read_g2o, write_g2o
+from slam.graph.config import BACKENDS
 
 
 def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
@@ -32,8 +33,9 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("--damping", choices=["identity", "diagonal"], default=defaults.damping)
     p.add_argument("--lambda-update", choices=["gtsam", "nielsen"], default=defaults.lambda_update)
     p.add_argument("--solver", default="auto", choices=["auto", "sparse", "superlu", "dense", "pcg"])
-    p.add_argument("--backend", default=defaults.backend, choices=["auto", "c", "numpy", "torch"],
-                   help="where the per-edge work runs (auto: the C kernels when they were built, else numpy)")
+    p.add_argument("--backend", default=defaults.backend, choices=BACKENDS,
+                   help="where the per-edge work runs: torch (the default, the reference), auto (the accelerator: "
+                        "its C kernels when they were built, else numpy), c, numpy")
     p.add_argument("-v", "--verbose", action="store_true", help="one line per iteration")
     args = p.parse_args(argv)
     if args.kernel_width is not None and args.kernel is None:

@@ -1,46 +1,49 @@
 """Run attention-guided loop-closing RGB-D SLAM on a TUM RGB-D (or 7-Scenes) sequence folder.
 
-The same as the ``attnloop-slam`` console script, written out with the library calls so it can be
-adapted::
+The same as the attnloop-slam command, written out with the library calls so that it can be adapted:
+open the sequence, build the config from the same options (slam.options), run, evaluate, write.
 
     python examples/tum_slam.py ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room
-    python examples/tum_slam.py ../shared/data/7scenes-redkitchen --out runs/kitchen \
-        --backbone efficientnet_lite0
+    python examples/tum_slam.py ../shared/data/7scenes-redkitchen --out runs/kitchen --backbone efficientnet_lite0
 
 A TUM sequence (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/download, the .tgz unpacked) holds
 rgb.txt, depth.txt and groundtruth.txt; the camera (fr1/fr2/fr3) is inferred from the folder name.
+A 7-Scenes folder gets the Kinect v1 colour/depth rig by default; --rgb-intrinsics, --rgb-from-depth
+and --registered override the rig of either.
 """
 import argparse
 import logging
+import sys
 
-from slam.config import SLAMConfig
+from slam.cli import call_reporting_errors
 from slam.io import open_sequence
-from slam.pipeline import evaluate_run, run_slam, write_outputs
+from slam.options import add_run_arguments, config_from_args
+from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("sequence")
-    p.add_argument("--out", required=True)
-    p.add_argument("--fusion", default="dam", choices=["none", "dam", "eam", "gaf", "ega"])
-    p.add_argument("--backbone", default="vgg16", choices=["vgg16", "efficientnet_lite0"])
-    p.add_argument("--weights", default=None, help="e.g. ~/.cache/torch/hub/checkpoints/vgg16-397923af.pth")
-    p.add_argument("--camera", default=None, help="fr1 | fr2 | fr3 | ros (default: from the folder name)")
-    p.add_argument("--max-frames", type=int, default=None)
-    args = p.parse_args()
-    logging.basicConfig(level=logging.WARNING)
-
-    config = SLAMConfig()  # every threshold, with its default, lives in slam/config.py
-    config.loop.descriptor.backbone = args.backbone
-    config.loop.descriptor.fusion = args.fusion
-    config.loop.descriptor.weights = args.weights
-
+def run(args: argparse.Namespace) -> int:
     sequence = open_sequence(args.sequence, camera=args.camera)
-    run = run_slam(sequence, config, max_frames=args.max_frames)
+    config = config_from_args(args, sequence)  # every threshold, with its default, lives in slam/config.py
+    out = prepare_output_dir(args.out)  # checked (and the previous run's outputs removed) before the work
+    run = run_slam(sequence, config, max_frames=args.max_frames, frame_step=args.frame_step)
     metrics = evaluate_run(run)
-    write_outputs(run, args.out)
-    print({k: metrics[k] for k in ("num_frames", "num_keyframes", "num_loops", "fps", "ate_rmse") if k in metrics})
+    write_outputs(run, out)
+    keys = ("num_frames", "num_keyframes", "num_loops", "fps", "backbone", "ate_rmse", "ate_unavailable")
+    print({k: metrics[k] for k in keys if k in metrics})
+    return 0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="tum_slam.py", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("sequence", help="TUM RGB-D or 7-Scenes sequence folder")
+    p.add_argument("--out", required=True, help="output folder")
+    add_run_arguments(p)  # --fusion, --backbone, --weights, --frame-step, rig flags, ... as attnloop-slam
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    # the command's messages for missing weights, a wrong folder, a bad flag (exit code 2)
+    return call_reporting_errors("tum_slam.py", run, args)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,73 +1,91 @@
 """The paper's ablation (Table 1): the SLAM system with each attention fusion on one or more sequences.
 
-Used by ``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``.
+Used by ``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``. Each run's config comes from the
+same options as ``attnloop-slam`` (:func:`slam.options.config_from_args`), so a 7-Scenes folder gets
+its Kinect v1 rig and ``--frame-step`` means the same here as there.
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
-from slam.config import SLAMConfig
+from attnloop.fusion import FUSION_MODES
 from slam.eval import plot_pr_curves
 from slam.io import open_sequence
-from slam.pipeline import evaluate_run, run_slam, write_outputs
+from slam.options import config_from_args, run_options
+from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
 
-__all__ = ["MODES", "run_ablation", "markdown_table"]
+__all__ = ["MODES", "markdown_table", "run_ablation"]
 
-MODES = ("none", "dam", "eam", "gaf", "ega")
+MODES = FUSION_MODES  # the rows of the table: every fusion mode (attnloop.fusion is the one list)
 
 
-def run_ablation(sequences, out_dir, backbone="vgg16", modes=MODES, max_frames=None, weights=None,
-                 rgb_intrinsics=None, rgb_from_depth=None):
+def run_ablation(sequences, out_dir, options=None, modes=MODES, **overrides):
     """Run every mode on every sequence; returns ``{mode: {sequence: metrics}}``.
 
-    ``rgb_intrinsics`` ``(fx, fy, cx, cy)``: the colour camera's, for unregistered colour and depth;
-    ``rgb_from_depth`` ``(tx, ty, tz)``: the depth camera's position in the colour camera (metres).
+    Args:
+        sequences: sequence folders.
+        out_dir: each run writes into ``out_dir/<mode>/<sequence>/``; ``pr_<sequence>.png`` beside them.
+        options: an ``argparse.Namespace`` of :func:`slam.options.add_run_arguments` (None: the defaults).
+        modes: the fusion modes (rows).
+        **overrides: option values by name, over ``options`` (e.g. ``backbone="efficientnet_lite0"``,
+            ``max_frames=300``, ``frame_step=3``, ``rgb_intrinsics=(525, 525, 320, 240)``).
+
+    Raises:
+        slam.options.UsageError: an unknown option or mode, or an unusable setting.
     """
+    opts = run_options(options, **overrides)
+    bad = [m for m in modes if m not in FUSION_MODES]
+    if bad:
+        raise ValueError(f"unknown fusion mode(s) {bad}; choose from {', '.join(FUSION_MODES)}")
     out_dir = Path(out_dir)
+    opened = [open_sequence(path, camera=opts.camera) for path in sequences]  # every folder checked first
+    configs = {(mode, k): config_from_args(opts, seq, fusion=mode) for mode in modes for k, seq in enumerate(opened)}
+    targets = {(mode, k): prepare_output_dir(out_dir / mode / seq.name) for mode in modes
+               for k, seq in enumerate(opened)}
     table = {}
     curves = {}
     for mode in modes:
         table[mode] = {}
-        for path in sequences:
-            seq = open_sequence(path)
-            cfg = SLAMConfig()
-            cfg.loop.descriptor.backbone = backbone
-            cfg.loop.descriptor.fusion = mode
-            cfg.loop.descriptor.weights = weights
-            cfg.odometry.features.rgb_intrinsics = tuple(rgb_intrinsics) if rgb_intrinsics else None
-            if rgb_from_depth is not None:
-                cfg.odometry.features.rgb_from_depth_translation = tuple(rgb_from_depth)
-            run = run_slam(seq, cfg, max_frames=max_frames)
+        for k, seq in enumerate(opened):
+            run = run_slam(seq, configs[(mode, k)], max_frames=opts.max_frames, frame_step=opts.frame_step)
             metrics = evaluate_run(run)
-            write_outputs(run, out_dir / mode / seq.name)
+            write_outputs(run, targets[(mode, k)])
             table[mode][seq.name] = metrics
             if "before_verification" in run.loop_curves:
                 curves.setdefault(seq.name, {})[mode] = run.loop_curves["before_verification"]
-            print(f"{mode:5s} {seq.name}: ATE {metrics.get('ate_rmse', float('nan')):.4f} m, "
+            ate = metrics.get("ate_rmse")
+            print(f"{mode:5s} {seq.name}: ATE {'-' if ate is None else f'{ate:.4f} m'}, "
                   f"{metrics['num_loops']} loops, {metrics['fps']:.1f} frames/s", flush=True)
     for name, by_mode in curves.items():
         plot_pr_curves(out_dir / f"pr_{name}.png", by_mode, title=f"{name}: loop detection before verification")
     return table
 
 
+def _number(value, digits: int) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
 def markdown_table(table) -> str:
-    """The paper's Table 1 layout: rows = fusion modes, columns = sequences + average."""
+    """The paper's Table 1 layout: rows = fusion modes, columns = sequences + average ("-": no ATE)."""
     modes = list(table)
     names = list(next(iter(table.values())))
     head = "| fusion | " + " | ".join(names) + " | average |"
     lines = ["RMS-ATE (m):", "", head, "|" + "---|" * (len(names) + 2)]
     for mode in modes:
-        vals = [table[mode][n].get("ate_rmse", float("nan")) for n in names]
-        lines.append(f"| {mode} | " + " | ".join(f"{v:.4f}" for v in vals) + f" | {sum(vals) / len(vals):.4f} |")
-    lines += ["", "Loop closure (per sequence: accepted true/false; max recall at 100% precision before -> after "
-                  "verification):", "", head.replace(" average |", ""), "|" + "---|" * (len(names) + 1)]
+        vals = [table[mode][n].get("ate_rmse") for n in names]
+        known = [v for v in vals if v is not None and math.isfinite(v)]
+        avg = sum(known) / len(known) if len(known) == len(vals) and known else None
+        lines.append(f"| {mode} | " + " | ".join(_number(v, 4) for v in vals) + f" | {_number(avg, 4)} |")
+    lines += ["", ("Loop closure (per sequence: accepted true/false; max recall at 100% precision before -> after "
+                  "verification):"), "", head.replace(" average |", ""), "|" + "---|" * (len(names) + 1)]
     for mode in modes:
         cells = []
         for n in names:
             m = table[mode][n]
-            det = m.get("loop_detection", {})
-            b = det.get("before_verification", {}).get("max_recall_at_full_precision", float("nan"))
-            a = det.get("after_verification", {}).get("max_recall_at_full_precision", float("nan"))
-            cells.append(f"{m.get('loops_true', '?')}/{m.get('loops_false', '?')}; {b:.2f} -> {a:.2f}")
+            det = m.get("loop_detection") or {}
+            b = det.get("before_verification", {}).get("max_recall_at_full_precision")
+            a = det.get("after_verification", {}).get("max_recall_at_full_precision")
+            cells.append(f"{m.get('loops_true', '?')}/{m.get('loops_false', '?')}; {_number(b, 2)} -> {_number(a, 2)}")
         lines.append(f"| {mode} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

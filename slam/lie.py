@@ -33,7 +33,7 @@ __all__ = [
     "se3_log", "se3_inv", "se3_compose",
     "se3_between", "se3_act", "se3_adjoint", "se3_hat", "se3_to_matrix", "se3_from_matrix",
     "se3_normalize", "se3_ad", "se3_left_jacobian", "se3_left_jacobian_inv", "se3_right_jacobian",
-    "se3_right_jacobian_inv", "SE3",
+    "se3_right_jacobian_inv", "se3_to_kornia", "se3_from_kornia", "SE3",
 ]
 
 
@@ -485,3 +485,43 @@ class SE3:
 
     def __repr__(self) -> str:
         return f"SE3(shape={tuple(self.shape)}, dtype={self.data.dtype})"
+
+
+# ----------------------------------------------------------------------------------------------
+# Kornia's Lie groups at the boundary (kornia.geometry.liegroup: w-first quaternions)
+# ----------------------------------------------------------------------------------------------
+def se3_to_kornia(pose: Tensor):
+    """A :class:`kornia.geometry.liegroup.Se3` (batch shape ``(...)``) from poses ``(..., 7)`` ``[t, q_xyzw]``.
+
+    Kornia stores quaternions scalar-first (``[w, x, y, z]``); its tangent vectors are ``[rho, phi]`` and its
+    adjoint acts on them, as here, so ``log``, ``exp``, composition, inversion, ``adjoint`` and the action on
+    points agree (``tests/test_lie.py``). Differentiable: the returned group's tensors are functions of
+    ``pose``.
+
+    Example:
+        >>> T = se3_to_kornia(se3_exp(torch.tensor([[0.1, 0.2, 0.3, 0.0, 0.0, 0.5]])))
+        >>> T.r.q.data.shape, T.t.shape
+        (torch.Size([1, 4]), torch.Size([1, 3]))
+    """
+    from kornia.geometry.liegroup import Se3
+    from kornia.geometry.quaternion import Quaternion
+
+    _check_last(pose, 7, "pose")
+    return Se3(Quaternion(torch.cat([pose[..., 6:], pose[..., 3:6]], dim=-1)), pose[..., :3])
+
+
+def se3_from_kornia(T) -> Tensor:
+    """Poses ``(..., 7)`` ``[t, q_xyzw]`` from a :class:`kornia.geometry.liegroup.Se3` (the inverse of
+    :func:`se3_to_kornia`; differentiable).
+
+    Example:
+        >>> pose = se3_exp(torch.tensor([[0.1, 0.2, 0.3, 0.0, 0.0, 0.5]]))
+        >>> bool(torch.equal(se3_from_kornia(se3_to_kornia(pose)), pose))
+        True
+    """
+    from kornia.geometry.liegroup import Se3
+
+    if not isinstance(T, Se3):
+        raise TypeError(f"T must be a kornia.geometry.liegroup.Se3, got {type(T).__name__}")
+    q = T.r.q.data  # (..., 4) [w, x, y, z]
+    return torch.cat([T.t, q[..., 1:], q[..., :1]], dim=-1)

@@ -6,20 +6,33 @@ Outputs written by :func:`write_outputs` into a folder:
 
 * ``trajectory.txt``: TUM format, one pose per input frame, in input order;
 * ``loops.txt``: one accepted loop per line, ``timestamp_a timestamp_b`` (the two keyframes' own stamps);
-* ``metrics.json``: ``ate_rmse`` (when ground truth exists), ``num_loops``, ``fps`` and more;
-* ``trajectory.png``: the estimate (and ground truth) seen from above with the loop edges.
+* ``metrics.json``: ``ate_rmse`` (null with ``ate_unavailable`` saying why when there is nothing to
+  evaluate), ``num_loops``, ``fps``, the backbone used and more; valid JSON (no NaN or Infinity: a value
+  that is not finite is written as null and named in ``non_finite``);
+* ``trajectory.png``: the estimate (and ground truth) seen from above with the loop edges;
+* ``map.ply``: the keyframes' coloured points placed with the optimised poses (:mod:`slam.mapping`).
+
+Each file is written under a temporary name in the same folder and renamed into place, so a reader never
+sees half a file; :func:`prepare_output_dir` checks the folder before a run and removes the previous
+run's outputs, so that files left after a failed run are never the previous run's looking current.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import json
 import logging
+import math
 import os
+import tempfile
 import time
+import uuid
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Optional, Union
 
+import cv2
 import numpy as np
 import torch
 
@@ -27,12 +40,21 @@ from slam.config import SLAMConfig
 from slam.io.images import FrameReadError
 from slam.io.sequence import RGBDSequence
 from slam.io.trajectory import Trajectory, write_tum_trajectory
+from slam.mapping import PointCloudMap, write_ply
 from slam.progress import Progress
 from slam.system import RGBDSLAM, SLAMResult
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RunResult", "run_slam", "evaluate_run", "write_outputs"]
+__all__ = ["OUTPUT_FILES", "OutputDirError", "RunResult", "evaluate_run", "json_safe", "prepare_output_dir",
+           "run_slam", "write_outputs"]
+
+#: The files a run writes into its output folder (``map.ply`` unless the map is off).
+OUTPUT_FILES = ("trajectory.txt", "loops.txt", "metrics.json", "trajectory.png", "map.ply")
+
+
+class OutputDirError(OSError):
+    """The output folder cannot take a run's outputs (a file, not writable, or an output name taken)."""
 
 
 @dataclass
@@ -48,43 +70,70 @@ class RunResult:
         gt_poses_per_frame: ``(N, 7)`` ground truth of each processed frame (NaN where unknown).
         metrics: filled by :func:`evaluate_run`.
         loop_curves: ``{"before_verification": PRCurve, "after_verification": PRCurve}`` (with ground truth).
+        config: the config the run used.
+        frame_step: every ``frame_step``-th input frame was used.
+        map: the keyframes' points (:class:`slam.mapping.PointCloudMap`), None when the map is off.
+        map_cloud: the merged map ``(points (N, 3) float32, colours (N, 3) uint8)`` placed with the final
+            keyframe poses (filled by :func:`evaluate_run`).
+        backbone: the descriptor's backbone as built (None without loop closure).
     """
 
     result: SLAMResult
     sequence_name: str
     wall_seconds: float
     fps: float
-    groundtruth: Optional[Trajectory]
-    gt_poses_per_frame: Optional[torch.Tensor]
-    metrics: Dict[str, object] = field(default_factory=dict)
-    loop_curves: Dict[str, object] = field(default_factory=dict)
+    groundtruth: Trajectory | None
+    gt_poses_per_frame: torch.Tensor | None
+    metrics: dict[str, object] = field(default_factory=dict)
+    loop_curves: dict[str, object] = field(default_factory=dict)
+    config: SLAMConfig | None = None
+    frame_step: int = 1
+    map: PointCloudMap | None = None
+    backbone: str | None = None
+    map_cloud: tuple[np.ndarray, np.ndarray] | None = None
 
 
-def run_slam(sequence: RGBDSequence, config: Optional[SLAMConfig] = None, max_frames: Optional[int] = None,
-             progress: Optional[bool] = None, descriptor: Optional[torch.nn.Module] = None,
-             prefetch: int = 2) -> RunResult:
-    """Track every frame of ``sequence`` and optimise.
+def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
+             progress: bool | None = None, descriptor: torch.nn.Module | None = None,
+             prefetch: int = 2, frame_step: int = 1) -> RunResult:
+    """Track every frame of ``sequence`` (or every ``frame_step``-th) and optimise.
 
     A frame that cannot be read (missing or corrupt image) is skipped with a warning and placed by constant
-    velocity, so the trajectory still has one pose per input frame.
+    velocity, so the trajectory still has one pose per used frame. With ``config.map.enabled`` the
+    keyframes' coloured points are kept for ``map.ply`` (:class:`slam.mapping.PointCloudMap`).
 
     Args:
         sequence: an opened sequence (:func:`slam.io.open_sequence`).
-        config: :class:`slam.config.SLAMConfig`.
-        max_frames: process only the first ``max_frames`` frames.
+        config: :class:`slam.config.SLAMConfig` (checked: :func:`slam.options.check_config`).
+        max_frames: use only the first ``max_frames`` input frames.
         progress: show a progress bar (None: when stderr is a terminal).
         descriptor: a prebuilt descriptor model (else built from the config).
         prefetch: frames decoded ahead in background threads.
+        frame_step: use input frames ``0, N, 2N, ...`` of those (the trajectory and metrics are on them).
 
     Returns:
         :class:`RunResult`.
+
+    Raises:
+        ValueError: nothing to process, a ``frame_step`` < 1, a config that would give NaN poses
+            (:class:`slam.options.UsageError`) or intrinsics that cannot be a camera.
+        FloatingPointError: the run produced non-finite poses (never silently returned).
     """
-    n = len(sequence) if max_frames is None else min(int(max_frames), len(sequence))
-    if n <= 0:
+    from slam.options import check_config, check_sequence_intrinsics
+
+    config = check_config(config if config is not None else SLAMConfig())
+    if isinstance(frame_step, bool) or not isinstance(frame_step, (int, np.integer)) or frame_step < 1:
+        raise ValueError(f"frame_step must be an integer >= 1, got {frame_step!r}")
+    check_sequence_intrinsics(sequence)
+    n_in = len(sequence) if max_frames is None else min(int(max_frames), len(sequence))
+    if n_in <= 0:
         raise ValueError(f"{sequence.name}: nothing to process (max_frames={max_frames}, {len(sequence)} frames)")
-    view = sequence[:n]
+    view = sequence[0:n_in:int(frame_step)]
+    n = len(view)
     stamps = view.timestamps
     slam = RGBDSLAM(config, descriptor=descriptor)
+    cloud = PointCloudMap.for_config(config) if config.map.enabled else None
+    recent: deque = deque(maxlen=4)  # the frames a new keyframe can come from (this one or a promoted one)
     start = time.perf_counter()
     # decode ahead in threads; an unreadable frame comes as its FrameReadError, so it is only skipped
     bar = Progress(range(n), total=n, desc=sequence.name, enabled=progress)
@@ -95,37 +144,68 @@ def run_slam(sequence: RGBDSequence, config: Optional[SLAMConfig] = None, max_fr
         if isinstance(frame_or_error, FrameReadError):
             slam.skip(i, float(stamps[i]), str(frame_or_error))
         else:
-            slam.track(frame_or_error)
+            state = slam.track(frame_or_error)
+            if cloud is not None:
+                recent.append(frame_or_error)
+                with slam.timer("map"):
+                    _add_keyframes_to_map(cloud, slam, state.new_keyframes, recent)
         if i % 10 == 0:
             bar.set_postfix(f"kf={len(slam.keyframes)} loops={len(slam.loops)}")
     result = slam.finish()
     wall = time.perf_counter() - start
+    bad = ~torch.isfinite(result.trajectory.poses).all(dim=-1)
+    if bool(bad.any()):
+        first = int(torch.nonzero(bad)[0])
+        raise FloatingPointError(f"{sequence.name}: {int(bad.sum())} of {n} poses are not finite (first: frame "
+                                 f"{first}); check the settings and intrinsics")
     gt = view.groundtruth
     gt_arr = torch.from_numpy(np.stack([
         p if p is not None else np.full(7, np.nan) for p in (view.groundtruth_pose(i) for i in range(n))
     ])) if gt is not None else None
-    return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr)
+    closer = slam.loop_closer
+    backbone = getattr(closer.descriptor, "backbone_name", None) if closer is not None else None
+    return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
+                     frame_step=int(frame_step), map=cloud, backbone=backbone)
 
 
-def evaluate_run(run: RunResult, loop_gt=None) -> Dict[str, object]:
+def _add_keyframes_to_map(cloud: PointCloudMap, slam: RGBDSLAM, new_ids: list[int], recent) -> None:
+    """Back-project the frames that just became keyframes (this frame, or a promoted earlier one)."""
+    by_index = {int(f.index): f for f in recent}
+    for kf_id in new_ids:
+        frame = by_index.get(int(slam.keyframes[kf_id].frame_index))
+        if frame is None:  # not among the recent frames: the map misses this keyframe's points
+            logger.debug("map: no image kept for keyframe %d (frame %d)", kf_id, slam.keyframes[kf_id].frame_index)
+            continue
+        try:
+            cloud.add(kf_id, frame.rgb, frame.depth, frame.K)
+        except ValueError as e:  # a frame odd enough for the map but not for tracking: leave its points out
+            logger.warning("map: keyframe %d (frame %d) left out: %s", kf_id, frame.index, e)
+
+
+def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
     """Compute the metrics of a run (stored in ``run.metrics`` and returned).
 
-    Keys: ``sequence``, ``num_frames``, ``num_keyframes``, ``num_loops``, ``num_lost``, ``num_skipped``,
-    ``fps``, ``wall_seconds``, ``time_per_stage``; with ground truth also ``ate_rmse`` (rigid SE(3)
-    alignment, TUM association), ``ate`` (statistics), ``odometry_ate_rmse`` (before the pose graph),
-    ``rpe_1frame`` / ``rpe_1s`` (translation m, rotation deg) and ``loops_true`` / ``loops_false``
-    (accepted loops judged by ground-truth distance and angle, :class:`slam.eval.LoopGroundTruthConfig`).
+    Keys: ``sequence``, ``num_frames``, ``frame_step``, ``num_keyframes``, ``num_loops``, ``num_lost``,
+    ``num_skipped``, ``fps``, ``wall_seconds``, ``time_per_stage``, ``backbone`` (as built; null without
+    loop closure), ``rig``, ``map`` (points of the merged map, keyframes, points and MB kept during the run); ``ate_rmse`` (rigid SE(3) alignment, TUM association) and ``ate``
+    (statistics), ``odometry_ate_rmse`` (before the pose graph), ``rpe_1frame`` / ``rpe_1s`` (translation
+    m, rotation deg) and ``loops_true`` / ``loops_false`` (accepted loops judged by ground-truth distance
+    and angle, :class:`slam.eval.LoopGroundTruthConfig`) when there is ground truth to evaluate against;
+    otherwise ``ate_rmse`` is None and ``ate_unavailable`` says why (no ground truth, fewer than 3
+    frames with it, a camera that never moves, ...). A run never fails here for want of ground truth.
 
     Args:
         run: a :class:`RunResult`.
         loop_gt: :class:`slam.eval.LoopGroundTruthConfig` for judging loops (default thresholds).
     """
     from slam.eval import LoopGroundTruthConfig, ate, is_true_loop, rpe
+    from slam.options import describe_rig, rig_of
 
     res = run.result
-    m: Dict[str, object] = {
+    m: dict[str, object] = {
         "sequence": run.sequence_name,
         "num_frames": res.num_frames,
+        "frame_step": run.frame_step,
         "num_keyframes": res.num_keyframes,
         "num_loops": len(res.loops),
         "num_lost": res.num_lost,
@@ -133,20 +213,53 @@ def evaluate_run(run: RunResult, loop_gt=None) -> Dict[str, object]:
         "fps": round(run.fps, 3),
         "wall_seconds": round(run.wall_seconds, 3),
         "time_per_stage": res.timings,
+        "backbone": run.backbone,
     }
+    if run.config is not None:
+        d = run.config.loop.descriptor
+        m["descriptor"] = ({"backbone": run.backbone, "requested_backbone": d.backbone, "fusion": d.fusion,
+                            "seed": d.seed, "weights": d.weights} if run.config.loop.enabled else None)
+        m["rig"] = describe_rig(rig_of(run.config))
+    if run.map is not None:
+        run.map_cloud = run.map.points(res.keyframe_trajectory.poses)
+        m["map"] = {"points": int(run.map_cloud[0].shape[0]), "keyframes": len(run.map),
+                    "kept_points": run.map.num_points, "kept_mb": round(run.map.nbytes / 1e6, 3),
+                    "voxel_size": run.map.config.voxel_size}
     if res.optimization is not None:
         opt = res.optimization
         m["pose_graph"] = {"keyframes": res.graph.num_poses, "edges": res.graph.num_edges,
                            "initial_chi2": opt.initial_chi2, "chi2": opt.chi2, "status": str(opt.status),
                            "iterations": opt.iterations}
-    if run.groundtruth is not None and len(run.groundtruth) >= 3:
-        a = ate(run.groundtruth, res.trajectory)
-        m["ate_rmse"] = a.rmse
-        m["ate"] = {"rmse": a.rmse, "mean": a.mean, "median": a.median, "std": a.std, "max": a.max,
-                    "num_pairs": a.num_pairs}
-        m["odometry_ate_rmse"] = ate(run.groundtruth, res.odometry_trajectory).rmse
-        for key, kw in (("rpe_1frame", dict(delta=1, delta_unit="frames")),
-                        ("rpe_1s", dict(delta=1.0, delta_unit="seconds"))):
+    m["ate_rmse"] = None
+    gt_len = 0 if run.groundtruth is None else len(run.groundtruth)
+    tracked = res.num_frames - res.num_lost - res.num_skipped  # the first frame counts: it sets the origin
+    if run.groundtruth is None:
+        m["ate_unavailable"] = "the sequence has no ground truth"
+    elif gt_len < 3:
+        m["ate_unavailable"] = f"only {gt_len} frame(s) with ground truth (the alignment needs 3)"
+    elif tracked <= 1:
+        m["ate_unavailable"] = (f"no frame was tracked ({res.num_lost} lost, {res.num_skipped} unreadable of "
+                                f"{res.num_frames}): nothing to align")
+    elif float((run.groundtruth.poses[:, :3] - run.groundtruth.poses[:1, :3]).norm(dim=-1).max()) < 1e-6:
+        m["ate_unavailable"] = "the ground-truth camera never moves: the alignment is not defined"
+    else:
+        try:
+            a = ate(run.groundtruth, res.trajectory)
+            odo = ate(run.groundtruth, res.odometry_trajectory).rmse
+        except ValueError as e:  # e.g. a camera that never moves: the alignment is not defined
+            m["ate_unavailable"] = f"ATE not computed: {e}"
+        else:
+            if not (math.isfinite(a.rmse) and math.isfinite(odo)):
+                m["ate_unavailable"] = (f"the ATE is not finite ({a.rmse}, odometry {odo}): ground-truth "
+                                        f"positions out of range?")
+        if "ate_unavailable" not in m:
+            m["ate_rmse"] = a.rmse
+            m["ate"] = {"rmse": a.rmse, "mean": a.mean, "median": a.median, "std": a.std, "max": a.max,
+                        "num_pairs": a.num_pairs}
+            m["odometry_ate_rmse"] = odo
+    if m["ate_rmse"] is not None:
+        for key, kw in (("rpe_1frame", {"delta": 1, "delta_unit": "frames"}),
+                        ("rpe_1s", {"delta": 1.0, "delta_unit": "seconds"})):
             try:
                 r = rpe(run.groundtruth, res.trajectory, **kw)
                 m[key] = {"trans_rmse_m": r.translation.rmse, "rot_rmse_deg": r.rotation.rmse,
@@ -165,7 +278,7 @@ def evaluate_run(run: RunResult, loop_gt=None) -> Dict[str, object]:
     return m
 
 
-def loop_precision_recall(run: RunResult, config=None) -> Dict[str, object]:
+def loop_precision_recall(run: RunResult, config=None) -> dict[str, object]:
     """Precision/recall of the loop detector over the keyframe queries, before and after verification.
 
     Each query keyframe contributes its best candidate: before verification the most similar eligible
@@ -198,7 +311,7 @@ def loop_precision_recall(run: RunResult, config=None) -> Dict[str, object]:
         after_scores.append(verified_sim.get(q.kf, float("-inf")) if q.verified else float("-inf"))
     if not before_pairs:
         return {}
-    out: Dict[str, object] = {}
+    out: dict[str, object] = {}
     for name, pairs, scores in (("before_verification", before_pairs, before_scores),
                                 ("after_verification", after_pairs, after_scores)):
         ev = evaluate_loop_candidates(torch.tensor(pairs), torch.tensor(scores, dtype=torch.float64),
@@ -208,35 +321,160 @@ def loop_precision_recall(run: RunResult, config=None) -> Dict[str, object]:
     return out
 
 
-def write_outputs(run: RunResult, out_dir: Union[str, os.PathLike], plot: bool = True) -> Path:
-    """Write ``trajectory.txt``, ``loops.txt``, ``metrics.json`` and ``trajectory.png`` into ``out_dir``.
+def json_safe(value, path: str = "", bad: list[str] | None = None):
+    """A copy of ``value`` that :func:`json.dumps` writes as valid JSON: non-finite floats become None.
+
+    Args:
+        value: dicts, lists, tuples, numbers (python, numpy, 0-d tensors), strings, None.
+        path: the key path of ``value`` (for the report).
+        bad: collects the key paths of the values that were not finite.
+
+    Example:
+        >>> bad = []
+        >>> json_safe({"a": float("inf"), "b": [1.0, float("nan")]}, bad=bad), bad
+        ({'a': None, 'b': [1.0, None]}, ['a', 'b[1]'])
+    """
+    if isinstance(value, dict):
+        return {str(k): json_safe(v, f"{path}.{k}" if path else str(k), bad) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v, f"{path}[{i}]", bad) for i, v in enumerate(value)]
+    if isinstance(value, torch.Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, bool) or value is None or isinstance(value, (int, str)):
+        return value
+    if isinstance(value, float):
+        if math.isfinite(value):
+            return value
+        if bad is not None:
+            bad.append(path)
+        return None
+    return str(value)
+
+
+def _replace_atomically(path: Path, data: bytes) -> None:
+    """Write ``data`` to a temporary file beside ``path`` and rename it into place (the umask's mode)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with open(tmp, "xb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def prepare_output_dir(out_dir: str | os.PathLike, names=OUTPUT_FILES, clear: bool = True) -> Path:
+    """Check (and create) an output folder before a run, and remove the previous run's outputs.
+
+    Done before the work starts, so that a folder that cannot take the outputs costs nothing, and a run
+    that fails later leaves no earlier outputs looking like its own.
+
+    Args:
+        out_dir: the folder (created with its parents).
+        names: the output file names that must be free for regular files.
+        clear: remove existing regular files of those names.
+
+    Raises:
+        OutputDirError: ``out_dir`` is a file, cannot be created or written to, or an output name is taken
+            by something other than a regular file (a folder, say); nothing is removed then.
+    """
+    out = Path(out_dir).expanduser()
+    if out.exists() and not out.is_dir():
+        raise OutputDirError(f"--out {out}: exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputDirError(f"--out {out}: cannot create the folder ({e.strerror or e})") from None
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=out)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise OutputDirError(f"--out {out}: cannot write into the folder ({e.strerror or e})") from None
+    taken = [n for n in names if (out / n).exists() or (out / n).is_symlink()]
+    for name in taken:
+        p = out / name
+        if p.is_symlink() or not p.is_file():
+            raise OutputDirError(f"{p}: an output name is taken by something that is not a regular file "
+                                 "(a folder?); move it away or choose another --out")
+    if clear:
+        for name in taken:
+            (out / name).unlink()
+    return out
+
+
+def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
+                  map_ply: bool | None = None) -> Path:
+    """Write ``trajectory.txt``, ``loops.txt``, ``metrics.json``, ``trajectory.png`` and ``map.ply`` into ``out_dir``.
+
+    Each file is written to a temporary name and renamed; the folder is checked first
+    (:func:`prepare_output_dir` without clearing), so a name taken by a folder fails before anything is
+    written.
 
     Args:
         run: an evaluated :class:`RunResult` (:func:`evaluate_run` is called if it was not).
         out_dir: created if needed.
         plot: also draw ``trajectory.png``.
+        map_ply: write ``map.ply`` (default: when the run kept a map).
 
     Returns:
         the output folder.
+
+    Raises:
+        OutputDirError: the folder cannot take the outputs.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_output_dir(out_dir, clear=False)
     if not run.metrics:
         evaluate_run(run)
     res = run.result
-    write_tum_trajectory(out / "trajectory.txt", res.trajectory)
-    with open(out / "loops.txt", "w") as f:
-        f.write("# timestamp_a timestamp_b  (accepted loop closures between keyframes)\n")
-        for lp in res.loops:
-            f.write(f"{lp.timestamp_a:.6f} {lp.timestamp_b:.6f}\n")
-    with open(out / "metrics.json", "w") as f:
-        json.dump(run.metrics, f, indent=2, default=float)
+    write_map = run.map is not None if map_ply is None else bool(map_ply)
+    if write_map and run.map is None:
+        raise ValueError("map_ply=True but the run kept no map (config.map.enabled was False)")
+    # everything is computed before the first file is replaced
+    traj_text = _tum_text(res.trajectory)
+    loops_text = "# timestamp_a timestamp_b  (accepted loop closures between keyframes)\n" + "".join(
+        f"{lp.timestamp_a:.6f} {lp.timestamp_b:.6f}\n" for lp in res.loops)
+    ply = None
+    if write_map:
+        pts, cols = run.map_cloud if run.map_cloud is not None else run.map.points(res.keyframe_trajectory.poses)
+        buf = io.BytesIO()
+        write_ply(buf, pts, cols, comment=f"attnloop map of {run.sequence_name}: {len(run.map)} keyframes, "
+                                          f"voxel {run.map.config.voxel_size:g} m, the trajectory's frame")
+        ply = buf.getvalue()
+    png = None
     if plot:
         from slam.eval import plot_trajectory
 
         loops = torch.tensor([[lp.timestamp_a, lp.timestamp_b] for lp in res.loops], dtype=torch.float64
                              ).reshape(-1, 2)
-        ate_txt = f", ATE {run.metrics['ate_rmse'] * 100:.1f} cm" if "ate_rmse" in run.metrics else ""
-        plot_trajectory(out / "trajectory.png", res.trajectory, run.groundtruth, loops=loops,
-                        title=f"{run.sequence_name}: {len(res.loops)} loops{ate_txt}")
+        ate_txt = f", ATE {run.metrics['ate_rmse'] * 100:.1f} cm" if run.metrics.get("ate_rmse") is not None else ""
+        # aligned to the ground truth as the ATE is, unless the ATE found no alignment (it says why)
+        img = plot_trajectory(None, res.trajectory, run.groundtruth, loops=loops,
+                              align=run.metrics.get("ate_rmse") is not None,
+                              title=f"{run.sequence_name}: {len(res.loops)} loops{ate_txt}")
+        ok, enc = cv2.imencode(".png", img)
+        if not ok:
+            raise OSError("could not encode trajectory.png")
+        png = enc.tobytes()
+    bad: list[str] = []
+    metrics = json_safe(run.metrics, bad=bad)
+    if bad:
+        metrics["non_finite"] = {"keys": bad, "reason": "not finite, written as null"}
+    metrics_text = json.dumps(metrics, indent=2, allow_nan=False)
+    _replace_atomically(out / "trajectory.txt", traj_text.encode("utf-8"))
+    _replace_atomically(out / "loops.txt", loops_text.encode("utf-8"))
+    if ply is not None:
+        _replace_atomically(out / "map.ply", ply)
+    if png is not None:
+        _replace_atomically(out / "trajectory.png", png)
+    _replace_atomically(out / "metrics.json", (metrics_text + "\n").encode("utf-8"))  # last: the run is complete
     return out
+
+
+def _tum_text(traj: Trajectory) -> str:
+    buf = io.StringIO()
+    write_tum_trajectory(buf, traj)
+    return buf.getvalue()

@@ -1,6 +1,6 @@
 """The supernodal sparse Cholesky (slam.graph.cholesky) against dense references on random SPD systems.
 
-Every test runs twice: with the C kernels doing the small fronts (slam.graph._kernels.factor_group /
+Every test runs twice: with the C kernels doing the small fronts (slam.graph.accel._kernels.factor_group /
 solve_group, the CPU default when they were built) and without them (LAPACK front by front and torch
 batched groups, as where they were not built)."""
 import threading
@@ -10,16 +10,17 @@ import pytest
 import torch
 
 import slam.graph.cholesky as chol
+from slam.graph.accel import _compiled
 from slam.graph.cholesky import NotPositiveDefiniteError, SymbolicCholesky
 from slam.graph.linear import build_pattern
 
 
 @pytest.fixture(autouse=True, params=["c", "lapack"])
 def fronts(request, monkeypatch):
-    if request.param == "c" and chol._C is None:
-        pytest.skip("the C kernels slam.graph._kernels were not built")
+    if request.param == "c" and _compiled.kernels is None:
+        pytest.skip("the C kernels slam.graph.accel._kernels were not built")
     if request.param == "lapack":
-        monkeypatch.setattr(chol, "_C", None)
+        monkeypatch.setattr(_compiled, "kernels", None)
     return request.param
 
 
@@ -294,7 +295,7 @@ def test_interrupted_factorisation_leaves_earlier_factor_intact(monkeypatch, fro
     f1 = sym.factor(vals1)
     with pytest.raises((IndexError, RuntimeError)):  # values of the wrong length
         sym.factor(vals2[:-2 * k * k])
-    calls, saved = [], (chol._C, chol._factor_numpy_group)
+    calls, saved = [], (_compiled.kernels, chol._factor_numpy_group)
 
     def interrupt_fifth(orig):
         def call(*args):
@@ -304,17 +305,17 @@ def test_interrupted_factorisation_leaves_earlier_factor_intact(monkeypatch, fro
             return orig(*args)
         return call
 
-    if chol._C is not None:  # the small fronts go through the C kernels: interrupt those
+    if _compiled.kernels is not None:  # the small fronts go through the C kernels: interrupt those
         class Interrupted:
-            factor_group = staticmethod(interrupt_fifth(chol._C.factor_group))
-            solve_group = staticmethod(chol._C.solve_group)
+            factor_group = staticmethod(interrupt_fifth(_compiled.kernels.factor_group))
+            solve_group = staticmethod(_compiled.kernels.solve_group)
 
-        monkeypatch.setattr(chol, "_C", Interrupted)
+        monkeypatch.setattr(_compiled, "kernels", Interrupted)
     else:
         monkeypatch.setattr(chol, "_factor_numpy_group", interrupt_fifth(chol._factor_numpy_group))
     with pytest.raises(KeyboardInterrupt):
         sym.factor(vals2)
-    monkeypatch.setattr(chol, "_C", saved[0])
+    monkeypatch.setattr(_compiled, "kernels", saved[0])
     monkeypatch.setattr(chol, "_factor_numpy_group", saved[1])
     f2 = sym.factor(vals2)
     _assert_solves(f2, A2, b)

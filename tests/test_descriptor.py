@@ -20,7 +20,9 @@ def images():
 
 @pytest.fixture(scope="module")
 def lite():
-    return AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False, seed=0)
+    # the paper's flat RNN pooling at stage7 (224 x 224), with the pool-input scaling
+    return AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False, seed=0, tap="stage7",
+                               pooling="flat")
 
 
 @pytest.mark.parametrize("fusion", FUSION_MODES)
@@ -33,7 +35,7 @@ def test_shapes_unit_norm_all_fusions(lite, images, fusion):
 
 
 def test_vgg16_random_weights_end_to_end(images):
-    desc = AttentionDescriptor("vgg16", fusion="gaf", pretrained=False, seed=0)
+    desc = AttentionDescriptor("vgg16", fusion="gaf", pretrained=False, seed=0, preset="paper")
     assert desc.pool.weights.shape == (16, 64, 256 * 7 * 7)  # the paper's 16 RNNs of 64 x 12544
     parts = desc.parts(images[:1])
     assert parts.tap.shape == (1, 512, 7, 7) and parts.descriptor.shape == (1, 1024)
@@ -127,19 +129,19 @@ def test_empty_batch(lite):
 
 
 def test_raw_pool_input_option(lite, images):
-    desc = AttentionDescriptor(lite.backbone, fusion="none", pool_scale=None)
+    desc = AttentionDescriptor(lite.backbone, fusion="none", pool_scale=None, pooling="flat")
     parts = desc.parts(images)
     ref = F.normalize(random_rnn_pool(parts.tap, desc.pool.weights), dim=1)
     assert torch.allclose(parts.descriptor, ref, atol=1e-6)
-    unnormalised = AttentionDescriptor(lite.backbone, fusion="none", normalize=False)(images)
+    unnormalised = AttentionDescriptor(lite.backbone, fusion="none", normalize=False, pooling="flat")(images)
     assert (unnormalised.abs() <= 1).all() and not torch.allclose(unnormalised.norm(dim=1), torch.ones(3))
 
 
 def test_functional_form_matches_module(lite, images):
-    d = attention_descriptor(images, lite.backbone, lite.pool.weights, fusion="dam")
+    d = attention_descriptor(images, lite.backbone, lite.pool.weights, fusion="dam", pooling="flat")
     assert torch.allclose(d, lite(images))
     _fused, d2 = descriptor_from_attention(torch.zeros(1, 320, 7, 7), torch.ones(1, 320, 7, 7),
-                                          lite.pool.weights, "gaf")
+                                          lite.pool.weights, "gaf", pooling="flat")
     assert torch.equal(d2, torch.zeros(1, 1024))  # a zero map gives a zero descriptor, not NaN
 
 

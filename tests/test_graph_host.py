@@ -1,22 +1,23 @@
-"""The optimiser's per-edge kernels: the torch path (slam.graph.fused) and the numpy path (slam.graph.host,
-also with its C kernels) against each other and the reference costs (slam.graph.costs, themselves
-checked against finite differences in test_pose_graph)."""
+"""The accelerator's numpy path (slam.graph.accel.host, also with its C kernels) against the torch reference
+(slam.graph.fused and TorchProblem; the reference itself is checked against slam.lie, autograd, finite
+differences and gradcheck in test_graph_fused and test_pose_graph)."""
 import math
 
 import numpy as np
 import pytest
 import torch
 
-from slam.graph import OptimizerConfig, PoseGraph, host, optimize
+from slam.graph import OptimizerConfig, PoseGraph, compiled_kernels, optimize
+from slam.graph.accel import host
 from slam.graph.costs import edge_jacobians, edge_residuals, make_kernel
-from slam.graph.fused import _qmul, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
+from slam.graph.fused import _qmul, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
 from slam.graph.linear import to_dense
-from slam.graph.optimizer import _host_problem, _Problem
+from slam.graph.problem import TorchProblem
 from slam.lie import quat_rotate, quat_to_rotmat, se3_between, se3_compose, se3_exp, se3_inv
 
 F64 = torch.float64
 
-needs_c = pytest.mark.skipif(not host.compiled_kernels(), reason="the C kernels slam.graph._kernels were not built")
+needs_c = pytest.mark.skipif(not compiled_kernels(), reason="the C kernels slam.graph.accel._kernels were not built")
 
 
 def _unit(q):
@@ -53,36 +54,6 @@ def _edges(seed=3, N=12, E=40):
     dz[2, 3:] = 1e-7  # below both series thresholds
     dz[3, 3:] = 3e-3  # between them (log exact, Q series)
     return P, ii, jj, se3_compose(se3_between(P[ii], P[jj]), se3_exp(dz))
-
-
-@pytest.mark.parametrize("chart", ["se3", "r3so3"])
-def test_fused_kernels_match_the_reference_costs(chart):
-    """The torch path's fused residuals / Jacobians / normal blocks / retraction (slam.graph.fused) equal
-    slam.graph.costs and slam.lie, including large rotations, angles near pi and an exact identity."""
-    P, ii, jj, Z = _edges()
-    N, E = P.shape[0], ii.shape[0]
-    g = torch.Generator().manual_seed(4)
-    zinv = se3_inv(Z)
-    r_ref, D = edge_residuals(P, ii, jj, Z, chart)
-    r, aux = se3_residuals(P, ii, jj, zinv, chart)
-    assert torch.allclose(r, r_ref, atol=1e-12)
-    Ji, Jj = edge_jacobians(P, ii, jj, D, r_ref, chart)
-    neg = -se3_adjoint_t(zinv) if chart == "se3" else None
-    JT = se3_jacobians_t(r, aux, neg, poses=P, ii=ii, jj=jj)
-    assert torch.allclose(JT[:, :6], Ji.mT, atol=1e-10) and torch.allclose(JT[:, 6:12], Jj.mT, atol=1e-10)
-    W = torch.randn(E, 6, 6, generator=g, dtype=F64)
-    info = W @ W.mT + torch.eye(6, dtype=F64)
-    w = torch.rand(E, generator=g, dtype=F64)
-    blocks, gb = normal_blocks(JT, torch.linalg.cholesky(info).contiguous(), w, ws={})
-    J = torch.cat([Ji, Jj], -1)
-    Hr = J.mT @ (w[:, None, None] * info) @ J
-    gr = (J.mT @ (w[:, None, None] * info) @ r_ref[:, :, None])[..., 0]
-    assert torch.allclose(blocks, Hr.view(E, 2, 6, 2, 6).permute(0, 1, 3, 2, 4).reshape(E, 4, 6, 6), atol=1e-9)
-    assert torch.allclose(gb, gr.view(E, 2, 6), atol=1e-9)
-    step = torch.randn(N, 6, generator=g, dtype=F64)
-    step[0] = 0.0
-    step[1] = 1e-9
-    assert torch.allclose(se3_retract(P, step), se3_compose(P, se3_exp(step)), atol=1e-12)
 
 
 def test_residuals_jacobians_and_retraction_match_the_torch_kernels():
@@ -133,8 +104,8 @@ def test_normal_equations_and_steps_equal_the_torch_problem(planar, dense_max, c
     cfg = OptimizerConfig(fixed=(3,), damping="diagonal", dense_max=dense_max)
     for kernel in (None, "huber"):
         kern = make_kernel(kernel, None)
-        ref = _Problem(graph, cfg, kern, "first", "dense")
-        prob = _host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
+        ref = TorchProblem(graph, cfg, kern, "first", "dense")
+        prob = host.host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
         assert prob.dense == (dense_max > 0) and prob.size == ref.size == 8 * (3 if planar else 6)
         cost_t, chi2_t, cache_t = ref.evaluate(ref.poses)
         cost, chi2, cache = prob.evaluate(prob.poses)
@@ -154,6 +125,8 @@ def test_backends_take_the_same_steps_on_a_real_sized_problem():
     graph = _graph()
     a = optimize(graph, kernel="cauchy", backend="numpy")
     b = optimize(graph, kernel="cauchy", backend="torch")
+    assert (a.backend, b.backend, optimize(graph).backend) == ("numpy", "torch", "torch")
+    assert optimize(graph, backend="auto").backend == ("c" if compiled_kernels() else "numpy")
     assert a.iterations == b.iterations > 2 and a.status == b.status
     np.testing.assert_allclose(a.cost_history, b.cost_history, rtol=1e-9)
     assert torch.allclose(a.graph.poses, b.graph.poses, atol=1e-8)
@@ -170,7 +143,7 @@ def test_backend_setting_and_information_errors():
     r3 = PoseGraph(graph.poses, graph.ii, graph.jj, graph.measurements, graph.information, chart="r3so3")
     with pytest.raises(ValueError, match="does not support chart 'r3so3'"):
         optimize(r3, backend="numpy")
-    assert optimize(r3).status == "converged"  # "auto" takes the torch path for it
+    assert optimize(r3, backend="auto").status == "converged"  # "auto" takes the torch path for it
     bad = graph.information.clone()
     bad[2, 0, 1] += 0.5  # not symmetric
     with pytest.raises(ValueError, match=r"information\[2\] .*not symmetric positive definite"):
@@ -186,7 +159,7 @@ def test_review_edge_cases_behave_alike_on_both_backends(monkeypatch):
     Z = graph.measurements.clone()
     Z[:, 3:] *= 1.0005
     off = PoseGraph(graph.poses, graph.ii, graph.jj, Z, graph.information)
-    for backend in ("numpy", "torch") + (("c",) if host.compiled_kernels() else ()):
+    for backend in ("numpy", "torch") + (("c",) if compiled_kernels() else ()):
         res = optimize(off, backend=backend)
         assert res.chi2 == pytest.approx(unit.chi2, rel=1e-9) and res.iterations == unit.iterations
         assert torch.allclose(res.graph.poses, unit.graph.poses, atol=1e-9)
@@ -213,8 +186,10 @@ def test_review_edge_cases_behave_alike_on_both_backends(monkeypatch):
             optimize(graph, backend=backend, lambda_init=0.0)
     # a model that predicts no decrease must not break the Nielsen rule (treated as a poor step)
     monkeypatch.setattr(host.HostProblem, "predicted_decrease", lambda self, dx, g, lam: 0.0)
-    res = optimize(graph, lambda_update="nielsen")
-    assert res.status == "converged" and res.chi2 == pytest.approx(unit.chi2, rel=1e-6)
+    monkeypatch.setattr(TorchProblem, "predicted_decrease", lambda self, dx, g, lam: 0.0)
+    for backend in ("numpy", "torch"):
+        res = optimize(graph, lambda_update="nielsen", backend=backend)
+        assert res.status == "converged" and res.chi2 == pytest.approx(unit.chi2, rel=1e-6)
 
 
 @pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=needs_c)])
@@ -228,14 +203,32 @@ def test_linearisation_in_chunks_of_edges_is_the_same(dense_max, planar, chunk, 
     graph = _graph(planar=planar, seed=9)
     cfg = OptimizerConfig(fixed=(0, 3, 7), dense_max=dense_max, planar=planar)
     kern = make_kernel("cauchy", None)
-    whole = _host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
+    whole = host.host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
     _, _, cache = whole.evaluate(whole.poses)
     H1, g1 = (a.copy() for a in whole.linearize(whole.poses, cache))
     monkeypatch.setattr(host, "_CHUNK", chunk)
-    chunked = _host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
+    chunked = host.host_problem(graph, cfg, kern, "first", "auto", compiled=compiled)
     assert chunked._F.shape[0] == chunk and chunked.dense == (dense_max > 0)
     _, _, cache = chunked.evaluate(chunked.poses)
     chunked.linearize(chunked.poses, cache)
     H2, g2 = chunked.linearize(chunked.poses, cache)
     np.testing.assert_allclose(H2, H1, rtol=1e-13, atol=1e-12 * np.abs(H1).max())
     np.testing.assert_allclose(g2, g1, rtol=1e-13, atol=1e-12 * np.abs(g1).max())
+
+
+def test_problems_and_accelerators_satisfy_their_protocols():
+    from slam.graph.accel import ACCELERATORS, Accelerator, accelerator_for
+    from slam.graph.problem import PoseGraphProblem
+
+    graph = _graph(seed=3)
+    cfg = OptimizerConfig()
+    assert isinstance(TorchProblem(graph, cfg, None, "free", "auto"), PoseGraphProblem)
+    for name, acc in ACCELERATORS.items():
+        assert isinstance(acc, Accelerator) and acc.name == name
+        if acc.available():
+            assert isinstance(acc.problem(graph, cfg, None, "free", "auto"), PoseGraphProblem)
+        assert acc.unsupported(graph, cfg, "prior") == ["gauge 'prior'"]
+    assert accelerator_for(graph, cfg, "free") is None  # the default backend is torch
+    auto = accelerator_for(graph, OptimizerConfig(backend="auto"), "free")
+    assert auto is ACCELERATORS["c" if compiled_kernels() else "numpy"]
+    assert accelerator_for(graph, OptimizerConfig(backend="auto"), "prior") is None  # falls back to torch

@@ -1,8 +1,8 @@
-"""The optional C kernels of the CPU path (slam.graph._kernels) against the numpy functions of
-slam.graph.host, which test_graph_host checks against the torch path and the reference costs: residuals,
+"""The optional C kernels of the accelerator (slam.graph.accel._kernels) against its numpy functions
+(slam.graph.accel.host; both are checked against the torch reference in test_graph_host): residuals,
 Jacobian products, retraction, measurement terms, dense assembly and re-anchoring, to round-off, on
 random edges that include an exact edge, angles near pi and both series branches; their input checks;
-and whole optimisations on the shared g2o files with both backends."""
+and whole optimisations on the shared g2o files against the torch reference."""
 import math
 import os
 
@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from slam.graph import PoseGraph, host, optimize, read_g2o
-from slam.graph.optimizer import OptimizerConfig, _host_problem
+from slam.graph import OptimizerConfig, PoseGraph, compiled_kernels, optimize, read_g2o
+from slam.graph.accel import _compiled, host
 from slam.lie import se3_between, se3_compose, se3_exp
 
 F64 = torch.float64
 
-needs_c = pytest.mark.skipif(not host.compiled_kernels(), reason="the C kernels slam.graph._kernels were not built")
+needs_c = pytest.mark.skipif(not compiled_kernels(), reason="the C kernels slam.graph.accel._kernels were not built")
 
 
 def test_the_c_kernels_are_built_in_ci():
@@ -31,7 +31,7 @@ def test_the_c_kernels_are_built_in_ci():
     cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
     if shutil.which(cc) is None or not Path(sysconfig.get_paths()["include"], "Python.h").exists():
         pytest.skip(f"no C compiler ({cc}) or no Python.h here: the numpy path runs, as designed")
-    assert host.compiled_kernels()
+    assert compiled_kernels()
 
 
 def _graph(seed=3, N=12, E=40, planar=False):
@@ -64,8 +64,8 @@ def _graph(seed=3, N=12, E=40, planar=False):
 def _problems(graph, **cfg):
     """The same HostProblem with the numpy functions and with the C kernels."""
     c = OptimizerConfig(**cfg)
-    return (_host_problem(graph, c, None, c.gauge, "auto", compiled=False),
-            _host_problem(graph, c, None, c.gauge, "auto", compiled=True))
+    return (host.host_problem(graph, c, None, c.gauge, "auto", compiled=False),
+            host.host_problem(graph, c, None, c.gauge, "auto", compiled=True))
 
 
 @needs_c
@@ -122,7 +122,7 @@ def test_retraction_matches_numpy_and_the_identity():
     xi[1, 3:] = 1e-9  # series branch of b
     xi[2, 3:] = [0.0, 0.0, math.pi - 1e-6]  # near pi
     out = np.empty_like(P)
-    host._C.retract(P, xi, out)
+    host.host_kernels().retract(P, xi, out)
     np.testing.assert_allclose(out, host.retract(P, xi), rtol=0, atol=1e-14)
     np.testing.assert_array_equal(out[0], P[0])
 
@@ -139,7 +139,7 @@ def test_reanchoring_matches_numpy():
 
 @needs_c
 def test_kernels_check_their_inputs():
-    C = host._C
+    C = host.host_kernels()
     P, ii, jj = np.zeros((3, 7)), np.array([0, 1]), np.array([1, 2])
     P[:, 6] = 1.0
     zt, zq, L = np.zeros((2, 3)), np.tile([0.0, 0, 0, 1], (2, 1)), np.tile(np.eye(6), (2, 1, 1))
@@ -176,25 +176,26 @@ def test_kernels_check_their_inputs():
 
 def test_backend_c_says_when_the_kernels_are_missing(monkeypatch):
     graph = _graph(N=4, E=6)
-    monkeypatch.setattr(host, "_C", None)
-    assert not host.compiled_kernels()
-    with pytest.raises(ValueError, match="backend 'c' needs the C kernels slam.graph._kernels"):
+    monkeypatch.setattr(_compiled, "kernels", None)
+    assert not compiled_kernels()
+    with pytest.raises(ValueError, match="backend 'c' needs the C kernels slam.graph.accel._kernels"):
         optimize(graph, backend="c")
-    res = optimize(graph)  # "auto" falls back to numpy
+    res = optimize(graph, backend="auto")  # falls back to numpy
     assert res.status == "converged"
     with pytest.raises(RuntimeError, match="were not built"):
-        _host_problem(graph, OptimizerConfig(), None, "free", "auto", compiled=True)
+        host.host_problem(graph, OptimizerConfig(), None, "free", "auto", compiled=True)
 
 
 @needs_c
 @pytest.mark.parametrize("name", ["tinyGrid3D", "smallGrid3D", "parking-garage"])
-def test_whole_optimisations_match_numpy(posegraph_dir, name):
+def test_whole_optimisations_match_numpy_and_the_torch_reference(posegraph_dir, name):
     graph = read_g2o(posegraph_dir / f"{name}.g2o")
-    a, b = optimize(graph, backend="numpy"), optimize(graph, backend="c")
-    assert a.iterations == b.iterations and b.status == a.status == "converged"
-    assert b.chi2 == pytest.approx(a.chi2, rel=1e-9)
-    np.testing.assert_allclose(b.cost_history, a.cost_history, rtol=1e-8)  # round-off of the early steps
-    torch.testing.assert_close(b.graph.poses, a.graph.poses, rtol=0, atol=1e-8)
+    ref = optimize(graph, backend="torch")
+    for other in (optimize(graph, backend="numpy"), optimize(graph, backend="c")):
+        assert other.iterations == ref.iterations and other.status == ref.status == "converged"
+        assert other.chi2 == pytest.approx(ref.chi2, rel=1e-9)
+        np.testing.assert_allclose(other.cost_history, ref.cost_history, rtol=1e-8)  # round-off of the early steps
+        torch.testing.assert_close(other.graph.poses, ref.graph.poses, rtol=0, atol=1e-8)
 
 
 @needs_c
@@ -213,7 +214,7 @@ def test_review_cases_are_refused_or_harmless():
     """Found in review: indices that alias an output (or change in another thread) while the loop runs
     without the GIL, a variable index whose bound check overflowed, misaligned and foreign-endian
     buffers. Each must raise or give (unspecified) values, never read or write out of bounds."""
-    C = host._C
+    C = host.host_kernels()
     E, N = 4, 3
     P = np.zeros((N, 7))
     P[:, 6] = 1.0
@@ -279,9 +280,10 @@ def test_host_problem_inputs_the_kernels_would_refuse_are_converted():
 def test_setup_kernels_match_numpy_and_flag_bad_information():
     """unit_poses = the numpy normalisation; information_factors = numpy's Cholesky (zeros above the
     diagonal), and -1 or the first bad edge by the rule of slam.graph.optimizer._information_factor."""
-    from slam.graph.optimizer import _SYMMETRY_RTOL, _unit_quaternions
+    from slam.graph.problem import SYMMETRY_RTOL as _SYMMETRY_RTOL
+    from slam.graph.problem import unit_quaternions as _unit_quaternions
 
-    C = host._C
+    C = host.host_kernels()
     graph = _graph(seed=13, N=10, E=30)
     Z = graph.measurements.numpy().copy()
     Z[:, 3:] *= np.linspace(0.999, 1.001, Z.shape[0])[:, None]  # within the graph's 1e-3 validation
@@ -331,7 +333,7 @@ def test_supernode_kernels_check_their_inputs():
     """factor_group / solve_group (the small fronts of slam.graph.cholesky; their results are tested in
     tests/test_cholesky.py, which runs with and without them) refuse what would read or write outside
     their buffers."""
-    C = host._C
+    C = host.host_kernels()
     buf = np.zeros(100)
     upd = np.zeros(3, dtype=np.int32)  # one supernode, p = 2, m = 4: d = 2, 3 packed update entries
     buf[[0, 3]] = 4.0  # F11 = 4 I: L11 = 2 I
@@ -378,14 +380,13 @@ def test_a_build_of_another_version_is_not_used(monkeypatch):
     import sys
     import types
 
-    import slam.graph
-    from slam.graph import _compiled
+    import slam.graph.accel
 
-    stale = types.ModuleType("slam.graph._kernels")
+    stale = types.ModuleType("slam.graph.accel._kernels")
     stale.ABI = _compiled.ABI - 1
     stale.__file__ = "stale.so"
-    monkeypatch.setitem(sys.modules, "slam.graph._kernels", stale)
-    monkeypatch.setattr(slam.graph, "_kernels", stale, raising=False)
+    monkeypatch.setitem(sys.modules, "slam.graph.accel._kernels", stale)
+    monkeypatch.setattr(slam.graph.accel, "_kernels", stale, raising=False)
     try:
         with pytest.warns(RuntimeWarning, match=r"built from another version of _kernels.c .*pip install -e \."):
             reloaded = importlib.reload(_compiled)
@@ -393,14 +394,13 @@ def test_a_build_of_another_version_is_not_used(monkeypatch):
     finally:
         monkeypatch.undo()
         importlib.reload(_compiled)  # back to the real build for the other tests
-    assert (_compiled.kernels is not None) == host.compiled_kernels()
+    assert (_compiled.kernels is not None) == compiled_kernels()
 
 
 @needs_c
 def test_backend_numpy_runs_no_compiled_code(monkeypatch):
     """backend="numpy" is what runs without the build: neither the per-edge kernels nor the sparse
-    Cholesky's small fronts go through slam.graph._kernels (here made to fail if called)."""
-    import slam.graph.cholesky as chol
+    Cholesky's small fronts go through slam.graph.accel._kernels (here made to fail if called)."""
     from slam.graph.simulate import manhattan_world
 
     graph = manhattan_world(120, seed=1).graph  # 720 unknowns: the sparse path
@@ -410,8 +410,7 @@ def test_backend_numpy_runs_no_compiled_code(monkeypatch):
         def __getattr__(self, name):
             raise AssertionError(f"_kernels.{name} called under backend='numpy'")
 
-    monkeypatch.setattr(chol, "_C", Refuse())
-    monkeypatch.setattr(host, "_C", Refuse())
+    monkeypatch.setattr(_compiled, "kernels", Refuse())
     res = optimize(graph, backend="numpy")
     assert res.iterations == ref.iterations and res.chi2 == pytest.approx(ref.chi2, rel=1e-9)
     with pytest.raises(AssertionError, match="called under backend='numpy'"):

@@ -1,17 +1,27 @@
 """Tests of attnloop.index (keyframe database, loop-candidate detector) and attnloop.threshold."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
 
 from attnloop.index import (
+    FaissConfig,
+    FlannConfig,
     IndexConfig,
+    IndexFileError,
     KeyframeIndex,
     LoopCandidateDetector,
     LoopDetectorConfig,
     exact_search,
+    faiss_available,
+    fit_pca,
+    load_index,
+    resolve_backend,
 )
+from attnloop.index.config import config_from_dict, config_to_dict
 from attnloop.threshold import ThresholdConfig, accept_mask, adaptive_threshold
 
 
@@ -40,8 +50,11 @@ def brute(db: torch.Tensor, q: torch.Tensor, k: int, max_id: int | None = None):
     return rows[0], sims[0]
 
 
-def tree_config(**kw) -> IndexConfig:
-    base = dict(min_tree_size=256, rebuild_every=128, rebuild_fraction=0.25, background=False, checks=-1)
+def tree_config(flann: dict | None = None, **kw) -> IndexConfig:
+    """FLANN on the full descriptors, exhaustive tree search (exact), synchronous builds."""
+    f = {"rebuild_every": 128, "rebuild_fraction": 0.25, "checks": -1}
+    f.update(flann or {})
+    base = {"backend": "flann", "exact_below": 256, "reduce_dim": None, "background": False, "flann": FlannConfig(**f)}
     base.update(kw)
     return IndexConfig(**base)
 
@@ -76,9 +89,9 @@ def test_index_equals_exact_search(kind):
             torch.testing.assert_close(sims, ref_sims, atol=1e-6, rtol=0)
 
 
-def test_exact_mode_builds_no_tree_and_matches():
+def test_exact_backend_builds_no_structure_and_matches():
     db = random_data(1000, 32)
-    index = KeyframeIndex(IndexConfig(exact=True, min_tree_size=10))
+    index = KeyframeIndex(IndexConfig(backend="exact", exact_below=10))
     index.add(db)
     assert index.n_indexed == 0 and index.num_builds == 0
     q = random_data(1, 32, seed=3)[0]
@@ -89,10 +102,11 @@ def test_exact_mode_builds_no_tree_and_matches():
 
 
 def test_default_checks_recall_on_clustered_data():
-    # Approximate search with the default checks: recall@10 on clustered data stays high (stated bound).
+    # FLANN with its default checks (and the default PCA code, here a rotation of the 128 dimensions):
+    # recall@10 on clustered data stays high (stated bound).
     d = 128
     db = clustered_data(4000, d, clusters=60, spread=0.6, seed=2)
-    index = KeyframeIndex(IndexConfig(min_tree_size=1000, background=False))
+    index = KeyframeIndex(IndexConfig(backend="flann", exact_below=1000, background=False))
     index.add(db)
     index.rebuild()
     assert index.n_indexed == 4000
@@ -106,7 +120,7 @@ def test_default_checks_recall_on_clustered_data():
 # ------------------------------------------------------------------ growth
 def test_rebuild_keeps_answers_equal():
     db = clustered_data(1500, 32, seed=4)
-    index = KeyframeIndex(tree_config(rebuild_every=10_000))  # no automatic rebuild
+    index = KeyframeIndex(tree_config(flann={"rebuild_every": 10_000}))  # no automatic rebuild
     index.add(db[:600])
     index.rebuild()
     index.add(db[600:])
@@ -124,7 +138,7 @@ def test_rebuild_keeps_answers_equal():
 
 def test_tail_is_searched():
     db = random_data(600, 32)
-    index = KeyframeIndex(tree_config(rebuild_every=10_000))
+    index = KeyframeIndex(tree_config(flann={"rebuild_every": 10_000}))
     index.add(db)
     index.rebuild()
     assert index.n_indexed == 600
@@ -138,7 +152,7 @@ def test_tail_is_searched():
 def test_background_build_and_buffer_growth():
     d = 48
     db = clustered_data(5000, d, seed=6)
-    index = KeyframeIndex(tree_config(background=True, min_tree_size=512, rebuild_every=256))
+    index = KeyframeIndex(tree_config(background=True, exact_below=512, flann={"rebuild_every": 256}))
     q = db[123]
     for start in range(0, 5000, 100):
         index.add(db[start: start + 100], ids=torch.arange(start, start + 100) * 2)  # ids 0, 2, 4, ...
@@ -161,7 +175,8 @@ def test_same_seed_same_tree():
     q = random_data(30, 32, seed=13)
     results = []
     for _ in range(2):
-        index = KeyframeIndex(IndexConfig(min_tree_size=100, checks=16, background=False))
+        index = KeyframeIndex(IndexConfig(backend="flann", exact_below=100, background=False,
+                                          flann=FlannConfig(checks=16)))
         index.add(db)
         index.rebuild()
         results.append(index.search(q, k=5)[0])
@@ -171,7 +186,7 @@ def test_same_seed_same_tree():
 # ------------------------------------------------------------------ exclusion window, batches, edges
 def test_exclusion_window_and_batch_padding():
     db = random_data(400, 16)
-    index = KeyframeIndex(tree_config(min_tree_size=200))
+    index = KeyframeIndex(tree_config(exact_below=200))
     index.add(db, ids=torch.arange(400) + 100)  # ids 100..499
     q = db[[350, 10, 200]]
     ids, sims = index.search(q, k=4, max_id=torch.tensor([430, 102, 99]))
@@ -233,7 +248,7 @@ def test_devices_and_dtypes_follow_query():
 
 def test_similarities_exact_and_sampled():
     db = random_data(300, 16)
-    index = KeyframeIndex(tree_config(min_tree_size=100))
+    index = KeyframeIndex(tree_config(exact_below=100))
     index.add(db, ids=torch.arange(300) * 3)
     ids, sims = index.similarities(db[5], max_id=3 * 199)
     assert torch.equal(ids, torch.arange(200) * 3)
@@ -359,3 +374,253 @@ def test_detector_errors():
         det.similarities(3)
     with pytest.raises(ValueError):
         LoopDetectorConfig(top_k=0)
+
+
+# ------------------------------------------------------------------ backends: auto, faiss, PCA codes
+needs_faiss = pytest.mark.skipif(not faiss_available(), reason="faiss not installed (pip install attnloop[faiss])")
+
+
+def recall_at(ids: torch.Tensor, ref: torch.Tensor) -> float:
+    k = ref.shape[1]
+    return float(np.mean([len(set(a.tolist()) & set(b.tolist())) / k for a, b in zip(ids, ref)]))
+
+
+def test_auto_backend_is_exact_below_the_size_then_a_structure(monkeypatch):
+    db = clustered_data(1500, 32, seed=3)
+    index = KeyframeIndex(IndexConfig(exact_below=1000, background=False))
+    assert index.backend == ("faiss" if faiss_available() else "flann")
+    index.add(db[:999])
+    assert index.n_indexed == 0 and index.num_builds == 0
+    q = _unit(db[5] + 0.1 * random_data(1, 32, seed=4)[0])
+    ids, sims = index.search(q, k=10)
+    ref_ids, ref_sims = brute(db[:999], q, 10)
+    assert torch.equal(ids, ref_ids)
+    torch.testing.assert_close(sims, ref_sims)
+    index.add(db[999:])
+    assert index.num_builds == 1 and index.n_indexed > 0
+    # Without faiss, "auto" is the FLANN tree; asking for faiss then says how to install it.
+    monkeypatch.setattr("attnloop.index.config.faiss_available", lambda: False)
+    assert resolve_backend("auto") == "flann" and KeyframeIndex().backend == "flann"
+    with pytest.raises(ImportError, match="attnloop\\[faiss\\]"):
+        KeyframeIndex(IndexConfig(backend="faiss"))
+    with pytest.raises(ValueError, match="backend"):
+        IndexConfig(backend="hnsw")
+
+
+@needs_faiss
+@pytest.mark.parametrize("reduce_dim", [None, 32])
+def test_faiss_recall_window_and_growth(reduce_dim):
+    d = 128
+    db = clustered_data(4000, d, clusters=100, spread=0.6, seed=2)
+    cfg = IndexConfig(backend="faiss", exact_below=1000, reduce_dim=reduce_dim, background=False)
+    index = KeyframeIndex(cfg)
+    for start in range(0, 4000, 400):
+        index.add(db[start: start + 400], ids=torch.arange(start, start + 400) * 2)
+        assert index.n_indexed == len(index) or len(index) < 1000  # every add extends the graph
+    assert index.num_builds >= 1
+    queries = _unit(db[torch.arange(0, 4000, 40)] + 0.3 * random_data(100, d, seed=5))
+    for max_row in (None, 3969, 1600):  # no window, a SLAM-like window of 30 rows, a deep cut
+        ids, _ = index.search(queries, k=10, max_id=None if max_row is None else 2 * max_row)
+        ref, _ = exact_search(db[: (4000 if max_row is None else max_row + 1)], queries, 10)
+        assert (ids % 2 == 0).all() and (max_row is None or (ids <= 2 * max_row).all())
+        assert recall_at(ids // 2, ref) >= 0.95, (max_row, recall_at(ids // 2, ref))
+
+
+@needs_faiss
+def test_faiss_streaming_one_keyframe_at_a_time():
+    # The SLAM use: query (window 30) then add, one keyframe at a time, across the exact -> graph switch.
+    d = 64
+    view = _trajectory(150, d=d, seed=3)
+    index = KeyframeIndex(IndexConfig(backend="faiss", exact_below=300, reduce_dim=16, background=False))
+    found = hits = 0
+    for i in range(900):
+        q = view(i % 150)
+        ids, _sims = index.search(q, k=3, max_id=i - 30)
+        assert (ids <= i - 30).all()
+        if 0 < i - 29 < 300:  # fewer eligible rows than exact_below: a scan
+            ref_ids, _ = brute(index.descriptors, _unit(q), 3, i - 30)
+            assert torch.equal(ids, ref_ids)
+        if i >= 300 and ids.numel():
+            found += 1
+            hits += int(ids[0]) % 150 == i % 150  # the same place on an earlier lap
+        index.add(q, ids=[i])
+    assert index.num_builds >= 1 and index.n_indexed == 900
+    assert found == 600 and hits == found
+
+
+def test_pca_code_identities():
+    g = torch.Generator().manual_seed(0)
+    basis = torch.linalg.qr(torch.randn(32, 5, generator=g))[0]  # a 5-d subspace of R^32
+    x = (torch.randn(600, 5, generator=g) @ basis.t() + 0.3).numpy().astype(np.float32)
+    code = fit_pca(x, dim=5)
+    assert code.dim == 5 and code.kept == pytest.approx(1.0, abs=1e-5)
+    np.testing.assert_allclose(code.components.T @ code.components, np.eye(5), atol=1e-5)
+    z = code.encode(x[:50])
+    np.testing.assert_allclose(np.linalg.norm(z[:, None] - z[None], axis=-1),  # an isometry on the data
+                               np.linalg.norm(x[:50, None] - x[None, :50], axis=-1), atol=1e-4)
+    _, (kept, total) = code.encode(x[:50], energy=True)
+    xc = x[:50] - code.mean
+    np.testing.assert_allclose(kept, (z ** 2).sum(1), rtol=1e-4)
+    np.testing.assert_allclose(total, (xc ** 2).sum(1), rtol=1e-4)
+    # Two components of five keep the share of the two largest variances.
+    x2 = (torch.randn(4000, 5, generator=g) * torch.tensor([5.0, 4.0, 1.0, 1.0, 1.0])) @ basis.t()
+    two = fit_pca(x2.numpy(), dim=2)
+    assert two.kept == pytest.approx(41.0 / 44.0, abs=0.01)
+    # Whitening: unit-variance components (before the codes are L2-normalised).
+    w = fit_pca(x2.numpy(), dim=2, whiten=True)
+    raw = (x2.numpy() - w.mean) @ w.components * w.scale
+    np.testing.assert_allclose(raw.std(0), [1.0, 1.0], rtol=0.05)
+    np.testing.assert_allclose(np.linalg.norm(w.encode(x2.numpy()[:10]), axis=1), 1.0, rtol=1e-5)
+    # More components than the fitting rows support: only those with variance are kept.
+    assert fit_pca(x[:20], dim=64).dim == 19  # 20 rows span at most 19 directions about their mean
+    with pytest.raises(ValueError, match="dimension 32"):
+        code.encode(np.zeros((2, 31), np.float32))
+
+
+@needs_faiss
+def test_faiss_code_is_refit_as_the_rows_grow():
+    g = torch.Generator().manual_seed(1)
+    q_all = torch.linalg.qr(torch.randn(64, 16, generator=g))[0]
+    area_a, area_b = q_all[:, :8], q_all[:, 8:]  # two orthogonal 8-d subspaces: two unlike places
+    a = _unit(torch.randn(600, 8, generator=g) @ area_a.t())
+    b = _unit(torch.randn(600, 8, generator=g) @ area_b.t())
+    for growth, builds in ((1.0, 2), (float("inf"), 1)):
+        cfg = IndexConfig(backend="faiss", exact_below=500, reduce_dim=8, background=False,
+                          faiss=FaissConfig(retrain_growth=growth))
+        index = KeyframeIndex(cfg)
+        index.add(a[:500])
+        code = index._structure.code
+        assert index.num_builds == 1 and code.kept > 0.99
+        _, (kept, total) = code.encode(b.numpy(), energy=True)
+        assert kept.sum() / total.sum() < 0.2  # the second place is nearly invisible to the first fit
+        index.add(a[500:])
+        index.add(b[:399])
+        assert index.num_builds == 1  # 999 rows: not yet twice the 500 it was fitted on
+        index.add(b[399:])
+        assert index.num_builds == builds, growth
+        assert index.n_indexed == 1200 and index._structure.n_trained == (1200 if builds == 2 else 500)
+        # After the refit the code represents the second place (8 of the 16 directions were fitted).
+        _, (kept, total) = index._structure.code.encode(b.numpy(), energy=True)
+        assert (kept.sum() / total.sum() > 0.3) == (builds == 2)
+        ids, _ = index.search(b[-1], k=1, max_id=1198)
+        assert ids.numel() == 1
+
+
+def test_float16_storage_halves_memory_and_scans_exactly():
+    db = random_data(20000, 8, seed=21)  # more rows than one float16 chunk (16384)
+    i16 = KeyframeIndex(IndexConfig(backend="exact", storage="float16"))
+    i32 = KeyframeIndex(IndexConfig(backend="exact"))
+    i16.add(db)
+    i32.add(db)
+    assert i16._store.nbytes - 16 * 20000 == (i32._store.nbytes - 16 * 20000) // 2
+    rounded = db.half().float()
+    q = random_data(1, 8, seed=22)[0]
+    ids, sims = i16.search(q, k=5)
+    ref_ids, ref_sims = brute(rounded, q, 5)
+    assert torch.equal(ids, ref_ids)
+    torch.testing.assert_close(sims, ref_sims, atol=1e-6, rtol=0)
+    s_ids, s = i16.similarities(q, max_id=19_000, max_samples=3000)  # a stride across chunk boundaries
+    torch.testing.assert_close(s, rounded[s_ids] @ q, atol=1e-6, rtol=0)
+    assert s_ids.tolist() == list(range(0, 19_001, 7))
+    torch.testing.assert_close(i16.descriptors_of([3, 19_999]), rounded[[3, 19_999]])
+
+
+# ------------------------------------------------------------------ persistence
+def _persist_configs():
+    out = [
+        ("exact", IndexConfig(backend="exact")),
+        ("flann+tail", tree_config(reduce_dim=16, flann={"rebuild_every": 10_000, "checks": 32})),
+        ("flann-float16", tree_config(storage="float16", flann={"checks": 32})),
+    ]
+    if faiss_available():
+        out += [("faiss", IndexConfig(backend="faiss", exact_below=256, reduce_dim=None, background=False)),
+                ("faiss+pca", IndexConfig(backend="faiss", exact_below=256, reduce_dim=16, whiten=True,
+                                          background=False))]
+    return out
+
+
+@pytest.mark.parametrize("name,cfg", _persist_configs(), ids=[n for n, _ in _persist_configs()])
+def test_save_load_round_trip_gives_identical_answers(tmp_path, name, cfg):
+    import io
+
+    db = clustered_data(1200, 48, seed=8)
+    index = KeyframeIndex(cfg)
+    index.add(db[:700], ids=torch.arange(700) * 3, timestamps=torch.arange(700) * 0.5)
+    if name == "flann+tail":
+        index.rebuild()
+    index.add(db[700:], ids=torch.arange(700, 1200) * 3)  # a tail for FLANN, graph extension for faiss
+    path = tmp_path / "index.npz"
+    index.save(path)
+    buf = io.BytesIO()
+    index.save(buf)
+    buf.seek(0)
+    for loaded in (KeyframeIndex.load(path), KeyframeIndex.load(buf)):
+        assert loaded.backend == index.backend and loaded.config == index.config
+        assert loaded.n_indexed == index.n_indexed and len(loaded) == 1200
+        assert torch.equal(loaded.ids, index.ids)
+        torch.testing.assert_close(loaded.timestamps, index.timestamps, equal_nan=True)
+        queries = _unit(db[::60] + 0.2 * random_data(20, 48, seed=9))
+        for max_id in (None, 3 * 1100, 3 * 650, 3 * 100):
+            a, sa = index.search(queries, k=10, max_id=max_id)
+            b, sb = loaded.search(queries, k=10, max_id=max_id)
+            assert torch.equal(a, b), (name, max_id)
+            assert torch.equal(sa, sb)
+        assert torch.equal(index.similarities(queries[0], max_samples=100)[1],
+                           loaded.similarities(queries[0], max_samples=100)[1])
+    # Growing on after a reload works as before (and the reloaded index builds like the original).
+    loaded.add(db[:300], ids=torch.arange(3600, 3900))
+    assert len(loaded) == 1500 and loaded.search(db[0], k=1)[0].item() in (0, 3600)
+
+
+def test_load_with_another_config_rebuilds(tmp_path):
+    db = clustered_data(1500, 32, seed=10)
+    index = KeyframeIndex(tree_config(flann={"checks": 8}))
+    index.add(db)
+    index.save(tmp_path / "i.npz")
+    loaded = KeyframeIndex.load(tmp_path / "i.npz", config=IndexConfig(backend="exact"))
+    assert loaded.backend == "exact" and loaded.n_indexed == 0 and len(loaded) == 1500
+    q = random_data(1, 32, seed=11)[0]
+    assert torch.equal(loaded.search(q, k=5)[0], brute(db, q, 5)[0])
+
+
+def test_index_file_errors_name_the_file(tmp_path):
+    good = KeyframeIndex(IndexConfig(backend="exact"))
+    good.add(random_data(10, 4))
+    with pytest.raises(FileNotFoundError):
+        KeyframeIndex.load(tmp_path / "missing.npz")
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip file")
+    with pytest.raises(IndexFileError, match="junk.npz"):
+        KeyframeIndex.load(junk)
+    state = good.state_dict()
+    meta = state.pop("meta")
+
+    def write(name, meta_obj, **arrays):
+        path = tmp_path / name
+        np.savez(path, **({} if meta_obj is None else {"meta": np.array(json.dumps(meta_obj))}),
+                 **{**state, **arrays})
+        return path
+
+    with pytest.raises(IndexFileError, match="nometa.npz: no 'meta'"):
+        KeyframeIndex.load(write("nometa.npz", None))
+    with pytest.raises(IndexFileError, match="format"):
+        KeyframeIndex.load(write("other.npz", {**meta, "format": "something else"}))
+    with pytest.raises(IndexFileError, match="version 99"):
+        KeyframeIndex.load(write("newer.npz", {**meta, "version": 99}))
+    with pytest.raises(IndexFileError, match=r"shape \(9, 4\)"):
+        KeyframeIndex.load(write("shape.npz", meta, descriptors=state["descriptors"][:9]))
+    with pytest.raises(IndexFileError, match="increasing"):
+        KeyframeIndex.load(write("ids.npz", meta, ids=state["ids"][::-1].copy()))
+    with pytest.raises(IndexFileError, match="no setting"):
+        KeyframeIndex.load(write("cfg.npz", {**meta, "config": {**meta["config"], "checks": 5}}))
+    (tmp_path / "bad.npz").write_bytes(b"")
+    with pytest.raises(IndexFileError, match="bad.npz"):
+        load_index(tmp_path / "bad.npz")
+
+
+def test_config_dict_round_trip():
+    cfg = IndexConfig(backend="flann", reduce_dim=None, flann=FlannConfig(checks=-1),
+                      faiss=FaissConfig(retrain_growth=float("inf")))
+    d = config_to_dict(cfg)
+    assert json.loads(json.dumps(d)) == d and d["faiss"]["retrain_growth"] == "inf"
+    assert config_from_dict(d) == cfg

@@ -1,9 +1,8 @@
 """Gauss-Newton / Levenberg-Marquardt on pose graphs: exact solutions, loop closing, solvers, gauge,
 robust kernels, the planar reduction, errors, and agreement with GTSAM on a shared benchmark file.
 
-Every test runs three times: with the C kernels of slam.graph.host (what "auto" picks on the CPU when they
-were built), on its numpy functions, and on the torch path (slam.graph.fused, what runs on other devices),
-forced through ``slam.graph.optimizer._backend``.
+Every test runs three times: on the torch reference (the default backend), and on the accelerator's C kernels
+and its numpy functions (slam.graph.accel), forced through ``slam.graph.optimizer._backend``.
 """
 import math
 
@@ -17,13 +16,13 @@ from slam.graph import (
     PoseGraph,
     PoseGraphOptimizer,
     Status,
+    compiled_kernels,
     edge_chi2,
     edge_residuals,
     graph_chi2,
     optimize,
     read_g2o,
 )
-from slam.graph.host import compiled_kernels
 from slam.lie import se3_between, se3_compose, se3_exp, se3_log
 
 F64 = torch.float64
@@ -31,17 +30,24 @@ F64 = torch.float64
 
 @pytest.fixture(autouse=True, params=["c", "numpy", "torch"])
 def backend(request, monkeypatch):
-    """Run the test on every backend where ``backend="auto"`` (the C and numpy paths fall back to torch
-    where they must, e.g. the prior gauge)."""
+    """Run the test on every backend: a call of this module that names no backend runs as ``backend="auto"``
+    forced to the parameter's (the C and numpy paths fall back to torch where they must, e.g. the prior
+    gauge)."""
     if request.param == "c" and not compiled_kernels():
-        pytest.skip("the C kernels slam.graph._kernels were not built")
-    real = optimizer_module._backend
+        pytest.skip("the C kernels slam.graph.accel._kernels were not built")
+    real_backend, real_optimize = optimizer_module._backend, optimize
 
     def forced(graph, cfg, gauge):
-        got = real(graph, cfg, gauge)
+        got = real_backend(graph, cfg, gauge)
         return got if cfg.backend != "auto" or got == "torch" else request.param
 
+    def on_backend(graph, *args, **kwargs):
+        if "backend" not in kwargs and "config" not in kwargs:
+            kwargs["backend"] = "auto" if request.param != "torch" else "torch"
+        return real_optimize(graph, *args, **kwargs)
+
     monkeypatch.setattr(optimizer_module, "_backend", forced)
+    monkeypatch.setitem(globals(), "optimize", on_backend)
     return request.param
 
 

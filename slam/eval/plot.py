@@ -221,6 +221,7 @@ def plot_trajectory(
     align: bool = True,
     size: tuple[int, int] = (800, 700),
     title: str | None = None,
+    labels: tuple[str, str] = ("ground truth", "estimate"),
 ) -> np.ndarray:
     """Draw the estimated trajectory (and the ground truth) seen from above, with loop edges.
 
@@ -235,12 +236,15 @@ def plot_trajectory(
         align: rigidly align the estimate to the reference first (as the ATE does) so both share a frame.
         size: ``(W, H)`` pixels.
         title: figure title (default names the plane).
+        labels: legend entries of the reference and of the estimate.
 
     Returns:
         the ``(H, W, 3)`` uint8 BGR image.
     """
     if not isinstance(estimate, Trajectory):
         raise TypeError(f"estimate must be a Trajectory, got {type(estimate).__name__}")
+    if len(labels) != 2 or not all(isinstance(s, str) for s in labels):
+        raise ValueError(f"labels must be two strings (reference, estimate), got {labels!r}")
     est_pos = estimate.poses[:, :3].detach().to("cpu", torch.float64)
     ref_pos = None
     if reference is not None:
@@ -279,9 +283,9 @@ def plot_trajectory(
     legend = []
     if len(ref2):
         ax.polyline(img, ref2, GREY, 2)
-        legend.append(("ground truth", GREY, "line"))
+        legend.append((labels[0], GREY, "line"))
     ax.polyline(img, est2, PALETTE[0], 2)
-    legend.append(("estimate" + (" (aligned)" if ref_pos is not None and align else ""), PALETTE[0], "line"))
+    legend.append((labels[1] + (" (aligned)" if ref_pos is not None and align else ""), PALETTE[0], "line"))
     if loops is not None and len(loops) and len(est2):
         loops_np = torch.as_tensor(loops).detach().to("cpu", torch.float64).numpy().reshape(-1, 2)
         stamps = estimate.timestamps.detach().to("cpu", torch.float64).numpy()

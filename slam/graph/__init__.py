@@ -10,6 +10,8 @@ Example:
     >>> res.graph.poses.shape, round(res.chi2, 9), str(res.status)
     (torch.Size([2, 7]), 0.0, 'converged')
 """
+from slam.graph.accel import compiled_kernels
+from slam.graph.config import OptimizerConfig
 from slam.graph.costs import (
     CHI2_95_6DOF,
     Cauchy,
@@ -25,7 +27,6 @@ from slam.graph.costs import (
     make_kernel,
 )
 from slam.graph.g2o import G2OFormatError, read_g2o, write_g2o
-from slam.graph.host import compiled_kernels
 from slam.graph.linear import (
     DenseCholeskySolver,
     LinearSolver,
@@ -35,8 +36,9 @@ from slam.graph.linear import (
     SuperLUSolver,
     make_solver,
 )
-from slam.graph.optimizer import OptimizationResult, OptimizerConfig, PoseGraphOptimizer, Status, optimize
+from slam.graph.optimizer import PoseGraphOptimizer, optimize
 from slam.graph.pose_graph import PoseGraph
+from slam.graph.result import OptimizationResult, Status
 
 __all__ = [
     "CHI2_95_6DOF",

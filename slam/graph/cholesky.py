@@ -20,7 +20,7 @@ in order of their height in the elimination tree (those of one height and one sh
 factoring its pivot block with ``potrf``, its rows with ``trsm``, and adding its update ``-L21 L21^T``
 (lower triangle, packed) straight into the panels of the supernodes that own its columns. Nothing but the
 factor is stored: a multifrontal scheme keeps every update matrix until its parent is done, which took
-4x the factor's memory on a 20000-pose graph. On the CPU, when the C kernels of ``slam.graph._kernels``
+4x the factor's memory on a 20000-pose graph. On the CPU, when the C kernels of ``slam.graph.accel._kernels``
 were built, supernodes with fronts of at most ``_C_MAX_FRONT`` rows are factored and solved there, a
 group per call with plain loops (most supernodes of a pose graph are small: LAPACK's or torch's ~20 us
 per call were most of a 500-pose factorisation); the larger ones keep LAPACK.
@@ -42,78 +42,16 @@ from __future__ import annotations
 import functools
 import itertools
 import threading
+from dataclasses import dataclass
 
 import numpy as np
 
-from slam.graph import _compiled
+from slam.graph.accel import _compiled
+from slam.graph.blas_threads import limit_blas_threads
 
 _EMPTY = np.zeros(0, dtype=np.int64)
 
-__all__ = ["NotPositiveDefiniteError", "NumericCholesky", "SymbolicCholesky", "limit_blas_threads"]
-
-_OPENBLAS = None  # (get, set) thread functions of the OpenBLAS builds loaded in this process
-
-
-def _openblas_thread_functions():
-    """Find the loaded OpenBLAS libraries (numpy's and scipy's wheels each bundle one) by their path in
-    ``/proc/self/maps`` and return their ``(get_num_threads, set_num_threads)`` (Linux only; [] else)."""
-    global _OPENBLAS
-    if _OPENBLAS is not None:
-        return _OPENBLAS
-    import ctypes
-
-    import scipy.linalg.blas  # noqa: F401  (load scipy's BLAS before looking)
-
-    found = []
-    try:
-        with open("/proc/self/maps") as fh:
-            paths = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower() and "/" in ln})
-    except OSError:
-        paths = []
-    for path in paths:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for prefix, suffix in (("scipy_openblas", "64_"), ("scipy_openblas", ""), ("openblas", "64_"),
-                               ("openblas", "")):
-            try:
-                get = getattr(lib, f"{prefix}_get_num_threads{suffix}")
-                put = getattr(lib, f"{prefix}_set_num_threads{suffix}")
-            except AttributeError:
-                continue
-            found.append((get, put))
-            break
-    _OPENBLAS = found
-    return found
-
-
-class limit_blas_threads:
-    """Context manager: OpenBLAS (numpy's and scipy's) uses ``n`` threads inside, the old count after.
-
-    The factorisation makes many small BLAS calls; OpenBLAS threads some of them (e.g. a 60 x 18
-    ``trsm``), which on a busy CPU took 16 ms instead of 3 us. ``n=None`` changes nothing.
-    """
-
-    def __init__(self, n):
-        self.n = n
-        self.saved = []
-
-    def __enter__(self):
-        if self.n is not None:
-            for get, put in _openblas_thread_functions():
-                old = get()
-                if old != self.n:
-                    put(int(self.n))
-                    self.saved.append((put, old))
-        return self
-
-    def __exit__(self, *exc):
-        for put, old in self.saved:
-            put(old)
-        self.saved = []
-        return False
-
+__all__ = ["NotPositiveDefiniteError", "NumericCholesky", "SymbolicCholesky"]
 
 class NotPositiveDefiniteError(RuntimeError):
     """The matrix is not (numerically) positive definite."""
@@ -204,8 +142,259 @@ class _Ticker:
         self.last = now
 
 
+@dataclass
+class _Tree:
+    """The supernodal elimination tree of a block pattern, in the order the factor is stored.
+
+    Attributes:
+        order: ``(n,)`` position -> original block variable (fill-reducing, postordered, group-major).
+        lab: ``(n,)`` position in the postorder -> final position (what the row structures are mapped by).
+        first: ``ns + 1`` first postorder column of each supernode (then ``n``).
+        ncols, nrows: per supernode its block columns and the block rows below its pivot block.
+        sn_parent, height: per supernode its parent (-1 for a root) and its height in the tree.
+        groups: ``((height, ncols, nrows), [supernodes])`` sorted: the batches factored together.
+        nf: ``(ns,)`` final first column of each supernode.
+        struct: per postorder column the set of block rows below the diagonal (postorder labels).
+    """
+
+    order: np.ndarray
+    lab: np.ndarray
+    first: list
+    ncols: list
+    nrows: list
+    sn_parent: list
+    height: list
+    groups: list
+    nf: np.ndarray
+    struct: list
+
+
+def _permuted(bptr: np.ndarray, bcol: np.ndarray, order: np.ndarray):
+    """The pattern (CSR ``bptr, bcol``) with rows and columns renumbered by ``order`` (position -> variable):
+    ``(rows, cols)`` sorted by row then column, and the row pointers."""
+    n = order.shape[0]
+    iperm = np.empty(n, dtype=np.int64)
+    iperm[order] = np.arange(n)
+    rows = iperm[np.repeat(np.arange(n), np.diff(bptr))]
+    cols = iperm[bcol]
+    srt = np.lexsort((cols, rows))
+    pr, pc = rows[srt], cols[srt]
+    return pr, pc, np.searchsorted(pr, np.arange(n + 1))
+
+
+def _postordered_etree(n: int, bptr: np.ndarray, bcol: np.ndarray, order: np.ndarray):
+    """The elimination tree of the pattern in ``order``, postordered: ``(order, parent)`` with ``order`` the
+    postordered position -> variable and ``parent`` (list) in the same numbering."""
+    _, pc, ptr = _permuted(bptr, bcol, order)
+    parent0 = _etree(n, ptr, pc)
+    post = np.asarray(_postorder(parent0), dtype=np.int64)  # post[q] = node (in the first numbering)
+    newpos = np.empty(n, dtype=np.int64)
+    newpos[post] = np.arange(n)
+    par0 = np.asarray(parent0, dtype=np.int64)[post]
+    return order[post], np.where(par0 >= 0, newpos[par0], -1).tolist()
+
+
+def _column_structures(n: int, parent: list, pr: np.ndarray, pc: np.ndarray) -> list:
+    """Per column the set of rows strictly below the diagonal in the factor (its entries of the pattern and
+    its children's structures: the fill)."""
+    children: list[list[int]] = [[] for _ in range(n)]
+    for j in range(n):
+        if parent[j] >= 0:
+            children[parent[j]].append(j)
+    # the entries right of the diagonal, selected once (vectorised) rather than tested in the loop
+    up = pc > pr
+    uptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pr[up], minlength=n), out=uptr[1:])
+    ucol, up_ = pc[up].tolist(), uptr.tolist()
+    struct: list[set] = [None] * n  # type: ignore[list-item]
+    for j in range(n):
+        s = set(ucol[up_[j]:up_[j + 1]])
+        for c in children[j]:
+            s |= struct[c]
+        s.discard(j)
+        struct[j] = s
+    return struct
+
+
+def _relaxed_supernodes(n: int, parent: list, struct: list, relax) -> list:
+    """First columns of the relaxed supernodes, runs of consecutive columns along etree chains (then ``n``);
+    ``relax`` as in :class:`SymbolicCholesky`."""
+    first = [0] if n else []  # no variables (every pose fixed): no supernode
+    zeros = 0  # explicit zeros (in blocks) of the current supernode
+    for j in range(1, n):
+        f = first[-1]
+        if parent[j - 1] == j:
+            nc = j - f + 1  # merged number of block columns
+            r_prev, r_new = len(struct[j - 1]), len(struct[j])
+            extra = (j - f) * (1 + r_new - r_prev)
+            nz = zeros + extra
+            total = nc * (nc + 1) // 2 + nc * r_new
+            frac = nz / total
+            if any(nc <= mc and frac <= mz for mc, mz in relax):
+                zeros = nz
+                continue
+        first.append(j)
+        zeros = 0
+    first.append(n)
+    return first
+
+
+def _supernode_tree(pattern, relax) -> _Tree:
+    """Ordering, elimination tree, column structures, relaxed supernodes and their level schedule, and the
+    final group-major numbering of the columns."""
+    n = pattern.num_vars
+    bptr, bcol = _block_graph(pattern)
+    order, parent = _postordered_etree(n, bptr, bcol, _mmd_order(n, bptr, bcol))
+    pr, pc, _ = _permuted(bptr, bcol, order)
+    struct = _column_structures(n, parent, pr, pc)
+    first = _relaxed_supernodes(n, parent, struct, relax)
+    ns = len(first) - 1
+    sn_of = np.empty(n, dtype=np.int64)
+    for s in range(ns):
+        sn_of[first[s]:first[s + 1]] = s
+    sn_parent = [int(sn_of[parent[first[s + 1] - 1]]) if parent[first[s + 1] - 1] >= 0 else -1
+                 for s in range(ns)]
+    ncols = [first[s + 1] - first[s] for s in range(ns)]
+    nrows = [len(struct[first[s + 1] - 1]) for s in range(ns)]
+    # level schedule: a supernode's height is 1 + the largest height of its children; supernodes of one
+    # height are independent, and those of one front shape are factored as one batch ("group")
+    height = [0] * ns
+    for s in range(ns):  # children come before parents (postorder)
+        if sn_parent[s] >= 0:
+            height[sn_parent[s]] = max(height[sn_parent[s]], height[s] + 1)
+    groups: dict = {}
+    for s in range(ns):
+        groups.setdefault((height[s], ncols[s], nrows[s]), []).append(s)
+    group_list = sorted(groups.items())
+    # relabel the columns so that every group is one contiguous run: a height-major order is a
+    # topological order of the elimination tree, so the fill is unchanged, and the solves can take
+    # each group's unknowns as a slice
+    lab = np.empty(n, dtype=np.int64)
+    nf = np.empty(ns, dtype=np.int64)  # new first column of each supernode
+    pos = 0
+    for _, sns in group_list:
+        for s in sns:
+            nf[s] = pos
+            lab[first[s]:first[s + 1]] = np.arange(pos, pos + ncols[s])
+            pos += ncols[s]
+    final = np.empty(n, dtype=np.int64)
+    final[lab] = order
+    return _Tree(final, lab, first, ncols, nrows, sn_parent, height, group_list, nf, struct)
+
+
+class _Layout:
+    """Where each supernode's front lives: its row structure ``R_s`` (new labels, sorted) and its panel's
+    offset in the factor's buffer; :meth:`local` places a block row in a front."""
+
+    def __init__(self, tree: _Tree, k: int):
+        n, ns = tree.order.shape[0], len(tree.ncols)
+        self.n, self.k = n, k
+        self.nrows = np.asarray(tree.nrows, dtype=np.int64)
+        self.ncols = np.asarray(tree.ncols, dtype=np.int64)
+        self.nf = tree.nf
+        # row structures R_s, concatenated
+        self.roff = np.zeros(ns + 1, dtype=np.int64)
+        self.roff[1:] = np.cumsum(self.nrows)
+        seg = np.repeat(np.arange(ns), self.nrows)
+        first = tree.first
+        rcat = tree.lab[np.fromiter(itertools.chain.from_iterable(tree.struct[first[s + 1] - 1] for s in range(ns)),
+                                    dtype=np.int64, count=int(self.roff[-1]))]
+        self.rcat = rcat[np.lexsort((rcat, seg))]
+        self.rkeys = seg * n + self.rcat  # sorted: (supernode, row)
+        # panel storage: the panels of a group one after the other (m * p values each, row-major: the
+        # pivot block F11 (p x p) above F21 (d x p)), so a group is a (B, m, p) view. The factor is computed
+        # in place in the panels. There are no frontal update matrices (F22): every supernode's update
+        # -L21 L21^T goes straight to the panels of the supernodes that own its columns (right-looking),
+        # which keeps the memory at the size of the factor (multifrontal storage of the F22 blocks took
+        # 4x the factor on a 20000-pose graph).
+        self.off = np.zeros(ns, dtype=np.int64)
+        pos = 0
+        for (_, c, r), sns in tree.groups:
+            self.off[sns] = pos + k * k * (c + r) * c * np.arange(len(sns))
+            pos += k * k * (c + r) * c * len(sns)
+        self.buffer_size = int(pos)
+        # the supernode owning each final column
+        by_first = np.argsort(self.nf)
+        self.owner = np.repeat(np.arange(ns)[by_first], self.ncols[by_first])
+
+    def local(self, sn: np.ndarray, blk: np.ndarray) -> np.ndarray:
+        """Position of block ``blk`` in the front of supernode ``sn`` (its columns, then R_sn)."""
+        inside = blk < self.nf[sn] + self.ncols[sn]
+        pos_r = np.searchsorted(self.rkeys, sn * self.n + blk) - self.roff[sn]
+        return np.where(inside, blk - self.nf[sn], self.ncols[sn] + pos_r)
+
+
+def _gather_map(pattern, tree: _Tree, lay: _Layout):
+    """``(src, dst)``: H's block-major values go to the panels in runs of ``k`` (row ``a`` of a ``k x k``
+    block, contiguous in both; every panel offset and row stride is a multiple of ``k``): run indices, ``k``
+    times fewer than scalar ones (and copying rows of k values: parking-garage fill 1.2 -> 0.6 ms). Entry
+    ``(row, col)``, ``row >= col`` (new labels), belongs to the panel of col's supernode at local ``(row, col)``."""
+    k, nb = lay.k, pattern.num_blocks
+    iperm = np.empty(lay.n, dtype=np.int64)
+    iperm[tree.order] = np.arange(lay.n)
+    bpos = np.arange(nb * k * k, dtype=np.int64).reshape(nb, k, k)  # block-major value positions
+    prow, pcol = iperm[pattern.block_rows.cpu().numpy()], iperm[pattern.block_cols.cpu().numpy()]
+    keep = np.nonzero(prow >= pcol)[0]
+    prow, pcol, bpos = prow[keep], pcol[keep], bpos[keep]
+    sn_blk = lay.owner[pcol]
+    lr = lay.local(sn_blk, prow)
+    lc = pcol - lay.nf[sn_blk]
+    p_blk = k * lay.ncols[sn_blk]  # row stride of the panel
+    ar = np.arange(k)
+    dst = lay.off[sn_blk][:, None] + (lr[:, None] * k + ar) * p_blk[:, None] + lc[:, None] * k
+    return bpos[:, :, 0].reshape(-1) // k, dst.reshape(-1) // k
+
+
+def _factor_groups(tree: _Tree, lay: _Layout) -> list:
+    """The :class:`_Group` objects: per batch its scalar rows (for the solves) and the int32 positions its
+    updates go to, made for all supernodes at once in group order."""
+    k, ns = lay.k, len(tree.ncols)
+    ar = np.arange(k)
+    gorder = np.fromiter(itertools.chain.from_iterable(sns for _, sns in tree.groups), dtype=np.int64, count=ns)
+    glen = lay.nrows[gorder]
+    gstart = np.zeros(ns + 1, dtype=np.int64)
+    gstart[1:] = np.cumsum(glen)
+    at = np.repeat(lay.roff[gorder] - gstart[:-1], glen) + np.arange(int(gstart[-1]))
+    rows_all = (lay.rcat[at][:, None] * k + ar).reshape(-1)  # block rows -> scalar rows
+    gstart *= k
+    # where each update goes (see _update_positions), at the level of block pairs: pair (alpha >= beta) of
+    # supernode s is rows (alpha, beta) of R_s; its entry (alpha k, beta k) lands in the panel of the owner
+    # of column block beta at ``base``, and its rows are ``pt`` apart (the owner's panel width). The first
+    # r (r + 1) / 2 row-major lower pairs of any larger triangle are those of an r x r one.
+    npair = glen * (glen + 1) // 2
+    pstart = np.zeros(ns + 1, dtype=np.int64)
+    pstart[1:] = np.cumsum(npair)
+    AL, BE = np.tril_indices(int(glen.max()) if ns else 0)
+    q = np.arange(int(pstart[-1])) - np.repeat(pstart[:-1], npair)
+    s_pair = np.repeat(gorder, npair)
+    a_blk = lay.rcat[lay.roff[s_pair] + AL[q]]
+    b_blk = lay.rcat[lay.roff[s_pair] + BE[q]]
+    own = lay.owner[b_blk]
+    pair_pt = k * lay.ncols[own]
+    pair_base = lay.off[own] + lay.local(own, a_blk) * k * pair_pt + (b_blk - lay.nf[own]) * k
+    groups = []
+    i0 = 0
+    for (_, c, r), sns in tree.groups:
+        p, m = k * c, k * (c + r)
+        B = len(sns)
+        if r:
+            rows = rows_all[gstart[i0]:gstart[i0 + B]]
+            sl = slice(pstart[i0], pstart[i0 + B])
+            upd = _update_positions(pair_base[sl].reshape(B, -1), pair_pt[sl].reshape(B, -1), k * r, k)
+        else:
+            rows, upd = _EMPTY, _EMPTY.astype(np.int32)
+        groups.append(_Group(B, p, m, int(lay.off[sns[0]]), int(k * tree.nf[sns[0]]), rows, upd))
+        i0 += B
+    return groups
+
+
 class SymbolicCholesky:
     """Symbolic analysis of a :class:`~slam.graph.linear.BlockPattern` (done once per pattern).
+
+    The stages (each its own function): the supernodal elimination tree (:func:`_supernode_tree`: ordering,
+    etree, column structures, relaxed supernodes, level groups), the panel layout (:class:`_Layout`), the
+    gather map of ``H`` into the panels (:func:`_gather_map`) and the per-group solve rows and update
+    positions (:func:`_factor_groups`). ``timings`` holds their seconds.
 
     Args:
         pattern: the block pattern of the SPD matrix.
@@ -221,204 +410,25 @@ class SymbolicCholesky:
         n, k = pattern.num_vars, pattern.k
         self.n, self.k, self.size = n, k, n * k
         tick = _Ticker()
-        bptr, bcol = _block_graph(pattern)
-        order = _mmd_order(n, bptr, bcol)
-        iperm = np.empty(n, dtype=np.int64)
-        iperm[order] = np.arange(n)
-        # permuted adjacency (CSR, rows by new index)
-        rows_new = np.repeat(iperm, np.diff(bptr))
-        cols_new = iperm[bcol]
-        srt = np.lexsort((cols_new, rows_new))
-        pr, pc = rows_new[srt], cols_new[srt]
-        ptr = np.searchsorted(pr, np.arange(n + 1))
-        tick("order")
-        parent0 = _etree(n, ptr, pc)
-        post = np.asarray(_postorder(parent0), dtype=np.int64)  # post[q] = node (in MMD numbering)
-        newpos = np.empty(n, dtype=np.int64)
-        newpos[post] = np.arange(n)
-        par0 = np.asarray(parent0, dtype=np.int64)[post]
-        parent = np.where(par0 >= 0, newpos[par0], -1).tolist()
-        self.order = order[post]  # final: position -> original block variable
-        iperm = np.empty(n, dtype=np.int64)
-        iperm[self.order] = np.arange(n)
-        rows_f = iperm[np.repeat(np.arange(n), np.diff(bptr))]
-        cols_f = iperm[bcol]
-        srt = np.lexsort((cols_f, rows_f))
-        pr, pc = rows_f[srt], cols_f[srt]
-        ptr = np.searchsorted(pr, np.arange(n + 1))
-        tick("etree")
-        # column structures (strictly below the diagonal), children lists
-        children: list[list[int]] = [[] for _ in range(n)]
-        for j in range(n):
-            if parent[j] >= 0:
-                children[parent[j]].append(j)
-        # the entries right of the diagonal, selected once (vectorised) rather than tested in the loop
-        up = pc > pr
-        uptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(pr[up], minlength=n), out=uptr[1:])
-        ucol, up_ = pc[up].tolist(), uptr.tolist()
-        struct: list[set] = [None] * n  # type: ignore[list-item]
-        for j in range(n):
-            s = set(ucol[up_[j]:up_[j + 1]])
-            for c in children[j]:
-                s |= struct[c]
-            s.discard(j)
-            struct[j] = s
-        tick("struct")
-        # relaxed supernodes: runs [first, last] of consecutive columns along etree chains
-        first = [0] if n else []  # no variables (every pose fixed): no supernode
-        zeros = 0  # explicit zeros (in blocks) of the current supernode
-        for j in range(1, n):
-            f = first[-1]
-            if parent[j - 1] == j:
-                nc = j - f + 1  # merged number of block columns
-                r_prev, r_new = len(struct[j - 1]), len(struct[j])
-                extra = (j - f) * (1 + r_new - r_prev)
-                nz = zeros + extra
-                total = nc * (nc + 1) // 2 + nc * r_new
-                frac = nz / total
-                if any(nc <= mc and frac <= mz for mc, mz in relax):
-                    zeros = nz
-                    continue
-            first.append(j)
-            zeros = 0
-        first.append(n)
-        ns = len(first) - 1
-        self.num_supernodes = ns
-        sn_of = np.empty(n, dtype=np.int64)
-        for s in range(ns):
-            sn_of[first[s]:first[s + 1]] = s
-        sn_parent = [int(sn_of[parent[first[s + 1] - 1]]) if parent[first[s + 1] - 1] >= 0 else -1
-                     for s in range(ns)]
-        ncols = [first[s + 1] - first[s] for s in range(ns)]
-        nrows = [len(struct[first[s + 1] - 1]) for s in range(ns)]
-        tick("supernodes")
-        # level schedule: a supernode's height is 1 + the largest height of its children; supernodes of one
-        # height are independent, and those of one front shape are factored as one batch ("group")
-        height = [0] * ns
-        for s in range(ns):  # children come before parents (postorder)
-            if sn_parent[s] >= 0:
-                height[sn_parent[s]] = max(height[sn_parent[s]], height[s] + 1)
-        groups = {}
-        for s in range(ns):
-            groups.setdefault((height[s], ncols[s], nrows[s]), []).append(s)
-        group_list = sorted(groups.items())
-        # relabel the columns so that every group is one contiguous run: a height-major order is a
-        # topological order of the elimination tree, so the fill is unchanged, and the solves can take
-        # each group's unknowns as a slice
-        lab = np.empty(n, dtype=np.int64)
-        nf = np.empty(ns, dtype=np.int64)  # new first column of each supernode
-        pos = 0
-        for _, sns in group_list:
-            for s in sns:
-                nf[s] = pos
-                lab[first[s]:first[s + 1]] = np.arange(pos, pos + ncols[s])
-                pos += ncols[s]
-        order = np.empty(n, dtype=np.int64)
-        order[lab] = self.order
-        self.order = order  # position -> original block variable
-        iperm = np.empty(n, dtype=np.int64)
-        iperm[order] = np.arange(n)
-        tick("relabel")
-        # row structures R_s (blocks below the pivot block, new labels, sorted), concatenated
-        nrows_a = np.asarray(nrows, dtype=np.int64)
-        ncols_a = np.asarray(ncols, dtype=np.int64)
-        roff = np.zeros(ns + 1, dtype=np.int64)
-        roff[1:] = np.cumsum(nrows_a)
-        seg = np.repeat(np.arange(ns), nrows_a)
-        rcat = lab[np.fromiter(itertools.chain.from_iterable(struct[first[s + 1] - 1] for s in range(ns)),
-                               dtype=np.int64, count=int(roff[-1]))]
-        rcat = rcat[np.lexsort((rcat, seg))]
-        rkeys = seg * n + rcat  # sorted: (supernode, row)
-
-        def local(sn: np.ndarray, blk: np.ndarray) -> np.ndarray:
-            """Position of block ``blk`` in the front of supernode ``sn`` (its columns, then R_sn)."""
-            inside = blk < nf[sn] + ncols_a[sn]
-            pos_r = np.searchsorted(rkeys, sn * n + blk) - roff[sn]
-            return np.where(inside, blk - nf[sn], ncols_a[sn] + pos_r)
-
-        self.p = [k * c for c in ncols]
-        self.m = [k * (c + r) for c, r in zip(ncols, nrows)]
-        self.height = height
-        self.sn_parent = sn_parent
-        # panel storage: the panels of a group one after the other (m * p values each, row-major: the
-        # pivot block F11 (p x p) above F21 (d x p)), so a group is a (B, m, p) view. The factor is computed
-        # in place in the panels. There are no frontal update matrices (F22): every supernode's update
-        # -L21 L21^T goes straight to the panels of the supernodes that own its columns (right-looking),
-        # which keeps the memory at the size of the factor (multifrontal storage of the F22 blocks took
-        # 4x the factor on a 20000-pose graph).
-        off = np.zeros(ns, dtype=np.int64)
-        pos = 0
-        for (_, c, r), sns in group_list:
-            off[sns] = pos + k * k * (c + r) * c * np.arange(len(sns))
-            pos += k * k * (c + r) * c * len(sns)
-        self.buffer_size = int(pos)
-        ar = np.arange(k)
-        tick("rows")
-        # gather map from the value array of H into the panels: entry (row, col) with row >= col (new
-        # labels) belongs to the panel of col's supernode, at local (row, col)
-        sn_new = np.repeat(np.arange(ns)[np.argsort(nf)], ncols_a[np.argsort(nf)])
-        nb = pattern.num_blocks
-        bpos = np.arange(nb * k * k, dtype=np.int64).reshape(nb, k, k)  # block-major value positions
-        prow, pcol = iperm[pattern.block_rows.cpu().numpy()], iperm[pattern.block_cols.cpu().numpy()]
-        keep = np.nonzero(prow >= pcol)[0]
-        prow, pcol, bpos = prow[keep], pcol[keep], bpos[keep]
-        sn_blk = sn_new[pcol]
-        lr = local(sn_blk, prow)
-        lc = pcol - nf[sn_blk]
-        p_blk = k * ncols_a[sn_blk]  # row stride of the panel
-        # H's entries go to the panels in runs of k (row a of a k x k block, contiguous in both; every panel
-        # offset and row stride is a multiple of k): run indices, k times fewer than scalar ones (and
-        # copying rows of k values: parking-garage fill 1.2 -> 0.6 ms)
-        dst = off[sn_blk][:, None] + (lr[:, None] * k + ar) * p_blk[:, None] + lc[:, None] * k
-        self.src = bpos[:, :, 0].reshape(-1) // k  # run (block, a) of H's block-major values
-        self.dst = dst.reshape(-1) // k
+        tree = _supernode_tree(pattern, relax)
+        tick("tree")
+        lay = _Layout(tree, k)
+        if lay.buffer_size >= 2 ** 31:
+            raise ValueError(f"the factor has {lay.buffer_size} entries: more than int32 positions address")
+        tick("layout")
+        self.src, self.dst = _gather_map(pattern, tree, lay)
         tick("gather")
-        # every supernode's scalar rows (for the solves), made for all supernodes at once in group order
-        gorder = np.fromiter(itertools.chain.from_iterable(sns for _, sns in group_list), dtype=np.int64,
-                             count=ns)
-        glen = nrows_a[gorder]
-        gstart = np.zeros(ns + 1, dtype=np.int64)
-        gstart[1:] = np.cumsum(glen)
-        at = np.repeat(roff[gorder] - gstart[:-1], glen) + np.arange(int(gstart[-1]))
-        rows_all = (rcat[at][:, None] * k + ar).reshape(-1)  # block rows -> scalar rows
-        gstart *= k
-        # where each update goes (see _update_positions), at the level of block pairs, for all supernodes
-        # at once: pair (alpha >= beta) of supernode s is rows (alpha, beta) of R_s; its entry (alpha k,
-        # beta k) lands in the panel of the owner of column block beta at ``base``, and its rows are ``pt``
-        # apart (the owner's panel width). The first r (r + 1) / 2 row-major lower pairs of any larger
-        # triangle are those of an r x r one.
-        npair = glen * (glen + 1) // 2
-        pstart = np.zeros(ns + 1, dtype=np.int64)
-        pstart[1:] = np.cumsum(npair)
-        AL, BE = np.tril_indices(int(glen.max()) if ns else 0)
-        q = np.arange(int(pstart[-1])) - np.repeat(pstart[:-1], npair)
-        s_pair = np.repeat(gorder, npair)
-        a_blk = rcat[roff[s_pair] + AL[q]]
-        b_blk = rcat[roff[s_pair] + BE[q]]
-        own = sn_new[b_blk]
-        pair_pt = k * ncols_a[own]
-        pair_base = off[own] + local(own, a_blk) * k * pair_pt + (b_blk - nf[own]) * k
-        if self.buffer_size >= 2 ** 31:
-            raise ValueError(f"the factor has {self.buffer_size} entries: more than int32 positions address")
-        self.groups = []
-        i0 = 0
-        for (_, c, r), sns in group_list:
-            p, m = k * c, k * (c + r)
-            B = len(sns)
-            if r:
-                rows = rows_all[gstart[i0]:gstart[i0 + B]]
-                sl = slice(pstart[i0], pstart[i0 + B])
-                upd = _update_positions(pair_base[sl].reshape(B, -1), pair_pt[sl].reshape(B, -1), k * r, k)
-            else:
-                rows, upd = _EMPTY, _EMPTY.astype(np.int32)
-            self.groups.append(_Group(B, p, m, int(off[sns[0]]), int(k * nf[sns[0]]), rows, upd))
-            i0 += B
+        self.groups = _factor_groups(tree, lay)
         tick("groups")
-        self.perm_scalar = (self.order[:, None] * k + ar).reshape(-1)  # permuted scalar -> original scalar
+        self.order = tree.order  # position -> original block variable
+        self.num_supernodes = len(tree.ncols)
+        self.p = [k * c for c in tree.ncols]
+        self.m = [k * (c + r) for c, r in zip(tree.ncols, tree.nrows)]
+        self.height, self.sn_parent = tree.height, tree.sn_parent
+        self.buffer_size = lay.buffer_size
+        self.perm_scalar = (self.order[:, None] * k + np.arange(k)).reshape(-1)  # permuted scalar -> original
         self.nnz_L = int(sum(p * (p + 1) // 2 + (m - p) * p for p, m in zip(self.p, self.m)))
         self._torch_cache = {}
-        tick("done")
         self.timings = tick.times  # seconds per stage of the analysis (for profiling)
 
     def workspace(self, device, compiled: bool = True) -> _Workspace:
@@ -501,11 +511,10 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
 _NUMPY_MAX_BATCH = 3
 
 # Supernodes with fronts of at most this many rows are factored and solved by the C kernels
-# (slam.graph._kernels.factor_group / solve_group: plain loops, one call per group) when they were built:
+# (slam.graph.accel._kernels.factor_group / solve_group: plain loops, one call per group) when they were built:
 # below it the ~20 us of LAPACK/torch calls per front cost more than the front's arithmetic. The sweep
 # behind 128: benchmarks/cholesky_small_fronts.py (docs/benchmarks.md; 500 poses 5.9 -> 2.7 ms).
 _C_MAX_FRONT = 128
-_C = _compiled.kernels  # None when not built: LAPACK and torch do every front
 
 
 def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None, in_c=None):
@@ -570,7 +579,8 @@ class _Workspace:
         self.y = torch.zeros(sym.size, dtype=torch.float64, device=device)
         self.ynp = self.y.numpy() if self.cpu else None
         # the groups the C kernels do (CPU, small fronts): no views or index tensors are made for them
-        self.in_c = [compiled and _C is not None and self.cpu and g.m <= _C_MAX_FRONT for g in sym.groups]
+        C = _compiled.kernels  # None when not built: LAPACK and torch do every front
+        self.in_c = [compiled and C is not None and self.cpu and g.m <= _C_MAX_FRONT for g in sym.groups]
         # the packed update of a front-by-front supernode: one scratch vector, as large as the largest one
         d_max = max([g.m - g.p for g, c in zip(sym.groups, self.in_c) if g.size <= _NUMPY_MAX_BATCH and not c]
                     + [0])
@@ -701,7 +711,7 @@ class NumericCholesky:
             bufnp = buf.numpy() if ws.cpu else None
             for g, i0, i1, c, _ in ws.spans:
                 if c:
-                    failed = _C.factor_group(bufnp, g.offset, g.size, g.p, g.m, g.upd) != 0
+                    failed = _compiled.kernels.factor_group(bufnp, g.offset, g.size, g.p, g.m, g.upd) != 0
                 else:
                     failed = self._factor_groups(ws.groups[i0:i1], buf, infos, in_place, lapack)
                 if failed:
@@ -760,12 +770,12 @@ class NumericCholesky:
             bufnp = self.buf.numpy() if ws.cpu else None
             for g, i0, i1, c, rows in ws.spans:
                 if c:
-                    _C.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, True)
+                    _compiled.kernels.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, True)
                     continue
                 self._forward(groups[i0:i1], y, ynp, in_place, dtrsv)
             for g, i0, i1, c, rows in reversed(ws.spans):
                 if c:
-                    _C.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, False)
+                    _compiled.kernels.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, False)
                     continue
                 self._backward(groups[i0:i1], y, ynp, in_place, dtrsv)
             x = torch.empty_like(y)

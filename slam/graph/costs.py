@@ -1,5 +1,8 @@
 """Pose-graph residuals, their analytic Jacobians, and robust kernels, vectorised over edges.
 
+The residuals and Jacobians here are the public, checked entry points to the torch reference of
+:mod:`slam.graph.fused` (one implementation of the maths); the robust kernels are defined here.
+
 For an edge ``(i, j)`` with measurement ``z`` let ``D = z^-1 T_i^-1 T_j`` (the identity when the
 measurement is met exactly). The residual ``r (6,)`` in the ``[rho, phi]`` order is
 
@@ -36,19 +39,8 @@ from typing import Optional, Tuple, Union
 
 import torch
 
-from slam.lie import (
-    _se3_q_parts,
-    quat_to_rotmat,
-    se3_adjoint,
-    se3_between,
-    se3_compose,
-    se3_inv,
-    se3_log,
-    so3_hat,
-    so3_left_jacobian_inv,
-    so3_log,
-    so3_right_jacobian_inv,
-)
+from slam.graph import fused
+from slam.lie import se3_between, se3_compose, se3_inv
 
 __all__ = [
     "CHI2_95_6DOF",
@@ -84,7 +76,7 @@ def _check_edges(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor) ->
 
 def edge_residuals(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor,
                    chart: str = "se3") -> Tuple[Tensor, Tensor]:
-    """Residuals of all edges.
+    """Residuals of all edges (:func:`slam.graph.fused.se3_residuals`; differentiable).
 
     Args:
         poses: ``(N, 7)`` poses.
@@ -98,24 +90,16 @@ def edge_residuals(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor,
         (reused by :func:`edge_jacobians`).
     """
     _check_edges(poses, ii, jj, measurements)
-    return _residuals(poses, ii, jj, se3_inv(measurements), chart)
-
-
-def _residuals(poses: Tensor, ii: Tensor, jj: Tensor, zinv: Tensor, chart: str) -> Tuple[Tensor, Tensor]:
-    """:func:`edge_residuals` with the inverted measurements ``zinv (E, 7)`` given (no checks)."""
-    D = se3_compose(zinv, se3_between(poses[ii], poses[jj]))
-    if chart == "se3":
-        r = se3_log(D)
-    elif chart == "r3so3":
-        r = torch.cat([D[:, :3], so3_log(D[:, 3:])], dim=-1)
-    else:
+    if chart not in ("se3", "r3so3"):
         raise ValueError(f"chart must be 'se3' or 'r3so3', got {chart!r}")
-    return r, D
+    r, aux = fused.se3_residuals(poses, ii, jj, se3_inv(measurements), chart)
+    return r, torch.cat([aux[2], aux[3]], dim=-1)
 
 
 def edge_jacobians(poses: Tensor, ii: Tensor, jj: Tensor, D: Tensor, r: Tensor,
                    chart: str = "se3", measurements: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
-    """Analytic Jacobians of the residuals w.r.t. right perturbations of ``T_i`` and ``T_j``.
+    """Analytic Jacobians of the residuals w.r.t. right perturbations of ``T_i`` and ``T_j``
+    (:func:`slam.graph.fused.se3_jacobians_t`).
 
     Args:
         poses: ``(N, 7)`` poses.
@@ -124,45 +108,22 @@ def edge_jacobians(poses: Tensor, ii: Tensor, jj: Tensor, D: Tensor, r: Tensor,
         D: ``(E, 7)`` error poses from :func:`edge_residuals`.
         r: ``(E, 6)`` residuals from :func:`edge_residuals`.
         chart: the chart ``r`` was computed in.
-        measurements: ``(E, 7)``, optional: for the ``"se3"`` chart it allows the shorter form
-            ``J_i = -J_l^-1(r) Ad(z^-1)`` (from ``J_r^-1(r) Ad(exp(-r)) = J_l^-1(r)``).
+        measurements: ``(E, 7)``, optional: for the ``"se3"`` chart, ``z^-1`` from them instead of from
+            ``D (T_i^-1 T_j)^-1``.
 
     Returns:
         ``J_i (E, 6, 6)`` and ``J_j (E, 6, 6)`` with
         ``r(T_i exp(d_i), T_j exp(d_j)) ~= r + J_i d_i + J_j d_j``.
     """
     if chart == "se3":
-        if measurements is None:
-            ad = se3_adjoint(D) @ se3_adjoint(se3_between(poses[jj], poses[ii]))  # = Ad(z^-1)
-        else:
-            ad = se3_adjoint(se3_inv(measurements))
-        return _se3_jacobians(r, ad)
+        zinv = se3_inv(measurements) if measurements is not None else \
+            se3_compose(D, se3_between(poses[jj], poses[ii]))
+        _, theta2, c = fused._log_terms(D[:, 3:])
+        JT = fused.se3_jacobians_t(r, (theta2, c), -fused.se3_adjoint_t(zinv))
+        return JT[:, :6].transpose(1, 2), JT[:, 6:12].transpose(1, 2)
     if chart == "r3so3":
-        C = torch.zeros(r.shape[0], 6, 6, dtype=r.dtype, device=r.device)
-        C[:, :3, :3] = quat_to_rotmat(D[:, 3:])
-        C[:, 3:, 3:] = so3_right_jacobian_inv(r[:, 3:])
-        return -(C @ se3_adjoint(se3_between(poses[jj], poses[ii]))), C
+        return fused.r3so3_jacobians(poses, ii, jj, D[:, 3:], r)
     raise ValueError(f"chart must be 'se3' or 'r3so3', got {chart!r}")
-
-
-def _se3_jacobians(r: Tensor, ad_zinv: Tensor) -> Tuple[Tensor, Tensor]:
-    """``J_i = -J_l^-1(r) Ad(z^-1)`` and ``J_j = J_r^-1(r) = J_l^-1(-r)`` from one evaluation of the shared
-    terms: ``J_l^-1(-phi) = J_l^-1(phi)^T`` for SO(3), and ``Q(-xi)`` differs from ``Q(xi)`` only in the
-    sign of its skew part."""
-    A = so3_left_jacobian_inv(r[:, 3:])
-    At = A.transpose(1, 2)
-    v, E = _se3_q_parts(r)
-    V = so3_hat(v)
-    n = r.shape[0]
-    Jl = r.new_zeros(n, 6, 6)
-    Jl[:, :3, :3] = A
-    Jl[:, 3:, 3:] = A
-    Jl[:, :3, 3:] = -(A @ (V + E) @ A)
-    Jj = r.new_zeros(n, 6, 6)
-    Jj[:, :3, :3] = At
-    Jj[:, 3:, 3:] = At
-    Jj[:, :3, 3:] = -(At @ (E - V) @ At)
-    return -(Jl @ ad_zinv), Jj
 
 
 def edge_chi2(r: Tensor, information: Tensor) -> Tensor:

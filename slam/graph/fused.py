@@ -1,19 +1,26 @@
-"""Fused per-edge kernels of the optimiser's inner loop: residuals, Jacobians, normal-equation blocks.
+"""The pose-graph maths in torch, the one reference: residuals, their Jacobians, normal-equation blocks and
+the retraction, vectorised over edges, on any device, differentiable.
 
-Why a second implementation next to :mod:`slam.graph.costs`: one Levenberg-Marquardt iteration is a few
-dozen element-wise operations over all edges plus batched products of tiny matrices, and both costs
-add up. The functions of :mod:`slam.lie` are written for clarity and autograd (a pose composition is
-about 15 torch calls, each ~4 us of dispatch on the CPU); here the error pose ``z^-1 T_i^-1 T_j``, its
-logarithm, the Jacobians and the per-edge blocks of ``J^T Omega J`` are closed forms with as few calls
-as possible, and the logarithm hands its intermediate terms to the Jacobians instead of recomputing
-them. The public functions of :mod:`slam.graph.costs` stay the reference the tests compare against.
+Every other implementation is checked against these functions: the public residuals and Jacobians of
+:mod:`slam.graph.costs` are thin wrappers of them, the accelerator (:mod:`slam.graph.accel`, numpy and C)
+is tested against them to round-off, and they are themselves tested against :mod:`slam.lie` (the group
+operations composed one by one), finite differences and float64 gradcheck (``tests/test_graph_host.py``,
+``tests/test_pose_graph.py``).
+
+Why closed forms instead of composing :mod:`slam.lie`: one Levenberg-Marquardt iteration is a few dozen
+element-wise operations over all edges plus batched products of tiny matrices. A pose composition in
+:mod:`slam.lie` is about 15 torch calls (~4 us of dispatch each on the CPU); here the error pose
+``z^-1 T_i^-1 T_j``, its logarithm, the Jacobians and the per-edge blocks of ``J^T Omega J`` are closed
+forms with as few calls as possible, and the logarithm hands its intermediate terms to the Jacobians
+instead of recomputing them. The series branches are written so that autograd is exact through them,
+also at the identity and to second order (``slam.graph.implicit`` differentiates the optimum with them).
 
 Batched products of tiny matrices go through :func:`bmm`: on the CPU it calls numpy's ``matmul`` on
 views of the same memory, which measured 6-9x faster than torch's CPU ``bmm`` for 6x6 float64 matrices
 (0.25 ms against 2.2 ms for 6275 products, torch 2.13: its CPU kernel loops over the batch with a
 generic routine); on any other device it is ``torch.matmul``.
 
-Notation (as in :mod:`slam.graph.costs`): ``D = z^-1 T_i^-1 T_j``, ``r = Log(D) = [rho, phi]``,
+Notation: ``D = z^-1 T_i^-1 T_j``, ``r = Log(D) = [rho, phi]``,
 ``J_j = J_r^-1(r)``, ``J_i = -J_l^-1(r) Ad(z^-1)``, ``Omega = L L^T`` (Cholesky, constant per call).
 With the whitened rows ``[A_i, A_j, u] = L^T [J_i, J_j, r]`` the blocks of an edge are ``A_a^T A_b`` and
 its gradient ``A_a^T u``: one product of a ``(2k+1, k)`` matrix with its transpose gives all of them.
@@ -32,6 +39,7 @@ Example:
 """
 from __future__ import annotations
 
+import math
 from typing import Optional, Tuple
 
 import numpy as np
@@ -39,13 +47,14 @@ import torch
 
 from slam.lie import quat_to_rotmat, so3_hat
 
-__all__ = ["bmm", "copy_", "error_poses", "normal_blocks", "se3_adjoint_t", "se3_jacobians_t", "se3_residuals",
-           "se3_retract"]
+__all__ = ["bmm", "copy_", "error_poses", "normal_blocks", "r3so3_jacobians", "se3_adjoint_t", "se3_jacobians_t",
+           "se3_residuals", "se3_retract"]
 
 Tensor = torch.Tensor
 
 # below this rotation angle the series of (1 - (t/2) cot(t/2)) / t^2 is used, as in slam.lie
 _SMALL = {torch.float64: 1e-4, torch.float32: 1e-2}
+_TAN2_HALF_SMALL = {dt: math.tan(a / 2.0) ** 2 for dt, a in _SMALL.items()}  # the same bound on |v|^2 / w^2
 # below this angle the coefficients of Barfoot's Q take their series (_Q_SERIES)
 _SMALL_Q = {torch.float64: 1e-2, torch.float32: 1e-1}
 
@@ -68,6 +77,8 @@ def bmm(a: Tensor, b: Tensor, out: Optional[Tensor] = None) -> Tensor:
         return out
     if out is None:
         return torch.matmul(a, b)
+    if a.requires_grad or b.requires_grad:  # out= arguments do not support autograd
+        return out.copy_(torch.matmul(a, b))
     return torch.matmul(a, b, out=out)
 
 
@@ -121,19 +132,30 @@ def _log_terms(q: Tensor):
     (the coefficient of ``hat(phi)^2`` in ``J_l^-1(phi)``) from unit quaternions ``q (E, 4)``.
 
     With ``h = atan2(|v|, |w|)`` (half the angle, the sign of ``q`` chosen so that ``w >= 0``):
-    ``phi = 2 h v / |v|`` and ``(t/2) cot(t/2) = h |w| / |v|``, so no trigonometric call besides atan2.
+    ``phi = 2 h v / |v|`` and ``(t/2) cot(t/2) = h |w| / |v|``, so no trigonometric call besides one atan.
+    Below the angle ``_SMALL`` the series in ``x = |v|^2 / w^2`` (``atan(sqrt x) / sqrt x = 1 - x/3 + ...``,
+    the next term under round-off there): smooth, so autograd (and its second order) is exact at the
+    identity, where ``|v|`` has no derivative. Each branch of a ``where`` is finite everywhere, so the
+    unselected one passes no NaN to the gradients.
     """
     v, w = q[:, :3], q[:, 3:]
-    n = (v * v).sum(-1, keepdim=True).sqrt_()
-    aw = w.abs()
-    h = torch.atan2(n, aw)
-    theta2 = 4.0 * h * h
-    ns = n.clamp_min(torch.finfo(q.dtype).tiny)
-    # where v = 0 exactly, h = 0 and phi = 0 (the limit 2 v / w of the series is 0 there too)
-    k = torch.where(w < 0, -2.0, 2.0) * h / ns
-    small = theta2 < _SMALL.get(q.dtype, 1e-2) ** 2
-    t2s = torch.where(small, 1.0, theta2)
-    c = torch.where(small, 1.0 / 12.0 + theta2 / 720.0, (1.0 - h * aw / ns) / t2s)
+    n2 = (v * v).sum(-1, keepdim=True)
+    # |w| (abs's second derivative, like atan2's, is a python decomposition in torch 2.13 whose first call
+    # imports torch._dynamo: seconds)
+    aw = torch.where(w < 0, -w, w)
+    # angle 2 h below _SMALL, i.e. |v| / |w| = tan(h) below tan(_SMALL / 2)
+    small = n2 < _TAN2_HALF_SMALL.get(q.dtype, 2.5e-5) * (w * w)
+    n = torch.where(small, 1.0, n2).sqrt()
+    # h = atan2(n, |w|) in [0, pi/2], through atan of a ratio <= 1 (atan2: as abs above)
+    big = n > aw
+    h = torch.where(big, 0.5 * math.pi - torch.atan(aw / torch.where(big, n, 1.0)),
+                    torch.atan(n / torch.where(big, 1.0, aw)))
+    ws = torch.where(small, w, 1.0)  # |w| ~ 1 where small
+    x = torch.where(small, n2, 0.0) / (ws * ws)
+    series = 1.0 - x / 3.0  # atan(sqrt x) / sqrt x
+    k = torch.where(small, 2.0 * series / ws, torch.where(w < 0, -2.0, 2.0) * h / n)
+    theta2 = torch.where(small, 4.0 * x * series * series, 4.0 * h * h)
+    c = torch.where(small, 1.0 / 12.0 + theta2 / 720.0, (1.0 - h * aw / n) / torch.where(small, 1.0, theta2))
     return k * v, theta2, c
 
 
@@ -245,8 +267,7 @@ def se3_jacobians_t(r: Tensor, aux, neg_adz_t: Optional[Tensor], out: Optional[T
     Chart ``"se3"`` (``neg_adz_t = -Ad(z^-1)^T`` given): ``J_j^T = J_r^-1(r)^T = [[A, 0], [Q, A]]`` and
     ``J_i^T = -Ad(z^-1)^T J_l^-1(r)^T``, where ``J_l^-1(r)^T`` is ``J_j^T`` with each 3x3 block
     transposed (``J_l^-1(-r) = J_l^-1(r)`` with every block transposed; see :func:`_jl_inv_and_q`).
-    Chart ``"r3so3"`` (``neg_adz_t = None``; ``poses, ii, jj`` needed): through
-    :func:`slam.graph.costs.edge_jacobians`.
+    Chart ``"r3so3"`` (``neg_adz_t = None``; ``poses, ii, jj`` needed): :func:`r3so3_jacobians`.
 
     Args:
         r: ``(E, 6)`` residuals from :func:`se3_residuals`.
@@ -264,10 +285,7 @@ def se3_jacobians_t(r: Tensor, aux, neg_adz_t: Optional[Tensor], out: Optional[T
     if out is None:
         out = r.new_zeros(E, 13, 6)
     if neg_adz_t is None:
-        from slam.graph.costs import edge_jacobians
-
-        D = torch.cat([aux[2], aux[3]], dim=-1)
-        Ji, Jj = edge_jacobians(poses, ii, jj, D, r, "r3so3")
+        Ji, Jj = r3so3_jacobians(poses, ii, jj, aux[3], r)
         out[:, :6] = Ji.transpose(1, 2)
         out[:, 6:12] = Jj.transpose(1, 2)
         out[:, 12] = r
@@ -283,25 +301,45 @@ def se3_jacobians_t(r: Tensor, aux, neg_adz_t: Optional[Tensor], out: Optional[T
     return out
 
 
+def r3so3_jacobians(poses: Tensor, ii: Tensor, jj: Tensor, qD: Tensor, r: Tensor) -> Tuple[Tensor, Tensor]:
+    """Jacobians ``J_i, J_j (E, 6, 6)`` of the ``"r3so3"`` residual ``r = [t(D), Log_SO3(q(D))]``.
+
+    With ``C = blockdiag(R(D), J_r^-1(phi))`` (the derivative of ``r`` under a right perturbation of ``D``):
+    ``J_j = C`` and ``J_i = -C Ad(T_j^-1 T_i)``.
+
+    Args:
+        poses: ``(N, 7)`` poses.
+        ii, jj: ``(E,)`` edge ends.
+        qD: ``(E, 4)`` the error poses' quaternions (from :func:`se3_residuals`).
+        r: ``(E, 6)`` the residuals.
+    """
+    from slam.lie import se3_adjoint, se3_between, so3_right_jacobian_inv
+
+    C = r.new_zeros(r.shape[0], 6, 6)
+    C[:, :3, :3] = quat_to_rotmat(qD)
+    C[:, 3:, 3:] = so3_right_jacobian_inv(r[:, 3:])
+    return -(C @ se3_adjoint(se3_between(poses[jj], poses[ii]))), C
+
+
 def se3_retract(poses: Tensor, xi: Tensor) -> Tensor:
     """``T exp(xi)`` for poses ``(N, 7)`` and tangent steps ``xi = [rho, phi] (N, 6)`` (right perturbation).
 
     ``exp(xi) = (J_l(phi) rho, [sin(t/2) phi / t, cos(t/2)])`` with
     ``J_l(phi) rho = rho + a phi x rho + b phi x (phi x rho)``, ``a = 2 sin^2(t/2) / t^2``,
-    ``b = (t - sin t) / t^3`` (its series below 1e-4, where the difference cancels).
+    ``b = (t - sin t) / t^3``: their series below ``_SMALL`` (where the difference cancels, and where ``t``
+    has no derivative at 0: autograd through a step of zero is exact, to second order).
     """
     rho, phi = xi[:, :3], xi[:, 3:]
     theta2 = (phi * phi).sum(-1, keepdim=True)
-    # sin(x)/x-type ratios are exact down to tiny angles; only multiply vectors that vanish with phi
-    t = theta2.sqrt().clamp_min_(torch.finfo(xi.dtype).tiny ** 0.25)
-    sh = torch.sin(0.5 * t)
-    k = sh / t
-    a = 2.0 * k * k
     small = theta2 < _SMALL.get(xi.dtype, 1e-2) ** 2
+    t = torch.where(small, 1.0, theta2).sqrt()
+    k = torch.where(small, 0.5 - theta2 / 48.0, torch.sin(0.5 * t) / t)  # sin(t/2) / t
+    a = 2.0 * k * k
     b = torch.where(small, 1.0 / 6.0 - theta2 / 120.0, (t - torch.sin(t)) / (t * t * t))
+    cos_half = torch.where(small, 1.0 - theta2 / 8.0, torch.cos(0.5 * t))
     pxr = torch.linalg.cross(phi, rho)
     te = rho + a * pxr + b * torch.linalg.cross(phi, pxr)
-    qe = torch.cat([k * phi, torch.cos(0.5 * t)], dim=-1)
+    qe = torch.cat([k * phi, cos_half], dim=-1)
     return torch.cat([poses[:, :3] + _rotate(poses[:, 3:], te), _qmul(poses[:, 3:], qe)], dim=-1)
 
 

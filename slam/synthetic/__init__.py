@@ -8,6 +8,7 @@ Example:
 """
 from slam.synthetic.building import BuildingConfig, build_building_scene, building_layout
 from slam.synthetic.building_tour import building_sequence, building_trajectory, generate_building_sequence
+from slam.synthetic.demo import DEFAULT_DEMO_SCENE, DEMO_SCENES, DemoScene, generate_demo
 from slam.synthetic.render import DepthNoiseConfig, ImageNoiseConfig, RenderOutput, render_frames
 from slam.synthetic.scene import RoomConfig, Scene, build_room_scene
 from slam.synthetic.sequence import (
@@ -20,9 +21,12 @@ from slam.synthetic.sequence import (
 from slam.synthetic.trajectories import TRAJECTORIES, TrajectoryConfig, make_trajectory, trajectory_rates
 
 __all__ = [
+                                     "DEFAULT_DEMO_SCENE",
+                                     "DEMO_SCENES",
                                      "DEPTH_FACTOR",
                                      "BuildingConfig",
                                      "TRAJECTORIES",
+                                     "DemoScene",
                                      "DepthNoiseConfig",
                                      "ImageNoiseConfig",
                                      "RenderOutput",
@@ -36,6 +40,7 @@ __all__ = [
                                      "building_sequence",
                                      "building_trajectory",
                                      "generate_building_sequence",
+                                     "generate_demo",
                                      "generate_sequence",
                                      "make_trajectory",
                                      "read_calibration",

@@ -1,5 +1,5 @@
 /*
- * slam.graph._kernels: the per-edge loops of slam.graph.host in C (optional, built by setup.py).
+ * slam.graph.accel._kernels: the per-edge loops of slam.graph.accel.host in C (optional, built by setup.py).
  *
  * Why: on the CPU an optimiser iteration in numpy is ~150 array calls whatever the graph's size; on a
  * 9-pose graph (tinyGrid3D) their 1-2 us of dispatch each *is* the run time (3.5x GTSAM's). These
@@ -14,9 +14,9 @@
  *
  *   factor_group(buf, offset, B, p, m, upd) -> info,  solve_group(buf, offset, B, p, m, col0, rows, y, fwd)
  *
- * The math is line for line that of slam/graph/host.py (same notation, same closed forms, same series
+ * The math is line for line that of slam/graph/accel/host.py and of the torch reference slam/graph/fused.py (same notation, same closed forms, same series
  * below the same angles, set by set_constants() from slam.graph.fused at import); the tests compare
- * both to round-off. Arrays are C-contiguous, aligned, native-endian buffers (float64; int64 indices,
+ * them to round-off. Arrays are C-contiguous, aligned, native-endian buffers (float64; int64 indices,
  * int32 update positions) whose sizes are checked here: a wrong size or format, or an index out of
  * range, raises ValueError and nothing is read or written out of bounds. Where a loop runs without the
  * GIL (residuals, linearize, retract) each index is read once and that copy is checked (an index array
@@ -24,7 +24,7 @@
  * refuse index arrays that share memory with the array they write. Other outputs that alias inputs give
  * unspecified values, never an out-of-bounds access.
  *
- * ABI: the version of this set of functions; slam.graph._compiled refuses a build of another version
+ * ABI: the version of this set of functions; slam.graph.accel._compiled refuses a build of another version
  * (an editable install does not rebuild the extension when this file changes).
  * No numpy headers: only the buffer protocol.
  */
@@ -855,7 +855,7 @@ static PyMethodDef methods[] = {
 };
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",
-                                    "The per-edge loops of slam.graph.host in C (see _kernels.c).", -1, methods,
+                                    "The per-edge loops of slam.graph.accel.host in C (see _kernels.c).", -1, methods,
                                     NULL, NULL, NULL, NULL};
 
 PyMODINIT_FUNC PyInit__kernels(void) {

@@ -1,13 +1,13 @@
-"""The optimiser's per-edge work in numpy: the CPU path of :func:`slam.graph.optimize`.
+"""The accelerator's per-edge maths in numpy and in C: :class:`HostProblem`, a
+:class:`~slam.graph.problem.PoseGraphProblem` on numpy arrays (CPU only).
 
-Why a numpy twin of :mod:`slam.graph.fused`: on the CPU the work of one Levenberg-Marquardt iteration is
-~150 array calls whatever the graph's size, and a torch eager call costs 1.2-2 us of dispatch against
-0.3-1 us for numpy. On a 9-pose graph that dispatch *is* the run time (torch path: 5 ms for the 4
-iterations GTSAM does in 0.5 ms); on large graphs both run the same vectorised loops over the edges. The
-optimiser therefore takes this path when the graph is on the CPU (``OptimizerConfig.backend``), and the
-torch path (:mod:`slam.graph.fused`) on any other device. The math is that of :mod:`slam.graph.fused`
-(same notation, same closed forms, same series below the same angles); the tests check that both give
-the same residuals, Jacobians, normal equations and iterates to round-off.
+Why a numpy twin of the torch reference (:mod:`slam.graph.fused`): on the CPU the work of one
+Levenberg-Marquardt iteration is ~150 array calls whatever the graph's size, and a torch eager call costs
+1.2-2 us of dispatch against 0.3-1 us for numpy. On a 9-pose graph that dispatch *is* the run time (torch:
+5 ms for the 4 iterations GTSAM does in 0.5 ms); on large graphs both run the same vectorised loops over the
+edges. The math is that of :mod:`slam.graph.fused` (same notation, same closed forms, same series below the
+same angles); the tests check that both give the same residuals, Jacobians, normal equations and iterates
+to round-off against the torch reference.
 
 What makes the call count small: every bilinear product of the geometry (quaternion products, rotating a
 vector by a quaternion, cross products) is one outer product and one matrix product with a constant
@@ -16,14 +16,14 @@ BLAS product on large graphs). The tables are derived at import from the torch r
 (:func:`slam.graph.fused._qmul`, :func:`slam.lie.quat_to_rotmat`, :func:`torch.linalg.cross`), not typed
 in.
 
-The C kernels (``slam.graph._kernels``, from ``_kernels.c``; optional, built by ``setup.py`` where a C
+The C kernels (``slam.graph.accel._kernels``, from ``_kernels.c``; optional, built by ``setup.py`` where a C
 compiler is found, chosen by ``OptimizerConfig.backend = "auto"`` or ``"c"``): the same math again, edge by
 edge in one call per step: residuals with their chi2, the Jacobian products ``F`` of every edge, the
 retraction, the measurement terms of the setup, the dense assembly and the re-anchoring. On a 9-pose graph
 the numpy functions spend ~1 ms of call overhead where GTSAM needs 0.4 ms in all; the C kernels bring the
 whole optimisation to ~0.3 ms (5x), and the benchmark files 1.1-1.65x (no per-edge temporaries; the sparse
-Cholesky they share dominates there). The numpy functions stay the reference the C kernels are tested
-against (``tests/test_graph_kernels.py``) and the fallback.
+Cholesky they share dominates there). The numpy functions are the fallback where the kernels were not
+built (``backend="numpy"`` runs no compiled code at all).
 
 Assembly (a scatter-add of the per-edge products into ``H`` and ``g``) goes through torch's
 ``index_add_`` on views of the same memory: numpy has no fast scatter-add (``np.add.at`` and
@@ -44,11 +44,17 @@ from typing import Optional, Tuple
 import numpy as np
 import torch
 
-from slam.graph import _compiled, fused
+from slam.graph import fused
+from slam.graph.accel import _compiled
 from slam.graph.cholesky import NotPositiveDefiniteError
-from slam.graph.linear import LinearSolverError, SparseCholeskySolver, build_pattern
+from slam.graph.config import OptimizerConfig
+from slam.graph.costs import RobustKernel
+from slam.graph.linear import LinearSolverError, SparseCholeskySolver, build_pattern, make_solver
+from slam.graph.pose_graph import PoseGraph, planar_arrays
+from slam.graph.problem import SYMMETRY_RTOL, held_poses, information_factor, is_symmetric, unit_quaternions
 
-__all__ = ["HostProblem", "compiled_kernels", "cross", "host_kernels", "qmul", "qmul_conj", "rotate", "rotmat"]
+__all__ = ["HostProblem", "cross", "host_kernels", "host_problem", "qmul", "qmul_conj",
+           "rotate", "rotmat"]
 
 # the float64 thresholds and series of slam.graph.fused: below _SMALL the series of the logarithm's terms,
 # below _SMALL_Q those of the coefficients of Q (rows: powers 1, t^2, t^4; columns c1, c2, c3)
@@ -58,21 +64,13 @@ _TINY = np.finfo(np.float64).tiny
 # edges linearised per chunk (bounds the per-edge buffers of large graphs; one chunk up to this size)
 _CHUNK = 16384
 
-# The optional C kernels (slam/graph/_kernels.c, built by setup.py where a C compiler is found): the same
-# per-edge math in one call per step, with this module's constants.
-_C = _compiled.kernels  # None when not built: the numpy functions below do the same work
-if _C is not None:
-    _C.set_constants(_SMALL, _SMALL_Q, tuple(float(v) for v in _Q_SERIES.reshape(-1)))
-
-
-def compiled_kernels() -> bool:
-    """Whether the C kernels of the CPU path (``slam.graph._kernels``) were built and imported."""
-    return _C is not None
 
 
 def host_kernels():
-    """The C kernels module ``slam.graph._kernels``, or None when it was not built."""
-    return _C
+    """The optional C kernels (``slam.graph.accel._kernels``, from ``_kernels.c``, built by setup.py where a C
+    compiler is found): the same per-edge math in one call per step, with the constants above (set by
+    :mod:`slam.graph.accel._compiled`). None when not built: the numpy functions below do the same work."""
+    return _compiled.kernels
 
 
 # -- bilinear tables ----------------------------------------------------------------------------------
@@ -241,8 +239,8 @@ def _lapack_cholesky():
 
 # -- the problem the LM loop of slam.graph.optimizer drives -------------------------------------------
 class HostProblem:
-    """Per-call state of an optimisation on the CPU in numpy (the counterpart of the torch ``_Problem``
-    of :mod:`slam.graph.optimizer`: the same methods, numpy arrays in place of tensors).
+    """Per-call state of an optimisation on the CPU in numpy: :class:`~slam.graph.problem.PoseGraphProblem`
+    as :class:`~slam.graph.problem.TorchProblem` implements it, with numpy arrays in place of tensors.
 
     Up to ``dense_max`` unknowns (and no explicit solver) the normal equations are dense: every entry
     of each edge's ``[J_i, J_j, r]^T W Omega [J_i, J_j, r]`` goes straight to its place in ``H`` or ``g``
@@ -266,7 +264,7 @@ class HostProblem:
         reanchor: move the result rigidly so that pose 0 keeps its initial value (the free gauge).
         dense_max: the most unknowns solved densely.
         compiled: do the per-edge work (residuals, Jacobians and their products, retraction, the setup of
-            the measurements, the dense assembly, the re-anchoring) in the C kernels ``slam.graph._kernels``
+            the measurements, the dense assembly, the re-anchoring) in the C kernels ``slam.graph.accel._kernels``
             (one call each instead of ~10-60 numpy calls; a ``RuntimeError`` when they were not built).
     """
 
@@ -274,10 +272,11 @@ class HostProblem:
                  L: np.ndarray, free: np.ndarray, planar: bool = False, kernel=None, solver=None,
                  damping: str = "identity", reanchor: bool = False, dense_max: int = 400,
                  compiled: bool = False):
-        if compiled and _C is None:
-            raise RuntimeError("the C kernels slam.graph._kernels were not built (install attnloop where a C "
+        C = host_kernels()
+        if compiled and C is None:
+            raise RuntimeError("the C kernels slam.graph.accel._kernels were not built (install attnloop where a C "
                                "compiler is found); use compiled=False")
-        self._c = _C if compiled else None
+        self._c = C if compiled else None
         if self._c is not None:  # the C kernels take C-contiguous int64 / float64 buffers
             ii, jj = np.ascontiguousarray(ii, dtype=np.int64), np.ascontiguousarray(jj, dtype=np.int64)
             poses, meas, L = (np.ascontiguousarray(a, dtype=np.float64) for a in (poses, meas, L))
@@ -501,3 +500,42 @@ class HostProblem:
 
     def weights(self, cache) -> Optional[torch.Tensor]:
         return None if cache[3] is None else torch.from_numpy(cache[3])
+
+
+def host_problem(graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str, solver,
+                  compiled: bool = False):
+    """The :class:`HostProblem` of a CPU graph (its setup in numpy: ~30 calls), with the C kernels when
+    ``compiled``; the arguments of :class:`~slam.graph.problem.TorchProblem`."""
+    dt = torch.float64
+    P0, meas0, info = (t.detach().to(dt).numpy() for t in (graph.poses, graph.measurements, graph.information))
+    C = host_kernels() if compiled else None
+    L = None
+    if C is not None:  # the same steps as below in 3 calls (the setup is half of a 9-pose graph's time)
+        P0, meas0, info = np.ascontiguousarray(P0), np.ascontiguousarray(meas0), np.ascontiguousarray(info)
+        P, meas, L = np.empty_like(P0), np.empty_like(meas0), np.empty_like(info)
+        C.unit_poses(P0, P)
+        C.unit_poses(meas0, meas)
+        if C.information_factors(info, L, cfg.check_information, SYMMETRY_RTOL) >= 0:
+            L = None  # the torch factor below names the bad edge
+    else:
+        # unit quaternions (validated to 1e-3) made exact, as on the torch path
+        P, meas = unit_quaternions(P0), unit_quaternions(meas0)
+        # numpy's batched Cholesky first (~8 us on 11 edges against ~35 us for the torch factor, measured
+        # ~0.1 ms per call in sequence); the torch factor names the first bad edge when it fails
+        if not cfg.check_information or is_symmetric(info):
+            try:
+                L = np.linalg.cholesky(info)
+            except np.linalg.LinAlgError:
+                pass
+    if L is None or C is None and not np.isfinite(L).all():
+        L = information_factor(graph, torch.from_numpy(info), cfg.check_information).numpy()
+    planar = planar_arrays(P0, meas0, info) if cfg.planar is None else bool(cfg.planar)
+    fixed = held_poses(cfg, gauge, graph.num_poses)
+    free = np.ones(graph.num_poses, dtype=bool)
+    free[fixed] = False
+    k = 3 if planar else 6
+    lin = None if solver is None or isinstance(solver, str) and solver.lower() == "auto" else \
+        make_solver(solver, int(free.sum()) * k)  # None: HostProblem's own (dense up to dense_max unknowns)
+    return HostProblem(P, graph.ii.numpy(), graph.jj.numpy(), meas, info, L, free, planar, kernel, lin,
+                       cfg.damping, reanchor=gauge == "free" and not fixed,
+                       dense_max=400 if cfg.dense_max is None else cfg.dense_max, compiled=compiled)

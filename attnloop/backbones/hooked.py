@@ -1,0 +1,298 @@
+"""Any classifier ``nn.Module`` as a backbone: L taken at a named submodule by a forward hook.
+
+:class:`HookedBackbone` turns a module whose ``forward(x)`` returns class logits ``(B, K)`` into an
+:mod:`attnloop.backbones` backbone without touching its code:
+
+- the tap L is the output of the submodule named ``tap`` (``module.get_submodule(tap)``), caught by a
+  forward hook; the rest of the network runs on from there in the same forward pass, so skip
+  connections that go around the tap keep their real values (G = dS/dL holds them fixed);
+- the partial guided backprop's clamps sit at the outputs of the max-pool modules that run after the
+  tap (``nn.MaxPool1d/2d/3d``, ``nn.AdaptiveMaxPool1d/2d/3d``, ``nn.FractionalMaxPool2d/3d``), and at L
+  itself when L is a max-pool's output (the tap is a max-pool, or a block whose output is its last
+  max-pool's). Max-pools called as functions (``F.max_pool2d`` inside a ``forward``) are invisible to
+  hooks: name the modules to clamp at with ``transitions=`` instead;
+- a dry run at construction (one image of ``input_size``, or of ``probe_size`` when ``input_size`` is
+  None; no grad, eval mode) finds ``tap_shape``, the clamps, and checks that the tap runs once and that
+  the output is logits, each with a clear error.
+
+The user's module is never frozen or switched to eval behind their back: its ``requires_grad`` flags
+are never touched, and its submodules' training flags are set to eval only inside a descriptor
+computation (:func:`attnloop.guided_backprop.eval_mode`) and restored right after. Only
+:func:`forward_split` runs the network (plus :meth:`forward_to_tap`, which stops at the tap);
+there is no ``forward_from_tap``: a generic network cannot be resumed from L alone (a residual path
+around the tap needs the activations below it).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Callable
+
+import torch
+from torch import nn
+
+from ..guided_backprop import eval_mode
+from .preprocess import prepare_images
+
+__all__ = ["MAX_POOL_TYPES", "HookedBackbone"]
+
+Tensor = torch.Tensor
+
+#: Module types whose outputs are the partial guided backprop's block transitions.
+MAX_POOL_TYPES = (
+    nn.MaxPool1d, nn.MaxPool2d, nn.MaxPool3d,
+    nn.AdaptiveMaxPool1d, nn.AdaptiveMaxPool2d, nn.AdaptiveMaxPool3d,
+    nn.FractionalMaxPool2d, nn.FractionalMaxPool3d,
+)
+
+
+class _StopForward(Exception):
+    """Raised by the tap hook of :meth:`HookedBackbone.forward_to_tap` to skip the rest of the network."""
+
+
+def _main_output(out: object) -> Tensor | None:
+    # A max-pool with return_indices=True returns (values, indices).
+    if isinstance(out, Tensor):
+        return out
+    if isinstance(out, tuple) and out and isinstance(out[0], Tensor):
+        return out[0]
+    return None
+
+
+def _replace_main_output(out: object, value: Tensor) -> object:
+    return value if isinstance(out, Tensor) else (value, *out[1:])  # type: ignore[index]
+
+
+class HookedBackbone(nn.Module):
+    """A classifier ``nn.Module`` tapped at a named submodule, with its own preprocessing settings.
+
+    Args:
+        module: any ``nn.Module`` whose ``forward(x)`` takes ``(B, 3, H, W)`` float images and returns
+            class logits ``(B, K)``. Registered as a submodule (moves with ``.to()``, saved in the
+            state dict), never frozen nor switched to eval.
+        tap: the dotted name of the submodule whose output is L (``"layer3"``, ``"features.23"``,
+            ``"4"`` for the fifth layer of an ``nn.Sequential``); it must run once per forward and
+            return a ``(B, C, h, w)`` tensor.
+        input_size: ``(height, width)`` every image is resized to (bilinear, antialiased); None uses
+            images at their own size (then every image must give the dry run's ``tap_shape``).
+        mean: per-channel mean of [0, 1] RGB values subtracted before the network; None: none.
+        std: per-channel standard deviation of [0, 1] RGB values divided by; None: none.
+        transitions: names of the submodules at whose outputs (after the tap) negative gradients are
+            zeroed; include ``tap`` itself to clamp at L. None: the max-pools found by the dry run.
+        probe_size: the image size of the dry run when ``input_size`` is None.
+
+    Attributes:
+        tap_shape: ``(C, h, w)`` of L, from the dry run.
+        clamp_at_tap: whether negative gradients are zeroed at L itself.
+        transitions: names of the submodules clamped after the tap (their calls after the tap only).
+
+    Shape:
+        - images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1]
+        - tap L: :math:`(B, *\\text{tap\\_shape})`
+        - logits: :math:`(B, K)`
+
+    Example:
+        >>> net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
+        ...                     nn.Conv2d(8, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
+        ...                     nn.Flatten(), nn.Linear(8 * 8 * 8, 10))
+        >>> hooked = HookedBackbone(net, tap="2", input_size=(32, 32))
+        >>> hooked.tap_shape, hooked.clamp_at_tap, hooked.transitions
+        ((8, 16, 16), True, ('5',))
+    """
+
+    def __init__(
+        self,
+        module: nn.Module,
+        tap: str,
+        input_size: Sequence[int] | None = None,
+        mean: Sequence[float] | None = None,
+        std: Sequence[float] | None = None,
+        transitions: Sequence[str] | None = None,
+        probe_size: Sequence[int] = (224, 224),
+    ) -> None:
+        super().__init__()
+        if not isinstance(module, nn.Module):
+            raise TypeError(f"module must be an nn.Module, got {type(module).__name__}")
+        if not isinstance(tap, str) or not tap:
+            raise ValueError(f"tap must name a submodule of {type(module).__name__} (e.g. 'layer3'), got {tap!r}")
+        self.module = module
+        self.tap = tap
+        self._tap_module = self._submodule(tap)
+        self.input_size = self._size(input_size, "input_size")
+        self.probe_size = self._size(probe_size, "probe_size")
+        for name, v in (("mean", mean), ("std", std)):
+            if v is not None and (len(v) != 3 or not all(torch.isfinite(torch.tensor(v, dtype=torch.float64)))):
+                raise ValueError(f"{name} must be 3 finite values (one per RGB channel) or None, got {v!r}")
+        if std is not None and not all(float(s) > 0 for s in std):
+            raise ValueError(f"std must be positive, got {std!r}")
+        self.mean = None if mean is None else tuple(float(v) for v in mean)
+        self.std = None if std is None else tuple(float(v) for v in std)
+        self.name = f"{type(module).__name__}.{tap}"
+        if transitions is not None:
+            names = tuple(str(n) for n in transitions)
+            for n in names:
+                self._submodule(n)
+            self.clamp_at_tap = tap in names
+            self._transition_names = tuple(n for n in names if n != tap)
+        self._dry_run(explicit=transitions is not None)
+
+    # ------------------------------------------------------------------------------------ set-up
+    def _submodule(self, name: str) -> nn.Module:
+        try:
+            sub = self.module.get_submodule(name)
+        except AttributeError:
+            names = [n for n, _ in self.module.named_modules() if n]
+            shown = ", ".join(repr(n) for n in names[:24]) + (", ..." if len(names) > 24 else "")
+            raise ValueError(f"{type(self.module).__name__} has no submodule {name!r}; its submodules: {shown}") from None
+        if sub is self.module:
+            raise ValueError(f"tap must be a submodule of {type(self.module).__name__}, not the module itself")
+        return sub
+
+    @staticmethod
+    def _size(size: Sequence[int] | None, what: str) -> tuple[int, int] | None:
+        if size is None:
+            return None
+        if len(size) != 2 or any(int(s) != s or s < 1 for s in size):
+            raise ValueError(f"{what} must be (height, width) in positive integers or None, got {size!r}")
+        return int(size[0]), int(size[1])
+
+    def _dtype_device(self) -> tuple[torch.dtype, torch.device]:
+        for t in (*self.module.parameters(), *self.module.buffers()):
+            if t.is_floating_point():
+                return t.dtype, t.device
+        return torch.float32, torch.device("cpu")
+
+    def _dry_run(self, explicit: bool) -> None:
+        size = self.input_size or self.probe_size
+        dtype, device = self._dtype_device()
+        x = torch.full((1, 3, *size), 0.5, dtype=dtype, device=device)
+        events: list[tuple[str, nn.Module, object]] = []  # (name, module, output) in completion order
+        handles = []
+        watched = {id(m) for m in self.module.modules() if isinstance(m, MAX_POOL_TYPES)} | {id(self._tap_module)}
+        for name, m in self.module.named_modules():
+            if id(m) in watched:
+                handles.append(m.register_forward_hook(
+                    lambda mod, inp, out, name=name: events.append((name, mod, out))))
+        what = f"the dry run of {type(self.module).__name__} on a (1, 3, {size[0]}, {size[1]}) image"
+        try:
+            with torch.no_grad(), eval_mode(self.module):
+                logits = self.module(self.preprocess(x))
+        except Exception as exc:
+            hint = "" if self.input_size else (
+                "; set input_size=(H, W) to the image size the network takes (images are resized to it), or "
+                "probe_size=(H, W) when your images already come at that size")
+            raise ValueError(f"{what} failed ({type(exc).__name__}: {exc}){hint}") from exc
+        finally:
+            for h in handles:
+                h.remove()
+        if not isinstance(logits, Tensor) or logits.ndim != 2 or logits.shape[0] != 1:
+            shape = tuple(logits.shape) if isinstance(logits, Tensor) else type(logits).__name__
+            raise ValueError(f"{what} returned {shape}; the module's forward must return class logits (B, K)")
+        tap_calls = [i for i, (_, m, _) in enumerate(events) if m is self._tap_module]
+        if len(tap_calls) != 1:
+            raise ValueError(f"in {what} the tap {self.tap!r} ran {len(tap_calls)} times; tap a submodule "
+                             "that runs exactly once per forward")
+        at = tap_calls[0]
+        tap_out = _main_output(events[at][2])
+        if tap_out is None or tap_out.ndim != 4:
+            shape = tuple(tap_out.shape) if tap_out is not None else type(events[at][2]).__name__
+            raise ValueError(f"the tap {self.tap!r} returns {shape}; it must return a (B, C, h, w) feature map")
+        self.tap_shape = tuple(int(s) for s in tap_out.shape[1:])
+        self.logit_count = int(logits.shape[1])
+        if not explicit:
+            before = [_main_output(out) for _, m, out in events[:at] if isinstance(m, MAX_POOL_TYPES)]
+            self.clamp_at_tap = isinstance(self._tap_module, MAX_POOL_TYPES) or any(t is tap_out for t in before)
+            after: list[str] = []
+            for name, m, _ in events[at + 1:]:
+                if isinstance(m, MAX_POOL_TYPES) and name not in after:
+                    after.append(name)
+            self._transition_names = tuple(after)
+
+    @property
+    def transitions(self) -> tuple[str, ...]:
+        """Names of the submodules whose outputs are clamped when they run after the tap."""
+        return self._transition_names
+
+    # ------------------------------------------------------------------------------------ protocol
+    def preprocess(self, images: Tensor) -> Tensor:
+        """(B, 3, H, W) uint8 or [0, 1] float -> the network input: resized to ``input_size`` (when set),
+        normalised with ``mean``/``std`` (when set), in the module's dtype."""
+        return prepare_images(images, self.input_size, self.mean, self.std, dtype=self._dtype_device()[0])
+
+    def _check_tap(self, out: object) -> Tensor:
+        tap = _main_output(out)
+        if tap is None or tuple(tap.shape[1:]) != self.tap_shape:
+            shape = tuple(tap.shape) if tap is not None else type(out).__name__
+            size = f"{self.input_size[0]} x {self.input_size[1]}" if self.input_size else \
+                f"their own size (the dry run used {self.probe_size[0]} x {self.probe_size[1]})"
+            raise ValueError(
+                f"the tap {self.tap!r} gave L of shape {shape} but this backbone's tap_shape is "
+                f"{self.tap_shape} (images at {size}); set input_size=(H, W) so that every image is resized "
+                "to the size the network was set up for")
+        return tap
+
+    def forward_to_tap(self, x: Tensor) -> Tensor:
+        """Preprocessed images -> L, :math:`(B, *\\text{tap\\_shape})`; the network stops at the tap."""
+        captured: list[Tensor] = []
+
+        def hook(mod: nn.Module, inp: object, out: object) -> None:
+            captured.append(self._check_tap(out))
+            raise _StopForward
+
+        handle = self._tap_module.register_forward_hook(hook)
+        try:
+            self.module(x)
+        except _StopForward:
+            pass
+        finally:
+            handle.remove()
+        if not captured:
+            raise RuntimeError(f"the tap {self.tap!r} did not run in the forward pass of {type(self.module).__name__}")
+        return captured[0]
+
+    def forward_split(self, x: Tensor, at_tap: Callable[[Tensor], Tensor],
+                      transition: Callable[[Tensor], Tensor] | None = None) -> Tensor:
+        """One forward pass, preprocessed images -> logits, with ``at_tap(L)`` substituted for L.
+
+        Args:
+            x: the preprocessed images :math:`(B, 3, H', W')`.
+            at_tap: called with L once, when the tap runs; its result replaces L for the rest of the
+                network (a copy of it, so later in-place layers cannot change it).
+            transition: applied at L (when :attr:`clamp_at_tap`) and to the outputs of
+                :attr:`transitions` that run after the tap; identity when None.
+
+        Returns:
+            the logits :math:`(B, K)`.
+        """
+        state = {"after": False}
+
+        def tap_hook(mod: nn.Module, inp: object, out: object) -> object:
+            if state["after"]:
+                raise RuntimeError(f"the tap {self.tap!r} ran twice in one forward pass")
+            value = at_tap(self._check_tap(out))
+            state["after"] = True
+            value = transition(value) if (transition is not None and self.clamp_at_tap) else value.clone()
+            return _replace_main_output(out, value)
+
+        def transition_hook(mod: nn.Module, inp: object, out: object) -> object | None:
+            main = _main_output(out)
+            if not state["after"] or transition is None or main is None:
+                return None
+            return _replace_main_output(out, transition(main))
+
+        handles = [self._tap_module.register_forward_hook(tap_hook)]
+        if transition is not None:
+            for name in self._transition_names:
+                handles.append(self.module.get_submodule(name).register_forward_hook(transition_hook))
+        try:
+            return self.module(x)
+        finally:
+            for h in handles:
+                h.remove()
+
+    def forward(self, images: Tensor) -> Tensor:
+        """Images (B, 3, H, W) -> logits (B, K): the module on the preprocessed images."""
+        return self.module(self.preprocess(images))
+
+    def extra_repr(self) -> str:
+        return (f"tap={self.tap!r}, tap_shape={self.tap_shape}, input_size={self.input_size}, mean={self.mean}, "
+                f"std={self.std}, clamp_at_tap={self.clamp_at_tap}, transitions={self.transitions}")

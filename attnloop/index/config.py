@@ -1,0 +1,177 @@
+"""Configuration of the keyframe index: :class:`IndexConfig` and the settings of each backend.
+
+The backend names live in :data:`BACKENDS` (the one list of them); :func:`resolve_backend` turns
+``"auto"`` into the best backend installed here.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = [
+    "BACKENDS", "STORAGE_DTYPES", "FaissConfig", "FlannConfig", "IndexConfig", "config_from_dict",
+    "config_to_dict", "faiss_available", "resolve_backend",
+]
+
+BACKENDS = ("auto", "exact", "flann", "faiss")
+STORAGE_DTYPES = ("float32", "float16")
+
+
+@dataclass
+class FlannConfig:
+    """The paper's FLANN priority-search k-means tree (OpenCV's ``cv2.flann_Index``, algorithm 2).
+
+    FLANN cannot add points to a built tree: rows added after a build form a *tail* that is scanned
+    exactly until the tree is rebuilt over every row (in a worker thread, see ``IndexConfig.background``).
+    OpenCV's Python binding cannot pass FLANN's ``centers_init`` (a C++ enum), so the k-means centres are
+    always initialised at random (FLANN's default), from OpenCV's RNG seeded with ``IndexConfig.seed`` in
+    the build thread (the caller's RNG is untouched).
+    """
+
+    branching: int = 32  # k-means tree branching factor (FLANN's default)
+    iterations: int = 5  # k-means iterations per node (FLANN default 11; 5 builds ~2x faster, same recall)
+    checks: int = 512  # points examined per query; -1 = exhaustive tree search (exact); docs/benchmarks
+    rebuild_every: int = 256  # rebuild the tree once the unindexed tail holds this many rows ...
+    rebuild_fraction: float = 0.25  # ... and at least this fraction of the indexed rows
+
+    def __post_init__(self) -> None:
+        if self.branching < 2:
+            raise ValueError(f"FlannConfig.branching must be >= 2, got {self.branching}")
+        if self.iterations < 1:
+            raise ValueError(f"FlannConfig.iterations must be >= 1, got {self.iterations}")
+        if self.checks == 0 or self.checks < -1:
+            raise ValueError(f"FlannConfig.checks must be positive or -1 (exhaustive), got {self.checks}")
+        if self.rebuild_every < 1 or self.rebuild_fraction < 0:
+            raise ValueError("FlannConfig.rebuild_every must be >= 1 and rebuild_fraction >= 0")
+
+
+@dataclass
+class FaissConfig:
+    """A faiss HNSW graph (``faiss.IndexHNSWFlat``, L2 on the unit descriptors or on their PCA codes).
+
+    The graph grows one keyframe at a time (every ``add`` inserts into it), so it never needs a rebuild
+    for growth. Only its trained part, the PCA code of ``IndexConfig.reduce_dim``, goes stale as the robot
+    reaches places unlike those it was fitted on (on the kitchen, frames after a fit keep 30-50% of their
+    energy in the code against 93% of the fitted ones); the graph is rebuilt with a new code, in a worker
+    thread, once the rows have grown by ``retrain_growth`` since the fit.
+    """
+
+    m: int = 32  # links per node (faiss's default; 16 plateaued near recall 0.95 on clustered 1024-d data)
+    # Candidate list while inserting. faiss's default 40 built a graph that lost 11% of recall@10 on the
+    # real kitchen descriptors (a trajectory: a thin manifold) where 80 lost none; build time ~2x.
+    ef_construction: int = 80
+    ef_search: int = 64  # candidate list while searching (raised to the number of rows asked for)
+    # Refit the PCA code and rebuild once the rows added since the fit reach this fraction of the rows it
+    # was fitted on (1.0: at every doubling, so all the rebuilds together cost about one final build;
+    # inf: never). Between refits, new places are coded by the old fit: docs/benchmarks.md measures it.
+    retrain_growth: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.m < 2 or self.ef_construction < 1 or self.ef_search < 1:
+            raise ValueError(f"FaissConfig: need m >= 2, ef_construction >= 1, ef_search >= 1, got {self.m}, "
+                             f"{self.ef_construction}, {self.ef_search}")
+        if not self.retrain_growth > 0:
+            raise ValueError(f"FaissConfig.retrain_growth must be > 0 (inf: never), got {self.retrain_growth}")
+
+
+@dataclass
+class IndexConfig:
+    """Parameters of :class:`attnloop.index.KeyframeIndex`.
+
+    Every backend gives the same interface (ids, exclusion window, exact re-scoring): ``"exact"`` scans
+    every eligible descriptor; ``"flann"`` and ``"faiss"`` scan exactly below ``exact_below`` keyframes and
+    above it ask their structure for ``rerank * k`` candidate rows, which are re-scored exactly from the
+    stored descriptors; ``"auto"`` is ``"faiss"`` where faiss is installed, else ``"flann"``.
+    """
+
+    backend: str = "auto"  # "auto" | "exact" | "flann" | "faiss" (BACKENDS)
+    # Below this many eligible keyframes a plain scan answers (exact, and faster than a structure there:
+    # docs/benchmarks.md, section "Keyframe index at scale"); no structure is built below it.
+    exact_below: int = 4096
+    # PCA code the approximate structure is built on (None: the full descriptors). The stored descriptors
+    # stay full: candidates are re-scored exactly, so the code only has to keep the true neighbours among
+    # the rerank * k candidates. 128 dims build and search ~2x faster than 256 and keep 94% of the kitchen
+    # descriptors' variance; with rerank 8 the kitchen (graph from 32 keyframes on, window 30) keeps
+    # recall@10 0.990 (256 dims: 0.998; full descriptors: 1.000). docs/benchmarks.md, "Keyframe index at
+    # scale", has every variant on every set.
+    reduce_dim: int | None = 128
+    # PCA-whitening (unit-variance components, codes L2-normalised) instead of PCA: it lost recall on real
+    # descriptors (kitchen 0.86 vs 0.99), kept for measurement.
+    whiten: bool = False
+    rerank: int = 8  # the structure proposes rerank * k rows per query, all re-scored exactly (4: kitchen 0.93)
+    storage: str = "float32"  # dtype of the stored descriptors: "float32" | "float16" (half the memory)
+    background: bool = True  # build structures in a worker thread; queries use the old one meanwhile
+    normalize: bool = True  # L2-normalise added descriptors and queries (similarity = cosine)
+    seed: int = 0  # seed of the k-means centres (flann) and of the PCA's fitting sample
+    flann: FlannConfig = field(default_factory=FlannConfig)
+    faiss: FaissConfig = field(default_factory=FaissConfig)
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ValueError(f"IndexConfig.backend must be one of {BACKENDS}, got {self.backend!r}")
+        if self.storage not in STORAGE_DTYPES:
+            raise ValueError(f"IndexConfig.storage must be one of {STORAGE_DTYPES}, got {self.storage!r}")
+        if self.exact_below < 1:
+            raise ValueError(f"IndexConfig.exact_below must be >= 1, got {self.exact_below}")
+        if self.reduce_dim is not None and self.reduce_dim < 1:
+            raise ValueError(f"IndexConfig.reduce_dim must be None or >= 1, got {self.reduce_dim}")
+        if self.rerank < 1:
+            raise ValueError(f"IndexConfig.rerank must be >= 1, got {self.rerank}")
+
+
+def faiss_available() -> bool:
+    """Whether ``faiss`` can be imported (``pip install attnloop[faiss]``)."""
+    return importlib.util.find_spec("faiss") is not None
+
+
+def resolve_backend(backend: str) -> str:
+    """The backend that ``backend`` names here: ``"auto"`` -> ``"faiss"`` if installed, else ``"flann"``.
+
+    Raises:
+        ValueError: an unknown name.
+        ImportError: ``"faiss"`` asked for where faiss is not installed.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"index backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "auto":
+        return "faiss" if faiss_available() else "flann"
+    if backend == "faiss" and not faiss_available():
+        raise ImportError("IndexConfig(backend='faiss') needs faiss: pip install 'attnloop[faiss]' "
+                          "(or faiss-cpu); backend='auto' falls back to 'flann' without it")
+    return backend
+
+
+def config_to_dict(config: IndexConfig) -> dict:
+    """A JSON-friendly dict of ``config`` (nested backend settings as dicts; ``inf`` as the string "inf")."""
+    out = dataclasses.asdict(config)
+    out["faiss"]["retrain_growth"] = _float_out(out["faiss"]["retrain_growth"])
+    return out
+
+
+def config_from_dict(data: dict) -> IndexConfig:
+    """Inverse of :func:`config_to_dict`; ValueError naming unknown keys."""
+    data = dict(data)
+    nested = {"flann": FlannConfig, "faiss": FaissConfig}
+    kwargs: dict[str, Any] = {}
+    for name, cls in nested.items():
+        if name in data:
+            sub = dict(data.pop(name))
+            _check_keys(sub, cls, f"IndexConfig.{name}")
+            if "retrain_growth" in sub:
+                sub["retrain_growth"] = float(sub["retrain_growth"])
+            kwargs[name] = cls(**sub)
+    _check_keys(data, IndexConfig, "IndexConfig")
+    return IndexConfig(**data, **kwargs)
+
+
+def _check_keys(data: dict, cls, what: str) -> None:
+    unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
+    if unknown:
+        raise ValueError(f"{what} has no setting(s) {sorted(unknown)}")
+
+
+def _float_out(x: float):
+    return "inf" if math.isinf(x) else x

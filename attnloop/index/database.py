@@ -1,0 +1,497 @@
+"""The keyframe database: stored descriptors, an approximate structure over them, exact re-scoring.
+
+Descriptors are L2-normalised, so the cosine similarity is a dot product and the Euclidean distance that the
+structures rank by is ``|a - b|^2 = 2 - 2 a.b``: the nearest neighbours in L2 are the most similar keyframes.
+
+**Rows.** All descriptors live in one growing buffer (:class:`~attnloop.index.storage.KeyframeStore`,
+float32 or float16; rows are never modified). Below ``exact_below`` keyframes (and for the ``"exact"``
+backend always) a query is one exact scan. Above it a structure covers rows ``[0, n_indexed)``:
+
+* ``"faiss"``: an HNSW graph that every ``add`` extends, so it covers every row; it is rebuilt (new PCA
+  code) only when its code goes stale (:class:`~attnloop.index.config.FaissConfig`);
+* ``"flann"``: a k-means tree, which cannot grow: rows after it (the *tail*) are scanned exactly, and when
+  the tail holds ``max(rebuild_every, rebuild_fraction * n_indexed)`` rows a new tree over every row is
+  built. With the fraction, the number of rebuilds grows only logarithmically with the database size.
+
+Builds run in a background thread by default (OpenCV and faiss release the GIL while building, so tracking
+goes on); until one is ready, queries keep using the old structure plus the exact tail, and the new one is
+swapped in (one attribute assignment) by the next ``add``/``search``.
+
+**Exactness.** Every answer is re-scored exactly (dot products of the candidate rows with the full stored
+descriptors) and merged with the exact tail; the structure proposes ``rerank * k`` candidate rows, so the
+only approximation is whether it finds the true neighbours among them. FLANN with ``checks=-1`` (exhaustive
+tree search) finds them (the answer equals a brute-force search, up to float32 rounding of near-ties); the
+HNSW graph claims no exactness (recall is measured: docs/benchmarks.md).
+
+**Exclusion window.** Keyframe ids must increase with every ``add``; ``search(..., max_id=m)`` only returns
+keyframes with ``id <= m`` (for a query keyframe ``q`` and a window ``w``: ``m = q - w`` excludes the ``w``
+most recent ids). Because ids increase, the eligible keyframes are a prefix of the rows: the HNSW graph
+searches the id range of that prefix (faiss's ``IDSelectorRange``); the tree is asked for as many extra
+neighbours as it holds rows past the prefix, which are then filtered out (a scan answers when that is
+more than a few); a prefix below ``exact_below`` rows is scanned.
+
+**Persistence.** :meth:`KeyframeIndex.state_dict` / :meth:`KeyframeIndex.from_state` (arrays and a JSON-able
+record) and :meth:`KeyframeIndex.save` / :meth:`KeyframeIndex.load` (one ``.npz`` file) keep the rows and
+the built structure itself, so a reloaded index answers exactly as the saved one.
+
+Example:
+    >>> index = KeyframeIndex(IndexConfig(backend="flann", exact_below=64, background=False))
+    >>> data = torch.randn(200, 32)
+    >>> index.add(data, ids=torch.arange(200))
+    >>> ids, sims = index.search(data[150], k=3, max_id=140)
+    >>> ids.shape, sims.shape, bool((ids <= 140).all())
+    (torch.Size([3]), torch.Size([3]), True)
+    >>> index.search(data[0], k=3, max_id=-1)[0].shape
+    torch.Size([0])
+"""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import torch
+
+from attnloop.index.config import IndexConfig, config_from_dict, config_to_dict, resolve_backend
+from attnloop.index.exact import topk_rows
+from attnloop.index.storage import KeyframeStore
+from attnloop.index.structures import STRUCTURES
+
+Tensor = torch.Tensor
+
+__all__ = ["INDEX_FORMAT", "INDEX_FORMAT_VERSION", "KeyframeIndex"]
+
+INDEX_FORMAT = "attnloop.KeyframeIndex"
+INDEX_FORMAT_VERSION = 1
+
+
+def _to_numpy_2d(x, name: str) -> tuple[np.ndarray, bool]:
+    """(N, D) or (D,) tensor/array -> contiguous float32 (N, D) numpy array, and whether it was 1-D."""
+    if isinstance(x, Tensor):
+        arr = x.detach().to(device="cpu", dtype=torch.float32).numpy()
+    else:
+        arr = np.asarray(x, dtype=np.float32)
+    if arr.ndim == 1:
+        return np.ascontiguousarray(arr[None]), True
+    if arr.ndim != 2:
+        raise ValueError(f"{name} must have shape (D,) or (N, D), got {tuple(arr.shape)}")
+    return np.ascontiguousarray(arr), False
+
+
+def _as_array(x, dtype) -> np.ndarray:
+    return np.asarray(x.detach().cpu().numpy() if isinstance(x, Tensor) else x, dtype=dtype)
+
+
+def _l2_normalize(x: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(x, axis=1, keepdims=True)
+    return x / np.maximum(norm, 1e-12)  # a zero descriptor stays zero (similarity 0 to everything)
+
+
+class KeyframeIndex:
+    """Growing keyframe database with an exact scan, a FLANN tree or a faiss HNSW graph behind one interface.
+
+    Not safe for concurrent ``add``/``search`` calls from several threads (the SLAM loop calls it from
+    one); the only concurrency is its own background build.
+
+    Args:
+        config: :class:`~attnloop.index.config.IndexConfig` (default: ``backend="auto"``).
+        dim: descriptor size ``D``; inferred from the first ``add`` when ``None``.
+
+    Raises:
+        ImportError: ``backend="faiss"`` where faiss is not installed.
+    """
+
+    def __init__(self, config: IndexConfig | None = None, dim: int | None = None) -> None:
+        self.config = config or IndexConfig()
+        self.backend = resolve_backend(self.config.backend)  # "exact" | "flann" | "faiss"
+        self._store = None if dim is None else KeyframeStore(dim, self.config.storage)
+        self._structure = None
+        self._worker: threading.Thread | None = None
+        self._result: list = []  # the worker's (structure | exception), read by _poll
+        self.num_builds = 0
+
+    # ------------------------------------------------------------------ properties
+    def __len__(self) -> int:
+        return 0 if self._store is None else self._store.n
+
+    @property
+    def dim(self) -> int | None:
+        """Descriptor size ``D`` (``None`` before the first add)."""
+        return None if self._store is None else self._store.dim
+
+    @property
+    def n_indexed(self) -> int:
+        """Rows covered by the current structure (the rest is scanned exactly)."""
+        s = self._structure
+        return 0 if s is None else s.n
+
+    @property
+    def building(self) -> bool:
+        """Whether a background build is running."""
+        return self._worker is not None and self._worker.is_alive()
+
+    @property
+    def ids(self) -> Tensor:
+        """Keyframe ids ``(N,)`` (long), in insertion (= increasing) order."""
+        return torch.from_numpy(self._ids().copy())
+
+    @property
+    def last_id(self) -> int | None:
+        """The largest (= last added) keyframe id, ``None`` when empty."""
+        return int(self._store.ids[-1]) if len(self) else None
+
+    @property
+    def timestamps(self) -> Tensor:
+        """Timestamps ``(N,)`` (float64; NaN where none was given)."""
+        ts = np.zeros(0) if self._store is None else self._store.timestamps
+        return torch.from_numpy(ts.copy())
+
+    @property
+    def descriptors(self) -> Tensor:
+        """The stored (normalised) descriptors ``(N, D)``, a float32 copy."""
+        if self._store is None:
+            return torch.zeros(0, 0)
+        return torch.from_numpy(self._store.view().astype(np.float32))
+
+    def descriptors_of(self, ids) -> Tensor:
+        """Stored descriptors ``(M, D)`` (float32) of keyframe ids ``(M,)``; ValueError naming an unknown id."""
+        return torch.from_numpy(self._store.rows(self.rows_of(ids).numpy()))
+
+    def rows_of(self, ids) -> Tensor:
+        """Buffer rows of the given keyframe ids ``(M,)``; ValueError naming an unknown id."""
+        q = np.atleast_1d(_as_array(ids, np.int64))
+        stored = self._ids()
+        rows = np.searchsorted(stored, q)
+        ok = rows < stored.size
+        ok[ok] = stored[rows[ok]] == q[ok]
+        if not np.all(ok):
+            raise ValueError(f"unknown keyframe id(s) {q[~ok].tolist()[:5]} "
+                             f"(the index holds {len(self)} keyframes)")
+        return torch.from_numpy(rows)
+
+    def _ids(self) -> np.ndarray:
+        return np.zeros(0, dtype=np.int64) if self._store is None else self._store.ids
+
+    # ------------------------------------------------------------------ growth
+    def add(self, descriptors, ids=None, timestamps=None) -> None:
+        """Append keyframes.
+
+        Args:
+            descriptors: ``(D,)`` or ``(M, D)`` tensor or array (any device; stored on the CPU in
+                ``config.storage``).
+            ids: ``(M,)`` integer keyframe ids, strictly increasing and above every stored id; default
+                continues from the last id (``0, 1, 2, ...``).
+            timestamps: ``(M,)`` optional, stored for the caller.
+        """
+        x, _ = _to_numpy_2d(descriptors, "descriptors")
+        m, d = x.shape
+        if self._store is None:
+            self._store = KeyframeStore(d, self.config.storage)
+        elif d != self._store.dim:
+            raise ValueError(f"descriptors have dimension {d} but the index holds dimension {self._store.dim} "
+                             f"(got shape {tuple(x.shape)})")
+        if m == 0:
+            return
+        if not np.all(np.isfinite(x)):
+            raise ValueError("descriptors contain NaN or inf")
+        last = self.last_id
+        if ids is None:
+            start = last + 1 if last is not None else 0
+            new_ids = np.arange(start, start + m, dtype=np.int64)
+        else:
+            new_ids = np.atleast_1d(_as_array(ids, np.int64))
+            if new_ids.shape != (m,):
+                raise ValueError(f"ids must have shape ({m},), got {tuple(new_ids.shape)}")
+        if np.any(np.diff(new_ids) <= 0) or (last is not None and new_ids[0] <= last):
+            raise ValueError(f"keyframe ids must be strictly increasing; got {new_ids[:5].tolist()}... "
+                             f"after last id {last}")
+        ts = np.full(m, np.nan) if timestamps is None else np.atleast_1d(_as_array(timestamps, np.float64))
+        if ts.shape != (m,):
+            raise ValueError(f"timestamps must have shape ({m},), got {tuple(ts.shape)}")
+        if self.config.normalize:
+            x = _l2_normalize(x)
+        self._poll()
+        self._store.append(x, new_ids, ts)
+        self._extend()
+        self._maybe_rebuild()
+
+    def _extend(self) -> None:
+        """Append the rows the installed structure lacks, where it can grow."""
+        s = self._structure
+        if s is not None and s.extendable and s.n < self._store.n:
+            s.extend(self._store.view(s.n))
+
+    def _needs_rebuild(self) -> bool:
+        if self.backend == "exact" or len(self) < self.config.exact_below:
+            return False
+        s = self._structure
+        if s is None:
+            return True
+        if s.extendable:
+            return s.stale()
+        f = self.config.flann
+        return len(self) - s.n >= max(f.rebuild_every, f.rebuild_fraction * s.n)
+
+    def _maybe_rebuild(self) -> None:
+        if self._needs_rebuild() and not self.building:
+            self._start_build(background=self.config.background)
+
+    def _start_build(self, background: bool) -> None:
+        snapshot = self._store.view(0, self._store.n)  # rows never written again
+        cls, config = STRUCTURES[self.backend], self.config
+        result: list = []
+
+        def work() -> None:
+            try:
+                result.append(cls.build(snapshot, config))
+            except BaseException as exc:  # surfaced in the caller's thread by _poll
+                result.append(exc)
+
+        self._result = result
+        self._worker = threading.Thread(target=work, name=f"attnloop-{self.backend}-build", daemon=True)
+        self._worker.start()
+        if not background:
+            self._worker.join()
+        self._poll()
+
+    def _poll(self) -> None:
+        """Install a finished build (atomic swap), extend it to every row, and surface its error, if any."""
+        if self._worker is None or self._worker.is_alive():
+            return
+        self._worker = None
+        out = self._result.pop() if self._result else None
+        if isinstance(out, BaseException):
+            raise RuntimeError(f"building the {self.backend} index structure failed") from out
+        if out is not None:
+            self._structure = out
+            self.num_builds += 1
+            self._extend()
+
+    def wait(self) -> None:
+        """Block until a running background build has finished and is installed."""
+        if self._worker is not None:
+            self._worker.join()
+        self._poll()
+
+    def rebuild(self) -> None:
+        """Build a structure over every stored row now (synchronously), refitting its code.
+
+        No-op for the ``"exact"`` backend, below ``exact_below`` rows, and for a FLANN tree that covers
+        every row already.
+        """
+        self.wait()
+        if self.backend == "exact" or len(self) < self.config.exact_below:
+            return
+        if self.backend == "flann" and self.n_indexed == len(self):
+            return
+        self._start_build(background=False)
+
+    # ------------------------------------------------------------------ queries
+    def _eligible(self, max_ids: np.ndarray | None, nq: int) -> np.ndarray:
+        if max_ids is None:
+            return np.full(nq, len(self), dtype=np.int64)
+        return np.searchsorted(self._ids(), max_ids, side="right").astype(np.int64)
+
+    def _prepare_queries(self, query, max_id):
+        q, single = _to_numpy_2d(query, "query")
+        if self.dim is not None and q.shape[1] != self.dim:
+            raise ValueError(f"query has dimension {q.shape[1]} but the index holds dimension {self.dim} "
+                             f"(got shape {tuple(q.shape)})")
+        if self.config.normalize:
+            q = _l2_normalize(q)
+        if max_id is None:
+            max_ids = None
+        else:
+            max_ids = _as_array(max_id, np.int64)
+            if max_ids.ndim > 1 or (max_ids.ndim == 1 and max_ids.shape[0] not in (1, q.shape[0])):
+                raise ValueError(f"max_id must be a scalar or have shape ({q.shape[0]},), "
+                                 f"got {tuple(max_ids.shape)}")
+            max_ids = np.broadcast_to(max_ids, (q.shape[0],))
+        device = query.device if isinstance(query, Tensor) else torch.device("cpu")
+        return q, single, max_ids, device
+
+    def search(self, query, k: int = 10, max_id=None) -> tuple[Tensor, Tensor]:
+        """The ``k`` most similar eligible keyframes of each query.
+
+        Args:
+            query: ``(D,)`` or ``(Q, D)`` descriptors (tensor on any device, or array).
+            k: neighbours per query.
+            max_id: only keyframes with ``id <= max_id`` are eligible (the temporal exclusion window:
+                ``max_id = query_id - window``); a scalar or ``(Q,)``; ``None``: all keyframes.
+
+        Returns:
+            ids (long) and cosine similarities (float32), on the query's device, most similar first:
+            ``(K,)`` each for a ``(D,)`` query, ``(Q, K)`` each for ``(Q, D)``, where
+            ``K = min(k, most eligible keyframes of any query)``; rows of a batch with fewer eligible
+            keyframes are padded with id ``-1`` and similarity ``-inf``. ``K = 0`` (empty tensors) when
+            nothing is eligible.
+        """
+        if int(k) < 1:
+            raise ValueError(f"k must be >= 1, got {k}")
+        q, single, max_ids, device = self._prepare_queries(query, max_id)
+        self._poll()
+        nq = q.shape[0]
+        n_elig = self._eligible(max_ids, nq) if len(self) else np.zeros(nq, dtype=np.int64)
+        kk = int(min(k, n_elig.max(initial=0)))
+        out_ids = np.full((nq, kk), -1, dtype=np.int64)
+        out_sim = np.full((nq, kk), -np.inf, dtype=np.float32)
+        if kk > 0:
+            structure, ids = self._structure, self._store.ids
+            for i in range(nq):
+                m = int(n_elig[i])
+                if m == 0:
+                    continue
+                rows = np.sort(self._candidate_rows(q[i], m, kk, structure))
+                # Re-scored in float64 (then rounded): a similarity must not depend on which other rows
+                # were re-scored with it (float32 products of different sizes round differently), and
+                # ties (duplicate frames) go to the lower id, so that every backend orders alike.
+                sims = (self._store.rows(rows).astype(np.float64) @ q[i].astype(np.float64)).astype(np.float32)
+                order = np.argsort(-sims, kind="stable")[:kk]
+                out_ids[i, : order.size] = ids[rows[order]]
+                out_sim[i, : order.size] = sims[order]
+        ids_t = torch.from_numpy(out_ids).to(device)
+        sim_t = torch.from_numpy(out_sim).to(device)
+        return (ids_t[0], sim_t[0]) if single else (ids_t, sim_t)
+
+    def _candidate_rows(self, q: np.ndarray, m: int, k: int, structure) -> np.ndarray:
+        """Rows (in ``[0, m)``) that contain the k nearest of the eligible prefix ``[0, m)``."""
+        # Exact scans keep 2k rows: the re-scoring then settles near-ties at the k-th place (float32
+        # rounding, duplicate frames) the same way whichever path found them.
+        store = self._store
+        if structure is None or m < self.config.exact_below:
+            return topk_rows(store.matvec(q, 0, m), 2 * k)
+        rows = structure.candidates(q, k * self.config.rerank, m)
+        if rows is None:
+            return topk_rows(store.matvec(q, 0, m), 2 * k)
+        if m > structure.n:  # the exact tail
+            rows = np.concatenate([rows, structure.n + topk_rows(store.matvec(q, structure.n, m), 2 * k)])
+        return np.unique(rows)
+
+    def similarities(self, query, max_id=None, max_samples: int | None = None) -> tuple[Tensor, Tensor]:
+        """Exact similarities of one query to every eligible keyframe (or an even sample of them).
+
+        Args:
+            query: ``(D,)`` descriptor.
+            max_id: only keyframes with ``id <= max_id`` (see :meth:`search`); ``None``: all.
+            max_samples: at most this many eligible keyframes: every ``ceil(M / max_samples)``-th
+                eligible row (deterministic, spread over the whole database); ``None``: all.
+
+        Returns:
+            ids ``(M,)`` (long) and similarities ``(M,)`` (float32) in id order, on the query's device.
+        """
+        q, single, max_ids, device = self._prepare_queries(query, max_id)
+        if not single:
+            raise ValueError(f"similarities takes one query of shape (D,), got {tuple(q.shape)}")
+        m = int(self._eligible(max_ids, 1)[0]) if len(self) else 0
+        if m == 0:
+            rows = np.zeros(0, dtype=np.int64)
+            sims = np.zeros(0, dtype=np.float32)
+        else:
+            step = 1 if max_samples is None or m <= max_samples else -(-m // int(max_samples))
+            rows = np.arange(0, m, step)
+            sims = self._store.matvec(q[0], 0, m, step)
+        return (torch.from_numpy(self._ids()[rows].copy()).to(device),
+                torch.from_numpy(np.ascontiguousarray(sims, dtype=np.float32)).to(device))
+
+    # ------------------------------------------------------------------ persistence
+    def state_dict(self) -> dict:
+        """Everything needed to rebuild this index with identical answers.
+
+        Returns:
+            ``{"meta": dict, name: np.ndarray, ...}``: ``meta`` is JSON-able (format, version, config,
+            backend, dimension, sizes, the structure's record); the arrays are ``descriptors (N, D)`` (in
+            the storage dtype), ``ids (N,)``, ``timestamps (N,)`` and the structure's (``structure.*``:
+            the serialised graph or tree, the PCA code). A build still running is not waited for: the
+            installed structure is saved, and the rows past it are the tail.
+        """
+        self._poll()
+        n, dim = len(self), self.dim
+        meta = {"format": INDEX_FORMAT, "version": INDEX_FORMAT_VERSION, "config": config_to_dict(self.config),
+                "backend": self.backend, "dim": dim, "n": n, "num_builds": self.num_builds, "structure": None}
+        arrays = {
+            "descriptors": (self._store.view().copy() if n else np.zeros((0, dim or 0), np.float32)),
+            "ids": self._ids().copy(),
+            "timestamps": (self._store.timestamps.copy() if n else np.zeros(0)),
+        }
+        if self._structure is not None:
+            smeta, sarrays = self._structure.state()
+            meta["structure"] = smeta
+            arrays.update({f"structure.{k}": v for k, v in sarrays.items()})
+        return {"meta": meta, **arrays}
+
+    @classmethod
+    def from_state(cls, state: dict, config: IndexConfig | None = None) -> KeyframeIndex:
+        """The index a :meth:`state_dict` describes.
+
+        Args:
+            state: from :meth:`state_dict` (or :func:`attnloop.index.load_index`'s reading of a file).
+            config: ``None`` (or the saved config): the saved structure is restored as it was (identical
+                answers). Another config (another backend, ``reduce_dim``, ...): the rows are re-added
+                under it and its structure is built anew. A saved ``"auto"`` index whose structure this
+                machine cannot load (faiss missing) is rebuilt with the backend ``"auto"`` picks here.
+
+        Raises:
+            ValueError: a malformed state, naming what is wrong.
+        """
+        meta = state.get("meta")
+        if not isinstance(meta, dict) or meta.get("format") != INDEX_FORMAT:
+            raise ValueError(f"not a keyframe index state (its 'meta' record lacks format {INDEX_FORMAT!r})")
+        if int(meta.get("version", -1)) > INDEX_FORMAT_VERSION:
+            raise ValueError(f"keyframe index format version {meta.get('version')} is newer than this "
+                             f"library reads ({INDEX_FORMAT_VERSION})")
+        for key in ("config", "dim", "n", "num_builds", "structure"):
+            if key not in meta:
+                raise ValueError(f"keyframe index record lacks {key!r}")
+        for key in ("descriptors", "ids", "timestamps"):
+            if key not in state:
+                raise ValueError(f"keyframe index state lacks the array {key!r}")
+        saved = config_from_dict(meta["config"])
+        desc = np.asarray(state["descriptors"])
+        ids = np.asarray(state["ids"], dtype=np.int64)
+        ts = np.asarray(state["timestamps"], dtype=np.float64)
+        n, dim = int(meta["n"]), meta["dim"]
+        if desc.ndim != 2 or desc.shape[0] != n or (n and desc.shape[1] != dim):
+            raise ValueError(f"descriptors have shape {tuple(desc.shape)}, the record says ({n}, {dim})")
+        if ids.shape != (n,) or ts.shape != (n,):
+            raise ValueError(f"ids {tuple(ids.shape)} and timestamps {tuple(ts.shape)} must have shape ({n},)")
+        if n and np.any(np.diff(ids) <= 0):
+            raise ValueError("keyframe ids must be strictly increasing")
+        if n and not np.all(np.isfinite(desc)):
+            raise ValueError("descriptors contain NaN or inf")
+        smeta = meta["structure"]
+        use = config or saved
+        if config is not None and config != saved:
+            out = cls(config)
+            if n:
+                out.add(desc, ids=ids, timestamps=ts)
+            return out
+        backend = resolve_backend(use.backend)
+        out = cls(use, dim=dim)
+        if n:
+            out._store.append(desc.astype(out._store.dtype, copy=False), ids, ts)
+        if smeta is not None and smeta.get("kind") == backend:
+            sarrays = {k[len("structure."):]: v for k, v in state.items() if k.startswith("structure.")}
+            if int(smeta["n"]) > n:
+                raise ValueError(f"the saved structure covers {smeta['n']} rows of {n}")
+            out._structure = STRUCTURES[backend].from_state(smeta, sarrays, out._store.view(), use)
+            out._extend()
+            out.num_builds = int(meta["num_builds"])
+        elif n:
+            out._maybe_rebuild()  # a structure of another kind (or none): built here as adds would
+        return out
+
+    def save(self, file) -> None:
+        """Write :meth:`state_dict` to one ``.npz`` file (a path or a binary file object).
+
+        The format is open: ``meta`` is a JSON string (format, version, config, ...), every other entry a
+        plain array (no pickles); see :func:`attnloop.index.save_index`.
+        """
+        from attnloop.index.persistence import save_index
+
+        save_index(self, file)
+
+    @classmethod
+    def load(cls, file, config: IndexConfig | None = None) -> KeyframeIndex:
+        """Read an index written by :meth:`save`; :class:`~attnloop.index.IndexFileError` names the file."""
+        from attnloop.index.persistence import load_index
+
+        return load_index(file, config)

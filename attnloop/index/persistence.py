@@ -1,0 +1,78 @@
+"""Saving and loading a :class:`~attnloop.index.KeyframeIndex` as one ``.npz`` file.
+
+The file is an uncompressed numpy ``.npz`` (a zip of ``.npy`` arrays, readable without this library):
+``meta`` holds a JSON string (``format``, ``version``, the ``IndexConfig`` as a dict, the resolved backend,
+the dimension and size, the structure's record), ``descriptors (N, D)``, ``ids (N,)`` and
+``timestamps (N,)`` the rows, and ``structure.*`` the built structure (``structure.blob``: the serialised
+faiss graph or FLANN tree as bytes; ``structure.pca.*``: its PCA code). No pickles: loading runs no code.
+
+Example:
+    >>> import io, torch
+    >>> index = KeyframeIndex(IndexConfig(backend="exact"))
+    >>> index.add(torch.eye(4), ids=[2, 3, 5, 8])
+    >>> buf = io.BytesIO(); index.save(buf); _ = buf.seek(0)
+    >>> KeyframeIndex.load(buf).search(torch.eye(4)[2], k=1)[0].tolist()
+    [5]
+"""
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+
+import numpy as np
+
+from attnloop.index.config import IndexConfig
+from attnloop.index.database import KeyframeIndex
+
+__all__ = ["IndexFileError", "load_index", "save_index"]
+
+
+class IndexFileError(ValueError):
+    """A keyframe-index file that cannot be read: the message names the file and what is wrong."""
+
+
+def _name(file) -> str:
+    if isinstance(file, (str, os.PathLike)):
+        return os.fspath(file)
+    return str(getattr(file, "name", "<file object>"))
+
+
+def save_index(index: KeyframeIndex, file) -> None:
+    """Write ``index`` to ``file`` (a path or a binary file object) as described in the module docstring."""
+    state = index.state_dict()
+    meta = state.pop("meta")
+    np.savez(file, meta=np.array(json.dumps(meta)), **state)
+
+
+def load_index(file, config: IndexConfig | None = None) -> KeyframeIndex:
+    """Read an index written by :func:`save_index`.
+
+    Args:
+        file: a path or a binary file object.
+        config: ``None`` to restore the saved index as it was; another config rebuilds the structure
+            (see :meth:`KeyframeIndex.from_state`).
+
+    Raises:
+        FileNotFoundError: no such file.
+        IndexFileError: not a keyframe-index file, a newer format version, or inconsistent contents
+            (naming the file and the entry).
+    """
+    name = _name(file)
+    try:
+        with np.load(file, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise IndexFileError(f"{name}: not a keyframe-index .npz file ({exc})") from exc
+    if "meta" not in arrays:
+        raise IndexFileError(f"{name}: no 'meta' entry (not a keyframe-index file)")
+    try:
+        meta = json.loads(str(arrays.pop("meta")))
+    except json.JSONDecodeError as exc:
+        raise IndexFileError(f"{name}: the 'meta' entry is not JSON ({exc})") from exc
+    try:
+        return KeyframeIndex.from_state({"meta": meta, **arrays}, config)
+    except ValueError as exc:
+        raise IndexFileError(f"{name}: {exc}") from exc

@@ -1,0 +1,124 @@
+"""PCA codes of descriptors: what an approximate structure is built on when ``IndexConfig.reduce_dim`` is set.
+
+For unit descriptors ``x, q`` the squared distance ``|x - q|^2 = 2 - 2 x.q`` ranks like the cosine, and
+``|P^T (x - q)|^2`` (``P`` the top principal directions) is that distance less the energy outside the
+code's span. So the structure ranks by L2 between the codes ``z = P^T (x - mean)``, and the index re-scores
+the candidates with the full descriptors. With ``whiten=True`` the components are divided by their standard
+deviation and the codes L2-normalised (PCA-whitening, Jegou & Chum, ECCV 2012): it changes the ranking
+(rare directions count more), which only the exact re-scoring undoes.
+
+Example:
+    >>> x = np.random.default_rng(0).standard_normal((500, 32)).astype(np.float32)
+    >>> code = fit_pca(x, dim=8)
+    >>> code.encode(x[:3]).shape, code.dim, 0 < code.kept < 1
+    ((3, 8), 8, True)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+__all__ = ["PCACode", "fit_pca"]
+
+_CHUNK = 16384  # rows encoded at a time (bounds the float32 temporaries of a float16 input)
+_MAX_FIT_ROWS = 65536  # rows the PCA is fitted on at most (a seeded sample): the covariance is D x D anyway
+_EIG_FLOOR = 1e-6  # relative floor of the eigenvalues a whitening divides by
+
+
+@dataclass
+class PCACode:
+    """A fitted PCA code.
+
+    Attributes:
+        mean: ``(D,)`` mean of the fitting rows.
+        components: ``(D, d)`` orthonormal principal directions, largest variance first.
+        scale: ``(d,)`` whitening factors ``1 / sqrt(eigenvalue)``, or ``None`` (plain PCA).
+        kept: share of the fitting rows' centred energy the ``d`` components keep (in-sample: rows it was
+            not fitted on keep less).
+    """
+
+    mean: np.ndarray
+    components: np.ndarray
+    scale: np.ndarray | None
+    kept: float
+
+    @property
+    def dim(self) -> int:
+        """Code size ``d``."""
+        return int(self.components.shape[1])
+
+    def encode(self, x: np.ndarray, energy: bool = False):
+        """Codes ``(M, d)`` (float32) of descriptors ``x (M, D)`` (float32 or float16).
+
+        Args:
+            x: descriptors.
+            energy: also return ``(kept, total)``, each ``(M,)`` float64: the squared norm of each row's
+                centred projection and of the centred row (how much of each row the code represents).
+        """
+        if x.ndim != 2 or x.shape[1] != self.mean.shape[0]:
+            raise ValueError(f"PCA code of dimension {self.mean.shape[0]} got descriptors {tuple(x.shape)}")
+        out = np.empty((x.shape[0], self.dim), dtype=np.float32)
+        kept, total = np.empty(x.shape[0]), np.empty(x.shape[0])
+        mean, comp = torch.from_numpy(self.mean), torch.from_numpy(self.components)
+        for lo in range(0, x.shape[0], _CHUNK):
+            xc = torch.from_numpy(np.asarray(x[lo: lo + _CHUNK], dtype=np.float32)) - mean
+            z = xc @ comp
+            hi = lo + z.shape[0]
+            if energy:
+                kept[lo:hi] = (z * z).sum(1).double().numpy()
+                total[lo:hi] = (xc * xc).sum(1).double().numpy()
+            if self.scale is not None:
+                z = torch.nn.functional.normalize(z * torch.from_numpy(self.scale), dim=1)
+            out[lo:hi] = z.numpy()
+        return (out, (kept, total)) if energy else out
+
+    def state(self) -> dict:
+        """Arrays and numbers that :meth:`from_state` restores."""
+        out = {"mean": self.mean, "components": self.components, "kept": np.float64(self.kept)}
+        if self.scale is not None:
+            out["scale"] = self.scale
+        return out
+
+    @classmethod
+    def from_state(cls, state: dict) -> PCACode:
+        scale = state.get("scale")
+        return cls(np.asarray(state["mean"], np.float32), np.asarray(state["components"], np.float32),
+                   None if scale is None else np.asarray(scale, np.float32), float(state["kept"]))
+
+
+def fit_pca(x: np.ndarray, dim: int, whiten: bool = False, seed: int = 0) -> PCACode:
+    """Fit a PCA code of ``dim`` components to descriptors ``x (N, D)`` (float32 or float16).
+
+    Fitted on at most 65536 rows (a seeded sample). The code keeps ``min(dim, D, rows - 1)`` components:
+    directions without variance in the rows carry no information about them.
+
+    Args:
+        x: ``(N, D)`` descriptors, ``N >= 2``.
+        dim: requested code size.
+        whiten: divide the components by their standard deviation and L2-normalise the codes.
+        seed: seed of the fitting sample.
+
+    Returns:
+        :class:`PCACode`.
+    """
+    if x.ndim != 2 or x.shape[0] < 2:
+        raise ValueError(f"fit_pca needs descriptors (N, D) with N >= 2, got {tuple(x.shape)}")
+    n, d_in = x.shape
+    if n > _MAX_FIT_ROWS:
+        x = x[np.sort(np.random.default_rng(seed).choice(n, _MAX_FIT_ROWS, replace=False))]
+    xs = torch.from_numpy(np.asarray(x, dtype=np.float32))
+    mean = xs.double().mean(0)
+    xc = xs - mean.float()  # centred first: real descriptors share a large common component
+    cov = (xc.t() @ xc).double() / xs.shape[0]  # float32 product (the cost), float64 eigen-decomposition
+    evals, evecs = torch.linalg.eigh(cov)
+    evals, evecs = evals.flip(0).clamp(min=0.0), evecs.flip(1)
+    keep = max(1, min(int(dim), d_in, xs.shape[0] - 1))
+    total = float(evals.sum())
+    scale = None
+    if whiten:
+        floor = _EIG_FLOOR * max(float(evals[0]), 1e-30)
+        scale = (1.0 / torch.sqrt(evals[:keep] + floor)).float().numpy()
+    kept = float(evals[:keep].sum()) / total if total > 0 else 1.0
+    return PCACode(mean.float().numpy(), np.ascontiguousarray(evecs[:, :keep].float().numpy()), scale, kept)

@@ -1,0 +1,99 @@
+"""The rows of a keyframe index: descriptors (float32 or float16), ids and timestamps, growing by doubling.
+
+Rows are never modified once written, and a grown buffer is a fresh array, so a view taken earlier (by a
+structure being built in a worker thread) stays valid while keyframes are added.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from attnloop.index.exact import matvec
+
+__all__ = ["KeyframeStore"]
+
+# float16 rows are widened to float32 this many at a time before a product (bounds the temporary copy:
+# 16384 x 1024 x 4 bytes = 64 MB), since a float16 product on the CPU rounds its result to float16.
+_CHUNK = 16384
+
+
+class KeyframeStore:
+    """Growing ``(N, D)`` descriptor buffer with ``(N,)`` ids and timestamps.
+
+    Args:
+        dim: descriptor size ``D``.
+        dtype: ``"float32"`` or ``"float16"`` (the descriptors' storage; every product is float32).
+    """
+
+    def __init__(self, dim: int, dtype: str = "float32") -> None:
+        self.dim = int(dim)
+        self.dtype = np.dtype(dtype)
+        self.n = 0
+        self._desc = np.zeros((0, self.dim), dtype=self.dtype)
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._ts = np.zeros(0, dtype=np.float64)
+
+    # ------------------------------------------------------------------ growth
+    def append(self, x: np.ndarray, ids: np.ndarray, timestamps: np.ndarray) -> None:
+        """Append rows ``x (M, D)`` (float32) with their ids and timestamps ``(M,)``."""
+        m = x.shape[0]
+        self._reserve(self.n + m)
+        self._desc[self.n: self.n + m] = x
+        self._ids[self.n: self.n + m] = ids
+        self._ts[self.n: self.n + m] = timestamps
+        self.n += m
+
+    def _reserve(self, n: int) -> None:
+        cap = self._desc.shape[0]
+        if n <= cap:
+            return
+        new_cap = max(n, 2 * cap, 1024)
+        desc = np.empty((new_cap, self.dim), dtype=self.dtype)
+        desc[: self.n] = self._desc[: self.n]
+        ids = np.empty(new_cap, dtype=np.int64)
+        ids[: self.n] = self._ids[: self.n]
+        ts = np.empty(new_cap, dtype=np.float64)
+        ts[: self.n] = self._ts[: self.n]
+        self._desc, self._ids, self._ts = desc, ids, ts
+
+    # ------------------------------------------------------------------ reading
+    @property
+    def ids(self) -> np.ndarray:
+        """Ids of rows ``[0, N)`` (a view)."""
+        return self._ids[: self.n]
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """Timestamps of rows ``[0, N)`` (a view)."""
+        return self._ts[: self.n]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the valid rows (descriptors, ids, timestamps)."""
+        return self.n * (self.dim * self.dtype.itemsize + 16)
+
+    def view(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Stored descriptors of rows ``[start, stop)``, in the storage dtype (a view, never written again)."""
+        return self._desc[start: self.n if stop is None else stop]
+
+    def float32(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Descriptors of rows ``[start, stop)`` as float32 (a view for float32 storage, else a copy)."""
+        v = self.view(start, stop)
+        return v if v.dtype == np.float32 else v.astype(np.float32)
+
+    def rows(self, rows: np.ndarray) -> np.ndarray:
+        """Descriptors of the given rows ``(M,)`` as float32 ``(M, D)``."""
+        return self._desc[rows].astype(np.float32, copy=False)
+
+    def matvec(self, q: np.ndarray, start: int = 0, stop: int | None = None, step: int = 1) -> np.ndarray:
+        """Similarities ``(M,)`` (float32) of ``q (D,)`` to rows ``start, start + step, ...`` below ``stop``."""
+        stop = self.n if stop is None else stop
+        if self.dtype == np.float32:
+            return matvec(self._desc[start:stop:step], q)
+        out = np.empty(len(range(start, stop, step)), dtype=np.float32)
+        qt = torch.from_numpy(q)
+        span = _CHUNK * step
+        for i, lo in enumerate(range(start, stop, span)):
+            chunk = torch.from_numpy(self._desc[lo: min(lo + span, stop): step]).float()
+            out[i * _CHUNK: i * _CHUNK + chunk.shape[0]] = (chunk @ qt).numpy()
+        return out

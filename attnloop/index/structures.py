@@ -1,0 +1,199 @@
+"""The approximate structures behind :class:`attnloop.index.KeyframeIndex`: a FLANN tree and a faiss HNSW graph.
+
+A structure covers rows ``[0, n)`` of the index's store and proposes *candidate rows* for a query; the
+index re-scores them exactly. Both follow one small interface:
+
+* ``build(x, config)`` (classmethod): a structure over descriptors ``x (n, D)`` (rows ``0..n-1``);
+* ``candidates(q, k, m)``: up to ``k`` rows ``< m`` near the unit query ``q (D,)``, or ``None`` when the
+  structure cannot restrict itself to the prefix ``[0, m)`` cheaply (the index then scans it exactly);
+* ``extendable`` / ``extend(x)``: whether rows can be appended (HNSW) or need a rebuild (FLANN);
+* ``stale()``: whether its trained part (the PCA code) calls for a rebuild;
+* ``state()`` / ``from_state(meta, arrays, x, config)``: a faithful copy for saving (identical answers).
+
+Both rank by L2 (on unit descriptors, or on their PCA codes: :mod:`attnloop.index.reduction`).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+
+import cv2
+import numpy as np
+
+from attnloop.index.config import IndexConfig
+from attnloop.index.reduction import PCACode, fit_pca
+
+__all__ = ["STRUCTURES", "FaissHNSW", "FlannTree", "import_faiss"]
+
+_FLANN_INDEX_KMEANS = 2
+_ADD_CHUNK = 16384  # rows converted/encoded at a time when building (bounds float32 temporaries)
+
+
+def import_faiss():
+    """``faiss``, or an ImportError that says how to install it."""
+    try:
+        import faiss
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError("the 'faiss' index backend needs faiss: pip install 'attnloop[faiss]'") from exc
+    return faiss
+
+
+def _fit_code(x: np.ndarray, config: IndexConfig) -> PCACode | None:
+    if config.reduce_dim is None:
+        return None
+    return fit_pca(x, config.reduce_dim, whiten=config.whiten, seed=config.seed)
+
+
+def _codes(x: np.ndarray, code: PCACode | None) -> np.ndarray:
+    """What the structure indexes: contiguous float32 codes (or descriptors, without a code)."""
+    if code is not None:
+        return code.encode(x)
+    return np.ascontiguousarray(x, dtype=np.float32)
+
+
+def _code_state(code: PCACode | None) -> dict:
+    return {} if code is None else {f"pca.{k}": v for k, v in code.state().items()}
+
+
+def _code_from_state(arrays: dict) -> PCACode | None:
+    sub = {k[4:]: v for k, v in arrays.items() if k.startswith("pca.")}
+    return PCACode.from_state(sub) if sub else None
+
+
+# ----------------------------------------------------------------------------------------------
+class FlannTree:
+    """FLANN priority-search k-means tree over rows ``[0, n)`` (not extendable: rows after it are a tail).
+
+    FLANN does not copy the data it indexes: the array (``_data``) is kept alive with the tree.
+    """
+
+    kind = "flann"
+    extendable = False
+
+    def __init__(self, flann, data: np.ndarray, code: PCACode | None, config: IndexConfig) -> None:
+        self.flann = flann
+        self._data = data
+        self.code = code
+        self.config = config  # read at query time: a caller may change checks between queries
+        self.n = self.n_trained = int(data.shape[0])
+
+    @classmethod
+    def build(cls, x: np.ndarray, config: IndexConfig) -> FlannTree:
+        code = _fit_code(x, config)
+        data = _codes(x, code)
+        # Runs in a worker thread: OpenCV's RNG is thread-local, so seeding here is reproducible and leaves
+        # the caller's RNG alone.
+        cv2.setRNGSeed(int(config.seed))
+        f = config.flann
+        params = {"algorithm": _FLANN_INDEX_KMEANS, "branching": int(f.branching), "iterations": int(f.iterations)}
+        return cls(cv2.flann_Index(data, params), data, code, config)
+
+    def candidates(self, q: np.ndarray, k: int, m: int) -> np.ndarray | None:
+        # Rows past the prefix are filtered out after asking for that many more; when the window cuts so
+        # deep that this would cost more than a scan of the prefix, the index scans it.
+        excess = max(0, self.n - m)
+        if excess > max(4 * k, 64):
+            return None
+        kq = min(k + excess, self.n)
+        qc = q[None] if self.code is None else self.code.encode(q[None])
+        idx, _ = self.flann.knnSearch(qc, kq, params={"checks": int(self.config.flann.checks)})
+        idx = idx[0].astype(np.int64)
+        return idx[(idx >= 0) & (idx < min(m, self.n))]
+
+    def extend(self, x: np.ndarray) -> None:  # pragma: no cover - the index never calls it (extendable False)
+        raise NotImplementedError("a FLANN tree cannot grow; the index rebuilds it")
+
+    def stale(self) -> bool:
+        return False  # the index's tail rule rebuilds it (and refits its code)
+
+    def state(self) -> tuple[dict, dict]:
+        with tempfile.TemporaryDirectory() as tmp:
+            path = os.path.join(tmp, "tree.flann")
+            self.flann.save(path)
+            with open(path, "rb") as f:
+                blob = np.frombuffer(f.read(), dtype=np.uint8)
+        return {"kind": self.kind, "n": self.n}, {"blob": blob, **_code_state(self.code)}
+
+    @classmethod
+    def from_state(cls, meta: dict, arrays: dict, x: np.ndarray, config: IndexConfig) -> FlannTree:
+        code = _code_from_state(arrays)
+        data = _codes(x[: int(meta["n"])], code)
+        flann = cv2.flann_Index()
+        with tempfile.TemporaryDirectory() as tmp:
+            path = os.path.join(tmp, "tree.flann")
+            with open(path, "wb") as f:
+                f.write(np.asarray(arrays["blob"], dtype=np.uint8).tobytes())
+            if not flann.load(data, path):
+                raise ValueError("the saved FLANN tree could not be loaded")
+        return cls(flann, data, code, config)
+
+
+# ----------------------------------------------------------------------------------------------
+class FaissHNSW:
+    """faiss HNSW graph over rows ``[0, n)``, extended by every add (rows are its sequential ids)."""
+
+    kind = "faiss"
+    extendable = True
+
+    def __init__(self, index, n_trained: int, code: PCACode | None, config: IndexConfig) -> None:
+        self.index = index
+        self.code = code
+        self.config = config  # read at query time: a caller may change ef_search between queries
+        self.n_trained = int(n_trained)
+
+    @property
+    def n(self) -> int:
+        return int(self.index.ntotal)
+
+    @classmethod
+    def build(cls, x: np.ndarray, config: IndexConfig) -> FaissHNSW:
+        faiss = import_faiss()
+        code = _fit_code(x, config)
+        index = faiss.IndexHNSWFlat(x.shape[1] if code is None else code.dim, int(config.faiss.m))
+        index.hnsw.efConstruction = int(config.faiss.ef_construction)
+        for lo in range(0, x.shape[0], _ADD_CHUNK):
+            index.add(_codes(x[lo: lo + _ADD_CHUNK], code))
+        return cls(index, x.shape[0], code, config)
+
+    def candidates(self, q: np.ndarray, k: int, m: int) -> np.ndarray:
+        faiss = import_faiss()
+        qc = q[None] if self.code is None else self.code.encode(q[None])
+        ef = max(int(self.config.faiss.ef_search), k)
+        if m >= self.n:
+            params = faiss.SearchParametersHNSW(efSearch=ef)
+            _, idx = self.index.search(qc, min(k, self.n), params=params)
+        else:  # the exclusion window: rows are ids 0..n-1, so the eligible prefix is an id range
+            sel = faiss.IDSelectorRange(0, int(m))
+            # The excluded rows are the most recent keyframes, the ones nearest to a query taken there:
+            # the list must hold them all on top of ef eligible ones. A deep cut (beyond a few ef) instead
+            # leaves ~m/n of the rows eligible wherever the search goes.
+            excess = self.n - int(m)
+            ef = ef + excess if excess <= 4 * ef else -(-ef * self.n // int(m))
+            ef = min(self.n, ef)
+            params = faiss.SearchParametersHNSW(sel=sel, efSearch=ef)
+            _, idx = self.index.search(qc, min(k, m), params=params)
+        idx = idx[0].astype(np.int64)
+        return idx[(idx >= 0) & (idx < m)]
+
+    def extend(self, x: np.ndarray) -> None:
+        self.index.add(_codes(x, self.code))
+
+    def stale(self) -> bool:
+        """Whether the PCA code calls for a refit: the rows have grown by ``retrain_growth`` since it."""
+        return self.code is not None and self.n - self.n_trained >= self.config.faiss.retrain_growth * self.n_trained
+
+    def state(self) -> tuple[dict, dict]:
+        faiss = import_faiss()
+        meta = {"kind": self.kind, "n": self.n, "n_trained": self.n_trained}
+        return meta, {"blob": faiss.serialize_index(self.index), **_code_state(self.code)}
+
+    @classmethod
+    def from_state(cls, meta: dict, arrays: dict, x: np.ndarray, config: IndexConfig) -> FaissHNSW:
+        faiss = import_faiss()
+        index = faiss.deserialize_index(np.asarray(arrays["blob"], dtype=np.uint8))
+        if int(index.ntotal) != int(meta["n"]):
+            raise ValueError(f"the saved HNSW graph holds {index.ntotal} rows, its record says {meta['n']}")
+        return cls(index, int(meta["n_trained"]), _code_from_state(arrays), config)
+
+
+STRUCTURES = {"flann": FlannTree, "faiss": FaissHNSW}

@@ -1,0 +1,144 @@
+"""Regional GeM pooling of fused attention maps: the translation-tolerant input of the random RNNs.
+
+The paper's one-level RNN multiplies the *whole flattened* fused map by each random matrix, so a place
+seen a few pixels to the side (the same corridor walked off-centre, a camera turned slightly) gives a
+different vector: every feature moves to another input weight. Here the fused map is pooled first:
+
+1. per tap group g (e.g. EfficientNet-Lite0's stage6 and stage7, taken together as one tap of 192 +
+   320 channels), GeM pooling ``(mean_{region} max(F, eps)^p)^(1/p)`` over the whole map and over each
+   cell of a ``2 x 2`` grid (``levels=(1, 2)``: 1 + 4 regions);
+2. every region vector is L2-normalised (a region's weight does not depend on how strongly the fusion
+   scaled it), and the vectors are concatenated, ``[group][region][channel]``;
+3. the result, ``R * sum_g C_g`` long (2560 for Lite0's stage6+stage7), is what the random RNNs encode
+   (:func:`attnloop.rnn_pool.random_rnn_pool` on a ``(B, D, 1, 1)`` map).
+
+The fusion itself is applied per group (:func:`fuse_groups`): the min-max normalisations of DAM/EAM
+and GAF/EGA run over each tap's own (C, H, W) / (H, W), as if each tap were the only one.
+
+Example:
+    >>> x = torch.rand(2, 512, 7, 9)
+    >>> regional_code(x, groups=(192, 320)).shape
+    torch.Size([2, 2560])
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+
+from .fusion import fuse
+
+Tensor = torch.Tensor
+
+__all__ = ["POOLINGS", "fuse_groups", "gem_regions", "regional_code", "regional_code_dim", "unit_scale"]
+
+#: ``flat``: the paper's one-level RNN over the whole fused map; ``regional``: regional GeM first (ours).
+POOLINGS = ("flat", "regional")
+
+_EPS = 1e-6  # GeM's floor: fused maps of a signed tap (EfficientNet's linear bottlenecks) have negatives
+
+
+def _check_levels(levels: Sequence[int]) -> tuple[int, ...]:
+    lv = tuple(int(v) for v in levels)
+    if not lv or any(v < 1 for v in lv) or any(int(v) != v for v in levels):
+        raise ValueError(f"levels must be positive grid sizes such as (1, 2), got {levels!r}")
+    return lv
+
+
+def _check_groups(channels: int, groups: Sequence[int] | None) -> tuple[int, ...]:
+    if groups is None:
+        return (channels,)
+    g = tuple(int(v) for v in groups)
+    if any(v < 1 for v in g) or sum(g) != channels:
+        raise ValueError(f"groups {tuple(groups)} must be positive channel counts summing to the {channels} "
+                         "channels of the map")
+    return g
+
+
+def unit_scale(grad: Tensor) -> Tensor:
+    """G / max|G| per sample (an all-zero G stays zero); see :mod:`attnloop.descriptor` for why.
+
+    Args:
+        grad: :math:`(B, *)`.
+
+    Returns:
+        same shape.
+    """
+    peak = grad.detach().abs().amax(dim=tuple(range(1, grad.ndim)), keepdim=True)
+    return grad / peak.clamp_min(torch.finfo(grad.dtype).tiny)
+
+
+def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | None = None) -> Tensor:
+    """Fuse (L, G) with ``mode`` separately on each channel group, G scaled to max |G| = 1 per group.
+
+    Args:
+        tap: L, :math:`(B, C, H, W)`.
+        grad: G, :math:`(B, C, H, W)`.
+        mode: a fusion mode (:data:`attnloop.fusion.FUSION_MODES`).
+        groups: channel counts of the groups (e.g. ``(192, 320)``), summing to C; None: one group.
+
+    Returns:
+        the fused map :math:`(B, C, H, W)`.
+    """
+    if tap.ndim != 4 or tap.shape != grad.shape:
+        raise ValueError(f"tap and grad must have one shape (B, C, H, W), got {tuple(tap.shape)} and {tuple(grad.shape)}")
+    g = _check_groups(tap.shape[1], groups)
+    if len(g) == 1:
+        return fuse(tap, unit_scale(grad), mode)
+    return torch.cat([fuse(lt, unit_scale(gt), mode) for lt, gt in zip(tap.split(g, 1), grad.split(g, 1))], dim=1)
+
+
+def gem_regions(x: Tensor, p: float = 2.0, levels: Sequence[int] = (1, 2)) -> Tensor:
+    """GeM pooling over the whole map and the cells of square grids.
+
+    ``(mean_{cell} max(x, 1e-6)^p)^(1/p)`` per channel; a grid of ``l`` splits H and W into ``l`` parts
+    as :func:`torch.nn.functional.adaptive_avg_pool2d` does (cells may overlap by one row when H or W is
+    not a multiple of ``l``). ``p = 1`` is average pooling of the positive part; large ``p`` tends to max.
+
+    Args:
+        x: :math:`(B, C, H, W)`.
+        p: the GeM exponent (> 0).
+        levels: grid sizes; ``(1, 2)`` gives the whole map and a 2 x 2 grid, 5 regions.
+
+    Returns:
+        :math:`(B, R, C)` with ``R = sum_l l^2``, regions in the order of ``levels``, cells row-major.
+    """
+    if x.ndim != 4:
+        raise ValueError(f"x must have shape (B, C, H, W), got {tuple(x.shape)}")
+    if not p > 0:
+        raise ValueError(f"p must be positive, got {p}")
+    lv = _check_levels(levels)
+    xp = x.clamp_min(_EPS).pow(p)
+    cells = [F.adaptive_avg_pool2d(xp, v).flatten(2) for v in lv]  # (B, C, l*l) each
+    return torch.cat(cells, dim=2).pow(1.0 / p).transpose(1, 2)
+
+
+def regional_code_dim(groups: Sequence[int], levels: Sequence[int] = (1, 2)) -> int:
+    """Length of :func:`regional_code`'s output: ``sum_l l^2 * sum_g C_g``.
+
+    Example:
+        >>> regional_code_dim((192, 320))
+        2560
+    """
+    return sum(v * v for v in _check_levels(levels)) * sum(int(c) for c in groups)
+
+
+def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0,
+                  levels: Sequence[int] = (1, 2)) -> Tensor:
+    """Regional GeM code of a fused map: per group and region a unit vector, all concatenated.
+
+    Args:
+        x: the fused map :math:`(B, C, H, W)`.
+        groups: channel counts of the tap groups (summing to C); None: one group.
+        p: the GeM exponent.
+        levels: grid sizes (see :func:`gem_regions`).
+
+    Returns:
+        :math:`(B, D)`, ``D = regional_code_dim(groups, levels)``; an empty batch gives ``(0, D)``.
+    """
+    if x.ndim != 4:
+        raise ValueError(f"x must have shape (B, C, H, W), got {tuple(x.shape)}")
+    g = _check_groups(x.shape[1], groups)
+    parts = [F.normalize(gem_regions(xg, p, levels), dim=2).flatten(1) for xg in x.split(g, dim=1)]
+    return torch.cat(parts, dim=1)

@@ -1,0 +1,89 @@
+"""The settings of the pose-graph optimiser (:func:`slam.graph.optimize`).
+
+Example:
+    >>> cfg = OptimizerConfig(max_iterations=20, kernel_width=2.0)
+    >>> cfg.validate().max_iterations
+    20
+    >>> OptimizerConfig(damping="marquardt").validate()
+    Traceback (most recent call last):
+    ...
+    ValueError: damping must be 'identity' or 'diagonal', got 'marquardt'
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+__all__ = ["BACKENDS", "OptimizerConfig"]
+
+# where the per-edge maths of an optimisation runs (see OptimizerConfig.backend)
+BACKENDS = ("auto", "torch", "c", "numpy")
+
+
+@dataclass
+class OptimizerConfig:
+    """Settings of :func:`optimize` (all thresholds in chi2 units, i.e. 2x GTSAM's error)."""
+
+    max_iterations: int = 100  # outer iterations (accepted or GN steps); GTSAM's default is 100
+    rel_tol: float = 1e-5  # converged when (cost - new_cost) < rel_tol * cost  (GTSAM relativeErrorTol)
+    abs_tol: float = 2e-5  # converged when cost - new_cost < abs_tol  (GTSAM absoluteErrorTol 1e-5 x 2)
+    cost_tol: float = 0.0  # converged when the cost falls to this value
+    lambda_init: float = 1e-5  # initial LM damping (GTSAM's default)
+    lambda_factor: float = 10.0  # lambda /= factor after a good step, *= factor after a bad one
+    lambda_min: float = 1e-12  # lower clamp of lambda
+    lambda_max: float = 1e10  # LM gives up (status lambda_limit) beyond this damping
+    damping: str = "identity"  # "identity": H + lambda I (GTSAM's default); "diagonal": H + lambda diag(H)
+    # how lambda moves (LM only): "gtsam" (/= lambda_factor after a good step, *= after a bad one: GTSAM's
+    # default); "nielsen" (the gain-ratio rule of g2o and Ceres: after a good step with gain ratio rho =
+    # actual / predicted decrease, lambda *= max(1/3, 1 - (2 rho - 1)^3); after a bad one *= nu, nu doubling)
+    lambda_update: str = "gtsam"
+    # "free": LM damping, then re-anchored on pose 0; "first": hold pose 0; "prior": a prior on pose 0
+    gauge: str = "free"
+    prior_weight: float = 1e8  # information of the "prior" gauge (rotation and translation alike)
+    fixed: Tuple[int, ...] = ()  # further pose indices held constant (e.g. an already-optimised map)
+    kernel_width: Optional[float] = None  # width of a kernel given by name (default sqrt(chi2_0.95(6)))
+    planar: Optional[bool] = None  # solve only (x, y, yaw); None: auto-detect with PoseGraph.is_planar()
+    check_information: bool = True  # check every information matrix is SPD before optimising
+    # where the per-edge maths (residuals, Jacobians, assembly, retraction) runs: "torch" = the reference
+    # (slam.graph.fused; any device); "auto" = the accelerator (slam.graph.accel) for a CPU graph it supports:
+    # its C kernels when they were built (setup.py), else its numpy functions, torch otherwise; "c", "numpy" =
+    # require one (neither has the "prior" gauge or the "r3so3" chart). Every backend takes the same steps up
+    # to round-off; the linear solver (solver=) is chosen separately. The default is torch: the accelerator
+    # pays off on small graphs solved many times (tinyGrid3D ~10x) and is within ~30 % on the large files;
+    # in the SLAM pipeline its keyframe graph (87 poses on the kitchen) takes < 0.05 % of the run either way
+    # (benchmarks/posegraph_slam.py, docs/benchmarks.md)
+    backend: str = "torch"
+    # solver "auto": a dense Cholesky up to this many unknowns (no symbolic analysis), the sparse one above.
+    # None: the crossover of the backend measured by benchmarks/posegraph_backends.py on sphere2500
+    # subgraphs: 400 on numpy (dense wins at 420 unknowns, loses at 480), 240 on torch (wins at 240, loses at 360)
+    dense_max: Optional[int] = None
+    # torch and BLAS threads during the call (restored afterwards; None leaves them; BLAS through
+    # threadpoolctl, see slam.graph.blas_threads). The work is many small batched ops: on a busy CPU torch's
+    # OpenMP pool slowed them 10-40x when it had more threads than free cores, while one thread loses little
+    # on an idle machine.
+    num_threads: Optional[int] = 1
+    # the optimised poses carry a grad_fn when the measurements, information matrices or held poses require
+    # grad: implicit differentiation at the optimum (slam.graph.implicit; one sparse factorisation and solve
+    # of the cost's Hessian per backward). Exact at a stationary point: tighten rel_tol for precise gradients.
+    differentiable: bool = False
+    verbose: bool = False  # print one line per iteration
+
+    def validate(self, method: str = "lm") -> OptimizerConfig:
+        """Check the settings for ``method`` (``"lm"`` or ``"gn"``: GN has no damping to check); a
+        ``ValueError`` names the first bad one. Returns ``self``."""
+        choices = (("damping", ("identity", "diagonal")), ("lambda_update", ("gtsam", "nielsen")),
+                   ("gauge", ("free", "first", "prior")), ("backend", BACKENDS))
+        for name, allowed in choices:
+            value = getattr(self, name)
+            if value not in allowed:
+                listed = ", ".join(repr(a) for a in allowed[:-1]) + f" or {allowed[-1]!r}"
+                raise ValueError(f"{name} must be {listed}, got {value!r}")
+        lm_ok = self.lambda_init > 0 and self.lambda_factor > 1 and self.lambda_max > self.lambda_init
+        if method == "lm" and not lm_ok:
+            raise ValueError("LM needs lambda_init > 0, lambda_factor > 1 and lambda_max > lambda_init, got "
+                             f"{self.lambda_init}, {self.lambda_factor}, {self.lambda_max}")
+        if self.dense_max is not None and self.dense_max < 0:
+            raise ValueError(f"dense_max must be >= 0 or None, got {self.dense_max}")
+        if self.num_threads is not None and self.num_threads < 1:
+            raise ValueError(f"num_threads must be >= 1 or None, got {self.num_threads}")
+        return self

@@ -1,0 +1,271 @@
+"""The least-squares problem the optimiser's outer loop drives, and its torch implementation (the reference).
+
+:class:`PoseGraphProblem` is the interface between the outer loop (Gauss-Newton / Levenberg-Marquardt in
+:mod:`slam.graph.optimizer`) and the per-edge maths: evaluate the cost at some poses, linearise there into
+``(H, g)``, solve the damped system, retract a step, and hand back the result. :class:`TorchProblem`
+implements it with the fused torch kernels of :mod:`slam.graph.fused` on any device; the accelerator
+(:mod:`slam.graph.accel`) implements it with numpy or C on the CPU and is tested against this one. What
+a problem holds between calls (its poses, ``H``, ``dx``) is its own array type: the outer loop only passes
+them back.
+
+Everything that does not change during a call is made once: the pattern and the symbolic Cholesky
+analysis, the inverted measurements and ``Ad(z^-1)``, the Cholesky factors of the information matrices,
+and the buffers the per-iteration work writes into.
+
+Example:
+    >>> import torch
+    >>> from slam.lie import se3_exp
+    >>> from slam.graph.config import OptimizerConfig
+    >>> g = PoseGraph.from_lists([se3_exp(torch.zeros(6, dtype=torch.float64))] * 2,
+    ...                          [(0, 1, se3_exp(torch.tensor([1.0, 0, 0, 0, 0, 0], dtype=torch.float64)))])
+    >>> prob = TorchProblem(g, OptimizerConfig(), None, "first", "auto")
+    >>> cost, chi2, cache = prob.evaluate(prob.poses)
+    >>> H, grad = prob.linearize(prob.poses, cache)
+    >>> x = prob.retract(prob.poses, prob.solve(H, grad, 0.0))
+    >>> round(cost, 6), round(prob.evaluate(x)[0], 12), isinstance(prob, PoseGraphProblem)
+    (1.0, 0.0, True)
+"""
+from __future__ import annotations
+
+from typing import Any, List, Optional, Protocol, Tuple, runtime_checkable
+
+import numpy as np
+import torch
+
+from slam.graph.config import OptimizerConfig
+from slam.graph.costs import RobustKernel
+from slam.graph.fused import bmm, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
+from slam.graph.linear import BlockPattern, LinearSolverError, assemble_blocks, build_pattern, make_solver
+from slam.graph.pose_graph import PoseGraph
+from slam.lie import se3_compose, se3_inv, se3_log, se3_right_jacobian_inv
+
+__all__ = ["PLANAR_DIMS", "SYMMETRY_RTOL", "PoseGraphProblem", "TorchProblem", "held_poses", "information_factor",
+           "is_symmetric", "unit_quaternions"]
+
+Tensor = torch.Tensor
+
+PLANAR_DIMS = (0, 1, 5)  # x, y, yaw in the [rho, phi] tangent order
+SYMMETRY_RTOL = 1e-6  # an information matrix is symmetric when |A - A^T| <= this * its largest diagonal entry
+
+
+@runtime_checkable
+class PoseGraphProblem(Protocol):
+    """One optimisation's state, as the outer loop sees it (``X``: the problem's poses, e.g. a tensor or
+    an array ``(N, 7)``; ``H``, ``g``, ``dx``: its linear system, opaque to the loop).
+
+    Attributes:
+        poses: the initial poses ``X``.
+        size: the number of unknowns (0 when every pose is held).
+    """
+
+    poses: Any
+    size: int
+
+    def evaluate(self, poses) -> Tuple[float, float, Any]:
+        """``(cost, chi2, cache)`` at ``poses``: the optimised cost (robust, plus a gauge prior), the plain
+        ``sum r^T Omega r`` and what :meth:`linearize` reuses."""
+
+    def linearize(self, poses, cache) -> Tuple[Any, Any]:
+        """``(H, g)``: the Gauss-Newton system ``J^T W Omega J``, ``J^T W Omega r`` at ``poses``."""
+
+    def solve(self, H, g, lam: float) -> Any:
+        """``dx`` solving ``(H + lambda D) dx = -g``; raises :class:`~slam.graph.linear.LinearSolverError`."""
+
+    def predicted_decrease(self, dx, g, lam: float) -> float:
+        """Decrease of the cost predicted by the damped quadratic model: ``dx^T (lambda D dx - g)``."""
+
+    def retract(self, poses, dx) -> Any:
+        """``T exp(dx)`` for the free poses (the held ones unchanged)."""
+
+    def finish(self, poses, moved: bool) -> Tensor:
+        """The result ``(N, 7)`` float64 tensor (moved back onto pose 0 for the free gauge when ``moved``)."""
+
+    def weights(self, cache) -> Optional[Tensor]:
+        """``(E,)`` robust-kernel weights at the cached poses, or None without a kernel."""
+
+
+# -- setup shared by every problem ------------------------------------------------------------------
+def unit_quaternions(P):
+    """``(..., 7)`` poses (tensor or array) with their quaternions scaled to unit norm (a copy)."""
+    if isinstance(P, Tensor):
+        return torch.cat([P[..., :3], P[..., 3:] / P[..., 3:].norm(dim=-1, keepdim=True)], dim=-1)
+    P = P.copy()
+    P[..., 3:] /= np.sqrt((P[..., 3:] ** 2).sum(-1, keepdims=True))
+    return P
+
+
+def held_poses(cfg: OptimizerConfig, gauge: str, num_poses: int) -> List[int]:
+    """Indices of the poses held constant: ``cfg.fixed`` (any sequence, array or tensor of ints), plus pose 0
+    for the ``"first"`` gauge; a ``ValueError`` names an index out of range."""
+    fixed = [int(f) for f in cfg.fixed] + ([0] if gauge == "first" else [])
+    for f in fixed:
+        if not 0 <= f < num_poses:
+            raise ValueError(f"fixed pose index {f} is out of range [0, {num_poses})")
+    return fixed
+
+
+def is_symmetric(info: np.ndarray) -> bool:
+    """Every ``(6, 6)`` matrix of ``info (E, 6, 6)`` (numpy) symmetric (the rule of :func:`information_factor`)."""
+    if (info == info.transpose(0, 2, 1)).all():  # the usual case, exactly (g2o files store a triangle)
+        return True
+    scale = np.maximum(info.diagonal(0, 1, 2).max(1), np.finfo(np.float64).tiny)
+    return bool((np.abs(info - info.transpose(0, 2, 1)).max((1, 2)) <= SYMMETRY_RTOL * scale).all())
+
+
+def information_factor(graph: PoseGraph, info: Tensor, check: bool) -> Tensor:
+    """Lower Cholesky factors ``(E, 6, 6)`` of the information matrices ``info (E, 6, 6)`` (float64);
+    a ``ValueError`` names the first edge whose matrix is not symmetric positive definite (the symmetry
+    is only checked when ``check``)."""
+    L, fail = torch.linalg.cholesky_ex(info)
+    bad = fail != 0
+    if check:
+        # the largest entry of an SPD matrix is on its diagonal (any other matrix fails the Cholesky)
+        scale = info.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(info.dtype).tiny)
+        bad = bad | ((info - info.transpose(-1, -2)).abs().amax(dim=(-2, -1)) > SYMMETRY_RTOL * scale)
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0, 0])
+        raise ValueError(f"information[{k}] (edge {int(graph.ii[k])} -> {int(graph.jj[k])}) is not "
+                         f"symmetric positive definite")
+    return L.contiguous()  # LAPACK's factors are column-major: row-major ones multiply ~3x faster
+
+
+# -- the torch problem --------------------------------------------------------------------------------
+class TorchProblem:
+    """:class:`PoseGraphProblem` in torch (float64 on the graph's device): the fused kernels of
+    :mod:`slam.graph.fused`, the block-sparse system of :mod:`slam.graph.linear` and its solvers.
+
+    Args:
+        graph: the :class:`PoseGraph` (its tensors are detached: the optimisation itself is not
+            differentiated; see :mod:`slam.graph.implicit` for the gradients of its result).
+        cfg: the :class:`OptimizerConfig`.
+        kernel: an optional robust kernel.
+        gauge: ``"free"``, ``"first"`` or ``"prior"`` (as resolved by the optimiser: GN holds pose 0).
+        solver: a linear solver or its name (see :func:`slam.graph.linear.make_solver`).
+    """
+
+    def __init__(self, graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str,
+                 solver):
+        dt = torch.float64
+        # unit quaternions (validated to 1e-3) made exact, in the poses and in the measurements; the sign
+        # is kept so that untouched poses come back as they went in
+        self.poses = unit_quaternions(graph.poses.detach().to(dt))
+        self.ii, self.jj = graph.ii, graph.jj
+        self.meas = unit_quaternions(graph.measurements.detach().to(dt))
+        self.zinv = se3_inv(self.meas)  # constant per call: inverted once
+        self.chart = graph.chart
+        # J_i^T = -Ad(z^-1)^T J_l^-1(r)^T: the constant factor made once (the "r3so3" chart has its own)
+        self.neg_adz_t = se3_adjoint_t(self.zinv).neg_() if graph.chart == "se3" else None
+        self.info = graph.information.detach().to(dt)
+        # Omega = L L^T: whitens the Jacobians (J^T Omega J = (L^T J)^T (L^T J)) and gives chi2 = |L^T r|^2
+        self.L = information_factor(graph, self.info, cfg.check_information)
+        self.kernel = kernel
+        N, E = self.poses.shape[0], self.ii.shape[0]
+        dev = self.poses.device
+        planar = graph.is_planar() if cfg.planar is None else bool(cfg.planar)
+        self.dims = torch.tensor(PLANAR_DIMS, device=dev) if planar else None
+        self.k = 3 if planar else 6
+        if self.dims is not None:
+            d = self.dims
+            self.rows = torch.cat([d, d + 6, torch.tensor([12], device=dev)])  # rows of [J_i^T; J_j^T; r^T]
+            self.L_red = torch.linalg.cholesky(self.info[:, d][:, :, d]).contiguous()
+        self.JT = torch.zeros(E, 13, 6, dtype=dt, device=dev)  # reused by every linearisation
+        self.ws: dict = {}  # further per-edge buffers of the linearisation (slam.graph.fused)
+        fixed = held_poses(cfg, gauge, N)
+        free = torch.ones(N, dtype=torch.bool, device=dev)
+        free[fixed] = False
+        self.pattern: BlockPattern = build_pattern(self.ii, self.jj, free, self.k)
+        k, n = self.k, self.pattern.num_vars
+        self.H_buf = (torch.empty(self.pattern.num_blocks + 1, k, k, dtype=dt, device=dev),
+                      torch.empty(n + 1, k, dtype=dt, device=dev))
+        self.H_damped = torch.empty(self.pattern.nnz, dtype=dt, device=dev)  # H + lambda D
+        self.all_free = not fixed
+        if not self.all_free:
+            self.free_idx = free.nonzero()[:, 0]
+            self.free_var = self.pattern.var_index[self.free_idx]
+        self.prior = None
+        # "free": nothing held, unless the caller fixes poses (which then anchor the result)
+        self.reanchor = gauge == "free" and not fixed
+        if gauge == "prior" and bool(free[0]):
+            self.prior = (self.poses[0].clone(), cfg.prior_weight, int(self.pattern.var_index[0]))
+        self.lin = make_solver(solver, self.pattern.size, 240 if cfg.dense_max is None else cfg.dense_max)
+        self.size = self.pattern.size
+        self.damping = cfg.damping
+        self._dscale: Optional[Tensor] = None
+
+    # -- costs ----------------------------------------------------------------------------------
+    def evaluate(self, poses: Tensor):
+        """Cost, chi2 and ``(r, aux, w)`` (residuals, terms reused by the Jacobians, kernel weights)."""
+        r, aux = se3_residuals(poses, self.ii, self.jj, self.zinv, self.chart)
+        u = bmm(r[:, None, :], self.L)  # (E, 1, 6): (L^T r)^T
+        s = u.square_().sum((1, 2))
+        if self.kernel is None:
+            chi2 = cost = float(s.sum())
+            w = None
+        else:
+            rho, w = self.kernel(s)
+            cost, chi2 = float(rho.sum()), float(s.sum())
+        if self.prior is not None:
+            p0, wgt, _ = self.prior
+            r0 = se3_log(se3_compose(se3_inv(p0), poses[0]))
+            cost += wgt * float((r0 * r0).sum())
+        return cost, chi2, (r, aux, w)
+
+    def linearize(self, poses: Tensor, cache):
+        r, aux, w = cache
+        JT = se3_jacobians_t(r, aux, self.neg_adz_t, self.JT, poses, self.ii, self.jj, self.ws)
+        L = self.L
+        if self.dims is not None:
+            JT, L = JT[:, self.rows][:, :, self.dims], self.L_red
+        blocks, gb = normal_blocks(JT, L, w, self.ws)
+        H, g = assemble_blocks(self.pattern, blocks, gb, self.H_buf)
+        if self.prior is not None:
+            p0, wgt, v0 = self.prior
+            r0 = se3_log(se3_compose(se3_inv(p0), poses[0]))
+            J0 = se3_right_jacobian_inv(r0)
+            if self.dims is not None:
+                J0, r0 = J0[self.dims][:, self.dims], r0[self.dims]
+            k = self.k
+            pos = int(self.pattern.diag_blocks[v0]) * k * k + torch.arange(k * k, device=H.device)
+            H = H.index_add(0, pos, (wgt * J0.T @ J0).reshape(-1))
+            g = g.index_add(0, torch.arange(v0 * k, v0 * k + k, device=g.device), wgt * J0.T @ r0)
+        self._dscale = H[self.pattern.diag_pos].clamp(1e-6, 1e32) if self.damping == "diagonal" else None
+        return H, g
+
+    def solve(self, H: Tensor, g: Tensor, lam: float) -> Tensor:
+        Hd = H
+        if lam > 0:  # into a buffer kept for the call: H (megabytes) is copied at every trial
+            Hd = self.H_damped.copy_(H)
+            Hd.index_add_(0, self.pattern.diag_pos,
+                          lam * self._dscale if self._dscale is not None else torch.full_like(g, lam))
+        dx = self.lin.solve(self.pattern, Hd, -g)
+        if not bool(torch.isfinite(dx).all()):
+            raise LinearSolverError("the linear solve produced non-finite values (singular system)")
+        return dx
+
+    def predicted_decrease(self, dx: Tensor, g: Tensor, lam: float) -> float:
+        D = self._dscale if self._dscale is not None else 1.0
+        return float(dx @ (lam * D * dx - g))
+
+    def retract(self, poses: Tensor, dx: Tensor) -> Tensor:
+        xi = dx.view(-1, self.k)
+        if self.dims is not None:
+            xi = xi.new_zeros(xi.shape[0], 6).index_copy_(1, self.dims, xi)
+        if self.all_free:  # variable v is pose v
+            return se3_retract(poses, xi)
+        out = poses.clone()
+        out[self.free_idx] = se3_retract(poses[self.free_idx], xi[self.free_var])
+        return out
+
+    def finish(self, x: Tensor, moved: bool) -> Tensor:
+        """The result; with the free gauge (and ``moved``) moved rigidly so that pose 0 is back at its
+        initial value (the costs are invariant to a common rigid motion)."""
+        if self.reanchor and moved:
+            x0 = self.poses[0]
+            x = se3_compose(se3_compose(x0, se3_inv(x[0]))[None], x)
+            x[0] = x0
+        if not bool(torch.isfinite(x).all()):  # the LM loop only accepts finite costs: a NaN here is a bug
+            raise FloatingPointError("the optimised poses have a non-finite value")
+        return x
+
+    def weights(self, cache) -> Optional[Tensor]:
+        return cache[2]

@@ -1,0 +1,371 @@
+"""A coloured point-cloud map of the keyframes' depth, placed with the optimised poses, and its PLY file.
+
+While a run goes, :class:`PointCloudMap` keeps, for every keyframe, its depth back-projected into the
+keyframe's own (depth) camera frame with the colours of its pixels, voxel-downsampled there: a few
+thousand points per keyframe (at most one per sampled pixel), so the memory grows like the keyframes'
+own images do. At the end :meth:`PointCloudMap.points` places every keyframe's points with the final
+(optimised) keyframe poses, in the trajectory's frame, and merges them on one voxel grid; :func:`write_ply`
+writes them as a binary little-endian PLY (``x y z`` float32, ``red green blue`` uchar) that MeshLab,
+CloudCompare, Open3D and RTAB-Map open.
+
+Unregistered frames (7-Scenes' Kinect v1: :attr:`FeatureConfig.rgb_intrinsics`): the depth map is warped
+into the colour camera (:func:`slam.odometry.depth_registration.register_depth_to_color`, z-buffered),
+each colour pixel with a depth is back-projected with the colour intrinsics and takes its own colour,
+and the point is moved into the depth camera's frame (``p_depth = p_rgb - t``): the geometry is the
+depth camera's measurement, the colour the colour camera's, and the frame the reported poses'.
+
+Example:
+    >>> import numpy as np, torch
+    >>> K = np.array([[100., 0, 31.5], [0, 100., 23.5], [0, 0, 1]])
+    >>> m = PointCloudMap(MapConfig(voxel_size=0.05))
+    >>> m.add(0, np.full((48, 64, 3), 200, np.uint8), np.full((48, 64), 2.0, np.float32), K)  # a wall 2 m ahead
+    520
+    >>> pts, rgb = m.points(torch.tensor([[0., 0., 1., 0., 0., 0., 1.]]))
+    >>> pts.shape[1], rgb.dtype, float(pts[:, 2].min()) == float(pts[:, 2].max())
+    (3, dtype('uint8'), True)
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO, Union
+
+import numpy as np
+import torch
+
+__all__ = ["MapConfig", "PLYFormatError", "PointCloudMap", "keyframe_cloud", "read_ply", "voxel_downsample",
+           "write_ply"]
+
+PathOrFile = Union[str, os.PathLike, BinaryIO]
+
+
+@dataclass
+class MapConfig:
+    """The keyframe point-cloud map written as ``map.ply``."""
+
+    enabled: bool = True  # False: no map is kept or written (--no-map)
+    # Voxel edge (m) of the downsampling, per keyframe and of the merged map: one point (the centroid,
+    # mean colour) per occupied voxel. 2 cm keeps a room at ~10^5 points (~1.5 MB) and is finer than the
+    # Kinect's depth noise at 2-3 m.
+    voxel_size: float = 0.02
+    # Pixels are sampled every k-th row and column, with k chosen so that neighbouring samples at this
+    # depth are one voxel apart (k = voxel * fx / depth): nearer surfaces are denser and merge in the
+    # voxels, and the per-keyframe cost does not grow with the image size.
+    sample_depth: float = 2.0  # m
+    # Depth range kept in the map (m); None: the odometry's (FeatureConfig.min_depth / max_depth).
+    min_depth: float | None = None
+    max_depth: float | None = None
+
+    def __post_init__(self):
+        for name in ("voxel_size", "sample_depth"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"MapConfig.{name} must be a positive finite number, got {v!r}")
+
+
+class PLYFormatError(ValueError):
+    """A PLY file this reader cannot read (the message names the file and what was expected)."""
+
+
+# ----------------------------------------------------------------------------------------------------
+def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """One point per occupied voxel: the centroid of its points and their mean colour.
+
+    Args:
+        points: ``(N, 3)`` float coordinates (metres).
+        colors: ``(N, 3)`` uint8 RGB.
+        voxel_size: the voxel edge (> 0).
+
+    Returns:
+        ``(M, 3)`` float32 points and ``(M, 3)`` uint8 colours, ``M <= N``, ordered by voxel.
+
+    Example:
+        >>> p = np.array([[0.01, 0.0, 0.0], [0.03, 0.0, 0.0], [0.2, 0.0, 0.0]])
+        >>> c = np.array([[0, 0, 0], [100, 100, 100], [9, 9, 9]], np.uint8)
+        >>> q, d = voxel_downsample(p, c, 0.1)
+        >>> q.astype(float).round(3).tolist(), d.tolist()
+        ([[0.02, 0.0, 0.0], [0.2, 0.0, 0.0]], [[50, 50, 50], [9, 9, 9]])
+    """
+    points = np.asarray(points)
+    colors = np.asarray(colors)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    if colors.shape != points.shape:
+        raise ValueError(f"colors must have shape {points.shape} like the points, got {colors.shape}")
+    if not (math.isfinite(voxel_size) and voxel_size > 0):
+        raise ValueError(f"voxel_size must be positive and finite, got {voxel_size}")
+    if points.shape[0] == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    p = points.astype(np.float64)
+    cells = np.floor(p / voxel_size).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) < 2.0 ** 62:  # one int64 key per voxel: a 1-D unique
+        key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+        _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    else:  # a huge extent: unique rows
+        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    m = counts.shape[0]
+    out_p = np.stack([np.bincount(inverse, weights=p[:, k], minlength=m) for k in range(3)], 1) / counts[:, None]
+    c = colors.astype(np.float64)
+    out_c = np.stack([np.bincount(inverse, weights=c[:, k], minlength=m) for k in range(3)], 1) / counts[:, None]
+    return out_p.astype(np.float32), np.clip(np.rint(out_c), 0, 255).astype(np.uint8)
+
+
+def keyframe_cloud(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, config: MapConfig | None = None,
+                   rgb_intrinsics: tuple[float, float, float, float] | None = None,
+                   rgb_from_depth: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                   depth_range: tuple[float, float] = (0.3, 4.0)) -> tuple[np.ndarray, np.ndarray]:
+    """The coloured points of one RGB-D frame in its depth camera's frame, voxel-downsampled.
+
+    Args:
+        rgb: ``(H, W, 3)`` uint8 colour image.
+        depth: ``(h, w)`` float32 metres, 0 = invalid (the same size as ``rgb`` when registered).
+        K: ``(3, 3)`` intrinsics of the depth image.
+        config: :class:`MapConfig` (voxel size, sampling, depth range).
+        rgb_intrinsics: ``(fx, fy, cx, cy)`` of the colour camera when the frame is unregistered.
+        rgb_from_depth: with ``rgb_intrinsics``: the depth camera's position in the colour camera (m).
+        depth_range: ``(min, max)`` metres used where ``config`` leaves them None (the odometry's).
+
+    Returns:
+        ``(N, 3)`` float32 points (metres, depth-camera frame: x right, y down, z forward) and
+        ``(N, 3)`` uint8 colours.
+    """
+    cfg = config or MapConfig()
+    rgb = np.asarray(rgb)
+    depth = np.asarray(depth)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    if depth.ndim != 2:
+        raise ValueError(f"depth must have shape (H, W), got {depth.shape}")
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise ValueError(f"K must have shape (3, 3), got {K.shape}")
+    lo = cfg.min_depth if cfg.min_depth is not None else depth_range[0]
+    hi = cfg.max_depth if cfg.max_depth is not None else depth_range[1]
+    d = torch.from_numpy(np.nan_to_num(np.ascontiguousarray(depth, dtype=np.float32), nan=0.0, posinf=0.0))
+    offset = np.zeros(3)
+    if rgb_intrinsics is not None:
+        from slam.odometry.depth_registration import register_depth_to_color, rig_pose
+
+        fx, fy, cx, cy = (float(v) for v in rgb_intrinsics)
+        K_rgb = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        d = register_depth_to_color(d, torch.from_numpy(K), torch.from_numpy(K_rgb),
+                                    rig_pose(rgb_from_depth), rgb.shape[:2])
+        K, offset = K_rgb, np.asarray(rgb_from_depth, dtype=np.float64)
+    elif depth.shape != rgb.shape[:2]:
+        raise ValueError(f"registered rgb {rgb.shape[:2]} and depth {depth.shape} must have the same size")
+    step = max(1, int(cfg.voxel_size * min(K[0, 0], K[1, 1]) / cfg.sample_depth))
+    z = d.numpy()[::step, ::step].astype(np.float64)
+    H, W = z.shape
+    v, u = np.mgrid[0:H, 0:W]
+    u, v = (u * step).astype(np.float64), (v * step).astype(np.float64)
+    ok = (z > lo) & (z < hi)
+    z, u, v = z[ok], u[ok], v[ok]
+    pts = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
+    pts -= offset  # colour camera -> depth camera (parallel axes); zero when registered
+    cols = rgb[::step, ::step][ok]
+    return voxel_downsample(pts, cols, cfg.voxel_size)
+
+
+def _rotation_matrices(q: np.ndarray) -> np.ndarray:
+    from slam.lie import quat_to_rotmat
+
+    return quat_to_rotmat(torch.from_numpy(np.ascontiguousarray(q, dtype=np.float64))).numpy()
+
+
+class PointCloudMap:
+    """The keyframes' coloured points, each kept in its keyframe's camera frame until it is placed.
+
+    Args:
+        config: :class:`MapConfig`.
+        rgb_intrinsics: ``(fx, fy, cx, cy)`` of the colour camera for unregistered frames (else None).
+        rgb_from_depth: the depth camera's position in the colour camera (m), with ``rgb_intrinsics``.
+        depth_range: the odometry's valid depth range (m), used where ``config`` leaves it None.
+    """
+
+    def __init__(self, config: MapConfig | None = None,
+                 rgb_intrinsics: tuple[float, float, float, float] | None = None,
+                 rgb_from_depth: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 depth_range: tuple[float, float] = (0.3, 4.0)):
+        self.config = config or MapConfig()
+        self.rgb_intrinsics = None if rgb_intrinsics is None else tuple(float(v) for v in rgb_intrinsics)
+        self.rgb_from_depth = tuple(float(v) for v in rgb_from_depth)
+        self.depth_range = (float(depth_range[0]), float(depth_range[1]))
+        self._clouds: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    @classmethod
+    def for_config(cls, config) -> PointCloudMap:
+        """The map of a :class:`slam.config.SLAMConfig` (its map settings, rig and depth range)."""
+        f = config.odometry.features
+        return cls(config.map, f.rgb_intrinsics, tuple(f.rgb_from_depth_translation), (f.min_depth, f.max_depth))
+
+    def add(self, keyframe_id: int, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> int:
+        """Keep the points of keyframe ``keyframe_id`` (replacing any it had); returns how many."""
+        pts, cols = keyframe_cloud(rgb, depth, K, self.config, self.rgb_intrinsics, self.rgb_from_depth,
+                                   self.depth_range)
+        self._clouds[int(keyframe_id)] = (pts, cols)
+        return int(pts.shape[0])
+
+    def __len__(self) -> int:
+        """Number of keyframes with points."""
+        return len(self._clouds)
+
+    @property
+    def num_points(self) -> int:
+        """Points kept over all keyframes (before the final merge)."""
+        return sum(p.shape[0] for p, _ in self._clouds.values())
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the points and colours."""
+        return sum(p.nbytes + c.nbytes for p, c in self._clouds.values())
+
+    def points(self, keyframe_poses: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """Every keyframe's points placed with its pose, merged on the voxel grid.
+
+        Args:
+            keyframe_poses: ``(M, 7)`` world-from-camera poses ``[t, q_xyzw]`` of keyframes ``0 .. M-1``
+                (the depth camera's: ``SLAMResult.keyframe_trajectory.poses``); keyframes beyond ``M`` or
+                with a non-finite pose are left out.
+
+        Returns:
+            ``(N, 3)`` float32 world points and ``(N, 3)`` uint8 colours (N = 0 when nothing was kept).
+        """
+        poses = keyframe_poses.detach().to("cpu", torch.float64).numpy() if isinstance(
+            keyframe_poses, torch.Tensor) else np.asarray(keyframe_poses, dtype=np.float64)
+        if poses.ndim != 2 or poses.shape[1] != 7:
+            raise ValueError(f"keyframe_poses must have shape (M, 7), got {poses.shape}")
+        ids = [k for k in sorted(self._clouds) if k < poses.shape[0] and np.isfinite(poses[k]).all()
+               and self._clouds[k][0].shape[0] > 0]
+        if not ids:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+        counts = np.array([self._clouds[k][0].shape[0] for k in ids])
+        which = np.repeat(np.arange(len(ids)), counts)
+        R = _rotation_matrices(poses[ids, 3:])  # (m, 3, 3)
+        t = poses[ids, :3]
+        local = np.concatenate([self._clouds[k][0] for k in ids]).astype(np.float64)
+        world = np.einsum("nij,nj->ni", R[which], local) + t[which]
+        colors = np.concatenate([self._clouds[k][1] for k in ids])
+        return voxel_downsample(world, colors, self.config.voxel_size)
+
+
+# ----------------------------------------------------------------------------------------------------
+_PLY_FIELDS = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1",
+              "uint8": "u1", "char": "i1", "int8": "i1", "ushort": "<u2", "uint16": "<u2", "short": "<i2",
+              "int16": "<i2", "uint": "<u4", "uint32": "<u4", "int": "<i4", "int32": "<i4"}
+
+
+def write_ply(target: PathOrFile, points: np.ndarray, colors: np.ndarray, comment: str = "") -> None:
+    """Write a coloured point cloud as a binary little-endian PLY.
+
+    Args:
+        target: a path or a binary file object.
+        points: ``(N, 3)`` coordinates (written as float32).
+        colors: ``(N, 3)`` uint8 RGB.
+        comment: one line put in the header (e.g. what the points are).
+
+    Raises:
+        ValueError: wrong shapes or dtypes, or non-finite coordinates.
+    """
+    points = np.asarray(points)
+    colors = np.asarray(colors)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    if colors.shape != points.shape or colors.dtype != np.uint8:
+        raise ValueError(f"colors must be ({points.shape[0]}, 3) uint8, got {colors.shape} {colors.dtype}")
+    if not np.isfinite(points).all():
+        raise ValueError("cannot write non-finite point coordinates")
+    vertex = np.empty(points.shape[0], dtype=_PLY_FIELDS)
+    for k, name in enumerate("xyz"):
+        vertex[name] = points[:, k]
+    for k, name in enumerate(("red", "green", "blue")):
+        vertex[name] = colors[:, k]
+    lines = ["ply", "format binary_little_endian 1.0"]
+    lines += [f"comment {c}" for c in comment.replace("\r", "").split("\n") if c]
+    lines += [f"element vertex {points.shape[0]}"]
+    lines += [f"property {'float' if dt == '<f4' else 'uchar'} {name}" for name, dt in _PLY_FIELDS]
+    lines += ["end_header"]
+    data = ("\n".join(lines) + "\n").encode("ascii", errors="replace") + vertex.tobytes()
+    if isinstance(target, (str, os.PathLike)):
+        with open(os.fspath(target), "wb") as f:
+            f.write(data)
+    elif hasattr(target, "write"):
+        target.write(data)
+    else:
+        raise TypeError(f"expected a path or a binary file object, got {type(target).__name__}")
+
+
+def read_ply(source: PathOrFile) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read the vertices of a binary little-endian or ASCII PLY (what :func:`write_ply` writes, and more).
+
+    Args:
+        source: a path or a binary file object.
+
+    Returns:
+        ``(N, 3)`` float64 ``x y z`` and ``(N, 3)`` uint8 ``red green blue`` (None when absent).
+
+    Raises:
+        PLYFormatError: not a PLY, a big-endian one, no vertex element or no x/y/z, or fewer bytes than the
+            header announces (the message names the file).
+    """
+    name = os.fspath(source) if isinstance(source, (str, os.PathLike)) else getattr(source, "name", "<file>")
+    if isinstance(source, (str, os.PathLike)):
+        data = Path(source).read_bytes()
+    else:
+        data = source.read()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise PLYFormatError(f"{name}: not a PLY file (expected 'ply' ... 'end_header')")
+    body_start = data.index(b"\n", end) + 1
+    header = data[:end].decode("ascii", errors="replace").splitlines()
+    fmt, elements = None, []  # [(name, count, [(prop, dtype)])]
+    for number, line in enumerate(header, start=1):
+        words = line.split()
+        if not words or words[0] in ("ply", "comment", "obj_info"):
+            continue
+        if words[0] == "format":
+            fmt = words[1] if len(words) > 1 else None
+        elif words[0] == "element" and len(words) == 3:
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property" and elements:
+            if words[1] == "list":
+                raise PLYFormatError(f"{name}:{number}: list properties are not supported ({line!r})")
+            if len(words) != 3 or words[1] not in _PLY_TYPES:
+                raise PLYFormatError(f"{name}:{number}: unknown property {line!r}")
+            elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+        else:
+            raise PLYFormatError(f"{name}:{number}: unexpected header line {line!r}")
+    if fmt not in ("binary_little_endian", "ascii"):
+        raise PLYFormatError(f"{name}: format {fmt!r} is not supported (binary_little_endian or ascii)")
+    if not elements or elements[0][0] != "vertex":
+        raise PLYFormatError(f"{name}: the first element must be 'vertex'")
+    _, count, props = elements[0]
+    names = [p for p, _ in props]
+    if not {"x", "y", "z"} <= set(names):
+        raise PLYFormatError(f"{name}: the vertex element has no x, y, z properties ({names})")
+    if fmt == "ascii":
+        rows = data[body_start:].decode("ascii", errors="replace").split("\n")[:count]
+        try:
+            table = np.array([[float(v) for v in r.split()[: len(props)]] for r in rows], dtype=np.float64)
+        except ValueError:
+            raise PLYFormatError(f"{name}: a vertex line is not numeric") from None
+        if table.shape != (count, len(props)):
+            raise PLYFormatError(f"{name}: expected {count} vertex lines of {len(props)} numbers")
+        col = {p: table[:, k] for k, p in enumerate(names)}
+    else:
+        dt = np.dtype(props)
+        if len(data) - body_start < count * dt.itemsize:
+            raise PLYFormatError(f"{name}: {count} vertices announced, {len(data) - body_start} bytes of data "
+                                 f"(need {count * dt.itemsize})")
+        table = np.frombuffer(data, dtype=dt, count=count, offset=body_start)
+        col = {p: table[p] for p in names}
+    xyz = np.stack([col["x"], col["y"], col["z"]], 1).astype(np.float64)
+    rgb = None
+    if {"red", "green", "blue"} <= set(names):
+        rgb = np.stack([col["red"], col["green"], col["blue"]], 1).astype(np.uint8)
+    return xyz, rgb

@@ -1,0 +1,393 @@
+"""The options of a SLAM run on a sequence folder, and the one function that turns them into a config.
+
+``attnloop-slam`` (:mod:`slam.cli`), ``examples/tum_slam.py`` and ``examples/ablation.py`` add the same
+arguments with :func:`add_run_arguments` and build their :class:`slam.config.SLAMConfig` with
+:func:`config_from_args`, so a flag means the same thing everywhere and is checked in one place.
+
+Dataset-aware defaults: the colour/depth rig comes from the folder (:func:`dataset_rig`). A 7-Scenes
+folder gets the Kinect v1 rig (colour intrinsics 525 525 320 240, the depth camera at -0.025 0 0 m in
+the colour camera; chosen without ground truth by ``benchmarks/rig_scan.py``, see docs/pipeline.md),
+as a TUM folder gets its camera from its name. ``--rgb-intrinsics`` / ``--rgb-from-depth`` override it,
+``--registered`` says colour pixel = depth pixel (no rig).
+
+Every value is checked when it is given (non-finite numbers, zero focal lengths, unknown devices): a
+bad setting is a :class:`UsageError` naming it, never a NaN trajectory later.
+
+Example:
+    >>> import argparse
+    >>> p = argparse.ArgumentParser()
+    >>> add_run_arguments(p)
+    >>> cfg = config_from_args(p.parse_args(["--rgb-intrinsics", "525", "525", "320", "240"]))
+    >>> cfg.odometry.features.rgb_intrinsics
+    (525.0, 525.0, 320.0, 240.0)
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from attnloop.fusion import FUSION_MODES
+from slam.config import SLAMConfig
+
+__all__ = [
+    "KINECT_V1_RIG",
+    "REGISTERED",
+    "CameraRig",
+    "UsageError",
+    "add_run_arguments",
+    "check_config",
+    "check_device",
+    "check_intrinsics",
+    "check_sequence_intrinsics",
+    "config_from_args",
+    "dataset_rig",
+    "describe_rig",
+    "finite_float",
+    "positive_float",
+    "positive_int",
+    "resolve_rig",
+    "rig_of",
+    "run_options",
+]
+
+
+class UsageError(ValueError):
+    """A setting that cannot be used (the message names it and says what was expected)."""
+
+
+@dataclass(frozen=True)
+class CameraRig:
+    """How the colour image relates to the depth image.
+
+    Attributes:
+        rgb_intrinsics: ``(fx, fy, cx, cy)`` of the colour camera when it is not the depth camera
+            (the frames' ``K`` is then the depth camera's); None: registered (colour pixel = depth pixel).
+        rgb_from_depth: position (m) of the depth camera in the colour camera's frame (parallel axes).
+        source: where the rig came from (reported in ``metrics.json``).
+    """
+
+    rgb_intrinsics: tuple[float, float, float, float] | None
+    rgb_from_depth: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    source: str = ""
+
+    @property
+    def registered(self) -> bool:
+        return self.rgb_intrinsics is None
+
+
+#: Colour and depth already registered (TUM RGB-D, the synthetic sequences).
+REGISTERED = CameraRig(None, (0.0, 0.0, 0.0), "")
+#: The Kinect v1 of 7-Scenes: the colour camera's nominal intrinsics, and the depth camera 2.5 cm to its
+#: side (the sign and size chosen by the inlier RMSE of the odometry, no ground truth needed:
+#: benchmarks/rig_scan.py, docs/benchmarks.md "Rig baseline scan").
+KINECT_V1_RIG = CameraRig((525.0, 525.0, 320.0, 240.0), (-0.025, 0.0, 0.0), "7-Scenes default: Kinect v1")
+
+
+def dataset_rig(sequence) -> CameraRig:
+    """The rig a sequence's own dataset implies: :data:`KINECT_V1_RIG` for 7-Scenes, else :data:`REGISTERED`."""
+    from slam.io.sevenscenes import SevenScenesSequence
+
+    parent = getattr(sequence, "parent", None)  # a SequenceView reads its parent's files
+    for seq in (sequence, parent):
+        if isinstance(seq, SevenScenesSequence):
+            return KINECT_V1_RIG
+    return REGISTERED
+
+
+# ----------------------------------------------------------------------------------------------------
+# argparse types: a bad value is argparse's usage error (exit code 2) naming the flag
+def finite_float(text: str) -> float:
+    """A finite float (``inf`` and ``nan`` refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite float > 0."""
+    value = finite_float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return value
+
+
+def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> None:
+    """Add the options of a run (descriptor, frames, camera rig, device, map) to ``parser``.
+
+    Args:
+        parser: the parser of a command.
+        fusion: add ``--fusion`` (a command that runs several modes, like the ablation, has its own).
+    """
+    from attnloop.backbones import AUTO, BACKBONES
+
+    g = parser.add_argument_group("loop closure")
+    if fusion:
+        g.add_argument("--fusion", choices=FUSION_MODES, default="dam", help="attention fusion (paper: dam)")
+    g.add_argument("--backbone", choices=(AUTO, *BACKBONES), default=AUTO,
+                   help="ImageNet CNN: vgg16 (the paper's; its weights are downloaded if not cached), "
+                        "efficientnet_lite0 (offline, attnloop[pretrained]) or auto: vgg16 when its weights are "
+                        "found without a download, else efficientnet_lite0 (default)")
+    g.add_argument("--weights", default=None, metavar="FILE",
+                   help="backbone checkpoint file (with auto: VGG16's, e.g. vgg16-397923af.pth); default: the "
+                        "torch hub cache")
+    g.add_argument("--no-loop", action="store_true", help="odometry only: no loop closure")
+    g.add_argument("--seed", type=int, default=0, help="seed of the random RNN weights (part of the model); with --demo also of the sequence")
+    g.add_argument("--device", default=None,
+                   help="torch device of the descriptor network, e.g. cpu, cuda, cuda:1 (default: cpu)")
+
+    g = parser.add_argument_group("frames")
+    g.add_argument("--max-frames", type=positive_int, default=None, metavar="N",
+                   help="use only the first N input frames")
+    g.add_argument("--frame-step", type=positive_int, default=1, metavar="N",
+                   help="use every Nth frame (more motion between frames: more drift for the loops to correct); "
+                        "the trajectory and the metrics are on those frames")
+
+    g = parser.add_argument_group("camera (default: from the dataset)")
+    g.add_argument("--camera", default=None,
+                   help="TUM camera: fr1, fr2, fr3 or ros (default: from the folder name, or its calibration.txt)")
+    g.add_argument("--rgb-intrinsics", nargs=4, type=finite_float, default=None, metavar=("FX", "FY", "CX", "CY"),
+                   help="colour camera intrinsics when colour and depth are not registered; the depth is "
+                        "warped into the colour camera (default for 7-Scenes: the Kinect v1's 525 525 320 240)")
+    g.add_argument("--rgb-from-depth", nargs=3, type=finite_float, default=None, metavar=("TX", "TY", "TZ"),
+                   help="the depth camera's position in the colour camera frame, metres (default for 7-Scenes: "
+                        "-0.025 0 0); poses are reported for the depth camera")
+    g.add_argument("--registered", action="store_true",
+                   help="colour and depth are registered (colour pixel = depth pixel): no rig, even on 7-Scenes")
+
+    g = parser.add_argument_group("map")
+    g.add_argument("--map-voxel", type=positive_float, default=None, metavar="METRES",
+                   help=f"voxel size of map.ply (default: {_default_voxel():.3g} m)")
+    g.add_argument("--no-map", action="store_true", help="do not build or write map.ply")
+
+
+def _default_voxel() -> float:
+    from slam.mapping import MapConfig
+
+    return MapConfig().voxel_size
+
+
+def run_options(options: argparse.Namespace | None = None, **overrides) -> argparse.Namespace:
+    """The options of :func:`add_run_arguments` as a namespace: their defaults, then ``options``, then
+    ``overrides`` by name (for library callers that have no command line).
+
+    Example:
+        >>> run_options(frame_step=3).frame_step, run_options().fusion
+        (3, 'dam')
+
+    Raises:
+        UsageError: an override that is not an option.
+    """
+    parser = argparse.ArgumentParser(add_help=False)
+    add_run_arguments(parser)
+    ns = parser.parse_args([])
+    known = set(vars(ns))
+    if options is not None:
+        for k, v in vars(options).items():
+            setattr(ns, k, v)
+    for k, v in overrides.items():
+        if k not in known:
+            raise UsageError(f"unknown run option {k!r}; options are {', '.join(sorted(known))}")
+        setattr(ns, k, v)  # checked where they are used: config_from_args, run_slam
+    return ns
+
+
+# ----------------------------------------------------------------------------------------------------
+def check_device(device: str | None) -> str | None:
+    """A torch device name that this torch can use (None stays None: the CPU).
+
+    Raises:
+        UsageError: a name torch does not know (``"bogus"``), or a device this machine lacks
+            (``"cuda"`` on a CPU-only torch or without a GPU).
+    """
+    if device is None:
+        return None
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise UsageError(f"--device {device!r} is not a torch device (e.g. cpu, cuda, cuda:1, mps)") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            build = "a CPU-only torch build" if torch.version.cuda is None else "no CUDA device is visible"
+            raise UsageError(f"--device {device!r}: CUDA is not available ({build}); use --device cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise UsageError(f"--device {device!r}: only {torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type == "mps":
+        if not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
+            raise UsageError(f"--device {device!r}: MPS is not available on this machine; use --device cpu")
+    elif dev.type != "cpu":
+        raise UsageError(f"--device {device!r}: device type {dev.type!r} is not supported (cpu, cuda, mps)")
+    return device
+
+
+def check_intrinsics(fx: float, fy: float, cx: float, cy: float, what: str) -> None:
+    """Refuse pinhole intrinsics that cannot be a camera (non-finite, or a focal length <= 0)."""
+    values = (fx, fy, cx, cy)
+    if not all(math.isfinite(float(v)) for v in values):
+        raise UsageError(f"{what}: intrinsics must be finite, got fx={fx}, fy={fy}, cx={cx}, cy={cy}")
+    if not (float(fx) > 0 and float(fy) > 0):
+        raise UsageError(f"{what}: focal lengths must be positive, got fx={fx}, fy={fy}")
+
+
+def check_sequence_intrinsics(sequence) -> None:
+    """Refuse a sequence whose ``K`` cannot be a camera (not 3x3, non-finite, a focal length <= 0).
+
+    Raises:
+        UsageError: naming the sequence folder.
+    """
+    K = np.asarray(sequence.K, dtype=np.float64)
+    where = f"{sequence.root}: camera intrinsics"
+    if K.shape != (3, 3):
+        raise UsageError(f"{where} must be a 3x3 matrix, got shape {K.shape}")
+    check_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], what=where)
+
+
+def _walk(obj, prefix: str):
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        name = f"{prefix}.{f.name}"
+        if dataclasses.is_dataclass(value):
+            yield from _walk(value, name)
+        else:
+            yield name, value
+
+
+def _numbers(value):
+    if isinstance(value, bool):
+        return []
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return [float(value)]
+    if isinstance(value, (tuple, list)):
+        return [float(v) for v in value if isinstance(v, (int, float, np.integer, np.floating))
+                and not isinstance(v, bool)]
+    return []
+
+
+def check_config(config: SLAMConfig) -> SLAMConfig:
+    """Refuse a config that would give NaN poses: any NaN setting, a non-finite rig or colour intrinsics.
+
+    Infinite thresholds elsewhere are allowed (they switch a bound off).
+
+    Raises:
+        UsageError: naming the field (e.g. ``config.odometry.features.rgb_from_depth_translation``).
+    """
+    for name, value in _walk(config, "config"):
+        if any(math.isnan(v) for v in _numbers(value)):
+            raise UsageError(f"{name} is NaN ({value!r})")
+    feats = config.odometry.features
+    if not all(math.isfinite(v) for v in _numbers(feats.rgb_from_depth_translation)):
+        raise UsageError("config.odometry.features.rgb_from_depth_translation must be finite, got "
+                         f"{tuple(feats.rgb_from_depth_translation)}")
+    if len(tuple(feats.rgb_from_depth_translation)) != 3:
+        raise UsageError("config.odometry.features.rgb_from_depth_translation must have 3 entries, got "
+                         f"{tuple(feats.rgb_from_depth_translation)}")
+    if feats.rgb_intrinsics is not None:
+        if len(tuple(feats.rgb_intrinsics)) != 4:
+            raise UsageError(f"config.odometry.features.rgb_intrinsics must be (fx, fy, cx, cy), got "
+                             f"{feats.rgb_intrinsics!r}")
+        check_intrinsics(*feats.rgb_intrinsics, what="config.odometry.features.rgb_intrinsics")
+    return config
+
+
+def resolve_rig(args: argparse.Namespace, sequence=None) -> CameraRig:
+    """The rig of a run: ``--registered``, else the flags over the dataset's own (:func:`dataset_rig`).
+
+    ``--rgb-from-depth`` alone keeps the dataset's colour intrinsics (7-Scenes); on a registered dataset
+    it needs ``--rgb-intrinsics``. ``--rgb-intrinsics`` alone on a registered dataset means zero baseline.
+
+    Raises:
+        UsageError: contradictory flags, or intrinsics that cannot be a camera.
+    """
+    given_k = getattr(args, "rgb_intrinsics", None)
+    given_t = getattr(args, "rgb_from_depth", None)
+    if getattr(args, "registered", False):
+        if given_k is not None or given_t is not None:
+            raise UsageError("--registered means no rig: it cannot be combined with --rgb-intrinsics or "
+                             "--rgb-from-depth")
+        return CameraRig(None, (0.0, 0.0, 0.0), "--registered")
+    default = dataset_rig(sequence) if sequence is not None else REGISTERED
+    if given_k is None and given_t is None:
+        return default
+    if given_k is None and default.registered:
+        raise UsageError("--rgb-from-depth needs --rgb-intrinsics (the colour camera's) for a registered "
+                         "dataset")
+    K = tuple(float(v) for v in given_k) if given_k is not None else default.rgb_intrinsics
+    t = tuple(float(v) for v in given_t) if given_t is not None else default.rgb_from_depth
+    check_intrinsics(*K, what="--rgb-intrinsics")
+    return CameraRig(K, t, "flags" if default.registered else f"flags over {default.source}")
+
+
+def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None = None) -> SLAMConfig:
+    """The :class:`SLAMConfig` of the options added by :func:`add_run_arguments`.
+
+    Args:
+        args: the parsed arguments (missing attributes take their defaults).
+        sequence: the opened sequence, for the dataset's rig (:func:`dataset_rig`); None: registered
+            unless the flags say otherwise.
+        fusion: the fusion mode (default: ``args.fusion``, else ``"dam"``).
+
+    Returns:
+        a checked config (:func:`check_config`).
+
+    Raises:
+        UsageError: contradictory or unusable settings.
+    """
+    if sequence is not None:
+        check_sequence_intrinsics(sequence)
+    cfg = SLAMConfig()
+    cfg.loop.enabled = not getattr(args, "no_loop", False)
+    rig = resolve_rig(args, sequence)
+    cfg.odometry.features.rgb_intrinsics = rig.rgb_intrinsics
+    cfg.odometry.features.rgb_from_depth_translation = tuple(rig.rgb_from_depth)
+    d = cfg.loop.descriptor
+    d.fusion = fusion if fusion is not None else getattr(args, "fusion", d.fusion)
+    if d.fusion not in FUSION_MODES:
+        raise UsageError(f"unknown fusion {d.fusion!r}; choose one of {', '.join(FUSION_MODES)}")
+    d.backbone = getattr(args, "backbone", d.backbone)
+    d.weights = getattr(args, "weights", None)
+    d.seed = int(getattr(args, "seed", d.seed))
+    d.device = check_device(getattr(args, "device", None))
+    voxel = getattr(args, "map_voxel", None)
+    if voxel is not None:
+        cfg.map.voxel_size = float(voxel)
+    cfg.map.enabled = not getattr(args, "no_map", False)
+    return check_config(cfg)
+
+
+def rig_of(config: SLAMConfig) -> CameraRig:
+    """The rig a config tracks with (for reports)."""
+    feats = config.odometry.features
+    if feats.rgb_intrinsics is None:
+        return REGISTERED
+    return CameraRig(tuple(feats.rgb_intrinsics), tuple(feats.rgb_from_depth_translation), "")
+
+
+def describe_rig(rig: CameraRig) -> str:
+    """One line for the log: ``registered`` or the colour intrinsics and the baseline."""
+    if rig.registered:
+        return f"registered colour and depth ({rig.source})" if rig.source else "registered colour and depth"
+    fx, fy, cx, cy = rig.rgb_intrinsics
+    tx, ty, tz = rig.rgb_from_depth
+    src = f" ({rig.source})" if rig.source else ""
+    return (f"unregistered rig{src}: colour camera {fx:g} {fy:g} {cx:g} {cy:g}, depth camera at "
+            f"{tx:g} {ty:g} {tz:g} m in it")

@@ -1,0 +1,114 @@
+"""``attnloop-eval``: its figures equal those of the ``evo_ape`` / ``evo_rpe`` commands (skipped where evo is
+not installed), its plot and JSON, and its errors."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import zipfile
+
+import numpy as np
+import pytest
+import torch
+from test_eval_metrics import _perturb  # known drift, noise and a global rigid motion
+
+from slam.eval.cli import main
+from slam.io.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
+
+TOL = 1e-6  # metres: the issue's bound
+
+
+@pytest.fixture(scope="module", params=["fr1_xyz-groundtruth.txt", "fr3_long_office_household-groundtruth.txt"])
+def files(request, tum_gt_dir, tmp_path_factory):
+    """(ground truth as evo reads it, estimate) for each shared TUM ground-truth file."""
+    tmp = tmp_path_factory.mktemp("eval_cli")
+    gt = read_tum_trajectory(tum_gt_dir / request.param)
+    gt_path, est_path = tmp / "gt.txt", tmp / "est.txt"
+    write_tum_trajectory(gt_path, gt)  # '#' header: evo rejects the shared files' bare 'timestamp ...' line
+    write_tum_trajectory(est_path, Trajectory(gt.timestamps, _perturb(gt.poses, gt.timestamps, seed=3)))
+    return gt_path, est_path
+
+
+def _printed_rmse(capsys, argv) -> tuple[float, str]:
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    first = out.splitlines()[0].split()
+    return float(first[first.index("RMSE") + 1]), out
+
+
+def _evo_command(tool: str, args: list, tmp_path) -> dict:
+    exe = shutil.which(tool)
+    if exe is None:
+        pytest.skip(f"{tool} is not on PATH (pip install evo)")
+    res = tmp_path / f"{tool}.zip"
+    subprocess.run([exe, "tum", *map(str, args), "--save_results", str(res), "--no_warnings"], check=True,
+                   capture_output=True)
+    with zipfile.ZipFile(res) as z:
+        return json.loads(z.read("stats.json"))
+
+
+@pytest.mark.parametrize("align, evo_flags", [("se3", ["-a"]), ("sim3", ["-as"]), ("none", [])])
+def test_ate_equals_evo_ape(files, align, evo_flags, capsys, tmp_path):
+    gt, est = files
+    rmse, out = _printed_rmse(capsys, ["ate", str(gt), str(est), "--align", align, "--json", str(tmp_path / "a.json")])
+    evo = _evo_command("evo_ape", [gt, est, *evo_flags, "--t_max_diff", "0.02"], tmp_path)
+    ours = json.loads((tmp_path / "a.json").read_text())
+    for key in ("rmse", "mean", "median", "std", "min", "max", "sse"):
+        assert ours[key] == pytest.approx(evo[key], abs=TOL), key
+    assert rmse == pytest.approx(evo["rmse"], abs=TOL)  # the printed figure too (6 decimals)
+    assert "m (" in out and ours["num_pairs"] > 700
+
+
+def test_rpe_equals_evo_rpe(files, capsys, tmp_path):
+    gt, est = files
+    assert main(["rpe", str(gt), str(est), "--json", str(tmp_path / "r.json")]) == 0
+    ours = json.loads((tmp_path / "r.json").read_text())
+    evo_t = _evo_command("evo_rpe", [gt, est, "--delta", "1", "--delta_unit", "f", "--t_max_diff", "0.02"], tmp_path)
+    evo_r = _evo_command("evo_rpe", [gt, est, "--delta", "1", "--delta_unit", "f", "--t_max_diff", "0.02",
+                                     "--pose_relation", "angle_deg"], tmp_path)
+    for key in ("rmse", "mean", "max", "sse"):
+        assert ours["translation_m"][key] == pytest.approx(evo_t[key], abs=TOL), key
+        assert ours["rotation_deg"][key] == pytest.approx(evo_r[key], abs=1e-6 * max(1.0, evo_r[key])), key
+
+
+def test_plot_with_labels(files, capsys, tmp_path):
+    import cv2
+
+    gt, est = files
+    png = tmp_path / "ate.png"
+    assert main(["ate", str(gt), str(est), "--plot", str(png), "--labels", "mocap", "ours"]) == 0
+    img = cv2.imread(str(png))
+    assert img is not None and img.shape[2] == 3 and (img < 128).any()
+
+
+def test_errors_exit_2_with_the_file(tmp_path, capsys):
+    gt = tmp_path / "gt.txt"
+    gt.write_text("1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n3.0 2 1 0 0 0 0 1\n")
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1.0 0 0 0 0 0 0\n")
+    assert main(["ate", str(gt), str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.txt" in err and "attnloop-eval:" in err
+    assert main(["ate", str(gt), str(tmp_path / "missing.txt")]) == 2
+    assert "missing.txt" in capsys.readouterr().err
+    far = tmp_path / "far.txt"
+    far.write_text("100.0 0 0 0 0 0 0 1\n")
+    assert main(["ate", str(gt), str(far)]) == 2  # nothing associates
+    assert "within 0.02 s" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["rpe", str(gt), str(gt), "--delta", "nan"])
+    assert main(["rpe", str(gt), str(gt), "--delta", "5"]) == 2  # no pair 5 frames apart
+    assert "smaller delta" in capsys.readouterr().err
+
+
+def test_plot_labels_validated():
+    from slam.eval.plot import plot_trajectory
+
+    t = torch.arange(3, dtype=torch.float64)
+    poses = torch.zeros(3, 7, dtype=torch.float64)
+    poses[:, 6] = 1
+    poses[:, 0], poses[:, 1] = t, t * t
+    with pytest.raises(ValueError, match="two strings"):
+        plot_trajectory(None, Trajectory(t, poses), labels=("only one",))
+    img = plot_trajectory(None, Trajectory(t, poses), Trajectory(t, poses), labels=("a", "b"), size=(300, 200))
+    assert img.shape == (200, 300, 3) and np.isfinite(img).all()

@@ -1,0 +1,302 @@
+"""slam.eval.place_recognition: recall@k, the best-match PR curve, VPR-Bench's AUC-PR, the readers."""
+from __future__ import annotations
+
+import io
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from slam.eval.loops import LoopGroundTruthConfig, ground_truth_loops
+from slam.eval.place_recognition import (
+    GroundTruthFormatError,
+    ShapeMismatchError,
+    evaluate,
+    ground_truth_from_poses,
+    plot_place_recognition,
+    read_ground_truth,
+    read_ground_truth_matrix,
+    read_vpr_bench_ground_truth,
+    sequence_candidates,
+)
+from slam.lie import so3_exp
+
+
+def test_perfect_ranking():
+    n = 6
+    sim = torch.eye(n) + 0.1 * torch.rand(n, n)  # the diagonal (the true match) is always best
+    r = evaluate(sim, torch.eye(n, dtype=torch.bool))
+    assert [r.recall_at(k) for k in (1, 5, 10)] == [1.0, 1.0, 1.0]
+    assert r.recall_at_full_precision == 1.0
+    assert r.auc_pr == pytest.approx(1.0, abs=1e-12)
+    assert r.accuracy == 1.0 and r.best.tolist() == list(range(n))
+
+
+def test_reversed_ranking():
+    # every true match ranks last among 4 candidates
+    n = 4
+    sim = 1.0 - torch.eye(n) + 0.01 * torch.arange(n)
+    r = evaluate(sim, torch.eye(n, dtype=torch.bool))
+    assert [r.recall_at(k) for k in (1, 2, 3, 4, 10)] == [0.0, 0.0, 0.0, 1.0, 1.0]
+    assert r.first_true_rank.tolist() == [3, 3, 3, 3]
+    assert r.recall_at_full_precision == 0.0 and r.threshold_at_full_precision == math.inf
+    assert r.auc_pr == 0.0 and r.accuracy == 0.0
+
+
+def test_random_ranking_recall_is_k_over_r():
+    g = torch.Generator().manual_seed(3)
+    q, n = 4000, 50
+    gt = torch.zeros(q, n, dtype=torch.bool)
+    gt[torch.arange(q), torch.randint(0, n, (q,), generator=g)] = True
+    r = evaluate(torch.rand(q, n, generator=g), gt)
+    for k in (1, 5, 10):
+        p = k / n
+        assert abs(r.recall_at(k) - p) < 4 * math.sqrt(p * (1 - p) / q), (k, r.recall_at(k))
+    # random scores: precision stays at the chance level 1/50, the area is that plus the first step
+    assert r.auc_pr < 0.06
+    assert r.recall_at_full_precision < 0.01
+
+
+def test_hand_computed_curve_with_a_query_without_match():
+    #            q0 correct 0.9, q1 no true match 0.8 (a false positive when accepted), q2 correct 0.7,
+    #            q3 wrong 0.6 (its true match ranks second), q4 correct 0.5
+    sim = torch.tensor([
+        [0.9, 0.1, 0.0],
+        [0.2, 0.8, 0.3],
+        [0.7, 0.0, 0.1],
+        [0.6, 0.5, 0.0],
+        [0.0, 0.1, 0.5],
+    ])
+    gt = torch.tensor([[1, 0, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.bool)
+    r = evaluate(sim, gt)
+    assert r.num_queries == 5 and r.num_with_match == 4
+    assert r.correct.tolist() == [True, False, True, False, True]
+    assert r.recall_at(1) == 0.75 and r.recall_at(2) == 1.0
+    # loop-closure curve: recall over the 4 queries with a match
+    c = r.curve
+    assert c.recall.tolist() == pytest.approx([0, 0.25, 0.25, 0.5, 0.5, 0.75])
+    assert c.precision.tolist() == pytest.approx([1, 1, 0.5, 2 / 3, 0.5, 0.6])
+    assert r.recall_at_full_precision == 0.25 and r.threshold_at_full_precision == pytest.approx(0.9)
+    # VPR-Bench: recall over the 3 correct best matches, trapezoids from (0, 1)
+    assert r.vpr_bench_curve.recall.tolist() == pytest.approx([0, 1 / 3, 1 / 3, 2 / 3, 2 / 3, 1])
+    assert r.auc_pr == pytest.approx(1 / 3 + (1 / 3) * (0.5 + 2 / 3) / 2 + (1 / 3) * (0.5 + 0.6) / 2)
+    assert r.auc_pr == pytest.approx(128 / 180)
+    assert r.accuracy == 0.6
+    d = r.to_dict()
+    assert d["recall@1"] == 0.75 and d["auc_pr"] == pytest.approx(128 / 180)
+
+
+def test_candidates_mask_and_non_finite_entries():
+    # a sequence of 4 frames, each against those at least 2 earlier: frames 0 and 1 have no candidate
+    sim = torch.tensor([
+        [1.0, 0.9, 0.8, 0.7],
+        [0.9, 1.0, 0.9, 0.1],
+        [0.95, 0.2, 1.0, 0.9],
+        [0.1, 0.3, float("nan"), 1.0],
+    ])
+    gt = torch.tensor([[0, 0, 0, 0], [1, 0, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0]], dtype=torch.bool)
+    cand = sequence_candidates(4, 2)
+    assert cand.tolist() == [[False] * 4, [False] * 4, [True, False, False, False], [True, True, False, False]]
+    r = evaluate(sim, gt, candidates=cand)
+    # frame 1's match (0) is not a candidate, frame 3's (2) is NaN: neither counts
+    assert r.has_match.tolist() == [False, False, True, False]
+    assert r.best.tolist() == [-1, -1, 0, 1]
+    assert r.best_score[:2].tolist() == [-math.inf, -math.inf]
+    assert r.recall_at(1) == 1.0
+    # frame 3 is accepted at 0.3 with a wrong match: a false positive below frame 2's 0.95
+    assert r.curve.precision.tolist() == pytest.approx([1.0, 1.0, 0.5])
+    assert r.recall_at_full_precision == 1.0
+
+
+def test_ties_rank_in_database_order():
+    sim = torch.tensor([[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]])
+    gt = torch.tensor([[1, 0, 0], [0, 0, 1]], dtype=torch.bool)
+    r = evaluate(sim, gt)
+    assert r.best.tolist() == [0, 0]
+    assert r.first_true_rank.tolist() == [0, 2]
+    assert r.recall_at(1) == 0.5 and r.recall_at(3) == 1.0
+
+
+def test_no_query_with_a_match_and_empty_inputs():
+    r = evaluate(torch.rand(3, 4), torch.zeros(3, 4, dtype=torch.bool))
+    assert math.isnan(r.recall_at(1)) and math.isnan(r.recall_at_full_precision)
+    assert r.auc_pr == 0.0
+    assert r.to_dict()["recall@1"] is None
+    r = evaluate(torch.zeros(2, 0), torch.zeros(2, 0, dtype=torch.bool))
+    assert r.best.tolist() == [-1, -1] and r.num_with_match == 0
+    r = evaluate(np.zeros((0, 3)), np.zeros((0, 3), dtype=bool))
+    assert r.num_queries == 0 and r.best.shape == (0,)
+
+
+def test_evaluate_errors():
+    with pytest.raises(ShapeMismatchError, match=r"\(3, 4\) and ground_truth \(4, 3\)"):
+        evaluate(torch.rand(3, 4), torch.zeros(4, 3, dtype=torch.bool))
+    with pytest.raises(ShapeMismatchError, match=r"candidates \(3, 3\)"):
+        evaluate(torch.rand(3, 4), torch.zeros(3, 4, dtype=torch.bool), candidates=torch.ones(3, 3, dtype=torch.bool))
+    with pytest.raises(ShapeMismatchError, match=r"\(Q, R\), got \(12,\)"):
+        evaluate(torch.rand(12), torch.zeros(12, dtype=torch.bool))
+    with pytest.raises(TypeError):
+        evaluate([[0.1]], [[True]])
+    r = evaluate(torch.rand(2, 2), torch.eye(2, dtype=torch.bool))
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="k must be a positive integer"):
+            r.recall_at(bad)
+    with pytest.raises(ValueError, match="min_gap"):
+        sequence_candidates(5, 0)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Readers
+
+
+def test_read_matrix_image_and_npy(tmp_path):
+    m = np.zeros((5, 4), np.uint8)
+    m[2, 1] = m[4, 0] = 255
+    cv2.imwrite(str(tmp_path / "gt.bmp"), m)
+    cv2.imwrite(str(tmp_path / "gt.png"), cv2.cvtColor(m, cv2.COLOR_GRAY2BGR))  # equal channels are fine
+    np.save(tmp_path / "gt.npy", m > 0)
+    np.save(tmp_path / "gt_float.npy", m.astype(np.float32) / 255)
+    want = torch.from_numpy(m > 0)
+    for name in ("gt.bmp", "gt.png", "gt.npy", "gt_float.npy"):
+        got = read_ground_truth_matrix(tmp_path / name)
+        assert got.dtype == torch.bool and torch.equal(got, want), name
+        assert torch.equal(read_ground_truth(str(tmp_path / name)), want)
+    with open(tmp_path / "gt.bmp", "rb") as f:  # a binary file object
+        assert torch.equal(read_ground_truth_matrix(f), want)
+    assert torch.equal(evaluate(torch.rand(5, 4), tmp_path / "gt.bmp").has_match, want.any(1))
+
+
+def test_read_matrix_errors(tmp_path):
+    with pytest.raises(GroundTruthFormatError, match="does not exist") as e:
+        read_ground_truth_matrix(tmp_path / "missing.bmp")
+    assert e.value.path.endswith("missing.bmp")
+    (tmp_path / "empty.bmp").write_bytes(b"")
+    with pytest.raises(GroundTruthFormatError, match="empty file"):
+        read_ground_truth_matrix(tmp_path / "empty.bmp")
+    (tmp_path / "junk.bmp").write_bytes(b"not an image at all")
+    with pytest.raises(GroundTruthFormatError, match="junk.bmp: neither a .npy array nor an image"):
+        read_ground_truth_matrix(tmp_path / "junk.bmp")
+    colour = np.zeros((3, 3, 3), np.uint8)
+    colour[0, 0, 2] = 255
+    cv2.imwrite(str(tmp_path / "colour.png"), colour)
+    with pytest.raises(GroundTruthFormatError, match="must be grey"):
+        read_ground_truth_matrix(tmp_path / "colour.png")
+    np.save(tmp_path / "vec.npy", np.ones(4))
+    with pytest.raises(GroundTruthFormatError, match=r"2-D .* got shape \(4,\)"):
+        read_ground_truth_matrix(tmp_path / "vec.npy")
+    bad = np.zeros((2, 2))
+    bad[1, 0] = np.nan
+    np.save(tmp_path / "nan.npy", bad)
+    with pytest.raises(GroundTruthFormatError, match=r"non-finite entry at \(row 1, column 0\)"):
+        read_ground_truth_matrix(tmp_path / "nan.npy")
+    data = (tmp_path / "vec.npy").read_bytes()
+    (tmp_path / "cut.npy").write_bytes(data[: len(data) - 8])
+    with pytest.raises(GroundTruthFormatError, match="cut.npy: not a readable .npy"):
+        read_ground_truth_matrix(tmp_path / "cut.npy")
+    np.save(tmp_path / "obj.npy", np.array([[0, [1]]], dtype=object))
+    with pytest.raises(GroundTruthFormatError, match="read_vpr_bench_ground_truth"):
+        read_ground_truth_matrix(tmp_path / "obj.npy")
+    with pytest.raises(TypeError, match="binary mode"):
+        read_ground_truth_matrix(io.StringIO("0 1"))
+    with pytest.raises(ShapeMismatchError, match="4 columns, expected num_references=5"):
+        read_ground_truth(_saved(tmp_path, "m.npy", np.eye(4)), num_references=5)
+
+
+def _saved(tmp_path, name, arr):
+    np.save(tmp_path / name, arr, allow_pickle=True)
+    return tmp_path / name
+
+
+def _vpr_rows(rows):
+    arr = np.empty((len(rows), 2), dtype=object)
+    for i, (q, refs) in enumerate(rows):
+        arr[i, 0], arr[i, 1] = q, refs
+    return arr
+
+
+def test_read_vpr_bench(tmp_path):
+    # the layout of VPR-Bench's ground_truth_new.npy: row q = [q, list of matching references]
+    rows = [(0, [0, 1]), (1, np.array([1, 2])), (2, range(2, 4)), (3, []), (4, 5)]
+    path = _saved(tmp_path, "ground_truth_new.npy", _vpr_rows(rows))
+    gt = read_vpr_bench_ground_truth(path)
+    assert gt.shape == (5, 6)
+    assert [torch.nonzero(g).flatten().tolist() for g in gt] == [[0, 1], [1, 2], [2, 3], [], [5]]
+    assert read_vpr_bench_ground_truth(path, num_references=9).shape == (5, 9)
+    assert torch.equal(read_ground_truth(path), gt)  # told from the object dtype
+    with open(path, "rb") as f:
+        assert torch.equal(read_vpr_bench_ground_truth(f), gt)
+    # a float array from numpy_gt_create.py-style scripts with one index per query
+    assert read_vpr_bench_ground_truth(_saved(tmp_path, "f.npy", _vpr_rows([(0.0, 1.0), (1.0, 0.0)]))).tolist() == [
+        [False, True], [True, False]]
+
+
+def test_read_vpr_bench_errors(tmp_path):
+    with pytest.raises(GroundTruthFormatError, match=r"row 1: holds query 5"):
+        read_vpr_bench_ground_truth(_saved(tmp_path, "a.npy", _vpr_rows([(0, [0]), (5, [1])])))
+    with pytest.raises(GroundTruthFormatError, match=r"row 0: reference indices must be non-negative"):
+        read_vpr_bench_ground_truth(_saved(tmp_path, "b.npy", _vpr_rows([(0, [-1])])))
+    with pytest.raises(GroundTruthFormatError, match=r"row 0: reference indices must be non-negative"):
+        read_vpr_bench_ground_truth(_saved(tmp_path, "c.npy", _vpr_rows([(0, [1.5])])))
+    with pytest.raises(GroundTruthFormatError, match=r"row 0: references .* are not numbers"):
+        read_vpr_bench_ground_truth(_saved(tmp_path, "d.npy", _vpr_rows([(0, ["x"])])))
+    with pytest.raises(GroundTruthFormatError, match=r"row 1: reference index 7 is not below num_references=4"):
+        read_vpr_bench_ground_truth(_saved(tmp_path, "e.npy", _vpr_rows([(0, [0]), (1, [7])])), num_references=4)
+    with pytest.raises(GroundTruthFormatError, match=r"shape \(3,\)"):
+        read_vpr_bench_ground_truth(_saved(tmp_path, "g.npy", np.arange(3)))
+    (tmp_path / "h.npy").write_bytes(b"GARBAGE")
+    with pytest.raises(GroundTruthFormatError, match="h.npy: not a .npy file"):
+        read_vpr_bench_ground_truth(tmp_path / "h.npy")
+    with pytest.raises(GroundTruthFormatError, match="does not exist"):
+        read_vpr_bench_ground_truth(tmp_path / "none.npy")
+
+
+def test_rtabmap_ground_truth_image(data_dir):
+    path = data_dir / "rtabmap-samples" / "samples_GT.bmp"
+    if not path.is_file():
+        pytest.skip(f"{path} not found")
+    gt = read_ground_truth(path)
+    assert gt.shape == (84, 84) and int(gt.sum()) == 228
+    assert not gt[:40].any() and gt[40:].any(dim=1).all()  # images 41-84 revisit, 1-40 do not
+    assert not torch.triu(gt).any()  # only earlier images are marked
+    assert torch.nonzero(gt[40]).flatten().tolist() == [0, 1, 2]  # 41 revisits 1, 2, 3
+
+
+# ---------------------------------------------------------------------------------------------------
+# Ground truth from poses
+
+
+def _pose(x=0.0, yaw_deg=0.0):
+    q = so3_exp(torch.tensor([0.0, math.radians(yaw_deg), 0.0], dtype=torch.float64))
+    return torch.cat([torch.tensor([x, 0.0, 0.0], dtype=torch.float64), q])
+
+
+def test_ground_truth_from_poses_equals_the_loop_pairs():
+    g = torch.Generator().manual_seed(1)
+    n = 120
+    poses = torch.stack([_pose(float(x), float(a)) for x, a in zip(torch.rand(n, generator=g) * 2,
+                                                                    torch.rand(n, generator=g) * 90)])
+    poses[7] = float("nan")
+    cfg = LoopGroundTruthConfig(max_distance=0.3, max_angle_deg=30.0, min_frame_gap=10)
+    gt = ground_truth_from_poses(poses, config=cfg)
+    pairs = ground_truth_loops(poses, cfg)
+    assert gt.shape == (n, n) and int(gt.sum()) == pairs.shape[0] > 50
+    assert torch.equal(torch.nonzero(gt), pairs)
+    assert not gt[7].any() and not gt[:, 7].any()
+
+
+def test_ground_truth_from_two_pose_sets():
+    queries = torch.stack([_pose(0.0), _pose(1.0), _pose(0.0, 50.0)])
+    refs = torch.stack([_pose(0.45), _pose(0.55), _pose(1.2, 10.0)])
+    gt = ground_truth_from_poses(queries, refs)  # 0.5 m, 45 degrees, no frame gap between two sets
+    assert gt.tolist() == [[True, False, False], [False, True, True], [False, False, False]]
+    with pytest.raises(ShapeMismatchError, match=r"reference_poses must have shape \(N, 7\), got \(3, 6\)"):
+        ground_truth_from_poses(queries, refs[:, :6])
+
+
+def test_plot(tmp_path):
+    r = evaluate(torch.eye(4) + 0.1 * torch.rand(4, 4), torch.eye(4, dtype=torch.bool))
+    img = plot_place_recognition(tmp_path / "pr.png", {"a": r, "b": r}, size=(320, 260))
+    assert img.shape == (260, 320, 3)
+    assert cv2.imread(str(tmp_path / "pr.png")).shape == (260, 320, 3)

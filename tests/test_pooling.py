@@ -1,0 +1,139 @@
+"""attnloop.pooling (regional GeM code), the joined stage6+stage7 tap, and the two presets' configuration."""
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from attnloop import AttentionDescriptor
+from attnloop.backbones.efficientnet_lite import efficientnet_lite
+from attnloop.descriptor import DescriptorRecipe, descriptor_from_attention
+from attnloop.fusion import fuse
+from attnloop.guided_backprop import guided_backprop
+from attnloop.pooling import fuse_groups, gem_regions, regional_code, regional_code_dim, unit_scale
+from attnloop.rnn_pool import random_rnn_pool
+
+
+def test_gem_regions_hand_computed():
+    x = torch.tensor([[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0], [0.0, 0.0, -1.0, 0.0], [2.0, 2.0, 2.0, 2.0]])
+    x = x[None, None]  # (1, 1, 4, 4)
+    r = gem_regions(x, p=2.0, levels=(1, 2))
+    assert r.shape == (1, 5, 1)
+    floor = 1e-6
+    vals = x.clamp_min(floor)
+    assert r[0, 0, 0] == pytest.approx(float(vals.pow(2).mean().sqrt()))  # the whole map
+    assert r[0, 1, 0] == pytest.approx(((1 + 4 + 25 + 36) / 4) ** 0.5)  # top-left cell
+    assert r[0, 2, 0] == pytest.approx(((9 + 16 + 49 + 64) / 4) ** 0.5)  # top-right
+    assert r[0, 4, 0] == pytest.approx(((2 * floor**2 + 4 + 4) / 4) ** 0.5, rel=1e-5)  # bottom-right: -1 -> floor
+    # p = 1 is average pooling of the positive part; a large p tends to the max
+    assert gem_regions(x.clamp_min(0), p=1.0, levels=(1,))[0, 0, 0] == pytest.approx(float(x.clamp_min(0).mean()),
+                                                                                     rel=1e-5)
+    assert gem_regions(x, p=30.0, levels=(1,))[0, 0, 0] == pytest.approx(8.0, rel=0.1)
+    with pytest.raises(ValueError, match="levels"):
+        gem_regions(x, levels=(0,))
+    with pytest.raises(ValueError, match="p must be positive"):
+        gem_regions(x, p=0.0)
+
+
+def test_regional_code_groups_are_unit_blocks():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 12, 5, 6, generator=g)
+    code = regional_code(x, groups=(4, 8), p=3.0, levels=(1, 2))
+    assert code.shape == (3, regional_code_dim((4, 8), (1, 2))) == (3, 60)
+    blocks = torch.cat([code[:, :20].reshape(3, 5, 4), code[:, 20:].reshape(3, 5, 8)], dim=2)
+    norms = torch.cat([blocks[..., :4].norm(dim=2), blocks[..., 4:].norm(dim=2)], dim=1)
+    assert torch.allclose(norms, torch.ones(3, 10), atol=1e-6)  # one unit vector per (group, region)
+    ref = F.normalize(gem_regions(x[:, 4:], 3.0, (1, 2)), dim=2).flatten(1)
+    assert torch.allclose(code[:, 20:], ref)
+    # a translation by whole cells leaves the global region unchanged (the flat map would change entirely)
+    rolled = torch.roll(x, shifts=3, dims=3)
+    assert torch.allclose(gem_regions(rolled, 3.0, (1,)), gem_regions(x, 3.0, (1,)), atol=1e-5)
+    assert regional_code(x[:0], groups=(4, 8)).shape == (0, 60)
+    with pytest.raises(ValueError, match="summing to the 12 channels"):
+        regional_code(x, groups=(4, 4))
+
+
+def test_fuse_groups_is_fusion_per_group():
+    g = torch.Generator().manual_seed(1)
+    L, G = torch.randn(2, 10, 3, 3, generator=g), torch.randn(2, 10, 3, 3, generator=g)
+    for mode in ("dam", "gaf"):
+        got = fuse_groups(L, G, mode, (4, 6))
+        want = torch.cat([fuse(L[:, :4], unit_scale(G[:, :4]), mode), fuse(L[:, 4:], unit_scale(G[:, 4:]), mode)], 1)
+        assert torch.allclose(got, want)
+        assert not torch.allclose(got, fuse(L, unit_scale(G), mode))  # joint normalisation differs
+
+
+def test_joined_tap_equals_the_separate_taps():
+    kw = {"pretrained": False, "seed": 3, "input_size": (96, 128)}
+    joined = efficientnet_lite("lite0", tap="stage6+stage7", **kw)
+    s6, s7 = efficientnet_lite("lite0", tap="stage6", **kw), efficientnet_lite("lite0", tap="stage7", **kw)
+    assert joined.tap_shape == (512, 3, 4) and joined.tap_groups == (192, 320)
+    x = torch.randint(0, 256, (2, 3, 60, 80), dtype=torch.uint8)
+    L, G = guided_backprop(joined, x)
+    L6, G6 = guided_backprop(s6, x)
+    L7, G7 = guided_backprop(s7, x)
+    assert torch.equal(L[:, :192], L6) and torch.allclose(L[:, 192:], L7, atol=1e-6)
+    assert torch.allclose(G[:, :192], G6, rtol=1e-5, atol=1e-12 * float(G6.abs().max()))
+    assert torch.allclose(G[:, 192:], G7, rtol=1e-5, atol=1e-12 * float(G7.abs().max()))
+    with torch.no_grad():
+        assert torch.allclose(joined(x), s7(x), atol=1e-5)  # the classifier is unchanged
+    with pytest.raises(ValueError, match="different resolutions"):
+        efficientnet_lite("lite0", pretrained=False, tap="stage5+stage7")
+    with pytest.raises(ValueError, match="unknown EfficientNet-Lite tap"):
+        efficientnet_lite("lite0", pretrained=False, tap="stage7+head")
+
+
+def test_default_configuration():
+    d = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False)
+    assert d.backbone.tap == "stage6+stage7" and d.backbone.input_size == (224, 288)
+    assert d.backbone.tap_shape == (512, 7, 9) and d.tap_groups == (192, 320)
+    r = d.recipe
+    assert (r.pooling, r.gem_p, r.levels, r.num_rnn, r.out_features, r.pool_scale, r.merges) == (
+        "regional", 2.0, (1, 2), 16, 64, 10.0, False)
+    assert d.pool.weights.shape == (16, 64, 2560)
+    x = torch.randint(0, 256, (2, 3, 120, 160), dtype=torch.uint8)
+    parts = d.parts(x)
+    code = regional_code(fuse_groups(parts.tap, parts.grad, "dam", (192, 320)), (192, 320), 2.0, (1, 2))
+    ref = F.normalize(random_rnn_pool(10.0 * F.normalize(code, dim=1)[:, :, None, None], d.pool.weights,
+                                      merge=False), dim=1)
+    assert torch.allclose(parts.descriptor, ref, atol=1e-6)
+    assert torch.allclose(d.from_attention(parts.tap, parts.grad, "gaf"),
+                          descriptor_from_attention(parts.tap, parts.grad, d.pool.weights, "gaf",
+                                                    groups=(192, 320))[1])
+    assert d(x[:0]).shape == (0, 1024)
+    explicit = AttentionDescriptor("efficientnet_lite0", pretrained=False, tap="stage7")
+    assert explicit.backbone.tap_shape == (320, 7, 7)  # an explicit tap: the backbone's own 224 x 224
+
+
+@pytest.mark.parametrize("backbone, tap_shape, rnn_in", [("efficientnet_lite0", (320, 7, 7), 160 * 49),
+                                                         ("vgg16", (512, 7, 7), 256 * 49)])
+def test_paper_preset_configuration(backbone, tap_shape, rnn_in):
+    d = AttentionDescriptor(backbone, fusion="gaf", pretrained=False, preset="paper")
+    assert d.backbone.tap_shape == tap_shape and d.backbone.input_size == (224, 224)
+    r = d.recipe
+    assert (r.fusion, r.pooling, r.pool_scale, r.merges, r.num_rnn, r.out_features) == ("gaf", "flat", None, True, 16, 64)
+    assert d.pool.weights.shape == (16, 64, rnn_in)  # VGG16: the paper's 16 RNNs of 64 x 12544
+    if backbone == "efficientnet_lite0":
+        x = torch.randint(0, 256, (1, 3, 90, 120), dtype=torch.uint8)
+        parts = d.parts(x)
+        ref = F.normalize(random_rnn_pool(fuse(parts.tap, unit_scale(parts.grad), "gaf"), d.pool.weights), dim=1)
+        assert torch.allclose(parts.descriptor, ref, atol=1e-6)  # raw fused map, merged, flat
+    with pytest.raises(ValueError, match="fixes the recipe"):
+        AttentionDescriptor(backbone, pretrained=False, preset="paper", pool_scale=5.0)
+    with pytest.raises(ValueError, match="fixes the recipe"):
+        AttentionDescriptor(backbone, pretrained=False, preset="paper", tap="pool4")
+    with pytest.raises(ValueError, match="unknown preset"):
+        AttentionDescriptor(backbone, pretrained=False, preset="ours")
+
+
+def test_recipe_checks():
+    with pytest.raises(ValueError, match="unknown pooling"):
+        DescriptorRecipe(pooling="max")
+    with pytest.raises(ValueError, match="gem_p"):
+        DescriptorRecipe(gem_p=0.0)
+    with pytest.raises(ValueError, match="levels"):
+        DescriptorRecipe(levels=(0,))
+    with pytest.raises(ValueError, match="apply to pooling='regional' only"):
+        DescriptorRecipe(pooling="flat", gem_p=3.0)
+    assert DescriptorRecipe(pooling="flat").merges and not DescriptorRecipe().merges
+    assert DescriptorRecipe(merge=True).merges
