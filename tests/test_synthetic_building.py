@@ -183,3 +183,23 @@ def test_building_sequence_frames_and_name():
     f = seq[10]
     assert f.rgb.shape == (H, W, 3) and f.depth.shape == (H, W) and f.pose_gt.shape == (7,)
     assert float((f.depth > 0).mean()) > 0.8
+
+
+def test_demo_scene_building_runs_from_the_command_line(tmp_path, capsys):
+    """``attnloop-slam --demo --demo-scene building`` writes the outputs and the generated sequence, with
+    its ground truth, inside --out (a short, small tour: the interface, not the figures)."""
+    from slam.cli import main
+    from slam.synthetic.demo import DEMO_SCENES, generate_demo
+
+    assert DEMO_SCENES["building"].default_size == (320, 240) and DEMO_SCENES["building"].default_frames >= 2000
+    out = tmp_path / "run"
+    argv = ["--demo", "--demo-scene", "building", "--demo-frames", "60", "--demo-size", "160", "120",
+            "--no-loop", "--quiet", "--out", str(out)]
+    assert main(argv) == 0, capsys.readouterr().err
+    for name in ("trajectory.txt", "loops.txt", "metrics.json"):
+        assert (out / name).is_file(), name
+    seq = out / "demo_sequence"
+    assert (seq / "groundtruth.txt").is_file() and (seq / "rgb.txt").is_file()
+    assert "building_tour" in (seq / "synthetic.json").read_text()
+    with pytest.raises(ValueError, match="tour"):
+        generate_demo(tmp_path / "x", scene="building", trajectory="loop")
