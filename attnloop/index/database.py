@@ -344,7 +344,7 @@ class KeyframeIndex:
                 # Re-scored in float64 (then rounded): a similarity must not depend on which other rows
                 # were re-scored with it (float32 products of different sizes round differently), and
                 # ties (duplicate frames) go to the lower id, so that every backend orders alike.
-                sims = (self._store.rows(rows).astype(np.float64) @ q[i].astype(np.float64)).astype(np.float32)
+                sims = (self._store.rows(rows, np.float64) @ q[i].astype(np.float64)).astype(np.float32)
                 order = np.argsort(-sims, kind="stable")[:kk]
                 out_ids[i, : order.size] = ids[rows[order]]
                 out_sim[i, : order.size] = sims[order]

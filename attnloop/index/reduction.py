@@ -23,6 +23,7 @@ import torch
 __all__ = ["PCACode", "fit_pca"]
 
 _CHUNK = 16384  # rows encoded at a time (bounds the float32 temporaries of a float16 input)
+_FEW = 16  # up to this many rows (queries) are encoded with numpy
 _MAX_FIT_ROWS = 65536  # rows the PCA is fitted on at most (a seeded sample): the covariance is D x D anyway
 _EIG_FLOOR = 1e-6  # relative floor of the eigenvalues a whitening divides by
 
@@ -59,6 +60,12 @@ class PCACode:
         """
         if x.ndim != 2 or x.shape[1] != self.mean.shape[0]:
             raise ValueError(f"PCA code of dimension {self.mean.shape[0]} got descriptors {tuple(x.shape)}")
+        if x.shape[0] <= _FEW and not energy:  # a query: numpy directly (torch's conversions cost more here)
+            z = (np.asarray(x, dtype=np.float32) - self.mean) @ self.components
+            if self.scale is not None:
+                z *= self.scale
+                z /= np.maximum(np.linalg.norm(z, axis=1, keepdims=True), 1e-12)
+            return z.astype(np.float32, copy=False)
         out = np.empty((x.shape[0], self.dim), dtype=np.float32)
         kept, total = np.empty(x.shape[0]), np.empty(x.shape[0])
         mean, comp = torch.from_numpy(self.mean), torch.from_numpy(self.components)
