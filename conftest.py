@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -52,13 +53,19 @@ def tum_gt_dir(data_dir: Path) -> Path:
 @pytest.fixture(scope="session")
 def load_script():
     """``load_script("examples/x.py")``: a script of the repository (not a package) imported as a module."""
+    loaded = []
+
     def load(relpath: str):
         path = ROOT / relpath
         spec = importlib.util.spec_from_file_location(path.stem, path)
         mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod  # a dataclass of the script looks its module up there
+        loaded.append(spec.name)
         spec.loader.exec_module(mod)
         return mod
-    return load
+    yield load
+    for name in loaded:
+        sys.modules.pop(name, None)
 
 
 @pytest.fixture(autouse=True)

@@ -427,8 +427,8 @@ class AttentionDescriptor(nn.Module):
             # tap=None: the configuration's tap and input size; an explicit tap: at the backbone's own input.
             settings = (PAPER_BACKBONE_SETTINGS if preset else DEFAULT_BACKBONE_SETTINGS).get(self.backbone_name, {})
             settings = {"tap": tap} if tap is not None else dict(settings)
-            net = build_backbone(self.backbone_name, pretrained=use_pretrained, weights=weights, seed=given.seed,
-                                 **settings)
+            # the name as given: "auto" names both checkpoints it looked for when neither is found
+            net = build_backbone(backbone, pretrained=use_pretrained, weights=weights, seed=given.seed, **settings)
             net.eval()
             if not self.differentiable:
                 net.requires_grad_(False)

@@ -1,6 +1,7 @@
 """Cost of the attention descriptor vs the plain forward pass of its backbone, side by side.
 
-For each backbone (VGG16 at pool5, EfficientNet-Lite0 at stage7) and batch size (1, 8), one round
+For each backbone (the default descriptor: VGG16 at pool5, EfficientNet-Lite0 at stage6+stage7 on a 224 x 288
+input; and preset="paper") and batch size (1, 8), one round
 times, in turn, the plain classifier forward ``net(images)`` (preprocessing included) and the full
 ``AttentionDescriptor(...)(images)`` for every fusion mode, all on the same 640 x 480 uint8 frames
 under ``torch.no_grad()`` (as the SLAM system calls it). Rounds are interleaved so that load from
@@ -32,11 +33,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from attnloop import AttentionDescriptor, build_backbone
-from attnloop.descriptor import _scale_to_norm, _unit_scale
-from attnloop.fusion import FUSION_MODES, fuse
+from attnloop import AttentionDescriptor
+from attnloop.fusion import FUSION_MODES
 from attnloop.guided_backprop import clamp_negative_grad, softmax_seeded_gradient
-from attnloop.rnn_pool import random_rnn_pool
 
 
 def frames(batch: int, seed: int = 0) -> torch.Tensor:
@@ -63,15 +62,23 @@ def quartiles(values: list[float]) -> tuple[float, float, float]:
 def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> list[str]:
     pretrained = name == "efficientnet_lite0"
     try:
-        net = build_backbone(name, pretrained=pretrained)
+        AttentionDescriptor(name, pretrained=pretrained)
     except FileNotFoundError:
-        net = build_backbone(name, pretrained=False)
-    descs = {m: AttentionDescriptor(net, fusion=m) for m in FUSION_MODES}
+        pretrained = False
+    # The default descriptor builds its own backbone (Lite0: stage6+stage7 at 224 x 288); the plain
+    # forward is that same network's classifier pass at that input size.
+    descs = {m: AttentionDescriptor(name, fusion=m, pretrained=pretrained) for m in FUSION_MODES}
+    net = descs["dam"].backbone
+    for d in descs.values():
+        d.backbone = net
+    paper = AttentionDescriptor(name, fusion="dam", pretrained=pretrained, preset="paper")
     rows = []
     for batch in batches:
         images = frames(batch)
         variants = {"plain forward": lambda x=images: net(x)}
         variants.update({f"descriptor {m}": (lambda d=d, x=images: d(x)) for m, d in descs.items()})
+        variants["plain forward, paper's 224 x 224 input"] = lambda x=images: paper.backbone(x)
+        variants["descriptor dam, preset='paper'"] = lambda x=images: paper(x)
         times = {k: [] for k in variants}
         with torch.no_grad():
             for r in range(warmup + rounds):
@@ -92,13 +99,13 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
 def stage_breakdown(name: str, rounds: int) -> list[str]:
     """Batch-1 DAM descriptor split into preprocessing, forward to L, guided backward, fusion+pooling."""
     try:
-        net = build_backbone(name, pretrained=name == "efficientnet_lite0")
+        desc = AttentionDescriptor(name, fusion="dam", pretrained=name == "efficientnet_lite0")
     except FileNotFoundError:
-        net = build_backbone(name, pretrained=False)
-    desc = AttentionDescriptor(net, fusion="dam")
+        desc = AttentionDescriptor(name, fusion="dam", pretrained=False)
+    net = desc.backbone  # the default descriptor's network (Lite0: stage6+stage7 at 224 x 288)
     img = frames(1)
     stages = {"preprocess (resize + normalise)": [], "forward to L (no autograd)": [],
-              "head forward + seeded backward to L": [], "fusion + RNN pooling + L2": [],
+              "head forward + seeded backward to L": [], "fusion + regional GeM + RNN pooling + L2": [],
               "plain head forward (L -> logits)": []}
     with torch.no_grad():
         for r in range(rounds + 2):
@@ -109,8 +116,7 @@ def stage_breakdown(name: str, rounds: int) -> list[str]:
             t2 = time.perf_counter()
             grad = softmax_seeded_gradient(tap, lambda t: net.forward_from_tap(t, clamp_negative_grad), guided=False)
             t3 = time.perf_counter()
-            fused = fuse(tap, _unit_scale(grad), "dam")
-            F.normalize(random_rnn_pool(_scale_to_norm(fused, 10.0), desc.pool.weights), dim=1)
+            desc.from_attention(tap, grad)
             t4 = time.perf_counter()
             net.forward_from_tap(tap)
             t5 = time.perf_counter()

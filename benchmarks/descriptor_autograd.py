@@ -17,8 +17,8 @@ frame, the 25-75 % range and the median of the per-round ratios to ``default``. 
 memory of the first default call and then of the first differentiable forward + backward (the growth of
 the process's peak resident set, a rough figure: torch's allocator is invisible to ``tracemalloc``).
 
-Weights do not change the cost: EfficientNet-Lite0 uses its packaged ImageNet weights when installed,
-VGG16 seeded random weights.
+The descriptor is the library's default (its tap, input size and recipe). Weights do not change the
+cost: EfficientNet-Lite0 uses its packaged ImageNet weights when installed, VGG16 seeded random weights.
 
 Usage:
     python benchmarks/descriptor_autograd.py                                  # EfficientNet-Lite0, batch 1 and 4
@@ -40,6 +40,7 @@ import torch
 import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor, WeightsNotFoundError, build_backbone
+from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
 
 
 def frames(batch: int, seed: int = 0) -> torch.Tensor:
@@ -51,10 +52,12 @@ def frames(batch: int, seed: int = 0) -> torch.Tensor:
 
 
 def build(name: str) -> torch.nn.Module:
+    """The backbone as the default descriptor configures it (its tap and input size, attnloop.presets)."""
+    settings = DEFAULT_BACKBONE_SETTINGS.get(name, {})
     try:
-        return build_backbone(name, pretrained=name == "efficientnet_lite0")
+        return build_backbone(name, pretrained=name == "efficientnet_lite0", **settings)
     except WeightsNotFoundError:
-        return build_backbone(name, pretrained=False)
+        return build_backbone(name, pretrained=False, **settings)
 
 
 def variants(name: str, images: torch.Tensor) -> dict:

@@ -162,7 +162,7 @@ def main() -> None:
         for mode in FUSION_MODES:
             per_seed = []
             for wts in weights:
-                _, desc = descriptor_from_attention(tap, g, wts, mode, pool_scale=cfg["pool_scale"])
+                _, desc = descriptor_from_attention(tap, g, wts, mode, pool_scale=cfg["pool_scale"], pooling="flat")
                 per_seed.append(margins(desc, row, negs))
             m0 = per_seed[0]
             line = f"| {name} | {mode} | " + " | ".join(f"{m:+.3f}" for m in m0) + f" | {min(m0):+.3f} |"

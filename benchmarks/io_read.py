@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from slam.eval import LoopGroundTruthConfig, associate, ate, ground_truth_loops, rpe
-from slam.io import Trajectory, open_sequence, read_depth_raw, read_rgb
+from slam.io import RGBDFrame, Trajectory, check_frame, open_sequence, read_depth_raw, read_rgb
 from slam.lie import se3_compose, se3_exp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -76,6 +76,20 @@ def main():
     print(_row("colour JPEG decode + RGB", _times(lambda i: read_rgb(str(seq.paths(i)[0])), idx)))
     print(_row("depth 16-bit PNG decode", _times(lambda i: read_depth_raw(str(seq.paths(i)[1])), idx)))
     print(_row("`seq[i]` (whole frame)", _times(lambda i: seq[i], idx)))
+    # the checks of RGBDFrame (slam.io.frame.check_frame): alone, and seq[i] with / without them,
+    # interleaved frame by frame so that both see the same load
+    frame = seq[0]
+    print(_row("`check_frame` (the RGBDFrame checks alone)", _times(lambda _: check_frame(frame), idx)))
+    checked, unchecked, post_init = [], [], RGBDFrame.__post_init__
+    for i in idx:
+        for out, hook in ((checked, post_init), (unchecked, lambda self: None)):
+            RGBDFrame.__post_init__ = hook
+            t0 = time.perf_counter()
+            seq[i]
+            out.append((time.perf_counter() - t0) * 1e3)
+    RGBDFrame.__post_init__ = post_init
+    print(_row("`seq[i]`, frame checks on (interleaved)", checked))
+    print(_row("`seq[i]`, frame checks off (interleaved)", unchecked))
     for work in (0.0, args.work_ms):
         for k in (0, 1, 2):
             t0 = time.perf_counter()

@@ -1,11 +1,12 @@
 """Fine-tune the attention descriptor on a sequence's revisits, then measure retrieval elsewhere.
 
-Trains *through* the descriptor (``differentiable=True`` machinery: the seeded backward recorded with
-``create_graph``): the last MBConv block of EfficientNet-Lite0 (the tap L = stage7 is its output) and
-the classifier head after the tap (head conv, batch-norm affine, linear layer), which shape G, with a
-triplet loss on the DAM descriptor. The rest of the network stays frozen, so the input of the last block
-is computed once per frame and cached: a step costs the last block, the head and the second-order
-backward only.
+Trains *through* the library's default descriptor (EfficientNet-Lite0 tapped at stage6 and stage7
+joined, regional pooling; the ``differentiable=True`` machinery: the seeded backward recorded with
+``create_graph``): the last MBConv block (stage7, the tap's second half) and the classifier head after
+the tap (head conv, batch-norm affine, linear layer), which shape G, with a triplet loss on the DAM
+descriptor. The rest of the network stays frozen, so the input of the last block (stage6, the tap's
+first half) is computed once per frame and cached: a step costs the last block, the head and the
+second-order backward only.
 
 Training data: revisits of 7-Scenes redkitchen from its ground-truth poses, frames ``0 .. train_until``
 (every ``stride``-th): an anchor and a positive are closer than 0.3 m and 30 degrees and at least 100
@@ -41,9 +42,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from attnloop import AttentionDescriptor, WeightsNotFoundError, efficientnet_lite0, softmax_seeded_gradient
+from attnloop import AttentionDescriptor, WeightsNotFoundError, softmax_seeded_gradient
 from attnloop.backbones.efficientnet_lite import EfficientNetLite0
-from attnloop.descriptor import descriptor_from_attention
 from attnloop.fusion import FUSION_MODES
 from slam.eval.loops import LoopGroundTruthConfig
 from slam.eval.place_recognition import evaluate, ground_truth_from_poses, read_ground_truth, sequence_candidates
@@ -80,12 +80,12 @@ RTABMAP_MIN_GAP = 10
 
 
 def trained_parameters(net: EfficientNetLite0) -> list[torch.nn.Parameter]:
-    """The last MBConv block (whose output is the tap L = stage7) and the head after the tap."""
+    """The last MBConv block (stage7, the tap's last stage) and the head after the tap."""
     return [*net._blocks[-1].parameters(), *net._conv_head.parameters(), *net._bn1.parameters(), *net._fc.parameters()]
 
 
 def block_input(net: EfficientNetLite0, images: torch.Tensor) -> torch.Tensor:
-    """Images -> the input of the last MBConv block (frozen part, no autograd), (B, 192, 7, 7)."""
+    """Images -> the input of the last MBConv block = the stage6 output (frozen part, no autograd)."""
     with torch.no_grad():
         x = net.preprocess(images)
         x = F.relu6(net._bn0(net._conv_stem(x)))
@@ -94,13 +94,23 @@ def block_input(net: EfficientNetLite0, images: torch.Tensor) -> torch.Tensor:
     return x
 
 
-def descriptor_from_block_input(net: EfficientNetLite0, x: torch.Tensor, rnn_weights: torch.Tensor, fusion: str,
+def tap_from_block_input(net: EfficientNetLite0, x: torch.Tensor) -> torch.Tensor:
+    """L from the cached stage6 output: stage7 alone, or stage6 and stage7 joined (the default tap)."""
+    if net.tap not in ("stage7", "stage6+stage7"):
+        raise ValueError(f"the fine-tuning caches the input of the last block; it needs the tap stage7 or "
+                         f"stage6+stage7, got {net.tap!r}")
+    last = net._blocks[-1](x)
+    return last if net.tap == "stage7" else torch.cat([x, last], dim=1)
+
+
+def descriptor_from_block_input(desc: AttentionDescriptor, x: torch.Tensor,
                                 create_graph: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(L, G, descriptor) from the cached block input; differentiable in the trained layers when asked."""
+    """(L, G, descriptor) of ``desc`` from the cached block input; differentiable in the trained layers when asked."""
+    net = desc.backbone
     with torch.set_grad_enabled(create_graph):
-        tap = net._blocks[-1](x)
+        tap = tap_from_block_input(net, x)
     grad = softmax_seeded_gradient(tap, net.forward_from_tap, guided=False, create_graph=create_graph)
-    return tap, grad, descriptor_from_attention(tap, grad, rnn_weights, fusion)[1]
+    return tap, grad, desc.from_attention(tap, grad)
 
 
 def cosine(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -138,8 +148,9 @@ def kitchen_data(cfg: FinetuneConfig, net: EfficientNetLite0) -> dict:
             "eval_gt": eval_gt, "eval_candidates": sequence_candidates(len(frames), eval_gap)}
 
 
-def train(cfg: FinetuneConfig, net: EfficientNetLite0, data: dict, rnn_weights: torch.Tensor) -> list[float]:
-    """Fine-tune the trained layers in place; returns the mean triplet loss of every epoch."""
+def train(cfg: FinetuneConfig, desc: AttentionDescriptor, data: dict) -> list[float]:
+    """Fine-tune the trained layers of ``desc.backbone`` in place; returns the mean triplet loss of every epoch."""
+    net = desc.backbone
     net.eval()  # batch-norm keeps its running statistics, no dropout (as the descriptor runs it)
     params = trained_parameters(net)
     for p in net.parameters():
@@ -155,7 +166,7 @@ def train(cfg: FinetuneConfig, net: EfficientNetLite0, data: dict, rnn_weights: 
     history = []
     for epoch in range(cfg.epochs):
         with torch.no_grad():  # mine the negatives with the current model
-            _, _, d_all = descriptor_from_block_input(net, data["x"], rnn_weights, cfg.fusion, create_graph=False)
+            _, _, d_all = descriptor_from_block_input(desc, data["x"], create_graph=False)
         order = anchors[torch.randperm(len(anchors), generator=gen)]
         losses = []
         for start in range(0, len(order), cfg.batch):
@@ -168,7 +179,7 @@ def train(cfg: FinetuneConfig, net: EfficientNetLite0, data: dict, rnn_weights: 
                 sample = n_idx[torch.randperm(len(n_idx), generator=gen)[:cfg.max_negatives]]
                 neg.append(int(sample[torch.argmax(d_all[sample] @ d_all[a])]))
             idx = torch.cat([batch, torch.tensor(pos), torch.tensor(neg)])
-            _, _, d = descriptor_from_block_input(net, data["x"][idx], rnn_weights, cfg.fusion, create_graph=True)
+            _, _, d = descriptor_from_block_input(desc, data["x"][idx], create_graph=True)
             a_, p_, n_ = d.split(len(batch))
             loss = F.relu(cfg.margin + (a_ * n_).sum(1) - (a_ * p_).sum(1)).mean()
             optimizer.zero_grad(set_to_none=True)
@@ -187,16 +198,14 @@ def retrieval(similarity: torch.Tensor, gt: torch.Tensor, candidates: torch.Tens
     return {"R@1": r.recall_at(1), "R@5": r.recall_at(5), "AUC-PR": r.auc_pr, "R@P100": r.recall_at_full_precision}
 
 
-def evaluate_model(net: EfficientNetLite0, cfg: FinetuneConfig, data: dict, rtab_images: torch.Tensor,
-                   rtab_gt: torch.Tensor) -> dict:
+def evaluate_model(desc: AttentionDescriptor, data: dict, rtab_images: torch.Tensor, rtab_gt: torch.Tensor) -> dict:
     """Retrieval figures of every fusion mode on rtabmap-samples and the kitchen's held-out queries."""
-    desc = AttentionDescriptor(net, fusion=cfg.fusion, seed=cfg.seed)
     out: dict = {}
     with torch.no_grad():
         chunks = [desc.parts(rtab_images[i:i + 16]) for i in range(0, len(rtab_images), 16)]
         rtab_tap = torch.cat([c.tap for c in chunks])
         rtab_grad = torch.cat([c.grad for c in chunks])
-        tap_k, grad_k, _ = descriptor_from_block_input(net, data["x"], desc.pool.weights, cfg.fusion, False)
+        tap_k, grad_k, _ = descriptor_from_block_input(desc, data["x"], create_graph=False)
     rtab_candidates = sequence_candidates(len(rtab_images), RTABMAP_MIN_GAP)
     held_out = ~data["train"]
     for mode in FUSION_MODES:
@@ -213,18 +222,18 @@ def run(cfg: FinetuneConfig) -> dict:
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     t0 = time.perf_counter()
-    net = efficientnet_lite0(pretrained=True)
+    desc = AttentionDescriptor("efficientnet_lite0", fusion=cfg.fusion, seed=cfg.seed)  # the library's default
+    net = desc.backbone
     rtab_gt = read_ground_truth(cfg.rtabmap / "samples_GT.bmp")
     rtab_images = read_images([cfg.rtabmap / f"{i}.jpg" for i in range(1, rtab_gt.shape[0] + 1)])
     data = kitchen_data(cfg, net)
     print(f"kitchen: {len(data['frames'])} frames cached ({int(data['train'].sum())} for training, "
           f"{int(data['positive'].any(1).sum())} anchors with a revisit) in {time.perf_counter() - t0:.0f} s", flush=True)
-    default = evaluate_model(net, cfg, data, rtab_images, rtab_gt)
-    rnn_weights = AttentionDescriptor(net, fusion=cfg.fusion, seed=cfg.seed).pool.weights
+    default = evaluate_model(desc, data, rtab_images, rtab_gt)
     t1 = time.perf_counter()
-    history = train(cfg, net, data, rnn_weights)
+    history = train(cfg, desc, data)
     train_s = time.perf_counter() - t1
-    finetuned = evaluate_model(net, cfg, data, rtab_images, rtab_gt)
+    finetuned = evaluate_model(desc, data, rtab_images, rtab_gt)
     if cfg.save is not None:
         torch.save(net.state_dict(), cfg.save)
     return {"default": default, "finetuned": finetuned, "loss": history, "train_s": train_s,

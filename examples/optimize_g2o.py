@@ -3,19 +3,33 @@
     python examples/optimize_g2o.py ../shared/data/posegraph/sphere2500.g2o -o sphere2500_opt.g2o
     python examples/optimize_g2o.py input_INTEL_g2o.g2o --damping diagonal --lambda-update nielsen -n 1000
     python examples/optimize_g2o.py noisy.g2o --kernel cauchy --gauge first
+    python examples/optimize_g2o.py sphere_bignoise.g2o --initialization chordal
 
-Reads ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT`` or 2D ``VERTEX_SE2`` / ``EDGE_SE2`` files, starts from the
-file's vertices, prints the cost before and after (chi2 = sum r^T Omega r; GTSAM's error is chi2 / 2),
-the iterations, the status and the time split, and writes the optimised graph (2D files stay 2D).
+Reads ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT`` or 2D ``VERTEX_SE2`` / ``EDGE_SE2`` files (``FIX`` lines are
+held; a file with edges only gets its poses from a spanning tree of the edges), starts from the file's
+vertices or from ``--initialization`` (``chordal``: GTSAM's InitializePose3, for a poor initial guess),
+prints the cost before and after (chi2 = sum r^T Omega r; GTSAM's error is chi2 / 2), the iterations,
+the status and the time split, and writes the optimised graph (2D files stay 2D).
 """
 from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from typing import List, Optional
 
-from slam.graph import G2OFormatError, OptimizationResult, OptimizerConfig, Status, optimize, read_g2o, write_g2o
+from slam.graph import (
+    G2OFormatError,
+    G2OWarning,
+    OptimizationResult,
+    OptimizerConfig,
+    Status,
+    optimize,
+    read_g2o,
+    write_g2o,
+)
 from slam.graph.config import BACKENDS
+from slam.graph.initialization import INITIALIZATIONS
 
 
 def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
@@ -25,6 +39,13 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("input", help="g2o file")
     p.add_argument("-o", "--output", default=None, help="write the optimised graph here (g2o)")
     p.add_argument("--method", choices=["lm", "gn"], default="lm")
+    p.add_argument("--initialization", choices=INITIALIZATIONS, default="none",
+                   help="initial guess: none = the file's vertices; chordal = rotations by chordal relaxation, "
+                        "then translations by least squares (GTSAM's InitializePose3); spanning_tree = composed "
+                        "along a breadth-first tree of the edges (default: none)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse a file the reader would repair with a warning (an information matrix that is not "
+                        "positive definite, a repeated line)")
     p.add_argument("--kernel", default=None, choices=["huber", "cauchy", "tukey", "geman_mcclure"],
                    help="robust kernel against false loop closures (default: none)")
     p.add_argument("--kernel-width", type=float, default=None, help="on sqrt(r^T Omega r); default sqrt(chi2_0.95(6))")
@@ -56,10 +77,15 @@ def summary(name: str, res: OptimizationResult) -> str:
 def main(argv: Optional[List[str]] = None) -> OptimizationResult:
     args = parse_args(argv)
     try:
-        graph = read_g2o(args.input)
+        with warnings.catch_warnings(record=True) as notes:
+            warnings.simplefilter("always", G2OWarning)
+            graph = read_g2o(args.input, strict=args.strict)
+        for note in notes:
+            print(f"warning: {note.message}", file=sys.stderr)
     except (OSError, G2OFormatError) as exc:
         sys.exit(f"error: {exc}")
-    res = optimize(graph, args.method, kernel=args.kernel, solver=args.solver, kernel_width=args.kernel_width,
+    res = optimize(graph, args.method, kernel=args.kernel, solver=args.solver, initialization=args.initialization,
+                   kernel_width=args.kernel_width,
                    max_iterations=args.max_iterations, gauge=args.gauge, damping=args.damping,
                    lambda_update=args.lambda_update, backend=args.backend, verbose=args.verbose)
     print(summary(args.input, res))

@@ -25,7 +25,8 @@ def run_ablation(sequences, out_dir, options=None, modes=MODES, **overrides):
 
     Args:
         sequences: sequence folders.
-        out_dir: each run writes into ``out_dir/<mode>/<sequence>/``; ``pr_<sequence>.png`` beside them.
+        out_dir: each run writes into ``out_dir/<mode>/<sequence>/`` (every such folder is checked, and
+            its previous outputs removed, before the first run); ``pr_<sequence>.png`` beside them.
         options: an ``argparse.Namespace`` of :func:`slam.options.add_run_arguments` (None: the defaults).
         modes: the fusion modes (rows).
         **overrides: option values by name, over ``options`` (e.g. ``backbone="efficientnet_lite0"``,

@@ -12,6 +12,7 @@ import logging
 import os
 import shutil
 import sys
+import warnings
 from pathlib import Path
 
 EXAMPLES = """\
@@ -53,8 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
                         + "; default: the scene's own)")
     g.add_argument("--demo-frames", type=positive_int, default=None, metavar="N",
                    help=f"sequence length (default: the scene's, room: {DEMO_SCENES[DEFAULT_DEMO_SCENE].default_frames})")
-    g.add_argument("--demo-size", type=positive_int, nargs=2, default=(640, 480), metavar=("W", "H"),
-                   help="image size (default 640 480; 320 240 renders ~4x faster)")
+    g.add_argument("--demo-size", type=positive_int, nargs=2, default=None, metavar=("W", "H"),
+                   help="image size (default: the scene's, room 640 480, building 320 240; 320 240 renders ~4x "
+                        "faster than 640 480)")
     g = p.add_argument_group("messages")
     g.add_argument("--quiet", action="store_true", help="no progress bar, warnings only")
     g.add_argument("--verbose", action="store_true", help="log every keyframe and loop decision")
@@ -72,6 +74,8 @@ def _check_demo_args(args) -> None:
     if args.demo_frames is not None and args.demo_frames < scene.min_frames:
         raise UsageError(f"--demo-frames {args.demo_frames}: the {args.demo_scene} scene needs at least "
                          f"{scene.min_frames} frames to track and evaluate")
+    if args.demo_size is None:
+        args.demo_size = scene.default_size
     w, h = args.demo_size
     if w < 16 or h < 16:
         raise UsageError(f"--demo-size {w} {h}: images must be at least 16 x 16 pixels")
@@ -211,7 +215,13 @@ def main(argv: list[str] | None = None) -> int:
     elif not args.quiet:
         logging.getLogger("slam.system").setLevel(logging.INFO)
         logging.getLogger("slam.synthetic").setLevel(logging.INFO)  # the demo's rendering progress
-    return call_reporting_errors(PROG, run_command, args)
+    with warnings.catch_warnings():  # a library warning (a DatasetWarning, say) is one line, as errors are
+        warnings.showwarning = _show_warning
+        return call_reporting_errors(PROG, run_command, args)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"{PROG}: warning: {message}", file=sys.stderr if file is None else file)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -6,6 +6,8 @@ from typing import Optional
 
 from attnloop.index import LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
+from slam.loop.acceptance import DriftBoundConfig
+from slam.loop.consistency import ConsistencyConfig
 from slam.mapping import MapConfig
 from slam.odometry.config import OdometryConfig, RegistrationConfig
 
@@ -25,17 +27,18 @@ class DescriptorConfig:
 
 @dataclass
 class LoopClosureConfig:
-    """Loop detection (descriptor + index + adaptive threshold) and geometric verification."""
+    """Loop detection (descriptor + index + adaptive threshold), geometric verification and acceptance."""
 
     enabled: bool = True  # False = odometry only (--no-loop)
     descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
-    # The system gives the detector *frame indices* as keyframe ids, so ``window`` counts input frames:
-    # 90 frames = 3 s at 30 Hz are never loop candidates (they are the odometry's business). The adaptive
-    # threshold needs 16 eligible keyframes before it proposes anything, and is set low (median + 1.5
-    # robust sigmas): in one small room many views are similar, and geometric verification rejects the
-    # false candidates (on redkitchen: 20 loops accepted, all true, vs 3 at the index's default 3 sigmas).
+    # The loop closer gives the detector keyframe ids in *milliseconds since the first keyframe*, so that
+    # ``window`` and ``consistency_radius`` are times, whatever the frame rate or frame step: 3000 ms are
+    # never loop candidates (they are the odometry's business). The adaptive threshold needs 16 eligible
+    # keyframes before it proposes anything, and is set low (median + 1.5 robust sigmas): in one small
+    # room many views are similar, and geometric verification rejects the false candidates (on
+    # redkitchen: 20 loops accepted, all true, vs 3 at the index's default 3 sigmas).
     detector: LoopDetectorConfig = field(default_factory=lambda: LoopDetectorConfig(
-        window=90, threshold=ThresholdConfig(k_sigma=1.5, min_samples=16)))
+        window=3000, consistency_radius=2000, threshold=ThresholdConfig(k_sigma=1.5, min_samples=16)))
     # verification re-uses the odometry's matching + RANSAC, with stricter acceptance:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     max_candidates: int = 5  # candidates verified per query keyframe (most similar first)
@@ -47,10 +50,12 @@ class LoopClosureConfig:
     # a pair measured < 0.5 m that ground truth puts at 0.538 m).
     max_translation: float = 0.4  # m
     max_rotation_deg: float = 40.0  # degrees
-    # Consistency with the odometry estimate of the same relative pose: drift is bounded, so a "loop" that
-    # contradicts odometry by more than this is a matching accident (repeated texture), not a revisit.
-    max_drift_translation: float = 0.3  # m
-    max_drift_rotation_deg: float = 20.0  # degrees
+    # Consistency with the current estimate of the same relative pose, within a bound that grows with the
+    # distance travelled between the two keyframes (slam.loop.acceptance): a "loop" that contradicts it by
+    # more is an aliased place (repeated texture, an identical room), not a revisit.
+    drift: DriftBoundConfig = field(default_factory=DriftBoundConfig)
+    # Group consistency of the loops (slam.loop.consistency: the largest set of mutually consistent loops).
+    consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
     # The information of an edge comes from its RANSAC inliers as if their errors were independent; they
     # are not (keypoint localisation, depth bias), and the measured frame-to-frame error is ~10x the
     # point-based sigma. Scaling by 1/100 makes chi2 meaningful for the robust kernel (whose width is in
@@ -63,14 +68,28 @@ class LoopClosureConfig:
 
 @dataclass
 class BackendConfig:
-    """Pose-graph optimisation over the keyframes."""
+    """Pose-graph optimisation over the keyframes (slam.backend)."""
 
     method: str = "lm"  # "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton)
-    kernel: Optional[str] = "cauchy"  # robust kernel on all edges ("huber", "cauchy", ... or None)
+    kernel: Optional[str] = "cauchy"  # robust kernel on the odometry edges ("huber", "cauchy", ... or None)
     kernel_width: Optional[float] = None  # None: sqrt(chi2_0.95(6)) = 3.55
-    max_iterations: int = 50  # LM iterations
+    # Robust kernel on the loop edges: "dcs" (dynamic covariance scaling: switches a wrong loop off), "gnc"
+    # (graduated non-convexity over Geman-McClure), any name of slam.graph.make_kernel, "none" (quadratic),
+    # or None (the same as ``kernel``).
+    loop_kernel: Optional[str] = "dcs"
+    loop_kernel_width: Optional[float] = None  # None: sqrt(chi2_0.95(6)) = 3.55
+    gnc_steps: int = 4  # "gnc": solves, the kernel width divided by gnc_factor from one to the next
+    gnc_factor: float = 4.0
+    max_iterations: int = 50  # LM iterations of the final optimisation
     odometry_information_scale: float = 0.01  # multiplies the odometry edges' information (see loop.information_scale)
-    optimize_on_loop: bool = False  # also optimise (and re-anchor tracking) after every accepted loop
+    # Online correction: after a keyframe whose loops changed the graph, optimise it (in the tracking
+    # thread: deterministic, and it costs a few ms for a few hundred keyframes), move every keyframe to its
+    # corrected pose and re-anchor tracking on it, so that track() reports corrected poses. False: the
+    # graph is optimised once, in finish(), and track() reports odometry.
+    optimize_on_loop: bool = True
+    online_max_iterations: int = 10  # LM iterations of an online correction (bounds its time)
+    # A loop edge whose final kernel weight falls below this is reported switched off by the back end.
+    switch_off_weight: float = 0.1
 
 
 @dataclass

@@ -63,8 +63,10 @@ class GraphEdge:
             perturbation, ``[rho, phi]``), before the back end's per-kind scaling.
         kind: :class:`EdgeKind`.
         weak: an odometry edge forced after a tracking loss (constant-velocity guess).
-        active: False once the back end has switched the (loop) edge off; inactive edges stay in the list
-            (and in :meth:`KeyframeGraph.pose_graph` only when asked for) so that ids remain stable.
+        active: False for a loop edge taken out of the graph (outside the consistent group of loops);
+            inactive edges stay in the list (and in :meth:`KeyframeGraph.pose_graph` only when asked for)
+            so that edge indices remain stable.
+        weight: the back end's last robust-kernel weight of the edge (1 before any optimisation).
     """
 
     i: int
@@ -74,6 +76,7 @@ class GraphEdge:
     kind: EdgeKind
     weak: bool = False
     active: bool = True
+    weight: float = 1.0
 
     @property
     def length(self) -> float:
@@ -216,12 +219,13 @@ class KeyframeGraph:
                          torch.stack([e.T_ij for e in edges]), info)
 
     # ------------------------------------------------------------------------------------------
-    def path_lengths(self, source: int, through_loops: bool = True, min_edge_length: float = 0.0) -> np.ndarray:
+    def path_lengths(self, source: int, through_loops: bool = True, min_edge_length: float = 0.0,
+                     min_loop_weight: float = 0.0) -> np.ndarray:
         """Distance travelled ``(M,)`` (metres) from keyframe ``source`` to every keyframe along the graph.
 
         An edge counts as ``max(|t_ij|, min_edge_length)``; without ``through_loops`` only odometry edges
-        are followed (the chain), with it the shortest path may take active loop edges. Unreachable
-        keyframes get ``inf``.
+        are followed (the chain), with it the shortest path may take active loop edges whose back-end
+        weight is at least ``min_loop_weight``. Unreachable keyframes get ``inf``.
         """
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import dijkstra
@@ -232,7 +236,8 @@ class KeyframeGraph:
         if not through_loops and self._chain and min_edge_length <= 0:
             c = np.asarray(self._travelled)
             return np.abs(c - c[source])
-        use = [e for e in self.edges if e.active and (through_loops or e.kind is EdgeKind.ODOMETRY)]
+        use = [e for e in self.edges if e.active and (e.kind is EdgeKind.ODOMETRY
+                                                      or (through_loops and e.weight >= min_loop_weight))]
         if not use:
             out = np.full(n, np.inf)
             out[source] = 0.0

@@ -28,6 +28,7 @@ Tensor = torch.Tensor
 
 __all__ = [
     "quat_normalize", "quat_mul", "quat_conj", "quat_rotate", "quat_to_rotmat", "rotmat_to_quat",
+    "rotmat_project",
     "quat_identity", "so3_hat", "so3_vee", "so3_exp", "so3_log", "so3_left_jacobian",
     "so3_left_jacobian_inv", "so3_right_jacobian", "so3_right_jacobian_inv", "se3_identity", "se3_exp",
     "se3_log", "se3_inv", "se3_compose",
@@ -133,6 +134,22 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
     best = torch.nn.functional.one_hot(q_abs.argmax(dim=-1), 4).to(R.dtype)
     wxyz = (cand * best[..., :, None]).sum(dim=-2)
     return quat_normalize(torch.cat([wxyz[..., 1:], wxyz[..., :1]], dim=-1))
+
+
+def rotmat_project(M: Tensor) -> Tensor:
+    """The nearest rotation matrices ``(..., 3, 3)`` (Frobenius norm) to matrices ``M (..., 3, 3)``.
+
+    The orthogonal polar factor ``U diag(1, 1, det(U V^T)) V^T`` of the SVD ``M = U S V^T``: it removes the
+    round-off of a stored rotation (KinectFusion's are off by ~5e-4) and rounds the relaxed rotations of a
+    chordal initialisation onto SO(3). Any matrix has a nearest rotation, so callers that must refuse
+    "not a rotation" check ``M`` themselves (e.g. its singular values).
+    """
+    if M.shape[-2:] != (3, 3):
+        raise ValueError(f"M must have shape (..., 3, 3), got {tuple(M.shape)}")
+    U, _, Vh = torch.linalg.svd(M)
+    d = torch.sign(torch.det(U @ Vh))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    return (U * torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1)[..., None, :]) @ Vh
 
 
 # ----------------------------------------------------------------------------------------------

@@ -1,8 +1,15 @@
 """The RGB-D SLAM system: odometry front end + attention-guided loop closure + pose-graph back end.
 
-Data flows one way: frame -> odometry (:mod:`slam.odometry`) -> keyframe -> descriptor
-(:class:`attnloop.AttentionDescriptor`) -> index (:class:`attnloop.index.LoopCandidateDetector`) ->
-geometric verification (:func:`slam.odometry.register`) -> pose graph (:mod:`slam.graph`) -> trajectory.
+Data flows one way: frame -> odometry (:mod:`slam.odometry`) -> keyframe -> loop closer (:mod:`slam.loop`:
+descriptor, index, geometric verification, drift-aware acceptance, group consistency) -> keyframe graph
+(:mod:`slam.keyframe_graph`, typed odometry / loop edges) -> back end (:mod:`slam.backend`, a robust kernel
+per edge kind) -> trajectory.
+
+Online correction (``BackendConfig.optimize_on_loop``, on by default): after a keyframe whose loops changed
+the graph, the graph is optimised in the tracking thread (a bounded number of iterations from the previous
+solution), every keyframe moves to its corrected pose and the front end is re-anchored on it, so the pose
+:meth:`RGBDSLAM.track` reports from then on is the corrected one (``FrameState.corrected``); the pure
+odometry pose is reported beside it (``FrameState.odometry_pose``).
 
 Only keyframes enter the pose graph; every other frame is stored as a pose relative to its keyframe, so
 after the final optimisation each input frame gets ``T_world_kf (optimised) * T_kf_frame``.
@@ -15,8 +22,8 @@ Example:
     >>> slam = RGBDSLAM(cfg)
     >>> K = np.array([[525., 0, 319.5], [0, 525., 239.5], [0, 0, 1]])
     >>> state = slam.track(RGBDFrame(0, 0.0, np.zeros((48, 64, 3), np.uint8), np.zeros((48, 64), np.float32), K))
-    >>> state.status
-    'lost'
+    >>> state.status, state.corrected
+    ('lost', False)
     >>> result = slam.finish()
     >>> result.trajectory.poses.shape, result.num_keyframes
     (torch.Size([1, 7]), 0)
@@ -30,14 +37,15 @@ from typing import Dict, List, Optional
 
 import torch
 
+from slam.backend import BackendResult, PoseGraphBackend
 from slam.config import SLAMConfig
-from slam.graph import PoseGraph, optimize
+from slam.graph import PoseGraph
 from slam.graph.optimizer import OptimizationResult
 from slam.io.frame import RGBDFrame
 from slam.io.trajectory import Trajectory
 from slam.keyframe_graph import EdgeKind, KeyframeGraph
 from slam.lie import se3_compose, se3_identity
-from slam.loop import LoopCloser, LoopClosure, LoopQuery
+from slam.loop import LoopCloser, LoopClosure, LoopQuery, LoopUpdate
 from slam.odometry import RGBDOdometry
 from slam.odometry.depth_registration import depth_camera_poses, rig_pose
 from slam.odometry.frontend import Keyframe, TrackStatus
@@ -46,7 +54,7 @@ from slam.timing import StageTimer
 logger = logging.getLogger(__name__)
 Tensor = torch.Tensor
 
-__all__ = ["RGBDSLAM", "SLAMResult", "FrameState", "LoopClosure", "LoopQuery"]
+__all__ = ["FrameState", "LoopClosure", "LoopQuery", "RGBDSLAM", "SLAMResult"]
 
 
 @dataclass
@@ -56,15 +64,21 @@ class FrameState:
     Attributes:
         index: input order of the frame.
         timestamp: its timestamp.
-        pose: ``(7,)`` float64 current (odometry-chained) world-from-camera estimate of the depth camera
-            (the frame of the input ``K``; see ``FeatureConfig.rgb_intrinsics`` for unregistered frames).
+        pose: ``(7,)`` float64 the system's current world-from-camera estimate of the depth camera (the
+            frame of the input ``K``; see ``FeatureConfig.rgb_intrinsics`` for unregistered frames): its
+            keyframe's corrected pose composed with the frame's pose in it when loops have been optimised
+            online (``corrected``), else the odometry's.
         status: ``"initialized" | "ok" | "lost" | "recovered" | "skipped"``.
         reason: why it is lost / skipped / a keyframe ("" when plainly tracked).
         keyframe_id: the keyframe it is expressed relative to (-1 before the first keyframe).
         new_keyframes: ids of keyframes created by this call.
-        new_loops: loops accepted during this call.
+        new_loops: loops verified during this call and kept (consistent with the others).
         num_inliers: inliers of the registration that placed the frame (0 when none did).
         inlier_rmse: their 3D RMSE in metres (NaN when no registration placed the frame).
+        odometry_pose: ``(7,)`` the same frame placed by odometry alone (the chain of odometry edges).
+        corrected: ``pose`` includes the corrections of the loops optimised so far (False: it is
+            ``odometry_pose``).
+        correction: the online optimisation run during this call, if any.
     """
 
     index: int
@@ -74,9 +88,12 @@ class FrameState:
     reason: str
     keyframe_id: int
     new_keyframes: List[int] = field(default_factory=list)
-    new_loops: List["LoopClosure"] = field(default_factory=list)
+    new_loops: List[LoopClosure] = field(default_factory=list)
     num_inliers: int = 0
     inlier_rmse: float = math.nan
+    odometry_pose: Optional[Tensor] = None
+    corrected: bool = False
+    correction: Optional[BackendResult] = None
 
 
 @dataclass
@@ -88,12 +105,15 @@ class SLAMResult:
         odometry_trajectory: the same frames before pose-graph optimisation.
         keyframe_trajectory: optimised keyframe poses (timestamps of the keyframes).
         keyframe_frames: ``(M,)`` input index of each keyframe.
-        loops: accepted loops.
+        loops: the loops in effect at the end: verified, in the consistent group, and not switched off by
+            the back end's robust kernel.
         queries: one entry per loop-database query.
         graph: the optimised keyframe pose graph (None when there were no keyframes).
         optimization: the optimiser's result (None when nothing was optimised).
         num_frames, num_keyframes, num_lost, num_skipped: counts.
         timings: seconds and calls per stage.
+        loop_hypotheses: every verified loop, with its final ``status`` (kept / inconsistent / switched_off).
+        corrections: the online optimisations, in order.
     """
 
     trajectory: Trajectory
@@ -109,6 +129,8 @@ class SLAMResult:
     num_lost: int
     num_skipped: int
     timings: Dict[str, Dict[str, float]]
+    loop_hypotheses: List[LoopClosure] = field(default_factory=list)
+    corrections: List[BackendResult] = field(default_factory=list)
 
 
 @dataclass
@@ -138,11 +160,16 @@ class RGBDSLAM:
         self.odometry = RGBDOdometry(self.config.odometry)
         self.timer = StageTimer()
         self.graph = KeyframeGraph()
+        self.backend = PoseGraphBackend(self.config.backend, {
+            EdgeKind.ODOMETRY: self.config.backend.odometry_information_scale,
+            EdgeKind.LOOP: self.config.loop.information_scale})
         self.loop_closer: Optional[LoopCloser] = None
         if self.config.loop.enabled:
             self.loop_closer = LoopCloser(self.config.loop, descriptor=descriptor, timer=self.timer)
         self._frames: List[_FrameRecord] = []
-        self._loops: List[LoopClosure] = []
+        self._loop_of_edge: Dict[int, LoopClosure] = {}
+        self._corrections: List[BackendResult] = []
+        self._corrected = False  # the estimates include loop corrections
         self._num_lost = 0
         self._num_skipped = 0
         self._finished = False
@@ -163,13 +190,11 @@ class RGBDSLAM:
 
     @property
     def loops(self) -> List[LoopClosure]:
-        """Loops accepted so far."""
-        return list(self._loops)
+        """Loops in effect so far (verified, consistent, not switched off)."""
+        return [lp for lp in self._hypotheses() if lp.status == "kept"]
 
-    @property
-    def _information_scale(self):
-        return {EdgeKind.ODOMETRY: self.config.backend.odometry_information_scale,
-                EdgeKind.LOOP: self.config.loop.information_scale}
+    def _hypotheses(self) -> List[LoopClosure]:
+        return self.loop_closer.hypotheses if self.loop_closer is not None else []
 
     # ------------------------------------------------------------------------------------------
     def track(self, frame: RGBDFrame) -> FrameState:
@@ -188,21 +213,31 @@ class RGBDSLAM:
         status = res.status.value
         if res.status is TrackStatus.LOST:
             self._num_lost += 1
-        self._frames.append(_FrameRecord(int(frame.index), float(frame.timestamp), res.keyframe_id,
-                                         res.T_kf_frame.detach().to(torch.float64).cpu(), status))
-        state = FrameState(int(frame.index), float(frame.timestamp), self._output_frame(res.pose), status,
-                           res.reason, res.keyframe_id, num_inliers=res.num_inliers, inlier_rmse=res.inlier_rmse)
+        T_kf = res.T_kf_frame.detach().to(torch.float64).cpu()
+        self._frames.append(_FrameRecord(int(frame.index), float(frame.timestamp), res.keyframe_id, T_kf, status))
+        new_keyframes, new_loops, changed = [], [], False
         # every keyframe the front end created during this call (a promoted previous frame included)
         for kf in self.odometry.keyframes[self.graph.num_keyframes:]:
             self._add_to_graph(kf)
-            state.new_keyframes.append(kf.id)
+            new_keyframes.append(kf.id)
             if self.loop_closer is not None:
-                loops = self.loop_closer.close(kf, self.odometry.keyframes, self.graph)
-                for lp in loops:
-                    self.graph.add_loop(lp.kf_a, lp.kf_b, lp.T_ab, lp.information)
-                self._loops.extend(loops)
-                state.new_loops.extend(loops)
-        return state
+                update = self.loop_closer.close(kf, self.odometry.keyframes, self.graph,
+                                                through_loops=self._corrected,
+                                                min_loop_weight=self.config.backend.switch_off_weight)
+                self._apply(update)
+                new_loops.extend(lp for lp in update.new if lp.consistent)
+                changed = changed or bool(update)
+        correction = None
+        if changed and self.config.backend.optimize_on_loop:
+            correction = self._correct()
+        if res.keyframe_id >= 0:
+            pose = se3_compose(self.graph.estimate(res.keyframe_id), T_kf)
+            odo = se3_compose(self.graph.odometry_pose(res.keyframe_id), T_kf)
+        else:
+            pose = odo = res.pose.detach().to(torch.float64).cpu()
+        return FrameState(int(frame.index), float(frame.timestamp), self._output_frame(pose), status, res.reason,
+                          res.keyframe_id, new_keyframes, [lp for lp in new_loops if lp.status == "kept"],
+                          res.num_inliers, res.inlier_rmse, self._output_frame(odo), self._corrected, correction)
 
     def _add_to_graph(self, kf: Keyframe) -> None:
         """Enter a new keyframe with its odometry edge (the front end's edges all end at a new keyframe)."""
@@ -212,7 +247,51 @@ class RGBDSLAM:
         edge = self.odometry.edges[kf.id - 1]
         if edge.j != kf.id:
             raise RuntimeError(f"odometry edge {edge.i} -> {edge.j} does not end at keyframe {kf.id}")
+        # the front end chains keyframe poses from the (re-anchored) reference keyframe: the estimate
         self.graph.add_odometry(edge.i, edge.T_ij, edge.information, estimate=kf.pose, weak=edge.weak)
+
+    def _apply(self, update: LoopUpdate) -> None:
+        """Put the loop closer's decisions into the graph: new loop edges, and which loops are in effect."""
+        for lp in update.new:
+            lp.edge = self.graph.add_loop(lp.kf_a, lp.kf_b, lp.T_ab, lp.information)
+            self._loop_of_edge[lp.edge] = lp
+        for lp in update.new + update.changed:
+            self.graph.edges[lp.edge].active = lp.consistent
+
+    def _record_weights(self, result: BackendResult) -> None:
+        thr = self.config.backend.switch_off_weight
+        for e, w in result.loop_weights.items():
+            self.graph.edges[e].weight = w
+            lp = self._loop_of_edge[e]
+            lp.weight = w
+            lp.switched_off = w < thr
+
+    def _correct(self) -> Optional[BackendResult]:
+        """Online correction: optimise, move the keyframes, re-anchor the front end on them."""
+        if not self.graph.loop_edges(active_only=True):
+            if self._corrected:  # every loop left the group: back to odometry
+                self.graph.set_estimates(self.graph.odometry_poses())
+                self._reanchor()
+                self._corrected = False
+            return None
+        with self.timer("online_correction"):
+            result = self.backend.optimize(self.graph, online=True)
+            self.graph.set_estimates(result.poses)
+            self._record_weights(result)
+            self._reanchor()
+        self._corrected = True
+        self._corrections.append(result)
+        logger.info("online correction at keyframe %d: %d loops, chi2 %.3g -> %.3g in %d iterations, %.1f ms",
+                    self.graph.num_keyframes - 1, len(result.loop_weights), result.initial_chi2, result.chi2,
+                    result.iterations, 1000 * result.seconds)
+        return result
+
+    def _reanchor(self) -> None:
+        """The front end's keyframes take the graph's estimates: tracking continues from the corrected pose
+        of its reference keyframe (frames are tracked relative to it, so nothing else moves)."""
+        est = self.graph.estimates()
+        for kf in self.odometry.keyframes[: est.shape[0]]:
+            kf.pose = est[kf.id].clone()
 
     def skip(self, index: int, timestamp: float, reason: str) -> FrameState:
         """Record a frame that could not be read: it is placed by constant velocity like a lost frame.
@@ -230,8 +309,13 @@ class RGBDSLAM:
         else:
             kf_id, T = -1, se3_identity(dtype=torch.float64)
         self._frames.append(_FrameRecord(int(index), float(timestamp), kf_id, T.clone(), "skipped"))
-        pose = self._output_frame(se3_compose(self.graph.estimate(kf_id), T)) if kf_id >= 0 else T.clone()
-        return FrameState(int(index), float(timestamp), pose, "skipped", reason, kf_id)
+        if kf_id >= 0:
+            pose = self._output_frame(se3_compose(self.graph.estimate(kf_id), T))
+            odo = self._output_frame(se3_compose(self.graph.odometry_pose(kf_id), T))
+        else:
+            pose, odo = T.clone(), T.clone()
+        return FrameState(int(index), float(timestamp), pose, "skipped", reason, kf_id, odometry_pose=odo,
+                          corrected=self._corrected)
 
     # ------------------------------------------------------------------------------------------
     def _output_frame(self, poses: Tensor) -> Tensor:
@@ -253,25 +337,30 @@ class RGBDSLAM:
     def finish(self) -> SLAMResult:
         """Optimise the keyframe pose graph and return every frame's pose.
 
+        The final optimisation starts from the current estimates (the online corrections, or odometry when
+        they are off) and runs up to ``BackendConfig.max_iterations``.
+
         Returns:
             :class:`SLAMResult`.
         """
         self._finished = True
-        graph = self.graph.pose_graph(self._information_scale, poses=self.graph.odometry_poses())
-        opt = None
+        graph, opt = None, None
         kf_odo = self.graph.odometry_poses()
         kf_final = kf_odo
-        if graph is not None and graph.num_edges > 0 and self._loops:
-            b = self.config.backend
+        if self.graph.loop_edges(active_only=True):
             with self.timer("optimization"):
-                opt = optimize(graph, method=b.method, kernel=b.kernel, kernel_width=b.kernel_width,
-                               max_iterations=b.max_iterations)
-            logger.info("pose graph: %d keyframes, %d edges (%d loops), chi2 %.3g -> %.3g, %s",
-                        graph.num_poses, graph.num_edges, len(self._loops), opt.initial_chi2, opt.chi2,
-                        opt.status)
+                result = self.backend.optimize(self.graph, online=False)
+            self._record_weights(result)
+            self.graph.set_estimates(result.poses)
+            opt = result.optimization
             graph = opt.graph
-            kf_final = graph.poses
-            self.graph.set_estimates(kf_final)
+            kf_final = result.poses
+            logger.info("pose graph: %d keyframes, %d edges (%d loops in effect of %d verified), chi2 %.3g -> %.3g, %s",
+                        graph.num_poses, graph.num_edges, len(self.loops), len(self._hypotheses()),
+                        result.initial_chi2, result.chi2, result.status)
+        elif self.graph.num_keyframes:
+            self.graph.set_estimates(kf_odo)
+            graph = self.graph.pose_graph(self.backend.information_scale)
         kf_ts = torch.tensor([kf.timestamp for kf in self.odometry.keyframes], dtype=torch.float64)
         queries = self.loop_closer.queries if self.loop_closer is not None else []
         return SLAMResult(
@@ -279,6 +368,7 @@ class RGBDSLAM:
             odometry_trajectory=self._frames_trajectory(kf_odo),
             keyframe_trajectory=Trajectory(kf_ts, self._output_frame(kf_final.clone())),
             keyframe_frames=torch.tensor([kf.frame_index for kf in self.odometry.keyframes], dtype=torch.long),
-            loops=list(self._loops), queries=queries, graph=graph, optimization=opt,
+            loops=self.loops, queries=queries, graph=graph, optimization=opt,
             num_frames=len(self._frames), num_keyframes=self.graph.num_keyframes, num_lost=self._num_lost,
-            num_skipped=self._num_skipped, timings=self.timer.summary())
+            num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
+            corrections=list(self._corrections))

@@ -49,17 +49,25 @@ def kitchen(redkitchen_dir):
     frames = sorted(set(pool) | {i for pair in PAIRS for i in pair})
     poses = {i: np.loadtxt(redkitchen_dir / f"frame-{i:06d}.pose.txt").reshape(4, 4) for i in frames}
     desc = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=True, seed=0)
-    taps, grads, top1 = [], [], []
+    paper = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=True, seed=0, preset="paper")
+    out = {"default": ([], []), "paper": ([], [])}
+    top1 = []
     with torch.no_grad():
         for start in range(0, len(frames), 32):
-            parts = desc.parts(torch.stack([_rgb(redkitchen_dir, i) for i in frames[start:start + 32]]))
-            taps.append(parts.tap)
-            grads.append(parts.grad)
-            top1.append(desc.backbone.forward_from_tap(parts.tap).argmax(1))
+            images = torch.stack([_rgb(redkitchen_dir, i) for i in frames[start:start + 32]])
+            for key, model in (("default", desc), ("paper", paper)):
+                parts = model.parts(images)
+                out[key][0].append(parts.tap)
+                out[key][1].append(parts.grad)
+                if key == "paper":
+                    top1.append(model.backbone.forward_from_tap(parts.tap).argmax(1))
     return {
         "desc": desc,
-        "tap": torch.cat(taps),
-        "grad": torch.cat(grads),
+        "paper": paper,
+        "tap": torch.cat(out["default"][0]),
+        "grad": torch.cat(out["default"][1]),
+        "paper_tap": torch.cat(out["paper"][0]),
+        "paper_grad": torch.cat(out["paper"][1]),
         "top1": torch.cat(top1),
         "row": {f: k for k, f in enumerate(frames)},
         "negatives": {q: _negatives(poses, q, pool) for q, _ in PAIRS},
@@ -90,7 +98,17 @@ def test_ground_truth_of_the_pairs(kitchen):
 def test_revisit_beats_every_far_view(kitchen, fusion):
     d = kitchen["desc"].from_attention(kitchen["tap"], kitchen["grad"], fusion=fusion)
     margins = _margins(kitchen, d)
-    # measured 2026-11-22 (every-5th-frame negatives, RNN seed 0): all margins >= +0.10
+    # measured 2026-12-01, the default (regional) descriptor, every-5th-frame negatives, RNN seed 0:
+    # +0.013 (dam, 260/955) to +0.041. Its cosines are higher for every frame of the room (pooled
+    # codes), so the margins are smaller in absolute terms than the flat pipeline's; the ranking is the test.
+    assert min(margins) > 0.005, f"{fusion}: margins {margins}"
+
+
+@pytest.mark.parametrize("fusion", FUSION_MODES)
+def test_revisit_beats_every_far_view_paper_preset(kitchen, fusion):
+    d = kitchen["paper"].from_attention(kitchen["paper_tap"], kitchen["paper_grad"], fusion=fusion)
+    margins = _margins(kitchen, d)
+    # the paper's configuration (flat RNNs over the raw stage7 map): measured +0.05 to +0.12 (docs/attention.md)
     assert min(margins) > 0.02, f"{fusion}: margins {margins}"
 
 
@@ -115,7 +133,8 @@ def test_why_clamping_the_signed_tap_breaks_dam(kitchen):
     top1, row = kitchen["top1"], kitchen["row"]
     assert top1[row[250]] == top1[row[945]]  # same class: DAM is fine either way
     assert top1[row[255]] != top1[row[950]] and top1[row[260]] != top1[row[955]]
-    w = kitchen["desc"].pool.weights
-    _, clamped = descriptor_from_attention(kitchen["tap"], kitchen["grad"].clamp(min=0), w, "dam", pool_scale=None)
+    w = kitchen["paper"].pool.weights
+    _, clamped = descriptor_from_attention(kitchen["paper_tap"], kitchen["paper_grad"].clamp(min=0), w, "dam",
+                                           pool_scale=None, pooling="flat")
     m = _margins(kitchen, clamped)
     assert m[0] > 0 and m[1] < 0 and m[2] < 0, m

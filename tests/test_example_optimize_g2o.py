@@ -60,3 +60,25 @@ def test_real_benchmark_file_matches_gtsams_error(posegraph_dir, tmp_path, load_
     res = load_script(SCRIPT).main([str(posegraph_dir / "tinyGrid3D.g2o"), "-o", str(tmp_path / "tiny.g2o"),
                                     "--backend", backend])
     assert res.error == pytest.approx(9.313911, rel=1e-6)  # GTSAM 4.3 LM's final error on this file
+
+
+def test_initialization_strict_and_warnings(tmp_path, capsys, load_script):
+    ex = load_script(SCRIPT)
+    src = tmp_path / "square.g2o"
+    _square_with_drift(src)
+    edges_only = tmp_path / "edges.g2o"
+    edges_only.write_text("".join(ln + "\n" for ln in src.read_text().splitlines() if ln.startswith("EDGE")))
+    for init in ("chordal", "spanning_tree", "none"):
+        res = ex.main([str(edges_only), "--initialization", init])
+        assert res.status == "converged" and res.chi2 < 1e-6
+    assert ex.parse_args([str(src), "--initialization", "chordal"]).initialization == "chordal"
+    with pytest.raises(SystemExit):
+        ex.parse_args([str(src), "--initialization", "odometry"])
+    bad = tmp_path / "npd.g2o"
+    bad.write_text(src.read_text().replace("1.5708 1 0 0 1 0 1", "1.5708 1 2 0 1 0 1", 1))  # [[1, 2], [2, 1]]
+    capsys.readouterr()
+    assert ex.main([str(bad)]).status == "converged"
+    err = capsys.readouterr().err
+    assert err.startswith(f"warning: {bad}, line 5: EDGE_SE2 information matrix is not positive definite")
+    with pytest.raises(SystemExit, match=r"npd\.g2o, line 5: .*refused with strict=True"):
+        ex.main([str(bad), "--strict"])

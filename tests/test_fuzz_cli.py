@@ -392,3 +392,28 @@ def test_a_run_with_loops_records_its_backbone(base, tmp_path, capsys, monkeypat
     m = _check_run_outputs(out, [])
     assert m["backbone"] == "efficientnet_lite0" and m["descriptor"]["requested_backbone"] == "auto"
     assert m["descriptor"]["fusion"] == "dam"
+
+
+# seeded mutations of the sequence's own text files (the readers' helpers, tests/mutations.py)
+_LISTS = ("rgb.txt", "depth.txt", "groundtruth.txt", "calibration.txt")
+try:
+    from mutations import MUTATIONS, mutate
+except ImportError:  # the readers' fuzz helpers are not in this checkout
+    MUTATIONS, mutate = (), None
+FILE_CASES = [(kind, _LISTS[(k + seed) % len(_LISTS)], seed) for seed in (0, 1) for k, kind in enumerate(MUTATIONS)]
+
+
+@pytest.mark.skipif(not FILE_CASES, reason="tests/mutations.py (the readers' mutation helpers) not present")
+@pytest.mark.parametrize("kind, name, seed", FILE_CASES, ids=[f"{c[1]}-{c[0]}-{c[2]}" for c in FILE_CASES])
+def test_mutated_text_files(kind, name, seed, base, tmp_path, capsys):
+    """A seeded mutation of one list / ground-truth / calibration file: a finished run or a named error."""
+    import random
+
+    folder = shutil.copytree(base, tmp_path / "seq")
+    path = folder / name
+    path.write_bytes(mutate(path.read_bytes(), kind, random.Random(seed)))
+    out = tmp_path / "out"
+    argv = [str(folder), "--out", str(out), "--quiet", "--no-loop"]
+    outcome, err = _outcome(argv, out, capsys)
+    if outcome == OK:
+        _check_run_outputs(out, argv)

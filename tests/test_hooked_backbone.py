@@ -218,7 +218,7 @@ def test_differentiable_reaches_the_users_weights_without_touching_flags(images)
         (lambda: nn.Sequential(nn.Conv2d(3, 4, 3), nn.ReLU()), "0", {}, "must return class logits"),
         (vgg_like, "2", {"input_size": (64, 64)}, r"dry run .* on a \(1, 3, 64, 64\) image failed"),
         (lambda: nn.Sequential(nn.Conv2d(3, 3, 3, padding=1), nn.Flatten(), nn.Linear(3 * 32 * 32, 4)),
-         "0", {"input_size": (32, 32)}, "3 channels, an odd number"),
+         "0", {"input_size": (32, 32), "merge": True}, "channels, an odd number"),
         (vgg_like, "2", {"input_size": (32, 32), "mean": (0.5, 0.5)}, "mean must be 3 finite values"),
         (vgg_like, "2", {"input_size": (0, 32)}, "input_size must be"),
     ],

@@ -263,7 +263,8 @@ def test_frontend_bad_frames_are_lost_then_recovered_and_forced_keyframe():
     assert math.isnan(r.inlier_rmse) and r.num_inliers == 0
     # constant velocity: 1 cm per frame along x
     assert abs(float(r.pose[0]) - 0.02) < 0.003
-    wrong_shape = RGBDFrame(4, 0.13, np.zeros((10, 10), np.uint8), np.zeros((10, 10), np.float32), K)
+    wrong_shape = RGBDFrame(4, 0.13, np.zeros((10, 10, 3), np.uint8), np.zeros((10, 10), np.float32), K)
+    wrong_shape.rgb = wrong_shape.rgb[..., 0]  # changed after the checks of the constructor
     r = odo.track(wrong_shape)
     assert r.status is TrackStatus.LOST and "unusable frame" in r.reason
     r = odo.track(_planar_frame(poses[4], tex, 5))

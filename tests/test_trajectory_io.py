@@ -54,6 +54,9 @@ def test_comments_blank_lines_separators_and_normalisation():
         ("2.0 1 2 x 0 0 0 1", "not a number"),
         ("2.0 1 2 nan 0 0 0 1", "non-finite"),
         ("2.0 1 2 3 0 0 0 0", "zero quaternion"),
+        ("2.0 1 2 3 1e-9 0 0 0", "zero quaternion"),
+        ("2.0 1e300 2 3 0 0 0 1", r"translation beyond 1e\+09 m"),
+        ("2.0 1 2 -inf 0 0 0 1", "non-finite"),
     ],
 )
 def test_bad_line_names_file_and_line(tmp_path, bad_line, reason):
@@ -101,8 +104,8 @@ def test_source_errors(tmp_path):
         read_tum_trajectory(tmp_path / "missing.txt")
     path = tmp_path / "t.txt"
     path.write_text("1 0 0 0 0 0 0 1\n")
-    with open(path, "rb") as f, pytest.raises(TypeError, match="text mode"):
-        read_tum_trajectory(f)
+    with open(path, "rb") as f:  # a binary file object is decoded as UTF-8
+        assert read_tum_trajectory(f).poses.tolist() == [[0.0, 0, 0, 0, 0, 0, 1]]
     with pytest.raises(TypeError, match="path or a text file"):
         read_tum_trajectory(42)
 
@@ -153,3 +156,37 @@ def test_real_groundtruth_matches_evo_reader(tum_gt_dir, tmp_path):
         q_evo = evo_traj.orientations_quat_wxyz[:, [1, 2, 3, 0]]
         q_evo = q_evo / np.linalg.norm(q_evo, axis=1, keepdims=True)
         assert np.allclose(ours.poses[:, 3:].numpy(), q_evo, atol=1e-15)
+
+
+def test_values_from_the_wild(tmp_path):
+    """Issue 17: overflow in the quaternion check, non-UTF-8 bytes, float32 stamps, precision on writing."""
+    traj = read_tum_trajectory(io.StringIO("1.0 0 0 0 1e200 1e200 0 0\n2.0 0 0 0 1e-3 0 0 1e-3\n"))
+    assert torch.allclose(traj.poses[0, 3:], torch.tensor([0.5 ** 0.5, 0.5 ** 0.5, 0, 0], dtype=torch.float64))
+    assert torch.isfinite(traj.poses).all()
+    with pytest.raises(TrajectoryFormatError, match="zero quaternion"):
+        read_tum_trajectory(io.StringIO("1.0 0 0 0 1e-200 0 0 0\n"))  # still "zero" (norm < 1e-6)
+    path = tmp_path / "latin1.txt"
+    path.write_bytes(b"# est\xe9\n1.0 0 0 0 0 0 0 1\n")
+    with pytest.raises(TrajectoryFormatError, match=r"latin1.txt:1: byte 0xe9 at column 6 is not UTF-8 text") as info:
+        read_tum_trajectory(path)
+    assert info.value.line_number == 1
+    # float32 stamps cannot hold Unix times: refused, with the rule; integers are converted exactly
+    stamps = 1305031102.175304 + torch.arange(3000, dtype=torch.float64) / 30
+    poses = torch.zeros(3000, 7, dtype=torch.float64)
+    poses[:, 6] = 1
+    assert torch.unique(stamps.float()).numel() < 30  # what float32 does to them
+    with pytest.raises(TypeError, match="timestamps must be float64, got torch.float32: it steps by 128 s"):
+        Trajectory(stamps.float(), poses)
+    assert Trajectory(torch.arange(4), poses[:4].float()).timestamps.dtype == torch.float64
+    assert Trajectory(torch.arange(4), poses[:4].float()).poses.dtype == torch.float64
+    # full precision by default: what is written reads back bit for bit
+    g = torch.Generator().manual_seed(0)
+    t = Trajectory(stamps, torch.cat([torch.randn(3000, 3, generator=g, dtype=torch.float64) * 1e3,
+                                      quat_normalize(torch.randn(3000, 4, generator=g, dtype=torch.float64))], -1))
+    write_tum_trajectory(tmp_path / "full.txt", t)
+    back = read_tum_trajectory(tmp_path / "full.txt")
+    assert torch.equal(back.timestamps, t.timestamps) and torch.unique(back.timestamps).numel() == 3000
+    assert torch.equal(back.poses[:, :3], t.poses[:, :3])
+    assert torch.allclose(back.poses[:, 3:], t.poses[:, 3:], atol=1e-15, rtol=0)  # re-normalised on reading
+    write_tum_trajectory(tmp_path / "short.txt", t, precision=4)
+    assert (tmp_path / "short.txt").read_text().splitlines()[1].split()[0] == f"{float(stamps[0]):.6f}"

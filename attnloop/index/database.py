@@ -52,7 +52,7 @@ import numpy as np
 import torch
 
 from attnloop.index.config import IndexConfig, config_from_dict, config_to_dict, resolve_backend
-from attnloop.index.exact import matvec, topk_rows
+from attnloop.index.exact import topk_rows
 from attnloop.index.storage import KeyframeStore
 from attnloop.index.structures import STRUCTURES
 
@@ -340,8 +340,11 @@ class KeyframeIndex:
                 m = int(n_elig[i])
                 if m == 0:
                     continue
-                rows = self._candidate_rows(q[i], m, kk, structure)
-                sims = matvec(self._store.rows(rows), q[i])
+                rows = np.sort(self._candidate_rows(q[i], m, kk, structure))
+                # Re-scored in float64 (then rounded): a similarity must not depend on which other rows
+                # were re-scored with it (float32 products of different sizes round differently), and
+                # ties (duplicate frames) go to the lower id, so that every backend orders alike.
+                sims = (self._store.rows(rows, np.float64) @ q[i].astype(np.float64)).astype(np.float32)
                 order = np.argsort(-sims, kind="stable")[:kk]
                 out_ids[i, : order.size] = ids[rows[order]]
                 out_sim[i, : order.size] = sims[order]
@@ -351,14 +354,16 @@ class KeyframeIndex:
 
     def _candidate_rows(self, q: np.ndarray, m: int, k: int, structure) -> np.ndarray:
         """Rows (in ``[0, m)``) that contain the k nearest of the eligible prefix ``[0, m)``."""
+        # Exact scans keep 2k rows: the re-scoring then settles near-ties at the k-th place (float32
+        # rounding, duplicate frames) the same way whichever path found them.
         store = self._store
         if structure is None or m < self.config.exact_below:
-            return topk_rows(store.matvec(q, 0, m), k)
+            return topk_rows(store.matvec(q, 0, m), 2 * k)
         rows = structure.candidates(q, k * self.config.rerank, m)
         if rows is None:
-            return topk_rows(store.matvec(q, 0, m), k)
+            return topk_rows(store.matvec(q, 0, m), 2 * k)
         if m > structure.n:  # the exact tail
-            rows = np.concatenate([rows, structure.n + topk_rows(store.matvec(q, structure.n, m), k)])
+            rows = np.concatenate([rows, structure.n + topk_rows(store.matvec(q, structure.n, m), 2 * k)])
         return np.unique(rows)
 
     def similarities(self, query, max_id=None, max_samples: int | None = None) -> tuple[Tensor, Tensor]:

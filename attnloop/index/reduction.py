@@ -23,8 +23,8 @@ import torch
 __all__ = ["PCACode", "fit_pca"]
 
 _CHUNK = 16384  # rows encoded at a time (bounds the float32 temporaries of a float16 input)
+_FEW = 16  # up to this many rows (queries) are encoded with numpy
 _MAX_FIT_ROWS = 65536  # rows the PCA is fitted on at most (a seeded sample): the covariance is D x D anyway
-_HELD_OUT = 0.1  # share of the rows (at most 4096) kept out of the fit to measure ``kept`` without bias
 _EIG_FLOOR = 1e-6  # relative floor of the eigenvalues a whitening divides by
 
 
@@ -36,8 +36,8 @@ class PCACode:
         mean: ``(D,)`` mean of the fitting rows.
         components: ``(D, d)`` orthonormal principal directions, largest variance first.
         scale: ``(d,)`` whitening factors ``1 / sqrt(eigenvalue)``, or ``None`` (plain PCA).
-        kept: share of the centred energy of held-out rows (not fitted on) that the ``d`` components keep:
-            the reference of the drift check (on the fitting rows themselves it is biased upwards).
+        kept: share of the fitting rows' centred energy the ``d`` components keep (in-sample: rows it was
+            not fitted on keep less).
     """
 
     mean: np.ndarray
@@ -55,23 +55,30 @@ class PCACode:
 
         Args:
             x: descriptors.
-            energy: also return ``(kept, total)``: the summed squared norms of the rows' centred
-                projections and of the centred rows (for :attr:`kept`-style drift checks).
+            energy: also return ``(kept, total)``, each ``(M,)`` float64: the squared norm of each row's
+                centred projection and of the centred row (how much of each row the code represents).
         """
         if x.ndim != 2 or x.shape[1] != self.mean.shape[0]:
             raise ValueError(f"PCA code of dimension {self.mean.shape[0]} got descriptors {tuple(x.shape)}")
+        if x.shape[0] <= _FEW and not energy:  # a query: numpy directly (torch's conversions cost more here)
+            z = (np.asarray(x, dtype=np.float32) - self.mean) @ self.components
+            if self.scale is not None:
+                z *= self.scale
+                z /= np.maximum(np.linalg.norm(z, axis=1, keepdims=True), 1e-12)
+            return z.astype(np.float32, copy=False)
         out = np.empty((x.shape[0], self.dim), dtype=np.float32)
+        kept, total = np.empty(x.shape[0]), np.empty(x.shape[0])
         mean, comp = torch.from_numpy(self.mean), torch.from_numpy(self.components)
-        kept = total = 0.0
         for lo in range(0, x.shape[0], _CHUNK):
             xc = torch.from_numpy(np.asarray(x[lo: lo + _CHUNK], dtype=np.float32)) - mean
             z = xc @ comp
+            hi = lo + z.shape[0]
             if energy:
-                kept += float((z * z).sum())
-                total += float((xc * xc).sum())
+                kept[lo:hi] = (z * z).sum(1).double().numpy()
+                total[lo:hi] = (xc * xc).sum(1).double().numpy()
             if self.scale is not None:
                 z = torch.nn.functional.normalize(z * torch.from_numpy(self.scale), dim=1)
-            out[lo: lo + z.shape[0]] = z.numpy()
+            out[lo:hi] = z.numpy()
         return (out, (kept, total)) if energy else out
 
     def state(self) -> dict:
@@ -91,9 +98,8 @@ class PCACode:
 def fit_pca(x: np.ndarray, dim: int, whiten: bool = False, seed: int = 0) -> PCACode:
     """Fit a PCA code of ``dim`` components to descriptors ``x (N, D)`` (float32 or float16).
 
-    Fitted on at most 65536 rows (a seeded sample), 10% of the rows (at most 4096) held out to measure
-    :attr:`PCACode.kept`. The code keeps ``min(dim, D, fitting rows - 1)`` components: directions without
-    variance in the fitting rows carry no information about them.
+    Fitted on at most 65536 rows (a seeded sample). The code keeps ``min(dim, D, rows - 1)`` components:
+    directions without variance in the rows carry no information about them.
 
     Args:
         x: ``(N, D)`` descriptors, ``N >= 2``.
@@ -107,26 +113,19 @@ def fit_pca(x: np.ndarray, dim: int, whiten: bool = False, seed: int = 0) -> PCA
     if x.ndim != 2 or x.shape[0] < 2:
         raise ValueError(f"fit_pca needs descriptors (N, D) with N >= 2, got {tuple(x.shape)}")
     n, d_in = x.shape
-    rng = np.random.default_rng(seed)
-    perm = rng.permutation(n)
-    n_out = min(int(_HELD_OUT * n), 4096)
-    held, fit = np.sort(perm[:n_out]), np.sort(perm[n_out: n_out + _MAX_FIT_ROWS])
-    xs = torch.from_numpy(np.asarray(x[fit], dtype=np.float32))
+    if n > _MAX_FIT_ROWS:
+        x = x[np.sort(np.random.default_rng(seed).choice(n, _MAX_FIT_ROWS, replace=False))]
+    xs = torch.from_numpy(np.asarray(x, dtype=np.float32))
     mean = xs.double().mean(0)
-    xc = xs - mean.float()
+    xc = xs - mean.float()  # centred first: real descriptors share a large common component
     cov = (xc.t() @ xc).double() / xs.shape[0]  # float32 product (the cost), float64 eigen-decomposition
     evals, evecs = torch.linalg.eigh(cov)
     evals, evecs = evals.flip(0).clamp(min=0.0), evecs.flip(1)
     keep = max(1, min(int(dim), d_in, xs.shape[0] - 1))
+    total = float(evals.sum())
     scale = None
     if whiten:
         floor = _EIG_FLOOR * max(float(evals[0]), 1e-30)
         scale = (1.0 / torch.sqrt(evals[:keep] + floor)).float().numpy()
-    code = PCACode(mean.float().numpy(), np.ascontiguousarray(evecs[:, :keep].float().numpy()), scale, 1.0)
-    if n_out:
-        _, (kept, total) = code.encode(x[held], energy=True)
-    else:  # too few rows to hold any out
-        total = float(evals.sum())
-        kept = float(evals[:keep].sum())
-    code.kept = kept / total if total > 0 else 1.0
-    return code
+    kept = float(evals[:keep].sum()) / total if total > 0 else 1.0
+    return PCACode(mean.float().numpy(), np.ascontiguousarray(evecs[:, :keep].float().numpy()), scale, kept)

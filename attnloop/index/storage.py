@@ -81,9 +81,9 @@ class KeyframeStore:
         v = self.view(start, stop)
         return v if v.dtype == np.float32 else v.astype(np.float32)
 
-    def rows(self, rows: np.ndarray) -> np.ndarray:
-        """Descriptors of the given rows ``(M,)`` as float32 ``(M, D)``."""
-        return self._desc[rows].astype(np.float32, copy=False)
+    def rows(self, rows: np.ndarray, dtype=np.float32) -> np.ndarray:
+        """Descriptors of the given rows ``(M,)`` as ``(M, D)`` of ``dtype`` (float32 by default)."""
+        return self._desc[rows].astype(dtype, copy=False)
 
     def matvec(self, q: np.ndarray, start: int = 0, stop: int | None = None, step: int = 1) -> np.ndarray:
         """Similarities ``(M,)`` (float32) of ``q (D,)`` to rows ``start, start + step, ...`` below ``stop``."""

@@ -7,7 +7,7 @@ index re-scores them exactly. Both follow one small interface:
 * ``candidates(q, k, m)``: up to ``k`` rows ``< m`` near the unit query ``q (D,)``, or ``None`` when the
   structure cannot restrict itself to the prefix ``[0, m)`` cheaply (the index then scans it exactly);
 * ``extendable`` / ``extend(x)``: whether rows can be appended (HNSW) or need a rebuild (FLANN);
-* ``stale()``: whether its trained parts (PCA code) call for a rebuild;
+* ``stale()``: whether its trained part (the PCA code) calls for a rebuild;
 * ``state()`` / ``from_state(meta, arrays, x, config)``: a faithful copy for saving (identical answers).
 
 Both rank by L2 (on unit descriptors, or on their PCA codes: :mod:`attnloop.index.reduction`).
@@ -26,8 +26,6 @@ from attnloop.index.reduction import PCACode, fit_pca
 __all__ = ["STRUCTURES", "FaissHNSW", "FlannTree", "import_faiss"]
 
 _FLANN_INDEX_KMEANS = 2
-# The drift check waits for this many rows added since the fit: the energy share of fewer is too noisy.
-_DRIFT_MIN_ROWS = 256
 _ADD_CHUNK = 16384  # rows converted/encoded at a time when building (bounds float32 temporaries)
 
 
@@ -137,14 +135,11 @@ class FaissHNSW:
     kind = "faiss"
     extendable = True
 
-    def __init__(self, index, n_trained: int, code: PCACode | None, config: IndexConfig,
-                 kept_new: float = 0.0, total_new: float = 0.0) -> None:
+    def __init__(self, index, n_trained: int, code: PCACode | None, config: IndexConfig) -> None:
         self.index = index
         self.code = code
         self.config = config  # read at query time: a caller may change ef_search between queries
         self.n_trained = int(n_trained)
-        # Energy of the rows added since the fit, and the share of it the code keeps (drift check).
-        self.kept_new, self.total_new = float(kept_new), float(total_new)
 
     @property
     def n(self) -> int:
@@ -169,37 +164,27 @@ class FaissHNSW:
             _, idx = self.index.search(qc, min(k, self.n), params=params)
         else:  # the exclusion window: rows are ids 0..n-1, so the eligible prefix is an id range
             sel = faiss.IDSelectorRange(0, int(m))
-            # The search visits rows outside the range too: widen the list so that ~ef eligible ones fit.
-            ef = min(self.n, -(-ef * self.n // int(m)))
+            # The excluded rows are the most recent keyframes, the ones nearest to a query taken there:
+            # the list must hold them all on top of ef eligible ones. A deep cut (beyond a few ef) instead
+            # leaves ~m/n of the rows eligible wherever the search goes.
+            excess = self.n - int(m)
+            ef = ef + excess if excess <= 4 * ef else -(-ef * self.n // int(m))
+            ef = min(self.n, ef)
             params = faiss.SearchParametersHNSW(sel=sel, efSearch=ef)
             _, idx = self.index.search(qc, min(k, m), params=params)
         idx = idx[0].astype(np.int64)
         return idx[(idx >= 0) & (idx < m)]
 
     def extend(self, x: np.ndarray) -> None:
-        if self.code is None:
-            self.index.add(np.ascontiguousarray(x, dtype=np.float32))
-            return
-        codes, (kept, total) = self.code.encode(x, energy=True)
-        self.kept_new += kept
-        self.total_new += total
-        self.index.add(codes)
+        self.index.add(_codes(x, self.code))
 
     def stale(self) -> bool:
-        """Whether the PCA code calls for a refit: the data grew enough, or the code fits new rows badly."""
-        if self.code is None:
-            return False
-        cfg = self.config.faiss
-        new = self.n - self.n_trained
-        if new >= cfg.retrain_growth * self.n_trained:
-            return True
-        return (cfg.retrain_drift > 0 and new >= _DRIFT_MIN_ROWS and self.total_new > 0
-                and self.kept_new / self.total_new < cfg.retrain_drift * self.code.kept)
+        """Whether the PCA code calls for a refit: the rows have grown by ``retrain_growth`` since it."""
+        return self.code is not None and self.n - self.n_trained >= self.config.faiss.retrain_growth * self.n_trained
 
     def state(self) -> tuple[dict, dict]:
         faiss = import_faiss()
-        meta = {"kind": self.kind, "n": self.n, "n_trained": self.n_trained, "kept_new": self.kept_new,
-                "total_new": self.total_new}
+        meta = {"kind": self.kind, "n": self.n, "n_trained": self.n_trained}
         return meta, {"blob": faiss.serialize_index(self.index), **_code_state(self.code)}
 
     @classmethod
@@ -208,8 +193,7 @@ class FaissHNSW:
         index = faiss.deserialize_index(np.asarray(arrays["blob"], dtype=np.uint8))
         if int(index.ntotal) != int(meta["n"]):
             raise ValueError(f"the saved HNSW graph holds {index.ntotal} rows, its record says {meta['n']}")
-        return cls(index, int(meta["n_trained"]), _code_from_state(arrays), config,
-                   float(meta["kept_new"]), float(meta["total_new"]))
+        return cls(index, int(meta["n_trained"]), _code_from_state(arrays), config)
 
 
 STRUCTURES = {"flann": FlannTree, "faiss": FaissHNSW}

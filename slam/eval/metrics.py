@@ -34,10 +34,12 @@ import os
 from dataclasses import dataclass, field
 from typing import Union
 
+import numpy as np
 import torch
 
 from slam.eval.align import transform_poses, umeyama_alignment
 from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
+from slam.input_checks import MAX_COORDINATE, unit_quaternions
 from slam.io.trajectory import Trajectory, read_tum_trajectory
 from slam.lie import se3_between
 
@@ -48,17 +50,39 @@ _ALIGNMENTS = ("se3", "sim3", "none")
 
 
 def as_trajectory(x: TrajectoryLike, what: str = "trajectory") -> Trajectory:
-    """A :class:`Trajectory` in float64 from a trajectory or the path of a TUM file."""
+    """A checked :class:`Trajectory` in float64 from a trajectory or the path of a TUM file.
+
+    Raises:
+        ValueError: naming ``what``, the pose and its timestamp: a non-finite timestamp or pose, a
+            translation beyond :data:`~slam.input_checks.MAX_COORDINATE`, a zero quaternion (so no error
+            figure is ever ``inf`` or NaN); :class:`~slam.io.trajectory.TrajectoryFormatError` for a file.
+    """
     if isinstance(x, Trajectory):
         traj = x
     elif isinstance(x, (str, os.PathLike)):
         traj = read_tum_trajectory(x)
     else:
         raise TypeError(f"{what} must be a Trajectory or the path of a TUM trajectory file, got {type(x).__name__}")
-    poses = traj.poses.to(torch.float64)
-    # Unit quaternions, as evo (its SE(3) matrices come from normalised quaternions).
-    poses = torch.cat([poses[:, :3], poses[:, 3:] / poses[:, 3:].norm(dim=-1, keepdim=True)], dim=-1)
-    return Trajectory(traj.timestamps.to(torch.float64), poses)
+    stamps, poses = traj.timestamps.to(torch.float64), traj.poses.to(torch.float64)
+    bad = ~torch.isfinite(stamps)
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0, 0])
+        raise ValueError(f"{what}: timestamp {k} is {float(stamps[k])}; expected finite seconds")
+    P = poses.detach().cpu().numpy()
+
+    def refuse(mask, why):
+        if mask.any():
+            k = int(mask.nonzero()[0][0])
+            raise ValueError(f"{what}: pose {k} (t = {float(stamps[k]):.6f} s) {why(k)}")
+
+    refuse(~np.isfinite(P).all(axis=1), lambda k: f"has a non-finite value {P[k].tolist()}")
+    refuse(np.abs(P[:, :3]).max(axis=1, initial=0.0) > MAX_COORDINATE,
+           lambda k: f"has a translation {P[k, :3].tolist()} beyond {MAX_COORDINATE:.0e} m")
+    # unit quaternions, as evo (its SE(3) matrices come from normalised quaternions), without overflow
+    q, zero = unit_quaternions(P[:, 3:])
+    refuse(zero, lambda k: f"has a zero quaternion {P[k, 3:].tolist()}")
+    poses = torch.cat([poses[:, :3], torch.from_numpy(q).to(poses.device)], dim=-1)
+    return Trajectory(stamps, poses)
 
 
 def rotation_angle(q: torch.Tensor) -> torch.Tensor:

@@ -26,7 +26,7 @@ from slam.graph.costs import (
     graph_chi2,
     make_kernel,
 )
-from slam.graph.g2o import G2OFormatError, read_g2o, write_g2o
+from slam.graph.g2o import G2OFormatError, G2OWarning, read_g2o, write_g2o
 from slam.graph.linear import (
     DenseCholeskySolver,
     LinearSolver,
@@ -45,6 +45,7 @@ __all__ = [
     "Cauchy",
     "DenseCholeskySolver",
     "G2OFormatError",
+    "G2OWarning",
     "GemanMcClure",
     "Huber",
     "LinearSolver",

@@ -57,6 +57,7 @@ from slam.graph.accel import ACCELERATORS, accelerator_for
 from slam.graph.blas_threads import limit_blas_threads
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, make_kernel
+from slam.graph.initialization import initialize
 from slam.graph.linear import LinearSolver, LinearSolverError
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.problem import PoseGraphProblem, TorchProblem
@@ -69,7 +70,7 @@ Tensor = torch.Tensor
 
 def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, RobustKernel] = None,
              solver: Union[None, str, LinearSolver] = "auto", config: Optional[OptimizerConfig] = None,
-             **overrides) -> OptimizationResult:
+             initialization: str = "none", **overrides) -> OptimizationResult:
     """Optimise the poses of a pose graph.
 
     Args:
@@ -81,6 +82,10 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
             :class:`~slam.graph.linear.LinearSolver`.
         config: an :class:`OptimizerConfig`; keyword ``overrides`` replace its fields
             (e.g. ``optimize(g, max_iterations=10, gauge="prior")``).
+        initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"`` (rotations by
+            chordal relaxation, then translations by least squares, as GTSAM's ``InitializePose3``) or
+            ``"spanning_tree"`` (composed along a breadth-first tree of the edges); see
+            :mod:`slam.graph.initialization`. ``initial_chi2`` is then the chi2 of that guess.
 
     Returns:
         An :class:`OptimizationResult` (``result.graph``, ``result.chi2``, ``result.status``,
@@ -93,7 +98,11 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
     """
     t_start = time.perf_counter()
     cfg = dataclasses.replace(config or OptimizerConfig(), **overrides)
+    if isinstance(graph, PoseGraph) and graph.fixed.numel():  # the graph's own held poses (g2o FIX lines)
+        cfg = dataclasses.replace(cfg, fixed=tuple(int(f) for f in cfg.fixed) + tuple(graph.fixed.tolist()))
     with _thread_limits(cfg.num_threads):
+        if initialization != "none":  # (its time counts in timings["setup"])
+            graph = initialize(graph, initialization, fixed=cfg.fixed)
         return _optimize(graph, method, kernel, solver, cfg, t_start)
 
 

@@ -57,6 +57,8 @@ class PoseGraph:
         chart: the residual chart, one of :data:`CHARTS` (default ``"se3"``).
         vertex_ids: ``(N,)`` long, the ids the poses had in the file they were read from (row ``k`` of
             ``poses`` is vertex ``vertex_ids[k]``); ``arange(N)`` for graphs built in code.
+        fixed: ``(K,)`` long, sorted indices of the poses held constant by :func:`~slam.graph.optimize`
+            (g2o ``FIX`` lines); empty by default.
 
     Shapes and values are checked on construction (and by :meth:`validate`) with a ``ValueError`` naming
     the field, the edge and what was expected.
@@ -69,6 +71,7 @@ class PoseGraph:
     information: Tensor
     chart: str = "se3"
     vertex_ids: Optional[Tensor] = None
+    fixed: Optional[Tensor] = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.poses, Tensor):
@@ -84,6 +87,8 @@ class PoseGraph:
             self.vertex_ids = torch.arange(self.poses.shape[0] if self.poses.dim() == 2 else 0, device=dev)
         else:
             self.vertex_ids = _as_tensor(self.vertex_ids, torch.long, dev, "vertex_ids")
+        self.fixed = (torch.zeros(0, dtype=torch.long, device=dev) if self.fixed is None
+                      else torch.unique(_as_tensor(self.fixed, torch.long, dev, "fixed").reshape(-1)))
         self.validate(check_information=False)
 
     # ------------------------------------------------------------------------------------------
@@ -133,6 +138,11 @@ class PoseGraph:
                              f"{tuple(self.information.shape)}")
         if self.vertex_ids.shape != (n,):
             raise ValueError(f"vertex_ids must have shape (N,) = ({n},), got {tuple(self.vertex_ids.shape)}")
+        if self.fixed.dim() != 1:
+            raise ValueError(f"fixed must have shape (K,), got {tuple(self.fixed.shape)}")
+        bad = (self.fixed < 0) | (self.fixed >= n)
+        if bool(bad.any()):
+            raise ValueError(f"fixed pose index {int(self.fixed[bad][0])} is not a pose index in [0, {n})")
         if self.chart not in CHARTS:
             raise ValueError(f"chart must be one of {CHARTS}, got {self.chart!r}")
         if e:
@@ -187,7 +197,7 @@ class PoseGraph:
             info = torch.eye(6, dtype=self.dtype, device=self.device).expand(k, 6, 6).clone()
         else:
             info = _as_tensor(information, self.dtype, self.device, "information")
-        new = PoseGraph(self.poses, ii, jj, meas, info, self.chart, self.vertex_ids)
+        new = PoseGraph(self.poses, ii, jj, meas, info, self.chart, self.vertex_ids, self.fixed)
         new.validate()
         self.ii = torch.cat([self.ii, new.ii])
         self.jj = torch.cat([self.jj, new.jj])
@@ -217,14 +227,14 @@ class PoseGraph:
 
     def clone(self) -> PoseGraph:
         return PoseGraph(self.poses.clone(), self.ii.clone(), self.jj.clone(), self.measurements.clone(),
-                         self.information.clone(), self.chart, self.vertex_ids.clone())
+                         self.information.clone(), self.chart, self.vertex_ids.clone(), self.fixed.clone())
 
     def to(self, device=None, dtype: Optional[torch.dtype] = None) -> PoseGraph:
         """A copy on another device and/or floating dtype (indices stay long)."""
         f = {"device": device, "dtype": dtype}
         return PoseGraph(self.poses.to(**f), self.ii.to(device), self.jj.to(device),
                          self.measurements.to(**f), self.information.to(**f), self.chart,
-                         self.vertex_ids.to(device))
+                         self.vertex_ids.to(device), self.fixed.to(device))
 
     def is_planar(self, tol: float = 1e-9) -> bool:
         """True when every pose and measurement lies in the plane ``z = 0`` with a yaw-only rotation and

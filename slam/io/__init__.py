@@ -8,9 +8,16 @@ Example:
     >>> camera_from_name("rgbd_dataset_freiburg1_xyz"), TUM_CAMERAS["fr1"].fx, TUM_DEPTH_FACTOR
     ('fr1', 517.3, 5000.0)
 """
-from slam.io.frame import RGBDFrame
+from slam.io.frame import RGBDFrame, check_frame, check_intrinsics
 from slam.io.images import FrameReadError, depth_to_metres, read_depth_raw, read_rgb
-from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence, SequenceView, open_sequence
+from slam.io.sequence import (
+    DatasetError,
+    DatasetNotFoundError,
+    DatasetWarning,
+    RGBDSequence,
+    SequenceView,
+    open_sequence,
+)
 from slam.io.sevenscenes import SevenScenesSequence
 from slam.io.trajectory import Trajectory, TrajectoryFormatError, read_tum_trajectory, write_tum_trajectory
 from slam.io.tum import (
@@ -27,6 +34,7 @@ __all__ = [
     "TUM_DEPTH_FACTOR",
     "DatasetError",
     "DatasetNotFoundError",
+    "DatasetWarning",
     "FrameReadError",
     "RGBDFrame",
     "RGBDSequence",
@@ -37,6 +45,8 @@ __all__ = [
     "Trajectory",
     "TrajectoryFormatError",
     "camera_from_name",
+    "check_frame",
+    "check_intrinsics",
     "depth_to_metres",
     "open_sequence",
     "read_depth_raw",

@@ -40,6 +40,8 @@ def _decode(path: str) -> np.ndarray:
         raise FrameReadError(path, "file does not exist") from None
     except (IsADirectoryError, PermissionError, OSError) as e:
         raise FrameReadError(path, f"cannot read file ({e.__class__.__name__}: {e})") from None
+    except ValueError as e:  # a name no file can have (e.g. a NUL byte from a corrupted list file)
+        raise FrameReadError(repr(path), f"not a valid file name ({e})") from None
     image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     if image is None:
         raise FrameReadError(path, "not a decodable image (empty or corrupt file)")

@@ -10,6 +10,12 @@ Errors come at two moments:
   wrong type or size (:class:`slam.io.images.FrameReadError`, carrying the path). A SLAM run catches it
   and skips the frame with a warning; :meth:`RGBDSequence.frames` with ``on_error="skip"`` does that.
 
+What a reader leaves out without an error (a 7-Scenes pose file that is not a pose: the frame keeps its
+images, its ground truth is unknown, also when the file is not UTF-8 text) it reports with a
+:class:`DatasetWarning` naming the files. A list or calibration file with a byte that is not UTF-8 is a
+:class:`DatasetError` naming the file and the line (``groundtruth.txt``: a
+:class:`~slam.io.trajectory.TrajectoryFormatError`).
+
 Depth is float32 metres with **0.0 marking invalid pixels** (never NaN), as :class:`RGBDFrame` says.
 """
 from __future__ import annotations
@@ -29,7 +35,7 @@ from slam.io.frame import RGBDFrame
 from slam.io.images import FrameReadError
 from slam.io.trajectory import Trajectory
 
-__all__ = ["DatasetError", "DatasetNotFoundError", "RGBDSequence", "SequenceView", "open_sequence"]
+__all__ = ["DatasetError", "DatasetNotFoundError", "DatasetWarning", "RGBDSequence", "SequenceView", "open_sequence"]
 
 logger = logging.getLogger(__name__)
 
@@ -51,6 +57,11 @@ class DatasetError(ValueError):
 
 class DatasetNotFoundError(DatasetError, FileNotFoundError):
     """The sequence folder or one of its required list files does not exist."""
+
+
+class DatasetWarning(UserWarning):
+    """Something in a dataset was unusable and left out (e.g. a pose file that is not a pose); the message
+    names the files."""
 
 
 class RGBDSequence(ABC):

@@ -9,21 +9,29 @@ is customary for this dataset.
 
 Frames are found from the colour files at open time (one directory listing); images and poses are read
 only when a frame is requested. A pose file with non-finite entries (7-Scenes marks lost tracking so)
-means "no ground truth" for that frame.
+means "no ground truth" for that frame. A pose file that cannot be a pose (text, not UTF-8, not 16
+numbers, a last row other than ``0 0 0 1``, a rotation block that is not a rotation: singular values
+outside ``1 +- 0.01`` or a reflection, e.g. all zeros; a translation beyond
+:data:`~slam.input_checks.MAX_COORDINATE`) also gives "no ground truth", with a
+:class:`~slam.io.sequence.DatasetWarning` naming the file: the frame keeps its images for tracking, and
+such a pose is never read as the identity. ``camera-intrinsics.txt`` must hold a pinhole matrix
+(:func:`~slam.io.frame.check_intrinsics`), else :class:`~slam.io.sequence.DatasetError`.
 """
 from __future__ import annotations
 
 import os
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from slam.io.frame import RGBDFrame
-from slam.io.images import FrameReadError, depth_to_metres, read_depth_raw, read_rgb
-from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence
-from slam.lie import se3_from_matrix
+from slam.input_checks import MAX_COORDINATE, TextDecodeError, read_text_lines
+from slam.io.frame import RGBDFrame, check_intrinsics
+from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
+from slam.io.sequence import DatasetError, DatasetNotFoundError, DatasetWarning, RGBDSequence
+from slam.lie import rotmat_project, se3_from_matrix
 
 __all__ = [
     "SEVENSCENES_DEPTH_SCALE",
@@ -43,27 +51,81 @@ _COLOR_RE = re.compile(r"^frame-(\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
 _PREFERENCE = {"png": 0, "jpg": 1, "jpeg": 1}  # lossless first when both exist
 
 
+# a rotation block whose singular values are further than this from 1 is not a rotation (redkitchen's
+# KinectFusion rotations are within 2e-4)
+_ROTATION_TOLERANCE = 0.01
+
+
 def _read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """The ``shape`` matrix a text file holds; :class:`DatasetError` naming the file (and line) otherwise."""
     try:
-        values = np.array(path.read_text().split(), dtype=np.float64)
-    except ValueError:
-        raise DatasetError(path, f"expected {shape[0]}x{shape[1]} numbers") from None
-    if values.size != shape[0] * shape[1]:
-        raise DatasetError(path, f"expected {shape[0] * shape[1]} numbers ({shape[0]}x{shape[1]}), got {values.size}")
-    return values.reshape(shape)
+        _, lines = read_text_lines(path)
+    except TextDecodeError as e:
+        raise DatasetError(path, e.reason, e.line) from None
+    values = []
+    for number, line in enumerate(lines, start=1):
+        try:
+            values += [float(v) for v in line.replace(",", " ").split()]
+        except ValueError:
+            raise DatasetError(path, f"expected {shape[0]}x{shape[1]} numbers, got {line.strip()!r}", number) from None
+    if len(values) != shape[0] * shape[1]:
+        raise DatasetError(path, f"expected {shape[0] * shape[1]} numbers ({shape[0]}x{shape[1]}), got {len(values)}")
+    return np.array(values, dtype=np.float64).reshape(shape)
+
+
+def _pose_problems(T: np.ndarray) -> list:
+    """Why each of the finite ``(N, 4, 4)`` matrices is not a camera-to-world pose (None when it is one)."""
+    s = np.linalg.svd(T[:, :3, :3], compute_uv=False)
+    det = np.linalg.det(T[:, :3, :3])
+    out = []
+    for k in range(T.shape[0]):
+        if np.abs(T[k, 3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+            out.append(f"its last row is {T[k, 3].tolist()}, expected [0, 0, 0, 1]")
+        elif np.abs(s[k] - 1.0).max() > _ROTATION_TOLERANCE or det[k] <= 0:
+            out.append(f"its rotation block is not a rotation (singular values {np.round(s[k], 4).tolist()}, "
+                       f"determinant {det[k]:.4g})")
+        elif np.abs(T[k, :3, 3]).max() > MAX_COORDINATE:
+            out.append(f"its translation {T[k, :3, 3].tolist()} is beyond {MAX_COORDINATE:.0e} m")
+        else:
+            out.append(None)
+    return out
 
 
 def _matrices_to_poses(T: np.ndarray) -> np.ndarray:
-    """``(N, 4, 4)`` camera-to-world matrices -> ``(N, 7)`` poses.
+    """``(N, 4, 4)`` camera-to-world matrices (checked by :func:`_pose_problems`) -> ``(N, 7)`` poses.
 
     The KinectFusion rotations are not exactly orthonormal (determinants 0.9995-0.9999 in redkitchen):
     they are replaced by the nearest rotation (polar decomposition, ``U V^T``) before conversion.
     """
     Tt = torch.from_numpy(np.ascontiguousarray(T, dtype=np.float64))
-    U, _, Vh = torch.linalg.svd(Tt[:, :3, :3])
-    d = torch.sign(torch.det(U @ Vh))
-    R = U @ torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1)) @ Vh
+    R = rotmat_project(Tt[:, :3, :3])
     return se3_from_matrix(torch.cat([R, Tt[:, :3, 3:]], dim=-1)).numpy()
+
+
+def _read_pose(path: Path) -> tuple[np.ndarray, str | None]:
+    """``(7,)`` pose of a pose file (NaN when unknown) and, for a file that cannot be a pose, why not."""
+    unknown = np.full(7, np.nan)
+    try:
+        T = _read_matrix(path, (4, 4))
+    except DatasetError as e:
+        return unknown, str(e)
+    if not np.isfinite(T).all():  # 7-Scenes' mark of a frame where tracking was lost
+        return unknown, None
+    problem = _pose_problems(T[None])[0]
+    if problem is not None:
+        return unknown, f"{path}: {problem}"
+    return _matrices_to_poses(T[None])[0], None
+
+
+def _warn_unknown(problems: list, warned: set) -> None:
+    """One warning for the ``(file name, message)`` of ``problems`` whose file is not yet in ``warned``."""
+    fresh = [(name, msg) for name, msg in problems if name not in warned]
+    warned.update(name for name, _ in fresh)
+    problems = [msg for _, msg in fresh]
+    if problems:
+        more = f" (and {len(problems) - 3} more files)" if len(problems) > 3 else ""
+        warnings.warn(f"ground truth unknown for {len(problems)} frame(s), whose pose file is not a pose; their "
+                      f"images are still used: {'; '.join(problems[:3])}{more}", DatasetWarning, stacklevel=4)
 
 
 class SevenScenesSequence(RGBDSequence):
@@ -112,14 +174,16 @@ class SevenScenesSequence(RGBDSequence):
         self._pose: list[str | None] = [p if p in names else None for p in pose_names]
         self._timestamps = self.frame_numbers.astype(np.float64) / float(fps)
         self._gt: np.ndarray | None = None
+        self._warned: set[str] = set()  # pose files already reported as not a pose (each is warned once)
 
         if K is not None:
-            K = np.asarray(K, dtype=np.float64)
-            if K.shape != (3, 3):
-                raise ValueError(f"K must have shape (3, 3), got {K.shape}")
-            self.K = K.copy()
+            self.K = check_intrinsics(K, "K")
         elif "camera-intrinsics.txt" in names:
-            self.K = _read_matrix(self.root / "camera-intrinsics.txt", (3, 3))
+            path = self.root / "camera-intrinsics.txt"
+            try:
+                self.K = check_intrinsics(_read_matrix(path, (3, 3)), str(path))
+            except ValueError as e:
+                raise DatasetError(path, str(e).removeprefix(f"{path} ")) from None
         else:
             self.K = SEVENSCENES_K.copy()
 
@@ -135,24 +199,33 @@ class SevenScenesSequence(RGBDSequence):
         return self.root / self._color[i], self.root / self._depth[i]
 
     def _pose_of(self, i: int) -> np.ndarray:
-        """``(7,)`` ground truth of frame ``i``, NaN if it has none (no file, or non-finite entries)."""
+        """``(7,)`` ground truth of frame ``i``, NaN if it has none (no file, non-finite entries, or a file
+        that is not a pose: then with a warning)."""
         if self._pose[i] is None:
             return np.full(7, np.nan)
-        T = _read_matrix(self.root / self._pose[i], (4, 4))
-        if not np.isfinite(T).all():
-            return np.full(7, np.nan)
-        return _matrices_to_poses(T[None])[0]
+        pose, problem = _read_pose(self.root / self._pose[i])
+        _warn_unknown([(self._pose[i], problem)] if problem else [], self._warned)
+        return pose
 
     def _groundtruth_array(self) -> np.ndarray:
         if self._gt is None:  # read once, on first use (~0.1 ms per pose file)
             Ts = np.full((len(self), 4, 4), np.nan)
+            problems = []
             for i, name in enumerate(self._pose):
                 if name is not None:
-                    Ts[i] = _read_matrix(self.root / name, (4, 4))
+                    try:
+                        Ts[i] = _read_matrix(self.root / name, (4, 4))
+                    except DatasetError as e:
+                        problems.append((name, str(e)))
             ok = np.isfinite(Ts).all(axis=(1, 2))
+            for k, problem in zip(np.nonzero(ok)[0], _pose_problems(Ts[ok]) if ok.any() else []):
+                if problem is not None:
+                    ok[k] = False
+                    problems.append((self._pose[k], f"{self.root / self._pose[k]}: {problem}"))
             gt = np.full((len(self), 7), np.nan)
             if ok.any():
                 gt[ok] = _matrices_to_poses(Ts[ok])
+            _warn_unknown(problems, self._warned)
             self._gt = gt
         return self._gt
 
@@ -160,13 +233,8 @@ class SevenScenesSequence(RGBDSequence):
         rgb_path, depth_path = self.paths(i)
         rgb = read_rgb(str(rgb_path))
         raw = read_depth_raw(str(depth_path), rgb.shape[:2])
-        if self._gt is not None:
-            pose = self._gt[i]
-        else:
-            try:
-                pose = self._pose_of(i)
-            except DatasetError as e:  # a corrupt pose file is a per-frame read problem here
-                raise FrameReadError(e.path, str(e)) from None
+        # a pose file that is not a pose leaves the frame without ground truth (warned), never without images
+        pose = self._gt[i] if self._gt is not None else self._pose_of(i)
         return RGBDFrame(
             index=i, timestamp=float(self._timestamps[i]), rgb=rgb,
             depth=depth_to_metres(raw, self.depth_scale, SEVENSCENES_INVALID_DEPTH), K=self.K.copy(),

@@ -1,8 +1,14 @@
 """TUM-format trajectories: ``timestamp tx ty tz qx qy qz qw`` per line.
 
 The reader is strict: every non-comment line must hold exactly eight finite numbers (separated by
-spaces, tabs or commas, as TUM's own scripts accept) and a non-zero quaternion; anything else raises
+spaces, tabs or commas, as TUM's own scripts accept), a translation within
+:data:`~slam.input_checks.MAX_COORDINATE` and a non-zero quaternion (normalised without overflow, so
+``1e200 1e200 0 0`` is a valid rotation); anything else, and a byte that is not UTF-8, raises
 :class:`TrajectoryFormatError` naming the file and the 1-based line number.
+
+Precision: timestamps are float64 (a :class:`Trajectory` refuses float32 ones, which cannot hold a Unix
+time to better than 128 s), and :func:`write_tum_trajectory` writes every value with the shortest
+decimal that reads back to the same float64 (``repr``), so a written trajectory reads back exactly.
 
 Example:
     >>> import io, torch
@@ -19,10 +25,12 @@ from __future__ import annotations
 import os
 import warnings
 from dataclasses import dataclass
-from typing import IO, Union
+from typing import IO, Optional, Union
 
 import numpy as np
 import torch
+
+from slam.input_checks import MAX_COORDINATE, TextDecodeError, read_text_lines, source_name, unit_quaternions
 
 __all__ = ["Trajectory", "TrajectoryFormatError", "read_tum_trajectory", "write_tum_trajectory"]
 
@@ -34,8 +42,12 @@ class Trajectory:
     """A timed sequence of camera-to-world poses.
 
     Attributes:
-        timestamps: ``(N,)`` float64 seconds.
-        poses: ``(N, 7)`` float64 ``[tx, ty, tz, qx, qy, qz, qw]``.
+        timestamps: ``(N,)`` float64 seconds. An integer tensor is converted (exactly, below 2^53); a float32
+            or float16 one is refused with a ``TypeError``: at Unix times (~1.3e9 s) float32 steps by 128 s,
+            so the stamps have already collapsed when the tensor was made (``torch.tensor(list)`` is float32
+            by default: pass ``dtype=torch.float64``).
+        poses: ``(N, 7)`` float64 ``[tx, ty, tz, qx, qy, qz, qw]`` (other float or integer dtypes are
+            converted to float64).
     """
 
     timestamps: torch.Tensor
@@ -47,6 +59,19 @@ class Trajectory:
     def __post_init__(self) -> None:
         if not isinstance(self.timestamps, torch.Tensor) or not isinstance(self.poses, torch.Tensor):
             raise TypeError("Trajectory.timestamps and Trajectory.poses must be torch tensors")
+        ts = self.timestamps
+        if ts.is_floating_point() and ts.dtype != torch.float64:
+            step = float(torch.finfo(ts.dtype).eps) * 2.0 ** 30
+            raise TypeError(f"Trajectory.timestamps must be float64, got {ts.dtype}: it steps by {step:g} s at Unix "
+                            f"times (~1e9 s), so such stamps have collapsed; build them with dtype=torch.float64")
+        if ts.is_complex() or ts.dtype == torch.bool:
+            raise TypeError(f"Trajectory.timestamps must be float64 seconds, got {ts.dtype}")
+        if not ts.is_floating_point():
+            self.timestamps = ts.to(torch.float64)
+        if self.poses.is_complex() or self.poses.dtype == torch.bool:
+            raise TypeError(f"Trajectory.poses must be float64, got {self.poses.dtype}")
+        if self.poses.dtype != torch.float64:
+            self.poses = self.poses.to(torch.float64)
         if self.timestamps.dim() != 1:
             raise ValueError(f"timestamps must have shape (N,), got {tuple(self.timestamps.shape)}")
         if self.poses.shape != (self.timestamps.shape[0], 7):
@@ -75,34 +100,26 @@ class TrajectoryFormatError(ValueError):
 
     Attributes:
         path: the file name (``"<stream>"`` for an unnamed file object).
-        line_number: 1-based line number of the offending line.
+        line_number: 1-based line number of the offending line (None when it cannot be known: a text-mode
+            file object whose decoder failed).
     """
 
-    def __init__(self, path: str, line_number: int, message: str):
+    def __init__(self, path: str, line_number: Optional[int], message: str):
         self.path = path
         self.line_number = line_number
-        super().__init__(f"{path}:{line_number}: {message}")
-
-
-def _name_of(source) -> str:
-    if isinstance(source, (str, os.PathLike)):
-        return os.fspath(source)
-    return str(getattr(source, "name", "<stream>"))
+        where = f"{path}:{line_number}" if line_number is not None else path
+        super().__init__(f"{where}: {message}")
 
 
 def _read_lines(source: PathOrFile) -> list[str]:
-    if isinstance(source, (str, os.PathLike)):
-        path = os.fspath(source)
-        if not os.path.isfile(path):
-            raise FileNotFoundError(f"trajectory file not found: {path}")
-        with open(path, "r", encoding="utf-8") as f:
-            return f.read().splitlines()
-    if hasattr(source, "read"):
-        text = source.read()
-        if isinstance(text, bytes):
-            raise TypeError(f"{_name_of(source)}: open the trajectory file in text mode ('r'), not binary")
-        return text.splitlines()
-    raise TypeError(f"expected a path or a text file object, got {type(source).__name__}")
+    if isinstance(source, (str, os.PathLike)) and not os.path.isfile(os.fspath(source)):
+        raise FileNotFoundError(f"trajectory file not found: {os.fspath(source)}")
+    if not isinstance(source, (str, os.PathLike)) and not hasattr(source, "read"):
+        raise TypeError(f"expected a path or a text file object, got {type(source).__name__}")
+    try:
+        return read_text_lines(source)[1]
+    except TextDecodeError as e:
+        raise TrajectoryFormatError(e.path, e.line, e.reason) from None
 
 
 def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Trajectory:
@@ -114,7 +131,7 @@ def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Traje
     The result is sorted by timestamp (a stable sort: unsorted files are accepted).
 
     Args:
-        source: a path or a text file object.
+        source: a path or a file object (text, or binary: then decoded as UTF-8).
         on_duplicate: what to do with lines sharing one timestamp: ``"last"`` keeps the last one (the
             behaviour of TUM's dictionary-based scripts), ``"first"`` keeps the first, ``"error"``
             raises :class:`TrajectoryFormatError`. Kept duplicates are reported with a warning.
@@ -130,7 +147,7 @@ def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Traje
     """
     if on_duplicate not in ("last", "first", "error"):
         raise ValueError(f"on_duplicate must be 'last', 'first' or 'error', got {on_duplicate!r}")
-    name = _name_of(source)
+    name = source_name(source)
     rows: list[list[float]] = []
     line_numbers: list[int] = []
     for number, raw in enumerate(_read_lines(source), start=1):
@@ -150,14 +167,21 @@ def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Traje
             raise TrajectoryFormatError(name, number, f"not a number in {line!r}") from None
         if not all(np.isfinite(values)):
             raise TrajectoryFormatError(name, number, f"non-finite value in {line!r}")
-        if sum(v * v for v in values[4:]) < 1e-12:
-            raise TrajectoryFormatError(name, number, f"zero quaternion in {line!r}")
+        if max(abs(v) for v in values[1:4]) > MAX_COORDINATE:
+            raise TrajectoryFormatError(name, number, f"translation beyond {MAX_COORDINATE:.0e} m (not a position) "
+                                                      f"in {line!r}")
         rows.append(values)
         line_numbers.append(number)
     if not rows:
         return Trajectory.empty()
 
     data = np.asarray(rows, dtype=np.float64)
+    unit, zero = unit_quaternions(data[:, 4:])
+    if zero.any():
+        k = int(np.nonzero(zero)[0][0])
+        raise TrajectoryFormatError(name, line_numbers[k], f"zero quaternion {data[k, 4:].tolist()}; expected "
+                                                            "qx qy qz qw of a rotation")
+    data[:, 4:] = unit
     order = np.argsort(data[:, 0], kind="stable")
     data, lines = data[order], np.asarray(line_numbers)[order]
     same = np.flatnonzero(np.diff(data[:, 0]) == 0.0)
@@ -175,18 +199,20 @@ def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Traje
         )
         data = data[keep]
     poses = torch.from_numpy(data[:, 1:].copy())
-    poses[:, 3:] = poses[:, 3:] / poses[:, 3:].norm(dim=-1, keepdim=True)
     return Trajectory(torch.from_numpy(data[:, 0].copy()), poses)
 
 
-def write_tum_trajectory(target: PathOrFile, traj: Trajectory, header: bool = True, precision: int = 9) -> None:
+def write_tum_trajectory(target: PathOrFile, traj: Trajectory, header: bool = True,
+                         precision: Optional[int] = None) -> None:
     """Write a trajectory in TUM format, one ``timestamp tx ty tz qx qy qz qw`` line per pose.
 
     Args:
         target: a path (parent folders must exist) or a text file object.
         traj: timestamps ``(N,)`` and poses ``(N, 7)``; written in the given order.
         header: write a ``# timestamp tx ty tz qx qy qz qw`` comment line first.
-        precision: decimals of the pose values (timestamps always get 6, TUM's own precision).
+        precision: None (default): every value as the shortest decimal that reads back to the same float64
+            (full precision: the file reads back exactly); an int: that many decimals for the pose values
+            and 6 for the timestamps (TUM's own files), for smaller files.
     """
     if not isinstance(traj, Trajectory):
         raise TypeError(f"expected a Trajectory, got {type(traj).__name__}")
@@ -194,9 +220,12 @@ def write_tum_trajectory(target: PathOrFile, traj: Trajectory, header: bool = Tr
     poses = traj.poses.detach().to("cpu", torch.float64).numpy()
     if not (np.isfinite(stamps).all() and np.isfinite(poses).all()):
         raise ValueError("cannot write a trajectory with non-finite timestamps or poses")
-    fmt = "%.6f" + (" %." + str(int(precision)) + "f") * 7
     lines = ["# timestamp tx ty tz qx qy qz qw"] if header else []
-    lines += [fmt % (t, *p) for t, p in zip(stamps.tolist(), poses.tolist())]
+    if precision is None:
+        lines += [" ".join(map(repr, [t, *p])) for t, p in zip(stamps.tolist(), poses.tolist())]
+    else:
+        fmt = "%.6f" + (" %." + str(int(precision)) + "f") * 7
+        lines += [fmt % (t, *p) for t, p in zip(stamps.tolist(), poses.tolist())]
     text = "\n".join(lines) + ("\n" if lines else "")
     if isinstance(target, (str, os.PathLike)):
         with open(os.fspath(target), "w", encoding="utf-8") as f:

@@ -28,7 +28,8 @@ import cv2
 import numpy as np
 
 from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
-from slam.io.frame import RGBDFrame
+from slam.input_checks import TextDecodeError, read_text_lines
+from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
 from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence
 from slam.io.trajectory import read_tum_trajectory
@@ -96,26 +97,40 @@ def camera_from_name(folder_name: str) -> str | None:
     return f"fr{m.group(1)}" if m else None
 
 
+def _lines(path: Path) -> list[str]:
+    """The lines of a list or calibration file; a byte that is not UTF-8 is a :class:`DatasetError`."""
+    try:
+        return read_text_lines(path)[1]
+    except TextDecodeError as e:
+        raise DatasetError(path, e.reason, e.line) from None
+
+
 def read_calibration_file(path: Path) -> TUMCamera:
     """A camera from ``calibration.txt``: the first non-comment line ``fx fy cx cy [k1 k2 p1 p2 k3]``.
 
     Raises:
-        DatasetError: a malformed file (with the line number).
+        DatasetError: a malformed file (with the line number), non-finite values or a focal length <= 0.
     """
-    with open(path, "r", encoding="utf-8") as f:
-        for number, raw in enumerate(f, start=1):
-            line = raw.strip()
-            if not line or line.startswith("#"):
-                continue
-            try:
-                values = [float(v) for v in line.replace(",", " ").split()]
-            except ValueError:
-                raise DatasetError(path, f"expected 'fx fy cx cy [k1 k2 p1 p2 k3]', got {line!r}", number) from None
-            if len(values) not in (4, 9):
-                raise DatasetError(path, f"expected 4 or 9 numbers 'fx fy cx cy [k1 k2 p1 p2 k3]', got {len(values)}",
-                                   number)
-            dist = tuple(values[4:]) if len(values) == 9 else (0.0,) * 5
-            return TUMCamera(*values[:4], distortion=dist)
+    for number, raw in enumerate(_lines(path), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        try:
+            values = [float(v) for v in line.replace(",", " ").split()]
+        except ValueError:
+            raise DatasetError(path, f"expected 'fx fy cx cy [k1 k2 p1 p2 k3]', got {line!r}", number) from None
+        if len(values) not in (4, 9):
+            raise DatasetError(path, f"expected 4 or 9 numbers 'fx fy cx cy [k1 k2 p1 p2 k3]', got {len(values)}",
+                               number)
+        if not np.isfinite(values).all():
+            raise DatasetError(path, f"non-finite value in {line!r}", number)
+        dist = tuple(values[4:]) if len(values) == 9 else (0.0,) * 5
+        cam = TUMCamera(*values[:4], distortion=dist)
+        try:
+            check_intrinsics(cam.K, "the camera")
+        except ValueError as e:
+            raise DatasetError(path, str(e), number) from None
+        return cam
     raise DatasetError(path, "no 'fx fy cx cy' line")
 
 
@@ -133,26 +148,25 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
     if not path.is_file():
         raise DatasetNotFoundError(path, "list file does not exist")
     entries: dict[float, tuple[int, str]] = {}
-    with open(path, "r", encoding="utf-8") as f:
-        for number, raw in enumerate(f, start=1):
-            line = raw.strip()
-            if not line or line.startswith("#"):
-                continue
-            fields = line.replace(",", " ").replace("\t", " ").split()
-            if not entries and fields[0].lower() == "timestamp":
-                continue  # an uncommented column header before the data
-            if len(fields) < 2:
-                raise DatasetError(path, f"expected 'timestamp filename', got {line!r}", number)
-            try:
-                stamp = float(fields[0])
-            except ValueError:
-                raise DatasetError(path, f"timestamp is not a number in {line!r}", number) from None
-            if not np.isfinite(stamp):
-                raise DatasetError(path, f"non-finite timestamp in {line!r}", number)
-            if stamp in entries:
-                logger.warning("%s:%d: repeated timestamp %r, keeping this line", path, number, stamp)
-                del entries[stamp]  # re-insert below so the file order follows the kept line
-            entries[stamp] = (number, fields[1])
+    for number, raw in enumerate(_lines(path), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.replace(",", " ").replace("\t", " ").split()
+        if not entries and fields[0].lower() == "timestamp":
+            continue  # an uncommented column header before the data
+        if len(fields) < 2:
+            raise DatasetError(path, f"expected 'timestamp filename', got {line!r}", number)
+        try:
+            stamp = float(fields[0])
+        except ValueError:
+            raise DatasetError(path, f"timestamp is not a number in {line!r}", number) from None
+        if not np.isfinite(stamp):
+            raise DatasetError(path, f"non-finite timestamp in {line!r}", number)
+        if stamp in entries:
+            logger.warning("%s:%d: repeated timestamp %r, keeping this line", path, number, stamp)
+            del entries[stamp]  # re-insert below so the file order follows the kept line
+        entries[stamp] = (number, fields[1])
     if not entries:
         raise DatasetError(path, "the list is empty (no 'timestamp filename' lines)")
     stamps = np.fromiter(entries.keys(), dtype=np.float64, count=len(entries))
@@ -203,10 +217,7 @@ class TUMSequence(RGBDSequence):
 
         self.camera_name = None
         if K is not None:
-            K = np.asarray(K, dtype=np.float64)
-            if K.shape != (3, 3):
-                raise ValueError(f"K must have shape (3, 3), got {K.shape}")
-            self.K, self.distortion = K.copy(), np.zeros(5)
+            self.K, self.distortion = check_intrinsics(K, "K"), np.zeros(5)
         elif camera is None and (self.root / "calibration.txt").is_file():
             cam = read_calibration_file(self.root / "calibration.txt")
             self.camera_name = "calibration.txt"

@@ -1,9 +1,13 @@
 """The loop closer: for each new keyframe, describe -> candidates -> verify -> consistency.
 
-:class:`LoopCloser` owns the place-recognition descriptor (:class:`attnloop.AttentionDescriptor`) and
-the keyframe database (:class:`attnloop.index.LoopCandidateDetector`). It reads the keyframe graph (the
-current pose estimates, the distances along it) but never changes it: :meth:`LoopCloser.close` returns
-the accepted :class:`LoopClosure` s and the caller adds them as loop edges.
+:class:`LoopCloser` owns the place-recognition descriptor (:class:`attnloop.AttentionDescriptor`), the
+keyframe database (:class:`attnloop.index.LoopCandidateDetector`) and the group-consistency check
+(:class:`slam.loop.consistency.GroupConsistency`). A candidate is verified geometrically and held to a
+disagreement bound that grows with the distance travelled between the two keyframes
+(:mod:`slam.loop.acceptance`); every verified loop becomes a hypothesis, and the largest mutually
+consistent group of hypotheses is kept. The closer reads the keyframe graph (the current estimates, the
+distances along it) but never changes it: :meth:`LoopCloser.close` returns a :class:`LoopUpdate` (the new
+loops, and which hypotheses are kept now) and the caller applies it to the graph.
 
 Example:
     >>> import torch
@@ -23,6 +27,8 @@ import torch
 
 from slam.keyframe_graph import KeyframeGraph
 from slam.lie import se3_between
+from slam.loop.acceptance import drift_limits
+from slam.loop.consistency import GroupConsistency
 from slam.loop.verification import DriftLimits, Verification, verify_candidate
 from slam.odometry.frontend import Keyframe
 from slam.timing import StageTimer
@@ -30,7 +36,7 @@ from slam.timing import StageTimer
 logger = logging.getLogger(__name__)
 Tensor = torch.Tensor
 
-__all__ = ["LoopCloser", "LoopClosure", "LoopQuery", "build_descriptor"]
+__all__ = ["LoopCloser", "LoopClosure", "LoopQuery", "LoopUpdate", "build_descriptor"]
 
 
 @dataclass
@@ -48,6 +54,14 @@ class LoopClosure:
         information: ``(6, 6)`` float64 information of ``T_ab`` from the registration (unscaled; the back
             end scales it by ``LoopClosureConfig.information_scale``).
         verification: the full :class:`~slam.loop.verification.Verification` (disagreement, bound).
+        id: the hypothesis number (order of verification).
+        path_length: metres travelled between the two keyframes along the graph when it was verified.
+        consistent: in the largest group of mutually consistent loops (set by the loop closer); only those
+            are edges of the graph.
+        switched_off: the back end's robust kernel gave it a weight below
+            ``BackendConfig.switch_off_weight`` in its last optimisation (set by the system).
+        weight: its last kernel weight in the back end (1 before any optimisation).
+        edge: its index in ``KeyframeGraph.edges`` (-1 until the caller adds it).
     """
 
     kf_a: int
@@ -61,6 +75,35 @@ class LoopClosure:
     T_ab: Tensor
     information: Optional[Tensor] = None
     verification: Optional[Verification] = None
+    id: int = -1
+    path_length: float = float("nan")
+    consistent: bool = True
+    switched_off: bool = False
+    weight: float = 1.0
+    edge: int = -1
+
+    @property
+    def status(self) -> str:
+        """``"kept"``, ``"inconsistent"`` (outside the consistent group) or ``"switched_off"`` (by the back end)."""
+        if not self.consistent:
+            return "inconsistent"
+        return "switched_off" if self.switched_off else "kept"
+
+
+@dataclass
+class LoopUpdate:
+    """What one :meth:`LoopCloser.close` call changed.
+
+    Attributes:
+        new: the loops verified during the call (each with its ``status``).
+        changed: earlier loops that entered or left the consistent group.
+    """
+
+    new: List[LoopClosure] = field(default_factory=list)
+    changed: List[LoopClosure] = field(default_factory=list)
+
+    def __bool__(self) -> bool:
+        return bool(self.new or self.changed)
 
 
 @dataclass
@@ -118,13 +161,22 @@ class LoopCloser:
         self.timer = timer or StageTimer()
         self.descriptor = descriptor if descriptor is not None else build_descriptor(config.descriptor, self.timer)
         self.detector = LoopCandidateDetector(config.detector)
+        self.consistency = GroupConsistency(config.consistency)
         self._queries: List[LoopQuery] = []
+        self._loops: List[LoopClosure] = []  # every hypothesis, by id
         self._kf_of_id: Dict[int, int] = {}  # detector id -> keyframe id
+        self._t0: Optional[float] = None
+        self._last_id = -1
 
     @property
     def queries(self) -> List[LoopQuery]:
         """One entry per query so far."""
         return list(self._queries)
+
+    @property
+    def hypotheses(self) -> List[LoopClosure]:
+        """Every verified loop so far (kept or not), by id."""
+        return list(self._loops)
 
     @torch.no_grad()
     def describe(self, kf: Keyframe) -> Tensor:
@@ -136,24 +188,34 @@ class LoopCloser:
         return self.descriptor(img)[0]
 
     def _detector_id(self, kf: Keyframe) -> int:
-        # the detector's ids are frame indices, so that its exclusion window counts frames, not keyframes
-        return int(kf.frame_index)
+        # milliseconds since the first keyframe: the detector's exclusion window is then a time, whatever the
+        # frame rate or frame step (ids must increase: equal stamps get the next integer)
+        if self._t0 is None:
+            self._t0 = float(kf.timestamp)
+        ms = int(round((float(kf.timestamp) - self._t0) * 1000.0))
+        self._last_id = max(ms, self._last_id + 1)
+        return self._last_id
 
-    def limits(self, a: int, b: int, graph: KeyframeGraph) -> DriftLimits:
-        """The bound on the disagreement between a loop ``a -> b`` and the current estimate of it."""
-        cfg = self.config
-        return DriftLimits(cfg.max_drift_translation, cfg.max_drift_rotation_deg)
+    def limits(self, path_length: float) -> DriftLimits:
+        """The bound on the disagreement between a loop and the current estimate of it, for keyframes
+        ``path_length`` metres apart along the graph (:func:`slam.loop.acceptance.drift_limits`)."""
+        return drift_limits(path_length, self.config.drift)
 
-    def close(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph) -> List[LoopClosure]:
-        """Query the database with a new keyframe, verify its candidates, add it to the database.
+    def close(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph,
+              through_loops: bool = False, min_loop_weight: float = 0.0) -> LoopUpdate:
+        """Query the database with a new keyframe, verify its candidates, check the group, add it to the
+        database.
 
         Args:
             kf: the new keyframe (already in ``graph``).
             keyframes: every keyframe so far, by id (their features).
-            graph: the keyframe graph (read only: poses and distances).
+            graph: the keyframe graph (read only: estimates and distances).
+            through_loops: the graph's estimates have been corrected by its loops, so the distance that
+                bounds the disagreement may take the shortcuts they offer (else: the odometry chain).
+            min_loop_weight: loops the back end trusts less than this are no shortcut.
 
         Returns:
-            the accepted loops (the caller adds them to the graph).
+            :class:`LoopUpdate` (the caller applies it to the graph).
         """
         cfg = self.config
         with self.timer("descriptor"):
@@ -167,20 +229,36 @@ class LoopCloser:
         query = LoopQuery(kf.id, top_kf, top_score, float(cands.threshold),
                           [self._kf_of_id[int(c)] for c in cands.ids[: cfg.max_candidates]], [])
         self._queries.append(query)
-        accepted = []
+        update = LoopUpdate()
+        if not query.candidates:
+            return update
+        lengths = graph.path_lengths(kf.id, through_loops=through_loops, min_loop_weight=min_loop_weight)
         for cand_id, score in zip(query.candidates, cands.scores[: cfg.max_candidates].tolist()):
             a = keyframes[cand_id]
             with self.timer("verification"):
                 estimate = se3_between(graph.estimate(a.id), graph.estimate(kf.id))
-                v = verify_candidate(a.features, kf.features, estimate, self.limits(a.id, kf.id, graph), cfg)
+                v = verify_candidate(a.features, kf.features, estimate, self.limits(float(lengths[a.id])), cfg)
             if not v.accepted:
                 query.rejections[cand_id] = v.reason
                 logger.info("loop candidate %d -> %d rejected: %s", cand_id, kf.id, v.reason)
                 continue
             query.verified.append(cand_id)
             loop = LoopClosure(a.id, kf.id, a.frame_index, kf.frame_index, a.timestamp, kf.timestamp, float(score),
-                               v.num_inliers, v.T_ab, v.information, v)
-            accepted.append(loop)
-            logger.info("loop accepted: keyframe %d (frame %d) <-> keyframe %d (frame %d), %d inliers",
-                        loop.kf_a, loop.frame_a, loop.kf_b, loop.frame_b, loop.num_inliers)
-        return accepted
+                               v.num_inliers, v.T_ab, v.information, v, id=len(self._loops),
+                               path_length=float(lengths[a.id]))
+            self._loops.append(loop)
+            update.new.append(loop)
+            logger.info("loop verified: keyframe %d (frame %d) <-> keyframe %d (frame %d), %d inliers, %.2f m "
+                        "travelled", loop.kf_a, loop.frame_a, loop.kf_b, loop.frame_b, loop.num_inliers,
+                        loop.path_length)
+            with self.timer("loop_consistency"):
+                kept = set(self.consistency.add(loop.kf_a, loop.kf_b, loop.T_ab, graph))
+            for lp in self._loops:
+                was = lp.consistent
+                lp.consistent = lp.id in kept
+                if lp is not loop and lp.consistent != was and lp not in update.changed:
+                    update.changed.append(lp)
+            if not loop.consistent:
+                logger.info("loop %d (keyframes %d <-> %d) is outside the largest consistent group", loop.id,
+                            loop.kf_a, loop.kf_b)
+        return update

@@ -1,11 +1,13 @@
-"""Built-in synthetic RGB-D sequences with exact ground truth: a photo-textured room rendered by a
-ray caster in torch, camera trajectories with known revisits, Kinect-like noise, and a writer of the
-TUM RGB-D layout.
+"""Built-in synthetic RGB-D sequences with exact ground truth: a photo-textured room (and a multi-room
+building with identically furnished rooms, :mod:`slam.synthetic.building`) rendered by a ray caster in
+torch, camera trajectories with known revisits, Kinect-like noise, and a writer of the TUM RGB-D layout.
 
 Example:
     >>> from slam.synthetic import generate_sequence  # doctest: +SKIP
     >>> folder = generate_sequence("/tmp/synthetic_loop", trajectory="loop", num_frames=300)  # doctest: +SKIP
 """
+from slam.synthetic.building import BuildingConfig, build_building_scene, building_layout
+from slam.synthetic.building_tour import building_sequence, building_trajectory, generate_building_sequence
 from slam.synthetic.demo import DEFAULT_DEMO_SCENE, DEMO_SCENES, DemoScene, generate_demo
 from slam.synthetic.render import DepthNoiseConfig, ImageNoiseConfig, RenderOutput, render_frames
 from slam.synthetic.scene import RoomConfig, Scene, build_room_scene
@@ -22,6 +24,7 @@ __all__ = [
                                      "DEFAULT_DEMO_SCENE",
                                      "DEMO_SCENES",
                                      "DEPTH_FACTOR",
+                                     "BuildingConfig",
                                      "TRAJECTORIES",
                                      "DemoScene",
                                      "DepthNoiseConfig",
@@ -31,7 +34,12 @@ __all__ = [
                                      "Scene",
                                      "SyntheticSequence",
                                      "TrajectoryConfig",
+                                     "build_building_scene",
                                      "build_room_scene",
+                                     "building_layout",
+                                     "building_sequence",
+                                     "building_trajectory",
+                                     "generate_building_sequence",
                                      "generate_demo",
                                      "generate_sequence",
                                      "make_trajectory",

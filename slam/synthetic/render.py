@@ -26,6 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -240,32 +241,68 @@ def _face_table(scene: Scene) -> Tensor:
     return table.reshape(-1, 13).float().T.contiguous()
 
 
-def _box_screen_rect(scene: Scene, b: int, R: Tensor, t: Tensor, K: Tensor, height: int, width: int):
-    """Pixel rectangle (u0, u1, v0, v1), end-exclusive, that contains box ``b``'s image, or None when it
-    is off-screen. A box reaching behind the camera gets the whole image."""
-    signs = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
-                         dtype=R.dtype, device=R.device)
-    Rb = scene.rotations[b].to(R.dtype)
-    corners = scene.centers[b].to(R.dtype) + (signs * scene.half_sizes[b].to(R.dtype)) @ Rb.T
-    cam = (corners - t) @ R  # world -> camera: R^T (X - t)
-    if bool((cam[:, 2] <= 1e-3).any()):
-        return 0, width, 0, height
-    pix = cam @ K.T
-    u, v = pix[:, 0] / pix[:, 2], pix[:, 1] / pix[:, 2]
-    u0 = max(0, int(torch.floor(u.min())) - 1)
-    u1 = min(width, int(torch.ceil(u.max())) + 2)
-    v0 = max(0, int(torch.floor(v.min())) - 1)
-    v1 = min(height, int(torch.ceil(v.max())) + 2)
-    if u0 >= u1 or v0 >= v1:
-        return None
-    return u0, u1, v0, v1
+_BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+# the 12 edges of a box as pairs of indices into _BOX_SIGNS (corners differing in one sign)
+_BOX_EDGES = np.array([(a, b) for a in range(8) for b in range(a + 1, 8)
+                       if int(np.abs(_BOX_SIGNS[a] - _BOX_SIGNS[b]).sum()) == 2], np.int64)
 
 
-def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, height: int, width: int):
+def _box_corners(scene: Scene) -> np.ndarray:
+    """World corners ``(B, 8, 3)`` float64 of every box."""
+    R = scene.rotations.detach().cpu().double().numpy()
+    c = scene.centers.detach().cpu().double().numpy()
+    h = scene.half_sizes.detach().cpu().double().numpy()
+    return c[:, None, :] + np.einsum("bkj,bij->bki", _BOX_SIGNS[None] * h[:, None, :], R)
+
+
+def _screen_rects(corners: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, height: int,
+                  width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel rectangles ``(B, 4)`` int64 ``(u0, u1, v0, v1)`` (end-exclusive) that contain each box's image,
+    and a ``(B,)`` bool mask of the boxes that can be seen at all.
+
+    The box is clipped by the plane ``z = _NEAR`` in front of the camera (rays ignore nearer hits): its
+    image is the hull of the projections of its corners in front of the plane and of the points where its
+    edges cross it, so a box reaching behind the camera (a wall beside it) is bounded as tightly as any
+    other, and a box wholly behind the camera is skipped.
+    """
+    cam = (corners - t) @ R  # (B, 8, 3), world -> camera: R^T (X - t)
+    z = cam[..., 2]
+    p0, p1 = cam[:, _BOX_EDGES[:, 0]], cam[:, _BOX_EDGES[:, 1]]  # (B, 12, 3)
+    z0, z1 = p0[..., 2], p1[..., 2]
+    crossing = (z0 - _NEAR) * (z1 - _NEAR) < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        alpha = np.where(crossing, (_NEAR - z0) / (z1 - z0), 0.0)
+    cut = p0 + alpha[..., None] * (p1 - p0)
+    pts = np.concatenate([cam, cut], 1)  # (B, 20, 3)
+    valid = np.concatenate([z > _NEAR, crossing], 1)
+    zz = np.where(valid, np.maximum(pts[..., 2], _NEAR), 1.0)
+    u = K[0, 0] * pts[..., 0] / zz + K[0, 2]
+    v = K[1, 1] * pts[..., 1] / zz + K[1, 2]
+    big = 1e18
+    u_lo = np.where(valid, u, big).min(1)
+    u_hi = np.where(valid, u, -big).max(1)
+    v_lo = np.where(valid, v, big).min(1)
+    v_hi = np.where(valid, v, -big).max(1)
+    seen = valid.any(1)
+    rects = np.zeros((corners.shape[0], 4), np.int64)
+    rects[:, 0] = np.clip(np.floor(np.clip(u_lo, -1e9, 1e9)) - 1, 0, width)
+    rects[:, 1] = np.clip(np.ceil(np.clip(u_hi, -1e9, 1e9)) + 2, 0, width)
+    rects[:, 2] = np.clip(np.floor(np.clip(v_lo, -1e9, 1e9)) - 1, 0, height)
+    rects[:, 3] = np.clip(np.ceil(np.clip(v_hi, -1e9, 1e9)) + 2, 0, height)
+    seen &= (rects[:, 0] < rects[:, 1]) & (rects[:, 2] < rects[:, 3])
+    return rects, seen
+
+
+def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, height: int, width: int,
+                 corners: np.ndarray | None = None):
     """Nearest hit (t, box, face) of every pixel ray ``rays_c (3, P)`` of one camera; a box is only
-    tested inside the pixel rectangle its corners project to (a screen-space bound), so the cost stays
-    ~ pixels rather than pixels x boxes."""
+    tested inside the pixel rectangle its near-clipped corners project to (a screen-space bound), so the
+    cost stays ~ pixels rather than pixels x boxes. ``corners``: :func:`_box_corners` of the scene."""
     dirs = R @ rays_c  # (3, P) world directions
+    if corners is None:
+        corners = _box_corners(scene)
+    rects, seen = _screen_rects(corners, R.detach().cpu().double().numpy(), t.detach().cpu().double().numpy(),
+                                K.detach().cpu().double().numpy(), height, width)
     P = dirs.shape[1]
     t_best = torch.full((P,), float("inf"), dtype=dirs.dtype, device=dirs.device)
     box = torch.zeros(P, dtype=torch.int64, device=dirs.device)
@@ -277,10 +314,12 @@ def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, 
         o_l = (RbT @ (t - scene.centers[b].to(dirs.dtype)))[:, None]
         half = scene.half_sizes[b].to(dirs.dtype)[:, None]
         inside = bool(scene.inside[b])
-        rect = (0, width, 0, height) if inside else _box_screen_rect(scene, b, R, t, K, height, width)
-        if rect is None:
+        if inside:
+            u0, u1, v0, v1 = 0, width, 0, height
+        elif not seen[b]:
             continue
-        u0, u1, v0, v1 = rect
+        else:
+            u0, u1, v0, v1 = (int(x) for x in rects[b])
         sub = dirs_img[:, v0:v1, u0:u1].reshape(3, -1)
         tb, fb = _slab(o_l, RbT @ sub, half, inside)
         shape = (v1 - v0, u1 - u0)
@@ -366,8 +405,9 @@ def render_frames(scene: Scene, K: Tensor, poses: Tensor, height: int, width: in
     cos_inc = torch.zeros_like(depth)
     hit = torch.zeros(N, height * width, dtype=torch.int64, device=device)
     table = _face_table(scene)
+    corners = _box_corners(scene)
     for i in range(N):
-        dirs, t, box, face = _trace_frame(scene, Rs[i], ts[i], rays_c, Kf, height, width)
+        dirs, t, box, face = _trace_frame(scene, Rs[i], ts[i], rays_c, Kf, height, width, corners)
         d, c, ci, h = _shade(scene, table, ts[i], dirs, t, box, face, Rs[i], fx, fy)
         depth[i], rgb[i], cos_inc[i], hit[i] = d, c.round().to(torch.uint8), ci, h
     return RenderOutput(rgb=rgb.reshape(N, height, width, 3), depth=depth.reshape(N, height, width),

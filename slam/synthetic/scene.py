@@ -450,10 +450,15 @@ def _mip_chain(tex: np.ndarray, levels: int) -> list[np.ndarray]:
 
 
 def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig, mip_levels: int = 8) -> Scene:
-    """Turn box specifications into a :class:`Scene` (float32 geometry, uint8 texture pyramid)."""
+    """Turn box specifications into a :class:`Scene` (float32 geometry, uint8 texture pyramid).
+
+    A texture array used by several faces (the same object) is stored once: identically furnished rooms
+    cost no texture memory.
+    """
     centers, rots, halves, inside = [], [], [], []
     fo, fu, fv, fe, fn, ft, fd = [], [], [], [], [], [], []
     textures: list[np.ndarray] = []
+    tex_ids: dict[int, int] = {}  # id() of a texture array -> its texture id: a shared array is stored once
     for b in boxes:
         if len(b.faces) != 6:
             raise ValueError(f"box {b.name!r} needs 6 face textures, got {len(b.faces)}")
@@ -471,8 +476,10 @@ def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig, mip_levels: int = 8) ->
             if tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8:
                 raise ValueError(f"box {b.name!r} face {k}: texture must be (h, w, 3) uint8, got "
                                  f"{tex.shape} {tex.dtype}")
-            ids.append(len(textures))
-            textures.append(tex)
+            if id(tex) not in tex_ids:
+                tex_ids[id(tex)] = len(textures)
+                textures.append(tex)
+            ids.append(tex_ids[id(tex)])
             dens.append(max(tex.shape[1] / e[k][0], tex.shape[0] / e[k][1]))
         ft.append(ids)
         fd.append(dens)

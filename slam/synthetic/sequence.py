@@ -115,6 +115,8 @@ class SyntheticSequence(RGBDSequence):
         depth_noise_config: the depth noise model (default :class:`DepthNoiseConfig`).
         image_noise_config: the image noise model (default :class:`ImageNoiseConfig`).
         batch_size: frames rendered together when iterating.
+        trajectory_name: the name of a given Trajectory (in the sequence's name and settings; default
+            ``"custom"``).
     """
 
     depth_scale = DEPTH_FACTOR
@@ -123,12 +125,13 @@ class SyntheticSequence(RGBDSequence):
                  height: int = 480, seed: int = 0, depth_noise: bool = True, image_noise: bool = True,
                  scene: Scene | None = None, trajectory_config: TrajectoryConfig | None = None,
                  depth_noise_config: DepthNoiseConfig | None = None,
-                 image_noise_config: ImageNoiseConfig | None = None, batch_size: int = 4):
+                 image_noise_config: ImageNoiseConfig | None = None, batch_size: int = 4,
+                 trajectory_name: str | None = None):
         if isinstance(trajectory, Trajectory):
             if trajectory.poses.ndim != 2 or trajectory.poses.shape[-1] != 7:
                 raise ValueError(f"trajectory poses must have shape (N, 7), got {tuple(trajectory.poses.shape)}")
             self.trajectory = trajectory
-            self.trajectory_name = "custom"
+            self.trajectory_name = trajectory_name or "custom"
         else:
             self.trajectory = make_trajectory(trajectory, num_frames, seed=seed, config=trajectory_config)
             self.trajectory_name = str(trajectory)

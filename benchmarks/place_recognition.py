@@ -1,0 +1,313 @@
+"""Place recognition on real places: every fusion mode and the anchors side by side, in one run.
+
+Sets (each skipped with a note when its data is absent):
+
+* ``rtabmap``: rtabmap-samples, 84 images of a corridor walked twice with RTAB-Map's ground-truth loop
+  matrix. ``fwd``: each image against those at least 10 earlier (the existing protocol: the 44
+  revisiting images 41-84 have a true match); ``rev``: against those at least 10 later (images 1-45).
+* ``kitchen``: 7-Scenes redkitchen, every 5th frame (200), ground truth from the poses (0.5 m,
+  45 degrees). ``fwd``: each frame against those at least 100 frames earlier; ``split``: the second
+  half of the sequence (frames 500-995) against the first.
+* ``--query DIR --reference DIR --ground-truth FILE``: a VPR-Bench-style pair of folders (images sorted
+  by name) with a ``ground_truth_new.npy`` or a binary matrix (:mod:`slam.eval.place_recognition`).
+
+Methods (all L2-normalised, cosine similarity; ORB-BoW with its own score):
+
+* ``<mode>``: ``AttentionDescriptor("efficientnet_lite0", fusion=mode, pretrained=True)``, the default;
+* ``paper <mode>``: the same with ``preset="paper"``;
+* ``GAP`` / ``GeM``: the default descriptor's tap L (Lite0 stage6+stage7, 512 x 7 x 9) globally
+  average-pooled / GeM-pooled (p = 3), no attention, no RNN;
+* ``ORB-BoW``: a bag of ORB words as ORB-SLAM2 / RTAB-Map detect loops: 1000 ORB features per image,
+  a 1000-word vocabulary (k-means on the descriptor bits, words binarised), tf-idf weights and DBoW2's
+  L1 score ``1 - |v1 - v2|_1 / 2`` (0 for an image without features). The vocabulary and idf are learnt on images other than the
+  evaluated ones: the kitchen's frames for rtabmap and for user folders, rtabmap-samples plus
+  scikit-image's photographs for the kitchen.
+
+Usage:
+    python benchmarks/place_recognition.py [--data ../shared/data] [--sets rtabmap kitchen] [--out runs/pr]
+    python benchmarks/place_recognition.py --sets --query corridor/query --reference corridor/ref \\
+        --ground-truth corridor/ground_truth_new.npy
+
+Prints markdown tables (R@1, R@5, R@10, AUC-PR as VPR-Bench defines it, recall at 100 % precision and
+its threshold) and writes one PR-curve PNG per protocol to ``--out``.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from attnloop import AttentionDescriptor
+from attnloop.fusion import FUSION_MODES
+from slam.eval.loops import LoopGroundTruthConfig
+from slam.eval.place_recognition import (
+    evaluate,
+    ground_truth_from_poses,
+    plot_place_recognition,
+    read_ground_truth,
+    sequence_candidates,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
+
+
+def data_root() -> Path:
+    return Path(os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data"))
+
+
+def load_rgb(path: Path) -> np.ndarray:
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise FileNotFoundError(f"cannot read image {path}")
+    return np.ascontiguousarray(bgr[:, :, ::-1])
+
+
+def folder_images(folder: Path) -> list[Path]:
+    files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise SystemExit(f"no images in {folder}")
+    return files
+
+
+# ------------------------------------------------------------------------------------------ ORB-BoW
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+
+
+class OrbBagOfWords:
+    """A flat ORB vocabulary with tf-idf weights and DBoW2's L1 score (see the module docstring)."""
+
+    def __init__(self, words: int = 1000, features: int = 1000, seed: int = 0):
+        self.words, self.features, self.seed = words, features, seed
+        self.orb = cv2.ORB_create(nfeatures=features)
+        self._index = None
+
+    def _describe(self, rgb: np.ndarray) -> np.ndarray:
+        grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        _, d = self.orb.detectAndCompute(grey, None)
+        return np.zeros((0, 32), np.uint8) if d is None else d
+
+    def fit(self, images: list[np.ndarray]) -> OrbBagOfWords:
+        descs = [self._describe(im) for im in images]
+        bits = np.unpackbits(np.concatenate(descs), axis=1).astype(np.float32)
+        rng = np.random.default_rng(self.seed)
+        if bits.shape[0] > 100_000:
+            bits = bits[rng.choice(bits.shape[0], 100_000, replace=False)]
+        try:
+            import faiss
+
+            km = faiss.Kmeans(256, self.words, niter=20, seed=self.seed, verbose=False)
+            km.train(bits)
+            centroids = km.centroids
+        except ImportError:
+            crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1e-3)
+            cv2.setRNGSeed(self.seed)
+            _, _, centroids = cv2.kmeans(bits, self.words, None, crit, 1, cv2.KMEANS_PP_CENTERS)
+        self.vocab = np.packbits(centroids > 0.5, axis=1)  # binary words, as DBoW2's k-majority
+        try:
+            import faiss
+
+            self._index = faiss.IndexBinaryFlat(256)
+            self._index.add(self.vocab)
+        except ImportError:
+            self._index = None
+        counts = np.stack([np.bincount(self._assign(d), minlength=self.words) > 0 for d in descs])
+        self.idf = np.log(len(descs) / np.maximum(counts.sum(0), 1)).astype(np.float32)
+        return self
+
+    def _assign(self, d: np.ndarray) -> np.ndarray:
+        # nearest word in Hamming distance (faiss's binary index when installed, else a popcount table)
+        if d.shape[0] == 0:
+            return np.zeros(0, np.int64)
+        if self._index is not None:
+            return self._index.search(np.ascontiguousarray(d), 1)[1][:, 0].astype(np.int64)
+        dist = _POPCOUNT[np.bitwise_xor(d[:, None, :], self.vocab[None, :, :])].sum(2, dtype=np.int32)
+        return dist.argmin(1)
+
+    def transform(self, images: list[np.ndarray]) -> torch.Tensor:
+        out = np.zeros((len(images), self.words), np.float32)
+        for i, im in enumerate(images):
+            w = self._assign(self._describe(im))
+            if w.size:
+                tf = np.bincount(w, minlength=self.words) / w.size
+                v = tf * self.idf
+                out[i] = v / max(np.abs(v).sum(), 1e-12)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def similarity(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """DBoW2's L1 score ``(|a|_1 + |b|_1 - |a - b|_1) / 2 = sum_i min(a_i, b_i)`` (non-negative vectors).
+
+        For L1-normalised vectors it is ``1 - |a - b|_1 / 2``; an image without ORB features (an empty
+        vector) scores 0 with every image, as in DBoW2.
+        """
+        return torch.stack([torch.minimum(a[i:i + 1], b).sum(1) for i in range(a.shape[0])])
+
+
+# ------------------------------------------------------------------------------------------ descriptors
+def attention_codes(images: list[np.ndarray], preset: str | None, batch: int = 8) -> dict[str, torch.Tensor]:
+    """Descriptors of every fusion mode from one backbone pass, plus GAP/GeM of the tap for the default."""
+    desc = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=True, preset=preset)
+    taps, grads = [], []
+    with torch.no_grad():
+        for s in range(0, len(images), batch):
+            x = torch.stack([torch.from_numpy(im).permute(2, 0, 1) for im in images[s:s + batch]])
+            parts = desc.parts(x)
+            taps.append(parts.tap)
+            grads.append(parts.grad)
+    tap, grad = torch.cat(taps), torch.cat(grads)
+    prefix = "paper " if preset else ""
+    out = {prefix + m: desc.from_attention(tap, grad, fusion=m) for m in FUSION_MODES}
+    if preset is None:
+        out["GAP"] = F.normalize(tap.mean((2, 3)), dim=1)
+        out["GeM"] = F.normalize(tap.clamp_min(1e-6).pow(3.0).mean((2, 3)).pow(1.0 / 3.0), dim=1)
+    return out
+
+
+def all_methods(query: list[np.ndarray], reference: list[np.ndarray] | None, bow_train: list[np.ndarray]):
+    """{method: (Q, R) similarity}; reference None: one sequence against itself."""
+    both = query + (reference or [])
+    nq = len(query)
+    codes = {**attention_codes(both, None), **attention_codes(both, "paper")}
+    sims = {}
+    for name, c in codes.items():
+        q, r = c[:nq], (c[nq:] if reference else c)
+        sims[name] = q @ r.T
+    bow = OrbBagOfWords().fit(bow_train)
+    v = bow.transform(both)
+    sims["ORB-BoW"] = bow.similarity(v[:nq], v[nq:] if reference else v)
+    return sims
+
+
+# ------------------------------------------------------------------------------------------ sets
+def kitchen_poses(seq: Path, frames: list[int]) -> torch.Tensor:
+    from slam.lie import rotmat_to_quat
+
+    T = torch.tensor(np.stack([np.loadtxt(seq / f"frame-{i:06d}.pose.txt").reshape(4, 4) for i in frames]))
+    return torch.cat([T[:, :3, 3], rotmat_to_quat(T[:, :3, :3])], dim=1)
+
+
+def skimage_photos() -> list[np.ndarray]:
+    try:
+        import skimage.data as sk
+    except ImportError:
+        return []
+    out = []
+    for name in ("astronaut", "chelsea", "coffee", "rocket", "motorcycle_left", "hubble_deep_field"):
+        fn = getattr(sk, name, None)
+        try:
+            im = fn() if fn else None
+        except Exception:  # noqa: BLE001  (some need a download)
+            im = None
+        if im is not None and im.ndim == 3:
+            out.append(np.ascontiguousarray(im[..., :3]))
+    return out
+
+
+def protocols_rtabmap(data: Path):
+    d = data / "rtabmap-samples"
+    if not (d / "samples_GT.bmp").is_file():
+        return None
+    images = [load_rgb(d / f"{i}.jpg") for i in range(1, 85)]
+    gt = read_ground_truth(d / "samples_GT.bmp")
+    sym = gt | gt.T
+    cand = sequence_candidates(84, 10)
+    kitchen = data / "7scenes-redkitchen"
+    bow_train = [load_rgb(kitchen / f"frame-{i:06d}.color.jpg") for i in range(0, 1000, 5)]
+    return images, None, bow_train, {"fwd": (sym & cand, cand), "rev": (sym & cand.T, cand.T)}
+
+
+def protocols_kitchen(data: Path, step: int = 5):
+    d = data / "7scenes-redkitchen"
+    if not (d / "frame-000000.color.jpg").is_file():
+        return None
+    frames = list(range(0, 1000, step))
+    images = [load_rgb(d / f"frame-{i:06d}.color.jpg") for i in frames]
+    poses = kitchen_poses(d, frames)
+    gap = 100 // step
+    gt = ground_truth_from_poses(poses, config=LoopGroundTruthConfig(0.5, 45.0, gap))
+    cand = sequence_candidates(len(frames), gap)
+    half = len(frames) // 2
+    split = torch.zeros_like(cand)
+    split[half:, :half] = True
+    gt_split = torch.zeros_like(gt)
+    gt_split[half:, :half] = ground_truth_from_poses(poses[half:], poses[:half])
+    rt = data / "rtabmap-samples"
+    bow_train = [load_rgb(rt / f"{i}.jpg") for i in range(1, 85) if (rt / f"{i}.jpg").is_file()] + skimage_photos()
+    return images, None, bow_train, {"fwd": (gt, cand), "split": (gt_split, split)}
+
+
+def protocols_folders(query: Path, reference: Path, gt_file: Path, data: Path):
+    q = [load_rgb(p) for p in folder_images(query)]
+    r = [load_rgb(p) for p in folder_images(reference)]
+    gt = read_ground_truth(gt_file, num_references=len(r))
+    if gt.shape[0] != len(q):
+        raise SystemExit(f"{gt_file}: {gt.shape[0]} queries in the ground truth, {len(q)} images in {query}")
+    kitchen = data / "7scenes-redkitchen"
+    bow_train = [load_rgb(kitchen / f"frame-{i:06d}.color.jpg") for i in range(0, 1000, 5)
+                 if (kitchen / f"frame-{i:06d}.color.jpg").is_file()]
+    rt = data / "rtabmap-samples"
+    bow_train += [load_rgb(rt / f"{i}.jpg") for i in range(1, 85) if (rt / f"{i}.jpg").is_file()]
+    return q, r, bow_train or q, {"pairs": (gt, torch.ones_like(gt))}
+
+
+def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path | None) -> None:
+    for pname, (gt, cand) in protos.items():
+        results = {m: evaluate(s, gt, candidates=cand) for m, s in sims.items()}
+        any_r = next(iter(results.values()))
+        print(f"\n#### {set_name} / {pname}: {any_r.num_queries} queries, {any_r.num_with_match} with a true match\n")
+        print("| method | R@1 | R@5 | R@10 | AUC-PR (VPR-Bench) | R@P100 | threshold at P100 |")
+        print("|---|---|---|---|---|---|---|")
+        for m, r in results.items():
+            thr = r.threshold_at_full_precision
+            print(f"| {m} | {r.recall_at(1):.3f} | {r.recall_at(5):.3f} | {r.recall_at(10):.3f} | {r.auc_pr:.3f} | "
+                  f"{r.recall_at_full_precision:.3f} | {thr:.3f} |")
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            keep = [m for m in results if not m.startswith("paper ") or m == "paper dam"]
+            plot_place_recognition(out / f"pr_{set_name}_{pname}.png", [(m, results[m]) for m in keep
+                                                                         if m in ("none", "dam", "ega", "GeM",
+                                                                                  "ORB-BoW", "paper dam")],
+                                   title=f"{set_name} / {pname}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, default=data_root())
+    parser.add_argument("--sets", nargs="*", default=["rtabmap", "kitchen"], choices=["rtabmap", "kitchen"])
+    parser.add_argument("--query", type=Path)
+    parser.add_argument("--reference", type=Path)
+    parser.add_argument("--ground-truth", type=Path)
+    parser.add_argument("--out", type=Path, default=None, help="folder for the PR-curve PNGs")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    if (args.query is None) != (args.reference is None) or (args.query is not None and args.ground_truth is None):
+        parser.error("--query, --reference and --ground-truth go together")
+    print(f"# Place recognition ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, "
+          f"{torch.get_num_threads()} thread(s))")
+    jobs = [(name, {"rtabmap": protocols_rtabmap, "kitchen": protocols_kitchen}[name]) for name in args.sets]
+    for name, fn in jobs:
+        t0 = time.perf_counter()
+        got = fn(args.data)
+        if got is None:
+            print(f"\n{name}: data not found under {args.data}; skipped", file=sys.stderr)
+            continue
+        query, reference, bow_train, protos = got
+        sims = all_methods(query, reference, bow_train)
+        report(name, sims, protos, args.out)
+        print(f"\n({name}: {len(query)} images, {time.perf_counter() - t0:.0f} s)")
+    if args.query is not None:
+        query, reference, bow_train, protos = protocols_folders(args.query, args.reference, args.ground_truth, args.data)
+        report(args.query.parent.name or "folders", all_methods(query, reference, bow_train), protos, args.out)
+
+
+if __name__ == "__main__":
+    main()

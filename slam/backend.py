@@ -1,0 +1,214 @@
+"""The SLAM back end: optimise the keyframe graph with a robust kernel per edge kind.
+
+Odometry edges and loop edges fail differently. An odometry edge is rarely wrong by much; a loop edge is
+either right or wrong altogether (an aliased place that passed verification). So each kind gets its own
+robust kernel (:class:`EdgeKindKernel`): by default Cauchy on the odometry edges and dynamic covariance
+scaling (:class:`DCS`, the closed form of switchable constraints) on the loops, which leaves a loop that
+agrees with the rest untouched and switches off, smoothly, one that does not. Graduated non-convexity
+(``loop_kernel="gnc"``: Geman-McClure on the loops, its width shrunk from wide to the final one over a few
+warm-started solves) is the alternative; docs/benchmarks.md compares them with false loops let through.
+
+:meth:`PoseGraphBackend.optimize` calls :func:`slam.graph.optimize` (its public API only) and returns a
+:class:`BackendResult` with the poses, each loop edge's final weight, status and timing.
+
+Example:
+    >>> import torch
+    >>> from slam.config import BackendConfig
+    >>> from slam.keyframe_graph import EdgeKind, KeyframeGraph
+    >>> from slam.lie import se3_exp, se3_identity
+    >>> g = KeyframeGraph()
+    >>> step = se3_exp(torch.tensor([1.0, 0, 0, 0, 0, 0.3], dtype=torch.float64))
+    >>> _ = g.add_keyframe(se3_identity(dtype=torch.float64))
+    >>> for k in range(1, 5):
+    ...     _ = g.add_odometry(k - 1, step, torch.eye(6, dtype=torch.float64), g.odometry_pose(k - 1))
+    >>> _ = g.add_loop(0, 4, se3_exp(torch.tensor([0.5, 3.0, 0, 0, 0, 1.2], dtype=torch.float64)),
+    ...                torch.eye(6, dtype=torch.float64))
+    >>> res = PoseGraphBackend(BackendConfig(), {EdgeKind.ODOMETRY: 1.0, EdgeKind.LOOP: 1.0}).optimize(g)
+    >>> res.poses.shape, sorted(res.loop_weights)
+    (torch.Size([5, 7]), [4])
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import torch
+
+from slam.graph import CHI2_95_6DOF, RobustKernel, make_kernel, optimize
+from slam.graph.costs import GemanMcClure
+from slam.graph.optimizer import OptimizationResult
+from slam.keyframe_graph import EdgeKind, KeyframeGraph
+
+Tensor = torch.Tensor
+
+__all__ = ["DCS", "BackendResult", "EdgeKindKernel", "PoseGraphBackend", "make_loop_kernel"]
+
+
+@dataclass
+class DCS(RobustKernel):
+    """Dynamic covariance scaling (Agarwal et al. 2013) on ``s = r^T Omega r``: the closed form of a
+    switchable constraint with prior ``phi``.
+
+    ``rho(s) = s`` for ``s <= phi``, else ``phi (3 s - phi) / (phi + s)`` (bounded by ``3 phi``); the IRLS
+    weight is ``(2 phi / (phi + s))^2``. ``width`` is ``sqrt(phi)`` (the Mahalanobis norm where it starts
+    acting, as for the other kernels).
+    """
+
+    width: float = math.sqrt(CHI2_95_6DOF)
+    name = "dcs"
+
+    def __post_init__(self) -> None:
+        if not self.width > 0:
+            raise ValueError(f"DCS width must be > 0, got {self.width}")
+
+    def rho_and_weight(self, s: Tensor):
+        phi = self.width ** 2
+        inl = s <= phi
+        den = phi + s
+        rho = torch.where(inl, s, phi * (3.0 * s - phi) / den)
+        w = torch.where(inl, torch.ones_like(s), (2.0 * phi / den) ** 2)
+        return rho, w
+
+
+class EdgeKindKernel(RobustKernel):
+    """A robust kernel per edge: ``kernels[k]`` on the edges whose kind code is ``k`` (None: quadratic).
+
+    Args:
+        kinds: ``(E,)`` int64 edge kinds in the graph's edge order (:meth:`KeyframeGraph.edge_kinds`).
+        kernels: kind code -> :class:`~slam.graph.costs.RobustKernel` or None.
+    """
+
+    name = "per_kind"
+
+    def __init__(self, kinds: Tensor, kernels: Dict[int, Optional[RobustKernel]]):
+        self.kinds = kinds.to(torch.long)
+        self.kernels = dict(kernels)
+        # the edges of each kind, as index tensors made once (the optimiser calls the kernel every step)
+        self._rows = {k: torch.nonzero(self.kinds == k)[:, 0] for k, kern in self.kernels.items()
+                      if kern is not None and bool((self.kinds == k).any())}
+
+    def rho_and_weight(self, s: Tensor):
+        if s.shape != self.kinds.shape:
+            raise ValueError(f"EdgeKindKernel: {tuple(s.shape)} squared norms for {self.kinds.numel()} edges")
+        if len(self._rows) == 1 and next(iter(self._rows.values())).numel() == s.numel():
+            return self.kernels[next(iter(self._rows))](s)  # one kind only: no scatter
+        rho, w = s.clone(), torch.ones_like(s)
+        for k, rows in self._rows.items():
+            rows = rows.to(s.device)
+            r_k, w_k = self.kernels[k](s.index_select(0, rows))
+            rho.index_copy_(0, rows, r_k.to(s.dtype))
+            w.index_copy_(0, rows, w_k.to(s.dtype))
+        return rho, w
+
+
+def make_loop_kernel(name: Optional[str], width: Optional[float]) -> Optional[RobustKernel]:
+    """The loop edges' kernel by name: ``"dcs"``, a kernel of :func:`slam.graph.make_kernel`, or None."""
+    if name is not None and name.lower() == "dcs":
+        return DCS() if width is None else DCS(width)
+    if name is not None and name.lower() == "gnc":
+        return GemanMcClure() if width is None else GemanMcClure(width)
+    return make_kernel(name, width)
+
+
+@dataclass
+class BackendResult:
+    """What :meth:`PoseGraphBackend.optimize` returns.
+
+    Attributes:
+        poses: ``(M, 7)`` float64 optimised keyframe poses.
+        loop_weights: index into ``KeyframeGraph.edges`` -> final kernel weight of that (active) loop
+            edge (1 = fully trusted, near 0 = switched off).
+        status: the (last) optimiser's status.
+        iterations: LM iterations over all solves.
+        seconds: wall time.
+        initial_chi2, chi2: of the graph (plain sums, before and after).
+        optimization: the last :class:`~slam.graph.optimizer.OptimizationResult`.
+        solves: optimiser calls (more than 1 for GNC).
+    """
+
+    poses: Tensor
+    loop_weights: Dict[int, float]
+    status: str
+    iterations: int
+    seconds: float
+    initial_chi2: float
+    chi2: float
+    optimization: Optional[OptimizationResult] = None
+    solves: int = 1
+    history: List[float] = field(default_factory=list)
+
+
+class PoseGraphBackend:
+    """Optimises a :class:`~slam.keyframe_graph.KeyframeGraph` (see the module docstring).
+
+    Args:
+        config: :class:`slam.config.BackendConfig`.
+        information_scale: edge kind -> factor on the registration's information.
+    """
+
+    def __init__(self, config, information_scale: Dict[EdgeKind, float]):
+        self.config = config
+        self.information_scale = dict(information_scale)
+        if config.loop_kernel is not None and str(config.loop_kernel).lower() not in (
+                "dcs", "gnc", "none", "huber", "cauchy", "tukey", "geman_mcclure", "gm", "l2", "trivial"):
+            raise ValueError(f"unknown loop kernel {config.loop_kernel!r}; expected 'dcs', 'gnc', a kernel name of "
+                             "slam.graph.make_kernel, or None")
+
+    def _kernel(self, kinds: Tensor, loop_kernel: Optional[RobustKernel]) -> RobustKernel:
+        odo = make_kernel(self.config.kernel, self.config.kernel_width)
+        return EdgeKindKernel(kinds, {int(EdgeKind.ODOMETRY): odo, int(EdgeKind.LOOP): loop_kernel})
+
+    def optimize(self, graph: KeyframeGraph, initial: Optional[Tensor] = None, online: bool = False) -> BackendResult:
+        """Optimise the active edges of ``graph`` from ``initial`` poses (default: its current estimates).
+
+        Args:
+            graph: the keyframe graph (not modified).
+            initial: ``(M, 7)`` start poses.
+            online: a correction during tracking: at most ``config.online_max_iterations`` LM iterations
+                (the graph changes little between two loops and the start is the previous solution).
+
+        Returns:
+            :class:`BackendResult`.
+
+        Raises:
+            ValueError: the graph has no keyframes or no edges.
+        """
+        cfg = self.config
+        t0 = time.perf_counter()
+        pg = graph.pose_graph(self.information_scale, poses=initial)
+        if pg is None or pg.num_edges == 0:
+            raise ValueError("the keyframe graph has no edges to optimise")
+        kinds = graph.edge_kinds(active_only=True)
+        active = [k for k, e in enumerate(graph.edges) if e.active]
+        loop_rows = [r for r, k in enumerate(active) if graph.edges[k].kind is EdgeKind.LOOP]
+        iters = cfg.online_max_iterations if online else cfg.max_iterations
+        name = None if cfg.loop_kernel is None else str(cfg.loop_kernel).lower()
+        solves, total_iters, history = 0, 0, []
+        initial_chi2 = None
+        if name == "gnc" and loop_rows:
+            # graduated non-convexity: Geman-McClure on the loops, from nearly quadratic to the final width
+            final = cfg.loop_kernel_width or math.sqrt(CHI2_95_6DOF)
+            widths = [final * cfg.gnc_factor ** k for k in range(cfg.gnc_steps - 1, -1, -1)]
+            poses = pg.poses
+            for w in widths:
+                res = optimize(pg.with_poses(poses, check=False), method=cfg.method,
+                               kernel=self._kernel(kinds, GemanMcClure(w)),
+                               max_iterations=max(1, iters // len(widths)) if online else iters)
+                initial_chi2 = res.initial_chi2 if initial_chi2 is None else initial_chi2
+                poses = res.graph.poses
+                solves += 1
+                total_iters += res.iterations
+                history.extend(res.cost_history)
+        else:
+            loop_kernel = (make_kernel(cfg.kernel, cfg.kernel_width) if name is None  # None: as the odometry's
+                           else make_loop_kernel(name, cfg.loop_kernel_width))
+            res = optimize(pg, method=cfg.method, kernel=self._kernel(kinds, loop_kernel), max_iterations=iters)
+            initial_chi2 = res.initial_chi2
+            solves, total_iters, history = 1, res.iterations, list(res.cost_history)
+        w = res.weights
+        loop_weights = {active[r]: (float(w[r]) if w is not None else 1.0) for r in loop_rows}
+        return BackendResult(res.graph.poses.detach().to(torch.float64).cpu(), loop_weights, str(res.status),
+                             total_iters, time.perf_counter() - t0, float(initial_chi2), float(res.chi2), res, solves,
+                             history)

@@ -1,0 +1,137 @@
+"""Checks every reader of files from the wild shares: UTF-8 text, finite and sane numbers, quaternions.
+
+* :func:`read_text_lines`: the readers of the project's text formats (TUM lists and trajectories,
+  7-Scenes pose and intrinsics files, g2o graphs) read through it, so a byte that is not UTF-8 (a
+  Latin-1 comment, a corrupted or binary file) gives one :class:`TextDecodeError` naming the file, the
+  1-based line and the byte, which each reader re-raises as its own named error (``DatasetError``,
+  ``TrajectoryFormatError``, ``G2OFormatError``). A UTF-8 byte-order mark at the start is dropped; lines
+  end at ``\\n``, ``\\r\\n`` or ``\\r`` (the universal newlines of Python's ``open``, so line numbers are
+  those an editor shows).
+* :data:`MAX_COORDINATE`: the largest position coordinate (metres) a reader accepts. No map is larger,
+  and a value like ``1e300`` would overflow when squared (an ATE of ``inf``, a JSON file with
+  ``Infinity``).
+* :func:`unit_quaternions`: normalisation that neither overflows (``1e200 1e200 0 0`` is a valid
+  quaternion, not ``[0, 0, 0, 0]``) nor underflows, and says which quaternions are zero.
+
+Example:
+    >>> import io
+    >>> read_text_lines(io.BytesIO(b"a 1\\r\\nb 2\\n"))
+    ('<stream>', ['a 1', 'b 2'])
+    >>> try:
+    ...     read_text_lines(io.BytesIO(b"ok\\nbad \\xff\\n"))
+    ... except TextDecodeError as e:
+    ...     print(e.line, e.reason)
+    2 byte 0xff at column 5 is not UTF-8 text
+    >>> q, zero = unit_quaternions(np.array([[1e200, 1e200, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]]))
+    >>> q[0].round(6).tolist(), zero.tolist()
+    ([0.707107, 0.707107, 0.0, 0.0], [False, True])
+"""
+from __future__ import annotations
+
+import os
+import re
+from typing import IO, List, Optional, Tuple, Union
+
+import numpy as np
+
+__all__ = ["MAX_COORDINATE", "PathOrFile", "TextDecodeError", "read_text_lines", "source_name", "unit_quaternions"]
+
+PathOrFile = Union[str, "os.PathLike[str]", IO[str], IO[bytes]]
+
+_NEWLINE = re.compile(r"\r\n|\r|\n")
+
+# metres: larger than any map (2.6x the distance to the Moon), small enough that squares and sums of
+# positions stay exact to ~1e-7 m and far from overflow
+MAX_COORDINATE = 1e9
+# a quaternion shorter than this is "zero" (TUM files print 4 decimals: real ones have norm ~1)
+_MIN_QUATERNION_NORM = 1e-6
+
+
+class TextDecodeError(ValueError):
+    """A file that is not UTF-8 text.
+
+    Attributes:
+        path: the file name (``"<stream>"`` for an unnamed file object).
+        line: 1-based line of the first bad byte, or None when it cannot be known (a text-mode file object
+            whose decoder failed).
+        reason: what is wrong, without the location.
+    """
+
+    def __init__(self, path: str, line: Optional[int], reason: str):
+        self.path, self.line, self.reason = path, line, reason
+        where = f"{path}:{line}" if line is not None else path
+        super().__init__(f"{where}: {reason}")
+
+
+def source_name(source) -> str:
+    """The name of a path or file object, as the error messages print it."""
+    if isinstance(source, (str, os.PathLike)):
+        return os.fspath(source)
+    return str(getattr(source, "name", "<stream>"))
+
+
+def _decode(data: bytes, name: str) -> str:
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        start = e.start
+        line = data.count(b"\n", 0, start) + 1
+        column = start - (data.rfind(b"\n", 0, start) + 1) + 1
+        raise TextDecodeError(name, line, f"byte 0x{data[start]:02x} at column {column} is not UTF-8 text") from None
+
+
+def read_text_lines(source: PathOrFile) -> Tuple[str, List[str]]:
+    """The lines of a UTF-8 text file, without their line endings.
+
+    Args:
+        source: a path, or a file object opened in binary mode (checked here) or text mode (decoded by the
+            file object; its failure is reported without a line number).
+
+    Returns:
+        ``(name, lines)``: the name errors should print and the list of lines (a final newline does not
+        add an empty line).
+
+    Raises:
+        FileNotFoundError: the path does not exist; IsADirectoryError / PermissionError as ``open``.
+        TextDecodeError: a byte that is not UTF-8, with the file, line and byte.
+        TypeError: ``source`` is neither a path nor a file object.
+    """
+    name = source_name(source)
+    if isinstance(source, (str, os.PathLike)):
+        with open(os.fspath(source), "rb") as f:
+            text = _decode(f.read(), name)
+    elif hasattr(source, "read"):
+        try:
+            data = source.read()
+        except UnicodeDecodeError as e:
+            raise TextDecodeError(name, None, f"not UTF-8 text ({e.reason}, byte 0x{e.object[e.start]:02x}); "
+                                              "open the file with encoding='utf-8'") from None
+        text = _decode(data, name) if isinstance(data, (bytes, bytearray)) else data
+        if not isinstance(text, str):
+            raise TypeError(f"{name}: read() returned {type(data).__name__}, expected str or bytes")
+        text = text[1:] if text.startswith("\ufeff") else text
+    else:
+        raise TypeError(f"expected a path or a file object, got {type(source).__name__}")
+    lines = _NEWLINE.split(text)
+    if lines and lines[-1] == "":
+        lines.pop()
+    return name, lines
+
+
+def unit_quaternions(q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Unit quaternions ``(N, 4)`` from finite quaternions ``q (N, 4)``, and which of them are zero.
+
+    The norm is computed on ``q / max|q_k|``, so neither ``1e200`` (whose square overflows) nor ``1e-200``
+    (whose square underflows) is lost; a quaternion with norm below ``1e-6`` is reported as zero (its
+    row of the result is then meaningless). The sign is kept.
+
+    Returns:
+        ``(unit (N, 4) float64, zero (N,) bool)``.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    scale = np.abs(q).max(axis=-1, keepdims=True)
+    safe = np.where(scale > 0, scale, 1.0)
+    r = q / safe
+    n = np.sqrt((r * r).sum(axis=-1, keepdims=True))
+    zero = (scale[..., 0] * n[..., 0] < _MIN_QUATERNION_NORM) | (scale[..., 0] == 0)
+    return r / np.where(n > 0, n, 1.0), zero

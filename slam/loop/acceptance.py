@@ -1,0 +1,98 @@
+"""How far a loop may disagree with the current estimate: a bound that grows with the distance travelled.
+
+Odometry drifts with the path it integrates, so the estimate of the relative pose of two keyframes is only
+as good as the path between them: a fixed bound (say 0.3 m) accepts loops only where drift is already
+small, exactly where they are not needed, and rejects the long loops that would correct the most. Here
+the bound is affine in the distance ``L`` travelled between the two keyframes along the keyframe graph::
+
+    translation <= translation_base + translation_per_metre * L
+    rotation    <= rotation_base_deg + rotation_per_metre_deg * L      (both capped)
+
+``L`` follows the chain of odometry edges while no loop has corrected the estimate, and the shortest path
+through the accepted loops once they have been optimised into it (:meth:`KeyframeGraph.path_lengths`).
+The same bound, on the sum of the two paths, decides whether two loops agree with each other
+(:func:`pairwise_consistent`, used by the group check of :mod:`slam.loop.consistency`).
+
+Example:
+    >>> cfg = DriftBoundConfig()
+    >>> near, far = drift_limits(0.5, cfg), drift_limits(20.0, cfg)
+    >>> near.translation < far.translation and near.rotation_deg < far.rotation_deg
+    True
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from slam.lie import se3_between, se3_compose, so3_log
+from slam.loop.verification import DriftLimits
+
+Tensor = torch.Tensor
+
+__all__ = ["DriftBoundConfig", "drift_limits", "pairwise_consistent"]
+
+
+@dataclass
+class DriftBoundConfig:
+    """The affine drift bound (see the module docstring); rates measured in docs/benchmarks.md."""
+
+    # At L = 0 the two poses differ only by the loop's own error and the estimate's local error: a verified
+    # loop edge errs by a median ~25 mm / 1.1 deg on redkitchen (up to ~10 cm / 4 deg), so 0.15 m / 8 deg.
+    translation_base: float = 0.15  # m
+    rotation_base_deg: float = 8.0  # degrees
+    # Growth per metre travelled: above the worst odometry drift measured per metre of path between
+    # revisited keyframes (redkitchen at frame steps 1, 3, 6 and the building tour).
+    translation_per_metre: float = 0.05  # m / m
+    rotation_per_metre_deg: float = 1.5  # deg / m
+    # Caps: beyond these a "loop" says the camera is elsewhere altogether (an aliased place), whatever the
+    # distance travelled.
+    max_translation: float = 1.5  # m
+    max_rotation_deg: float = 45.0  # degrees
+
+    def __post_init__(self) -> None:
+        values = (self.translation_base, self.rotation_base_deg, self.translation_per_metre,
+                  self.rotation_per_metre_deg, self.max_translation, self.max_rotation_deg)
+        if any(not (v >= 0 and math.isfinite(v)) for v in values):
+            raise ValueError(f"DriftBoundConfig values must be finite and >= 0, got {values}")
+
+
+def drift_limits(path_length: float, config: DriftBoundConfig) -> DriftLimits:
+    """The allowed disagreement after ``path_length`` metres travelled between two keyframes.
+
+    Args:
+        path_length: metres (``inf`` when the keyframes are not connected: the caps apply).
+        config: :class:`DriftBoundConfig`.
+    """
+    if not path_length >= 0:
+        raise ValueError(f"path_length must be >= 0, got {path_length}")
+    L = float(path_length)
+    t = min(config.translation_base + config.translation_per_metre * L, config.max_translation) \
+        if math.isfinite(L) else config.max_translation
+    r = min(config.rotation_base_deg + config.rotation_per_metre_deg * L, config.max_rotation_deg) \
+        if math.isfinite(L) else config.max_rotation_deg
+    return DriftLimits(t, r)
+
+
+def pairwise_consistent(T_a1b1: Tensor, T_a2b2: Tensor, T_a1a2: Tensor, T_b1b2: Tensor,
+                        limits: DriftLimits) -> tuple[bool, float, float]:
+    """Whether two loops ``a1 -> b1`` and ``a2 -> b2`` agree, given the estimate between their ends.
+
+    Going round the cycle ``a1 -> b1 -> b2 -> a2 -> a1`` (loop 1, the estimate from b1 to b2, loop 2
+    backwards, the estimate from a2 to a1) must come back to the start: the cycle's error is
+    ``(T_a1a2 T_a2b2)^-1 T_a1b1 T_b1b2``. Two true loops agree up to the drift of the estimate along the
+    two short paths a1..a2 and b1..b2; a false loop disagrees with the true ones by the size of its error.
+
+    Args:
+        T_a1b1, T_a2b2: ``(7,)`` the loops' measured relative poses.
+        T_a1a2, T_b1b2: ``(7,)`` the estimate's relative poses between their ends.
+        limits: the allowed cycle error (e.g. :func:`drift_limits` of the two paths' total length).
+
+    Returns:
+        (consistent, translation error m, rotation error deg).
+    """
+    err = se3_between(se3_compose(T_a1a2, T_a2b2), se3_compose(T_a1b1, T_b1b2))
+    dt = float(err[:3].norm())
+    dr = math.degrees(float(so3_log(err[3:]).norm()))
+    return (dt <= limits.translation and dr <= limits.rotation_deg), dt, dr

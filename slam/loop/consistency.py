@@ -1,0 +1,158 @@
+"""Group consistency of loops (pairwise consistency maximisation, as in Kimera-RPGO's PCM).
+
+Every verified loop is a hypothesis. Two hypotheses are *consistent* when going round the cycle they form
+with the odometry between their ends comes back to the start within the drift that odometry can have
+accumulated along those two paths (:func:`slam.loop.acceptance.pairwise_consistent`). True loops agree
+with each other; a false loop (an aliased place: an identically furnished room, a repeated texture)
+disagrees with the true ones by its own error. The loops kept are the largest set of mutually consistent
+hypotheses (a maximum clique of the consistency graph), once it holds at least ``min_group`` loops.
+
+The checks use the odometry chain only (never the optimised estimate, which the loops themselves bend),
+so a wrong loop cannot make itself look consistent.
+
+Example:
+    >>> import torch
+    >>> from slam.lie import se3_exp, se3_identity
+    >>> from slam.keyframe_graph import KeyframeGraph
+    >>> g = KeyframeGraph()
+    >>> step = se3_exp(torch.tensor([0.3, 0, 0, 0, 0, 0], dtype=torch.float64))
+    >>> _ = g.add_keyframe(se3_identity(dtype=torch.float64))
+    >>> for k in range(1, 6):
+    ...     _ = g.add_odometry(k - 1, step, torch.eye(6, dtype=torch.float64), g.odometry_pose(k - 1))
+    >>> check = GroupConsistency(ConsistencyConfig())
+    >>> check.add(0, 4, se3_exp(torch.tensor([1.2, 0, 0, 0, 0, 0], dtype=torch.float64)), g)
+    [0]
+    >>> check.add(1, 5, se3_exp(torch.tensor([1.2, 0, 0, 0, 0, 0], dtype=torch.float64)), g)
+    [0, 1]
+    >>> check.add(0, 5, se3_exp(torch.tensor([0.1, 2.0, 0, 0, 0, 0], dtype=torch.float64)), g)  # false
+    [0, 1]
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from slam.keyframe_graph import KeyframeGraph
+from slam.lie import se3_between
+from slam.loop.acceptance import DriftBoundConfig, drift_limits, pairwise_consistent
+
+Tensor = torch.Tensor
+
+__all__ = ["ConsistencyConfig", "GroupConsistency", "maximum_clique"]
+
+
+@dataclass
+class ConsistencyConfig:
+    """Settings of :class:`GroupConsistency`."""
+
+    enabled: bool = True  # False: every verified loop is kept
+    # A group needs this many mutually consistent loops before any of them is kept (1: a lone loop is
+    # kept until a larger group contradicts it).
+    min_group: int = 1
+    # The pairwise bound: the drift bound of slam.loop.acceptance on the summed length of the two paths.
+    bound: DriftBoundConfig = field(default_factory=DriftBoundConfig)
+    # Exact maximum clique up to this many hypotheses; beyond, the newest ones are checked greedily
+    # against the kept group (bounds the cost on very long runs).
+    max_exact: int = 400
+
+
+def maximum_clique(adjacency: np.ndarray) -> list[int]:
+    """A maximum clique of an undirected graph (branch and bound over Bron-Kerbosch with pivoting).
+
+    Deterministic: vertices are tried in increasing order and the first largest clique found is kept.
+
+    Args:
+        adjacency: ``(n, n)`` bool, symmetric; the diagonal is ignored.
+
+    Returns:
+        the clique's vertices, sorted.
+    """
+    A = np.asarray(adjacency, bool)
+    n = A.shape[0]
+    if A.ndim != 2 or A.shape != (n, n):
+        raise ValueError(f"adjacency must be square, got {A.shape}")
+    A = A & A.T
+    np.fill_diagonal(A, False)
+    nbrs = [set(np.flatnonzero(A[i]).tolist()) for i in range(n)]
+    best: list[int] = []
+
+    def expand(R: list[int], P: set) -> None:
+        nonlocal best
+        if len(R) + len(P) <= len(best):
+            return  # cannot beat the best clique found so far
+        if not P:
+            best = sorted(R)
+            return
+        pivot = max(sorted(P), key=lambda u: len(nbrs[u] & P))
+        for v in sorted(P - nbrs[pivot]):
+            expand(R + [v], P & nbrs[v])
+            P = P - {v}
+
+    expand([], set(range(n)))
+    return best
+
+
+class GroupConsistency:
+    """The loops kept so far by pairwise consistency maximisation (see the module docstring).
+
+    Hypotheses are numbered in the order they are added; :meth:`add` returns the kept ones.
+    """
+
+    def __init__(self, config: ConsistencyConfig):
+        self.config = config
+        self._loops: list[tuple[int, int, Tensor]] = []
+        self._adj = np.zeros((0, 0), bool)
+        self._kept: list[int] = []
+
+    @property
+    def kept(self) -> list[int]:
+        """Indices of the hypotheses kept now (sorted)."""
+        return list(self._kept)
+
+    @property
+    def adjacency(self) -> np.ndarray:
+        """``(n, n)`` bool pairwise consistency of the hypotheses so far."""
+        return self._adj.copy()
+
+    def _consistent(self, i: int, j: int, graph: KeyframeGraph, lengths: dict) -> bool:
+        a1, b1, Z1 = self._loops[i]
+        a2, b2, Z2 = self._loops[j]
+        odo = graph.odometry_pose
+
+        def length(u: int, v: int) -> float:
+            if u not in lengths:
+                lengths[u] = graph.path_lengths(u, through_loops=False)
+            return float(lengths[u][v])
+
+        L = length(a1, a2) + length(b1, b2)
+        ok, _, _ = pairwise_consistent(Z1, Z2, se3_between(odo(a1), odo(a2)), se3_between(odo(b1), odo(b2)),
+                                       drift_limits(L, self.config.bound))
+        return ok
+
+    def add(self, a: int, b: int, T_ab: Tensor, graph: KeyframeGraph) -> list[int]:
+        """Add the hypothesis ``a -> b`` measuring ``T_ab`` (pose of b in a); returns the kept hypotheses.
+
+        Args:
+            a, b: keyframe ids (both in ``graph``).
+            T_ab: ``(7,)`` the loop's measured relative pose.
+            graph: the keyframe graph (its odometry poses and odometry path lengths are used).
+        """
+        self._loops.append((int(a), int(b), T_ab.detach().to(torch.float64).cpu()))
+        n = len(self._loops)
+        adj = np.zeros((n, n), bool)
+        adj[:n - 1, :n - 1] = self._adj
+        lengths: dict = {}
+        for i in range(n - 1):
+            adj[i, n - 1] = adj[n - 1, i] = self._consistent(i, n - 1, graph, lengths)
+        self._adj = adj
+        if not self.config.enabled:
+            self._kept = list(range(n))
+        elif n <= self.config.max_exact:
+            clique = maximum_clique(adj)
+            self._kept = clique if len(clique) >= self.config.min_group else []
+        else:  # greedy beyond the exact size: the newest joins the kept group if it agrees with all of it
+            if all(adj[k, n - 1] for k in self._kept):
+                self._kept = sorted(self._kept + [n - 1])
+        return list(self._kept)

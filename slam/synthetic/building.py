@@ -1,0 +1,489 @@
+"""A multi-room building with identically furnished rooms: the scene of ``--demo-scene building``.
+
+Rooms line both sides of a corridor: ``S1 .. Sn`` on the south side and ``N1 .. Nn`` on the north side,
+numbered from the west. Every room has a door to the corridor in the middle of its corridor wall, and
+neighbouring rooms on the same side are joined by a door in the middle of their shared wall. A room is
+built in its own frame (origin at its centre, local +y towards the corridor); south rooms are placed
+unrotated, north rooms turned by 180 deg, so that the building is symmetric under the half turn about
+its centre except for the rooms' furnishing.
+
+Perceptual aliasing: each room named in ``BuildingConfig.twins`` (a south room ``Sk``) shares its
+*design* (wall, floor and ceiling textures, the same furniture at the same places, the same lights) with
+its image under that half turn, ``N(n+1-k)``. The two look and measure identically from corresponding
+viewpoints; only what is seen through their doors differs. A place-recognition descriptor cannot tell
+them apart and geometric verification registers them happily: the relative pose it measures puts the
+camera in the wrong room, metres from where odometry says it is. The other rooms and the corridor are
+furnished and textured on their own.
+
+Geometry: every wall is two half-thickness boxes back to back, one owned by each side, so each side's
+face carries its own room's texture; a door is a gap in both halves with a lintel above. Floors and
+ceilings are thin slabs per room. Textures come from the same photographs as the room demo
+(:mod:`slam.synthetic.scene`); a texture shared by twin rooms is stored once.
+
+World frame: x east (along the corridor), y north, z up; the floor is ``z = 0``; the building spans
+``[0, n * room_x] x [0, 2 * room_y + corridor_width]``.
+
+Example:
+    >>> layout = building_layout(BuildingConfig())
+    >>> [s.name for s in layout.spaces]
+    ['S1', 'S2', 'N1', 'N2', 'corridor']
+    >>> layout.twin_of("S1"), layout.twin_of("S2")
+    ('N2', None)
+    >>> [round(float(v), 2) for v in layout.door("S1", "corridor").center]
+    [2.5, 4.4]
+"""
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from slam.synthetic.scene import (
+    PHOTO_FILES,
+    BoxSpec,
+    RoomConfig,
+    Scene,
+    _box_faces,
+    _compose_surface,
+    load_photo_textures,
+    tensorize,
+)
+
+Tensor = torch.Tensor
+
+__all__ = [
+    "BuildingConfig",
+    "BuildingLayout",
+    "Door",
+    "Space",
+    "build_building_scene",
+    "building_layout",
+    "default_building_scene",
+]
+
+# Walls of a space in its local frame: name -> (axis of the wall's normal, sign of the wall's side).
+_WALLS = {"west": (0, -1.0), "east": (0, 1.0), "south": (1, -1.0), "north": (1, 1.0)}
+# Face index (-x, +x, -y, +y, -z, +z) of a half-wall box's face that looks into its own space.
+_INNER_FACE = {"west": 1, "east": 0, "south": 3, "north": 2}
+
+
+@dataclass(frozen=True)
+class BuildingConfig:
+    """Settings of the building (metres unless stated).
+
+    Attributes:
+        rooms_per_side: rooms on each side of the corridor (>= 2).
+        room_size: (x, y) of a room between wall centre lines; x runs along the corridor.
+        corridor_width: between the corridor's wall centre lines.
+        height: floor to ceiling.
+        wall_thickness: of every wall (each side owns half of it).
+        door_width, door_height: of every door.
+        twins: south rooms furnished identically to their image under the building's half turn
+            (``"S1"`` -> ``N(n)``): the perceptual aliasing.
+        texel_density: texels per metre of walls, floors and ceilings (160: about a texel per pixel at
+            1.6 m for a 320 x 240 image with f = 262 px).
+        object_texel_density: texels per metre on the furniture.
+        seed: seed of the designs (texture composition, furniture jitter of the unique rooms).
+        ambient: fraction of the light that does not depend on the surface orientation.
+    """
+
+    rooms_per_side: int = 2
+    room_size: tuple[float, float] = (5.0, 4.4)
+    corridor_width: float = 2.4
+    height: float = 2.8
+    wall_thickness: float = 0.12
+    door_width: float = 1.2
+    door_height: float = 2.1
+    twins: tuple[str, ...] = ("S1",)
+    texel_density: float = 160.0
+    object_texel_density: float = 240.0
+    seed: int = 0
+    ambient: float = 0.55
+
+    def __post_init__(self) -> None:
+        if self.rooms_per_side < 2:
+            raise ValueError(f"BuildingConfig.rooms_per_side must be >= 2, got {self.rooms_per_side}")
+        rx, ry = self.room_size
+        if min(rx, ry, self.corridor_width, self.height) <= 0 or self.wall_thickness <= 0:
+            raise ValueError("BuildingConfig: sizes must be positive")
+        if not (self.door_width + 2 * self.wall_thickness < min(rx, ry, self.corridor_width)
+                and self.door_height < self.height):
+            raise ValueError(f"BuildingConfig: a {self.door_width} x {self.door_height} m door does not fit "
+                             f"rooms of {rx} x {ry} x {self.height} m")
+        south = {f"S{k}" for k in range(1, self.rooms_per_side + 1)}
+        bad = [t for t in self.twins if t not in south]
+        if bad:
+            raise ValueError(f"BuildingConfig.twins must name south rooms {sorted(south)}, got {bad}")
+
+
+@dataclass(frozen=True)
+class Door:
+    """A door between two spaces.
+
+    Attributes:
+        a, b: the names of the spaces it joins.
+        center: ``(2,)`` world (x, y) of the door's centre (on the wall's centre line).
+        normal: ``(2,)`` unit world direction from ``a`` into ``b``.
+    """
+
+    a: str
+    b: str
+    center: np.ndarray
+    normal: np.ndarray
+
+
+@dataclass
+class Space:
+    """A room or the corridor.
+
+    Attributes:
+        name: ``"S1"``, ..., ``"N1"``, ..., ``"corridor"``.
+        center: ``(2,)`` world (x, y) of its centre.
+        size: (x, y) between wall centre lines, in its own frame.
+        yaw_deg: its frame's rotation about z (0 or 180).
+        openings: wall name (own frame) -> offsets of door centres along that wall (own-frame x for the
+            south/north walls, y for the west/east walls).
+        design: the key of its design (twins share one).
+    """
+
+    name: str
+    center: np.ndarray
+    size: tuple[float, float]
+    yaw_deg: float
+    openings: dict[str, list[float]] = field(default_factory=dict)
+    design: str = ""
+
+    def to_world(self, local: np.ndarray) -> np.ndarray:
+        """Own-frame (x, y) points ``(..., 2)`` -> world."""
+        c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
+        p = np.asarray(local, np.float64)
+        return np.stack([c * p[..., 0] - s * p[..., 1], s * p[..., 0] + c * p[..., 1]], -1) + self.center
+
+    def direction_to_world(self, local: np.ndarray) -> np.ndarray:
+        """Own-frame directions ``(..., 2)`` -> world."""
+        return self.to_world(local) - self.center
+
+
+@dataclass
+class BuildingLayout:
+    """Where the spaces and doors are (what the camera paths need), without textures.
+
+    Attributes:
+        config: the :class:`BuildingConfig`.
+        spaces: the rooms (south then north, west to east) and the corridor.
+        doors: every door.
+        extent: (x, y, z) size of the building.
+    """
+
+    config: BuildingConfig
+    spaces: list[Space]
+    doors: list[Door]
+    extent: tuple[float, float, float]
+
+    def space(self, name: str) -> Space:
+        for s in self.spaces:
+            if s.name == name:
+                return s
+        raise KeyError(f"no space named {name!r}; the building has {[s.name for s in self.spaces]}")
+
+    def door(self, a: str, b: str) -> Door:
+        """The door from space ``a`` to space ``b`` (its normal points from a into b)."""
+        for d in self.doors:
+            if (d.a, d.b) == (a, b):
+                return d
+            if (d.b, d.a) == (a, b):
+                return Door(a, b, d.center, -d.normal)
+        raise KeyError(f"no door between {a!r} and {b!r}")
+
+    def twin_of(self, name: str) -> str | None:
+        """The room furnished identically to room ``name`` (None for a unique room)."""
+        d = self.space(name).design
+        others = [s.name for s in self.spaces if s.design == d and s.name != name]
+        return others[0] if others else None
+
+    def space_at(self, xy: np.ndarray) -> str | None:
+        """The space whose wall centre lines enclose world point ``xy`` (None outside the building)."""
+        for s in self.spaces:
+            c, sn = math.cos(math.radians(s.yaw_deg)), math.sin(math.radians(s.yaw_deg))
+            d = np.asarray(xy, np.float64) - s.center
+            lx, ly = c * d[0] + sn * d[1], -sn * d[0] + c * d[1]
+            if abs(lx) <= s.size[0] / 2 and abs(ly) <= s.size[1] / 2:
+                return s.name
+        return None
+
+
+def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
+    """The rooms, corridor and doors of a building (see the module docstring).
+
+    Returns:
+        :class:`BuildingLayout`.
+    """
+    cfg = config or BuildingConfig()
+    n = cfg.rooms_per_side
+    rx, ry = cfg.room_size
+    cw = cfg.corridor_width
+    width, depth = n * rx, 2 * ry + cw
+    spaces: list[Space] = []
+    designs = {f"S{k}": f"S{k}" for k in range(1, n + 1)}
+    for k in range(1, n + 1):
+        designs[f"N{n + 1 - k}"] = f"S{k}" if f"S{k}" in cfg.twins else f"N{n + 1 - k}"
+
+    def room_openings(k: int) -> dict[str, list[float]]:
+        # own frame: the corridor is north; the neighbour with the smaller own-frame x is west
+        out = {"north": [0.0]}
+        if k > 1:
+            out["west"] = [0.0]
+        if k < n:
+            out["east"] = [0.0]
+        return out
+
+    for k in range(1, n + 1):  # south rooms, own frame = world frame
+        spaces.append(Space(f"S{k}", np.array([(k - 0.5) * rx, ry / 2]), (rx, ry), 0.0, room_openings(k),
+                            designs[f"S{k}"]))
+    for j in range(1, n + 1):  # north rooms: the half turn of S(n+1-j)
+        k = n + 1 - j
+        spaces.append(Space(f"N{j}", np.array([width - (k - 0.5) * rx, depth - ry / 2]), (rx, ry), 180.0,
+                            room_openings(k), designs[f"N{j}"]))
+    xs = [(k - 0.5) * rx - width / 2 for k in range(1, n + 1)]
+    spaces.append(Space("corridor", np.array([width / 2, ry + cw / 2]), (width, cw), 0.0,
+                        {"south": list(xs), "north": list(xs)}, "corridor"))
+    doors = []
+    for k in range(1, n + 1):
+        doors.append(Door(f"S{k}", "corridor", np.array([(k - 0.5) * rx, ry]), np.array([0.0, 1.0])))
+        doors.append(Door("corridor", f"N{k}", np.array([(k - 0.5) * rx, ry + cw]), np.array([0.0, 1.0])))
+    for k in range(1, n):
+        doors.append(Door(f"S{k}", f"S{k + 1}", np.array([k * rx, ry / 2]), np.array([1.0, 0.0])))
+        doors.append(Door(f"N{k}", f"N{k + 1}", np.array([k * rx, depth - ry / 2]), np.array([1.0, 0.0])))
+    return BuildingLayout(cfg, spaces, doors, (width, depth, cfg.height))
+
+
+# ----------------------------------------------------------------------------------------------
+# Designs: textures and furniture of a space in its own frame
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class _Style:
+    """How a design's surfaces look: wall bases/tints/posters (west, east, south, north), floor, ceiling."""
+
+    walls: tuple[tuple[str, tuple[float, float, float], tuple[str, ...]], ...]
+    floor: tuple[str, tuple[float, float, float]]
+    ceiling: tuple[str, tuple[float, float, float]]
+    furniture: tuple[str, ...]  # the photographs of the furniture faces, taken in turn
+
+
+_STYLES = {
+    # the twins' design: brick, plaster, wallpaper, plaster
+    "a": _Style(walls=(("brick", (0.72, 0.42, 0.33), ("astronaut", "clock")),
+                       ("gravel", (0.88, 0.82, 0.66), ("hubble", "chelsea")),
+                       ("cell", (0.62, 0.72, 0.82), ("rocket", "camera", "motorcycle")),
+                       ("grass", (0.60, 0.74, 0.52), ("moon", "ihc"))),
+                floor=("gravel", (0.58, 0.55, 0.52)), ceiling=("moon", (0.92, 0.92, 0.90)),
+                furniture=("coffee", "retina", "page", "coins", "horse", "text", "chelsea", "astronaut")),
+    "b": _Style(walls=(("grass", (0.80, 0.70, 0.55), ("coins", "logo")),
+                       ("cell", (0.70, 0.62, 0.78), ("retina", "horse")),
+                       ("brick", (0.66, 0.50, 0.40), ("page", "coffee", "text")),
+                       ("gravel", (0.60, 0.70, 0.80), ("color", "rocket"))),
+                floor=("brick", (0.50, 0.45, 0.40)), ceiling=("gravel", (0.90, 0.90, 0.86)),
+                furniture=("motorcycle", "camera", "hubble", "clock", "ihc", "moon", "astronaut", "logo")),
+    "c": _Style(walls=(("gravel", (0.55, 0.65, 0.60), ("chelsea", "text")),
+                       ("brick", (0.80, 0.55, 0.45), ("moon", "camera")),
+                       ("grass", (0.75, 0.78, 0.60), ("ihc", "logo", "horse")),
+                       ("cell", (0.82, 0.74, 0.70), ("astronaut", "coins"))),
+                floor=("cell", (0.55, 0.52, 0.58)), ceiling=("grass", (0.92, 0.90, 0.88)),
+                furniture=("rocket", "page", "coffee", "color", "retina", "clock", "hubble", "motorcycle")),
+    "corridor": _Style(walls=(("cell", (0.80, 0.80, 0.74), ("clock",)),
+                              ("cell", (0.80, 0.80, 0.74), ("logo",)),
+                              ("gravel", (0.74, 0.70, 0.62), ("retina", "coins", "motorcycle", "page")),
+                              ("brick", (0.70, 0.52, 0.44), ("camera", "horse", "text", "coffee"))),
+                       floor=("gravel", (0.45, 0.47, 0.50)), ceiling=("moon", (0.90, 0.90, 0.90)),
+                       furniture=("chelsea", "hubble", "ihc", "rocket", "astronaut", "moon", "page", "color")),
+}
+
+# Room furniture in the own frame of a room with a door on its east wall (and the corridor door north);
+# rooms whose neighbour door is on the west get the mirror image. (name, (x, y, z) centre as fractions
+# of the half sizes for x, y and metres for z, (sx, sy, sz), yaw deg). Kept out of the door lanes and
+# off the camera's circle of ~0.85 m around the centre.
+_ROOM_FURNITURE = (
+    ("shelf", (-0.38, -0.86, 0.9), (2.0, 0.45, 1.8), 0.0),
+    ("cabinet", (0.55, -0.85, 0.45), (1.0, 0.5, 0.9), 0.0),
+    ("crate_on_cabinet", (0.62, -0.85, 1.1), (0.35, 0.35, 0.4), 15.0),
+    ("table", (-0.62, 0.74, 0.375), (1.0, 0.6, 0.75), -8.0),
+    ("stand", (0.66, 0.80, 0.5), (0.5, 0.5, 1.0), 20.0),
+    ("cupboard", (-0.88, 0.25, 0.55), (0.5, 1.2, 1.1), 0.0),
+    ("panel", (-0.85, -0.45, 0.8), (0.04, 1.0, 1.4), 25.0),
+    ("crate", (0.80, -0.55, 0.3), (0.6, 0.6, 0.6), 30.0),
+)
+_CORRIDOR_FURNITURE = (  # x as a fraction of the half length, y of the half width; between the doors
+    ("bench", (-0.84, -0.78, 0.25), (1.4, 0.4, 0.5), 0.0),
+    ("cabinet", (0.0, 0.76, 0.6), (1.0, 0.45, 1.2), 0.0),
+    ("bin", (0.12, -0.80, 0.4), (0.4, 0.4, 0.8), 0.0),
+    ("notice_board", (0.84, 0.93, 1.4), (0.9, 0.04, 0.8), 0.0),
+)
+
+
+def _wall_segments(length: float, openings: list[float], door_width: float) -> list[tuple[float, float]]:
+    """Solid spans ``(lo, hi)`` along a wall of ``length`` (centred on 0) around door openings."""
+    cuts = sorted((o - door_width / 2, o + door_width / 2) for o in openings)
+    spans, lo = [], -length / 2
+    for a, b in cuts:
+        if a > lo + 1e-9:
+            spans.append((lo, a))
+        lo = max(lo, b)
+    if lo < length / 2 - 1e-9:
+        spans.append((lo, length / 2))
+    return spans
+
+
+class _DesignBuilder:
+    """Composes the textured boxes of one design in its own frame (called once per design)."""
+
+    def __init__(self, cfg: BuildingConfig, photos: dict[str, np.ndarray]):
+        self.cfg = cfg
+        self.photos = photos
+        grey = np.full((2, 2, 3), 128, np.uint8)
+        self.hidden = grey  # faces nobody sees (wall backs, tops): one shared 2 x 2 texture
+        self.jamb = np.full((4, 4, 3), (200, 190, 170), np.uint8)
+
+    def boxes(self, space: Space, style: _Style, rng: np.random.Generator, furniture, mirror: bool,
+              jitter: float) -> list[BoxSpec]:
+        cfg = self.cfg
+        sx, sy = space.size
+        H, t, d = cfg.height, cfg.wall_thickness / 2, cfg.texel_density
+        band = (0.85, H - 0.2)
+        out: list[BoxSpec] = []
+        # floor and ceiling slabs (extending under the half walls)
+        floor = _compose_surface(rng, self.photos, style.floor[0], style.floor[1], sx, sy, d, 0.6, 0.6,
+                                 [], (1.0, 1.6), (0.0, sy), grout_m=0.6)
+        ceiling = _compose_surface(rng, self.photos, style.ceiling[0], style.ceiling[1], sx, sy, d * 0.5, 1.2,
+                                   0.35, [], (0.5, 0.6), (0.0, sy), grout_m=0.6)
+        h = self.hidden
+        out.append(BoxSpec("floor", (0.0, 0.0, -0.025), (sx, sy, 0.05), 0.0, [h, h, h, h, h, floor]))
+        out.append(BoxSpec("ceiling", (0.0, 0.0, H + 0.025), (sx, sy, 0.05), 0.0, [h, h, h, h, ceiling, h]))
+        for (wall, (axis, sign)), (base, tint, posters) in zip(_WALLS.items(), style.walls):
+            length = sy if axis == 0 else sx
+            spans = _wall_segments(length, space.openings.get(wall, []), cfg.door_width)
+            posters = list(posters)
+            for k, (lo, hi) in enumerate(spans):
+                seg_len = hi - lo
+                # the posters of the wall go to its spans in turn, as many as fit
+                mine = posters[k::len(spans)] if seg_len > 1.2 else []
+                tex = _compose_surface(rng, self.photos, base, tint, seg_len, H, d, 1.1, 0.55, mine, (0.5, 0.9),
+                                       band)
+                # each span is composed on its own: a face's texture columns run to the right of a viewer
+                # facing it (the face frames of slam.synthetic.scene), so no span needs flipping
+                mid = 0.5 * (lo + hi)
+                faces = [self.jamb] * 4 + [h, h]  # the span's ends are door jambs (or hidden in a corner)
+                faces[_INNER_FACE[wall]] = tex
+                faces[_INNER_FACE[wall] ^ 1] = h
+                if axis == 1:  # a wall along x
+                    center = (mid, sign * (sy / 2 - t / 2), H / 2)
+                    size = (seg_len, t, H)
+                else:
+                    center = (sign * (sx / 2 - t / 2), mid, H / 2)
+                    size = (t, seg_len, H)
+                out.append(BoxSpec(f"{wall}_wall_{k}", center, size, 0.0, faces))
+            for k, o in enumerate(space.openings.get(wall, [])):  # lintels above the doors
+                lh = H - cfg.door_height
+                lint = _compose_surface(rng, self.photos, base, tint, cfg.door_width, lh, d, 1.1, 0.55, [],
+                                        (0.1, 0.2), (0.0, lh))
+                faces = [self.jamb] * 4 + [self.jamb, h]
+                faces[_INNER_FACE[wall]] = lint
+                faces[_INNER_FACE[wall] ^ 1] = h
+                if axis == 1:
+                    center = (o, sign * (sy / 2 - t / 2), cfg.door_height + lh / 2)
+                    size = (cfg.door_width, t, lh)
+                else:
+                    center = (sign * (sx / 2 - t / 2), o, cfg.door_height + lh / 2)
+                    size = (t, cfg.door_width, lh)
+                out.append(BoxSpec(f"{wall}_lintel_{k}", center, size, 0.0, faces))
+        names = list(style.furniture)
+        for m, (name, (fx, fy, z), size, yaw) in enumerate(furniture):
+            x, y = fx * sx / 2, fy * sy / 2
+            if jitter > 0:
+                x += float(rng.uniform(-jitter, jitter))
+                y += float(rng.uniform(-jitter, jitter))
+                yaw += float(rng.uniform(-15.0, 15.0))
+            if mirror:
+                x, yaw = -x, -yaw
+            tex_names = [names[(m + q) % len(names)] for q in range(6)]
+            out.append(BoxSpec(name, (x, y, z), size, yaw,
+                               _box_faces(rng, self.photos, size, tex_names, cfg.object_texel_density)))
+        return out
+
+
+def _place(box: BoxSpec, space: Space) -> BoxSpec:
+    """A box given in the space's own frame, placed in the world (faces travel with the box)."""
+    x, y, z = box.center
+    wx, wy = space.to_world(np.array([x, y]))
+    return BoxSpec(f"{space.name}/{box.name}", (float(wx), float(wy), float(z)), box.size,
+                   box.yaw_deg + space.yaw_deg, box.faces, box.inside)
+
+
+def build_building_scene(config: BuildingConfig | None = None, device=None,
+                         photos: dict[str, np.ndarray] | None = None) -> Scene:
+    """The building of :func:`building_layout` as a renderable :class:`~slam.synthetic.scene.Scene`.
+
+    Deterministic by ``config.seed``: the designs are composed in a fixed order (one per design, shared
+    by twins), each from its own seeded generator.
+
+    Args:
+        config: :class:`BuildingConfig`.
+        device: where the scene's tensors live (default CPU).
+        photos: textures by name (default :func:`~slam.synthetic.scene.load_photo_textures`).
+    """
+    cfg = config or BuildingConfig()
+    layout = building_layout(cfg)
+    if photos is None:
+        photos = load_photo_textures(cfg.seed)
+    missing = [n for n in PHOTO_FILES if n not in photos]
+    if missing:
+        raise ValueError(f"photos lacks textures named {missing}")
+    builder = _DesignBuilder(cfg, photos)
+    designs: dict[str, list[BoxSpec]] = {}
+    boxes: list[BoxSpec] = []
+    style_of = {}
+    unique_styles = ["b", "c"]
+    for s in layout.spaces:
+        if s.name == "corridor":
+            style_of[s.design] = "corridor"
+        elif s.design in cfg.twins:
+            style_of[s.design] = "a"
+        elif s.design not in style_of:
+            style_of[s.design] = unique_styles[len([v for v in style_of.values() if v in unique_styles])
+                                               % len(unique_styles)]
+    for s in layout.spaces:
+        if s.design not in designs:
+            # one generator per design, seeded by its name: adding a room does not change the others
+            key = sum(ord(ch) * 131 ** i for i, ch in enumerate(s.design)) % (2 ** 31)
+            rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, key]))
+            if s.name == "corridor":
+                furniture, mirror, jitter = _CORRIDOR_FURNITURE, False, 0.0
+            else:
+                furniture = _ROOM_FURNITURE
+                mirror = "east" not in s.openings  # the neighbour door is on the west
+                jitter = 0.0 if s.design in cfg.twins else 0.12
+            designs[s.design] = builder.boxes(s, _STYLES[style_of[s.design]], rng, furniture, mirror, jitter)
+        elif designs[s.design] and s.openings != layout.space(s.design).openings:
+            raise AssertionError(f"twin rooms {s.design} and {s.name} have different doors")
+        boxes.extend(_place(b, s) for b in designs[s.design])
+    lights = []
+    for s in layout.spaces:
+        sx, sy = s.size
+        local = ([(-sx / 4, 0.0), (sx / 4, 0.0)] if s.name != "corridor"
+                 else [(-sx / 3, 0.0), (0.0, 0.0), (sx / 3, 0.0)])
+        for p in local:  # symmetric in each space: the half turn maps the whole set of lights onto itself
+            wx, wy = s.to_world(np.array(p))
+            lights.append((float(wx), float(wy), cfg.height - 0.1))
+    room_cfg = RoomConfig(size=layout.extent, texel_density=cfg.texel_density,
+                          object_texel_density=cfg.object_texel_density, seed=cfg.seed, ambient=cfg.ambient,
+                          lights=tuple(lights))
+    scene = tensorize(boxes, room_cfg)
+    return scene.to(device) if device is not None else scene
+
+
+@functools.lru_cache(maxsize=2)
+def default_building_scene(config: BuildingConfig | None = None) -> Scene:
+    """:func:`build_building_scene` on the CPU, built once per process and config: treat it as read-only."""
+    return build_building_scene(config)
