@@ -1,18 +1,18 @@
-"""Does the pose-graph accelerator matter in the SLAM pipeline? The keyframe graph of a real run, optimised
-with each backend.
+"""Does the pose-graph accelerator matter in the SLAM pipeline? Every optimisation of a real run, replayed with
+each backend.
 
 1. Runs the SLAM pipeline on 7-Scenes redkitchen (the README's main command: colour intrinsics
-   525 525 320 240, depth camera at -0.025 0 0, EfficientNet-Lite0 + DAM) and captures the pose graph and
-   the settings ``slam.system`` passes to ``optimize`` (or reads a graph saved by an earlier run:
-   ``--graph FILE.g2o``; the settings are then the pipeline's defaults, ``SLAMConfig().backend``).
-2. Times that optimisation with the torch backend and the accelerator (numpy functions, C kernels),
-   interleaved, median of ``--repeats``, and reports its share of the run's wall time.
-3. Times the optimisations ``BackendConfig.optimize_on_loop`` would add: at each loop closure (in the
-   order of its later keyframe) the graph of the keyframes so far, summed over the run.
+   525 525 320 240, depth camera at -0.025 0 0, EfficientNet-Lite0 + DAM) and captures every call the back
+   end (``slam.backend``) makes to ``slam.graph.optimize``: the online corrections after accepted loops and the
+   final optimisation, each with its graph and settings (kernels included).
+2. Replays them with the torch backend and the accelerator (numpy functions, C kernels): one round is every
+   call once with one backend; rounds alternate between the backends; medians of ``--repeats`` rounds.
+3. Reports the total per backend against the run's wall time, and the final call alone.
+
+``--save FILE.g2o`` also writes the last graph (without its kernels) for other uses.
 
 Usage:
-    python benchmarks/posegraph_slam.py [--data ../shared/data] [--graph FILE.g2o] [--save FILE.g2o]
-                                        [--max-frames N] [--repeats 15]
+    python benchmarks/posegraph_slam.py [--data ../shared/data] [--max-frames N] [--repeats 7] [--save FILE]
 """
 from __future__ import annotations
 
@@ -29,13 +29,13 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import slam.system  # noqa: E402  (after the sys.path line)
+import slam.backend  # noqa: E402  (after the sys.path line)
 from slam.config import SLAMConfig  # noqa: E402
-from slam.graph import PoseGraph, compiled_kernels, optimize, read_g2o, write_g2o  # noqa: E402
+from slam.graph import compiled_kernels, optimize, write_g2o  # noqa: E402
 
 
 def capture_run(data: Path, max_frames, backbone: str):
-    """Run the pipeline; returns (graph, optimize kwargs, wall seconds of the run, frames)."""
+    """Run the pipeline; returns (calls [(graph, args, kwargs)], wall seconds of the run, frames)."""
     from slam.io import open_sequence
     from slam.pipeline import run_slam
 
@@ -45,94 +45,72 @@ def capture_run(data: Path, max_frames, backbone: str):
     cfg.odometry.features.rgb_intrinsics = (525.0, 525.0, 320.0, 240.0)
     cfg.odometry.features.rgb_from_depth_translation = (-0.025, 0.0, 0.0)
     calls = []
-    real = slam.system.optimize
+    real = slam.backend.optimize
 
     def spy(graph, *args, **kwargs):
         calls.append((graph.clone(), args, dict(kwargs)))
         return real(graph, *args, **kwargs)
 
-    slam.system.optimize = spy
+    slam.backend.optimize = spy
     try:
         run = run_slam(open_sequence(data / "7scenes-redkitchen"), cfg, max_frames=max_frames, progress=False)
     finally:
-        slam.system.optimize = real
+        slam.backend.optimize = real
     if not calls:
         sys.exit("the run made no pose-graph optimisation (no loop closure was accepted)")
-    graph, args, kwargs = calls[-1]
-    if args:
-        kwargs = dict(zip(("method", "kernel"), args), **kwargs)
-    return graph, kwargs, run.wall_seconds, run.result.num_frames
+    return calls, run.wall_seconds, run.result.num_frames
 
 
-def median_ms(fns: dict, repeats: int) -> dict:
-    """Median ms of each callable, interleaved (A, B, C, A, B, C, ...) after one warm-up call each."""
-    for fn in fns.values():
-        fn()
-    times = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, fn in fns.items():
-            t = time.perf_counter()
-            fn()
-            times[k].append(time.perf_counter() - t)
-    return {k: (1e3 * statistics.median(v), 1e3 * min(v), 1e3 * max(v)) for k, v in times.items()}
-
-
-def prefix(graph: PoseGraph, n: int) -> PoseGraph:
-    keep = (graph.ii < n) & (graph.jj < n)
-    return PoseGraph(graph.poses[:n], graph.ii[keep], graph.jj[keep], graph.measurements[keep],
-                     graph.information[keep])
+def replay(calls, backend: str) -> float:
+    """Seconds to make every captured call once with ``backend``."""
+    t = time.perf_counter()
+    for graph, args, kwargs in calls:
+        optimize(graph, *args, backend=backend, **kwargs)
+    return time.perf_counter() - t
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", str(ROOT.parent / "shared" / "data")))
-    ap.add_argument("--graph", default=None, help="a keyframe graph saved by --save (skips the SLAM run)")
-    ap.add_argument("--save", default=None, help="write the captured keyframe graph here (g2o)")
+    ap.add_argument("--save", default=None, help="write the last captured graph here (g2o, without kernels)")
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--backbone", default="efficientnet_lite0")
-    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    if args.graph:
-        graph, run_s, frames = read_g2o(args.graph), None, None
-        b = SLAMConfig().backend
-        kwargs = dict(method=b.method, kernel=b.kernel, kernel_width=b.kernel_width, max_iterations=b.max_iterations)
-    else:
-        graph, kwargs, run_s, frames = capture_run(Path(args.data), args.max_frames, args.backbone)
-        if args.save:
-            write_g2o(args.save, graph)
+    load = os.getloadavg()[0]
+    calls, run_s, frames = capture_run(Path(args.data), args.max_frames, args.backbone)
+    if args.save:
+        write_g2o(args.save, calls[-1][0])
     backends = ("torch", "numpy", "c") if compiled_kernels() else ("torch", "numpy")
-    source = f"`--graph {args.graph}`" if args.graph else (
-        f"captured from a run of {frames} frames ({run_s:.1f} s wall)")
-    loops = int(((graph.ii - graph.jj).abs() > 1).sum())
-    lines = [f"Command: `python benchmarks/posegraph_slam.py --repeats {args.repeats}"
-             + (f" --graph {args.graph}" if args.graph else "") + f"`, {datetime.datetime.now():%Y-%m-%d %H:%M}, "
-             f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at start, torch {torch.__version__}.",
-             "", f"Keyframe graph {source}: {graph.num_poses} poses, {graph.num_edges} edges ({loops} loop "
-             f"closures); optimize settings {kwargs}.", ""]
-    results = {b: optimize(graph, backend=b, **kwargs) for b in backends}
-    ms = median_ms({b: (lambda b=b: optimize(graph, backend=b, **kwargs)) for b in backends}, args.repeats)
-    lines += ["| backend | ms (median; min-max) | share of the run | chi2/2 | iterations | status |",
-              "|---|---|---|---|---|---|"]
+    last = calls[-1:]
+    totals = {b: [] for b in backends}
+    finals = {b: [] for b in backends}
+    for b in backends:  # warm-up
+        replay(calls, b)
+    for _ in range(args.repeats):
+        for b in backends:
+            totals[b].append(replay(calls, b))
+            finals[b].append(replay(last, b))
+    sizes = [g.num_poses for g, _, _ in calls]
+    g_last = calls[-1][0]
+    loops = int(((g_last.ii - g_last.jj).abs() > 1).sum())
+    results = {b: optimize(g_last, *calls[-1][1], backend=b, **calls[-1][2]) for b in backends}
+    lines = [f"Command: `python benchmarks/posegraph_slam.py --repeats {args.repeats}`, "
+             f"{datetime.datetime.now():%Y-%m-%d %H:%M}, {os.cpu_count()} CPUs, load average {load:.1f} at the "
+             f"start of the run, {os.getloadavg()[0]:.1f} after it, torch {torch.__version__}.", "",
+             f"Run: {frames} frames in {run_s:.1f} s wall; the back end made {len(calls)} optimize calls on graphs "
+             f"of {min(sizes)}-{max(sizes)} keyframes; the last graph has {g_last.num_poses} poses, "
+             f"{g_last.num_edges} edges ({loops} not between consecutive keyframes).", "",
+             "| backend | all calls ms (median; min-max) | share of the run | last call ms | last call chi2/2 | "
+             "iterations |", "|---|---|---|---|---|---|"]
     for b in backends:
-        share = f"{ms[b][0] / 1e3 / run_s:.2%}" if run_s else "-"
+        t = totals[b]
+        med = statistics.median(t)
         r = results[b]
-        lines.append(f"| {b} | {ms[b][0]:.2f} ({ms[b][1]:.2f}-{ms[b][2]:.2f}) | {share} | {r.chi2 / 2:.6f} | "
-                     f"{r.iterations} | {r.status} |")
-    # what optimising at every loop closure would add: the graph of the keyframes so far at each loop
-    ends = sorted({int(max(i, j)) + 1 for i, j in zip(graph.ii.tolist(), graph.jj.tolist()) if abs(i - j) > 1})
-    subs = [prefix(graph, n) for n in ends]
-    total = {}
-    for b in backends:
-        fns = {k: (lambda s=s, b=b: optimize(s, backend=b, **kwargs)) for k, s in enumerate(subs)}
-        per = median_ms(fns, max(3, args.repeats // 3))
-        total[b] = sum(v[0] for v in per.values())
-    lines += ["", f"Optimising at each of the {len(subs)} loop closures (graphs of {subs[0].num_poses}-"
-              f"{subs[-1].num_poses} keyframes), summed over the run: "
-              + ", ".join(f"{b} {total[b]:.0f} ms" for b in backends)
-              + (f" ({total['torch'] / 1e3 / run_s:.1%} of the run with torch)." if run_s else ".")]
-    text = "\n".join(lines)
-    print(text)
+        lines.append(f"| {b} | {1e3 * med:.1f} ({1e3 * min(t):.1f}-{1e3 * max(t):.1f}) | {med / run_s:.2%} | "
+                     f"{1e3 * statistics.median(finals[b]):.2f} | {r.chi2 / 2:.6f} | {r.iterations} |")
+    print("\n".join(lines))
 
 
 if __name__ == "__main__":
