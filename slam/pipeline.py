@@ -190,7 +190,9 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
     loop closure), ``rig``, ``map`` (points of the merged map, keyframes, points and MB kept during the run); ``ate_rmse`` (rigid SE(3) alignment, TUM association) and ``ate``
     (statistics), ``odometry_ate_rmse`` (before the pose graph), ``rpe_1frame`` / ``rpe_1s`` (translation
     m, rotation deg) and ``loops_true`` / ``loops_false`` (accepted loops judged by ground-truth distance
-    and angle, :class:`slam.eval.LoopGroundTruthConfig`) when there is ground truth to evaluate against;
+    and angle, :class:`slam.eval.LoopGroundTruthConfig`; ``loop_hypotheses_false``: the false ones among
+    the verified loops by final status, beside ``loop_hypotheses``, all of them by status, and
+    ``online_corrections``) when there is ground truth to evaluate against;
     otherwise ``ate_rmse`` is None and ``ate_unavailable`` says why (no ground truth, fewer than 3
     frames with it, a camera that never moves, ...). A run never fails here for want of ground truth.
 
@@ -214,6 +216,13 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
         "wall_seconds": round(run.wall_seconds, 3),
         "time_per_stage": res.timings,
         "backbone": run.backbone,
+        # every verified loop by its final status (kept / inconsistent / switched_off), and the online
+        # corrections (BackendConfig.optimize_on_loop): how many, and their milliseconds
+        "loop_hypotheses": {s: sum(lp.status == s for lp in res.loop_hypotheses)
+                            for s in ("kept", "inconsistent", "switched_off")},
+        "online_corrections": {"count": len(res.corrections),
+                               "total_ms": round(1000 * sum(c.seconds for c in res.corrections), 3),
+                               "max_ms": round(1000 * max((c.seconds for c in res.corrections), default=0.0), 3)},
     }
     if run.config is not None:
         d = run.config.loop.descriptor
@@ -273,6 +282,11 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
         judged = is_true_loop(gt, pairs, dataclasses.replace(cfg, min_frame_gap=1))
         m["loops_true"] = int(judged.sum())
         m["loops_false"] = int((~judged).sum())
+        hyp = res.loop_hypotheses
+        pairs = torch.tensor([[lp.frame_b, lp.frame_a] for lp in hyp], dtype=torch.long).reshape(-1, 2)
+        true_hyp = is_true_loop(gt, pairs, dataclasses.replace(cfg, min_frame_gap=1)).tolist()
+        m["loop_hypotheses_false"] = {s: sum(lp.status == s and not t for lp, t in zip(hyp, true_hyp))
+                                      for s in ("kept", "inconsistent", "switched_off")}
         m["loop_detection"] = loop_precision_recall(run, cfg)
     run.metrics = m
     return m

@@ -281,7 +281,7 @@ class RGBDSLAM:
             self._reanchor()
         self._corrected = True
         self._corrections.append(result)
-        logger.info("online correction at keyframe %d: %d loops, chi2 %.3g -> %.3g in %d iterations, %.1f ms",
+        logger.debug("online correction at keyframe %d: %d loops, chi2 %.3g -> %.3g in %d iterations, %.1f ms",
                     self.graph.num_keyframes - 1, len(result.loop_weights), result.initial_chi2, result.chi2,
                     result.iterations, 1000 * result.seconds)
         return result

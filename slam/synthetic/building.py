@@ -46,7 +46,6 @@ from slam.synthetic.scene import (
     BoxSpec,
     RoomConfig,
     Scene,
-    _box_faces,
     _compose_surface,
     load_photo_textures,
     tensorize,
@@ -323,6 +322,25 @@ _CORRIDOR_FURNITURE = (  # x as a fraction of the half length, y of the half wid
 )
 
 
+_FURNITURE_BASES = (("brick", (0.62, 0.48, 0.40)), ("gravel", (0.70, 0.66, 0.58)), ("grass", (0.55, 0.62, 0.50)),
+                    ("cell", (0.60, 0.62, 0.72)))
+
+
+def _furniture_faces(rng: np.random.Generator, photos: dict[str, np.ndarray], size, names, density: float):
+    """Six face textures (-x, +x, -y, +y, -z, +z) of a piece of furniture: a tinted, tiled base (texture
+    everywhere, even where a face fills the view from 0.6 m) with the face's photograph framed on it."""
+    sx, sy, sz = size
+    extents = [(sy, sz), (sy, sz), (sx, sz), (sx, sz), (sx, sy), (sx, sy)]
+    faces = []
+    for k, (name, (w, h)) in enumerate(zip(names, extents)):
+        base, tint = _FURNITURE_BASES[int(rng.integers(len(_FURNITURE_BASES)))]
+        big = min(w, h) > 0.25 and k < 4  # sides large enough for a picture (tops stay plain)
+        ph = (0.45 * h, 0.75 * h)
+        faces.append(_compose_surface(rng, photos, base, tint, w, h, density, 0.3, 0.6, [name] if big else [],
+                                      ph, (0.05 * h, 0.97 * h)))
+    return faces
+
+
 def _wall_segments(length: float, openings: list[float], door_width: float) -> list[tuple[float, float]]:
     """Solid spans ``(lo, hi)`` along a wall of ``length`` (centred on 0) around door openings."""
     cuts = sorted((o - door_width / 2, o + door_width / 2) for o in openings)
@@ -409,7 +427,7 @@ class _DesignBuilder:
                 x, yaw = -x, -yaw
             tex_names = [names[(m + q) % len(names)] for q in range(6)]
             out.append(BoxSpec(name, (x, y, z), size, yaw,
-                               _box_faces(rng, self.photos, size, tex_names, cfg.object_texel_density)))
+                               _furniture_faces(rng, self.photos, size, tex_names, cfg.object_texel_density)))
         return out
 
 

@@ -66,6 +66,10 @@ class TourConfig:
         lead_deg: on a circle, the heading leads the outward direction by this much towards the travel.
         corridor_pan_deg: amplitude of the heading's sway in the corridor (its walls are seen at a slant).
         corridor_pan_period: metres of path per sway.
+        door_glance_deg: going through a door the camera looks this far aside (alternately left and right),
+            at the wall beside the door, instead of through it at the far side of the next room (beyond the
+            depth camera's range: a door crossing facing it loses tracking), fading over
+            ``door_glance_sigma`` metres of path on either side.
         smoothing: Gaussian sigma (metres of path) of the positions: rounds the corners.
         yaw_smoothing: the same for the heading: spreads the turns.
     """
@@ -77,6 +81,8 @@ class TourConfig:
     lead_deg: float = 10.0
     corridor_pan_deg: float = 15.0
     corridor_pan_period: float = 4.0
+    door_glance_deg: float = 40.0
+    door_glance_sigma: float = 0.8
     smoothing: float = 0.25
     yaw_smoothing: float = 0.4
 
@@ -114,13 +120,14 @@ def tour_polyline(layout: BuildingLayout, tour=DEFAULT_TOUR, config: TourConfig 
     """The tour as dense samples ~1 cm apart, before smoothing.
 
     Returns:
-        positions ``(S, 2)`` world (x, y), headings ``(S,)`` radians, and ``(S,)`` bool: in the corridor.
+        positions ``(S, 2)`` world (x, y), headings ``(S,)`` radians, ``(S,)`` bool: in the corridor, and
+        the door centres ``(D, 2)`` crossed, in order.
     """
     cfg = config or TourConfig()
     if not tour:
         raise ValueError("the tour needs at least one visit")
     r, lead = cfg.radius, math.radians(cfg.lead_deg)
-    pos, yaw, corr = [], [], []
+    pos, yaw, corr, doors = [], [], [], []
 
     def add(p, y, in_corridor=False):
         pos.append(p)
@@ -147,11 +154,13 @@ def tour_polyline(layout: BuildingLayout, tour=DEFAULT_TOUR, config: TourConfig 
             door = layout.door(room.name, "corridor")
             via_corridor = True
         m = door.normal
+        doors.append(door.center)
         phi_out = math.atan2(m[1], m[0])
         add(*_arc(c, r, phi, _sweep(phi, phi_out, visit.sense, visit.turns), lead))
         start = c + r * m
         if via_corridor:
             door_b = layout.door("corridor", nxt.name)
+            doors.append(door_b.center)
             y_line = door.center + m * (cw / 2)
             corner = np.array([door_b.center[0], y_line[1]])
             add(*_line(start, y_line))
@@ -166,7 +175,7 @@ def tour_polyline(layout: BuildingLayout, tour=DEFAULT_TOUR, config: TourConfig 
         phi = math.atan2(n_in[1], n_in[0])
     P = np.concatenate(pos)
     Y = np.unwrap(np.concatenate(yaw))
-    return P, Y, np.concatenate(corr)
+    return P, Y, np.concatenate(corr), np.array(doors).reshape(-1, 2)
 
 
 def _smooth(x: np.ndarray, sigma_samples: float) -> np.ndarray:
@@ -189,13 +198,20 @@ def building_trajectory(layout: BuildingLayout, num_frames: int = 2400, seed: in
         trajectory_config: timing (:class:`~slam.synthetic.trajectories.TrajectoryConfig`).
     """
     cfg = config or TourConfig()
-    P, Y, corridor = tour_polyline(layout, tour, cfg)
+    P, Y, corridor, doors = tour_polyline(layout, tour, cfg)
     seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(seg)])
     # the sway in the corridor, faded in and out with the smoothing
     pan = math.radians(cfg.corridor_pan_deg) * np.sin(2 * math.pi * arc / cfg.corridor_pan_period)
     weight = _smooth(corridor.astype(np.float64), cfg.yaw_smoothing / _STEP)
     Y = Y + pan * weight
+    # a glance at the wall beside each door crossed (left, right, left, ...)
+    start = 0
+    for k, d in enumerate(doors):
+        i = start + int(np.argmin(np.linalg.norm(P[start:] - d, axis=1)))
+        start = i
+        sign = 1.0 if k % 2 == 0 else -1.0
+        Y = Y + sign * math.radians(cfg.door_glance_deg) * np.exp(-0.5 * ((arc - arc[i]) / cfg.door_glance_sigma) ** 2)
     P = _smooth(P, cfg.smoothing / _STEP)
     Y = _smooth(Y, cfg.yaw_smoothing / _STEP)
     # re-measure the arc length of the smoothed path: the sampler's parameter runs along it
