@@ -624,3 +624,23 @@ def test_config_dict_round_trip():
     d = config_to_dict(cfg)
     assert json.loads(json.dumps(d)) == d and d["faiss"]["retrain_growth"] == "inf"
     assert config_from_dict(d) == cfg
+
+
+def test_ties_go_to_the_lower_id_in_every_backend():
+    # Duplicate frames (identical descriptors, as in the kitchen) tie exactly: every backend must order them
+    # alike (lower id first), or a detector's candidate list would depend on the backend.
+    base = clustered_data(600, 32, clusters=30, seed=14)
+    db = torch.cat([base, base[::3]])  # rows 600.. duplicate rows 0, 3, 6, ...
+    configs = [IndexConfig(backend="exact"), tree_config(exact_below=100)]
+    if faiss_available():
+        configs.append(IndexConfig(backend="faiss", exact_below=100, reduce_dim=None, background=False,
+                                   faiss=FaissConfig(ef_search=200)))
+    answers = []
+    for cfg in configs:
+        index = KeyframeIndex(cfg)
+        index.add(db)
+        answers.append(index.search(db[[0, 30, 300]], k=6))
+    for ids, sims in answers:
+        assert torch.equal(ids, answers[0][0]) and torch.equal(sims, answers[0][1])
+    ids = answers[0][0]
+    assert ids[0, :2].tolist() == [0, 600] and ids[1, :2].tolist() == [30, 610]  # the tie: lower id first

@@ -7,8 +7,8 @@ structures rank by is ``|a - b|^2 = 2 - 2 a.b``: the nearest neighbours in L2 ar
 float32 or float16; rows are never modified). Below ``exact_below`` keyframes (and for the ``"exact"``
 backend always) a query is one exact scan. Above it a structure covers rows ``[0, n_indexed)``:
 
-* ``"faiss"``: an HNSW graph that every ``add`` extends, so it covers every row; it is rebuilt (new PCA
-  code) only when its code goes stale (:class:`~attnloop.index.config.FaissConfig`);
+* ``"faiss"``: an HNSW graph that every ``add`` extends, so it covers every row; it is rebuilt only to
+  refit its PCA code, once the rows have grown by ``FaissConfig.retrain_growth`` since the fit;
 * ``"flann"``: a k-means tree, which cannot grow: rows after it (the *tail*) are scanned exactly, and when
   the tail holds ``max(rebuild_every, rebuild_fraction * n_indexed)`` rows a new tree over every row is
   built. With the fraction, the number of rebuilds grows only logarithmically with the database size.
@@ -20,8 +20,10 @@ swapped in (one attribute assignment) by the next ``add``/``search``.
 **Exactness.** Every answer is re-scored exactly (dot products of the candidate rows with the full stored
 descriptors) and merged with the exact tail; the structure proposes ``rerank * k`` candidate rows, so the
 only approximation is whether it finds the true neighbours among them. FLANN with ``checks=-1`` (exhaustive
-tree search) finds them (the answer equals a brute-force search, up to float32 rounding of near-ties); the
-HNSW graph claims no exactness (recall is measured: docs/benchmarks.md).
+tree search) on the full descriptors (``reduce_dim=None``) finds them: the answer equals a brute-force
+search. The HNSW graph, and any structure on a PCA code, claims no exactness (recall is measured:
+docs/benchmarks.md). Re-scoring is in float64 and ties (duplicate frames) go to the lower id, so every
+backend orders equal answers alike.
 
 **Exclusion window.** Keyframe ids must increase with every ``add``; ``search(..., max_id=m)`` only returns
 keyframes with ``id <= m`` (for a query keyframe ``q`` and a window ``w``: ``m = q - w`` excludes the ``w``
