@@ -6,7 +6,8 @@ different vector: every feature moves to another input weight. Here the fused ma
 
 1. per tap group g (e.g. EfficientNet-Lite0's stage6 and stage7, taken together as one tap of 192 +
    320 channels), GeM pooling ``(mean_{region} max(F, eps)^p)^(1/p)`` over the whole map and over each
-   cell of a ``2 x 2`` grid (``levels=(1, 2)``: 1 + 4 regions);
+   cell of a ``2 x 2`` grid (``levels=(1, 2)``: 1 + 4 regions), with the floor ``eps`` relative to the
+   map's own magnitude (``1e-6 max|F|`` per sample), so the code does not depend on F's overall scale;
 2. every region vector is L2-normalised (a region's weight does not depend on how strongly the fusion
    scaled it), and the vectors are concatenated, ``[group][region][channel]``;
 3. the result, ``R * sum_g C_g`` long (2560 for Lite0's stage6+stage7), is what the random RNNs encode
@@ -36,7 +37,11 @@ __all__ = ["POOLINGS", "fuse_groups", "gem_regions", "regional_code", "regional_
 #: ``flat``: the paper's one-level RNN over the whole fused map; ``regional``: regional GeM first (ours).
 POOLINGS = ("flat", "regional")
 
-_EPS = 1e-6  # GeM's floor: fused maps of a signed tap (EfficientNet's linear bottlenecks) have negatives
+# GeM's floor, relative to each sample's max |x|: the fused maps of a signed tap (EfficientNet's linear
+# bottlenecks) have negatives, and an absolute floor would swamp a map of small magnitude (random weights
+# give stage6 activations of ~1e-7, which an absolute 1e-6 floor turned into one constant code for
+# every image).
+_REL_FLOOR = 1e-6
 
 
 def _check_levels(levels: Sequence[int]) -> tuple[int, ...]:
@@ -89,12 +94,25 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
     return torch.cat([fuse(lt, unit_scale(gt), mode) for lt, gt in zip(tap.split(g, 1), grad.split(g, 1))], dim=1)
 
 
+def _unit_gem_regions(x: Tensor, p: float, levels: tuple[int, ...]) -> tuple[Tensor, Tensor]:
+    # GeM of x / s with s = max |x| per sample, floor _REL_FLOOR, and s: (B, R, C) and (B, 1, 1).
+    # Pooling the unit-scaled map keeps x^p inside float range whatever x's magnitude.
+    scale = x.abs().amax(dim=(1, 2, 3), keepdim=True)
+    ok = scale > 0
+    safe = torch.where(ok, scale, torch.ones_like(scale))  # an all-zero map stays at the floor, no NaN
+    xp = (x / safe).clamp_min(_REL_FLOOR).pow(p)
+    cells = [F.adaptive_avg_pool2d(xp, v).flatten(2) for v in levels]  # (B, C, l*l) each
+    return torch.cat(cells, dim=2).pow(1.0 / p).transpose(1, 2), safe.view(-1, 1, 1)
+
+
 def gem_regions(x: Tensor, p: float = 2.0, levels: Sequence[int] = (1, 2)) -> Tensor:
     """GeM pooling over the whole map and the cells of square grids.
 
-    ``(mean_{cell} max(x, 1e-6)^p)^(1/p)`` per channel; a grid of ``l`` splits H and W into ``l`` parts
-    as :func:`torch.nn.functional.adaptive_avg_pool2d` does (cells may overlap by one row when H or W is
-    not a multiple of ``l``). ``p = 1`` is average pooling of the positive part; large ``p`` tends to max.
+    ``(mean_{cell} max(x, eps)^p)^(1/p)`` per channel, with ``eps = 1e-6 max|x|`` per sample (a floor
+    relative to the map's magnitude: ``gem_regions(k x) = k gem_regions(x)`` for every ``k > 0``); a grid
+    of ``l`` splits H and W into ``l`` parts as :func:`torch.nn.functional.adaptive_avg_pool2d` does
+    (cells may overlap by one row when H or W is not a multiple of ``l``). ``p = 1`` is average pooling
+    of the positive part; large ``p`` tends to max. An all-zero sample gives zeros.
 
     Args:
         x: :math:`(B, C, H, W)`.
@@ -109,9 +127,11 @@ def gem_regions(x: Tensor, p: float = 2.0, levels: Sequence[int] = (1, 2)) -> Te
     if not p > 0:
         raise ValueError(f"p must be positive, got {p}")
     lv = _check_levels(levels)
-    xp = x.clamp_min(_EPS).pow(p)
-    cells = [F.adaptive_avg_pool2d(xp, v).flatten(2) for v in lv]  # (B, C, l*l) each
-    return torch.cat(cells, dim=2).pow(1.0 / p).transpose(1, 2)
+    if x.shape[0] == 0:
+        return x.new_zeros((0, sum(v * v for v in lv), x.shape[1]))
+    unit, scale = _unit_gem_regions(x, p, lv)
+    zero = x.abs().amax(dim=(1, 2, 3)) == 0
+    return torch.where(zero.view(-1, 1, 1), torch.zeros_like(unit), unit * scale)
 
 
 def regional_code_dim(groups: Sequence[int], levels: Sequence[int] = (1, 2)) -> int:
@@ -140,5 +160,12 @@ def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0
     if x.ndim != 4:
         raise ValueError(f"x must have shape (B, C, H, W), got {tuple(x.shape)}")
     g = _check_groups(x.shape[1], groups)
-    parts = [F.normalize(gem_regions(xg, p, levels), dim=2).flatten(1) for xg in x.split(g, dim=1)]
+    if not p > 0:
+        raise ValueError(f"p must be positive, got {p}")
+    lv = _check_levels(levels)
+    if x.shape[0] == 0:
+        return x.new_zeros((0, regional_code_dim(g, lv)))
+    # Each region is normalised on its own, so the per-sample scale of the unit-scaled GeM cancels:
+    # the code is that of the map whatever its magnitude.
+    parts = [F.normalize(_unit_gem_regions(xg, p, lv)[0], dim=2).flatten(1) for xg in x.split(g, dim=1)]
     return torch.cat(parts, dim=1)

@@ -19,7 +19,7 @@ def test_gem_regions_hand_computed():
     x = x[None, None]  # (1, 1, 4, 4)
     r = gem_regions(x, p=2.0, levels=(1, 2))
     assert r.shape == (1, 5, 1)
-    floor = 1e-6
+    floor = 1e-6 * 8.0  # relative to the map's max |x|
     vals = x.clamp_min(floor)
     assert r[0, 0, 0] == pytest.approx(float(vals.pow(2).mean().sqrt()))  # the whole map
     assert r[0, 1, 0] == pytest.approx(((1 + 4 + 25 + 36) / 4) ** 0.5)  # top-left cell
@@ -33,6 +33,46 @@ def test_gem_regions_hand_computed():
         gem_regions(x, levels=(0,))
     with pytest.raises(ValueError, match="p must be positive"):
         gem_regions(x, p=0.0)
+
+
+def test_gem_is_scale_equivariant_and_the_code_scale_invariant():
+    # The floor is relative to each sample's max |x|: a map of tiny magnitude (random weights give
+    # stage6 activations of ~1e-7) pools exactly like the same map at unit scale.
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(2, 6, 5, 7, generator=g)
+    x[1] *= 3.0  # the two samples at different scales
+    r = gem_regions(x, 2.0, (1, 2))
+    for k in (1e-9, 1e-3, 1e4):
+        assert torch.allclose(gem_regions(k * x, 2.0, (1, 2)), k * r, rtol=1e-5, atol=0)
+        assert torch.allclose(regional_code(k * x, (2, 4)), regional_code(x, (2, 4)), atol=1e-6)
+    # an absolute floor of 1e-6 would have made every sample of 1e-8 x one constant code
+    tiny = regional_code(1e-8 * x, (2, 4))
+    assert float((tiny[0] - tiny[1]).abs().max()) > 0.05
+    # an all-zero sample pools to zeros (GeM) and to the uniform unit vectors (code), never NaN
+    zero = torch.zeros(1, 6, 5, 7)
+    assert torch.equal(gem_regions(zero), torch.zeros(1, 5, 6))
+    code = regional_code(zero, (2, 4))
+    assert torch.isfinite(code).all() and torch.allclose(code[0, :2], torch.full((2,), 2 ** -0.5))
+    assert gem_regions(x[:0]).shape == (0, 5, 6)
+
+
+def test_random_weight_descriptors_tell_images_apart():
+    # Plumbing with pretrained=False must still see the image: each mode's descriptors of three
+    # different photographs differ, and one image twice gives one descriptor.
+    skdata = pytest.importorskip("skimage.data")
+    photos = [skdata.astronaut(), skdata.chelsea(), skdata.coffee()]
+    images = torch.stack([F.interpolate(torch.from_numpy(p).permute(2, 0, 1)[None].float(), size=(120, 160),
+                                        mode="area")[0].round().to(torch.uint8) for p in photos])
+    for kw in ({}, {"preset": "paper"}):
+        d = AttentionDescriptor("efficientnet_lite0", pretrained=False, **kw)
+        parts = d.parts(torch.cat([images, images[:1]]))
+        assert float(parts.tap.abs().max()) < 1e-4  # the regime of the defect: tiny random-weight features
+        for mode in ("none", "dam", "eam", "gaf", "ega"):
+            e = d.from_attention(parts.tap, parts.grad, mode)
+            cos = e @ e.T
+            assert float(cos[0, 3]) == pytest.approx(1.0, abs=1e-6), (kw, mode)
+            off = cos[:3, :3][~torch.eye(3, dtype=torch.bool)]
+            assert float(off.max()) < 0.99, (kw, mode, cos)
 
 
 def test_regional_code_groups_are_unit_blocks():
