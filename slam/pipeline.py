@@ -46,8 +46,8 @@ from slam.system import RGBDSLAM, SLAMResult
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["OUTPUT_FILES", "OutputDirError", "RunResult", "evaluate_run", "json_safe", "prepare_output_dir",
-           "run_slam", "write_outputs"]
+__all__ = ["OUTPUT_FILES", "OutputDirError", "RunResult", "evaluate_run", "json_safe", "loop_ground_truth_for_step",
+           "prepare_output_dir", "run_slam", "write_outputs"]
 
 #: The files a run writes into its output folder (``map.ply`` unless the map is off).
 OUTPUT_FILES = ("trajectory.txt", "loops.txt", "metrics.json", "trajectory.png", "map.ply")
@@ -182,6 +182,25 @@ def _add_keyframes_to_map(cloud: PointCloudMap, slam: RGBDSLAM, new_ids: list[in
             logger.warning("map: keyframe %d (frame %d) left out: %s", kf_id, frame.index, e)
 
 
+def loop_ground_truth_for_step(frame_step: int = 1):
+    """The default :class:`slam.eval.LoopGroundTruthConfig` for a run on every ``frame_step``-th frame.
+
+    Its ``min_frame_gap`` (100 frames: 3.3 s at 30 Hz, what odometry links rather than a revisit) counts
+    input frames; a run's frame indices are those of the frames it used, so the gap becomes
+    ``ceil(100 / frame_step)`` of them: the same 3.3 s. Left at 100, a run at step 6 would need 20 s
+    between a query and its match, and count the revisits 3-20 s apart, which the loop detector is
+    right to find, as false detections.
+
+    Example:
+        >>> loop_ground_truth_for_step(6).min_frame_gap, loop_ground_truth_for_step(1).min_frame_gap
+        (17, 100)
+    """
+    from slam.eval import LoopGroundTruthConfig
+
+    base = LoopGroundTruthConfig()
+    return dataclasses.replace(base, min_frame_gap=max(1, math.ceil(base.min_frame_gap / int(frame_step))))
+
+
 def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
     """Compute the metrics of a run (stored in ``run.metrics`` and returned).
 
@@ -198,9 +217,10 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
 
     Args:
         run: a :class:`RunResult`.
-        loop_gt: :class:`slam.eval.LoopGroundTruthConfig` for judging loops (default thresholds).
+        loop_gt: :class:`slam.eval.LoopGroundTruthConfig` for judging loops (default: its thresholds, the
+            frame gap in the run's frames, :func:`loop_ground_truth_for_step`).
     """
-    from slam.eval import LoopGroundTruthConfig, ate, is_true_loop, rpe
+    from slam.eval import ate, is_true_loop, rpe
     from slam.options import describe_rig, rig_of
 
     res = run.result
@@ -275,7 +295,8 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
                           "num_pairs": int(r.pairs.shape[0])}
             except ValueError as e:  # too short for the delta
                 m[key] = {"error": str(e)}
-        cfg = loop_gt or LoopGroundTruthConfig()
+        cfg = loop_gt or loop_ground_truth_for_step(run.frame_step)
+        m["loop_ground_truth"] = dataclasses.asdict(cfg)
         gt = run.gt_poses_per_frame
         # an accepted loop is judged by closeness alone (the frame-gap rule is for counting revisits)
         pairs = torch.tensor([[lp.frame_b, lp.frame_a] for lp in res.loops], dtype=torch.long).reshape(-1, 2)
@@ -300,13 +321,17 @@ def loop_precision_recall(run: RunResult, config=None) -> dict[str, object]:
     none score ``-inf``). Positives are the ground-truth revisits among the keyframes
     (:func:`slam.eval.ground_truth_loops`).
 
+    Args:
+        run: a :class:`RunResult`.
+        config: :class:`slam.eval.LoopGroundTruthConfig` (default: :func:`loop_ground_truth_for_step`).
+
     Returns:
         ``{"before_verification": {...}, "after_verification": {...}}`` with ``max_recall_at_full_precision``,
         ``average_precision`` and ``num_positives``; the curves themselves go to ``run.loop_curves``.
     """
-    from slam.eval import LoopGroundTruthConfig, evaluate_loop_candidates
+    from slam.eval import evaluate_loop_candidates
 
-    cfg = config or LoopGroundTruthConfig()
+    cfg = config or loop_ground_truth_for_step(run.frame_step)
     res = run.result
     frames = res.keyframe_frames
     if run.gt_poses_per_frame is None or not res.queries:

@@ -160,3 +160,29 @@ def test_plot_pr_curves(tmp_path):
     assert count(one, PALETTE[0]) > 200 and count(one, PALETTE[1]) == 0
     assert count(two, PALETTE[1]) > 200
     assert plot_pr_curves(None, {}).shape == (520, 640, 3)
+
+
+def test_loop_recall_keeps_the_frame_gap_in_time_at_any_frame_step():
+    """A run on every 6th frame: a revisit 4 s (20 of its frames) after the first view is a true loop,
+    as it is at step 1 (120 frames); the 100-frame gap counted in the run's frames would call it none."""
+    from types import SimpleNamespace
+
+    from slam.loop.closer import LoopQuery
+    from slam.pipeline import loop_ground_truth_for_step, loop_precision_recall
+
+    assert [loop_ground_truth_for_step(s).min_frame_gap for s in (1, 3, 6, 200)] == [100, 34, 17, 1]
+    # 21 frames: out along x for 10, stay 1 m away, back at the start at frame 20
+    x = [0.1 * k for k in range(11)] + [1.0] * 9 + [0.0]
+    gt = torch.stack([_pose(v) for v in x])
+    frames = torch.arange(21)
+    query = LoopQuery(kf=20, top_kf=0, top_score=0.9, threshold=0.5, candidates=[0], verified=[])
+    result = SimpleNamespace(keyframe_frames=frames, queries=[query], loops=[])
+
+    def recall(step):
+        run = SimpleNamespace(result=result, gt_poses_per_frame=gt, frame_step=step, loop_curves={})
+        return loop_precision_recall(run)["before_verification"]
+
+    at6, at1 = recall(6), recall(1)
+    assert at6["max_recall_at_full_precision"] == 1.0
+    assert at6["num_positives"] == 1  # frame 20, whose match (frames 0-3) is >= 17 frames before it
+    assert at1["num_positives"] == 0 and at1["max_recall_at_full_precision"] == 0.0
