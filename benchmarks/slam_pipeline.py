@@ -40,7 +40,8 @@ def _row(label, m, odo_ate):
     b = det.get("before_verification", {}).get("max_recall_at_full_precision")
     a = det.get("after_verification", {}).get("max_recall_at_full_precision")
     ate = m.get("ate_rmse")
-    cut = f"{100 * (1 - ate / odo_ate):+.0f} %" if ate is not None and odo_ate else "-"
+    # the change of ATE against odometry alone: -43 % is a 43 % cut
+    cut = f"{100 * (ate / odo_ate - 1):+.0f} %" if ate is not None and odo_ate else "-"
     hyp, false = m.get("loop_hypotheses", {}), m.get("loop_hypotheses_false", {})
     rejected = (f"{hyp.get('inconsistent', 0)} ({false.get('inconsistent', 0)} false) / "
                 f"{hyp.get('switched_off', 0)} ({false.get('switched_off', 0)} false)") if hyp else "-"
@@ -82,7 +83,7 @@ def main() -> None:
     seqs += [Path(s) for s in args.sequence]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    opts = dict(backbone=args.backbone, frame_step=args.frame_step, max_frames=args.max_frames, no_map=True)
+    opts = {"backbone": args.backbone, "frame_step": args.frame_step, "max_frames": args.max_frames, "no_map": True}
 
     odo = {}
     for s in seqs:
@@ -96,8 +97,8 @@ def main() -> None:
     head = ("| run | ATE RMSE (m) | vs odometry | loops kept (true/false) | inconsistent / switched off (false) "
             "| max recall @100% P before -> after verification | frames/s | online corrections | odometry ms/frame "
             "| descriptor ms/keyframe | keyframes | lost |")
-    text = [f"{time.strftime('%Y-%m-%d %H:%M')}, frame step {args.frame_step}, backbone {args.backbone}, "
-            f"torch threads {torch.get_num_threads()}", ""]
+    text = [(f"{time.strftime('%Y-%m-%d %H:%M')}, frame step {args.frame_step}, backbone {args.backbone}, "
+            f"torch threads {torch.get_num_threads()}"), ""]
     for name, m0 in odo.items():
         text += [f"### {name} ({m0['num_frames']} frames, {m0.get('rig', '')})", "", head, "|" + "---|" * 12]
         text.append(_row("odometry only", m0, None))
@@ -118,10 +119,10 @@ def main() -> None:
                 fps[online].append(m["fps"])
                 print(f"fps A/B online={online}: {m['fps']:.2f} frames/s, ATE {_fmt(m.get('ate_rmse'))}", flush=True)
         ratios = [a / b for a, b in zip(fps[True], fps[False])]
-        text += ["", f"Online correction A/B on {seq.name} ({args.modes[0]}, {args.fps_ab} rounds, interleaved): "
+        text += ["", (f"Online correction A/B on {seq.name} ({args.modes[0]}, {args.fps_ab} rounds, interleaved): "
                  f"on {statistics.median(fps[True]):.2f} frames/s (runs {fps[True]}), off "
                  f"{statistics.median(fps[False]):.2f} (runs {fps[False]}); median ratio on/off "
-                 f"{statistics.median(ratios):.3f}"]
+                 f"{statistics.median(ratios):.3f}")]
     out_text = "\n".join(text) + "\n"
     print(out_text)
     (out / "slam.md").write_text(out_text)
