@@ -132,6 +132,33 @@ def test_group_consistency_min_group_and_disabled():
     assert off.add(3, 26, _T(0.3), g) == [0, 1]
 
 
+def test_a_lone_loop_waits_for_local_support():
+    """Far apart along the path, the pairwise bound reaches ~1 m: a lone loop 0.6 m wrong agrees with the
+    true ones across the graph and joins the largest group. Local support holds it out: no other loop has
+    both ends near its own. A true loop beside it disagrees with it (short paths: a tight bound), so the
+    true pair forms the group and is kept once the second of them arrives."""
+    g = _corridor_graph(n=60, step=0.5)
+    truth = [g.odometry_pose(k) for k in range(g.num_keyframes)]
+    cfg = ConsistencyConfig()
+    assert cfg.min_support == 1 and cfg.support_radius == 2.0
+    check, old = GroupConsistency(cfg), GroupConsistency(ConsistencyConfig(min_support=0))
+    for a, b in ((0, 40), (1, 41), (2, 42)):
+        for c in (check, old):
+            c.add(a, b, se3_between(truth[a], truth[b]), g)
+    wrong = se3_compose(se3_between(truth[20], truth[55]), _T(0.6))
+    assert old.add(20, 55, wrong, g) == [0, 1, 2, 3]  # without local support it is kept
+    assert check.add(20, 55, wrong, g) == [0, 1, 2]
+    assert check.adjacency[3, :3].all()  # consistent with the far group: the loose bound lets it in
+    # a true loop beside it: inconsistent with it; alone on its side of the graph it waits too
+    assert check.add(21, 56, se3_between(truth[21], truth[56]), g) == [0, 1, 2]
+    assert not check.adjacency[3, 4]
+    assert check.add(22, 57, se3_between(truth[22], truth[57]), g) == [0, 1, 2, 4, 5]
+    with pytest.raises(ValueError, match="min_support"):
+        ConsistencyConfig(min_support=-1)
+    with pytest.raises(ValueError, match="support_radius"):
+        ConsistencyConfig(support_radius=math.inf)
+
+
 def test_keyframe_graph_pose_graph_scales_by_kind():
     g = _corridor_graph(4)
     g.add_loop(0, 3, _T(0.9), 2.0 * torch.eye(6, dtype=D))

@@ -7,6 +7,14 @@ with each other; a false loop (an aliased place: an identically furnished room, 
 disagrees with the true ones by its own error. The loops kept are the largest set of mutually consistent
 hypotheses (a maximum clique of the consistency graph), once it holds at least ``min_group`` loops.
 
+Consistency between two loops far apart along the path says little: the bound on their cycle grows with
+the two paths and soon reaches its cap, so a lone wrong loop (a corridor whose repeated texture registers
+0.9 m off, seen on the building tour) agrees with every true loop across the building. So a loop is kept
+only with *local support* (as ORB-SLAM asks consecutive keyframes to agree): at least ``min_support``
+other loops of the group whose ends are both near its own (the two paths summing to at most
+``support_radius`` metres), where the pairwise bound is tight. A revisit produces such runs of loops,
+keyframe after keyframe; a wrong registration is a one-off.
+
 The checks use the odometry chain only (never the optimised estimate, which the loops themselves bend),
 so a wrong loop cannot make itself look consistent.
 
@@ -20,8 +28,8 @@ Example:
     >>> for k in range(1, 6):
     ...     _ = g.add_odometry(k - 1, step, torch.eye(6, dtype=torch.float64), g.odometry_pose(k - 1))
     >>> check = GroupConsistency(ConsistencyConfig())
-    >>> check.add(0, 4, se3_exp(torch.tensor([1.2, 0, 0, 0, 0, 0], dtype=torch.float64)), g)
-    [0]
+    >>> check.add(0, 4, se3_exp(torch.tensor([1.2, 0, 0, 0, 0, 0], dtype=torch.float64)), g)  # alone: held
+    []
     >>> check.add(1, 5, se3_exp(torch.tensor([1.2, 0, 0, 0, 0, 0], dtype=torch.float64)), g)
     [0, 1]
     >>> check.add(0, 5, se3_exp(torch.tensor([0.1, 2.0, 0, 0, 0, 0], dtype=torch.float64)), g)  # false
@@ -29,6 +37,7 @@ Example:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,6 +60,17 @@ class ConsistencyConfig:
     # A group needs this many mutually consistent loops before any of them is kept (1: a lone loop is
     # kept until a larger group contradicts it).
     min_group: int = 1
+    # Local support (module docstring): a kept loop needs this many other loops of the group whose two ends
+    # are within support_radius metres (the sum of the two paths along the odometry chain) of its own. 0:
+    # off. Loops of a revisit come keyframe after keyframe (0.1-0.5 m apart on redkitchen and the building).
+    min_support: int = 1
+    support_radius: float = 2.0  # m
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.min_support, int) and self.min_support >= 0):
+            raise ValueError(f"ConsistencyConfig.min_support must be an integer >= 0, got {self.min_support!r}")
+        if not (self.support_radius >= 0 and math.isfinite(self.support_radius)):
+            raise ValueError(f"ConsistencyConfig.support_radius must be finite and >= 0, got {self.support_radius!r}")
     # The pairwise bound: the drift bound of slam.loop.acceptance on the summed length of the two paths.
     bound: DriftBoundConfig = field(default_factory=DriftBoundConfig)
     # Exact maximum clique up to this many hypotheses; beyond, the newest ones are checked greedily
@@ -104,7 +124,9 @@ class GroupConsistency:
         self.config = config
         self._loops: list[tuple[int, int, Tensor]] = []
         self._adj = np.zeros((0, 0), bool)
-        self._kept: list[int] = []
+        self._near = np.zeros((0, 0), bool)  # the two ends within support_radius of each other's
+        self._group: list[int] = []  # the largest mutually consistent set
+        self._kept: list[int] = []  # those of it with local support
 
     @property
     def kept(self) -> list[int]:
@@ -116,7 +138,7 @@ class GroupConsistency:
         """``(n, n)`` bool pairwise consistency of the hypotheses so far."""
         return self._adj.copy()
 
-    def _consistent(self, i: int, j: int, graph: KeyframeGraph, lengths: dict) -> bool:
+    def _consistent(self, i: int, j: int, graph: KeyframeGraph, lengths: dict) -> tuple[bool, float]:
         a1, b1, Z1 = self._loops[i]
         a2, b2, Z2 = self._loops[j]
         odo = graph.odometry_pose
@@ -129,7 +151,7 @@ class GroupConsistency:
         L = length(a1, a2) + length(b1, b2)
         ok, _, _ = pairwise_consistent(Z1, Z2, se3_between(odo(a1), odo(a2)), se3_between(odo(b1), odo(b2)),
                                        drift_limits(L, self.config.bound))
-        return ok
+        return ok, L
 
     def add(self, a: int, b: int, T_ab: Tensor, graph: KeyframeGraph) -> list[int]:
         """Add the hypothesis ``a -> b`` measuring ``T_ab`` (pose of b in a); returns the kept hypotheses.
@@ -143,16 +165,26 @@ class GroupConsistency:
         n = len(self._loops)
         adj = np.zeros((n, n), bool)
         adj[:n - 1, :n - 1] = self._adj
+        near = np.zeros((n, n), bool)
+        near[:n - 1, :n - 1] = self._near
         lengths: dict = {}
         for i in range(n - 1):
-            adj[i, n - 1] = adj[n - 1, i] = self._consistent(i, n - 1, graph, lengths)
-        self._adj = adj
+            ok, L = self._consistent(i, n - 1, graph, lengths)
+            adj[i, n - 1] = adj[n - 1, i] = ok
+            near[i, n - 1] = near[n - 1, i] = L <= self.config.support_radius
+        self._adj, self._near = adj, near
         if not self.config.enabled:
-            self._kept = list(range(n))
-        elif n <= self.config.max_exact:
+            self._group = self._kept = list(range(n))
+            return list(self._kept)
+        if n <= self.config.max_exact:
             clique = maximum_clique(adj)
-            self._kept = clique if len(clique) >= self.config.min_group else []
-        else:  # greedy beyond the exact size: the newest joins the kept group if it agrees with all of it
-            if all(adj[k, n - 1] for k in self._kept):
-                self._kept = sorted(self._kept + [n - 1])
+            self._group = clique if len(clique) >= self.config.min_group else []
+        elif all(adj[k, n - 1] for k in self._group):  # greedy beyond the exact size: the newest joins the
+            self._group = sorted(self._group + [n - 1])  # group if it agrees with all of it
+        g = np.asarray(self._group, dtype=np.int64)
+        if self.config.min_support > 0 and g.size:
+            support = (adj & near)[np.ix_(g, g)].sum(axis=1)  # the diagonal is False
+            self._kept = g[support >= self.config.min_support].tolist()
+        else:
+            self._kept = list(self._group)
         return list(self._kept)
