@@ -294,7 +294,9 @@ def docs_workdir(tmp_path, monkeypatch):
         (tmp_path / "shared" / "data").symlink_to(data_root(), target_is_directory=True)
     monkeypatch.chdir(work)
     torch.manual_seed(0)
-    return work
+    threads = torch.get_num_threads()
+    yield work
+    torch.set_num_threads(threads)  # a page may set them (docs/api.md does): not for the tests after it
 
 
 # what the snippets of a page must have computed (beyond running)
