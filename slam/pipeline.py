@@ -201,7 +201,8 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
     backbone = getattr(closer.descriptor, "backbone_name", None) if closer is not None else None
     saved_to = None
     if save_map is not None:
-        from slam.maps import capture_map, save_map as write_map
+        from slam.maps import capture_map
+        from slam.maps import save_map as write_map
 
         saved_to = write_map(save_map, capture_map(slam, view))
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,

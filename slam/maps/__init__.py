@@ -11,10 +11,25 @@
 :func:`slam.pipeline.run_slam` (docs/pipeline.md, "Maps that persist").
 """
 from slam.maps.config import RelocalisationConfig
-from slam.maps.format import (MAP_FILES, MAP_FORMAT, MAP_FORMAT_VERSION, MapFormatError, MapVersionError, SavedMap,
-                              load_map, prepare_map_dir, save_map)
-from slam.maps.relocalise import (MapLink, MapMismatchError, MapRelocaliser, RelocalisationReport, capture_map,
-                                  map_world_errors)
+from slam.maps.format import (
+                              MAP_FILES,
+                              MAP_FORMAT,
+                              MAP_FORMAT_VERSION,
+                              MapFormatError,
+                              MapVersionError,
+                              SavedMap,
+                              load_map,
+                              prepare_map_dir,
+                              save_map,
+)
+from slam.maps.relocalise import (
+                              MapLink,
+                              MapMismatchError,
+                              MapRelocaliser,
+                              RelocalisationReport,
+                              capture_map,
+                              map_world_errors,
+)
 
 __all__ = ["MAP_FILES", "MAP_FORMAT", "MAP_FORMAT_VERSION", "MapFormatError", "MapLink", "MapMismatchError",
            "MapRelocaliser", "MapVersionError", "RelocalisationConfig", "RelocalisationReport", "SavedMap",

@@ -29,7 +29,6 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
 
 import numpy as np
 import torch
@@ -106,11 +105,11 @@ class RelocalisationReport:
     seconds: float = math.nan
     queries: int = 0
     query_ms: float = math.nan
-    links: List[MapLink] = field(default_factory=list)
+    links: list[MapLink] = field(default_factory=list)
     hypotheses: int = 0
     frames_in_map: int = 0
     reason: str = ""
-    T_map_recording: Optional[Tensor] = None
+    T_map_recording: Tensor | None = None
 
     def as_dict(self) -> dict:
         return {"map": self.map_path, "map_keyframes": self.map_keyframes, "relocalised": self.relocalised,
@@ -135,7 +134,7 @@ def _descriptor_info(slam) -> dict:
             "seed": d.seed, "dim": slam.loop_closer.detector.index.dim}
 
 
-def _output_rig(config) -> Optional[Tensor]:
+def _output_rig(config) -> Tensor | None:
     """``T_rgb_depth`` when the system reports depth-camera poses (as :class:`slam.system.RGBDSLAM` decides)."""
     f = config.odometry.features
     if f.rgb_intrinsics is not None and any(float(x) != 0.0 for x in f.rgb_from_depth_translation):
@@ -143,7 +142,7 @@ def _output_rig(config) -> Optional[Tensor]:
     return None
 
 
-def _to_output(poses: Tensor, T_rgb_depth: Optional[Tensor]) -> Tensor:
+def _to_output(poses: Tensor, T_rgb_depth: Tensor | None) -> Tensor:
     return poses if T_rgb_depth is None else depth_camera_poses(poses, T_rgb_depth)
 
 
@@ -180,7 +179,7 @@ def capture_map(slam, sequence=None) -> SavedMap:
                     index.descriptors, [kf.features for kf in kfs], rgb, list(slam.graph.edges), index, info)
 
 
-def map_world_errors(trajectory: Tensor, groundtruth: Tensor, origin: Tensor) -> Optional[dict]:
+def map_world_errors(trajectory: Tensor, groundtruth: Tensor, origin: Tensor) -> dict | None:
     """Position errors, without any alignment, of a trajectory reported in a map's world.
 
     The ground truth is expressed in the map's world by ``origin^-1 G_i`` (``origin``: the ground-truth
@@ -222,7 +221,7 @@ class MapRelocaliser:
     system's result.
     """
 
-    def __init__(self, saved: SavedMap, slam, config: Optional[RelocalisationConfig] = None):
+    def __init__(self, saved: SavedMap, slam, config: RelocalisationConfig | None = None):
         self.map = saved
         self.slam = slam
         self.config = config or RelocalisationConfig()
@@ -241,12 +240,12 @@ class MapRelocaliser:
                         or not np.allclose(map_rig.get("rgb_from_depth", [0, 0, 0]), rig["rgb_from_depth"])):
             raise MapMismatchError(f"{where}: the map's camera rig {map_rig} differs from this run's {rig}; run "
                                    "with the map's rig (the poses are the tracked camera's)")
-        self.links: List[MapLink] = []
+        self.links: list[MapLink] = []
         self.report = RelocalisationReport(where, len(saved))
-        self._alignment: Optional[Tensor] = None  # T_map_rec of the tracked camera's worlds, once relocalised
-        self._anchors: List[int] = []
-        self._frame_kf: List[int] = []
-        self._kf_of_id: Dict[int, int] = {int(i): k for k, i in enumerate(saved.index_ids.tolist())}
+        self._alignment: Tensor | None = None  # T_map_rec of the tracked camera's worlds, once relocalised
+        self._anchors: list[int] = []
+        self._frame_kf: list[int] = []
+        self._kf_of_id: dict[int, int] = {int(i): k for k, i in enumerate(saved.index_ids.tolist())}
         self._t0 = time.perf_counter()
         self._query_seconds = 0.0
 
@@ -256,7 +255,7 @@ class MapRelocaliser:
         return self._alignment is not None
 
     @property
-    def alignment(self) -> Optional[Tensor]:
+    def alignment(self) -> Tensor | None:
         """``(7,)`` the current placement of the recording's (tracked-camera) world in the map's, or None."""
         return None if self._alignment is None else self._alignment.clone()
 
@@ -311,7 +310,7 @@ class MapRelocaliser:
         # the recording's estimates include its own loops once any is in effect (online correction)
         return bool(self.slam.graph.loop_edges(active_only=True))
 
-    def _consistent_group(self, estimates: Tensor) -> List[int]:
+    def _consistent_group(self, estimates: Tensor) -> list[int]:
         """The largest set of links that agree pairwise on where the recording lies in the map."""
         n = len(self.links)
         A = np.zeros((n, n), bool)
@@ -328,7 +327,7 @@ class MapRelocaliser:
                 A[i, j] = A[j, i] = pairwise_consistent(li.T_ab, lj.T_ab, T_a, T_b, limits)[0]
         return maximum_clique(A) if n else []
 
-    def _place(self, group: List[int], estimates: Tensor) -> None:
+    def _place(self, group: list[int], estimates: Tensor) -> None:
         best = max(group, key=lambda k: self.links[k].num_inliers)
         lb = self.links[best]
         self._alignment = se3_compose(se3_compose(self.map.poses[lb.map_kf], lb.T_ab), se3_inv(estimates[lb.kf]))
@@ -384,7 +383,7 @@ class MapRelocaliser:
         rep.T_map_recording = align_out
         return merged, rep
 
-    def _merge(self, est: Tensor, links: List[MapLink]) -> Tensor:
+    def _merge(self, est: Tensor, links: list[MapLink]) -> Tensor:
         """Optimise the recording's keyframe graph with its map links, the linked map keyframes fixed."""
         slam = self.slam
         used = sorted({lk.map_kf for lk in links})
