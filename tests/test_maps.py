@@ -12,8 +12,16 @@ import torch
 
 from attnloop.index import IndexConfig, KeyframeIndex
 from slam.keyframe_graph import EdgeKind, GraphEdge
-from slam.maps import (MAP_FORMAT_VERSION, MapFormatError, MapVersionError, SavedMap, load_map, map_world_errors,
-                       prepare_map_dir, save_map)
+from slam.maps import (
+    MAP_FORMAT_VERSION,
+    MapFormatError,
+    MapVersionError,
+    SavedMap,
+    load_map,
+    map_world_errors,
+    prepare_map_dir,
+    save_map,
+)
 from slam.odometry.features import FrameFeatures
 
 
