@@ -19,11 +19,12 @@ How each fenced block is treated, by its language tag:
 * A block whose previous non-blank line is ``<!-- docs-test: skip REASON -->`` is neither run nor parsed,
   and counted with its reason.
 
-Inline code spans that start with a command (```attnloop-slam ... --flag``` in the prose) have their
+Inline code spans of the prose that start with a command (``attnloop-slam ... --flag``) have their
 ``--flags`` checked as well. ``python -m pytest -q -s tests/test_docs_snippets.py`` prints the tally of
 every page (how many blocks ran, were parsed, are not code, were skipped and why).
 
-Counts on 2026-12-02 (main + docs branch): see docs/benchmarks.md, section "Documentation snippets".
+Counts on 2026-12-02 (main with the docs branch): 41 blocks, 18 run, 18 parsed (31 commands), 5 not code,
+0 skipped; per page in docs/benchmarks.md, section "Documentation snippets and --help".
 """
 from __future__ import annotations
 
