@@ -41,7 +41,7 @@ from descriptor_ablation import scores, sets
 from attnloop.backbones.efficientnet_lite import efficientnet_lite
 from attnloop.backbones.preprocess import prepare_images
 from attnloop.fusion import FUSION_MODES, minmax_normalize
-from attnloop.pooling import regional_code, unit_scale
+from attnloop.pooling import gem_regions, regional_code, unit_scale
 from attnloop.rnn_pool import random_rnn_pool, random_rnn_weights
 
 GROUPS = (192, 320)
@@ -83,8 +83,22 @@ def extract(images: list[np.ndarray], batch: int = 8) -> dict:
 
 
 # --------------------------------------------------------------------------- fusion variants
+def rank_normalize(g: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
+    """Each entry's rank among the entries of ``dims``, scaled to [0, 1] (a min-max that no hot spot sets)."""
+    moved = g.movedim(dims, tuple(range(g.ndim - len(dims), g.ndim)))
+    flat = moved.reshape(*moved.shape[: g.ndim - len(dims)], -1)
+    r = flat.argsort(-1).argsort(-1).to(g.dtype) / max(flat.shape[-1] - 1, 1)
+    return r.reshape(moved.shape).movedim(tuple(range(g.ndim - len(dims), g.ndim)), dims)
+
+
 def attention_map(g: torch.Tensor, mode: str, norm: str) -> torch.Tensor:
     """The multiplier of L: N(G) for dam/eam, N(sum_c N(G_c)) for gaf/ega, with N over ``norm``'s dims."""
+    if norm == "rank":
+        if mode in ("dam", "eam"):
+            a = rank_normalize(g, (1, 2, 3))
+        else:
+            a = minmax_normalize(rank_normalize(g, (2, 3)).sum(1, keepdim=True), (2, 3))
+        return torch.exp(a) if mode in ("eam", "ega") else a
     if mode in ("dam", "eam"):
         dims = {"global": (1, 2, 3), "channel": (2, 3)}[norm]
         a = minmax_normalize(g, dims)
@@ -111,9 +125,19 @@ def fused(L, G, mode, norm="global", smooth=False, sign=False):
 _W = {0: random_rnn_weights(16, 2560, 64, seed=0)}
 
 
-def descriptor(f: torch.Tensor, seed: int | None = 0) -> torch.Tensor:
+def region_weighted_code(f: torch.Tensor) -> torch.Tensor:
+    """Regional GeM without the per-region L2: each region keeps its magnitude relative to the others
+    (the attention's between-region contrast), each tap group L2-normalised on its own."""
+    parts = []
+    for fg in f.split(GROUPS, 1):
+        regions = gem_regions(fg / fg.abs().amax((1, 2, 3), keepdim=True).clamp_min(1e-30), 2.0, (1, 2))
+        parts.append(F.normalize(regions.flatten(1), dim=1))
+    return torch.cat(parts, 1)
+
+
+def descriptor(f: torch.Tensor, seed: int | None = 0, code_fn=None) -> torch.Tensor:
     """The default's regional code and RNNs of RNN seed ``seed``; None: the regional code without RNNs."""
-    code = F.normalize(regional_code(f, GROUPS, 2.0, (1, 2)), dim=1)
+    code = F.normalize((code_fn or (lambda x: regional_code(x, GROUPS, 2.0, (1, 2))))(f), dim=1)
     if seed is None:
         return code
     if seed not in _W:
@@ -121,7 +145,7 @@ def descriptor(f: torch.Tensor, seed: int | None = 0) -> torch.Tensor:
     return F.normalize(random_rnn_pool(10.0 * code[:, :, None, None], _W[seed], merge=False), dim=1)
 
 
-def table(title: str, variants: dict, feats: dict, protos: dict) -> None:
+def table(title: str, variants: dict, feats: dict, protos: dict, code_fn=None) -> None:
     names = [p for s in protos.values() for p in s]
     print(f"\n#### {title}\n\n| variant | mode | " + " | ".join(names) + " | mean |\n|---|---|"
           + "---|" * (len(names) + 1))
@@ -129,7 +153,7 @@ def table(title: str, variants: dict, feats: dict, protos: dict) -> None:
         for m in FUSION_MODES:
             if m == "none" and label != next(iter(variants)):
                 continue
-            s = scores({k: descriptor(fn(feats[k], m)) for k in feats}, protos)
+            s = scores({k: descriptor(fn(feats[k], m), code_fn=code_fn) for k in feats}, protos)
             cells = [f"{s[p][0]:.3f} / {s[p][1]:.3f}" for p in names]
             r1, rp = np.mean([s[p][0] for p in names]), np.mean([s[p][1] for p in names])
             print(f"| {label} | {m} | " + " | ".join(cells) + f" | {r1:.3f} / {rp:.3f} |", flush=True)
@@ -141,7 +165,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=data_root())
     parser.add_argument("--cache", type=Path, default=Path("runs/attention_cache"))
-    parser.add_argument("--only", nargs="*", default=["range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed"])
+    parser.add_argument("--only", nargs="*", default=["range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions"])
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -191,10 +215,11 @@ def main(argv=None) -> None:
                   f"{float(((n > 0.35) & (n < 0.65)).float().mean(1).median()):.2f} | {float(share.median()):.2f} | "
                   f"{float((top[q] != top[r]).float().mean()):.2f} |")
 
-    own = lambda **kw: (lambda f, m: fused(f["L"], f["own"], m, **kw))  # noqa: E731
+    own = lambda **kw: (lambda f, m: fused(f["L"], f["own"], m, **kw))
     if "norm" in args.only:
         table("norm: N(.) over (C, H, W) as the paper, or per channel (dam/eam) / inner over (C, H, W) "
-              "(gaf/ega)", {"paper N": own(), "per-channel N": own(norm="channel")}, feats, protos)
+              "(gaf/ega), or N = the rank (percentile) of each entry", {"paper N": own(), "per-channel N":
+              own(norm="channel"), "rank N": own(norm="rank")}, feats, protos)
     if "smooth" in args.only:
         table("smooth: G averaged over 3 x 3 before N", {"paper": own(), "smoothed G": own(smooth=True)},
               feats, protos)
@@ -217,6 +242,10 @@ def main(argv=None) -> None:
         for m in FUSION_MODES:
             s = scores({k: descriptor(fused(f["L"], f["own"], m), None) for k, f in feats.items()}, protos)
             print(f"| {m}, no RNN | " + " | ".join(f"{s[p][0]:.3f} / {s[p][1]:.3f}" for p in names) + " |")
+    if "regions" in args.only:
+        table("regions: the regional code without the per-region L2 (regions weighted by their pooled magnitude, "
+              "which carries the attention's between-region contrast)", {"region-weighted": own()}, feats, protos,
+              code_fn=region_weighted_code)
     if "seed" in args.only:
         table("seed: the softmax seed of the backward",
               {kind: (lambda f, m, kind=kind: fused(f["L"], f[kind], m)) for kind in SEEDS}, feats, protos)

@@ -72,6 +72,12 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
     for d in descs.values():
         d.backbone = net
     paper = AttentionDescriptor(name, fusion="dam", pretrained=pretrained, preset="paper")
+    two_calls = None
+    if callable(getattr(net, "forward_split", None)) and len(getattr(net, "tap_groups", ())) > 1:
+        # A/B of the joined tap's one-pass forward (efficientnet_lite.forward_split): the same descriptor
+        # computed as forward_to_tap + forward_from_tap, which runs the blocks between the stages twice.
+        two_calls = AttentionDescriptor(name, fusion="dam", pretrained=pretrained)
+        two_calls.backbone.forward_split = None
     rows = []
     for batch in batches:
         images = frames(batch)
@@ -79,6 +85,9 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
         variants.update({f"descriptor {m}": (lambda d=d, x=images: d(x)) for m, d in descs.items()})
         variants["plain forward, paper's 224 x 224 input"] = lambda x=images: paper.backbone(x)
         variants["descriptor dam, preset='paper'"] = lambda x=images: paper(x)
+        if two_calls is not None:
+            variants["descriptor dam, joined tap in two calls (before the one-pass forward)"] = \
+                lambda x=images: two_calls(x)
         times = {k: [] for k in variants}
         with torch.no_grad():
             for r in range(warmup + rounds):
