@@ -19,7 +19,11 @@ Hypotheses:
 * ``smooth``: G averaged over 3 x 3 neighbourhoods before N (spatial smoothing).
 * ``sign``: N(|G|) instead of N(G) (where the class evidence is, whatever its sign).
 * ``seed``: the softmax seed: each frame's S (the paper), S restricted to its top-5 classes
-  (renormalised), uniform over the top-5, and softmax(z / 2) (flatter, less winner-dependent).
+  (renormalised), uniform over the top-5, softmax(z / 2) (flatter, less winner-dependent), and the
+  entropy-weighted S (each class's share -S_k log S_k of the entropy). A seed scaled by a per-frame
+  constant (S times the frame's confidence) changes nothing: the descriptor fuses G / max|G|.
+* ``rnnseed``: R@1 / R@P100 over 8 RNN seeds, and the regional code without RNNs.
+* ``regions``: the regional code without the per-region L2.
 
 Usage:
     python benchmarks/attention_hypotheses.py [--data ../shared/data] [--only range norm ...] [--threads 1]
@@ -46,7 +50,7 @@ from attnloop.rnn_pool import random_rnn_pool, random_rnn_weights
 
 GROUPS = (192, 320)
 SIZE = (224, 288)
-SEEDS = ("own", "top5", "top5-uniform", "T2")
+SEEDS = ("own", "top5", "top5-uniform", "T2", "entropy")
 
 
 def _seed(p: torch.Tensor, z: torch.Tensor, kind: str) -> torch.Tensor:
@@ -54,16 +58,19 @@ def _seed(p: torch.Tensor, z: torch.Tensor, kind: str) -> torch.Tensor:
         return p
     if kind == "T2":
         return (z / 2).softmax(1)
+    if kind == "entropy":  # each class's share of the softmax's entropy, -S_k log S_k (the runners-up weigh more)
+        h = -p * p.clamp_min(1e-30).log()
+        return h / h.sum(1, keepdim=True)
     top = p.topk(5, dim=1).indices
     mask = torch.zeros_like(p).scatter_(1, top, 1.0)
     s = p * mask if kind == "top5" else mask
     return s / s.sum(1, keepdim=True)
 
 
-def extract(images: list[np.ndarray], batch: int = 8) -> dict:
+def extract(images: list[np.ndarray], kinds=SEEDS, batch: int = 8) -> dict:
     """{seed kind: G (N, 512, 7, 9)}, plus "L" and "logits": one forward, one backward per seed kind."""
     net = efficientnet_lite("lite0", pretrained=True, tap="stage6+stage7", input_size=SIZE)
-    out = {k: [] for k in (*SEEDS, "L", "logits")}
+    out = {k: [] for k in (*kinds, "L", "logits")}
     for s in range(0, len(images), batch):
         x = torch.stack([prepare_images(torch.from_numpy(im).permute(2, 0, 1)[None], SIZE, net.mean, net.std)[0]
                          for im in images[s:s + batch]])
@@ -73,9 +80,9 @@ def extract(images: list[np.ndarray], batch: int = 8) -> dict:
             var = tap.detach().requires_grad_(True)
             z = net.forward_from_tap(var)
             p = z.softmax(1)
-            for k, kind in enumerate(SEEDS):
+            for k, kind in enumerate(kinds):
                 (g,) = torch.autograd.grad(p, var, grad_outputs=_seed(p.detach(), z.detach(), kind),
-                                           retain_graph=k < len(SEEDS) - 1)
+                                           retain_graph=k < len(kinds) - 1)
                 out[kind].append(g)
         out["L"].append(tap)
         out["logits"].append(z.detach())
@@ -177,11 +184,11 @@ def main(argv=None) -> None:
     args.cache.mkdir(parents=True, exist_ok=True)
     for k, (images, _) in data.items():
         path = args.cache / f"{k}_lite0_{SIZE[0]}x{SIZE[1]}.pt"
-        if path.is_file():
-            feats[k] = torch.load(path)
-        else:
+        feats[k] = torch.load(path) if path.is_file() else {}
+        missing = [kind for kind in SEEDS if kind not in feats[k]]
+        if missing:
             t0 = time.perf_counter()
-            feats[k] = extract(images)
+            feats[k].update(extract(images, missing))
             torch.save(feats[k], path)
             print(f"<!-- {k}: features in {time.perf_counter() - t0:.0f} s -->", flush=True)
     print(f"# Attention hypotheses ({time.strftime('%Y-%m-%d %H:%M')}), R@1 / R@P100 per protocol")

@@ -56,6 +56,8 @@ def test_seeds(hyp):
     assert torch.allclose(top5[0, :5], p[0, :5] / p[0, :5].sum()) and torch.equal(top5[0, 5:], torch.zeros(2))
     assert torch.allclose(hyp._seed(p, z, "top5-uniform"), torch.tensor([[0.2] * 5 + [0.0] * 2]))
     assert torch.allclose(hyp._seed(p, z, "T2"), (z / 2).softmax(1))
+    h = hyp._seed(p, z, "entropy")
+    assert torch.allclose(h, -p * p.log() / (-p * p.log()).sum()) and torch.allclose(h.sum(), torch.tensor(1.0))
 
 
 def test_per_channel_and_sign_variants(hyp):
