@@ -51,6 +51,7 @@ from attnloop.rnn_pool import random_rnn_pool, random_rnn_weights
 GROUPS = (192, 320)
 SIZE = (224, 288)
 SEEDS = ("own", "top5", "top5-uniform", "T2", "entropy")
+HYPOTHESES = ("range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions")
 
 
 def _seed(p: torch.Tensor, z: torch.Tensor, kind: str) -> torch.Tensor:
@@ -170,10 +171,13 @@ def main(argv=None) -> None:
     from place_recognition import data_root
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=data_root())
-    parser.add_argument("--cache", type=Path, default=Path("runs/attention_cache"))
-    parser.add_argument("--only", nargs="*", default=["range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions"])
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--data", type=Path, default=data_root(),
+                        help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
+    parser.add_argument("--cache", type=Path, default=Path("runs/attention_cache"),
+                        help="folder of the cached tap maps L and G per set (extracted when missing)")
+    parser.add_argument("--only", nargs="*", choices=HYPOTHESES, default=list(HYPOTHESES),
+                        help="the hypotheses to measure (default: all)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     data = sets(args.data)
