@@ -23,7 +23,7 @@ Inline code spans of the prose that start with a command (``attnloop-slam ... --
 ``--flags`` checked as well. ``python -m pytest -q -s tests/test_docs_snippets.py`` prints the tally of
 every page (how many blocks ran, were parsed, are not code, were skipped and why).
 
-Counts on 2026-12-02 (main with the docs branch): 41 blocks, 18 run, 18 parsed (31 commands), 5 not code,
+Counts on 2026-12-02 (main with the docs branch): 42 blocks, 18 run, 19 parsed (32 commands), 5 not code,
 0 skipped; per page in docs/benchmarks.md, section "Documentation snippets and --help".
 """
 from __future__ import annotations
