@@ -9,6 +9,7 @@ from attnloop.threshold import ThresholdConfig
 from slam.loop.acceptance import DriftBoundConfig
 from slam.loop.consistency import ConsistencyConfig
 from slam.mapping import MapConfig
+from slam.maps.config import RelocalisationConfig
 from slam.odometry.config import OdometryConfig, RegistrationConfig
 
 
@@ -100,3 +101,5 @@ class SLAMConfig:
     loop: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     map: MapConfig = field(default_factory=MapConfig)  # map.ply of a run (slam.pipeline)
+    # placing a recording in a saved map (run_slam(map_dir=...), --map; slam.maps)
+    relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
