@@ -57,25 +57,26 @@ class ConsistencyConfig:
     """Settings of :class:`GroupConsistency`."""
 
     enabled: bool = True  # False: every verified loop is kept
-    # A group needs this many mutually consistent loops before any of them is kept (1: a lone loop is
-    # kept until a larger group contradicts it).
+    # A group needs this many mutually consistent loops before any of them is kept (1: any group; each
+    # of its loops still needs local support, below).
     min_group: int = 1
     # Local support (module docstring): a kept loop needs this many other loops of the group whose two ends
     # are within support_radius metres (the sum of the two paths along the odometry chain) of its own. 0:
-    # off. Loops of a revisit come keyframe after keyframe (0.1-0.5 m apart on redkitchen and the building).
+    # off. The loops of a revisit come keyframe after keyframe (on the building tour: query keyframes
+    # 3-13 frames apart).
     min_support: int = 1
     support_radius: float = 2.0  # m
+    # The pairwise bound: the drift bound of slam.loop.acceptance on the summed length of the two paths.
+    bound: DriftBoundConfig = field(default_factory=DriftBoundConfig)
+    # Exact maximum clique up to this many hypotheses; beyond, the newest ones are checked greedily
+    # against the kept group (bounds the cost on very long runs).
+    max_exact: int = 400
 
     def __post_init__(self) -> None:
         if not (isinstance(self.min_support, int) and self.min_support >= 0):
             raise ValueError(f"ConsistencyConfig.min_support must be an integer >= 0, got {self.min_support!r}")
         if not (self.support_radius >= 0 and math.isfinite(self.support_radius)):
             raise ValueError(f"ConsistencyConfig.support_radius must be finite and >= 0, got {self.support_radius!r}")
-    # The pairwise bound: the drift bound of slam.loop.acceptance on the summed length of the two paths.
-    bound: DriftBoundConfig = field(default_factory=DriftBoundConfig)
-    # Exact maximum clique up to this many hypotheses; beyond, the newest ones are checked greedily
-    # against the kept group (bounds the cost on very long runs).
-    max_exact: int = 400
 
 
 def maximum_clique(adjacency: np.ndarray) -> list[int]:
