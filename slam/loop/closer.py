@@ -56,8 +56,9 @@ class LoopClosure:
         verification: the full :class:`~slam.loop.verification.Verification` (disagreement, bound).
         id: the hypothesis number (order of verification).
         path_length: metres travelled between the two keyframes along the graph when it was verified.
-        consistent: in the largest group of mutually consistent loops (set by the loop closer); only those
-            are edges of the graph.
+        consistent: kept by the group check (set by the loop closer): in the largest group of mutually
+            consistent loops, with local support (:mod:`slam.loop.consistency`); only those are edges of
+            the graph. Its ``status`` is ``"inconsistent"`` otherwise.
         switched_off: the back end's robust kernel gave it a weight below
             ``BackendConfig.switch_off_weight`` in its last optimisation (set by the system).
         weight: its last kernel weight in the back end (1 before any optimisation).
