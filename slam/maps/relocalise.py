@@ -35,7 +35,7 @@ import torch
 
 from slam.backend import PoseGraphBackend
 from slam.io.trajectory import Trajectory
-from slam.keyframe_graph import EdgeKind, KeyframeGraph
+from slam.keyframe_graph import EdgeKind, GraphEdge, KeyframeGraph
 from slam.lie import se3_between, se3_compose, se3_inv
 from slam.loop import DriftLimits, drift_limits, maximum_clique, pairwise_consistent, verify_candidate
 from slam.maps.config import RelocalisationConfig
@@ -248,6 +248,7 @@ class MapRelocaliser:
         self._kf_of_id: dict[int, int] = {int(i): k for k, i in enumerate(saved.index_ids.tolist())}
         self._t0 = time.perf_counter()
         self._query_seconds = 0.0
+        self._merged_poses: Tensor | None = None  # the recording's keyframes in the map's world (finish)
 
     @property
     def relocalised(self) -> bool:
@@ -274,7 +275,10 @@ class MapRelocaliser:
         cfg, loop_cfg = self.config, self.slam.config.loop
         kf = self.slam.keyframes[kf_id]
         index = self.slam.loop_closer.detector.index
-        desc = index.descriptors_of(index.ids[kf_id:kf_id + 1])[0]
+        if len(index) != self.slam.graph.num_keyframes:  # the loop closer describes every keyframe, in order
+            raise RuntimeError(f"the loop closer's index holds {len(index)} keyframes, the graph "
+                               f"{self.slam.graph.num_keyframes}")
+        desc = index.descriptors_of(index.ids[kf_id:kf_id + 1])[0]  # the descriptor it just computed
         ids, sims = self.map.index.search(desc, k=cfg.max_candidates)
         graph = self.slam.graph
         lengths = None
@@ -362,6 +366,7 @@ class MapRelocaliser:
             self.links[k].kept = True
         rep.links = [self.links[k] for k in group]
         poses = self._merge(est, rep.links)
+        self._merged_poses = poses
         T_out = _output_rig(self.slam.config)
         old_kf = _to_output(est, T_out)
         new_kf = _to_output(poses, T_out)
@@ -382,6 +387,44 @@ class MapRelocaliser:
         rep.frames_in_map = int(moved.shape[0])
         rep.T_map_recording = align_out
         return merged, rep
+
+    def merged_map(self, sequence=None) -> SavedMap:
+        """The map grown by this recording (after a :meth:`finish` that relocalised it): the map's keyframes
+        unchanged, then the recording's in the map's world, its graph, and its map links as loop edges.
+
+        Args:
+            sequence: the recording (named in the manifest's ``sessions``), or None.
+
+        Raises:
+            RuntimeError: not finished, or not relocalised (its own map is :func:`capture_map`'s).
+        """
+        if self._merged_poses is None:
+            raise RuntimeError("merged_map() needs a finish() that relocalised the recording")
+        own = capture_map(self.slam, sequence)
+        base = self.map
+        M = len(base)
+        if own.rgb.shape[1:] != base.rgb.shape[1:]:
+            raise MapMismatchError(f"{self.report.map_path}: keyframe images of {base.rgb.shape[1:3]} px in the map, "
+                                   f"{own.rgb.shape[1:3]} in this recording: the merged map cannot hold both")
+        shift = (int(base.index_ids.max()) + 1 if M else 0) - (int(own.index_ids.min()) if len(own) else 0)
+        ids = torch.cat([base.index_ids, own.index_ids + shift])
+        descriptors = torch.cat([base.descriptors, own.descriptors])
+        from attnloop.index import KeyframeIndex
+
+        index = KeyframeIndex(base.index.config)
+        index.add(descriptors, ids=ids, timestamps=torch.cat([base.timestamps, own.timestamps]))
+        edges = list(base.edges) + [dataclasses.replace(e, i=e.i + M, j=e.j + M) for e in own.edges]
+        edges += [GraphEdge(lk.map_kf, lk.kf + M, lk.T_ab.clone(), lk.information.clone(), EdgeKind.LOOP)
+                  for lk in self.report.links]
+        info = dict(base.info)
+        sessions = list(info.get("sessions") or [{"sequence": info.get("sequence"), "source": info.get("source"),
+                                                   "keyframes": [0, M]}])
+        sessions.append({"sequence": own.info.get("sequence"), "source": own.info.get("source"),
+                         "keyframes": [M, M + len(own)]})
+        info["sessions"] = sessions
+        return SavedMap(torch.cat([base.poses, self._merged_poses]), torch.cat([base.frame_index, own.frame_index]),
+                        torch.cat([base.timestamps, own.timestamps]), ids, descriptors,
+                        list(base.features) + list(own.features), np.concatenate([base.rgb, own.rgb]), edges, index, info)
 
     def _merge(self, est: Tensor, links: list[MapLink]) -> Tensor:
         """Optimise the recording's keyframe graph with its map links, the linked map keyframes fixed."""
