@@ -36,7 +36,7 @@ import torch
 from slam.backend import PoseGraphBackend
 from slam.io.trajectory import Trajectory
 from slam.keyframe_graph import EdgeKind, GraphEdge, KeyframeGraph
-from slam.lie import se3_between, se3_compose, se3_inv
+from slam.lie import se3_between, se3_compose, se3_inv, so3_log
 from slam.loop import DriftLimits, drift_limits, maximum_clique, pairwise_consistent, verify_candidate
 from slam.maps.config import RelocalisationConfig
 from slam.maps.format import SavedMap
@@ -92,6 +92,7 @@ class RelocalisationReport:
         queries: map queries made (one per keyframe of the recording).
         query_ms: mean milliseconds of a query (index search and verification of its candidates).
         links: the map links kept (those that place the recording); ``hypotheses``: every verified one.
+        skipped: candidates not registered because the placement puts them out of verification's reach.
         frames_in_map: frames reported in the map's world (all or none).
         reason: why not relocalised ("" when it was).
         T_map_recording: ``(7,)`` the recording's first depth camera in the map's world (None when not).
@@ -107,6 +108,7 @@ class RelocalisationReport:
     query_ms: float = math.nan
     links: list[MapLink] = field(default_factory=list)
     hypotheses: int = 0
+    skipped: int = 0
     frames_in_map: int = 0
     reason: str = ""
     T_map_recording: Tensor | None = None
@@ -116,7 +118,8 @@ class RelocalisationReport:
                 "component": "map" if self.relocalised else "new (its own frame: first camera at the origin)",
                 "frame": self.frame, "keyframe": self.keyframe, "seconds_to_relocalise": self.seconds,
                 "queries": self.queries, "query_ms": self.query_ms, "map_links": len(self.links),
-                "link_hypotheses": self.hypotheses, "frames_in_map": self.frames_in_map, "reason": self.reason,
+                "link_hypotheses": self.hypotheses, "candidates_out_of_reach": self.skipped,
+                "frames_in_map": self.frames_in_map, "reason": self.reason,
                 "T_map_recording": None if self.T_map_recording is None else self.T_map_recording.tolist()}
 
 
@@ -203,6 +206,16 @@ def map_world_errors(trajectory: Tensor, groundtruth: Tensor, origin: Tensor) ->
     gt = se3_compose(se3_inv(origin.to(torch.float64))[None], groundtruth[ok].to(torch.float64))
     err = (trajectory[ok, :3].to(torch.float64) - gt[:, :3]).norm(dim=-1)
     return {"rmse": float(err.square().mean().sqrt()), "max": float(err.max()), "num_frames": int(ok.sum())}
+
+
+def _out_of_reach(estimate: Tensor, limits: DriftLimits, config) -> bool:
+    """No measurement can pass verification: a measured pose within the view distance
+    (``config.max_translation`` / ``max_rotation_deg``) that agrees with ``estimate`` within ``limits``
+    puts the estimate within their sums (triangle inequalities on the translation and the rotation
+    angle), so a candidate farther than that is skipped without its registration."""
+    t = float(estimate[:3].norm())
+    r = math.degrees(float(so3_log(estimate[3:]).norm()))
+    return t > config.max_translation + limits.translation or r > config.max_rotation_deg + limits.rotation_deg
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -292,6 +305,9 @@ class MapRelocaliser:
                     lengths = float(min(L[b] for b in self._anchors))
                 estimate = se3_between(self.map.poses[a], se3_compose(self._alignment, graph.estimate(kf_id)))
                 limits = drift_limits(lengths, loop_cfg.drift)
+                if _out_of_reach(estimate, limits, loop_cfg):
+                    self.report.skipped += 1
+                    continue
             v = verify_candidate(self.map.features[a], kf.features, estimate, limits, loop_cfg)
             if not v.accepted:
                 logger.debug("map candidate %d for keyframe %d rejected: %s", a, kf_id, v.reason)
