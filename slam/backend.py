@@ -180,7 +180,9 @@ class PoseGraphBackend:
         pg = graph.pose_graph(self.information_scale, poses=initial)
         if pg is None or pg.num_edges == 0:
             raise ValueError("the keyframe graph has no edges to optimise")
-        kinds = graph.edge_kinds(active_only=True)
+        if cfg.device is not None:  # BackendConfig.device: solved there, returned on the CPU
+            pg = pg.to(cfg.device)
+        kinds = graph.edge_kinds(active_only=True).to(pg.device)
         active = [k for k, e in enumerate(graph.edges) if e.active]
         loop_rows = [r for r, k in enumerate(active) if graph.edges[k].kind is EdgeKind.LOOP]
         iters = cfg.online_max_iterations if online else cfg.max_iterations
