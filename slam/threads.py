@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import numbers
-from typing import Iterator, Optional
+from collections.abc import Iterator
 
 import cv2
 import torch
@@ -37,7 +37,7 @@ import torch
 __all__ = ["check_threads", "limit_threads", "thread_counts"]
 
 
-def check_threads(n: Optional[int], what: str = "threads") -> Optional[int]:
+def check_threads(n: int | None, what: str = "threads") -> int | None:
     """``n`` as an int >= 1, or None (leave the counts as they are).
 
     Raises:
@@ -60,7 +60,7 @@ def thread_counts() -> dict:
 
 
 @contextlib.contextmanager
-def limit_threads(n: Optional[int]) -> Iterator[None]:
+def limit_threads(n: int | None) -> Iterator[None]:
     """torch, BLAS and OpenCV compute with ``n`` threads inside the block; the previous counts after.
 
     Args:

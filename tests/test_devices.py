@@ -136,3 +136,25 @@ def test_cuda_descriptor_and_backend_run_end_to_end(tmp_path):
     assert run.result.num_keyframes == ref.result.num_keyframes and len(run.result.loops) == len(ref.result.loops)
     diff = (run.result.trajectory.poses[:, :3] - ref.result.trajectory.poses[:, :3]).norm(dim=-1)
     assert float(diff.max()) < 0.01
+
+
+def test_optimize_g2o_takes_threads_and_device(tmp_path, load_script, monkeypatch):
+    ex = load_script("examples/optimize_g2o.py")
+    src = tmp_path / "line.g2o"
+    src.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2.1 0 0\n"
+                   "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE_SE2 1 2 1 0 0 1 0 0 1 0 1\n")
+    seen = {}
+    real = ex.optimize
+
+    def spy(graph, *a, **kw):
+        seen.update(device=graph.device, threads=kw.get("num_threads"))
+        return real(graph, *a, **kw)
+
+    monkeypatch.setattr(ex, "optimize", spy)
+    ex.main([str(src)])
+    assert seen == {"device": torch.device("cpu"), "threads": 1}  # OptimizerConfig.num_threads
+    res = ex.main([str(src), "--threads", "2", "--device", "cpu"])
+    assert seen == {"device": torch.device("cpu"), "threads": 2} and res.chi2 < 1e-9
+    for bad in (["--threads", "0"], ["--device", "bogus"], ["--device", "mps"]):
+        with pytest.raises(SystemExit):
+            ex.parse_args([str(src), *bad])

@@ -41,9 +41,8 @@ def test_limit_threads_sets_inside_and_restores_after(caller_counts):
     assert thread_counts() == caller_counts
     with limit_threads(None):  # None changes nothing
         assert thread_counts() == caller_counts
-    with pytest.raises(KeyError):
-        with limit_threads(1):
-            raise KeyError("boom")
+    with pytest.raises(KeyError), limit_threads(1):
+        raise KeyError("boom")
     assert thread_counts() == caller_counts
 
 
@@ -51,9 +50,8 @@ def test_limit_threads_sets_inside_and_restores_after(caller_counts):
 def test_bad_counts_are_refused_by_name(bad):
     with pytest.raises(ValueError, match="threads must be a whole number >= 1"):
         check_threads(bad)
-    with pytest.raises(ValueError, match="whole number"):
-        with limit_threads(bad):
-            pass
+    with pytest.raises(ValueError, match="whole number"), limit_threads(bad):
+        pass
     cfg = SLAMConfig()
     cfg.threads = bad
     with pytest.raises(UsageError, match="config.threads"):
