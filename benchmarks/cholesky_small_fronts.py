@@ -61,8 +61,8 @@ def factor_solve_ms(prob, Hd, g, threshold: int, repeats: int) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=None, help="folder holding posegraph/ (default $ATTNLOOP_DATA or ../shared/data)")
-    ap.add_argument("--repeats", type=int, default=7)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[500, 5000, 20000])
+    ap.add_argument("--repeats", type=int, default=7, help="timing repeats per threshold (the median is reported)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[500, 5000, 20000], help="poses of the simulated graphs (manhattan_world)")
     ap.add_argument("--out", default=None, help="also write the markdown here")
     args = ap.parse_args()
     if not compiled_kernels():

@@ -152,10 +152,10 @@ def resize_options(rounds: int) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--backbones", nargs="+", default=["efficientnet_lite0", "vgg16"])
-    parser.add_argument("--batches", nargs="+", type=int, default=[1, 8])
-    parser.add_argument("--rounds", type=int, default=10)
-    parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--backbones", nargs="+", default=["efficientnet_lite0", "vgg16"], help="backbones to time (vgg16 needs its weights)")
+    parser.add_argument("--batches", nargs="+", type=int, default=[1, 8], help="batch sizes")
+    parser.add_argument("--rounds", type=int, default=10, help="interleaved timing rounds (the median is reported)")
+    parser.add_argument("--warmup", type=int, default=2, help="untimed calls first")
     parser.add_argument("--threads", type=int, default=0,
                         help="torch.set_num_threads for this run (0: torch's default); on a shared, busy "
                              "machine 1 thread gives far steadier timings than oversubscribed cores")

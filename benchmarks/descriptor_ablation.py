@@ -168,10 +168,10 @@ def per_mode(fn, data_sets, protos, half=None):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=data_root())
+    parser.add_argument("--data", type=Path, default=data_root(), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
     parser.add_argument("--only", nargs="*", default=["flip", "hotspot", "tap", "pooling", "size", "backbone",
-                                                      "whitening", "halves"])
-    parser.add_argument("--threads", type=int, default=1)
+                                                      "whitening", "halves"], help="the studies to run (default: all)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     data = sets(args.data)

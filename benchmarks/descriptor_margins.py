@@ -119,7 +119,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=default_sequence(), help="the redkitchen folder")
     parser.add_argument("--stride", type=int, default=1, help="negatives from every stride-th frame")
-    parser.add_argument("--batch", type=int, default=25)
+    parser.add_argument("--batch", type=int, default=25, help="frames per forward/backward pass")
     parser.add_argument("--seeds", type=int, default=1, help="RNN seeds 0..N-1")
     args = parser.parse_args()
     seq = args.data

@@ -53,10 +53,10 @@ def _row(name, ms):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--frames", type=int, default=300, help="frames read per variant")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     ap.add_argument("--work-ms", type=float, default=20.0, help="simulated per-frame work of the caller")
-    ap.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data"))
+    ap.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data"), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)

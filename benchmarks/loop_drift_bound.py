@@ -51,10 +51,10 @@ def pairs_of(run, min_gap_s=3.0):
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"))
+    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
     p.add_argument("--building", default=None, help="a generated building sequence folder (attnloop-slam --demo "
                    "--demo-scene building writes one into OUT/demo_sequence)")
-    p.add_argument("--steps", nargs="+", type=int, default=[1, 3, 6])
+    p.add_argument("--steps", nargs="+", type=int, default=[1, 3, 6], help="frame steps to run the kitchen at")
     args = p.parse_args()
     torch.set_num_threads(1)
     seqs = []

@@ -37,9 +37,9 @@ SETTINGS = ([("mad", k, 0.02, 0.0) for k in (1.5, 2.0, 3.0, 4.0)] + [("std", 3.0
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=data_root())
-    parser.add_argument("--step", type=int, default=5)
-    parser.add_argument("--presets", nargs="+", default=["default", "paper"], choices=["default", "paper"])
+    parser.add_argument("--data", type=Path, default=data_root(), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
+    parser.add_argument("--step", type=int, default=5, help="every STEP-th kitchen frame is a keyframe")
+    parser.add_argument("--presets", nargs="+", default=["default", "paper"], choices=["default", "paper"], help="descriptor presets to compare")
     args = parser.parse_args()
     torch.set_num_threads(1)
     seq = args.data / "7scenes-redkitchen"

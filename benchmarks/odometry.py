@@ -249,8 +249,8 @@ def main(argv=None) -> None:
     default_data = Path(os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data")) / "7scenes-redkitchen"
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=default_data, help="7-Scenes sequence folder")
-    ap.add_argument("--max-frames", type=int, default=1000)
-    ap.add_argument("--methods", default="ours,ours-rgbK,sift-3d3d,orb-pnp")
+    ap.add_argument("--max-frames", type=int, default=1000, help="kitchen frames to track")
+    ap.add_argument("--methods", default="ours,ours-rgbK,sift-3d3d,orb-pnp", help="comma-separated methods to run")
     # One thread by default: the per-frame tensors are small, and on a shared 2-core machine torch's
     # OpenMP regions wait for descheduled workers (measured: 2 threads 850 ms/frame, 1 thread 66 ms).
     ap.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads (0: library default)")

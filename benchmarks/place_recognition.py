@@ -280,13 +280,13 @@ def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=data_root())
-    parser.add_argument("--sets", nargs="*", default=["rtabmap", "kitchen"], choices=["rtabmap", "kitchen"])
-    parser.add_argument("--query", type=Path)
-    parser.add_argument("--reference", type=Path)
-    parser.add_argument("--ground-truth", type=Path)
+    parser.add_argument("--data", type=Path, default=data_root(), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
+    parser.add_argument("--sets", nargs="*", default=["rtabmap", "kitchen"], choices=["rtabmap", "kitchen"], help="the shared sets to run (none: only --query/--reference)")
+    parser.add_argument("--query", type=Path, help="a folder of query images (with --reference and --ground-truth)")
+    parser.add_argument("--reference", type=Path, help="a folder of reference images")
+    parser.add_argument("--ground-truth", type=Path, help="the query x reference ground truth of --query (.npy or image)")
     parser.add_argument("--out", type=Path, default=None, help="folder for the PR-curve PNGs")
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if (args.query is None) != (args.reference is None) or (args.query is not None and args.ground_truth is None):

@@ -173,12 +173,12 @@ def add_false_loops(graph: PoseGraph, fraction: float = 0.05, seed: int = 0) -> 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", help="folder with the g2o files (default $ATTNLOOP_DATA/posegraph)")
-    ap.add_argument("--files", nargs="*", default=FILES)
+    ap.add_argument("--files", nargs="*", default=FILES, help="g2o files of the shared posegraph folder (default: all)")
     ap.add_argument("--backends", nargs="+", default=None,
                     help="our backends (default: torch and c, or torch and numpy without the C kernels)")
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--no-robust", action="store_true")
-    ap.add_argument("--no-memory", action="store_true")
+    ap.add_argument("--repeats", type=int, default=5, help="timing repeats (the median is reported)")
+    ap.add_argument("--no-robust", action="store_true", help="skip the robust-kernel runs on sphere2500")
+    ap.add_argument("--no-memory", action="store_true", help="skip the memory measurements")
     ap.add_argument("--out", help="also write the markdown to this file")
     ap.add_argument("--memory-probe", help=argparse.SUPPRESS)
     args = ap.parse_args()

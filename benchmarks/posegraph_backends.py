@@ -56,7 +56,7 @@ def first_poses(graph: PoseGraph, n: int) -> PoseGraph:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", default=None, help="folder holding posegraph/ (default $ATTNLOOP_DATA or ../shared/data)")
-    p.add_argument("--repeats", type=int, default=15)
+    p.add_argument("--repeats", type=int, default=15, help="timing repeats (the median is reported)")
     p.add_argument("--out", default=None, help="also write the markdown here")
     p.add_argument("--subgraphs", action="store_true", help="also time dense vs sparse on sphere2500's first poses")
     args = p.parse_args()

@@ -136,9 +136,9 @@ def header(args) -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", nargs="+", type=int, default=[1000, 5000, 10000, 20000])
-    ap.add_argument("--repeats", type=int, default=1)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sizes", nargs="+", type=int, default=[1000, 5000, 10000, 20000], help="poses of the simulated graphs")
+    ap.add_argument("--repeats", type=int, default=1, help="timing repeats (the median is reported)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the simulated graphs")
     ap.add_argument("--sigma-t", type=float, default=0.05, help="translation noise, m (default 0.05)")
     ap.add_argument("--sigma-r", type=float, default=0.003, help="rotation noise, rad (default 0.003)")
     ap.add_argument("--no-memory", action="store_true", help="skip the peak-RSS probes")

@@ -71,11 +71,11 @@ def replay(calls, backend: str) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", str(ROOT.parent / "shared" / "data")))
+    ap.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", str(ROOT.parent / "shared" / "data")), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
     ap.add_argument("--save", default=None, help="write the last captured graph here (g2o, without kernels)")
-    ap.add_argument("--max-frames", type=int, default=None)
-    ap.add_argument("--backbone", default="efficientnet_lite0")
-    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--max-frames", type=int, default=None, help="kitchen frames to run (default: all)")
+    ap.add_argument("--backbone", default="efficientnet_lite0", help="descriptor backbone")
+    ap.add_argument("--repeats", type=int, default=7, help="replays of every optimisation (the median is reported)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     load = os.getloadavg()[0]

@@ -55,16 +55,16 @@ def _row(label, m, odo_ate):
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"))
+    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
     p.add_argument("--no-kitchen", action="store_true", help="leave out 7-Scenes redkitchen")
     p.add_argument("--building", default=None, metavar="DIR",
                    help="the building tour's folder (generated there when it does not exist)")
     p.add_argument("--sequence", nargs="*", default=[], help="more sequence folders")
-    p.add_argument("--backbone", default="efficientnet_lite0")
-    p.add_argument("--frame-step", type=int, default=1)
-    p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--out", default="runs/bench_slam")
-    p.add_argument("--modes", nargs="+", default=list(MODES))
+    p.add_argument("--backbone", default="efficientnet_lite0", help="descriptor backbone")
+    p.add_argument("--frame-step", type=int, default=1, help="use every N-th frame")
+    p.add_argument("--max-frames", type=int, default=None, help="first frames to run (default: all)")
+    p.add_argument("--out", default="runs/bench_slam", help="output folder")
+    p.add_argument("--modes", nargs="+", default=list(MODES), help="fusion modes to run (default: all)")
     p.add_argument("--fps-ab", type=int, default=0, metavar="R", help="rounds of the online-correction A/B")
     args = p.parse_args()
     torch.set_num_threads(1)

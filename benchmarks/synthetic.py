@@ -34,7 +34,7 @@ def _timed(fn, *args, **kwargs):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=300, help="frames of the whole-sequence runs")
-    ap.add_argument("--trajectory", default="loop")
+    ap.add_argument("--trajectory", default="loop", help="camera trajectory of the rendered sequence")
     ap.add_argument("--render-frames", type=int, default=10, help="frames of the render-only runs")
     ap.add_argument("--quick", action="store_true",
                     help="skip the slow comparisons (torch's own threads, workers=1)")

@@ -58,9 +58,9 @@ def detector_eval(desc: torch.Tensor, gt: np.ndarray, window: int, k_sigma: floa
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--fusion", nargs="+", default=["none", "dam"], help="fusion modes")
-    ap.add_argument("--backbone", default="efficientnet_lite0")
+    ap.add_argument("--backbone", default="efficientnet_lite0", help="descriptor backbone")
     ap.add_argument("--windows", type=int, nargs="+", default=[30, 150], help="exclusion windows (frames)")
-    ap.add_argument("--k-sigma", type=float, nargs="+", default=[2.0, 3.0, 4.0, 5.0])
+    ap.add_argument("--k-sigma", type=float, nargs="+", default=[2.0, 3.0, 4.0, 5.0], help="threshold multipliers k to compare")
     args = ap.parse_args()
     torch.set_num_threads(1)
     print(f"# loop-candidate threshold on redkitchen ({args.backbone}, {time.strftime('%Y-%m-%d')})\n")

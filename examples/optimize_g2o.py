@@ -39,7 +39,8 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     p.add_argument("input", help="g2o file")
     p.add_argument("-o", "--output", default=None, help="write the optimised graph here (g2o)")
-    p.add_argument("--method", choices=["lm", "gn"], default="lm")
+    p.add_argument("--method", choices=["lm", "gn"], default="lm",
+                   help="lm = Levenberg-Marquardt (GTSAM's default), gn = Gauss-Newton (default: lm)")
     p.add_argument("--initialization", choices=INITIALIZATIONS, default="none",
                    help="initial guess: none = the file's vertices; chordal = rotations by chordal relaxation, "
                         "then translations by least squares (GTSAM's InitializePose3); spanning_tree = composed "
@@ -50,11 +51,20 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("--kernel", default=None, choices=["huber", "cauchy", "tukey", "geman_mcclure"],
                    help="robust kernel against false loop closures (default: none)")
     p.add_argument("--kernel-width", type=float, default=None, help="on sqrt(r^T Omega r); default sqrt(chi2_0.95(6))")
-    p.add_argument("-n", "--max-iterations", type=int, default=defaults.max_iterations)
-    p.add_argument("--gauge", choices=["free", "first", "prior"], default=defaults.gauge)
-    p.add_argument("--damping", choices=["identity", "diagonal"], default=defaults.damping)
-    p.add_argument("--lambda-update", choices=["gtsam", "nielsen"], default=defaults.lambda_update)
-    p.add_argument("--solver", default="auto", choices=["auto", "sparse", "superlu", "dense", "pcg"])
+    p.add_argument("-n", "--max-iterations", type=int, default=defaults.max_iterations, metavar="N",
+                   help=f"iteration limit (default: {defaults.max_iterations})")
+    p.add_argument("--gauge", choices=["free", "first", "prior"], default=defaults.gauge,
+                   help="how the graph's free rigid motion is fixed: free = left to the LM damping, then re-anchored on "
+                        f"pose 0; first = pose 0 held; prior = a prior on pose 0 (default: {defaults.gauge})")
+    p.add_argument("--damping", choices=["identity", "diagonal"], default=defaults.damping,
+                   help="LM damping: H + lambda I (identity, GTSAM's default) or H + lambda diag(H) (diagonal) "
+                        f"(default: {defaults.damping})")
+    p.add_argument("--lambda-update", choices=["gtsam", "nielsen"], default=defaults.lambda_update,
+                   help="how LM's lambda moves: gtsam = divided / multiplied by 10 after a good / bad step; nielsen = "
+                        f"the gain-ratio rule of g2o and Ceres (default: {defaults.lambda_update})")
+    p.add_argument("--solver", default="auto", choices=["auto", "sparse", "superlu", "dense", "pcg"],
+                   help="linear solver of each step: sparse Cholesky, SuperLU, dense Cholesky, preconditioned conjugate "
+                        "gradients; auto = dense for small systems, sparse above (default: auto)")
     p.add_argument("--backend", default=defaults.backend, choices=BACKENDS,
                    help="where the per-edge work runs: torch (the default, the reference), auto (the accelerator: "
                         "its C kernels when they were built, else numpy), c, numpy")

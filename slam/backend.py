@@ -29,10 +29,11 @@ Example:
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence
 
 import torch
 
@@ -160,7 +161,8 @@ class PoseGraphBackend:
         odo = make_kernel(self.config.kernel, self.config.kernel_width)
         return EdgeKindKernel(kinds, {int(EdgeKind.ODOMETRY): odo, int(EdgeKind.LOOP): loop_kernel})
 
-    def optimize(self, graph: KeyframeGraph, initial: Optional[Tensor] = None, online: bool = False) -> BackendResult:
+    def optimize(self, graph: KeyframeGraph, initial: Optional[Tensor] = None, online: bool = False,
+                 fixed: Optional[Sequence[int]] = None) -> BackendResult:
         """Optimise the active edges of ``graph`` from ``initial`` poses (default: its current estimates).
 
         Args:
@@ -168,6 +170,8 @@ class PoseGraphBackend:
             initial: ``(M, 7)`` start poses.
             online: a correction during tracking: at most ``config.online_max_iterations`` LM iterations
                 (the graph changes little between two loops and the start is the previous solution).
+            fixed: keyframes held at their start poses (a loaded map's, :mod:`slam.maps`); they then
+                anchor the result (else keyframe 0 does).
 
         Returns:
             :class:`BackendResult`.
@@ -180,6 +184,8 @@ class PoseGraphBackend:
         pg = graph.pose_graph(self.information_scale, poses=initial)
         if pg is None or pg.num_edges == 0:
             raise ValueError("the keyframe graph has no edges to optimise")
+        if fixed:
+            pg = dataclasses.replace(pg, fixed=torch.as_tensor(list(fixed), dtype=torch.long))
         if cfg.device is not None:  # BackendConfig.device: solved there, returned on the CPU
             pg = pg.to(cfg.device)
         kinds = graph.edge_kinds(active_only=True).to(pg.device)

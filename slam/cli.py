@@ -22,6 +22,8 @@ examples:
   attnloop-slam ../shared/data/7scenes-redkitchen --out runs/kitchen    # 7-Scenes: Kinect v1 rig by default
   attnloop-slam ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room --backbone vgg16   # the paper's setting
   attnloop-slam SEQUENCE --out runs/step3 --frame-step 3     # every 3rd frame: more drift for the loops
+  attnloop-slam SEQUENCE --frames 0:600 --save-map maps/kitchen --out runs/monday          # map, saved
+  attnloop-slam SEQUENCE --frames 850:1000 --map maps/kitchen --out runs/tuesday         # placed in that map
 
 outputs in --out: trajectory.txt (TUM format), loops.txt, metrics.json, trajectory.png, map.ply
 (and demo_sequence/ with its groundtruth.txt for --demo). Exit code 2: a usage or input error.
@@ -31,7 +33,7 @@ PROG = "attnloop-slam"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from slam.options import add_run_arguments, positive_int
+    from slam.options import add_run_arguments, frame_range, positive_int
     from slam.synthetic.demo import DEFAULT_DEMO_SCENE, DEMO_SCENES
 
     p = argparse.ArgumentParser(
@@ -43,6 +45,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (created; the previous run's outputs in it are "
                                                 "replaced)")
     add_run_arguments(p)
+    g = p.add_argument_group("maps (docs/pipeline.md, 'Maps that persist')")
+    g.add_argument("--frames", type=frame_range, default=None, metavar="START:END",
+                   help="the recording is input frames START .. END-1 only, numbered from 0 (a slice of a "
+                        "longer sequence as a recording of its own)")
+    g.add_argument("--save-map", default=None, metavar="DIR",
+                   help="save the run's map (keyframes, pose graph, index) into DIR for a later --map")
+    g.add_argument("--map", default=None, metavar="DIR", dest="map_dir",
+                   help="relocalise this recording in the map saved in DIR: poses in that map's world, or in "
+                        "this recording's own frame when no place of the map is recognised (said on stdout "
+                        "and in metrics.json)")
     g = p.add_argument_group("demo")
     g.add_argument("--demo", action="store_true",
                    help="generate a synthetic sequence into OUT/demo_sequence and run on it")
@@ -116,6 +128,19 @@ def _summary(run, metrics: dict) -> str:
     return line
 
 
+def _relocalisation_summary(r: dict) -> str:
+    if not r["relocalised"]:
+        return (f"NOT relocalised in the map {r['map']}: {r['reason']}; every pose is in this recording's own "
+                "frame (a new map component, first camera at the origin)")
+    line = (f"relocalised in the map {r['map']} at frame {r['frame']} (keyframe {r['keyframe']}, "
+            f"{r['seconds_to_relocalise']:.1f} s into the run), {r['map_links']} map links; all "
+            f"{r['frames_in_map']} poses are in the map's world")
+    err = r.get("map_world_errors")
+    if err:
+        line += f"; error in the map's world without alignment {err['rmse']:.4f} m RMSE ({err['num_frames']} frames)"
+    return line
+
+
 def run_command(args: argparse.Namespace) -> int:
     """Everything after parsing: checks, demo generation, the run, its evaluation and outputs."""
     from slam.io import open_sequence
@@ -128,6 +153,20 @@ def run_command(args: argparse.Namespace) -> int:
         raise UsageError("a SEQUENCE folder is required (or --demo)")
     if args.demo and args.camera is not None:
         raise UsageError("--camera applies to TUM sequence folders, not to --demo")
+    if args.save_map is not None and args.map_dir is not None:
+        raise UsageError("--save-map with --map (saving the merged map) is not supported yet; save each "
+                         "session's own map")
+    if (args.save_map is not None or args.map_dir is not None) and args.no_loop:
+        raise UsageError("--save-map and --map need loop closure (its descriptors and verification); drop --no-loop")
+    saved = None
+    if args.map_dir is not None:
+        from slam.maps import load_map
+
+        saved = load_map(args.map_dir)  # a wrong or corrupt map fails before the work
+    if args.save_map is not None:
+        from slam.maps import prepare_map_dir
+
+        prepare_map_dir(args.save_map)
     seq = None
     if args.demo:
         _check_demo_args(args)
@@ -141,8 +180,8 @@ def run_command(args: argparse.Namespace) -> int:
         seq = open_sequence(seq_dir)
     if not args.quiet:
         print(f"camera: {describe_rig(resolve_rig(args, seq))}", file=sys.stderr)
-    run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step,
-                   progress=None if not args.quiet else False)
+    run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step, frames=args.frames,
+                   progress=None if not args.quiet else False, save_map=args.save_map, map_dir=saved)
     metrics = evaluate_run(run)
     write_outputs(run, out)
     tracked = metrics["num_frames"] - metrics["num_lost"] - metrics["num_skipped"]
@@ -150,6 +189,10 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"{PROG}: warning: no frame could be tracked ({metrics['num_lost']} lost, {metrics['num_skipped']} "
               "unreadable); see the warnings above", file=sys.stderr)
     print(_summary(run, metrics))
+    if run.relocalisation is not None:
+        print(_relocalisation_summary(metrics["relocalisation"]))
+    if run.saved_map is not None:
+        print(f"saved the map ({metrics['num_keyframes']} keyframes) into {run.saved_map}")
     wrote = ["trajectory.txt", "loops.txt", "metrics.json", "trajectory.png"]
     if run.map is not None:
         wrote.append(f"map.ply ({metrics['map']['points']} points)")

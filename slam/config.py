@@ -9,6 +9,7 @@ from attnloop.threshold import ThresholdConfig
 from slam.loop.acceptance import DriftBoundConfig
 from slam.loop.consistency import ConsistencyConfig
 from slam.mapping import MapConfig
+from slam.maps.config import RelocalisationConfig
 from slam.odometry.config import OdometryConfig, RegistrationConfig
 
 
@@ -105,6 +106,8 @@ class SLAMConfig:
     loop: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     map: MapConfig = field(default_factory=MapConfig)  # map.ply of a run (slam.pipeline)
+    # placing a recording in a saved map (run_slam(map_dir=...), --map; slam.maps)
+    relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
     # torch, BLAS and OpenCV threads during slam.pipeline.run_slam (the caller's restored afterwards; None
     # leaves them as they are). One: the work is many small per-frame operations, and a pool with more
     # threads than free cores made a run ~9x slower while another process used a core; one thread loses

@@ -130,6 +130,19 @@ def positive_int(text: str) -> int:
     return value
 
 
+def frame_range(text: str) -> tuple[int, int]:
+    """``START:END`` (END excluded; ``START:`` to the end) -> ``(start, end)``, both >= 0, START < END."""
+    start, sep, end = text.partition(":")
+    try:
+        lo = int(start) if start else 0
+        hi = int(end) if end else 2 ** 62
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected START:END (whole numbers), got {text!r}") from None
+    if not sep or lo < 0 or hi <= lo:
+        raise argparse.ArgumentTypeError(f"expected START:END with 0 <= START < END, got {text!r}")
+    return lo, hi
+
+
 def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> None:
     """Add the options of a run (descriptor, frames, camera rig, devices and threads, map) to ``parser``.
 

@@ -92,11 +92,15 @@ class RunResult:
     map: PointCloudMap | None = None
     backbone: str | None = None
     map_cloud: tuple[np.ndarray, np.ndarray] | None = None
+    relocalisation: object | None = None  # slam.maps.RelocalisationReport of a run in a saved map (map_dir)
+    map_origin: torch.Tensor | None = None  # (7,) ground truth of the saved map's first frame (map_dir), if known
+    saved_map: Path | None = None  # where save_map wrote the run's map
 
 
 def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
              progress: bool | None = None, descriptor: torch.nn.Module | None = None,
-             prefetch: int = 2, frame_step: int = 1) -> RunResult:
+             prefetch: int = 2, frame_step: int = 1, frames: tuple[int, int] | None = None,
+             save_map: str | os.PathLike | None = None, map_dir=None) -> RunResult:
     """Track every frame of ``sequence`` (or every ``frame_step``-th) and optimise.
 
     A frame that cannot be read (missing or corrupt image) is skipped with a warning and placed by constant
@@ -113,6 +117,12 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         descriptor: a prebuilt descriptor model (else built from the config).
         prefetch: frames decoded ahead in background threads.
         frame_step: use input frames ``0, N, 2N, ...`` of those (the trajectory and metrics are on them).
+        frames: ``(start, end)``: the recording is input frames ``start .. end - 1`` only, re-numbered from
+            0 (``max_frames`` and ``frame_step`` then apply to them).
+        save_map: a folder to save the run's map in (:mod:`slam.maps`: keyframes, pose graph, index).
+        map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording
+            in: every pose is then reported in the map's world, or, when it never relocalises, in its
+            own (``run.relocalisation`` says which; ``config.relocalisation`` sets how).
 
     Returns:
         :class:`RunResult`.
@@ -129,18 +139,39 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         raise ValueError(f"frame_step must be an integer >= 1, got {frame_step!r}")
     check_sequence_intrinsics(sequence)
     with limit_threads(config.threads):  # the caller's counts are restored when the run ends (or fails)
-        return _run(sequence, config, max_frames, progress, descriptor, prefetch, frame_step)
+        return _run(sequence, config, max_frames, progress, descriptor, prefetch, frame_step, frames, save_map,
+                    map_dir)
 
 
 def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, progress: bool | None,
-         descriptor: torch.nn.Module | None, prefetch: int, frame_step: int) -> RunResult:
+         descriptor: torch.nn.Module | None, prefetch: int, frame_step: int, frames: tuple[int, int] | None,
+         save_map, map_dir) -> RunResult:
+    if frames is not None:
+        start, end = (int(v) for v in frames)
+        if not 0 <= start < min(end, len(sequence)):
+            raise ValueError(f"{sequence.name}: frames {start}:{end} select nothing of its {len(sequence)} frames")
+        sequence = sequence[start:end]
     n_in = len(sequence) if max_frames is None else min(int(max_frames), len(sequence))
     if n_in <= 0:
         raise ValueError(f"{sequence.name}: nothing to process (max_frames={max_frames}, {len(sequence)} frames)")
     view = sequence[0:n_in:int(frame_step)]
+    saved = None
+    if map_dir is not None:
+        from slam.maps import SavedMap, load_map
+
+        saved = map_dir if isinstance(map_dir, SavedMap) else load_map(map_dir)
+    if save_map is not None:
+        from slam.maps import prepare_map_dir
+
+        prepare_map_dir(save_map)
     n = len(view)
     stamps = view.timestamps
     slam = RGBDSLAM(config, descriptor=descriptor)
+    reloc = None
+    if saved is not None:
+        from slam.maps import MapRelocaliser
+
+        reloc = MapRelocaliser(saved, slam, config.relocalisation)
     cloud = PointCloudMap.for_config(config) if config.map.enabled else None
     recent: deque = deque(maxlen=4)  # the frames a new keyframe can come from (this one or a promoted one)
     start = time.perf_counter()
@@ -151,16 +182,22 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         with slam.timer("io_wait"):  # decoding runs ahead in threads: this is only the time waited for it
             frame_or_error = next(frames)
         if isinstance(frame_or_error, FrameReadError):
-            slam.skip(i, float(stamps[i]), str(frame_or_error))
+            state = slam.skip(i, float(stamps[i]), str(frame_or_error))
         else:
             state = slam.track(frame_or_error)
             if cloud is not None:
                 recent.append(frame_or_error)
                 with slam.timer("map"):
                     _add_keyframes_to_map(cloud, slam, state.new_keyframes, recent)
+        if reloc is not None:
+            reloc.observe(state)
         if i % 10 == 0:
-            bar.set_postfix(f"kf={len(slam.keyframes)} loops={len(slam.loops)}")
+            bar.set_postfix(f"kf={len(slam.keyframes)} loops={len(slam.loops)}"
+                            + ("" if reloc is None else f" in_map={'yes' if reloc.relocalised else 'no'}"))
     result = slam.finish()
+    report = None
+    if reloc is not None:
+        result, report = reloc.finish(result)
     wall = time.perf_counter() - start
     bad = ~torch.isfinite(result.trajectory.poses).all(dim=-1)
     if bool(bad.any()):
@@ -173,8 +210,15 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     ])) if gt is not None else None
     closer = slam.loop_closer
     backbone = getattr(closer.descriptor, "backbone_name", None) if closer is not None else None
+    saved_to = None
+    if save_map is not None:
+        from slam.maps import capture_map
+        from slam.maps import save_map as write_map
+
+        saved_to = write_map(save_map, capture_map(slam, view))
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
-                     frame_step=int(frame_step), map=cloud, backbone=backbone)
+                     frame_step=int(frame_step), map=cloud, backbone=backbone, relocalisation=report,
+                     map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to)
 
 
 def _add_keyframes_to_map(cloud: PointCloudMap, slam: RGBDSLAM, new_ids: list[int], recent) -> None:
@@ -303,8 +347,23 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
         m["loop_hypotheses_false"] = {s: sum(lp.status == s and not t for lp, t in zip(hyp, true_hyp))
                                       for s in ("kept", "inconsistent", "switched_off")}
         m["loop_detection"] = loop_precision_recall(run, cfg)
+    if run.relocalisation is not None:
+        m["relocalisation"] = _relocalisation_metrics(run)
     run.metrics = m
     return m
+
+
+def _relocalisation_metrics(run: RunResult) -> dict[str, object]:
+    """The map relocalisation's report, with the errors in the map's world without alignment when the map
+    knows the ground truth of its origin (:func:`slam.maps.map_world_errors`)."""
+    from slam.maps import map_world_errors
+
+    rep = run.relocalisation.as_dict()
+    rep["map_world_errors"] = None
+    if run.relocalisation.relocalised and run.map_origin is not None and run.gt_poses_per_frame is not None:
+        rep["map_world_errors"] = map_world_errors(run.result.trajectory.poses, run.gt_poses_per_frame,
+                                                   run.map_origin)
+    return rep
 
 
 def loop_precision_recall(run: RunResult, config=None) -> dict[str, object]:

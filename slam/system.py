@@ -41,7 +41,7 @@ from slam.backend import BackendResult, PoseGraphBackend
 from slam.config import SLAMConfig
 from slam.graph import PoseGraph
 from slam.graph.optimizer import OptimizationResult
-from slam.io.frame import RGBDFrame
+from slam.io.frame import RGBDFrame, check_frame
 from slam.io.trajectory import Trajectory
 from slam.keyframe_graph import EdgeKind, KeyframeGraph
 from slam.lie import se3_compose, se3_identity
@@ -205,9 +205,16 @@ class RGBDSLAM:
 
         Returns:
             :class:`FrameState`. Bad frames (no depth, no texture) are a ``"lost"`` state, never an error.
+
+        Raises:
+            TypeError, ValueError: ``frame`` is not an ``RGBDFrame`` or a field is of the wrong type, shape or
+                units (:func:`slam.io.check_frame`: depth in millimetres, a greyscale image, a torch tensor).
         """
         if self._finished:
             raise RuntimeError("track() called after finish(); create a new RGBDSLAM")
+        if not isinstance(frame, RGBDFrame):
+            raise TypeError(f"track() takes a slam.io.RGBDFrame, got {type(frame).__name__}")
+        check_frame(frame)  # again: a field set after construction (frame.depth = depth_mm) is an error too
         with self.timer("odometry"):
             res = self.odometry.track(frame)
         status = res.status.value

@@ -88,3 +88,43 @@ def test_real_frames_pass_unchanged(redkitchen_dir):
     check_frame(f)
     for a, b in zip(before, (f.rgb, f.depth, f.K, f.pose_gt)):
         assert np.array_equal(a, b)
+
+
+# the same mistakes at RGBDSLAM.track(): a field set after construction (frame.depth = depth_mm), or a frame that
+# is not an RGBDFrame, is the same error, raised before anything is tracked
+@pytest.mark.parametrize("field, value, error, pattern", [
+    ("depth", np.full((H, W), 1500, np.uint16), TypeError, r"depth must be float32 metres, got uint16"),
+    ("depth", np.full((H, W), 1500.0, np.float32), ValueError, r"median valid value is 1500 .*millimetres"),
+    ("depth", torch.from_numpy(DEPTH), TypeError, r"depth must be a numpy array .* got a torch tensor"),
+    ("depth", DEPTH[:, :10], ValueError, r"depth is 10x48 but rgb is 64x48"),
+    ("rgb", RGB[..., 0], ValueError, r"greyscale image \(48, 64\); convert it"),
+    ("rgb", RGB.astype(np.float32), TypeError, r"rgb must be uint8 in \[0, 255\], got float32"),
+    ("rgb", torch.zeros(H, W, 3, dtype=torch.uint8), TypeError, r"rgb must be a numpy array .* got a torch tensor"),
+    ("K", K[:2], ValueError, r"K must have shape \(3, 3\), got \(2, 3\)"),
+    ("K", "525 525 31.5 23.5", TypeError, r"K must be a \(3, 3\) array of numbers, got str"),
+    ("K", torch.from_numpy(K), TypeError, r"K must be a numpy array \(3, 3\) float64, got a torch"),
+])
+def test_track_refuses_the_same_mistakes(field, value, error, pattern):
+    from slam.config import SLAMConfig
+    from slam.system import RGBDSLAM
+
+    cfg = SLAMConfig()
+    cfg.loop.enabled = False
+    slam = RGBDSLAM(cfg)
+    good = _frame()
+    assert slam.track(good).status == "lost"  # a blank frame: lost, not an error
+    bad = _frame(index=1, timestamp=0.1)
+    setattr(bad, field, value)
+    with pytest.raises(error, match=pattern):
+        slam.track(bad)
+    assert len(slam.finish().trajectory) == 1  # nothing of the bad frame was recorded
+
+
+def test_track_takes_only_frames():
+    from slam.config import SLAMConfig
+    from slam.system import RGBDSLAM
+
+    cfg = SLAMConfig()
+    cfg.loop.enabled = False
+    with pytest.raises(TypeError, match=r"track\(\) takes a slam.io.RGBDFrame, got dict"):
+        RGBDSLAM(cfg).track(dict(index=0, timestamp=0.0, rgb=RGB, depth=DEPTH, K=K))

@@ -1,0 +1,415 @@
+"""Relocalisation of a new recording in a saved map, and the merge of the two into the map's world.
+
+While the new recording is tracked (its own :class:`~slam.system.RGBDSLAM`, its own loops), every new
+keyframe also queries the map: its descriptor (the one the loop closer just computed) -> the map's
+index (the ``max_candidates`` most similar map keyframes) -> the loop closer's geometric verification
+(:func:`slam.loop.verify_candidate`) -> a *map link*: a loop whose older keyframe is a map keyframe.
+Each link places the recording in the map (``T_map_rec = P_map[a] T_ab P_rec[b]^-1``). The recording is
+*relocalised* once links from ``min_agreeing`` distinct keyframes agree on that placement (the loop
+closer's pairwise cycle test, :func:`slam.loop.pairwise_consistent`, with the drift bound of the path
+between them); from then on a candidate must also agree with the placement (the loop closer's drift
+test against the current estimate).
+
+At the end (:meth:`MapRelocaliser.finish`) the recording's keyframe graph and its map links are
+optimised together with the linked map keyframes held fixed (the map is the reference world); every
+frame of the recording, those before the first relocalisation included, is then reported in the map's
+world through its keyframe (ORB-SLAM3's Atlas merges a map the same way). A recording that never
+relocalises keeps its own frame (the first camera at the origin): a new map component, reported as such
+(``relocalised: false`` in the report), never placed by a guess.
+
+Example:
+    >>> cfg = RelocalisationConfig()
+    >>> cfg.min_agreeing, cfg.max_candidates
+    (2, 5)
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from slam.backend import PoseGraphBackend
+from slam.io.trajectory import Trajectory
+from slam.keyframe_graph import EdgeKind, KeyframeGraph
+from slam.lie import se3_between, se3_compose, se3_inv
+from slam.loop import DriftLimits, drift_limits, maximum_clique, pairwise_consistent, verify_candidate
+from slam.maps.config import RelocalisationConfig
+from slam.maps.format import SavedMap
+from slam.odometry.depth_registration import depth_camera_poses, rig_pose
+
+logger = logging.getLogger(__name__)
+Tensor = torch.Tensor
+
+__all__ = ["MapLink", "MapMismatchError", "MapRelocaliser", "RelocalisationConfig", "RelocalisationReport",
+           "capture_map", "map_world_errors"]
+
+_NO_BOUND = DriftLimits(math.inf, math.inf)
+
+
+class MapMismatchError(ValueError):
+    """The saved map cannot serve this run (another descriptor or camera rig); the message says which."""
+
+
+@dataclass
+class MapLink:
+    """A verified loop between map keyframe ``map_kf`` and keyframe ``kf`` of the new recording.
+
+    Attributes:
+        map_kf, kf: the two keyframes (``T_ab``: the pose of ``kf`` in ``map_kf``).
+        frame: the recording's input index of ``kf``.
+        similarity: descriptor cosine similarity.
+        num_inliers: RANSAC inliers of the verification.
+        T_ab: ``(7,)`` float64 measured relative pose (tracked camera).
+        information: ``(6, 6)`` float64 (unscaled).
+        kept: in the consistent group that placed the recording (set by :meth:`MapRelocaliser.finish`).
+    """
+
+    map_kf: int
+    kf: int
+    frame: int
+    similarity: float
+    num_inliers: int
+    T_ab: Tensor
+    information: Tensor
+    kept: bool = False
+
+
+@dataclass
+class RelocalisationReport:
+    """What relocalisation in a map did (``metrics.json``'s ``relocalisation``).
+
+    Attributes:
+        map_path: the map folder.
+        map_keyframes: keyframes in the map.
+        relocalised: the recording was placed in the map's world.
+        frame, keyframe: where it first was (-1 when never).
+        seconds: wall time from the start of tracking to that moment (NaN when never).
+        queries: map queries made (one per keyframe of the recording).
+        query_ms: mean milliseconds of a query (index search and verification of its candidates).
+        links: the map links kept (those that place the recording); ``hypotheses``: every verified one.
+        frames_in_map: frames reported in the map's world (all or none).
+        reason: why not relocalised ("" when it was).
+        T_map_recording: ``(7,)`` the recording's first depth camera in the map's world (None when not).
+    """
+
+    map_path: str
+    map_keyframes: int
+    relocalised: bool = False
+    frame: int = -1
+    keyframe: int = -1
+    seconds: float = math.nan
+    queries: int = 0
+    query_ms: float = math.nan
+    links: list[MapLink] = field(default_factory=list)
+    hypotheses: int = 0
+    frames_in_map: int = 0
+    reason: str = ""
+    T_map_recording: Tensor | None = None
+
+    def as_dict(self) -> dict:
+        return {"map": self.map_path, "map_keyframes": self.map_keyframes, "relocalised": self.relocalised,
+                "component": "map" if self.relocalised else "new (its own frame: first camera at the origin)",
+                "frame": self.frame, "keyframe": self.keyframe, "seconds_to_relocalise": self.seconds,
+                "queries": self.queries, "query_ms": self.query_ms, "map_links": len(self.links),
+                "link_hypotheses": self.hypotheses, "frames_in_map": self.frames_in_map, "reason": self.reason,
+                "T_map_recording": None if self.T_map_recording is None else self.T_map_recording.tolist()}
+
+
+# ---------------------------------------------------------------------------------------------------
+def _rig(config) -> dict:
+    f = config.odometry.features
+    return {"rgb_intrinsics": None if f.rgb_intrinsics is None else [float(v) for v in f.rgb_intrinsics],
+            "rgb_from_depth": [float(v) for v in f.rgb_from_depth_translation]}
+
+
+def _descriptor_info(slam) -> dict:
+    d = slam.config.loop.descriptor
+    model = slam.loop_closer.descriptor
+    return {"backbone": getattr(model, "backbone_name", d.backbone), "fusion": d.fusion, "num_rnn": d.num_rnn,
+            "seed": d.seed, "dim": slam.loop_closer.detector.index.dim}
+
+
+def _output_rig(config) -> Tensor | None:
+    """``T_rgb_depth`` when the system reports depth-camera poses (as :class:`slam.system.RGBDSLAM` decides)."""
+    f = config.odometry.features
+    if f.rgb_intrinsics is not None and any(float(x) != 0.0 for x in f.rgb_from_depth_translation):
+        return rig_pose(f.rgb_from_depth_translation)
+    return None
+
+
+def _to_output(poses: Tensor, T_rgb_depth: Tensor | None) -> Tensor:
+    return poses if T_rgb_depth is None else depth_camera_poses(poses, T_rgb_depth)
+
+
+def capture_map(slam, sequence=None) -> SavedMap:
+    """The :class:`SavedMap` of a finished run (its final keyframe poses, features, graph and index).
+
+    Args:
+        slam: a :class:`slam.system.RGBDSLAM` after :meth:`~slam.system.RGBDSLAM.finish`, run with loop
+            closure (the index and the descriptors are the loop closer's).
+        sequence: the recording (for its name and the ground truth of its first frame), or None.
+
+    Raises:
+        MapMismatchError: the run had no loop closure (no descriptors to relocalise with).
+    """
+    if slam.loop_closer is None:
+        raise MapMismatchError("saving a map needs loop closure (its descriptors and index); drop --no-loop")
+    kfs = slam.keyframes
+    index = slam.loop_closer.detector.index
+    index.wait()
+    if len(index) != len(kfs):
+        raise RuntimeError(f"the loop closer's index holds {len(index)} keyframes, the front end {len(kfs)}")
+    rgb = np.stack([kf.rgb for kf in kfs]) if kfs else np.zeros((0, 1, 1, 3), np.uint8)
+    info = {"sequence": None, "source": None, "groundtruth_origin": None, "rig": _rig(slam.config),
+            "descriptor": _descriptor_info(slam),
+            "world": "the first frame's depth camera (the frame of every reported pose); keyframe poses are the "
+                     "tracked camera's (the colour camera on an unregistered rig)"}
+    if sequence is not None:
+        info["sequence"], info["source"] = str(sequence.name), str(sequence.root)
+        g0 = sequence.groundtruth_pose(0) if len(sequence) else None
+        if g0 is not None and np.all(np.isfinite(g0)):
+            info["groundtruth_origin"] = [float(v) for v in g0]
+    return SavedMap(slam.graph.estimates(), torch.tensor([kf.frame_index for kf in kfs], dtype=torch.long),
+                    torch.tensor([kf.timestamp for kf in kfs], dtype=torch.float64), index.ids.to(torch.long),
+                    index.descriptors, [kf.features for kf in kfs], rgb, list(slam.graph.edges), index, info)
+
+
+def map_world_errors(trajectory: Tensor, groundtruth: Tensor, origin: Tensor) -> dict | None:
+    """Position errors, without any alignment, of a trajectory reported in a map's world.
+
+    The ground truth is expressed in the map's world by ``origin^-1 G_i`` (``origin``: the ground-truth
+    pose of the mapping recording's first frame). Meaningful only when both recordings' ground truth share
+    one world (sequences of one 7-Scenes scene, one motion-capture room).
+
+    Args:
+        trajectory: ``(N, 7)`` estimated poses in the map's world.
+        groundtruth: ``(N, 7)`` ground truth of the same frames (NaN rows where unknown).
+        origin: ``(7,)``.
+
+    Returns:
+        ``{"rmse", "max", "num_frames"}`` (metres), None when no frame has ground truth.
+    """
+    if trajectory.shape != groundtruth.shape or trajectory.shape[-1:] != (7,):
+        raise ValueError(f"trajectory and groundtruth must both be (N, 7), got {tuple(trajectory.shape)} and "
+                         f"{tuple(groundtruth.shape)}")
+    ok = torch.isfinite(groundtruth).all(dim=-1) & torch.isfinite(trajectory).all(dim=-1)
+    if not bool(ok.any()):
+        return None
+    gt = se3_compose(se3_inv(origin.to(torch.float64))[None], groundtruth[ok].to(torch.float64))
+    err = (trajectory[ok, :3].to(torch.float64) - gt[:, :3]).norm(dim=-1)
+    return {"rmse": float(err.square().mean().sqrt()), "max": float(err.max()), "num_frames": int(ok.sum())}
+
+
+# ---------------------------------------------------------------------------------------------------
+class MapRelocaliser:
+    """Relocalises a recording in a saved map while it is tracked, and merges it into the map's world.
+
+    Args:
+        saved: the map (:func:`slam.maps.load_map`).
+        slam: the new recording's :class:`slam.system.RGBDSLAM` (with loop closure), before its first frame.
+        config: :class:`RelocalisationConfig`.
+
+    Raises:
+        MapMismatchError: the run has no loop closure, or its descriptor or camera rig differ from the map's.
+
+    Call :meth:`observe` after every :meth:`RGBDSLAM.track` (or ``skip``), then :meth:`finish` with the
+    system's result.
+    """
+
+    def __init__(self, saved: SavedMap, slam, config: RelocalisationConfig | None = None):
+        self.map = saved
+        self.slam = slam
+        self.config = config or RelocalisationConfig()
+        where = str(saved.path) if saved.path is not None else "the map"
+        if slam.loop_closer is None:
+            raise MapMismatchError(f"{where}: relocalisation uses loop closure's descriptor and verification; "
+                                   "drop --no-loop")
+        mine = _descriptor_info(slam)
+        theirs = saved.descriptor
+        for key in ("backbone", "fusion", "num_rnn", "seed"):
+            if key in theirs and theirs[key] != mine[key]:
+                raise MapMismatchError(f"{where}: the map was made with descriptor {key}={theirs[key]!r}, this run "
+                                       f"uses {mine[key]!r}; its index cannot be searched with another descriptor")
+        rig, map_rig = _rig(slam.config), saved.rig
+        if map_rig and (map_rig.get("rgb_intrinsics") != rig["rgb_intrinsics"]
+                        or not np.allclose(map_rig.get("rgb_from_depth", [0, 0, 0]), rig["rgb_from_depth"])):
+            raise MapMismatchError(f"{where}: the map's camera rig {map_rig} differs from this run's {rig}; run "
+                                   "with the map's rig (the poses are the tracked camera's)")
+        self.links: list[MapLink] = []
+        self.report = RelocalisationReport(where, len(saved))
+        self._alignment: Tensor | None = None  # T_map_rec of the tracked camera's worlds, once relocalised
+        self._anchors: list[int] = []
+        self._frame_kf: list[int] = []
+        self._kf_of_id: dict[int, int] = {int(i): k for k, i in enumerate(saved.index_ids.tolist())}
+        self._t0 = time.perf_counter()
+        self._query_seconds = 0.0
+
+    @property
+    def relocalised(self) -> bool:
+        """The recording has been placed in the map (so far)."""
+        return self._alignment is not None
+
+    @property
+    def alignment(self) -> Tensor | None:
+        """``(7,)`` the current placement of the recording's (tracked-camera) world in the map's, or None."""
+        return None if self._alignment is None else self._alignment.clone()
+
+    # ------------------------------------------------------------------------------------------
+    def observe(self, state) -> None:
+        """Record a frame's :class:`~slam.system.FrameState`; query the map with its new keyframes."""
+        self._frame_kf.append(int(state.keyframe_id))
+        for kf_id in state.new_keyframes:
+            t = time.perf_counter()
+            with self.slam.timer("map_relocalisation"):
+                self._query(kf_id)
+            self._query_seconds += time.perf_counter() - t
+            self.report.queries += 1
+
+    def _query(self, kf_id: int) -> None:
+        cfg, loop_cfg = self.config, self.slam.config.loop
+        kf = self.slam.keyframes[kf_id]
+        index = self.slam.loop_closer.detector.index
+        desc = index.descriptors_of(index.ids[kf_id:kf_id + 1])[0]
+        ids, sims = self.map.index.search(desc, k=cfg.max_candidates)
+        graph = self.slam.graph
+        lengths = None
+        for map_id, sim in zip(ids.tolist(), sims.tolist()):
+            a = self._kf_of_id[int(map_id)]
+            if self._alignment is None:
+                estimate, limits = torch.tensor([0, 0, 0, 0, 0, 0, 1.0], dtype=torch.float64), _NO_BOUND
+            else:
+                if lengths is None:
+                    L = graph.path_lengths(kf_id, through_loops=self._through_loops())
+                    lengths = float(min(L[b] for b in self._anchors))
+                estimate = se3_between(self.map.poses[a], se3_compose(self._alignment, graph.estimate(kf_id)))
+                limits = drift_limits(lengths, loop_cfg.drift)
+            v = verify_candidate(self.map.features[a], kf.features, estimate, limits, loop_cfg)
+            if not v.accepted:
+                logger.debug("map candidate %d for keyframe %d rejected: %s", a, kf_id, v.reason)
+                continue
+            self.links.append(MapLink(a, kf_id, int(kf.frame_index), float(sim), v.num_inliers, v.T_ab, v.information))
+            logger.info("map link: map keyframe %d <-> keyframe %d (frame %d), %d inliers", a, kf_id,
+                        kf.frame_index, v.num_inliers)
+            if self._alignment is not None:
+                self._anchors.append(kf_id)
+        if self._alignment is None and self.links:
+            group = self._consistent_group(self.slam.graph.estimates())
+            if len({self.links[k].kf for k in group}) >= cfg.min_agreeing:
+                self._place(group, self.slam.graph.estimates())
+                self.report.frame, self.report.keyframe = int(kf.frame_index), kf_id
+                self.report.seconds = time.perf_counter() - self._t0
+                logger.info("relocalised in %s at frame %d (keyframe %d): %d agreeing map links", self.report.map_path,
+                            kf.frame_index, kf_id, len(group))
+
+    def _through_loops(self) -> bool:
+        # the recording's estimates include its own loops once any is in effect (online correction)
+        return bool(self.slam.graph.loop_edges(active_only=True))
+
+    def _consistent_group(self, estimates: Tensor) -> list[int]:
+        """The largest set of links that agree pairwise on where the recording lies in the map."""
+        n = len(self.links)
+        A = np.zeros((n, n), bool)
+        lengths = {}
+        for i in range(n):
+            li = self.links[i]
+            if li.kf not in lengths:
+                lengths[li.kf] = self.slam.graph.path_lengths(li.kf, through_loops=self._through_loops())
+            for j in range(i + 1, n):
+                lj = self.links[j]
+                T_a = se3_between(self.map.poses[li.map_kf], self.map.poses[lj.map_kf])
+                T_b = se3_between(estimates[li.kf], estimates[lj.kf])
+                limits = drift_limits(float(lengths[li.kf][lj.kf]), self.slam.config.loop.drift)
+                A[i, j] = A[j, i] = pairwise_consistent(li.T_ab, lj.T_ab, T_a, T_b, limits)[0]
+        return maximum_clique(A) if n else []
+
+    def _place(self, group: list[int], estimates: Tensor) -> None:
+        best = max(group, key=lambda k: self.links[k].num_inliers)
+        lb = self.links[best]
+        self._alignment = se3_compose(se3_compose(self.map.poses[lb.map_kf], lb.T_ab), se3_inv(estimates[lb.kf]))
+        self._anchors = sorted({self.links[k].kf for k in group})
+
+    # ------------------------------------------------------------------------------------------
+    def finish(self, result):
+        """Merge the finished recording into the map's world.
+
+        Args:
+            result: the recording's :class:`~slam.system.SLAMResult` (from ``slam.finish()``).
+
+        Returns:
+            ``(result, report)``: when relocalised, a copy of ``result`` whose trajectories are in the map's
+            world (the keyframe graph optimised with its map links, the map's keyframes fixed); else
+            ``result`` itself (its own frame), and the :class:`RelocalisationReport`.
+        """
+        rep = self.report
+        rep.hypotheses = len(self.links)
+        rep.query_ms = 1000.0 * self._query_seconds / rep.queries if rep.queries else math.nan
+        est = self.slam.graph.estimates()  # the recording's final keyframe poses, its own world
+        group = self._consistent_group(est) if self.links else []
+        if len({self.links[k].kf for k in group}) < self.config.min_agreeing:
+            rep.relocalised, rep.frame, rep.keyframe, rep.seconds = False, -1, -1, math.nan
+            rep.reason = (f"no place of the map was recognised: {len(self.links)} verified link(s), "
+                          f"{len({self.links[k].kf for k in group})} agreeing keyframe(s) of the "
+                          f"{self.config.min_agreeing} needed, after {rep.queries} queries")
+            self._alignment = None
+            return result, rep
+        self._place(group, est)
+        for k in group:
+            self.links[k].kept = True
+        rep.links = [self.links[k] for k in group]
+        poses = self._merge(est, rep.links)
+        T_out = _output_rig(self.slam.config)
+        old_kf = _to_output(est, T_out)
+        new_kf = _to_output(poses, T_out)
+        correction = se3_compose(new_kf, se3_inv(old_kf))  # per keyframe: old world -> map world
+        kf_of_frame = torch.tensor([max(k, 0) for k in self._frame_kf], dtype=torch.long)
+        traj = result.trajectory
+        if kf_of_frame.numel() != traj.poses.shape[0]:
+            raise RuntimeError(f"{kf_of_frame.numel()} frames observed, the result has {traj.poses.shape[0]}")
+        moved = (se3_compose(correction[kf_of_frame], traj.poses) if kf_of_frame.numel() and correction.shape[0]
+                 else traj.poses)
+        align_out = _to_output(self._alignment, T_out)
+        odo = result.odometry_trajectory
+        merged = dataclasses.replace(
+            result, trajectory=Trajectory(traj.timestamps, moved),
+            odometry_trajectory=Trajectory(odo.timestamps, se3_compose(align_out.expand_as(odo.poses), odo.poses)),
+            keyframe_trajectory=Trajectory(result.keyframe_trajectory.timestamps, new_kf))
+        rep.relocalised, rep.reason = True, ""
+        rep.frames_in_map = int(moved.shape[0])
+        rep.T_map_recording = align_out
+        return merged, rep
+
+    def _merge(self, est: Tensor, links: list[MapLink]) -> Tensor:
+        """Optimise the recording's keyframe graph with its map links, the linked map keyframes fixed."""
+        slam = self.slam
+        used = sorted({lk.map_kf for lk in links})
+        slot = {a: s for s, a in enumerate(used)}
+        U = len(used)
+        start = se3_compose(self._alignment.expand_as(est), est)
+        g = KeyframeGraph()
+        for a in used:
+            g.add_keyframe(self.map.poses[a])
+        g.add_keyframe(start[0])
+        loops = []
+        for e in slam.graph.edges:
+            if e.kind is EdgeKind.ODOMETRY:
+                if e.j != g.num_keyframes - U:
+                    raise RuntimeError(f"odometry edge {e.i} -> {e.j} out of creation order")
+                g.add_odometry(e.i + U, e.T_ij, e.information, estimate=start[e.j], weak=e.weak)
+            elif e.active:
+                loops.append(e)
+        for e in loops:
+            g.add_loop(e.i + U, e.j + U, e.T_ij, e.information)
+        for lk in links:
+            g.add_loop(slot[lk.map_kf], lk.kf + U, lk.T_ab, lk.information)
+        backend = PoseGraphBackend(slam.config.backend, {EdgeKind.ODOMETRY: slam.config.backend.odometry_information_scale,
+                                                         EdgeKind.LOOP: slam.config.loop.information_scale})
+        with slam.timer("map_merge"):
+            res = backend.optimize(g, fixed=list(range(U)))
+        logger.info("merged into the map: %d keyframes, %d map links, chi2 %.3g -> %.3g, %s", est.shape[0], len(links),
+                    res.initial_chi2, res.chi2, res.status)
+        return res.poses[U:]
