@@ -62,7 +62,8 @@ def _run(seq, threads, frames: int) -> tuple[float, dict]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"))
+    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"),
+                   help="the shared data folder holding 7scenes-redkitchen (default: $ATTNLOOP_DATA or ../shared/data)")
     p.add_argument("--frames", type=int, default=150, help="input frames per run (default 150)")
     p.add_argument("--rounds", type=int, default=3, help="idle/busy rounds (default 3)")
     p.add_argument("--busy", type=int, default=1, help="spinning processes in the busy runs (default 1)")
