@@ -135,3 +135,26 @@ def test_a_failed_run_restores_the_callers_threads(tiny_sequence, caller_counts,
         run_slam(tiny_sequence, cfg, progress=False)
     assert seen == [(1, 1), (1, 1)]
     assert thread_counts() == caller_counts
+
+
+def test_the_streaming_api_computes_with_the_configs_threads(tiny_sequence, caller_counts, monkeypatch):
+    from slam.system import RGBDSLAM
+
+    seen = []
+    cfg = SLAMConfig()
+    cfg.loop.enabled = False
+    cfg.threads = 1
+    slam = RGBDSLAM(cfg)
+    odo_track = slam.odometry.track
+
+    def spy(frame):
+        seen.append((torch.get_num_threads(), cv2.getNumThreads()))
+        return odo_track(frame)
+
+    slam.odometry.track = spy
+    for i in range(len(tiny_sequence)):
+        slam.track(tiny_sequence[i])
+        assert thread_counts() == caller_counts  # given back after every call
+    slam.finish()
+    assert seen == [(1, 1)] * len(tiny_sequence)
+    assert thread_counts() == caller_counts
