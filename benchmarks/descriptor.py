@@ -9,8 +9,8 @@ other processes hits all variants alike; the table gives the median ms per frame
 (25th-75th percentile) and the descriptor / plain ratio, both of the medians and as the median of the
 per-round ratios (paired, less sensitive to a busy machine).
 
-A second table splits the batch-1 descriptor into its stages, and a third compares ways to resize a
-640 x 480 frame to 224 x 224.
+A second table splits the batch-1 descriptor into its stages (interleaved with the plain forward), and a
+third compares ways to resize a 640 x 480 frame to 224 x 224.
 
 Weights do not change the cost: VGG16 uses seeded random weights (no download needed), EfficientNet-
 Lite0 the packaged ImageNet weights when installed.
@@ -35,7 +35,7 @@ import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor
 from attnloop.fusion import FUSION_MODES
-from attnloop.guided_backprop import clamp_negative_grad, softmax_seeded_gradient
+from attnloop.guided_backprop import guided_backprop
 
 
 def frames(batch: int, seed: int = 0) -> torch.Tensor:
@@ -72,6 +72,12 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
     for d in descs.values():
         d.backbone = net
     paper = AttentionDescriptor(name, fusion="dam", pretrained=pretrained, preset="paper")
+    two_calls = None
+    if callable(getattr(net, "forward_split", None)) and len(getattr(net, "tap_groups", ())) > 1:
+        # A/B of the joined tap's one-pass forward (efficientnet_lite.forward_split): the same descriptor
+        # computed as forward_to_tap + forward_from_tap, which runs the blocks between the stages twice.
+        two_calls = AttentionDescriptor(name, fusion="dam", pretrained=pretrained)
+        two_calls.backbone.forward_split = None
     rows = []
     for batch in batches:
         images = frames(batch)
@@ -79,6 +85,9 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
         variants.update({f"descriptor {m}": (lambda d=d, x=images: d(x)) for m, d in descs.items()})
         variants["plain forward, paper's 224 x 224 input"] = lambda x=images: paper.backbone(x)
         variants["descriptor dam, preset='paper'"] = lambda x=images: paper(x)
+        if two_calls is not None:
+            variants["descriptor dam, joined tap in two calls (before the one-pass forward)"] = \
+                lambda x=images: two_calls(x)
         times = {k: [] for k in variants}
         with torch.no_grad():
             for r in range(warmup + rounds):
@@ -97,31 +106,29 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
 
 
 def stage_breakdown(name: str, rounds: int) -> list[str]:
-    """Batch-1 DAM descriptor split into preprocessing, forward to L, guided backward, fusion+pooling."""
+    """Batch-1 DAM descriptor split into (L, G) and fusion+pooling, interleaved with the plain forward."""
     try:
         desc = AttentionDescriptor(name, fusion="dam", pretrained=name == "efficientnet_lite0")
     except FileNotFoundError:
         desc = AttentionDescriptor(name, fusion="dam", pretrained=False)
     net = desc.backbone  # the default descriptor's network (Lite0: stage6+stage7 at 224 x 288)
     img = frames(1)
-    stages = {"preprocess (resize + normalise)": [], "forward to L (no autograd)": [],
-              "head forward + seeded backward to L": [], "fusion + regional GeM + RNN pooling + L2": [],
-              "plain head forward (L -> logits)": []}
+    stages = {"plain forward (preprocess included)": [], "preprocess (resize + normalise)": [],
+              "L and G: guided_backprop (preprocess, forward, seeded backward)": [],
+              "fusion + regional GeM + RNN pooling + L2": []}
     with torch.no_grad():
         for r in range(rounds + 2):
             t0 = time.perf_counter()
-            x = net.preprocess(img)
+            net(img)
             t1 = time.perf_counter()
-            tap = net.forward_to_tap(x)
+            net.preprocess(img)
             t2 = time.perf_counter()
-            grad = softmax_seeded_gradient(tap, lambda t: net.forward_from_tap(t, clamp_negative_grad), guided=False)
+            tap, grad = guided_backprop(net, img)
             t3 = time.perf_counter()
             desc.from_attention(tap, grad)
             t4 = time.perf_counter()
-            net.forward_from_tap(tap)
-            t5 = time.perf_counter()
             if r >= 2:
-                for key, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
+                for key, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
                     stages[key].append(1000.0 * dt)
     return [f"| {name} | {key} | {statistics.median(v):.2f} |" for key, v in stages.items()]
 

@@ -124,9 +124,12 @@ def rtabmap(data: Path, k: int) -> dict | None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"))
-    p.add_argument("--map-frames", type=frame_range, default=(0, 600), metavar="START:END")
-    p.add_argument("--session-frames", type=frame_range, default=(850, 1000), metavar="START:END")
+    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"),
+                   help="the shared data folder (default: $ATTNLOOP_DATA, else ../shared/data)")
+    p.add_argument("--map-frames", type=frame_range, default=(0, 600), metavar="START:END",
+                   help="redkitchen frames of the first session, mapped and saved (default 0:600)")
+    p.add_argument("--session-frames", type=frame_range, default=(850, 1000), metavar="START:END",
+                   help="redkitchen frames of the second session, run in the saved map (default 850:1000)")
     p.add_argument("--skip-other", action="store_true", help="skip the synthetic room in the kitchen map")
     p.add_argument("--skip-rtabmap", action="store_true", help="skip the candidate stage on rtabmap-samples")
     args = p.parse_args()

@@ -50,7 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the recording is input frames START .. END-1 only, numbered from 0 (a slice of a "
                         "longer sequence as a recording of its own)")
     g.add_argument("--save-map", default=None, metavar="DIR",
-                   help="save the run's map (keyframes, pose graph, index) into DIR for a later --map")
+                   help="save the run's map (keyframes, pose graph, index) into DIR for a later --map; with "
+                        "--map, the map grown by this recording (or its own map when it did not relocalise)")
     g.add_argument("--map", default=None, metavar="DIR", dest="map_dir",
                    help="relocalise this recording in the map saved in DIR: poses in that map's world, or in "
                         "this recording's own frame when no place of the map is recognised (said on stdout "
@@ -153,9 +154,6 @@ def run_command(args: argparse.Namespace) -> int:
         raise UsageError("a SEQUENCE folder is required (or --demo)")
     if args.demo and args.camera is not None:
         raise UsageError("--camera applies to TUM sequence folders, not to --demo")
-    if args.save_map is not None and args.map_dir is not None:
-        raise UsageError("--save-map with --map (saving the merged map) is not supported yet; save each "
-                         "session's own map")
     if (args.save_map is not None or args.map_dir is not None) and args.no_loop:
         raise UsageError("--save-map and --map need loop closure (its descriptors and verification); drop --no-loop")
     saved = None
@@ -192,7 +190,12 @@ def run_command(args: argparse.Namespace) -> int:
     if run.relocalisation is not None:
         print(_relocalisation_summary(metrics["relocalisation"]))
     if run.saved_map is not None:
-        print(f"saved the map ({metrics['num_keyframes']} keyframes) into {run.saved_map}")
+        if run.relocalisation is not None and run.relocalisation.relocalised:
+            print(f"saved the map grown by this recording ({run.relocalisation.map_keyframes} + "
+                  f"{metrics['num_keyframes']} keyframes) into {run.saved_map}")
+        else:
+            print(f"saved this recording's own map ({metrics['num_keyframes']} keyframes, its own world) into "
+                  f"{run.saved_map}")
     wrote = ["trajectory.txt", "loops.txt", "metrics.json", "trajectory.png"]
     if run.map is not None:
         wrote.append(f"map.ply ({metrics['map']['points']} points)")

@@ -119,7 +119,8 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         frame_step: use input frames ``0, N, 2N, ...`` of those (the trajectory and metrics are on them).
         frames: ``(start, end)``: the recording is input frames ``start .. end - 1`` only, re-numbered from
             0 (``max_frames`` and ``frame_step`` then apply to them).
-        save_map: a folder to save the run's map in (:mod:`slam.maps`: keyframes, pose graph, index).
+        save_map: a folder to save the run's map in (:mod:`slam.maps`: keyframes, pose graph, index); with
+            ``map_dir``, the saved map grown by this recording when it relocalised, else its own map.
         map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording
             in: every pose is then reported in the map's world, or, when it never relocalises, in its
             own (``run.relocalisation`` says which; ``config.relocalisation`` sets how).
@@ -215,7 +216,10 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         from slam.maps import capture_map
         from slam.maps import save_map as write_map
 
-        saved_to = write_map(save_map, capture_map(slam, view))
+        # a run in a map it was placed in saves the grown map; otherwise (no map, or never relocalised)
+        # its own, in its own world
+        grown = reloc is not None and report.relocalised
+        saved_to = write_map(save_map, reloc.merged_map(view) if grown else capture_map(slam, view))
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
                      frame_step=int(frame_step), map=cloud, backbone=backbone, relocalisation=report,
                      map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to)

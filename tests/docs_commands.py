@@ -14,7 +14,7 @@ a fresh interpreter (a script's import-time settings, such as its torch threads,
 * ``{"job": "help", "command": "examples/x.py"}``: ``{"exit_code": int, "help": str, "no_help": [...],
   "formatter": str, "multiline_description": bool}``: the script run as ``python x.py --help`` would be (in
   this interpreter), the options whose help string is missing, and whether the description or epilog has
-  line breaks of its own (which only a raw formatter keeps).
+  line breaks of its own (which only a raw formatter keeps), and every option string.
 * ``{"job": "options", "command": ...}``: ``{"options": [...]}``, every option string, subcommands' included.
 """
 from __future__ import annotations
@@ -59,7 +59,9 @@ def script_parser(command: str) -> argparse.ArgumentParser:
     path = ROOT / command
     if not path.is_file():
         raise FileNotFoundError(f"{command}: no such script in the repository")
-    sys.path.insert(0, str(ROOT))
+    for folder in (str(ROOT), str(path.parent)):  # as ``python x.py`` has it: the script's folder first
+        if folder not in sys.path:
+            sys.path.insert(0, folder)
     module = _load(path)
     entry = next((getattr(module, n) for n in ("build_parser", "parse_args", "main") if hasattr(module, n)), None)
     if entry is None:
@@ -156,6 +158,7 @@ def run_help(command: str) -> dict:
         finally:
             sys.argv = argv
     return {"exit_code": code, "help": out.getvalue(), "no_help": options_without_help(parser),
+            "options": option_strings(parser),
             "raw_where_needed": raw, "multiline_description": any("\n" in t.strip() for t in texts)}
 
 

@@ -3,7 +3,8 @@
 Each is run as ``python SCRIPT --help`` would run it (``tests/docs_commands.py``, one fresh interpreter for
 all): exit code 0, a usage line, every argument with a help string, and a description or epilog written in
 lines and paragraphs of its own (a list, an indented example) only under a formatter that keeps them
-(``argparse.RawDescriptionHelpFormatter``), so that no lines run together.
+(``argparse.RawDescriptionHelpFormatter``), so that no lines run together. The usage examples that the help
+texts give (``python benchmarks/x.py --flag``) name options their script has.
 """
 from __future__ import annotations
 
@@ -49,3 +50,13 @@ def test_help(name, helps):
     assert h["raw_where_needed"], (f"{name}: its description or epilog has lines of its own (a list, an example) "
                                    "that argparse's default formatter runs together; use "
                                    "formatter_class=argparse.RawDescriptionHelpFormatter")
+
+
+def test_commands_in_the_help_texts_exist(helps):
+    """The usage examples of every help text (``python benchmarks/x.py --flag ...``) name options that exist."""
+    from test_docs_snippets import synopsis_flags
+
+    found = [(c, f, name) for name, h in helps.items() for c, f in synopsis_flags(h.get("help", ""))]
+    wrong = [f"{where}'s help: {c} has no option {f}" if c in helps else f"{where}'s help: no command {c}"
+             for c, f, where in found if f not in (helps.get(c, {}).get("options") or [])]
+    assert len(found) > 20 and not wrong, "\n".join(wrong)

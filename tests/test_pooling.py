@@ -9,7 +9,7 @@ from attnloop import AttentionDescriptor
 from attnloop.backbones.efficientnet_lite import efficientnet_lite
 from attnloop.descriptor import DescriptorRecipe, descriptor_from_attention
 from attnloop.fusion import fuse
-from attnloop.guided_backprop import guided_backprop
+from attnloop.guided_backprop import guided_backprop, softmax_seeded_gradient
 from attnloop.pooling import fuse_groups, gem_regions, regional_code, regional_code_dim, unit_scale
 from attnloop.rnn_pool import random_rnn_pool
 
@@ -121,6 +121,33 @@ def test_joined_tap_equals_the_separate_taps():
         efficientnet_lite("lite0", pretrained=False, tap="stage5+stage7")
     with pytest.raises(ValueError, match="unknown EfficientNet-Lite tap"):
         efficientnet_lite("lite0", pretrained=False, tap="stage7+head")
+
+
+@pytest.mark.parametrize("tap", ["stage6+stage7", "stage4+stage5"])
+def test_joined_tap_runs_each_block_once_with_the_two_call_gradients(tap):
+    # forward_split (the descriptor's no-autograd path) records the blocks between the joined stages once
+    # and replays their backward; it must give the gradients of forward_from_tap(forward_to_tap(x)).
+    net = efficientnet_lite("lite0", tap=tap, pretrained=False, seed=5, input_size=(96, 128))
+    calls = [0] * len(net._blocks)
+    hooks = [b.register_forward_hook(lambda *a, k=k: calls.__setitem__(k, calls[k] + 1))
+             for k, b in enumerate(net._blocks)]
+    x = torch.randint(0, 256, (2, 3, 60, 80), dtype=torch.uint8)
+    L, G = guided_backprop(net, x)
+    assert calls == [1] * len(net._blocks)
+    for h in hooks:
+        h.remove()
+    with torch.no_grad():
+        tap_ref = net.forward_to_tap(net.preprocess(x))
+    G_ref = softmax_seeded_gradient(tap_ref, net.forward_from_tap, guided=False)
+    assert torch.equal(L, tap_ref)
+    assert torch.allclose(G, G_ref, rtol=1e-6, atol=1e-9 * float(G_ref.abs().max()))
+    assert float(G[:, : net.tap_groups[0]].abs().max()) > 0  # the first stage gets the replayed gradient
+    # the differentiable path keeps the two calls (and the same values)
+    xf = x.float() / 255
+    _, G1 = guided_backprop(net, xf)
+    _, G2 = guided_backprop(net.requires_grad_(True), xf, create_graph=True)
+    assert G2.requires_grad
+    assert torch.allclose(G2.detach(), G1, rtol=1e-5, atol=1e-6 * float(G1.abs().max()))
 
 
 def test_default_configuration():

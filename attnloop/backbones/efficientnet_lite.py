@@ -176,6 +176,28 @@ class MBConv(nn.Module):
         return x + inputs if self.skip else x
 
 
+class _ReplaySegment(torch.autograd.Function):
+    """The last joined stage's output, with the backward of the blocks before it replayed from a recording.
+
+    ``forward(leaf, outs, L_0, ..., L_n)``: ``outs`` are the later joined stages' outputs recorded by
+    autograd from ``leaf`` (the first stage's output); the value is ``outs[-1]``. The backward of an
+    incoming gradient g gives each later stage's slice of L the total gradient at that stage's output
+    and the first slice the gradient at ``leaf``, exactly what ``forward_from_tap`` of a joined tap gives.
+    First-order only (the descriptor's no-autograd path).
+    """
+
+    @staticmethod
+    def forward(ctx, leaf, outs, *parts):  # type: ignore[override]
+        ctx.leaf, ctx.outs = leaf, outs
+        return outs[-1].detach().clone()
+
+    @staticmethod
+    def backward(ctx, grad):  # type: ignore[override]
+        inner = torch.autograd.grad(ctx.outs[-1], [ctx.leaf, *ctx.outs[:-1]], grad, allow_unused=True)
+        inner = [torch.zeros_like(t) if g is None else g for g, t in zip(inner, [ctx.leaf, *ctx.outs[:-1]])]
+        return (None, None, *inner, grad)
+
+
 class EfficientNetLite(nn.Module):
     """EfficientNet-Lite0/1/2 split at a tap, with its own preprocessing.
 
@@ -309,6 +331,43 @@ class EfficientNetLite(nn.Module):
                     x = block(x)
                 x = self._head_features(x)
         x = torch.flatten(F.adaptive_avg_pool2d(x, 1), 1)
+        return self._fc(self._dropout(x))
+
+    def forward_split(
+        self, x: torch.Tensor, at_tap: Callable[[torch.Tensor], torch.Tensor],
+        transition: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    ) -> torch.Tensor:
+        """One pass, preprocessed images -> logits, with ``at_tap(L)`` substituted for L.
+
+        The same logits and gradients as ``forward_from_tap(at_tap(forward_to_tap(x)))``. For a joined
+        tap under no autograd (the descriptor's fast path) that pair would run the blocks between the
+        first and the last joined stage twice (Lite0's stage6+stage7: the 1152-channel last block, ~7 %
+        of a forward); here they run once, recorded from a leaf at the first stage, and the backward
+        through them replays that recording (:class:`_ReplaySegment`).
+
+        Args:
+            x: preprocessed images (B, 3, *input_size).
+            at_tap: called once with L (B, C, h, w); returns the tensor the network continues from.
+            transition: as :meth:`forward_from_tap` (never applied).
+        """
+        if len(self.tap_groups) == 1 or torch.is_grad_enabled():
+            return self.forward_from_tap(at_tap(self.forward_to_tap(x)), transition)
+        first, last = self._group_blocks[0], self._group_blocks[-1]
+        h = F.relu6(self._bn0(self._conv_stem(x)))
+        for block in self._blocks[: first + 1]:
+            h = block(h)
+        with torch.enable_grad():
+            leaf = h.detach().requires_grad_(True)
+            outs, y = [], leaf
+            for k in range(first + 1, last + 1):
+                y = self._blocks[k](y)
+                if k in self._group_blocks:
+                    outs.append(y)
+        var = at_tap(torch.cat([h, *(o.detach() for o in outs)], dim=1))
+        x = _ReplaySegment.apply(leaf, outs, *var.split(self.tap_groups, dim=1))
+        for block in self._blocks[last + 1:]:
+            x = block(x)
+        x = torch.flatten(F.adaptive_avg_pool2d(self._head_features(x), 1), 1)
         return self._fc(self._dropout(x))
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:

@@ -209,10 +209,11 @@ def save_map(path, saved: SavedMap) -> Path:
                  kind=np.array([int(x.kind) for x in e], np.int64), weak=np.array([x.weak for x in e], bool),
                  active=np.array([x.active for x in e], bool), weight=np.array([x.weight for x in e], np.float64))
         save_index(saved.index, tmp / MAP_FILES["index"])
+        reserved = ("format", "version", "created", "num_keyframes", "num_edges", "files")  # this file's own
         manifest = {"format": MAP_FORMAT, "version": MAP_FORMAT_VERSION,
                     "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                     "num_keyframes": M, "num_edges": len(e),
-                    **{k: v for k, v in saved.info.items() if k not in ("format", "version", "files")},
+                    **{k: v for k, v in saved.info.items() if k not in reserved},
                     "files": {role: {"name": name, "sha256": _sha256(tmp / name)} for role, name in MAP_FILES.items()}}
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
         old = None

@@ -35,8 +35,8 @@ import torch
 
 from slam.backend import PoseGraphBackend
 from slam.io.trajectory import Trajectory
-from slam.keyframe_graph import EdgeKind, KeyframeGraph
-from slam.lie import se3_between, se3_compose, se3_inv
+from slam.keyframe_graph import EdgeKind, GraphEdge, KeyframeGraph
+from slam.lie import se3_between, se3_compose, se3_inv, so3_log
 from slam.loop import DriftLimits, drift_limits, maximum_clique, pairwise_consistent, verify_candidate
 from slam.maps.config import RelocalisationConfig
 from slam.maps.format import SavedMap
@@ -92,6 +92,7 @@ class RelocalisationReport:
         queries: map queries made (one per keyframe of the recording).
         query_ms: mean milliseconds of a query (index search and verification of its candidates).
         links: the map links kept (those that place the recording); ``hypotheses``: every verified one.
+        skipped: candidates not registered because the placement puts them out of verification's reach.
         frames_in_map: frames reported in the map's world (all or none).
         reason: why not relocalised ("" when it was).
         T_map_recording: ``(7,)`` the recording's first depth camera in the map's world (None when not).
@@ -107,6 +108,7 @@ class RelocalisationReport:
     query_ms: float = math.nan
     links: list[MapLink] = field(default_factory=list)
     hypotheses: int = 0
+    skipped: int = 0
     frames_in_map: int = 0
     reason: str = ""
     T_map_recording: Tensor | None = None
@@ -116,7 +118,8 @@ class RelocalisationReport:
                 "component": "map" if self.relocalised else "new (its own frame: first camera at the origin)",
                 "frame": self.frame, "keyframe": self.keyframe, "seconds_to_relocalise": self.seconds,
                 "queries": self.queries, "query_ms": self.query_ms, "map_links": len(self.links),
-                "link_hypotheses": self.hypotheses, "frames_in_map": self.frames_in_map, "reason": self.reason,
+                "link_hypotheses": self.hypotheses, "candidates_out_of_reach": self.skipped,
+                "frames_in_map": self.frames_in_map, "reason": self.reason,
                 "T_map_recording": None if self.T_map_recording is None else self.T_map_recording.tolist()}
 
 
@@ -205,6 +208,16 @@ def map_world_errors(trajectory: Tensor, groundtruth: Tensor, origin: Tensor) ->
     return {"rmse": float(err.square().mean().sqrt()), "max": float(err.max()), "num_frames": int(ok.sum())}
 
 
+def _out_of_reach(estimate: Tensor, limits: DriftLimits, config) -> bool:
+    """No measurement can pass verification: a measured pose within the view distance
+    (``config.max_translation`` / ``max_rotation_deg``) that agrees with ``estimate`` within ``limits``
+    puts the estimate within their sums (triangle inequalities on the translation and the rotation
+    angle), so a candidate farther than that is skipped without its registration."""
+    t = float(estimate[:3].norm())
+    r = math.degrees(float(so3_log(estimate[3:]).norm()))
+    return t > config.max_translation + limits.translation or r > config.max_rotation_deg + limits.rotation_deg
+
+
 # ---------------------------------------------------------------------------------------------------
 class MapRelocaliser:
     """Relocalises a recording in a saved map while it is tracked, and merges it into the map's world.
@@ -248,6 +261,7 @@ class MapRelocaliser:
         self._kf_of_id: dict[int, int] = {int(i): k for k, i in enumerate(saved.index_ids.tolist())}
         self._t0 = time.perf_counter()
         self._query_seconds = 0.0
+        self._merged_poses: Tensor | None = None  # the recording's keyframes in the map's world (finish)
 
     @property
     def relocalised(self) -> bool:
@@ -274,7 +288,10 @@ class MapRelocaliser:
         cfg, loop_cfg = self.config, self.slam.config.loop
         kf = self.slam.keyframes[kf_id]
         index = self.slam.loop_closer.detector.index
-        desc = index.descriptors_of(index.ids[kf_id:kf_id + 1])[0]
+        if len(index) != self.slam.graph.num_keyframes:  # the loop closer describes every keyframe, in order
+            raise RuntimeError(f"the loop closer's index holds {len(index)} keyframes, the graph "
+                               f"{self.slam.graph.num_keyframes}")
+        desc = index.descriptors_of(index.ids[kf_id:kf_id + 1])[0]  # the descriptor it just computed
         ids, sims = self.map.index.search(desc, k=cfg.max_candidates)
         graph = self.slam.graph
         lengths = None
@@ -288,6 +305,9 @@ class MapRelocaliser:
                     lengths = float(min(L[b] for b in self._anchors))
                 estimate = se3_between(self.map.poses[a], se3_compose(self._alignment, graph.estimate(kf_id)))
                 limits = drift_limits(lengths, loop_cfg.drift)
+                if _out_of_reach(estimate, limits, loop_cfg):
+                    self.report.skipped += 1
+                    continue
             v = verify_candidate(self.map.features[a], kf.features, estimate, limits, loop_cfg)
             if not v.accepted:
                 logger.debug("map candidate %d for keyframe %d rejected: %s", a, kf_id, v.reason)
@@ -362,6 +382,7 @@ class MapRelocaliser:
             self.links[k].kept = True
         rep.links = [self.links[k] for k in group]
         poses = self._merge(est, rep.links)
+        self._merged_poses = poses
         T_out = _output_rig(self.slam.config)
         old_kf = _to_output(est, T_out)
         new_kf = _to_output(poses, T_out)
@@ -382,6 +403,44 @@ class MapRelocaliser:
         rep.frames_in_map = int(moved.shape[0])
         rep.T_map_recording = align_out
         return merged, rep
+
+    def merged_map(self, sequence=None) -> SavedMap:
+        """The map grown by this recording (after a :meth:`finish` that relocalised it): the map's keyframes
+        unchanged, then the recording's in the map's world, its graph, and its map links as loop edges.
+
+        Args:
+            sequence: the recording (named in the manifest's ``sessions``), or None.
+
+        Raises:
+            RuntimeError: not finished, or not relocalised (its own map is :func:`capture_map`'s).
+        """
+        if self._merged_poses is None:
+            raise RuntimeError("merged_map() needs a finish() that relocalised the recording")
+        own = capture_map(self.slam, sequence)
+        base = self.map
+        M = len(base)
+        if own.rgb.shape[1:] != base.rgb.shape[1:]:
+            raise MapMismatchError(f"{self.report.map_path}: keyframe images of {base.rgb.shape[1:3]} px in the map, "
+                                   f"{own.rgb.shape[1:3]} in this recording: the merged map cannot hold both")
+        shift = (int(base.index_ids.max()) + 1 if M else 0) - (int(own.index_ids.min()) if len(own) else 0)
+        ids = torch.cat([base.index_ids, own.index_ids + shift])
+        descriptors = torch.cat([base.descriptors, own.descriptors])
+        from attnloop.index import KeyframeIndex
+
+        index = KeyframeIndex(base.index.config)
+        index.add(descriptors, ids=ids, timestamps=torch.cat([base.timestamps, own.timestamps]))
+        edges = list(base.edges) + [dataclasses.replace(e, i=e.i + M, j=e.j + M) for e in own.edges]
+        edges += [GraphEdge(lk.map_kf, lk.kf + M, lk.T_ab.clone(), lk.information.clone(), EdgeKind.LOOP)
+                  for lk in self.report.links]
+        info = dict(base.info)
+        sessions = list(info.get("sessions") or [{"sequence": info.get("sequence"), "source": info.get("source"),
+                                                   "keyframes": [0, M]}])
+        sessions.append({"sequence": own.info.get("sequence"), "source": own.info.get("source"),
+                         "keyframes": [M, M + len(own)]})
+        info["sessions"] = sessions
+        return SavedMap(torch.cat([base.poses, self._merged_poses]), torch.cat([base.frame_index, own.frame_index]),
+                        torch.cat([base.timestamps, own.timestamps]), ids, descriptors,
+                        list(base.features) + list(own.features), np.concatenate([base.rgb, own.rgb]), edges, index, info)
 
     def _merge(self, est: Tensor, links: list[MapLink]) -> Tensor:
         """Optimise the recording's keyframe graph with its map links, the linked map keyframes fixed."""
