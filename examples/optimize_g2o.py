@@ -30,6 +30,7 @@ from slam.graph import (
 )
 from slam.graph.config import BACKENDS
 from slam.graph.initialization import INITIALIZATIONS
+from slam.options import UsageError, check_device, positive_int
 
 
 def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
@@ -67,12 +68,21 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("--backend", default=defaults.backend, choices=BACKENDS,
                    help="where the per-edge work runs: torch (the default, the reference), auto (the accelerator: "
                         "its C kernels when they were built, else numpy), c, numpy")
+    p.add_argument("--threads", type=positive_int, default=defaults.num_threads, metavar="N",
+                   help=f"torch and BLAS threads of the optimisation (default {defaults.num_threads}; "
+                        "docs/devices.md)")
+    p.add_argument("--device", default=None, metavar="DEV",
+                   help="torch device of the graph, e.g. cuda (float64: not mps; default cpu; the torch backend)")
     p.add_argument("-v", "--verbose", action="store_true", help="one line per iteration")
     args = p.parse_args(argv)
     if args.kernel_width is not None and args.kernel is None:
         p.error("--kernel-width needs --kernel")
     if args.max_iterations < 0:
         p.error("--max-iterations must be >= 0")
+    try:
+        check_device(args.device, "--device", float64=True)
+    except UsageError as e:
+        p.error(str(e))
     return args
 
 
@@ -94,10 +104,13 @@ def main(argv: Optional[List[str]] = None) -> OptimizationResult:
             print(f"warning: {note.message}", file=sys.stderr)
     except (OSError, G2OFormatError) as exc:
         sys.exit(f"error: {exc}")
+    if args.device is not None:
+        graph = graph.to(args.device)
     res = optimize(graph, args.method, kernel=args.kernel, solver=args.solver, initialization=args.initialization,
                    kernel_width=args.kernel_width,
                    max_iterations=args.max_iterations, gauge=args.gauge, damping=args.damping,
-                   lambda_update=args.lambda_update, backend=args.backend, verbose=args.verbose)
+                   lambda_update=args.lambda_update, backend=args.backend, verbose=args.verbose,
+                   num_threads=args.threads)
     print(summary(args.input, res))
     if res.message:
         print(f"note: {res.message}")

@@ -186,7 +186,9 @@ class PoseGraphBackend:
             raise ValueError("the keyframe graph has no edges to optimise")
         if fixed:
             pg = dataclasses.replace(pg, fixed=torch.as_tensor(list(fixed), dtype=torch.long))
-        kinds = graph.edge_kinds(active_only=True)
+        if cfg.device is not None:  # BackendConfig.device: solved there, returned on the CPU
+            pg = pg.to(cfg.device)
+        kinds = graph.edge_kinds(active_only=True).to(pg.device)
         active = [k for k, e in enumerate(graph.edges) if e.active]
         loop_rows = [r for r, k in enumerate(active) if graph.edges[k].kind is EdgeKind.LOOP]
         iters = cfg.online_max_iterations if online else cfg.max_iterations

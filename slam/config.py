@@ -91,6 +91,11 @@ class BackendConfig:
     online_max_iterations: int = 10  # LM iterations of an online correction (bounds its time)
     # A loop edge whose final kernel weight falls below this is reported switched off by the back end.
     switch_off_weight: float = 0.1
+    # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU. The
+    # keyframe graph is small (87 keyframes on the 7-Scenes kitchen, < 0.05 % of the run) and each LM
+    # iteration reads its cost back to decide the step, so an accelerator gains nothing at this size;
+    # set it (--backend-device) to keep a large graph beside the descriptor (docs/devices.md).
+    device: Optional[str] = None
 
 
 @dataclass
@@ -103,3 +108,8 @@ class SLAMConfig:
     map: MapConfig = field(default_factory=MapConfig)  # map.ply of a run (slam.pipeline)
     # placing a recording in a saved map (run_slam(map_dir=...), --map; slam.maps)
     relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
+    # torch, BLAS and OpenCV threads during slam.pipeline.run_slam (the caller's restored afterwards; None
+    # leaves them as they are). One: the work is many small per-frame operations, and a pool with more
+    # threads than free cores made a run ~9x slower while another process used a core; one thread loses
+    # little on an idle machine (benchmarks/threads.py, docs/devices.md).
+    threads: Optional[int] = 1

@@ -144,7 +144,7 @@ def frame_range(text: str) -> tuple[int, int]:
 
 
 def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> None:
-    """Add the options of a run (descriptor, frames, camera rig, device, map) to ``parser``.
+    """Add the options of a run (descriptor, frames, camera rig, devices and threads, map) to ``parser``.
 
     Args:
         parser: the parser of a command.
@@ -165,7 +165,8 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
     g.add_argument("--no-loop", action="store_true", help="odometry only: no loop closure")
     g.add_argument("--seed", type=int, default=0, help="seed of the random RNN weights (part of the model); with --demo also of the sequence")
     g.add_argument("--device", default=None,
-                   help="torch device of the descriptor network, e.g. cpu, cuda, cuda:1 (default: cpu)")
+                   help="torch device of the descriptor network, e.g. cpu, cuda, cuda:1, mps (default: cpu; "
+                        "docs/devices.md says what runs where)")
 
     g = parser.add_argument_group("frames")
     g.add_argument("--max-frames", type=positive_int, default=None, metavar="N",
@@ -186,10 +187,23 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
     g.add_argument("--registered", action="store_true",
                    help="colour and depth are registered (colour pixel = depth pixel): no rig, even on 7-Scenes")
 
+    g = parser.add_argument_group("compute")
+    g.add_argument("--threads", type=positive_int, default=None, metavar="N",
+                   help=f"torch, BLAS and OpenCV threads of the run (default: {_default_threads()}: the work is "
+                        "many small per-frame operations, and more threads than free cores slow them many times "
+                        "on a busy machine; more can pay on an idle one with --backbone vgg16)")
+    g.add_argument("--backend-device", default=None, metavar="DEVICE",
+                   help="torch device of the pose-graph optimisation, e.g. cuda to share the descriptor's "
+                        "(float64: not mps; default: cpu, as the keyframe graph is small)")
+
     g = parser.add_argument_group("map")
     g.add_argument("--map-voxel", type=positive_float, default=None, metavar="METRES",
                    help=f"voxel size of map.ply (default: {_default_voxel():.3g} m)")
     g.add_argument("--no-map", action="store_true", help="do not build or write map.ply")
+
+
+def _default_threads() -> int | None:
+    return SLAMConfig().threads
 
 
 def _default_voxel() -> float:
@@ -224,8 +238,13 @@ def run_options(options: argparse.Namespace | None = None, **overrides) -> argpa
 
 
 # ----------------------------------------------------------------------------------------------------
-def check_device(device: str | None) -> str | None:
+def check_device(device: str | None, what: str = "--device", float64: bool = False) -> str | None:
     """A torch device name that this torch can use (None stays None: the CPU).
+
+    Args:
+        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"`` or None.
+        what: the flag or field named in the error.
+        float64: the work needs float64 (the pose graph): MPS, which has none, is refused.
 
     Raises:
         UsageError: a name torch does not know (``"bogus"``), or a device this machine lacks
@@ -238,18 +257,21 @@ def check_device(device: str | None) -> str | None:
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError, ValueError):
-        raise UsageError(f"--device {device!r} is not a torch device (e.g. cpu, cuda, cuda:1, mps)") from None
+        raise UsageError(f"{what} {device!r} is not a torch device (e.g. cpu, cuda, cuda:1, mps)") from None
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             build = "a CPU-only torch build" if torch.version.cuda is None else "no CUDA device is visible"
-            raise UsageError(f"--device {device!r}: CUDA is not available ({build}); use --device cpu")
+            raise UsageError(f"{what} {device!r}: CUDA is not available ({build}); use {what} cpu")
         if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise UsageError(f"--device {device!r}: only {torch.cuda.device_count()} CUDA device(s)")
+            raise UsageError(f"{what} {device!r}: only {torch.cuda.device_count()} CUDA device(s)")
     elif dev.type == "mps":
+        if float64:
+            raise UsageError(f"{what} {device!r}: the pose graph is solved in float64, which MPS lacks; use "
+                             f"{what} cpu")
         if not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
-            raise UsageError(f"--device {device!r}: MPS is not available on this machine; use --device cpu")
+            raise UsageError(f"{what} {device!r}: MPS is not available on this machine; use {what} cpu")
     elif dev.type != "cpu":
-        raise UsageError(f"--device {device!r}: device type {dev.type!r} is not supported (cpu, cuda, mps)")
+        raise UsageError(f"{what} {device!r}: device type {dev.type!r} is not supported (cpu, cuda, mps)")
     return device
 
 
@@ -297,7 +319,8 @@ def _numbers(value):
 
 
 def check_config(config: SLAMConfig) -> SLAMConfig:
-    """Refuse a config that would give NaN poses: any NaN setting, a non-finite rig or colour intrinsics.
+    """Refuse a config that would give NaN poses or fail late: any NaN setting, a non-finite rig or colour
+    intrinsics, a thread count that is not a whole number >= 1 (or None), a device this torch cannot use.
 
     Infinite thresholds elsewhere are allowed (they switch a bound off).
 
@@ -314,6 +337,14 @@ def check_config(config: SLAMConfig) -> SLAMConfig:
     if len(tuple(feats.rgb_from_depth_translation)) != 3:
         raise UsageError("config.odometry.features.rgb_from_depth_translation must have 3 entries, got "
                          f"{tuple(feats.rgb_from_depth_translation)}")
+    from slam.threads import check_threads
+
+    try:
+        check_threads(config.threads, "config.threads")
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    check_device(config.loop.descriptor.device, "config.loop.descriptor.device")
+    check_device(config.backend.device, "config.backend.device", float64=True)
     if feats.rgb_intrinsics is not None:
         if len(tuple(feats.rgb_intrinsics)) != 4:
             raise UsageError(f"config.odometry.features.rgb_intrinsics must be (fx, fy, cx, cy), got "
@@ -380,6 +411,10 @@ def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None
     d.weights = getattr(args, "weights", None)
     d.seed = int(getattr(args, "seed", d.seed))
     d.device = check_device(getattr(args, "device", None))
+    cfg.backend.device = check_device(getattr(args, "backend_device", None), "--backend-device", float64=True)
+    threads = getattr(args, "threads", None)
+    if threads is not None:
+        cfg.threads = int(threads)
     voxel = getattr(args, "map_voxel", None)
     if voxel is not None:
         cfg.map.voxel_size = float(voxel)

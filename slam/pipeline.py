@@ -43,6 +43,7 @@ from slam.io.trajectory import Trajectory, write_tum_trajectory
 from slam.mapping import PointCloudMap, write_ply
 from slam.progress import Progress
 from slam.system import RGBDSLAM, SLAMResult
+from slam.threads import limit_threads
 
 logger = logging.getLogger(__name__)
 
@@ -104,7 +105,9 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
 
     A frame that cannot be read (missing or corrupt image) is skipped with a warning and placed by constant
     velocity, so the trajectory still has one pose per used frame. With ``config.map.enabled`` the
-    keyframes' coloured points are kept for ``map.ply`` (:class:`slam.mapping.PointCloudMap`).
+    keyframes' coloured points are kept for ``map.ply`` (:class:`slam.mapping.PointCloudMap`). torch, BLAS
+    and OpenCV compute with ``config.threads`` threads during the run (:func:`slam.threads.limit_threads`);
+    the caller's counts are restored when it returns.
 
     Args:
         sequence: an opened sequence (:func:`slam.io.open_sequence`).
@@ -136,6 +139,14 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
     if isinstance(frame_step, bool) or not isinstance(frame_step, (int, np.integer)) or frame_step < 1:
         raise ValueError(f"frame_step must be an integer >= 1, got {frame_step!r}")
     check_sequence_intrinsics(sequence)
+    with limit_threads(config.threads):  # the caller's counts are restored when the run ends (or fails)
+        return _run(sequence, config, max_frames, progress, descriptor, prefetch, frame_step, frames, save_map,
+                    map_dir)
+
+
+def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, progress: bool | None,
+         descriptor: torch.nn.Module | None, prefetch: int, frame_step: int, frames: tuple[int, int] | None,
+         save_map, map_dir) -> RunResult:
     if frames is not None:
         start, end = (int(v) for v in frames)
         if not 0 <= start < min(end, len(sequence)):
@@ -266,6 +277,12 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
         loop_gt: :class:`slam.eval.LoopGroundTruthConfig` for judging loops (default: its thresholds, the
             frame gap in the run's frames, :func:`loop_ground_truth_for_step`).
     """
+    # the map's merge and the alignments with the run's thread count, as the run itself
+    with limit_threads(run.config.threads if run.config is not None else None):
+        return _evaluate(run, loop_gt)
+
+
+def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
     from slam.eval import ate, is_true_loop, rpe
     from slam.options import describe_rig, rig_of
 

@@ -49,6 +49,7 @@ from slam.loop import LoopCloser, LoopClosure, LoopQuery, LoopUpdate
 from slam.odometry import RGBDOdometry
 from slam.odometry.depth_registration import depth_camera_poses, rig_pose
 from slam.odometry.frontend import Keyframe, TrackStatus
+from slam.threads import config_threads
 from slam.timing import StageTimer
 
 logger = logging.getLogger(__name__)
@@ -197,6 +198,7 @@ class RGBDSLAM:
         return self.loop_closer.hypotheses if self.loop_closer is not None else []
 
     # ------------------------------------------------------------------------------------------
+    @config_threads  # SLAMConfig.threads for the call, the caller's counts after (slam.threads)
     def track(self, frame: RGBDFrame) -> FrameState:
         """Process the next frame.
 
@@ -300,6 +302,7 @@ class RGBDSLAM:
         for kf in self.odometry.keyframes[: est.shape[0]]:
             kf.pose = est[kf.id].clone()
 
+    @config_threads
     def skip(self, index: int, timestamp: float, reason: str) -> FrameState:
         """Record a frame that could not be read: it is placed by constant velocity like a lost frame.
 
@@ -341,6 +344,7 @@ class RGBDSLAM:
         base = kf_poses[kf] if kf_poses.shape[0] else se3_identity(n, dtype=torch.float64)
         return Trajectory(ts, self._output_frame(se3_compose(base, T)))
 
+    @config_threads
     def finish(self) -> SLAMResult:
         """Optimise the keyframe pose graph and return every frame's pose.
 

@@ -1,0 +1,122 @@
+"""Wall time of the kitchen command on an idle machine and with cores kept busy by another process.
+
+    python benchmarks/threads.py [--data ../shared/data] [--frames 150] [--rounds 3] [--threads 2 4]
+
+Runs what ``attnloop-slam ../shared/data/7scenes-redkitchen --max-frames 150 --out DIR`` runs (its config
+from :func:`slam.options.config_from_args`, the map on; outputs not written) with each thread setting, idle
+and busy, interleaved in one process: every round runs every setting idle, then starts ``--busy`` spinning
+subprocesses (``while True: pass``, one core each) and runs every setting again, then stops them. Settings:
+the config's default (``SLAMConfig.threads``), then each ``--threads N`` (default: torch's own count in this
+process, what a run used before the setting existed). Prints the median wall time of each setting idle and
+busy and the median over rounds of the busy/idle ratio (issue 18's target for the default: <= 1.5), and
+checks that the caller's torch/OpenCV thread counts are the same after every run.
+
+Timings are only comparable within one run of this script; on a machine that other work also loads, the
+"idle" column is not idle: re-run it quietly for the figures of docs/benchmarks.md.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from slam.config import SLAMConfig
+from slam.io import open_sequence
+from slam.options import config_from_args, run_options
+from slam.pipeline import run_slam
+from slam.threads import thread_counts
+
+
+def _spinners(n: int) -> list[subprocess.Popen]:
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    time.sleep(0.5)  # let them be scheduled before the timed run starts
+    return procs
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        p.kill()
+    for p in procs:
+        p.wait()
+
+
+def _run(seq, threads, frames: int) -> tuple[float, dict]:
+    cfg = config_from_args(run_options(), seq)  # what attnloop-slam builds for this folder with no flags
+    cfg.threads = threads
+    before = thread_counts()
+    t0 = time.perf_counter()
+    run = run_slam(seq, cfg, max_frames=frames, progress=False)
+    wall = time.perf_counter() - t0
+    after = thread_counts()
+    if after != before:
+        raise AssertionError(f"run_slam changed the caller's thread counts: {before} -> {after}")
+    stages = {k: v["ms_per_call"] for k, v in run.result.timings.items() if "ms_per_call" in v}
+    return wall, stages
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"),
+                   help="the shared data folder holding 7scenes-redkitchen (default: $ATTNLOOP_DATA or ../shared/data)")
+    p.add_argument("--frames", type=int, default=150, help="input frames per run (default 150)")
+    p.add_argument("--rounds", type=int, default=3, help="idle/busy rounds (default 3)")
+    p.add_argument("--busy", type=int, default=1, help="spinning processes in the busy runs (default 1)")
+    p.add_argument("--threads", type=int, nargs="*", default=None,
+                   help="thread counts to compare with the default (default: torch's own count here)")
+    args = p.parse_args(argv)
+
+    folder = Path(args.data) / "7scenes-redkitchen"
+    if not folder.is_dir():
+        print(f"threads.py: {folder} not found (set --data or ATTNLOOP_DATA)", file=sys.stderr)
+        return 2
+    seq = open_sequence(folder)
+    default = SLAMConfig().threads
+    extra = args.threads if args.threads is not None else [torch.get_num_threads()]
+    settings = [default] + [t for t in extra if t != default]
+    label = {t: (f"default ({t})" if t == default else f"{t}") for t in settings}
+    print(f"# threads.py: {args.frames} frames of {folder}, {args.rounds} round(s), busy = {args.busy} spinning "
+          f"process(es); {os.cpu_count()} CPUs, torch {torch.__version__} (own count {torch.get_num_threads()}), "
+          f"caller's counts {thread_counts()}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}", flush=True)
+    _run(seq, default, 5)  # warm-up: imports, the backbone's weights read once from disk
+
+    walls = {(t, c): [] for t in settings for c in ("idle", "busy")}
+    stages = {}
+    for r in range(args.rounds):
+        for cond in ("idle", "busy"):
+            procs = _spinners(args.busy) if cond == "busy" else []
+            try:
+                for t in settings:
+                    w, st = _run(seq, t, args.frames)
+                    walls[(t, cond)].append(w)
+                    stages[(t, cond)] = st
+                    print(f"round {r + 1} {cond} threads={label[t]}: {w:.2f} s "
+                          f"(odometry {st.get('odometry', float('nan')):.1f} ms/frame, descriptor "
+                          f"{st.get('descriptor', float('nan')):.1f} ms/keyframe)", flush=True)
+            finally:
+                _stop(procs)
+
+    print("\n| threads | idle wall (s) | busy wall (s) | busy / idle | odometry ms/frame idle / busy |")
+    print("|---|---|---|---|---|")
+    for t in settings:
+        idle, busy = walls[(t, "idle")], walls[(t, "busy")]
+        ratio = statistics.median(b / i for b, i in zip(busy, idle))
+        print(f"| {label[t]} | {statistics.median(idle):.2f} | {statistics.median(busy):.2f} | {ratio:.2f} | "
+              f"{stages[(t, 'idle')].get('odometry', float('nan')):.1f} / "
+              f"{stages[(t, 'busy')].get('odometry', float('nan')):.1f} |")
+    ratio = statistics.median(b / i for b, i in zip(walls[(default, "busy")], walls[(default, "idle")]))
+    print(f"\ndefault threads ({default}): busy/idle wall-time ratio {ratio:.2f} (target <= 1.5)")
+    for t in settings:
+        if t != default:
+            rel = statistics.median(a / b for a, b in zip(walls[(t, "idle")], walls[(default, "idle")]))
+            print(f"threads={t} idle / default idle: {rel:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
