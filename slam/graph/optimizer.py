@@ -47,14 +47,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple, Union
 
 import torch
 
 from slam.graph.accel import ACCELERATORS, accelerator_for
-from slam.graph.blas_threads import limit_blas_threads
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.initialization import initialize
@@ -62,6 +60,7 @@ from slam.graph.linear import LinearSolver, LinearSolverError
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.problem import PoseGraphProblem, TorchProblem
 from slam.graph.result import OptimizationResult, Status
+from slam.threads import limit_threads
 
 __all__ = ["OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
 
@@ -100,24 +99,10 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
     cfg = dataclasses.replace(config or OptimizerConfig(), **overrides)
     if isinstance(graph, PoseGraph) and graph.fixed.numel():  # the graph's own held poses (g2o FIX lines)
         cfg = dataclasses.replace(cfg, fixed=tuple(int(f) for f in cfg.fixed) + tuple(graph.fixed.tolist()))
-    with _thread_limits(cfg.num_threads):
+    with limit_threads(cfg.num_threads):  # torch's, BLAS's (and OpenCV's) counts, restored after
         if initialization != "none":  # (its time counts in timings["setup"])
             graph = initialize(graph, initialization, fixed=cfg.fixed)
         return _optimize(graph, method, kernel, solver, cfg, t_start)
-
-
-@contextmanager
-def _thread_limits(n: Optional[int]):
-    """torch's and BLAS's thread counts set to ``n`` inside (None: unchanged), restored after."""
-    prev = torch.get_num_threads()
-    if n is not None and n != prev:
-        torch.set_num_threads(int(n))
-    try:
-        with limit_blas_threads(n):
-            yield
-    finally:
-        if torch.get_num_threads() != prev:
-            torch.set_num_threads(prev)
 
 
 def _backend(graph: PoseGraph, cfg: OptimizerConfig, gauge: str) -> str:

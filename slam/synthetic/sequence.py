@@ -24,7 +24,6 @@ Example:
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
@@ -49,6 +48,7 @@ from slam.synthetic.render import (
 )
 from slam.synthetic.scene import RoomConfig, Scene, build_room_scene, default_room_scene
 from slam.synthetic.trajectories import TrajectoryConfig, make_trajectory
+from slam.threads import limit_threads
 
 __all__ = [
     "DEPTH_FACTOR",
@@ -208,20 +208,6 @@ def _list_header(kind: str, name: str) -> list[str]:
     return [f"# {kind}", f"# file: '{name}'", "# timestamp filename"]
 
 
-@contextlib.contextmanager
-def _torch_threads(n: int | None):
-    """Temporarily set torch's intra-op threads (process-wide), restoring the previous value."""
-    if n is None:
-        yield
-        return
-    before = torch.get_num_threads()
-    torch.set_num_threads(int(n))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
 def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory = "loop",
                       num_frames: int = 300, width: int = 640, height: int = 480, seed: int = 0,
                       depth_noise: bool = True, image_noise: bool = True, scene: Scene | None = None,
@@ -272,7 +258,7 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
         write(idx, *seq.render_raw(idx))
 
     step = max(1, len(batches) // 10)
-    with _torch_threads(1 if workers > 1 else None):
+    with limit_threads(1 if workers > 1 else None):  # the workers share the cores: one thread each
         if workers == 1:
             for b, idx in enumerate(batches):
                 task(idx)
