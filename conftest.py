@@ -68,6 +68,17 @@ def load_script():
         sys.modules.pop(name, None)
 
 
+@pytest.fixture(scope="module")
+def one_thread():
+    """torch, BLAS and OpenCV on one thread for a module (``pytestmark = pytest.mark.usefixtures("one_thread")``):
+    the renderer's and the pipeline's kernels are small, one thread is as fast on a quiet machine and far
+    faster on a busy one (threads spinning against other processes); the counts are restored after."""
+    from slam.threads import limit_threads
+
+    with limit_threads(1):
+        yield
+
+
 @pytest.fixture(autouse=True)
 def _seed_everything():
     torch.manual_seed(0)

@@ -22,12 +22,7 @@ from slam.synthetic.trajectories import look_rotation
 W, H = 320, 240
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest.py
 
 
 def _pose(xy, yaw_deg, z=1.4, pitch_deg=-10.0):

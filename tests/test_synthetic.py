@@ -32,14 +32,7 @@ from slam.synthetic.trajectories import TRAJECTORIES, make_trajectory, trajector
 W, H = 160, 120
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_torch_thread():
-    # The renderer's kernels are small: one intra-op thread is as fast on a quiet machine and far faster
-    # on a busy one (OpenMP threads spinning against other processes).
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest.py
 
 
 @pytest.fixture(scope="module")
