@@ -49,6 +49,7 @@ from slam.eval.loops import LoopGroundTruthConfig
 from slam.eval.place_recognition import evaluate, ground_truth_from_poses, read_ground_truth, sequence_candidates
 from slam.io.images import read_rgb
 from slam.io.sevenscenes import SevenScenesSequence
+from slam.threads import limit_threads
 
 DEFAULT_DATA = Path(os.environ.get("ATTNLOOP_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
@@ -218,9 +219,16 @@ def evaluate_model(desc: AttentionDescriptor, data: dict, rtab_images: torch.Ten
 
 
 def run(cfg: FinetuneConfig) -> dict:
-    """Train, evaluate default vs fine-tuned; returns the figures and the loss history."""
+    """Train, evaluate default vs fine-tuned; returns the figures and the loss history.
+
+    Computes with ``cfg.threads`` threads and restores the caller's thread counts afterwards.
+    """
+    with limit_threads(cfg.threads):
+        return _run(cfg)
+
+
+def _run(cfg: FinetuneConfig) -> dict:
     torch.manual_seed(cfg.seed)
-    torch.set_num_threads(cfg.threads)
     t0 = time.perf_counter()
     desc = AttentionDescriptor("efficientnet_lite0", fusion=cfg.fusion, seed=cfg.seed)  # the library's default
     net = desc.backbone

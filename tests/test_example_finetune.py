@@ -79,3 +79,15 @@ def test_help_and_missing_data(example, tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         example.main(["--lr", "nan"])
+
+
+def test_run_computes_with_its_threads_and_restores_the_callers(example, monkeypatch):
+    # The example's run() must not change its caller's torch thread count for good (it once called
+    # torch.set_num_threads and left it set).
+    seen = {}
+    monkeypatch.setattr(example, "_run", lambda cfg: seen.setdefault("inside", torch.get_num_threads()))
+    before = torch.get_num_threads()
+    wanted = 2 if before == 1 else 1
+    cfg = example.FinetuneConfig(threads=wanted)
+    assert example.run(cfg) == wanted and seen["inside"] == wanted
+    assert torch.get_num_threads() == before
