@@ -573,6 +573,23 @@ def session3(args, data: dict, protos: dict) -> None:
             for t in (*TAPS, "head_pre", "head"):
                 clamped = q(f[f"share_c:{t}"]) if f"share_c:{t}" in f else "-"
                 print(f"| {k} | {t} | {q(f[f'share:{t}'])} | {clamped} |")
+        print("\nHow alike the two views of a true pair are (cosine, mean over the pairs of the set's first "
+              "protocol; top-1 class the same / different): G's between-channel part (each channel's mean over "
+              "(H, W)), its within-channel part (G minus that mean), and L\n\n| set | G at | pairs | top-1 "
+              "differs | between-channel part | within-channel part | L |\n|---|---|---|---|---|---|---|")
+        for k, v in views.items():
+            f = v["full"]
+            gt = next(iter(protos[k].values()))[0]
+            q, r = torch.nonzero(gt, as_tuple=True)
+            same = f["logits"].argmax(1)[q] == f["logits"].argmax(1)[r]
+            for t in ("stage6", "stage7"):
+                G = f[f"G:{t}"]
+                parts = (G.mean((2, 3)), (G - G.mean((2, 3), keepdim=True)).flatten(1), f[f"L:{t}"].flatten(1))
+                cells = []
+                for x in parts:
+                    c = (F.normalize(x[q], dim=1) * F.normalize(x[r], dim=1)).sum(1)
+                    cells.append(f"{float(c[same].mean()):.2f} / {float(c[~same].mean()):.2f}")
+                print(f"| {k} | {t} | {len(q)} | {float((~same).float().mean()):.2f} | " + " | ".join(cells) + " |")
         total, above = block_macs()
         print(f"\nLite0 forward at {SIZE[0]} x {SIZE[1]}: {total / 1e6:.1f} M multiply-adds; the backward from "
               "the logits to a tap (input gradients only): " + ", ".join(
