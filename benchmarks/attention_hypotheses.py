@@ -30,11 +30,13 @@ backwards, G plain and G with the negative gradient zeroed at the head's ReLU6 o
 frames and for crops of 75 % width at the left and at the right):
 
 * ``spatial``: the share of G's variance that is spatial (within a channel, over (H, W)) against the
-  share between channels, at every tap and at the head; the same for the clamped G.
+  share between channels, at every tap and at the head; the same for the clamped G; the cosine of each
+  part between the two views of a true pair; the cost of G at each tap (multiply-adds of the backward,
+  and CPU time against the plain forward).
 * ``taps``: lower taps (stage5 and stage4, 14 x 18, where the backward crosses the stride-2 depthwise
   convolutions), alone and joined with stage6+stage7 (each tap fused and pooled on its own, at its
-  own resolution), the clamp at the head output, |G| summed over channels for GAF/EGA; the cost of
-  each (multiply-adds of the extra backward).
+  own resolution), the clamp at the head output, |G| and |G| summed over channels for GAF/EGA, and G's
+  within-channel and between-channel parts on their own.
 * ``layouts``: the regions of the pooling: the whole map only, + a 2 x 2 grid (the default), +
   horizontal strips (1 column x 2 or 3 rows), overlapping 2 x 2 cells, R-MAC regions summed.
 * ``shift``: the four protocols with the queries cropped to the left 75 % of the frame and the
