@@ -25,12 +25,32 @@ Hypotheses:
 * ``rnnseed``: R@1 / R@P100 over 8 RNN seeds, and the regional code without RNNs.
 * ``regions``: the regional code without the per-region L2.
 
+Session 3 (one more cache per set, ``*_taps.pt``: L and G at stage4 ... stage7 from one forward and two
+backwards, G plain and G with the negative gradient zeroed at the head's ReLU6 output, for the full
+frames and for crops of 75 % width at the left and at the right):
+
+* ``spatial``: the share of G's variance that is spatial (within a channel, over (H, W)) against the
+  share between channels, at every tap and at the head; the same for the clamped G; the cosine of each
+  part between the two views of a true pair; the cost of G at each tap (multiply-adds of the backward,
+  and CPU time against the plain forward).
+* ``taps``: lower taps (stage5 and stage4, 14 x 18, where the backward crosses the stride-2 depthwise
+  convolutions), alone and joined with stage6+stage7 (each tap fused and pooled on its own, at its
+  own resolution), the clamp at the head output, |G| and |G| summed over channels for GAF/EGA, and G's
+  within-channel and between-channel parts on their own.
+* ``layouts``: the regions of the pooling: the whole map only, + a 2 x 2 grid (the default), +
+  horizontal strips (1 column x 2 or 3 rows), overlapping 2 x 2 cells, R-MAC regions summed.
+* ``shift``: the four protocols with the queries cropped to the left 75 % of the frame and the
+  database to the right 75 % (a simulated lateral offset), beside the real ones; never chosen on alone.
+* ``halves3``: every session-3 variant chosen on the first half of each protocol's queries, reported
+  on the second.
+
 Usage:
     python benchmarks/attention_hypotheses.py [--data ../shared/data] [--only range norm ...] [--threads 1]
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -41,17 +61,20 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from descriptor_ablation import scores, sets
+from slam.eval.place_recognition import evaluate
 
-from attnloop.backbones.efficientnet_lite import efficientnet_lite
+from attnloop.backbones.efficientnet_lite import efficientnet_lite, efficientnet_lite_taps
 from attnloop.backbones.preprocess import prepare_images
-from attnloop.fusion import FUSION_MODES, minmax_normalize
+from attnloop.fusion import FUSION_MODES, fuse, minmax_normalize
 from attnloop.pooling import gem_regions, regional_code, unit_scale
 from attnloop.rnn_pool import random_rnn_pool, random_rnn_weights
 
 GROUPS = (192, 320)
 SIZE = (224, 288)
 SEEDS = ("own", "top5", "top5-uniform", "T2", "entropy")
-HYPOTHESES = ("range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions")
+HYPOTHESES = ("range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions",
+              "spatial", "taps", "layouts", "shift", "halves3")
+SESSION3 = ("spatial", "taps", "layouts", "shift", "halves3")
 
 
 def _seed(p: torch.Tensor, z: torch.Tensor, kind: str) -> torch.Tensor:
@@ -167,6 +190,464 @@ def table(title: str, variants: dict, feats: dict, protos: dict, code_fn=None) -
             print(f"| {label} | {m} | " + " | ".join(cells) + f" | {r1:.3f} / {rp:.3f} |", flush=True)
 
 
+# --------------------------------------------------------------------------- session 3: taps, G's form, layouts
+TAPS = ("stage4", "stage5", "stage6", "stage7")
+VIEWS = ("full", "left", "right")
+CROP = 0.75  # the share of the width kept by the shift check's crops
+
+
+def crop(image: np.ndarray, view: str, frac: float = CROP) -> np.ndarray:
+    """The frame (``full``) or its left / right ``frac`` of the width: a simulated lateral offset (pan)."""
+    if view == "full":
+        return image
+    w = image.shape[1]
+    k = int(round(frac * w))
+    return np.ascontiguousarray(image[:, :k] if view == "left" else image[:, w - k:])
+
+
+def spatial_share(g: torch.Tensor) -> torch.Tensor:
+    """(N, C, H, W) -> (N,): the share of g's variance over (C, H, W) that lies within the channels.
+
+    Variance over (C, H, W) = the mean over channels of the variance over (H, W) (spatial) + the
+    variance of the channel means (between channels). 0: every channel map is constant over (H, W);
+    1: every channel has the same mean.
+    """
+    g = g.double()
+    within = g.var((2, 3), unbiased=False).mean(1)
+    total = g.flatten(1).var(1, unbiased=False)
+    return (within / total.clamp_min(1e-300)).float()
+
+
+def extract_taps(images: list[np.ndarray], batch: int = 8, net=None) -> dict[str, torch.Tensor]:
+    """L and G at stage4 ... stage7 from one forward and two backwards (224 x 288).
+
+    Keys ``L:<tap>``, ``G:<tap>`` (the plain seeded gradient, as the library's), ``Gc:<tap>`` (the
+    negative gradient zeroed at the head's output, after its ReLU6: the last non-negative map, VGG's
+    pool5 analogue), ``logits``, and the spatial shares (:func:`spatial_share`) ``share:<tap>``,
+    ``share_c:<tap>``, ``share:head`` (dS/d head output) and ``share:head_pre`` (before the ReLU6).
+    ``net``: a Lite0 of input size ``SIZE`` (default: the pretrained one).
+    """
+    net = net or efficientnet_lite("lite0", pretrained=True, tap="stage7", input_size=SIZE)
+    info = efficientnet_lite_taps("lite0", SIZE)
+    at = {info[t][0]: t for t in TAPS}
+    first = info[TAPS[0]][0]
+    out: dict[str, list] = {}
+
+    def add(key, value):
+        out.setdefault(key, []).append(value.detach())
+
+    for s in range(0, len(images), batch):
+        x = torch.stack([prepare_images(torch.from_numpy(im).permute(2, 0, 1)[None], SIZE, net.mean, net.std)[0]
+                         for im in images[s:s + batch]])
+        with torch.no_grad():
+            h = F.relu6(net._bn0(net._conv_stem(x)))
+            for block in net._blocks[: first + 1]:
+                h = block(h)
+        with torch.enable_grad():
+            acts = {TAPS[0]: h.detach().requires_grad_(True)}
+            y = acts[TAPS[0]]
+            for k in range(first + 1, len(net._blocks)):
+                y = net._blocks[k](y)
+                if k in at:
+                    acts[at[k]] = y
+            pre = net._bn1(net._conv_head(y))
+            head = F.relu6(pre)
+            z = net._fc(torch.flatten(F.adaptive_avg_pool2d(head, 1), 1))
+            p = z.softmax(1)
+            g_head, g_pre = torch.autograd.grad(p, [head, pre], grad_outputs=p.detach(), retain_graph=True)
+            plain = torch.autograd.grad(head, [acts[t] for t in TAPS], grad_outputs=g_head, retain_graph=True)
+            clamped = torch.autograd.grad(head, [acts[t] for t in TAPS], grad_outputs=g_head.clamp(min=0))
+        for t, g, gc in zip(TAPS, plain, clamped):
+            add(f"L:{t}", acts[t])
+            add(f"G:{t}", g)
+            add(f"Gc:{t}", gc)
+            add(f"share:{t}", spatial_share(g))
+            add(f"share_c:{t}", spatial_share(gc))
+        add("share:head", spatial_share(g_head))
+        add("share:head_pre", spatial_share(g_pre))
+        add("logits", z)
+    return {k: torch.cat(v) for k, v in out.items()}
+
+
+def load_taps(name: str, images: list[np.ndarray], cache: Path) -> dict[str, dict[str, torch.Tensor]]:
+    """{view: extract_taps of the set's frames in that view}, cached in ``cache``."""
+    views = {}
+    for view in VIEWS:
+        path = cache / f"{name}_{view}_lite0_{SIZE[0]}x{SIZE[1]}_taps.pt"
+        if path.is_file():
+            views[view] = torch.load(path)
+        else:
+            t0 = time.perf_counter()
+            views[view] = extract_taps([crop(im, view) for im in images])
+            torch.save(views[view], path)
+            print(f"<!-- {name} {view}: tap maps in {time.perf_counter() - t0:.0f} s -->", flush=True)
+    return views
+
+
+def fuse_taps(f: dict, taps: tuple[str, ...], mode: str, g: str = "G") -> list[torch.Tensor]:
+    """Each tap fused on its own with the four formulas, at its own resolution.
+
+    ``g``: ``G`` (plain), ``Gc`` (clamped at the head output), ``absG`` (|G| in every formula),
+    ``chsum`` (GAF/EGA's map N(sum_c |G_c|), without the per-channel inner N; DAM/EAM as ``G``),
+    ``spatial`` (G minus each channel's mean over (H, W)), ``channel`` (each channel's mean over (H, W)
+    broadcast: the part a GAP head's gradient keeps). GAF/EGA's inner per-channel N ignores a channel's
+    offset, so ``spatial`` leaves them unchanged and ``channel`` makes them degenerate (a constant map).
+    """
+    maps = []
+    for t in taps:
+        L = f[f"L:{t}"]
+        if mode == "none":
+            maps.append(L)
+            continue
+        G = unit_scale(f[f"{'Gc' if g == 'Gc' else 'G'}:{t}"])
+        if g == "absG":
+            G = G.abs()
+        elif g == "spatial":  # the within-channel part: each channel's mean over (H, W) removed
+            G = G - G.mean((2, 3), keepdim=True)
+        elif g == "channel":  # the between-channel part: each channel's mean over (H, W), broadcast
+            G = G.mean((2, 3), keepdim=True).expand_as(G)
+        if g == "chsum" and mode in ("gaf", "ega"):
+            a = minmax_normalize(G.abs().sum(1, keepdim=True), (2, 3))
+            maps.append(L * (a.exp() if mode == "ega" else a))
+        else:
+            maps.append(fuse(L, G, mode))
+    return maps
+
+
+def _cells(n: int, k: int) -> list[tuple[int, int]]:
+    # adaptive_avg_pool2d's cells: [floor(i n / k), ceil((i + 1) n / k))
+    return [(i * n // k, -(-(i + 1) * n // k)) for i in range(k)]
+
+
+def _rmac_boxes(h: int, w: int, levels: int = 3, overlap: float = 0.4) -> list[tuple[int, int, int, int]]:
+    # R-MAC's regions (Tolias et al. 2016, the reference code's rule): squares of side 2 min(h, w) / (l + 1)
+    # at level l, ~40 % overlap, one more region along the long side.
+    side = min(h, w)
+    steps = np.arange(2, 7)
+    b = (max(h, w) - side) / (steps - 1)
+    extra = int(np.argmin(np.abs((side ** 2 - side * b) / side ** 2 - overlap))) + 1 if h != w else 0
+    wd, hd = (extra, 0) if w > h else (0, extra)
+    out = []
+    for lv in range(1, levels + 1):
+        wl = int(2 * side // (lv + 1))
+        wl2 = int(wl // 2 - 1)
+        bw = (w - wl) / (lv + wd - 1) if lv + wd > 1 else 0
+        bh = (h - wl) / (lv + hd - 1) if lv + hd > 1 else 0
+        xs = [int(wl2 + i * bw) - wl2 for i in range(lv + wd)]
+        ys = [int(wl2 + i * bh) - wl2 for i in range(lv + hd)]
+        out += [(y, y + wl, x, x + wl) for y in ys for x in xs]
+    return out
+
+
+#: layout -> (the regions of an h x w map as (y0, y1, x0, x1), "concat" or "sum")
+LAYOUTS = {
+    "whole + 2x2 (default)": (lambda h, w: [(0, h, 0, w)] + [(a, b, c, d) for a, b in _cells(h, 2)
+                                                             for c, d in _cells(w, 2)], "concat"),
+    "whole": (lambda h, w: [(0, h, 0, w)], "concat"),
+    "whole + 2 strips": (lambda h, w: [(0, h, 0, w)] + [(a, b, 0, w) for a, b in _cells(h, 2)], "concat"),
+    "whole + 3 strips": (lambda h, w: [(0, h, 0, w)] + [(a, b, 0, w) for a, b in _cells(h, 3)], "concat"),
+    "3 strips": (lambda h, w: [(a, b, 0, w) for a, b in _cells(h, 3)], "concat"),
+    "whole + 2x2 overlapping (2/3 size)": (lambda h, w: [(0, h, 0, w)] + [
+        (a, a + -(-2 * h // 3), c, c + -(-2 * w // 3)) for a in (0, h - -(-2 * h // 3))
+        for c in (0, w - -(-2 * w // 3))], "concat"),
+    "whole + 2x2 summed": (lambda h, w: [(0, h, 0, w)] + [(a, b, c, d) for a, b in _cells(h, 2)
+                                                          for c, d in _cells(w, 2)], "sum"),
+    "R-MAC regions summed": (_rmac_boxes, "sum"),
+    "whole + 2x2 + 3 strips": (lambda h, w: [(0, h, 0, w)] + [(a, b, c, d) for a, b in _cells(h, 2)
+                                                              for c, d in _cells(w, 2)]
+                               + [(a, b, 0, w) for a, b in _cells(h, 3)], "concat"),
+}
+DEFAULT_LAYOUT = "whole + 2x2 (default)"
+
+
+def layout_code(maps: list[torch.Tensor], layout: str = DEFAULT_LAYOUT, p: float = 2.0) -> torch.Tensor:
+    """GeM (p) over each region of ``layout`` per map, every region L2-normalised; concatenated, or
+    summed and L2-normalised per map (R-MAC); the maps' codes concatenated. For the default layout this
+    is :func:`attnloop.pooling.regional_code` (tested)."""
+    regions, agg = LAYOUTS[layout]
+    parts = []
+    for x in maps:
+        scale = x.abs().amax((1, 2, 3), keepdim=True)
+        xp = (x / torch.where(scale > 0, scale, torch.ones_like(scale))).clamp_min(1e-6).pow(p)
+        r = torch.stack([xp[:, :, a:b, c:d].mean((2, 3)) for a, b, c, d in regions(*x.shape[2:])], 1).pow(1 / p)
+        r = F.normalize(r, dim=2)  # (B, R, C)
+        parts.append(F.normalize(r.sum(1), dim=1) if agg == "sum" else r.flatten(1))
+    return torch.cat(parts, 1)
+
+
+def rnn_code(code: torch.Tensor, seed: int | None = 0) -> torch.Tensor:
+    """The default's 16 RNNs of 64 on the code scaled to norm 10, L2; None: the code itself."""
+    code = F.normalize(code, dim=1)
+    if seed is None:
+        return code
+    key = (code.shape[1], seed)
+    if key not in _W:
+        _W[key] = random_rnn_weights(16, code.shape[1], 64, seed=seed)
+    return F.normalize(random_rnn_pool(10.0 * code[:, :, None, None], _W[key], merge=False), dim=1)
+
+
+def block_macs() -> tuple[int, dict[str, int]]:
+    """Multiply-adds of one Lite0 forward at 224 x 288 (convolutions and the classifier), and per tap
+    those of the layers above it: the input-gradient backward from the logits to that tap costs as many."""
+    net = efficientnet_lite("lite0", pretrained=False, tap="stage7", input_size=SIZE)
+    counts: list[tuple[str, int]] = []
+
+    def hook(name):
+        def fn(m, inp, out):
+            if isinstance(m, torch.nn.Linear):
+                counts.append((name, m.in_features * m.out_features))
+            else:
+                counts.append((name, out[0].numel() * m.in_channels // m.groups * m.kernel_size[0] * m.kernel_size[1]))
+        return fn
+    handles = [m.register_forward_hook(hook(n)) for n, m in net.named_modules()
+               if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear))]
+    with torch.no_grad():
+        net(torch.rand(1, 3, *SIZE))
+    for hd in handles:
+        hd.remove()
+    info = efficientnet_lite_taps("lite0", SIZE)
+    total = sum(c for _, c in counts)
+
+    def above(block):
+        return sum(c for n, c in counts if not n.startswith("_blocks.") and not n.startswith("_conv_stem")
+                   or n.startswith("_blocks.") and int(n.split(".")[1]) > block)
+    return total, {t: above(info[t][0]) for t in TAPS}
+
+
+def tap_cost(batches=(1, 8), rounds: int = 10) -> list[str]:
+    """Measured cost of L and G at each tap: CPU time (``time.process_time``) of the forward to the logits
+    with the seeded backward to that tap, against the plain forward of the same network, in interleaved
+    rounds; the median of the per-round ratios. Synthetic 224 x 288 inputs (the weights do not matter)."""
+    net = efficientnet_lite("lite0", pretrained=False, tap="stage7", input_size=SIZE)
+    info = efficientnet_lite_taps("lite0", SIZE)
+
+    def to_tap(x, tap):
+        k = info[tap][0]
+        with torch.no_grad():
+            h = F.relu6(net._bn0(net._conv_stem(x)))
+            for block in net._blocks[: k + 1]:
+                h = block(h)
+        with torch.enable_grad():
+            leaf = h.requires_grad_(True)
+            y = leaf
+            for block in net._blocks[k + 1:]:
+                y = block(y)
+            p = net._fc(torch.flatten(F.adaptive_avg_pool2d(net._head_features(y), 1), 1)).softmax(1)
+            return torch.autograd.grad(p, leaf, grad_outputs=p.detach())[0]
+
+    rows = []
+    for batch in batches:
+        x = torch.randn(batch, 3, *SIZE, generator=torch.Generator().manual_seed(0))
+        variants = {"plain": lambda: net.forward_from_tap(net.forward_to_tap(x))}
+        variants.update({t: (lambda t=t: to_tap(x, t)) for t in reversed(TAPS)})
+        times = {k: [] for k in variants}
+        with torch.no_grad():
+            for r in range(rounds + 2):
+                for k, fn in variants.items():
+                    t0 = time.process_time()
+                    fn()
+                    if r >= 2:
+                        times[k].append(time.process_time() - t0)
+        ratios = {k: float(np.median([a / b for a, b in zip(v, times["plain"])])) for k, v in times.items()}
+        rows.append(f"| {batch} | {1000 * float(np.median(times['plain'])) / batch:.1f} | "
+                    + " | ".join(f"{ratios[t]:.2f}" for t in reversed(TAPS)) + " |")
+    return rows
+
+
+def anchors(data: dict, views: dict, protos: dict) -> dict:
+    """The anchors of benchmarks/place_recognition.py on the real protocols and on the shift check:
+    GAP and GeM (p = 3) of the default's tap L, ORB-BoW (vocabulary learnt on the other set's frames).
+    {name: {"full" | "shift": {protocol: (R@1, R@P100)}}}."""
+    from place_recognition import OrbBagOfWords, skimage_photos
+
+    def pooled(f, p):
+        L = torch.cat([f["L:stage6"], f["L:stage7"]], 1)
+        return F.normalize(L.mean((2, 3)) if p == 1 else L.clamp_min(1e-6).pow(p).mean((2, 3)).pow(1 / p), dim=1)
+
+    def rates(sims):
+        out = {}
+        for k, sim in sims.items():
+            for pname, (gt, cand) in protos[k].items():
+                r = evaluate(sim, gt, candidates=cand)
+                out[pname] = (r.recall_at(1), r.recall_at_full_precision)
+        return out
+
+    res = {}
+    for name, p in (("GAP", 1), ("GeM", 3)):
+        codes = {k: {v: pooled(f[v], p) for v in VIEWS} for k, f in views.items()}
+        res[name] = {"full": rates({k: c["full"] @ c["full"].T for k, c in codes.items()}),
+                     "shift": rates({k: c["left"] @ c["right"].T for k, c in codes.items()})}
+    names = list(data)
+    full, shift = {}, {}
+    for i, k in enumerate(names):
+        train = [im for other in names if other != k for im in data[other][0]]
+        bow = OrbBagOfWords().fit(train + (skimage_photos() if k == "kitchen" else []))
+        v = {view: bow.transform([crop(im, view) for im in data[k][0]]) for view in VIEWS}
+        full[k] = bow.similarity(v["full"], v["full"])
+        shift[k] = bow.similarity(v["left"], v["right"])
+    res["ORB-BoW"] = {"full": rates(full), "shift": rates(shift)}
+    return res
+
+
+#: session-3 variants: name -> (taps, G's form, layout)
+TAP_VARIANTS = {
+    "stage6+stage7, G (default)": (("stage6", "stage7"), "G", DEFAULT_LAYOUT),
+    "stage6+stage7, G clamped at the head output": (("stage6", "stage7"), "Gc", DEFAULT_LAYOUT),
+    "stage6+stage7, abs G": (("stage6", "stage7"), "absG", DEFAULT_LAYOUT),
+    "stage6+stage7, GAF/EGA on sum_c abs G": (("stage6", "stage7"), "chsum", DEFAULT_LAYOUT),
+    "stage6+stage7, G's within-channel part": (("stage6", "stage7"), "spatial", DEFAULT_LAYOUT),
+    "stage6+stage7, G's between-channel part": (("stage6", "stage7"), "channel", DEFAULT_LAYOUT),
+    "stage5": (("stage5",), "G", DEFAULT_LAYOUT),
+    "stage5, clamped at the head": (("stage5",), "Gc", DEFAULT_LAYOUT),
+    "stage4": (("stage4",), "G", DEFAULT_LAYOUT),
+    "stage4+stage5": (("stage4", "stage5"), "G", DEFAULT_LAYOUT),
+    "stage5+stage6+stage7": (("stage5", "stage6", "stage7"), "G", DEFAULT_LAYOUT),
+    "stage5+stage6+stage7, clamped at the head": (("stage5", "stage6", "stage7"), "Gc", DEFAULT_LAYOUT),
+    "stage5+stage6+stage7, GAF/EGA on sum_c abs G": (("stage5", "stage6", "stage7"), "chsum", DEFAULT_LAYOUT),
+    "stage4+stage5+stage6+stage7": (TAPS, "G", DEFAULT_LAYOUT),
+}
+LAYOUT_VARIANTS = {f"stage6+stage7, {lay}": (("stage6", "stage7"), "G", lay) for lay in LAYOUTS}
+
+
+def evaluate_variant(views: dict, protos: dict, taps, g, layout, seeds=(0,)) -> dict:
+    """{mode: {"full" | "shift" | "half0" | "half1": {protocol: (R@1, R@P100)}}} of one variant, each
+    figure the mean over the RNN seeds ``seeds``."""
+    out = {}
+    for m in FUSION_MODES:
+        code = {k: {v: layout_code(fuse_taps(f[v], taps, m, g), layout) for v in VIEWS} for k, f in views.items()}
+        runs = []
+        for seed in seeds:
+            codes = {k: {v: rnn_code(c, seed) for v, c in cv.items()} for k, cv in code.items()}
+            full = {k: c["full"] for k, c in codes.items()}
+            runs.append({"full": scores(full, protos), "half0": scores(full, protos, half=0),
+                         "half1": scores(full, protos, half=1),
+                         "shift": scores({k: (c["left"], c["right"]) for k, c in codes.items()}, protos)})
+        out[m] = {key: {p: tuple(float(np.mean([r[key][p][i] for r in runs])) for i in (0, 1))
+                        for p in runs[0][key]} for key in runs[0]}
+        # the standard error of that mean over the seeds (the noise floor of a comparison)
+        out[m]["sem"] = {p: tuple(float(np.std([r["full"][p][i] for r in runs], ddof=1) / np.sqrt(len(runs)))
+                                  if len(runs) > 1 else float("nan") for i in (0, 1)) for p in runs[0]["full"]}
+    return out
+
+
+def summary_table(title: str, results: dict) -> None:
+    """Mean over the four protocols of R@1 / R@P100 per mode; then the same on the shift check."""
+    print(f"\n#### {title}\n\n| variant | " + " | ".join(FUSION_MODES) + " | shift check: "
+          + " | ".join(FUSION_MODES) + " |\n|---|" + "---|" * (2 * len(FUSION_MODES)))
+    for label, res in results.items():
+        real = [("%.3f / %.3f" % _mean(res[m]["full"])) for m in FUSION_MODES]
+        shift = [("%.3f / %.3f" % _mean(res[m]["shift"])) for m in FUSION_MODES]
+        print(f"| {label} | " + " | ".join(real) + " | " + " | ".join(shift) + " |", flush=True)
+    base = next(iter(results.values()))
+    sem = np.array([[base[m]["sem"][p] for p in base[m]["sem"]] for m in FUSION_MODES])  # (modes, protocols, 2)
+    if np.isfinite(sem).all():
+        print(f"\nStandard error of one protocol's figure (the mean over the RNN seeds), median over the first "
+              f"variant's modes and protocols: R@1 {np.median(sem[..., 0]):.3f}, R@P100 {np.median(sem[..., 1]):.3f}; "
+              f"of a four-protocol mean about half that.")
+
+
+def _mean(s: dict) -> tuple[float, float]:
+    return float(np.mean([v[0] for v in s.values()])), float(np.mean([v[1] for v in s.values()]))
+
+
+def variant_table(title: str, results: dict, names: list[str], key: str = "full") -> None:
+    print(f"\n#### {title}\n\n| variant | mode | " + " | ".join(names) + " | mean | shift check: mean |\n|---|---|"
+          + "---|" * (len(names) + 2))
+    for label, res in results.items():
+        for m in FUSION_MODES:
+            s, sh = res[m][key], res[m]["shift"]
+            cells = [f"{s[p][0]:.3f} / {s[p][1]:.3f}" for p in names]
+            r1, rp = _mean(s)
+            a, b = _mean(sh)
+            print(f"| {label} | {m} | " + " | ".join(cells) + f" | {r1:.3f} / {rp:.3f} | {a:.3f} / {b:.3f} |",
+                  flush=True)
+
+
+def session3(args, data: dict, protos: dict) -> None:
+    views = {k: load_taps(k, images, args.cache) for k, (images, _) in data.items()}
+    names = [p for s in protos.values() for p in s]
+    if "spatial" in args.only:
+        print("\n#### spatial: the share of G's variance within channels, over (H, W), median [10th, 90th "
+              "percentile] over frames\n\n| set | G at | plain G | G clamped at the head output |\n|---|---|---|---|")
+        for k, v in views.items():
+            f = v["full"]
+            q = lambda x: f"{float(x.median()):.3f} [{float(x.quantile(0.1)):.3f}, {float(x.quantile(0.9)):.3f}]"
+            for t in (*TAPS, "head_pre", "head"):
+                clamped = q(f[f"share_c:{t}"]) if f"share_c:{t}" in f else "-"
+                print(f"| {k} | {t} | {q(f[f'share:{t}'])} | {clamped} |")
+        print("\nHow alike the two views of a true pair are (cosine, mean over the pairs of the set's first "
+              "protocol; top-1 class the same / different): G's between-channel part (each channel's mean over "
+              "(H, W)), its within-channel part (G minus that mean), and L\n\n| set | G at | pairs | top-1 "
+              "differs | between-channel part | within-channel part | L |\n|---|---|---|---|---|---|---|")
+        for k, v in views.items():
+            f = v["full"]
+            gt = next(iter(protos[k].values()))[0]
+            q, r = torch.nonzero(gt, as_tuple=True)
+            same = f["logits"].argmax(1)[q] == f["logits"].argmax(1)[r]
+            for t in ("stage6", "stage7"):
+                G = f[f"G:{t}"]
+                parts = (G.mean((2, 3)), (G - G.mean((2, 3), keepdim=True)).flatten(1), f[f"L:{t}"].flatten(1))
+                cells = []
+                for x in parts:
+                    c = (F.normalize(x[q], dim=1) * F.normalize(x[r], dim=1)).sum(1)
+                    cells.append(f"{float(c[same].mean()):.2f} / {float(c[~same].mean()):.2f}")
+                print(f"| {k} | {t} | {len(q)} | {float((~same).float().mean()):.2f} | " + " | ".join(cells) + " |")
+        total, above = block_macs()
+        print(f"\nLite0 forward at {SIZE[0]} x {SIZE[1]}: {total / 1e6:.1f} M multiply-adds; the backward from "
+              "the logits to a tap (input gradients only): " + ", ".join(
+                  f"{t} {above[t] / 1e6:.1f} M ({100 * above[t] / total:.1f} %)" for t in TAPS))
+    if "spatial" in args.only:
+        print(f"\nMeasured (CPU time, {torch.get_num_threads()} thread(s), load average "
+              f"{os.getloadavg()[0]:.1f}): forward + seeded backward to the tap / plain forward, median of "
+              "the paired ratios of 10 interleaved rounds\n\n| batch | plain forward ms/frame | "
+              + " | ".join(f"G at {t}" for t in reversed(TAPS)) + " |\n|---|---|---|---|---|---|")
+        for row in tap_cost():
+            print(row, flush=True)
+    results = {}
+    seeds = tuple(range(args.rnn_seeds))
+    if "taps" in args.only or "halves3" in args.only:
+        results.update({n: evaluate_variant(views, protos, *spec, seeds) for n, spec in TAP_VARIANTS.items()})
+        if "taps" in args.only:
+            variant_table("taps and the form of G (regional whole + 2x2, R@1 / R@P100)",
+                          {n: results[n] for n in TAP_VARIANTS}, names)
+    if "layouts" in args.only or "halves3" in args.only:
+        results.update({n: evaluate_variant(views, protos, *spec, seeds) for n, spec in LAYOUT_VARIANTS.items()})
+        if "layouts" in args.only:
+            variant_table("layouts of the regions (stage6+stage7, R@1 / R@P100)",
+                          {n: results[n] for n in LAYOUT_VARIANTS}, names)
+    if results:
+        summary_table(f"summary: mean over the four protocols, R@1 / R@P100, mean over {len(seeds)} RNN seed(s)",
+                      results)
+    if "shift" in args.only:
+        picked = {n: results[n] for n in results} or {
+            n: evaluate_variant(views, protos, *spec, seeds) for n, spec in {**TAP_VARIANTS, **LAYOUT_VARIANTS}.items()}
+        print(f"\n#### shift check: queries the left {CROP:.0%} of each frame, the database the right {CROP:.0%} "
+              "(R@1 / R@P100)\n\n| variant | mode | " + " | ".join(names) + " | mean |\n|---|---|" + "---|" * (len(names) + 1))
+        for label, res in picked.items():
+            for m in FUSION_MODES:
+                s = res[m]["shift"]
+                r1, rp = _mean(s)
+                print(f"| {label} | {m} | " + " | ".join(f"{s[p][0]:.3f} / {s[p][1]:.3f}" for p in names)
+                      + f" | {r1:.3f} / {rp:.3f} |")
+        print("\nAnchors (real protocols, then the shift check):\n\n| anchor | | " + " | ".join(names)
+              + " | mean |\n|---|---|" + "---|" * (len(names) + 1))
+        if len(data) == 2:
+            for label, res in anchors(data, views, protos).items():
+                for key in ("full", "shift"):
+                    s = res[key]
+                    print(f"| {label} | {'real' if key == 'full' else 'shift'} | "
+                          + " | ".join(f"{s[p][0]:.3f} / {s[p][1]:.3f}" for p in names)
+                          + " | %.3f / %.3f |" % _mean(s), flush=True)
+    if "halves3" in args.only:
+        # the criterion on the first half: the mean over protocols and the five modes of R@1 + R@P100
+        crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in results.items()}
+        best = max(crit, key=crit.get)
+        print(f"\n#### halves3: chosen on the first half of each protocol's queries (mean over modes and protocols "
+              f"of R@1 + R@P100): {best} ({crit[best]:.3f}; the default {crit[next(iter(TAP_VARIANTS))]:.3f})")
+        variant_table("second half: the chosen variant and the default", {
+            f"chosen: {best}": results[best], "default": results[next(iter(TAP_VARIANTS))]}, names, key="half1")
+
+
 def main(argv=None) -> None:
     from place_recognition import data_root
 
@@ -178,6 +659,8 @@ def main(argv=None) -> None:
     parser.add_argument("--only", nargs="*", choices=HYPOTHESES, default=list(HYPOTHESES),
                         help="the hypotheses to measure (default: all)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--rnn-seeds", type=int, default=1,
+                        help="session 3: each figure the mean over RNN seeds 0 .. N-1 (default 1: seed 0 only)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     data = sets(args.data)
@@ -186,6 +669,11 @@ def main(argv=None) -> None:
     protos = {k: v[1] for k, v in data.items()}
     feats = {}
     args.cache.mkdir(parents=True, exist_ok=True)
+    print(f"# Attention hypotheses ({time.strftime('%Y-%m-%d %H:%M')}), R@1 / R@P100 per protocol")
+    if any(h in SESSION3 for h in args.only):
+        session3(args, data, protos)
+    if not any(h not in SESSION3 for h in args.only):
+        return
     for k, (images, _) in data.items():
         path = args.cache / f"{k}_lite0_{SIZE[0]}x{SIZE[1]}.pt"
         feats[k] = torch.load(path) if path.is_file() else {}
@@ -195,7 +683,6 @@ def main(argv=None) -> None:
             feats[k].update(extract(images, missing))
             torch.save(feats[k], path)
             print(f"<!-- {k}: features in {time.perf_counter() - t0:.0f} s -->", flush=True)
-    print(f"# Attention hypotheses ({time.strftime('%Y-%m-%d %H:%M')}), R@1 / R@P100 per protocol")
 
     if "range" in args.only:
         print("\n#### range: cos(regional code of the fused map, regional code of L), median over frames\n")

@@ -113,10 +113,14 @@ def sets(data: Path):
 
 
 def scores(codes: dict[str, torch.Tensor], protos: dict, half: int | None = None):
-    """{protocol: (R@1, R@P100)}; half 0/1 keeps the first/second half of each protocol's queries."""
+    """{protocol: (R@1, R@P100)}; half 0/1 keeps the first/second half of each protocol's queries.
+
+    ``codes[set]`` is one (N, D) tensor (each image against the others) or a (query, database) pair.
+    """
     out = {}
     for set_name, c in codes.items():
-        sim = c @ c.T
+        # a (query codes, database codes) pair: e.g. left crops against right crops (the shift check)
+        sim = c[0] @ c[1].T if isinstance(c, tuple) else c @ c.T
         for pname, (gt, cand) in protos[set_name].items():
             g, m = gt, cand
             if half is not None:

@@ -1,12 +1,13 @@
 """benchmarks/attention_hypotheses.py: its baseline is the library's default, its variants are what they say."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from attnloop import AttentionDescriptor
 from attnloop.fusion import FUSION_MODES
-from attnloop.pooling import fuse_groups
+from attnloop.pooling import fuse_groups, regional_code
 
 
 @pytest.fixture(scope="module")
@@ -70,3 +71,82 @@ def test_per_channel_and_sign_variants(hyp):
     a = hyp.fused(torch.ones(1, 512, 1, 3), torch.cat([G[:, :1]] * 192 + [G[:, 1:]] * 320, 1), "dam", sign=True)
     assert torch.allclose(a[0, 200, 0], torch.tensor([1.0, 0.0, 1.0]))  # |G| of the second block: 4, 0, 4
     assert hyp.fused(L, G, "none") is L
+
+
+# ------------------------------------------------------------------ session 3: taps, G's form, layouts
+def test_default_layout_is_the_librarys_regional_code(hyp):
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(3, 512, 7, 9, generator=g)
+    ref = regional_code(x, (192, 320))
+    assert torch.allclose(hyp.layout_code(list(x.split((192, 320), 1))), ref, atol=1e-6)
+    # a map at another resolution (stage5's 14 x 18) is pooled on its own cells
+    y = torch.randn(3, 112, 14, 18, generator=g)
+    assert torch.allclose(hyp.layout_code([y]), regional_code(y), atol=1e-6)
+
+
+def test_layouts_hand_computed(hyp):
+    # R-MAC's rule on a 7 x 9 map: level 1 two 7 x 7 squares at x = 0 and 2, level 2 six 4 x 4 at x = 0, 2, 5
+    # and y = 0, 3, level 3 twelve 3 x 3 (x = 0, 2, 4, 6; y = 0, 2, 4)
+    boxes = hyp._rmac_boxes(7, 9)
+    assert boxes[:2] == [(0, 7, 0, 7), (0, 7, 2, 9)]
+    assert boxes[2:8] == [(y, y + 4, x, x + 4) for y in (0, 3) for x in (0, 2, 5)]
+    assert boxes[8:] == [(y, y + 3, x, x + 3) for y in (0, 2, 4) for x in (0, 2, 4, 6)]
+    strips, agg = hyp.LAYOUTS["whole + 3 strips"]
+    assert strips(7, 9) == [(0, 7, 0, 9), (0, 3, 0, 9), (2, 5, 0, 9), (4, 7, 0, 9)] and agg == "concat"
+    # strips are invariant to a horizontal circular shift of the map; the 2 x 2 grid is not
+    x = torch.rand(1, 8, 7, 9, generator=torch.Generator().manual_seed(2))
+    rolled = x.roll(4, dims=3)
+    assert torch.allclose(hyp.layout_code([x], "3 strips"), hyp.layout_code([rolled], "3 strips"), atol=1e-6)
+    assert not torch.allclose(hyp.layout_code([x]), hyp.layout_code([rolled]), atol=1e-3)
+    # summed: one unit vector per map
+    assert torch.allclose(hyp.layout_code([x], "R-MAC regions summed").norm(dim=1), torch.ones(1))
+
+
+def test_spatial_share_hand_computed(hyp):
+    flat = torch.arange(4.0).view(1, 4, 1, 1).expand(1, 4, 3, 3)  # each channel constant: no spatial part
+    assert float(hyp.spatial_share(flat)) == 0.0
+    same_mean = torch.tensor([[[[1.0, -1.0]], [[2.0, -2.0]]]])  # channel means 0: all of it spatial
+    assert float(hyp.spatial_share(same_mean)) == 1.0
+    # channels [0, 2] and [4, 4]: within = (1 + 0) / 2 = 0.5, total var of (0, 2, 4, 4) = 2.75
+    mixed = torch.tensor([[[[0.0, 2.0]], [[4.0, 4.0]]]])
+    assert abs(float(hyp.spatial_share(mixed)) - 0.5 / 2.75) < 1e-6
+
+
+def test_crops(hyp):
+    im = np.arange(2 * 8 * 3, dtype=np.uint8).reshape(2, 8, 3)
+    assert hyp.crop(im, "full") is im
+    assert np.array_equal(hyp.crop(im, "left"), im[:, :6]) and np.array_equal(hyp.crop(im, "right"), im[:, 2:])
+
+
+def test_extract_taps_matches_the_library_and_the_clamp_by_hand(hyp):
+    from attnloop.backbones.efficientnet_lite import efficientnet_lite
+    from attnloop.guided_backprop import guided_backprop
+
+    net = efficientnet_lite("lite0", pretrained=False, tap="stage7", input_size=hyp.SIZE, seed=3)
+    images = [np.random.default_rng(i).integers(0, 256, (60, 80, 3), dtype=np.uint8) for i in range(2)]
+    f = hyp.extract_taps(images, net=net)
+    joined = efficientnet_lite("lite0", pretrained=False, tap="stage6+stage7", input_size=hyp.SIZE, seed=3)
+    L, G = guided_backprop(joined, torch.stack([torch.from_numpy(im).permute(2, 0, 1) for im in images]))
+    assert torch.allclose(torch.cat([f["L:stage6"], f["L:stage7"]], 1), L, atol=1e-6)
+    assert torch.allclose(torch.cat([f["G:stage6"], f["G:stage7"]], 1), G, rtol=1e-4, atol=1e-12)
+    # at stage7 only a 1x1 conv, batch-norm and ReLU6 lie before the global average pool: by hand,
+    # dS/dhead = W_fc^T (S (S - |S|^2)) / HW on every position, clamped at 0, masked by 0 < pre < 6
+    with torch.no_grad():
+        L7 = f["L:stage7"]
+        pre = net._bn1(net._conv_head(L7))
+        p = f["logits"].softmax(1)
+        seed = p * (p - (p * p).sum(1, keepdim=True))
+        g_head = (seed @ net._fc.weight) / (L7.shape[2] * L7.shape[3])  # (B, 1280)
+        scale = net._bn1.weight / (net._bn1.running_var + net._bn1.eps).sqrt()
+        inner = ((pre > 0) & (pre < 6)) * (g_head.clamp(min=0) * scale)[:, :, None, None]
+        gc7 = torch.einsum("bkhw,kc->bchw", inner, net._conv_head.weight[:, :, 0, 0])
+    assert torch.allclose(f["Gc:stage7"], gc7, rtol=1e-4, atol=1e-3 * float(gc7.abs().max()))
+    assert torch.equal(f["share:head"], torch.zeros(2))  # dS/d(head output) is constant over (H, W)
+    assert (f["share:stage7"] > 0).all()
+
+
+def test_block_macs(hyp):
+    total, above = hyp.block_macs()
+    h, w = 7, 9  # stage7 -> logits: the 1x1 head conv (320 -> 1280 on 7 x 9) and the classifier
+    assert above["stage7"] == 320 * 1280 * h * w + 1280 * 1000
+    assert above["stage7"] < above["stage6"] < above["stage5"] < above["stage4"] < total
