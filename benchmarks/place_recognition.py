@@ -18,13 +18,16 @@ Methods (all L2-normalised, cosine similarity; ORB-BoW with its own score):
 * ``GAP`` / ``GeM``: the default descriptor's tap L (Lite0 stage6+stage7, 512 x 7 x 9) globally
   average-pooled / GeM-pooled (p = 3), no attention, no RNN;
 * ``ORB-BoW``: a bag of ORB words as ORB-SLAM2 / RTAB-Map detect loops: 1000 ORB features per image,
-  a 1000-word vocabulary (k-means on the descriptor bits, words binarised), tf-idf weights and DBoW2's
+  a 1000-word vocabulary (DBoW2's k-means for binary codes: Hamming distance, words the bitwise majority;
+  deterministic at any thread count, without faiss), tf-idf weights and DBoW2's
   L1 score ``1 - |v1 - v2|_1 / 2`` (0 for an image without features). The vocabulary and idf are learnt on images other than the
   evaluated ones: the kitchen's frames for rtabmap and for user folders, rtabmap-samples plus
   scikit-image's photographs for the kitchen.
 
 Usage:
     python benchmarks/place_recognition.py [--data ../shared/data] [--sets rtabmap kitchen] [--out runs/pr]
+    python benchmarks/place_recognition.py --methods orb      # the ORB-BoW anchor alone (2 min)
+    python benchmarks/place_recognition.py --methods orb --bow-seeds 0 1 2 3 4   # its spread over vocabularies
     python benchmarks/place_recognition.py --sets --query corridor/query --reference corridor/ref \\
         --ground-truth corridor/ground_truth_new.npy
 
@@ -78,16 +81,75 @@ def folder_images(folder: Path) -> list[Path]:
 
 
 # ------------------------------------------------------------------------------------------ ORB-BoW
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamming distances of binary codes given as 0/1 bits: (n, B) and (k, B) float32 -> (n, k) int32.
+
+    |a| + |b| - 2 a.b through one matrix product: every product and partial sum is an integer below
+    2^24, so float32 holds it exactly in any summation order, and the result is the same whatever the
+    BLAS library, its blocking or its thread count.
+    """
+    dots = a @ b.T
+    return (a.sum(1, dtype=np.float32)[:, None] + b.sum(1, dtype=np.float32)[None, :] - 2 * dots).astype(np.int32)
+
+
+def nearest_word(bits: np.ndarray, words: np.ndarray, chunk: int = 8192) -> np.ndarray:
+    """(n, B) 0/1 float32 codes, (k, B) 0/1 float32 words -> (n,) int64 index of the nearest word in
+    Hamming distance; ties go to the lowest index (``np.argmin``)."""
+    out = np.empty(bits.shape[0], np.int64)
+    for s in range(0, bits.shape[0], chunk):
+        out[s:s + chunk] = hamming(bits[s:s + chunk], words).argmin(1)
+    return out
+
+
+def k_majority(bits: np.ndarray, k: int, seed: int = 0, iterations: int = 20,
+               init: np.ndarray | None = None) -> np.ndarray:
+    """DBoW2's k-means for binary descriptors: Hamming assignment, each word the bitwise majority of its
+    codes. (n, B) 0/1 -> (k, B) 0/1 float32.
+
+    Deterministic by construction: integer arithmetic only (distances through :func:`hamming`, bit
+    counts summed as integers), ties to the lowest index, the initial words a seeded draw of distinct
+    codes. So the vocabulary is the same at any thread count and with or without optional packages
+    (faiss's k-means, the previous implementation, depends on them). A word whose cluster empties keeps
+    its value; the loop stops early when no assignment changes. A bit is set when at least half of the
+    cluster's codes have it (DBoW2's ``sum >= ceil(n / 2)``). ``init``: the (k, B) initial words instead of
+    the seeded draw.
+    """
+    if init is not None:
+        words = np.array(init, np.float32)
+        if words.shape != (k, bits.shape[1]):
+            raise ValueError(f"init must have shape ({k}, {bits.shape[1]}), got {words.shape}")
+    else:
+        codes = np.unique(bits.astype(np.uint8), axis=0)  # sorted distinct codes: the draw ignores their order
+        if codes.shape[0] < k:
+            raise ValueError(f"{codes.shape[0]} distinct ORB descriptors for a vocabulary of {k} words: train on "
+                             "more images or ask for fewer words")
+        words = codes[np.random.default_rng(seed).choice(codes.shape[0], k, replace=False)].astype(np.float32)
+    ints = bits.astype(np.int32)
+    assign = None
+    for _ in range(iterations):
+        new = nearest_word(bits, words)
+        if assign is not None and np.array_equal(new, assign):
+            break
+        assign = new
+        order = np.argsort(assign, kind="stable")
+        n = np.bincount(assign, minlength=k)
+        used = np.flatnonzero(n)
+        starts = np.concatenate([[0], np.cumsum(n[used])[:-1]])
+        ones = np.add.reduceat(ints[order], starts, axis=0)  # (used, B) bit counts, exact
+        words[used] = (2 * ones >= n[used, None]).astype(np.float32)
+    return words
 
 
 class OrbBagOfWords:
-    """A flat ORB vocabulary with tf-idf weights and DBoW2's L1 score (see the module docstring)."""
+    """A flat ORB vocabulary with tf-idf weights and DBoW2's L1 score (see the module docstring).
+
+    The vocabulary is learnt by :func:`k_majority`: the same words at any thread count and whether or
+    not faiss is installed (tests/test_orb_bow.py).
+    """
 
     def __init__(self, words: int = 1000, features: int = 1000, seed: int = 0):
         self.words, self.features, self.seed = words, features, seed
         self.orb = cv2.ORB_create(nfeatures=features)
-        self._index = None
 
     def _describe(self, rgb: np.ndarray) -> np.ndarray:
         grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
@@ -100,36 +162,17 @@ class OrbBagOfWords:
         rng = np.random.default_rng(self.seed)
         if bits.shape[0] > 100_000:
             bits = bits[rng.choice(bits.shape[0], 100_000, replace=False)]
-        try:
-            import faiss
-
-            km = faiss.Kmeans(256, self.words, niter=20, seed=self.seed, verbose=False)
-            km.train(bits)
-            centroids = km.centroids
-        except ImportError:
-            crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1e-3)
-            cv2.setRNGSeed(self.seed)
-            _, _, centroids = cv2.kmeans(bits, self.words, None, crit, 1, cv2.KMEANS_PP_CENTERS)
-        self.vocab = np.packbits(centroids > 0.5, axis=1)  # binary words, as DBoW2's k-majority
-        try:
-            import faiss
-
-            self._index = faiss.IndexBinaryFlat(256)
-            self._index.add(self.vocab)
-        except ImportError:
-            self._index = None
+        self._word_bits = k_majority(bits, self.words, self.seed)
+        self.vocab = np.packbits(self._word_bits.astype(np.uint8), axis=1)  # (words, 32) binary words
         counts = np.stack([np.bincount(self._assign(d), minlength=self.words) > 0 for d in descs])
         self.idf = np.log(len(descs) / np.maximum(counts.sum(0), 1)).astype(np.float32)
         return self
 
     def _assign(self, d: np.ndarray) -> np.ndarray:
-        # nearest word in Hamming distance (faiss's binary index when installed, else a popcount table)
+        # the nearest word in Hamming distance, ties to the lowest index (exact at any thread count)
         if d.shape[0] == 0:
             return np.zeros(0, np.int64)
-        if self._index is not None:
-            return self._index.search(np.ascontiguousarray(d), 1)[1][:, 0].astype(np.int64)
-        dist = _POPCOUNT[np.bitwise_xor(d[:, None, :], self.vocab[None, :, :])].sum(2, dtype=np.int32)
-        return dist.argmin(1)
+        return nearest_word(np.unpackbits(d, axis=1).astype(np.float32), self._word_bits)
 
     def transform(self, images: list[np.ndarray]) -> torch.Tensor:
         out = np.zeros((len(images), self.words), np.float32)
@@ -171,18 +214,31 @@ def attention_codes(images: list[np.ndarray], preset: str | None, batch: int = 8
     return out
 
 
-def all_methods(query: list[np.ndarray], reference: list[np.ndarray] | None, bow_train: list[np.ndarray]):
-    """{method: (Q, R) similarity}; reference None: one sequence against itself."""
+METHODS = ("default", "paper", "orb")
+
+
+def all_methods(query: list[np.ndarray], reference: list[np.ndarray] | None, bow_train: list[np.ndarray],
+                methods=METHODS, bow_seeds=(0,)):
+    """{method: (Q, R) similarity}; reference None: one sequence against itself. ``methods``: ``default``
+    (the five modes with GAP and GeM), ``paper`` (the five modes of ``preset="paper"``), ``orb`` (ORB-BoW,
+    one vocabulary per seed of ``bow_seeds``, named ``ORB-BoW seed <s>`` when there are several)."""
     both = query + (reference or [])
     nq = len(query)
-    codes = {**attention_codes(both, None), **attention_codes(both, "paper")}
+    codes = {}
+    if "default" in methods:
+        codes.update(attention_codes(both, None))
+    if "paper" in methods:
+        codes.update(attention_codes(both, "paper"))
     sims = {}
     for name, c in codes.items():
         q, r = c[:nq], (c[nq:] if reference else c)
         sims[name] = q @ r.T
-    bow = OrbBagOfWords().fit(bow_train)
-    v = bow.transform(both)
-    sims["ORB-BoW"] = bow.similarity(v[:nq], v[nq:] if reference else v)
+    if "orb" in methods:
+        for seed in bow_seeds:
+            bow = OrbBagOfWords(seed=seed).fit(bow_train)
+            v = bow.transform(both)
+            name = "ORB-BoW" if len(bow_seeds) == 1 else f"ORB-BoW seed {seed}"
+            sims[name] = bow.similarity(v[:nq], v[nq:] if reference else v)
     return sims
 
 
@@ -287,6 +343,12 @@ def main() -> None:
     parser.add_argument("--ground-truth", type=Path, help="the query x reference ground truth of --query (.npy or image)")
     parser.add_argument("--out", type=Path, default=None, help="folder for the PR-curve PNGs")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS,
+                        help="what to measure: default (the five modes, GAP, GeM), paper (preset='paper'), orb "
+                             "(ORB-BoW); default: all")
+    parser.add_argument("--bow-seeds", nargs="+", type=int, default=[0],
+                        help="seeds of the ORB-BoW vocabulary (its k-means draw and sample); one row per seed "
+                             "(default: 0)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if (args.query is None) != (args.reference is None) or (args.query is not None and args.ground_truth is None):
@@ -301,12 +363,13 @@ def main() -> None:
             print(f"\n{name}: data not found under {args.data}; skipped", file=sys.stderr)
             continue
         query, reference, bow_train, protos = got
-        sims = all_methods(query, reference, bow_train)
+        sims = all_methods(query, reference, bow_train, args.methods, args.bow_seeds)
         report(name, sims, protos, args.out)
         print(f"\n({name}: {len(query)} images, {time.perf_counter() - t0:.0f} s)")
     if args.query is not None:
         query, reference, bow_train, protos = protocols_folders(args.query, args.reference, args.ground_truth, args.data)
-        report(args.query.parent.name or "folders", all_methods(query, reference, bow_train), protos, args.out)
+        sims = all_methods(query, reference, bow_train, args.methods, args.bow_seeds)
+        report(args.query.parent.name or "folders", sims, protos, args.out)
 
 
 if __name__ == "__main__":
