@@ -73,8 +73,8 @@ GROUPS = (192, 320)
 SIZE = (224, 288)
 SEEDS = ("own", "top5", "top5-uniform", "T2", "entropy")
 HYPOTHESES = ("range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions",
-              "spatial", "taps", "layouts", "shift", "halves3")
-SESSION3 = ("spatial", "taps", "layouts", "shift", "halves3")
+              "spatial", "taps", "layouts", "shift", "halves3", "local")
+SESSION3 = ("spatial", "taps", "layouts", "shift", "halves3", "local")
 
 
 def _seed(p: torch.Tensor, z: torch.Tensor, kind: str) -> torch.Tensor:
@@ -299,7 +299,8 @@ def fuse_taps(f: dict, taps: tuple[str, ...], mode: str, g: str = "G") -> list[t
         if mode == "none":
             maps.append(L)
             continue
-        G = unit_scale(f[f"{'Gc' if g == 'Gc' else 'G'}:{t}"])
+        # a cached form of G by its key prefix (``Gc``, the local forms ``Gloc`` ...), else the plain G
+        G = unit_scale(f[f"{g}:{t}"] if f"{g}:{t}" in f else f[f"G:{t}"])
         if g == "absG":
             G = G.abs()
         elif g == "spatial":  # the within-channel part: each channel's mean over (H, W) removed
@@ -563,9 +564,205 @@ def variant_table(title: str, results: dict, names: list[str], key: str = "full"
                   flush=True)
 
 
+# --------------------------------------------------------------------------- local class evidence (the CAM seed)
+#: local forms of G: name -> (cache key prefix, which classes each position's softmax runs over, their count)
+LOCAL_FORMS = {
+    "local S, 1000 classes": ("Gloc", "all", 1000),
+    "local S, the image's top-5 classes": ("Gtop5", "top", 5),
+    "local S, the image's top-20 classes": ("Gtop20", "top", 20),
+    "local S, a 64-class subset (the other set's)": ("Gsub64", "subset", 64),
+}
+SUBSET_TOP = 5  # the subset: the classes most often among the top-5 of the other set's frames
+
+
+def local_gradients(net, l6: torch.Tensor, classes: str = "all", k: int = 1000,
+                    subset: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """G at stage6 and stage7 seeded with each position's own softmax (the class activation map's).
+
+    A GAP head's logits are the mean over (h, w) of the per-position logits z(h, w) = W_fc head(h, w) + b
+    (the same classifier). With S(h, w) = softmax(z(h, w)) over ``classes``:
+
+        G = d/dL sum_{h,w} |S(h, w)|^2 / 2 = sum_{h,w} (dS(h, w)/dL)^T S(h, w)
+
+    the paper's seeded form, position by position. ``classes``: ``all`` (1000), ``top`` (the image's
+    top-``k`` classes of the network's own logits, per image), ``subset`` (the fixed indices ``subset``),
+    ``global`` (the library's G: one softmax of the pooled logits; a check). ``l6``: stage6's output
+    (N, 192, h, w) at ``SIZE``; the blocks of stage7 and the head run from it (the joined tap's G:
+    stage6's slice is the total gradient at stage6's output, stage7's the gradient at its own).
+
+    Returns:
+        {"stage6": (N, 192, h, w), "stage7": (N, 320, h, w), "logits": (N, 1000) of the GAP head,
+        "local_top1": (N, h, w) each position's own top-1 class among ``classes``}.
+    """
+    info = efficientnet_lite_taps(net.variant, net.input_size)
+    b6, b7 = info["stage6"][0], info["stage7"][0]
+    with torch.enable_grad():
+        leaf = l6.detach().requires_grad_(True)
+        y7 = leaf
+        for block in net._blocks[b6 + 1: b7 + 1]:
+            y7 = block(y7)
+        head = net._head_features(y7)  # (N, 1280, h, w)
+        z = net._fc(head.mean((2, 3)))  # the network's logits
+        W, b = net._fc.weight, net._fc.bias
+        if classes == "global":
+            p = z.softmax(1)
+            idx = z.detach().argmax(1)[:, None, None].expand(-1, *head.shape[2:])
+        else:
+            if classes == "all":
+                zl = torch.einsum("nchw,kc->nkhw", head, W) + b[:, None, None]
+                pick = None
+            else:
+                pick = z.detach().topk(k, 1).indices if classes == "top" else subset.expand(len(l6), -1)
+                zl = torch.einsum("nchw,nkc->nkhw", head, W[pick]) + b[pick][:, :, None, None]
+            p = zl.softmax(1)  # (N, K, h, w): each position's own softmax
+            top = p.detach().argmax(1)
+            idx = top if pick is None else pick.gather(1, top.flatten(1)).view_as(top)
+        g6, g7 = torch.autograd.grad(p, [leaf, y7], grad_outputs=p.detach())
+    return {"stage6": g6, "stage7": g7, "logits": z.detach(), "local_top1": idx}
+
+
+def local_subset(logits: torch.Tensor, size: int = 64, top: int = SUBSET_TOP) -> torch.Tensor:
+    """(size,) the classes most often among the ``top`` classes of ``logits``' frames (ties: lower index)."""
+    counts = torch.bincount(logits.topk(top, 1).indices.flatten(), minlength=logits.shape[1])
+    order = sorted(range(len(counts)), key=lambda c: (-int(counts[c]), c))
+    return torch.tensor(order[:size])
+
+
+def load_local(views: dict, cache: Path, net=None) -> None:
+    """Adds the local forms of G (``LOCAL_FORMS``' keys ``<prefix>:stage6`` / ``:stage7`` and
+    ``<prefix>:top1``) to every set's and view's tap maps, from their cached stage6 L; cached in ``cache``."""
+    net = net or efficientnet_lite("lite0", pretrained=True, tap="stage7", input_size=SIZE)
+    names = list(views)
+    for k, vs in views.items():
+        other = [n for n in names if n != k]
+        subset = local_subset(torch.cat([views[n]["full"]["logits"] for n in other]) if other
+                              else vs["full"]["logits"])
+        for view, f in vs.items():
+            path = cache / f"{k}_{view}_lite0_{SIZE[0]}x{SIZE[1]}_local.pt"
+            if path.is_file():
+                f.update(torch.load(path))
+                continue
+            t0 = time.perf_counter()
+            out: dict[str, list] = {}
+            for s in range(0, len(f["L:stage6"]), 16):
+                l6 = f["L:stage6"][s:s + 16]
+                for prefix, classes, n in LOCAL_FORMS.values():
+                    g = local_gradients(net, l6, classes, n, subset)
+                    for key, val in ((f"{prefix}:stage6", g["stage6"]), (f"{prefix}:stage7", g["stage7"]),
+                                     (f"{prefix}:top1", g["local_top1"])):
+                        out.setdefault(key, []).append(val)
+            new = {key: torch.cat(v) for key, v in out.items()}
+            torch.save(new, path)
+            f.update(new)
+            print(f"<!-- {k} {view}: local G in {time.perf_counter() - t0:.0f} s -->", flush=True)
+
+
+def view_cosines(f: dict, gt: torch.Tensor, g: str) -> list[str]:
+    """Cosine between the two views of a true pair (mean over the pairs of ``gt``) of G (form ``g``), its
+    between-channel part and its within-channel part, stage6 and stage7 joined; 'same / different top-1'."""
+    q, r = torch.nonzero(gt, as_tuple=True)
+    same = f["logits"].argmax(1)[q] == f["logits"].argmax(1)[r]
+    G = [f[f"{g}:{t}"] for t in ("stage6", "stage7")]
+    parts = (torch.cat([x.flatten(1) for x in G], 1), torch.cat([x.mean((2, 3)) for x in G], 1),
+             torch.cat([(x - x.mean((2, 3), keepdim=True)).flatten(1) for x in G], 1))
+    cells = []
+    for x in parts:
+        c = (F.normalize(x[q], dim=1) * F.normalize(x[r], dim=1)).sum(1)
+        cells.append(f"{float(c.mean()):.2f} ({float(c[same].mean()):.2f} / {float(c[~same].mean()):.2f})")
+    return cells
+
+
+def local_macs(k: int, hw: int = 63) -> int:
+    """Multiply-adds the per-position classifier adds to the default's G, forward and input-gradient
+    backward: 1280 x k per position each way, less the pooled classifier's 1280 x 1000 both ways that
+    the 1000-class form replaces (its logits are the mean of the positions')."""
+    return 2 * 1280 * k * hw - (2 * 1280 * 1000 if k == 1000 else 0)
+
+
+def local_cost(batches=(1, 8), rounds: int = 10) -> list[str]:
+    """Measured cost: CPU time of the forward with the seeded backward to stage6+stage7 (the default's
+    G, and each local form) against the plain forward, median of the paired ratios of interleaved rounds."""
+    net = efficientnet_lite("lite0", pretrained=False, tap="stage7", input_size=SIZE)
+    info = efficientnet_lite_taps("lite0", SIZE)
+    subset = torch.arange(0, 1000, 1000 // 64)[:64]
+
+    def to_stage6(x):
+        with torch.no_grad():
+            h = F.relu6(net._bn0(net._conv_stem(x)))
+            for block in net._blocks[: info["stage6"][0] + 1]:
+                h = block(h)
+        return h
+
+    rows = []
+    for batch in batches:
+        x = torch.randn(batch, 3, *SIZE, generator=torch.Generator().manual_seed(0))
+        variants = {"plain": lambda x=x: net.forward_from_tap(net.forward_to_tap(x)),
+                    "global": lambda x=x: local_gradients(net, to_stage6(x), "global")}
+        variants.update({name: (lambda c=c, n=n, x=x: local_gradients(net, to_stage6(x), c, n, subset))
+                         for name, (_, c, n) in LOCAL_FORMS.items()})
+        times = {k: [] for k in variants}
+        with torch.no_grad():
+            for r in range(rounds + 2):
+                for k, fn in variants.items():
+                    t0 = time.process_time()
+                    fn()
+                    if r >= 2:
+                        times[k].append(time.process_time() - t0)
+        ratios = {k: float(np.median([a / b for a, b in zip(v, times["plain"])])) for k, v in times.items()}
+        rows.append(f"| {batch} | {1000 * float(np.median(times['plain'])) / batch:.1f} | "
+                    + " | ".join(f"{ratios[k]:.2f}" for k in list(variants)[1:]) + " |")
+    return rows
+
+
+def local_section(args, views: dict, protos: dict, seeds: tuple[int, ...]) -> None:
+    """The local (per-position) class evidence as G's seed: how spatial and how repeatable it is, what it
+    does on the four protocols and the shift check, its held-out halves, its cost."""
+    names = [p for s in protos.values() for p in s]
+    forms = {"G (default)": "G", **{n: v[0] for n, v in LOCAL_FORMS.items()}}
+    print("\n#### local: G seeded with each position's own softmax (the class activation map's), stage6+stage7"
+          "\n\nShare of G's variance within channels (median over frames, stage6 / stage7); positions whose own "
+          "top-1 class differs from the image's (mean); the two views of a true pair (cosine, mean over the pairs "
+          "of the set's first protocol; in brackets: image top-1 the same / different): G, its between-channel "
+          "part, its within-channel part; the share of |G|^2 (both stages) on the hottest of the positions "
+          "(median; uniform: 1/63)\n\n| set | G | spatial share | positions off the image's top-1 | "
+          "cos G | between-channel | within-channel | hottest position |\n|---|---|---|---|---|---|---|---|")
+    for k, v in views.items():
+        f = v["full"]
+        gt = next(iter(protos[k].values()))[0]
+        for label, g in forms.items():
+            share = " / ".join(f"{float(spatial_share(f[f'{g}:{t}']).median()):.3f}" for t in ("stage6", "stage7"))
+            top1 = f["logits"].argmax(1)[:, None, None]
+            off = f"{float((f[f'{g}:top1'] != top1).float().mean()):.2f}" if f"{g}:top1" in f else "-"
+            energy = sum(f[f"{g}:{t}"].pow(2).sum(1) for t in ("stage6", "stage7")).flatten(1)  # (N, h w)
+            hot = float((energy.amax(1) / energy.sum(1).clamp_min(1e-30)).median())
+            print(f"| {k} | {label} | {share} | {off} | " + " | ".join(view_cosines(f, gt, g)) + f" | {hot:.3f} |",
+                  flush=True)
+    results = {label: evaluate_variant(views, protos, ("stage6", "stage7"), g, DEFAULT_LAYOUT, seeds)
+               for label, g in forms.items()}
+    variant_table(f"local: per protocol, R@1 / R@P100, mean over {len(seeds)} RNN seed(s)", results, names)
+    summary_table("local: mean over the four protocols, then the shift check", results)
+    crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in results.items()}
+    best = max(crit, key=crit.get)
+    print(f"\nChosen on the first half of each protocol's queries (mean over modes and protocols of R@1 + R@P100): "
+          f"{best} ({crit[best]:.3f}; " + ", ".join(f"{n} {c:.3f}" for n, c in crit.items() if n != best) + ")")
+    variant_table("local: the second half of each protocol's queries", results, names, key="half1")
+    total, _ = block_macs()
+    print(f"\nMultiply-adds the local seed adds to the default's G (forward {total / 1e6:.1f} M): " + ", ".join(
+        f"{n} {local_macs(c) / 1e6:.1f} M ({100 * local_macs(c) / total:.1f} %)" for n, (_, _, c) in LOCAL_FORMS.items()))
+    print(f"\nMeasured (CPU time, {torch.get_num_threads()} thread(s), load average {os.getloadavg()[0]:.1f}): forward "
+          "+ seeded backward to stage6+stage7 / plain forward, median of the paired ratios of 10 interleaved rounds"
+          "\n\n| batch | plain forward ms/frame | G (default) | " + " | ".join(LOCAL_FORMS) + " |\n|---|---|---|"
+          + "---|" * len(LOCAL_FORMS))
+    for row in local_cost():
+        print(row, flush=True)
+
+
 def session3(args, data: dict, protos: dict) -> None:
     views = {k: load_taps(k, images, args.cache) for k, (images, _) in data.items()}
     names = [p for s in protos.values() for p in s]
+    if "local" in args.only:
+        load_local(views, args.cache)
+        local_section(args, views, protos, tuple(range(args.rnn_seeds)))
     if "spatial" in args.only:
         print("\n#### spatial: the share of G's variance within channels, over (H, W), median [10th, 90th "
               "percentile] over frames\n\n| set | G at | plain G | G clamped at the head output |\n|---|---|---|---|")

@@ -150,3 +150,57 @@ def test_block_macs(hyp):
     h, w = 7, 9  # stage7 -> logits: the 1x1 head conv (320 -> 1280 on 7 x 9) and the classifier
     assert above["stage7"] == 320 * 1280 * h * w + 1280 * 1000
     assert above["stage7"] < above["stage6"] < above["stage5"] < above["stage4"] < total
+
+
+def test_local_gradients_hand_computed(hyp):
+    # each position's own softmax S(h, w) of z(h, w) = W_fc head(h, w) + b seeds the backward:
+    # at stage7 dPhi/dhead(h, w) = W_fc^T (S (S - |S|^2))(h, w), then the ReLU6 mask, batch-norm scale, 1x1 conv
+    from attnloop.backbones.efficientnet_lite import efficientnet_lite
+
+    net = efficientnet_lite("lite0", pretrained=False, tap="stage7", input_size=hyp.SIZE, seed=5)
+    l6 = torch.randn(2, 192, 7, 9, generator=torch.Generator().manual_seed(6))
+    g = hyp.local_gradients(net, l6, "all")
+    with torch.no_grad():
+        L7 = net._blocks[-1](l6)
+        pre = net._bn1(net._conv_head(L7))
+        head = torch.nn.functional.relu6(pre)
+        z = torch.einsum("nchw,kc->nkhw", head, net._fc.weight) + net._fc.bias[:, None, None]
+        p = z.softmax(1)
+        seed = p * (p - (p * p).sum(1, keepdim=True))
+        g_head = torch.einsum("nkhw,kc->nchw", seed, net._fc.weight)
+        scale = net._bn1.weight / (net._bn1.running_var + net._bn1.eps).sqrt()
+        inner = ((pre > 0) & (pre < 6)) * g_head * scale[:, None, None]
+        g7 = torch.einsum("nkhw,kc->nchw", inner, net._conv_head.weight[:, :, 0, 0])
+    assert torch.allclose(g["stage7"], g7, rtol=1e-4, atol=1e-4 * float(g7.abs().max()))
+    # the per-position logits average to the network's: the same classifier
+    assert torch.allclose(z.mean((2, 3)), g["logits"], atol=1e-4)
+    assert torch.equal(g["local_top1"], p.argmax(1))
+    # a softmax over all 1000 classes picked as the top-1000 is the same softmax in another order
+    top = hyp.local_gradients(net, l6, "top", 1000)
+    for t in ("stage6", "stage7"):
+        assert torch.allclose(top[t], g[t], rtol=1e-3, atol=1e-4 * float(g[t].abs().max()))
+    # the seed is per position, so G is not the library's (one softmax of the pooled logits)
+    glob = hyp.local_gradients(net, l6, "global")
+    assert not torch.allclose(glob["stage7"] / glob["stage7"].abs().max(), g7 / g7.abs().max(), atol=0.05)
+
+
+def test_local_gradients_global_is_the_librarys_g(hyp):
+    from attnloop.backbones.efficientnet_lite import efficientnet_lite
+    from attnloop.guided_backprop import guided_backprop
+
+    images = [np.random.default_rng(i).integers(0, 256, (60, 80, 3), dtype=np.uint8) for i in range(2)]
+    joined = efficientnet_lite("lite0", pretrained=False, tap="stage6+stage7", input_size=hyp.SIZE, seed=3)
+    L, G = guided_backprop(joined, torch.stack([torch.from_numpy(im).permute(2, 0, 1) for im in images]))
+    g = hyp.local_gradients(joined, L[:, :192], "global")
+    assert torch.allclose(torch.cat([g["stage6"], g["stage7"]], 1), G, rtol=1e-4, atol=1e-6 * float(G.abs().max()))
+    # a class subset: only those classes' rows of the classifier enter each position's softmax
+    sub = hyp.local_gradients(joined, L[:, :192], "subset", 3, torch.tensor([7, 2, 900]))
+    assert set(sub["local_top1"].unique().tolist()) <= {7, 2, 900}
+
+
+def test_local_subset_and_macs(hyp):
+    logits = torch.tensor([[5.0, 4.0, 3.0, 0.0, -1.0], [0.0, 4.0, 5.0, 3.0, -1.0]])
+    # top-2 of each frame: {0, 1} and {2, 1}: class 1 twice, then 0 and 2 once (ties to the lower index)
+    assert hyp.local_subset(logits, size=3, top=2).tolist() == [1, 0, 2]
+    assert hyp.local_macs(5) == 2 * 1280 * 5 * 63
+    assert hyp.local_macs(1000) == 2 * 1280 * 1000 * 63 - 2 * 1280 * 1000
