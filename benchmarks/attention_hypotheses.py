@@ -43,6 +43,12 @@ frames and for crops of 75 % width at the left and at the right):
   database to the right 75 % (a simulated lateral offset), beside the real ones; never chosen on alone.
 * ``halves3``: every session-3 variant chosen on the first half of each protocol's queries, reported
   on the second.
+* ``local``: G seeded with each position's own softmax of the classifier applied per position (the
+  class activation map's logits W_fc head(h, w) + b, whose mean is the network's logits):
+  G = d/dL sum_{h,w} |S(h, w)|^2 / 2, over all 1000 classes, the image's top-5 / top-20 classes, a
+  64-class subset learnt on the other set, or with every position's seed at unit norm (cached as
+  ``*_local.pt`` from the stage6 maps of ``*_taps.pt``); how spatial and how repeatable between two views
+  it is, the four protocols with the shift check and the held-out halves, its multiply-adds and cost.
 
 Usage:
     python benchmarks/attention_hypotheses.py [--data ../shared/data] [--only range norm ...] [--threads 1]
@@ -571,6 +577,7 @@ LOCAL_FORMS = {
     "local S, the image's top-5 classes": ("Gtop5", "top", 5),
     "local S, the image's top-20 classes": ("Gtop20", "top", 20),
     "local S, a 64-class subset (the other set's)": ("Gsub64", "subset", 64),
+    "local S, 1000 classes, every position's seed at unit norm": ("Glocn", "all-equal", 1000),
 }
 SUBSET_TOP = 5  # the subset: the classes most often among the top-5 of the other set's frames
 
@@ -584,7 +591,9 @@ def local_gradients(net, l6: torch.Tensor, classes: str = "all", k: int = 1000,
 
         G = d/dL sum_{h,w} |S(h, w)|^2 / 2 = sum_{h,w} (dS(h, w)/dL)^T S(h, w)
 
-    the paper's seeded form, position by position. ``classes``: ``all`` (1000), ``top`` (the image's
+    the paper's seeded form, position by position. ``classes``: ``all`` (1000), ``all-equal`` (1000, each
+    position's seed of its logits, S(h, w) * (S(h, w) - |S(h, w)|^2), scaled to unit norm: every position
+    weighs the same, however confident its classifier), ``top`` (the image's
     top-``k`` classes of the network's own logits, per image), ``subset`` (the fixed indices ``subset``),
     ``global`` (the library's G: one softmax of the pooled logits; a check). ``l6``: stage6's output
     (N, 192, h, w) at ``SIZE``; the blocks of stage7 and the head run from it (the joined tap's G:
@@ -608,7 +617,7 @@ def local_gradients(net, l6: torch.Tensor, classes: str = "all", k: int = 1000,
             p = z.softmax(1)
             idx = z.detach().argmax(1)[:, None, None].expand(-1, *head.shape[2:])
         else:
-            if classes == "all":
+            if classes in ("all", "all-equal"):
                 zl = torch.einsum("nchw,kc->nkhw", head, W) + b[:, None, None]
                 pick = None
             else:
@@ -617,7 +626,12 @@ def local_gradients(net, l6: torch.Tensor, classes: str = "all", k: int = 1000,
             p = zl.softmax(1)  # (N, K, h, w): each position's own softmax
             top = p.detach().argmax(1)
             idx = top if pick is None else pick.gather(1, top.flatten(1)).view_as(top)
-        g6, g7 = torch.autograd.grad(p, [leaf, y7], grad_outputs=p.detach())
+        if classes == "all-equal":
+            q = p.detach()
+            seed = q * (q - (q * q).sum(1, keepdim=True))  # d(|S(h, w)|^2 / 2) / dz(h, w)
+            g6, g7 = torch.autograd.grad(zl, [leaf, y7], grad_outputs=F.normalize(seed, dim=1))
+        else:
+            g6, g7 = torch.autograd.grad(p, [leaf, y7], grad_outputs=p.detach())
     return {"stage6": g6, "stage7": g7, "logits": z.detach(), "local_top1": idx}
 
 
@@ -639,20 +653,22 @@ def load_local(views: dict, cache: Path, net=None) -> None:
                               else vs["full"]["logits"])
         for view, f in vs.items():
             path = cache / f"{k}_{view}_lite0_{SIZE[0]}x{SIZE[1]}_local.pt"
-            if path.is_file():
-                f.update(torch.load(path))
+            have = torch.load(path) if path.is_file() else {}
+            f.update(have)
+            missing = [form for form in LOCAL_FORMS.values() if f"{form[0]}:stage6" not in have]
+            if not missing:
                 continue
             t0 = time.perf_counter()
             out: dict[str, list] = {}
             for s in range(0, len(f["L:stage6"]), 16):
                 l6 = f["L:stage6"][s:s + 16]
-                for prefix, classes, n in LOCAL_FORMS.values():
+                for prefix, classes, n in missing:
                     g = local_gradients(net, l6, classes, n, subset)
                     for key, val in ((f"{prefix}:stage6", g["stage6"]), (f"{prefix}:stage7", g["stage7"]),
                                      (f"{prefix}:top1", g["local_top1"])):
                         out.setdefault(key, []).append(val)
             new = {key: torch.cat(v) for key, v in out.items()}
-            torch.save(new, path)
+            torch.save({**have, **new}, path)
             f.update(new)
             print(f"<!-- {k} {view}: local G in {time.perf_counter() - t0:.0f} s -->", flush=True)
 
@@ -714,9 +730,10 @@ def local_cost(batches=(1, 8), rounds: int = 10) -> list[str]:
     return rows
 
 
-def local_section(args, views: dict, protos: dict, seeds: tuple[int, ...]) -> None:
+def local_section(args, views: dict, protos: dict, seeds: tuple[int, ...]) -> dict:
     """The local (per-position) class evidence as G's seed: how spatial and how repeatable it is, what it
-    does on the four protocols and the shift check, its held-out halves, its cost."""
+    does on the four protocols and the shift check, its held-out halves, its cost. Returns the variants'
+    results (:func:`evaluate_variant`)."""
     names = [p for s in protos.values() for p in s]
     forms = {"G (default)": "G", **{n: v[0] for n, v in LOCAL_FORMS.items()}}
     print("\n#### local: G seeded with each position's own softmax (the class activation map's), stage6+stage7"
@@ -755,14 +772,16 @@ def local_section(args, views: dict, protos: dict, seeds: tuple[int, ...]) -> No
           + "---|" * len(LOCAL_FORMS))
     for row in local_cost():
         print(row, flush=True)
+    return results
 
 
 def session3(args, data: dict, protos: dict) -> None:
     views = {k: load_taps(k, images, args.cache) for k, (images, _) in data.items()}
     names = [p for s in protos.values() for p in s]
+    local = {}
     if "local" in args.only:
         load_local(views, args.cache)
-        local_section(args, views, protos, tuple(range(args.rnn_seeds)))
+        local = local_section(args, views, protos, tuple(range(args.rnn_seeds)))
     if "spatial" in args.only:
         print("\n#### spatial: the share of G's variance within channels, over (H, W), median [10th, 90th "
               "percentile] over frames\n\n| set | G at | plain G | G clamped at the head output |\n|---|---|---|---|")
@@ -816,7 +835,7 @@ def session3(args, data: dict, protos: dict) -> None:
         summary_table(f"summary: mean over the four protocols, R@1 / R@P100, mean over {len(seeds)} RNN seed(s)",
                       results)
     if "shift" in args.only:
-        picked = {n: results[n] for n in results} or {
+        picked = {n: results[n] for n in results} or local or {
             n: evaluate_variant(views, protos, *spec, seeds) for n, spec in {**TAP_VARIANTS, **LAYOUT_VARIANTS}.items()}
         print(f"\n#### shift check: queries the left {CROP:.0%} of each frame, the database the right {CROP:.0%} "
               "(R@1 / R@P100)\n\n| variant | mode | " + " | ".join(names) + " | mean |\n|---|---|" + "---|" * (len(names) + 1))

@@ -204,3 +204,21 @@ def test_local_subset_and_macs(hyp):
     assert hyp.local_subset(logits, size=3, top=2).tolist() == [1, 0, 2]
     assert hyp.local_macs(5) == 2 * 1280 * 5 * 63
     assert hyp.local_macs(1000) == 2 * 1280 * 1000 * 63 - 2 * 1280 * 1000
+
+
+def test_local_gradients_equal_weights(hyp):
+    # every position's logit seed at unit norm: G is the sum over positions of dz(h, w)/dL^T u(h, w)
+    from attnloop.backbones.efficientnet_lite import efficientnet_lite
+
+    net = efficientnet_lite("lite0", pretrained=False, tap="stage7", input_size=hyp.SIZE, seed=5)
+    l6 = torch.randn(1, 192, 7, 9, generator=torch.Generator().manual_seed(7))
+    g = hyp.local_gradients(net, l6, "all")
+    eq = hyp.local_gradients(net, l6, "all-equal")
+    with torch.no_grad():
+        head = net._head_features(net._blocks[-1](l6))
+        p = (torch.einsum("nchw,kc->nkhw", head, net._fc.weight) + net._fc.bias[:, None, None]).softmax(1)
+        norm = (p * (p - (p * p).sum(1, keepdim=True))).norm(dim=1)  # (1, 7, 9): each position's seed norm
+    # at stage7 the path from one position's logits to L is that position's alone: G_eq(h, w) = G(h, w) / norm
+    tol = 1e-4 * float(eq["stage7"].abs().max())
+    assert torch.allclose(eq["stage7"], g["stage7"] / norm[:, None], rtol=1e-3, atol=tol)
+    assert norm.max() / norm.min() > 1.3  # the positions' weights did differ (1.6 here)
