@@ -305,8 +305,9 @@ def fuse_taps(f: dict, taps: tuple[str, ...], mode: str, g: str = "G") -> list[t
         if mode == "none":
             maps.append(L)
             continue
-        # a cached form of G by its key prefix (``Gc``, the local forms ``Gloc`` ...), else the plain G
-        G = unit_scale(f[f"{g}:{t}"] if f"{g}:{t}" in f else f[f"G:{t}"])
+        # the plain G transformed below, or a cached form by its key prefix (``Gc``, the local ``Gloc`` ...)
+        plain = g in ("G", "absG", "chsum", "spatial", "channel")
+        G = unit_scale(f[f"G:{t}" if plain else f"{g}:{t}"])
         if g == "absG":
             G = G.abs()
         elif g == "spatial":  # the within-channel part: each channel's mean over (H, W) removed

@@ -222,3 +222,15 @@ def test_local_gradients_equal_weights(hyp):
     tol = 1e-4 * float(eq["stage7"].abs().max())
     assert torch.allclose(eq["stage7"], g["stage7"] / norm[:, None], rtol=1e-3, atol=tol)
     assert norm.max() / norm.min() > 1.3  # the positions' weights did differ (1.6 here)
+
+
+def test_fuse_taps_takes_a_cached_form_by_its_prefix(hyp, maps):
+    L, G = maps
+    other = torch.randn(G.shape, generator=torch.Generator().manual_seed(9))
+    f = {"L:stage6": L[:, :192], "L:stage7": L[:, 192:], "G:stage6": G[:, :192], "G:stage7": G[:, 192:],
+         "Gloc:stage6": other[:, :192], "Gloc:stage7": other[:, 192:]}
+    taps = ("stage6", "stage7")
+    for g, ref in (("Gloc", other), ("G", G)):
+        assert torch.allclose(torch.cat(hyp.fuse_taps(f, taps, "dam", g), 1), fuse_groups(L, ref, "dam", (192, 320)))
+    with pytest.raises(KeyError):  # a form that is not cached is an error, never the plain G in disguise
+        hyp.fuse_taps(f, taps, "dam", "Gtop5")
