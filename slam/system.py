@@ -19,8 +19,9 @@ uses): a new keyframe's loop work (graph entry, description, verification, consi
 runs in one worker thread while tracking goes on, and is waited for when the next keyframe comes (or in
 :meth:`RGBDSLAM.finish`). The work and its order are those of the tracking thread, so the graph, the loops
 and :meth:`RGBDSLAM.finish`'s result are the same, bit for bit; what differs is *when* a frame's report
-shows them: a loop and its correction are reported by the frame that waits for them (the next keyframe),
-and the poses reported in between are placed on the keyframe estimates as of the last wait.
+shows them: a loop and its correction are reported by the frame that waits for them (the next keyframe;
+the last keyframe's loops are only in :meth:`RGBDSLAM.finish`'s result), and the poses reported in between
+are placed on the keyframe estimates as of the last wait.
 
 Example:
     >>> import numpy as np

@@ -88,11 +88,11 @@ def _record_track(monkeypatch, fail_at=None):
     seen = []
     original = RGBDSLAM.track
 
-    def track(self, frame):
+    def track(self, frame, **kwargs):
         seen.append((torch.get_num_threads(), cv2.getNumThreads()))
         if fail_at is not None and len(seen) == fail_at:
             raise RuntimeError("tracking failed on purpose")
-        return original(self, frame)
+        return original(self, frame, **kwargs)
 
     monkeypatch.setattr(RGBDSLAM, "track", track)
     return seen
@@ -147,9 +147,9 @@ def test_the_streaming_api_computes_with_the_configs_threads(tiny_sequence, call
     slam = RGBDSLAM(cfg)
     odo_track = slam.odometry.track
 
-    def spy(frame):
+    def spy(frame, features=None):
         seen.append((torch.get_num_threads(), cv2.getNumThreads()))
-        return odo_track(frame)
+        return odo_track(frame, features)
 
     slam.odometry.track = spy
     for i in range(len(tiny_sequence)):
