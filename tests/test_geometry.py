@@ -185,3 +185,6 @@ def test_rotation_matrix_is_quat_to_rotmat_bit_for_bit():
     pose = torch.cat([torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64), q[9]])
     pts = torch.randn(20, 3, generator=g, dtype=torch.float64)
     assert torch.equal(transform_points(pose, pts), pts @ quat_to_rotmat(q[9]).T + pose[:3])
+    qg = q[9].clone().requires_grad_(True)  # a gradient flows: slam.lie's path
+    rotation_matrix(qg).sum().backward()
+    assert qg.grad is not None and torch.isfinite(qg.grad).all()
