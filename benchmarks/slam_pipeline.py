@@ -99,12 +99,13 @@ def _code_ab(seq_dir, args) -> list:
     med = {k: statistics.median(x["fps"] for x in v) for k, v in runs.items()}
     cpu = {k: statistics.median(x["cpu_ms_per_frame"] for x in v) for k, v in runs.items()}
     ratios = [a["fps"] / b["fps"] for a, b in zip(runs["new"], runs["ref"])]
-    return [f"Code A/B on {Path(seq_dir).name} ({args.modes[0]}, {args.fps_ab} rounds, interleaved; reference {ref}): "
+    line = (f"Code A/B on {Path(seq_dir).name} ({args.modes[0]}, {args.fps_ab} rounds, interleaved; reference {ref}): "
             f"this code {med['new']:.2f} frames/s (runs {[x['fps'] for x in runs['new']]}), reference "
             f"{med['ref']:.2f} (runs {[x['fps'] for x in runs['ref']]}); median ratio {statistics.median(ratios):.3f}; "
             f"process CPU ms/frame (all threads, whole process) {cpu['new']:.1f} vs {cpu['ref']:.1f}; ATE "
             f"{_fmt(runs['new'][0]['ate'])} vs {_fmt(runs['ref'][0]['ate'])}, loops {runs['new'][0]['loops']} vs "
-            f"{runs['ref'][0]['loops']}; load averages {[round(x['load'], 1) for v in runs.values() for x in v]}"]
+            f"{runs['ref'][0]['loops']}; load averages {[round(x['load'], 1) for v in runs.values() for x in v]}")
+    return [line]
 
 
 def main() -> None:

@@ -162,7 +162,6 @@ class RGBDSLAM:
         descriptor: an already built descriptor model mapping ``(1, 3, H, W)`` uint8 images to ``(1, D)``
             L2-normalised descriptors (default: :class:`attnloop.AttentionDescriptor` built from
             ``config.loop.descriptor``).
-
         background_loops: run each keyframe's loop work in a worker thread (see the module docstring): the
             same results, loops reported one keyframe later. The caller keeps the thread counts for the whole
             run (:func:`slam.threads.limit_threads`, as :func:`slam.pipeline.run_slam` does), since the worker
@@ -191,10 +190,6 @@ class RGBDSLAM:
         self._num_lost = 0
         self._num_skipped = 0
         self._finished = False
-        # The front end tracks the camera whose pixels the keypoints live in: the colour camera when the
-        # frames are unregistered (``odometry.features.rgb_intrinsics``). Poses are reported for the
-        # depth camera, the frame of the input K and of depth-based ground truth (7-Scenes'), by the
-        # change of frame T_rgb_depth^-1 * P * T_rgb_depth (the world stays the first camera's).
         # the loop worker (background_loops): the last keyframe's work in flight, and the keyframe estimates
         # the reports use meanwhile (the tracking thread never reads the graph while the worker may write it)
         self._worker: Optional[ThreadPoolExecutor] = None
@@ -203,6 +198,10 @@ class RGBDSLAM:
         self._pending: Optional[Future] = None
         self._shown: List[Tensor] = []  # per keyframe: [estimate, odometry pose] as reported
         self._shown_corrected = False  # the shown estimates include loop corrections
+        # The front end tracks the camera whose pixels the keypoints live in: the colour camera when the
+        # frames are unregistered (``odometry.features.rgb_intrinsics``). Poses are reported for the
+        # depth camera, the frame of the input K and of depth-based ground truth (7-Scenes'), by the
+        # change of frame T_rgb_depth^-1 * P * T_rgb_depth (the world stays the first camera's).
         feats = self.config.odometry.features
         self._T_rgb_depth = None
         if feats.rgb_intrinsics is not None and any(float(x) != 0.0 for x in feats.rgb_from_depth_translation):

@@ -315,7 +315,7 @@ def test_frames_then_runs_in_the_reading_thread(tum_dir):
     for prefetch in (0, 2):
         seen = []
 
-        def then(frame):
+        def then(frame, seen=seen):
             seen.append(threading.current_thread().name)
             return frame.timestamp, float(frame.depth.sum())
 
