@@ -15,6 +15,13 @@ layout.
 ``--fps-ab R``: afterwards, R rounds on the first sequence of the first mode (as ``attnloop-slam`` runs it by
 default: with the map) alternating online correction on and off (same process, interleaved, so that the machine's load hits both alike): the median frames/s of
 each and the median of the per-round ratios.
+
+``--fps-ab R --fps-ref DIR``: instead, R rounds alternating this checkout's code and the code in DIR (another
+checkout, e.g. ``git worktree add DIR 07d01e5``), each the default ``attnloop-slam`` run of the first
+sequence in a fresh process (``python -m slam.cli SEQ --out ... --quiet``, its ``--max-frames``,
+``--frame-step``, ``--modes``' first fusion): the frames/s each run writes in ``metrics.json``, the CPU
+seconds of its process (every thread) per frame, the median of each and of the per-round ratios. The
+code A/B of issue 14 (frame rate); with ``--no-kitchen --sequence DIR`` on any other sequence.
 """
 import argparse
 import json
@@ -54,6 +61,53 @@ def _row(label, m, odo_ate):
             f"{st.get('descriptor', {}).get('ms_per_call', float('nan')):.1f} | {m['num_keyframes']} | {m['num_lost']} |")
 
 
+def _code_ab(seq_dir, args) -> list:
+    """R rounds of the default run with this checkout's code and the reference checkout's, interleaved."""
+    import resource
+    import subprocess
+    import sys
+
+    here = Path(__file__).resolve().parents[1]
+    ref = Path(args.fps_ref).resolve()
+    if not (ref / "slam" / "cli.py").is_file():
+        raise SystemExit(f"--fps-ref {ref}: not a checkout of this project (no slam/cli.py)")
+    # the pose graph's C kernels (compiled by pip install, ignored by git): a checkout without them runs the
+    # numpy path, slower and a few ulps apart; copy the .so over for a like-for-like A/B
+    accel = {name: sorted(p.name for p in (code / "slam" / "graph" / "accel").glob("*.so"))
+             for name, code in (("new", here), ("ref", ref))}
+    if accel["new"] != accel["ref"]:
+        print(f"warning: compiled kernels differ (this checkout {accel['new']}, reference {accel['ref']}): "
+              "copy slam/graph/accel/*.so across for a like-for-like A/B", flush=True)
+    runs = {"new": [], "ref": []}
+    for r in range(args.fps_ab):
+        for name, code in (("new", here), ("ref", ref)) if r % 2 == 0 else (("ref", ref), ("new", here)):
+            out = Path(args.out) / "fps_ab" / name
+            cmd = [sys.executable, "-m", "slam.cli", str(seq_dir), "--out", str(out), "--quiet",
+                   "--fusion", args.modes[0], "--frame-step", str(args.frame_step)]
+            if args.max_frames:
+                cmd += ["--max-frames", str(args.max_frames)]
+            env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": "1"}
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            subprocess.run(cmd, env=env, cwd=str(code), check=True)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            m = json.loads((out / "metrics.json").read_text())
+            cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+            runs[name].append({"fps": m["fps"], "cpu_ms_per_frame": 1000 * cpu / m["num_frames"],
+                               "ate": m.get("ate_rmse"), "loops": m.get("num_loops"), "load": os.getloadavg()[0]})
+            print(f"code A/B round {r + 1} {name}: {m['fps']:.2f} frames/s, {runs[name][-1]['cpu_ms_per_frame']:.1f} "
+                  f"CPU ms/frame, ATE {_fmt(m.get('ate_rmse'))}, load {os.getloadavg()[0]:.1f}", flush=True)
+    med = {k: statistics.median(x["fps"] for x in v) for k, v in runs.items()}
+    cpu = {k: statistics.median(x["cpu_ms_per_frame"] for x in v) for k, v in runs.items()}
+    ratios = [a["fps"] / b["fps"] for a, b in zip(runs["new"], runs["ref"])]
+    line = (f"Code A/B on {Path(seq_dir).name} ({args.modes[0]}, {args.fps_ab} rounds, interleaved; reference {ref}): "
+            f"this code {med['new']:.2f} frames/s (runs {[x['fps'] for x in runs['new']]}), reference "
+            f"{med['ref']:.2f} (runs {[x['fps'] for x in runs['ref']]}); median ratio {statistics.median(ratios):.3f}; "
+            f"process CPU ms/frame (all threads, whole process) {cpu['new']:.1f} vs {cpu['ref']:.1f}; ATE "
+            f"{_fmt(runs['new'][0]['ate'])} vs {_fmt(runs['ref'][0]['ate'])}, loops {runs['new'][0]['loops']} vs "
+            f"{runs['ref'][0]['loops']}; load averages {[round(x['load'], 1) for v in runs.values() for x in v]}")
+    return [line]
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
@@ -67,6 +121,9 @@ def main() -> None:
     p.add_argument("--out", default="runs/bench_slam", help="output folder")
     p.add_argument("--modes", nargs="+", default=list(MODES), help="fusion modes to run (default: all)")
     p.add_argument("--fps-ab", type=int, default=0, metavar="R", help="rounds of the online-correction A/B")
+    p.add_argument("--fps-ref", default=None, metavar="DIR",
+                   help="with --fps-ab: A/B of this checkout's code against the checkout in DIR instead")
+    p.add_argument("--fps-only", action="store_true", help="with --fps-ab: skip the accuracy runs")
     args = p.parse_args()
     torch.set_num_threads(1)
     seqs = [] if args.no_kitchen else [Path(args.data) / "7scenes-redkitchen"]
@@ -85,6 +142,12 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     opts = {"backbone": args.backbone, "frame_step": args.frame_step, "max_frames": args.max_frames, "no_map": True}
 
+    if args.fps_ab > 0 and args.fps_ref:
+        text = _code_ab(seqs[0], args)
+        if args.fps_only:
+            print("\n".join(text))
+            (out / "fps_ab.md").write_text("\n".join(text) + "\n")
+            return
     odo = {}
     for s in seqs:
         seq = open_sequence(s)
@@ -106,7 +169,9 @@ def main() -> None:
             text.append(_row(f"{args.backbone} + {mode}", table[mode][name], m0.get("ate_rmse")))
         text.append("")
     text += [markdown_table(table)]
-    if args.fps_ab > 0:
+    if args.fps_ab > 0 and args.fps_ref:
+        text += [""] + _code_ab(seqs[0], args)
+    elif args.fps_ab > 0:
         seq = open_sequence(seqs[0])
         fps = {True: [], False: []}
         for _ in range(args.fps_ab):

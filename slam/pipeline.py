@@ -29,6 +29,7 @@ import tempfile
 import time
 import uuid
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -167,7 +168,9 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         prepare_map_dir(save_map)
     n = len(view)
     stamps = view.timestamps
-    slam = RGBDSLAM(config, descriptor=descriptor)
+    # loop work in a worker thread (the same results; the relocaliser reads the loop closer after each frame,
+    # so a run in a saved map keeps it in this thread)
+    slam = RGBDSLAM(config, descriptor=descriptor, background_loops=saved is None)
     reloc = None
     if saved is not None:
         from slam.maps import MapRelocaliser
@@ -178,24 +181,40 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     start = time.perf_counter()
     # decode ahead in threads; an unreadable frame comes as its FrameReadError, so it is only skipped
     bar = Progress(range(n), total=n, desc=sequence.name, enabled=progress)
-    frames = view.frames(on_error="yield", prefetch=prefetch)
-    for i in bar:
-        with slam.timer("io_wait"):  # decoding runs ahead in threads: this is only the time waited for it
-            frame_or_error = next(frames)
-        if isinstance(frame_or_error, FrameReadError):
-            state = slam.skip(i, float(stamps[i]), str(frame_or_error))
-        else:
-            state = slam.track(frame_or_error)
-            if cloud is not None:
-                recent.append(frame_or_error)
-                with slam.timer("map"):
-                    _add_keyframes_to_map(cloud, slam, state.new_keyframes, recent)
-        if reloc is not None:
-            reloc.observe(state)
-        if i % 10 == 0:
-            bar.set_postfix(f"kf={len(slam.keyframes)} loops={len(slam.loops)}"
-                            + ("" if reloc is None else f" in_map={'yes' if reloc.relocalised else 'no'}"))
-    result = slam.finish()
+    # the reader threads extract each frame's odometry features as they decode it (a pure function of the
+    # frame: the same features as in the tracking thread, which then only matches and registers)
+    ahead = _FeaturesAhead(config.odometry.features) if prefetch > 0 else None
+    frames = view.frames(on_error="yield", prefetch=prefetch, then=ahead)
+    # the keyframes' points are computed in a worker thread, in keyframe order (the map is only read at the end)
+    map_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-map") if cloud is not None else None
+    map_jobs = []
+    try:
+        for i in bar:
+            with slam.timer("io_wait"):  # decoding runs ahead in threads: this is only the time waited for it
+                frame_or_error = next(frames)
+            if isinstance(frame_or_error, FrameReadError):
+                state = slam.skip(i, float(stamps[i]), str(frame_or_error))
+            else:
+                features = None
+                if ahead is not None:
+                    frame_or_error, features = frame_or_error
+                state = slam.track(frame_or_error, features=features)
+                if cloud is not None:
+                    recent.append(frame_or_error)
+                    if state.new_keyframes:
+                        map_jobs.append(map_worker.submit(_add_keyframes_to_map, cloud, slam, state.new_keyframes,
+                                                          list(recent)))
+            if reloc is not None:
+                reloc.observe(state)
+            if i % 10 == 0:
+                bar.set_postfix(f"kf={len(slam.keyframes)} loops={len(slam.loops)}"
+                                + ("" if reloc is None else f" in_map={'yes' if reloc.relocalised else 'no'}"))
+        result = slam.finish()
+        for job in map_jobs:
+            job.result()  # a map error is the run's error
+    finally:
+        if map_worker is not None:
+            map_worker.shutdown(wait=True, cancel_futures=True)
     report = None
     if reloc is not None:
         result, report = reloc.finish(result)
@@ -225,8 +244,30 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
                      map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to)
 
 
+class _FeaturesAhead:
+    """``frame -> (frame, features)`` in a reader thread: :func:`slam.odometry.features.extract_features` with
+    the run's settings (None when it fails: the tracking thread then extracts again and reports the frame
+    as lost with the error, as without this)."""
+
+    def __init__(self, config):
+        self.config = config
+
+    def __call__(self, frame):
+        from slam.odometry.features import extract_features
+
+        try:
+            return frame, extract_features(frame.rgb, frame.depth, frame.K, self.config)
+        except (ValueError, TypeError, cv2.error):
+            return frame, None
+
+
 def _add_keyframes_to_map(cloud: PointCloudMap, slam: RGBDSLAM, new_ids: list[int], recent) -> None:
     """Back-project the frames that just became keyframes (this frame, or a promoted earlier one)."""
+    with slam.timer("map"):
+        _add_to_map(cloud, slam, new_ids, recent)
+
+
+def _add_to_map(cloud: PointCloudMap, slam: RGBDSLAM, new_ids: list[int], recent) -> None:
     by_index = {int(f.index): f for f in recent}
     for kf_id in new_ids:
         frame = by_index.get(int(slam.keyframes[kf_id].frame_index))

@@ -14,6 +14,15 @@ odometry pose is reported beside it (``FrameState.odometry_pose``).
 Only keyframes enter the pose graph; every other frame is stored as a pose relative to its keyframe, so
 after the final optimisation each input frame gets ``T_world_kf (optimised) * T_kf_frame``.
 
+Loop work in a worker thread (``RGBDSLAM(..., background_loops=True)``, what :func:`slam.pipeline.run_slam`
+uses): a new keyframe's loop work (graph entry, description, verification, consistency, online correction)
+runs in one worker thread while tracking goes on, and is waited for when the next keyframe comes (or in
+:meth:`RGBDSLAM.finish`). The work and its order are those of the tracking thread, so the graph, the loops
+and :meth:`RGBDSLAM.finish`'s result are the same, bit for bit; what differs is *when* a frame's report
+shows them: a loop and its correction are reported by the frame that waits for them (the next keyframe;
+the last keyframe's loops are only in :meth:`RGBDSLAM.finish`'s result), and the poses reported in between
+are placed on the keyframe estimates as of the last wait.
+
 Example:
     >>> import numpy as np
     >>> from slam.io.frame import RGBDFrame
@@ -32,6 +41,7 @@ from __future__ import annotations
 
 import logging
 import math
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
@@ -48,6 +58,7 @@ from slam.lie import se3_compose, se3_identity
 from slam.loop import LoopCloser, LoopClosure, LoopQuery, LoopUpdate
 from slam.odometry import RGBDOdometry
 from slam.odometry.depth_registration import depth_camera_poses, rig_pose
+from slam.odometry.features import FrameFeatures
 from slam.odometry.frontend import Keyframe, TrackStatus
 from slam.threads import config_threads
 from slam.timing import StageTimer
@@ -151,12 +162,17 @@ class RGBDSLAM:
         descriptor: an already built descriptor model mapping ``(1, 3, H, W)`` uint8 images to ``(1, D)``
             L2-normalised descriptors (default: :class:`attnloop.AttentionDescriptor` built from
             ``config.loop.descriptor``).
+        background_loops: run each keyframe's loop work in a worker thread (see the module docstring): the
+            same results, loops reported one keyframe later. The caller keeps the thread counts for the whole
+            run (:func:`slam.threads.limit_threads`, as :func:`slam.pipeline.run_slam` does), since the worker
+            computes between the calls.
 
     Call :meth:`track` once per frame in input order (or :meth:`skip` for a frame that could not be read),
     then :meth:`finish`.
     """
 
-    def __init__(self, config: Optional[SLAMConfig] = None, descriptor: Optional[torch.nn.Module] = None):
+    def __init__(self, config: Optional[SLAMConfig] = None, descriptor: Optional[torch.nn.Module] = None,
+                 background_loops: bool = False):
         self.config = config or SLAMConfig()
         self.odometry = RGBDOdometry(self.config.odometry)
         self.timer = StageTimer()
@@ -174,6 +190,14 @@ class RGBDSLAM:
         self._num_lost = 0
         self._num_skipped = 0
         self._finished = False
+        # the loop worker (background_loops): the last keyframe's work in flight, and the keyframe estimates
+        # the reports use meanwhile (the tracking thread never reads the graph while the worker may write it)
+        self._worker: Optional[ThreadPoolExecutor] = None
+        if background_loops and self.loop_closer is not None:
+            self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-loops")
+        self._pending: Optional[Future] = None
+        self._shown: List[Tensor] = []  # per keyframe: [estimate, odometry pose] as reported
+        self._shown_corrected = False  # the shown estimates include loop corrections
         # The front end tracks the camera whose pixels the keypoints live in: the colour camera when the
         # frames are unregistered (``odometry.features.rgb_intrinsics``). Poses are reported for the
         # depth camera, the frame of the input K and of depth-based ground truth (7-Scenes'), by the
@@ -199,11 +223,14 @@ class RGBDSLAM:
 
     # ------------------------------------------------------------------------------------------
     @config_threads  # SLAMConfig.threads for the call, the caller's counts after (slam.threads)
-    def track(self, frame: RGBDFrame) -> FrameState:
+    def track(self, frame: RGBDFrame, features: Optional[FrameFeatures] = None) -> FrameState:
         """Process the next frame.
 
         Args:
             frame: :class:`~slam.io.frame.RGBDFrame` (RGB ``(H, W, 3)`` uint8, depth ``(H, W)`` metres).
+            features: the frame's odometry features if extracted ahead (in a reader thread, as
+                :func:`slam.pipeline.run_slam` does): ``extract_features(frame.rgb, frame.depth, frame.K,
+                config.odometry.features)``; None: extracted here.
 
         Returns:
             :class:`FrameState`. Bad frames (no depth, no texture) are a ``"lost"`` state, never an error.
@@ -218,17 +245,36 @@ class RGBDSLAM:
             raise TypeError(f"track() takes a slam.io.RGBDFrame, got {type(frame).__name__}")
         check_frame(frame)  # again: a field set after construction (frame.depth = depth_mm) is an error too
         with self.timer("odometry"):
-            res = self.odometry.track(frame)
+            res = self.odometry.track(frame, features)
         status = res.status.value
         if res.status is TrackStatus.LOST:
             self._num_lost += 1
         T_kf = res.T_kf_frame.detach().to(torch.float64).cpu()
         self._frames.append(_FrameRecord(int(frame.index), float(frame.timestamp), res.keyframe_id, T_kf, status))
-        new_keyframes, new_loops, changed = [], [], False
         # every keyframe the front end created during this call (a promoted previous frame included)
-        for kf in self.odometry.keyframes[self.graph.num_keyframes:]:
+        kfs = self.odometry.keyframes[len(self._shown) if self._worker is not None else self.graph.num_keyframes:]
+        new_keyframes = [kf.id for kf in kfs]
+        if self._worker is None:
+            new_loops, correction = self._keyframe_work(kfs)
+        else:
+            new_loops, correction = self._submit(kfs)
+        if res.keyframe_id >= 0:
+            est, odo_kf = self._keyframe_poses(res.keyframe_id)
+            pose = se3_compose(est, T_kf)
+            odo = se3_compose(odo_kf, T_kf)
+        else:
+            pose = odo = res.pose.detach().to(torch.float64).cpu()
+        return FrameState(int(frame.index), float(frame.timestamp), self._output_frame(pose), status, res.reason,
+                          res.keyframe_id, new_keyframes, [lp for lp in new_loops if lp.status == "kept"],
+                          res.num_inliers, res.inlier_rmse, self._output_frame(odo), self._reported_corrected(),
+                          correction)
+
+    def _keyframe_work(self, kfs: List[Keyframe]):
+        """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
+        online correction or None)."""
+        new_loops, changed = [], False
+        for kf in kfs:
             self._add_to_graph(kf)
-            new_keyframes.append(kf.id)
             if self.loop_closer is not None:
                 update = self.loop_closer.close(kf, self.odometry.keyframes, self.graph,
                                                 through_loops=self._corrected,
@@ -239,14 +285,52 @@ class RGBDSLAM:
         correction = None
         if changed and self.config.backend.optimize_on_loop:
             correction = self._correct()
-        if res.keyframe_id >= 0:
-            pose = se3_compose(self.graph.estimate(res.keyframe_id), T_kf)
-            odo = se3_compose(self.graph.odometry_pose(res.keyframe_id), T_kf)
-        else:
-            pose = odo = res.pose.detach().to(torch.float64).cpu()
-        return FrameState(int(frame.index), float(frame.timestamp), self._output_frame(pose), status, res.reason,
-                          res.keyframe_id, new_keyframes, [lp for lp in new_loops if lp.status == "kept"],
-                          res.num_inliers, res.inlier_rmse, self._output_frame(odo), self._corrected, correction)
+        return new_loops, correction
+
+    # -- the loop worker (background_loops) -------------------------------------------------------------
+    def _wait(self):
+        """The loop work in flight, finished: (kept loops, correction), or ([], None) when there was none."""
+        if self._pending is None:
+            return [], None
+        pending, self._pending = self._pending, None
+        return pending.result()  # re-raises the worker's error here
+
+    def _submit(self, kfs: List[Keyframe]):
+        """Wait for the last keyframe's work, hand the new keyframes' work to the worker; the reports then use
+        the graph as it stands after the wait (the new keyframes chained on it by their odometry edges)."""
+        if not kfs:
+            return [], None
+        new_loops, correction = self._wait()
+        self._shown = [[e, o] for e, o in zip(self.graph.estimates(), self.graph.odometry_poses())]
+        self._shown_corrected = self._corrected
+        for kf in kfs:
+            if kf.id == 0:
+                self._shown.append([kf.pose.clone(), kf.pose.clone()])
+            else:
+                edge = self.odometry.edges[kf.id - 1]
+                est, odo = self._shown[edge.i]
+                self._shown.append([se3_compose(est, edge.T_ij), se3_compose(odo, edge.T_ij)])
+        self._pending = self._worker.submit(self._background_work, list(kfs))
+        return [lp for lp in new_loops if lp.status == "kept"], correction
+
+    def _background_work(self, kfs: List[Keyframe]):
+        # The front end chained each keyframe's pose on its parent's as it stood then, which may have been
+        # before the last correction re-anchored it; in the tracking thread it would have been after. The
+        # graph must start from the same estimate: chain it again now (the same operation on the same values).
+        for kf in kfs:
+            if kf.id > 0:
+                edge = self.odometry.edges[kf.id - 1]
+                kf.pose = se3_compose(self.odometry.keyframes[edge.i].pose, edge.T_ij)
+        return self._keyframe_work(kfs)
+
+    def _reported_corrected(self) -> bool:
+        return self._shown_corrected if self._worker is not None else self._corrected
+
+    def _keyframe_poses(self, kf_id: int):
+        """(estimate, odometry pose) of a keyframe, as the reports show them."""
+        if self._worker is not None:
+            return self._shown[kf_id][0], self._shown[kf_id][1]
+        return self.graph.estimate(kf_id), self.graph.odometry_pose(kf_id)
 
     def _add_to_graph(self, kf: Keyframe) -> None:
         """Enter a new keyframe with its odometry edge (the front end's edges all end at a new keyframe)."""
@@ -320,12 +404,13 @@ class RGBDSLAM:
             kf_id, T = -1, se3_identity(dtype=torch.float64)
         self._frames.append(_FrameRecord(int(index), float(timestamp), kf_id, T.clone(), "skipped"))
         if kf_id >= 0:
-            pose = self._output_frame(se3_compose(self.graph.estimate(kf_id), T))
-            odo = self._output_frame(se3_compose(self.graph.odometry_pose(kf_id), T))
+            est, odo_kf = self._keyframe_poses(kf_id)
+            pose = self._output_frame(se3_compose(est, T))
+            odo = self._output_frame(se3_compose(odo_kf, T))
         else:
             pose, odo = T.clone(), T.clone()
         return FrameState(int(index), float(timestamp), pose, "skipped", reason, kf_id, odometry_pose=odo,
-                          corrected=self._corrected)
+                          corrected=self._reported_corrected())
 
     # ------------------------------------------------------------------------------------------
     def _output_frame(self, poses: Tensor) -> Tensor:
@@ -355,6 +440,11 @@ class RGBDSLAM:
             :class:`SLAMResult`.
         """
         self._finished = True
+        if self._worker is not None:
+            try:
+                self._wait()
+            finally:
+                self._worker.shutdown(wait=True)
         graph, opt = None, None
         kf_odo = self.graph.odometry_poses()
         kf_final = kf_odo

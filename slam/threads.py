@@ -32,12 +32,16 @@ from __future__ import annotations
 import contextlib
 import functools
 import numbers
+import threading
 from collections.abc import Callable, Iterator
 
 import cv2
 import torch
 
 __all__ = ["check_threads", "config_threads", "limit_threads", "thread_counts"]
+
+# the count the innermost limit_threads of each thread set (None outside any)
+_active = threading.local()
 
 
 def check_threads(n: int | None, what: str = "threads") -> int | None:
@@ -66,6 +70,9 @@ def thread_counts() -> dict:
 def limit_threads(n: int | None) -> Iterator[None]:
     """torch, BLAS and OpenCV compute with ``n`` threads inside the block; the previous counts after.
 
+    Inside a block of the same thread limited to the same ``n`` (and torch still at ``n``), it does nothing:
+    a count changed by hand inside the outer block (OpenCV's, BLAS') is then left as it is.
+
     Args:
         n: the thread count (>= 1), or None to change nothing.
 
@@ -76,17 +83,26 @@ def limit_threads(n: int | None) -> Iterator[None]:
     if n is None:
         yield
         return
+    if getattr(_active, "count", None) == n and torch.get_num_threads() == n:
+        # nested in a limit to the same count in this thread (RGBDSLAM.track inside run_slam): the counts
+        # are set. No query of OpenCV's: cv2.getNumThreads releases the GIL, and taking it back while the
+        # frame reader's threads run cost ~1 ms a call, two calls a frame (issue 14)
+        yield
+        return
     from slam.graph.blas_threads import limit_blas_threads  # (slam.graph imports this module's users)
 
     prev_torch, prev_cv = torch.get_num_threads(), cv2.getNumThreads()
+    prev_active = getattr(_active, "count", None)
     if prev_torch != n:  # nested in a limit to the same count (track() inside run_slam): nothing to do
         torch.set_num_threads(n)
     if prev_cv != n:
         cv2.setNumThreads(n)
     try:
+        _active.count = n
         with limit_blas_threads(n):
             yield
     finally:
+        _active.count = prev_active
         if cv2.getNumThreads() != prev_cv:
             cv2.setNumThreads(prev_cv)
         if torch.get_num_threads() != prev_torch:

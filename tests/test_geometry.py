@@ -165,3 +165,26 @@ def test_depth_sigma_kinect_model():
     expected = 0.0012 + 0.0019 * (z - 0.4) ** 2
     assert torch.allclose(depth_sigma(z), expected)
     assert math.isclose(float(depth_sigma(torch.tensor(0.4))), 0.0012, rel_tol=1e-6)
+
+
+def test_rotation_matrix_is_quat_to_rotmat_bit_for_bit():
+    """The scalar path (one float64 quaternion, issue 14's frame rate) against slam.lie on 5000 rotations, tiny
+    and non-unit ones included; other shapes and dtypes go through slam.lie itself."""
+    from slam.odometry.geometry import rotation_matrix, transform_points
+
+    g = torch.Generator().manual_seed(0)
+    q = torch.randn(5000, 4, generator=g, dtype=torch.float64)
+    q = q / q.norm(dim=1, keepdim=True)
+    q[:50] *= 1e-3  # not unit: the same formula either way
+    q[50] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    q[51] = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    ref = quat_to_rotmat(q)
+    assert all(torch.equal(rotation_matrix(qi), ri) for qi, ri in zip(q, ref))
+    assert torch.equal(rotation_matrix(q), ref)  # batched: slam.lie
+    assert torch.equal(rotation_matrix(q[7].float()), quat_to_rotmat(q[7].float()))  # float32: slam.lie
+    pose = torch.cat([torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64), q[9]])
+    pts = torch.randn(20, 3, generator=g, dtype=torch.float64)
+    assert torch.equal(transform_points(pose, pts), pts @ quat_to_rotmat(q[9]).T + pose[:3])
+    qg = q[9].clone().requires_grad_(True)  # a gradient flows: slam.lie's path
+    rotation_matrix(qg).sum().backward()
+    assert qg.grad is not None and torch.isfinite(qg.grad).all()

@@ -302,3 +302,33 @@ def test_grey_and_alpha_colour_images(tum_dir):
     bgra[..., 0], bgra[..., 3] = 255, 128
     cv2.imwrite(str(rgb0), bgra)
     assert seq[0].rgb[0, 0].tolist() == [0, 0, 255]
+
+
+def test_frames_then_runs_in_the_reading_thread(tum_dir):
+    """frames(then=f) yields f(frame) in input order, computed by the thread that read the frame (prefetch),
+    an unreadable frame as its FrameReadError (not passed to f), and f's own error where it happens."""
+    import threading
+
+    seq = TUMSequence(tum_dir)
+    rgb1, _ = seq.paths(1)
+    rgb1.write_bytes(b"not an image")
+    for prefetch in (0, 2):
+        seen = []
+
+        def then(frame, seen=seen):
+            seen.append(threading.current_thread().name)
+            return frame.timestamp, float(frame.depth.sum())
+
+        out = list(seq.frames(on_error="yield", prefetch=prefetch, then=then))
+        assert [o if isinstance(o, FrameReadError) else o[0] for o in out][::2] == [1.0, 1.1]
+        assert isinstance(out[1], FrameReadError) and len(seen) == 2
+        assert out[0][1] == float(seq[0].depth.sum())
+        assert all(name.startswith("rgbd-prefetch") for name in seen) == (prefetch > 0)
+        assert [f[0] for f in seq.frames(on_error="skip", prefetch=prefetch, then=then)] == [1.0, 1.1]
+
+    def boom(frame):
+        raise KeyError("then failed")
+
+    for prefetch in (0, 1):
+        with pytest.raises(KeyError, match="then failed"):
+            list(seq.frames(on_error="skip", prefetch=prefetch, then=boom))

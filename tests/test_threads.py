@@ -88,11 +88,11 @@ def _record_track(monkeypatch, fail_at=None):
     seen = []
     original = RGBDSLAM.track
 
-    def track(self, frame):
+    def track(self, frame, **kwargs):
         seen.append((torch.get_num_threads(), cv2.getNumThreads()))
         if fail_at is not None and len(seen) == fail_at:
             raise RuntimeError("tracking failed on purpose")
-        return original(self, frame)
+        return original(self, frame, **kwargs)
 
     monkeypatch.setattr(RGBDSLAM, "track", track)
     return seen
@@ -147,9 +147,9 @@ def test_the_streaming_api_computes_with_the_configs_threads(tiny_sequence, call
     slam = RGBDSLAM(cfg)
     odo_track = slam.odometry.track
 
-    def spy(frame):
+    def spy(frame, features=None):
         seen.append((torch.get_num_threads(), cv2.getNumThreads()))
-        return odo_track(frame)
+        return odo_track(frame, features)
 
     slam.odometry.track = spy
     for i in range(len(tiny_sequence)):
@@ -158,3 +158,41 @@ def test_the_streaming_api_computes_with_the_configs_threads(tiny_sequence, call
     slam.finish()
     assert seen == [(1, 1)] * len(tiny_sequence)
     assert thread_counts() == caller_counts
+
+
+def test_a_nested_limit_to_the_same_count_queries_nothing(caller_counts, monkeypatch):
+    """track() inside run_slam: the inner limit neither reads nor sets OpenCV's count (issue 14: ~1 ms a call
+    while the reader's threads run); another count, or torch changed by hand, takes the full path."""
+    import threading
+
+    calls = []
+    real_get = cv2.getNumThreads
+    monkeypatch.setattr(cv2, "getNumThreads", lambda: calls.append("get") or real_get())
+    with limit_threads(1):
+        n_outer = len(calls)
+        assert n_outer >= 1  # the outer limit read the caller's count
+        for _ in range(3):
+            with limit_threads(1):
+                assert torch.get_num_threads() == 1
+        assert len(calls) == n_outer
+        with limit_threads(2):  # another count: set, then the outer one back
+            assert torch.get_num_threads() == 2 and real_get() == 2
+        assert real_get() == 1 and len(calls) > n_outer
+        torch.set_num_threads(3)  # changed by hand: the nested limit sets its count again
+        with limit_threads(1):
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 3
+        torch.set_num_threads(1)
+        seen = []  # another thread is not inside this thread's limit: it takes the full path
+        t = threading.Thread(target=lambda: seen.append(_nested_in_new_thread(calls)))
+        t.start()
+        t.join()
+        assert seen == [True]
+    assert thread_counts() == caller_counts
+
+
+def _nested_in_new_thread(calls) -> bool:
+    before = len(calls)
+    with limit_threads(1):
+        pass
+    return len(calls) > before

@@ -24,7 +24,7 @@ import logging
 import os
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -110,7 +110,8 @@ class RGBDSequence(ABC):
         for i in range(len(self)):
             yield self[i]
 
-    def frames(self, on_error: str = "raise", prefetch: int = 0) -> Iterator[RGBDFrame | FrameReadError]:
+    def frames(self, on_error: str = "raise", prefetch: int = 0,
+               then: Callable[[RGBDFrame], object] | None = None) -> Iterator[RGBDFrame | FrameReadError]:
         """Iterate over the frames, optionally skipping unreadable ones and decoding ahead.
 
         Args:
@@ -119,13 +120,16 @@ class RGBDSequence(ABC):
                 frame's place, so a caller can keep one entry per input frame).
             prefetch: decode up to this many frames ahead in background threads (OpenCV releases the
                 GIL while decoding, so reading overlaps with the caller's work); 0 reads in the caller.
+            then: applied to each frame read, in the thread that read it (work done ahead with the
+                decoding, e.g. feature extraction); its result is yielded in the frame's place (a
+                :class:`FrameReadError` is yielded as it is). An error it raises is raised here.
         """
         if on_error not in ("raise", "skip", "yield"):
             raise ValueError(f"on_error must be 'raise', 'skip' or 'yield', got {on_error!r}")
         n = len(self)
         if prefetch <= 0:
             for i in range(n):
-                frame = self._try_load(i, on_error)
+                frame = self._try_load(i, on_error, then)
                 if frame is not None:
                     yield frame
             return
@@ -133,21 +137,21 @@ class RGBDSequence(ABC):
         try:
             pending: deque = deque()
             for i in range(min(n, prefetch + 1)):
-                pending.append(pool.submit(self._try_load, i, on_error))
+                pending.append(pool.submit(self._try_load, i, on_error, then))
             next_i = len(pending)
             while pending:
                 frame = pending.popleft().result()
                 if next_i < n:
-                    pending.append(pool.submit(self._try_load, next_i, on_error))
+                    pending.append(pool.submit(self._try_load, next_i, on_error, then))
                     next_i += 1
                 if frame is not None:
                     yield frame
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
 
-    def _try_load(self, i: int, on_error: str) -> RGBDFrame | FrameReadError | None:
+    def _try_load(self, i: int, on_error: str, then=None):
         try:
-            return self[i]
+            frame = self[i]
         except FrameReadError as e:
             if on_error == "raise":
                 raise
@@ -155,6 +159,7 @@ class RGBDSequence(ABC):
                 return e
             logger.warning("skipping frame %d of %s: %s", i, self.name, e)
             return None
+        return frame if then is None else then(frame)
 
     def groundtruth_pose(self, i: int) -> np.ndarray | None:
         """``(7,)`` ground truth of frame ``i`` or None."""

@@ -22,6 +22,8 @@ Example:
 """
 from __future__ import annotations
 
+import cv2
+import numpy as np
 import torch
 
 from slam.lie import quat_to_rotmat, se3_compose, se3_inv
@@ -60,44 +62,105 @@ def register_depth_to_color(depth: Tensor, K_depth: Tensor, K_rgb: Tensor, T_rgb
         raise ValueError(f"T_rgb_depth must have shape (7,), got {tuple(T_rgb_depth.shape)}")
     h, w = int(rgb_size[0]), int(rgb_size[1])
     dtype = depth.dtype if depth.is_floating_point() else torch.float32
-    dev = depth.device
-    d = torch.nan_to_num(depth.to(dtype), nan=0.0)
-    H, W = d.shape
-    # Vectorised over the pixel grid (no nonzero / masking: invalid or off-image pixels go to a dummy slot
-    # past the end). p_rgb = z * (R ray) + t is affine in z; R ray is built by broadcasting (H, 1) x (1, W).
-    Kd = K_depth.to(device=dev, dtype=dtype)
-    Kc = K_rgb.to(device=dev, dtype=dtype)
-    T = T_rgb_depth.to(device=dev, dtype=dtype)
+    if h <= 0 or w <= 0:
+        return torch.zeros(max(h, 0), max(w, 0), dtype=dtype, device=depth.device)
+    # the camera parameters in the depth's dtype, as the warp computes
+    Kd, Kc = K_depth.to(device=depth.device, dtype=dtype), K_rgb.to(device=depth.device, dtype=dtype)
+    T = T_rgb_depth.to(device=depth.device, dtype=dtype)
     R = quat_to_rotmat(T[3:])
+    if depth.device.type == "cpu" and dtype in (torch.float32, torch.float64):
+        return torch.from_numpy(_warp_numpy(depth.to(dtype).numpy(), Kd.numpy(), Kc.numpy(), R.numpy(),
+                                            T[:3].numpy(), h, w, min_depth))
+    return _warp_torch(torch.nan_to_num(depth.to(dtype), nan=0.0), Kd, Kc, R, T[:3], h, w, min_depth)
+
+
+# Both warps compute the same floating-point operations in the same order as the first implementation
+# (kept in tests/test_depth_registration.py as the reference, bitwise equal on the kitchen's frames), with
+# two changes that cannot change a result:
+# * the z-buffer is a minimum over a grid of splat origins (each point's top-left pixel x0, y0 in
+#   [-1, w) x [-1, h)), then a 2x2 minimum filter: pixel (y, x) takes the nearest of the points whose
+#   2x2 splat covers it, i.e. whose origin is (y or y-1, x or x-1). One scatter of N points instead of 4N.
+# * terms of the ray R K^-1 [u, v, 1] with a zero coefficient are left out and unit factors not applied
+#   (adding +-0 or multiplying by 1 is exact; at most the sign of a zero changes, which nothing below
+#   can see): for the usual rig (R = I) the ray is a row or a column, and the colour depth is the depth.
+
+
+def _ray_times_depth(row, u, v, d, t):
+    """``(row[0] u + row[1] v + row[2]) d + t`` with zero terms and unit factors left out (numpy or torch)."""
+    ray = None
+    for c, x in ((row[0], u), (row[1], v)):
+        if c != 0:
+            term = x if c == 1 else c * x
+            ray = term if ray is None else ray + term
+    if ray is None:
+        ray = row[2]
+    elif row[2] != 0:
+        ray = ray + row[2]
+    q = d if (not hasattr(ray, "shape") or ray.shape == ()) and ray == 1 else ray * d
+    return q + t if t != 0 else q
+
+
+def _warp_numpy(d, Kd, Kc, R, t, h: int, w: int, min_depth: float):
+    """The z-buffered warp on the CPU (numpy; ``d`` is not modified). Returns ``(h, w)`` of ``d.dtype``."""
+    dt = d.dtype.type
+    if not np.isfinite(d).all():
+        d = np.nan_to_num(d, nan=0.0)  # +-inf become the largest finite values, as torch.nan_to_num does
+    H, W = d.shape
+    u = ((np.arange(W, dtype=d.dtype) - Kd[0, 2]) / Kd[0, 0])[None, :]
+    v = ((np.arange(H, dtype=d.dtype) - Kd[1, 2]) / Kd[1, 1])[:, None]
+    # overflow (a depth of +inf became the largest float) and 1 / 0 where not ok are masked out below, as
+    # the torch warp's results there are
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        qx = _ray_times_depth(R[0], u, v, d, t[0])
+        qy = _ray_times_depth(R[1], u, v, d, t[1])
+        zc = _ray_times_depth(R[2], u, v, d, t[2])
+        md = dt(min_depth)
+        ok = d > md
+        if zc is not d:
+            ok &= zc > md
+        inv_z = dt(1.0) / zc  # only read where ok
+        x0 = np.floor(qx * inv_z * Kc[0, 0] + Kc[0, 2])
+        y0 = np.floor(qy * inv_z * Kc[1, 1] + Kc[1, 2])
+    ok &= (x0 >= -1) & (x0 < w) & (y0 >= -1) & (y0 < h)
+    sel = np.flatnonzero(ok)
+    big = np.finfo(d.dtype).max
+    grid = np.full((h + 1) * (w + 1), big, dtype=d.dtype)
+    origin = (y0.ravel()[sel].astype(np.intp) + 1) * (w + 1) + x0.ravel()[sel].astype(np.intp) + 1
+    np.minimum.at(grid, origin, zc.ravel()[sel])  # zc is (H, W): the ray times the (H, W) depth
+    # out[y, x] = min(grid[y:y + 2, x:x + 2]) (grid row/column 0 is origin -1): a 2x2 erosion anchored at
+    # its top-left cell; the replicated border only reaches row/column h/w, which is cut off
+    z = cv2.erode(grid.reshape(h + 1, w + 1), _ONES_2X2, anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)[:h, :w]
+    z = np.ascontiguousarray(z)
+    z[z == big] = 0
+    return z
+
+
+_ONES_2X2 = np.ones((2, 2), np.uint8)
+
+
+def _warp_torch(d: Tensor, Kd: Tensor, Kc: Tensor, R: Tensor, t: Tensor, h: int, w: int,
+                min_depth: float) -> Tensor:
+    """The same warp in torch (any device; ``d`` already without NaN)."""
+    H, W = d.shape
+    dev, dtype = d.device, d.dtype
     u = ((torch.arange(W, device=dev, dtype=dtype) - Kd[0, 2]) / Kd[0, 0])[None, :]
     v = ((torch.arange(H, device=dev, dtype=dtype) - Kd[1, 2]) / Kd[1, 1])[:, None]
-    qx = (R[0, 0] * u + R[0, 1] * v + R[0, 2]) * d + T[0]
-    qy = (R[1, 0] * u + R[1, 1] * v + R[1, 2]) * d + T[1]
-    zc = (R[2, 0] * u + R[2, 1] * v + R[2, 2]) * d + T[2]
+    qx = (R[0, 0] * u + R[0, 1] * v + R[0, 2]) * d + t[0]
+    qy = (R[1, 0] * u + R[1, 1] * v + R[1, 2]) * d + t[1]
+    zc = (R[2, 0] * u + R[2, 1] * v + R[2, 2]) * d + t[2]
     ok = (d > min_depth) & (zc > min_depth)
     inv_z = 1.0 / torch.where(ok, zc, torch.ones_like(zc))
     x0 = torch.floor(qx * inv_z * Kc[0, 0] + Kc[0, 2])
     y0 = torch.floor(qy * inv_z * Kc[1, 1] + Kc[1, 2])
-    # a point lands between four colour pixels: splat it on all four (the depth camera's finer sampling
-    # would otherwise leave holes); -1 <= x0 < w keeps the ones whose right/lower neighbour is inside
-    ok = (ok & (x0 >= -1) & (x0 < w) & (y0 >= -1) & (y0 < h)).reshape(-1)
-    x0 = torch.where(ok, x0.reshape(-1), 0).long()  # 0 where not ok: no cast of inf/NaN
-    y0 = torch.where(ok, y0.reshape(-1), 0).long()
-    dummy = h * w
-    base = y0 * w + x0
-    left, right = ok & (x0 >= 0), ok & (x0 + 1 < w)
-    top, bottom = y0 >= 0, y0 + 1 < h
-    idx = torch.cat([
-        torch.where(left & top, base, dummy),
-        torch.where(right & top, base + 1, dummy),
-        torch.where(left & bottom, base + w, dummy),
-        torch.where(right & bottom, base + w + 1, dummy),
-    ])
+    ok = ok & (x0 >= -1) & (x0 < w) & (y0 >= -1) & (y0 < h)
+    dummy = (h + 1) * (w + 1)  # one slot past the grid for the points that land nowhere
+    origin = torch.where(ok, (y0 + 1) * (w + 1) + (x0 + 1), dummy).reshape(-1).long()
     big = torch.finfo(dtype).max
-    zbuf = torch.full((h * w + 1,), big, dtype=dtype, device=dev)
-    zbuf.scatter_reduce_(0, idx, zc.reshape(-1).repeat(4), reduce="amin")
-    zbuf = zbuf[:dummy]
-    return torch.where(zbuf < big, zbuf, torch.zeros_like(zbuf)).reshape(h, w)
+    grid = torch.full((dummy + 1,), big, dtype=dtype, device=dev)
+    grid.scatter_reduce_(0, origin, zc.reshape(-1), reduce="amin")
+    g = grid[:dummy].view(h + 1, w + 1)
+    z = torch.minimum(torch.minimum(g[:-1, :-1], g[:-1, 1:]), torch.minimum(g[1:, :-1], g[1:, 1:]))
+    return torch.where(z < big, z, torch.zeros_like(z))
 
 
 def rig_pose(rgb_from_depth_translation, dtype=torch.float64, device=None) -> Tensor:

@@ -204,11 +204,14 @@ class RGBDOdometry:
         return edge
 
     # ------------------------------------------------------------------------------------------
-    def _extract(self, frame: RGBDFrame):
-        try:
-            feats = extract_features(frame.rgb, frame.depth, frame.K, self.config.features)
-        except (ValueError, TypeError, cv2.error) as exc:
-            return None, f"unusable frame: {exc}"
+    def _extract(self, frame: RGBDFrame, features: FrameFeatures | None = None):
+        if features is not None:
+            feats = features
+        else:
+            try:
+                feats = extract_features(frame.rgb, frame.depth, frame.K, self.config.features)
+            except (ValueError, TypeError, cv2.error) as exc:
+                return None, f"unusable frame: {exc}"
         if feats.num_valid < self.config.min_valid_points:
             return feats, (f"too few keypoints with valid depth ({feats.num_valid} of {len(feats)}; "
                            f"need {self.config.min_valid_points})")
@@ -245,26 +248,35 @@ class RGBDOdometry:
         for k, v in res.seconds.items():
             self.stage_seconds[k] = self.stage_seconds.get(k, 0.0) + v
 
-    def track(self, frame: RGBDFrame) -> TrackResult:
+    def track(self, frame: RGBDFrame, features: FrameFeatures | None = None) -> TrackResult:
         """Estimate the pose of the next frame.
 
         Args:
             frame: the next :class:`~slam.io.frame.RGBDFrame` (RGB ``(H, W, 3)`` uint8, depth ``(H, W)``
                 metres with 0 = invalid, ``K (3, 3)``).
+            features: the frame's features if they were extracted already (e.g. ahead, in the thread that
+                reads the frames): :func:`~slam.odometry.features.extract_features` of this frame with this
+                odometry's ``config.features``. None: extracted here.
 
         Returns:
             :class:`TrackResult`; bad frames give ``status=LOST`` with a reason, never an exception.
+
+        Raises:
+            ValueError: ``features`` of another image size than the frame's.
         """
+        if features is not None and tuple(features.image_size) != tuple(frame.depth.shape[:2]):
+            raise ValueError(f"features of a {features.image_size} image given with a frame of "
+                             f"{tuple(frame.depth.shape[:2])}")
         t0 = time.perf_counter()
         before = sum(self.stage_seconds.values())
-        out = self._track(frame)
+        out = self._track(frame, features)
         spent = time.perf_counter() - t0
         self.stage_seconds["tracking_other"] += max(0.0, spent - (sum(self.stage_seconds.values()) - before))
         return out
 
-    def _track(self, frame: RGBDFrame) -> TrackResult:
+    def _track(self, frame: RGBDFrame, features: FrameFeatures | None) -> TrackResult:
         t0 = time.perf_counter()
-        feats, reason = self._extract(frame)
+        feats, reason = self._extract(frame, features)
         t1 = time.perf_counter()
         self.stage_seconds["features"] += t1 - t0
         index, ts = int(frame.index), float(frame.timestamp)
