@@ -80,18 +80,62 @@ def keyframe_stream(path: Path, step: int, fusion: str, cache: Path | None) -> d
         slam.track(frame)
     kfs = slam.keyframes
     lcfg = config_from_args(run_options(backbone="efficientnet_lite0", no_map=True), seq, fusion=fusion).loop
+    gt_kf = torch.from_numpy(np.stack([view.groundtruth_pose(kf.frame_index) for kf in kfs]))
+    chi2 = edge_calibration(slam, lcfg, gt_kf, cfg)
     model = build_descriptor(lcfg.descriptor)
     with torch.no_grad():
         imgs = [torch.from_numpy(np.ascontiguousarray(kf.rgb)).permute(2, 0, 1) for kf in kfs]
         desc = torch.cat([model(torch.stack(imgs[s:s + 8])) for s in range(0, len(imgs), 8)])
     out = {"desc": desc.float(), "stamps": torch.tensor([kf.timestamp for kf in kfs], dtype=torch.float64),
            "frames": torch.tensor([kf.frame_index for kf in kfs], dtype=torch.long),
-           "gt": torch.from_numpy(np.stack([view.groundtruth_pose(kf.frame_index) for kf in kfs])),
-           "gap": torch.tensor(loop_ground_truth_for_step(step).min_frame_gap)}
+           "gt": gt_kf, "gap": torch.tensor(loop_ground_truth_for_step(step).min_frame_gap),
+           "chi2_odometry": chi2["odometry"], "chi2_loop": chi2["loop"]}
     if f is not None:
         f.parent.mkdir(parents=True, exist_ok=True)
         np.savez(f, **{k: v.numpy() for k, v in out.items()})
     return out | {"name": name}
+
+
+def edge_calibration(slam, loop_config, gt: torch.Tensor, config, max_loops: int = 150) -> dict:
+    """Squared Mahalanobis errors ``(E,)`` against ground truth of the registration's *unscaled* information:
+    of the odometry edges between keyframes, and of loop edges registered as the loop closer does
+    (``loop_config.registration``, at least ``min_inliers``) between keyframes >= 3 s apart that ground
+    truth puts within the verification's view limits (up to ``max_loops`` pairs, evenly spread). Ground
+    truth is moved into the tracked camera's frame (the colour camera's, for an unregistered rig)."""
+    from slam.eval.loops import LoopGroundTruthConfig, is_true_loop
+    from slam.graph.costs import edge_residuals
+    from slam.keyframe_graph import EdgeKind
+    from slam.lie import se3_compose, se3_inv
+    from slam.odometry.registration import register
+
+    feats = config.odometry.features
+    t = tuple(feats.rgb_from_depth_translation) if feats.rgb_intrinsics else (0.0, 0.0, 0.0)
+    T_rd = torch.tensor([*t, 0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(gt.shape[0], 7)
+    P = se3_compose(se3_compose(T_rd, gt.to(torch.float64)), se3_inv(T_rd))
+
+    def chi2(ii, jj, Z, info):
+        if not ii:
+            return torch.zeros(0, dtype=torch.float64)
+        r, _ = edge_residuals(P, torch.tensor(ii), torch.tensor(jj), torch.stack(Z))
+        return torch.einsum("ei,eij,ej->e", r, torch.stack(info).to(torch.float64), r)
+
+    odo = [e for e in slam.graph.edges if e.kind is EdgeKind.ODOMETRY and not e.weak]
+    out = {"odometry": chi2([e.i for e in odo], [e.j for e in odo], [e.T_ij for e in odo], [e.information for e in odo])}
+    kfs = slam.keyframes
+    stamps = torch.tensor([kf.timestamp for kf in kfs], dtype=torch.float64)
+    n = len(kfs)
+    pairs = torch.tensor([(a, b) for b in range(n) for a in range(b) if stamps[b] - stamps[a] >= 3.0]).reshape(-1, 2)
+    lim = LoopGroundTruthConfig(loop_config.max_translation, loop_config.max_rotation_deg, 1)
+    pairs = pairs[is_true_loop(gt, pairs, lim)] if pairs.numel() else pairs
+    if pairs.shape[0] > max_loops:
+        pairs = pairs[torch.linspace(0, pairs.shape[0] - 1, max_loops).round().long()]
+    ii, jj, Z, info = [], [], [], []
+    for a, b in pairs.tolist():
+        r = register(kfs[a].features, kfs[b].features, loop_config.registration)
+        if r.success and r.num_inliers >= loop_config.min_inliers:
+            ii.append(a), jj.append(b), Z.append(r.T_ab.to(torch.float64)), info.append(r.information)
+    out["loop"] = chi2(ii, jj, Z, info)
+    return out
 
 
 def replay(stream: dict, threshold: ThresholdConfig) -> dict:
@@ -137,10 +181,13 @@ def streams_main(args) -> None:
         streams.append(keyframe_stream(args.building, 1, args.fusion, args.cache))
     print(f"# Loop-detector thresholds on the SLAM's keyframe streams ({time.strftime('%Y-%m-%d %H:%M')}), "
           f"default descriptor, fusion {args.fusion}\n")
-    print("| stream | keyframes | queries with a true match |\n|---|---|---|")
+    print("| stream | keyframes | queries with a true match | unscaled chi2 vs truth, odometry edges: median / mean (n) "
+          "| loop edges: median / mean (n) |\n|---|---|---|---|---|")
     for st in streams:
-        probe = replay(st, ThresholdConfig(min_samples=10 ** 6))  # nothing accepted: counts the positives
-        print(f"| {st['name']} | {st['desc'].shape[0]} | {probe['positives']} |")
+        probe = replay(st, ThresholdConfig(min_similarity=2.0))  # nothing accepted: counts the positives
+        c = {k: st[f"chi2_{k}"] for k in ("odometry", "loop")}
+        cells = [f"{float(v.median()):.1f} / {float(v.mean()):.1f} ({v.numel()})" if v.numel() else "-" for v in c.values()]
+        print(f"| {st['name']} | {st['desc'].shape[0]} | {probe['positives']} | {cells[0]} | {cells[1]} |")
     names = [st["name"] for st in streams]
     print("\nPer stream: recall / candidates sent to verification (false among them) / best candidate's precision\n")
     print("| k_sigma | min_margin | min_similarity | " + " | ".join(names) + " | min recall | false / sent |")
