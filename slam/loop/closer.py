@@ -167,7 +167,8 @@ class LoopCloser:
         # have other similarity scales and keep detector.threshold)
         backbone = getattr(self.descriptor, "backbone_name", None)
         recipe = getattr(self.descriptor, "recipe", None)
-        default = recipe is not None and recipe == type(recipe)() and bool(config.descriptor.pretrained)
+        default = (recipe is not None and bool(config.descriptor.pretrained)  # any fusion mode: they share a scale
+                   and dataclasses.replace(recipe, fusion=type(recipe)().fusion) == type(recipe)())
         calibrated = getattr(config, "threshold_by_backbone", {}).get(backbone) if default else None
         detector = config.detector if calibrated is None else dataclasses.replace(config.detector, threshold=calibrated)
         self.threshold = detector.threshold
