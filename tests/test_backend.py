@@ -185,18 +185,18 @@ def _chi2_against_truth(g, truth, kind, scale):
     return scale * torch.einsum("ei,eij,ej->e", r, torch.stack([e.information for e in E]), r)
 
 
-def test_default_information_scales_are_calibrated_on_real_edges(kitchen_graph):
-    """With the default scales, true edges of the real kitchen err by the chi2 of 6 dof that the robust
-    kernels' widths assume (median 5.35): measured here median 4.1 (82 odometry edges, 12 frames apart) and
-    5.2 (160 loops); with the former loop scale (x 0.001) the loops' median was 1.0."""
+def test_information_scales_against_truth_on_real_edges(kitchen_graph):
+    """With the default scales, true odometry edges of the real kitchen err by the chi2 of 6 dof that the
+    robust kernels' widths assume (median 5.35): measured median 4.1 (82 edges, 12 frames apart). The loop
+    edges are kept 5x under-confident on purpose (median 1.0 over 160 loops; x 0.005 would give 5.2, and
+    cost the default kitchen run 1.9 mm of ATE: their errors are systematic, slam/config.py)."""
     g, truth, loops, cfg = kitchen_graph
     assert len(loops) >= 20
     odo = _chi2_against_truth(g, truth, EdgeKind.ODOMETRY, cfg.backend.odometry_information_scale)
     lp = _chi2_against_truth(g, truth, EdgeKind.LOOP, cfg.loop.information_scale)
     assert 2.0 < float(odo.median()) < 12.0, float(odo.median())
-    assert 2.0 < float(lp.median()) < 12.0, float(lp.median())
-    # the former loop scale (x 0.001) left the loops ~5x under-confident
-    assert float((lp / cfg.loop.information_scale * 0.001).median()) < 1.5
+    assert 0.5 < float(lp.median()) < 2.0, float(lp.median())
+    assert 3.0 < float((lp * 0.005 / cfg.loop.information_scale).median()) < 10.0
 
 
 def test_planted_false_loops_are_switched_off_in_a_real_graph(kitchen_graph):
