@@ -150,7 +150,7 @@ def replay(stream: dict, threshold: ThresholdConfig) -> dict:
     stamps, gt = stream["stamps"], stream["gt"]
     ids, last = [], -1
     for t in stamps.tolist():  # milliseconds since the first keyframe, as LoopCloser._detector_id
-        last = max(int(round((t - float(stamps[0])) * 1000.0)), last + 1)
+        last = max(round((t - float(stamps[0])) * 1000.0), last + 1)
         ids.append(last)
     judge = LoopGroundTruthConfig(min_frame_gap=1)
     close = is_true_loop(gt, torch.tensor([[a, b] for a in range(len(ids)) for b in range(len(ids))]).reshape(-1, 2),

@@ -12,6 +12,11 @@ folder does not exist, as ``attnloop-slam --demo --demo-scene building`` does); 
 the same options. Prints (and writes to OUT/slam.md, OUT/slam.json) one row per run and the paper's Table 1
 layout.
 
+Columns beyond ATE and loops: the ATE's maximum, the final chi2 per edge, and each edge kind's median squared
+Mahalanobis error against ground truth with the information the back end used (a calibrated edge: the chi2
+of 6 dof, median 5.35; docs/benchmarks.md, "Information scales"). ``--set FIELD=VALUE`` overrides config
+fields of every run (e.g. ``loop.information_scale=0.005``).
+
 ``--fps-ab R``: afterwards, R rounds on the first sequence of the first mode (as ``attnloop-slam`` runs it by
 default: with the map) alternating online correction on and off (same process, interleaved, so that the machine's load hits both alike): the median frames/s of
 each and the median of the per-round ratios.
@@ -28,8 +33,8 @@ import torch
 
 from slam.ablation import MODES, markdown_table
 from slam.eval import plot_pr_curves
-from slam.io import open_sequence
 from slam.graph.costs import edge_residuals
+from slam.io import open_sequence
 from slam.lie import se3_compose, se3_inv
 from slam.options import config_from_args, run_options
 from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs

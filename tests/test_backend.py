@@ -170,9 +170,9 @@ def kitchen_graph(redkitchen_dir):
         loops = []
         for a, b in pairs.tolist():
             r = register(feats[a], feats[b], lc.registration)
-            if r.success and r.num_inliers >= lc.min_inliers:
-                if float(se3_between(se3_between(truth[a], truth[b]), r.T_ab.to(D))[:3].norm()) < 0.1:
-                    loops.append(g.add_loop(a, b, r.T_ab, r.information))
+            if (r.success and r.num_inliers >= lc.min_inliers
+                    and float(se3_between(se3_between(truth[a], truth[b]), r.T_ab.to(D))[:3].norm()) < 0.1):
+                loops.append(g.add_loop(a, b, r.T_ab, r.information))
     return g, truth, loops, cfg
 
 

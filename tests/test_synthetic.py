@@ -258,7 +258,7 @@ def test_depth_distortion_and_correlated_noise():
     z0, n = 2.5, 101
     depth = torch.full((2, n, n), z0)
     cos = torch.ones_like(depth)
-    quiet = dict(sigma_base=0.0, sigma_quad=0.0, disparity_step=0.0, dropout=0.0)
+    quiet = {"sigma_base": 0.0, "sigma_quad": 0.0, "disparity_step": 0.0, "dropout": 0.0}
     out = apply_depth_noise(depth, cos, DepthNoiseConfig(disparity_distortion=0.3, **quiet), [1, 2])
     fb = DepthNoiseConfig().focal_baseline
     assert abs(float(out[0, n // 2, n // 2]) - z0) < 1e-5  # the centre is unbiased

@@ -470,7 +470,7 @@ def apply_depth_noise(depth: Tensor, cos_incidence: Tensor, config: DepthNoiseCo
     hb, wb = -(-H // b), -(-W // b)
     smooth = None
     if config.noise_correlation_px > 0:  # a normalised Gaussian kernel whose output keeps unit variance
-        r = max(1, int(math.ceil(3 * config.noise_correlation_px)))
+        r = max(1, math.ceil(3 * config.noise_correlation_px))
         k1 = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / config.noise_correlation_px) ** 2)
         k1 = k1 / k1.square().sum().sqrt()  # separable: the 2-D kernel's squares sum to 1
         smooth = k1

@@ -174,8 +174,9 @@ class SyntheticSequence(RGBDSequence):
             # the camera moves while the colour camera integrates: blur along each pixel's motion, from the
             # exact depth (before the depth noise) and the poses of the neighbouring frames
             n = len(self)
-            nb = lambda d: torch.from_numpy(self._poses[[min(max(i + d, 0), n - 1) for i in idx]])  # noqa: E731
-            rgb = apply_motion_blur(rgb, depth, K, torch.from_numpy(self._poses[idx]), nb(-1), nb(1),
+            before = torch.from_numpy(self._poses[[max(i - 1, 0) for i in idx]])  # a frame's own at the ends
+            after = torch.from_numpy(self._poses[[min(i + 1, n - 1) for i in idx]])
+            rgb = apply_motion_blur(rgb, depth, K, torch.from_numpy(self._poses[idx]), before, after,
                                     min(2.0, self.image_noise.exposure_time / self._interval),
                                     self.image_noise.blur_samples)
         if self.depth_noise is not None:
