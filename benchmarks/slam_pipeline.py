@@ -12,6 +12,11 @@ folder does not exist, as ``attnloop-slam --demo --demo-scene building`` does); 
 the same options. Prints (and writes to OUT/slam.md, OUT/slam.json) one row per run and the paper's Table 1
 layout.
 
+Columns beyond ATE and loops: the ATE's maximum, the final chi2 per edge, and each edge kind's median squared
+Mahalanobis error against ground truth with the information the back end used (a calibrated edge: the chi2
+of 6 dof, median 5.35; docs/benchmarks.md, "Information scales"). ``--set FIELD=VALUE`` overrides config
+fields of every run (e.g. ``loop.information_scale=0.005``).
+
 ``--fps-ab R``: afterwards, R rounds on the first sequence of the first mode (as ``attnloop-slam`` runs it by
 default: with the map) alternating online correction on and off (same process, interleaved, so that the machine's load hits both alike): the median frames/s of
 each and the median of the per-round ratios.
@@ -24,6 +29,7 @@ seconds of its process (every thread) per frame, the median of each and of the p
 code A/B of issue 14 (frame rate); with ``--no-kitchen --sequence DIR`` on any other sequence.
 """
 import argparse
+import ast
 import json
 import os
 import statistics
@@ -32,10 +38,66 @@ from pathlib import Path
 
 import torch
 
-from slam.ablation import MODES, markdown_table, run_ablation
+from slam.ablation import MODES, markdown_table
+from slam.eval import plot_pr_curves
+from slam.graph.costs import edge_residuals
 from slam.io import open_sequence
+from slam.lie import se3_compose, se3_inv
 from slam.options import config_from_args, run_options
-from slam.pipeline import evaluate_run, run_slam
+from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+
+
+def edge_chi2_against_truth(run) -> dict:
+    """Each edge kind's squared Mahalanobis error against ground truth, with the information the back end
+    used (the registration's, scaled): ``{"odometry": {...}, "loop": {...}}`` with the median, mean and
+    count. A calibrated graph has the chi2 distribution of 6 dof there (median 5.35, mean 6); far
+    below it, the robust kernels (whose widths are in sigmas) never act.
+
+    The loop edges are those of ``run.result.loops`` (the kept ones); ground truth is moved into the tracked
+    camera's frame (the colour camera's, for an unregistered rig)."""
+    res = run.result
+    pg = res.graph
+    if pg is None or run.gt_poses_per_frame is None or pg.num_edges == 0:
+        return {}
+    gt = run.gt_poses_per_frame[res.keyframe_frames].to(torch.float64)
+    t = tuple(run.config.odometry.features.rgb_from_depth_translation) if run.config.odometry.features.rgb_intrinsics else (0, 0, 0)
+    T_rd = torch.tensor([*t, 0.0, 0.0, 0.0, 1.0], dtype=torch.float64)  # the depth camera in the colour camera
+    i, j = pg.ii, pg.jj
+    n = gt.shape[0]
+    gt = se3_compose(se3_compose(T_rd.expand(n, 7), gt), se3_inv(T_rd).expand(n, 7))  # P_rgb = T_rd P_depth T_rd^-1
+    e, _ = edge_residuals(gt, i, j, pg.measurements.to(torch.float64))
+    s = torch.einsum("ei,eij,ej->e", e, pg.information.to(torch.float64), e)
+    loops = {(lp.kf_a, lp.kf_b) for lp in res.loops}
+    is_loop = torch.tensor([(int(a), int(b)) in loops for a, b in zip(i, j)], dtype=torch.bool)
+    out = {}
+    for name, mask in (("odometry", ~is_loop), ("loop", is_loop)):
+        v = s[mask & torch.isfinite(s)]
+        if v.numel():
+            out[name] = {"median": float(v.median()), "mean": float(v.mean()), "count": int(v.numel())}
+    return out
+
+
+def apply_overrides(cfg, settings):
+    """Set config fields from ``["backend.odometry_information_scale=1.0", ...]`` (values as Python
+    literals); an unknown field is an error naming it."""
+    for item in settings:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--set expects FIELD=VALUE, got {item!r}")
+        *path, last = key.split(".")
+        obj = cfg
+        for part in path:
+            obj = getattr(obj, part)
+        if not hasattr(obj, last):
+            raise SystemExit(f"--set: the config has no field {key!r}")
+        try:
+            v = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            v = value
+        setattr(obj, last, v)
+        if hasattr(obj, "__post_init__"):
+            obj.__post_init__()
+    return cfg
 
 
 def _fmt(x, digits=4):
@@ -56,8 +118,13 @@ def _row(label, m, odo_ate):
     corr = f"{oc['count']} x {oc['total_ms'] / max(oc['count'], 1):.0f} ms" if oc.get("count") else "-"
     st = m["time_per_stage"]
     loops = f"{m['loops_true']}/{m['loops_false']}" if "loops_true" in m and label != "odometry only" else "-"
-    return (f"| {label} | {_fmt(ate)} | {cut} | {loops} | {rejected} | {_fmt(b, 3)} -> {_fmt(a, 3)} | "
-            f"{m['fps']:.1f} | {corr} | {st['odometry']['ms_per_call']:.1f} | "
+    amax = m.get("ate", {}).get("max")
+    chi = m.get("edge_chi2_vs_truth", {})
+    vs_truth = " / ".join(_fmt(chi.get(k, {}).get("median"), 2) for k in ("odometry", "loop"))
+    final = (_fmt(m["final_chi2"] / m["num_edges"], 3) if m.get("final_chi2") is not None and m.get("num_edges")
+             else "-")
+    return (f"| {label} | {_fmt(ate)} | {_fmt(amax, 3)} | {cut} | {loops} | {rejected} | {_fmt(b, 3)} -> {_fmt(a, 3)} | "
+            f"{final} | {vs_truth} | {m['fps']:.1f} | {corr} | {st['odometry']['ms_per_call']:.1f} | "
             f"{st.get('descriptor', {}).get('ms_per_call', float('nan')):.1f} | {m['num_keyframes']} | {m['num_lost']} |")
 
 
@@ -124,6 +191,8 @@ def main() -> None:
     p.add_argument("--fps-ref", default=None, metavar="DIR",
                    help="with --fps-ab: A/B of this checkout's code against the checkout in DIR instead")
     p.add_argument("--fps-only", action="store_true", help="with --fps-ab: skip the accuracy runs")
+    p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="override SLAMConfig fields of the loop runs, e.g. backend.odometry_information_scale=1.0")
     args = p.parse_args()
     torch.set_num_threads(1)
     seqs = [] if args.no_kitchen else [Path(args.data) / "7scenes-redkitchen"]
@@ -142,35 +211,66 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     opts = {"backbone": args.backbone, "frame_step": args.frame_step, "max_frames": args.max_frames, "no_map": True}
 
+    code_ab = None  # the code A/B runs first (and alone with --fps-only), its table goes at the end
     if args.fps_ab > 0 and args.fps_ref:
-        text = _code_ab(seqs[0], args)
+        code_ab = _code_ab(seqs[0], args)
         if args.fps_only:
-            print("\n".join(text))
-            (out / "fps_ab.md").write_text("\n".join(text) + "\n")
+            print("\n".join(code_ab))
+            (out / "fps_ab.md").write_text("\n".join(code_ab) + "\n")
             return
     odo = {}
     for s in seqs:
         seq = open_sequence(s)
-        cfg = config_from_args(run_options(no_loop=True, **opts), seq)
-        odo[seq.name] = evaluate_run(run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step,
-                                              progress=False))
-        print(f"odometry {seq.name}: ATE {_fmt(odo[seq.name].get('ate_rmse'))} m", flush=True)
-    table = run_ablation(seqs, out, modes=args.modes, **opts)
+        cfg = apply_overrides(config_from_args(run_options(no_loop=True, **opts), seq), args.set)
+        run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step, progress=False)
+        odo[seq.name] = evaluate_run(run)
+        odo[seq.name]["edge_chi2_vs_truth"] = edge_chi2_against_truth(run)
+        print(f"odometry {seq.name}: ATE {_fmt(odo[seq.name].get('ate_rmse'))} m, max "
+              f"{_fmt(odo[seq.name].get('ate', {}).get('max'))} m; edge chi2 vs truth "
+              f"{odo[seq.name]['edge_chi2_vs_truth']}", flush=True)
+    # one run per mode and sequence, as slam.ablation.run_ablation does (same options, outputs in
+    # OUT/<mode>/<sequence>/), keeping each run for the edges' chi2 against ground truth
+    table, curves = {}, {}
+    popts = run_options(**opts)
+    for mode in args.modes:
+        table[mode] = {}
+        for s in seqs:
+            seq = open_sequence(s)
+            target = prepare_output_dir(out / mode / seq.name)
+            cfg = apply_overrides(config_from_args(popts, seq, fusion=mode), args.set)
+            run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step)
+            m = evaluate_run(run)
+            write_outputs(run, target)
+            m["edge_chi2_vs_truth"] = edge_chi2_against_truth(run)
+            opt = run.result.optimization
+            m["final_chi2"] = None if opt is None else float(opt.chi2)
+            m["num_edges"] = None if run.result.graph is None else int(run.result.graph.num_edges)
+            table[mode][seq.name] = m
+            if "before_verification" in run.loop_curves:
+                curves.setdefault(seq.name, {})[mode] = run.loop_curves["before_verification"]
+            print(f"{mode:5s} {seq.name}: ATE {_fmt(m.get('ate_rmse'))} m (max {_fmt(m.get('ate', {}).get('max'))}), "
+                  f"loops {m.get('loops_true')}/{m.get('loops_false')}, hypotheses {m.get('loop_hypotheses')} "
+                  f"(false {m.get('loop_hypotheses_false')}), final chi2 {m['final_chi2']} over {m['num_edges']} "
+                  f"edges, edge chi2 vs truth {m['edge_chi2_vs_truth']}, {m['fps']:.1f} frames/s", flush=True)
+    for name, by_mode in curves.items():
+        plot_pr_curves(out / f"pr_{name}.png", by_mode, title=f"{name}: loop detection before verification")
 
-    head = ("| run | ATE RMSE (m) | vs odometry | loops kept (true/false) | inconsistent / switched off (false) "
-            "| max recall @100% P before -> after verification | frames/s | online corrections | odometry ms/frame "
+    head = ("| run | ATE RMSE (m) | ATE max (m) | vs odometry | loops kept (true/false) | inconsistent / switched off (false) "
+            "| max recall @100% P before -> after verification | final chi2 / edge | median edge chi2 vs truth "
+            "odometry / loop | frames/s | online corrections | odometry ms/frame "
             "| descriptor ms/keyframe | keyframes | lost |")
     text = [(f"{time.strftime('%Y-%m-%d %H:%M')}, frame step {args.frame_step}, backbone {args.backbone}, "
-            f"torch threads {torch.get_num_threads()}"), ""]
+            f"torch threads {torch.get_num_threads()}, load {os.getloadavg()[0]:.1f}"
+            + (f", overrides {' '.join(args.set)}" if args.set else "")), ""]
     for name, m0 in odo.items():
-        text += [f"### {name} ({m0['num_frames']} frames, {m0.get('rig', '')})", "", head, "|" + "---|" * 12]
+        text += [f"### {name} ({m0['num_frames']} frames, {m0.get('rig', '')})", "", head, "|" + "---|" * 15]
         text.append(_row("odometry only", m0, None))
         for mode in args.modes:
             text.append(_row(f"{args.backbone} + {mode}", table[mode][name], m0.get("ate_rmse")))
         text.append("")
     text += [markdown_table(table)]
-    if args.fps_ab > 0 and args.fps_ref:
-        text += [""] + _code_ab(seqs[0], args)
+    if code_ab is not None:
+        text += [""] + code_ab
     elif args.fps_ab > 0:
         seq = open_sequence(seqs[0])
         fps = {True: [], False: []}

@@ -40,6 +40,19 @@ class LoopClosureConfig:
     # redkitchen: 20 loops accepted, all true, vs 3 at the index's default 3 sigmas).
     detector: LoopDetectorConfig = field(default_factory=lambda: LoopDetectorConfig(
         window=3000, consistency_radius=2000, threshold=ThresholdConfig(k_sigma=1.5, min_samples=16)))
+    # The threshold calibrated for a backbone's default descriptor replaces ``detector.threshold`` when the
+    # loop closer builds that descriptor (an absolute floor is a property of the descriptor: the paper
+    # preset's similarities sit near 0.55, the Lite0 default's near 0.85). EfficientNet-Lite0: chosen on the
+    # SLAM's own keyframe streams of every sequence at hand (the kitchen at frame steps 1, 3 and 6, the room
+    # demo, the building; benchmarks/loop_threshold.py --streams, docs/benchmarks.md): the relative rule of
+    # before plus a floor of 0.85 keeps the kitchen's candidates (recall 0.53-0.63, 3 fewer false ones) and
+    # sends less than half as many false candidates to verification on the room (1 vs 21) and the building
+    # (549 vs 1372) at the same recall (0.88; 0.92 vs 0.94). A lower k_sigma (0.5) raises the kitchen's
+    # recall to 0.80 but its extra loops cost the default kitchen run 0.7 mm of ATE (0.0301 m vs 0.0294).
+    # Every fusion mode shares the scale (median similarity of kitchen frames >= 100 apart: 0.85-0.86).
+    # Backbones not listed (VGG16, a custom descriptor) keep ``detector.threshold``.
+    threshold_by_backbone: dict = field(default_factory=lambda: {
+        "efficientnet_lite0": ThresholdConfig(k_sigma=1.5, min_margin=0.005, min_similarity=0.85, min_samples=16)})
     # verification re-uses the odometry's matching + RANSAC, with stricter acceptance:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     max_candidates: int = 5  # candidates verified per query keyframe (most similar first)
@@ -64,6 +77,12 @@ class LoopClosureConfig:
     # edge (wide baseline, up to 45 deg) errs by a median 22 mm / 1.6 deg vs 14 mm / 0.7 deg for an
     # odometry edge between keyframes, with more systematic error (colour/depth misregistration grows
     # with the viewpoint change); 1/1000 gave ATE 4.36 cm vs 4.55 cm at 1/100 (docs/benchmarks.md).
+    # Against ground truth (docs/benchmarks.md, "Information scales"): on the real kitchen (frame steps 1,
+    # 3, 6) true odometry edges have a median squared Mahalanobis error of 3.4-5.1 at x 0.01 (the chi2 of
+    # 6 dof, median 5.35, that the robust kernels' widths assume) and true loop edges 0.85-1.0 at x 0.001.
+    # Loops weighted to match (x 0.005) made the default kitchen run worse (ATE 0.0320 m vs 0.0301, the same
+    # 49 loops): their errors are systematic, shared by neighbouring loops, not independent as the weighting
+    # assumes. DCS still switches false loops off at x 0.001 (tests/test_backend.py, a real graph).
     information_scale: float = 0.001  # multiplies the loop edges' information
 
 

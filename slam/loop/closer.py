@@ -18,6 +18,7 @@ Example:
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence
@@ -161,7 +162,18 @@ class LoopCloser:
         self.config = config
         self.timer = timer or StageTimer()
         self.descriptor = descriptor if descriptor is not None else build_descriptor(config.descriptor, self.timer)
-        self.detector = LoopCandidateDetector(config.detector)
+        # the threshold calibrated for this descriptor, if any (LoopClosureConfig.threshold_by_backbone): a
+        # backbone's default recipe with its pretrained weights (a preset, another recipe or random weights
+        # have other similarity scales and keep detector.threshold)
+        backbone = getattr(self.descriptor, "backbone_name", None)
+        recipe = getattr(self.descriptor, "recipe", None)
+        default = (recipe is not None and bool(config.descriptor.pretrained)  # any fusion mode: they share a scale
+                   and dataclasses.replace(recipe, fusion=type(recipe)().fusion) == type(recipe)())
+        calibrated = getattr(config, "threshold_by_backbone", {}).get(backbone) if default else None
+        detector = config.detector if calibrated is None else dataclasses.replace(config.detector, threshold=calibrated)
+        self.threshold = detector.threshold
+        logger.info("loop detector threshold (%s): %s", backbone or "custom descriptor", self.threshold)
+        self.detector = LoopCandidateDetector(detector)
         self.consistency = GroupConsistency(config.consistency)
         self._queries: List[LoopQuery] = []
         self._loops: List[LoopClosure] = []  # every hypothesis, by id

@@ -44,6 +44,7 @@ from slam.synthetic.render import (
     ImageNoiseConfig,
     apply_depth_noise,
     apply_image_noise,
+    apply_motion_blur,
     render_frames,
 )
 from slam.synthetic.scene import RoomConfig, Scene, build_room_scene, default_room_scene
@@ -145,6 +146,8 @@ class SyntheticSequence(RGBDSequence):
         self.root = Path(self.name)
         self._poses = self.trajectory.poses.to(torch.float64).cpu().numpy()
         self._stamps = self.trajectory.timestamps.to(torch.float64).cpu().numpy()
+        # the frame interval the exposure is a fraction of (motion blur)
+        self._interval = float(np.median(np.diff(self._stamps))) if len(self._stamps) > 1 else 1.0 / 30.0
 
     def __len__(self) -> int:
         return int(self._stamps.shape[0])
@@ -167,6 +170,15 @@ class SyntheticSequence(RGBDSequence):
         out = render_frames(self.scene, K, torch.from_numpy(self._poses[idx]), self.height, self.width)
         seeds = [self.seed * 100_003 + i for i in idx]  # per-frame noise: independent of batching
         depth, rgb = out.depth, out.rgb
+        if self.image_noise is not None and self.image_noise.exposure_time > 0:
+            # the camera moves while the colour camera integrates: blur along each pixel's motion, from the
+            # exact depth (before the depth noise) and the poses of the neighbouring frames
+            n = len(self)
+            before = torch.from_numpy(self._poses[[max(i - 1, 0) for i in idx]])  # a frame's own at the ends
+            after = torch.from_numpy(self._poses[[min(i + 1, n - 1) for i in idx]])
+            rgb = apply_motion_blur(rgb, depth, K, torch.from_numpy(self._poses[idx]), before, after,
+                                    min(2.0, self.image_noise.exposure_time / self._interval),
+                                    self.image_noise.blur_samples)
         if self.depth_noise is not None:
             depth = apply_depth_noise(depth, out.cos_incidence, self.depth_noise, seeds)
         if self.image_noise is not None:
