@@ -102,10 +102,11 @@ class BackendConfig:
     gnc_factor: float = 4.0
     max_iterations: int = 50  # LM iterations of the final optimisation
     odometry_information_scale: float = 0.01  # multiplies the odometry edges' information (see loop.information_scale)
-    # Online correction: after a keyframe whose loops changed the graph, optimise it (in the tracking
-    # thread: deterministic, and it costs a few ms for a few hundred keyframes), move every keyframe to its
-    # corrected pose and re-anchor tracking on it, so that track() reports corrected poses. False: the
-    # graph is optimised once, in finish(), and track() reports odometry.
+    # Online correction: after a keyframe whose loops changed the graph, optimise it (with the keyframe's
+    # other loop work: in track(), or in the loop worker of RGBDSLAM(background_loops=True), which run_slam
+    # uses; deterministic either way, a few ms for a few hundred keyframes), move every keyframe to its
+    # corrected pose and re-anchor tracking on it, so that track() reports corrected poses (one keyframe
+    # later with the worker). False: the graph is optimised once, in finish(), and track() reports odometry.
     optimize_on_loop: bool = True
     online_max_iterations: int = 10  # LM iterations of an online correction (bounds its time)
     # A loop edge whose final kernel weight falls below this is reported switched off by the back end.
