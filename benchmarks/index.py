@@ -24,8 +24,10 @@ ones outside the window, and whether the loop detector accepts the same candidat
 
 Usage:
     python benchmarks/index.py                                   # 1e4 and 1e5; clustered, real; all variants
-    python benchmarks/index.py --sizes 1000000 --data clustered --variants exact flann-pca128 faiss-pca128 \\
-        --storage float16 --exact-queries 20 --build-threads 2  # the 10^6 run
+    python benchmarks/index.py --sizes 1000000 --data clustered real --variants exact faiss-pca128 \\
+        --storage float16 --exact-queries 20 --build-threads 2 --stream 50  # the 10^6 run
+    python benchmarks/index.py --diagnose --sizes 1000000 --data clustered real --storage float16  # code vs graph
+    python benchmarks/index.py --diagnose --sizes 200000 --data clustered --graphs 32:80 64:80 --ef-sweep 64 128 256 512
     python benchmarks/index.py --real-sets --skip-synthetic
     python benchmarks/index.py --crossover --skip-synthetic
 

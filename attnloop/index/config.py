@@ -61,10 +61,11 @@ class FaissConfig:
 
     # Links per node (2 m on the bottom layer). The graph's degree, not the code or ef_search, is what holds
     # recall as the collection grows on high-dimensional data: on the clustered set (PCA-128 code, whose
-    # exact search keeps recall@10 >= 0.995 up to 10^6 rows), m = 32 gave 0.97 at 2x10^5, 0.85 at 5x10^5
+    # exact search keeps recall@10 >= 0.995 up to 10^6 rows), m = 32 gave 0.97-0.99 at 2x10^5, 0.85 at 5x10^5
     # and 0.69 at 10^6, where ef_search 256 gained only a few points; m = 64 gave 1.000 and 0.996
-    # (m = 48 with ef_construction 120: 0.978, and slower to build). Cost: ~1.8x the build time, ~1.4x the
-    # graph's search time, 256 more bytes of links per keyframe. docs/benchmarks.md, "Keyframe index at scale".
+    # (m = 48 with ef_construction 120: 0.978, and slower to build); at 10^6 m = 64 gives 0.982 at ~2 ms.
+    # Cost: 1.5-2x the build time, ~1.2x the query time at 10^5, 256 more bytes of links per keyframe.
+    # docs/benchmarks.md, "Keyframe index at scale".
     m: int = 64
     # Candidate list while inserting. faiss's default 40 built a graph that lost 11% of recall@10 on the
     # real kitchen descriptors (a trajectory: a thin manifold) where 80 lost none; build time ~2x.
