@@ -24,8 +24,10 @@ ones outside the window, and whether the loop detector accepts the same candidat
 
 Usage:
     python benchmarks/index.py                                   # 1e4 and 1e5; clustered, real; all variants
-    python benchmarks/index.py --sizes 1000000 --data clustered --variants exact flann-pca128 faiss-pca128 \\
-        --storage float16 --exact-queries 20 --build-threads 2  # the 10^6 run
+    python benchmarks/index.py --sizes 1000000 --data clustered real --variants exact faiss-pca128 \\
+        --storage float16 --exact-queries 20 --build-threads 2 --stream 50  # the 10^6 run
+    python benchmarks/index.py --diagnose --sizes 1000000 --data clustered real --storage float16  # code vs graph
+    python benchmarks/index.py --diagnose --sizes 200000 --data clustered --graphs 32:80 64:80 --ef-sweep 64 128 256 512
     python benchmarks/index.py --real-sets --skip-synthetic
     python benchmarks/index.py --crossover --skip-synthetic
 
@@ -54,6 +56,7 @@ from attnloop.index import (
     LoopCandidateDetector,
     LoopDetectorConfig,
     faiss_available,
+    fit_pca,
 )
 
 DEFAULT = IndexConfig()
@@ -66,6 +69,9 @@ VARIANTS = {
     "faiss-pca128": ({"backend": "faiss", "reduce_dim": 128}, ("ef_search", [32, 64, 128])),
     "faiss-pca128-whiten": ({"backend": "faiss", "reduce_dim": 128, "whiten": True}, ("ef_search", [32, 64, 128])),
     "faiss-pca256": ({"backend": "faiss", "reduce_dim": 256}, ("ef_search", [32, 64, 128])),
+    # the default before issue 16.2's 10^6 measurement: half the links
+    "faiss-pca128-m32": ({"backend": "faiss", "reduce_dim": 128, "faiss": FaissConfig(m=32)},
+                         ("ef_search", [64, 128])),
     # the choices behind the defaults (--real-sets): fewer candidates, faiss's default ef_construction
     "faiss-pca128-rerank4": ({"backend": "faiss", "reduce_dim": 128, "rerank": 4}, ("ef_search", [64])),
     "faiss-efc40": ({"backend": "faiss", "reduce_dim": None, "faiss": FaissConfig(ef_construction=40)},
@@ -339,6 +345,82 @@ def _detector_run(desc: torch.Tensor, name: str, window: int, first_query: int) 
     return [tuple(det.add_and_query(desc[i], keyframe_id=i).ids.tolist()) for i in range(first_query, desc.shape[0])]
 
 
+def diagnose(args, real: dict | None) -> None:
+    """Where the default's recall goes: the PCA code or the HNSW graph on it (issue 16.2).
+
+    For each descriptor set and size: the code of ``IndexConfig.reduce_dim`` (fitted as the index fits it)
+    searched *exactly* over every row, its top ``R`` re-scored with the stored descriptors (the code's
+    loss, for the default ``R = rerank * k`` and wider); then, for each ``--graphs M:ef_construction``, the
+    HNSW graph on that same code answering through the index (the graph's loss: recall@10 after
+    re-scoring, and the share of the code's exact top ``rerank * k`` that the graph proposes) over an
+    ``ef_search`` sweep. Both on the first ``--diagnose-queries`` queries.
+    """
+    nq, k, r_default = args.diagnose_queries, args.k, DEFAULT.rerank * args.k
+    widths = sorted({r_default, 2 * r_default, 4 * r_default, 8 * r_default})
+    for kind in args.data:
+        for n in args.sizes:
+            data = make_data(kind, n, args.dim, real)
+            queries = data.queries(args.queries)[:nq]
+            _, ref = exact_reference(data, queries, k, args.storage)
+            print(f"\n### Diagnosis: {kind}, {n} keyframes (D = {args.dim}, storage {args.storage}, {nq} queries, "
+                  f"code {DEFAULT.reduce_dim}-d; load average {os.getloadavg()[0]:.1f})\n", flush=True)
+            store = KeyframeIndex(IndexConfig(backend="exact", storage=args.storage))
+            for _, rows in data.chunks():
+                store.add(rows)
+            x = store._store.view()
+            code = fit_pca(x, DEFAULT.reduce_dim, whiten=DEFAULT.whiten, seed=DEFAULT.seed)
+            top = _code_topr(code, x, queries, max(widths))
+            print("| candidates from | R | recall@10 after re-scoring |\n|---|---:|---:|")
+            for r in widths:
+                sims = [_rescore(store, q, rows[:r]) for q, rows in zip(queries, top)]
+                print(f"| exact search on the code | {r} | {recall(sims, ref)[0]:.3f} |", flush=True)
+            del x
+            for spec in args.graphs:
+                m, efc = (int(v) for v in spec.split(":"))
+                cfg = IndexConfig(backend="faiss", storage=args.storage, exact_below=n, background=False,
+                                  faiss=FaissConfig(m=m, ef_construction=efc))
+                t0, c0 = time.perf_counter(), time.process_time()
+                index = KeyframeIndex(cfg)
+                for _, rows in data.chunks():
+                    index.add(rows)
+                t_build, c_build = time.perf_counter() - t0, time.process_time() - c0
+                for ef in args.ef_sweep:
+                    set_knob(index, "ef_search", ef)
+                    t0 = time.process_time()
+                    sims = [index.search(q, k=k)[1].numpy() for q in queries]
+                    ms = 1e3 * (time.process_time() - t0) / nq
+                    props = [index._structure.candidates(q, r_default, n) for q in queries]
+                    share = np.mean([np.intersect1d(p, t[:r_default]).size / r_default for p, t in zip(props, top)])
+                    print(f"| HNSW M {m}, ef_construction {efc} (build {t_build:.0f} s wall, {c_build:.0f} s CPU), "
+                          f"ef_search {ef} | {r_default} | {recall(sims, ref)[0]:.3f} (graph proposes {share:.3f} "
+                          f"of the code's top {r_default}; {ms:.2f} ms CPU a query) |", flush=True)
+                del index
+                _release()
+            del store
+            _release()
+
+
+def _code_topr(code, x: np.ndarray, queries: np.ndarray, r: int) -> np.ndarray:
+    """Rows ``(Q, r)`` of the ``r`` nearest codes to each query's code, by an exact scan of every row."""
+    zq = torch.from_numpy(code.encode(queries))
+    best_d = torch.full((zq.shape[0], r), float("inf"))
+    best_i = torch.full((zq.shape[0], r), -1, dtype=torch.long)
+    for lo in range(0, x.shape[0], 65536):
+        z = torch.from_numpy(code.encode(x[lo: lo + 65536]))
+        d = (z * z).sum(1)[None] - 2 * zq @ z.t()
+        d_all = torch.cat([best_d, d], 1)
+        i_all = torch.cat([best_i, torch.arange(lo, lo + z.shape[0]).expand(zq.shape[0], -1)], 1)
+        best_d, pos = torch.topk(d_all, min(r, d_all.shape[1]), dim=1, largest=False)
+        best_i = i_all.gather(1, pos)
+    return best_i.numpy()
+
+
+def _rescore(index: KeyframeIndex, q: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Exact similarities of the candidate rows, most similar first (as the index re-scores them)."""
+    sims = index._store.rows(np.unique(rows[rows >= 0]), np.float64) @ q.astype(np.float64)
+    return np.sort(sims.astype(np.float32))[::-1]
+
+
 def crossover(args) -> None:
     """Exact scan vs the default structure, small sizes: where exact_below belongs."""
     print("\n### Exact scan vs the default structure at small sizes (clustered, D = 1024)\n")
@@ -380,6 +462,12 @@ def main(argv=None) -> None:
     ap.add_argument("--real-sets", action="store_true", help="recall on the real descriptors themselves")
     ap.add_argument("--crossover", action="store_true", help="exact scan vs structure from 1k to 16k")
     ap.add_argument("--skip-synthetic", action="store_true", help="only the real descriptor sets")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="split the default's loss: exact search on its PCA code vs HNSW graphs on that code")
+    ap.add_argument("--diagnose-queries", type=int, default=100, help="queries of the diagnosis")
+    ap.add_argument("--graphs", nargs="*", default=[], metavar="M:EFC",
+                    help="HNSW graphs (links M, ef_construction) the diagnosis builds on the code")
+    ap.add_argument("--ef-sweep", type=int, nargs="+", default=[64, 128, 256], help="ef_search of the diagnosis")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if faiss_available():
@@ -393,7 +481,9 @@ def main(argv=None) -> None:
           f"reduce_dim {DEFAULT.reduce_dim}, rerank {DEFAULT.rerank}, {FlannConfig()}, {FaissConfig()}\n")
     need_real = args.real_sets or (not args.skip_synthetic and "real" in args.data)
     real = real_descriptors() if need_real else None
-    if not args.skip_synthetic:
+    if args.diagnose:
+        diagnose(args, real)
+    elif not args.skip_synthetic:
         synthetic(args, real)
     if args.real_sets:
         real_sets(args, real)

@@ -85,3 +85,22 @@ def test_smoke_run(bench, capsys):
         recalls = [float(line.split("|")[6]) for line in out.splitlines()
                    if line.startswith(f"| {name} ") and ("checks" in line or "ef_search" in line)]
         assert len(recalls) == 3 and max(recalls) >= 0.9, (name, recalls)
+
+
+@pytest.mark.skipif(not faiss_available(), reason="faiss not installed")
+def test_diagnosis_splits_the_code_from_the_graph(bench, capsys):
+    threads = torch.get_num_threads()
+    try:
+        bench.main(["--diagnose", "--sizes", "500", "--dim", "64", "--data", "clustered", "--queries", "20",
+                    "--diagnose-queries", "20", "--graphs", "8:40", "--ef-sweep", "16", "64"])
+    finally:
+        torch.set_num_threads(threads)
+    out = capsys.readouterr().out
+    code = [(int(line.split("|")[2]), float(line.split("|")[3])) for line in out.splitlines()
+            if line.startswith("| exact search on the code |")]
+    assert [r for r, _ in code] == [80, 160, 320, 640]
+    # Nested candidate sets re-scored exactly: recall cannot fall as R grows, and R >= the 500 rows
+    # re-scores every row: the exact answer.
+    assert all(a <= b for (_, a), (_, b) in zip(code, code[1:])) and code[-1][1] == 1.0
+    graph = [line for line in out.splitlines() if line.startswith("| HNSW M 8, ef_construction 40")]
+    assert len(graph) == 2 and all("ef_search" in line and "graph proposes" in line for line in graph)

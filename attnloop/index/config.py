@@ -59,7 +59,14 @@ class FaissConfig:
     thread, once the rows have grown by ``retrain_growth`` since the fit.
     """
 
-    m: int = 32  # links per node (faiss's default; 16 plateaued near recall 0.95 on clustered 1024-d data)
+    # Links per node (2 m on the bottom layer). The graph's degree, not the code or ef_search, is what holds
+    # recall as the collection grows on high-dimensional data: on the clustered set (PCA-128 code, whose
+    # exact search keeps recall@10 >= 0.995 up to 10^6 rows), m = 32 gave 0.97-0.99 at 2x10^5, 0.84 at 5x10^5
+    # and 0.69 at 10^6, where ef_search 256 gained only a few points; m = 64 gave 1.000 and 0.995
+    # (m = 48 with ef_construction 120: 0.958, as slow to build); at 10^6 m = 64 gives 0.982 at ~2 ms.
+    # Cost: 1.5-2x the build time, ~1.2x the query time at 10^5, 256 more bytes of links per keyframe.
+    # docs/benchmarks.md, "Keyframe index at scale".
+    m: int = 64
     # Candidate list while inserting. faiss's default 40 built a graph that lost 11% of recall@10 on the
     # real kitchen descriptors (a trajectory: a thin manifold) where 80 lost none; build time ~2x.
     ef_construction: int = 80
@@ -95,7 +102,7 @@ class IndexConfig:
     # stay full: candidates are re-scored exactly, so the code only has to keep the true neighbours among
     # the rerank * k candidates. 128 dims build and search ~2x faster than 256 and keep 94% of the kitchen
     # descriptors' variance; with rerank 8 the kitchen (graph from 32 keyframes on, window 30) keeps
-    # recall@10 0.990 (256 dims: 0.998; full descriptors: 1.000). docs/benchmarks.md, "Keyframe index at
+    # recall@10 0.981 (256 dims: 0.998; full descriptors: 1.000). docs/benchmarks.md, "Keyframe index at
     # scale", has every variant on every set.
     reduce_dim: int | None = 128
     # PCA-whitening (unit-variance components, codes L2-normalised) instead of PCA: it lost recall on real
