@@ -422,6 +422,21 @@ def block_macs() -> tuple[int, dict[str, int]]:
     return total, {t: above(info[t][0]) for t in TAPS}
 
 
+def _paired_cpu_ratios(variants: dict, rounds: int, warmup: int = 2) -> tuple[dict, dict]:
+    """CPU seconds of each variant per round (interleaved, no autograd, after ``warmup`` rounds) and the
+    median per-round ratio of each to ``variants["plain"]``."""
+    times = {k: [] for k in variants}
+    with torch.no_grad():
+        for r in range(rounds + warmup):
+            for k, fn in variants.items():
+                t0 = time.process_time()
+                fn()
+                if r >= warmup:
+                    times[k].append(time.process_time() - t0)
+    ratios = {k: float(np.median([a / b for a, b in zip(v, times["plain"])])) for k, v in times.items()}
+    return times, ratios
+
+
 def tap_cost(batches=(1, 8), rounds: int = 10) -> list[str]:
     """Measured cost of L and G at each tap: CPU time (``time.process_time``) of the forward to the logits
     with the seeded backward to that tap, against the plain forward of the same network, in interleaved
@@ -448,15 +463,7 @@ def tap_cost(batches=(1, 8), rounds: int = 10) -> list[str]:
         x = torch.randn(batch, 3, *SIZE, generator=torch.Generator().manual_seed(0))
         variants = {"plain": lambda: net.forward_from_tap(net.forward_to_tap(x))}
         variants.update({t: (lambda t=t: to_tap(x, t)) for t in reversed(TAPS)})
-        times = {k: [] for k in variants}
-        with torch.no_grad():
-            for r in range(rounds + 2):
-                for k, fn in variants.items():
-                    t0 = time.process_time()
-                    fn()
-                    if r >= 2:
-                        times[k].append(time.process_time() - t0)
-        ratios = {k: float(np.median([a / b for a, b in zip(v, times["plain"])])) for k, v in times.items()}
+        times, ratios = _paired_cpu_ratios(variants, rounds)
         rows.append(f"| {batch} | {1000 * float(np.median(times['plain'])) / batch:.1f} | "
                     + " | ".join(f"{ratios[t]:.2f}" for t in reversed(TAPS)) + " |")
     return rows
@@ -717,15 +724,7 @@ def local_cost(batches=(1, 8), rounds: int = 10) -> list[str]:
                     "global": lambda x=x: local_gradients(net, to_stage6(x), "global")}
         variants.update({name: (lambda c=c, n=n, x=x: local_gradients(net, to_stage6(x), c, n, subset))
                          for name, (_, c, n) in LOCAL_FORMS.items()})
-        times = {k: [] for k in variants}
-        with torch.no_grad():
-            for r in range(rounds + 2):
-                for k, fn in variants.items():
-                    t0 = time.process_time()
-                    fn()
-                    if r >= 2:
-                        times[k].append(time.process_time() - t0)
-        ratios = {k: float(np.median([a / b for a, b in zip(v, times["plain"])])) for k, v in times.items()}
+        times, ratios = _paired_cpu_ratios(variants, rounds)
         rows.append(f"| {batch} | {1000 * float(np.median(times['plain'])) / batch:.1f} | "
                     + " | ".join(f"{ratios[k]:.2f}" for k in list(variants)[1:]) + " |")
     return rows

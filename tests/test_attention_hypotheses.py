@@ -11,18 +11,8 @@ from attnloop.pooling import fuse_groups, regional_code
 
 
 @pytest.fixture(scope="module")
-def hyp():
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "attention_hypotheses.py"
-    spec = importlib.util.spec_from_file_location("attention_hypotheses", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    yield mod
-    sys.modules.pop(spec.name, None)
+def hyp(load_script):
+    return load_script("benchmarks/attention_hypotheses.py")
 
 
 @pytest.fixture(scope="module")

@@ -1,9 +1,7 @@
 """benchmarks/place_recognition.py's ORB bag of words: an exact, deterministic vocabulary (DBoW2's k-majority)."""
 from __future__ import annotations
 
-import importlib.util
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,14 +10,8 @@ from slam.threads import limit_threads
 
 
 @pytest.fixture(scope="module")
-def pr():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "place_recognition.py"
-    spec = importlib.util.spec_from_file_location("place_recognition", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    yield mod
-    sys.modules.pop(spec.name, None)
+def pr(load_script):
+    return load_script("benchmarks/place_recognition.py")
 
 
 @pytest.fixture(scope="module")
