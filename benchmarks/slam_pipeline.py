@@ -38,13 +38,12 @@ from pathlib import Path
 
 import torch
 
-from slam.ablation import MODES, markdown_table
-from slam.eval import plot_pr_curves
+from slam.ablation import MODES, markdown_table, run_ablation
 from slam.graph.costs import edge_residuals
 from slam.io import open_sequence
 from slam.lie import se3_compose, se3_inv
 from slam.options import config_from_args, run_options
-from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+from slam.pipeline import evaluate_run, run_slam
 
 
 def edge_chi2_against_truth(run) -> dict:
@@ -228,32 +227,19 @@ def main() -> None:
         print(f"odometry {seq.name}: ATE {_fmt(odo[seq.name].get('ate_rmse'))} m, max "
               f"{_fmt(odo[seq.name].get('ate', {}).get('max'))} m; edge chi2 vs truth "
               f"{odo[seq.name]['edge_chi2_vs_truth']}", flush=True)
-    # one run per mode and sequence, as slam.ablation.run_ablation does (same options, outputs in
-    # OUT/<mode>/<sequence>/), keeping each run for the edges' chi2 against ground truth
-    table, curves = {}, {}
-    popts = run_options(**opts)
-    for mode in args.modes:
-        table[mode] = {}
-        for s in seqs:
-            seq = open_sequence(s)
-            target = prepare_output_dir(out / mode / seq.name)
-            cfg = apply_overrides(config_from_args(popts, seq, fusion=mode), args.set)
-            run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step)
-            m = evaluate_run(run)
-            write_outputs(run, target)
-            m["edge_chi2_vs_truth"] = edge_chi2_against_truth(run)
-            opt = run.result.optimization
-            m["final_chi2"] = None if opt is None else float(opt.chi2)
-            m["num_edges"] = None if run.result.graph is None else int(run.result.graph.num_edges)
-            table[mode][seq.name] = m
-            if "before_verification" in run.loop_curves:
-                curves.setdefault(seq.name, {})[mode] = run.loop_curves["before_verification"]
-            print(f"{mode:5s} {seq.name}: ATE {_fmt(m.get('ate_rmse'))} m (max {_fmt(m.get('ate', {}).get('max'))}), "
-                  f"loops {m.get('loops_true')}/{m.get('loops_false')}, hypotheses {m.get('loop_hypotheses')} "
-                  f"(false {m.get('loop_hypotheses_false')}), final chi2 {m['final_chi2']} over {m['num_edges']} "
-                  f"edges, edge chi2 vs truth {m['edge_chi2_vs_truth']}, {m['fps']:.1f} frames/s", flush=True)
-    for name, by_mode in curves.items():
-        plot_pr_curves(out / f"pr_{name}.png", by_mode, title=f"{name}: loop detection before verification")
+    # one run per mode and sequence (slam.ablation.run_ablation: outputs in OUT/<mode>/<sequence>/, PR curves
+    # beside them), each run measured again for the edges' chi2 against ground truth and the final chi2
+    def measure(run, m):
+        m["edge_chi2_vs_truth"] = edge_chi2_against_truth(run)
+        opt = run.result.optimization
+        m["final_chi2"] = None if opt is None else float(opt.chi2)
+        m["num_edges"] = None if run.result.graph is None else int(run.result.graph.num_edges)
+        print(f"      {run.sequence_name}: ATE max {_fmt(m.get('ate', {}).get('max'))} m, hypotheses "
+              f"{m.get('loop_hypotheses')} (false {m.get('loop_hypotheses_false')}), final chi2 {m['final_chi2']} "
+              f"over {m['num_edges']} edges, edge chi2 vs truth {m['edge_chi2_vs_truth']}", flush=True)
+
+    table = run_ablation(seqs, out, modes=args.modes, configure=lambda cfg: apply_overrides(cfg, args.set),
+                         measure=measure, **opts)
 
     head = ("| run | ATE RMSE (m) | ATE max (m) | vs odometry | loops kept (true/false) | inconsistent / switched off (false) "
             "| max recall @100% P before -> after verification | final chi2 / edge | median edge chi2 vs truth "

@@ -20,7 +20,7 @@ __all__ = ["MODES", "markdown_table", "run_ablation"]
 MODES = FUSION_MODES  # the rows of the table: every fusion mode (attnloop.fusion is the one list)
 
 
-def run_ablation(sequences, out_dir, options=None, modes=MODES, **overrides):
+def run_ablation(sequences, out_dir, options=None, modes=MODES, *, configure=None, measure=None, **overrides):
     """Run every mode on every sequence; returns ``{mode: {sequence: metrics}}``.
 
     Args:
@@ -29,6 +29,10 @@ def run_ablation(sequences, out_dir, options=None, modes=MODES, **overrides):
             its previous outputs removed, before the first run); ``pr_<sequence>.png`` beside them.
         options: an ``argparse.Namespace`` of :func:`slam.options.add_run_arguments` (None: the defaults).
         modes: the fusion modes (rows).
+        configure: optional ``SLAMConfig -> SLAMConfig``, applied to each run's config (e.g. settings that
+            have no command-line option).
+        measure: optional ``(run, metrics) -> None``, called after each run with its
+            :class:`~slam.pipeline.RunResult` and its metrics (to add figures that need the run itself).
         **overrides: option values by name, over ``options`` (e.g. ``backbone="efficientnet_lite0"``,
             ``max_frames=300``, ``frame_step=3``, ``rgb_intrinsics=(525, 525, 320, 240)``).
 
@@ -42,6 +46,8 @@ def run_ablation(sequences, out_dir, options=None, modes=MODES, **overrides):
     out_dir = Path(out_dir)
     opened = [open_sequence(path, camera=opts.camera) for path in sequences]  # every folder checked first
     configs = {(mode, k): config_from_args(opts, seq, fusion=mode) for mode in modes for k, seq in enumerate(opened)}
+    if configure is not None:
+        configs = {key: configure(cfg) for key, cfg in configs.items()}
     targets = {(mode, k): prepare_output_dir(out_dir / mode / seq.name) for mode in modes
                for k, seq in enumerate(opened)}
     table = {}
@@ -52,6 +58,8 @@ def run_ablation(sequences, out_dir, options=None, modes=MODES, **overrides):
             run = run_slam(seq, configs[(mode, k)], max_frames=opts.max_frames, frame_step=opts.frame_step)
             metrics = evaluate_run(run)
             write_outputs(run, targets[(mode, k)])
+            if measure is not None:
+                measure(run, metrics)
             table[mode][seq.name] = metrics
             if "before_verification" in run.loop_curves:
                 curves.setdefault(seq.name, {})[mode] = run.loop_curves["before_verification"]

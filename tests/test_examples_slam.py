@@ -71,3 +71,24 @@ def test_ablation_refuses_a_bad_folder_before_any_run(tmp_path, load_script, cap
     mod = load_script("examples/ablation.py")
     assert mod.main([str(tmp_path / "missing"), "--out", str(tmp_path / "abl")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_run_ablation_applies_configure_and_calls_measure(tiny_sequence, tmp_path):
+    # benchmarks/slam_pipeline.py's --set and its extra figures go through these two hooks
+    from slam.ablation import run_ablation
+
+    seen = []
+
+    def configure(cfg):
+        cfg.backend.optimize_on_loop = False
+        return cfg
+
+    def measure(run, metrics):
+        seen.append((run.sequence_name, run.config.loop.descriptor.fusion, run.config.backend.optimize_on_loop))
+        metrics["extra"] = len(seen)
+
+    table = run_ablation([tiny_sequence], tmp_path / "abl", modes=("none", "dam"), configure=configure,
+                         measure=measure, no_loop=True, no_map=True)
+    name = tiny_sequence.name
+    assert seen == [(name, "none", False), (name, "dam", False)]
+    assert [table[m][name]["extra"] for m in ("none", "dam")] == [1, 2]
