@@ -160,6 +160,7 @@ def descriptor_from_attention(
     gem_p: float = 2.0,
     levels: Sequence[int] = (1, 2),
     groups: Sequence[int] | None = None,
+    attended: Sequence[bool] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Steps 2-6 of the descriptor: fuse (L, G), pool, scale, random RNN pooling, L2.
 
@@ -181,6 +182,8 @@ def descriptor_from_attention(
         levels: the grids of the regional pooling.
         groups: channel counts of a joined tap's stages (the backbone's ``tap_groups``): each group is
             fused and pooled on its own; None: one group.
+        attended: per group, whether it is fused (the backbone's ``attended_groups``); a group not
+            attended enters the pooling as L, unfused. None: every group.
 
     Returns:
         (fused :math:`(B, C, h, w)`, descriptor :math:`(B, R \\cdot O)`).
@@ -200,7 +203,7 @@ def descriptor_from_attention(
         raise ValueError(f"unknown pooling {pooling!r}; choose one of {POOLINGS}")
     if merge is None:
         merge = pooling == "flat"
-    fused = fuse_groups(tap, grad, fusion, groups)
+    fused = fuse_groups(tap, grad, fusion, groups, attended)
     pool_in = fused if pooling == "flat" else regional_code(fused, groups, gem_p, levels)[:, :, None, None]
     pool_in = pool_in if pool_scale is None else _scale_to_norm(pool_in, float(pool_scale))
     desc = random_rnn_pool(pool_in, rnn_weights, merge=merge)
@@ -247,7 +250,8 @@ def attention_descriptor_parts(
     tap, grad = guided_backprop(backbone, images, create_graph=create_graph)
     fused, desc = descriptor_from_attention(tap, grad, rnn_weights, fusion, normalize, pool_scale, merge,
                                             pooling=pooling, gem_p=gem_p, levels=levels,
-                                            groups=getattr(backbone, "tap_groups", None))
+                                            groups=getattr(backbone, "tap_groups", None),
+                                            attended=getattr(backbone, "attended_groups", None))
     return DescriptorParts(tap, grad, fused, desc)
 
 
@@ -330,8 +334,8 @@ class AttentionDescriptor(nn.Module):
         weights: explicit checkpoint path for a name-built backbone.
         normalize: L2-normalise the descriptors.
         tap: a name-built backbone's tap layer (default: ``pool5`` for VGG16, ``stage6+stage7`` at a
-            224 x 288 input for EfficientNet-Lite0, :mod:`attnloop.presets`), or the submodule of a
-            classifier module where L is taken.
+            224 x 288 input with G at stage7 for EfficientNet-Lite0, :mod:`attnloop.presets`; an explicit
+            tap has G at every stage of it), or the submodule of a classifier module where L is taken.
         out_features: output size of each RNN.
         pool_scale: L2 norm of the RNNs' input (None: raw, as in the paper).
         merge: average element c with c + C/2 of the RNNs' input (None: only with ``flat`` pooling).
@@ -456,6 +460,8 @@ class AttentionDescriptor(nn.Module):
         channels, height, width = (int(v) for v in self.backbone.tap_shape)
         #: Channel counts of a joined tap's stages (None: a single tap), fused and pooled separately.
         self.tap_groups = tuple(getattr(self.backbone, "tap_groups", None) or (channels,))
+        #: Per tap group, whether the attention fuses it (False: the group's L is pooled unfused).
+        self.attended_groups = tuple(getattr(self.backbone, "attended_groups", None) or (True,) * len(self.tap_groups))
         if given.pooling == "regional":
             channels, height, width = regional_code_dim(self.tap_groups, given.levels), 1, 1
         if given.merges and channels % 2:
@@ -535,7 +541,7 @@ class AttentionDescriptor(nn.Module):
         r = self.recipe
         return descriptor_from_attention(tap, grad, self.pool.weights, mode, r.normalize, self.pool_scale, r.merges,
                                          pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
-                                         groups=self.tap_groups)[1]
+                                         groups=self.tap_groups, attended=self.attended_groups)[1]
 
     def extra_repr(self) -> str:
         return (f"backbone={self.backbone_name!r}, differentiable={self.differentiable}, "

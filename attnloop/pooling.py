@@ -74,7 +74,8 @@ def unit_scale(grad: Tensor) -> Tensor:
     return grad / peak.clamp_min(torch.finfo(grad.dtype).tiny)
 
 
-def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | None = None) -> Tensor:
+def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | None = None,
+                attended: Sequence[bool] | None = None) -> Tensor:
     """Fuse (L, G) with ``mode`` separately on each channel group, G scaled to max |G| = 1 per group.
 
     Args:
@@ -82,16 +83,27 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
         grad: G, :math:`(B, C, H, W)`.
         mode: a fusion mode (:data:`attnloop.fusion.FUSION_MODES`).
         groups: channel counts of the groups (e.g. ``(192, 320)``), summing to C; None: one group.
+        attended: per group, whether it is fused (the backbone's ``attended_groups``: G is computed
+            there); a group not attended passes L unchanged, as ``none`` does. None: every group.
 
     Returns:
         the fused map :math:`(B, C, H, W)`.
+
+    Example:
+        >>> L, G = torch.rand(1, 10, 3, 3), torch.randn(1, 10, 3, 3)
+        >>> torch.equal(fuse_groups(L, G, "dam", (4, 6), (False, True))[:, :4], L[:, :4])
+        True
     """
     if tap.ndim != 4 or tap.shape != grad.shape:
         raise ValueError(f"tap and grad must have one shape (B, C, H, W), got {tuple(tap.shape)} and {tuple(grad.shape)}")
     g = _check_groups(tap.shape[1], groups)
+    att = (True,) * len(g) if attended is None else tuple(bool(a) for a in attended)
+    if len(att) != len(g):
+        raise ValueError(f"attended has {len(att)} flags for {len(g)} groups {g}")
     if len(g) == 1:
-        return fuse(tap, unit_scale(grad), mode)
-    return torch.cat([fuse(lt, unit_scale(gt), mode) for lt, gt in zip(tap.split(g, 1), grad.split(g, 1))], dim=1)
+        return fuse(tap, unit_scale(grad), mode if att[0] else "none")
+    return torch.cat([fuse(lt, unit_scale(gt), mode if a else "none")
+                      for lt, gt, a in zip(tap.split(g, 1), grad.split(g, 1), att)], dim=1)
 
 
 def _unit_gem_regions(x: Tensor, p: float, levels: tuple[int, ...]) -> tuple[Tensor, Tensor]:

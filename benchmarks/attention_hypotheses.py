@@ -73,9 +73,12 @@ from attnloop.backbones.efficientnet_lite import efficientnet_lite, efficientnet
 from attnloop.backbones.preprocess import prepare_images
 from attnloop.fusion import FUSION_MODES, fuse, minmax_normalize
 from attnloop.pooling import gem_regions, regional_code, unit_scale
+from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
 from attnloop.rnn_pool import random_rnn_pool, random_rnn_weights
 
 GROUPS = (192, 320)
+#: Per stage of GROUPS (stage6, stage7): whether the default descriptor fuses it (its ``attend``).
+ATTENDED = tuple(t in DEFAULT_BACKBONE_SETTINGS["efficientnet_lite0"]["attend"].split("+") for t in ("stage6", "stage7"))
 SIZE = (224, 288)
 SEEDS = ("own", "top5", "top5-uniform", "T2", "entropy")
 HYPOTHESES = ("range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions",
@@ -146,10 +149,14 @@ def attention_map(g: torch.Tensor, mode: str, norm: str) -> torch.Tensor:
 
 
 def fused(L, G, mode, norm="global", smooth=False, sign=False):
+    """The session-2 variants of the default's fusion: the attended stage (ATTENDED) fused, the other as L."""
     if mode == "none":
         return L
     parts = []
-    for lt, gt in zip(L.split(GROUPS, 1), G.split(GROUPS, 1)):
+    for lt, gt, attended in zip(L.split(GROUPS, 1), G.split(GROUPS, 1), ATTENDED):
+        if not attended:
+            parts.append(lt)
+            continue
         g = unit_scale(gt)
         if sign:
             g = g.abs()
@@ -298,11 +305,15 @@ def fuse_taps(f: dict, taps: tuple[str, ...], mode: str, g: str = "G") -> list[t
     ``spatial`` (G minus each channel's mean over (H, W)), ``channel`` (each channel's mean over (H, W)
     broadcast: the part a GAP head's gradient keeps). GAF/EGA's inner per-channel N ignores a channel's
     offset, so ``spatial`` leaves them unchanged and ``channel`` makes them degenerate (a constant map).
+    A form ending in ``@last`` fuses the last tap only and passes the others unfused (the library's
+    ``attend``: G at the last stage alone).
     """
+    last_only = g.endswith("@last")
+    g = g.removesuffix("@last")
     maps = []
     for t in taps:
         L = f[f"L:{t}"]
-        if mode == "none":
+        if mode == "none" or (last_only and t != taps[-1]):
             maps.append(L)
             continue
         # the plain G transformed below, or a cached form by its key prefix (``Gc``, the local ``Gloc`` ...)
@@ -506,7 +517,10 @@ def anchors(data: dict, views: dict, protos: dict) -> dict:
 
 #: session-3 variants: name -> (taps, G's form, layout)
 TAP_VARIANTS = {
-    "stage6+stage7, G (default)": (("stage6", "stage7"), "G", DEFAULT_LAYOUT),
+    "stage6 unfused + stage7, G (default)": (("stage6", "stage7"), "G@last", DEFAULT_LAYOUT),
+    "stage6+stage7, G at both (the default until session 4)": (("stage6", "stage7"), "G", DEFAULT_LAYOUT),
+    "stage6 unfused + stage7, G clamped at the head output": (("stage6", "stage7"), "Gc@last", DEFAULT_LAYOUT),
+    "stage6 unfused + stage7, abs G": (("stage6", "stage7"), "absG@last", DEFAULT_LAYOUT),
     "stage6+stage7, G clamped at the head output": (("stage6", "stage7"), "Gc", DEFAULT_LAYOUT),
     "stage6+stage7, abs G": (("stage6", "stage7"), "absG", DEFAULT_LAYOUT),
     "stage6+stage7, GAF/EGA on sum_c abs G": (("stage6", "stage7"), "chsum", DEFAULT_LAYOUT),
@@ -521,7 +535,7 @@ TAP_VARIANTS = {
     "stage5+stage6+stage7, GAF/EGA on sum_c abs G": (("stage5", "stage6", "stage7"), "chsum", DEFAULT_LAYOUT),
     "stage4+stage5+stage6+stage7": (TAPS, "G", DEFAULT_LAYOUT),
 }
-LAYOUT_VARIANTS = {f"stage6+stage7, {lay}": (("stage6", "stage7"), "G", lay) for lay in LAYOUTS}
+LAYOUT_VARIANTS = {f"stage6 unfused + stage7, {lay}": (("stage6", "stage7"), "G@last", lay) for lay in LAYOUTS}
 
 
 def evaluate_variant(views: dict, protos: dict, taps, g, layout, seeds=(0,)) -> dict:
@@ -735,7 +749,7 @@ def local_section(args, views: dict, protos: dict, seeds: tuple[int, ...]) -> di
     does on the four protocols and the shift check, its held-out halves, its cost. Returns the variants'
     results (:func:`evaluate_variant`)."""
     names = [p for s in protos.values() for p in s]
-    forms = {"G (default)": "G", **{n: v[0] for n, v in LOCAL_FORMS.items()}}
+    forms = {"G (global S)": "G", **{n: v[0] for n, v in LOCAL_FORMS.items()}}
     print("\n#### local: G seeded with each position's own softmax (the class activation map's), stage6+stage7"
           "\n\nShare of G's variance within channels (median over frames, stage6 / stage7); positions whose own "
           "top-1 class differs from the image's (mean); the two views of a true pair (cosine, mean over the pairs "
@@ -768,7 +782,7 @@ def local_section(args, views: dict, protos: dict, seeds: tuple[int, ...]) -> di
         f"{n} {local_macs(c) / 1e6:.1f} M ({100 * local_macs(c) / total:.1f} %)" for n, (_, _, c) in LOCAL_FORMS.items()))
     print(f"\nMeasured (CPU time, {torch.get_num_threads()} thread(s), load average {os.getloadavg()[0]:.1f}): forward "
           "+ seeded backward to stage6+stage7 / plain forward, median of the paired ratios of 10 interleaved rounds"
-          "\n\n| batch | plain forward ms/frame | G (default) | " + " | ".join(LOCAL_FORMS) + " |\n|---|---|---|"
+          "\n\n| batch | plain forward ms/frame | G (global S, both stages) | " + " | ".join(LOCAL_FORMS) + " |\n|---|---|---|"
           + "---|" * len(LOCAL_FORMS))
     for row in local_cost():
         print(row, flush=True)

@@ -310,7 +310,7 @@ def main() -> None:
         print(f"chosen on the first half: taps {'+'.join(taps)}, p {p:g}, levels {levels}\n\n"
               + header("second half"), end="")
         print(row("chosen", per_mode(lambda k, m: regional(base[k], taps, m, p, levels), images, protos, half=1)))
-        print(row("library default", per_mode(lambda k, m: regional(base[k], s67, m), images, protos, half=1)))
+        print(row("stage6+stage7, both fused (the library default until 2026-12-02)", per_mode(lambda k, m: regional(base[k], s67, m), images, protos, half=1)))
         print(row("paper pooling (flat, stage7)", per_mode(lambda k, m: flat(base[k], "stage7", m), images, protos,
                                                            half=1)))
 

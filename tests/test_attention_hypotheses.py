@@ -25,7 +25,8 @@ def maps():
 def test_the_sweeps_baseline_is_the_library_default(hyp, maps, mode):
     # the "paper N, own S" rows must be the default descriptor's numbers, or the sweep compares to nothing
     L, G = maps
-    assert torch.allclose(hyp.fused(L, G, mode), fuse_groups(L, G, mode, (192, 320)))
+    assert hyp.ATTENDED == (False, True)
+    assert torch.allclose(hyp.fused(L, G, mode), fuse_groups(L, G, mode, (192, 320), hyp.ATTENDED))
     desc = AttentionDescriptor("efficientnet_lite0", fusion=mode, pretrained=False)
     assert torch.allclose(hyp.descriptor(hyp.fused(L, G, mode)), desc.from_attention(L, G), atol=1e-6)
 
@@ -222,5 +223,8 @@ def test_fuse_taps_takes_a_cached_form_by_its_prefix(hyp, maps):
     taps = ("stage6", "stage7")
     for g, ref in (("Gloc", other), ("G", G)):
         assert torch.allclose(torch.cat(hyp.fuse_taps(f, taps, "dam", g), 1), fuse_groups(L, ref, "dam", (192, 320)))
+    # "@last": the last tap fused, the others as L (the default's attend="stage7")
+    assert torch.allclose(torch.cat(hyp.fuse_taps(f, taps, "dam", "G@last"), 1),
+                          fuse_groups(L, G, "dam", (192, 320), (False, True)))
     with pytest.raises(KeyError):  # a form that is not cached is an error, never the plain G in disguise
         hyp.fuse_taps(f, taps, "dam", "Gtop5")

@@ -12,6 +12,7 @@ import torch
 from torch import nn
 
 from attnloop import AttentionDescriptor, GuidedBackprop, HookedBackbone, guided_backprop
+from attnloop.backbones import efficientnet_lite0
 from attnloop.descriptor import descriptor_from_attention
 from attnloop.fusion import FUSION_MODES
 from attnloop.guided_backprop import _clamp_scope, clamp_negative_grad, softmax_seeded_gradient
@@ -246,3 +247,33 @@ def test_default_descriptor_stays_frozen_and_detached():
     x = torch.rand(1, 3, 64, 64, requires_grad=True)
     d = desc(x)
     assert d.grad_fn is None and not d.requires_grad
+
+
+def test_attended_stage_G_is_second_order_through_the_head():
+    # attend="stage7" of the joined tap: G at stage7 only; its derivative w.r.t. the classifier's weights
+    # (second order through the head) against central differences, and L's stage6 part still a function
+    # of the images.
+    net = efficientnet_lite0(pretrained=False, seed=0, tap="stage6+stage7", attend="stage7").double()
+    with torch.no_grad():
+        logits = net(0.1 + 0.8 * torch.rand(4, 3, 64, 64, dtype=torch.float64))
+        net._fc.weight.mul_(2.0 / float(logits.std()))
+    x, _, g = images_and_direction(batch=2, size=64)
+    weight = net._fc.weight
+    v = torch.randn(weight.shape, dtype=torch.float64, generator=g) * weight.detach().std()
+    u = torch.randn(2, 512, 7, 7, dtype=torch.float64, generator=g)
+    xr = x.clone().requires_grad_(True)
+    tap, grad = guided_backprop(net.requires_grad_(True), xr, create_graph=True)
+    assert float(grad.detach()[:, :192].abs().max()) == 0 and grad.requires_grad
+    (gw,) = torch.autograd.grad((u * grad).sum(), weight, retain_graph=True)
+    (gx,) = torch.autograd.grad(tap[:, :192].sum(), xr)
+    assert float(gx.abs().max()) > 0
+    ad = float((gw * v).sum())
+    base = weight.detach().clone()
+    with torch.no_grad():
+        weight.copy_(base + EPS * v)
+        _, gp = guided_backprop(net, x)
+        weight.copy_(base - EPS * v)
+        _, gm = guided_backprop(net, x)
+        weight.copy_(base)
+    fd = float((u * (gp - gm)).sum() / (2 * EPS))
+    assert abs(fd) > 1e-6 and abs(ad - fd) <= RTOL * abs(fd), (ad, fd)

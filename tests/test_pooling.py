@@ -6,6 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor
+from attnloop.backbones import build_backbone
 from attnloop.backbones.efficientnet_lite import efficientnet_lite
 from attnloop.descriptor import DescriptorRecipe, descriptor_from_attention
 from attnloop.fusion import fuse
@@ -150,23 +151,80 @@ def test_joined_tap_runs_each_block_once_with_the_two_call_gradients(tap):
     assert torch.allclose(G2.detach(), G1, rtol=1e-5, atol=1e-6 * float(G1.abs().max()))
 
 
+def test_fuse_groups_passes_the_groups_not_attended_unfused():
+    g = torch.Generator().manual_seed(2)
+    L, G = torch.randn(2, 10, 3, 3, generator=g), torch.randn(2, 10, 3, 3, generator=g)
+    for mode in ("dam", "ega"):
+        got = fuse_groups(L, G, mode, (4, 6), (False, True))
+        assert torch.equal(got[:, :4], L[:, :4])
+        assert torch.equal(got[:, 4:], fuse(L[:, 4:], unit_scale(G[:, 4:]), mode))
+        assert torch.equal(fuse_groups(L, G, mode, (4, 6), (True, True)), fuse_groups(L, G, mode, (4, 6)))
+    assert torch.equal(fuse_groups(L, G, "dam", None, (False,)), L)
+    with pytest.raises(ValueError, match="2 flags for 1 groups"):
+        fuse_groups(L, G, "dam", None, (True, False))
+
+
+@pytest.mark.parametrize("attend", ["stage7", "stage6"])
+def test_attend_computes_G_at_the_named_stages_only(attend):
+    kw = {"pretrained": False, "seed": 5, "input_size": (96, 128)}
+    both = efficientnet_lite("lite0", tap="stage6+stage7", **kw)
+    net = efficientnet_lite("lite0", tap="stage6+stage7", attend=attend, **kw)
+    assert net.attend == attend and net.attended_groups == ((False, True) if attend == "stage7" else (True, False))
+    x = torch.randint(0, 256, (2, 3, 60, 80), dtype=torch.uint8)
+    calls = [0] * len(net._blocks)
+    hooks = [b.register_forward_hook(lambda *a, k=k: calls.__setitem__(k, calls[k] + 1))
+             for k, b in enumerate(net._blocks)]
+    L, G = guided_backprop(net, x)
+    assert calls == [1] * len(net._blocks)
+    for h in hooks:
+        h.remove()
+    L_ref, G_ref = guided_backprop(both, x)
+    on = slice(192, None) if attend == "stage7" else slice(0, 192)
+    off = slice(0, 192) if attend == "stage7" else slice(192, None)
+    assert torch.equal(L, L_ref)
+    assert float(G[:, off].abs().max()) == 0.0
+    assert float(G[:, on].abs().max()) > 0
+    assert torch.allclose(G[:, on], G_ref[:, on], rtol=1e-6, atol=1e-9 * float(G_ref[:, on].abs().max()))
+    # the two-call path (the differentiable one) gives the same
+    with torch.no_grad():
+        tap = net.forward_to_tap(net.preprocess(x))
+    assert torch.allclose(softmax_seeded_gradient(tap, net.forward_from_tap, guided=False), G,
+                          rtol=1e-6, atol=1e-9 * float(G.abs().max()))
+    with torch.no_grad():
+        assert torch.equal(net(x), both(x))  # the classifier is unchanged
+
+
+def test_attend_names_stages_of_the_tap():
+    with pytest.raises(ValueError, match="must name stages of the tap"):
+        efficientnet_lite("lite0", pretrained=False, tap="stage6+stage7", attend="stage5")
+    with pytest.raises(ValueError, match="must name stages of the tap"):
+        efficientnet_lite("lite0", pretrained=False, tap="stage7", attend="")
+    assert efficientnet_lite("lite0", pretrained=False, tap="stage7", attend="stage7").attended_groups == (True,)
+    assert efficientnet_lite("lite0", pretrained=False, tap="stage7+stage6").attend == "stage6+stage7"
+    with pytest.raises(ValueError, match="VGG16's tap is one layer"):
+        build_backbone("vgg16", pretrained=False, attend="pool5")
+
+
 def test_default_configuration():
     d = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False)
     assert d.backbone.tap == "stage6+stage7" and d.backbone.input_size == (224, 288)
     assert d.backbone.tap_shape == (512, 7, 9) and d.tap_groups == (192, 320)
+    # the attention at stage7 only; stage6 pooled unfused (docs/attention.md, session 4)
+    assert d.backbone.attend == "stage7" and d.attended_groups == (False, True)
     r = d.recipe
     assert (r.pooling, r.gem_p, r.levels, r.num_rnn, r.out_features, r.pool_scale, r.merges) == (
         "regional", 2.0, (1, 2), 16, 64, 10.0, False)
     assert d.pool.weights.shape == (16, 64, 2560)
     x = torch.randint(0, 256, (2, 3, 120, 160), dtype=torch.uint8)
     parts = d.parts(x)
-    code = regional_code(fuse_groups(parts.tap, parts.grad, "dam", (192, 320)), (192, 320), 2.0, (1, 2))
+    assert float(parts.grad[:, :192].abs().max()) == 0 and torch.equal(parts.fused[:, :192], parts.tap[:, :192])
+    code = regional_code(fuse_groups(parts.tap, parts.grad, "dam", (192, 320), (False, True)), (192, 320), 2.0, (1, 2))
     ref = F.normalize(random_rnn_pool(10.0 * F.normalize(code, dim=1)[:, :, None, None], d.pool.weights,
                                       merge=False), dim=1)
     assert torch.allclose(parts.descriptor, ref, atol=1e-6)
     assert torch.allclose(d.from_attention(parts.tap, parts.grad, "gaf"),
                           descriptor_from_attention(parts.tap, parts.grad, d.pool.weights, "gaf",
-                                                    groups=(192, 320))[1])
+                                                    groups=(192, 320), attended=(False, True))[1])
     assert d(x[:0]).shape == (0, 1024)
     explicit = AttentionDescriptor("efficientnet_lite0", pretrained=False, tap="stage7")
     assert explicit.backbone.tap_shape == (320, 7, 7)  # an explicit tap: the backbone's own 224 x 224

@@ -111,6 +111,7 @@ def build_backbone(
     tap: str | None = None,
     seed: int = 0,
     input_size: tuple[int, int] | None = None,
+    attend: str | None = None,
 ) -> nn.Module:
     """Build a backbone by name (``auto``, ``vgg16`` or ``efficientnet_lite0``), in eval mode.
 
@@ -121,6 +122,8 @@ def build_backbone(
         tap: the tap layer; the backbone's default (:data:`BACKBONES`) when None.
         seed: seed of the random weights when not pretrained.
         input_size: EfficientNet-Lite0's network input (H, W) (default 224 x 224); VGG16 takes 224 x 224 only.
+        attend: EfficientNet-Lite0's stages of a joined tap where G is computed (None: all;
+            :class:`attnloop.backbones.efficientnet_lite.EfficientNetLite`); VGG16's tap is one layer.
 
     Example:
         >>> build_backbone("vgg16", pretrained=False).tap_shape
@@ -131,9 +134,12 @@ def build_backbone(
     if resolved == "vgg16":
         if input_size is not None and tuple(input_size) != (224, 224):
             raise ValueError(f"VGG16's classifier takes 224 x 224 inputs, got input_size={tuple(input_size)}")
+        if attend is not None:
+            raise ValueError(f"attend={attend!r} applies to a joined EfficientNet-Lite tap; VGG16's tap is one layer")
         return vgg16(pretrained=pretrained, weights=weights, tap=tap, seed=seed)
     try:
-        return efficientnet_lite0(pretrained=pretrained, weights=weights, tap=tap, seed=seed, input_size=input_size)
+        return efficientnet_lite0(pretrained=pretrained, weights=weights, tap=tap, seed=seed, input_size=input_size,
+                                  attend=attend)
     except WeightsNotFoundError as exc:
         if name != AUTO:
             raise

@@ -179,23 +179,25 @@ class MBConv(nn.Module):
 class _ReplaySegment(torch.autograd.Function):
     """The last joined stage's output, with the backward of the blocks before it replayed from a recording.
 
-    ``forward(leaf, outs, L_0, ..., L_n)``: ``outs`` are the later joined stages' outputs recorded by
-    autograd from ``leaf`` (the first stage's output); the value is ``outs[-1]``. The backward of an
-    incoming gradient g gives each later stage's slice of L the total gradient at that stage's output
-    and the first slice the gradient at ``leaf``, exactly what ``forward_from_tap`` of a joined tap gives.
+    ``forward(leaf, outs, attended, L_0, ..., L_n)``: ``outs`` are the later joined stages' outputs
+    recorded by autograd from ``leaf`` (the first attended stage's output); the value is ``outs[-1]``.
+    The backward of an incoming gradient g gives each later attended stage's slice of L the total
+    gradient at that stage's output (zeros where ``attended``, one flag per later stage, is False) and
+    the first slice the gradient at ``leaf``, exactly what ``forward_from_tap`` of a joined tap gives.
     First-order only (the descriptor's no-autograd path).
     """
 
     @staticmethod
-    def forward(ctx, leaf, outs, *parts):  # type: ignore[override]
-        ctx.leaf, ctx.outs = leaf, outs
+    def forward(ctx, leaf, outs, attended, *parts):  # type: ignore[override]
+        ctx.leaf, ctx.outs, ctx.attended = leaf, outs, attended
         return outs[-1].detach().clone()
 
     @staticmethod
     def backward(ctx, grad):  # type: ignore[override]
         inner = torch.autograd.grad(ctx.outs[-1], [ctx.leaf, *ctx.outs[:-1]], grad, allow_unused=True)
         inner = [torch.zeros_like(t) if g is None else g for g, t in zip(inner, [ctx.leaf, *ctx.outs[:-1]])]
-        return (None, None, *inner, grad)
+        later = [g if keep else torch.zeros_like(g) for g, keep in zip([*inner[1:], grad], ctx.attended)]
+        return (None, None, None, inner[0], *later)
 
 
 class EfficientNetLite(nn.Module):
@@ -203,11 +205,17 @@ class EfficientNetLite(nn.Module):
 
     Args:
         variant: ``lite0`` (224 x 224 input), ``lite1`` (240) or ``lite2`` (260).
-        tap: the tap layer L (see :func:`efficientnet_lite_taps`), ``stage7`` by default.
+        tap: the tap layer L (see :func:`efficientnet_lite_taps`), ``stage7`` by default, or stages of
+            one resolution joined by '+' (``stage6+stage7``): L is their outputs concatenated.
         num_classes: size of the classifier output.
         input_size: the network input (H, W) images are resized to; default the variant's training
             resolution. The network is fully convolutional up to its global average pool, so any size
             works; the tap's spatial size follows (:attr:`tap_shape`).
+        attend: the stages of a joined tap where the attention G is computed, joined by '+' (e.g.
+            ``stage7`` of ``stage6+stage7``); None: all of them. G is zero on the other stages' channels,
+            which the descriptor passes to the pooling unfused (:attr:`attended_groups`), and the seeded
+            backward stops at the first attended stage: Lite0's stage7 alone costs 5.5 % of a forward
+            in multiply-adds, stage6 + stage7 13.1 % (docs/attention.md).
 
     Shape:
         - images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1]
@@ -220,7 +228,7 @@ class EfficientNetLite(nn.Module):
     std = (128.0 / 255.0,) * 3
 
     def __init__(self, variant: str = "lite0", tap: str = "stage7", num_classes: int = 1000,
-                 input_size: int | tuple[int, int] | None = None) -> None:
+                 input_size: int | tuple[int, int] | None = None, attend: str | None = None) -> None:
         super().__init__()
         if variant not in EFFICIENTNET_LITE_VARIANTS:
             raise ValueError(f"unknown EfficientNet-Lite variant {variant!r}; choose one of "
@@ -245,6 +253,16 @@ class EfficientNetLite(nn.Module):
         #: Channel counts of the stages a joined tap concatenates (one entry for a single tap).
         self.tap_groups = tuple(taps[n][1] for n in names)
         self._group_blocks = tuple(taps[n][0] for n in names)
+        wanted = names if attend is None else (attend.split("+") if isinstance(attend, str) else [attend])
+        unknown = [a for a in wanted if a not in names]
+        if unknown or not wanted:
+            raise ValueError(f"attend={attend!r} must name stages of the tap {self.tap!r} joined by '+' "
+                             f"(one or more of {names}), or be None for all of them")
+        #: Per stage of the tap: whether G is computed there (False: G is zero, the stage is not fused).
+        self.attended_groups = tuple(n in wanted for n in names)
+        self.attend = "+".join(n for n in names if n in wanted)
+        # the network continues from the first attended stage: the backward ends there
+        self._first_attended = self.attended_groups.index(True)
         last_block, _, (h, w) = taps[names[-1]]
         self.tap_shape = (sum(self.tap_groups), h, w)
         stages = _stages(variant)
@@ -312,15 +330,16 @@ class EfficientNetLite(nn.Module):
                 max-pool transitions, so its partial guided backprop is plain backprop.
         """
         if len(self.tap_groups) > 1:
-            # A joined tap (L_a, L_b, ...): the network runs on from the first stage; each later stage's
-            # output is replaced by its slice of L in the gradient only (value x, derivative identity),
-            # so that dS/dL_b is the gradient at stage b and dS/dL_a flows through the blocks in between.
+            # A joined tap (L_a, L_b, ...): the network runs on from the first attended stage; each later
+            # attended stage's output is replaced by its slice of L in the gradient only (value x,
+            # derivative identity), so that dS/dL_b is the gradient at stage b and dS/dL_a flows through
+            # the blocks in between. Slices not used here (stages not attended) get a zero gradient.
             parts = tap.split(self.tap_groups, dim=1)
-            x = parts[0]
-            first = self._group_blocks[0]
-            for k in range(first + 1, len(self._blocks)):
+            a = self._first_attended
+            x = parts[a]
+            for k in range(self._group_blocks[a] + 1, len(self._blocks)):
                 x = self._blocks[k](x)
-                if k in self._group_blocks:
+                if k in self._group_blocks and self.attended_groups[self._group_blocks.index(k)]:
                     given = parts[self._group_blocks.index(k)]
                     x = x + (given - given.detach())
             x = self._head_features(x)
@@ -342,8 +361,8 @@ class EfficientNetLite(nn.Module):
         The same logits and gradients as ``forward_from_tap(at_tap(forward_to_tap(x)))``. For a joined
         tap under no autograd (the descriptor's fast path) that pair would run the blocks between the
         first and the last joined stage twice (Lite0's stage6+stage7: the 1152-channel last block, ~7 %
-        of a forward); here they run once, recorded from a leaf at the first stage, and the backward
-        through them replays that recording (:class:`_ReplaySegment`).
+        of a forward); here they run once, recorded from a leaf at the first attended stage, and the
+        backward through them replays that recording (:class:`_ReplaySegment`).
 
         Args:
             x: preprocessed images (B, 3, *input_size).
@@ -352,10 +371,14 @@ class EfficientNetLite(nn.Module):
         """
         if len(self.tap_groups) == 1 or torch.is_grad_enabled():
             return self.forward_from_tap(at_tap(self.forward_to_tap(x)), transition)
-        first, last = self._group_blocks[0], self._group_blocks[-1]
+        a = self._first_attended
+        first, last = self._group_blocks[a], self._group_blocks[-1]
         h = F.relu6(self._bn0(self._conv_stem(x)))
-        for block in self._blocks[: first + 1]:
+        before = []  # the outputs of the stages before the first attended one (no gradient there)
+        for k, block in enumerate(self._blocks[: first + 1]):
             h = block(h)
+            if k in self._group_blocks[:a]:
+                before.append(h)
         with torch.enable_grad():
             leaf = h.detach().requires_grad_(True)
             outs, y = [], leaf
@@ -363,8 +386,9 @@ class EfficientNetLite(nn.Module):
                 y = self._blocks[k](y)
                 if k in self._group_blocks:
                     outs.append(y)
-        var = at_tap(torch.cat([h, *(o.detach() for o in outs)], dim=1))
-        x = _ReplaySegment.apply(leaf, outs, *var.split(self.tap_groups, dim=1))
+        var = at_tap(torch.cat([*before, h, *(o.detach() for o in outs)], dim=1))
+        parts = var.split(self.tap_groups, dim=1)[a:]
+        x = _ReplaySegment.apply(leaf, outs, self.attended_groups[a + 1:], *parts) if outs else parts[0]
         for block in self._blocks[last + 1:]:
             x = block(x)
         x = torch.flatten(F.adaptive_avg_pool2d(self._head_features(x), 1), 1)
@@ -379,8 +403,8 @@ class EfficientNetLite0(EfficientNetLite):
     """EfficientNet-Lite0 (:class:`EfficientNetLite` with ``variant="lite0"``), 224 x 224 input by default."""
 
     def __init__(self, tap: str = "stage7", num_classes: int = 1000,
-                 input_size: int | tuple[int, int] | None = None) -> None:
-        super().__init__("lite0", tap=tap, num_classes=num_classes, input_size=input_size)
+                 input_size: int | tuple[int, int] | None = None, attend: str | None = None) -> None:
+        super().__init__("lite0", tap=tap, num_classes=num_classes, input_size=input_size, attend=attend)
 
 
 def efficientnet_lite(
@@ -390,6 +414,7 @@ def efficientnet_lite(
     tap: str = "stage7",
     seed: int = 0,
     input_size: int | tuple[int, int] | None = None,
+    attend: str | None = None,
 ) -> EfficientNetLite:
     """Build EfficientNet-Lite0/1/2 (eval mode) tapped at ``tap``.
 
@@ -402,6 +427,7 @@ def efficientnet_lite(
         tap: the tap layer L.
         seed: seed of the random weights when ``pretrained`` is False.
         input_size: the network input (H, W); default the variant's resolution.
+        attend: the stages of a joined tap where G is computed (see :class:`EfficientNetLite`).
 
     Returns:
         the network in eval mode.
@@ -412,7 +438,8 @@ def efficientnet_lite(
     """
     cls = EfficientNetLite0 if variant == "lite0" else EfficientNetLite
     with torch.device("meta"):  # no default initialisation: the weights are set just below
-        net = cls(tap=tap, input_size=input_size) if variant == "lite0" else cls(variant, tap=tap, input_size=input_size)
+        kw = {"tap": tap, "input_size": input_size, "attend": attend}
+        net = cls(**kw) if variant == "lite0" else cls(variant, **kw)
     if pretrained or weights is not None:
         path = resolve_efficientnet_lite_weights(variant, weights)
         state = load_state_dict(path, EFFICIENTNET_LITE_FILES[variant])
@@ -431,6 +458,7 @@ def efficientnet_lite0(
     tap: str = "stage7",
     seed: int = 0,
     input_size: int | tuple[int, int] | None = None,
+    attend: str | None = None,
 ) -> EfficientNetLite0:
     """Build EfficientNet-Lite0 (eval mode) tapped at ``tap`` (see :func:`efficientnet_lite`).
 
@@ -439,4 +467,4 @@ def efficientnet_lite0(
         >>> net.tap_shape
         (320, 7, 7)
     """
-    return efficientnet_lite("lite0", pretrained, weights, tap, seed, input_size)  # type: ignore[return-value]
+    return efficientnet_lite("lite0", pretrained, weights, tap, seed, input_size, attend)  # type: ignore[return-value]
