@@ -78,6 +78,18 @@ def directional(f, x: torch.Tensor, v: torch.Tensor, u: torch.Tensor) -> tuple[f
     return float((gx * v).sum()), float(fd)
 
 
+def at_perturbed_weight(weight: torch.Tensor, v: torch.Tensor, f):
+    """(f() at weight + EPS v, f() at weight - EPS v), the weight restored after: a central difference's ends."""
+    base = weight.detach().clone()
+    with torch.no_grad():
+        weight.copy_(base + EPS * v)
+        plus = f()
+        weight.copy_(base - EPS * v)
+        minus = f()
+        weight.copy_(base)
+    return plus, minus
+
+
 @pytest.mark.parametrize("kind", ["hooked", "protocol"])
 def test_image_directional_derivative_every_fusion(kind):
     x, v, g = images_and_direction()
@@ -113,13 +125,7 @@ def test_weight_directional_derivative(layer):
     u = torch.randn(2, 1024, dtype=torch.float64, generator=g)
     (gw,) = torch.autograd.grad((u * desc(x)).sum(), weight)
     ad = float((gw * v).sum())
-    base = weight.detach().clone()
-    with torch.no_grad():
-        weight.copy_(base + EPS * v)
-        fp = (u * desc(x)).sum()
-        weight.copy_(base - EPS * v)
-        fm = (u * desc(x)).sum()
-        weight.copy_(base)
+    fp, fm = at_perturbed_weight(weight, v, lambda: (u * desc(x)).sum())
     fd = float((fp - fm) / (2 * EPS))
     assert abs(fd) > 1e-5 and abs(ad - fd) <= RTOL * abs(fd), (ad, fd)
 
@@ -199,13 +205,7 @@ def test_efficientnet_head_second_order_every_fusion(lite64):
                                     retain_graph=True)
         ads.append(float((gw * v).sum()))
     del tap, grad  # the graph saved the weight; it is perturbed in place below
-    base = weight.detach().clone()
-    with torch.no_grad():
-        weight.copy_(base + EPS * v)
-        tp, gp = guided_backprop(net, x)
-        weight.copy_(base - EPS * v)
-        tm, gm = guided_backprop(net, x)
-        weight.copy_(base)
+    (tp, gp), (tm, gm) = at_perturbed_weight(weight, v, lambda: guided_backprop(net, x))
     assert torch.equal(tp, tm)  # the forward below the tap does not depend on the head
     for mode, ad in zip(modes, ads):
         fd = float((u * (descriptor_from_attention(tp, gp, w, mode, pooling="flat")[1] - descriptor_from_attention(tm, gm, w, mode, pooling="flat")[1]))
@@ -268,12 +268,6 @@ def test_attended_stage_G_is_second_order_through_the_head():
     (gx,) = torch.autograd.grad(tap[:, :192].sum(), xr)
     assert float(gx.abs().max()) > 0
     ad = float((gw * v).sum())
-    base = weight.detach().clone()
-    with torch.no_grad():
-        weight.copy_(base + EPS * v)
-        _, gp = guided_backprop(net, x)
-        weight.copy_(base - EPS * v)
-        _, gm = guided_backprop(net, x)
-        weight.copy_(base)
+    (_, gp), (_, gm) = at_perturbed_weight(weight, v, lambda: guided_backprop(net, x))
     fd = float((u * (gp - gm)).sum() / (2 * EPS))
     assert abs(fd) > 1e-6 and abs(ad - fd) <= RTOL * abs(fd), (ad, fd)
