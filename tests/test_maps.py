@@ -308,6 +308,39 @@ def test_another_descriptor_cannot_use_the_map(room_sessions):
                  map_dir=room_sessions["folder"])
 
 
+def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sessions, tmp_path, caplog):
+    # The names match (backbone, fusion, seed), the descriptor does not: e.g. another version's default recipe.
+    # The map's descriptor of the probe image tells them apart.
+    import copy
+    import logging
+    import shutil
+
+    from slam.maps import MapMismatchError
+    from slam.maps.relocalise import PROBE_TOLERANCE, descriptor_probe
+    from slam.pipeline import run_slam
+
+    desc = room_sessions["desc"]
+    probe = descriptor_probe(desc)
+    assert load_map(room_sessions["folder"]).descriptor["probe"] == probe  # what the first session saved
+    assert len(probe) == 1024 and descriptor_probe(copy.deepcopy(desc)) == probe  # deterministic
+    folder = tmp_path / "m"
+    shutil.copytree(room_sessions["folder"], folder)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    changed = list(probe)
+    changed[3] += 10 * PROBE_TOLERANCE
+    manifest["descriptor"]["probe"] = changed
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(MapMismatchError, match="descriptor of the probe image differs from this run's by 0.01"):
+        run_slam(room_sessions["seq"], room_sessions["cfg"], progress=False, descriptor=desc, frames=(0, 5),
+                 map_dir=folder)
+    del manifest["descriptor"]["probe"]  # a map saved before the probe existed: accepted, with a warning
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    with caplog.at_level(logging.WARNING, logger="slam.maps.relocalise"):
+        run_slam(room_sessions["seq"], room_sessions["cfg"], progress=False, descriptor=desc, frames=(0, 5),
+                 map_dir=folder)
+    assert "records no descriptor probe" in caplog.text
+
+
 # ------------------------------------------------------------------------------------ command line
 def test_cli_refuses_map_flags_it_cannot_honour(tmp_path, capsys):
     from slam.cli import main

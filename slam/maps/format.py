@@ -4,7 +4,8 @@ A map folder written by :func:`save_map` holds:
 
 * ``manifest.json``: ``format`` (``"attnloop.map"``), ``version`` (:data:`MAP_FORMAT_VERSION`), when and
   from what it was made, the descriptor that made the index (backbone as built, fusion, RNN count, seed,
-  dimension: a map is only searchable with the same descriptor), the camera rig the poses are in, the
+  dimension, and its descriptor of a fixed probe image: a map is only searchable with the same descriptor,
+  :func:`slam.maps.relocalise.descriptor_probe`), the camera rig the poses are in, the
   ground-truth pose of the recording's first frame (for evaluating later sessions; null without ground
   truth), and per data file its name and SHA-256 (a file that does not match is reported corrupt);
 * ``keyframes.npz``: per keyframe ``pose (M, 7)`` float64 (world-from-camera of the *tracked* camera,
@@ -109,7 +110,7 @@ class SavedMap:
 
     @property
     def descriptor(self) -> dict:
-        """The descriptor that made the index (``backbone``, ``fusion``, ``num_rnn``, ``seed``, ``dim``)."""
+        """The descriptor that made the index (``backbone``, ``fusion``, ``num_rnn``, ``seed``, ``dim``, ``probe``)."""
         return dict(self.info.get("descriptor", {}))
 
     @property

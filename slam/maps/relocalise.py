@@ -46,7 +46,7 @@ logger = logging.getLogger(__name__)
 Tensor = torch.Tensor
 
 __all__ = ["MapLink", "MapMismatchError", "MapRelocaliser", "RelocalisationConfig", "RelocalisationReport",
-           "capture_map", "map_world_errors"]
+           "capture_map", "descriptor_probe", "map_world_errors"]
 
 _NO_BOUND = DriftLimits(math.inf, math.inf)
 
@@ -130,11 +130,44 @@ def _rig(config) -> dict:
             "rgb_from_depth": [float(v) for v in f.rgb_from_depth_translation]}
 
 
+#: Largest difference (any entry) between the map's and the run's descriptor of the probe image that is
+#: still one descriptor. Threads and devices move an entry by ~1e-7; the descriptors of two recipes by
+#: ~1e-2 (Lite0's default with G at stage6 and stage7 against G at stage7 alone: 0.0096, entries ~0.03).
+PROBE_TOLERANCE = 1e-3
+
+
+def _probe_image() -> torch.Tensor:
+    """(1, 3, 96, 128) uint8: a fixed, smooth, seeded frame (any descriptor accepts any image size)."""
+    low = torch.rand(1, 3, 6, 8, generator=torch.Generator().manual_seed(0))
+    img = torch.nn.functional.interpolate(low, size=(96, 128), mode="bilinear", align_corners=False)
+    return (img * 255).round().to(torch.uint8)
+
+
+def descriptor_probe(model: torch.nn.Module) -> list[float]:
+    """The descriptor of a fixed probe image: a fingerprint of everything that makes the descriptor.
+
+    Two models with the same names (backbone, fusion, seed) can still describe differently: another
+    tap, recipe or attnloop version's default, other weights. A saved map keeps this vector, and a run
+    whose own differs by more than :data:`PROBE_TOLERANCE` cannot search the map's index.
+
+    Args:
+        model: maps ``(1, 3, H, W)`` uint8 images to ``(1, D)`` descriptors.
+
+    Returns:
+        the ``D`` entries, rounded to 1e-7.
+    """
+    param = next(model.parameters(), None)
+    image = _probe_image().to(param.device if param is not None else "cpu")
+    with torch.no_grad():
+        d = model(image)
+    return [round(float(v), 7) for v in d.reshape(-1).cpu()]
+
+
 def _descriptor_info(slam) -> dict:
     d = slam.config.loop.descriptor
     model = slam.loop_closer.descriptor
     return {"backbone": getattr(model, "backbone_name", d.backbone), "fusion": d.fusion, "num_rnn": d.num_rnn,
-            "seed": d.seed, "dim": slam.loop_closer.detector.index.dim}
+            "seed": d.seed, "dim": slam.loop_closer.detector.index.dim, "probe": descriptor_probe(model)}
 
 
 def _output_rig(config) -> Tensor | None:
@@ -248,6 +281,19 @@ class MapRelocaliser:
             if key in theirs and theirs[key] != mine[key]:
                 raise MapMismatchError(f"{where}: the map was made with descriptor {key}={theirs[key]!r}, this run "
                                        f"uses {mine[key]!r}; its index cannot be searched with another descriptor")
+        if "probe" not in theirs:
+            logger.warning("%s records no descriptor probe (a map saved before 2026-12-02): its descriptor is "
+                           "assumed to be this run's (%s)", where, mine["backbone"])
+        else:
+            probe = torch.tensor(theirs["probe"], dtype=torch.float64)
+            own = torch.tensor(mine["probe"], dtype=torch.float64)
+            gap = float((probe - own).abs().max()) if probe.shape == own.shape else float("inf")
+            if not gap <= PROBE_TOLERANCE:
+                raise MapMismatchError(
+                    f"{where}: the map's descriptor of the probe image differs from this run's by {gap:.3g} (largest "
+                    f"entry; at most {PROBE_TOLERANCE:g} is one descriptor), though both are {mine['backbone']} "
+                    f"{mine['fusion']} seed {mine['seed']}: another tap, recipe, attnloop version or weights made "
+                    "the map; its index cannot be searched with this descriptor (save the map again with it)")
         rig, map_rig = _rig(slam.config), saved.rig
         if map_rig and (map_rig.get("rgb_intrinsics") != rig["rgb_intrinsics"]
                         or not np.allclose(map_rig.get("rgb_from_depth", [0, 0, 0]), rig["rgb_from_depth"])):
