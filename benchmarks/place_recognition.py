@@ -8,8 +8,8 @@ Sets (each skipped with a note when its data is absent):
 * ``kitchen``: 7-Scenes redkitchen, every 5th frame (200), ground truth from the poses (0.5 m,
   45 degrees). ``fwd``: each frame against those at least 100 frames earlier; ``split``: the second
   half of the sequence (frames 500-995) against the first.
-* ``--query DIR --reference DIR --ground-truth FILE``: a VPR-Bench-style pair of folders (images sorted
-  by name) with a ``ground_truth_new.npy`` or a binary matrix (:mod:`slam.eval.place_recognition`).
+* ``--query DIR --reference DIR --ground-truth FILE``: a VPR-Bench-style pair of folders (images in
+  natural order of their names, numbers compared as numbers: VPR-Bench's order) with a ``ground_truth_new.npy`` or a binary matrix (:mod:`slam.eval.place_recognition`).
 
 Methods (all L2-normalised, cosine similarity; ORB-BoW with its own score):
 
@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -73,8 +74,19 @@ def load_rgb(path: Path) -> np.ndarray:
     return np.ascontiguousarray(bgr[:, :, ::-1])
 
 
+def natural_key(path: Path) -> list:
+    """Sort key of a file name with its digit runs compared as numbers: ``2.jpg`` before ``10.jpg``.
+
+    VPR-Bench numbers a dataset's images by the integer in their name (its loader sorts by it) and its
+    ``ground_truth_new.npy`` indexes them in that order; a plain string sort would put ``10.jpg`` second
+    and misalign every query of a folder without zero padding.
+    """
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", path.name)]
+
+
 def folder_images(folder: Path) -> list[Path]:
-    files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    """The images of ``folder`` in natural order (:func:`natural_key`), the order of its ground truth."""
+    files = sorted((p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
     if not files:
         raise SystemExit(f"no images in {folder}")
     return files

@@ -300,3 +300,20 @@ def test_plot(tmp_path):
     img = plot_place_recognition(tmp_path / "pr.png", {"a": r, "b": r}, size=(320, 260))
     assert img.shape == (260, 320, 3)
     assert cv2.imread(str(tmp_path / "pr.png")).shape == (260, 320, 3)
+
+
+def test_benchmark_reads_a_folder_in_the_order_of_its_ground_truth(tmp_path, load_script):
+    # VPR-Bench indexes images by the integer in their names; unpadded names must not sort as strings
+    bench = load_script("benchmarks/place_recognition.py")
+    for name in ("10.jpg", "2.jpg", "0.jpg", "1.png", "notes.txt", "img11.jpg", "img9.jpg"):
+        (tmp_path / name).write_bytes(b"")
+    assert [p.name for p in bench.folder_images(tmp_path)] == ["0.jpg", "1.png", "2.jpg", "10.jpg", "img9.jpg",
+                                                                "img11.jpg"]
+    padded = tmp_path / "padded"
+    padded.mkdir()
+    for i in (11, 0, 2):
+        (padded / f"{i:07d}.jpg").write_bytes(b"")
+    assert [p.name for p in bench.folder_images(padded)] == ["0000000.jpg", "0000002.jpg", "0000011.jpg"]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit, match="no images"):
+        bench.folder_images(tmp_path / "empty")
