@@ -351,6 +351,9 @@ class AttentionDescriptor(nn.Module):
             ``seed`` and the backbone choice stay free. None: the measured default.
         pooling: ``"regional"`` (default: regional GeM code, then the RNNs) or ``"flat"`` (the paper's
             RNNs over the whole fused map); see :mod:`attnloop.pooling`.
+        attend: a name-built EfficientNet-Lite0's stages of a joined tap where G is computed and fused
+            (the default: ``stage7`` of ``stage6+stage7``; ``"stage6+stage7"`` attends both, the default
+            until 2026-12-02); None: the configuration's, or every stage of an explicit ``tap``.
 
     Attributes:
         backbone_name: the backbone used: ``"vgg16"`` or ``"efficientnet_lite0"`` for a name (``"auto"``
@@ -395,6 +398,7 @@ class AttentionDescriptor(nn.Module):
         recipe: DescriptorRecipe | None = None,
         preset: str | None = None,
         pooling: str = _DEFAULT.pooling,
+        attend: str | None = None,
     ) -> None:
         super().__init__()
         given = DescriptorRecipe(fusion=fusion, num_rnn=num_rnn, out_features=out_features, seed=seed,
@@ -405,9 +409,10 @@ class AttentionDescriptor(nn.Module):
             free = ("fusion", "seed")
             changed = [f.name for f in dataclasses.fields(given)
                        if f.name not in free and getattr(given, f.name) != getattr(_DEFAULT, f.name)]
-            if recipe is not None or changed or tap is not None:
-                raise ValueError(f"preset={preset!r} fixes the recipe and the tap; also given: "
-                                 f"{changed + (['recipe'] if recipe is not None else []) + (['tap'] if tap else [])}")
+            if recipe is not None or changed or tap is not None or attend is not None:
+                extra = (["recipe"] if recipe is not None else []) + (["tap"] if tap else []) + (
+                    ["attend"] if attend is not None else [])
+                raise ValueError(f"preset={preset!r} fixes the recipe and the tap; also given: {changed + extra}")
             given = dataclasses.replace(given, **PAPER_RECIPE_SETTINGS)
         if recipe is not None:
             if not isinstance(recipe, DescriptorRecipe):
@@ -431,6 +436,8 @@ class AttentionDescriptor(nn.Module):
             # tap=None: the configuration's tap and input size; an explicit tap: at the backbone's own input.
             settings = (PAPER_BACKBONE_SETTINGS if preset else DEFAULT_BACKBONE_SETTINGS).get(self.backbone_name, {})
             settings = {"tap": tap} if tap is not None else dict(settings)
+            if attend is not None:
+                settings["attend"] = attend
             # the name as given: "auto" names both checkpoints it looked for when neither is found
             net = build_backbone(backbone, pretrained=use_pretrained, weights=weights, seed=given.seed, **settings)
             net.eval()
@@ -439,6 +446,9 @@ class AttentionDescriptor(nn.Module):
         elif isinstance(backbone, nn.Module):
             if pretrained is not None or weights is not None:
                 raise ValueError("pretrained=/weights= apply to a backbone name; a module comes with its own weights")
+            if attend is not None:
+                raise ValueError("attend= applies to a backbone name; build the module with it (e.g. "
+                                 "efficientnet_lite0(tap='stage6+stage7', attend='stage7'))")
             if _is_backbone(backbone):
                 extra = [k for k, v in {"tap": tap, **preprocessing}.items() if v is not None]
                 if extra:

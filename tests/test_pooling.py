@@ -205,6 +205,26 @@ def test_attend_names_stages_of_the_tap():
         build_backbone("vgg16", pretrained=False, attend="pool5")
 
 
+def test_descriptor_attend_argument():
+    both = AttentionDescriptor("efficientnet_lite0", pretrained=False, attend="stage6+stage7")
+    assert both.backbone.tap == "stage6+stage7" and both.backbone.input_size == (224, 288)
+    assert both.attended_groups == (True, True)
+    default = AttentionDescriptor("efficientnet_lite0", pretrained=False)
+    x = torch.randint(0, 256, (1, 3, 60, 80), dtype=torch.uint8)
+    a, b = both.parts(x), default.parts(x)
+    assert torch.equal(a.tap, b.tap) and not torch.allclose(a.descriptor, b.descriptor)
+    assert torch.allclose(a.descriptor, descriptor_from_attention(a.tap, a.grad, both.pool.weights, "dam",
+                                                                  groups=(192, 320))[1], atol=1e-6)
+    explicit = AttentionDescriptor("efficientnet_lite0", pretrained=False, tap="stage4+stage5", attend="stage5")
+    assert explicit.attended_groups == (False, True)
+    with pytest.raises(ValueError, match="fixes the recipe and the tap; also given: \\['attend'\\]"):
+        AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper", attend="stage7")
+    with pytest.raises(ValueError, match="attend= applies to a backbone name"):
+        AttentionDescriptor(default.backbone, attend="stage7")
+    with pytest.raises(ValueError, match="must name stages of the tap"):
+        AttentionDescriptor("efficientnet_lite0", pretrained=False, attend="stage5")
+
+
 def test_default_configuration():
     d = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False)
     assert d.backbone.tap == "stage6+stage7" and d.backbone.input_size == (224, 288)
