@@ -34,7 +34,6 @@ import torch
 import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor
-from attnloop.backbones import build_backbone
 from attnloop.fusion import FUSION_MODES
 from attnloop.guided_backprop import guided_backprop
 
@@ -77,8 +76,7 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
     if not all(getattr(net, "attended_groups", (True,))):
         # A/B: the same joined tap with G at every stage (the default before session 4 of issue 13), whose
         # backward also crosses the blocks between the stages (Lite0: 13.1 % of a forward against 5.5 %).
-        every_stage = AttentionDescriptor(
-            build_backbone(name, pretrained=pretrained, tap=net.tap, input_size=net.input_size), fusion="dam")
+        every_stage = AttentionDescriptor(name, fusion="dam", pretrained=pretrained, attend=net.tap)
     rows = []
     for batch in batches:
         images = frames(batch)
