@@ -321,8 +321,10 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
 
     desc = room_sessions["desc"]
     probe = descriptor_probe(desc)
-    assert load_map(room_sessions["folder"]).descriptor["probe"] == probe  # what the first session saved
-    assert len(probe) == 1024 and descriptor_probe(copy.deepcopy(desc)) == probe  # deterministic
+    # what the first session saved (computed there in the loop worker's thread count: equal to ~1e-7)
+    saved = torch.tensor(load_map(room_sessions["folder"]).descriptor["probe"])
+    assert len(probe) == 1024 and float((saved - torch.tensor(probe)).abs().max()) < 1e-6
+    assert descriptor_probe(copy.deepcopy(desc)) == probe  # deterministic in one thread count
     folder = tmp_path / "m"
     shutil.copytree(room_sessions["folder"], folder)
     manifest = json.loads((folder / "manifest.json").read_text())
