@@ -189,7 +189,8 @@ def descriptor(f: torch.Tensor, seed: int | None = 0, code_fn=None) -> torch.Ten
     return F.normalize(random_rnn_pool(10.0 * code[:, :, None, None], _W[seed], merge=False), dim=1)
 
 
-def table(title: str, variants: dict, feats: dict, protos: dict, code_fn=None) -> None:
+def table(title: str, variants: dict, feats: dict, protos: dict, code_fn=None, seeds=(0,)) -> None:
+    """One row per variant and mode: R@1 / R@P100 per protocol, each the mean over the RNN seeds ``seeds``."""
     names = [p for s in protos.values() for p in s]
     print(f"\n#### {title}\n\n| variant | mode | " + " | ".join(names) + " | mean |\n|---|---|"
           + "---|" * (len(names) + 1))
@@ -197,7 +198,9 @@ def table(title: str, variants: dict, feats: dict, protos: dict, code_fn=None) -
         for m in FUSION_MODES:
             if m == "none" and label != next(iter(variants)):
                 continue
-            s = scores({k: descriptor(fn(feats[k], m), code_fn=code_fn) for k in feats}, protos)
+            fused_maps = {k: fn(feats[k], m) for k in feats}
+            runs = [scores({k: descriptor(f, seed, code_fn) for k, f in fused_maps.items()}, protos) for seed in seeds]
+            s = {p: tuple(float(np.mean([r[p][i] for r in runs])) for i in (0, 1)) for p in names}
             cells = [f"{s[p][0]:.3f} / {s[p][1]:.3f}" for p in names]
             r1, rp = np.mean([s[p][0] for p in names]), np.mean([s[p][1] for p in names])
             print(f"| {label} | {m} | " + " | ".join(cells) + f" | {r1:.3f} / {rp:.3f} |", flush=True)
@@ -890,7 +893,8 @@ def main(argv=None) -> None:
                         help="the hypotheses to measure (default: all)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--rnn-seeds", type=int, default=1,
-                        help="session 3: each figure the mean over RNN seeds 0 .. N-1 (default 1: seed 0 only)")
+                        help="each figure the mean over RNN seeds 0 .. N-1 (default 1: seed 0 only); "
+                             "session 2's tables and session 3's")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     data = sets(args.data)
@@ -943,17 +947,18 @@ def main(argv=None) -> None:
                   f"{float(((n > 0.35) & (n < 0.65)).float().mean(1).median()):.2f} | {float(share.median()):.2f} | "
                   f"{float((top[q] != top[r]).float().mean()):.2f} |")
 
+    seeds = tuple(range(args.rnn_seeds))
     own = lambda **kw: (lambda f, m: fused(f["L"], f["own"], m, **kw))
     if "norm" in args.only:
         table("norm: N(.) over (C, H, W) as the paper, or per channel (dam/eam) / inner over (C, H, W) "
               "(gaf/ega), or N = the rank (percentile) of each entry", {"paper N": own(), "per-channel N":
-              own(norm="channel"), "rank N": own(norm="rank")}, feats, protos)
+              own(norm="channel"), "rank N": own(norm="rank")}, feats, protos, seeds=seeds)
     if "smooth" in args.only:
         table("smooth: G averaged over 3 x 3 before N", {"paper": own(), "smoothed G": own(smooth=True)},
-              feats, protos)
+              feats, protos, seeds=seeds)
     if "sign" in args.only:
         table("sign: N(abs G) instead of N(G)", {"paper": own(), "abs G": own(sign=True),
-                                                "abs G, smoothed": own(sign=True, smooth=True)}, feats, protos)
+                                                "abs G, smoothed": own(sign=True, smooth=True)}, feats, protos, seeds=seeds)
     if "rnnseed" in args.only:
         names = [p for s in protos.values() for p in s]
         print("\n#### rnnseed: the metric's spread over 8 RNN seeds (mean [min, max]), and without the RNNs\n")
@@ -973,10 +978,10 @@ def main(argv=None) -> None:
     if "regions" in args.only:
         table("regions: the regional code without the per-region L2 (regions weighted by their pooled magnitude, "
               "which carries the attention's between-region contrast)", {"region-weighted": own()}, feats, protos,
-              code_fn=region_weighted_code)
+              code_fn=region_weighted_code, seeds=seeds)
     if "seed" in args.only:
         table("seed: the softmax seed of the backward",
-              {kind: (lambda f, m, kind=kind: fused(f["L"], f[kind], m)) for kind in SEEDS}, feats, protos)
+              {kind: (lambda f, m, kind=kind: fused(f["L"], f[kind], m)) for kind in SEEDS}, feats, protos, seeds=seeds)
 
 
 if __name__ == "__main__":
