@@ -121,7 +121,8 @@ class DescriptorParts(NamedTuple):
 
     Attributes:
         tap: the tap activations L, :math:`(B, C, h, w)`.
-        grad: the guided gradient G = dS/dL, :math:`(B, C, h, w)`.
+        grad: the guided gradient G = dS/dL, :math:`(B, C, h, w)` (zero on the channels of a joined
+            tap's stages where it is not computed: the backbone's ``attended_groups``).
         fused: fusion(L, G / max|G|), :math:`(B, C, h, w)` (before the scaling of the pooling input).
         descriptor: the descriptor, :math:`(B, D)`.
     """
