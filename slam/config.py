@@ -44,12 +44,13 @@ class LoopClosureConfig:
     # loop closer builds that descriptor (an absolute floor is a property of the descriptor: the paper
     # preset's similarities sit near 0.55, the Lite0 default's near 0.85). EfficientNet-Lite0: chosen on the
     # SLAM's own keyframe streams of every sequence at hand (the kitchen at frame steps 1, 3 and 6, the room
-    # demo, the building; benchmarks/loop_threshold.py --streams, docs/benchmarks.md): the relative rule of
-    # before plus a floor of 0.85 keeps the kitchen's candidates (recall 0.53-0.63, 3 fewer false ones) and
-    # sends less than half as many false candidates to verification on the room (1 vs 21) and the building
-    # (549 vs 1372) at the same recall (0.88; 0.92 vs 0.94). A lower k_sigma (0.5) raises the kitchen's
-    # recall to 0.80 but its extra loops cost the default kitchen run 0.7 mm of ATE (0.0301 m vs 0.0294).
-    # Every fusion mode shares the scale (median similarity of kitchen frames >= 100 apart: 0.85-0.86).
+    # demo, the building; benchmarks/loop_threshold.py --streams, docs/benchmarks.md; re-measured with the
+    # stage7-only attention G): the relative rule of before plus a floor of 0.85 keeps the kitchen's
+    # candidates (recall 0.47-0.61, 0-2 fewer false ones) and sends less than half as many false candidates
+    # to verification on the room (1 vs 21) and the building (582 vs 1286) at the same recall (0.88; 0.92).
+    # A lower k_sigma (0.5 or 1) raises the kitchen's recall to 0.68-0.83 but its extra loops (49 vs 33, all
+    # true) cost the default kitchen run 0.7 mm of ATE (0.0301 m vs 0.0293, over the 0.030 m target).
+    # Every fusion mode shares the scale (median similarity of kitchen frames >= 100 apart: 0.857-0.863).
     # Backbones not listed (VGG16, a custom descriptor) keep ``detector.threshold``.
     threshold_by_backbone: dict = field(default_factory=lambda: {
         "efficientnet_lite0": ThresholdConfig(k_sigma=1.5, min_margin=0.005, min_similarity=0.85, min_samples=16)})
