@@ -147,6 +147,10 @@ def test_loop_closer_takes_the_threshold_calibrated_for_its_descriptor():
     paper = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=True, preset="paper"))
     assert paper.threshold == cfg.detector.threshold
     assert LoopCloser(cfg, descriptor=torch.nn.Identity()).threshold == cfg.detector.threshold
+    # the default recipe on another tap or other attention stages: another descriptor, not calibrated
+    for kw in ({"tap": "stage7"}, {"attend": "stage6+stage7"}):
+        other = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=True, **kw))
+        assert other.threshold == cfg.detector.threshold, kw
     random_cfg = LoopClosureConfig()
     random_cfg.descriptor.pretrained = False
     rnd = LoopCloser(random_cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=False))

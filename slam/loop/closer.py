@@ -163,12 +163,18 @@ class LoopCloser:
         self.timer = timer or StageTimer()
         self.descriptor = descriptor if descriptor is not None else build_descriptor(config.descriptor, self.timer)
         # the threshold calibrated for this descriptor, if any (LoopClosureConfig.threshold_by_backbone): a
-        # backbone's default recipe with its pretrained weights (a preset, another recipe or random weights
-        # have other similarity scales and keep detector.threshold)
+        # backbone's default recipe, tap, attention stages and input size with its pretrained weights (a
+        # preset, another recipe or tap, or random weights have other similarity scales and keep
+        # detector.threshold)
+        from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
+
         backbone = getattr(self.descriptor, "backbone_name", None)
         recipe = getattr(self.descriptor, "recipe", None)
+        net = getattr(self.descriptor, "backbone", None)
         default = (recipe is not None and bool(config.descriptor.pretrained)  # any fusion mode: they share a scale
-                   and dataclasses.replace(recipe, fusion=type(recipe)().fusion) == type(recipe)())
+                   and dataclasses.replace(recipe, fusion=type(recipe)().fusion) == type(recipe)()
+                   and all(getattr(net, key, None) == value
+                           for key, value in DEFAULT_BACKBONE_SETTINGS.get(backbone, {}).items()))
         calibrated = getattr(config, "threshold_by_backbone", {}).get(backbone) if default else None
         detector = config.detector if calibrated is None else dataclasses.replace(config.detector, threshold=calibrated)
         self.threshold = detector.threshold
