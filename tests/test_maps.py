@@ -233,6 +233,10 @@ def test_a_session_placed_in_the_map_saves_the_grown_map(room_sessions):
     odometry = [e for e in new if e.kind is EdgeKind.ODOMETRY]
     assert len(odometry) == S - 1 and all(M <= e.i < e.j < M + S for e in odometry)  # its chain, shifted
     assert [s["keyframes"] for s in grown.info["sessions"]] == [[0, M], [M, M + S]]
+    # the grown map's descriptor is the base's, checked on loading, with this run's probe
+    gap = torch.tensor(grown.descriptor["probe"]) - torch.tensor(base.descriptor["probe"])
+    assert {k: v for k, v in grown.descriptor.items() if k != "probe"} == \
+        {k: v for k, v in base.descriptor.items() if k != "probe"} and float(gap.abs().max()) < 1e-6
     assert grown.groundtruth_origin is not None and torch.equal(grown.groundtruth_origin, base.groundtruth_origin)
     # every keyframe finds itself in the grown index
     ids, _ = grown.index.search(grown.descriptors[M + S - 1], k=1)
@@ -309,38 +313,60 @@ def test_another_descriptor_cannot_use_the_map(room_sessions):
 
 
 def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sessions, tmp_path, caplog):
-    # The names match (backbone, fusion, seed), the descriptor does not: e.g. another version's default recipe.
-    # The map's descriptor of the probe image tells them apart.
+    # The names match (backbone, fusion, seed), the descriptor does not: the map's descriptor of the probe
+    # image tells them apart. The real case: the previous default (G at stage6 and stage7).
     import copy
     import logging
     import shutil
 
+    from attnloop import AttentionDescriptor
     from slam.maps import MapMismatchError
-    from slam.maps.relocalise import PROBE_TOLERANCE, descriptor_probe
+    from slam.maps.relocalise import descriptor_probe
     from slam.pipeline import run_slam
 
-    desc = room_sessions["desc"]
+    desc, cfg, seq = room_sessions["desc"], room_sessions["cfg"], room_sessions["seq"]
     probe = descriptor_probe(desc)
     # what the first session saved (computed there in the loop worker's thread count: equal to ~1e-7)
     saved = torch.tensor(load_map(room_sessions["folder"]).descriptor["probe"])
     assert len(probe) == 1024 and float((saved - torch.tensor(probe)).abs().max()) < 1e-6
     assert descriptor_probe(copy.deepcopy(desc)) == probe  # deterministic in one thread count
+    previous = AttentionDescriptor("efficientnet_lite0", fusion="dam", attend="stage6+stage7").eval()
+    with pytest.raises(MapMismatchError, match="descriptor of the probe image differs from this run's by 0.0"):
+        run_slam(seq, cfg, progress=False, descriptor=previous, frames=(0, 5), map_dir=room_sessions["folder"])
+    # a map saved before the probe existed: Lite0 with attention was the previous default, refused ...
     folder = tmp_path / "m"
     shutil.copytree(room_sessions["folder"], folder)
     manifest = json.loads((folder / "manifest.json").read_text())
-    changed = list(probe)
-    changed[3] += 10 * PROBE_TOLERANCE
-    manifest["descriptor"]["probe"] = changed
+    del manifest["descriptor"]["probe"]
     (folder / "manifest.json").write_text(json.dumps(manifest))
-    with pytest.raises(MapMismatchError, match="descriptor of the probe image differs from this run's by 0.01"):
-        run_slam(room_sessions["seq"], room_sessions["cfg"], progress=False, descriptor=desc, frames=(0, 5),
-                 map_dir=folder)
-    del manifest["descriptor"]["probe"]  # a map saved before the probe existed: accepted, with a warning
+    with pytest.raises(MapMismatchError, match="saved before 2026-12-02 with the previous EfficientNet-Lite0 default"):
+        run_slam(seq, cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
+    # ... while `none`, which the change left alone, is accepted with a warning
+    manifest["descriptor"]["fusion"] = "none"
     (folder / "manifest.json").write_text(json.dumps(manifest))
+    none_cfg = copy.deepcopy(cfg)
+    none_cfg.loop.descriptor.fusion = "none"
     with caplog.at_level(logging.WARNING, logger="slam.maps.relocalise"):
-        run_slam(room_sessions["seq"], room_sessions["cfg"], progress=False, descriptor=desc, frames=(0, 5),
-                 map_dir=folder)
-    assert "records no descriptor probe" in caplog.text
+        run_slam(seq, none_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
+    assert "no descriptor probe to compare (none recorded in the map)" in caplog.text
+
+
+def test_a_descriptor_that_cannot_describe_the_probe_saves_a_map_without_one(caplog):
+    import logging
+
+    from slam.maps.relocalise import descriptor_probe
+
+    class Picky(torch.nn.Module):
+        def forward(self, images):
+            raise ValueError(f"needs 480 x 640 images, got {tuple(images.shape)}")
+
+    with caplog.at_level(logging.WARNING, logger="slam.maps.relocalise"):
+        assert descriptor_probe(Picky()) is None
+    assert "could not describe the 96 x 128 probe image (ValueError: needs 480 x 640" in caplog.text
+    buffered = torch.nn.Module()
+    buffered.register_buffer("scale", torch.ones(2, dtype=torch.float64))
+    buffered.forward = lambda images: images.flatten(1)[:, :4].to(buffered.scale.dtype) * buffered.scale[0]
+    assert len(descriptor_probe(buffered)) == 4  # the device from a buffer when there is no parameter
 
 
 # ------------------------------------------------------------------------------------ command line

@@ -143,7 +143,7 @@ def _probe_image() -> torch.Tensor:
     return (img * 255).round().to(torch.uint8)
 
 
-def descriptor_probe(model: torch.nn.Module) -> list[float]:
+def descriptor_probe(model: torch.nn.Module) -> list[float] | None:
     """The descriptor of a fixed probe image: a fingerprint of everything that makes the descriptor.
 
     Two models with the same names (backbone, fusion, seed) can still describe differently: another
@@ -151,16 +151,24 @@ def descriptor_probe(model: torch.nn.Module) -> list[float]:
     whose own differs by more than :data:`PROBE_TOLERANCE` cannot search the map's index.
 
     Args:
-        model: maps ``(1, 3, H, W)`` uint8 images to ``(1, D)`` descriptors.
+        model: maps ``(1, 3, H, W)`` uint8 images to ``(1, D)`` descriptors, on the device of its
+            parameters or buffers (CPU when it has neither).
 
     Returns:
-        the ``D`` entries, rounded to 1e-7.
+        the ``D`` entries, rounded to 1e-7; None (with a warning) when the model cannot describe the
+        96 x 128 probe image: a map is then saved without a probe rather than lost.
     """
-    param = next(model.parameters(), None)
-    image = _probe_image().to(param.device if param is not None else "cpu")
-    with torch.no_grad():
-        d = model(image)
-    return [round(float(v), 7) for v in d.reshape(-1).cpu()]
+    tensor = next(model.parameters(), None)
+    tensor = next(model.buffers(), None) if tensor is None else tensor
+    image = _probe_image().to(tensor.device if tensor is not None else "cpu")
+    try:
+        with torch.no_grad():
+            d = model(image)
+        return [round(float(v), 7) for v in d.reshape(-1).cpu()]
+    except Exception as exc:  # a custom descriptor with its own input contract
+        logger.warning("the descriptor could not describe the 96 x 128 probe image (%s: %s): the map records no "
+                       "probe, and a later run cannot check its descriptor against it", type(exc).__name__, exc)
+        return None
 
 
 def _descriptor_info(slam) -> dict:
@@ -281,9 +289,16 @@ class MapRelocaliser:
             if key in theirs and theirs[key] != mine[key]:
                 raise MapMismatchError(f"{where}: the map was made with descriptor {key}={theirs[key]!r}, this run "
                                        f"uses {mine[key]!r}; its index cannot be searched with another descriptor")
-        if "probe" not in theirs:
-            logger.warning("%s records no descriptor probe (a map saved before 2026-12-02): its descriptor is "
-                           "assumed to be this run's (%s)", where, mine["backbone"])
+        if "probe" not in theirs and theirs.get("backbone") == "efficientnet_lite0" and theirs.get("fusion") != "none":
+            # saved before the probe existed (2026-12-02), so with the default of then: G at stage6 and stage7
+            raise MapMismatchError(
+                f"{where}: saved before 2026-12-02 with the previous EfficientNet-Lite0 default (attention at stage6 "
+                "and stage7; this version's attends stage7 only): its index cannot be searched with this "
+                "descriptor; record the map's session again with this version")
+        if theirs.get("probe") is None or mine["probe"] is None:
+            logger.warning("%s: no descriptor probe to compare (%s): the map's descriptor is assumed to be this "
+                           "run's (%s %s)", where, "none recorded in the map" if theirs.get("probe") is None
+                           else "this run's descriptor gave none", mine["backbone"], mine["fusion"])
         else:
             probe = torch.tensor(theirs["probe"], dtype=torch.float64)
             own = torch.tensor(mine["probe"], dtype=torch.float64)
@@ -293,7 +308,8 @@ class MapRelocaliser:
                     f"{where}: the map's descriptor of the probe image differs from this run's by {gap:.3g} (largest "
                     f"entry; at most {PROBE_TOLERANCE:g} is one descriptor), though both are {mine['backbone']} "
                     f"{mine['fusion']} seed {mine['seed']}: another tap, recipe, attnloop version or weights made "
-                    "the map; its index cannot be searched with this descriptor (save the map again with it)")
+                    "the map; its index cannot be searched with this descriptor (run with the descriptor that made "
+                    "the map, or record the map's session again with this one)")
         rig, map_rig = _rig(slam.config), saved.rig
         if map_rig and (map_rig.get("rgb_intrinsics") != rig["rgb_intrinsics"]
                         or not np.allclose(map_rig.get("rgb_from_depth", [0, 0, 0]), rig["rgb_from_depth"])):
@@ -479,6 +495,7 @@ class MapRelocaliser:
         edges += [GraphEdge(lk.map_kf, lk.kf + M, lk.T_ab.clone(), lk.information.clone(), EdgeKind.LOOP)
                   for lk in self.report.links]
         info = dict(base.info)
+        info["descriptor"] = own.info["descriptor"]  # the map's, as checked on loading, with this run's probe
         sessions = list(info.get("sessions") or [{"sequence": info.get("sequence"), "source": info.get("source"),
                                                    "keyframes": [0, M]}])
         sessions.append({"sequence": own.info.get("sequence"), "source": own.info.get("source"),
