@@ -123,7 +123,8 @@ class DescriptorParts(NamedTuple):
         tap: the tap activations L, :math:`(B, C, h, w)`.
         grad: the guided gradient G = dS/dL, :math:`(B, C, h, w)` (zero on the channels of a joined
             tap's stages where it is not computed: the backbone's ``attended_groups``).
-        fused: fusion(L, G / max|G|), :math:`(B, C, h, w)` (before the scaling of the pooling input).
+        fused: fusion(L, G / max|G|), :math:`(B, C, h, w)` (before the scaling of the pooling input; L
+            itself on the stages not attended).
         descriptor: the descriptor, :math:`(B, D)`.
     """
 
@@ -472,7 +473,11 @@ class AttentionDescriptor(nn.Module):
         #: Channel counts of a joined tap's stages (None: a single tap), fused and pooled separately.
         self.tap_groups = tuple(getattr(self.backbone, "tap_groups", None) or (channels,))
         #: Per tap group, whether the attention fuses it (False: the group's L is pooled unfused).
-        self.attended_groups = tuple(getattr(self.backbone, "attended_groups", None) or (True,) * len(self.tap_groups))
+        self.attended_groups = tuple(bool(a) for a in getattr(self.backbone, "attended_groups", None)
+                                     or (True,) * len(self.tap_groups))
+        if len(self.attended_groups) != len(self.tap_groups):
+            raise ValueError(f"{self.backbone_name}: attended_groups {self.attended_groups} has not one flag per "
+                             f"tap group {self.tap_groups}")
         if given.pooling == "regional":
             channels, height, width = regional_code_dim(self.tap_groups, given.levels), 1, 1
         if given.merges and channels % 2:

@@ -74,14 +74,15 @@ def load_rgb(path: Path) -> np.ndarray:
     return np.ascontiguousarray(bgr[:, :, ::-1])
 
 
-def natural_key(path: Path) -> list:
+def natural_key(path: Path) -> tuple:
     """Sort key of a file name with its digit runs compared as numbers: ``2.jpg`` before ``10.jpg``.
 
     VPR-Bench numbers a dataset's images by the integer in their name (its loader sorts by it) and its
     ``ground_truth_new.npy`` indexes them in that order; a plain string sort would put ``10.jpg`` second
     and misalign every query of a folder without zero padding.
     """
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", path.name)]
+    # the name itself breaks ties (01.jpg and 1.jpg), so the order never depends on the file system's
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", path.name)], path.name
 
 
 def folder_images(folder: Path) -> list[Path]:

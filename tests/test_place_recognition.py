@@ -305,10 +305,10 @@ def test_plot(tmp_path):
 def test_benchmark_reads_a_folder_in_the_order_of_its_ground_truth(tmp_path, load_script):
     # VPR-Bench indexes images by the integer in their names; unpadded names must not sort as strings
     bench = load_script("benchmarks/place_recognition.py")
-    for name in ("10.jpg", "2.jpg", "0.jpg", "1.png", "notes.txt", "img11.jpg", "img9.jpg"):
+    for name in ("10.jpg", "2.jpg", "0.jpg", "1.png", "01.png", "notes.txt", "img11.jpg", "img9.jpg"):
         (tmp_path / name).write_bytes(b"")
-    assert [p.name for p in bench.folder_images(tmp_path)] == ["0.jpg", "1.png", "2.jpg", "10.jpg", "img9.jpg",
-                                                                "img11.jpg"]
+    assert [p.name for p in bench.folder_images(tmp_path)] == ["0.jpg", "01.png", "1.png", "2.jpg", "10.jpg",
+                                                                "img9.jpg", "img11.jpg"]
     padded = tmp_path / "padded"
     padded.mkdir()
     for i in (11, 0, 2):

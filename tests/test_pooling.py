@@ -201,8 +201,40 @@ def test_attend_names_stages_of_the_tap():
         efficientnet_lite("lite0", pretrained=False, tap="stage7", attend="")
     assert efficientnet_lite("lite0", pretrained=False, tap="stage7", attend="stage7").attended_groups == (True,)
     assert efficientnet_lite("lite0", pretrained=False, tap="stage7+stage6").attend == "stage6+stage7"
+    assert efficientnet_lite("lite0", pretrained=False, tap="stage6+stage7", attend=["stage7"]).attend == "stage7"
+    with pytest.raises(ValueError, match="must name stages of the tap"):
+        efficientnet_lite("lite0", pretrained=False, tap="stage6+stage7", attend=[])
+    assert build_backbone("vgg16", pretrained=False, attend="pool5").tap == "pool5"  # its one layer, attended
     with pytest.raises(ValueError, match="VGG16's tap is one layer"):
-        build_backbone("vgg16", pretrained=False, attend="pool5")
+        build_backbone("vgg16", pretrained=False, attend="pool4")
+
+
+@pytest.mark.parametrize("attended", [(True, False, True), (False, True, False), (False, False, True),
+                                      (True, True, False), (True, False, False)])
+def test_attend_on_a_three_stage_tap(attended):
+    # No Lite0 tap joins three stages of one resolution, but the code is generic: join the outputs of the
+    # last two stage6 blocks and stage7 (blocks 13, 14, 15, all 7 x 9) and check every pattern, a middle
+    # stage not attended included, against G with every stage attended (zeroed where not attended).
+    def joined(flags):
+        net = efficientnet_lite("lite0", pretrained=False, seed=2, tap="stage6+stage7", input_size=(96, 128))
+        net.tap_groups, net._group_blocks = (192, 192, 320), (13, 14, 15)
+        net.tap_shape = (704, 3, 4)
+        net.attended_groups, net._first_attended = flags, flags.index(True)
+        return net
+
+    x = torch.randint(0, 256, (2, 3, 60, 80), dtype=torch.uint8)
+    L_all, G_all = guided_backprop(joined((True, True, True)), x)
+    net = joined(attended)
+    L, G = guided_backprop(net, x)  # the one-pass path (forward_split)
+    with torch.no_grad():
+        tap = net.forward_to_tap(net.preprocess(x))
+    G_two_calls = softmax_seeded_gradient(tap, net.forward_from_tap, guided=False)
+    mask = torch.cat([torch.full((c,), float(a)) for c, a in zip(net.tap_groups, attended)])[None, :, None, None]
+    assert torch.equal(L, L_all) and torch.equal(L, tap)
+    scale = 1e-9 * float(G_all.abs().max())
+    assert torch.allclose(G, G_all * mask, rtol=1e-6, atol=scale)
+    assert torch.allclose(G_two_calls, G_all * mask, rtol=1e-6, atol=scale)
+    assert all((float(g.abs().max()) > 0) == a for g, a in zip(G.split(net.tap_groups, 1), attended))
 
 
 def test_descriptor_attend_argument():

@@ -134,8 +134,9 @@ def build_backbone(
     if resolved == "vgg16":
         if input_size is not None and tuple(input_size) != (224, 224):
             raise ValueError(f"VGG16's classifier takes 224 x 224 inputs, got input_size={tuple(input_size)}")
-        if attend is not None:
-            raise ValueError(f"attend={attend!r} applies to a joined EfficientNet-Lite tap; VGG16's tap is one layer")
+        if attend not in (None, tap):
+            raise ValueError(f"attend={attend!r} applies to a joined EfficientNet-Lite tap; VGG16's tap is one layer "
+                             f"({tap!r}), attended whole")
         return vgg16(pretrained=pretrained, weights=weights, tap=tap, seed=seed)
     try:
         return efficientnet_lite0(pretrained=pretrained, weights=weights, tap=tap, seed=seed, input_size=input_size,

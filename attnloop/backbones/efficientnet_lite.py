@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Callable
 
 import torch
@@ -211,8 +212,8 @@ class EfficientNetLite(nn.Module):
         input_size: the network input (H, W) images are resized to; default the variant's training
             resolution. The network is fully convolutional up to its global average pool, so any size
             works; the tap's spatial size follows (:attr:`tap_shape`).
-        attend: the stages of a joined tap where the attention G is computed, joined by '+' (e.g.
-            ``stage7`` of ``stage6+stage7``); None: all of them. G is zero on the other stages' channels,
+        attend: the stages of a joined tap where the attention G is computed, joined by '+' or as a
+            sequence (e.g. ``stage7`` of ``stage6+stage7``); None: all of them. G is zero on the other stages' channels,
             which the descriptor passes to the pooling unfused (:attr:`attended_groups`), and the seeded
             backward stops at the first attended stage: Lite0's stage7 alone costs 5.5 % of a forward
             in multiply-adds, stage6 + stage7 13.1 % (docs/attention.md).
@@ -228,7 +229,7 @@ class EfficientNetLite(nn.Module):
     std = (128.0 / 255.0,) * 3
 
     def __init__(self, variant: str = "lite0", tap: str = "stage7", num_classes: int = 1000,
-                 input_size: int | tuple[int, int] | None = None, attend: str | None = None) -> None:
+                 input_size: int | tuple[int, int] | None = None, attend: str | Sequence[str] | None = None) -> None:
         super().__init__()
         if variant not in EFFICIENTNET_LITE_VARIANTS:
             raise ValueError(f"unknown EfficientNet-Lite variant {variant!r}; choose one of "
@@ -253,7 +254,7 @@ class EfficientNetLite(nn.Module):
         #: Channel counts of the stages a joined tap concatenates (one entry for a single tap).
         self.tap_groups = tuple(taps[n][1] for n in names)
         self._group_blocks = tuple(taps[n][0] for n in names)
-        wanted = names if attend is None else (attend.split("+") if isinstance(attend, str) else [attend])
+        wanted = names if attend is None else (attend.split("+") if isinstance(attend, str) else list(attend))
         unknown = [a for a in wanted if a not in names]
         if unknown or not wanted:
             raise ValueError(f"attend={attend!r} must name stages of the tap {self.tap!r} joined by '+' "
