@@ -76,9 +76,12 @@ from attnloop.pooling import gem_regions, regional_code, unit_scale
 from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
 from attnloop.rnn_pool import random_rnn_pool, random_rnn_weights
 
-GROUPS = (192, 320)
+GROUPS = (192, 320)  # the channels of the default's tap, stage6 and stage7
+_DEFAULT_LITE0 = DEFAULT_BACKBONE_SETTINGS["efficientnet_lite0"]
+if _DEFAULT_LITE0["tap"] != "stage6+stage7":
+    raise RuntimeError(f"this study's caches and GROUPS are stage6+stage7; the default tap is {_DEFAULT_LITE0['tap']}")
 #: Per stage of GROUPS (stage6, stage7): whether the default descriptor fuses it (its ``attend``).
-ATTENDED = tuple(t in DEFAULT_BACKBONE_SETTINGS["efficientnet_lite0"]["attend"].split("+") for t in ("stage6", "stage7"))
+ATTENDED = tuple(t in _DEFAULT_LITE0["attend"].split("+") for t in _DEFAULT_LITE0["tap"].split("+"))
 SIZE = (224, 288)
 SEEDS = ("own", "top5", "top5-uniform", "T2", "entropy")
 HYPOTHESES = ("range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions",

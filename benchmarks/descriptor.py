@@ -5,7 +5,7 @@ input with G at stage7; and preset="paper") and batch size (1, 8), one round
 times, in turn, the plain classifier forward ``net(images)`` (preprocessing included) and the full
 ``AttentionDescriptor(...)(images)`` for every fusion mode, all on the same 640 x 480 uint8 frames
 under ``torch.no_grad()`` (as the SLAM system calls it). Rounds are interleaved so that load from
-other processes hits all variants alike; the table gives the median ms per frame, the spread
+other processes hits all variants alike (every other round in reverse order); the table gives the median ms per frame, the spread
 (25th-75th percentile) and the descriptor / plain ratio, both of the medians and as the median of the
 per-round ratios (paired, less sensitive to a busy machine).
 
@@ -77,6 +77,8 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
         # A/B: the same joined tap with G at every stage (the default before session 4 of issue 13), whose
         # backward also crosses the blocks between the stages (Lite0: 13.1 % of a forward against 5.5 %).
         every_stage = AttentionDescriptor(name, fusion="dam", pretrained=pretrained, attend=net.tap)
+        # the same weights (not a copy) as the default's network, so neither gets a cache advantage
+        every_stage.backbone.load_state_dict(net.state_dict(), assign=True)
     rows = []
     for batch in batches:
         images = frames(batch)
@@ -89,7 +91,8 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
         times = {k: [] for k in variants}
         with torch.no_grad():
             for r in range(warmup + rounds):
-                for key, fn in variants.items():
+                # every other round in reverse order: no variant always runs first or last in a round
+                for key, fn in (list(variants.items()) if r % 2 == 0 else list(variants.items())[::-1]):
                     t = time_call(fn)
                     if r >= warmup:
                         times[key].append(1000.0 * t / batch)
