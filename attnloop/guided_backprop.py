@@ -134,14 +134,17 @@ def eval_mode(module: nn.Module) -> Iterator[nn.Module]:
         >>> inside, [m.training for m in net.modules()]
         ([False, False, False], [True, False, True])
     """
-    modes = [(m, m.training) for m in module.modules()]
+    # Only the submodules in training mode are switched (and switched back): a backbone already in eval
+    # mode, the descriptor's usual case, costs no attribute writes (Module.__setattr__ is slow: ~100
+    # submodules twice was ~0.3 ms of a 25 ms batch-1 forward).
+    training = [m for m in module.modules() if m.training]
     try:
-        for m, _ in modes:
+        for m in training:
             m.training = False
         yield module
     finally:
-        for m, mode in modes:
-            m.training = mode
+        for m in training:
+            m.training = True
 
 
 def _seeded_backward(logits: Tensor, wrt: Tensor, create_graph: bool) -> Tensor:
