@@ -358,6 +358,8 @@ class AttentionDescriptor(nn.Module):
             until 2026-12-02); None: the configuration's, or every stage of an explicit ``tap``.
 
     Attributes:
+        pretrained: whether a name-built backbone loaded ImageNet weights (None for a module passed in:
+            its weights are the caller's).
         backbone_name: the backbone used: ``"vgg16"`` or ``"efficientnet_lite0"`` for a name (``"auto"``
             resolved), the class name of a backbone module, ``"Class.tap"`` for a classifier module.
         recipe: the :class:`DescriptorRecipe`.
@@ -427,6 +429,7 @@ class AttentionDescriptor(nn.Module):
         self.recipe = given
         self.differentiable = bool(differentiable)
         self._owns_backbone = isinstance(backbone, str)
+        self.pretrained: bool | None = None
         preprocessing = {"input_size": input_size, "mean": mean, "std": std}
         if isinstance(backbone, str):
             for key, value in preprocessing.items():
@@ -434,6 +437,7 @@ class AttentionDescriptor(nn.Module):
                     raise ValueError(f"{key}= applies to a classifier module (backbone=my_module, tap=...); "
                                      f"the built-in backbone {backbone!r} has its own preprocessing")
             use_pretrained = True if pretrained is None else bool(pretrained)
+            self.pretrained = use_pretrained or weights is not None
             self.backbone_name = resolve_backbone_name(backbone, use_pretrained, weights)
             # tap=None: the configuration's tap and input size; an explicit tap: at the backbone's own input.
             settings = (PAPER_BACKBONE_SETTINGS if preset else DEFAULT_BACKBONE_SETTINGS).get(self.backbone_name, {})

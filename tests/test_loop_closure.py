@@ -155,6 +155,9 @@ def test_loop_closer_takes_the_threshold_calibrated_for_its_descriptor():
     random_cfg.descriptor.pretrained = False
     rnd = LoopCloser(random_cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=False))
     assert rnd.threshold == cfg.detector.threshold
+    # random weights passed in under a config that says pretrained: the descriptor's own word counts
+    rnd = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=False))
+    assert rnd.threshold == cfg.detector.threshold
     # the floor acts: a flat, high-similarity distribution passes the relative rule's margin but not the floor
     s = torch.cat([torch.linspace(0.70, 0.80, 100), torch.tensor([0.84])])
     from attnloop.threshold import accept_mask

@@ -171,7 +171,10 @@ class LoopCloser:
         backbone = getattr(self.descriptor, "backbone_name", None)
         recipe = getattr(self.descriptor, "recipe", None)
         net = getattr(self.descriptor, "backbone", None)
-        default = (recipe is not None and bool(config.descriptor.pretrained)  # any fusion mode: they share a scale
+        # the descriptor's own word on its weights when it has one (a module passed in may differ from the config)
+        pretrained = getattr(self.descriptor, "pretrained", None)
+        pretrained = bool(config.descriptor.pretrained) if pretrained is None else bool(pretrained)
+        default = (recipe is not None and pretrained  # any fusion mode: they share a scale
                    and dataclasses.replace(recipe, fusion=type(recipe)().fusion) == type(recipe)()
                    and all(getattr(net, key, None) == value
                            for key, value in DEFAULT_BACKBONE_SETTINGS.get(backbone, {}).items()))
