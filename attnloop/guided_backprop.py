@@ -13,7 +13,9 @@ Two modes:
 
 - ``create_graph=False`` (the default, the fast one): only the input gradient w.r.t. L is computed
   (:func:`torch.autograd.grad`), the part of the network below L runs without autograd, and (L, G)
-  come back detached.
+  come back detached. A backbone whose head after L has a closed-form seeded backward gives (L, G)
+  itself, with no autograd at all (``tap_and_seeded_gradient``; EfficientNet-Lite with G at its last
+  stage, the default descriptor's case: the same G, tested against autograd in float64).
 - ``create_graph=True``: the forward below L keeps its graph and the seeded backward is recorded
   (``create_graph``, with the seed S itself differentiated), so L and G are differentiable functions
   of the images and of the backbone's weights; G's derivative is a second-order one through the head.
@@ -266,6 +268,12 @@ def guided_backprop(backbone: nn.Module, images: Tensor, create_graph: bool = Fa
             if x.shape[0] == 0:
                 tap = backbone.forward_to_tap(x)
                 return tap, torch.zeros_like(tap)
+            closed = getattr(backbone, "tap_and_seeded_gradient", None)
+            if not differentiable and callable(closed):
+                # The backbone's closed-form (L, G), where it has one: the same G without a graph.
+                pair = closed(x)
+                if pair is not None:
+                    return pair
             with _clamp_scope():
                 # The backbone applies the transition clamp at L itself when L is a max-pool output (VGG16).
                 logits = _forward_split(backbone, x, at_tap, clamp_negative_grad)

@@ -232,7 +232,10 @@ def test_differentiable_values_equal_the_fast_path(lite64):
     x = torch.rand(2, 3, 64, 64, dtype=torch.float64)
     a, b = lite64.parts(x), fast.parts(x)
     for name in ("tap", "grad", "fused", "descriptor"):
-        assert torch.allclose(getattr(a, name), getattr(b, name), rtol=1e-12, atol=1e-300), name
+        # The detached path's G is EfficientNet's closed form (another summation order): equal to
+        # float64 rounding relative to the map's largest entry.
+        ref, got = getattr(a, name).detach(), getattr(b, name)
+        assert (ref - got).abs().max() <= 1e-12 * ref.abs().max(), name
     assert b.descriptor.grad_fn is None and b.grad.grad_fn is None
     with torch.no_grad():  # nothing to differentiate: the detached values
         c = lite64(x)

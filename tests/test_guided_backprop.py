@@ -13,6 +13,7 @@ from attnloop.guided_backprop import (
     guided_backprop,
     softmax_seeded_gradient,
 )
+from lite_nets import condition_head
 
 
 class TinyNet(nn.Module):
@@ -187,6 +188,80 @@ def test_efficientnet_is_plain_seeded_gradient():
     (ref,) = torch.autograd.grad(0.5 * net.forward_from_tap(leaf).softmax(1).pow(2).sum(), leaf)
     assert (grad < 0).any()
     assert (grad - ref).abs().max() <= 1e-5 * ref.abs().max()
+
+
+def _lite_double(variant: str = "lite0", **kw):
+    from attnloop.backbones.efficientnet_lite import efficientnet_lite
+    return condition_head(efficientnet_lite(variant, pretrained=False, seed=0, input_size=(64, 96), **kw).double())
+
+
+def _autograd_reference(net, images):
+    # G by autograd from L through forward_from_tap (no closed form, no one-pass split).
+    with torch.no_grad():
+        tap = net.forward_to_tap(net.preprocess(images))
+    return tap, softmax_seeded_gradient(tap, net.forward_from_tap, guided=False)
+
+
+@pytest.mark.parametrize("variant,tap,attend", [("lite0", "stage7", None), ("lite0", "stage6+stage7", "stage7"),
+                                                ("lite1", "stage6+stage7", "stage7")])
+def test_efficientnet_closed_form_gradient_equals_autograd(variant, tap, attend):
+    # With G at the last stage only, guided_backprop's no-autograd path takes the backbone's closed form.
+    net = _lite_double(variant, tap=tap, attend=attend)
+    images = torch.rand(3, 3, 80, 100, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    closed = net.tap_and_seeded_gradient(net.preprocess(images))
+    assert closed is not None
+    tap_ref, g_ref = _autograd_reference(net, images)
+    L, G = guided_backprop(net, images)
+    assert torch.equal(L, tap_ref) and torch.equal(L, closed[0]) and torch.equal(G, closed[1])
+    assert g_ref.abs().amax(dim=(1, 2, 3)).min() > 0
+    assert (G - g_ref).abs().max() <= 1e-12 * g_ref.abs().max()
+    c = net.tap_groups[0] if len(net.tap_groups) > 1 else 0
+    assert torch.count_nonzero(G[:, :c]) == 0  # stage6 not attended
+    # the differentiable path (autograd, kept for the second order) gives the same G
+    _, g_diff = guided_backprop(net, images.clone().requires_grad_(True), create_graph=True)
+    assert (G - g_diff.detach()).abs().max() <= 1e-12 * g_ref.abs().max()
+
+
+def test_efficientnet_closed_form_relu6_saturation():
+    # Head channels pushed below 0 or above 6: ReLU6's derivative is 0 on both sides, as in autograd's
+    # hardtanh backward (a mask on one side only would leave those channels' gradient in G).
+    net = _lite_double()
+    with torch.no_grad():
+        bn = net._bn1
+        bn.bias[:200] = -100.0
+        bn.bias[200:400] = 100.0
+    images = torch.rand(2, 3, 64, 96, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    x = net.preprocess(images)
+    pre = bn(net._conv_head(net.forward_to_tap(x)))
+    assert (pre[:, :200] < 0).all() and (pre[:, 200:400] > 6).all()
+    assert net(images).softmax(1).max() < 0.9  # a seed far from zero
+    _, g_ref = _autograd_reference(net, images)
+    _, G = guided_backprop(net, images)
+    assert g_ref.abs().max() > 0
+    assert (G - g_ref).abs().max() <= 1e-12 * g_ref.abs().max()
+
+
+@pytest.mark.parametrize("tap,attend", [("head", None), ("stage6", None), ("stage6+stage7", None),
+                                        ("stage6+stage7", "stage6")])
+def test_efficientnet_closed_form_only_at_the_last_stage(tap, attend):
+    # Where the backward crosses an MBConv block (or the tap is the head), autograd does the work.
+    net = efficientnet_lite0(pretrained=False, seed=0, tap=tap, attend=attend)
+    assert net.tap_and_seeded_gradient(net.preprocess(torch.rand(1, 3, 64, 64))) is None
+
+
+def test_guided_backprop_takes_the_closed_form_without_a_graph(monkeypatch):
+    net = efficientnet_lite0(pretrained=False, seed=0, tap="stage6+stage7", attend="stage7")
+    images = torch.rand(2, 3, 64, 64)
+    L_ref, G_ref = guided_backprop(net, images)
+
+    def no_autograd(*args, **kwargs):
+        raise AssertionError("the closed form applies: no autograd pass expected")
+
+    monkeypatch.setattr(net, "forward_split", no_autograd)
+    monkeypatch.setattr(net, "forward_from_tap", no_autograd)
+    L, G = guided_backprop(net, images)
+    assert torch.equal(L, L_ref) and torch.equal(G, G_ref)
+    assert not G.requires_grad
 
 
 def test_head_must_return_logits():

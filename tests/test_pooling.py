@@ -13,6 +13,7 @@ from attnloop.fusion import fuse
 from attnloop.guided_backprop import guided_backprop, softmax_seeded_gradient
 from attnloop.pooling import fuse_groups, gem_regions, regional_code, regional_code_dim, unit_scale
 from attnloop.rnn_pool import random_rnn_pool
+from lite_nets import condition_head
 
 
 def test_gem_regions_hand_computed():
@@ -106,8 +107,9 @@ def test_fuse_groups_is_fusion_per_group():
 
 def test_joined_tap_equals_the_separate_taps():
     kw = {"pretrained": False, "seed": 3, "input_size": (96, 128)}
-    joined = efficientnet_lite("lite0", tap="stage6+stage7", **kw)
-    s6, s7 = efficientnet_lite("lite0", tap="stage6", **kw), efficientnet_lite("lite0", tap="stage7", **kw)
+    joined = condition_head(efficientnet_lite("lite0", tap="stage6+stage7", **kw))
+    s6 = condition_head(efficientnet_lite("lite0", tap="stage6", **kw))
+    s7 = condition_head(efficientnet_lite("lite0", tap="stage7", **kw))  # G by the closed form
     assert joined.tap_shape == (512, 3, 4) and joined.tap_groups == (192, 320)
     x = torch.randint(0, 256, (2, 3, 60, 80), dtype=torch.uint8)
     L, G = guided_backprop(joined, x)
@@ -115,7 +117,7 @@ def test_joined_tap_equals_the_separate_taps():
     L7, G7 = guided_backprop(s7, x)
     assert torch.equal(L[:, :192], L6) and torch.allclose(L[:, 192:], L7, atol=1e-6)
     assert torch.allclose(G[:, :192], G6, rtol=1e-5, atol=1e-12 * float(G6.abs().max()))
-    assert torch.allclose(G[:, 192:], G7, rtol=1e-5, atol=1e-12 * float(G7.abs().max()))
+    assert torch.allclose(G[:, 192:], G7, rtol=1e-4, atol=1e-5 * float(G7.abs().max()))
     with torch.no_grad():
         assert torch.allclose(joined(x), s7(x), atol=1e-5)  # the classifier is unchanged
     with pytest.raises(ValueError, match="different resolutions"):
@@ -167,8 +169,8 @@ def test_fuse_groups_passes_the_groups_not_attended_unfused():
 @pytest.mark.parametrize("attend", ["stage7", "stage6"])
 def test_attend_computes_G_at_the_named_stages_only(attend):
     kw = {"pretrained": False, "seed": 5, "input_size": (96, 128)}
-    both = efficientnet_lite("lite0", tap="stage6+stage7", **kw)
-    net = efficientnet_lite("lite0", tap="stage6+stage7", attend=attend, **kw)
+    both = condition_head(efficientnet_lite("lite0", tap="stage6+stage7", **kw))
+    net = condition_head(efficientnet_lite("lite0", tap="stage6+stage7", attend=attend, **kw))
     assert net.attend == attend and net.attended_groups == ((False, True) if attend == "stage7" else (True, False))
     x = torch.randint(0, 256, (2, 3, 60, 80), dtype=torch.uint8)
     calls = [0] * len(net._blocks)
@@ -184,12 +186,14 @@ def test_attend_computes_G_at_the_named_stages_only(attend):
     assert torch.equal(L, L_ref)
     assert float(G[:, off].abs().max()) == 0.0
     assert float(G[:, on].abs().max()) > 0
-    assert torch.allclose(G[:, on], G_ref[:, on], rtol=1e-6, atol=1e-9 * float(G_ref[:, on].abs().max()))
+    # stage7 alone: the closed form (float32 rounding apart); stage6: the one-pass autograd path
+    tol = 1e-5 if attend == "stage7" else 1e-9
+    assert torch.allclose(G[:, on], G_ref[:, on], rtol=1e-4, atol=tol * float(G_ref[:, on].abs().max()))
     # the two-call path (the differentiable one) gives the same
     with torch.no_grad():
         tap = net.forward_to_tap(net.preprocess(x))
     assert torch.allclose(softmax_seeded_gradient(tap, net.forward_from_tap, guided=False), G,
-                          rtol=1e-6, atol=1e-9 * float(G.abs().max()))
+                          rtol=1e-4, atol=tol * float(G.abs().max()))
     with torch.no_grad():
         assert torch.equal(net(x), both(x))  # the classifier is unchanged
 
@@ -216,7 +220,8 @@ def test_attend_on_a_three_stage_tap(attended):
     # last two stage6 blocks and stage7 (blocks 13, 14, 15, all 7 x 9) and check every pattern, a middle
     # stage not attended included, against G with every stage attended (zeroed where not attended).
     def joined(flags):
-        net = efficientnet_lite("lite0", pretrained=False, seed=2, tap="stage6+stage7", input_size=(96, 128))
+        net = condition_head(efficientnet_lite("lite0", pretrained=False, seed=2, tap="stage6+stage7",
+                                               input_size=(96, 128)))
         net.tap_groups, net._group_blocks = (192, 192, 320), (13, 14, 15)
         net.tap_shape = (704, 3, 4)
         net.attended_groups, net._first_attended = flags, flags.index(True)
@@ -231,9 +236,10 @@ def test_attend_on_a_three_stage_tap(attended):
     G_two_calls = softmax_seeded_gradient(tap, net.forward_from_tap, guided=False)
     mask = torch.cat([torch.full((c,), float(a)) for c, a in zip(net.tap_groups, attended)])[None, :, None, None]
     assert torch.equal(L, L_all) and torch.equal(L, tap)
-    scale = 1e-9 * float(G_all.abs().max())
-    assert torch.allclose(G, G_all * mask, rtol=1e-6, atol=scale)
-    assert torch.allclose(G_two_calls, G_all * mask, rtol=1e-6, atol=scale)
+    # the last stage alone is the closed form's case (float32 rounding apart), the others autograd's
+    scale = (1e-5 if attended == (False, False, True) else 1e-9) * float(G_all.abs().max())
+    assert torch.allclose(G, G_all * mask, rtol=1e-4, atol=scale)
+    assert torch.allclose(G_two_calls, G_all * mask, rtol=1e-4, atol=scale)
     assert all((float(g.abs().max()) > 0) == a for g, a in zip(G.split(net.tap_groups, 1), attended))
 
 

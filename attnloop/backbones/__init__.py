@@ -8,7 +8,9 @@ A backbone here is an ``nn.Module`` with
   block transitions (what the guided backprop uses to zero negative gradients there); or, for a network
   that cannot be resumed from L alone, ``forward_split(x, at_tap, transition)``: one pass from the
   network input to the logits with ``at_tap(L)`` substituted for L (:class:`HookedBackbone`);
-- ``forward(images)``: the plain classifier, images -> logits.
+- ``forward(images)``: the plain classifier, images -> logits;
+- optionally ``tap_and_seeded_gradient(x)``: (L, G) in closed form, or None where it has none; used
+  instead of autograd when no graph is wanted (EfficientNet-Lite with G at its last stage).
 
 Any module with these methods (and a ``tap_shape`` attribute) works with
 :func:`attnloop.guided_backprop.guided_backprop` and :class:`attnloop.AttentionDescriptor`; any other

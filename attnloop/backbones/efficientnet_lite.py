@@ -395,6 +395,49 @@ class EfficientNetLite(nn.Module):
         x = torch.flatten(F.adaptive_avg_pool2d(self._head_features(x), 1), 1)
         return self._fc(self._dropout(x))
 
+    def tap_and_seeded_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """(L, G) in closed form when G is needed at the last MBConv stage only; None otherwise.
+
+        Between stage7 and the logits there is only the head: a 1 x 1 conv, batch-norm, ReLU6, the
+        global average pool and the classifier. Its softmax-seeded backward is then one formula,
+
+            G(h, w) = W_head^T (bn_scale * 1[0 < pre(h, w) < 6] * W_fc^T (S * (S - |S|^2))) / (H W),
+
+        with pre the head's batch-normed output and ``S * (S - |S|^2)`` the softmax Jacobian applied to S.
+        It gives the autograd backward's G (tested in float64) without recording a graph, for the
+        descriptor's no-autograd path (:func:`attnloop.guided_backprop.guided_backprop` calls it when no
+        graph is wanted); the differentiable path stays autograd. Batch-norm and dropout as in eval mode
+        (the caller's :func:`attnloop.guided_backprop.eval_mode`).
+
+        Args:
+            x: preprocessed images :math:`(B, 3, *input_size)`.
+
+        Returns:
+            (L, G), both :math:`(B, *tap_shape)`, G zero on the stages not attended; or None when the
+            backward must cross an MBConv block (an earlier attended stage) or the tap is ``head``.
+        """
+        last = len(self._blocks) - 1
+        if self.tap == "head" or self._group_blocks[self._first_attended] != last:
+            return None
+        h = F.relu6(self._bn0(self._conv_stem(x)))
+        outs = []
+        for k, block in enumerate(self._blocks):
+            h = block(h)
+            if k in self._group_blocks:
+                outs.append(h)
+        bn = self._bn1
+        pre = bn(self._conv_head(h))
+        probs = torch.softmax(self._fc(F.relu6(pre).mean(dim=(2, 3))), dim=1)
+        seed = probs * (probs - probs.square().sum(dim=1, keepdim=True))  # (dS/dz)^T S, dS/dz symmetric
+        scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+        b, k, hh, ww = pre.shape
+        per_channel = (seed @ self._fc.weight) * scale / (hh * ww)  # (B, 1280): the gradient at pre
+        at_pre = ((pre > 0) & (pre < 6)) * per_channel[:, :, None, None]  # ReLU6's derivative
+        w = self._conv_head.weight.reshape(k, -1)  # (1280, C7)
+        grad = (at_pre.flatten(2).transpose(1, 2) @ w).transpose(1, 2).reshape(h.shape)
+        zeros = [torch.zeros_like(o) for o in outs[:-1]]
+        return (outs[0], grad) if len(outs) == 1 else (torch.cat(outs, dim=1), torch.cat([*zeros, grad], dim=1))
+
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """Images (B, 3, H, W) -> logits (B, num_classes): the plain classifier."""
         return self.forward_from_tap(self.forward_to_tap(self.preprocess(images)))
