@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from lite_nets import condition_head
 from torch import nn
 from torch.autograd.functional import vjp
 
@@ -13,7 +14,6 @@ from attnloop.guided_backprop import (
     guided_backprop,
     softmax_seeded_gradient,
 )
-from lite_nets import condition_head
 
 
 class TinyNet(nn.Module):

@@ -4,6 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.nn.functional as F
+from lite_nets import condition_head
 
 from attnloop import AttentionDescriptor
 from attnloop.backbones import build_backbone
@@ -13,7 +14,6 @@ from attnloop.fusion import fuse
 from attnloop.guided_backprop import guided_backprop, softmax_seeded_gradient
 from attnloop.pooling import fuse_groups, gem_regions, regional_code, regional_code_dim, unit_scale
 from attnloop.rnn_pool import random_rnn_pool
-from lite_nets import condition_head
 
 
 def test_gem_regions_hand_computed():

@@ -430,7 +430,7 @@ class EfficientNetLite(nn.Module):
         probs = torch.softmax(self._fc(F.relu6(pre).mean(dim=(2, 3))), dim=1)
         seed = probs * (probs - probs.square().sum(dim=1, keepdim=True))  # (dS/dz)^T S, dS/dz symmetric
         scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
-        b, k, hh, ww = pre.shape
+        _, k, hh, ww = pre.shape
         per_channel = (seed @ self._fc.weight) * scale / (hh * ww)  # (B, 1280): the gradient at pre
         at_pre = ((pre > 0) & (pre < 6)) * per_channel[:, :, None, None]  # ReLU6's derivative
         w = self._conv_head.weight.reshape(k, -1)  # (1280, C7)
