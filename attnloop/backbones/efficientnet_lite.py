@@ -432,7 +432,9 @@ class EfficientNetLite(nn.Module):
         scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
         _, k, hh, ww = pre.shape
         per_channel = (seed @ self._fc.weight) * scale / (hh * ww)  # (B, 1280): the gradient at pre
-        at_pre = ((pre > 0) & (pre < 6)) * per_channel[:, :, None, None]  # ReLU6's derivative
+        # ReLU6's backward with autograd's own kernel (0 outside (0, 6), the edges included)
+        at_pre = torch.ops.aten.hardtanh_backward(per_channel[:, :, None, None].expand_as(pre).contiguous(), pre,
+                                                  0.0, 6.0)
         w = self._conv_head.weight.reshape(k, -1)  # (1280, C7)
         grad = (at_pre.flatten(2).transpose(1, 2) @ w).transpose(1, 2).reshape(h.shape)
         zeros = [torch.zeros_like(o) for o in outs[:-1]]
