@@ -70,6 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--demo-size", type=positive_int, nargs=2, default=None, metavar=("W", "H"),
                    help="image size (default: the scene's, room 640 480, building 320 240; 320 240 renders ~4x "
                         "faster than 640 480)")
+    g = p.add_argument_group("process")
+    g.add_argument("--system-malloc", action="store_true",
+                   help="leave glibc's allocator as it is; by default this command keeps freed tensor memory "
+                        "in the process (slam.allocator: ~10 %% more frames/s on CPU, fewer page faults)")
     g = p.add_argument_group("messages")
     g.add_argument("--quiet", action="store_true", help="no progress bar, warnings only")
     g.add_argument("--verbose", action="store_true", help="log every keyframe and loop decision")
@@ -253,6 +257,10 @@ def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if not args.system_malloc:
+        from slam.allocator import keep_freed_memory
+
+        keep_freed_memory()  # this command owns its process; the library never does this
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     if args.verbose:
