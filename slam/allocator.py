@@ -49,11 +49,16 @@ def _glibc():
 def keep_freed_memory() -> bool:
     """Set :data:`MALLOPT_SETTINGS` in glibc's allocator for the rest of the process.
 
+    Every setting is tried, each on its own (one glibc refuses does not stop the others); each is a
+    performance setting only. With another allocator preloaded (jemalloc, tcmalloc: ``LD_PRELOAD``) glibc's
+    settings do nothing, and that allocator already keeps freed memory.
+
     Returns:
         True when glibc took every setting; False where there is no glibc (macOS, Windows, musl) or it
-        refused one (nothing else changes then: the allocator simply behaves as before).
+        refused one.
     """
     libc = _glibc()
     if libc is None:
         return False
-    return all(libc.mallopt(_PARAMS[name], value) == 1 for name, value in MALLOPT_SETTINGS.items())
+    taken = [libc.mallopt(_PARAMS[name], value) == 1 for name, value in MALLOPT_SETTINGS.items()]
+    return all(taken)

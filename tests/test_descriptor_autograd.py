@@ -231,7 +231,8 @@ def test_differentiable_values_equal_the_fast_path(lite64):
     fast = AttentionDescriptor(lite64.backbone, seed=0, pooling="flat")  # the same float64 backbone, detached path
     x = torch.rand(2, 3, 64, 64, dtype=torch.float64)
     a, b = lite64.parts(x), fast.parts(x)
-    for name in ("tap", "grad", "fused", "descriptor"):
+    assert torch.equal(a.tap.detach(), b.tap)
+    for name in ("grad", "fused", "descriptor"):
         # The detached path's G is EfficientNet's closed form (another summation order): equal to
         # float64 rounding relative to the map's largest entry.
         ref, got = getattr(a, name).detach(), getattr(b, name)

