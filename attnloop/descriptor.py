@@ -45,7 +45,7 @@ from torch import nn
 from .backbones import HookedBackbone, build_backbone, resolve_backbone_name
 from .backbones.preprocess import check_images
 from .fusion import FUSION_MODES, Fusion
-from .guided_backprop import guided_backprop
+from .guided_backprop import eval_mode, guided_backprop
 from .pooling import POOLINGS, fuse_groups, regional_code, regional_code_dim
 from .presets import DEFAULT_BACKBONE_SETTINGS, PAPER_BACKBONE_SETTINGS, PAPER_RECIPE_SETTINGS, PRESETS
 from .rnn_pool import RandomRNNPool, random_rnn_pool
@@ -541,7 +541,20 @@ class AttentionDescriptor(nn.Module):
         )
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
+        if self.recipe.fusion == "none" and not self.differentiable:
+            return self._descriptor_without_attention(images)
         return self.parts(images).descriptor
+
+    def _descriptor_without_attention(self, images: torch.Tensor) -> torch.Tensor:
+        # "none" never reads G: the network runs to the tap only (no head, no backward), and the
+        # descriptor is the one parts() gives.
+        check_images(images)
+        self._check_device(images)
+        if images.shape[0] == 0:
+            return self.parts(images).descriptor
+        with eval_mode(self.backbone), torch.no_grad():
+            tap = self.backbone.forward_to_tap(self.backbone.preprocess(images))
+        return self.from_attention(tap, torch.zeros_like(tap))
 
     def from_attention(self, tap: torch.Tensor, grad: torch.Tensor, fusion: str | None = None) -> torch.Tensor:
         """Descriptor of given (L, G), e.g. to compare fusion modes on one backbone pass.

@@ -100,7 +100,8 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
     att = (True,) * len(g) if attended is None else tuple(bool(a) for a in attended)
     if len(att) != len(g):
         raise ValueError(f"attended has {len(att)} flags for {len(g)} groups {g}")
-    _check_mode(mode)  # also where no group is fused
+    if _check_mode(mode) == "none":  # checked also where no group is fused
+        return tap
     if len(g) == 1:
         return fuse(tap, unit_scale(grad), mode) if att[0] else tap
     # A group not attended is L itself (what "none" returns): no work on its G, which is zero anyway.

@@ -1,6 +1,8 @@
 """AttentionDescriptor: shapes, determinism, composition, intermediates, errors (random weights, no files)."""
 from __future__ import annotations
 
+import importlib
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -170,3 +172,38 @@ def test_wrong_settings(lite):
         AttentionDescriptor(nn.Linear(2, 2))
     with pytest.raises(ValueError, match="tap must have shape \\(B, 320, 7, 7\\)"):
         lite.from_attention(torch.zeros(1, 512, 7, 7), torch.zeros(1, 512, 7, 7))
+
+
+def _small_classifier():
+    torch.manual_seed(0)
+    return nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2), nn.Conv2d(8, 16, 3, padding=1),
+                         nn.ReLU(), nn.AdaptiveAvgPool2d(4), nn.Flatten(), nn.Linear(256, 10))
+
+
+@pytest.mark.parametrize("build", ["default", "paper", "hooked"])
+def test_none_runs_the_network_to_the_tap_only(images, monkeypatch, build):
+    # "none" never reads G: no head, no seeded backward, and the descriptor parts() gives, exactly.
+    net = _small_classifier()
+    if build == "hooked":
+        desc = AttentionDescriptor(net, fusion="none", tap="4", input_size=(32, 32), seed=0)
+    else:
+        desc = AttentionDescriptor("efficientnet_lite0", fusion="none", pretrained=False, seed=0,
+                                   **({"preset": "paper"} if build == "paper" else {}))
+    want = desc.parts(images).descriptor
+    module = importlib.import_module("attnloop.descriptor")
+
+    def no_backward(*args, **kwargs):
+        raise AssertionError("fusion='none' computed G")
+
+    monkeypatch.setattr(module, "guided_backprop", no_backward)
+    head_calls = []
+    head = desc.backbone._fc if build != "hooked" else net[7]
+    handle = head.register_forward_hook(lambda *a: head_calls.append(1))
+    try:
+        got = desc(images)
+        assert torch.equal(got, want) and not head_calls
+        assert desc(images[:0]).shape == (0, desc.out_dim)
+    finally:
+        handle.remove()
+    with pytest.raises(AssertionError, match="computed G"):
+        AttentionDescriptor(desc.backbone, fusion="dam", seed=0)(images)  # the others still need G
