@@ -15,6 +15,7 @@ import argparse
 import logging
 import sys
 
+import slam.allocator
 from slam.cli import call_reporting_errors
 from slam.io import open_sequence
 from slam.options import add_run_arguments, config_from_args
@@ -41,6 +42,7 @@ def main(argv=None) -> int:
     add_run_arguments(p)  # --fusion, --backbone, --weights, --frame-step, rig flags, ... as attnloop-slam
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
+    slam.allocator.keep_freed_memory()  # as attnloop-slam: this script owns its process (~8 % more frames/s)
     # the command's messages for missing weights, a wrong folder, a bad flag (exit code 2)
     return call_reporting_errors("tum_slam.py", run, args)
 
