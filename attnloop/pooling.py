@@ -109,15 +109,22 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
                       for lt, gt, a in zip(tap.split(g, 1), grad.split(g, 1), att)], dim=1)
 
 
-def _unit_gem_regions(x: Tensor, p: float, levels: tuple[int, ...]) -> tuple[Tensor, Tensor]:
-    # GeM of x / s with s = max |x| per sample, floor _REL_FLOOR, and s: (B, R, C) and (B, 1, 1).
-    # Pooling the unit-scaled map keeps x^p inside float range whatever x's magnitude.
-    scale = x.abs().amax(dim=(1, 2, 3), keepdim=True)
-    ok = scale > 0
-    safe = torch.where(ok, scale, torch.ones_like(scale))  # an all-zero map stays at the floor, no NaN
-    xp = (x / safe).clamp_min(_REL_FLOOR).pow(p)
+def _unit_gem_regions(x: Tensor, p: float, levels: tuple[int, ...],
+                      groups: tuple[int, ...] | None = None) -> tuple[Tensor, Tensor]:
+    # GeM of x / s with s = max |x| per sample and channel group (one group: the whole map), floor
+    # _REL_FLOOR; returns (B, R, C) and s per channel, (B, 1, C). Pooling the unit-scaled map keeps x^p
+    # inside float range whatever x's magnitude.
+    g = groups or (x.shape[1],)
+    peak = x.abs().amax(dim=(2, 3))  # (B, C)
+    scales = []
+    for pg, c in zip(peak.split(g, dim=1), g):
+        top = pg.amax(dim=1, keepdim=True)
+        # an all-zero group stays at the floor, no NaN
+        scales.append(torch.where(top > 0, top, torch.ones_like(top)).expand(-1, c))
+    safe = torch.cat(scales, dim=1)
+    xp = (x / safe[:, :, None, None]).clamp_min(_REL_FLOOR).pow(p)
     cells = [F.adaptive_avg_pool2d(xp, v).flatten(2) for v in levels]  # (B, C, l*l) each
-    return torch.cat(cells, dim=2).pow(1.0 / p).transpose(1, 2), safe.view(-1, 1, 1)
+    return torch.cat(cells, dim=2).pow(1.0 / p).transpose(1, 2), safe[:, None, :]
 
 
 def gem_regions(x: Tensor, p: float = 2.0, levels: Sequence[int] = (1, 2)) -> Tensor:
@@ -180,16 +187,8 @@ def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0
     lv = _check_levels(levels)
     if x.shape[0] == 0:
         return x.new_zeros((0, regional_code_dim(g, lv)))
-    # Each region is normalised on its own, so the per-sample scale of the unit-scaled GeM cancels:
-    # the code is that of the map whatever its magnitude. One pass over every group: each channel is
-    # divided by its own group's max |x| (what _unit_gem_regions does group by group, with fewer calls).
-    peak = x.abs().amax(dim=(2, 3))  # (B, C)
-    scales = []
-    for pg, c in zip(peak.split(g, dim=1), g):
-        top = pg.amax(dim=1, keepdim=True)
-        scales.append(torch.where(top > 0, top, torch.ones_like(top)).expand(-1, c))
-    unit = x / torch.cat(scales, dim=1)[:, :, None, None]
-    xp = unit.clamp_min(_REL_FLOOR).pow(p)
-    cells = torch.cat([F.adaptive_avg_pool2d(xp, v).flatten(2) for v in lv], dim=2).pow(1.0 / p)  # (B, C, R)
-    parts = [F.normalize(cg.transpose(1, 2), dim=2).flatten(1) for cg in cells.split(g, dim=1)]
+    # Each region is normalised on its own, so the per-group scale of the unit-scaled GeM cancels: the
+    # code is that of the map whatever its magnitude. One pass over every group.
+    unit = _unit_gem_regions(x, p, lv, g)[0]  # (B, R, C)
+    parts = [F.normalize(ug, dim=2).flatten(1) for ug in unit.split(g, dim=2)]
     return torch.cat(parts, dim=1)

@@ -445,12 +445,8 @@ class EfficientNetLite(nn.Module):
         last = len(self._blocks) - 1
         if self.tap == "head" or self._group_blocks[self._first_attended] != last or not self._head_is_closed_form():
             return None
-        h = F.relu6(self._bn0(self._conv_stem(x)))
-        outs = []
-        for k, block in enumerate(self._blocks):
-            h = block(h)
-            if k in self._group_blocks:
-                outs.append(h)
+        tap = self.forward_to_tap(x)  # ends at the last block here: its stage is the tap's last group
+        h = tap[:, -self.tap_groups[-1]:]
         bn = self._bn1
         pre = bn(self._conv_head(h))
         probs = torch.softmax(self._fc(F.relu6(pre).mean(dim=(2, 3))), dim=1)
@@ -462,9 +458,10 @@ class EfficientNetLite(nn.Module):
         at_pre = torch.ops.aten.hardtanh_backward(per_channel[:, :, None, None].expand_as(pre).contiguous(), pre,
                                                   0.0, 6.0)
         w = self._conv_head.weight.reshape(k, -1)  # (1280, C7)
-        grad = (at_pre.flatten(2).transpose(1, 2) @ w).transpose(1, 2).contiguous().view(h.shape)
-        zeros = [torch.zeros_like(o) for o in outs[:-1]]
-        return (outs[0], grad) if len(outs) == 1 else (torch.cat(outs, dim=1), torch.cat([*zeros, grad], dim=1))
+        grad = (at_pre.flatten(2).transpose(1, 2) @ w).transpose(1, 2)  # (B, C7, H W)
+        full = torch.zeros_like(tap)  # zero on the stages not attended
+        full[:, -self.tap_groups[-1]:] = grad.reshape(h.shape)
+        return tap, full
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """Images (B, 3, H, W) -> logits (B, num_classes): the plain classifier."""
