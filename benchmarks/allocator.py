@@ -6,9 +6,9 @@ Each setting runs in a fresh interpreter, because :func:`slam.allocator.keep_fre
 process and for good: ``system`` (glibc's defaults, what ``attnloop-slam --system-malloc`` keeps) and
 ``kept`` (what ``attnloop-slam`` sets by default). Each child times, at one thread, the plain forward of the
 default descriptor's EfficientNet-Lite0 (random weights when the pretrained package is missing: the cost
-does not depend on them) and the default DAM descriptor on a 640 x 480 uint8 frame, interleaved, and reads
-the minor page faults of each call from ``getrusage``. Prints one table: ms per frame (median), faults per
-call, the descriptor over the forward (median paired ratio). With ``--kitchen FOLDER``, also runs
+does not depend on them) and the default DAM descriptor on the 640 x 480 frames of benchmarks/descriptor.py,
+interleaved, and reads the minor page faults of each call from ``getrusage``. Prints one table: ms per frame
+(median), faults per call, the descriptor over the forward (median paired ratio). With ``--kitchen FOLDER``, also runs
 ``attnloop-slam FOLDER`` twice per setting (alternating) and prints its frames/s.
 """
 from __future__ import annotations
@@ -20,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 SETTINGS = ("system", "kept")
 
@@ -29,6 +30,8 @@ import torch
 from slam.allocator import keep_freed_memory
 setting, rounds, batches = sys.argv[1], int(sys.argv[2]), [int(b) for b in sys.argv[3].split(",")]
 applied = keep_freed_memory() if setting == "kept" else False
+sys.path.insert(0, sys.argv[4])
+from descriptor import frames  # benchmarks/descriptor.py's frames: the same inputs as its table
 torch.set_num_threads(1)
 torch.manual_seed(0)
 from attnloop import AttentionDescriptor
@@ -40,8 +43,8 @@ net = desc.backbone
 out = {"applied": applied, "pretrained": bool(desc.pretrained), "rows": []}
 with torch.inference_mode():
     for b in batches:
-        frames = (torch.rand(b, 3, 480, 640) * 255).to(torch.uint8)
-        calls = {"forward": lambda: net(frames), "descriptor": lambda: desc(frames)}
+        images = frames(b)
+        calls = {"forward": lambda: net(images), "descriptor": lambda: desc(images)}
         ms = {k: [] for k in calls}
         faults = {k: [] for k in calls}
         for f in calls.values():
@@ -62,7 +65,8 @@ print("RESULT " + json.dumps(out))
 
 
 def _child(setting: str, rounds: int, batches: list[int]) -> dict:
-    done = subprocess.run([sys.executable, "-c", _CHILD, setting, str(rounds), ",".join(map(str, batches))],
+    here = str(Path(__file__).resolve().parent)
+    done = subprocess.run([sys.executable, "-c", _CHILD, setting, str(rounds), ",".join(map(str, batches)), here],
                           capture_output=True, text=True, check=True)
     line = next(x for x in done.stdout.splitlines() if x.startswith("RESULT "))
     return json.loads(line[len("RESULT "):])

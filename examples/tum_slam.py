@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     add_run_arguments(p)  # --fusion, --backbone, --weights, --frame-step, rig flags, ... as attnloop-slam
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    slam.allocator.keep_freed_memory()  # as attnloop-slam: this script owns its process (~8 % more frames/s)
+    slam.allocator.keep_freed_memory()  # as attnloop-slam: this script owns its process (6-9 % more frames/s)
     # the command's messages for missing weights, a wrong folder, a bad flag (exit code 2)
     return call_reporting_errors("tum_slam.py", run, args)
 

@@ -73,7 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("process")
     g.add_argument("--system-malloc", action="store_true",
                    help="leave glibc's allocator as it is; by default this command keeps freed tensor memory "
-                        "in the process (slam.allocator: ~10 %% more frames/s on CPU, fewer page faults)")
+                        "in the process (slam.allocator: 6-9 %% more frames/s on CPU, fewer page faults)")
     g = p.add_argument_group("messages")
     g.add_argument("--quiet", action="store_true", help="no progress bar, warnings only")
     g.add_argument("--verbose", action="store_true", help="log every keyframe and loop decision")
