@@ -6,15 +6,16 @@ The paper's modules as drop-in PyTorch pieces:
   :class:`~attnloop.backbones.HookedBackbone`: any classifier tapped at a named submodule;
 - :mod:`attnloop.guided_backprop`: the softmax-seeded partial guided backprop, (L, G = dS/dL);
 - :mod:`attnloop.fusion`: the attention fusions DAM, EAM, GAF, EGA and the ``none`` baseline;
-- :mod:`attnloop.rnn_pool`: random recursive-NN pooling to a 1024-d vector;
-- :mod:`attnloop.descriptor`: :class:`AttentionDescriptor`, the whole chain, images -> (B, 1024).
+- :mod:`attnloop.pooling`: the regional GeM code (the default descriptor's pooling, 2560-d at its tap);
+- :mod:`attnloop.rnn_pool`: the paper's random recursive-NN pooling to a 1024-d vector (``num_rnn=16``);
+- :mod:`attnloop.descriptor`: :class:`AttentionDescriptor`, the whole chain, images -> (B, D).
 
 Example:
     >>> import torch
     >>> from attnloop import AttentionDescriptor
     >>> desc = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False)
     >>> desc(torch.rand(1, 3, 480, 640)).shape
-    torch.Size([1, 1024])
+    torch.Size([1, 2560])
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Regional GeM pooling of fused attention maps: the translation-tolerant input of the random RNNs.
+"""Regional GeM pooling of fused attention maps: the translation-tolerant code of the descriptor.
 
 The paper's one-level RNN multiplies the *whole flattened* fused map by each random matrix, so a place
 seen a few pixels to the side (the same corridor walked off-centre, a camera turned slightly) gives a
@@ -10,8 +10,9 @@ different vector: every feature moves to another input weight. Here the fused ma
    map's own magnitude (``1e-6 max|F|`` per sample), so the code does not depend on F's overall scale;
 2. every region vector is L2-normalised (a region's weight does not depend on how strongly the fusion
    scaled it), and the vectors are concatenated, ``[group][region][channel]``;
-3. the result, ``R * sum_g C_g`` long (2560 for Lite0's stage6+stage7), is what the random RNNs encode
-   (:func:`attnloop.rnn_pool.random_rnn_pool` on a ``(B, D, 1, 1)`` map).
+3. the result, ``R * sum_g C_g`` long (2560 for Lite0's stage6+stage7), L2-normalised, is the default
+   descriptor; with ``num_rnn > 0`` the random RNNs encode it (:func:`attnloop.rnn_pool.random_rnn_pool`
+   on a ``(B, D, 1, 1)`` map).
 
 The fusion itself is applied per group (:func:`fuse_groups`): the min-max normalisations of DAM/EAM
 and GAF/EGA run over each tap's own (C, H, W) / (H, W), as if each tap were the only one.

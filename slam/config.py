@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
+from attnloop.descriptor import DescriptorRecipe
 from attnloop.index import LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
 from slam.loop.acceptance import DriftBoundConfig
@@ -19,8 +20,10 @@ class DescriptorConfig:
 
     backbone: str = "auto"  # "vgg16" (the paper's) when its weights are found, else "efficientnet_lite0" (offline)
     fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega" (the paper's default: DAM)
-    num_rnn: int = 16  # random recursive NNs: num_rnn * 64 dims (1024, as in the paper)
-    seed: int = 0  # seed of the random RNN weights (part of the model: same seed, same descriptor)
+    # Random recursive NNs after the pooling (num_rnn * 64 dims; the paper's 16, 1024 dims). 0: none, the
+    # descriptor is the regional code itself (2560 dims), the descriptor's measured default (docs/attention.md).
+    num_rnn: int = DescriptorRecipe.num_rnn
+    seed: int = 0  # seed of the random RNN weights when num_rnn > 0 (part of the model: same seed, same descriptor)
     pretrained: bool = True  # ImageNet weights; False = seeded random weights (plumbing tests only)
     weights: Optional[str] = None  # explicit checkpoint path (else torch hub cache, else download)
     device: Optional[str] = None  # None: CPU (library code follows its inputs; this picks where they live)
@@ -45,12 +48,14 @@ class LoopClosureConfig:
     # preset's similarities sit near 0.55, the Lite0 default's near 0.85). EfficientNet-Lite0: chosen on the
     # SLAM's own keyframe streams of every sequence at hand (the kitchen at frame steps 1, 3 and 6, the room
     # demo, the building; benchmarks/loop_threshold.py --streams, docs/benchmarks.md; re-measured with the
-    # stage7-only attention G): the relative rule of before plus a floor of 0.85 keeps the kitchen's
-    # candidates (recall 0.47-0.61, 0-2 fewer false ones) and sends less than half as many false candidates
-    # to verification on the room (1 vs 21) and the building (582 vs 1286) at the same recall (0.88; 0.92).
+    # stage7-only attention G, and again without the RNNs): the relative rule of before plus a floor of
+    # 0.85 keeps the kitchen's candidates (recall 0.55-0.61, 1-2 fewer false ones) and sends fewer false
+    # candidates to verification on the room (0 vs 19) and the building (710 vs 1143; recall 0.93 both).
     # A lower k_sigma (0.5 or 1) raises the kitchen's recall to 0.68-0.83 but its extra loops (49 vs 33, all
-    # true) cost the default kitchen run 0.7 mm of ATE (0.0301 m vs 0.0293, over the 0.030 m target).
-    # Every fusion mode shares the scale (median similarity of kitchen frames >= 100 apart: 0.857-0.863).
+    # true) cost the default kitchen run 0.7 mm of ATE (0.0301 m vs 0.0293, over the 0.030 m target; measured
+    # with the RNNs).
+    # Every fusion mode shares the scale (median similarity of kitchen frames >= 100 apart: 0.854-0.860
+    # without the RNNs, 0.857-0.863 with them).
     # Backbones not listed (VGG16, a custom descriptor) keep ``detector.threshold``.
     threshold_by_backbone: dict = field(default_factory=lambda: {
         "efficientnet_lite0": ThresholdConfig(k_sigma=1.5, min_margin=0.005, min_similarity=0.85, min_samples=16)})

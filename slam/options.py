@@ -163,7 +163,9 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
                    help="backbone checkpoint file (with auto: VGG16's, e.g. vgg16-397923af.pth); default: the "
                         "torch hub cache")
     g.add_argument("--no-loop", action="store_true", help="odometry only: no loop closure")
-    g.add_argument("--seed", type=int, default=0, help="seed of the random RNN weights (part of the model); with --demo also of the sequence")
+    g.add_argument("--seed", type=int, default=0,
+                   help="seed of the descriptor's random weights (its RNNs when the config sets "
+                        "loop.descriptor.num_rnn > 0; the default descriptor has none); with --demo also of the sequence")
     g.add_argument("--device", default=None,
                    help="torch device of the descriptor network, e.g. cpu, cuda, cuda:1, mps (default: cpu; "
                         "docs/devices.md says what runs where)")

@@ -24,14 +24,15 @@ def images():
 def lite():
     # the paper's flat RNN pooling at stage7 (224 x 224), with the pool-input scaling
     return AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False, seed=0, tap="stage7",
-                               pooling="flat")
+                               pooling="flat", num_rnn=16)
 
 
 @pytest.mark.parametrize("fusion", FUSION_MODES)
 def test_shapes_unit_norm_all_fusions(lite, images, fusion):
     desc = AttentionDescriptor(lite.backbone, fusion=fusion, seed=0)
     d = desc(images)
-    assert d.shape == (3, 1024) and d.dtype == torch.float32
+    assert d.shape == (3, 5 * 320) and d.dtype == torch.float32  # no RNNs: the regional code of stage7
+    assert desc.out_dim == 5 * 320 and desc.pool is None and desc.rnn_weights is None
     assert torch.isfinite(d).all()
     assert torch.allclose(d.norm(dim=1), torch.ones(3), atol=1e-5)
 
@@ -54,8 +55,8 @@ def test_same_seed_identical_different_seed_different(images):
 
 
 def test_same_seed_same_rnn_for_a_given_backbone(lite, images):
-    a = AttentionDescriptor(lite.backbone, seed=7)
-    b = AttentionDescriptor(lite.backbone, seed=7)
+    a = AttentionDescriptor(lite.backbone, seed=7, num_rnn=16)
+    b = AttentionDescriptor(lite.backbone, seed=7, num_rnn=16)
     assert torch.equal(a.pool.weights, b.pool.weights)
     assert not torch.equal(a.pool.weights, lite.pool.weights)
 
@@ -109,7 +110,7 @@ def test_composes_in_a_users_sequential(images):
     torch.manual_seed(0)
     model = nn.Sequential(
         AttentionDescriptor("efficientnet_lite0", fusion="ega", pretrained=False, seed=0),
-        nn.Linear(1024, 10),
+        nn.Linear(2560, 10),
     )
     out = model(images)
     assert out.shape == (3, 10)
@@ -120,7 +121,9 @@ def test_composes_in_a_users_sequential(images):
     assert trainable == ["1.weight", "1.bias"]
     model.train()
     assert model[0].training and not model[0].backbone.training  # batch-norm stays frozen
-    assert "0.pool.weights" in model.state_dict()  # the RNN weights travel with the model
+    assert not any(k.startswith("0.pool") for k in model.state_dict())  # no RNNs by default
+    rnns = AttentionDescriptor("efficientnet_lite0", pretrained=False, num_rnn=16)
+    assert "pool.weights" in rnns.state_dict()  # the paper's RNN weights travel with the model
 
 
 def test_empty_batch(lite):
@@ -131,11 +134,12 @@ def test_empty_batch(lite):
 
 
 def test_raw_pool_input_option(lite, images):
-    desc = AttentionDescriptor(lite.backbone, fusion="none", pool_scale=None, pooling="flat")
+    desc = AttentionDescriptor(lite.backbone, fusion="none", pool_scale=None, pooling="flat", num_rnn=16)
     parts = desc.parts(images)
     ref = F.normalize(random_rnn_pool(parts.tap, desc.pool.weights), dim=1)
     assert torch.allclose(parts.descriptor, ref, atol=1e-6)
-    unnormalised = AttentionDescriptor(lite.backbone, fusion="none", normalize=False, pooling="flat")(images)
+    unnormalised = AttentionDescriptor(lite.backbone, fusion="none", normalize=False, pooling="flat",
+                                       num_rnn=16)(images)
     assert (unnormalised.abs() <= 1).all() and not torch.allclose(unnormalised.norm(dim=1), torch.ones(3))
 
 
@@ -207,3 +211,41 @@ def test_none_runs_the_network_to_the_tap_only(images, monkeypatch, build):
         handle.remove()
     with pytest.raises(AssertionError, match="computed G"):
         AttentionDescriptor(desc.backbone, fusion="dam", seed=0)(images)  # the others still need G
+
+
+def test_default_has_no_rnns_the_regional_code_is_the_descriptor(lite, images):
+    # num_rnn=0 (the default): the descriptor is the fused map's regional code, L2-normalised, computed
+    # here by hand (GeM p = 2 over the whole map and a 2 x 2 grid, each region L2-normalised)
+    desc = AttentionDescriptor(lite.backbone, fusion="gaf")
+    parts = desc.parts(images)
+    x = parts.fused / parts.fused.abs().amax((1, 2, 3), keepdim=True)
+    x = x.clamp_min(1e-6) ** 2
+    h, w = x.shape[2:]
+    cells = [(slice(0, h), slice(0, w))] + [(slice(a, b), slice(c, d)) for a, b in ((0, (h + 1) // 2), (h // 2, h))
+                                            for c, d in ((0, (w + 1) // 2), (w // 2, w))]
+    regions = [F.normalize(x[:, :, r, c].mean((2, 3)).sqrt(), dim=1) for r, c in cells]
+    ref = F.normalize(torch.cat(regions, 1), dim=1)
+    assert parts.descriptor.shape == (3, 5 * 320)
+    assert torch.allclose(parts.descriptor, ref, atol=1e-6)
+    assert torch.allclose(desc(images), ref, atol=1e-6)
+    assert desc.recipe.out_dim is None and desc.out_dim == 1600
+    # the functional form with no RNN weights is the same descriptor
+    _f, d = descriptor_from_attention(parts.tap, parts.grad, None, "gaf")
+    assert torch.allclose(d, ref, atol=1e-6)
+    empty = desc(torch.zeros(0, 3, 64, 64, dtype=torch.uint8))
+    assert empty.shape == (0, 1600) and empty.dtype == torch.float32
+
+
+@pytest.mark.parametrize("kwargs, name", [({"out_features": 32}, "out_features"), ({"pool_scale": None}, "pool_scale"),
+                                          ({"merge": True}, "merge"), ({"pool_scale": 3.0}, "pool_scale")])
+def test_rnn_settings_without_rnns_are_refused(lite, kwargs, name):
+    # a setting that would do nothing is an error, not silently ignored
+    with pytest.raises(ValueError, match=f"{name} set the random RNNs, and num_rnn=0 has none"):
+        AttentionDescriptor(lite.backbone, **kwargs)
+    AttentionDescriptor(lite.backbone, num_rnn=16, **kwargs)  # with RNNs they apply
+    with pytest.raises(ValueError, match="num_rnn must be a non-negative integer"):
+        AttentionDescriptor(lite.backbone, num_rnn=-1)
+    with pytest.raises(ValueError, match="rnn_weights=None has no RNNs"):
+        descriptor_from_attention(torch.rand(1, 320, 7, 7), torch.rand(1, 320, 7, 7), None, "dam",
+                                  **{k: v for k, v in {"pool_scale": None, "merge": True, **kwargs}.items()
+                                     if k in ("pool_scale", "merge")})

@@ -93,7 +93,6 @@ def at_perturbed_weight(weight: torch.Tensor, v: torch.Tensor, f):
 @pytest.mark.parametrize("kind", ["hooked", "protocol"])
 def test_image_directional_derivative_every_fusion(kind):
     x, v, g = images_and_direction()
-    u = torch.randn(2, 1024, dtype=torch.float64, generator=g)
     for mode in FUSION_MODES:
         if kind == "hooked":
             desc = AttentionDescriptor(smooth_vgg(), tap="6", input_size=(32, 32), fusion=mode, differentiable=True)
@@ -101,6 +100,7 @@ def test_image_directional_derivative_every_fusion(kind):
         else:
             desc = AttentionDescriptor(SmoothProtocolNet(), fusion=mode, differentiable=True)
         desc = desc.double()
+        u = torch.randn(2, desc.out_dim, dtype=torch.float64, generator=g)
         ad, fd = directional(desc, x, v, u)
         assert abs(fd) > 1e-4, mode  # a derivative that is there
         assert abs(ad - fd) <= RTOL * abs(fd), (mode, ad, fd)
@@ -122,7 +122,7 @@ def test_weight_directional_derivative(layer):
     x, _, g = images_and_direction()
     weight = net.get_submodule(layer).weight
     v = torch.randn(weight.shape, dtype=torch.float64, generator=g)
-    u = torch.randn(2, 1024, dtype=torch.float64, generator=g)
+    u = torch.randn(2, desc.out_dim, dtype=torch.float64, generator=g)
     (gw,) = torch.autograd.grad((u * desc(x)).sum(), weight)
     ad = float((gw * v).sum())
     fp, fm = at_perturbed_weight(weight, v, lambda: (u * desc(x)).sum())
@@ -178,7 +178,7 @@ def test_gradcheck_tiny_relu_cnn():
 def lite64():
     # the paper's flat pooling at stage7: the regional GeM's floor is a kink that central differences straddle
     desc = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=0, differentiable=True, tap="stage7",
-                               pooling="flat").double()
+                               pooling="flat", num_rnn=16).double()
     net = desc.backbone
     with torch.no_grad():
         # Random weights: the features fade to ~1e-9 by the head and the softmax is flat to 1e-10, so
@@ -228,7 +228,7 @@ def test_every_backbone_parameter_gets_a_gradient(lite64):
 
 
 def test_differentiable_values_equal_the_fast_path(lite64):
-    fast = AttentionDescriptor(lite64.backbone, seed=0, pooling="flat")  # the same float64 backbone, detached path
+    fast = AttentionDescriptor(lite64.backbone, seed=0, pooling="flat", num_rnn=16)  # the same float64 backbone, detached
     x = torch.rand(2, 3, 64, 64, dtype=torch.float64)
     a, b = lite64.parts(x), fast.parts(x)
     assert torch.equal(a.tap.detach(), b.tap)

@@ -12,7 +12,8 @@ def test_help_and_run(load_script, capsys):
     assert "an RGB image file to describe" in capsys.readouterr().out
     mod.main(["--random-weights"])
     out = capsys.readouterr().out
-    assert "2. pieces (1, 1024) equal to 1.: True" in out
+    assert "1. descriptor (1, 1600)" in out  # the regional code of stage7: 5 regions x 320 channels
+    assert "2. pieces (1, 1600) equal to 1.: True" in out
     assert "G by hand equal: True" in out
     assert "4. trainable parameters: ['1.weight', '1.bias']" in out
     assert "5. gradient on the layer after the tap: True" in out

@@ -218,7 +218,7 @@ def test_differentiable_reaches_the_users_weights_without_touching_flags(images)
         (lambda: nn.Sequential(nn.Conv2d(3, 4, 3), nn.ReLU()), "0", {}, "must return class logits"),
         (vgg_like, "2", {"input_size": (64, 64)}, r"dry run .* on a \(1, 3, 64, 64\) image failed"),
         (lambda: nn.Sequential(nn.Conv2d(3, 3, 3, padding=1), nn.Flatten(), nn.Linear(3 * 32 * 32, 4)),
-         "0", {"input_size": (32, 32), "merge": True}, "channels, an odd number"),
+         "0", {"input_size": (32, 32), "merge": True, "num_rnn": 16}, "channels, an odd number"),
         (vgg_like, "2", {"input_size": (32, 32), "mean": (0.5, 0.5)}, "mean must be 3 finite values"),
         (vgg_like, "2", {"input_size": (0, 32)}, "input_size must be"),
     ],
@@ -252,11 +252,11 @@ def test_images_of_another_size_get_a_clear_error():
                         nn.Flatten(), nn.Linear(8, 5))
     desc = AttentionDescriptor(net, tap="2")
     assert desc.backbone.tap_shape == (8, 112, 112)  # the dry run at 224 x 224
-    assert desc(torch.rand(1, 3, 224, 224)).shape == (1, 1024)
+    assert desc(torch.rand(1, 3, 224, 224)).shape == (1, 5 * 8)  # no RNNs: 5 regions x 8 channels
     with pytest.raises(ValueError, match=r"tap_shape is \(8, 112, 112\).*set input_size"):
         desc(torch.rand(1, 3, 64, 64))
     fixed = AttentionDescriptor(net, tap="2", input_size=(64, 64))
-    assert fixed(torch.rand(2, 3, 480, 640)).shape == (2, 1024)  # resized to 64 x 64
+    assert fixed(torch.rand(2, 3, 480, 640)).shape == (2, 5 * 8)  # resized to 64 x 64
 
 
 def test_settings_that_do_not_apply_are_refused():
@@ -281,7 +281,8 @@ def test_normalisation_settings_and_empty_batch():
     u8 = (x * 255).round().to(torch.uint8)
     assert torch.allclose(hooked.preprocess(u8), hooked.preprocess(u8.float() / 255), atol=1e-6)
     desc = AttentionDescriptor(hooked)
-    assert desc(torch.zeros(0, 3, 32, 32)).shape == (0, 1024)
+    assert desc(torch.zeros(0, 3, 32, 32)).shape == (0, 5 * 8)
+    assert AttentionDescriptor(hooked, num_rnn=16)(torch.zeros(0, 3, 32, 32)).shape == (0, 1024)
     assert desc.parts(torch.zeros(0, 3, 32, 32)).tap.shape == (0, 8, 16, 16)
 
 

@@ -328,7 +328,7 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     probe = descriptor_probe(desc)
     # what the first session saved (computed there in the loop worker's thread count: equal to ~1e-7)
     saved = torch.tensor(load_map(room_sessions["folder"]).descriptor["probe"])
-    assert len(probe) == 1024 and float((saved - torch.tensor(probe)).abs().max()) < 1e-6
+    assert len(probe) == 2560 and float((saved - torch.tensor(probe)).abs().max()) < 1e-6
     assert descriptor_probe(copy.deepcopy(desc)) == probe  # deterministic in one thread count
     previous = AttentionDescriptor("efficientnet_lite0", fusion="dam", attend="stage6+stage7").eval()
     with pytest.raises(MapMismatchError, match="descriptor of the probe image differs from this run's by 0.0"):
@@ -349,6 +349,11 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     with caplog.at_level(logging.WARNING, logger="slam.maps.relocalise"):
         run_slam(seq, none_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
     assert "no descriptor probe to compare (none recorded in the map)" in caplog.text
+    # a map of the default before 2026-12-02 (session 6): the paper's 16 RNNs, 1024-d; refused by name
+    manifest["descriptor"].update(fusion="dam", num_rnn=16, dim=1024)
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(MapMismatchError, match="made with descriptor num_rnn=16, this run uses 0"):
+        run_slam(seq, cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
 
 
 def test_a_descriptor_that_cannot_describe_the_probe_saves_a_map_without_one(caplog):

@@ -259,7 +259,7 @@ def test_descriptor_attend_argument():
     x = torch.randint(0, 256, (1, 3, 60, 80), dtype=torch.uint8)
     a, b = both.parts(x), default.parts(x)
     assert torch.equal(a.tap, b.tap) and not torch.allclose(a.descriptor, b.descriptor)
-    assert torch.allclose(a.descriptor, descriptor_from_attention(a.tap, a.grad, both.pool.weights, "dam",
+    assert torch.allclose(a.descriptor, descriptor_from_attention(a.tap, a.grad, None, "dam",
                                                                   groups=(192, 320))[1], atol=1e-6)
     explicit = AttentionDescriptor("efficientnet_lite0", pretrained=False, tap="stage4+stage5", attend="stage5")
     assert explicit.attended_groups == (False, True)
@@ -278,20 +278,24 @@ def test_default_configuration():
     # the attention at stage7 only; stage6 pooled unfused (docs/attention.md, session 4)
     assert d.backbone.attend == "stage7" and d.attended_groups == (False, True)
     r = d.recipe
-    assert (r.pooling, r.gem_p, r.levels, r.num_rnn, r.out_features, r.pool_scale, r.merges) == (
-        "regional", 2.0, (1, 2), 16, 64, 10.0, False)
-    assert d.pool.weights.shape == (16, 64, 2560)
+    # no RNNs (session 6): the regional code, L2-normalised, is the descriptor
+    assert (r.pooling, r.gem_p, r.levels, r.num_rnn, r.merges) == ("regional", 2.0, (1, 2), 0, False)
+    assert d.pool is None and d.out_dim == 2560
     x = torch.randint(0, 256, (2, 3, 120, 160), dtype=torch.uint8)
     parts = d.parts(x)
     assert float(parts.grad[:, :192].abs().max()) == 0 and torch.equal(parts.fused[:, :192], parts.tap[:, :192])
     code = regional_code(fuse_groups(parts.tap, parts.grad, "dam", (192, 320), (False, True)), (192, 320), 2.0, (1, 2))
-    ref = F.normalize(random_rnn_pool(10.0 * F.normalize(code, dim=1)[:, :, None, None], d.pool.weights,
-                                      merge=False), dim=1)
-    assert torch.allclose(parts.descriptor, ref, atol=1e-6)
+    assert torch.allclose(parts.descriptor, F.normalize(code, dim=1), atol=1e-6)
     assert torch.allclose(d.from_attention(parts.tap, parts.grad, "gaf"),
-                          descriptor_from_attention(parts.tap, parts.grad, d.pool.weights, "gaf",
+                          descriptor_from_attention(parts.tap, parts.grad, None, "gaf",
                                                     groups=(192, 320), attended=(False, True))[1])
-    assert d(x[:0]).shape == (0, 1024)
+    assert d(x[:0]).shape == (0, 2560)
+    # num_rnn=16: the paper's RNNs on that code (the default until session 6), input at norm 10
+    rnns = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False, num_rnn=16)
+    assert rnns.pool.weights.shape == (16, 64, 2560) and rnns.out_dim == 1024
+    ref = F.normalize(random_rnn_pool(10.0 * F.normalize(code, dim=1)[:, :, None, None], rnns.pool.weights,
+                                      merge=False), dim=1)
+    assert torch.allclose(rnns.from_attention(parts.tap, parts.grad), ref, atol=1e-6)
     explicit = AttentionDescriptor("efficientnet_lite0", pretrained=False, tap="stage7")
     assert explicit.backbone.tap_shape == (320, 7, 7)  # an explicit tap: the backbone's own 224 x 224
 
@@ -326,5 +330,8 @@ def test_recipe_checks():
         DescriptorRecipe(levels=(0,))
     with pytest.raises(ValueError, match="apply to pooling='regional' only"):
         DescriptorRecipe(pooling="flat", gem_p=3.0)
-    assert DescriptorRecipe(pooling="flat").merges and not DescriptorRecipe().merges
-    assert DescriptorRecipe(merge=True).merges
+    assert DescriptorRecipe(pooling="flat", num_rnn=16).merges and not DescriptorRecipe(num_rnn=16).merges
+    assert DescriptorRecipe(merge=True, num_rnn=16).merges
+    assert not DescriptorRecipe(pooling="flat").merges  # no RNNs: nothing to merge
+    with pytest.raises(ValueError, match="merge set the random RNNs"):
+        DescriptorRecipe(merge=True)
