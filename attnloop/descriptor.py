@@ -68,8 +68,14 @@ __all__ = [
 ]
 
 
-#: The recipe's settings that only the random RNNs read (refused with ``num_rnn=0``).
-_RNN_SETTINGS = ("out_features", "pool_scale", "merge")
+#: The defaults of the settings that only the random RNNs read (refused with ``num_rnn=0`` when changed).
+_RNN_DEFAULTS = {"out_features": 64, "pool_scale": 10.0}
+
+
+def _unused_rnn_settings(out_features=64, pool_scale=10.0, merge=None) -> list[str]:
+    # the RNN settings given away from their defaults (merge: True; False merges nothing, as without RNNs)
+    given = {"out_features": out_features, "pool_scale": pool_scale}
+    return [k for k, v in given.items() if v != _RNN_DEFAULTS[k]] + (["merge"] if merge else [])
 
 
 @dataclass(frozen=True)
@@ -89,10 +95,10 @@ class DescriptorRecipe:
     # Random RNNs after the pooling; the descriptor then has num_rnn * out_features dims (the paper: 16,
     # 1024 dims). 0 (ours): no RNNs, the descriptor is the pooled code itself (docs/attention.md, "Session 6").
     num_rnn: int = 0
-    out_features: int = 64  # output size of each RNN (the paper's 64); an RNN setting
+    out_features: int = _RNN_DEFAULTS["out_features"]  # output size of each RNN (the paper's 64); an RNN setting
     seed: int = 0  # seed of the RNN weights (and of a name-built backbone's random weights when not pretrained)
     normalize: bool = True  # L2-normalise the descriptor: a dot product is then the cosine
-    pool_scale: float | None = 10.0  # L2 norm of the RNNs' input (ours); None: raw (the paper); an RNN setting
+    pool_scale: float | None = _RNN_DEFAULTS["pool_scale"]  # L2 norm of the RNNs' input (ours); None: raw (the paper); an RNN setting
     merge: bool | None = None  # average element c with c + C/2 of the RNNs' input; None: for "flat" only
     pooling: str = "regional"  # "regional": regional GeM code first (ours); "flat": the whole map (the paper)
     gem_p: float = 2.0  # the GeM exponent of the regional pooling
@@ -120,11 +126,13 @@ class DescriptorRecipe:
             raise ValueError(f"pool_scale must be positive and finite, or None, got {self.pool_scale}")
         if self.num_rnn == 0:
             # the RNNs' settings would do nothing without RNNs: refuse them rather than ignore them
-            unused = [f.name for f in dataclasses.fields(self) if f.name in _RNN_SETTINGS
-                      and getattr(self, f.name) != f.default]
+            unused = _unused_rnn_settings(self.out_features, self.pool_scale, self.merge)
             if unused:
                 raise ValueError(f"{', '.join(unused)} set the random RNNs, and num_rnn=0 has none; "
                                  "pass num_rnn=16 (the paper's) to use them")
+            if self.pooling == "flat":
+                raise ValueError("pooling='flat' is the paper's input of the random RNNs (the whole fused map), and "
+                                 "num_rnn=0 has none; pass num_rnn=16, or pooling='regional' without RNNs")
 
     @property
     def out_dim(self) -> int | None:
@@ -201,8 +209,8 @@ def descriptor_from_attention(
         grad: the guided gradient G, :math:`(B, C, h, w)`.
         rnn_weights: :math:`(R, O, I)` random RNN weights: for ``flat`` pooling ``I = C/2 * h * w``
             (``C * h * w`` without merge); for ``regional`` ``I = regional_code_dim(groups, levels)``
-            (halved with merge). None: no RNNs, the descriptor is the pooled code itself (``pool_scale``
-            and ``merge`` must then be left at their defaults).
+            (halved with merge). None: no RNNs, the descriptor is the regional code itself (``pooling``
+            regional; ``pool_scale`` and ``merge`` left at their defaults).
         fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
         normalize: L2-normalise the descriptor.
         pool_scale: L2 norm the RNNs' input is scaled to; None feeds it raw (the paper).
@@ -218,7 +226,7 @@ def descriptor_from_attention(
 
     Returns:
         (fused :math:`(B, C, h, w)`, descriptor :math:`(B, R \\cdot O)`, or without RNNs
-        :math:`(B, \\text{regional\\_code\\_dim})` (regional) / :math:`(B, C h w)` (flat)).
+        :math:`(B, \\text{regional\\_code\\_dim})`).
 
     Example:
         >>> from attnloop.rnn_pool import random_rnn_weights
@@ -237,10 +245,14 @@ def descriptor_from_attention(
         raise ValueError(f"unknown pooling {pooling!r}; choose one of {POOLINGS}")
     fused = fuse_groups(tap, grad, fusion, groups, attended)
     if rnn_weights is None:
-        if merge or pool_scale != _DEFAULT.pool_scale:
-            raise ValueError("merge and pool_scale set the random RNNs' input, and rnn_weights=None has no RNNs; "
+        unused = _unused_rnn_settings(pool_scale=pool_scale, merge=merge)
+        if unused:
+            raise ValueError(f"{', '.join(unused)} set the random RNNs' input, and rnn_weights=None has no RNNs; "
                              "leave them at their defaults")
-        desc = fused.flatten(1) if pooling == "flat" else regional_code(fused, groups, gem_p, levels)
+        if pooling == "flat":
+            raise ValueError("pooling='flat' is the paper's input of the random RNNs, and rnn_weights=None has none; "
+                             "pass RNN weights, or pooling='regional'")
+        desc = regional_code(fused, groups, gem_p, levels)
     else:
         if merge is None:
             merge = pooling == "flat"
@@ -376,7 +388,8 @@ class AttentionDescriptor(nn.Module):
         pretrained: load ImageNet weights into a name-built backbone (default True); False gives seeded
             random weights without any file.
         weights: explicit checkpoint path for a name-built backbone.
-        normalize: L2-normalise the descriptors.
+        normalize: L2-normalise the descriptors. (Without RNNs every region of the regional code is already
+            unit-norm, so ``normalize=False`` leaves the descriptor at norm sqrt(regions x tap groups).)
         tap: a name-built backbone's tap layer (default: ``pool5`` for VGG16, ``stage6+stage7`` at a
             224 x 288 input with G at stage7 for EfficientNet-Lite0, :mod:`attnloop.presets`; an explicit
             tap has G at every stage of it), or the submodule of a classifier module where L is taken.
@@ -458,7 +471,8 @@ class AttentionDescriptor(nn.Module):
         if preset is not None:
             if preset not in PRESETS:
                 raise ValueError(f"unknown preset {preset!r}; choose one of {PRESETS}")
-            fixed = [k for k in changed if k not in ("fusion", "seed")]
+            fixed = [k for k in changed if k not in ("fusion", "seed")
+                     and settings[k] != PAPER_RECIPE_SETTINGS.get(k, getattr(_DEFAULT, k))]
             if recipe is not None or fixed or tap is not None or attend is not None:
                 extra = (["recipe"] if recipe is not None else []) + (["tap"] if tap else []) + (
                     ["attend"] if attend is not None else [])
@@ -559,7 +573,7 @@ class AttentionDescriptor(nn.Module):
 
     @property
     def pool_scale(self) -> float | None:
-        """L2 norm of the pooling input, None for raw (:attr:`recipe`)."""
+        """L2 norm of the RNNs' input, None for raw (:attr:`recipe`; unused without RNNs)."""
         return None if self.recipe.pool_scale is None else float(self.recipe.pool_scale)
 
     def train(self, mode: bool = True) -> AttentionDescriptor:
@@ -568,6 +582,23 @@ class AttentionDescriptor(nn.Module):
         if self._owns_backbone:
             self.backbone.eval()
         return self
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """As :meth:`torch.nn.Module.load_state_dict`; with ``strict``, a state dict of a descriptor with the
+        paper's RNNs (the default until 2026-12-02) loaded into one without them, or the reverse, is refused
+        with the setting that differs named (``num_rnn``) rather than torch's bare key lists."""
+        has = "pool.weights" in state_dict
+        if strict and has != (self.pool is not None):
+            if self.pool is None:
+                n = int(state_dict["pool.weights"].shape[0])
+                raise RuntimeError(f"the state dict holds random RNN weights (pool.weights, shape "
+                                   f"{tuple(state_dict['pool.weights'].shape)}): it was saved by a descriptor with "
+                                   f"num_rnn={n} (the default until 2026-12-02), and this one has no RNNs; build it "
+                                   f"with num_rnn={n}")
+            raise RuntimeError(f"this descriptor has {self.recipe.num_rnn} random RNNs (pool.weights) and the state "
+                               "dict has none: it was saved by a descriptor with num_rnn=0 (the default since "
+                               "2026-12-02); build this one with num_rnn=0")
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def _dtype(self) -> torch.dtype:
         # the descriptor's dtype: the RNNs' (their weights are a buffer), else the backbone's

@@ -135,16 +135,28 @@ def _image_descriptors(files, backbone: str, fusion: str) -> torch.Tensor:
     return torch.cat(out)
 
 
+def descriptor_version(backbone: str = "efficientnet_lite0") -> str:
+    """A short tag of the default descriptor's configuration (its recipe and the backbone's default
+    settings), part of every cache name of described images: a cache made by another default is not reused."""
+    import hashlib
+
+    from attnloop.descriptor import DescriptorRecipe
+    from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
+
+    key = repr((DescriptorRecipe(), sorted(DEFAULT_BACKBONE_SETTINGS.get(backbone, {}).items())))
+    return hashlib.sha1(key.encode()).hexdigest()[:8]
+
+
 def real_descriptors(backbone: str = "efficientnet_lite0", fusion: str = "dam", cache_dir=None) -> dict:
     """Descriptors of every 7-Scenes redkitchen frame and every rtabmap-samples image, and the kitchen's poses.
 
     Returns:
         ``{"kitchen": (1000, D), "rtabmap": (84, D), "kitchen_poses": (1000, 4, 4)}``, cached in
-        ``cache_dir`` (default ``out/``) as ``index_real_<backbone>_<fusion>.pt``.
+        ``cache_dir`` (default ``out/``) as ``index_real_<backbone>_<fusion>_<descriptor_version>.pt``.
     """
     from pathlib import Path
 
-    cache = Path(cache_dir or "out") / f"index_real_{backbone}_{fusion}.pt"
+    cache = Path(cache_dir or "out") / f"index_real_{backbone}_{fusion}_{descriptor_version(backbone)}.pt"
     if cache.is_file():
         return torch.load(cache)
     root = data_root()

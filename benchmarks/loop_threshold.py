@@ -34,6 +34,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from index_data import descriptor_version
 from place_recognition import data_root, kitchen_poses, load_rgb
 
 from attnloop import AttentionDescriptor
@@ -69,7 +70,9 @@ def keyframe_stream(path: Path, step: int, fusion: str, cache: Path | None) -> d
 
     seq = open_sequence(path)
     name = f"{seq.name}_step{step}_{fusion}"
-    f = None if cache is None else cache / f"{name}.npz"
+    # the cache file also names the default descriptor's configuration: another default is described anew
+    f_name = f"{name}_{descriptor_version()}"
+    f = None if cache is None else cache / f"{f_name}.npz"
     if f is not None and f.exists():
         z = np.load(f)
         return {k: torch.from_numpy(z[k]) for k in z.files} | {"name": name}

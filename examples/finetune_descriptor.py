@@ -67,7 +67,7 @@ class FinetuneConfig:
     lr: float = 3e-5  # Adam on the trained layers (pretrained weights: a small step)
     margin: float = 0.1  # triplet margin on the cosine: cos(a, n) + margin <= cos(a, p)
     fusion: str = "dam"  # the descriptor trained (the others are evaluated too)
-    seed: int = 0  # RNN weights, sampling and torch's generator
+    seed: int = 0  # sampling, torch's generator (and the RNN weights of a descriptor with num_rnn > 0)
     threads: int = 1  # torch threads
     max_negatives: int = 32  # random negatives per anchor, the most similar one is used
     save: Path | None = None  # write the fine-tuned state dict here

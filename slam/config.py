@@ -51,9 +51,8 @@ class LoopClosureConfig:
     # stage7-only attention G, and again without the RNNs): the relative rule of before plus a floor of
     # 0.85 keeps the kitchen's candidates (recall 0.55-0.61, 1-2 fewer false ones) and sends fewer false
     # candidates to verification on the room (0 vs 19) and the building (710 vs 1143; recall 0.93 both).
-    # A lower k_sigma (0.5 or 1) raises the kitchen's recall to 0.68-0.83 but its extra loops (49 vs 33, all
-    # true) cost the default kitchen run 0.7 mm of ATE (0.0301 m vs 0.0293, over the 0.030 m target; measured
-    # with the RNNs).
+    # A lower k_sigma (0.5 or 1) raises the kitchen's recall to 0.75-0.80, but its extra loops cost the
+    # default kitchen run its target (measured with the RNNs: 49 loops vs 33, all true, 0.0301 m vs 0.0293).
     # Every fusion mode shares the scale (median similarity of kitchen frames >= 100 apart: 0.854-0.860
     # without the RNNs, 0.857-0.863 with them).
     # Backbones not listed (VGG16, a custom descriptor) keep ``detector.threshold``.

@@ -164,8 +164,8 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
                         "torch hub cache")
     g.add_argument("--no-loop", action="store_true", help="odometry only: no loop closure")
     g.add_argument("--seed", type=int, default=0,
-                   help="seed of the descriptor's random weights (its RNNs when the config sets "
-                        "loop.descriptor.num_rnn > 0; the default descriptor has none); with --demo also of the sequence")
+                   help="seed of the descriptor's random RNN weights (SLAMConfig.loop.descriptor.num_rnn > 0 "
+                        "only: the default descriptor has no RNNs); with --demo also of the sequence")
     g.add_argument("--device", default=None,
                    help="torch device of the descriptor network, e.g. cpu, cuda, cuda:1, mps (default: cpu; "
                         "docs/devices.md says what runs where)")

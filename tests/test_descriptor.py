@@ -50,7 +50,7 @@ def test_same_seed_identical_different_seed_different(images):
     b = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=0)(images)
     c = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=1)(images)
     assert torch.equal(a, b)
-    # another seed: other RNN (and backbone) weights, nearly orthogonal descriptors
+    # another seed: other random backbone weights (no RNNs by default), nearly orthogonal descriptors
     assert (a * c).sum(1).abs().max() < 0.5
 
 
@@ -245,7 +245,39 @@ def test_rnn_settings_without_rnns_are_refused(lite, kwargs, name):
     AttentionDescriptor(lite.backbone, num_rnn=16, **kwargs)  # with RNNs they apply
     with pytest.raises(ValueError, match="num_rnn must be a non-negative integer"):
         AttentionDescriptor(lite.backbone, num_rnn=-1)
-    with pytest.raises(ValueError, match="rnn_weights=None has no RNNs"):
-        descriptor_from_attention(torch.rand(1, 320, 7, 7), torch.rand(1, 320, 7, 7), None, "dam",
-                                  **{k: v for k, v in {"pool_scale": None, "merge": True, **kwargs}.items()
-                                     if k in ("pool_scale", "merge")})
+    if name in ("pool_scale", "merge"):  # the functional form names the same setting, and only it
+        with pytest.raises(ValueError, match=f"^{name} set the random RNNs' input, and rnn_weights=None has no RNNs"):
+            descriptor_from_attention(torch.rand(1, 320, 7, 7), torch.rand(1, 320, 7, 7), None, "dam", **kwargs)
+
+
+def test_what_applies_without_rnns(lite, images):
+    # merge=False merges nothing, as without RNNs: accepted; the flat map is the RNNs' input: refused
+    assert AttentionDescriptor(lite.backbone, merge=False).out_dim == 1600
+    with pytest.raises(ValueError, match="pooling='flat' is the paper's input of the random RNNs"):
+        AttentionDescriptor(lite.backbone, pooling="flat")
+    with pytest.raises(ValueError, match="pooling='flat' is the paper's input of the random RNNs"):
+        descriptor_from_attention(torch.rand(1, 320, 7, 7), torch.rand(1, 320, 7, 7), None, "dam", pooling="flat")
+    # the paper preset takes its own settings given explicitly, and refuses others
+    paper = AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper", num_rnn=16, pooling="flat")
+    assert paper.recipe == AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper").recipe
+    with pytest.raises(ValueError, match=r"fixes the recipe and the tap; also given: \['num_rnn'\]"):
+        AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper", num_rnn=8)
+    # the dtype follows the backbone without RNN weights, empty batches included
+    d64 = AttentionDescriptor("efficientnet_lite0", pretrained=False).double()
+    assert d64(torch.zeros(0, 3, 32, 32, dtype=torch.uint8)).dtype == torch.float64
+    assert d64(images[:1]).dtype == torch.float64
+    # normalize=False: every region is unit-norm already, 2 tap groups x 5 regions
+    raw = AttentionDescriptor("efficientnet_lite0", pretrained=False, normalize=False)(images[:2])
+    assert torch.allclose(raw.norm(dim=1), torch.full((2,), 10.0 ** 0.5), atol=1e-5)
+
+
+def test_a_state_dict_of_the_other_encoding_names_num_rnn():
+    # the default until 2026-12-02 had the paper's 16 RNNs: its state dict does not load silently, strict or not
+    old = AttentionDescriptor("efficientnet_lite0", pretrained=False, num_rnn=16)
+    new = AttentionDescriptor("efficientnet_lite0", pretrained=False)
+    with pytest.raises(RuntimeError, match=r"saved by a descriptor with num_rnn=16 .*build it with num_rnn=16"):
+        new.load_state_dict(old.state_dict())
+    with pytest.raises(RuntimeError, match=r"has 16 random RNNs .*saved by a descriptor with num_rnn=0"):
+        old.load_state_dict(new.state_dict())
+    assert new.load_state_dict(old.state_dict(), strict=False).unexpected_keys == ["pool.weights"]
+    new.load_state_dict(AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=3).state_dict())

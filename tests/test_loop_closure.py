@@ -147,6 +147,12 @@ def test_loop_closer_takes_the_threshold_calibrated_for_its_descriptor():
     paper = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=True, preset="paper"))
     assert paper.threshold == cfg.detector.threshold
     assert LoopCloser(cfg, descriptor=torch.nn.Identity()).threshold == cfg.detector.threshold
+    # another seed: without RNNs it seeds nothing of the pretrained network, the same descriptor, calibrated;
+    # with the paper's RNNs (num_rnn=16) another descriptor, whose scale was not calibrated
+    seeded = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=True, seed=5))
+    assert seeded.threshold == lite0
+    rnns = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=True, num_rnn=16))
+    assert rnns.threshold == cfg.detector.threshold
     # the default recipe on another tap or other attention stages: another descriptor, not calibrated
     for kw in ({"tap": "stage7"}, {"attend": "stage6+stage7"}):
         other = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=True, **kw))

@@ -306,10 +306,20 @@ def test_another_descriptor_cannot_use_the_map(room_sessions):
     import copy
 
     other = copy.deepcopy(cfg)
-    other.loop.descriptor.seed = 7
-    with pytest.raises(MapMismatchError, match="seed=0"):
+    other.loop.descriptor.num_rnn = 16
+    with pytest.raises(MapMismatchError, match="made with descriptor num_rnn=0, this run uses 16"):
         run_slam(room_sessions["seq"], other, progress=False, descriptor=room_sessions["desc"], frames=(0, 5),
                  map_dir=room_sessions["folder"])
+    # with RNNs on either side the seed names another descriptor ...
+    other.loop.descriptor.seed = 7
+    with pytest.raises(MapMismatchError, match="num_rnn=0"):
+        run_slam(room_sessions["seq"], other, progress=False, descriptor=room_sessions["desc"], frames=(0, 5),
+                 map_dir=room_sessions["folder"])
+    # ... without RNNs it seeds nothing of the pretrained network: the same descriptor (the probe agrees)
+    other.loop.descriptor.num_rnn = 0
+    run = run_slam(room_sessions["seq"], other, progress=False, descriptor=room_sessions["desc"], frames=(0, 5),
+                   map_dir=room_sessions["folder"])
+    assert run.result.num_keyframes > 0
 
 
 def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sessions, tmp_path, caplog):
@@ -352,7 +362,8 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     # a map of the default before 2026-12-02 (session 6): the paper's 16 RNNs, 1024-d; refused by name
     manifest["descriptor"].update(fusion="dam", num_rnn=16, dim=1024)
     (folder / "manifest.json").write_text(json.dumps(manifest))
-    with pytest.raises(MapMismatchError, match="made with descriptor num_rnn=16, this run uses 0"):
+    with pytest.raises(MapMismatchError, match="made with descriptor num_rnn=16, this run uses 0; .*no RNNs since "
+                       "2026-12-02 .*set loop.descriptor.num_rnn = 16 to use this map"):
         run_slam(seq, cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
 
 

@@ -332,6 +332,6 @@ def test_recipe_checks():
         DescriptorRecipe(pooling="flat", gem_p=3.0)
     assert DescriptorRecipe(pooling="flat", num_rnn=16).merges and not DescriptorRecipe(num_rnn=16).merges
     assert DescriptorRecipe(merge=True, num_rnn=16).merges
-    assert not DescriptorRecipe(pooling="flat").merges  # no RNNs: nothing to merge
+    assert not DescriptorRecipe(merge=False).merges  # no RNNs: nothing to merge
     with pytest.raises(ValueError, match="merge set the random RNNs"):
         DescriptorRecipe(merge=True)

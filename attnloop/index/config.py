@@ -103,7 +103,8 @@ class IndexConfig:
     # the rerank * k candidates. 128 dims build and search ~2x faster than 256 and keep 94% of the kitchen
     # descriptors' variance; with rerank 8 the kitchen (graph from 32 keyframes on, window 30) keeps
     # recall@10 0.981 (256 dims: 0.998; full descriptors: 1.000). docs/benchmarks.md, "Keyframe index at
-    # scale", has every variant on every set.
+    # scale", has every variant on every set (measured on the 1024-d descriptor of before 2026-12-02; the
+    # default's is 2560-d now, not re-measured).
     reduce_dim: int | None = 128
     # PCA-whitening (unit-variance components, codes L2-normalised) instead of PCA: it lost recall on real
     # descriptors (kitchen 0.86 vs 0.99), kept for measurement.

@@ -13,7 +13,8 @@ from attnloop.index.exact import matvec
 __all__ = ["KeyframeStore"]
 
 # float16 rows are widened to float32 this many at a time before a product (bounds the temporary copy:
-# 16384 x 1024 x 4 bytes = 64 MB), since a float16 product on the CPU rounds its result to float16.
+# 16384 x D x 4 bytes, 160 MB for the default 2560-d descriptor), since a float16 product on the CPU rounds
+# its result to float16.
 _CHUNK = 16384
 
 

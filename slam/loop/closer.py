@@ -174,8 +174,12 @@ class LoopCloser:
         # the descriptor's own word on its weights when it has one (a module passed in may differ from the config)
         pretrained = getattr(self.descriptor, "pretrained", None)
         pretrained = bool(config.descriptor.pretrained) if pretrained is None else bool(pretrained)
-        default = (recipe is not None and pretrained  # any fusion mode: they share a scale
-                   and dataclasses.replace(recipe, fusion=type(recipe)().fusion) == type(recipe)()
+        # Any fusion mode (they share a scale), and any seed without RNNs: the seed then seeds nothing of a
+        # pretrained network, so the descriptor is the default's.
+        unseeded = recipe is not None and not getattr(recipe, "num_rnn", 1)
+        default = (recipe is not None and pretrained
+                   and dataclasses.replace(recipe, fusion=type(recipe)().fusion,
+                                           **({"seed": type(recipe)().seed} if unseeded else {})) == type(recipe)()
                    and all(getattr(net, key, None) == value
                            for key, value in DEFAULT_BACKBONE_SETTINGS.get(backbone, {}).items()))
         calibrated = getattr(config, "threshold_by_backbone", {}).get(backbone) if default else None

@@ -285,10 +285,18 @@ class MapRelocaliser:
                                    "drop --no-loop")
         mine = _descriptor_info(slam)
         theirs = saved.descriptor
-        for key in ("backbone", "fusion", "num_rnn", "seed"):
+        # The seed seeds the RNN weights (and a random backbone's, which the probe below tells apart): without
+        # RNNs on both sides two seeds give one descriptor.
+        seeded = bool(theirs.get("num_rnn", 1)) or bool(mine["num_rnn"])
+        for key in ("backbone", "fusion", "num_rnn") + (("seed",) if seeded else ()):
             if key in theirs and theirs[key] != mine[key]:
+                remedy = ""
+                if key == "num_rnn":
+                    remedy = ("; the default descriptor has no RNNs since 2026-12-02 (loop.descriptor.num_rnn = 0): "
+                              f"set loop.descriptor.num_rnn = {theirs[key]!r} to use this map, or record its session again")
                 raise MapMismatchError(f"{where}: the map was made with descriptor {key}={theirs[key]!r}, this run "
-                                       f"uses {mine[key]!r}; its index cannot be searched with another descriptor")
+                                       f"uses {mine[key]!r}; its index cannot be searched with another descriptor"
+                                       + remedy)
         if "probe" not in theirs and theirs.get("backbone") == "efficientnet_lite0" and theirs.get("fusion") != "none":
             # saved before the probe existed (2026-12-02), so with the default of then: G at stage6 and stage7
             raise MapMismatchError(
