@@ -58,7 +58,8 @@ Session 6 (the same ``*_taps.pt`` caches):
   nearer linear), each position's feature vector L2-normalised before the GeM, and the code's signed
   square root (power normalisation), with and without RNNs; the four protocols, the shift check, the
   held-out halves, and the similarity scale the SLAM's loop threshold sits on (kitchen frames >= 100 apart);
-  then the GeM exponent (2, 3, 4) and three region layouts chosen again without RNNs.
+  then the GeM exponent (2, 3, 4) and three region layouts chosen again without RNNs, and session 3's
+  forms of G (its within-channel part, G clamped at the head output, GAF/EGA on sum_c |G_c|) without RNNs.
 
 Usage:
     python benchmarks/attention_hypotheses.py [--data ../shared/data] [--only range norm ...] [--threads 1]
@@ -862,6 +863,14 @@ def encoding_section(views: dict, protos: dict, seeds: tuple[int, ...]) -> None:
     crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in pooling.items()}
     print("\nHeld-out halves, the same criterion: " + "; ".join(f"{n} {c:.3f}" for n, c in crit.items())
           + f"; chosen: {max(crit, key=crit.get)}")
+    # Session 3's forms of G at stage7, again without the RNNs (fuse_taps: the within-channel part, G clamped
+    # at the head output, GAF/EGA on the channel-summed |G|), per protocol.
+    forms = {f"G as {g.removesuffix('@last')}, no RNNs": evaluate_variant(views, protos, ("stage6", "stage7"), g,
+                                                                       DEFAULT_LAYOUT, (None,))
+             for g in ("G@last", "spatial@last", "Gc@last", "chsum@last")}
+    variant_table("forms of G at stage7 without the RNNs (R@1 / R@P100)", forms, names)
+    crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in forms.items()}
+    print("\nHeld-out halves, the same criterion: " + "; ".join(f"{n} {c:.3f}" for n, c in crit.items()))
     # The SLAM's loop threshold has an absolute floor (slam/config.py): the scale of the similarities.
     print("\nSimilarity scale, kitchen frames >= 100 apart (every 5th frame), median [10th, 90th percentile]:\n\n"
           "| encoding | " + " | ".join(FUSION_MODES) + " |\n|---|" + "---|" * len(FUSION_MODES))
