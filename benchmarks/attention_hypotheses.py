@@ -59,7 +59,8 @@ Session 6 (the same ``*_taps.pt`` caches):
   square root (power normalisation), with and without RNNs; the four protocols, the shift check, the
   held-out halves, and the similarity scale the SLAM's loop threshold sits on (kitchen frames >= 100 apart);
   then the GeM exponent (2, 3, 4) and three region layouts chosen again without RNNs, and session 3's
-  forms of G (its within-channel part, G clamped at the head output, GAF/EGA on sum_c |G_c|) without RNNs.
+  forms of G (its within-channel part, G clamped at the head output, GAF/EGA on sum_c |G_c|) and the
+  input size (224 x 224, 192 x 256, 224 x 288, 288 x 384; tap maps cached per size) without RNNs.
 
 Usage:
     python benchmarks/attention_hypotheses.py [--data ../shared/data] [--only range norm ...] [--threads 1]
@@ -248,17 +249,18 @@ def spatial_share(g: torch.Tensor) -> torch.Tensor:
     return (within / total.clamp_min(1e-300)).float()
 
 
-def extract_taps(images: list[np.ndarray], batch: int = 8, net=None) -> dict[str, torch.Tensor]:
-    """L and G at stage4 ... stage7 from one forward and two backwards (224 x 288).
+def extract_taps(images: list[np.ndarray], batch: int = 8, net=None, size: tuple[int, int] = SIZE
+                 ) -> dict[str, torch.Tensor]:
+    """L and G at stage4 ... stage7 from one forward and two backwards (input ``size``, 224 x 288 by default).
 
     Keys ``L:<tap>``, ``G:<tap>`` (the plain seeded gradient, as the library's), ``Gc:<tap>`` (the
     negative gradient zeroed at the head's output, after its ReLU6: the last non-negative map, VGG's
     pool5 analogue), ``logits``, and the spatial shares (:func:`spatial_share`) ``share:<tap>``,
     ``share_c:<tap>``, ``share:head`` (dS/d head output) and ``share:head_pre`` (before the ReLU6).
-    ``net``: a Lite0 of input size ``SIZE`` (default: the pretrained one).
+    ``net``: a Lite0 of input size ``size`` (default: the pretrained one); ``size``: the input (H, W).
     """
-    net = net or efficientnet_lite("lite0", pretrained=True, tap="stage7", input_size=SIZE)
-    info = efficientnet_lite_taps("lite0", SIZE)
+    net = net or efficientnet_lite("lite0", pretrained=True, tap="stage7", input_size=size)
+    info = efficientnet_lite_taps("lite0", size)
     at = {info[t][0]: t for t in TAPS}
     first = info[TAPS[0]][0]
     out: dict[str, list] = {}
@@ -267,7 +269,7 @@ def extract_taps(images: list[np.ndarray], batch: int = 8, net=None) -> dict[str
         out.setdefault(key, []).append(value.detach())
 
     for s in range(0, len(images), batch):
-        x = torch.stack([prepare_images(torch.from_numpy(im).permute(2, 0, 1)[None], SIZE, net.mean, net.std)[0]
+        x = torch.stack([prepare_images(torch.from_numpy(im).permute(2, 0, 1)[None], size, net.mean, net.std)[0]
                          for im in images[s:s + batch]])
         with torch.no_grad():
             h = F.relu6(net._bn0(net._conv_stem(x)))
@@ -299,16 +301,17 @@ def extract_taps(images: list[np.ndarray], batch: int = 8, net=None) -> dict[str
     return {k: torch.cat(v) for k, v in out.items()}
 
 
-def load_taps(name: str, images: list[np.ndarray], cache: Path) -> dict[str, dict[str, torch.Tensor]]:
-    """{view: extract_taps of the set's frames in that view}, cached in ``cache``."""
+def load_taps(name: str, images: list[np.ndarray], cache: Path, size: tuple[int, int] = SIZE
+              ) -> dict[str, dict[str, torch.Tensor]]:
+    """{view: extract_taps of the set's frames in that view at input ``size``}, cached in ``cache``."""
     views = {}
     for view in VIEWS:
-        path = cache / f"{name}_{view}_lite0_{SIZE[0]}x{SIZE[1]}_taps.pt"
+        path = cache / f"{name}_{view}_lite0_{size[0]}x{size[1]}_taps.pt"
         if path.is_file():
             views[view] = torch.load(path)
         else:
             t0 = time.perf_counter()
-            views[view] = extract_taps([crop(im, view) for im in images])
+            views[view] = extract_taps([crop(im, view) for im in images], size=size)
             torch.save(views[view], path)
             print(f"<!-- {name} {view}: tap maps in {time.perf_counter() - t0:.0f} s -->", flush=True)
     return views
@@ -839,7 +842,8 @@ def encodings(seeds: tuple[int, ...]) -> dict[str, dict]:
     }
 
 
-def encoding_section(views: dict, protos: dict, seeds: tuple[int, ...]) -> None:
+def encoding_section(views: dict, protos: dict, seeds: tuple[int, ...], frames: dict, cache: Path) -> None:
+    """Session 6; ``frames``: {set: its images} and ``cache``, for the tap maps at other input sizes."""
     names = [p for s in protos.values() for p in s]
     spec = encodings(seeds)
     results = {label: evaluate_variant(views, protos, ("stage6", "stage7"), "G@last", DEFAULT_LAYOUT, **kw)
@@ -863,6 +867,15 @@ def encoding_section(views: dict, protos: dict, seeds: tuple[int, ...]) -> None:
     crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in pooling.items()}
     print("\nHeld-out halves, the same criterion: " + "; ".join(f"{n} {c:.3f}" for n, c in crit.items())
           + f"; chosen: {max(crit, key=crit.get)}")
+    # Session 1 chose the input size with the RNNs: chosen again without them (taps cached per size).
+    sizes = {}
+    for size in ((224, 224), (192, 256), (224, 288), (288, 384)):
+        at = views if size == SIZE else {k: load_taps(k, images, cache, size) for k, images in frames.items()}
+        sizes[f"{size[0]} x {size[1]}"] = evaluate_variant(at, protos, ("stage6", "stage7"), "G@last", DEFAULT_LAYOUT,
+                                                           (None,))
+    summary_table("input size without RNNs (four-protocol mean, R@1 / R@P100)", sizes)
+    crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in sizes.items()}
+    print("\nHeld-out halves, the same criterion: " + "; ".join(f"{n} {c:.3f}" for n, c in crit.items()))
     # Session 3's forms of G at stage7, again without the RNNs (fuse_taps: the within-channel part, G clamped
     # at the head output, GAF/EGA on the channel-summed |G|), per protocol.
     forms = {f"G as {g.removesuffix('@last')}, no RNNs": evaluate_variant(views, protos, ("stage6", "stage7"), g,
@@ -894,7 +907,8 @@ def session3(args, data: dict, protos: dict) -> None:
     if "encoding" in args.only:
         if len(views) != 2:
             raise SystemExit("encoding needs both sets (rtabmap-samples and the kitchen)")
-        encoding_section(views, protos, tuple(range(args.rnn_seeds)))
+        encoding_section(views, protos, tuple(range(args.rnn_seeds)), {k: v[0] for k, v in data.items()},
+                         args.cache)
     local = {}
     if "local" in args.only:
         load_local(views, args.cache)
