@@ -28,6 +28,7 @@ Usage:
     python benchmarks/place_recognition.py [--data ../shared/data] [--sets rtabmap kitchen] [--out runs/pr]
     python benchmarks/place_recognition.py --methods orb      # the ORB-BoW anchor alone (2 min)
     python benchmarks/place_recognition.py --methods orb --bow-seeds 0 1 2 3 4   # its spread over vocabularies
+    python benchmarks/place_recognition.py --grayscale        # grayscale copies (the held-out corridor is grayscale)
     python benchmarks/place_recognition.py --sets --query corridor/query --reference corridor/ref \\
         --ground-truth corridor/ground_truth_new.npy
 
@@ -72,6 +73,12 @@ def load_rgb(path: Path) -> np.ndarray:
     if bgr is None:
         raise FileNotFoundError(f"cannot read image {path}")
     return np.ascontiguousarray(bgr[:, :, ::-1])
+
+
+def grayscale(images: list[np.ndarray]) -> list[np.ndarray]:
+    """Each (H, W, 3) RGB image as its luminance (OpenCV's RGB -> gray) in all three channels: what a
+    grayscale set such as VPR-Bench's corridor gives a colour network."""
+    return [np.repeat(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)[:, :, None], 3, axis=2) for im in images]
 
 
 def natural_key(path: Path) -> tuple:
@@ -359,6 +366,9 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS,
                         help="what to measure: default (the five modes, GAP, GeM), paper (preset='paper'), orb "
                              "(ORB-BoW); default: all")
+    parser.add_argument("--grayscale", action="store_true",
+                        help="evaluate grayscale copies of every image, the ORB-BoW vocabulary's included (the "
+                             "held-out corridor set is grayscale)")
     parser.add_argument("--bow-seeds", nargs="+", type=int, default=[0],
                         help="seeds of the ORB-BoW vocabulary (its k-means draw and sample); one row per seed "
                              "(default: 0)")
@@ -367,7 +377,8 @@ def main() -> None:
     if (args.query is None) != (args.reference is None) or (args.query is not None and args.ground_truth is None):
         parser.error("--query, --reference and --ground-truth go together")
     print(f"# Place recognition ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, "
-          f"{torch.get_num_threads()} thread(s))")
+          f"{torch.get_num_threads()} thread(s){', grayscale copies' if args.grayscale else ''})")
+    gray = grayscale if args.grayscale else (lambda images: images)
     jobs = [(name, {"rtabmap": protocols_rtabmap, "kitchen": protocols_kitchen}[name]) for name in args.sets]
     for name, fn in jobs:
         t0 = time.perf_counter()
@@ -376,12 +387,12 @@ def main() -> None:
             print(f"\n{name}: data not found under {args.data}; skipped", file=sys.stderr)
             continue
         query, reference, bow_train, protos = got
-        sims = all_methods(query, reference, bow_train, args.methods, args.bow_seeds)
+        sims = all_methods(gray(query), reference and gray(reference), gray(bow_train), args.methods, args.bow_seeds)
         report(name, sims, protos, args.out)
         print(f"\n({name}: {len(query)} images, {time.perf_counter() - t0:.0f} s)")
     if args.query is not None:
         query, reference, bow_train, protos = protocols_folders(args.query, args.reference, args.ground_truth, args.data)
-        sims = all_methods(query, reference, bow_train, args.methods, args.bow_seeds)
+        sims = all_methods(gray(query), gray(reference), gray(bow_train), args.methods, args.bow_seeds)
         report(args.query.parent.name or "folders", sims, protos, args.out)
 
 

@@ -317,3 +317,15 @@ def test_benchmark_reads_a_folder_in_the_order_of_its_ground_truth(tmp_path, loa
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit, match="no images"):
         bench.folder_images(tmp_path / "empty")
+
+
+def test_benchmark_grayscale_copies(load_script):
+    # --grayscale: each image's luminance (OpenCV's weights) in all three channels, uint8, shape kept
+    bench = load_script("benchmarks/place_recognition.py")
+    rgb = np.random.default_rng(0).integers(0, 256, (2, 6, 8, 3), dtype=np.uint8)
+    out = bench.grayscale(list(rgb))
+    assert len(out) == 2 and all(o.shape == (6, 8, 3) and o.dtype == np.uint8 for o in out)
+    lum = np.rint(0.299 * rgb[0, ..., 0] + 0.587 * rgb[0, ..., 1] + 0.114 * rgb[0, ..., 2])
+    assert np.abs(out[0][..., 0].astype(int) - lum.astype(int)).max() <= 1
+    assert (out[0][..., 0] == out[0][..., 1]).all() and (out[0][..., 1] == out[0][..., 2]).all()
+    assert np.array_equal(bench.grayscale([out[0]])[0], out[0])  # grey stays grey
