@@ -60,7 +60,9 @@ Session 6 (the same ``*_taps.pt`` caches):
   held-out halves, and the similarity scale the SLAM's loop threshold sits on (kitchen frames >= 100 apart);
   then the GeM exponent (2, 3, 4) and three region layouts chosen again without RNNs, and session 3's
   forms of G (its within-channel part, G clamped at the head output, GAF/EGA on sum_c |G_c|) and the
-  input size (224 x 224, 192 x 256, 224 x 288, 288 x 384; tap maps cached per size) without RNNs.
+  input size (224 x 224, 192 x 256, 224 x 288, 288 x 384; tap maps cached per size) without RNNs; and
+  VLAD of the fused maps' local descriptors (16 or 32 words per stage, the vocabulary learnt on the other
+  set) in place of the regional code.
 
 Usage:
     python benchmarks/attention_hypotheses.py [--data ../shared/data] [--only range norm ...] [--threads 1]
@@ -826,6 +828,54 @@ def _signed_sqrt(code: torch.Tensor) -> torch.Tensor:
     return code.sign() * code.abs().sqrt()
 
 
+def _kmeans_unit(x: torch.Tensor, k: int, iters: int = 30, seed: int = 0) -> torch.Tensor:
+    # spherical k-means of unit rows (N, C) -> (k, C) unit centres, seeded draw of the initial centres
+    g = torch.Generator().manual_seed(seed)
+    c = x[torch.randperm(len(x), generator=g)[:k]].clone()
+    for _ in range(iters):
+        a = (x @ c.T).argmax(1)
+        for j in range(k):
+            if (a == j).any():
+                c[j] = F.normalize(x[a == j].mean(0), dim=0)
+    return c
+
+
+def _local_descriptors(maps: list[torch.Tensor]) -> list[torch.Tensor]:
+    # (N, C, h, w) maps -> (N, h w, C) unit local descriptors, one per position
+    return [F.normalize(m.flatten(2).transpose(1, 2), dim=2) for m in maps]
+
+
+def vlad_code(maps: list[torch.Tensor], centres: list[torch.Tensor]) -> torch.Tensor:
+    """VLAD (Jegou et al. 2010; NetVLAD's aggregation without its training) of each map's local
+    descriptors against its vocabulary: hard assignment, residuals summed per word, intra-normalised,
+    signed square root, L2."""
+    parts = []
+    for x, c in zip(_local_descriptors(maps), centres):
+        a = F.one_hot((x @ c.T).argmax(2), c.shape[0]).to(x.dtype)  # (N, P, K)
+        v = torch.einsum("npk,npc->nkc", a, x) - a.sum(1)[..., None] * c[None]
+        parts.append(F.normalize(v, dim=2).flatten(1))
+    d = torch.cat(parts, 1)
+    return F.normalize(d.sign() * d.abs().sqrt(), dim=1)
+
+
+def vlad_variant(views: dict, protos: dict, taps: tuple[str, ...], words: int) -> dict:
+    """evaluate_variant's result for VLAD codes of the fused maps; each set's vocabulary is learnt on the
+    *other* set's unfused L (never on the evaluated images, as ORB-BoW's)."""
+    other = {a: b for a, b in zip(views, reversed(list(views)))}
+    centres = {k: [_kmeans_unit(x.reshape(-1, x.shape[2]), words)
+                   for x in _local_descriptors([views[other[k]]["full"][f"L:{t}"] for t in taps])] for k in views}
+    out = {}
+    for m in FUSION_MODES:
+        codes = {k: {v: vlad_code(fuse_taps(f[v], taps, m, "G@last"), centres[k]) for v in VIEWS}
+                 for k, f in views.items()}
+        full = {k: c["full"] for k, c in codes.items()}
+        out[m] = {"full": scores(full, protos), "half0": scores(full, protos, half=0),
+                  "half1": scores(full, protos, half=1),
+                  "shift": scores({k: (c["left"], c["right"]) for k, c in codes.items()}, protos),
+                  "sem": {p: (float("nan"), float("nan")) for p in scores(full, protos)}}
+    return out
+
+
 def encodings(seeds: tuple[int, ...]) -> dict[str, dict]:
     """Session 6: label -> the keyword arguments of :func:`evaluate_variant` (and its ``seeds``)."""
     none = (None,)
@@ -876,6 +926,13 @@ def encoding_section(views: dict, protos: dict, seeds: tuple[int, ...], frames: 
     summary_table("input size without RNNs (four-protocol mean, R@1 / R@P100)", sizes)
     crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in sizes.items()}
     print("\nHeld-out halves, the same criterion: " + "; ".join(f"{n} {c:.3f}" for n, c in crit.items()))
+    # An orderless aggregation instead of the regions: VLAD of the fused maps' local descriptors
+    vlad = {f"VLAD, {words} words per stage, {'+'.join(taps)}": vlad_variant(views, protos, taps, words)
+            for taps, words in ((("stage6", "stage7"), 16), (("stage6", "stage7"), 32),
+                                (("stage5", "stage6", "stage7"), 16))}
+    summary_table("VLAD of the fused maps, vocabulary learnt on the other set (four-protocol mean, R@1 / R@P100)",
+                  {"the regional code (the default)": results["no RNNs: the code itself (the default since session 6)"],
+                   **vlad})
     # Session 3's forms of G at stage7, again without the RNNs (fuse_taps: the within-channel part, G clamped
     # at the head output, GAF/EGA on the channel-summed |G|), per protocol.
     forms = {f"G as {g.removesuffix('@last')}, no RNNs": evaluate_variant(views, protos, ("stage6", "stage7"), g,
