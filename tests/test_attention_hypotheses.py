@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor
 from attnloop.fusion import FUSION_MODES
@@ -231,3 +232,18 @@ def test_fuse_taps_takes_a_cached_form_by_its_prefix(hyp, maps):
                           fuse_groups(L, G, "dam", (192, 320), (False, True)))
     with pytest.raises(KeyError):  # a form that is not cached is an error, never the plain G in disguise
         hyp.fuse_taps(f, taps, "dam", "Gtop5")
+
+
+def test_vlad_code_hand_computed(hyp):
+    # one map, 3 positions of 2 channels, 2 unit words: positions 0 and 1 go to word 0, position 2 to word 1
+    x = torch.tensor([[1.0, 0.0], [0.8, 0.6], [0.0, 1.0]]).T.reshape(1, 2, 1, 3)
+    words = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
+    res0 = torch.tensor([1.0, 0.0]) + torch.tensor([0.8, 0.6]) - 2 * words[0]  # (-0.2, 0.6)
+    res1 = torch.tensor([0.0, 1.0]) - words[1]  # zero: stays zero after the intra-normalisation
+    v = torch.cat([res0 / res0.norm(), res1])
+    v = v.sign() * v.abs().sqrt()
+    assert torch.allclose(hyp.vlad_code([x], [words]), (v / v.norm())[None], atol=1e-6)
+    # spherical k-means finds two separated directions
+    pts = F.normalize(torch.tensor([[1.0, 0.05], [1.0, -0.05], [0.05, 1.0], [-0.05, 1.0]]), dim=1)
+    c = hyp._kmeans_unit(pts, 2)
+    assert sorted(int(i) for i in (pts @ c.T).argmax(1)[[0, 2]]) == [0, 1]
