@@ -44,7 +44,7 @@ import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -150,6 +150,17 @@ class DescriptorRecipe:
 
 
 _DEFAULT = DescriptorRecipe()
+
+
+class _Default:
+    """The default of an :class:`AttentionDescriptor` recipe argument not given (the recipe's own default),
+    told apart from the same value given explicitly (which ``preset=`` may refuse)."""
+
+    def __repr__(self) -> str:
+        return "<the recipe's default>"
+
+
+_UNSET: Any = _Default()
 
 
 class DescriptorParts(NamedTuple):
@@ -442,16 +453,16 @@ class AttentionDescriptor(nn.Module):
     def __init__(
         self,
         backbone: str | nn.Module = "auto",
-        fusion: str = _DEFAULT.fusion,
-        num_rnn: int = _DEFAULT.num_rnn,
-        seed: int = _DEFAULT.seed,
+        fusion: str = _UNSET,
+        num_rnn: int = _UNSET,
+        seed: int = _UNSET,
         pretrained: bool | None = None,
         weights: str | Path | None = None,
-        normalize: bool = _DEFAULT.normalize,
+        normalize: bool = _UNSET,
         tap: str | None = None,
-        out_features: int = _DEFAULT.out_features,
-        pool_scale: float | None = _DEFAULT.pool_scale,
-        merge: bool = _DEFAULT.merge,
+        out_features: int = _UNSET,
+        pool_scale: float | None = _UNSET,
+        merge: bool | None = _UNSET,
         *,
         input_size: Sequence[int] | None = None,
         mean: Sequence[float] | None = None,
@@ -459,20 +470,23 @@ class AttentionDescriptor(nn.Module):
         differentiable: bool = False,
         recipe: DescriptorRecipe | None = None,
         preset: str | None = None,
-        pooling: str = _DEFAULT.pooling,
+        pooling: str = _UNSET,
         attend: str | None = None,
     ) -> None:
         super().__init__()
         # The recipe's settings as given; the recipe is built once it is known which of them apply (a
         # preset or a recipe replaces them, and their checks must not speak for settings that were not given).
-        settings = {"fusion": fusion, "num_rnn": num_rnn, "out_features": out_features, "seed": seed,
-                    "normalize": normalize, "pool_scale": pool_scale, "merge": merge, "pooling": pooling}
-        changed = [k for k, v in settings.items() if v != getattr(_DEFAULT, k)]
+        passed = {"fusion": fusion, "num_rnn": num_rnn, "out_features": out_features, "seed": seed,
+                  "normalize": normalize, "pool_scale": pool_scale, "merge": merge, "pooling": pooling}
+        settings = {k: getattr(_DEFAULT, k) if v is _UNSET else v for k, v in passed.items()}
+        passed = {k: v for k, v in passed.items() if v is not _UNSET}  # given by the caller
+        changed = [k for k, v in passed.items() if v != getattr(_DEFAULT, k)]
         if preset is not None:
             if preset not in PRESETS:
                 raise ValueError(f"unknown preset {preset!r}; choose one of {PRESETS}")
-            fixed = [k for k in changed if k not in ("fusion", "seed")
-                     and settings[k] != PAPER_RECIPE_SETTINGS.get(k, getattr(_DEFAULT, k))]
+            # a setting given explicitly must be the paper's (fusion and seed stay free)
+            fixed = [k for k, v in passed.items() if k not in ("fusion", "seed")
+                     and v != PAPER_RECIPE_SETTINGS.get(k, getattr(_DEFAULT, k))]
             if recipe is not None or fixed or tap is not None or attend is not None:
                 extra = (["recipe"] if recipe is not None else []) + (["tap"] if tap else []) + (
                     ["attend"] if attend is not None else [])
@@ -588,7 +602,9 @@ class AttentionDescriptor(nn.Module):
         paper's RNNs (the default until 2026-12-02) loaded into one without them, or the reverse, is refused
         with the setting that differs named (``num_rnn``) rather than torch's bare key lists."""
         has = "pool.weights" in state_dict
-        if strict and has != (self.pool is not None):
+        # only a state dict of this descriptor's own keys otherwise (not a wrapper's prefixed ones)
+        own = {k for k in self.state_dict() if k != "pool.weights"} == {k for k in state_dict if k != "pool.weights"}
+        if strict and own and has != (self.pool is not None):
             if self.pool is None:
                 n = int(state_dict["pool.weights"].shape[0])
                 raise RuntimeError(f"the state dict holds random RNN weights (pool.weights, shape "

@@ -841,7 +841,9 @@ def _kmeans_unit(x: torch.Tensor, k: int, iters: int = 30, seed: int = 0) -> tor
 
 
 def _local_descriptors(maps: list[torch.Tensor]) -> list[torch.Tensor]:
-    # (N, C, h, w) maps -> (N, h w, C) unit local descriptors, one per position
+    # (N, C, h, w) maps -> (N, h w, C) unit local descriptors, one per position. The unit length cancels a
+    # weight a position has in every channel alike: GAF's and EGA's (their VLAD rows are `none`'s, up to
+    # GAF's zero-weight positions), so VLAD measures DAM and EAM against `none`.
     return [F.normalize(m.flatten(2).transpose(1, 2), dim=2) for m in maps]
 
 
@@ -861,6 +863,8 @@ def vlad_code(maps: list[torch.Tensor], centres: list[torch.Tensor]) -> torch.Te
 def vlad_variant(views: dict, protos: dict, taps: tuple[str, ...], words: int) -> dict:
     """evaluate_variant's result for VLAD codes of the fused maps; each set's vocabulary is learnt on the
     *other* set's unfused L (never on the evaluated images, as ORB-BoW's)."""
+    if len(views) != 2:
+        raise ValueError(f"VLAD learns each set's vocabulary on the other set: two sets needed, got {list(views)}")
     other = {a: b for a, b in zip(views, reversed(list(views)))}
     centres = {k: [_kmeans_unit(x.reshape(-1, x.shape[2]), words)
                    for x in _local_descriptors([views[other[k]]["full"][f"L:{t}"] for t in taps])] for k in views}
@@ -941,6 +945,7 @@ def encoding_section(views: dict, protos: dict, seeds: tuple[int, ...], frames: 
     variant_table("forms of G at stage7 without the RNNs (R@1 / R@P100)", forms, names)
     crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in forms.items()}
     print("\nHeld-out halves, the same criterion: " + "; ".join(f"{n} {c:.3f}" for n, c in crit.items()))
+    variant_table("forms of G, second half of each protocol's queries", forms, names, key="half1")
     # The SLAM's loop threshold has an absolute floor (slam/config.py): the scale of the similarities.
     print("\nSimilarity scale, kitchen frames >= 100 apart (every 5th frame), median [10th, 90th percentile]:\n\n"
           "| encoding | " + " | ".join(FUSION_MODES) + " |\n|---|" + "---|" * len(FUSION_MODES))

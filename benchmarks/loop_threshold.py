@@ -19,7 +19,8 @@ detector of ``slam.config.LoopClosureConfig`` (ids in milliseconds, window 3 s) 
 threshold setting. Per sequence and setting: candidates sent to verification (the first
 ``max_candidates`` accepted) and how many are false, the recall (queries with a true candidate among
 them / queries with an eligible true match), and the best candidate's precision. The streams are cached
-in ``--cache`` (``<sequence>_step<N>.npz``), so a second sweep is instant::
+in ``--cache`` (``<sequence>_step<N>_<fusion>_<descriptor_version>.npz``: another default descriptor is
+described anew), so a second sweep is instant::
 
     python benchmarks/loop_threshold.py --streams --kitchen-steps 1 3 6 --room runs/room_seq \
         --building runs/building_seq --cache runs/loop_streams

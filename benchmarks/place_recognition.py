@@ -334,7 +334,7 @@ def protocols_folders(query: Path, reference: Path, gt_file: Path, data: Path):
     return q, r, bow_train or q, {"pairs": (gt, torch.ones_like(gt))}
 
 
-def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path | None) -> None:
+def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path | None, suffix: str = "") -> None:
     for pname, (gt, cand) in protos.items():
         results = {m: evaluate(s, gt, candidates=cand) for m, s in sims.items()}
         any_r = next(iter(results.values()))
@@ -348,10 +348,10 @@ def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
             keep = [m for m in results if not m.startswith("paper ") or m == "paper dam"]
-            plot_place_recognition(out / f"pr_{set_name}_{pname}.png", [(m, results[m]) for m in keep
+            plot_place_recognition(out / f"pr_{set_name}_{pname}{suffix}.png", [(m, results[m]) for m in keep
                                                                          if m in ("none", "dam", "ega", "GeM",
                                                                                   "ORB-BoW", "paper dam")],
-                                   title=f"{set_name} / {pname}")
+                                   title=f"{set_name} / {pname}{suffix.replace('_', ', ')}")
 
 
 def main() -> None:
@@ -388,12 +388,12 @@ def main() -> None:
             continue
         query, reference, bow_train, protos = got
         sims = all_methods(gray(query), reference and gray(reference), gray(bow_train), args.methods, args.bow_seeds)
-        report(name, sims, protos, args.out)
+        report(name, sims, protos, args.out, "_grayscale" if args.grayscale else "")
         print(f"\n({name}: {len(query)} images, {time.perf_counter() - t0:.0f} s)")
     if args.query is not None:
         query, reference, bow_train, protos = protocols_folders(args.query, args.reference, args.ground_truth, args.data)
         sims = all_methods(gray(query), gray(reference), gray(bow_train), args.methods, args.bow_seeds)
-        report(args.query.parent.name or "folders", sims, protos, args.out)
+        report(args.query.parent.name or "folders", sims, protos, args.out, "_grayscale" if args.grayscale else "")
 
 
 if __name__ == "__main__":

@@ -262,6 +262,10 @@ def test_what_applies_without_rnns(lite, images):
     assert paper.recipe == AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper").recipe
     with pytest.raises(ValueError, match=r"fixes the recipe and the tap; also given: \['num_rnn'\]"):
         AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper", num_rnn=8)
+    # a setting given explicitly at the library's default, which the paper's differs from, is refused too
+    for kw in ({"num_rnn": 0}, {"pooling": "regional"}, {"pool_scale": 10.0}):
+        with pytest.raises(ValueError, match=f"also given: \\['{next(iter(kw))}'\\]"):
+            AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper", **kw)
     # the dtype follows the backbone without RNN weights, empty batches included
     d64 = AttentionDescriptor("efficientnet_lite0", pretrained=False).double()
     assert d64(torch.zeros(0, 3, 32, 32, dtype=torch.uint8)).dtype == torch.float64
@@ -281,3 +285,11 @@ def test_a_state_dict_of_the_other_encoding_names_num_rnn():
         old.load_state_dict(new.state_dict())
     assert new.load_state_dict(old.state_dict(), strict=False).unexpected_keys == ["pool.weights"]
     new.load_state_dict(AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=3).state_dict())
+
+
+def test_a_wrappers_state_dict_gets_torchs_own_message():
+    # keys with another prefix (a wrapper's) are not this descriptor's: torch's key lists, not a num_rnn diagnosis
+    rnns = AttentionDescriptor("efficientnet_lite0", pretrained=False, num_rnn=16)
+    wrapped = {f"module.{k}": v for k, v in AttentionDescriptor("efficientnet_lite0", pretrained=False).state_dict().items()}
+    with pytest.raises(RuntimeError, match="Missing key"):
+        rnns.load_state_dict(wrapped)

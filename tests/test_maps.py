@@ -359,6 +359,12 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     with caplog.at_level(logging.WARNING, logger="slam.maps.relocalise"):
         run_slam(seq, none_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
     assert "no descriptor probe to compare (none recorded in the map)" in caplog.text
+    # without a probe to compare, the seed is checked by name even without RNNs
+    manifest["descriptor"]["seed"] = 7
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(MapMismatchError, match="made with descriptor seed=7, this run uses 0"):
+        run_slam(seq, none_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
+    manifest["descriptor"]["seed"] = 0
     # a map of the default before 2026-12-02 (session 6): the paper's 16 RNNs, 1024-d; refused by name
     manifest["descriptor"].update(fusion="dam", num_rnn=16, dim=1024)
     (folder / "manifest.json").write_text(json.dumps(manifest))

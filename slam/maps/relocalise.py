@@ -286,8 +286,9 @@ class MapRelocaliser:
         mine = _descriptor_info(slam)
         theirs = saved.descriptor
         # The seed seeds the RNN weights (and a random backbone's, which the probe below tells apart): without
-        # RNNs on both sides two seeds give one descriptor.
-        seeded = bool(theirs.get("num_rnn", 1)) or bool(mine["num_rnn"])
+        # RNNs on both sides, and both probes there to compare, two seeds give one descriptor.
+        probes = theirs.get("probe") is not None and mine["probe"] is not None
+        seeded = bool(theirs.get("num_rnn", 1)) or bool(mine["num_rnn"]) or not probes
         for key in ("backbone", "fusion", "num_rnn") + (("seed",) if seeded else ()):
             if key in theirs and theirs[key] != mine[key]:
                 remedy = ""
