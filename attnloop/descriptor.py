@@ -40,7 +40,6 @@ seeds (docs/attention.md).
 """
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,7 +71,8 @@ __all__ = [
 _RNN_DEFAULTS = {"out_features": 64, "pool_scale": 10.0}
 
 
-def _unused_rnn_settings(out_features=64, pool_scale=10.0, merge=None) -> list[str]:
+def _unused_rnn_settings(out_features: int = _RNN_DEFAULTS["out_features"],
+                         pool_scale: float | None = _RNN_DEFAULTS["pool_scale"], merge: bool | None = None) -> list[str]:
     # the RNN settings given away from their defaults (merge: True; False merges nothing, as without RNNs)
     given = {"out_features": out_features, "pool_scale": pool_scale}
     return [k for k, v in given.items() if v != _RNN_DEFAULTS[k]] + (["merge"] if merge else [])
@@ -98,7 +98,8 @@ class DescriptorRecipe:
     out_features: int = _RNN_DEFAULTS["out_features"]  # output size of each RNN (the paper's 64); an RNN setting
     seed: int = 0  # seed of the RNN weights (and of a name-built backbone's random weights when not pretrained)
     normalize: bool = True  # L2-normalise the descriptor: a dot product is then the cosine
-    pool_scale: float | None = _RNN_DEFAULTS["pool_scale"]  # L2 norm of the RNNs' input (ours); None: raw (the paper); an RNN setting
+    # L2 norm of the RNNs' input (ours); None: raw (the paper); an RNN setting
+    pool_scale: float | None = _RNN_DEFAULTS["pool_scale"]
     merge: bool | None = None  # average element c with c + C/2 of the RNNs' input; None: for "flat" only
     pooling: str = "regional"  # "regional": regional GeM code first (ours); "flat": the whole map (the paper)
     gem_p: float = 2.0  # the GeM exponent of the regional pooling
