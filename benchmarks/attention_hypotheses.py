@@ -562,16 +562,18 @@ LAYOUT_VARIANTS = {f"stage6 unfused + stage7, {lay}": (("stage6", "stage7"), "G@
 
 
 def evaluate_variant(views: dict, protos: dict, taps, g, layout, seeds=(0,), *, maps_fn=None, code_fn=None,
-                     rnn_fn=rnn_code, p: float = 2.0) -> dict:
+                     rnn_fn=rnn_code, p: float = 2.0, pool_fn=None) -> dict:
     """{mode: {"full" | "shift" | "half0" | "half1": {protocol: (R@1, R@P100)}}} of one variant, each
     figure the mean over the RNN seeds ``seeds`` (``(None,)``: no RNNs). Session 6's encodings:
     ``maps_fn`` transforms the fused maps before the pooling, ``code_fn`` the regional code after it,
-    ``rnn_fn(code, seed)`` replaces :func:`rnn_code`, ``p`` is the GeM exponent."""
+    ``rnn_fn(code, seed)`` replaces :func:`rnn_code`, ``p`` is the GeM exponent, and
+    ``pool_fn(maps, set_name)`` replaces the regional pooling (``layout``, ``p``) altogether."""
     out = {}
     maps_fn = maps_fn or (lambda maps: maps)
     code_fn = code_fn or (lambda code: code)
+    pool_fn = pool_fn or (lambda maps, _set: layout_code(maps, layout, p))
     for m in FUSION_MODES:
-        code = {k: {v: code_fn(layout_code(maps_fn(fuse_taps(f[v], taps, m, g)), layout, p)) for v in VIEWS}
+        code = {k: {v: code_fn(pool_fn(maps_fn(fuse_taps(f[v], taps, m, g)), k)) for v in VIEWS}
                 for k, f in views.items()}
         runs = []
         for seed in seeds:
@@ -868,16 +870,8 @@ def vlad_variant(views: dict, protos: dict, taps: tuple[str, ...], words: int) -
     other = {a: b for a, b in zip(views, reversed(list(views)))}
     centres = {k: [_kmeans_unit(x.reshape(-1, x.shape[2]), words)
                    for x in _local_descriptors([views[other[k]]["full"][f"L:{t}"] for t in taps])] for k in views}
-    out = {}
-    for m in FUSION_MODES:
-        codes = {k: {v: vlad_code(fuse_taps(f[v], taps, m, "G@last"), centres[k]) for v in VIEWS}
-                 for k, f in views.items()}
-        full = {k: c["full"] for k, c in codes.items()}
-        out[m] = {"full": scores(full, protos), "half0": scores(full, protos, half=0),
-                  "half1": scores(full, protos, half=1),
-                  "shift": scores({k: (c["left"], c["right"]) for k, c in codes.items()}, protos),
-                  "sem": {p: (float("nan"), float("nan")) for p in scores(full, protos)}}
-    return out
+    return evaluate_variant(views, protos, taps, "G@last", DEFAULT_LAYOUT, (None,),
+                            pool_fn=lambda maps, k: vlad_code(maps, centres[k]))
 
 
 def encodings(seeds: tuple[int, ...]) -> dict[str, dict]:

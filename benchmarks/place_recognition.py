@@ -379,6 +379,7 @@ def main() -> None:
     print(f"# Place recognition ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, "
           f"{torch.get_num_threads()} thread(s){', grayscale copies' if args.grayscale else ''})")
     gray = grayscale if args.grayscale else (lambda images: images)
+    suffix = "_grayscale" if args.grayscale else ""  # the PR curves' names: a grey run keeps the colour run's
     jobs = [(name, {"rtabmap": protocols_rtabmap, "kitchen": protocols_kitchen}[name]) for name in args.sets]
     for name, fn in jobs:
         t0 = time.perf_counter()
@@ -388,12 +389,12 @@ def main() -> None:
             continue
         query, reference, bow_train, protos = got
         sims = all_methods(gray(query), reference and gray(reference), gray(bow_train), args.methods, args.bow_seeds)
-        report(name, sims, protos, args.out, "_grayscale" if args.grayscale else "")
+        report(name, sims, protos, args.out, suffix)
         print(f"\n({name}: {len(query)} images, {time.perf_counter() - t0:.0f} s)")
     if args.query is not None:
         query, reference, bow_train, protos = protocols_folders(args.query, args.reference, args.ground_truth, args.data)
         sims = all_methods(gray(query), gray(reference), gray(bow_train), args.methods, args.bow_seeds)
-        report(args.query.parent.name or "folders", sims, protos, args.out, "_grayscale" if args.grayscale else "")
+        report(args.query.parent.name or "folders", sims, protos, args.out, suffix)
 
 
 if __name__ == "__main__":

@@ -176,10 +176,10 @@ class LoopCloser:
         pretrained = bool(config.descriptor.pretrained) if pretrained is None else bool(pretrained)
         # Any fusion mode (they share a scale), and any seed without RNNs: the seed then seeds nothing of a
         # pretrained network, so the descriptor is the default's.
-        unseeded = recipe is not None and not getattr(recipe, "num_rnn", 1)
+        ref = None if recipe is None else type(recipe)()
         default = (recipe is not None and pretrained
-                   and dataclasses.replace(recipe, fusion=type(recipe)().fusion,
-                                           **({"seed": type(recipe)().seed} if unseeded else {})) == type(recipe)()
+                   and dataclasses.replace(recipe, fusion=ref.fusion,
+                                           seed=recipe.seed if recipe.num_rnn else ref.seed) == ref
                    and all(getattr(net, key, None) == value
                            for key, value in DEFAULT_BACKBONE_SETTINGS.get(backbone, {}).items()))
         calibrated = getattr(config, "threshold_by_backbone", {}).get(backbone) if default else None
