@@ -64,6 +64,17 @@ Session 6 (the same ``*_taps.pt`` caches):
   VLAD of the fused maps' local descriptors (16 or 32 words per stage, the vocabulary learnt on the other
   set) in place of the regional code.
 
+Session 7 (the same caches):
+
+* ``imagenet``: the tap L standardised per channel with ImageNet's own statistics before the fusion:
+  whitening "learnt on unrelated images" from the one large such set at hand, through the network's
+  batch-norms (:func:`imagenet_tap_statistics`): centred, scaled, or both.
+* ``conditions``: session 3's forms of G at stage7 judged on more than the colour frames: grayscale
+  copies (the held-out corridor is grayscale), copies at 1/4 of the width and height (a low-resolution
+  camera, upsampled by the descriptor's resize), both, and the shift check; per fusion mode, the
+  number of (condition, protocol, metric) figures below ``none``'s and the sum of those deficits
+  (tap maps cached per condition as ``*_<condition>_cond.pt``).
+
 Usage:
     python benchmarks/attention_hypotheses.py [--data ../shared/data] [--only range norm ...] [--threads 1]
 """
@@ -99,8 +110,10 @@ ATTENDED = tuple(t in _DEFAULT_LITE0["attend"].split("+") for t in _DEFAULT_LITE
 SIZE = (224, 288)
 SEEDS = ("own", "top5", "top5-uniform", "T2", "entropy")
 HYPOTHESES = ("range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions",
-              "spatial", "taps", "layouts", "shift", "halves3", "local", "encoding")
-SESSION3 = ("spatial", "taps", "layouts", "shift", "halves3", "local", "encoding")
+              "spatial", "taps", "layouts", "shift", "halves3", "local", "encoding", "imagenet",
+              "conditions")
+SESSION3 = ("spatial", "taps", "layouts", "shift", "halves3", "local", "encoding", "imagenet",
+              "conditions")
 
 
 def _seed(p: torch.Tensor, z: torch.Tensor, kind: str) -> torch.Tensor:
@@ -957,6 +970,119 @@ def encoding_section(views: dict, protos: dict, seeds: tuple[int, ...], frames: 
         print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
 
 
+def _conditions() -> dict:
+    from place_recognition import downscaled, grayscale
+
+    return {"colour": lambda ims: ims, "grey": grayscale, "1/4 size": lambda ims: downscaled(ims, 4),
+            "grey, 1/4 size": lambda ims: grayscale(downscaled(ims, 4))}
+
+
+def conditions_section(data: dict, views: dict, protos: dict, cache: Path) -> None:
+    """Session 7: the forms of G on colour, grey, 1/4-size and grey 1/4-size copies, and the shift check."""
+    names = [p for s in protos.values() for p in s]
+    conds = _conditions()
+    feats = {}
+    for cname, transform in conds.items():
+        feats[cname] = {}
+        for k, (images, _) in data.items():
+            path = cache / f"{k}_{cname.replace(' ', '').replace(',', '_').replace('/', 'of')}_cond.pt"
+            if path.is_file():
+                feats[cname][k] = torch.load(path)
+            else:
+                t0 = time.perf_counter()
+                feats[cname][k] = extract_taps(transform(images))
+                torch.save(feats[cname][k], path)
+                print(f"<!-- {k}, {cname}: tap maps in {time.perf_counter() - t0:.0f} s -->", flush=True)
+    columns = [*conds, "shift check"]
+    taps = ("stage6", "stage7")
+    for form in ("G@last", "spatial@last", "Gc@last", "chsum@last"):
+        print(f"\n#### conditions: G as {form.removesuffix('@last')} at stage7 (R@1 / R@P100 on "
+              + ", ".join(names) + ")\n\n| mode | " + " | ".join(columns) + " |\n|---|" + "---|" * len(columns))
+        per = {}
+        for m in FUSION_MODES:
+            for cname in conds:
+                per[m, cname] = scores({k: layout_code(fuse_taps(f, taps, m, form)) for k, f in feats[cname].items()},
+                                       protos)
+            per[m, "shift check"] = scores({k: (layout_code(fuse_taps(v["left"], taps, m, form)),
+                                                layout_code(fuse_taps(v["right"], taps, m, form)))
+                                            for k, v in views.items()}, protos)
+            print(f"| {m} | " + " | ".join(" ".join(f"{per[m, c][p][0]:.3f}/{per[m, c][p][1]:.3f}" for p in names)
+                                           for c in columns) + " |", flush=True)
+        cells = len(columns) * len(names) * 2
+        for m in FUSION_MODES[1:]:
+            d = np.array([per[m, c][p][i] - per["none", c][p][i] for c in columns for p in names for i in (0, 1)])
+            print(f"- {m}: {int((d < -1e-9).sum())} of {cells} figures below `none`'s (R@1 "
+                  f"{int((d[0::2] < -1e-9).sum())}, R@P100 {int((d[1::2] < -1e-9).sum())}), deficits summed "
+                  f"{d[d < 0].sum():+.3f}, all differences summed {d.sum():+.3f}")
+
+
+def imagenet_tap_statistics(net=None) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+    """{tap: (mean, std)} per channel of Lite0's stage6 and stage7 outputs over ImageNet, read from the weights.
+
+    Each MBConv block ends in a batch-norm without activation, whose output over the training set has
+    mean ``beta`` and standard deviation ``|gamma|`` (eval-mode running statistics). stage7 is one block:
+    (beta, |gamma|) exactly. stage6's first block has no skip connection and its three others add their
+    output to their input, so its mean is the sum of the four betas; its standard deviation is taken as
+    sqrt(sum gamma^2), as if the four blocks' outputs were uncorrelated (an approximation).
+    """
+    net = net or efficientnet_lite("lite0", pretrained=True, tap="stage7")
+    info = efficientnet_lite_taps("lite0", SIZE)
+    out = {}
+    first = info["stage5"][0] + 1
+    for tap in ("stage6", "stage7"):
+        last = info[tap][0]
+        bns = [net._blocks[k]._bn2 for k in range(first, last + 1)]
+        mean = torch.stack([bn.bias.detach() for bn in bns]).sum(0)
+        std = torch.stack([bn.weight.detach() ** 2 for bn in bns]).sum(0).sqrt()
+        out[tap] = (mean, std)
+        first = last + 1
+    return out
+
+
+def imagenet_standardised(views: dict, stats: dict, centre: bool, scale: bool) -> dict:
+    """``views`` with L at stage6 and stage7 replaced by (L - mean) / std of ``stats`` (either part
+    optional); G unchanged (the fusions read G through N(.), and L's affine change is the hypothesis)."""
+    out = {}
+    for k, v in views.items():
+        out[k] = {}
+        for view, f in v.items():
+            g = dict(f)
+            for tap, (mean, std) in stats.items():
+                L = f[f"L:{tap}"]
+                if centre:
+                    L = L - mean[None, :, None, None].to(L)
+                if scale:
+                    L = L / std[None, :, None, None].to(L)
+                g[f"L:{tap}"] = L
+            out[k][view] = g
+    return out
+
+
+def imagenet_section(views: dict, protos: dict) -> None:
+    """Session 7: the tap standardised with ImageNet's statistics from the batch-norms (see the module doc)."""
+    names = [p for s in protos.values() for p in s]
+    stats = imagenet_tap_statistics()
+    for tap, (mean, std) in stats.items():
+        emp = {k: v["full"][f"L:{tap}"] for k, v in views.items()}
+        corr = "; ".join(f"{k}: mean {float(torch.corrcoef(torch.stack([L.mean((0, 2, 3)), mean]))[0, 1]):.2f}, "
+                         f"std {float(torch.corrcoef(torch.stack([L.std((0, 2, 3)), std]))[0, 1]):.2f}"
+                         for k, L in emp.items())
+        print(f"\n{tap}: ImageNet mean over channels {float(mean.abs().mean()):.3g} (|.|), std {float(std.mean()):.3g}; "
+              f"the sets' own per-channel statistics against them (correlation over channels): {corr}")
+    variants = {"as is (the default)": (False, False), "centred by ImageNet's mean": (True, False),
+                "scaled by ImageNet's std": (False, True), "standardised (both)": (True, True)}
+    results = {label: evaluate_variant(imagenet_standardised(views, stats, c, s) if c or s else views, protos,
+                                       ("stage6", "stage7"), "G@last", DEFAULT_LAYOUT, (None,))
+               for label, (c, s) in variants.items()}
+    variant_table("the tap standardised with ImageNet's statistics (R@1 / R@P100)", results, names)
+    summary_table("the tap standardised with ImageNet's statistics: four-protocol mean, R@1 / R@P100", results)
+    crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in results.items()}
+    print("\nHeld-out halves, the criterion on the first half: " + "; ".join(f"{n} {c:.3f}" for n, c in crit.items()))
+    best = max(crit, key=crit.get)
+    variant_table(f"second half: the chosen ({best}) and the default", {
+        f"chosen: {best}": results[best], "default": results["as is (the default)"]}, names, key="half1")
+
+
 def session3(args, data: dict, protos: dict) -> None:
     views = {k: load_taps(k, images, args.cache) for k, (images, _) in data.items()}
     names = [p for s in protos.values() for p in s]
@@ -965,6 +1091,10 @@ def session3(args, data: dict, protos: dict) -> None:
             raise SystemExit("encoding needs both sets (rtabmap-samples and the kitchen)")
         encoding_section(views, protos, tuple(range(args.rnn_seeds)), {k: v[0] for k, v in data.items()},
                          args.cache)
+    if "imagenet" in args.only:
+        imagenet_section(views, protos)
+    if "conditions" in args.only:
+        conditions_section(data, views, protos, args.cache)
     local = {}
     if "local" in args.only:
         load_local(views, args.cache)

@@ -58,7 +58,7 @@ def test_k_majority_hand_computed(pr):
     # a duplicate word loses every tie, so its cluster stays empty and it keeps its value
     dup = pr.k_majority(bits, 3, init=np.array([[1, 0, 0, 0], [0, 0, 0, 1], [1, 0, 0, 0]]))
     assert dup.astype(int).tolist() == [[1, 1, 1, 0], [0, 0, 0, 1], [1, 0, 0, 0]]
-    with pytest.raises(ValueError, match="7 distinct ORB descriptors for a vocabulary of 8 words"):
+    with pytest.raises(pr.VocabularyTooSmall, match="7 distinct ORB descriptors for a vocabulary of 8 words"):
         pr.k_majority(bits, 8)
     with pytest.raises(ValueError, match=r"init must have shape \(2, 4\)"):
         pr.k_majority(bits, 2, init=np.zeros((2, 3)))
@@ -87,3 +87,14 @@ def test_vocabulary_is_the_same_at_any_thread_count_and_without_faiss(pr, images
         assert np.array_equal(ref[np.arange(len(d)), one._assign(d)], ref.min(1))
     seen = np.stack([np.isin(np.arange(64), _popcount_hamming(d, one.vocab).argmin(1)) for d in descs]).sum(0)
     assert np.allclose(one.idf, np.log(len(images) / np.maximum(seen, 1)))
+
+
+def test_benchmark_reports_orb_bow_it_cannot_train(pr, capsys):
+    # images too small for ORB (it keeps 31 pixels from every border): no vocabulary; the anchor is
+    # reported as not measured, and the benchmark goes on (no crash, no row of made-up figures)
+    tiny = [np.random.default_rng(i).integers(0, 256, (24, 32, 3), dtype=np.uint8) for i in range(3)]
+    with pytest.raises(pr.VocabularyTooSmall):
+        pr.OrbBagOfWords(words=8).fit(tiny)
+    sims = pr.all_methods(tiny, None, tiny, methods=("orb",))
+    assert sims == {}
+    assert "ORB-BoW: not measured: 0 distinct ORB descriptors" in capsys.readouterr().out

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import io
 import math
+import sys
 
 import cv2
 import numpy as np
@@ -329,3 +330,53 @@ def test_benchmark_grayscale_copies(load_script):
     assert np.abs(out[0][..., 0].astype(int) - lum.astype(int)).max() <= 1
     assert (out[0][..., 0] == out[0][..., 1]).all() and (out[0][..., 1] == out[0][..., 2]).all()
     assert np.array_equal(bench.grayscale([out[0]])[0], out[0])  # grey stays grey
+
+
+def test_benchmark_downscaled_copies(load_script):
+    # --downscale N: each image shrunk N times by area averaging (sizes rounded down); 1 leaves the list as is
+    bench = load_script("benchmarks/place_recognition.py")
+    rgb = np.random.default_rng(0).integers(0, 256, (9, 13, 3), dtype=np.uint8)
+    assert bench.downscaled([rgb], 1)[0] is rgb
+    small = bench.downscaled([rgb, rgb[:4, :4]], 4)
+    assert small[0].shape == (2, 3, 3) and small[0].dtype == np.uint8 and small[1].shape == (1, 1, 3)
+    # where N divides the size, every output pixel is the mean of its N x N block (rounded to uint8)
+    even = rgb[:8, :12]
+    blocks = even.astype(float).reshape(2, 4, 3, 4, 3).mean((1, 3))
+    assert np.abs(bench.downscaled([even], 4)[0].astype(float) - blocks).max() <= 0.5 + 1e-9
+    assert bench.downscaled([rgb], 64)[0].shape == (1, 1, 3)  # never below one pixel
+
+
+def test_benchmark_measures_a_grayscale_vpr_bench_folder_pair(tmp_path, load_script, monkeypatch, capsys):
+    # The path a held-out VPR-Bench set is measured through: folders of single-channel images named 0 ... 11
+    # (unpadded: a string sort would misalign them), a ground_truth_new.npy of [query, [references]] rows.
+    # Query q is reference 11 - q (twelve different photographs, grey, 128 x 96) shifted 3 pixels with
+    # noise, so every descriptor must find it first.
+    skdata = pytest.importorskip("skimage.data", reason="scikit-image provides the photographs")
+    bench = load_script("benchmarks/place_recognition.py")
+    rng = np.random.default_rng(0)
+    (tmp_path / "query").mkdir()
+    (tmp_path / "ref").mkdir()
+    names = ("astronaut", "chelsea", "coffee", "rocket", "camera", "coins", "moon", "page", "text", "brick",
+             "gravel", "grass")  # bundled in scikit-image's wheel: nothing is downloaded
+    for r, name in enumerate(names):
+        photo = getattr(skdata, name)()
+        grey = cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY) if photo.ndim == 3 else photo
+        ref = cv2.resize(grey, (131, 96), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(tmp_path / "ref" / f"{r}.png"), ref[:, :128])
+        query = np.clip(ref[:, 3:131].astype(int) + rng.integers(-8, 9, (96, 128)), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(tmp_path / "query" / f"{11 - r}.png"), query)
+    rows = np.empty((12, 2), dtype=object)
+    for q in range(12):
+        rows[q, 0], rows[q, 1] = q, [11 - q]
+    np.save(tmp_path / "ground_truth_new.npy", rows, allow_pickle=True)
+    monkeypatch.setattr(sys, "argv", ["place_recognition.py", "--sets", "--query", str(tmp_path / "query"),
+                                      "--reference", str(tmp_path / "ref"), "--ground-truth",
+                                      str(tmp_path / "ground_truth_new.npy"), "--methods", "default"])
+    bench.main()
+    out = capsys.readouterr().out
+    assert "12 queries, 12 with a true match" in out
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in out.splitlines()
+            if line.startswith("| ") and not line.startswith("| method")]
+    got = {c[0]: float(c[1]) for c in rows}  # method: R@1
+    assert set(got) == {"none", "dam", "eam", "gaf", "ega", "GAP", "GeM"}
+    assert all(v == 1.0 for v in got.values()), got
