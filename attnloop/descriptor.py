@@ -42,6 +42,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from numbers import Integral
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -118,11 +119,16 @@ class DescriptorRecipe:
         object.__setattr__(self, "levels", tuple(int(v) for v in levels))
         if self.pooling == "flat" and (self.gem_p != 2.0 or self.levels != (1, 2)):
             raise ValueError("gem_p and levels apply to pooling='regional' only")
-        for name, least in (("num_rnn", 0), ("out_features", 1)):
+        for name, least in (("num_rnn", 0), ("out_features", 1), ("seed", 0)):
             v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < least:
+            # a whole float (16.0) is fine for the counts; a seed must be an integer (1.5 would be truncated
+            # to 1's weights while the two recipes compared unequal)
+            whole = isinstance(v, Integral) or (name != "seed" and isinstance(v, float) and v.is_integer())
+            if isinstance(v, bool) or not whole or v < least:
                 kind = "a non-negative" if least == 0 else "a positive"
                 raise ValueError(f"{name} must be {kind} integer, got {v!r}")
+        if not isinstance(self.normalize, bool):
+            raise TypeError(f"normalize must be True or False, got {self.normalize!r}")
         if self.pool_scale is not None and not (float(self.pool_scale) > 0 and float(self.pool_scale) < float("inf")):
             raise ValueError(f"pool_scale must be positive and finite, or None, got {self.pool_scale}")
         if self.num_rnn == 0:
@@ -299,7 +305,8 @@ def attention_descriptor_parts(
             with ``I`` as :func:`descriptor_from_attention` says; None: no RNNs (the default descriptor's).
         fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
         normalize: L2-normalise the descriptor.
-        pool_scale: L2 norm the fused map is scaled to before the pooling; None feeds it raw (the paper).
+        pool_scale: L2 norm the RNNs' input is scaled to (with ``rnn_weights`` only); None feeds it raw
+            (the paper).
         merge: average element c with c + C/2 of the RNNs' input; None: for ``flat`` pooling only.
         create_graph: keep every part differentiable w.r.t. the images and the backbone's weights
             (see :func:`attnloop.guided_backprop.guided_backprop`).
@@ -418,8 +425,9 @@ class AttentionDescriptor(nn.Module):
         preset: ``"paper"``: the paper's exact configuration (:mod:`attnloop.presets`: the paper's tap
             at 224 x 224, flat RNN pooling of the raw fused map, the merge, 16 RNNs); only ``fusion``,
             ``seed`` and the backbone choice stay free. None: the measured default.
-        pooling: ``"regional"`` (default: regional GeM code, then the RNNs) or ``"flat"`` (the paper's
-            RNNs over the whole fused map); see :mod:`attnloop.pooling`.
+        pooling: ``"regional"`` (default: the regional GeM code, which is the descriptor itself; with
+            ``num_rnn > 0`` the RNNs encode it) or ``"flat"`` (the paper's RNNs over the whole fused map);
+            see :mod:`attnloop.pooling`.
         attend: a name-built EfficientNet-Lite0's stages of a joined tap where G is computed and fused
             (the default: ``stage7`` of ``stage6+stage7``; ``"stage6+stage7"`` attends both, the default
             until 2026-12-02); None: the configuration's, or every stage of an explicit ``tap``.
@@ -503,7 +511,11 @@ class AttentionDescriptor(nn.Module):
         else:
             given = DescriptorRecipe(**settings)
         self.recipe = given
-        self.differentiable = bool(differentiable)
+        for name, value in (("differentiable", differentiable), ("pretrained", pretrained)):
+            # bool("no") is True: a string or a number here is a mistake, not a flag
+            if not isinstance(value, bool) and not (name == "pretrained" and value is None):
+                raise TypeError(f"{name} must be True or False, got {value!r}")
+        self.differentiable = differentiable
         self._owns_backbone = isinstance(backbone, str)
         self.pretrained: bool | None = None
         preprocessing = {"input_size": input_size, "mean": mean, "std": std}

@@ -247,3 +247,38 @@ def test_vlad_code_hand_computed(hyp):
     pts = F.normalize(torch.tensor([[1.0, 0.05], [1.0, -0.05], [0.05, 1.0], [-0.05, 1.0]]), dim=1)
     c = hyp._kmeans_unit(pts, 2)
     assert sorted(int(i) for i in (pts @ c.T).argmax(1)[[0, 2]]) == [0, 1]
+
+
+def test_imagenet_tap_statistics_are_the_batch_norms_training_statistics(hyp):
+    # The claim behind --only imagenet: a block's last batch-norm outputs mean beta and std |gamma| over the
+    # data its running statistics were taken on. Take them on a batch here (each batch-norm's statistics of
+    # this batch, then eval mode) and compare with the batch's own tap statistics.
+    from attnloop.backbones.efficientnet_lite import efficientnet_lite
+    from attnloop.backbones.preprocess import prepare_images
+
+    net = efficientnet_lite("lite0", pretrained=False, tap="stage6+stage7", input_size=hyp.SIZE, seed=3)
+    x = prepare_images(torch.from_numpy(np.random.default_rng(0).integers(0, 256, (6, 3, 120, 160), dtype=np.uint8)),
+                       hyp.SIZE, net.mean, net.std)
+    g = torch.Generator().manual_seed(0)
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            with torch.no_grad():  # trained-looking affine parameters (the random init has beta 0, gamma 1)
+                m.weight.copy_(0.5 + 1.5 * torch.rand(m.weight.shape, generator=g))
+                m.bias.copy_(torch.randn(m.bias.shape, generator=g))
+            m.reset_running_stats()
+            m.momentum = None  # a cumulative average: after one batch, that batch's statistics
+    with torch.no_grad():
+        net.train()
+        net.forward_to_tap(x)
+        net.eval()
+        L = net.forward_to_tap(x)
+    stats = hyp.imagenet_tap_statistics(net)
+    L6, L7 = L[:, :192], L[:, 192:]
+    mean7, std7 = stats["stage7"]
+    # (eval mode normalises by the unbiased variance of the batch: a few % of a standard deviation off)
+    assert torch.allclose(L7.mean((0, 2, 3)), mean7, atol=0.05 * float(std7.mean()))
+    assert torch.allclose(L7.std((0, 2, 3)), std7, rtol=0.05)
+    # stage6 adds three residual blocks' outputs to the first's: the means add exactly
+    mean6, _ = stats["stage6"]
+    assert torch.allclose(L6.mean((0, 2, 3)), mean6, atol=0.05 * float(L6.std((0, 2, 3)).mean()))
+    assert float(mean6.abs().mean()) > 0.5  # four betas of N(0, 1) summed: the check is not a trivial zero

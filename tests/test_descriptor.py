@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from attnloop import AttentionDescriptor, DescriptorParts
-from attnloop.descriptor import attention_descriptor, descriptor_from_attention
+from attnloop.descriptor import DescriptorRecipe, attention_descriptor, descriptor_from_attention
 from attnloop.fusion import FUSION_MODES, fuse
 from attnloop.rnn_pool import random_rnn_pool
 
@@ -248,6 +248,28 @@ def test_rnn_settings_without_rnns_are_refused(lite, kwargs, name):
     if name in ("pool_scale", "merge"):  # the functional form names the same setting, and only it
         with pytest.raises(ValueError, match=f"^{name} set the random RNNs' input, and rnn_weights=None has no RNNs"):
             descriptor_from_attention(torch.rand(1, 320, 7, 7), torch.rand(1, 320, 7, 7), None, "dam", **kwargs)
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    ({"seed": 1.5}, ValueError, "seed must be a non-negative integer, got 1.5"),
+    ({"seed": -1}, ValueError, "seed must be a non-negative integer, got -1"),
+    ({"seed": "0"}, ValueError, "seed must be a non-negative integer, got '0'"),
+    ({"seed": True}, ValueError, "seed must be a non-negative integer, got True"),
+    ({"num_rnn": 2.5}, ValueError, "num_rnn must be a non-negative integer, got 2.5"),
+    ({"normalize": "no"}, TypeError, "normalize must be True or False, got 'no'"),
+])
+def test_recipe_refuses_values_it_would_misread(kwargs, error, match):
+    # seed=1.5 used to give seed 1's RNN weights under a recipe that compared unequal to seed 1's; a string
+    # flag was truthy whatever it said
+    with pytest.raises(error, match=match):
+        DescriptorRecipe(**kwargs)
+    assert DescriptorRecipe(num_rnn=16.0, seed=3).out_dim == 1024  # a whole float count is still a count
+
+
+@pytest.mark.parametrize("name", ["differentiable", "pretrained"])
+def test_descriptor_flags_must_be_booleans(name):
+    with pytest.raises(TypeError, match=f"{name} must be True or False, got 'False'"):
+        AttentionDescriptor("efficientnet_lite0", **{name: "False"})
 
 
 def test_what_applies_without_rnns(lite, images):
