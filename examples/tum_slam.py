@@ -18,13 +18,14 @@ import sys
 import slam.allocator
 from slam.cli import call_reporting_errors
 from slam.io import open_sequence
-from slam.options import add_run_arguments, config_from_args
+from slam.options import add_run_arguments, config_from_args, given_options
 from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, given: frozenset[str] = frozenset()) -> int:
     sequence = open_sequence(args.sequence, camera=args.camera)
-    config = config_from_args(args, sequence)  # every threshold, with its default, lives in slam/config.py
+    # every threshold, with its default, lives in slam/config.py; flags that others make idle are refused
+    config = config_from_args(args, sequence, given=given)
     out = prepare_output_dir(args.out)  # checked (and the previous run's outputs removed) before the work
     run = run_slam(sequence, config, max_frames=args.max_frames, frame_step=args.frame_step)
     metrics = evaluate_run(run)
@@ -41,10 +42,11 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="output folder")
     add_run_arguments(p)  # --fusion, --backbone, --weights, --frame-step, rig flags, ... as attnloop-slam
     args = p.parse_args(argv)
+    given = given_options(p, argv)  # the flags typed (as attnloop-slam: --fusion with --no-loop is refused)
     logging.basicConfig(level=logging.WARNING)
     slam.allocator.keep_freed_memory()  # as attnloop-slam: this script owns its process (6-9 % more frames/s)
     # the command's messages for missing weights, a wrong folder, a bad flag (exit code 2)
-    return call_reporting_errors("tum_slam.py", run, args)
+    return call_reporting_errors("tum_slam.py", run, args, given)
 
 
 if __name__ == "__main__":

@@ -39,12 +39,15 @@ import torch
 
 from slam.graph import CHI2_95_6DOF, RobustKernel, make_kernel, optimize
 from slam.graph.costs import GemanMcClure
+from slam.graph.optimizer import METHODS as OPTIMIZER_METHODS  # BackendConfig.method must be one of them
 from slam.graph.optimizer import OptimizationResult
 from slam.keyframe_graph import EdgeKind, KeyframeGraph
+from slam.odometry.config import check_int, check_number  # the configs' shared range checks
 
 Tensor = torch.Tensor
 
-__all__ = ["DCS", "BackendResult", "EdgeKindKernel", "PoseGraphBackend", "make_loop_kernel"]
+__all__ = ["DCS", "OPTIMIZER_METHODS", "BackendResult", "EdgeKindKernel", "PoseGraphBackend", "check_backend_config",
+           "make_loop_kernel"]
 
 
 @dataclass
@@ -113,6 +116,42 @@ def make_loop_kernel(name: Optional[str], width: Optional[float]) -> Optional[Ro
     return make_kernel(name, width)
 
 
+def check_backend_config(config) -> None:
+    """Refuse a :class:`slam.config.BackendConfig` the back end could not run, when it is built rather than
+    when the first loop is accepted: the names are checked by the factories that dispatch on them
+    (:func:`slam.graph.make_kernel`, :func:`make_loop_kernel`).
+
+    Raises:
+        ValueError: naming the field, the value and what is allowed.
+    """
+    n = "BackendConfig"
+    if not (isinstance(config.method, str) and config.method.lower() in OPTIMIZER_METHODS):
+        raise ValueError(f"{n}.method must be one of {', '.join(map(repr, OPTIMIZER_METHODS))}, got {config.method!r}")
+    for field_name in ("kernel_width", "loop_kernel_width"):
+        width = getattr(config, field_name)
+        if width is not None:
+            check_number(n, field_name, width, 0, lo_open=True, finite=True)
+    try:
+        make_kernel(config.kernel, config.kernel_width)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{n}.kernel must be a kernel name of slam.graph.make_kernel or None, got "
+                         f"{config.kernel!r} ({exc})") from None
+    if config.loop_kernel is not None:
+        try:
+            if not isinstance(config.loop_kernel, str):
+                raise TypeError(f"a name, not {type(config.loop_kernel).__name__}")
+            make_loop_kernel(config.loop_kernel, config.loop_kernel_width)
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{n}.loop_kernel: unknown loop kernel {config.loop_kernel!r}; expected 'dcs', 'gnc', "
+                             f"a kernel name of slam.graph.make_kernel, 'none' or None ({exc})") from None
+    check_int(n, "gnc_steps", config.gnc_steps, 1)
+    check_number(n, "gnc_factor", config.gnc_factor, 1, finite=True)  # the width shrinks (1: stays) per solve
+    check_int(n, "max_iterations", config.max_iterations, 1)
+    check_int(n, "online_max_iterations", config.online_max_iterations, 1)
+    check_number(n, "odometry_information_scale", config.odometry_information_scale, 0, lo_open=True, finite=True)
+    check_number(n, "switch_off_weight", config.switch_off_weight, 0, 1)
+
+
 @dataclass
 class BackendResult:
     """What :meth:`PoseGraphBackend.optimize` returns.
@@ -152,10 +191,7 @@ class PoseGraphBackend:
     def __init__(self, config, information_scale: Dict[EdgeKind, float]):
         self.config = config
         self.information_scale = dict(information_scale)
-        if config.loop_kernel is not None and str(config.loop_kernel).lower() not in (
-                "dcs", "gnc", "none", "huber", "cauchy", "tukey", "geman_mcclure", "gm", "l2", "trivial"):
-            raise ValueError(f"unknown loop kernel {config.loop_kernel!r}; expected 'dcs', 'gnc', a kernel name of "
-                             "slam.graph.make_kernel, or None")
+        check_backend_config(config)  # again: the config may have been changed since it was built
 
     def _kernel(self, kinds: Tensor, loop_kernel: Optional[RobustKernel]) -> RobustKernel:
         odo = make_kernel(self.config.kernel, self.config.kernel_width)

@@ -74,10 +74,17 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--system-malloc", action="store_true",
                    help="leave glibc's allocator as it is; by default this command keeps freed tensor memory "
                         "in the process (slam.allocator: 6-9 %% more frames/s on CPU, fewer page faults)")
-    g = p.add_argument_group("messages")
-    g.add_argument("--quiet", action="store_true", help="no progress bar, warnings only")
+    g = p.add_argument_group("messages").add_mutually_exclusive_group()
+    g.add_argument("--quiet", action="store_true",
+                   help="no progress bar or progress lines: on stderr warnings and errors only (the summary is "
+                        "still printed)")
     g.add_argument("--verbose", action="store_true", help="log every keyframe and loop decision")
     return p
+
+
+#: The options of the demo sequence (given without --demo, they would do nothing).
+DEMO_OPTIONS = {"demo_scene": "--demo-scene", "demo_trajectory": "--demo-trajectory", "demo_frames": "--demo-frames",
+                "demo_size": "--demo-size"}
 
 
 def _check_demo_args(args) -> None:
@@ -146,12 +153,21 @@ def _relocalisation_summary(r: dict) -> str:
     return line
 
 
-def run_command(args: argparse.Namespace) -> int:
-    """Everything after parsing: checks, demo generation, the run, its evaluation and outputs."""
+def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -> int:
+    """Everything after parsing: checks, demo generation, the run, its evaluation and outputs.
+
+    ``given``: the options given on the command line (:func:`slam.options.given_options`); those that
+    other options make idle are refused.
+    """
     from slam.io import open_sequence
     from slam.options import UsageError, config_from_args, describe_rig, resolve_rig
     from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
 
+    demo_options = [flag for dest, flag in DEMO_OPTIONS.items() if dest in given]
+    if demo_options and not args.demo:
+        raise UsageError(f"{', '.join(demo_options)} set{'s' if len(demo_options) == 1 else ''} the built-in "
+                         f"sequence of --demo, which is not given: add --demo (without a SEQUENCE folder) or drop "
+                         f"{'it' if len(demo_options) == 1 else 'them'}")
     if args.demo and args.sequence:
         raise UsageError("give either a SEQUENCE folder or --demo, not both")
     if not args.demo and not args.sequence:
@@ -172,10 +188,10 @@ def run_command(args: argparse.Namespace) -> int:
     seq = None
     if args.demo:
         _check_demo_args(args)
-        config_from_args(args)  # every setting checked before minutes of rendering
+        config_from_args(args, given=given)  # every setting checked before minutes of rendering
     else:
         seq = open_sequence(args.sequence, camera=args.camera)
-    cfg = config_from_args(args, seq)
+    cfg = config_from_args(args, seq, given=given)  # also: --weights is a file, before any output is touched
     out = prepare_output_dir(args.out)  # checked, and the previous run's outputs removed, before the work
     if args.demo:
         seq_dir = _generate_demo_logged(args, out)
@@ -212,8 +228,10 @@ def _generate_demo_logged(args, out: Path) -> Path:
 
     scene = DEMO_SCENES[args.demo_scene]
     n = args.demo_frames or scene.default_frames
-    print(f"generating the synthetic '{args.demo_scene}' sequence ({args.demo_trajectory or scene.default_trajectory},"
-          f" {n} frames, {args.demo_size[0]}x{args.demo_size[1]}) into {out / 'demo_sequence'} ...", file=sys.stderr)
+    if not args.quiet:
+        trajectory = args.demo_trajectory or scene.default_trajectory
+        print(f"generating the synthetic '{args.demo_scene}' sequence ({trajectory}, {n} frames, "
+              f"{args.demo_size[0]}x{args.demo_size[1]}) into {out / 'demo_sequence'} ...", file=sys.stderr)
     return _generate_demo(args, out)
 
 
@@ -256,7 +274,11 @@ def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    from slam.options import given_options
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    given = given_options(parser, argv)  # the flags typed, for refusing those that others make idle
     if not args.system_malloc:
         from slam.allocator import keep_freed_memory
 
@@ -271,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("slam.synthetic").setLevel(logging.INFO)  # the demo's rendering progress
     with warnings.catch_warnings():  # a library warning (a DatasetWarning, say) is one line, as errors are
         warnings.showwarning = _show_warning
-        return call_reporting_errors(PROG, run_command, args)
+        return call_reporting_errors(PROG, run_command, args, given)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:

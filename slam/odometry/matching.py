@@ -17,7 +17,7 @@ import kornia.feature as KF
 import numpy as np
 import torch
 
-from slam.odometry.config import MatchConfig
+from slam.odometry.config import MATCH_METHODS, MatchConfig
 from slam.odometry.features import FrameFeatures
 from slam.odometry.geometry import project, transform_points
 
@@ -152,7 +152,7 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
     elif config.method == "mnn":
         _, idx = KF.match_mnn(fa, fb, dm=dm)
     else:
-        raise ValueError(f"unknown matching method {config.method!r}: expected 'smnn', 'snn' or 'mnn'")
+        raise ValueError(f"unknown matching method {config.method!r}: expected one of {MATCH_METHODS}")
     if idx.shape[0] == 0:
         return empty
     dist = dm[idx[:, 0], idx[:, 1]]
