@@ -192,6 +192,13 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
     else:
         seq = open_sequence(args.sequence, camera=args.camera)
     cfg = config_from_args(args, seq, given=given)  # also: --weights is a file, before any output is touched
+    # The loop descriptor is built here, not in run_slam: weights that cannot be found (or downloaded) or
+    # cannot be loaded stop the command before the previous run's outputs are removed or a demo rendered.
+    descriptor = None
+    if cfg.loop.enabled:
+        from slam.loop.closer import build_descriptor
+
+        descriptor = build_descriptor(cfg.loop.descriptor)
     out = prepare_output_dir(args.out)  # checked, and the previous run's outputs removed, before the work
     if args.demo:
         seq_dir = _generate_demo_logged(args, out)
@@ -199,7 +206,8 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
     if not args.quiet:
         print(f"camera: {describe_rig(resolve_rig(args, seq))}", file=sys.stderr)
     run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step, frames=args.frames,
-                   progress=None if not args.quiet else False, save_map=args.save_map, map_dir=saved)
+                   progress=None if not args.quiet else False, descriptor=descriptor, save_map=args.save_map,
+                   map_dir=saved)
     metrics = evaluate_run(run)
     write_outputs(run, out)
     tracked = metrics["num_frames"] - metrics["num_lost"] - metrics["num_skipped"]
