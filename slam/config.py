@@ -4,7 +4,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
+from attnloop.backbones import AUTO, BACKBONES
 from attnloop.descriptor import DescriptorRecipe
+from attnloop.fusion import FUSION_MODES
 from attnloop.index import LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
 from slam.backend import check_backend_config
@@ -12,7 +14,7 @@ from slam.loop.acceptance import DriftBoundConfig
 from slam.loop.consistency import ConsistencyConfig
 from slam.mapping import MapConfig
 from slam.maps.config import RelocalisationConfig
-from slam.odometry.config import OdometryConfig, RegistrationConfig, check_int, check_number
+from slam.odometry.config import OdometryConfig, RegistrationConfig, check_choice, check_int, check_number
 
 
 @dataclass
@@ -28,6 +30,15 @@ class DescriptorConfig:
     pretrained: bool = True  # ImageNet weights; False = seeded random weights (plumbing tests only)
     weights: Optional[str] = None  # explicit checkpoint path (else torch hub cache, else download)
     device: Optional[str] = None  # None: CPU (library code follows its inputs; this picks where they live)
+
+    def __post_init__(self) -> None:
+        n = "DescriptorConfig"
+        check_choice(n, "backbone", self.backbone, (AUTO, *BACKBONES))
+        check_choice(n, "fusion", self.fusion, FUSION_MODES)
+        check_int(n, "num_rnn", self.num_rnn, 0)
+        check_int(n, "seed", self.seed, 0)
+        if not isinstance(self.pretrained, bool):
+            raise ValueError(f"DescriptorConfig.pretrained must be True or False, got {self.pretrained!r}")
 
 
 @dataclass

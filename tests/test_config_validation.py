@@ -197,3 +197,18 @@ def test_run_slam_checks_fields_set_after_the_config_was_built():
     cfg.loop.max_candidates = 0  # was: loop closure on, and nothing ever verified
     with pytest.raises(UsageError, match=r"^config\.loop: LoopClosureConfig\.max_candidates must be an integer >= 1"):
         check_config(cfg)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(backbone="resnet50"), r"DescriptorConfig\.backbone must be one of 'auto', 'vgg16', 'efficientnet_lite0'"),
+    (dict(fusion="DAM"), r"DescriptorConfig\.fusion must be one of 'none', 'dam', 'eam', 'gaf', 'ega', got 'DAM'"),
+    (dict(num_rnn=-1), r"DescriptorConfig\.num_rnn must be an integer >= 0"),
+    (dict(seed=1.5), r"DescriptorConfig\.seed must be an integer >= 0"),
+    (dict(pretrained="yes"), r"DescriptorConfig\.pretrained must be True or False"),
+])
+def test_descriptor_config_refuses_what_the_descriptor_would_refuse_later(kwargs, match):
+    from slam.config import DescriptorConfig
+
+    DescriptorConfig()  # the defaults build
+    with pytest.raises(ValueError, match=match):
+        DescriptorConfig(**kwargs)
