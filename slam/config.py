@@ -128,9 +128,6 @@ class LoopClosureConfig:
                 raise ValueError(f"LoopClosureConfig.threshold_by_backbone[{backbone!r}].min_samples "
                                  f"({thr.min_samples}) must be <= detector.threshold_samples "
                                  f"({self.detector.threshold_samples})")
-        # ConsistencyConfig checks min_support / support_radius itself; these two it leaves unchecked
-        check_int(f"{n}.consistency", "min_group", self.consistency.min_group, 1)
-        check_int(f"{n}.consistency", "max_exact", self.consistency.max_exact, 0)  # 0: always greedy
 
 
 @dataclass
@@ -185,13 +182,10 @@ class SLAMConfig:
     threads: Optional[int] = 1
 
     def __post_init__(self) -> None:
-        # the map's depth range (None: the odometry's); MapConfig checks its other fields itself
+        # the map's depth range with the odometry's filling a None (MapConfig checks its own fields itself)
         f = self.odometry.features
         lo = f.min_depth if self.map.min_depth is None else self.map.min_depth
         hi = f.max_depth if self.map.max_depth is None else self.map.max_depth
-        for name, v in (("min_depth", self.map.min_depth), ("max_depth", self.map.max_depth)):
-            if v is not None:
-                check_number("SLAMConfig.map", name, v, 0)
         if not hi > lo:
             raise ValueError(f"SLAMConfig.map: the depth range must have max_depth > min_depth, got min_depth {lo!r}, "
                              f"max_depth {hi!r} (None takes odometry.features': {f.min_depth!r}, {f.max_depth!r})")

@@ -63,6 +63,12 @@ class MapConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"MapConfig.{name} must be a positive finite number, got {v!r}")
+        for name in ("min_depth", "max_depth"):
+            v = getattr(self, name)
+            if v is not None and not (isinstance(v, (int, float)) and v >= 0):  # inf: no far bound
+                raise ValueError(f"MapConfig.{name} must be None or a number >= 0, got {v!r}")
+        if self.min_depth is not None and self.max_depth is not None and not self.max_depth > self.min_depth:
+            raise ValueError(f"MapConfig: max_depth ({self.max_depth}) must be > min_depth ({self.min_depth})")
 
 
 class PLYFormatError(ValueError):

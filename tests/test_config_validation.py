@@ -136,8 +136,10 @@ def test_edge_values_are_accepted(cls, kwargs):
     (LoopClosureConfig, dict(threshold_by_backbone={"x": 0.85}), r"LoopClosureConfig\.threshold_by_backbone\['x'\]"),
     (LoopClosureConfig, dict(threshold_by_backbone={"x": ThresholdConfig(min_samples=10_000)}),
      r"LoopClosureConfig\.threshold_by_backbone\['x'\]\.min_samples \(10000\) must be <= detector\."),
-    (LoopClosureConfig, dict(consistency=ConsistencyConfig(min_group=0)), r"LoopClosureConfig\.consistency\.min_group"),
-    (LoopClosureConfig, dict(consistency=ConsistencyConfig(max_exact=-1)), r"LoopClosureConfig\.consistency\.max_exa"),
+    # ConsistencyConfig (checked by itself, so also inside LoopClosureConfig)
+    (ConsistencyConfig, dict(min_group=0), r"ConsistencyConfig\.min_group must be an integer >= 1, got 0"),
+    (ConsistencyConfig, dict(max_exact=-1), r"ConsistencyConfig\.max_exact must be an integer >= 0, got -1"),
+    (ConsistencyConfig, dict(min_support=1.5), r"ConsistencyConfig\.min_support"),
     # BackendConfig
     (BackendConfig, dict(method="newton"), r"BackendConfig\.method must be one of 'lm', 'gn', got 'newton'"),
     (BackendConfig, dict(kernel="cauhy"), r"BackendConfig\.kernel must be a kernel name .* got 'cauhy'"),
@@ -154,7 +156,9 @@ def test_edge_values_are_accepted(cls, kwargs):
     # SLAMConfig: the map's depth range against the odometry's
     (SLAMConfig, dict(map=MapConfig(min_depth=5.0)),
      r"SLAMConfig\.map: the depth range must have max_depth > min_depth, got min_depth 5\.0, max_depth 4\.0"),
-    (SLAMConfig, dict(map=MapConfig(max_depth=-1.0)), r"SLAMConfig\.map\.max_depth"),
+    # MapConfig on its own
+    (MapConfig, dict(max_depth=-1.0), r"MapConfig\.max_depth must be None or a number >= 0, got -1\.0"),
+    (MapConfig, dict(min_depth=3.0, max_depth=2.0), r"MapConfig: max_depth \(2\.0\) must be > min_depth \(3\.0\)"),
 ])
 def test_a_bad_setting_is_refused_naming_the_field(cls, kwargs, field):
     with pytest.raises(ValueError, match=field):

@@ -73,8 +73,10 @@ class ConsistencyConfig:
     max_exact: int = 400
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.min_support, int) and self.min_support >= 0):
-            raise ValueError(f"ConsistencyConfig.min_support must be an integer >= 0, got {self.min_support!r}")
+        for name, least in (("min_group", 1), ("min_support", 0), ("max_exact", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < least:
+                raise ValueError(f"ConsistencyConfig.{name} must be an integer >= {least}, got {v!r}")
         if not (self.support_radius >= 0 and math.isfinite(self.support_radius)):
             raise ValueError(f"ConsistencyConfig.support_radius must be finite and >= 0, got {self.support_radius!r}")
 
