@@ -175,3 +175,36 @@ def test_keyframe_graph_pose_graph_scales_by_kind():
         g.add_odometry(7, _T(), torch.eye(6, dtype=D), _T())
     with pytest.raises(ValueError):
         g.set_estimates(torch.zeros(9, 7, dtype=D))
+
+
+class _GivenConsistency(GroupConsistency):
+    """Group consistency over a given pairwise-consistency matrix (every pair near: local support is off)."""
+
+    def __init__(self, config, adjacency):
+        super().__init__(config)
+        self._given = np.asarray(adjacency, bool)
+
+    def _consistent(self, i, j, graph, lengths):
+        return bool(self._given[i, j]), 0.0
+
+
+def _kept_after_each(config, adjacency):
+    check = _GivenConsistency(config, adjacency)
+    return [check.add(k, k + 1, torch.zeros(7, dtype=torch.float64), None) for k in range(len(adjacency))]
+
+
+@pytest.mark.parametrize("max_exact", [0, 1, 2, 400])
+def test_min_group_holds_beyond_the_exact_clique_size(max_exact):
+    # past max_exact the group grows greedily; while it is empty it is the exact clique of the newest
+    # hypotheses, and min_group applies there too (the greedy rule once admitted a lone loop as a group)
+    cfg = ConsistencyConfig(min_group=3, min_support=0, max_exact=max_exact)
+    agree = np.ones((5, 5), bool)
+    assert _kept_after_each(cfg, agree) == [[], [], [0, 1, 2], [0, 1, 2, 3], [0, 1, 2, 3, 4]]
+    lone = np.eye(5, dtype=bool)  # nothing agrees with anything: never a group
+    assert _kept_after_each(ConsistencyConfig(min_group=2, min_support=0, max_exact=max_exact), lone) == [[]] * 5
+    # a false loop (2) in a run of true ones: the true ones are kept, the false one never joins
+    mixed = np.ones((5, 5), bool)
+    mixed[2, :] = mixed[:, 2] = False
+    mixed[2, 2] = True
+    got = _kept_after_each(ConsistencyConfig(min_group=2, min_support=0, max_exact=max_exact), mixed)
+    assert got[-1] == [0, 1, 3, 4] and all(2 not in kept for kept in got)

@@ -69,7 +69,8 @@ class ConsistencyConfig:
     # The pairwise bound: the drift bound of slam.loop.acceptance on the summed length of the two paths.
     bound: DriftBoundConfig = field(default_factory=DriftBoundConfig)
     # Exact maximum clique up to this many hypotheses; beyond, the newest ones are checked greedily
-    # against the kept group (bounds the cost on very long runs).
+    # against the kept group (bounds the cost on very long runs), and while there is no group, the group
+    # is the exact clique of the newest max(max_exact, min_group) hypotheses.
     max_exact: int = 400
 
     def __post_init__(self) -> None:
@@ -182,8 +183,15 @@ class GroupConsistency:
         if n <= self.config.max_exact:
             clique = maximum_clique(adj)
             self._group = clique if len(clique) >= self.config.min_group else []
-        elif all(adj[k, n - 1] for k in self._group):  # greedy beyond the exact size: the newest joins the
-            self._group = sorted(self._group + [n - 1])  # group if it agrees with all of it
+        elif self._group:  # greedy beyond the exact size: the newest joins the group if it agrees with all of it
+            if all(adj[k, n - 1] for k in self._group):
+                self._group = sorted(self._group + [n - 1])
+        else:
+            # no group yet: the exact clique of the newest hypotheses, as many as max_exact (at least
+            # min_group), so that min_group holds here too and the cost stays bounded
+            start = max(0, n - max(self.config.max_exact, self.config.min_group))
+            clique = [start + k for k in maximum_clique(adj[start:, start:])]
+            self._group = clique if len(clique) >= self.config.min_group else []
         g = np.asarray(self._group, dtype=np.int64)
         if self.config.min_support > 0 and g.size:
             support = (adj & near)[np.ix_(g, g)].sum(axis=1)  # the diagonal is False
