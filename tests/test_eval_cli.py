@@ -112,3 +112,16 @@ def test_plot_labels_validated():
         plot_trajectory(None, Trajectory(t, poses), labels=("only one",))
     img = plot_trajectory(None, Trajectory(t, poses), Trajectory(t, poses), labels=("a", "b"), size=(300, 200))
     assert img.shape == (200, 300, 3) and np.isfinite(img).all()
+
+
+def test_association_option(tmp_path, capsys):
+    """--association evo (default, |dt| <= max) or tum (|dt| < max): a pair exactly 2^-6 s apart."""
+    gt, est = tmp_path / "gt.txt", tmp_path / "est.txt"
+    gt.write_text("0.5 0 0 0 0 0 0 1\n1.5 1 0 0 0 0 0 1\n2.5 2 1 0 0 0 0 1\n")
+    est.write_text("0.515625 0 0 0 0 0 0 1\n1.515625 1 0 0 0 0 0 1\n2.515625 2 1 0 0 0 0 1\n")
+    common = ["ate", str(gt), str(est), "--t-max-diff", "0.015625"]
+    assert main(common) == 0 and "(3 pose pairs" in capsys.readouterr().out
+    assert main([*common, "--association", "evo"]) == 0
+    assert main([*common, "--association", "tum"]) == 2 and "within 0.015625 s" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([*common, "--association", "greedy"])

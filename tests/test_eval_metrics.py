@@ -300,3 +300,61 @@ def test_non_finite_and_absurd_input_is_refused_by_name():
     unit[:, 3:] = torch.tensor([0.5 ** 0.5, 0.5 ** 0.5, 0.0, 0.0], dtype=torch.float64)
     r_big, r_unit = rpe(ref, Trajectory(stamps, big)), rpe(ref, Trajectory(stamps, unit))
     assert math.isfinite(r_big.rotation.rmse) and r_big.rotation.rmse == pytest.approx(r_unit.rotation.rmse, abs=1e-12)
+
+
+def _evo_traj(t: np.ndarray, P: np.ndarray):
+    from evo.core.trajectory import PoseTrajectory3D
+
+    return PoseTrajectory3D(positions_xyz=P[:, :3], orientations_quat_wxyz=P[:, [6, 3, 4, 5]], timestamps=t)
+
+
+def test_association_equals_evo_on_jittered_equal_rate_streams():
+    """Two 100 Hz streams with +-3 ms jitter: TUM's greedy one-to-one rule pairs some stamps with their
+    second-nearest partner (ATE 0.017143 m instead of evo's 0.017179 m); the default rule is evo's."""
+    rng = np.random.default_rng(0)
+    n = 3000
+    tr = np.sort(np.arange(n) / 100 + rng.uniform(-0.003, 0.003, n))
+    te = np.sort(np.arange(n) / 100 + rng.uniform(-0.003, 0.003, n))
+    P = np.zeros((n, 7))
+    P[:, 6] = 1
+    P[:, :3] = np.cumsum(rng.normal(size=(n, 3)) * 0.01, 0)
+    Pe = P.copy()
+    Pe[:, :3] += rng.normal(size=(n, 3)) * 0.01
+    ref, est = Trajectory(torch.from_numpy(tr), torch.from_numpy(P)), Trajectory(torch.from_numpy(te), torch.from_numpy(Pe))
+    ref_s, est_s = sync.associate_trajectories(_evo_traj(tr, P), _evo_traj(te, Pe), max_diff=0.02)
+    ours = ate(ref, est)
+    assert np.array_equal(ours.timestamps.numpy(), ref_s.timestamps)
+    assert np.array_equal(ours.estimate_aligned.timestamps.numpy(), est_s.timestamps)
+    _assert_stats(ours, _evo_ape(ref_s, est_s))
+    assert ours.rmse == pytest.approx(0.017179, abs=1e-6)
+    for delta in (1, 10):
+        m = evo_metrics.RPE(evo_metrics.PoseRelation.translation_part, delta, Unit.frames)
+        m.process_data((ref_s, est_s))
+        _assert_stats(rpe(ref, est, delta=delta).translation, m.get_all_statistics())
+    tum = ate(ref, est, association="tum")  # still available, and different here
+    assert not np.array_equal(tum.estimate_aligned.timestamps.numpy(), est_s.timestamps)
+    assert tum.rmse == pytest.approx(0.017143, abs=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_association_pairs_equal_evo_with_ties_boundaries_offsets_and_unsorted_stamps(seed):
+    """Stamps on a 1/8 s grid (exact ties and |dt| == max_diff), duplicates, either list the longer,
+    equal lengths, an offset, and (odd seeds) unsorted stamps: the same pairs, in the same order, as evo."""
+    rng = np.random.default_rng(seed)
+    n_ref = int(rng.integers(5, 40))
+    n_est = n_ref if seed % 3 == 0 else int(rng.integers(5, 40))
+    tr = rng.integers(0, 60, n_ref) / 8.0
+    te = rng.integers(0, 60, n_est) / 8.0
+    if seed % 2 == 0:
+        tr, te = np.sort(tr), np.sort(te)
+    offset = float(rng.integers(-2, 3)) / 8.0
+    P = np.zeros((max(n_ref, n_est), 7))
+    P[:, 6] = 1
+    from slam.eval import associate_nearest
+
+    for max_diff in (0.125, 0.25):
+        ref_s, est_s = sync.associate_trajectories(_evo_traj(tr, P[:n_ref]), _evo_traj(te, P[:n_est]),
+                                                   max_diff=max_diff, offset_2=offset)
+        i, j = associate_nearest(tr, te, max_difference=max_diff, offset=offset)
+        assert tr[i.numpy()].tolist() == ref_s.timestamps.tolist()
+        assert te[j.numpy()].tolist() == est_s.timestamps.tolist()

@@ -240,6 +240,18 @@ def test_open_time_errors(tmp_path):
     (root / "depth.txt").write_text("1.0\n")
     with pytest.raises(DatasetError, match="timestamp filename"):
         open_sequence(root)
+    # exactly two fields: an associated list, a name with a space, an empty CSV cell are refused by line
+    for text, line, pattern in (("1.0 depth/a.png 1.01 rgb/a.png\n", 1, "expected 2 fields .* got 4"),
+                                ("# c\n1.0 depth/my file.png\n", 2, "expected 2 fields .* got 3"),
+                                ("1.0 depth/a.png\n2.0 depth/b.png extra\n", 2, "got 3"),
+                                ("1.0,,depth/a.png\n", 1, "comma-separated cell 2 is empty"),
+                                ("1.0,depth/a.png,\n", 1, "comma-separated cell 3 is empty")):
+        (root / "depth.txt").write_text(text)
+        with pytest.raises(DatasetError, match=pattern) as info:
+            open_sequence(root)
+        assert info.value.line_number == line and f"depth.txt:{line}:" in str(info.value)
+    (root / "depth.txt").write_text("# timestamp filename\ntimestamp filename\n1.0,\tdepth/a.png\n")
+    assert open_sequence(root).timestamps.tolist() == [1.0]  # header skipped, ', ' is one separator
     (root / "depth.txt").write_text("5.0 depth/a.png\n")
     with pytest.raises(DatasetError, match="within 0.02 s"):
         open_sequence(root)

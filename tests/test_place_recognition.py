@@ -228,19 +228,43 @@ def test_read_vpr_bench(tmp_path):
     assert torch.equal(read_ground_truth(path), gt)  # told from the object dtype
     with open(path, "rb") as f:
         assert torch.equal(read_vpr_bench_ground_truth(f), gt)
-    # a float array from numpy_gt_create.py-style scripts with one index per query
-    assert read_vpr_bench_ground_truth(_saved(tmp_path, "f.npy", _vpr_rows([(0.0, 1.0), (1.0, 0.0)]))).tolist() == [
+    # an object array holding floats (integral) and single indices
+    assert read_vpr_bench_ground_truth(_saved(tmp_path, "o.npy", _vpr_rows([(0.0, 1.0), (1.0, 0.0)]))).tolist() == [
         [False, True], [True, False]]
+    # a real float (and int) array of [query, reference] rows, one reference per query
+    for dtype in (np.float64, np.float32, np.int64):
+        arr = np.array([[0.0, 2.0], [1.0, 0.0]], dtype=dtype)
+        assert arr.dtype != object
+        got = read_vpr_bench_ground_truth(_saved(tmp_path, "f.npy", arr))
+        assert got.tolist() == [[False, False, True], [True, False, False]], dtype
+
+
+def test_numeric_q_by_2_arrays_are_matrices_for_read_ground_truth(tmp_path):
+    """Item 4: one reading per function, whatever the values: read_ground_truth -> a binary matrix,
+    read_vpr_bench_ground_truth -> [query, reference] rows."""
+    path = _saved(tmp_path, "amb.npy", np.array([[0.0, 0.0], [1.0, 1.0]]))
+    assert read_ground_truth(path).tolist() == [[False, False], [True, True]]
+    assert read_ground_truth_matrix(path).tolist() == [[False, False], [True, True]]
+    assert read_vpr_bench_ground_truth(path).tolist() == [[True, False], [False, True]]
+    rows = _saved(tmp_path, "rows.npy", np.array([[0, 5], [1, 6]]))
+    with pytest.raises(GroundTruthFormatError, match=r"rows.npy: entry at \(row 0, column 1\) is 5: .*binary.*"
+                                                     r"read_vpr_bench_ground_truth"):
+        read_ground_truth(rows)
+    assert read_vpr_bench_ground_truth(rows).shape == (2, 7)
+    with pytest.raises(GroundTruthFormatError, match="bool.*read_ground_truth_matrix"):
+        read_vpr_bench_ground_truth(_saved(tmp_path, "b.npy", np.array([[True, False]])))
+    with pytest.raises(GroundTruthFormatError, match="dtype complex128"):
+        read_vpr_bench_ground_truth(_saved(tmp_path, "c.npy", np.array([[0, 1]], dtype=complex)))
 
 
 def test_read_vpr_bench_errors(tmp_path):
     with pytest.raises(GroundTruthFormatError, match=r"row 1: holds query 5"):
         read_vpr_bench_ground_truth(_saved(tmp_path, "a.npy", _vpr_rows([(0, [0]), (5, [1])])))
-    with pytest.raises(GroundTruthFormatError, match=r"row 0: reference indices must be non-negative"):
+    with pytest.raises(GroundTruthFormatError, match=r"row 0: reference index must be a non-negative integer, got -1"):
         read_vpr_bench_ground_truth(_saved(tmp_path, "b.npy", _vpr_rows([(0, [-1])])))
-    with pytest.raises(GroundTruthFormatError, match=r"row 0: reference indices must be non-negative"):
+    with pytest.raises(GroundTruthFormatError, match=r"row 0: reference index must be a non-negative integer, got 1.5"):
         read_vpr_bench_ground_truth(_saved(tmp_path, "c.npy", _vpr_rows([(0, [1.5])])))
-    with pytest.raises(GroundTruthFormatError, match=r"row 0: references .* are not numbers"):
+    with pytest.raises(GroundTruthFormatError, match=r"row 0: reference index must be .* got 'x' \(str\)"):
         read_vpr_bench_ground_truth(_saved(tmp_path, "d.npy", _vpr_rows([(0, ["x"])])))
     with pytest.raises(GroundTruthFormatError, match=r"row 1: reference index 7 is not below num_references=4"):
         read_vpr_bench_ground_truth(_saved(tmp_path, "e.npy", _vpr_rows([(0, [0]), (1, [7])])), num_references=4)
@@ -253,10 +277,83 @@ def test_read_vpr_bench_errors(tmp_path):
         read_vpr_bench_ground_truth(tmp_path / "none.npy")
 
 
+def test_read_vpr_bench_validates_indices_and_num_references(tmp_path):
+    """Item 5: no StopIteration, overflow or huge allocation; no bool, string or fractional index."""
+    no_match = _saved(tmp_path, "n.npy", _vpr_rows([(0, []), (1, [])]))
+    for bad in (-1, 2.7, 3.0, True, "3"):
+        with pytest.raises((TypeError, ValueError), match="num_references must be a non-negative integer"):
+            read_vpr_bench_ground_truth(no_match, num_references=bad)
+        with pytest.raises((TypeError, ValueError), match="num_references must be a non-negative integer"):
+            read_ground_truth(no_match, num_references=bad)
+    assert read_vpr_bench_ground_truth(no_match, num_references=np.int64(0)).shape == (2, 0)
+    assert read_vpr_bench_ground_truth(no_match).shape == (2, 0)
+    cases = [
+        ("huge.npy", [(0, [0]), (1, [2 ** 70])], r"row 1: reference index 1180591620717411303424 is not below"),
+        ("big.npy", [(0, [0]), (1, [10 ** 15])], r"row 1: reference index 1000000000000000 is not below \d+ .*num_ref"),
+        ("bool.npy", [(0, True), (1, [1])], r"row 0: reference index must be a non-negative integer, got True"),
+        ("boolarr.npy", [(0, np.array([True]))], r"row 0: reference index .* got True \(bool\)"),
+        ("str.npy", [(0, "12"), (1, [1])], r"row 0: reference index .* got '12' \(str\)"),
+        ("strq.npy", [("0", [0])], r"row 0: the query index must be a non-negative integer, got '0'"),
+        ("boolq.npy", [(0, [0]), (True, [1])], r"row 1: the query index .* got True"),
+        ("dict.npy", [(0, {3: 1})], r"row 0: reference index .* \(dict\)"),
+        ("nan.npy", [(0, [float("nan")])], r"row 0: reference index .* got nan"),
+        ("2d.npy", [(0, np.zeros((2, 2), int))], r"row 0: references of shape \(2, 2\)"),
+    ]
+    for name, rows, pattern in cases:
+        with pytest.raises(GroundTruthFormatError, match=pattern) as e:
+            read_vpr_bench_ground_truth(_saved(tmp_path, name, _vpr_rows(rows)))
+        assert e.value.path.endswith(name)
+    with pytest.raises(GroundTruthFormatError, match=r"row 1: reference index 1000000000000000 is not below "
+                                                     r"num_references=5"):
+        read_vpr_bench_ground_truth(_saved(tmp_path, "big.npy", _vpr_rows([(0, [0]), (1, [10 ** 15])])),
+                                    num_references=5)
+    # numpy integers and integral floats are indices; the matrix bound leaves room for real reference sets
+    rows = [(np.int32(0), np.array([1, 2], np.uint8)), (1.0, 4.0), (2, [50_000])]
+    gt = read_vpr_bench_ground_truth(_saved(tmp_path, "ok.npy", _vpr_rows(rows)))
+    assert gt.shape == (3, 50_001) and gt.sum() == 4
+
+
+def test_read_matrix_refuses_non_binary_values(tmp_path):
+    """Item 3: a grey level, a JPEG's artefacts, -1 or 0.5 are refused (named file, first (row, column), value)."""
+    img = np.zeros((4, 4), np.uint8)
+    img[1, 0] = 255
+    img[2, 1] = 128
+    img[3, 3] = 1
+    cv2.imwrite(str(tmp_path / "grey.png"), img)
+    with pytest.raises(GroundTruthFormatError, match=r"grey.png: entry at \(row 2, column 1\) is 128: .*binary"):
+        read_ground_truth_matrix(tmp_path / "grey.png")
+    cv2.imwrite(str(tmp_path / "grey16.png"), img.astype(np.uint16) * 257)
+    with pytest.raises(GroundTruthFormatError, match=r"grey16.png: entry at \(row 2, column 1\) is 32896"):
+        read_ground_truth(tmp_path / "grey16.png")
+    mixed = np.zeros((3, 3))
+    mixed[0, 2], mixed[1, 1] = 1.0, 255.0  # 0/1 from the first non-zero entry: 255 is then the odd one
+    for arr, pattern in ((mixed, r"\(row 1, column 1\) is 255.0"),
+                         (np.array([[0.0, 0.5], [0.0, 0.0]], np.float32), r"\(row 0, column 1\) is 0.5"),
+                         (np.array([[0, 0, 0], [0, -1, 0]], np.int8), r"\(row 1, column 1\) is -1"),
+                         (np.array([[0, 3, 0]], np.int64), r"\(row 0, column 1\) is 3")):
+        with pytest.raises(GroundTruthFormatError, match=r"m.npy: entry at " + pattern):
+            read_ground_truth_matrix(_saved(tmp_path, "m.npy", arr))
+    with pytest.raises(GroundTruthFormatError, match=r"c.npy: .*dtype complex128"):
+        read_ground_truth_matrix(_saved(tmp_path, "c.npy", np.array([[complex(np.nan, 0), 0]])))
+    with pytest.raises(GroundTruthFormatError, match=r"c.npy: .*dtype complex64"):
+        read_ground_truth(_saved(tmp_path, "c.npy", np.eye(2, dtype=np.complex64)))
+    # binary in every accepted form reads as before
+    want = [[False, True], [True, False]]
+    for ones, dtype in ((1, np.float64), (1, np.int32), (255, np.uint8), (255, np.float32), (65535, np.uint16),
+                        (65535, np.int64)):
+        arr = np.array([[0, ones], [ones, 0]], dtype=dtype)
+        assert read_ground_truth_matrix(_saved(tmp_path, "ok.npy", arr)).tolist() == want, (ones, dtype)
+    assert read_ground_truth_matrix(_saved(tmp_path, "ok.npy", np.array(want))).tolist() == want
+    assert read_ground_truth_matrix(_saved(tmp_path, "zero.npy", np.zeros((2, 3)))).sum() == 0
+    cv2.imwrite(str(tmp_path / "w16.png"), np.array(want, np.uint16) * 65535)
+    assert read_ground_truth_matrix(tmp_path / "w16.png").tolist() == want
+
+
 def test_rtabmap_ground_truth_image(data_dir):
     path = data_dir / "rtabmap-samples" / "samples_GT.bmp"
     if not path.is_file():
         pytest.skip(f"{path} not found")
+    assert np.unique(cv2.imread(str(path), cv2.IMREAD_UNCHANGED)).tolist() == [0, 255]  # binary: still read
     gt = read_ground_truth(path)
     assert gt.shape == (84, 84) and int(gt.sum()) == 228
     assert not gt[:40].any() and gt[40:].any(dim=1).all()  # images 41-84 revisit, 1-40 do not

@@ -41,6 +41,9 @@ def test_comments_blank_lines_separators_and_normalisation():
     text = "# header\n\n1.0 0 0 0 0 0 0 2\n  # indented comment\n2.0,1,2,3,0,0,0,1\n3.0\t1\t2\t3\t0\t0\t1\t1\n"
     traj = read_tum_trajectory(io.StringIO(text))
     assert traj.timestamps.tolist() == [1.0, 2.0, 3.0]
+    # commas with spaces around them, and mixed separators, are still one separator each
+    mixed = read_tum_trajectory(io.StringIO("timestamp,tx,ty,tz,qx,qy,qz,qw\n1.0, 0 ,0,\t0 0,0,0, 1\n"))
+    assert mixed.poses[0].tolist() == [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
     assert traj.poses[0, 6].item() == 1.0  # (0, 0, 0, 2) normalised
     assert torch.allclose(traj.poses[2, 3:], torch.tensor([0, 0, 2 ** -0.5, 2 ** -0.5], dtype=torch.float64))
     assert traj.poses[1, :3].tolist() == [1.0, 2.0, 3.0]
@@ -57,6 +60,10 @@ def test_comments_blank_lines_separators_and_normalisation():
         ("2.0 1 2 3 1e-9 0 0 0", "zero quaternion"),
         ("2.0 1e300 2 3 0 0 0 1", r"translation beyond 1e\+09 m"),
         ("2.0 1 2 -inf 0 0 0 1", "non-finite"),
+        ("2.0,,2,3,0,0,0,1,0", "comma-separated cell 2 is empty"),  # not read shifted as 2.0 2 3 0 0 0 1 0
+        ("2.0,1,2,3,0,0,0,1,", "comma-separated cell 9 is empty"),
+        (",2.0,1,2,3,0,0,0,1", "comma-separated cell 1 is empty"),
+        ("2.0, 1 ,  ,3,0,0,0,1", "comma-separated cell 3 is empty"),
     ],
 )
 def test_bad_line_names_file_and_line(tmp_path, bad_line, reason):

@@ -17,7 +17,7 @@ Example:
     (10, 0.0049)
 """
 from slam.eval.align import transform_poses, umeyama_alignment
-from slam.eval.associate import TUM_MAX_DIFFERENCE, associate, associate_trajectories
+from slam.eval.associate import TUM_MAX_DIFFERENCE, associate, associate_nearest, associate_trajectories
 from slam.eval.loops import (
     LoopEvaluation,
     LoopGroundTruthConfig,
@@ -57,6 +57,7 @@ __all__ = [
     "ShapeMismatchError",
     "as_trajectory",
     "associate",
+    "associate_nearest",
     "associate_trajectories",
     "ate",
     "choose_plane",

@@ -1,19 +1,31 @@
-"""Timestamp association exactly as TUM's ``associate.py``.
+"""Timestamp association: evo's nearest-neighbour rule (the default of ``ate``/``rpe``) and TUM's.
 
-TUM's algorithm: every pair ``(a, b)`` with ``|a - (b + offset)| < max_difference`` is a candidate;
-candidates are visited by increasing difference (ties by ``a``, then ``b``) and a pair is accepted
-when neither of its stamps is taken yet (greedy, one-to-one); the matches are returned sorted by
-``a``. Here the candidates come from a binary search instead of TUM's all-pairs loop, so it runs in
-``O((N + M) log M)`` for sensor streams.
+:func:`associate_nearest` is evo's ``sync.associate_trajectories`` (``sync.matching_time_indices``): the
+trajectory with fewer stamps is the "short" one (the *first* when both have as many: evo keeps the second
+only when it is strictly longer, so with equal lengths the second is the short one); every stamp of the
+short one is matched to the nearest stamp of the long one when ``|dt| <= max_difference`` (a closed
+bound); a long stamp may be matched more than once (not one-to-one), and the pairs come in the order of
+the short trajectory. Ties and boundary cases follow evo's expressions exactly, including its linear
+search (first minimum) when the long trajectory's stamps are not sorted.
 
-evo's ``sync.associate_trajectories`` differs slightly (nearest neighbour per pose of the shorter
-trajectory, not one-to-one, ``<=`` instead of ``<``); on real sensor streams both give the same pairs.
+:func:`associate` is TUM's ``associate.py`` (used for rgb/depth frames, :mod:`slam.io.tum`): every pair
+``(a, b)`` with ``|a - (b + offset)| < max_difference`` (strict) is a candidate; candidates are visited by
+increasing difference (ties by ``a``, then ``b``) and a pair is accepted when neither of its stamps is
+taken yet (greedy, one-to-one); the matches are returned sorted by ``a``. Here the candidates come from a
+binary search instead of TUM's all-pairs loop, so it runs in ``O((N + M) log M)`` for sensor streams.
+
+The two rules agree on most sensor streams but not always: on two equal-rate jittered streams a greedy
+one-to-one match can pair a stamp with its second-nearest partner (and pairs can cross), and a pair exactly
+``max_difference`` apart is kept by evo and dropped by TUM.
 
 Example:
     >>> import torch
     >>> i, j = associate(torch.tensor([0.0, 1.0, 2.0]), torch.tensor([1.005, 0.01, 5.0]))
     >>> i.tolist(), j.tolist()
     ([0, 1], [1, 0])
+    >>> i, j = associate_nearest(torch.tensor([0.0, 1.0, 2.0]), torch.tensor([1.005, 0.01, 5.0]))
+    >>> i.tolist(), j.tolist()
+    ([1, 0], [0, 1])
 """
 from __future__ import annotations
 
@@ -22,10 +34,13 @@ from typing import Union
 import numpy as np
 import torch
 
-__all__ = ["TUM_MAX_DIFFERENCE", "associate", "associate_trajectories"]
+__all__ = ["ASSOCIATIONS", "TUM_MAX_DIFFERENCE", "associate", "associate_nearest", "associate_trajectories"]
 
 # TUM's associate.py / evaluate_ate.py default: 20 ms, i.e. less than a frame at 30 Hz.
 TUM_MAX_DIFFERENCE = 0.02
+
+# the association rules of associate_trajectories / ate / rpe: evo's (default) and TUM's
+ASSOCIATIONS = ("evo", "tum")
 
 ArrayLike = Union[torch.Tensor, np.ndarray, list]
 
@@ -39,6 +54,75 @@ def _stamps(x: ArrayLike, name: str) -> np.ndarray:
     if not np.isfinite(arr).all():
         raise ValueError(f"{name} contains non-finite timestamps")
     return arr
+
+
+def _check_max_difference(max_difference: float) -> None:
+    if not max_difference > 0:  # also refuses NaN
+        raise ValueError(f"max_difference must be positive, got {max_difference}")
+
+
+def _empty() -> tuple[torch.Tensor, torch.Tensor]:
+    return torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long)
+
+
+def _matching_time_indices(s1: np.ndarray, s2: np.ndarray, max_diff: float,
+                           offset_2: float) -> tuple[np.ndarray, np.ndarray]:
+    """evo's ``sync.matching_time_indices``, vectorised with the same floating-point expressions."""
+    s2 = s2 + offset_2
+    if not np.all(np.diff(s2) >= 0):
+        # evo's linear search: argmin |s2 - s1| (first minimum), kept when <= max_diff
+        idx_1, idx_2 = [], []
+        chunk = max(1, 4_000_000 // s2.size)
+        for start in range(0, s1.size, chunk):
+            part = s1[start:start + chunk]
+            diffs = np.abs(s2[None, :] - part[:, None])
+            best = np.argmin(diffs, axis=1)
+            keep = diffs[np.arange(part.size), best] <= max_diff
+            idx_1.append(np.flatnonzero(keep) + start)
+            idx_2.append(best[keep])
+        return np.concatenate(idx_1).astype(np.int64), np.concatenate(idx_2).astype(np.int64)
+    inside = ~((s1 < s2[0] - max_diff) | (s1 > s2[-1] + max_diff))
+    index = np.minimum(np.searchsorted(s2, s1, side="right"), s2.size - 1)
+    diff_ub = s2[index] - s1
+    diff_lb = np.where(index > 0, s1 - s2[np.maximum(index - 1, 0)], np.inf)
+    upper = (diff_ub <= max_diff) & (diff_ub < diff_lb)
+    lower = ~upper & (diff_lb <= max_diff) & (diff_lb <= diff_ub)
+    keep = inside & (upper | lower)
+    best = np.where(upper, index, index - 1)
+    return np.flatnonzero(keep).astype(np.int64), best[keep].astype(np.int64)
+
+
+def associate_nearest(
+    first: ArrayLike,
+    second: ArrayLike,
+    max_difference: float = TUM_MAX_DIFFERENCE,
+    offset: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Match two timestamp lists as evo's ``sync.associate_trajectories(first, second, max_diff, offset_2)``.
+
+    The list with fewer stamps (``second`` when both have as many, as evo) is the short one: each of its
+    stamps is paired with the nearest stamp of the other when ``|dt| <= max_difference``; not one-to-one.
+
+    Args:
+        first: ``(N,)`` seconds (evo's ``traj_1``, the reference).
+        second: ``(M,)`` seconds (``traj_2``, the estimate); ``offset`` is added to them before comparing.
+        max_difference: a pair needs ``|dt| <= max_difference`` (closed, as evo).
+        offset: time offset added to ``second`` (evo's ``offset_2``).
+
+    Returns:
+        ``(K,)`` int64 indices into ``first`` and ``(K,)`` int64 indices into ``second``, in the order of
+        the short list's stamps (evo's order); ``K = 0`` (empty tensors) when nothing matches.
+    """
+    a = _stamps(first, "first")
+    b = _stamps(second, "second")
+    _check_max_difference(max_difference)
+    if a.size == 0 or b.size == 0:
+        return _empty()
+    if b.size > a.size:  # evo: second_longer -> the first is the short one
+        i, j = _matching_time_indices(a, b, max_difference, offset)
+    else:
+        j, i = _matching_time_indices(b, a, max_difference, -offset)
+    return torch.from_numpy(i), torch.from_numpy(j)
 
 
 def associate(
@@ -61,9 +145,8 @@ def associate(
     """
     a = _stamps(first, "first")
     b = _stamps(second, "second")
-    if max_difference <= 0:
-        raise ValueError(f"max_difference must be positive, got {max_difference}")
-    empty = (torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long))
+    _check_max_difference(max_difference)
+    empty = _empty()
     if a.size == 0 or b.size == 0:
         return empty
 
@@ -99,19 +182,33 @@ def associate(
     return torch.from_numpy(out_a_np[final]), torch.from_numpy(out_b_np[final])
 
 
-def associate_trajectories(reference, estimate, max_difference: float = TUM_MAX_DIFFERENCE, offset: float = 0.0):
+def association_indices(reference_stamps: ArrayLike, estimate_stamps: ArrayLike, max_difference: float,
+                        offset: float, association: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`associate_nearest` (``"evo"``) or :func:`associate` (``"tum"``) by name."""
+    if association == "evo":
+        return associate_nearest(reference_stamps, estimate_stamps, max_difference, offset)
+    if association == "tum":
+        return associate(reference_stamps, estimate_stamps, max_difference, offset)
+    raise ValueError(f"association must be one of {ASSOCIATIONS}, got {association!r}")
+
+
+def associate_trajectories(reference, estimate, max_difference: float = TUM_MAX_DIFFERENCE, offset: float = 0.0,
+                           association: str = "evo"):
     """The associated parts of two trajectories, pair by pair.
 
     Args:
         reference: a :class:`slam.io.trajectory.Trajectory` (``N`` poses).
         estimate: a :class:`slam.io.trajectory.Trajectory` (``M`` poses); ``offset`` is added to its stamps.
-        max_difference: seconds, see :func:`associate`.
+        max_difference: seconds, see :func:`associate_nearest` / :func:`associate`.
         offset: seconds added to the estimate's stamps.
+        association: ``"evo"`` (default, :func:`associate_nearest`, evo's ``sync.associate_trajectories``)
+            or ``"tum"`` (:func:`associate`, TUM's greedy one-to-one rule).
 
     Returns:
         ``(reference_part, estimate_part)``, two trajectories of ``K`` poses each, where pose ``k`` of
-        one corresponds to pose ``k`` of the other (sorted by reference time).
+        one corresponds to pose ``k`` of the other (in evo's order, or sorted by reference time for
+        ``"tum"``).
     """
-    i, j = associate(reference.timestamps, estimate.timestamps, max_difference, offset)
+    i, j = association_indices(reference.timestamps, estimate.timestamps, max_difference, offset, association)
     i, j = i.to(reference.timestamps.device), j.to(estimate.timestamps.device)
     return reference.subset(i), estimate.subset(j)

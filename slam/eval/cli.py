@@ -65,6 +65,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help=f"association tolerance in seconds (default {TUM_MAX_DIFFERENCE}, TUM's)")
         s.add_argument("--t-offset", type=_finite, default=0.0,
                        help="seconds added to the estimate's timestamps before association (default 0)")
+        s.add_argument("--association", choices=("evo", "tum"), default="evo",
+                       help="timestamp association: evo (default: nearest stamp of the longer trajectory, "
+                            "|dt| <= --t-max-diff, as evo) or tum (greedy one-to-one, |dt| < --t-max-diff, "
+                            "as TUM's evaluate_ate.py)")
         s.add_argument("--json", metavar="FILE", default=None, help="also write every statistic to this JSON file")
         if name == "ate":
             s.add_argument("--align", choices=("se3", "sim3", "none"), default="se3",
@@ -98,7 +102,7 @@ def _stats_lines(title: str, stats: dict, unit: str) -> list[str]:
 def _run(args: argparse.Namespace) -> dict:
     from slam.eval.metrics import ate, rpe
 
-    common = {"max_difference": args.t_max_diff, "offset": args.t_offset}
+    common = {"max_difference": args.t_max_diff, "offset": args.t_offset, "association": args.association}
     if args.metric == "ate":
         res = ate(args.reference, args.estimate, alignment=args.align, **common)
         out = res.to_dict()

@@ -1,17 +1,24 @@
 """Absolute trajectory error (ATE) and relative pose error (RPE) with TUM / evo semantics.
 
-* Both trajectories are associated by timestamp first (TUM's greedy one-to-one association, pairs
-  less than ``max_difference = 0.02`` s apart, :func:`slam.eval.associate.associate`).
+* Both trajectories are associated by timestamp first, by evo's rule (``association="evo"``, default,
+  :func:`slam.eval.associate.associate_nearest`: each stamp of the trajectory with fewer poses, the
+  estimate when both have as many, gets its nearest partner when ``|dt| <= max_difference = 0.02`` s), so
+  the pairs are evo's ``sync.associate_trajectories(ref, est, max_diff=0.02)``; ``association="tum"``
+  uses TUM's greedy one-to-one rule (``|dt| < max_difference``, :func:`slam.eval.associate.associate`)
+  as TUM's ``evaluate_ate.py``.
 * ATE: the estimate's positions are aligned to the reference's by Umeyama (rigid SE(3) by default,
   ``alignment="sim3"`` adds a scale, ``"none"`` compares raw), then the per-pair error is the distance
-  between camera centres. This is ``evo_ape tum REF EST -a --t_max_diff 0.02`` and TUM's
-  ``evaluate_ate.py``.
+  between camera centres. This is ``evo_ape tum REF EST -a --t_max_diff 0.02`` (and TUM's
+  ``evaluate_ate.py`` with ``association="tum"``).
 * RPE: for index pairs ``(i, j)`` of the associated poses, ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` (``Q``
   reference, ``P`` estimate, evo's convention); the translation error is ``|t(E)|`` in metres, the
   rotation error the angle of ``E`` in degrees. ``delta_unit="frames"`` reproduces ``evo_rpe`` (pairs
   ``(0, d), (d, 2d), ...``, or every ``(i, i + d)`` with ``all_pairs``); ``delta_unit="seconds"`` picks
   pairs ``delta`` seconds apart as TUM's ``evaluate_rpe.py --fixed_delta`` (its default is 1 s): the
-  partner of ``i`` is the stamp nearest to ``t_i + delta``, used when it is within half a frame of it.
+  partner of ``i`` is the stamp nearest to ``t_i + delta``, used when it is within half a frame of it
+  (evo has no time unit for its RPE). Consecutive pairs chain: the next start is the partner; a start
+  without a later partner (the end of a segment before a gap in the stamps) hands over to the next pose,
+  so the chain resumes after a gap.
   TUM's script measures the translation of ``(P_i^-1 P_j)(Q_i^-1 Q_j)^-1`` instead of evo's
   ``(Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; the rotation angles are identical, the translations differ
   only to second order.
@@ -38,7 +45,7 @@ import numpy as np
 import torch
 
 from slam.eval.align import transform_poses, umeyama_alignment
-from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
+from slam.eval.associate import TUM_MAX_DIFFERENCE, association_indices
 from slam.input_checks import MAX_COORDINATE, unit_quaternions
 from slam.io.trajectory import Trajectory, read_tum_trajectory
 from slam.lie import se3_between
@@ -215,12 +222,13 @@ class RPEResult:
                 "num_pairs": self.num_pairs}
 
 
-def _associated(reference: TrajectoryLike, estimate: TrajectoryLike, max_difference: float, offset: float):
+def _associated(reference: TrajectoryLike, estimate: TrajectoryLike, max_difference: float, offset: float,
+                association: str):
     ref = as_trajectory(reference, "reference")
     est = as_trajectory(estimate, "estimate")
     if len(ref) == 0 or len(est) == 0:
         raise ValueError(f"cannot evaluate an empty trajectory ({len(ref)} reference, {len(est)} estimated poses)")
-    i, j = associate(ref.timestamps, est.timestamps, max_difference, offset)
+    i, j = association_indices(ref.timestamps, est.timestamps, max_difference, offset, association)
     if i.numel() == 0:
         raise ValueError(
             f"no timestamps of the estimate ({len(est)} poses, {float(est.timestamps[0]):.3f}..."
@@ -247,6 +255,7 @@ def ate(
     alignment: str = "se3",
     max_difference: float = TUM_MAX_DIFFERENCE,
     offset: float = 0.0,
+    association: str = "evo",
 ) -> ATEResult:
     """Absolute trajectory error of ``estimate`` against ``reference``.
 
@@ -255,17 +264,19 @@ def ate(
         estimate: the estimated trajectory: a :class:`Trajectory` or a TUM file path.
         alignment: ``"se3"`` (rigid, default, TUM/evo ``-a``), ``"sim3"`` (rigid + scale, evo ``-as``)
             or ``"none"``.
-        max_difference: association tolerance in seconds (TUM: 0.02).
+        max_difference: association tolerance in seconds (TUM: 0.02; evo_ape's own default is 0.01).
         offset: seconds added to the estimate's stamps before association.
+        association: ``"evo"`` (default: evo's nearest-neighbour rule, ``|dt| <= max_difference``) or
+            ``"tum"`` (TUM's greedy one-to-one rule, ``|dt| < max_difference``); see the module notes.
 
     Returns:
         an :class:`ATEResult` (``.rmse`` in metres).
 
     Raises:
-        ValueError: empty trajectories, no associated pairs, or fewer than 3 pairs / collinear
-            positions when aligning.
+        ValueError: empty trajectories, no associated pairs, an unknown ``association``, or fewer than 3
+            pairs / collinear positions when aligning.
     """
-    ref, est = _associated(reference, estimate, max_difference, offset)
+    ref, est = _associated(reference, estimate, max_difference, offset, association)
     R, t, s, est_aligned = _align(ref, est, alignment)
     errors = (est_aligned.positions - ref.positions).norm(dim=-1)
     st = ErrorStats.from_errors(errors)
@@ -287,11 +298,17 @@ def _pairs_frames(n: int, delta: int, all_pairs: bool) -> torch.Tensor:
 
 def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool, tol: float | None) -> torch.Tensor:
     # For a start i: j = the stamp closest to t_i + delta (TUM's find_closest_index), kept when it is
-    # later than i and within tol of the target. Consecutive mode chains j -> next start.
-    t = stamps.detach().to("cpu", torch.float64)
-    n = t.numel()
+    # later than i and within tol of the target. Consecutive mode chains j -> next start; a start whose
+    # closest stamp is not later than itself (the last pose before a gap, or the end) hands over to the
+    # next pose, so the chain resumes after a gap. The associated poses follow the short trajectory's
+    # order (evo) or the reference's (TUM), so the estimate's stamps need not be sorted: the pairs are
+    # found in time order and mapped back to the associated indices.
+    t_in = stamps.detach().to("cpu", torch.float64)
+    n = t_in.numel()
     if n < 2:
         return torch.zeros(0, 2, dtype=torch.long)
+    order = torch.argsort(t_in, stable=True)
+    t = t_in[order]
     if tol is None:
         # half a frame: the nearest stamp of a gap-free stream is always this close to the target,
         # while a target beyond the end (or in a gap) is not
@@ -303,16 +320,18 @@ def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool, tol: flo
     ok = (j > torch.arange(n)) & ((t[j] - target).abs() <= tol)
     if all_pairs:
         i = torch.nonzero(ok).flatten()
-        return torch.stack([i, j[i]], dim=-1)
+        return order[torch.stack([i, j[i]], dim=-1)]
     out, i = [], 0
+    j_list, ok_list = j.tolist(), ok.tolist()
     while i < n:
-        jj = int(j[i])
+        jj = j_list[i]
         if jj <= i:
-            break
-        if bool(ok[i]):
+            i += 1  # no later partner: resume at the next pose (after a gap) or stop at the end
+            continue
+        if ok_list[i]:
             out.append((i, jj))
         i = jj
-    return torch.tensor(out, dtype=torch.long).reshape(-1, 2)
+    return order[torch.tensor(out, dtype=torch.long).reshape(-1, 2)]
 
 
 def rpe(
@@ -325,6 +344,7 @@ def rpe(
     alignment: str = "none",
     max_difference: float = TUM_MAX_DIFFERENCE,
     offset: float = 0.0,
+    association: str = "evo",
 ) -> RPEResult:
     """Relative pose error (drift per ``delta``) of ``estimate`` against ``reference``.
 
@@ -342,6 +362,7 @@ def rpe(
             (the scale matters for monocular estimates).
         max_difference: association tolerance in seconds (TUM: 0.02).
         offset: seconds added to the estimate's stamps before association.
+        association: ``"evo"`` (default) or ``"tum"``, as for :func:`ate`.
 
     Returns:
         an :class:`RPEResult` (``.rmse`` = translation RMSE in metres).
@@ -355,7 +376,7 @@ def rpe(
         raise ValueError(f"delta in frames must be a positive integer, got {delta}")
     if delta_unit == "seconds" and not delta > 0:
         raise ValueError(f"delta in seconds must be positive, got {delta}")
-    ref, est = _associated(reference, estimate, max_difference, offset)
+    ref, est = _associated(reference, estimate, max_difference, offset, association)
     if alignment != "none":
         est = _align(ref, est, alignment)[3]
     else:

@@ -24,9 +24,12 @@ Definitions (each query ranks its candidates by similarity, ties in database ord
   rule including the point (recall 0, precision 1). :attr:`PlaceRecognitionResult.vpr_bench_curve`.
   It is 0 when no best match is correct.
 
-Ground truth comes from a binary matrix (an image such as RTAB-Map's ``samples_GT.bmp``, or ``.npy``),
-a VPR-Bench ``ground_truth_new.npy`` (object array of ``[query, [matching references]]``), or poses
-(:func:`ground_truth_from_poses`, the thresholds of :class:`slam.eval.loops.LoopGroundTruthConfig`).
+Ground truth comes from a binary matrix (an image such as RTAB-Map's ``samples_GT.bmp``, or ``.npy``:
+values 0 and one of 1, 255 or 65535, or bool), a VPR-Bench ``ground_truth_new.npy`` (object array of
+``[query, [matching references]]``), or poses (:func:`ground_truth_from_poses`, the thresholds of
+:class:`slam.eval.loops.LoopGroundTruthConfig`). :func:`read_ground_truth` reads every numeric ``.npy`` as a
+matrix and an object ``.npy`` as VPR-Bench rows; a numeric ``(Q, 2)`` array of ``[query, reference]`` rows
+is read with :func:`read_vpr_bench_ground_truth` only.
 
 Example:
     >>> sim = torch.tensor([[0.9, 0.1, 0.2], [0.3, 0.8, 0.1], [0.2, 0.7, 0.4]])
@@ -143,14 +146,44 @@ def _matrix_from_array(arr: np.ndarray, name: str) -> torch.Tensor:
                                            f"{arr.shape}")
     if arr.dtype == object or not (arr.dtype == bool or np.issubdtype(arr.dtype, np.number)):
         raise GroundTruthFormatError(name, f"a ground-truth matrix must be boolean or numeric, got dtype {arr.dtype}")
+    if np.issubdtype(arr.dtype, np.complexfloating):
+        raise GroundTruthFormatError(name, f"a ground-truth matrix must be boolean or real, got dtype {arr.dtype}")
     if np.issubdtype(arr.dtype, np.floating) and not np.isfinite(arr).all():
         r, c = np.argwhere(~np.isfinite(arr))[0]
         raise GroundTruthFormatError(name, f"non-finite entry at (row {r}, column {c})")
+    if arr.dtype != bool:
+        _check_binary(arr, name)
     return torch.from_numpy(np.ascontiguousarray(arr != 0))
+
+
+_BINARY_ONES = (1, 255, 65535)  # a 0/1 array, an 8-bit and a 16-bit black/white image
+
+
+def _check_binary(arr: np.ndarray, name: str) -> None:
+    """Refuse a matrix whose values are not 0 and one of 1, 255, 65535 (the first non-zero value sets which)."""
+    nonzero = arr != 0
+    if not nonzero.any():
+        return
+    first = arr.flat[int(np.flatnonzero(nonzero)[0])]
+    one = next((v for v in _BINARY_ONES if first == v), None)
+    bad = nonzero if one is None else nonzero & (arr != one)
+    if not bad.any():
+        return
+    r, c = (int(x) for x in np.argwhere(bad)[0])
+    hint = ""
+    if arr.shape[1] == 2:
+        hint = "; a (Q, 2) array of [query, reference] rows is read by read_vpr_bench_ground_truth"
+    raise GroundTruthFormatError(name, f"entry at (row {r}, column {c}) is {arr[r, c].item()!r}: a ground-truth "
+                                       f"matrix must be binary (0 and 1, 0 and 255, or 0 and 65535; a lossy "
+                                       f"JPEG is not){hint}")
 
 
 def read_ground_truth_matrix(source: PathOrFile) -> torch.Tensor:
     """Read a binary ground-truth matrix: an image (non-zero pixel = match) or a 2-D ``.npy`` array.
+
+    The values must be binary: bool, or 0 and one of 1, 255 (an 8-bit image) or 65535 (a 16-bit one), in
+    any integer or float dtype; anything else (a grey level, a JPEG's artefacts, -1, 0.5) is refused
+    rather than guessed, naming the first offending entry.
 
     RTAB-Map's ``samples_GT.bmp`` is such an image: 255 at (row i, column j) when image i + 1 revisits
     the place of image j + 1.
@@ -162,7 +195,8 @@ def read_ground_truth_matrix(source: PathOrFile) -> torch.Tensor:
         ``(Q, R)`` bool; entry (q, r) is True when reference r shows the place of query q.
 
     Raises:
-        GroundTruthFormatError: missing, undecodable, not 2-D, non-numeric or non-finite.
+        GroundTruthFormatError: missing, undecodable, not 2-D, non-numeric, complex, non-finite or not
+            binary (the message names the file and the first bad (row, column) and its value).
     """
     name = _name_of(source)
     data = _read_bytes(source)
@@ -176,33 +210,84 @@ def read_ground_truth_matrix(source: PathOrFile) -> torch.Tensor:
     return _matrix_from_array(image, name)
 
 
+# Without num_references, the reference count is the largest index + 1: a (Q, R) bool matrix of at most
+# this many entries (1 GiB); a larger one needs num_references (a corrupt or foreign index is refused).
+_MAX_IMPLIED_ENTRIES = 2 ** 30
+
+
+def _check_num_references(num_references) -> int | None:
+    if num_references is None:
+        return None
+    if isinstance(num_references, (bool, np.bool_)) or not isinstance(num_references, (int, np.integer)):
+        raise TypeError(f"num_references must be a non-negative integer, got {num_references!r}")
+    if num_references < 0:
+        raise ValueError(f"num_references must be a non-negative integer, got {num_references!r}")
+    return int(num_references)
+
+
+def _index_of(value, name: str, q: int, what: str) -> int:
+    """One index: an int (or numpy integer), or an integral finite float; never a bool or a string."""
+    integer = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+    integral = isinstance(value, (float, np.floating)) and math.isfinite(value) and value == math.floor(value)
+    v = int(value) if integer or integral else None
+    if v is None or v < 0:
+        raise GroundTruthFormatError(name, f"row {q}: {what} must be a non-negative integer, got {value!r} "
+                                           f"({type(value).__name__})")
+    return v
+
+
+def _reference_indices(refs, name: str, q: int) -> list[int]:
+    if isinstance(refs, np.ndarray):
+        if refs.ndim > 1:
+            raise GroundTruthFormatError(name, f"row {q}: references of shape {refs.shape}; expected a list")
+        items = refs.reshape(-1).tolist() if refs.dtype != object else list(refs.reshape(-1))
+    elif isinstance(refs, (list, tuple, range)):
+        items = list(refs)
+    else:
+        items = [refs]  # a single index (a string, a dict ... is refused there)
+    return [_index_of(x, name, q, "reference index") for x in items]
+
+
 def read_vpr_bench_ground_truth(source: PathOrFile, num_references: int | None = None) -> torch.Tensor:
     """Read a VPR-Bench ``ground_truth_new.npy``: row q is ``[q, matching reference indices]``.
 
-    VPR-Bench looks a query's matches up by row position (``ground_truth_info[query][1]``), so the
-    first entry of every row must equal its row index. The matches may be a list, a range, an array or
-    a single index; an empty list means the query has no true match. The file is a pickled object
-    array: load only files you trust.
+    Accepted layouts: an object array of shape ``(Q, 2)`` (VPR-Bench's) or ``(Q,)`` of 2-item sequences,
+    whose matches are a list, tuple, range or 1-D array of indices, or a single index (an empty list:
+    the query has no true match); and a numeric (integer or float) array of shape ``(Q, 2)`` of
+    ``[query, reference]`` rows, one match per query. Every index must be a non-negative integer (an int,
+    a numpy integer or an integral float; a bool or a string is not an index). VPR-Bench looks a query's
+    matches up by row position (``ground_truth_info[query][1]``), so the first entry of every row must
+    equal its row index. The file is a pickled object array: load only files you trust.
+
+    A numeric ``(Q, 2)`` array is ambiguous: :func:`read_ground_truth` and :func:`read_ground_truth_matrix`
+    read it as a binary (Q, 2) matrix, this function as ``[query, reference]`` rows.
 
     Args:
         source: a path or a binary file object.
-        num_references: the size R of the reference set (default: the largest index + 1; give it when
-            the last references match no query).
+        num_references: the size R of the reference set, a non-negative int (default: the largest index
+            + 1, refused when the (Q, R) matrix would exceed 2^30 entries; give it when the last
+            references match no query).
 
     Returns:
         ``(Q, R)`` bool matrix.
 
     Raises:
         GroundTruthFormatError: unreadable file, a row that is not ``[index, matches]``, a row whose
-            index is not its position, or a reference index that is negative, not an integer, or not
-            below ``num_references``.
+            index is not its position, or an index that is not a non-negative integer, or not below
+            ``num_references`` (or the bound above); the message names the file and the row.
+        TypeError, ValueError: ``num_references`` is not a non-negative int.
     """
+    num_references = _check_num_references(num_references)
     name = _name_of(source)
     data = _read_bytes(source)
     if not _is_npy(data):
         raise GroundTruthFormatError(name, "not a .npy file")
     arr = _load_npy(data, name, allow_pickle=True)
-    if arr.ndim == 1 and arr.size and all(isinstance(x, (list, tuple, np.ndarray)) for x in arr):
+    if arr.dtype != object and not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        what = "a boolean matrix: read it with read_ground_truth_matrix" if arr.dtype == bool else "not indices"
+        raise GroundTruthFormatError(name, f"dtype {arr.dtype} is {what}")
+    if arr.dtype == object and arr.ndim == 1 and arr.size and all(
+            isinstance(x, (list, tuple, np.ndarray)) for x in arr):
         rows = list(arr)
     elif arr.ndim == 2 and arr.shape[1] == 2:
         rows = [arr[i] for i in range(arr.shape[0])]
@@ -211,49 +296,52 @@ def read_vpr_bench_ground_truth(source: PathOrFile, num_references: int | None =
     else:
         raise GroundTruthFormatError(name, f"expected rows [query, [references]] (shape (Q, 2)), got shape "
                                            f"{arr.shape} dtype {arr.dtype}")
-    matches: list[np.ndarray] = []
+    matches: list[list[int]] = []
     for q, row in enumerate(rows):
         if len(row) != 2:
             raise GroundTruthFormatError(name, f"row {q}: expected [query, [references]], got {len(row)} entries")
-        try:
-            index = float(row[0])
-        except (TypeError, ValueError):
-            raise GroundTruthFormatError(name, f"row {q}: the query index {row[0]!r} is not a number") from None
+        index = _index_of(row[0], name, q, "the query index")
         if index != q:
             raise GroundTruthFormatError(name, f"row {q}: holds query {row[0]!r}; VPR-Bench reads row q as query q")
-        refs = np.atleast_1d(np.asarray(list(row[1]) if isinstance(row[1], range) else row[1], dtype=object))
-        try:
-            vals = refs.astype(np.float64)
-        except (TypeError, ValueError):
-            raise GroundTruthFormatError(name, f"row {q}: references {row[1]!r} are not numbers") from None
-        if vals.size and (not np.isfinite(vals).all() or (vals != np.round(vals)).any() or (vals < 0).any()):
-            raise GroundTruthFormatError(name, f"row {q}: reference indices must be non-negative integers, got "
-                                               f"{row[1]!r}")
-        matches.append(vals.astype(np.int64))
-    top = max((int(m.max()) + 1 for m in matches if m.size), default=0)
+        matches.append(_reference_indices(row[1], name, q))
     if num_references is None:
-        num_references = top
-    elif top > num_references:
-        q = next(i for i, m in enumerate(matches) if m.size and m.max() >= num_references)
-        raise GroundTruthFormatError(name, f"row {q}: reference index {int(matches[q].max())} is not below "
-                                           f"num_references={num_references}")
-    gt = torch.zeros(len(matches), int(num_references), dtype=torch.bool)
+        bound = max(_MAX_IMPLIED_ENTRIES // max(len(matches), 1), 1)
+        for q, m in enumerate(matches):
+            if m and max(m) >= bound:
+                raise GroundTruthFormatError(
+                    name, f"row {q}: reference index {max(m)} is not below {bound} (a matrix of at most 2^30 "
+                          f"entries for {len(matches)} queries); give num_references if the reference set is "
+                          f"that large")
+        num_references = max((max(m) + 1 for m in matches if m), default=0)
+    else:
+        for q, m in enumerate(matches):
+            if m and max(m) >= num_references:
+                raise GroundTruthFormatError(name, f"row {q}: reference index {max(m)} is not below "
+                                                   f"num_references={num_references}")
+    gt = torch.zeros(len(matches), num_references, dtype=torch.bool)
     for q, m in enumerate(matches):
-        gt[q, torch.from_numpy(m)] = True
+        if m:
+            gt[q, torch.tensor(m, dtype=torch.long)] = True
     return gt
 
 
 def read_ground_truth(source: PathOrFile, num_references: int | None = None) -> torch.Tensor:
     """Read any supported ground truth: a VPR-Bench object ``.npy``, a numeric ``.npy`` or an image.
 
+    The dtype decides: an object ``.npy`` is read by :func:`read_vpr_bench_ground_truth`; every numeric or
+    bool ``.npy`` and every image is a binary matrix (:func:`read_ground_truth_matrix`), whatever its shape,
+    so a numeric ``(Q, 2)`` array of ``[query, reference]`` rows must be read with
+    :func:`read_vpr_bench_ground_truth` (here it is refused unless its values happen to be binary).
+
     Args:
         source: a path or a binary file object.
-        num_references: for a VPR-Bench file, the size of the reference set (see
+        num_references: a non-negative int: for a VPR-Bench file, the size of the reference set (see
             :func:`read_vpr_bench_ground_truth`); a matrix must then have that many columns.
 
     Returns:
         ``(Q, R)`` bool matrix.
     """
+    num_references = _check_num_references(num_references)
     name = _name_of(source)
     data = _read_bytes(source)
     buf = io.BytesIO(data)

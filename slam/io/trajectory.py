@@ -1,7 +1,8 @@
 """TUM-format trajectories: ``timestamp tx ty tz qx qy qz qw`` per line.
 
 The reader is strict: every non-comment line must hold exactly eight finite numbers (separated by
-spaces, tabs or commas, as TUM's own scripts accept), a translation within
+spaces, tabs or commas, as TUM's own scripts accept; an empty comma-separated cell, as in ``1,,0``, is
+refused rather than merged with its neighbour), a translation within
 :data:`~slam.input_checks.MAX_COORDINATE` and a non-zero quaternion (normalised without overflow, so
 ``1e200 1e200 0 0`` is a valid rotation); anything else, and a byte that is not UTF-8, raises
 :class:`TrajectoryFormatError` naming the file and the 1-based line number.
@@ -111,6 +112,21 @@ class TrajectoryFormatError(ValueError):
         super().__init__(f"{where}: {message}")
 
 
+def _split_fields(line: str) -> tuple[list[str], int | None]:
+    """The fields of a line separated by whitespace and/or commas, and the 1-based number of the first
+    empty comma-separated cell (``"1,,2"``, a leading or a trailing comma), or None.
+
+    Example:
+        >>> _split_fields("1, 2\t3 4"), _split_fields("1,,2")
+        ((['1', '2', '3', '4'], None), (['1', '2'], 2))
+    """
+    if "," not in line:
+        return line.split(), None
+    cells = line.split(",")
+    empty = next((k + 1 for k, cell in enumerate(cells) if not cell.strip()), None)
+    return [f for cell in cells for f in cell.split()], empty
+
+
 def _read_lines(source: PathOrFile) -> list[str]:
     if isinstance(source, (str, os.PathLike)) and not os.path.isfile(os.fspath(source)):
         raise FileNotFoundError(f"trajectory file not found: {os.fspath(source)}")
@@ -127,7 +143,7 @@ def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Traje
 
     Lines starting with ``#``, blank lines, and a column-header line starting with the word
     ``timestamp`` before the first pose are skipped. Values may be separated by spaces, tabs or
-    commas. Quaternions are normalised (TUM files print 4 decimals, so they are not exactly unit).
+    commas (an empty comma-separated cell is an error). Quaternions are normalised (TUM files print 4 decimals, so they are not exactly unit).
     The result is sorted by timestamp (a stable sort: unsorted files are accepted).
 
     Args:
@@ -154,9 +170,11 @@ def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Traje
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
-        fields = line.replace(",", " ").replace("\t", " ").split()
-        if not rows and fields[0].lower() == "timestamp":
+        fields, empty = _split_fields(line)
+        if not rows and fields and fields[0].lower() == "timestamp":
             continue  # an uncommented column header before the data (some copies of TUM files have one)
+        if empty is not None:
+            raise TrajectoryFormatError(name, number, f"comma-separated cell {empty} is empty in {line!r}")
         if len(fields) != 8:
             raise TrajectoryFormatError(
                 name, number, f"expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(fields)}: {line!r}"

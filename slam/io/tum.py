@@ -13,8 +13,10 @@
   ROS default *without undistortion* for the pre-registered depth; ``undistort=True`` remaps both
   images with the fr1/fr2 distortion instead (depth by nearest neighbour).
 
-List files: ``# comments``, blank lines, ``timestamp filename`` per line (commas and tabs accepted; an
-uncommented ``timestamp filename`` header before the first entry is skipped).
+List files: ``# comments``, blank lines, ``timestamp filename`` per line: exactly these two fields
+(separated by spaces, tabs or a comma; so a file name cannot hold spaces or commas, and an associated
+``t1 rgb/... t2 depth/...`` list is refused rather than read as its first half); an uncommented
+``timestamp filename`` header before the first entry is skipped.
 A repeated timestamp keeps its last line, as TUM's dictionary-based scripts do.
 """
 from __future__ import annotations
@@ -32,7 +34,7 @@ from slam.input_checks import TextDecodeError, read_text_lines
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
 from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence
-from slam.io.trajectory import read_tum_trajectory
+from slam.io.trajectory import _split_fields, read_tum_trajectory
 
 __all__ = [
     "TUM_CAMERAS",
@@ -135,7 +137,7 @@ def read_calibration_file(path: Path) -> TUMCamera:
 
 
 def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
-    """Read a TUM list file (``rgb.txt``, ``depth.txt``): ``timestamp filename`` per line.
+    """Read a TUM list file (``rgb.txt``, ``depth.txt``): ``timestamp filename`` per line, exactly two fields.
 
     Returns:
         timestamps ``(N,)`` float64 and the N file names (relative to the sequence folder), in file
@@ -143,7 +145,8 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
 
     Raises:
         DatasetNotFoundError: the file does not exist.
-        DatasetError: a malformed line (with its number) or no entries at all.
+        DatasetError: a malformed line (with its number: not exactly two fields, an empty comma-separated
+            cell, a timestamp that is not a finite number) or no entries at all.
     """
     if not path.is_file():
         raise DatasetNotFoundError(path, "list file does not exist")
@@ -152,11 +155,14 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
-        fields = line.replace(",", " ").replace("\t", " ").split()
-        if not entries and fields[0].lower() == "timestamp":
+        fields, empty = _split_fields(line)
+        if not entries and fields and fields[0].lower() == "timestamp":
             continue  # an uncommented column header before the data
-        if len(fields) < 2:
-            raise DatasetError(path, f"expected 'timestamp filename', got {line!r}", number)
+        if empty is not None:
+            raise DatasetError(path, f"comma-separated cell {empty} is empty in {line!r}", number)
+        if len(fields) != 2:
+            raise DatasetError(path, f"expected 2 fields 'timestamp filename', got {len(fields)} in {line!r} "
+                                     "(a file name cannot hold spaces or commas)", number)
         try:
             stamp = float(fields[0])
         except ValueError:
