@@ -30,6 +30,8 @@ Example:
 """
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -58,8 +60,14 @@ class ThresholdConfig:
     def __post_init__(self) -> None:
         if self.method not in ("mad", "std"):
             raise ValueError(f"ThresholdConfig.method must be 'mad' or 'std', got {self.method!r}")
+        for name in ("k_sigma", "min_margin", "min_similarity"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                raise ValueError(f"ThresholdConfig.{name} must be a finite number, got {value!r}")
         if self.k_sigma < 0 or self.min_margin < 0:
             raise ValueError(f"k_sigma and min_margin must be >= 0, got {self.k_sigma}, {self.min_margin}")
+        if isinstance(self.min_samples, bool) or not isinstance(self.min_samples, numbers.Integral):
+            raise ValueError(f"ThresholdConfig.min_samples must be an integer, got {self.min_samples!r}")
         if self.min_samples < 2:
             raise ValueError(f"min_samples must be >= 2, got {self.min_samples}")
 
@@ -73,8 +81,11 @@ def adaptive_threshold(similarities: Tensor, config: ThresholdConfig | None = No
         config: the rule's parameters (default :class:`ThresholdConfig`).
 
     Returns:
-        threshold, a 0-d tensor in ``similarities``' dtype (float32 for integer inputs) on its device;
-        ``+inf`` when ``N < config.min_samples``.
+        threshold, a 0-d tensor in ``similarities``' dtype (float32 for integer inputs; float16 and bfloat16
+        are computed in float32 and rounded back) on its device; ``+inf`` when ``N < config.min_samples``.
+
+    Raises:
+        ValueError: NaN or infinite similarities (naming the first positions), a shape other than ``(N,)``.
 
     Example:
         >>> adaptive_threshold(torch.full((50,), 0.7), ThresholdConfig(min_margin=0.05))
@@ -87,9 +98,15 @@ def adaptive_threshold(similarities: Tensor, config: ThresholdConfig | None = No
         raise TypeError(f"similarities must be a torch.Tensor, got {type(similarities).__name__}")
     if similarities.dim() != 1:
         raise ValueError(f"similarities must have shape (N,), got {tuple(similarities.shape)}")
-    s = similarities if similarities.is_floating_point() else similarities.float()
+    out_dtype = similarities.dtype if similarities.is_floating_point() else torch.float32
+    # quantile takes float32 and float64 only: half precisions are widened (and the result rounded back).
+    s = similarities.to(torch.float64 if out_dtype == torch.float64 else torch.float32)
+    finite = torch.isfinite(s)
+    if not bool(finite.all()):
+        where = (~finite).nonzero().flatten()[:5].tolist()
+        raise ValueError(f"similarities must be finite: NaN or inf at positions {where}")
     if s.numel() < cfg.min_samples:
-        return torch.tensor(float("inf"), dtype=s.dtype, device=s.device)
+        return torch.tensor(float("inf"), dtype=out_dtype, device=s.device)
     if cfg.method == "mad":
         centre = s.quantile(0.5)
         spread = _MAD_TO_SIGMA * (s - centre).abs().quantile(0.5)
@@ -97,7 +114,7 @@ def adaptive_threshold(similarities: Tensor, config: ThresholdConfig | None = No
         centre = s.mean()
         spread = s.std(unbiased=False)
     margin = torch.clamp(cfg.k_sigma * spread, min=cfg.min_margin)
-    return torch.clamp(centre + margin, min=cfg.min_similarity)
+    return torch.clamp(centre + margin, min=cfg.min_similarity).to(out_dtype)
 
 
 def accept_mask(similarities: Tensor, config: ThresholdConfig | None = None) -> Tensor:

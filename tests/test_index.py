@@ -253,9 +253,10 @@ def test_similarities_exact_and_sampled():
     ids, sims = index.similarities(db[5], max_id=3 * 199)
     assert torch.equal(ids, torch.arange(200) * 3)
     torch.testing.assert_close(sims, db[:200] @ db[5])
-    s_ids, s_sims = index.similarities(db[5], max_samples=31)  # every ceil(300 / 31) = 10th keyframe
-    assert torch.equal(s_ids, torch.arange(0, 300, 10) * 3)
-    torch.testing.assert_close(s_sims, db[s_ids // 3] @ db[5])
+    s_ids, s_sims = index.similarities(db[5], max_samples=31)  # exactly 31 rows, from the first to the last
+    rows = torch.from_numpy(np.floor(np.arange(31) * 299 / 30 + 0.5).astype(np.int64))
+    assert torch.equal(s_ids, rows * 3) and s_ids[0] == 0 and s_ids[-1] == 3 * 299
+    torch.testing.assert_close(s_sims, db[rows] @ db[5])
 
 
 # ------------------------------------------------------------------ adaptive threshold
@@ -546,9 +547,13 @@ def test_float16_storage_halves_memory_and_scans_exactly():
     ref_ids, ref_sims = brute(rounded, q, 5)
     assert torch.equal(ids, ref_ids)
     torch.testing.assert_close(sims, ref_sims, atol=1e-6, rtol=0)
-    s_ids, s = i16.similarities(q, max_id=19_000, max_samples=3000)  # a stride across chunk boundaries
-    torch.testing.assert_close(s, rounded[s_ids] @ q, atol=1e-6, rtol=0)
-    assert s_ids.tolist() == list(range(0, 19_001, 7))
+    stored = i16.descriptors  # the float16 rows (normalised in float32 first: a few differ from rounded by an ulp)
+    s_ids, s = i16.similarities(q, max_id=19_000)  # the scan across the float16 chunk boundary
+    assert s_ids.tolist() == list(range(19_001))
+    torch.testing.assert_close(s, stored[:19_001] @ q, atol=1e-6, rtol=0)
+    s_ids, s = i16.similarities(q, max_id=19_000, max_samples=3000)  # exactly 3000, first to last row
+    assert s_ids.tolist() == np.floor(np.arange(3000) * 19_000 / 2999 + 0.5).astype(int).tolist()
+    torch.testing.assert_close(s, stored[s_ids] @ q, atol=1e-6, rtol=0)
     torch.testing.assert_close(i16.descriptors_of([3, 19_999]), rounded[[3, 19_999]])
 
 
@@ -653,21 +658,56 @@ def test_config_dict_round_trip():
     assert config_from_dict(d) == cfg
 
 
+def brute_ties(db: torch.Tensor, q: torch.Tensor, k: int, max_id: int | None = None) -> list[int]:
+    """Float64 reference over rows 0..max_id (ids = rows), similarities rounded to float32 as the index
+    reports them, ties to the lower id."""
+    m = db.shape[0] if max_id is None else max(0, min(db.shape[0], max_id + 1))
+    s = (db[:m].double() @ q.double()).float().numpy()
+    return np.lexsort((np.arange(m), -s))[:k].tolist()
+
+
 def test_ties_go_to_the_lower_id_in_every_backend():
-    # Duplicate frames (identical descriptors, as in the kitchen) tie exactly: every backend must order them
-    # alike (lower id first), or a detector's candidate list would depend on the backend.
+    # Duplicate frames (identical descriptors, as in the kitchen; a camera standing still) tie exactly: every
+    # backend and every path must order them alike (lower id first), or a detector's candidate list would
+    # depend on the backend. 100 copies of one row: far more than the 2k rows a scan used to keep and the
+    # rerank * k = 48 rows a structure proposes.
     base = clustered_data(600, 32, clusters=30, seed=14)
-    db = torch.cat([base, base[::3]])  # rows 600.. duplicate rows 0, 3, 6, ...
-    configs = [IndexConfig(backend="exact"), tree_config(exact_below=100)]
+    db = torch.cat([base, base[0].repeat(100, 1), base[::3]])  # rows 600..699 = row 0; 700.. = rows 0, 3, ...
+    k = 6
+    configs = {
+        "exact": IndexConfig(backend="exact"),
+        "flann, scan below exact_below": tree_config(exact_below=10_000),
+        "flann tree": tree_config(exact_below=100),
+        "flann tree + tail": tree_config(exact_below=100, flann={"rebuild_every": 10_000}),
+        "flann rerank 1": tree_config(exact_below=100, rerank=1),
+    }
     if faiss_available():
-        configs.append(IndexConfig(backend="faiss", exact_below=100, reduce_dim=None, background=False,
-                                   faiss=FaissConfig(ef_search=200)))
-    answers = []
-    for cfg in configs:
+        configs["faiss"] = IndexConfig(backend="faiss", exact_below=100, reduce_dim=None, background=False,
+                                       faiss=FaissConfig(ef_search=200))
+    queries = db[[0, 30, 300, 650]]
+    for name, cfg in configs.items():
         index = KeyframeIndex(cfg)
-        index.add(db)
-        answers.append(index.search(db[[0, 30, 300]], k=6))
-    for ids, sims in answers:
-        assert torch.equal(ids, answers[0][0]) and torch.equal(sims, answers[0][1])
-    ids = answers[0][0]
-    assert ids[0, :2].tolist() == [0, 600] and ids[1, :2].tolist() == [30, 610]  # the tie: lower id first
+        if name == "flann tree + tail":
+            index.add(db[:640])  # the tree covers 100 ... 639 lie in it, the rest of the copies in the tail
+            index.add(db[640:])
+            assert 0 < index.n_indexed < len(index)
+        else:
+            index.add(db)
+        stored = index.descriptors
+        # max_id: all; the copies cut by the window; a window so deep that the tree is not asked (a scan).
+        for max_id in (None, 650, 620, 400):
+            ids, sims = index.search(queries, k=k, max_id=max_id)
+            for j in range(queries.shape[0]):
+                q = queries[j] / queries[j].norm()
+                ref = brute_ties(stored, q, k, max_id)
+                assert ids[j].tolist() == ref, (name, max_id, j)
+                assert torch.equal(sims[j], (stored[ref].double() @ q.double()).float()), (name, max_id, j)
+        assert index.search(db[0], k=k)[0].tolist() == [0, 600, 601, 602, 603, 604], name
+        assert index.search(db[30], k=2)[0].tolist() == [30, 710], name
+    # A zero query ties with every row: the k lowest ids.
+    index = KeyframeIndex(IndexConfig(backend="exact"))
+    index.add(db)
+    assert index.search(torch.zeros(32), k=4)[0].tolist() == [0, 1, 2, 3]
+    # The reference search breaks ties alike.
+    rows, _ = exact_search(db, db[[0, 30]], k)
+    assert rows.tolist() == [[0, 600, 601, 602, 603, 604], brute_ties(db, db[30], k)]

@@ -2,6 +2,7 @@
 
 Descriptors are L2-normalised, so the cosine similarity is a dot product and the Euclidean distance that the
 structures rank by is ``|a - b|^2 = 2 - 2 a.b``: the nearest neighbours in L2 are the most similar keyframes.
+(``IndexConfig(normalize=False)``, the raw dot product, is therefore refused for every backend but ``"exact"``.)
 
 **Rows.** All descriptors live in one growing buffer (:class:`~attnloop.index.storage.KeyframeStore`,
 float32 or float16; rows are never modified). Below ``exact_below`` keyframes (and for the ``"exact"``
@@ -23,7 +24,11 @@ only approximation is whether it finds the true neighbours among them. FLANN wit
 tree search) on the full descriptors (``reduce_dim=None``) finds them: the answer equals a brute-force
 search. The HNSW graph, and any structure on a PCA code, claims no exactness (recall is measured:
 docs/benchmarks.md). Re-scoring is in float64 and ties (duplicate frames) go to the lower id, so every
-backend orders equal answers alike.
+backend orders equal answers alike: an exact scan keeps every row that can reach the top ``k`` (all copies
+of the ``k``-th value, within float32 rounding), and when every proposal of a structure ties with or beats
+the ``k``-th answer, at least two of them tied, its list may end inside a group of copies: the eligible
+rows are then scanned (only such queries pay for it). With ``rerank=1`` a group of which the structure
+proposed only the ``k``-th answer goes unseen.
 
 **Exclusion window.** Keyframe ids must increase with every ``add``; ``search(..., max_id=m)`` only returns
 keyframes with ``id <= m`` (for a query keyframe ``q`` and a window ``w``: ``m = q - w`` excludes the ``w``
@@ -48,14 +53,15 @@ Example:
 """
 from __future__ import annotations
 
+import operator
 import threading
 
 import numpy as np
 import torch
 
 from attnloop.index.config import IndexConfig, config_from_dict, config_to_dict, resolve_backend
-from attnloop.index.exact import topk_rows
-from attnloop.index.storage import KeyframeStore
+from attnloop.index.exact import scan_tolerance, topk_rows
+from attnloop.index.storage import _GATHER_BYTES, KeyframeStore
 from attnloop.index.structures import STRUCTURES
 
 Tensor = torch.Tensor
@@ -64,6 +70,9 @@ __all__ = ["INDEX_FORMAT", "INDEX_FORMAT_VERSION", "KeyframeIndex"]
 
 INDEX_FORMAT = "attnloop.KeyframeIndex"
 INDEX_FORMAT_VERSION = 1
+SUPPORTED_VERSIONS = (1,)  # format versions from_state reads
+# Norm a stored row of a normalising index may have: 1 up to float16 rounding (or 0: a zero descriptor).
+_UNIT_ROW_NORM = 1.01
 
 
 def _to_numpy_2d(x, name: str) -> tuple[np.ndarray, bool]:
@@ -81,6 +90,39 @@ def _to_numpy_2d(x, name: str) -> tuple[np.ndarray, bool]:
 
 def _as_array(x, dtype) -> np.ndarray:
     return np.asarray(x.detach().cpu().numpy() if isinstance(x, Tensor) else x, dtype=dtype)
+
+
+def _as_int_array(x, name: str) -> np.ndarray:
+    """``x`` (tensor, array, sequence or scalar) as int64; ValueError on a non-integral or out-of-range value."""
+    arr = np.asarray(x.detach().cpu().numpy() if isinstance(x, Tensor) else x)
+    if arr.dtype.kind == "f":
+        bad = ~np.isfinite(arr) | (arr != np.round(arr)) | (np.abs(arr) >= 2.0 ** 63)
+        if np.any(bad):
+            raise ValueError(f"{name} must be integers, got {arr[bad].ravel()[:5].tolist()}")
+    elif arr.dtype.kind == "u":
+        if arr.size and arr.max() > np.iinfo(np.int64).max:
+            raise ValueError(f"{name} must fit in int64, got {int(arr.max())}")
+    elif arr.dtype.kind != "i":
+        raise ValueError(f"{name} must be integers, got dtype {arr.dtype}")
+    return arr.astype(np.int64)
+
+
+def _count(x, name: str, minimum: int) -> int:
+    """An integer setting (int, numpy or 0-d tensor integer) ``>= minimum``; TypeError/ValueError otherwise."""
+    try:
+        value = operator.index(x)
+    except TypeError:
+        raise TypeError(f"{name} must be an integer, got {x!r}") from None
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    return value
+
+
+def _record_int(meta: dict, key: str, minimum: int) -> int:
+    value = meta[key]
+    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+        raise ValueError(f"the record's {key!r} must be an integer >= {minimum}, got {value!r}")
+    return value
 
 
 def _l2_normalize(x: np.ndarray) -> np.ndarray:
@@ -160,7 +202,7 @@ class KeyframeIndex:
 
     def rows_of(self, ids) -> Tensor:
         """Buffer rows of the given keyframe ids ``(M,)``; ValueError naming an unknown id."""
-        q = np.atleast_1d(_as_array(ids, np.int64))
+        q = np.atleast_1d(_as_int_array(ids, "ids"))
         stored = self._ids()
         rows = np.searchsorted(stored, q)
         ok = rows < stored.size
@@ -180,8 +222,8 @@ class KeyframeIndex:
         Args:
             descriptors: ``(D,)`` or ``(M, D)`` tensor or array (any device; stored on the CPU in
                 ``config.storage``).
-            ids: ``(M,)`` integer keyframe ids, strictly increasing and above every stored id; default
-                continues from the last id (``0, 1, 2, ...``).
+            ids: ``(M,)`` integer keyframe ids (integral floats are accepted, others refused), strictly
+                increasing and above every stored id; default continues from the last id (``0, 1, 2, ...``).
             timestamps: ``(M,)`` optional, stored for the caller.
         """
         x, _ = _to_numpy_2d(descriptors, "descriptors")
@@ -200,7 +242,7 @@ class KeyframeIndex:
             start = last + 1 if last is not None else 0
             new_ids = np.arange(start, start + m, dtype=np.int64)
         else:
-            new_ids = np.atleast_1d(_as_array(ids, np.int64))
+            new_ids = np.atleast_1d(_as_int_array(ids, "ids"))
             if new_ids.shape != (m,):
                 raise ValueError(f"ids must have shape ({m},), got {tuple(new_ids.shape)}")
         if np.any(np.diff(new_ids) <= 0) or (last is not None and new_ids[0] <= last):
@@ -298,12 +340,16 @@ class KeyframeIndex:
         if self.dim is not None and q.shape[1] != self.dim:
             raise ValueError(f"query has dimension {q.shape[1]} but the index holds dimension {self.dim} "
                              f"(got shape {tuple(q.shape)})")
+        bad = ~np.isfinite(q).all(axis=1)
+        if bad.any():
+            where = "the query contains" if single else f"query rows {np.flatnonzero(bad)[:10].tolist()} contain"
+            raise ValueError(f"{where} NaN or inf (as float32)")
         if self.config.normalize:
             q = _l2_normalize(q)
         if max_id is None:
             max_ids = None
         else:
-            max_ids = _as_array(max_id, np.int64)
+            max_ids = _as_int_array(max_id, "max_id")
             if max_ids.ndim > 1 or (max_ids.ndim == 1 and max_ids.shape[0] not in (1, q.shape[0])):
                 raise ValueError(f"max_id must be a scalar or have shape ({q.shape[0]},), "
                                  f"got {tuple(max_ids.shape)}")
@@ -325,10 +371,13 @@ class KeyframeIndex:
             ``(K,)`` each for a ``(D,)`` query, ``(Q, K)`` each for ``(Q, D)``, where
             ``K = min(k, most eligible keyframes of any query)``; rows of a batch with fewer eligible
             keyframes are padded with id ``-1`` and similarity ``-inf``. ``K = 0`` (empty tensors) when
-            nothing is eligible.
+            nothing is eligible. Equal similarities are ordered by id (the lower id wins a tie).
+
+        Raises:
+            ValueError: a query with NaN or inf (naming the rows), a wrong dimension, ``k < 1``, a
+                non-integral ``max_id``.
         """
-        if int(k) < 1:
-            raise ValueError(f"k must be >= 1, got {k}")
+        k = _count(k, "k", 1)
         q, single, max_ids, device = self._prepare_queries(query, max_id)
         self._poll()
         nq = q.shape[0]
@@ -342,31 +391,66 @@ class KeyframeIndex:
                 m = int(n_elig[i])
                 if m == 0:
                     continue
-                rows = np.sort(self._candidate_rows(q[i], m, kk, structure))
-                # Re-scored in float64 (then rounded): a similarity must not depend on which other rows
-                # were re-scored with it (float32 products of different sizes round differently), and
-                # ties (duplicate frames) go to the lower id, so that every backend orders alike.
-                sims = (self._store.rows(rows, np.float64) @ q[i].astype(np.float64)).astype(np.float32)
-                order = np.argsort(-sims, kind="stable")[:kk]
-                out_ids[i, : order.size] = ids[rows[order]]
-                out_sim[i, : order.size] = sims[order]
+                rows, sims = self._top(q[i], m, kk, structure)
+                out_ids[i, : rows.size] = ids[rows]
+                out_sim[i, : rows.size] = sims
         ids_t = torch.from_numpy(out_ids).to(device)
         sim_t = torch.from_numpy(out_sim).to(device)
         return (ids_t[0], sim_t[0]) if single else (ids_t, sim_t)
 
-    def _candidate_rows(self, q: np.ndarray, m: int, k: int, structure) -> np.ndarray:
-        """Rows (in ``[0, m)``) that contain the k nearest of the eligible prefix ``[0, m)``."""
-        # Exact scans keep 2k rows: the re-scoring then settles near-ties at the k-th place (float32
-        # rounding, duplicate frames) the same way whichever path found them.
-        store = self._store
+    # Every answer is re-scored in float64 (then rounded to float32): a similarity must not depend on which
+    # other rows were re-scored with it (float32 products of different sizes round differently), and ties
+    # (duplicate frames) go to the lower row (= id), whichever path found the rows, so every backend orders
+    # alike.
+    def _top(self, q: np.ndarray, m: int, k: int, structure) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and similarities of the ``k`` best of the eligible prefix ``[0, m)``, best first, ties by row."""
+        q64, tol = q.astype(np.float64), self._tolerance(q)
         if structure is None or m < self.config.exact_below:
-            return topk_rows(store.matvec(q, 0, m), 2 * k)
-        rows = structure.candidates(q, k * self.config.rerank, m)
-        if rows is None:
-            return topk_rows(store.matvec(q, 0, m), 2 * k)
-        if m > structure.n:  # the exact tail
-            rows = np.concatenate([rows, structure.n + topk_rows(store.matvec(q, structure.n, m), 2 * k)])
-        return np.unique(rows)
+            return self._scan(q, q64, 0, m, k, tol)
+        prop = structure.candidates(q, k * self.config.rerank, m)
+        if prop is None:  # a window so deep that a scan is cheaper
+            return self._scan(q, q64, 0, m, k, tol)
+        prop = np.unique(prop)
+        p_sims = self._rescore(prop, q64)
+        rows, sims = prop, p_sims
+        if m > structure.n:  # the exact tail (its rows all follow the structure's)
+            t_rows, t_sims = self._scan(q, q64, structure.n, m, k, tol)
+            rows, sims = np.concatenate([prop, t_rows]), np.concatenate([p_sims, t_sims])
+        order = np.argsort(-sims, kind="stable")[:k]
+        rows, sims = rows[order], sims[order]
+        # Duplicate frames: when every proposal ties with (or beats) the k-th answer and at least two tie
+        # with it, the structure's list may end inside a group of equal rows whose lower ids it left out:
+        # the prefix is scanned (only such degenerate queries pay for it).
+        if (sims.size == k and prop.size >= 2 and p_sims.min() >= sims[-1]
+                and np.count_nonzero(p_sims == sims[-1]) >= 2):
+            return self._scan(q, q64, 0, m, k, tol)
+        return rows, sims
+
+    def _tolerance(self, q: np.ndarray) -> float:
+        """How far below the k-th value of a float32 scan a row of the exact top k can score."""
+        row_norm = _UNIT_ROW_NORM if self.config.normalize else self._store.max_norm()
+        return scan_tolerance(self._store.dim, float(np.linalg.norm(q.astype(np.float64))), row_norm)
+
+    def _scan(self, q, q64, start: int, stop: int, k: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` best of rows ``[start, stop)``: a float32 scan keeps every row that can be among them
+        (duplicates of the k-th included), which are re-scored exactly."""
+        rows = start + topk_rows(self._store.matvec(q, start, stop), k, tol)
+        return self._select(rows, q64, k)
+
+    def _rescore(self, rows: np.ndarray, q64: np.ndarray) -> np.ndarray:
+        return (self._store.rows(rows, np.float64) @ q64).astype(np.float32)
+
+    def _select(self, rows: np.ndarray, q64: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` best of the increasing ``rows`` by exact similarity, ties by row (a chunk at a time: many
+        duplicates of the k-th value must not make one huge float64 copy)."""
+        chunk = _GATHER_BYTES // (8 * max(1, self._store.dim)) + 1
+        best_r, best_s = rows[:0], np.zeros(0, dtype=np.float32)
+        for lo in range(0, rows.size, chunk):
+            r = np.concatenate([best_r, rows[lo: lo + chunk]])  # the kept rows all precede this chunk's
+            s = np.concatenate([best_s, self._rescore(rows[lo: lo + chunk], q64)])
+            order = np.argsort(-s, kind="stable")[:k]
+            best_r, best_s = r[order], s[order]
+        return best_r, best_s
 
     def similarities(self, query, max_id=None, max_samples: int | None = None) -> tuple[Tensor, Tensor]:
         """Exact similarities of one query to every eligible keyframe (or an even sample of them).
@@ -374,12 +458,15 @@ class KeyframeIndex:
         Args:
             query: ``(D,)`` descriptor.
             max_id: only keyframes with ``id <= max_id`` (see :meth:`search`); ``None``: all.
-            max_samples: at most this many eligible keyframes: every ``ceil(M / max_samples)``-th
-                eligible row (deterministic, spread over the whole database); ``None``: all.
+            max_samples: an integer ``>= 1``: when more keyframes are eligible, exactly ``max_samples`` of
+                them, evenly spread from the first eligible row to the last (rows ``round(i (M - 1) /
+                (max_samples - 1))``, deterministic); ``None``: all.
 
         Returns:
             ids ``(M,)`` (long) and similarities ``(M,)`` (float32) in id order, on the query's device.
         """
+        if max_samples is not None:
+            max_samples = _count(max_samples, "max_samples", 1)
         q, single, max_ids, device = self._prepare_queries(query, max_id)
         if not single:
             raise ValueError(f"similarities takes one query of shape (D,), got {tuple(q.shape)}")
@@ -387,10 +474,12 @@ class KeyframeIndex:
         if m == 0:
             rows = np.zeros(0, dtype=np.int64)
             sims = np.zeros(0, dtype=np.float32)
-        else:
-            step = 1 if max_samples is None or m <= max_samples else -(-m // int(max_samples))
-            rows = np.arange(0, m, step)
-            sims = self._store.matvec(q[0], 0, m, step)
+        elif max_samples is None or m <= max_samples:
+            rows = np.arange(m)
+            sims = self._store.matvec(q[0], 0, m)
+        else:  # spacing (m - 1) / (max_samples - 1) > 1: the rounded rows are distinct
+            rows = np.floor(np.linspace(0, m - 1, max_samples) + 0.5).astype(np.int64)
+            sims = self._store.matvec_rows(q[0], rows)
         return (torch.from_numpy(self._ids()[rows].copy()).to(device),
                 torch.from_numpy(np.ascontiguousarray(sims, dtype=np.float32)).to(device))
 
@@ -432,25 +521,50 @@ class KeyframeIndex:
                 machine cannot load (faiss missing) is rebuilt with the backend ``"auto"`` picks here.
 
         Raises:
-            ValueError: a malformed state, naming what is wrong.
+            ValueError: a malformed state (an unsupported or missing format version, a missing or ill-typed
+                record entry, arrays inconsistent with the record, non-integral ids, rows of a normalising
+                index that are not unit length, a structure blob that is corrupt or disagrees with the
+                record's rows and dimension, a PCA code of the wrong shape), naming what is wrong.
+            ImportError: a saved faiss graph restored where faiss is not installed.
         """
-        meta = state.get("meta")
+        meta = state.get("meta") if isinstance(state, dict) else None
         if not isinstance(meta, dict) or meta.get("format") != INDEX_FORMAT:
             raise ValueError(f"not a keyframe index state (its 'meta' record lacks format {INDEX_FORMAT!r})")
-        if int(meta.get("version", -1)) > INDEX_FORMAT_VERSION:
-            raise ValueError(f"keyframe index format version {meta.get('version')} is newer than this "
-                             f"library reads ({INDEX_FORMAT_VERSION})")
+        version = meta.get("version")
+        supported = ", ".join(map(str, SUPPORTED_VERSIONS))
+        if "version" not in meta:
+            raise ValueError(f"the record has no format version (this library reads version {supported})")
+        if not isinstance(version, int) or isinstance(version, bool):
+            raise ValueError(f"keyframe index format version {version!r} is not an integer version "
+                             f"(this library reads version {supported})")
+        if version > INDEX_FORMAT_VERSION:
+            raise ValueError(f"keyframe index format version {version} is newer than this library reads "
+                             f"({supported})")
+        if version not in SUPPORTED_VERSIONS:
+            raise ValueError(f"keyframe index format version {version} is not supported (this library reads "
+                             f"version {supported})")
         for key in ("config", "dim", "n", "num_builds", "structure"):
             if key not in meta:
                 raise ValueError(f"keyframe index record lacks {key!r}")
         for key in ("descriptors", "ids", "timestamps"):
             if key not in state:
                 raise ValueError(f"keyframe index state lacks the array {key!r}")
-        saved = config_from_dict(meta["config"])
+        if not isinstance(meta["config"], dict):
+            raise ValueError(f"the record's 'config' must be a dict, got {type(meta['config']).__name__}")
+        try:
+            saved = config_from_dict(meta["config"])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"the record's config is invalid: {exc}") from exc
+        n, num_builds = _record_int(meta, "n", 0), _record_int(meta, "num_builds", 0)
+        dim = None if meta["dim"] is None and n == 0 else _record_int(meta, "dim", 1)
         desc = np.asarray(state["descriptors"])
-        ids = np.asarray(state["ids"], dtype=np.int64)
-        ts = np.asarray(state["timestamps"], dtype=np.float64)
-        n, dim = int(meta["n"]), meta["dim"]
+        if desc.dtype.kind != "f":
+            raise ValueError(f"descriptors have dtype {desc.dtype}, need floating point")
+        ids = _as_int_array(state["ids"], "ids")
+        try:
+            ts = np.asarray(state["timestamps"], dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"timestamps must be numbers ({exc})") from exc
         if desc.ndim != 2 or desc.shape[0] != n or (n and desc.shape[1] != dim):
             raise ValueError(f"descriptors have shape {tuple(desc.shape)}, the record says ({n}, {dim})")
         if ids.shape != (n,) or ts.shape != (n,):
@@ -460,6 +574,16 @@ class KeyframeIndex:
         if n and not np.all(np.isfinite(desc)):
             raise ValueError("descriptors contain NaN or inf")
         smeta = meta["structure"]
+        if smeta is not None:
+            if not isinstance(smeta, dict) or smeta.get("kind") not in STRUCTURES:
+                kind = smeta.get("kind") if isinstance(smeta, dict) else smeta
+                raise ValueError(f"the record's structure must be one of the kinds {sorted(STRUCTURES)}, "
+                                 f"got {kind!r}")
+            if "n" not in smeta:
+                raise ValueError("the record's structure lacks 'n' (the rows it covers)")
+            s_n = smeta["n"]
+            if not isinstance(s_n, int) or isinstance(s_n, bool) or not 1 <= s_n <= n:
+                raise ValueError(f"the saved structure covers {s_n!r} rows, need an integer in [1, {n}]")
         use = config or saved
         if config is not None and config != saved:
             out = cls(config)
@@ -470,13 +594,24 @@ class KeyframeIndex:
         out = cls(use, dim=dim)
         if n:
             out._store.append(desc.astype(out._store.dtype, copy=False), ids, ts)
-        if smeta is not None and smeta.get("kind") == backend:
+            if use.normalize:
+                norms = out._store.row_norms()
+                bad = (norms != 0) & (np.abs(norms - 1) > _UNIT_ROW_NORM - 1)
+                if np.any(bad):
+                    raise ValueError(f"descriptor rows {np.flatnonzero(bad)[:5].tolist()} have norms "
+                                     f"{np.round(norms[bad][:5], 4).tolist()}: the config normalises "
+                                     "descriptors, so every stored row must have norm 1 (or 0)")
+        if smeta is not None and smeta["kind"] == backend:
             sarrays = {k[len("structure."):]: v for k, v in state.items() if k.startswith("structure.")}
-            if int(smeta["n"]) > n:
-                raise ValueError(f"the saved structure covers {smeta['n']} rows of {n}")
-            out._structure = STRUCTURES[backend].from_state(smeta, sarrays, out._store.view(), use)
-            out._extend()
-            out.num_builds = int(meta["num_builds"])
+            try:
+                out._structure = STRUCTURES[backend].from_state(smeta, sarrays, out._store.view(), use)
+                out._extend()
+            except (ValueError, ImportError, MemoryError):
+                raise
+            except Exception as exc:  # OpenCV's and faiss's errors on a corrupt blob
+                first = (str(exc).strip().splitlines() or [""])[0][:200]
+                raise ValueError(f"the saved {backend} structure is corrupt ({type(exc).__name__}: {first})") from exc
+            out.num_builds = num_builds
         elif n:
             out._maybe_rebuild()  # a structure of another kind (or none): built here as adds would
         return out

@@ -1,6 +1,7 @@
 """Loop-candidate detection: index search, adaptive threshold, temporal consistency (per query keyframe)."""
 from __future__ import annotations
 
+import numbers
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -22,8 +23,9 @@ class LoopDetectorConfig:
 
     Per query keyframe ``q``: the eligible keyframes are those with ``id <= q - window``; the ``top_k``
     most similar are taken from the index; a candidate is accepted when its similarity exceeds the
-    adaptive threshold of the query's similarity distribution (:mod:`attnloop.threshold`, estimated on at
-    most ``threshold_samples`` eligible keyframes spread evenly over the database) and, if
+    adaptive threshold of the query's similarity distribution (:mod:`attnloop.threshold`, estimated on every
+    eligible keyframe, or on exactly ``threshold_samples`` of them spread evenly over the eligible ones when
+    there are more) and, if
     ``consistency > 1``, when each of the ``consistency - 1`` previous queries also had a candidate
     above its threshold within ``consistency_radius`` ids of it (a revisit lasts several keyframes).
     """
@@ -37,11 +39,16 @@ class LoopDetectorConfig:
     index: IndexConfig = field(default_factory=IndexConfig)
 
     def __post_init__(self) -> None:
+        for name in ("top_k", "window", "consistency", "consistency_radius", "threshold_samples"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise ValueError(f"LoopDetectorConfig.{name} must be an integer, got {value!r}")
         if self.top_k < 1 or self.window < 0 or self.consistency < 1 or self.consistency_radius < 0:
             raise ValueError("LoopDetectorConfig: need top_k >= 1, window >= 0, consistency >= 1, "
                              "consistency_radius >= 0")
         if self.threshold_samples < self.threshold.min_samples:
-            raise ValueError("LoopDetectorConfig.threshold_samples must be >= threshold.min_samples")
+            raise ValueError(f"LoopDetectorConfig.threshold_samples ({self.threshold_samples}) must be >= "
+                             f"threshold.min_samples ({self.threshold.min_samples})")
 
 
 @dataclass

@@ -1,12 +1,14 @@
 """Exact scans: the reference search and the kernels every backend re-scores with."""
 from __future__ import annotations
 
+import operator
+
 import numpy as np
 import torch
 
 Tensor = torch.Tensor
 
-__all__ = ["exact_search", "matvec", "topk_rows"]
+__all__ = ["exact_search", "matvec", "scan_tolerance", "topk_rows"]
 
 
 def exact_search(database: Tensor, queries: Tensor, k: int) -> tuple[Tensor, Tensor]:
@@ -14,24 +16,49 @@ def exact_search(database: Tensor, queries: Tensor, k: int) -> tuple[Tensor, Ten
 
     Args:
         database: ``(N, D)``.
-        queries: ``(Q, D)``.
-        k: neighbours per query (clipped to ``N``).
+        queries: ``(Q, D)``; a dtype other than the database's is promoted with it (float64 queries
+            against a float32 database are compared in float64).
+        k: neighbours per query, an integer ``>= 0`` (clipped to ``N``).
 
     Returns:
-        row indices ``(Q, min(k, N))`` (long) and similarities ``(Q, min(k, N))``, most similar first.
+        row indices ``(Q, min(k, N))`` (long) and similarities ``(Q, min(k, N))``, most similar first;
+        equal similarities in increasing row order (the lower row wins a tie at the ``k``-th place).
 
     Example:
         >>> rows, sims = exact_search(torch.eye(3), torch.tensor([[0.1, 0.9, 0.0]]), k=2)
         >>> rows.tolist()
         [[1, 0]]
+        >>> exact_search(torch.ones(5, 2), torch.ones(1, 2), k=3)[0].tolist()  # ties: lower rows first
+        [[0, 1, 2]]
     """
     if database.dim() != 2 or queries.dim() != 2 or database.shape[1] != queries.shape[1]:
         raise ValueError(f"need database (N, D) and queries (Q, D), got {tuple(database.shape)} and "
                          f"{tuple(queries.shape)}")
-    kk = min(int(k), database.shape[0])
-    sims = queries @ database.t()
+    try:
+        k = operator.index(k)
+    except TypeError:
+        raise TypeError(f"k must be an integer, got {k!r}") from None
+    if k < 0:
+        raise ValueError(f"k must be >= 0, got {k}")
+    dtype = torch.promote_types(database.dtype, queries.dtype)
+    sims = queries.to(dtype) @ database.to(dtype).t()
+    kk = min(k, database.shape[0])
     vals, rows = torch.topk(sims, kk, dim=1)
-    return rows, vals
+    if kk == 0:
+        return rows, vals
+    # torch.topk orders ties arbitrarily: where the k-th value is shared by rows it did not return, take the
+    # lowest of them, then order equal values by row.
+    kth = vals[:, -1:]
+    cut = ((sims >= kth).sum(1) > kk).nonzero().flatten().tolist()
+    for i in cut:
+        cand = (sims[i] >= kth[i]).nonzero().flatten()  # increasing rows
+        order = torch.sort(sims[i, cand], descending=True, stable=True).indices[:kk]
+        rows[i] = cand[order]
+        vals[i] = sims[i, rows[i]]
+    rows, pos = rows.sort(dim=1)
+    vals = vals.gather(1, pos)
+    order = torch.sort(vals, dim=1, descending=True, stable=True).indices
+    return rows.gather(1, order), vals.gather(1, order)
 
 
 def matvec(a: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -44,8 +71,28 @@ def matvec(a: np.ndarray, q: np.ndarray) -> np.ndarray:
     return (torch.from_numpy(a) @ torch.from_numpy(q)).numpy()
 
 
-def topk_rows(sims: np.ndarray, k: int) -> np.ndarray:
-    """Positions of the ``k`` largest values of ``sims (M,)`` (unordered; all of them when ``M <= k``)."""
+def scan_tolerance(dim: int, query_norm: float, row_norm: float) -> float:
+    """How far below the ``k``-th float32 scan value a row of the true top ``k`` can score.
+
+    A float32 dot product of length ``D`` is off by at most ``~D 2^-24 |x| |q|`` (any summation order), so
+    the true top ``k`` (re-scored in float64, rounded to float32, ties to the lower row) all score at least
+    the ``k``-th largest scan value less twice that bound and one float32 spacing.
+    """
+    return (2.0 * dim + 8.0) * 2.0 ** -24 * float(query_norm) * float(row_norm)
+
+
+def topk_rows(sims: np.ndarray, k: int, tol: float = 0.0) -> np.ndarray:
+    """Positions (increasing) of the ``k`` largest values of ``sims (M,)`` and of every value tied with them.
+
+    Every position whose value is at least the ``k``-th largest less ``tol`` is returned (all of them when
+    ``M <= k``): duplicates of the ``k``-th value are all kept, never an arbitrary few, so the exact
+    re-scoring that follows can give ties to the lower row (``tol``: :func:`scan_tolerance`).
+
+    Example:
+        >>> topk_rows(np.array([0.5, 0.9, 0.5, 0.1, 0.5], dtype=np.float32), 2).tolist()
+        [0, 1, 2, 4]
+    """
     if sims.size <= k:
         return np.arange(sims.size)
-    return np.argpartition(-sims, k - 1)[:k]
+    kth = np.partition(sims, sims.size - k)[sims.size - k]
+    return np.flatnonzero(sims >= kth - tol)

@@ -55,8 +55,10 @@ def load_index(file, config: IndexConfig | None = None) -> KeyframeIndex:
 
     Raises:
         FileNotFoundError: no such file.
-        IndexFileError: not a keyframe-index file, a newer format version, or inconsistent contents
-            (naming the file and the entry).
+        IndexFileError: not a keyframe-index file, a missing, newer or otherwise unsupported format version,
+            or inconsistent or corrupt contents (a record entry, the arrays, the FLANN tree or faiss graph,
+            the PCA code), naming the file and what is wrong.
+        ImportError: the file holds a faiss graph and faiss is not installed here.
     """
     name = _name(file)
     try:
@@ -74,5 +76,5 @@ def load_index(file, config: IndexConfig | None = None) -> KeyframeIndex:
         raise IndexFileError(f"{name}: the 'meta' entry is not JSON ({exc})") from exc
     try:
         return KeyframeIndex.from_state({"meta": meta, **arrays}, config)
-    except ValueError as exc:
+    except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError) as exc:
         raise IndexFileError(f"{name}: {exc}") from exc

@@ -89,10 +89,38 @@ class PCACode:
         return out
 
     @classmethod
-    def from_state(cls, state: dict) -> PCACode:
-        scale = state.get("scale")
-        return cls(np.asarray(state["mean"], np.float32), np.asarray(state["components"], np.float32),
-                   None if scale is None else np.asarray(scale, np.float32), float(state["kept"]))
+    def from_state(cls, state: dict, dim: int | None = None) -> PCACode:
+        """The code :meth:`state` describes; ValueError naming a missing, misshapen or non-finite entry.
+
+        Args:
+            state: ``mean``, ``components``, ``kept`` and (whitened codes) ``scale``.
+            dim: the descriptor size ``D`` the code must take (``None``: the one ``mean`` has).
+        """
+        for key in ("mean", "components", "kept"):
+            if key not in state:
+                raise ValueError(f"the PCA code lacks its {key!r}")
+        arrays = {}
+        for key in ("mean", "components", "kept", "scale"):
+            if key in state and state[key] is not None:
+                a = np.asarray(state[key])
+                if a.dtype.kind not in "fiu" or not np.all(np.isfinite(a)):
+                    raise ValueError(f"the PCA code's {key!r} must hold finite numbers (dtype {a.dtype})")
+                arrays[key] = a
+        mean, comp, kept, scale = (arrays["mean"], arrays["components"], arrays["kept"], arrays.get("scale"))
+        d_in = mean.shape[0] if mean.ndim == 1 else -1
+        if mean.ndim != 1 or (dim is not None and d_in != int(dim)):
+            raise ValueError(f"the PCA code's mean has shape {tuple(mean.shape)}, the descriptors have "
+                             f"dimension {dim if dim is not None else '?'}")
+        if comp.ndim != 2 or comp.shape[0] != d_in or not 1 <= comp.shape[1] <= d_in:
+            raise ValueError(f"the PCA code's components have shape {tuple(comp.shape)}, need ({d_in}, d) "
+                             f"with 1 <= d <= {d_in}")
+        if scale is not None and (scale.shape != (comp.shape[1],) or not np.all(scale > 0)):
+            raise ValueError(f"the PCA code's scale has shape {tuple(scale.shape)}, need ({comp.shape[1]},) "
+                             f"positive factors")
+        if kept.size != 1:
+            raise ValueError(f"the PCA code's 'kept' must be one number, got shape {tuple(kept.shape)}")
+        return cls(np.ascontiguousarray(mean, np.float32), np.ascontiguousarray(comp, np.float32),
+                   None if scale is None else np.ascontiguousarray(scale, np.float32), float(kept.reshape(())))
 
 
 def fit_pca(x: np.ndarray, dim: int, whiten: bool = False, seed: int = 0) -> PCACode:

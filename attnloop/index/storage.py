@@ -16,6 +16,7 @@ __all__ = ["KeyframeStore"]
 # 16384 x D x 4 bytes, 160 MB for the default 2560-d descriptor), since a float16 product on the CPU rounds
 # its result to float16.
 _CHUNK = 16384
+_GATHER_BYTES = 1 << 22  # rows gathered (copied) at a time by matvec_rows and the re-scoring: ~4 MB
 
 
 class KeyframeStore:
@@ -33,6 +34,7 @@ class KeyframeStore:
         self._desc = np.zeros((0, self.dim), dtype=self.dtype)
         self._ids = np.zeros(0, dtype=np.int64)
         self._ts = np.zeros(0, dtype=np.float64)
+        self._norm_max, self._norm_rows = 0.0, 0  # largest row norm of rows [0, _norm_rows) (max_norm)
 
     # ------------------------------------------------------------------ growth
     def append(self, x: np.ndarray, ids: np.ndarray, timestamps: np.ndarray) -> None:
@@ -85,6 +87,33 @@ class KeyframeStore:
     def rows(self, rows: np.ndarray, dtype=np.float32) -> np.ndarray:
         """Descriptors of the given rows ``(M,)`` as ``(M, D)`` of ``dtype`` (float32 by default)."""
         return self._desc[rows].astype(dtype, copy=False)
+
+    def row_norms(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """L2 norms ``(M,)`` (float64) of rows ``[start, stop)``, computed a chunk at a time."""
+        stop = self.n if stop is None else stop
+        out = np.empty(max(0, stop - start), dtype=np.float64)
+        step = 4 * _GATHER_BYTES // (8 * max(1, self.dim)) + 1  # float64 temporaries of ~16 MB
+        for lo in range(start, stop, step):
+            chunk = torch.from_numpy(self._desc[lo: min(lo + step, stop)]).double()
+            out[lo - start: lo - start + chunk.shape[0]] = torch.linalg.vector_norm(chunk, dim=1).numpy()
+        return out
+
+    def max_norm(self) -> float:
+        """The largest row norm (0 when empty); kept up to date incrementally as rows are added."""
+        if self._norm_rows < self.n:
+            norms = self.row_norms(self._norm_rows, self.n)
+            self._norm_max = max(self._norm_max, float(norms.max(initial=0.0)))
+            self._norm_rows = self.n
+        return self._norm_max
+
+    def matvec_rows(self, q: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Similarities ``(M,)`` (float32) of ``q (D,)`` to the given rows ``(M,)``, gathered a chunk at a time."""
+        out = np.empty(rows.size, dtype=np.float32)
+        chunk = _GATHER_BYTES // max(1, 4 * self.dim) + 1
+        for lo in range(0, rows.size, chunk):
+            block = np.take(self._desc, rows[lo: lo + chunk], axis=0)  # faster than fancy indexing
+            out[lo: lo + chunk] = matvec(block.astype(np.float32, copy=False), q)
+        return out
 
     def matvec(self, q: np.ndarray, start: int = 0, stop: int | None = None, step: int = 1) -> np.ndarray:
         """Similarities ``(M,)`` (float32) of ``q (D,)`` to rows ``start, start + step, ...`` below ``stop``."""

@@ -15,6 +15,7 @@ Both rank by L2 (on unit descriptors, or on their PCA codes: :mod:`attnloop.inde
 from __future__ import annotations
 
 import os
+import struct
 import tempfile
 
 import cv2
@@ -55,9 +56,38 @@ def _code_state(code: PCACode | None) -> dict:
     return {} if code is None else {f"pca.{k}": v for k, v in code.state().items()}
 
 
-def _code_from_state(arrays: dict) -> PCACode | None:
+def _code_from_state(arrays: dict, dim: int, config: IndexConfig) -> PCACode | None:
+    """The saved PCA code, checked against the descriptors' dimension ``dim`` and ``config.reduce_dim``."""
     sub = {k[4:]: v for k, v in arrays.items() if k.startswith("pca.")}
-    return PCACode.from_state(sub) if sub else None
+    if config.reduce_dim is None:
+        if sub:
+            raise ValueError("the saved structure has a PCA code but its config has reduce_dim=None")
+        return None
+    if not sub:
+        raise ValueError(f"the saved structure lacks its PCA code (config reduce_dim={config.reduce_dim})")
+    code = PCACode.from_state(sub, dim)
+    if code.dim > config.reduce_dim:
+        raise ValueError(f"the saved PCA code has {code.dim} components, more than reduce_dim={config.reduce_dim}")
+    if (code.scale is not None) != bool(config.whiten):
+        raise ValueError(f"the saved PCA code is {'' if code.scale is not None else 'not '}whitened, its config "
+                         f"says whiten={config.whiten}")
+    return code
+
+
+def _blob(arrays: dict) -> np.ndarray:
+    blob = arrays.get("blob")
+    if blob is None:
+        raise ValueError("the saved structure lacks its 'structure.blob'")
+    blob = np.asarray(blob)
+    if blob.dtype != np.uint8 or blob.ndim != 1 or blob.size == 0:
+        raise ValueError(f"'structure.blob' must be a non-empty 1-D uint8 array, got {blob.dtype} "
+                         f"{tuple(blob.shape)}")
+    return blob
+
+
+# FLANN's file header (cvflann::IndexHeader): signature, version, data type, algorithm, rows, cols.
+_FLANN_HEADER = struct.Struct("=16s16siiQQ")
+_FLANN_FLOAT32 = 8
 
 
 # ----------------------------------------------------------------------------------------------
@@ -116,13 +146,28 @@ class FlannTree:
 
     @classmethod
     def from_state(cls, meta: dict, arrays: dict, x: np.ndarray, config: IndexConfig) -> FlannTree:
-        code = _code_from_state(arrays)
-        data = _codes(x[: int(meta["n"])], code)
+        """The saved tree over rows ``[0, meta["n"])`` of ``x``; ValueError when the blob, its header (rows,
+        dimension, data type) or the PCA code disagree with the record (OpenCV's own errors on a corrupt tree
+        propagate: :meth:`KeyframeIndex.from_state` wraps them)."""
+        n = int(meta["n"])
+        code = _code_from_state(arrays, x.shape[1], config)
+        blob = _blob(arrays)
+        if blob.size < _FLANN_HEADER.size:
+            raise ValueError(f"the saved FLANN tree is {blob.size} bytes, shorter than its header")
+        sig, _, dtype, algo, rows, cols = _FLANN_HEADER.unpack_from(blob.tobytes()[: _FLANN_HEADER.size])
+        if not sig.startswith(b"FLANN_INDEX"):
+            raise ValueError("the saved FLANN tree lacks FLANN's signature (not a FLANN index)")
+        dim = x.shape[1] if code is None else code.dim
+        if (dtype, algo, rows, cols) != (_FLANN_FLOAT32, _FLANN_INDEX_KMEANS, n, dim):
+            raise ValueError(f"the saved FLANN tree is algorithm {algo}, data type {dtype}, over {rows} rows of "
+                             f"dimension {cols}; the record needs a k-means tree ({_FLANN_INDEX_KMEANS}) of "
+                             f"float32 ({_FLANN_FLOAT32}) over {n} rows of dimension {dim}")
+        data = _codes(x[:n], code)
         flann = cv2.flann_Index()
         with tempfile.TemporaryDirectory() as tmp:
             path = os.path.join(tmp, "tree.flann")
             with open(path, "wb") as f:
-                f.write(np.asarray(arrays["blob"], dtype=np.uint8).tobytes())
+                f.write(blob.tobytes())
             if not flann.load(data, path):
                 raise ValueError("the saved FLANN tree could not be loaded")
         return cls(flann, data, code, config)
@@ -189,11 +234,22 @@ class FaissHNSW:
 
     @classmethod
     def from_state(cls, meta: dict, arrays: dict, x: np.ndarray, config: IndexConfig) -> FaissHNSW:
+        """The saved graph; ValueError when it is not an L2 HNSW graph over the record's rows and dimension
+        or the PCA code disagrees (faiss's own errors on a corrupt blob propagate: :meth:`KeyframeIndex.
+        from_state` wraps them)."""
         faiss = import_faiss()
-        index = faiss.deserialize_index(np.asarray(arrays["blob"], dtype=np.uint8))
-        if int(index.ntotal) != int(meta["n"]):
-            raise ValueError(f"the saved HNSW graph holds {index.ntotal} rows, its record says {meta['n']}")
-        return cls(index, int(meta["n_trained"]), _code_from_state(arrays), config)
+        n, n_trained = int(meta["n"]), meta.get("n_trained")
+        if not isinstance(n_trained, int) or isinstance(n_trained, bool) or not 1 <= n_trained <= n:
+            raise ValueError(f"the HNSW record's n_trained must be an integer in [1, {n}], got {n_trained!r}")
+        code = _code_from_state(arrays, x.shape[1], config)
+        index = faiss.deserialize_index(_blob(arrays))  # returned as its own class (IndexHNSWFlat)
+        if not isinstance(index, faiss.IndexHNSWFlat) or index.metric_type != faiss.METRIC_L2:
+            raise ValueError(f"the saved structure is a {type(index).__name__}, not an L2 faiss IndexHNSWFlat")
+        dim = x.shape[1] if code is None else code.dim
+        if int(index.ntotal) != n or int(index.d) != dim:
+            raise ValueError(f"the saved HNSW graph holds {index.ntotal} rows of dimension {index.d}, its record "
+                             f"says {n} rows of dimension {dim}")
+        return cls(index, n_trained, code, config)
 
 
 STRUCTURES = {"flann": FlannTree, "faiss": FaissHNSW}
