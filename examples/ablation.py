@@ -25,12 +25,12 @@ from pathlib import Path
 
 from slam.ablation import MODES, markdown_table, run_ablation
 from slam.cli import call_reporting_errors
-from slam.options import add_run_arguments
+from slam.options import add_run_arguments, given_options
 from slam.pipeline import json_safe
 
 
-def run(args: argparse.Namespace) -> int:
-    table = run_ablation(args.sequences, args.out, args, modes=args.modes)
+def run(args: argparse.Namespace, given: frozenset[str] = frozenset()) -> int:
+    table = run_ablation(args.sequences, args.out, args, modes=args.modes, given=given)
     md = markdown_table(table)
     (Path(args.out) / "table1.md").write_text(md)
     (Path(args.out) / "table1.json").write_text(json.dumps(json_safe(table), indent=2, allow_nan=False))
@@ -47,9 +47,10 @@ def main(argv=None) -> int:
                    help="fusion modes to run (default: all)")
     add_run_arguments(p, fusion=False)
     args = p.parse_args(argv)
+    given = given_options(p, argv)  # the flags typed: those another makes idle are refused, as by attnloop-slam
     logging.basicConfig(level=logging.WARNING)
     # the command's messages for missing weights, a wrong folder, a bad flag (exit code 2)
-    return call_reporting_errors("ablation.py", run, args)
+    return call_reporting_errors("ablation.py", run, args, given)
 
 
 if __name__ == "__main__":

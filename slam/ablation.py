@@ -20,7 +20,8 @@ __all__ = ["MODES", "markdown_table", "run_ablation"]
 MODES = FUSION_MODES  # the rows of the table: every fusion mode (attnloop.fusion is the one list)
 
 
-def run_ablation(sequences, out_dir, options=None, modes=MODES, *, configure=None, measure=None, **overrides):
+def run_ablation(sequences, out_dir, options=None, modes=MODES, *, configure=None, measure=None, given=None,
+                 **overrides):
     """Run every mode on every sequence; returns ``{mode: {sequence: metrics}}``.
 
     Args:
@@ -33,6 +34,8 @@ def run_ablation(sequences, out_dir, options=None, modes=MODES, *, configure=Non
             have no command-line option).
         measure: optional ``(run, metrics) -> None``, called after each run with its
             :class:`~slam.pipeline.RunResult` and its metrics (to add figures that need the run itself).
+        given: the options given on the command line (:func:`slam.options.given_options`): those that
+            other options make idle are refused, as by ``attnloop-slam``; None: not known.
         **overrides: option values by name, over ``options`` (e.g. ``backbone="efficientnet_lite0"``,
             ``max_frames=300``, ``frame_step=3``, ``rgb_intrinsics=(525, 525, 320, 240)``).
 
@@ -45,7 +48,8 @@ def run_ablation(sequences, out_dir, options=None, modes=MODES, *, configure=Non
         raise ValueError(f"unknown fusion mode(s) {bad}; choose from {', '.join(FUSION_MODES)}")
     out_dir = Path(out_dir)
     opened = [open_sequence(path, camera=opts.camera) for path in sequences]  # every folder checked first
-    configs = {(mode, k): config_from_args(opts, seq, fusion=mode) for mode in modes for k, seq in enumerate(opened)}
+    configs = {(mode, k): config_from_args(opts, seq, fusion=mode, given=given) for mode in modes
+               for k, seq in enumerate(opened)}
     if configure is not None:
         configs = {key: configure(cfg) for key, cfg in configs.items()}
     targets = {(mode, k): prepare_output_dir(out_dir / mode / seq.name) for mode in modes

@@ -82,6 +82,13 @@ def test_ablation_refuses_a_bad_folder_before_any_run(tmp_path, load_script, cap
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_ablation_refuses_a_flag_another_makes_idle(tiny_sequence, tmp_path, load_script, capsys):
+    mod = load_script("examples/ablation.py")
+    out = tmp_path / "abl"
+    assert mod.main([str(tiny_sequence), "--out", str(out), "--no-map", "--map-voxel", "0.05"]) == 2
+    assert "--map-voxel" in capsys.readouterr().err and not out.exists()
+
+
 def test_run_ablation_applies_configure_and_calls_measure(tiny_sequence, tmp_path):
     # benchmarks/slam_pipeline.py's --set and its extra figures go through these two hooks
     from slam.ablation import run_ablation
