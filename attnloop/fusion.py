@@ -11,9 +11,10 @@ operators rescale ``L`` by a normalised version of ``G``:
 * ``ega`` (exponential global attention): ``L * exp(N(sum_c N(G_c)))``.
 
 ``N`` is a per-sample min-max normalisation to ``[0, 1]`` (:func:`minmax_normalize`); a constant map
-normalises to zeros (never NaN), so with a flat attention map DAM/GAF give zeros and EAM/EGA give ``L``.
-Every sample of a batch is normalised on its own. All operators take ``(B, C, H, W)`` tensors of any
-dtype on any device and are differentiable in both arguments.
+normalises to zeros (never NaN), so with a flat attention map DAM/GAF give zeros and EAM/EGA give ``L``;
+a NaN in ``G`` makes its whole normalised slice NaN (it is never hidden as a zero map).
+Every sample of a batch is normalised on its own. All operators take two ``(B, C, H, W)`` tensors of
+one floating dtype on one device (any floating dtype, any device) and are differentiable in both.
 
 Example:
     >>> L = torch.rand(2, 512, 7, 7)
@@ -53,13 +54,15 @@ def minmax_normalize(x: Tensor, dims: int | Sequence[int], eps: float = 1e-12) -
 
     ``(x - min) / (max - min)`` with min and max taken over ``dims``. Where ``max - min <= eps`` (a
     constant, or numerically constant, slice) the result is zero. The division uses a safe denominator
-    selected with ``torch.where``, so neither the forward nor the backward pass produces NaN or inf.
+    selected with ``torch.where``, so for finite ``x`` neither the forward nor the backward pass produces
+    NaN or inf. A slice holding a NaN gives NaN throughout (not a zero map that would hide it); one
+    holding an infinity gives NaN where ``x`` is infinite.
 
     Args:
-        x: tensor of any shape ``(*)``.
+        x: floating-point tensor of any shape ``(*)``.
         dims: the dimension(s) to normalise over, e.g. ``(1, 2, 3)`` for per-sample over ``(C, H, W)``
             of a ``(B, C, H, W)`` tensor. Negative indices are allowed.
-        eps: ranges at or below this are treated as constant.
+        eps: ranges at or below this (finite, >= 0) are treated as constant.
 
     Returns:
         tensor of the same shape ``(*)``, dtype and device, with values in ``[0, 1]``.
@@ -71,6 +74,10 @@ def minmax_normalize(x: Tensor, dims: int | Sequence[int], eps: float = 1e-12) -
     """
     if not isinstance(x, Tensor):
         raise TypeError(f"x must be a torch.Tensor, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise TypeError(f"x must be a floating-point tensor (values in [0, 1] come back in its dtype), got {x.dtype}")
+    if not 0 <= float(eps) < float("inf"):
+        raise ValueError(f"eps must be a finite number >= 0, got {eps!r}")
     dims = (dims,) if isinstance(dims, int) else tuple(dims)
     if len(dims) == 0:
         raise ValueError("dims must name at least one dimension")
@@ -80,7 +87,7 @@ def minmax_normalize(x: Tensor, dims: int | Sequence[int], eps: float = 1e-12) -
     lo = torch.amin(x, dim=dims, keepdim=True)
     hi = torch.amax(x, dim=dims, keepdim=True)
     rng = hi - lo
-    ok = rng > eps
+    ok = ~(rng <= eps)  # a NaN range (a NaN in the slice) is not "constant": NaN propagates
     # Safe denominator: 1 where the slice is constant, so x - lo (= 0 there) / 1 stays finite in backward.
     safe = torch.where(ok, rng, torch.ones_like(rng))
     return torch.where(ok, (x - lo) / safe, torch.zeros_like(x))
@@ -92,9 +99,14 @@ def _check_pair(L: Tensor, G: Tensor) -> None:
             raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
         if t.dim() != 4:
             raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(t.shape)}")
+        if not t.is_floating_point():
+            raise TypeError(f"{name} must be a floating-point tensor, got {t.dtype}")
     if L.shape != G.shape:
         raise ValueError(f"L and G must have the same shape (B, C, H, W), got {tuple(L.shape)} and "
                          f"{tuple(G.shape)}")
+    if L.dtype != G.dtype or L.device != G.device:
+        raise ValueError(f"L and G must have one dtype and device, got L {L.dtype} on {L.device} and G {G.dtype} "
+                         f"on {G.device}")
 
 
 def _global_attention(G: Tensor) -> Tensor:

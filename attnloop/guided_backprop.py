@@ -196,6 +196,8 @@ def softmax_seeded_gradient(
         >>> softmax_seeded_gradient(torch.rand(3, 8, 2, 2), head).shape
         torch.Size([3, 8, 2, 2])
     """
+    if not isinstance(tap, Tensor):
+        raise TypeError(f"tap must be a torch.Tensor, got {type(tap).__name__}")
     if tap.ndim < 2:
         raise ValueError(f"tap must have a batch dimension, got shape {tuple(tap.shape)}")
     differentiable = _differentiable(create_graph)
@@ -245,6 +247,8 @@ def guided_backprop(backbone: nn.Module, images: Tensor, create_graph: bool = Fa
         >>> L.shape, G.shape
         (torch.Size([2, 320, 7, 7]), torch.Size([2, 320, 7, 7]))
     """
+    if not isinstance(images, Tensor):
+        raise TypeError(f"images must be a torch.Tensor, got {type(images).__name__}")
     differentiable = _differentiable(create_graph)
     captured: dict[str, Tensor] = {}
 

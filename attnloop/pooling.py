@@ -24,6 +24,7 @@ Example:
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -62,16 +63,43 @@ def _check_groups(channels: int, groups: Sequence[int] | None) -> tuple[int, ...
     return g
 
 
+def _check_map(x: Tensor, name: str = "x") -> None:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.ndim != 4:
+        raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(x.shape)}")
+    if not x.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
+    if x.shape[0] > 0 and min(x.shape[1:]) < 1:
+        raise ValueError(f"{name} must have positive C, H and W, got {tuple(x.shape)}")
+
+
+def _check_p(p: float) -> None:
+    if not (p > 0 and math.isfinite(p)):
+        raise ValueError(f"p must be positive and finite (the GeM exponent), got {p}")
+
+
 def unit_scale(grad: Tensor) -> Tensor:
     """G / max|G| per sample (an all-zero G stays zero); see :mod:`attnloop.descriptor` for why.
 
     Args:
-        grad: :math:`(B, *)`.
+        grad: floating point, :math:`(B, *)`.
 
     Returns:
         same shape.
+
+    Example:
+        >>> unit_scale(torch.tensor([[2.0, -4.0], [0.5, 0.0]]))
+        tensor([[ 0.5000, -1.0000],
+                [ 1.0000,  0.0000]])
     """
-    peak = grad.detach().abs().amax(dim=tuple(range(1, grad.ndim)), keepdim=True)
+    if not isinstance(grad, Tensor):
+        raise TypeError(f"grad must be a torch.Tensor, got {type(grad).__name__}")
+    if grad.ndim < 1 or not grad.is_floating_point():
+        raise ValueError(f"grad must be a floating-point tensor (B, *), got {grad.dtype} {tuple(grad.shape)}")
+    # (B,): each sample is one value (amax over no dimension would reduce over the batch)
+    peak = grad.detach().abs() if grad.ndim == 1 else grad.detach().abs().amax(dim=tuple(range(1, grad.ndim)),
+                                                                             keepdim=True)
     return grad / peak.clamp_min(torch.finfo(grad.dtype).tiny)
 
 
@@ -95,7 +123,9 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
         >>> torch.equal(fuse_groups(L, G, "dam", (4, 6), (False, True))[:, :4], L[:, :4])
         True
     """
-    if tap.ndim != 4 or tap.shape != grad.shape:
+    _check_map(tap, "tap")
+    _check_map(grad, "grad")
+    if tap.shape != grad.shape:
         raise ValueError(f"tap and grad must have one shape (B, C, H, W), got {tuple(tap.shape)} and {tuple(grad.shape)}")
     g = _check_groups(tap.shape[1], groups)
     att = (True,) * len(g) if attended is None else tuple(bool(a) for a in attended)
@@ -139,16 +169,14 @@ def gem_regions(x: Tensor, p: float = 2.0, levels: Sequence[int] = (1, 2)) -> Te
 
     Args:
         x: :math:`(B, C, H, W)`.
-        p: the GeM exponent (> 0).
+        p: the GeM exponent (finite, > 0).
         levels: grid sizes; ``(1, 2)`` gives the whole map and a 2 x 2 grid, 5 regions.
 
     Returns:
         :math:`(B, R, C)` with ``R = sum_l l^2``, regions in the order of ``levels``, cells row-major.
     """
-    if x.ndim != 4:
-        raise ValueError(f"x must have shape (B, C, H, W), got {tuple(x.shape)}")
-    if not p > 0:
-        raise ValueError(f"p must be positive, got {p}")
+    _check_map(x)
+    _check_p(p)
     lv = _check_levels(levels)
     if x.shape[0] == 0:
         return x.new_zeros((0, sum(v * v for v in lv), x.shape[1]))
@@ -180,11 +208,9 @@ def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0
     Returns:
         :math:`(B, D)`, ``D = regional_code_dim(groups, levels)``; an empty batch gives ``(0, D)``.
     """
-    if x.ndim != 4:
-        raise ValueError(f"x must have shape (B, C, H, W), got {tuple(x.shape)}")
+    _check_map(x)
     g = _check_groups(x.shape[1], groups)
-    if not p > 0:
-        raise ValueError(f"p must be positive, got {p}")
+    _check_p(p)
     lv = _check_levels(levels)
     if x.shape[0] == 0:
         return x.new_zeros((0, regional_code_dim(g, lv)))

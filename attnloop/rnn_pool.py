@@ -40,6 +40,8 @@ def _check_bchw(x: Tensor, name: str = "x") -> None:
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     if x.dim() != 4:
         raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(x.shape)}")
+    if not x.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
 
 
 def merge_channels(x: Tensor) -> Tensor:
@@ -93,8 +95,13 @@ def random_rnn_weights(
         torch.Size([16, 64, 12544])
     """
     for name, v in (("num_rnn", num_rnn), ("in_features", in_features), ("out_features", out_features)):
-        if int(v) != v or v < 1:
+        if isinstance(v, bool) or int(v) != v or v < 1:
             raise ValueError(f"{name} must be a positive integer, got {v!r}")
+    if isinstance(seed, bool) or int(seed) != seed:
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    if not dtype.is_floating_point:
+        raise ValueError(f"dtype must be a floating-point dtype, got {dtype}")
+    num_rnn, in_features, out_features = int(num_rnn), int(in_features), int(out_features)
     gen = torch.Generator(device="cpu").manual_seed(int(seed))
     w = torch.rand((num_rnn, out_features, in_features), generator=gen, dtype=torch.float32)
     w = w.mul_(0.2).sub_(0.1)  # U[0, 1) -> U[-0.1, 0.1)
@@ -105,13 +112,14 @@ def random_rnn_pool(x: Tensor, weights: Tensor, merge: bool = True) -> Tensor:
     """Random RNN pooling: ``concat_r tanh(W_r vec(merge(x)))``.
 
     Args:
-        x: feature map ``(B, C, H, W)`` (``C`` even when ``merge``).
-        weights: RNN weights ``(R, O, I)`` with ``I = C/2 * H * W`` (``C * H * W`` without merge), e.g.
-            from :func:`random_rnn_weights`; cast to ``x``'s dtype, must be on ``x``'s device.
+        x: floating-point feature map ``(B, C, H, W)`` (``C`` even when ``merge``).
+        weights: floating-point RNN weights ``(R, O, I)`` with ``I = C/2 * H * W`` (``C * H * W`` without
+            merge), e.g. from :func:`random_rnn_weights`; cast to ``x``'s dtype, must be on ``x``'s device.
         merge: average channel ``c`` with ``c + C/2`` first (:func:`merge_channels`).
 
     Returns:
-        descriptor ``(B, R * O)``; entries ``[r * O, (r + 1) * O)`` are the output of RNN ``r``.
+        descriptor ``(B, R * O)`` in ``x``'s dtype; entries ``[r * O, (r + 1) * O)`` are the output of RNN
+        ``r``; an empty batch gives ``(0, R * O)``.
 
     Example:
         >>> w = random_rnn_weights(16, 256 * 7 * 7, 64)
@@ -122,9 +130,11 @@ def random_rnn_pool(x: Tensor, weights: Tensor, merge: bool = True) -> Tensor:
     if not isinstance(weights, Tensor) or weights.dim() != 3:
         shape = tuple(weights.shape) if isinstance(weights, Tensor) else type(weights).__name__
         raise ValueError(f"weights must have shape (num_rnn, out_features, in_features), got {shape}")
+    if not weights.is_floating_point():
+        raise TypeError(f"weights must be a floating-point tensor, got {weights.dtype}")
     if merge:
         x = merge_channels(x)
-    flat = x.reshape(x.shape[0], -1)  # the paper's (64, 14, 14) reshape flattens to this same vector
+    flat = x.flatten(1)  # (B, C*H*W), also for B = 0; the paper's (64, 14, 14) reshape flattens to this same vector
     r, o, i = weights.shape
     if flat.shape[1] != i:
         raise ValueError(
@@ -174,9 +184,10 @@ class RandomRNNPool(nn.Module):
     ) -> None:
         super().__init__()
         size: tuple[int, int] = (in_size, in_size) if isinstance(in_size, int) else tuple(in_size)  # type: ignore
-        if len(size) != 2:
-            raise ValueError(f"in_size must be (H, W), got {in_size!r}")
-        if in_channels < 1 or (merge and in_channels % 2 != 0):
+        if len(size) != 2 or any(isinstance(v, bool) or int(v) != v or v < 1 for v in size):
+            raise ValueError(f"in_size must be (H, W) in positive integers, got {in_size!r}")
+        if isinstance(in_channels, bool) or int(in_channels) != in_channels or in_channels < 1 or (
+                merge and in_channels % 2 != 0):
             kind = "positive even" if merge else "positive"
             raise ValueError(f"in_channels must be a {kind} integer, got {in_channels}")
         self.in_channels = int(in_channels)
@@ -185,7 +196,7 @@ class RandomRNNPool(nn.Module):
         self.out_features = int(out_features)
         self.seed = int(seed)
         self.merge = bool(merge)
-        in_features = (in_channels // 2 if merge else in_channels) * self.in_size[0] * self.in_size[1]
+        in_features = (self.in_channels // 2 if merge else self.in_channels) * self.in_size[0] * self.in_size[1]
         self.register_buffer("weights", random_rnn_weights(num_rnn, in_features, out_features, seed))
 
     @property

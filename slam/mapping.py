@@ -87,6 +87,9 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel_size: float) 
     Returns:
         ``(M, 3)`` float32 points and ``(M, 3)`` uint8 colours, ``M <= N``, ordered by voxel.
 
+    Raises:
+        ValueError: wrong shapes, a voxel size that is not positive, or non-finite points.
+
     Example:
         >>> p = np.array([[0.01, 0.0, 0.0], [0.03, 0.0, 0.0], [0.2, 0.0, 0.0]])
         >>> c = np.array([[0, 0, 0], [100, 100, 100], [9, 9, 9]], np.uint8)
@@ -105,14 +108,25 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel_size: float) 
     if points.shape[0] == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
     p = points.astype(np.float64)
-    cells = np.floor(p / voxel_size).astype(np.int64)
-    cells -= cells.min(axis=0)
-    span = cells.max(axis=0) + 1
-    if float(np.prod(span.astype(np.float64))) < 2.0 ** 62:  # one int64 key per voxel: a 1-D unique
-        key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
-        _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    else:  # a huge extent: unique rows
-        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    bad = ~np.isfinite(p).all(axis=1)
+    if bad.any():  # floor(NaN) cast to int64 is one arbitrary cell: such points would merge with real ones
+        raise ValueError(f"points must be finite: {int(bad.sum())} of {p.shape[0]} are not "
+                         f"(the first: row {int(np.flatnonzero(bad)[0])})")
+    fcells = np.floor(p / voxel_size)
+    if not np.isfinite(fcells).all():
+        raise ValueError(f"points up to {np.abs(p).max():.3g} are too far for voxels of {voxel_size:g}")
+    if np.abs(fcells).max() >= 2.0 ** 62:
+        # beyond int64 (~4.6e18 voxels away): the float cells are exact integers, unique rows
+        _, inverse, counts = np.unique(fcells, axis=0, return_inverse=True, return_counts=True)
+    else:
+        cells = fcells.astype(np.int64)
+        cells -= cells.min(axis=0)
+        span = cells.max(axis=0) + 1
+        if float(np.prod(span.astype(np.float64))) < 2.0 ** 62:  # one int64 key per voxel: a 1-D unique
+            key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+            _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+        else:  # a huge extent: unique rows
+            _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     m = counts.shape[0]
     out_p = np.stack([np.bincount(inverse, weights=p[:, k], minlength=m) for k in range(3)], 1) / counts[:, None]
@@ -276,7 +290,7 @@ def write_ply(target: PathOrFile, points: np.ndarray, colors: np.ndarray, commen
         comment: one line put in the header (e.g. what the points are).
 
     Raises:
-        ValueError: wrong shapes or dtypes, or non-finite coordinates.
+        ValueError: wrong shapes or dtypes, non-finite coordinates, or coordinates beyond float32's range.
     """
     points = np.asarray(points)
     colors = np.asarray(colors)
@@ -286,6 +300,10 @@ def write_ply(target: PathOrFile, points: np.ndarray, colors: np.ndarray, commen
         raise ValueError(f"colors must be ({points.shape[0]}, 3) uint8, got {colors.shape} {colors.dtype}")
     if not np.isfinite(points).all():
         raise ValueError("cannot write non-finite point coordinates")
+    big = np.abs(points.astype(np.float64)) > np.finfo(np.float32).max if points.size else np.zeros(0, bool)
+    if big.any():  # written as float32 they would be inf
+        raise ValueError(f"cannot write coordinates beyond float32's range (+-3.4e38) as PLY float: "
+                         f"{int(big.any(axis=1).sum())} point(s), the first row {int(np.flatnonzero(big.any(axis=1))[0])}")
     vertex = np.empty(points.shape[0], dtype=_PLY_FIELDS)
     for k, name in enumerate("xyz"):
         vertex[name] = points[:, k]
@@ -316,19 +334,28 @@ def read_ply(source: PathOrFile) -> tuple[np.ndarray, np.ndarray | None]:
         ``(N, 3)`` float64 ``x y z`` and ``(N, 3)`` uint8 ``red green blue`` (None when absent).
 
     Raises:
-        PLYFormatError: not a PLY, a big-endian one, no vertex element or no x/y/z, or fewer bytes than the
-            header announces (the message names the file).
+        PLYFormatError: not a PLY, a big-endian one, no vertex element or no x/y/z, a count that is not a
+            non-negative integer, a vertex line with too few values, or fewer bytes than the header
+            announces (the message names the file, and the line where there is one).
     """
     name = os.fspath(source) if isinstance(source, (str, os.PathLike)) else getattr(source, "name", "<file>")
     if isinstance(source, (str, os.PathLike)):
         data = Path(source).read_bytes()
     else:
         data = source.read()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
+    # the header ends at the first line that is exactly "end_header" (a comment may contain the words)
+    header, body_start, pos = [], None, 0
+    while pos < len(data):
+        nl = data.find(b"\n", pos)
+        line = data[pos:] if nl < 0 else data[pos:nl]
+        pos = len(data) if nl < 0 else nl + 1
+        text = line.decode("ascii", errors="replace").rstrip("\r")
+        if text.strip() == "end_header":
+            body_start = pos
+            break
+        header.append(text)
+    if not data.startswith(b"ply") or body_start is None:
         raise PLYFormatError(f"{name}: not a PLY file (expected 'ply' ... 'end_header')")
-    body_start = data.index(b"\n", end) + 1
-    header = data[:end].decode("ascii", errors="replace").splitlines()
     fmt, elements = None, []  # [(name, count, [(prop, dtype)])]
     for number, line in enumerate(header, start=1):
         words = line.split()
@@ -337,9 +364,13 @@ def read_ply(source: PathOrFile) -> tuple[np.ndarray, np.ndarray | None]:
         if words[0] == "format":
             fmt = words[1] if len(words) > 1 else None
         elif words[0] == "element" and len(words) == 3:
+            if not words[2].isdigit():
+                raise PLYFormatError(f"{name}:{number}: the element count must be a non-negative integer ({line!r})")
             elements.append((words[1], int(words[2]), []))
         elif words[0] == "property" and elements:
-            if words[1] == "list":
+            if len(elements) > 1:  # a later element (faces, edges): not read, any properties
+                continue
+            if words[1:2] == ["list"]:
                 raise PLYFormatError(f"{name}:{number}: list properties are not supported ({line!r})")
             if len(words) != 3 or words[1] not in _PLY_TYPES:
                 raise PLYFormatError(f"{name}:{number}: unknown property {line!r}")
@@ -356,10 +387,16 @@ def read_ply(source: PathOrFile) -> tuple[np.ndarray, np.ndarray | None]:
         raise PLYFormatError(f"{name}: the vertex element has no x, y, z properties ({names})")
     if fmt == "ascii":
         rows = data[body_start:].decode("ascii", errors="replace").split("\n")[:count]
+        first = len(header) + 2  # the file's line number of the first vertex line
+        for k, r in enumerate(rows):
+            if len(r.split()) < len(props):
+                raise PLYFormatError(f"{name}:{first + k}: a vertex line of {len(r.split())} values, expected "
+                                     f"{len(props)} ({', '.join(names)})")
         try:
             table = np.array([[float(v) for v in r.split()[: len(props)]] for r in rows], dtype=np.float64)
         except ValueError:
             raise PLYFormatError(f"{name}: a vertex line is not numeric") from None
+        table = table.reshape(-1, len(props)) if count == 0 else table
         if table.shape != (count, len(props)):
             raise PLYFormatError(f"{name}: expected {count} vertex lines of {len(props)} numbers")
         col = {p: table[:, k] for k, p in enumerate(names)}

@@ -29,8 +29,8 @@ class-dependent half of L and breaks DAM on real revisits (docs/attention.md).
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Callable
 
 import torch
@@ -90,6 +90,19 @@ def _stages(variant: str) -> list[tuple[int, int, int, int, int, int]]:
     return out
 
 
+def _input_hw(variant: str, input_size: int | Sequence[int] | None) -> tuple[int, int]:
+    # The network input (H, W): the variant's square resolution for None, (n, n) for an int n.
+    res = EFFICIENTNET_LITE_VARIANTS[variant][2] if input_size is None else input_size
+    size = (res, res) if isinstance(res, int) and not isinstance(res, bool) else res
+    try:
+        ok = len(size) == 2 and all(not isinstance(v, bool) and int(v) == v and v >= 1 for v in size)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"input_size must be a positive integer or (H, W) in positive integers, got {input_size!r}")
+    return int(size[0]), int(size[1])
+
+
 def efficientnet_lite_taps(variant: str = "lite0", input_size: int | tuple[int, int] | None = None
                            ) -> dict[str, tuple[int, int, tuple[int, int]]]:
     """Tap name -> (index of the last block it includes, -1 for the head; channels; (h, w) at ``input_size``).
@@ -104,8 +117,7 @@ def efficientnet_lite_taps(variant: str = "lite0", input_size: int | tuple[int, 
     """
     if variant not in EFFICIENTNET_LITE_VARIANTS:
         raise ValueError(f"unknown EfficientNet-Lite variant {variant!r}; choose one of {list(EFFICIENTNET_LITE_VARIANTS)}")
-    res = EFFICIENTNET_LITE_VARIANTS[variant][2] if input_size is None else input_size
-    h, w = (res, res) if isinstance(res, int) else (int(res[0]), int(res[1]))
+    h, w = _input_hw(variant, input_size)
     taps, last = {}, -1
     for k, (repeats, *_, out_ch) in enumerate(_stages(variant)):
         last += repeats
@@ -234,10 +246,7 @@ class EfficientNetLite(nn.Module):
         if variant not in EFFICIENTNET_LITE_VARIANTS:
             raise ValueError(f"unknown EfficientNet-Lite variant {variant!r}; choose one of "
                              f"{list(EFFICIENTNET_LITE_VARIANTS)}")
-        res = EFFICIENTNET_LITE_VARIANTS[variant][2] if input_size is None else input_size
-        size = (res, res) if isinstance(res, int) else (int(res[0]), int(res[1]))
-        if len(size) != 2 or min(size) < 1:
-            raise ValueError(f"input_size must be a positive (H, W), got {input_size!r}")
+        size = _input_hw(variant, input_size)
         taps = efficientnet_lite_taps(variant, size)
         names = tap.split("+") if isinstance(tap, str) else [tap]
         for name in names:

@@ -7,6 +7,7 @@ pixels (one NaN pixel makes the whole descriptor NaN), then cast to the network'
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -103,14 +104,19 @@ def prepare_images(
     """
     check_images(images)
     for name, v in (("mean", mean), ("std", std)):
-        if v is not None and len(v) != 3:
-            raise ValueError(f"{name} must hold 3 values (one per RGB channel), got {v!r}")
+        if v is not None and (len(v) != 3 or not all(math.isfinite(float(c)) for c in v)):
+            raise ValueError(f"{name} must hold 3 finite values (one per RGB channel), got {v!r}")
     if std is not None and not all(float(s) > 0 for s in std):
         raise ValueError(f"std must be positive, got {std!r}")
+    if dtype is not None and not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise ValueError(f"dtype must be a floating-point torch.dtype or None, got {dtype!r}")
     out_dtype = dtype if dtype is not None else (images.dtype if images.is_floating_point() else torch.float32)
-    height, width = (int(size[0]), int(size[1])) if size is not None else tuple(images.shape[-2:])
-    if height < 1 or width < 1:
-        raise ValueError(f"size must be positive (height, width), got {size!r}")
+    if size is None:
+        height, width = tuple(images.shape[-2:])
+    else:
+        if len(size) != 2 or not all(not isinstance(s, bool) and int(s) == s and s >= 1 for s in size):
+            raise ValueError(f"size must be a positive (height, width) in integers or None, got {size!r}")
+        height, width = int(size[0]), int(size[1])
     if images.shape[0] == 0:
         return images.new_zeros((0, 3, height, width), dtype=out_dtype)
     is_uint8 = images.dtype == torch.uint8

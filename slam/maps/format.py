@@ -22,7 +22,9 @@ A map folder written by :func:`save_map` holds:
 * ``index.npz``: the keyframe index itself (:func:`attnloop.index.save_index`), so that a reloaded
   map answers queries exactly as the saved one.
 
-Every reading error is a :class:`MapFormatError` (or its :class:`MapVersionError`) naming the file.
+Every reading error is a :class:`MapFormatError` (or its :class:`MapVersionError`) naming the file; a
+manifest without a file's SHA-256, an index holding other keyframes than ``keyframes.npz`` or an edge count
+other than the manifest's ``num_edges`` are errors too.
 
 Example:
     >>> import tempfile
@@ -129,14 +131,33 @@ class SavedMap:
 def prepare_map_dir(path) -> Path:
     """Check that ``path`` can take a map (absent, an empty folder or a previous map) before the work.
 
+    A previous map is replaced whole, so it qualifies only when its ``manifest.json`` is an
+    ``attnloop.map`` one (or unreadable: a damaged map) and the folder holds nothing but the map's files.
+
     Raises:
-        MapFormatError: a file, or a non-empty folder that is not a saved map (nothing is removed).
+        MapFormatError: a file, a non-empty folder that is not a saved map, or a saved map with other files
+            in its folder (they would be deleted with it); nothing is removed.
     """
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise MapFormatError(f"{p}: exists and is not a folder; --save-map needs a folder")
-    if p.is_dir() and any(p.iterdir()) and not (p / MANIFEST).is_file():
-        raise MapFormatError(f"{p}: a non-empty folder that is not a saved map; choose an empty or new folder")
+    if p.is_dir() and any(p.iterdir()):
+        if not (p / MANIFEST).is_file():
+            raise MapFormatError(f"{p}: a non-empty folder that is not a saved map; choose an empty or new folder")
+        try:  # a manifest.json of something else (a web app's, a dataset's) is not a previous map
+            manifest = json.loads((p / MANIFEST).read_text())
+            fmt = manifest.get("format") if isinstance(manifest, dict) else None
+        except ValueError:  # not JSON (UnicodeDecodeError included) among map files: a damaged map, replaced
+            fmt = MAP_FORMAT
+        if fmt != MAP_FORMAT:
+            raise MapFormatError(f"{p / MANIFEST}: 'format' is {fmt!r}, not {MAP_FORMAT!r}: a non-empty folder that "
+                                 "is not a saved map; choose an empty or new folder")
+        # replacing a map replaces the whole folder: anything else in it would be deleted with the old map
+        foreign = sorted(q.name for q in p.iterdir() if q.name not in (MANIFEST, *MAP_FILES.values()))
+        if foreign:
+            raise MapFormatError(f"{p}: a saved map with other files in it ({', '.join(foreign[:5])}"
+                                 f"{', ...' if len(foreign) > 5 else ''}), which replacing the map would delete; "
+                                 "move them or choose another folder")
     parent = p.resolve().parent
     if not os.access(parent if parent.exists() else Path.cwd(), os.W_OK):
         raise MapFormatError(f"{p}: cannot write into {parent}")
@@ -196,17 +217,19 @@ def save_map(path, saved: SavedMap) -> Path:
     tmp = target.parent / f".{target.name}.{uuid.uuid4().hex[:8]}.tmp"
     tmp.mkdir(parents=True)
     try:
-        kf = {"pose": saved.poses.to(torch.float64).numpy(), "frame_index": saved.frame_index.numpy().astype(np.int64),
-              "timestamp": saved.timestamps.to(torch.float64).numpy(),
-              "index_id": saved.index_ids.numpy().astype(np.int64),
-              "descriptor": saved.descriptors.to(torch.float32).numpy(), "rgb": np.ascontiguousarray(saved.rgb),
+        def host(t: Tensor, dtype) -> np.ndarray:  # any device, with or without autograd
+            return t.detach().to("cpu", dtype).numpy()
+
+        kf = {"pose": host(saved.poses, torch.float64), "frame_index": host(saved.frame_index, torch.int64),
+              "timestamp": host(saved.timestamps, torch.float64), "index_id": host(saved.index_ids, torch.int64),
+              "descriptor": host(saved.descriptors, torch.float32), "rgb": np.ascontiguousarray(saved.rgb),
               **_features_arrays(saved.features)}
         np.savez(tmp / MAP_FILES["keyframes"], **kf)
         e = saved.edges
         np.savez(tmp / MAP_FILES["graph"],
                  ii=np.array([x.i for x in e], np.int64), jj=np.array([x.j for x in e], np.int64),
-                 T_ij=np.stack([x.T_ij.numpy() for x in e]) if e else np.zeros((0, 7)),
-                 information=np.stack([x.information.numpy() for x in e]) if e else np.zeros((0, 6, 6)),
+                 T_ij=np.stack([host(x.T_ij, torch.float64) for x in e]) if e else np.zeros((0, 7)),
+                 information=np.stack([host(x.information, torch.float64) for x in e]) if e else np.zeros((0, 6, 6)),
                  kind=np.array([int(x.kind) for x in e], np.int64), weak=np.array([x.weak for x in e], bool),
                  active=np.array([x.active for x in e], bool), weight=np.array([x.weight for x in e], np.float64))
         save_index(saved.index, tmp / MAP_FILES["index"])
@@ -221,7 +244,12 @@ def save_map(path, saved: SavedMap) -> Path:
         if target.exists():
             old = target.parent / f".{target.name}.{uuid.uuid4().hex[:8]}.old"
             target.rename(old)
-        tmp.rename(target)
+        try:
+            tmp.rename(target)
+        except BaseException:
+            if old is not None:  # put the previous map back: a failed save loses nothing
+                old.rename(target)
+            raise
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException:
@@ -284,7 +312,11 @@ def _read_manifest(folder: Path) -> dict:
         if not fpath.is_file():
             raise MapFormatError(f"{fpath}: missing (the manifest lists it as the {role} file)")
         digest = entry.get("sha256")
-        if digest is not None and _sha256(fpath) != digest:
+        if not isinstance(digest, str) or len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
+            # save_map always writes one: a manifest without it would let any file pass unchecked
+            raise MapFormatError(f"{mpath}: files.{role}.sha256 must be the 64 hex digits of the file's SHA-256, "
+                                 f"got {digest!r}")
+        if _sha256(fpath) != digest:
             raise MapFormatError(f"{fpath}: corrupt (its SHA-256 differs from the manifest's)")
     return manifest
 
@@ -338,6 +370,11 @@ def load_map(path) -> SavedMap:
                         "weak": (E,), "active": (E,), "weight": (E,)})
     if E and (g["ii"].min() < 0 or g["jj"].min() < 0 or max(g["ii"].max(), g["jj"].max()) >= M):
         raise MapFormatError(f"{gp}: an edge joins a keyframe outside [0, {M})")
+    if "num_edges" in manifest and E != manifest["num_edges"]:
+        raise MapFormatError(f"{gp}: {E} edges, the manifest says {manifest['num_edges']}")
+    for name in ("T_ij", "information"):
+        if not np.all(np.isfinite(g[name])):
+            raise MapFormatError(f"{gp}: entry '{name}' holds non-finite values")
     kinds = {int(k) for k in EdgeKind}
     if any(int(k) not in kinds for k in g["kind"]):
         raise MapFormatError(f"{gp}: entry 'kind' holds codes other than {sorted(kinds)}")
@@ -353,6 +390,9 @@ def load_map(path) -> SavedMap:
         index.rows_of(ids)
     except ValueError as exc:
         raise MapFormatError(f"{files['index']}: does not hold the keyframes' index ids ({exc})") from exc
+    if len(np.unique(ids)) != M or len(index) != M:  # a search must answer only this map's keyframes
+        raise MapFormatError(f"{files['index']}: holds {len(index)} keyframes for {M} keyframes in {kp.name} "
+                             f"({len(np.unique(ids))} distinct index ids); each keyframe must be in it exactly once")
     info = {k: v for k, v in manifest.items() if k not in ("format", "version", "files")}
     return SavedMap(torch.from_numpy(kf["pose"].astype(np.float64)), torch.from_numpy(kf["frame_index"].astype(np.int64)),
                     torch.from_numpy(kf["timestamp"].astype(np.float64)), torch.from_numpy(ids),

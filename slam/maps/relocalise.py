@@ -178,6 +178,16 @@ def _descriptor_info(slam) -> dict:
             "seed": d.seed, "dim": slam.loop_closer.detector.index.dim, "probe": descriptor_probe(model)}
 
 
+def _run_dim(slam, info: dict) -> int | None:
+    """The length of this run's descriptors, known before its first keyframe (the model's ``out_dim``, else
+    its probe's length, else the index's once it holds one)."""
+    for d in (info.get("dim"), getattr(slam.loop_closer.descriptor, "out_dim", None),
+              None if info.get("probe") is None else len(info["probe"])):
+        if isinstance(d, (int, np.integer)) and not isinstance(d, bool) and d > 0:
+            return int(d)
+    return None
+
+
 def _output_rig(config) -> Tensor | None:
     """``T_rgb_depth`` when the system reports depth-camera poses (as :class:`slam.system.RGBDSLAM` decides)."""
     f = config.odometry.features
@@ -298,6 +308,16 @@ class MapRelocaliser:
                 raise MapMismatchError(f"{where}: the map was made with descriptor {key}={theirs[key]!r}, this run "
                                        f"uses {mine[key]!r}; its index cannot be searched with another descriptor"
                                        + remedy)
+        # the dimension is checked on its own: without probes to compare, nothing else would tell a map whose
+        # index holds descriptors of another length (a PCA or projection change) until its first search fails
+        dims = {theirs["dim"]} if isinstance(theirs.get("dim"), int) and not isinstance(theirs["dim"], bool) else set()
+        if len(saved) and saved.descriptors.ndim == 2:
+            dims.add(int(saved.descriptors.shape[1]))
+        run_dim = _run_dim(slam, mine)
+        if run_dim is not None and any(d != run_dim for d in dims):
+            raise MapMismatchError(f"{where}: the map's descriptors have {' or '.join(str(d) for d in sorted(dims))} "
+                                   f"entries, this run's {run_dim}; its index cannot be searched with another "
+                                   "descriptor")
         if "probe" not in theirs and theirs.get("backbone") == "efficientnet_lite0" and theirs.get("fusion") != "none":
             # saved before the probe existed (2026-12-02), so with the default of then: G at stage6 and stage7
             raise MapMismatchError(
