@@ -81,15 +81,22 @@ def backproject(
     depth = depth.to(dtype)
     if n == 0:
         return depth.new_zeros(0, 3), torch.zeros(0, dtype=torch.bool, device=depth.device)
-    uv = torch.round(keypoints.to(dtype)).long()
+    kp = keypoints.to(dtype)
+    kp_ok = torch.isfinite(kp).all(dim=1)
+    # a NaN / inf keypoint has no pixel (casting it to an integer is undefined): it reads pixel (0, 0)
+    # and is marked invalid below
+    uv = torch.round(torch.where(kp_ok[:, None], kp, torch.zeros_like(kp))).long()
     x, y = uv[:, 0], uv[:, 1]
     r = int(window_radius)
     # keypoints whose window leaves the image get no point (also covers out-of-image keypoints)
-    inside = (x >= r) & (x < W - r) & (y >= r) & (y < H - r)
+    inside = kp_ok & (x >= r) & (x < W - r) & (y >= r) & (y < H - r)
     xc, yc = x.clamp(r, W - 1 - r), y.clamp(r, H - 1 - r)
-    flat = torch.nan_to_num(depth, nan=0.0).reshape(-1)
+    # NaN and +-inf depths are invalid (0): with max_depth = inf or max_depth_jump = inf an inf pixel
+    # would otherwise become a point at ~3e38 m
+    flat = torch.where(torch.isfinite(depth), depth, torch.zeros_like(depth)).reshape(-1)
     z = flat[yc * W + xc]
-    valid = inside & (z >= min_depth) & (z <= max_depth)
+    # z > 0 as well: with min_depth = 0 a zero (invalid) depth must still give no point
+    valid = inside & (z > 0) & (z >= min_depth) & (z <= max_depth)
     if r > 0:
         d = torch.arange(-r, r + 1, device=depth.device)
         dy, dx = torch.meshgrid(d, d, indexing="ij")
@@ -98,10 +105,11 @@ def backproject(
         jump = (win - z[:, None]).abs().amax(dim=1)
         valid = valid & (win > 0).all(dim=1) & (jump <= max_depth_jump * z)
     Kd = K.to(dtype=dtype, device=depth.device)
-    kp = keypoints.to(dtype)
     px = (kp[:, 0] - Kd[0, 2]) / Kd[0, 0] * z
     py = (kp[:, 1] - Kd[1, 2]) / Kd[1, 1] * z
-    points = torch.stack([px, py, z], dim=-1) * valid[:, None].to(dtype)
+    # where, not a product with the mask: NaN * 0 is NaN (a NaN keypoint must not leak into its point)
+    points = torch.stack([px, py, z], dim=-1)
+    points = torch.where(valid[:, None], points, torch.zeros_like(points))
     return points, valid
 
 

@@ -112,7 +112,11 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
                          f"{tuple(desc_b.shape)}")
     empty = (torch.zeros(0, 2, dtype=torch.long, device=desc_a.device),
              torch.zeros(0, device=desc_a.device))
-    if desc_a.shape[0] < 2 or desc_b.shape[0] < 2:
+    n_a, n_b = desc_a.shape[0], desc_b.shape[0]
+    # A single descriptor still has a (mutual) nearest neighbour; only the ratio test needs a second
+    # column (snn: per row of a; smnn: both ways), where Kornia itself returns nothing.
+    if (n_a == 0 or n_b == 0 or (config.method == "snn" and n_b < 2)
+            or (config.method == "smnn" and min(n_a, n_b) < 2)):
         return empty
     shape = (desc_a.shape[0], desc_b.shape[0])
     if allowed is not None and allowed.shape != shape:
@@ -277,8 +281,11 @@ def match_features(fa: FrameFeatures, fb: FrameFeatures, config: MatchConfig | N
     config = config or MatchConfig()
     if fa.binary != fb.binary:
         raise ValueError("cannot match binary descriptors with float ones (different detectors)")
-    ia = torch.nonzero(fa.valid).squeeze(1) if only_valid else torch.arange(len(fa))
-    ib = torch.nonzero(fb.valid).squeeze(1) if only_valid else torch.arange(len(fb))
+    # the indices live with the descriptors (they index the matcher's output, on that device)
+    ia = (torch.nonzero(fa.valid).squeeze(1) if only_valid
+          else torch.arange(len(fa), device=fa.descriptors.device))
+    ib = (torch.nonzero(fb.valid).squeeze(1) if only_valid
+          else torch.arange(len(fb), device=fb.descriptors.device))
     allowed = None
     if prior_ab is not None and config.guided_radius_px > 0 and ia.numel() and ib.numel():
         pts_b = fb.points[ib].to(torch.float64)

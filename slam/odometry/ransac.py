@@ -77,6 +77,12 @@ def _errors(pose: Tensor, src: Tensor, dst: Tensor) -> Tensor:
     return (transform_points(pose, src) - dst).norm(dim=-1)
 
 
+def _check_cov(cov: Tensor | None, n: int, name: str) -> None:
+    """ValueError naming ``name`` unless ``cov`` is None or ``(n, 3, 3)``."""
+    if cov is not None and tuple(cov.shape) != (n, 3, 3):
+        raise ValueError(f"{name} must have shape ({n}, 3, 3), got {tuple(cov.shape)}")
+
+
 def refine_rigid(pose: Tensor, src: Tensor, dst: Tensor, cov_src: Tensor, cov_dst: Tensor,
                  iterations: int = 5, huber_delta: float = 2.0):
     """Gauss-Newton refinement of a rigid transform on the Mahalanobis 3D error (Huber kernel).
@@ -92,6 +98,13 @@ def refine_rigid(pose: Tensor, src: Tensor, dst: Tensor, cov_src: Tensor, cov_ds
         the refined ``(7,)`` pose and the ``(6, 6)`` information (Gauss-Newton Hessian without the robust
         weights) at it, for the right perturbation ``pose * exp(xi)``.
     """
+    if pose.shape != (7,):
+        raise ValueError(f"pose must have shape (7,), got {tuple(pose.shape)}")
+    if src.dim() != 2 or src.shape[-1] != 3 or src.shape != dst.shape:
+        raise ValueError(f"src and dst must both have shape (N, 3), got {tuple(src.shape)} and "
+                         f"{tuple(dst.shape)}")
+    _check_cov(cov_src, src.shape[0], "cov_src")
+    _check_cov(cov_dst, src.shape[0], "cov_dst")
     eye = torch.eye(3, dtype=src.dtype, device=src.device)
     J = torch.cat([eye.expand(src.shape[0], 3, 3), -so3_hat(src)], dim=-1)  # (N, 3, 6), d(T exp(xi) p)
     R0 = rotation_matrix(pose[3:])
@@ -137,7 +150,7 @@ def ransac_rigid(src: Tensor, dst: Tensor, config: RansacConfig | None = None,
         correspondences, too few inliers or (nearly) collinear inliers -- never an exception for such data.
 
     Raises:
-        ValueError: when the shapes are wrong.
+        ValueError: when the shapes are wrong, or a threshold is not > 0 (or NaN).
     """
     config = config or RansacConfig()
     if src.dim() != 2 or src.shape[-1] != 3 or src.shape != dst.shape:
@@ -152,6 +165,13 @@ def ransac_rigid(src: Tensor, dst: Tensor, config: RansacConfig | None = None,
     elif thresholds.shape != (n,):
         raise ValueError(f"thresholds must have shape ({n},), got {tuple(thresholds.shape)}")
     thresholds = thresholds.to(torch.float64)
+    if n and not bool((thresholds > 0).all()):
+        # 0 divides the MSAC cost by zero; NaN or negative ones reject everything (reported as
+        # "degenerate"); inf is allowed, as RansacConfig.inlier_threshold = inf is (everything an inlier)
+        raise ValueError("thresholds must be > 0 (metres, not NaN), got min "
+                         f"{float(thresholds.min())} and max {float(thresholds.max())}")
+    _check_cov(cov_src, n, "cov_src")
+    _check_cov(cov_dst, n, "cov_dst")
     if n < max(3, config.min_inliers):
         return _failure(n, f"too few correspondences ({n} < {max(3, config.min_inliers)})", device)
     if not (torch.isfinite(src).all() and torch.isfinite(dst).all()):
