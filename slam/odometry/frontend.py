@@ -115,7 +115,8 @@ class TrackResult:
             ``is_keyframe``; when the previous frame was promoted to a keyframe (``keyframe_policy =
             "previous"``, or tracking against the old keyframe failed) it ends at that promoted keyframe:
             ``is_keyframe`` is False, ``keyframe_id == edge.j`` and ``keyframes[edge.j].frame_index`` is the
-            previous frame's index.
+            previous frame's index. One call can create two edges (the promoted previous frame's, then a
+            weak keyframe forced after ``max_lost_frames``): ``edge`` is the last; the frontend's ``edges`` has all.
         inlier_rmse: 3D RMSE (metres) of the inliers of the registration that placed the frame (NaN when
             none did: LOST, or the first frame); without ground truth it measures how well the depth and
             the camera model explain the matches (e.g. to choose a rig's colour/depth baseline).
