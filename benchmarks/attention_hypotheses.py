@@ -973,7 +973,8 @@ def encoding_section(views: dict, protos: dict, seeds: tuple[int, ...], frames: 
 def _conditions() -> dict:
     from place_recognition import downscaled, grayscale
 
-    return {"colour": lambda ims: ims, "grey": grayscale, "1/4 size": lambda ims: downscaled(ims, 4),
+    # colour: the full frames, already in the views (load_taps); the others are extracted and cached here
+    return {"colour": None, "grey": grayscale, "1/4 size": lambda ims: downscaled(ims, 4),
             "grey, 1/4 size": lambda ims: grayscale(downscaled(ims, 4))}
 
 
@@ -985,6 +986,9 @@ def conditions_section(data: dict, views: dict, protos: dict, cache: Path) -> No
     for cname, transform in conds.items():
         feats[cname] = {}
         for k, (images, _) in data.items():
+            if transform is None:
+                feats[cname][k] = views[k]["full"]
+                continue
             path = cache / f"{k}_{cname.replace(' ', '').replace(',', '_').replace('/', 'of')}_cond.pt"
             if path.is_file():
                 feats[cname][k] = torch.load(path)

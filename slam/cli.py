@@ -188,10 +188,10 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
     seq = None
     if args.demo:
         _check_demo_args(args)
-        config_from_args(args, given=given)  # every setting checked before minutes of rendering
     else:
         seq = open_sequence(args.sequence, camera=args.camera)
-    cfg = config_from_args(args, seq, given=given)  # also: --weights is a file, before any output is touched
+    # every setting checked (--weights a file too) before any output is touched or the demo rendered
+    cfg = config_from_args(args, seq, given=given)
     # The loop descriptor is built here, not in run_slam: weights that cannot be found (or downloaded) or
     # cannot be loaded stop the command before the previous run's outputs are removed or a demo rendered.
     descriptor = None

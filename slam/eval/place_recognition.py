@@ -306,18 +306,15 @@ def read_vpr_bench_ground_truth(source: PathOrFile, num_references: int | None =
         matches.append(_reference_indices(row[1], name, q))
     if num_references is None:
         bound = max(_MAX_IMPLIED_ENTRIES // max(len(matches), 1), 1)
-        for q, m in enumerate(matches):
-            if m and max(m) >= bound:
-                raise GroundTruthFormatError(
-                    name, f"row {q}: reference index {max(m)} is not below {bound} (a matrix of at most 2^30 "
-                          f"entries for {len(matches)} queries); give num_references if the reference set is "
-                          f"that large")
-        num_references = max((max(m) + 1 for m in matches if m), default=0)
+        limit = (f"{bound} (a matrix of at most 2^30 entries for {len(matches)} queries); give num_references if "
+                 "the reference set is that large")
     else:
-        for q, m in enumerate(matches):
-            if m and max(m) >= num_references:
-                raise GroundTruthFormatError(name, f"row {q}: reference index {max(m)} is not below "
-                                                   f"num_references={num_references}")
+        bound, limit = num_references, f"num_references={num_references}"
+    for q, m in enumerate(matches):
+        if m and max(m) >= bound:
+            raise GroundTruthFormatError(name, f"row {q}: reference index {max(m)} is not below {limit}")
+    if num_references is None:
+        num_references = max((max(m) + 1 for m in matches if m), default=0)
     gt = torch.zeros(len(matches), num_references, dtype=torch.bool)
     for q, m in enumerate(matches):
         if m:

@@ -46,6 +46,7 @@ import torch
 from slam.keyframe_graph import KeyframeGraph
 from slam.lie import se3_between
 from slam.loop.acceptance import DriftBoundConfig, drift_limits, pairwise_consistent
+from slam.odometry.config import check_int  # the configs' shared range check
 
 Tensor = torch.Tensor
 
@@ -75,9 +76,7 @@ class ConsistencyConfig:
 
     def __post_init__(self) -> None:
         for name, least in (("min_group", 1), ("min_support", 0), ("max_exact", 0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < least:
-                raise ValueError(f"ConsistencyConfig.{name} must be an integer >= {least}, got {v!r}")
+            check_int("ConsistencyConfig", name, getattr(self, name), least)
         if not (self.support_radius >= 0 and math.isfinite(self.support_radius)):
             raise ValueError(f"ConsistencyConfig.support_radius must be finite and >= 0, got {self.support_radius!r}")
 
