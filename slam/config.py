@@ -1,6 +1,7 @@
 """Typed configuration of the whole SLAM system (every default commented)."""
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -124,10 +125,10 @@ class LoopClosureConfig:
             if not isinstance(thr, ThresholdConfig):
                 raise ValueError(f"LoopClosureConfig.threshold_by_backbone[{backbone!r}] must be a ThresholdConfig, "
                                  f"got {type(thr).__name__}")
-            if thr.min_samples > self.detector.threshold_samples:  # as LoopDetectorConfig would refuse, later
-                raise ValueError(f"LoopClosureConfig.threshold_by_backbone[{backbone!r}].min_samples "
-                                 f"({thr.min_samples}) must be <= detector.threshold_samples "
-                                 f"({self.detector.threshold_samples})")
+            try:  # the loop closer puts it in the detector's config: its own checks, now rather than then
+                dataclasses.replace(self.detector, threshold=thr)
+            except ValueError as e:
+                raise ValueError(f"LoopClosureConfig.threshold_by_backbone[{backbone!r}]: {e}") from None
 
 
 @dataclass

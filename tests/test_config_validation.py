@@ -135,7 +135,8 @@ def test_edge_values_are_accepted(cls, kwargs):
     (LoopClosureConfig, dict(information_scale=0.0), r"LoopClosureConfig\.information_scale"),
     (LoopClosureConfig, dict(threshold_by_backbone={"x": 0.85}), r"LoopClosureConfig\.threshold_by_backbone\['x'\]"),
     (LoopClosureConfig, dict(threshold_by_backbone={"x": ThresholdConfig(min_samples=10_000)}),
-     r"LoopClosureConfig\.threshold_by_backbone\['x'\]\.min_samples \(10000\) must be <= detector\."),
+     r"LoopClosureConfig\.threshold_by_backbone\['x'\]: LoopDetectorConfig\.threshold_samples \(4096\) must be >= "
+     r"threshold\.min_samples \(10000\)"),
     # ConsistencyConfig (checked by itself, so also inside LoopClosureConfig)
     (ConsistencyConfig, dict(min_group=0), r"ConsistencyConfig\.min_group must be an integer >= 1, got 0"),
     (ConsistencyConfig, dict(max_exact=-1), r"ConsistencyConfig\.max_exact must be an integer >= 0, got -1"),

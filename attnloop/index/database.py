@@ -53,14 +53,13 @@ Example:
 """
 from __future__ import annotations
 
-import operator
 import threading
 
 import numpy as np
 import torch
 
 from attnloop.index.config import IndexConfig, config_from_dict, config_to_dict, resolve_backend
-from attnloop.index.exact import scan_tolerance, topk_rows
+from attnloop.index.exact import _count, scan_tolerance, topk_rows
 from attnloop.index.storage import _GATHER_BYTES, KeyframeStore
 from attnloop.index.structures import STRUCTURES
 
@@ -105,17 +104,6 @@ def _as_int_array(x, name: str) -> np.ndarray:
     elif arr.dtype.kind != "i":
         raise ValueError(f"{name} must be integers, got dtype {arr.dtype}")
     return arr.astype(np.int64)
-
-
-def _count(x, name: str, minimum: int) -> int:
-    """An integer setting (int, numpy or 0-d tensor integer) ``>= minimum``; TypeError/ValueError otherwise."""
-    try:
-        value = operator.index(x)
-    except TypeError:
-        raise TypeError(f"{name} must be an integer, got {x!r}") from None
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value}")
-    return value
 
 
 def _record_int(meta: dict, key: str, minimum: int) -> int:

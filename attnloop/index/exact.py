@@ -11,6 +11,17 @@ Tensor = torch.Tensor
 __all__ = ["exact_search", "matvec", "scan_tolerance", "topk_rows"]
 
 
+def _count(x, name: str, minimum: int) -> int:
+    """An integer setting (int, numpy or 0-d tensor integer) ``>= minimum``; TypeError/ValueError otherwise."""
+    try:
+        value = operator.index(x)
+    except TypeError:
+        raise TypeError(f"{name} must be an integer, got {x!r}") from None
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    return value
+
+
 def exact_search(database: Tensor, queries: Tensor, k: int) -> tuple[Tensor, Tensor]:
     """Brute-force reference: the ``k`` rows of ``database`` with the largest dot product per query.
 
@@ -34,12 +45,7 @@ def exact_search(database: Tensor, queries: Tensor, k: int) -> tuple[Tensor, Ten
     if database.dim() != 2 or queries.dim() != 2 or database.shape[1] != queries.shape[1]:
         raise ValueError(f"need database (N, D) and queries (Q, D), got {tuple(database.shape)} and "
                          f"{tuple(queries.shape)}")
-    try:
-        k = operator.index(k)
-    except TypeError:
-        raise TypeError(f"k must be an integer, got {k!r}") from None
-    if k < 0:
-        raise ValueError(f"k must be >= 0, got {k}")
+    k = _count(k, "k", 0)
     dtype = torch.promote_types(database.dtype, queries.dtype)
     sims = queries.to(dtype) @ database.to(dtype).t()
     kk = min(k, database.shape[0])
