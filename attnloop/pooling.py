@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from .fusion import _check_mode, fuse
+from .rnn_pool import _check_bchw
 
 Tensor = torch.Tensor
 
@@ -64,12 +65,7 @@ def _check_groups(channels: int, groups: Sequence[int] | None) -> tuple[int, ...
 
 
 def _check_map(x: Tensor, name: str = "x") -> None:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if x.ndim != 4:
-        raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(x.shape)}")
-    if not x.is_floating_point():
-        raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
+    _check_bchw(x, name)  # a floating (B, C, H, W) tensor, as the RNN pooling takes
     if x.shape[0] > 0 and min(x.shape[1:]) < 1:
         raise ValueError(f"{name} must have positive C, H and W, got {tuple(x.shape)}")
 
