@@ -19,9 +19,11 @@ such a pose is never read as the identity. ``camera-intrinsics.txt`` must hold a
 """
 from __future__ import annotations
 
+import math
 import os
 import re
 import warnings
+from numbers import Real
 from pathlib import Path
 
 import numpy as np
@@ -134,11 +136,12 @@ class SevenScenesSequence(RGBDSequence):
     Args:
         root: a folder holding ``frame-XXXXXX.color.*`` files (e.g. ``redkitchen/seq-01``).
         K: ``(3, 3)`` intrinsics overriding ``camera-intrinsics.txt`` / the default.
-        fps: frame rate giving the timestamps ``k / fps``.
+        fps: frame rate giving the timestamps ``k / fps``: a finite number > 0.
 
     Raises:
         DatasetNotFoundError: the folder does not exist.
-        DatasetError: no colour frames, or a malformed ``camera-intrinsics.txt``.
+        DatasetError: ``fps`` is not a finite positive number (a bool is refused too), no colour frames, or
+            a malformed ``camera-intrinsics.txt``.
 
     Example:
         >>> seq = SevenScenesSequence("7scenes-redkitchen")  # doctest: +SKIP
@@ -150,6 +153,8 @@ class SevenScenesSequence(RGBDSequence):
 
     def __init__(self, root, K=None, fps: float = SEVENSCENES_FPS):
         self.root = Path(root).expanduser()
+        if isinstance(fps, bool) or not isinstance(fps, Real) or not math.isfinite(fps) or not fps > 0:
+            raise DatasetError(self.root, f"fps must be a finite positive number, got {fps!r}")
         if not self.root.is_dir():
             raise DatasetNotFoundError(self.root, "sequence folder does not exist")
         self.name = self.root.resolve().name
@@ -172,7 +177,11 @@ class SevenScenesSequence(RGBDSequence):
         self._depth: list[str] = [f"frame-{found[k][1]}.depth.png" for k in numbers]
         pose_names = [f"frame-{found[k][1]}.pose.txt" for k in numbers]
         self._pose: list[str | None] = [p if p in names else None for p in pose_names]
-        self._timestamps = self.frame_numbers.astype(np.float64) / float(fps)
+        with np.errstate(over="ignore"):
+            self._timestamps = self.frame_numbers.astype(np.float64) / float(fps)
+        if not np.isfinite(self._timestamps).all():  # a subnormal fps
+            raise DatasetError(self.root, f"fps={fps!r} is too small: frame {numbers[-1]} would be at "
+                                          f"{self._timestamps[-1]} s")
         self._gt: np.ndarray | None = None
         self._warned: set[str] = set()  # pose files already reported as not a pose (each is warned once)
 

@@ -2,9 +2,12 @@
 
 * Frames are the rgb/depth pairs associated as TUM's ``associate.py`` does (nearest timestamps less than
   0.02 s apart, greedy one-to-one), in rgb-time order; a frame's timestamp is its rgb stamp.
-* Ground truth of a frame: the **nearest** ``groundtruth.txt`` pose less than 0.02 s from the rgb stamp
-  (the same association, no interpolation, so it equals what TUM's ``evaluate_ate.py`` pairs with the
-  frame); frames without such a pose have none.
+* Ground truth of a frame: a ``groundtruth.txt`` pose less than 0.02 s from the rgb stamp, by the same
+  greedy one-to-one association (no interpolation): all frame/pose pairs closer than 0.02 s are taken in
+  order of increasing time difference, each frame and each pose at most once, so a pose taken by one
+  frame is not given to its neighbour even when it is that neighbour's nearest (frames 1.000, 1.010 and
+  1.030 with poses at 1.005 and 1.100: the 1.005 pose, none, none). This is exactly the pairing of TUM's
+  ``evaluate_ate.py`` (its ``associate``, offset 0); frames left without a pose have none.
 * Depth: 16-bit PNG, 5000 units per metre, 0 = invalid -> float32 metres with 0.0 invalid.
 * Intrinsics: ``K`` if given, else ``camera`` (``fr1``/``fr2``/``fr3``/``ros``), else a
   ``calibration.txt`` in the folder (first non-comment line ``fx fy cx cy`` [+ 5 distortion
@@ -81,10 +84,21 @@ _NAME_RE = re.compile(r"(?<![a-z])(?:freiburg|fr)[_-]?([123])(?![0-9])")
 
 
 def tum_camera(name: str) -> TUMCamera:
-    """The calibration called ``fr1``/``freiburg1``, ``fr2``, ``fr3`` or ``ros``/``default``."""
-    key = _ALIASES.get(name.lower(), name.lower())
+    """The calibration called ``fr1``/``freiburg1``, ``fr2``, ``fr3`` or ``ros``/``default`` (any case).
+
+    Raises:
+        ValueError: an unknown name (:class:`TUMSequence` reports it as a :class:`DatasetError` naming
+            its folder).
+
+    Example:
+        >>> tum_camera("freiburg2").fx, tum_camera("fr4")
+        Traceback (most recent call last):
+        ...
+        ValueError: unknown TUM camera 'fr4'; expected one of fr1, fr2, fr3, ros
+    """
+    key = _ALIASES.get(name.lower(), name.lower()) if isinstance(name, str) else None
     if key not in TUM_CAMERAS:
-        raise DatasetError(name, f"unknown TUM camera {name!r}; expected one of fr1, fr2, fr3, ros")
+        raise ValueError(f"unknown TUM camera {name!r}; expected one of fr1, fr2, fr3, ros")
     return TUM_CAMERAS[key]
 
 
@@ -193,7 +207,8 @@ class TUMSequence(RGBDSequence):
 
     Raises:
         DatasetNotFoundError: missing folder, ``rgb.txt`` or ``depth.txt``.
-        DatasetError: malformed or empty lists, no rgb/depth pair within ``max_difference``.
+        DatasetError: malformed or empty lists, no rgb/depth pair within ``max_difference``, an unknown
+            ``camera`` (naming the folder).
         TrajectoryFormatError: a malformed ``groundtruth.txt`` line.
 
     Example:
@@ -234,7 +249,10 @@ class TUMSequence(RGBDSequence):
                 logger.warning("%s: camera not given and not in the folder name (fr1/fr2/fr3); using the ROS "
                                "default intrinsics 525, 525, 319.5, 239.5", self.root)
                 self.camera_name = "ros"
-            cam = tum_camera(self.camera_name)
+            try:
+                cam = tum_camera(self.camera_name)
+            except ValueError as e:
+                raise DatasetError(self.root, str(e)) from None
             self.K, self.distortion = cam.K, np.asarray(cam.distortion, dtype=np.float64)
         self.undistort = bool(undistort) and bool(np.any(self.distortion != 0))
         self._maps = None

@@ -220,6 +220,36 @@ def _list_header(kind: str, name: str) -> list[str]:
     return [f"# {kind}", f"# file: '{name}'", "# timestamp filename"]
 
 
+def _frame_names(stamps: np.ndarray) -> list[str]:
+    """The ``<timestamp>.png`` file names of the frames (1 microsecond resolution, as TUM writes them).
+
+    Raises:
+        ValueError: a non-finite timestamp, or two frames whose names (or written stamps) would be the same:
+            one frame's images would overwrite the other's while the lists keep both entries.
+    """
+    bad = [i for i, t in enumerate(stamps) if not np.isfinite(t)]
+    if bad:
+        shown = ", ".join(f"frame {i} has {float(stamps[i])!r}" for i in bad[:3])
+        more = f" (and {len(bad) - 3} more)" if len(bad) > 3 else ""
+        raise ValueError(f"non-finite trajectory timestamps cannot name frame files: {shown}{more}")
+    names = [f"{t:.6f}.png" for t in stamps]
+    first: dict[float, int] = {}
+    clashes = []
+    for i, name in enumerate(names):
+        key = float(name[:-4])  # "-0.000000" and "0.000000" are one stamp in rgb.txt
+        if key in first:
+            clashes.append((first[key], i))
+        else:
+            first[key] = i
+    if clashes:
+        shown = "; ".join(f"frames {a} and {b} ({float(stamps[a])!r} s and {float(stamps[b])!r} s) both give "
+                          f"{names[b][:-4]}" for a, b in clashes[:3])
+        more = f" (and {len(clashes) - 3} more pairs)" if len(clashes) > 3 else ""
+        raise ValueError(f"trajectory timestamps collide at the 1 microsecond resolution of the frame file names "
+                         f"(one frame's images would overwrite the other's): {shown}{more}")
+    return names
+
+
 def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory = "loop",
                       num_frames: int = 300, width: int = 640, height: int = 480, seed: int = 0,
                       depth_noise: bool = True, image_noise: bool = True, scene: Scene | None = None,
@@ -247,14 +277,18 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
 
     Returns:
         The folder's path.
+
+    Raises:
+        ValueError: a trajectory timestamp that is not finite, or two that give the same file name (equal
+            at 1 microsecond, the resolution of ``<timestamp>.png``); nothing is written then.
     """
     seq = SyntheticSequence(trajectory, num_frames=num_frames, width=width, height=height, seed=seed,
                             depth_noise=depth_noise, image_noise=image_noise, scene=scene, batch_size=batch_size,
                             **kwargs)
+    names = _frame_names(seq.timestamps)  # checked before anything is rendered or written
     out = Path(out_dir).expanduser()
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
-    names = [f"{t:.6f}.png" for t in seq.timestamps]
     n = len(seq)
     batches = [list(range(s, min(n, s + seq.batch_size))) for s in range(0, n, seq.batch_size)]
     workers = max(1, int(workers))
