@@ -50,7 +50,8 @@ class LoopClosureConfig:
     descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
     # The loop closer gives the detector keyframe ids in *milliseconds since the first keyframe*, so that
     # ``window`` is a time, whatever the frame rate or frame step: keyframes within 3000 ms are never loop
-    # candidates (they are the odometry's business). The detector's own temporal consistency stays off
+    # candidates (they are the odometry's business; so are keyframes joined to the query by an edge, at any
+    # time: slam.loop.closer). The detector's own temporal consistency stays off
     # (``consistency=1``, its default, so ``consistency_radius`` is unused; were it turned on, the radius
     # would be in ms too): verified loops are filtered by group consistency instead (``consistency``
     # below). The adaptive threshold needs 16 eligible keyframes before it proposes anything, and is set

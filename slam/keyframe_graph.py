@@ -7,7 +7,9 @@ alone would say) and the current *estimate* (corrected by the loop closures opti
 
 Distances along the graph bound what odometry can have drifted between two keyframes
 (:meth:`KeyframeGraph.path_lengths`): along the chain of odometry edges when no loop has corrected the
-estimate, or along the shortest path through the accepted loops when it has.
+estimate, or along the shortest path through the accepted loops when it has. A weak edge (forced after a
+tracking loss: a constant-velocity guess, not a measurement) bounds nothing, so a path across it is
+infinitely long and the drift bound's caps apply.
 
 Example:
     >>> import torch
@@ -103,7 +105,9 @@ class KeyframeGraph:
         # distance travelled from keyframe 0 along the odometry edges, while they form a chain (each edge
         # from the previous keyframe, as the front end makes them): chain distances are then differences
         self._travelled: List[float] = []
+        self._weak_before: list[int] = []  # weak edges on the chain from keyframe 0 (chain distances across one: inf)
         self._chain = True
+        self._joined: list[set[int]] = []  # per keyframe, the keyframes an edge joins it to
 
     # ------------------------------------------------------------------------------------------
     @property
@@ -121,6 +125,8 @@ class KeyframeGraph:
         self._odometry.append(p)
         self._estimate.append(p.clone())
         self._travelled.append(0.0)
+        self._weak_before.append(0)
+        self._joined.append(set())
         return len(self._odometry) - 1
 
     def add_odometry(self, i: int, T_ij: Tensor, information: Tensor, estimate: Tensor,
@@ -148,6 +154,10 @@ class KeyframeGraph:
                                     EdgeKind.ODOMETRY, weak=weak))
         self._chain = self._chain and i == j - 1
         self._travelled.append(self._travelled[i] + self.edges[-1].length)
+        self._weak_before.append(self._weak_before[i] + int(bool(weak)))
+        self._joined.append(set() if weak else {i})  # a weak edge measured nothing: a loop may still join them
+        if not weak:
+            self._joined[i].add(j)
         return j
 
     def add_loop(self, i: int, j: int, T_ij: Tensor, information: Tensor) -> int:
@@ -157,7 +167,16 @@ class KeyframeGraph:
             raise ValueError(f"loop edge {i} -> {j}: need two distinct keyframes of {n}")
         self.edges.append(GraphEdge(i, j, T_ij.detach().to(torch.float64).cpu().clone(),
                                     information.detach().to(torch.float64).cpu().clone(), EdgeKind.LOOP))
+        self._joined[i].add(j)
+        self._joined[j].add(i)
         return len(self.edges) - 1
+
+    def joined(self, k: int) -> set[int]:
+        """The keyframes a measured edge (odometry or loop, active or not; not a weak edge, which is a guess)
+        joins keyframe ``k`` to: a loop between them would measure again what an edge already holds."""
+        if not 0 <= k < self.num_keyframes:
+            raise ValueError(f"keyframe {k} out of range for {self.num_keyframes} keyframes")
+        return set(self._joined[k])
 
     # ------------------------------------------------------------------------------------------
     def odometry_poses(self) -> Tensor:
@@ -225,7 +244,8 @@ class KeyframeGraph:
 
         An edge counts as ``max(|t_ij|, min_edge_length)``; without ``through_loops`` only odometry edges
         are followed (the chain), with it the shortest path may take active loop edges whose back-end
-        weight is at least ``min_loop_weight``. Unreachable keyframes get ``inf``.
+        weight is at least ``min_loop_weight``. A weak odometry edge (forced after a tracking loss) is
+        never followed: its pose is a guess, so it bounds no drift. Unreachable keyframes get ``inf``.
         """
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import dijkstra
@@ -234,10 +254,11 @@ class KeyframeGraph:
         if not 0 <= source < n:
             raise ValueError(f"source keyframe {source} out of range for {n} keyframes")
         if not through_loops and self._chain and min_edge_length <= 0:
-            c = np.asarray(self._travelled)
-            return np.abs(c - c[source])
-        use = [e for e in self.edges if e.active and (e.kind is EdgeKind.ODOMETRY
-                                                      or (through_loops and e.weight >= min_loop_weight))]
+            c, weak = np.asarray(self._travelled), np.asarray(self._weak_before)
+            return np.where(weak == weak[source], np.abs(c - c[source]), np.inf)
+        use = [e for e in self.edges if e.active and ((e.kind is EdgeKind.ODOMETRY and not e.weak)
+                                                      or (e.kind is EdgeKind.LOOP and through_loops
+                                                          and e.weight >= min_loop_weight))]
         if not use:
             out = np.full(n, np.inf)
             out[source] = 0.0

@@ -10,6 +10,9 @@ the bound is affine in the distance ``L`` travelled between the two keyframes al
 
 ``L`` follows the chain of odometry edges while no loop has corrected the estimate, and the shortest path
 through the accepted loops once they have been optimised into it (:meth:`KeyframeGraph.path_lengths`).
+A weak edge (forced after a tracking loss at a constant-velocity guess) bounds nothing: a path across it
+is infinitely long, so the caps apply, and the loops that mend the gap are not refused for disagreeing
+with the guess (benchmarks/tracking_loss.py).
 The same bound, on the sum of the two paths, decides whether two loops agree with each other
 (:func:`pairwise_consistent`, used by the group check of :mod:`slam.loop.consistency`).
 

@@ -114,10 +114,13 @@ class LoopQuery:
 
     Attributes:
         kf: query keyframe id.
-        top_kf: most similar eligible keyframe id (-1 when none was eligible).
+        top_kf: most similar eligible keyframe id (-1 when none was eligible). Eligible: outside the
+            detector's time window and not joined to the query by an edge of the keyframe graph (its
+            odometry parent: a loop to it would count that registration twice; a weak edge, forced after
+            a tracking loss, measured nothing and joins nothing).
         top_score: its similarity (``-inf`` when none).
         threshold: the query's adaptive threshold.
-        candidates: ids that passed the threshold (and consistency) and were sent to verification.
+        candidates: eligible ids that passed the threshold (and consistency) and were sent to verification.
         verified: ids accepted by geometric verification.
         rejections: ``{candidate id: reason}`` for candidates that failed verification.
     """
@@ -193,6 +196,8 @@ class LoopCloser:
         self._kf_of_id: Dict[int, int] = {}  # detector id -> keyframe id
         self._t0: Optional[float] = None
         self._last_id = -1
+        self._warned_stamps = False
+        self._last_stamp: Optional[float] = None
 
     @property
     def queries(self) -> List[LoopQuery]:
@@ -208,9 +213,11 @@ class LoopCloser:
     def describe(self, kf: Keyframe) -> Tensor:
         """``(D,)`` descriptor of a keyframe's (downsized) RGB image."""
         img = torch.from_numpy(np.ascontiguousarray(kf.rgb)).permute(2, 0, 1)[None]
-        dev = next(iter(self.descriptor.buffers()), None)
-        if dev is not None:
-            img = img.to(dev.device)
+        # where the module lives: its parameters, else its buffers (a custom descriptor may have either)
+        held = next(iter(self.descriptor.parameters()), None)
+        held = held if held is not None else next(iter(self.descriptor.buffers()), None)
+        if held is not None:
+            img = img.to(held.device)
         return self.descriptor(img)[0]
 
     def _detector_id(self, kf: Keyframe) -> int:
@@ -219,7 +226,14 @@ class LoopCloser:
         if self._t0 is None:
             self._t0 = float(kf.timestamp)
         ms = int(round((float(kf.timestamp) - self._t0) * 1000.0))
+        if self._last_stamp is not None and float(kf.timestamp) <= self._last_stamp and not self._warned_stamps:
+            self._warned_stamps = True
+            logger.warning("keyframe %d's timestamp %.6g s is not later than the previous keyframe's: the loop "
+                           "detector's window (%d ms) is measured in timestamps, so with repeated stamps it "
+                           "spans that many keyframes and no loop is found; give frames their capture times "
+                           "in seconds", kf.id, float(kf.timestamp), self.detector.config.window)
         self._last_id = max(ms, self._last_id + 1)
+        self._last_stamp = float(kf.timestamp)
         return self._last_id
 
     def limits(self, path_length: float) -> DriftLimits:
@@ -250,16 +264,19 @@ class LoopCloser:
         with self.timer("loop_detection"):
             cands = self.detector.add_and_query(desc, keyframe_id=did, timestamp=kf.timestamp)
         self._kf_of_id[did] = kf.id
-        top_kf = self._kf_of_id[int(cands.top_ids[0])] if cands.top_ids.numel() else -1
-        top_score = float(cands.top_scores[0]) if cands.top_scores.numel() else float("-inf")
-        query = LoopQuery(kf.id, top_kf, top_score, float(cands.threshold),
-                          [self._kf_of_id[int(c)] for c in cands.ids[: cfg.max_candidates]], [])
+        joined = graph.joined(kf.id)  # already measured by an edge: not a loop (LoopQuery.top_kf)
+        top = [(self._kf_of_id[int(c)], float(s)) for c, s in zip(cands.top_ids.tolist(), cands.top_scores.tolist())
+               if self._kf_of_id[int(c)] not in joined]
+        eligible = [(self._kf_of_id[int(c)], float(s)) for c, s in zip(cands.ids.tolist(), cands.scores.tolist())
+                    if self._kf_of_id[int(c)] not in joined][: cfg.max_candidates]
+        top_kf, top_score = top[0] if top else (-1, float("-inf"))
+        query = LoopQuery(kf.id, top_kf, top_score, float(cands.threshold), [c for c, _ in eligible], [])
         self._queries.append(query)
         update = LoopUpdate()
         if not query.candidates:
             return update
         lengths = graph.path_lengths(kf.id, through_loops=through_loops, min_loop_weight=min_loop_weight)
-        for cand_id, score in zip(query.candidates, cands.scores[: cfg.max_candidates].tolist()):
+        for cand_id, score in eligible:
             a = keyframes[cand_id]
             with self.timer("verification"):
                 estimate = se3_between(graph.estimate(a.id), graph.estimate(kf.id))
