@@ -121,7 +121,9 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         frames: ``(start, end)``: the recording is input frames ``start .. end - 1`` only, re-numbered from
             0 (``max_frames`` and ``frame_step`` then apply to them).
         save_map: a folder to save the run's map in (:mod:`slam.maps`: keyframes, pose graph, index); with
-            ``map_dir``, the saved map grown by this recording when it relocalised, else its own map.
+            ``map_dir``, the saved map grown by this recording when it relocalised, else its own map (a
+            recording whose keyframe images differ in size from the map's is refused at its first
+            keyframe: a grown map holds one size).
         map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording
             in: every pose is then reported in the map's world, or, when it never relocalises, in its
             own (``run.relocalisation`` says which; ``config.relocalisation`` sets how).
@@ -133,6 +135,8 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         ValueError: nothing to process, a ``frame_step`` < 1, a config that would give NaN poses
             (:class:`slam.options.UsageError`) or intrinsics that cannot be a camera.
         FloatingPointError: the run produced non-finite poses (never silently returned).
+        slam.maps.MapMismatchError: ``map_dir`` made with another descriptor, feature detector or camera rig,
+            or (with ``save_map``) keyframe images of another size.
     """
     from slam.options import check_config, check_sequence_intrinsics
 
@@ -176,6 +180,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         from slam.maps import MapRelocaliser
 
         reloc = MapRelocaliser(saved, slam, config.relocalisation)
+    check_merge = reloc is not None and save_map is not None
     cloud = PointCloudMap.for_config(config) if config.map.enabled else None
     recent: deque = deque(maxlen=4)  # the frames a new keyframe can come from (this one or a promoted one)
     start = time.perf_counter()
@@ -205,6 +210,9 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
                         map_jobs.append(map_worker.submit(_add_keyframes_to_map, cloud, slam, state.new_keyframes,
                                                           list(recent)))
             if reloc is not None:
+                if check_merge and slam.keyframes:  # a grown map holds one image size: refuse before the work
+                    reloc.check_mergeable(slam.keyframes[0].rgb.shape)
+                    check_merge = False
                 reloc.observe(state)
             if i % 10 == 0:
                 bar.set_postfix(f"kf={len(slam.keyframes)} loops={len(slam.loops)}"
@@ -455,18 +463,17 @@ def loop_precision_recall(run: RunResult, config=None) -> dict[str, object]:
     frames = res.keyframe_frames
     if run.gt_poses_per_frame is None or not res.queries:
         return {}
-    verified_sim = {}
-    for lp in res.loops:
-        verified_sim[lp.kf_b] = max(verified_sim.get(lp.kf_b, float("-inf")), lp.similarity)
+    # each verified pair's own similarity (verified: passed geometric verification, kept by the group or not)
+    similarity = {(lp.kf_a, lp.kf_b): lp.similarity for lp in res.loop_hypotheses}
     before_pairs, before_scores, after_pairs, after_scores = [], [], [], []
     for q in res.queries:
         if q.top_kf < 0:
             continue
         before_pairs.append([int(frames[q.kf]), int(frames[q.top_kf])])
         before_scores.append(q.top_score)
-        best = q.verified[0] if q.verified else q.top_kf
+        best = q.verified[0] if q.verified else q.top_kf  # candidates come most similar first
         after_pairs.append([int(frames[q.kf]), int(frames[best])])
-        after_scores.append(verified_sim.get(q.kf, float("-inf")) if q.verified else float("-inf"))
+        after_scores.append(similarity[(best, q.kf)] if q.verified else float("-inf"))
     if not before_pairs:
         return {}
     out: dict[str, object] = {}

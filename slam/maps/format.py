@@ -6,11 +6,11 @@ A map folder written by :func:`save_map` holds:
   from what it was made, the descriptor that made the index (backbone as built, fusion, RNN count, seed,
   dimension, and its descriptor of a fixed probe image: a map is only searchable with the same descriptor,
   :func:`slam.maps.relocalise.descriptor_probe`), the camera rig the poses are in, the
-  ground-truth pose of the recording's first frame (for evaluating later sessions; null without ground
-  truth), and per data file its name and SHA-256 (a file that does not match is reported corrupt);
+  ground-truth pose of the recording's first tracked frame (its first keyframe, the world's origin; for
+  evaluating later sessions; null without ground truth; maps saved before 2026-12-02 hold frame 0's), and per data file its name and SHA-256 (a file that does not match is reported corrupt);
 * ``keyframes.npz``: per keyframe ``pose (M, 7)`` float64 (world-from-camera of the *tracked* camera,
-  the colour camera on an unregistered rig; the world is the first frame's depth camera as in every
-  output), ``frame_index (M,)``, ``timestamp (M,)``, ``index_id (M,)`` (its id in ``index.npz``),
+  the colour camera on an unregistered rig; the world is the first tracked frame's depth camera as in
+  every output), ``frame_index (M,)``, ``timestamp (M,)``, ``index_id (M,)`` (its id in ``index.npz``),
   ``descriptor (M, D)`` float32, the verification features concatenated over keyframes with
   ``feature_offsets (M + 1,)``: ``keypoints (N, 2)`` float32, ``orb (N, B)`` uint8 (or float32 for
   non-binary descriptors), ``points (N, 3)`` float32 (metres, in the keyframe's tracked camera),
@@ -122,7 +122,8 @@ class SavedMap:
 
     @property
     def groundtruth_origin(self) -> Tensor | None:
-        """``(7,)`` ground-truth pose of the mapping recording's first frame (the map world's origin), or None."""
+        """``(7,)`` ground-truth pose of the mapping recording's first tracked frame (the map world's origin), or
+        None."""
         g = self.info.get("groundtruth_origin")
         return None if g is None else torch.tensor(g, dtype=torch.float64)
 

@@ -206,7 +206,7 @@ def capture_map(slam, sequence=None) -> SavedMap:
     Args:
         slam: a :class:`slam.system.RGBDSLAM` after :meth:`~slam.system.RGBDSLAM.finish`, run with loop
             closure (the index and the descriptors are the loop closer's).
-        sequence: the recording (for its name and the ground truth of its first frame), or None.
+        sequence: the recording (for its name and the ground truth of its first keyframe's frame), or None.
 
     Raises:
         MapMismatchError: the run had no loop closure (no descriptors to relocalise with).
@@ -221,11 +221,12 @@ def capture_map(slam, sequence=None) -> SavedMap:
     rgb = np.stack([kf.rgb for kf in kfs]) if kfs else np.zeros((0, 1, 1, 3), np.uint8)
     info = {"sequence": None, "source": None, "groundtruth_origin": None, "rig": _rig(slam.config),
             "descriptor": _descriptor_info(slam),
-            "world": "the first frame's depth camera (the frame of every reported pose); keyframe poses are the "
-                     "tracked camera's (the colour camera on an unregistered rig)"}
+            "world": "the first tracked frame's depth camera (the frame of every reported pose); keyframe poses "
+                     "are the tracked camera's (the colour camera on an unregistered rig)"}
     if sequence is not None:
         info["sequence"], info["source"] = str(sequence.name), str(sequence.root)
-        g0 = sequence.groundtruth_pose(0) if len(sequence) else None
+        # the world is the first keyframe's camera: frame 0's only when frame 0 was tracked
+        g0 = sequence.groundtruth_pose(kfs[0].frame_index) if kfs else None
         if g0 is not None and np.all(np.isfinite(g0)):
             info["groundtruth_origin"] = [float(v) for v in g0]
     return SavedMap(slam.graph.estimates(), torch.tensor([kf.frame_index for kf in kfs], dtype=torch.long),
@@ -237,7 +238,7 @@ def map_world_errors(trajectory: Tensor, groundtruth: Tensor, origin: Tensor) ->
     """Position errors, without any alignment, of a trajectory reported in a map's world.
 
     The ground truth is expressed in the map's world by ``origin^-1 G_i`` (``origin``: the ground-truth
-    pose of the mapping recording's first frame). Meaningful only when both recordings' ground truth share
+    pose of the mapping recording's first tracked frame). Meaningful only when both recordings' ground truth share
     one world (sequences of one 7-Scenes scene, one motion-capture room).
 
     Args:
@@ -279,7 +280,8 @@ class MapRelocaliser:
         config: :class:`RelocalisationConfig`.
 
     Raises:
-        MapMismatchError: the run has no loop closure, or its descriptor or camera rig differ from the map's.
+        MapMismatchError: the run has no loop closure, or its descriptor, feature detector or camera rig
+            differ from the map's.
 
     Call :meth:`observe` after every :meth:`RGBDSLAM.track` (or ``skip``), then :meth:`finish` with the
     system's result.
@@ -344,6 +346,15 @@ class MapRelocaliser:
                         or not np.allclose(map_rig.get("rgb_from_depth", [0, 0, 0]), rig["rgb_from_depth"])):
             raise MapMismatchError(f"{where}: the map's camera rig {map_rig} differs from this run's {rig}; run "
                                    "with the map's rig (the poses are the tracked camera's)")
+        from slam.odometry.features import is_binary_detector
+
+        detector = slam.config.odometry.features.detector
+        map_binary = {bool(f.binary) for f in saved.features}
+        if map_binary and map_binary != {is_binary_detector(detector)}:
+            kind = "binary (ORB)" if map_binary == {True} else "float (SIFT)"
+            raise MapMismatchError(f"{where}: the map's keyframes hold {kind} feature descriptors, this run's "
+                                   f"detector is {detector!r}: loops to the map could not be verified; run with "
+                                   "the detector that made the map")
         self.links: list[MapLink] = []
         self.report = RelocalisationReport(where, len(saved))
         self._alignment: Tensor | None = None  # T_map_rec of the tracked camera's worlds, once relocalised
@@ -353,6 +364,15 @@ class MapRelocaliser:
         self._t0 = time.perf_counter()
         self._query_seconds = 0.0
         self._merged_poses: Tensor | None = None  # the recording's keyframes in the map's world (finish)
+
+    def check_mergeable(self, keyframe_image_shape) -> None:
+        """Raise :class:`MapMismatchError` when keyframe images of ``keyframe_image_shape`` ``(h, w, 3)``
+        cannot join the map's in a grown map (:meth:`merged_map`; one image size per map).
+        :func:`slam.pipeline.run_slam` asks at the recording's first keyframe, before the work."""
+        if len(self.map) and tuple(keyframe_image_shape) != tuple(self.map.rgb.shape[1:]):
+            raise MapMismatchError(f"{self.report.map_path}: keyframe images of {tuple(self.map.rgb.shape[1:3])} px "
+                                   f"in the map, {tuple(keyframe_image_shape[:2])} in this recording: a grown map "
+                                   "cannot hold both; record at the map's image size, or run without saving the map")
 
     @property
     def relocalised(self) -> bool:
@@ -510,9 +530,8 @@ class MapRelocaliser:
         own = capture_map(self.slam, sequence)
         base = self.map
         M = len(base)
-        if own.rgb.shape[1:] != base.rgb.shape[1:]:
-            raise MapMismatchError(f"{self.report.map_path}: keyframe images of {base.rgb.shape[1:3]} px in the map, "
-                                   f"{own.rgb.shape[1:3]} in this recording: the merged map cannot hold both")
+        if len(own):
+            self.check_mergeable(own.rgb.shape[1:])
         shift = (int(base.index_ids.max()) + 1 if M else 0) - (int(own.index_ids.min()) if len(own) else 0)
         ids = torch.cat([base.index_ids, own.index_ids + shift])
         descriptors = torch.cat([base.descriptors, own.descriptors])

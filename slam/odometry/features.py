@@ -147,6 +147,11 @@ def _detect(gray: np.ndarray, config: FeatureConfig):
     return kps, desc
 
 
+def is_binary_detector(detector: str) -> bool:
+    """Whether ``FeatureConfig.detector`` gives packed binary descriptors (matched by Hamming distance)."""
+    return detector == "orb"
+
+
 def extract_features(rgb: ArrayLike, depth: ArrayLike, K: ArrayLike,
                      config: FeatureConfig | None = None) -> FrameFeatures:
     """Detect, describe and back-project keypoints of one RGB-D frame.
@@ -180,7 +185,7 @@ def extract_features(rgb: ArrayLike, depth: ArrayLike, K: ArrayLike,
     if s != 1.0:
         gray = cv2.resize(gray, (max(1, round(W * s)), max(1, round(H * s))), interpolation=cv2.INTER_AREA)
     kps, desc = _detect(gray, config)
-    binary = config.detector == "orb"
+    binary = is_binary_detector(config.detector)
     dim = 32 if binary else 128
     K_t = torch.from_numpy(K_np)
     if len(kps) == 0:
