@@ -30,6 +30,7 @@ Usage:
     python benchmarks/place_recognition.py --methods orb --bow-seeds 0 1 2 3 4   # its spread over vocabularies
     python benchmarks/place_recognition.py --grayscale        # grayscale copies (the held-out corridor is grayscale)
     python benchmarks/place_recognition.py --downscale 4      # every image at 1/4 of its width and height
+    python benchmarks/place_recognition.py --sequence 1 3 5   # also score sequences of 3 and 5 frames (SeqSLAM)
     python benchmarks/place_recognition.py --sets --query corridor/query --reference corridor/ref \\
         --ground-truth corridor/ground_truth_new.npy
 
@@ -59,6 +60,7 @@ from slam.eval.place_recognition import (
     plot_place_recognition,
     read_ground_truth,
     sequence_candidates,
+    sequence_similarity,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -373,6 +375,18 @@ def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path
                                    title=f"{set_name} / {pname}{suffix.replace('_', ', ')}")
 
 
+def report_sequences(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path | None, suffix: str,
+                     lengths: list[int]) -> None:
+    """:func:`report` once per sequence length (1: the images themselves, under the set's own name)."""
+    for n in lengths:
+        if n == 1:
+            report(set_name, sims, protos, out, suffix)
+        else:
+            print(f"\n### {set_name}: sequences of {n} frames (sequence_similarity)")
+            report(set_name, {m: sequence_similarity(s, n) for m, s in sims.items()}, protos, out,
+                   f"{suffix}_seq{n}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=data_root(), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
@@ -391,6 +405,10 @@ def main() -> None:
     parser.add_argument("--downscale", type=int, default=1, metavar="N",
                         help="evaluate every image (the ORB-BoW vocabulary's included) at 1/N of its width and "
                              "height: a low-resolution camera (default 1: as read)")
+    parser.add_argument("--sequence", nargs="+", type=int, default=[1], metavar="N",
+                        help="score each pair over N frames (slam.eval.place_recognition.sequence_similarity: "
+                             "the pair and the N - 1 pairs before it, SeqSLAM's diagonal); one set of tables "
+                             "per N (default: 1, single images)")
     parser.add_argument("--bow-seeds", nargs="+", type=int, default=[0],
                         help="seeds of the ORB-BoW vocabulary (its k-means draw and sample); one row per seed "
                              "(default: 0)")
@@ -400,6 +418,8 @@ def main() -> None:
         parser.error("--query, --reference and --ground-truth go together")
     if args.downscale < 1:
         parser.error(f"--downscale must be a positive integer, got {args.downscale}")
+    if min(args.sequence) < 1:
+        parser.error(f"--sequence lengths must be positive integers, got {args.sequence}")
     copies = (["grayscale copies"] if args.grayscale else []) + ([f"at 1/{args.downscale} size"]
                                                                   if args.downscale > 1 else [])
     print(f"# Place recognition ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, "
@@ -421,12 +441,12 @@ def main() -> None:
         query, reference, bow_train, protos = got
         sims = all_methods(prepare(query), reference and prepare(reference), prepare(bow_train), args.methods,
                            args.bow_seeds)
-        report(name, sims, protos, args.out, suffix)
+        report_sequences(name, sims, protos, args.out, suffix, args.sequence)
         print(f"\n({name}: {len(query)} images, {time.perf_counter() - t0:.0f} s)")
     if args.query is not None:
         query, reference, bow_train, protos = protocols_folders(args.query, args.reference, args.ground_truth, args.data)
         sims = all_methods(prepare(query), prepare(reference), prepare(bow_train), args.methods, args.bow_seeds)
-        report(args.query.parent.name or "folders", sims, protos, args.out, suffix)
+        report_sequences(args.query.parent.name or "folders", sims, protos, args.out, suffix, args.sequence)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ from slam.eval.place_recognition import (
     read_ground_truth_matrix,
     read_vpr_bench_ground_truth,
     sequence_candidates,
+    sequence_similarity,
 )
 from slam.lie import so3_exp
 
@@ -393,6 +394,45 @@ def test_ground_truth_from_two_pose_sets():
         ground_truth_from_poses(queries, refs[:, :6])
 
 
+def test_sequence_similarity_hand_computed():
+    s = torch.tensor([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6], [0.7, 0.8, 0.9]])
+    assert torch.equal(sequence_similarity(s, 1), s.double())
+    # (i, j) -> mean of s[max(i - k, 0), max(j - k, 0)], k = 0, 1, 2
+    want = torch.tensor([[0.1 + 0.1 + 0.1, 0.2 + 0.1 + 0.1, 0.3 + 0.2 + 0.1],
+                         [0.4 + 0.1 + 0.1, 0.5 + 0.1 + 0.1, 0.6 + 0.2 + 0.1],
+                         [0.7 + 0.4 + 0.1, 0.8 + 0.4 + 0.1, 0.9 + 0.5 + 0.1]], dtype=torch.float64) / 3
+    assert torch.allclose(sequence_similarity(s, 3), want, atol=1e-15)
+    assert torch.allclose(sequence_similarity(s.numpy(), 3), want, atol=1e-15)
+    # a length beyond the sequence repeats the first frames: a constant stays that constant
+    assert torch.allclose(sequence_similarity(torch.full((3, 4), 0.7), 6), torch.full((3, 4), 0.7, dtype=torch.float64))
+    assert sequence_similarity(torch.zeros(0, 4), 3).shape == (0, 4)
+    assert sequence_similarity(torch.zeros(3, 0), 3).shape == (3, 0)
+
+
+def test_sequence_similarity_outvotes_a_one_frame_look_alike():
+    # query 5 looks most like reference 0 (a blank wall seen elsewhere); its predecessors agree on the
+    # diagonal through reference 3, so the sequence of 3 finds it
+    s = torch.full((6, 6), 0.2)
+    s[4, 2], s[3, 1] = 0.9, 0.9
+    s[5, 3], s[5, 0] = 0.6, 0.95
+    gt = torch.zeros(6, 6, dtype=torch.bool)
+    gt[5, 3] = True
+    assert evaluate(s, gt).recall_at(1) == 0.0
+    assert evaluate(sequence_similarity(s, 3), gt).recall_at(1) == 1.0
+    # a non-finite entry poisons every sequence through it, so evaluate never proposes one
+    s[4, 2] = float("nan")
+    out = sequence_similarity(s, 2)
+    assert torch.isnan(out[4, 2]) and torch.isnan(out[5, 3]) and torch.isfinite(out[5, 2])
+
+
+def test_sequence_similarity_errors():
+    with pytest.raises(ShapeMismatchError, match=r"\(Q, R\), got \(3,\)"):
+        sequence_similarity(torch.zeros(3), 2)
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="positive integer"):
+            sequence_similarity(torch.zeros(2, 2), bad)
+
+
 def test_plot(tmp_path):
     r = evaluate(torch.eye(4) + 0.1 * torch.rand(4, 4), torch.eye(4, dtype=torch.bool))
     img = plot_place_recognition(tmp_path / "pr.png", {"a": r, "b": r}, size=(320, 260))
@@ -477,3 +517,17 @@ def test_benchmark_measures_a_grayscale_vpr_bench_folder_pair(tmp_path, load_scr
     got = {c[0]: float(c[1]) for c in rows}  # method: R@1
     assert set(got) == {"none", "dam", "eam", "gaf", "ega", "GAP", "GeM"}
     assert all(v == 1.0 for v in got.values()), got
+
+
+def test_benchmark_reports_each_sequence_length(load_script, capsys):
+    # --sequence 1 3: the single-image tables, then the same protocols scored over sequences of 3 frames
+    bench = load_script("benchmarks/place_recognition.py")
+    s = torch.full((6, 6), 0.2)
+    s[4, 2], s[3, 1], s[5, 3], s[5, 0] = 0.9, 0.9, 0.6, 0.95
+    gt = torch.zeros(6, 6, dtype=torch.bool)
+    gt[5, 3] = True
+    bench.report_sequences("toy", {"m": s}, {"p": (gt, torch.ones_like(gt))}, None, "", [1, 3])
+    out = capsys.readouterr().out
+    tables = out.split("### toy: sequences of 3 frames")
+    assert len(tables) == 2
+    assert "| m | 0.000 |" in tables[0] and "| m | 1.000 |" in tables[1]

@@ -64,6 +64,7 @@ __all__ = [
     "read_ground_truth_matrix",
     "read_vpr_bench_ground_truth",
     "sequence_candidates",
+    "sequence_similarity",
 ]
 
 PathOrFile = Union[str, os.PathLike, IO[bytes]]
@@ -412,6 +413,40 @@ def sequence_candidates(n: int, min_gap: int) -> torch.Tensor:
         raise ValueError(f"min_gap must be a positive integer, got {min_gap!r}")
     idx = torch.arange(int(n))
     return (idx[:, None] - idx[None, :]) >= int(min_gap)
+
+
+def sequence_similarity(similarity: torch.Tensor | np.ndarray, length: int) -> torch.Tensor:
+    """Similarity of short sequences: each pair scored with the ``length - 1`` pairs before it.
+
+    SeqSLAM's straight diagonal at speed 1, causal (a query uses only the frames before it, as an online
+    loop detector can): entry (i, j) is the mean of ``similarity[i - k, j - k]`` for ``k = 0 ..
+    length - 1``, an index below 0 clamped to 0 (the first frames repeat rather than leave the mean
+    shorter, which would favour the sequence's start). Both the queries and the database must be in
+    capture order at about the same frame rate.
+
+    Args:
+        similarity: ``(Q, R)``; a non-finite entry makes every sequence through it non-finite.
+        length: frames per sequence (``>= 1``; 1 returns the similarity unchanged, as float64).
+
+    Returns:
+        ``(Q, R)`` float64 on the input's device.
+
+    Example:
+        >>> sequence_similarity(torch.tensor([[1.0, 0.0], [0.0, 1.0]]), 2).tolist()
+        [[1.0, 0.5], [0.5, 1.0]]
+    """
+    sim = similarity if isinstance(similarity, torch.Tensor) else torch.from_numpy(np.asarray(similarity))
+    if sim.dim() != 2:
+        raise ShapeMismatchError(f"similarity must have shape (Q, R), got {tuple(sim.shape)}")
+    if isinstance(length, bool) or int(length) != length or length < 1:
+        raise ValueError(f"length must be a positive integer, got {length!r}")
+    sim = sim.detach().to(torch.float64)
+    q, r = sim.shape
+    rows, cols = torch.arange(q, device=sim.device), torch.arange(r, device=sim.device)
+    out = torch.zeros_like(sim)
+    for k in range(int(length)):  # length is a handful of frames: one gather of the (Q, R) matrix each
+        out += sim[(rows - k).clamp_min(0)][:, (cols - k).clamp_min(0)]
+    return out / int(length)
 
 
 # ---------------------------------------------------------------------------------------------------
