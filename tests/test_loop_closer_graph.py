@@ -106,6 +106,21 @@ def _closer_with_history(n: int, feats, codes_seed: int = 0):
     return closer, queue, g, kfs
 
 
+def _lost_after_19(fa, forced_features, forced_code):
+    """Keyframe 19 sees a place (code all ones); tracking is then lost and keyframe 20 is forced 4.5 s later
+    at a constant-velocity guess 0.3 m off (the camera had stopped: the true motion 19 -> 20 is the identity)."""
+    closer, queue, g, kfs = _closer_with_history(19, fa)
+    kfs.append(Keyframe(19, 19, 9.5, _step(1.9), fa, RGB))
+    g.add_odometry(18, _step(0.1), torch.eye(6, dtype=D), kfs[-1].pose)
+    queue.codes.append(_unit(torch.ones(64)))
+    closer.close(kfs[-1], kfs, g)
+    guess = _step(0.3)
+    kfs.append(Keyframe(20, 20, 14.0, se3_compose(kfs[19].pose, guess), forced_features, RGB))
+    g.add_odometry(19, guess, 1e-2 * torch.eye(6, dtype=D), kfs[-1].pose, weak=True)
+    queue.codes.append(forced_code)
+    return closer, queue, g, kfs, closer.close(kfs[-1], kfs, g)
+
+
 def test_the_odometry_parent_is_never_a_loop_candidate(two_views):
     # A low-rate stream: keyframe 21 comes 4 s after its parent 20, outside the detector's 3 s window, and
     # looks just like it. The odometry edge 20 -> 21 already holds their registration: a "loop" would
@@ -131,20 +146,10 @@ def test_a_true_loop_across_a_tracking_loss_is_accepted(two_views):
     # carries the guess's error, so the chain's drift bound (0.15 m + 0.05 m/m over 0.1 m) refused the true
     # loop that would mend the gap; across a weak edge the bound's caps apply and it is kept.
     (fa, fb), truth = two_views
-    closer, queue, g, kfs = _closer_with_history(19, fa)
-    code = _unit(torch.ones(64))
-    kfs.append(Keyframe(19, 19, 9.5, _step(1.9), fa, RGB))
-    g.add_odometry(18, _step(0.1), torch.eye(6, dtype=D), kfs[-1].pose)
-    queue.codes.append(code)
-    closer.close(kfs[-1], kfs, g)
-    guess = _step(0.3)  # the camera had stopped: the true motion 19 -> 20 is the identity
-    kfs.append(Keyframe(20, 20, 14.0, se3_compose(kfs[19].pose, guess), fa, RGB))
-    g.add_odometry(19, guess, 1e-2 * torch.eye(6, dtype=D), kfs[-1].pose, weak=True)
-    queue.codes.append(_unit(-torch.ones(64)))
-    closer.close(kfs[-1], kfs, g)
+    closer, queue, g, kfs, _ = _lost_after_19(fa, fa, _unit(-torch.ones(64)))
     kfs.append(Keyframe(21, 21, 14.1, se3_compose(kfs[20].pose, truth), fb, RGB))
     g.add_odometry(20, truth, torch.eye(6, dtype=D), kfs[-1].pose)
-    queue.codes.append(code)
+    queue.codes.append(_unit(torch.ones(64)))
     update = closer.close(kfs[-1], kfs, g)
     query = closer.queries[-1]
     assert 19 in query.candidates and 19 in query.verified, query.rejections
@@ -158,17 +163,7 @@ def test_the_keyframe_before_a_tracking_loss_can_close_a_loop_with_the_forced_on
     # The forced keyframe's weak edge to its parent is a guess: a loop between the two (verification has no
     # motion prior, so it can register what the odometry could not) is the most direct mend of the gap.
     (fa, fb), truth = two_views
-    closer, queue, g, kfs = _closer_with_history(19, fa)
-    code = _unit(torch.ones(64))
-    kfs.append(Keyframe(19, 19, 9.5, _step(1.9), fa, RGB))
-    g.add_odometry(18, _step(0.1), torch.eye(6, dtype=D), kfs[-1].pose)
-    queue.codes.append(code)
-    closer.close(kfs[-1], kfs, g)
-    guess = _step(0.3)
-    kfs.append(Keyframe(20, 20, 14.0, se3_compose(kfs[19].pose, guess), fb, RGB))
-    g.add_odometry(19, guess, 1e-2 * torch.eye(6, dtype=D), kfs[-1].pose, weak=True)
-    queue.codes.append(code)
-    update = closer.close(kfs[-1], kfs, g)
+    closer, _, _, _, update = _lost_after_19(fa, fb, _unit(torch.ones(64)))
     query = closer.queries[-1]
     assert query.top_kf == 19 and 19 in query.verified, query.rejections
     loop = next(lp for lp in update.new if lp.kf_a == 19)
