@@ -54,7 +54,7 @@ from slam.graph.optimizer import OptimizationResult
 from slam.io.frame import RGBDFrame, check_frame
 from slam.io.trajectory import Trajectory
 from slam.keyframe_graph import EdgeKind, KeyframeGraph
-from slam.lie import se3_compose, se3_identity
+from slam.lie import se3_between, se3_compose, se3_exp, se3_identity, se3_log
 from slam.loop import LoopCloser, LoopClosure, LoopQuery, LoopUpdate
 from slam.odometry import RGBDOdometry
 from slam.odometry.depth_registration import depth_camera_poses, rig_pose
@@ -113,7 +113,9 @@ class SLAMResult:
     """What :meth:`RGBDSLAM.finish` returns.
 
     Attributes:
-        trajectory: one optimised pose per input frame, in input order.
+        trajectory: one optimised pose per input frame, in input order; a frame lost (or skipped) between two
+            tracked ones is interpolated between their optimised poses by time (during the run it was
+            placed by constant velocity, as ``odometry_trajectory`` keeps it).
         odometry_trajectory: the same frames before pose-graph optimisation.
         keyframe_trajectory: optimised keyframe poses (timestamps of the keyframes).
         keyframe_frames: ``(M,)`` input index of each keyframe.
@@ -143,6 +145,39 @@ class SLAMResult:
     timings: Dict[str, Dict[str, float]]
     loop_hypotheses: List[LoopClosure] = field(default_factory=list)
     corrections: List[BackendResult] = field(default_factory=list)
+
+
+def interpolate_gaps(timestamps: Tensor, poses: Tensor, placed: Tensor) -> Tensor:
+    """Poses ``(N, 7)`` whose frames not ``placed`` (lost or skipped) are interpolated between the nearest
+    placed frames before and after them, by time along the screw motion between the two:
+    ``P_a exp(s log(P_a^-1 P_b))``, ``s = (t - t_a) / (t_b - t_a)``. Frames before the first or after the last
+    placed frame keep their poses (nothing to interpolate to).
+
+    Args:
+        timestamps: ``(N,)`` seconds, increasing.
+        poses: ``(N, 7)`` float64.
+        placed: ``(N,)`` bool.
+
+    Example:
+        >>> P = torch.tensor([[0.0, 0, 0, 0, 0, 0, 1], [5.0, 5, 5, 0, 0, 0, 1], [2.0, 0, 0, 0, 0, 0, 1]])
+        >>> interpolate_gaps(torch.tensor([0.0, 1.0, 4.0]), P, torch.tensor([True, False, True]))[1, :3].tolist()
+        [0.5, 0.0, 0.0]
+    """
+    n = poses.shape[0]
+    idx = torch.arange(n)
+    # the last placed frame at or before each frame, and the first at or after it (-1 / n: none)
+    before = torch.cummax(torch.where(placed, idx, torch.full_like(idx, -1)), 0).values
+    after = torch.flip(torch.cummin(torch.flip(torch.where(placed, idx, torch.full_like(idx, n)), [0]), 0).values, [0])
+    gap = ~placed & (before >= 0) & (after < n)
+    if not bool(gap.any()):
+        return poses
+    a, b = before[gap], after[gap]
+    t, ta, tb = timestamps[gap], timestamps[a], timestamps[b]
+    s = ((t - ta) / (tb - ta).clamp_min(1e-12)).clamp(0.0, 1.0).to(poses.dtype)
+    step = se3_log(se3_between(poses[a], poses[b]))
+    out = poses.clone()
+    out[gap] = se3_compose(poses[a], se3_exp(s[:, None] * step))
+    return out
 
 
 @dataclass
@@ -419,7 +454,7 @@ class RGBDSLAM:
             return poses
         return depth_camera_poses(poses, self._T_rgb_depth)
 
-    def _frames_trajectory(self, kf_poses: Tensor) -> Trajectory:
+    def _frames_trajectory(self, kf_poses: Tensor, interpolate_lost: bool = False) -> Trajectory:
         n = len(self._frames)
         ts = torch.tensor([f.timestamp for f in self._frames], dtype=torch.float64)
         if n == 0:
@@ -427,7 +462,11 @@ class RGBDSLAM:
         kf = torch.tensor([max(f.keyframe_id, 0) for f in self._frames], dtype=torch.long)
         T = torch.stack([f.T_kf_frame for f in self._frames])
         base = kf_poses[kf] if kf_poses.shape[0] else se3_identity(n, dtype=torch.float64)
-        return Trajectory(ts, self._output_frame(se3_compose(base, T)))
+        poses = se3_compose(base, T)
+        if interpolate_lost:
+            placed = torch.tensor([f.status not in (TrackStatus.LOST.value, "skipped") for f in self._frames])
+            poses = interpolate_gaps(ts, poses, placed)
+        return Trajectory(ts, self._output_frame(poses))
 
     @config_threads
     def finish(self) -> SLAMResult:
@@ -465,7 +504,7 @@ class RGBDSLAM:
         kf_ts = torch.tensor([kf.timestamp for kf in self.odometry.keyframes], dtype=torch.float64)
         queries = self.loop_closer.queries if self.loop_closer is not None else []
         return SLAMResult(
-            trajectory=self._frames_trajectory(kf_final),
+            trajectory=self._frames_trajectory(kf_final, interpolate_lost=True),
             odometry_trajectory=self._frames_trajectory(kf_odo),
             keyframe_trajectory=Trajectory(kf_ts, self._output_frame(kf_final.clone())),
             keyframe_frames=torch.tensor([kf.frame_index for kf in self.odometry.keyframes], dtype=torch.long),

@@ -158,3 +158,28 @@ def test_corrupt_image_is_skipped_and_still_gets_a_pose(tmp_path):
     assert run.result.num_skipped == 1
     assert run.result.trajectory.poses.shape == (6, 7)
     assert torch.isfinite(run.result.trajectory.poses).all()
+
+
+def test_interpolate_gaps_by_hand():
+    """Lost frames between two placed ones move along the screw motion between them, by time; frames with
+    nothing placed on one side keep their poses."""
+    import math
+
+    from slam.lie import se3_exp, se3_log
+    from slam.system import interpolate_gaps
+
+    D = torch.float64
+    a = se3_exp(torch.tensor([0.0, 0, 0, 0, 0, 0], dtype=D))
+    b = se3_exp(torch.tensor([1.0, 0, 0, 0, 0, math.pi / 2], dtype=D))
+    junk = torch.tensor([9.0, 9, 9, 0, 0, 0, 1], dtype=D)
+    poses = torch.stack([junk, a, junk, junk, b, junk])
+    placed = torch.tensor([False, True, False, False, True, False])
+    ts = torch.tensor([0.0, 1.0, 1.5, 3.0, 5.0, 6.0], dtype=D)
+    out = interpolate_gaps(ts, poses, placed)
+    assert torch.equal(out[[0, 1, 4, 5]], poses[[0, 1, 4, 5]])
+    for k, s in ((2, 0.125), (3, 0.5)):  # s = (t - 1) / (5 - 1)
+        want = se3_exp(torch.tensor([s, 0, 0, 0, 0, s * math.pi / 2], dtype=D))  # the same screw, scaled
+        assert float(se3_log(se3_between(out[k], want)).norm()) < 1e-12  # (q and -q are one rotation)
+        assert abs(float(so3_log(out[k][3:]).norm()) - s * math.pi / 2) < 1e-12
+    assert torch.equal(interpolate_gaps(ts, poses, torch.ones(6, dtype=torch.bool)), poses)
+    assert interpolate_gaps(ts[:0], poses[:0], placed[:0]).shape == (0, 7)

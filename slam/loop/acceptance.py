@@ -11,8 +11,9 @@ the bound is affine in the distance ``L`` travelled between the two keyframes al
 ``L`` follows the chain of odometry edges while no loop has corrected the estimate, and the shortest path
 through the accepted loops once they have been optimised into it (:meth:`KeyframeGraph.path_lengths`).
 A weak edge (forced after a tracking loss at a constant-velocity guess) bounds nothing: a path across it
-is infinitely long, so the caps apply, and the loops that mend the gap are not refused for disagreeing
-with the guess (benchmarks/tracking_loss.py).
+is infinitely long, a loop across it answers to the group check alone (:meth:`slam.loop.LoopCloser.limits`),
+and the loops that mend the gap are not refused for disagreeing with the guess, however far off seconds of
+constant velocity put it (benchmarks/tracking_loss.py).
 The same bound, on the sum of the two paths, decides whether two loops agree with each other
 (:func:`pairwise_consistent`, used by the group check of :mod:`slam.loop.consistency`).
 
@@ -65,7 +66,8 @@ def drift_limits(path_length: float, config: DriftBoundConfig) -> DriftLimits:
     """The allowed disagreement after ``path_length`` metres travelled between two keyframes.
 
     Args:
-        path_length: metres (``inf`` when the keyframes are not connected: the caps apply).
+        path_length: metres (``inf``: the caps; the loop closer holds keyframes no measured path joins to
+            no bound at all).
         config: :class:`DriftBoundConfig`.
     """
     if not path_length >= 0:

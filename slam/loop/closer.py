@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence
 
@@ -238,7 +239,11 @@ class LoopCloser:
 
     def limits(self, path_length: float) -> DriftLimits:
         """The bound on the disagreement between a loop and the current estimate of it, for keyframes
-        ``path_length`` metres apart along the graph (:func:`slam.loop.acceptance.drift_limits`)."""
+        ``path_length`` metres apart along the graph (:func:`slam.loop.acceptance.drift_limits`); none for
+        keyframes no measured path joins (``inf``: a tracking loss lies between them, and the estimate
+        across it is a guess): such a loop answers to the group check alone."""
+        if not math.isfinite(path_length):
+            return DriftLimits(math.inf, math.inf)
         return drift_limits(path_length, self.config.drift)
 
     def close(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph,

@@ -16,7 +16,10 @@ other loops of the group whose ends are both near its own (the two paths summing
 keyframe after keyframe; a wrong registration is a one-off.
 
 The checks use the odometry chain only (never the optimised estimate, which the loops themselves bend),
-so a wrong loop cannot make itself look consistent.
+so a wrong loop cannot make itself look consistent. Two loops joined only across a weak edge (a tracking
+loss: no measured odometry between their ends) cannot be checked against each other and count as
+consistent, as PCM compares only loops that odometry joins; loops across the same loss are compared
+(their ends lie on the same sides of it), so a run of true loops mending a loss still outvotes a wrong one.
 
 Example:
     >>> import torch
@@ -152,6 +155,10 @@ class GroupConsistency:
             return float(lengths[u][v])
 
         L = length(a1, a2) + length(b1, b2)
+        if not math.isfinite(L):
+            # a path crosses a weak edge (a tracking loss): odometry says nothing about how the two loops
+            # relate, so they cannot contradict each other (PCM compares only loops joined by odometry)
+            return True, L
         ok, _, _ = pairwise_consistent(Z1, Z2, se3_between(odo(a1), odo(a2)), se3_between(odo(b1), odo(b2)),
                                        drift_limits(L, self.config.bound))
         return ok, L
