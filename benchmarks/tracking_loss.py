@@ -1,6 +1,7 @@
 """A covered lens on a real sequence: tracking is lost, and loops across the gap must mend the guess.
 
     python benchmarks/tracking_loss.py [--data ../shared/data] [--gaps 300:400 500:600 700:800] [--threads 2]
+    python benchmarks/tracking_loss.py --sequence runs/building_seq --gaps 600:700   # another sequence folder
 
 7-Scenes redkitchen (1000 real frames) run through :class:`slam.system.RGBDSLAM` with the configuration
 ``attnloop-slam`` gives it (the Kinect rig of 7-Scenes, the default loop descriptor), once as recorded and once per gap ``A:B`` with the depth of frames A..B-1 blanked (a covered
@@ -9,10 +10,10 @@ at its constant-velocity guess with a *weak* edge: a guess, not a measurement. E
 the weak edges, the loops kept and how many join keyframes on both sides of the gap, how many loops
 disagree with the ground truth's relative pose by more than 0.1 m, and the ATE (m) of the tracked frames
 (every frame not lost), for the optimised trajectory and for odometry alone (the reference, from the same
-run), then over every frame (the lost ones are placed by constant velocity). The loops across a gap are
-what corrects the guess: no measured path joins their keyframes
-(:meth:`slam.keyframe_graph.KeyframeGraph.path_lengths`), so they are not held to the estimate at all, only
-to the group check.
+run), then over every frame (the lost ones interpolated between the tracked ones around them). The loops
+across a gap are what corrects the guess: no measured path joins their keyframes
+(:meth:`slam.keyframe_graph.KeyframeGraph.path_lengths`), so they are held to the drift bound's caps only,
+or with ``--recover-after-loss`` (``LoopClosureConfig.recover_after_loss``) to no bound, the group check alone.
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ import torch
 
 from slam.config import SLAMConfig
 from slam.eval.metrics import ate
+from slam.io import open_sequence
 from slam.io.sevenscenes import SevenScenesSequence
 from slam.io.trajectory import Trajectory
 from slam.lie import se3_between
@@ -46,16 +48,18 @@ def parse_gap(text: str) -> tuple[int, int]:
     return start, end
 
 
-def config(seq) -> SLAMConfig:
+def config(seq, recover_after_loss: bool = False) -> SLAMConfig:
     """What ``attnloop-slam`` runs on ``seq`` (its dataset's rig), with the default descriptor's backbone named
-    and no point cloud (not measured here)."""
-    return config_from_args(run_options(backbone="efficientnet_lite0", no_map=True), seq)
+    and no point cloud (not measured here); ``recover_after_loss``: ``LoopClosureConfig.recover_after_loss``."""
+    cfg = config_from_args(run_options(backbone="efficientnet_lite0", no_map=True), seq)
+    cfg.loop.recover_after_loss = recover_after_loss
+    return cfg
 
 
-def run(seq, descriptor, gap: tuple[int, int] | None) -> dict:
+def run(seq, descriptor, gap: tuple[int, int] | None, recover_after_loss: bool = False) -> dict:
     """One run of ``seq`` (a 7-Scenes sequence or a slice of one); ``gap``: the frames whose depth is blanked
     (None: as recorded)."""
-    slam = RGBDSLAM(config(seq), descriptor=descriptor)
+    slam = RGBDSLAM(config(seq, recover_after_loss), descriptor=descriptor)
     a, b = gap or (0, 0)
     tracked, t0 = [], time.perf_counter()
     for i in range(len(seq)):
@@ -89,25 +93,35 @@ def main() -> None:
     p.add_argument("--gaps", nargs="+", type=parse_gap, default=[(300, 400), (500, 600), (700, 800)],
                    metavar="FIRST:END", help="frames whose depth is blanked, one run each (default: 300:400 "
                                              "500:600 700:800)")
+    p.add_argument("--sequence", type=Path, default=None, metavar="DIR",
+                   help="a sequence folder with ground truth (TUM, 7-Scenes, generated) instead of the kitchen")
+    p.add_argument("--recover-after-loss", action="store_true",
+                   help="LoopClosureConfig.recover_after_loss: no bound on loops across a loss")
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     logging.getLogger("slam").setLevel(logging.ERROR)  # not a line per covered frame (they are counted)
-    folder = args.data / "7scenes-redkitchen"
-    if not (folder / "frame-000000.color.jpg").is_file():
-        raise SystemExit(f"{folder}: 7-Scenes redkitchen not found (set ATTNLOOP_DATA or --data)")
-    seq = SevenScenesSequence(folder)
+    if args.sequence is not None:
+        seq = open_sequence(args.sequence)
+        if seq.groundtruth is None:
+            raise SystemExit(f"{args.sequence}: no ground truth to measure against")
+    else:
+        folder = args.data / "7scenes-redkitchen"
+        if not (folder / "frame-000000.color.jpg").is_file():
+            raise SystemExit(f"{folder}: 7-Scenes redkitchen not found (set ATTNLOOP_DATA or --data)")
+        seq = SevenScenesSequence(folder)
     for a, b in args.gaps:
         if b > len(seq):
             p.error(f"gap {a}:{b} ends past the sequence's {len(seq)} frames")
     desc = build_descriptor(config(seq).loop.descriptor)
-    print(f"# A covered lens on 7-Scenes redkitchen ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, "
-          f"{torch.get_num_threads()} thread(s))\n")
+    mode = ", recover_after_loss" if args.recover_after_loss else ""
+    print(f"# A covered lens on {seq.name} ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, "
+          f"{torch.get_num_threads()} thread(s){mode})\n")
     print("| depth blanked | frames lost | weak edges | loops (across the gap) | loops > 0.1 m off | ATE tracked "
           "frames: optimised / odometry (m) | ATE all frames: optimised / odometry (m) | s |")
     print("|---|---|---|---|---|---|---|---|")
     for gap in [None, *args.gaps]:
-        r = run(seq, desc, gap)
+        r = run(seq, desc, gap, args.recover_after_loss)
         print(f"| {r['gap']} | {r['lost']} | {r['weak']} | {r['loops']} ({r['across']}) | {r['wrong']} | "
               f"{r['ate']:.4f} / {r['ate_odo']:.4f} | {r['ate_all']:.4f} / {r['ate_all_odo']:.4f} | "
               f"{r['seconds']:.0f} |", flush=True)

@@ -9,8 +9,8 @@ Distances along the graph bound what odometry can have drifted between two keyfr
 (:meth:`KeyframeGraph.path_lengths`): along the chain of odometry edges when no loop has corrected the
 estimate, or along the shortest path through the accepted loops when it has. A weak edge (forced after a
 tracking loss: a constant-velocity guess, not a measurement) bounds nothing, so a path across it is
-infinitely long: a loop across it is not held to the estimate (:meth:`slam.loop.LoopCloser.limits`) and
-two loops it separates are not compared (:mod:`slam.loop.consistency`).
+infinitely long: a loop across it is held to the drift bound's caps only, or to nothing with
+``LoopClosureConfig.recover_after_loss`` (:meth:`slam.loop.LoopCloser.limits`).
 
 Example:
     >>> import torch

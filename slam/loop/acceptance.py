@@ -11,9 +11,9 @@ the bound is affine in the distance ``L`` travelled between the two keyframes al
 ``L`` follows the chain of odometry edges while no loop has corrected the estimate, and the shortest path
 through the accepted loops once they have been optimised into it (:meth:`KeyframeGraph.path_lengths`).
 A weak edge (forced after a tracking loss at a constant-velocity guess) bounds nothing: a path across it
-is infinitely long, a loop across it answers to the group check alone (:meth:`slam.loop.LoopCloser.limits`),
-and the loops that mend the gap are not refused for disagreeing with the guess, however far off seconds of
-constant velocity put it (benchmarks/tracking_loss.py).
+is infinitely long and the caps apply, so the loops that mend the gap are not refused for disagreeing
+with a guess less than the caps off (with ``LoopClosureConfig.recover_after_loss``, however far off;
+:meth:`slam.loop.LoopCloser.limits`, benchmarks/tracking_loss.py).
 The same bound, on the sum of the two paths, decides whether two loops agree with each other
 (:func:`pairwise_consistent`, used by the group check of :mod:`slam.loop.consistency`).
 
@@ -66,8 +66,7 @@ def drift_limits(path_length: float, config: DriftBoundConfig) -> DriftLimits:
     """The allowed disagreement after ``path_length`` metres travelled between two keyframes.
 
     Args:
-        path_length: metres (``inf``: the caps; the loop closer holds keyframes no measured path joins to
-            no bound at all).
+        path_length: metres (``inf`` when no measured path joins the keyframes: the caps apply).
         config: :class:`DriftBoundConfig`.
     """
     if not path_length >= 0:

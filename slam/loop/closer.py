@@ -191,7 +191,7 @@ class LoopCloser:
         self.threshold = detector.threshold
         logger.info("loop detector threshold (%s): %s", backbone or "custom descriptor", self.threshold)
         self.detector = LoopCandidateDetector(detector)
-        self.consistency = GroupConsistency(config.consistency)
+        self.consistency = GroupConsistency(config.consistency, compare_across_losses=not config.recover_after_loss)
         self._queries: List[LoopQuery] = []
         self._loops: List[LoopClosure] = []  # every hypothesis, by id
         self._kf_of_id: Dict[int, int] = {}  # detector id -> keyframe id
@@ -239,10 +239,11 @@ class LoopCloser:
 
     def limits(self, path_length: float) -> DriftLimits:
         """The bound on the disagreement between a loop and the current estimate of it, for keyframes
-        ``path_length`` metres apart along the graph (:func:`slam.loop.acceptance.drift_limits`); none for
-        keyframes no measured path joins (``inf``: a tracking loss lies between them, and the estimate
-        across it is a guess): such a loop answers to the group check alone."""
-        if not math.isfinite(path_length):
+        ``path_length`` metres apart along the graph (:func:`slam.loop.acceptance.drift_limits`). For
+        keyframes no measured path joins (``inf``: a tracking loss lies between them, and the estimate across
+        it is a guess) the bound's caps, or with ``LoopClosureConfig.recover_after_loss`` none: such a loop
+        then answers to the group check alone."""
+        if not math.isfinite(path_length) and self.config.recover_after_loss:
             return DriftLimits(math.inf, math.inf)
         return drift_limits(path_length, self.config.drift)
 

@@ -17,9 +17,11 @@ keyframe after keyframe; a wrong registration is a one-off.
 
 The checks use the odometry chain only (never the optimised estimate, which the loops themselves bend),
 so a wrong loop cannot make itself look consistent. Two loops joined only across a weak edge (a tracking
-loss: no measured odometry between their ends) cannot be checked against each other and count as
-consistent, as PCM compares only loops that odometry joins; loops across the same loss are compared
-(their ends lie on the same sides of it), so a run of true loops mending a loss still outvotes a wrong one.
+loss: no measured odometry between their ends) are compared through its guess, within the bound's caps;
+with ``compare_across_losses=False`` (``LoopClosureConfig.recover_after_loss``) they are not compared and
+count as consistent, as PCM compares only loops that odometry joins. Loops across the same loss are
+compared either way (their ends lie on the same sides of it), so a run of true loops mending a loss still
+outvotes a wrong one.
 
 Example:
     >>> import torch
@@ -126,8 +128,15 @@ class GroupConsistency:
     Hypotheses are numbered in the order they are added; :meth:`add` returns the kept ones.
     """
 
-    def __init__(self, config: ConsistencyConfig):
+    def __init__(self, config: ConsistencyConfig, compare_across_losses: bool = True):
+        """
+        Args:
+            config: :class:`ConsistencyConfig`.
+            compare_across_losses: compare two loops joined only across a weak edge through its guess
+                (within the caps); False: they count as consistent (``LoopClosureConfig.recover_after_loss``).
+        """
         self.config = config
+        self.compare_across_losses = compare_across_losses  # False: loops a loss separates are not compared
         self._loops: list[tuple[int, int, Tensor]] = []
         self._adj = np.zeros((0, 0), bool)
         self._near = np.zeros((0, 0), bool)  # the two ends within support_radius of each other's
@@ -155,7 +164,7 @@ class GroupConsistency:
             return float(lengths[u][v])
 
         L = length(a1, a2) + length(b1, b2)
-        if not math.isfinite(L):
+        if not math.isfinite(L) and not self.compare_across_losses:
             # a path crosses a weak edge (a tracking loss): odometry says nothing about how the two loops
             # relate, so they cannot contradict each other (PCM compares only loops joined by odometry)
             return True, L
