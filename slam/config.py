@@ -94,10 +94,11 @@ class LoopClosureConfig:
     # joins two keyframes, so the drift bound's caps (1.5 m / 45 deg) are all that is left of the estimate.
     # True: no bound at all there, and loops a loss separates are not compared (the group check alone
     # decides). It mends a loss of any length (the kitchen without depth for 10 s, the guess 3 m / 90 deg
-    # off: ATE of the tracked frames 0.030 m against odometry's 1.275 m, no loop with the caps), but after
-    # a blind walk an identical room is taken for the old one (the building, 4 s without depth on the way
-    # into S1's twin: 82 false loops, ATE 3.4 m; with the caps none). benchmarks/tracking_loss.py,
-    # docs/benchmarks.md. False: the caps hold, a false loop costs more than a missed one.
+    # off: ATE of the tracked frames 0.030 m against odometry's 1.275 m, no loop across it with the caps),
+    # but after a blind walk an identical room is taken for the old one (the building, 4 s without depth on
+    # the way into S1's twin: 82 false loops; with the caps none, and the run stays in two pieces; 3.3-3.4
+    # m either way). benchmarks/tracking_loss.py, docs/benchmarks.md. False: the caps hold, a false loop
+    # costs more than a missed one.
     recover_after_loss: bool = False
     # Group consistency of the loops (slam.loop.consistency: the largest set of mutually consistent loops).
     consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
@@ -129,7 +130,8 @@ class LoopClosureConfig:
         check_number(n, "max_rotation_deg", self.max_rotation_deg, 0, lo_open=True)
         check_number(n, "information_scale", self.information_scale, 0, lo_open=True, finite=True)
         if not isinstance(self.recover_after_loss, bool):
-            raise ValueError(f"LoopClosureConfig.recover_after_loss must be True or False, got {self.recover_after_loss!r}")
+            raise ValueError("LoopClosureConfig.recover_after_loss must be True or False, got "
+                             f"{self.recover_after_loss!r}")
         if not isinstance(self.threshold_by_backbone, dict):
             raise ValueError(f"LoopClosureConfig.threshold_by_backbone must be a dict backbone name -> "
                              f"ThresholdConfig, got {type(self.threshold_by_backbone).__name__}")

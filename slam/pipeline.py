@@ -94,7 +94,7 @@ class RunResult:
     backbone: str | None = None
     map_cloud: tuple[np.ndarray, np.ndarray] | None = None
     relocalisation: object | None = None  # slam.maps.RelocalisationReport of a run in a saved map (map_dir)
-    map_origin: torch.Tensor | None = None  # (7,) ground truth of the saved map's first frame (map_dir), if known
+    map_origin: torch.Tensor | None = None  # (7,) ground truth of the saved map's origin (map_dir), if known
     saved_map: Path | None = None  # where save_map wrote the run's map
 
 

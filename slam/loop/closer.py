@@ -198,7 +198,7 @@ class LoopCloser:
         self._t0: Optional[float] = None
         self._last_id = -1
         self._warned_stamps = False
-        self._last_stamp: Optional[float] = None
+        self._last_stamp: float | None = None
 
     @property
     def queries(self) -> List[LoopQuery]:
@@ -271,10 +271,13 @@ class LoopCloser:
             cands = self.detector.add_and_query(desc, keyframe_id=did, timestamp=kf.timestamp)
         self._kf_of_id[did] = kf.id
         joined = graph.joined(kf.id)  # already measured by an edge: not a loop (LoopQuery.top_kf)
-        top = [(self._kf_of_id[int(c)], float(s)) for c, s in zip(cands.top_ids.tolist(), cands.top_scores.tolist())
-               if self._kf_of_id[int(c)] not in joined]
-        eligible = [(self._kf_of_id[int(c)], float(s)) for c, s in zip(cands.ids.tolist(), cands.scores.tolist())
-                    if self._kf_of_id[int(c)] not in joined][: cfg.max_candidates]
+
+        def eligible_of(ids: Tensor, scores: Tensor) -> list[tuple[int, float]]:
+            pairs = ((self._kf_of_id[int(c)], float(s)) for c, s in zip(ids.tolist(), scores.tolist()))
+            return [(k, s) for k, s in pairs if k not in joined]
+
+        top = eligible_of(cands.top_ids, cands.top_scores)
+        eligible = eligible_of(cands.ids, cands.scores)[: cfg.max_candidates]
         top_kf, top_score = top[0] if top else (-1, float("-inf"))
         query = LoopQuery(kf.id, top_kf, top_score, float(cands.threshold), [c for c, _ in eligible], [])
         self._queries.append(query)

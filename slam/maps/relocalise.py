@@ -41,6 +41,7 @@ from slam.loop import DriftLimits, drift_limits, maximum_clique, pairwise_consis
 from slam.maps.config import RelocalisationConfig
 from slam.maps.format import SavedMap
 from slam.odometry.depth_registration import depth_camera_poses, rig_pose
+from slam.odometry.features import is_binary_detector
 
 logger = logging.getLogger(__name__)
 Tensor = torch.Tensor
@@ -346,12 +347,10 @@ class MapRelocaliser:
                         or not np.allclose(map_rig.get("rgb_from_depth", [0, 0, 0]), rig["rgb_from_depth"])):
             raise MapMismatchError(f"{where}: the map's camera rig {map_rig} differs from this run's {rig}; run "
                                    "with the map's rig (the poses are the tracked camera's)")
-        from slam.odometry.features import is_binary_detector
-
         detector = slam.config.odometry.features.detector
-        map_binary = {bool(f.binary) for f in saved.features}
-        if map_binary and map_binary != {is_binary_detector(detector)}:
-            kind = "binary (ORB)" if map_binary == {True} else "float (SIFT)"
+        # one kind for every keyframe (the format stores one dtype): the first says it
+        if len(saved.features) and bool(saved.features[0].binary) != is_binary_detector(detector):
+            kind = "binary (ORB)" if saved.features[0].binary else "float (SIFT)"
             raise MapMismatchError(f"{where}: the map's keyframes hold {kind} feature descriptors, this run's "
                                    f"detector is {detector!r}: loops to the map could not be verified; run with "
                                    "the detector that made the map")
