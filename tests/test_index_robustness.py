@@ -8,6 +8,7 @@ import re
 import numpy as np
 import pytest
 import torch
+from test_index import random_data as _data  # unit rows of a seeded normal draw
 
 from attnloop.index import (
     FaissConfig,
@@ -22,14 +23,6 @@ from attnloop.index import (
 )
 from attnloop.index.config import config_from_dict, config_to_dict
 from attnloop.threshold import ThresholdConfig, accept_mask, adaptive_threshold
-
-
-def _unit(x: torch.Tensor) -> torch.Tensor:
-    return x / x.norm(dim=-1, keepdim=True)
-
-
-def _data(n: int, d: int, seed: int = 0) -> torch.Tensor:
-    return _unit(torch.randn(n, d, generator=torch.Generator().manual_seed(seed)))
 
 
 def _brute(db: torch.Tensor, q: torch.Tensor, k: int, max_id: int | None = None) -> tuple[list[int], torch.Tensor]:
