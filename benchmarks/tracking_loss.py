@@ -119,10 +119,11 @@ def main() -> None:
     for a, b in args.gaps:
         if b > len(seq):
             p.error(f"gap {a}:{b} ends past the sequence's {len(seq)} frames")
-    desc = build_descriptor(config(seq).loop.descriptor)
+    cfg = config(seq, args.recover_after_loss, args.threads)  # what every run below builds
+    desc = build_descriptor(cfg.loop.descriptor)
     mode = ", recover_after_loss" if args.recover_after_loss else ""
     print(f"# A covered lens on {seq.name} ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, "
-          f"{config(seq, threads=args.threads).threads} thread(s){mode})\n")
+          f"{cfg.threads} thread(s){mode})\n")
     print("| depth blanked | frames lost | weak edges | loops (across the gap) | loops > 0.1 m off | ATE tracked "
           "frames: optimised / odometry (m) | ATE all frames: optimised / odometry (m) | s |")
     print("|---|---|---|---|---|---|---|---|")
