@@ -75,6 +75,13 @@ Session 7 (the same caches):
   number of (condition, protocol, metric) figures below ``none``'s and the sum of those deficits
   (tap maps cached per condition as ``*_<condition>_cond.pt``).
 
+Session 9 (the same ``*_taps.pt`` caches):
+
+* ``subregions``: the issue's "RNNs over sub-regions" (CNN-randRNN's answer to the flat RNN's rigidity)
+  against pooling first: the paper's random RNNs over each region's raw fused sub-map (the whole map and
+  the 2 x 2 cells, 4 or 16 RNNs of 64 each, input at norm 10), the paper's RNNs over each stage's whole
+  map, and the default's regional GeM without RNNs; the four protocols, the shift check, the held-out halves.
+
 Usage:
     python benchmarks/attention_hypotheses.py [--data ../shared/data] [--only range norm ...] [--threads 1]
 """
@@ -111,9 +118,9 @@ SIZE = (224, 288)
 SEEDS = ("own", "top5", "top5-uniform", "T2", "entropy")
 HYPOTHESES = ("range", "hotspot", "norm", "smooth", "sign", "seed", "rnnseed", "regions",
               "spatial", "taps", "layouts", "shift", "halves3", "local", "encoding", "imagenet",
-              "conditions")
+              "conditions", "subregions")
 SESSION3 = ("spatial", "taps", "layouts", "shift", "halves3", "local", "encoding", "imagenet",
-              "conditions")
+            "conditions", "subregions")
 
 
 def _seed(p: torch.Tensor, z: torch.Tensor, kind: str) -> torch.Tensor:
@@ -1087,6 +1094,64 @@ def imagenet_section(views: dict, protos: dict) -> None:
         f"chosen: {best}": results[best], "default": results["as is (the default)"]}, names, key="half1")
 
 
+# --------------------------------------------------------------------------- session 9: RNNs over sub-regions
+def region_vectors(maps: list[torch.Tensor], layout: str = DEFAULT_LAYOUT) -> tuple[torch.Tensor, list[int]]:
+    """Each region of ``layout`` of each fused map, raw (no pooling), flattened and L2-normalised:
+    ``(B, sum of C h w over maps and regions)`` and the split sizes, map-major, regions in layout order."""
+    regions, _ = LAYOUTS[layout]
+    parts = [F.normalize(x[:, :, a:b, c:d].flatten(1), dim=1)
+             for x in maps for a, b, c, d in regions(*x.shape[2:])]
+    return torch.cat(parts, 1), [v.shape[1] for v in parts]
+
+
+def subregion_rnn(vectors: torch.Tensor, sizes: list[int], seed: int, num_rnn: int, scale: float = 10.0
+                  ) -> torch.Tensor:
+    """The paper's one-level random RNNs (U[-0.1, 0.1], tanh, no bias) over each region's raw sub-map
+    (CNN-randRNN's RNNs over sub-regions) at input norm ``scale`` (the library's ``pool_scale``): every
+    region its own ``num_rnn`` RNNs of 64 (seeded by ``seed`` and the region's place), each region's
+    output L2-normalised, concatenated, L2."""
+    out = []
+    for r, v in enumerate(vectors.split(sizes, 1)):
+        key = ("subregion", v.shape[1], seed, r, num_rnn)
+        if key not in _W:
+            _W[key] = random_rnn_weights(num_rnn, v.shape[1], 64, seed=1000 * seed + r)
+        out.append(F.normalize(random_rnn_pool(scale * v[:, :, None, None], _W[key], merge=False), dim=1))
+    return F.normalize(torch.cat(out, 1), dim=1)
+
+
+def subregion_section(views: dict, protos: dict, seeds: tuple[int, ...]) -> None:
+    """Session 9: the issue's "RNNs over sub-regions" against pooling first (the default) and the paper's
+    RNN over the whole map, on the default's fused maps (stage6 unfused + stage7 fused)."""
+    names = [p for s in protos.values() for p in s]
+    taps = ("stage6", "stage7")
+    sizes = {}
+
+    def pool(layout):
+        def fn(maps, _set):
+            v, sizes[layout] = region_vectors(maps, layout)
+            return v
+        return fn
+
+    def rnn(layout, num_rnn):
+        return lambda code, seed: subregion_rnn(code, sizes[layout], seed, num_rnn)
+
+    whole, grid = "whole", DEFAULT_LAYOUT
+    results = {
+        "regional GeM, no RNNs (the default)": evaluate_variant(views, protos, taps, "G@last", grid, (None,)),
+        "16 RNNs over each stage's whole map (the paper's flat pooling)":
+            evaluate_variant(views, protos, taps, "G@last", whole, seeds, pool_fn=pool(whole), rnn_fn=rnn(whole, 16)),
+        "RNNs over sub-regions: whole + 2 x 2, 4 RNNs each (2560 dims)":
+            evaluate_variant(views, protos, taps, "G@last", grid, seeds, pool_fn=pool(grid), rnn_fn=rnn(grid, 4)),
+        "RNNs over sub-regions: whole + 2 x 2, 16 RNNs each (10240 dims)":
+            evaluate_variant(views, protos, taps, "G@last", grid, seeds, pool_fn=pool(grid), rnn_fn=rnn(grid, 16)),
+    }
+    variant_table(f"RNNs over sub-regions (R@1 / R@P100; RNN rows the mean over {len(seeds)} RNN seed(s))",
+                  results, names)
+    summary_table("RNNs over sub-regions: four-protocol mean, R@1 / R@P100", results)
+    crit = {n: np.mean([sum(_mean(res[m]["half0"])) for m in FUSION_MODES]) for n, res in results.items()}
+    print("\nHeld-out halves, the criterion on the first half: " + "; ".join(f"{n} {c:.3f}" for n, c in crit.items()))
+
+
 def session3(args, data: dict, protos: dict) -> None:
     views = {k: load_taps(k, images, args.cache) for k, (images, _) in data.items()}
     names = [p for s in protos.values() for p in s]
@@ -1097,6 +1162,8 @@ def session3(args, data: dict, protos: dict) -> None:
                          args.cache)
     if "imagenet" in args.only:
         imagenet_section(views, protos)
+    if "subregions" in args.only:
+        subregion_section(views, protos, tuple(range(args.rnn_seeds)))
     if "conditions" in args.only:
         conditions_section(data, views, protos, args.cache)
     local = {}

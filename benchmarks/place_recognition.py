@@ -31,6 +31,7 @@ Usage:
     python benchmarks/place_recognition.py --grayscale        # grayscale copies (the held-out corridor is grayscale)
     python benchmarks/place_recognition.py --downscale 4      # every image at 1/4 of its width and height
     python benchmarks/place_recognition.py --sequence 1 3 5   # also score sequences of 3 and 5 frames (SeqSLAM)
+    python benchmarks/place_recognition.py --misses           # and which queries each method misses, and how
     python benchmarks/place_recognition.py --sets --query corridor/query --reference corridor/ref \\
         --ground-truth corridor/ground_truth_new.npy
 
@@ -318,7 +319,8 @@ def protocols_rtabmap(data: Path):
     cand = sequence_candidates(84, 10)
     kitchen = data / "7scenes-redkitchen"
     bow_train = [load_rgb(kitchen / f"frame-{i:06d}.color.jpg") for i in range(0, 1000, 5)]
-    return images, None, bow_train, {"fwd": (sym & cand, cand), "rev": (sym & cand.T, cand.T)}
+    names = [str(i) for i in range(1, 85)]  # image i.jpg
+    return images, None, bow_train, {"fwd": (sym & cand, cand), "rev": (sym & cand.T, cand.T)}, (names, names)
 
 
 def protocols_kitchen(data: Path, step: int = 5):
@@ -338,12 +340,14 @@ def protocols_kitchen(data: Path, step: int = 5):
     gt_split[half:, :half] = ground_truth_from_poses(poses[half:], poses[:half])
     rt = data / "rtabmap-samples"
     bow_train = [load_rgb(rt / f"{i}.jpg") for i in range(1, 85) if (rt / f"{i}.jpg").is_file()] + skimage_photos()
-    return images, None, bow_train, {"fwd": (gt, cand), "split": (gt_split, split)}
+    names = [f"frame {i}" for i in frames]
+    return images, None, bow_train, {"fwd": (gt, cand), "split": (gt_split, split)}, (names, names)
 
 
 def protocols_folders(query: Path, reference: Path, gt_file: Path, data: Path):
-    q = [load_rgb(p) for p in folder_images(query)]
-    r = [load_rgb(p) for p in folder_images(reference)]
+    q_files, r_files = folder_images(query), folder_images(reference)
+    q = [load_rgb(p) for p in q_files]
+    r = [load_rgb(p) for p in r_files]
     gt = read_ground_truth(gt_file, num_references=len(r))
     if gt.shape[0] != len(q):
         raise SystemExit(f"{gt_file}: {gt.shape[0]} queries in the ground truth, {len(q)} images in {query}")
@@ -352,10 +356,29 @@ def protocols_folders(query: Path, reference: Path, gt_file: Path, data: Path):
                  if (kitchen / f"frame-{i:06d}.color.jpg").is_file()]
     rt = data / "rtabmap-samples"
     bow_train += [load_rgb(rt / f"{i}.jpg") for i in range(1, 85) if (rt / f"{i}.jpg").is_file()]
-    return q, r, bow_train or q, {"pairs": (gt, torch.ones_like(gt))}
+    return q, r, bow_train or q, {"pairs": (gt, torch.ones_like(gt))}, ([p.name for p in q_files],
+                                                                        [p.name for p in r_files])
 
 
-def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path | None, suffix: str = "") -> None:
+def missed_queries(results: dict, gt: torch.Tensor, query_names: list[str], reference_names: list[str]) -> list[str]:
+    """Markdown rows, one per query with a true match that some method's best candidate misses: the query,
+    its true matches, how many methods miss it, and per method its best candidate and, in brackets, the
+    rank of its best-ranked true match (1: found)."""
+    rows = []
+    for q in torch.nonzero(gt.any(1)).flatten().tolist():
+        if all(bool(r.correct[q]) for r in results.values()):
+            continue
+        true = ", ".join(reference_names[j] for j in torch.nonzero(gt[q]).flatten().tolist())
+        cells = [f"{reference_names[int(r.best[q])]} ({int(r.first_true_rank[q]) + 1})" for r in results.values()]
+        missed = sum(not bool(r.correct[q]) for r in results.values())
+        rows.append(f"| {query_names[q]} | {true} | {missed} of {len(results)} | " + " | ".join(cells) + " |")
+    return rows
+
+
+def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path | None, suffix: str = "", *,
+           names: tuple[list[str], list[str]] | None = None) -> None:
+    """One table per protocol; with ``names`` (the query and reference images' names) also the queries some
+    method misses (:func:`missed_queries`)."""
     for pname, (gt, cand) in protos.items():
         results = {m: evaluate(s, gt, candidates=cand) for m, s in sims.items()}
         any_r = next(iter(results.values()))
@@ -366,6 +389,12 @@ def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path
             thr = r.threshold_at_full_precision
             print(f"| {m} | {r.recall_at(1):.3f} | {r.recall_at(5):.3f} | {r.recall_at(10):.3f} | {r.auc_pr:.3f} | "
                   f"{r.recall_at_full_precision:.3f} | {thr:.3f} |")
+        if names is not None:
+            rows = missed_queries(results, gt, *names)
+            print(f"\nQueries some method misses ({len(rows)}): per method its best candidate (the rank of its "
+                  "best true match)\n\n| query | true matches | missed by | " + " | ".join(results) + " |\n|---|---|---|"
+                  + "---|" * len(results))
+            print("\n".join(rows))
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
             keep = [m for m in results if not m.startswith("paper ") or m == "paper dam"]
@@ -376,15 +405,15 @@ def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path
 
 
 def report_sequences(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path | None, suffix: str,
-                     lengths: list[int]) -> None:
+                     lengths: list[int], *, names: tuple[list[str], list[str]] | None = None) -> None:
     """:func:`report` once per sequence length (1: the images themselves, under the set's own name)."""
     for n in lengths:
         if n == 1:
-            report(set_name, sims, protos, out, suffix)
+            report(set_name, sims, protos, out, suffix, names=names)
         else:
             print(f"\n### {set_name}: sequences of {n} frames (sequence_similarity)")
             report(set_name, {m: sequence_similarity(s, n) for m, s in sims.items()}, protos, out,
-                   f"{suffix}_seq{n}")
+                   f"{suffix}_seq{n}", names=names)
 
 
 def main() -> None:
@@ -412,6 +441,9 @@ def main() -> None:
     parser.add_argument("--bow-seeds", nargs="+", type=int, default=[0],
                         help="seeds of the ORB-BoW vocabulary (its k-means draw and sample); one row per seed "
                              "(default: 0)")
+    parser.add_argument("--misses", action="store_true",
+                        help="after each table, the queries some method misses at top-1: per method its best "
+                             "candidate and the rank of its best true match")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if (args.query is None) != (args.reference is None) or (args.query is not None and args.ground_truth is None):
@@ -438,15 +470,17 @@ def main() -> None:
         if got is None:
             print(f"\n{name}: data not found under {args.data}; skipped", file=sys.stderr)
             continue
-        query, reference, bow_train, protos = got
+        query, reference, bow_train, protos, names = got
         sims = all_methods(prepare(query), reference and prepare(reference), prepare(bow_train), args.methods,
                            args.bow_seeds)
-        report_sequences(name, sims, protos, args.out, suffix, args.sequence)
+        report_sequences(name, sims, protos, args.out, suffix, args.sequence, names=names if args.misses else None)
         print(f"\n({name}: {len(query)} images, {time.perf_counter() - t0:.0f} s)")
     if args.query is not None:
-        query, reference, bow_train, protos = protocols_folders(args.query, args.reference, args.ground_truth, args.data)
+        query, reference, bow_train, protos, names = protocols_folders(args.query, args.reference, args.ground_truth,
+                                                                       args.data)
         sims = all_methods(prepare(query), prepare(reference), prepare(bow_train), args.methods, args.bow_seeds)
-        report_sequences(args.query.parent.name or "folders", sims, protos, args.out, suffix, args.sequence)
+        report_sequences(args.query.parent.name or "folders", sims, protos, args.out, suffix, args.sequence,
+                         names=names if args.misses else None)
 
 
 if __name__ == "__main__":

@@ -282,3 +282,32 @@ def test_imagenet_tap_statistics_are_the_batch_norms_training_statistics(hyp):
     mean6, _ = stats["stage6"]
     assert torch.allclose(L6.mean((0, 2, 3)), mean6, atol=0.05 * float(L6.std((0, 2, 3)).mean()))
     assert float(mean6.abs().mean()) > 0.5  # four betas of N(0, 1) summed: the check is not a trivial zero
+
+
+def test_subregion_rnns_over_the_whole_map_are_the_papers_flat_rnns(hyp, maps):
+    # one region (the whole map): the library's flat pooling (no merge) at pool_scale 10, the same weights
+    from attnloop.descriptor import descriptor_from_attention
+    from attnloop.rnn_pool import random_rnn_weights
+
+    L = maps[0][:, :64]
+    vectors, sizes = hyp.region_vectors([L], "whole")
+    assert sizes == [64 * 7 * 9]
+    w = random_rnn_weights(16, 64 * 7 * 9, 64, seed=1000 * 2 + 0)
+    ref = descriptor_from_attention(L, torch.zeros_like(L), w, "none", pooling="flat", merge=False)[1]
+    assert torch.allclose(hyp.subregion_rnn(vectors, sizes, seed=2, num_rnn=16), ref, atol=1e-6)
+
+
+def test_subregion_rnns_see_only_their_region(hyp, maps):
+    # whole + 2 x 2 on a 7 x 9 map: cells rows 0-3 / 3-6, columns 0-4 / 4-8; a change at (6, 8) reaches the
+    # whole map's RNNs and the bottom-right cell's only
+    L = maps[0][:1, :32]
+    vectors, sizes = hyp.region_vectors([L], hyp.DEFAULT_LAYOUT)
+    assert sizes == [32 * 63] + [32 * 4 * 5] * 4
+    moved = L.clone()
+    moved[0, :, 6, 8] += 1.0
+    a = hyp.subregion_rnn(vectors, sizes, seed=0, num_rnn=2)
+    b = hyp.subregion_rnn(hyp.region_vectors([moved], hyp.DEFAULT_LAYOUT)[0], sizes, seed=0, num_rnn=2)
+    # undo the final L2 (it mixes the regions' scales): every region is unit length before it
+    a, b = a.view(5, 128) * 5 ** 0.5, b.view(5, 128) * 5 ** 0.5
+    changed = [not torch.allclose(x, y, atol=1e-6) for x, y in zip(a, b)]
+    assert changed == [True, False, False, False, True]

@@ -531,3 +531,19 @@ def test_benchmark_reports_each_sequence_length(load_script, capsys):
     tables = out.split("### toy: sequences of 3 frames")
     assert len(tables) == 2
     assert "| m | 0.000 |" in tables[0] and "| m | 1.000 |" in tables[1]
+
+
+def test_benchmark_lists_the_queries_a_method_misses(load_script, capsys):
+    # --misses: a query some method misses, with every method's best candidate and the rank of its best true
+    # match; a query every method finds is not listed
+    bench = load_script("benchmarks/place_recognition.py")
+    gt = torch.tensor([[True, False, False], [False, False, True]])
+    good = torch.tensor([[0.9, 0.1, 0.2], [0.1, 0.3, 0.8]])
+    bad = torch.tensor([[0.9, 0.1, 0.2], [0.1, 0.9, 0.5]])  # query 1: reference 1 first, its match 2nd
+    results = {m: evaluate(s, gt) for m, s in (("good", good), ("bad", bad))}
+    rows = bench.missed_queries(results, gt, ["q0", "q1"], ["r0", "r1", "r2"])
+    assert rows == ["| q1 | r2 | 1 of 2 | r2 (1) | r1 (2) |"]
+    bench.report("toy", {"good": good, "bad": bad}, {"p": (gt, torch.ones_like(gt))}, None,
+                 names=(["q0", "q1"], ["r0", "r1", "r2"]))
+    out = capsys.readouterr().out
+    assert "Queries some method misses (1)" in out and "| query | true matches | missed by | good | bad |" in out
