@@ -106,8 +106,15 @@ def natural_key(path: Path) -> tuple:
 
 
 def folder_images(folder: Path) -> list[Path]:
-    """The images of ``folder`` in natural order (:func:`natural_key`), the order of its ground truth."""
-    files = sorted((p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
+    """The images of ``folder`` in natural order (:func:`natural_key`), the order of its ground truth.
+
+    Hidden files (``.name``: macOS's ``._0000.jpg`` resource forks) are not images of the set.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise SystemExit(f"{folder}: not a folder of images")
+    files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")),
+                   key=natural_key)
     if not files:
         raise SystemExit(f"no images in {folder}")
     return files
@@ -233,13 +240,25 @@ class OrbBagOfWords:
 
 
 # ------------------------------------------------------------------------------------------ descriptors
+def same_size_batches(images: list[np.ndarray], batch: int) -> list[list[np.ndarray]]:
+    """Runs of at most ``batch`` consecutive images of one shape, in order (a batch is one tensor; a folder
+    may mix sizes, and a frame's descriptor does not depend on its batch)."""
+    runs: list[list[np.ndarray]] = []
+    for im in images:
+        if runs and len(runs[-1]) < batch and runs[-1][0].shape == im.shape:
+            runs[-1].append(im)
+        else:
+            runs.append([im])
+    return runs
+
+
 def attention_codes(images: list[np.ndarray], preset: str | None, batch: int = 8) -> dict[str, torch.Tensor]:
     """Descriptors of every fusion mode from one backbone pass, plus GAP/GeM of the tap for the default."""
     desc = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=True, preset=preset)
     taps, grads = [], []
     with torch.no_grad():
-        for s in range(0, len(images), batch):
-            x = torch.stack([torch.from_numpy(im).permute(2, 0, 1) for im in images[s:s + batch]])
+        for run in same_size_batches(images, batch):
+            x = torch.stack([torch.from_numpy(im).permute(2, 0, 1) for im in run])
             parts = desc.parts(x)
             taps.append(parts.tap)
             grads.append(parts.grad)
@@ -271,7 +290,10 @@ def all_methods(query: list[np.ndarray], reference: list[np.ndarray] | None, bow
     for name, c in codes.items():
         q, r = c[:nq], (c[nq:] if reference else c)
         sims[name] = q @ r.T
-    if "orb" in methods:
+    if "orb" in methods and not bow_train:
+        print("\nORB-BoW: not measured: no training images other than the evaluated ones (the shared sets or "
+              "scikit-image's photographs)")
+    elif "orb" in methods:
         for seed in bow_seeds:
             name = "ORB-BoW" if len(bow_seeds) == 1 else f"ORB-BoW seed {seed}"
             try:
@@ -348,7 +370,10 @@ def protocols_folders(query: Path, reference: Path, gt_file: Path, data: Path):
     q_files, r_files = folder_images(query), folder_images(reference)
     q = [load_rgb(p) for p in q_files]
     r = [load_rgb(p) for p in r_files]
-    gt = read_ground_truth(gt_file, num_references=len(r))
+    try:
+        gt = read_ground_truth(gt_file, num_references=len(r))
+    except (OSError, ValueError) as err:  # the reader's named errors say which file and what is wrong
+        raise SystemExit(str(err)) from None
     if gt.shape[0] != len(q):
         raise SystemExit(f"{gt_file}: {gt.shape[0]} queries in the ground truth, {len(q)} images in {query}")
     kitchen = data / "7scenes-redkitchen"
@@ -356,7 +381,8 @@ def protocols_folders(query: Path, reference: Path, gt_file: Path, data: Path):
                  if (kitchen / f"frame-{i:06d}.color.jpg").is_file()]
     rt = data / "rtabmap-samples"
     bow_train += [load_rgb(rt / f"{i}.jpg") for i in range(1, 85) if (rt / f"{i}.jpg").is_file()]
-    return q, r, bow_train or q, {"pairs": (gt, torch.ones_like(gt))}, ([p.name for p in q_files],
+    # never the evaluated images: without the shared sets, scikit-image's photographs (or no ORB-BoW at all)
+    return q, r, bow_train or skimage_photos(), {"pairs": (gt, torch.ones_like(gt))}, ([p.name for p in q_files],
                                                                         [p.name for p in r_files])
 
 
@@ -389,6 +415,11 @@ def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path
             thr = r.threshold_at_full_precision
             print(f"| {m} | {r.recall_at(1):.3f} | {r.recall_at(5):.3f} | {r.recall_at(10):.3f} | {r.auc_pr:.3f} | "
                   f"{r.recall_at_full_precision:.3f} | {thr:.3f} |")
+        if any_r.num_with_match < any_r.num_queries:
+            # VPR-Bench divides by every query: its recall and accuracy differ from R@k here
+            print(f"\nR@k is over the {any_r.num_with_match} queries with a true match; VPR-Bench's accuracy (the best "
+                  f"candidate correct, over all {any_r.num_queries} queries): "
+                  + ", ".join(f"{m} {r.accuracy:.3f}" for m, r in results.items()))
         if names is not None:
             rows = missed_queries(results, gt, *names)
             print(f"\nQueries some method misses ({len(rows)}): per method its best candidate (the rank of its "

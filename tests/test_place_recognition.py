@@ -547,3 +547,49 @@ def test_benchmark_lists_the_queries_a_method_misses(load_script, capsys):
                  names=(["q0", "q1"], ["r0", "r1", "r2"]))
     out = capsys.readouterr().out
     assert "Queries some method misses (1)" in out and "| query | true matches | missed by | good | bad |" in out
+
+
+def test_evaluate_reads_a_vpr_bench_file_with_unmatched_trailing_references(tmp_path):
+    # Tokyo 24/7-style distractors: references 3 and 4 match no query, so the file alone says 3 columns; the
+    # similarity's 5 columns are the reference set
+    rows = np.empty((2, 2), dtype=object)
+    rows[0, 0], rows[0, 1] = 0, [1]
+    rows[1, 0], rows[1, 1] = 1, [2]
+    np.save(tmp_path / "gt.npy", rows, allow_pickle=True)
+    sim = torch.tensor([[0.1, 0.9, 0.2, 0.3, 0.0], [0.1, 0.2, 0.3, 0.9, 0.0]])  # query 1: distractor 3 first
+    r = evaluate(sim, tmp_path / "gt.npy")
+    assert r.recall_at(1) == 0.5 and r.recall_at(2) == 1.0
+    with pytest.raises(TypeError, match="pass the file's path"):
+        evaluate(sim, np.load(tmp_path / "gt.npy", allow_pickle=True))
+
+
+def test_benchmark_folder_mode_mixes_image_sizes_skips_hidden_files_and_names_bad_paths(tmp_path, load_script):
+    bench = load_script("benchmarks/place_recognition.py")
+    a, b = np.zeros((4, 6, 3), np.uint8), np.zeros((5, 6, 3), np.uint8)
+    assert [len(r) for r in bench.same_size_batches([a, a, b, a, a, a], 2)] == [2, 1, 2, 1]
+    assert [r[0].shape for r in bench.same_size_batches([a, a, b], 8)] == [a.shape, b.shape]
+    for name in ("0.jpg", "._0.jpg", ".hidden.png"):
+        (tmp_path / name).write_bytes(b"")
+    assert [p.name for p in bench.folder_images(tmp_path)] == ["0.jpg"]
+    with pytest.raises(SystemExit, match="not a folder of images"):
+        bench.folder_images(tmp_path / "missing")
+    with pytest.raises(SystemExit, match="not a folder of images"):
+        bench.folder_images(tmp_path / "0.jpg")
+
+
+def test_benchmark_reports_vpr_bench_accuracy_when_some_queries_have_no_match(load_script, capsys):
+    bench = load_script("benchmarks/place_recognition.py")
+    gt = torch.tensor([[True, False], [False, False]])
+    sim = torch.tensor([[0.9, 0.1], [0.5, 0.4]])
+    bench.report("toy", {"m": sim}, {"p": (gt, torch.ones_like(gt))}, None)
+    out = capsys.readouterr().out
+    assert "| m | 1.000 |" in out  # R@1 over the one query with a match
+    assert "over all 2 queries): m 0.500" in out  # VPR-Bench's accuracy over both
+
+
+def test_benchmark_never_trains_orb_on_the_evaluated_images(load_script, capsys):
+    # no training images at all: the anchor is reported as not measured rather than fitted on the queries
+    bench = load_script("benchmarks/place_recognition.py")
+    img = np.zeros((32, 32, 3), np.uint8)
+    sims = bench.all_methods([img], [img], [], methods=("orb",))
+    assert sims == {} and "ORB-BoW: not measured" in capsys.readouterr().out

@@ -540,6 +540,9 @@ class PlaceRecognitionResult:
 
 def _as_matrix(x, what: str) -> torch.Tensor:
     if isinstance(x, np.ndarray):
+        if x.dtype == object:  # np.load of a VPR-Bench ground_truth_new.npy: rows, not a matrix
+            raise TypeError(f"{what} is a numpy object array (a VPR-Bench ground_truth_new.npy as np.load gives "
+                            "it?): pass the file's path, or read it with read_ground_truth(path, num_references)")
         x = torch.from_numpy(x)
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{what} must be a tensor or array (Q, R), got {type(x).__name__}")
@@ -558,7 +561,8 @@ def evaluate(
     Args:
         similarity: ``(Q, R)`` higher = more alike (e.g. the cosine of unit descriptors). Non-finite
             entries are not candidates.
-        ground_truth: ``(Q, R)`` bool (non-zero = match), or a path read by :func:`read_ground_truth`.
+        ground_truth: ``(Q, R)`` bool (non-zero = match), or a path read by :func:`read_ground_truth`
+            with ``num_references`` R (a VPR-Bench file's unmatched trailing references count).
         candidates: ``(Q, R)`` bool mask of the pairs a query may return (e.g.
             :func:`sequence_candidates` for "each image against those at least 10 earlier"); default all.
 
@@ -575,7 +579,9 @@ def evaluate(
         raise TypeError(f"similarity must be numeric, got dtype {sim.dtype}")
     sim = sim.to(torch.float64)
     if isinstance(ground_truth, (str, os.PathLike)):
-        ground_truth = read_ground_truth(ground_truth)
+        # the similarity's columns are the reference set: a VPR-Bench file's trailing references that match
+        # no query (distractors) exist only there
+        ground_truth = read_ground_truth(ground_truth, num_references=sim.shape[1])
     gt = _as_matrix(ground_truth, "ground_truth") != 0
     if gt.shape != sim.shape:
         raise ShapeMismatchError(f"similarity {tuple(sim.shape)} and ground_truth {tuple(gt.shape)} must have the "
