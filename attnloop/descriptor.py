@@ -52,7 +52,7 @@ from torch import nn
 
 from .backbones import HookedBackbone, build_backbone, resolve_backbone_name
 from .backbones.preprocess import check_images
-from .fusion import FUSION_MODES, Fusion
+from .fusion import FUSION_MODES
 from .guided_backprop import eval_mode, guided_backprop
 from .pooling import POOLINGS, fuse_groups, regional_code, regional_code_dim
 from .presets import DEFAULT_BACKBONE_SETTINGS, PAPER_BACKBONE_SETTINGS, PAPER_RECIPE_SETTINGS, PRESETS
@@ -77,6 +77,16 @@ def _unused_rnn_settings(out_features: int = _RNN_DEFAULTS["out_features"],
     # the RNN settings given away from their defaults (merge: True; False merges nothing, as without RNNs)
     given = {"out_features": out_features, "pool_scale": pool_scale}
     return [k for k, v in given.items() if v != _RNN_DEFAULTS[k]] + (["merge"] if merge else [])
+
+
+def _check_pool_scale(pool_scale: float | None) -> None:
+    if pool_scale is not None and not (float(pool_scale) > 0 and float(pool_scale) < float("inf")):
+        raise ValueError(f"pool_scale must be positive and finite, or None, got {pool_scale}")
+
+
+def _check_flat_settings(pooling: str, gem_p: float, levels: Sequence[int]) -> None:
+    if pooling == "flat" and (gem_p != 2.0 or tuple(levels) != (1, 2)):
+        raise ValueError("gem_p and levels apply to pooling='regional' only")
 
 
 @dataclass(frozen=True)
@@ -117,8 +127,7 @@ class DescriptorRecipe:
         if not levels or any(isinstance(v, bool) or int(v) != v or v < 1 for v in levels):
             raise ValueError(f"levels must be positive grid sizes such as (1, 2), got {self.levels!r}")
         object.__setattr__(self, "levels", tuple(int(v) for v in levels))
-        if self.pooling == "flat" and (self.gem_p != 2.0 or self.levels != (1, 2)):
-            raise ValueError("gem_p and levels apply to pooling='regional' only")
+        _check_flat_settings(self.pooling, self.gem_p, self.levels)
         for name, least in (("num_rnn", 0), ("out_features", 1), ("seed", 0)):
             v = getattr(self, name)
             # a whole float (16.0) is fine for the counts; a seed must be an integer (1.5 would be truncated
@@ -129,8 +138,7 @@ class DescriptorRecipe:
                 raise ValueError(f"{name} must be {kind} integer, got {v!r}")
         if not isinstance(self.normalize, bool):
             raise TypeError(f"normalize must be True or False, got {self.normalize!r}")
-        if self.pool_scale is not None and not (float(self.pool_scale) > 0 and float(self.pool_scale) < float("inf")):
-            raise ValueError(f"pool_scale must be positive and finite, or None, got {self.pool_scale}")
+        _check_pool_scale(self.pool_scale)
         if self.num_rnn == 0:
             # the RNNs' settings would do nothing without RNNs: refuse them rather than ignore them
             unused = _unused_rnn_settings(self.out_features, self.pool_scale, self.merge)
@@ -261,6 +269,8 @@ def descriptor_from_attention(
     """
     if pooling not in POOLINGS:
         raise ValueError(f"unknown pooling {pooling!r}; choose one of {POOLINGS}")
+    _check_flat_settings(pooling, gem_p, levels)
+    _check_pool_scale(pool_scale)
     fused = fuse_groups(tap, grad, fusion, groups, attended)
     if rnn_weights is None:
         unused = _unused_rnn_settings(pool_scale=pool_scale, merge=merge)
@@ -533,7 +543,11 @@ class AttentionDescriptor(nn.Module):
             if attend is not None:
                 settings["attend"] = attend
             # the name as given: "auto" names both checkpoints it looked for when neither is found
-            net = build_backbone(backbone, pretrained=use_pretrained, weights=weights, seed=given.seed, **settings)
+            # Built outside inference mode whatever the caller's: weights made under torch.inference_mode()
+            # are inference tensors, which the seeded backward (where there is no closed form) cannot use.
+            with torch.inference_mode(False):
+                net = build_backbone(backbone, pretrained=use_pretrained, weights=weights, seed=given.seed,
+                                     **settings)
             net.eval()
             if not self.differentiable:
                 net.requires_grad_(False)
@@ -550,6 +564,11 @@ class AttentionDescriptor(nn.Module):
                                      f"{', '.join(extra)}= apply to a plain classifier module")
                 net = backbone
             elif tap is not None:
+                made = [n for n, p in backbone.named_parameters() if p.is_inference()]
+                if made:  # the seeded backward through the head would fail at the first call
+                    raise ValueError(f"{type(backbone).__name__}'s parameters ({made[0]}, ...) are inference tensors: "
+                                     "the module was built under torch.inference_mode(); build it outside (calling "
+                                     "the descriptor under inference_mode is fine)")
                 net = HookedBackbone(backbone, tap, input_size=input_size, mean=mean, std=std)
             else:
                 raise TypeError(
@@ -560,7 +579,6 @@ class AttentionDescriptor(nn.Module):
         else:
             raise TypeError(f"backbone must be a name or an nn.Module, got {type(backbone).__name__}")
         self.backbone = net
-        self.fusion = Fusion(given.fusion)
         channels, height, width = (int(v) for v in self.backbone.tap_shape)
         #: Channel counts of a joined tap's stages (None: a single tap), fused and pooled separately.
         self.tap_groups = tuple(getattr(self.backbone, "tap_groups", None) or (channels,))
@@ -580,8 +598,9 @@ class AttentionDescriptor(nn.Module):
         self.pool: RandomRNNPool | None = None
         self._code_dim = channels * height * width
         if given.num_rnn:
-            self.pool = RandomRNNPool(channels, (height, width), given.num_rnn, given.out_features,
-                                      seed=given.seed, merge=given.merges)
+            with torch.inference_mode(False):  # as the backbone: usable in a differentiable call later
+                self.pool = RandomRNNPool(channels, (height, width), given.num_rnn, given.out_features,
+                                          seed=given.seed, merge=given.merges)
 
     @property
     def out_dim(self) -> int:
@@ -592,6 +611,11 @@ class AttentionDescriptor(nn.Module):
     def rnn_weights(self) -> torch.Tensor | None:
         """The RNNs' weights :math:`(R, O, I)`, None without RNNs (for :func:`descriptor_from_attention`)."""
         return None if self.pool is None else self.pool.weights
+
+    @property
+    def fusion(self) -> str:
+        """The fusion mode (:attr:`recipe`; another one per call: :meth:`from_attention`'s ``fusion``)."""
+        return self.recipe.fusion
 
     @property
     def normalize(self) -> bool:
@@ -656,7 +680,14 @@ class AttentionDescriptor(nn.Module):
             shape = (0, *self.backbone.tap_shape)
             dtype = self._dtype()
             empty = images.new_zeros(shape, dtype=dtype)
-            return DescriptorParts(empty, empty, empty, images.new_zeros((0, self.out_dim), dtype=dtype))
+            desc = images.new_zeros((0, self.out_dim), dtype=dtype)
+            if self.differentiable and torch.is_grad_enabled() and not torch.is_inference_mode_enabled():
+                # the empty last chunk of a split batch stays in the graph, as an nn.Conv2d's empty output does
+                tied = [t for t in (*self.parameters(), images) if t.requires_grad]
+                if tied:
+                    zero = (sum(t.sum() for t in tied) * 0).to(dtype)
+                    empty, desc = empty + zero, desc + zero
+            return DescriptorParts(empty, empty, empty, desc)
         r = self.recipe
         return attention_descriptor_parts(
             images, self.backbone, self.rnn_weights, r.fusion, r.normalize, self.pool_scale, r.merges,
@@ -701,5 +732,5 @@ class AttentionDescriptor(nn.Module):
 
     def extra_repr(self) -> str:
         rnn = f"num_rnn={self.recipe.num_rnn}, pool_scale={self.pool_scale}" if self.pool is not None else "num_rnn=0"
-        return (f"backbone={self.backbone_name!r}, differentiable={self.differentiable}, "
+        return (f"backbone={self.backbone_name!r}, fusion={self.fusion!r}, differentiable={self.differentiable}, "
                 f"normalize={self.normalize}, pooling={self.recipe.pooling!r}, {rnn}, out_dim={self.out_dim}")

@@ -55,8 +55,8 @@ def minmax_normalize(x: Tensor, dims: int | Sequence[int], eps: float = 1e-12) -
     ``(x - min) / (max - min)`` with min and max taken over ``dims``. Where ``max - min <= eps`` (a
     constant, or numerically constant, slice) the result is zero. The division uses a safe denominator
     selected with ``torch.where``, so for finite ``x`` neither the forward nor the backward pass produces
-    NaN or inf. A slice holding a NaN gives NaN throughout (not a zero map that would hide it); one
-    holding an infinity gives NaN where ``x`` is infinite.
+    NaN or inf. A slice holding a NaN or an infinity gives NaN throughout (not a map that would hide it:
+    an infinity has no place in [0, 1], and the finite values none relative to it).
 
     Args:
         x: floating-point tensor of any shape ``(*)``.
@@ -87,10 +87,12 @@ def minmax_normalize(x: Tensor, dims: int | Sequence[int], eps: float = 1e-12) -
     lo = torch.amin(x, dim=dims, keepdim=True)
     hi = torch.amax(x, dim=dims, keepdim=True)
     rng = hi - lo
-    ok = ~(rng <= eps)  # a NaN range (a NaN in the slice) is not "constant": NaN propagates
+    finite = torch.isfinite(rng)  # a NaN or an infinity in the slice makes its range NaN or inf
+    ok = finite & (rng > eps)
     # Safe denominator: 1 where the slice is constant, so x - lo (= 0 there) / 1 stays finite in backward.
     safe = torch.where(ok, rng, torch.ones_like(rng))
-    return torch.where(ok, (x - lo) / safe, torch.zeros_like(x))
+    out = torch.where(ok, (x - lo) / safe, torch.zeros_like(x))
+    return torch.where(finite, out, torch.full_like(x, float("nan")))
 
 
 def _check_pair(L: Tensor, G: Tensor) -> None:
@@ -107,6 +109,8 @@ def _check_pair(L: Tensor, G: Tensor) -> None:
     if L.dtype != G.dtype or L.device != G.device:
         raise ValueError(f"L and G must have one dtype and device, got L {L.dtype} on {L.device} and G {G.dtype} "
                          f"on {G.device}")
+    if min(L.shape[1:]) < 1:  # N(.) has no min or max over an empty slice
+        raise ValueError(f"L and G must have positive C, H and W, got {tuple(L.shape)}")
 
 
 def _global_attention(G: Tensor) -> Tensor:

@@ -283,7 +283,16 @@ def guided_backprop(backbone: nn.Module, images: Tensor, create_graph: bool = Fa
                 logits = _forward_split(backbone, x, at_tap, clamp_negative_grad)
                 if "var" not in captured:
                     raise RuntimeError(f"{type(backbone).__name__} never reached its tap during the forward pass")
-                grad = _seeded_backward(logits, captured["var"], differentiable)
+                if not differentiable and isinstance(logits, Tensor) and not logits.requires_grad:
+                    # A no_grad block inside the model's own forward that holds the tap (a frozen feature
+                    # extractor) restores, when it exits, the grad mode it found: this path's "off", so the
+                    # head ran without a graph. Once more with grad on throughout (the frozen part records
+                    # none anyway); a tap that is really cut from the logits still fails below.
+                    captured.clear()
+                    with torch.enable_grad():
+                        logits = _forward_split(backbone, x, at_tap, clamp_negative_grad)
+                with torch.enable_grad():  # the softmax of the seed is recorded whatever mode the forward left
+                    grad = _seeded_backward(logits, captured["var"], differentiable)
     tap = captured["tap"]
     return (tap, grad) if differentiable else (tap.detach(), grad)
 

@@ -45,6 +45,9 @@ POOLINGS = ("flat", "regional")
 # give stage6 activations of ~1e-7, which an absolute 1e-6 floor turned into one constant code for
 # every image).
 _REL_FLOOR = 1e-6
+# A region whose unit-scaled GeM is at most this is empty (its values are all at or below the floor; the
+# margin covers the rounding of the floor's p-th power and root).
+_EMPTY_REGION = 2 * _REL_FLOOR
 
 
 def _check_levels(levels: Sequence[int]) -> tuple[int, ...]:
@@ -188,7 +191,10 @@ def regional_code_dim(groups: Sequence[int], levels: Sequence[int] = (1, 2)) -> 
         >>> regional_code_dim((192, 320))
         2560
     """
-    return sum(v * v for v in _check_levels(levels)) * sum(int(c) for c in groups)
+    g = tuple(groups)
+    if not g or any(isinstance(c, bool) or int(c) != c or c < 1 for c in g):
+        raise ValueError(f"groups must be positive channel counts such as (192, 320), got {groups!r}")
+    return sum(v * v for v in _check_levels(levels)) * sum(int(c) for c in g)
 
 
 def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0,
@@ -202,7 +208,9 @@ def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0
         levels: grid sizes (see :func:`gem_regions`).
 
     Returns:
-        :math:`(B, D)`, ``D = regional_code_dim(groups, levels)``; an empty batch gives ``(0, D)``.
+        :math:`(B, D)`, ``D = regional_code_dim(groups, levels)``; an empty batch gives ``(0, D)``. A region
+        with no value above the floor (all zero or negative) gives zeros there, so an all-zero map gives an
+        all-zero code (cosine 0 with every code), not the uniform vector its floor would normalise to.
     """
     _check_map(x)
     g = _check_groups(x.shape[1], groups)
@@ -211,7 +219,11 @@ def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0
     if x.shape[0] == 0:
         return x.new_zeros((0, regional_code_dim(g, lv)))
     # Each region is normalised on its own, so the per-group scale of the unit-scaled GeM cancels: the
-    # code is that of the map whatever its magnitude. One pass over every group.
+    # code is that of the map whatever its magnitude. One pass over every group. A region with nothing
+    # above the floor (all zero, e.g. DAM's map where G is flat) pools to the floor in every channel,
+    # which normalises to the uniform vector: every such region, in every image, would be the same code
+    # (cosine 1). It is zero instead: no evidence.
     unit = _unit_gem_regions(x, p, lv, g)[0]  # (B, R, C)
-    parts = [F.normalize(ug, dim=2).flatten(1) for ug in unit.split(g, dim=2)]
+    parts = [F.normalize(ug * (ug.amax(dim=2, keepdim=True) > _EMPTY_REGION), dim=2).flatten(1)
+             for ug in unit.split(g, dim=2)]
     return torch.cat(parts, dim=1)

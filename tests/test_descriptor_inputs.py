@@ -139,3 +139,60 @@ def test_mixed_modes_are_restored_exactly(frames):
     with pytest.raises(RuntimeError, match="boom"):
         guided_backprop(bad, frames[:1])
     assert all(m.training for m in bad.modules())  # restored after an exception too
+
+
+def test_fusion_is_the_recipes_and_read_only():
+    # it was a Fusion submodule that nothing read: reassigning it changed the repr and not the output
+    d = AttentionDescriptor("efficientnet_lite0", fusion="gaf", pretrained=False)
+    assert d.fusion == "gaf" == d.recipe.fusion and "fusion='gaf'" in repr(d)
+    with pytest.raises(AttributeError):
+        d.fusion = "dam"
+
+
+@pytest.mark.parametrize("settings", [{}, {"attend": "stage6+stage7"}, {"num_rnn": 16}])
+def test_built_under_inference_mode_then_used_with_autograd(settings):
+    # the weights were inference tensors, which the seeded backward (no closed form with attend on both
+    # stages) cannot save: built under inference_mode, it must equal one built outside
+    x = torch.randint(0, 256, (1, 3, 64, 80), dtype=torch.uint8)
+    with torch.inference_mode():
+        inside = AttentionDescriptor("efficientnet_lite0", pretrained=False, **settings)
+    outside = AttentionDescriptor("efficientnet_lite0", pretrained=False, **settings)
+    torch.testing.assert_close(inside(x), outside(x))
+    with torch.inference_mode():
+        net = nn.Sequential(nn.Conv2d(3, 4, 3), nn.ReLU(), nn.Flatten(), nn.Linear(4 * 30 * 30, 5))
+    with pytest.raises(ValueError, match="inference tensors.*build it outside"):
+        AttentionDescriptor(net, tap="1", input_size=(32, 32))
+
+
+def test_the_functional_descriptor_checks_what_the_recipe_checks():
+    from attnloop.descriptor import descriptor_from_attention
+    from attnloop.pooling import regional_code_dim
+    from attnloop.rnn_pool import random_rnn_weights
+
+    L, G = torch.rand(1, 8, 3, 3), torch.rand(1, 8, 3, 3)
+    w = random_rnn_weights(2, regional_code_dim((8,)), 4)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="pool_scale must be positive and finite"):
+            descriptor_from_attention(L, G, w, pool_scale=bad)
+    flat = random_rnn_weights(2, 4 * 9, 4)
+    with pytest.raises(ValueError, match="apply to pooling='regional' only"):
+        descriptor_from_attention(L, G, flat, pooling="flat", gem_p=3.0)
+    with pytest.raises(ValueError, match="apply to pooling='regional' only"):
+        descriptor_from_attention(L, G, flat, pooling="flat", levels=(1,))
+    for groups in ((-5,), (), (0, 8), (2.5,)):
+        with pytest.raises(ValueError, match="positive channel counts"):
+            regional_code_dim(groups)
+
+
+def test_an_empty_batch_stays_in_the_graph_when_differentiable():
+    torch.manual_seed(0)
+    net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2), nn.Flatten(),
+                        nn.Linear(8 * 16 * 16, 10))
+    d = AttentionDescriptor(net, tap="2", input_size=(32, 32), differentiable=True)
+    x = torch.rand(0, 3, 32, 32, requires_grad=True)
+    out = d(x)
+    assert out.shape == (0, d.out_dim) and out.requires_grad
+    out.sum().backward()  # the last, empty chunk of a split batch: no error, zero gradients
+    assert torch.equal(net[0].weight.grad, torch.zeros_like(net[0].weight))
+    with torch.no_grad():
+        assert not d(x).requires_grad

@@ -211,3 +211,18 @@ def test_composes_in_sequential():
     assert out.shape == (4, 2)
     out.sum().backward()
     assert model[0].weight.grad is not None and torch.isfinite(model[0].weight.grad).all()
+
+
+def test_minmax_a_nan_or_an_infinity_makes_its_slice_nan_and_leaves_the_others():
+    x = torch.tensor([[-math.inf, 1.0, 2.0, 3.0], [math.inf, 1.0, 2.0, 3.0], [math.nan, 1.0, 2.0, 3.0],
+                      [1.0, 2.0, 3.0, 5.0]])
+    out = minmax_normalize(x, dims=1)
+    assert torch.isnan(out[:3]).all()  # -inf made every entry NaN, +inf made the finite ones 0 before
+    torch.testing.assert_close(out[3], torch.tensor([0.0, 0.25, 0.5, 1.0]))
+
+
+@pytest.mark.parametrize("shape", [(1, 0, 3, 3), (1, 4, 0, 3), (0, 0, 3, 3)])
+def test_fuse_refuses_an_empty_channel_or_spatial_dimension(shape):
+    with pytest.raises(ValueError, match="positive C, H and W"):
+        fuse(torch.rand(shape), torch.rand(shape), "dam")
+    assert fuse(torch.rand(0, 4, 3, 3), torch.rand(0, 4, 3, 3), "gaf").shape == (0, 4, 3, 3)  # an empty batch

@@ -7,7 +7,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.autograd.functional import vjp
 
-from attnloop import AttentionDescriptor, HookedBackbone, guided_backprop
+from attnloop import AttentionDescriptor, HookedBackbone, guided_backprop, softmax_seeded_gradient
 from attnloop.backbones import efficientnet_lite0
 
 
@@ -305,3 +305,37 @@ def test_logits_that_do_not_use_the_tap():
         desc = AttentionDescriptor(cls(), tap="conv", input_size=(8, 8))
         with pytest.raises(ValueError, match="do not depend on the tap through autograd"):
             desc(torch.rand(1, 3, 8, 8))
+
+
+class _FrozenFeatures(nn.Module):
+    """A frozen feature extractor run under no_grad inside forward, a trainable head after it."""
+
+    def __init__(self, cut: bool = False):
+        super().__init__()
+        self.cut = cut
+        self.features = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2))
+        self.head = nn.Sequential(nn.Conv2d(8, 8, 3, padding=1), nn.ReLU(), nn.AdaptiveAvgPool2d(1),
+                                  nn.Flatten(), nn.Linear(8, 10))
+
+    def forward(self, x):
+        with torch.no_grad():
+            f = self.features(x)
+        if self.cut:  # the head too under no_grad: the logits really do not depend on the tap
+            with torch.no_grad():
+                return self.head(f)
+        return self.head(f)
+
+
+@pytest.mark.parametrize("differentiable", [False, True])
+def test_a_no_grad_block_inside_the_models_forward_around_the_tap(differentiable):
+    # The block restores, on exit, the grad mode it found; the fast path had found "off" (it was refused:
+    # "the logits do not depend on the tap"). G = dS/dL needs only the head, which runs with grad.
+    torch.manual_seed(0)
+    net = _FrozenFeatures()
+    d = AttentionDescriptor(net, tap="features", input_size=(32, 32), differentiable=differentiable)
+    L, G, _, desc = d.parts(torch.randint(0, 256, (2, 3, 48, 48), dtype=torch.uint8))
+    ref = softmax_seeded_gradient(L.detach(), net.head, guided=True)  # L is a max-pool output: clamped there
+    assert torch.equal(G.detach(), ref) and bool(G.abs().sum() > 0)
+    cut = AttentionDescriptor(_FrozenFeatures(cut=True), tap="features", input_size=(32, 32))
+    with pytest.raises(ValueError, match="do not depend on the tap"):
+        cut.parts(torch.randint(0, 256, (1, 3, 48, 48), dtype=torch.uint8))

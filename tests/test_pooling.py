@@ -4,6 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.nn.functional as F
+from torch import nn
 from lite_nets import condition_head
 
 from attnloop import AttentionDescriptor
@@ -50,11 +51,10 @@ def test_gem_is_scale_equivariant_and_the_code_scale_invariant():
     # an absolute floor of 1e-6 would have made every sample of 1e-8 x one constant code
     tiny = regional_code(1e-8 * x, (2, 4))
     assert float((tiny[0] - tiny[1]).abs().max()) > 0.05
-    # an all-zero sample pools to zeros (GeM) and to the uniform unit vectors (code), never NaN
+    # an all-zero sample pools to zeros, GeM and code alike (no evidence), never NaN
     zero = torch.zeros(1, 6, 5, 7)
     assert torch.equal(gem_regions(zero), torch.zeros(1, 5, 6))
-    code = regional_code(zero, (2, 4))
-    assert torch.isfinite(code).all() and torch.allclose(code[0, :2], torch.full((2,), 2 ** -0.5))
+    assert torch.equal(regional_code(zero, (2, 4)), torch.zeros(1, 30))
     assert gem_regions(x[:0]).shape == (0, 5, 6)
 
 
@@ -335,3 +335,36 @@ def test_recipe_checks():
     assert not DescriptorRecipe(merge=False).merges  # no RNNs: nothing to merge
     with pytest.raises(ValueError, match="merge set the random RNNs"):
         DescriptorRecipe(merge=True)
+
+
+def test_an_empty_region_codes_to_zeros_not_to_the_uniform_vector():
+    # An all-zero map (DAM's or GAF's where G is flat: a saturated softmax) pools to the floor in every
+    # channel; normalised, that would be one uniform vector for every such image (cosine 1 between any two).
+    assert torch.equal(regional_code(torch.zeros(2, 4, 3, 3)), torch.zeros(2, 20))
+    # one empty cell (top-left of a 2 x 2 grid on 4 x 4; negative values are below the floor too): its slot
+    # is zero, every other region a unit vector
+    x = torch.rand(1, 3, 4, 4) + 0.5
+    x[:, :, :2, :2] = -torch.rand(1, 3, 2, 2)
+    regions = regional_code(x).view(5, 3)
+    assert torch.equal(regions[1], torch.zeros(3))
+    assert torch.allclose(regions[[0, 2, 3, 4]].norm(dim=1), torch.ones(4))
+    assert torch.allclose(regions[2], F.normalize(gem_regions(x)[0, 2], dim=0))
+
+
+def test_a_saturated_classifier_gives_no_match_rather_than_every_match():
+    # G is exactly zero when the softmax is one-hot: DAM/GAF fuse to zeros, and two unrelated images must not
+    # get the same descriptor (they did: cosine 1.0); `none` and EAM keep L and still tell them apart
+    torch.manual_seed(0)
+    net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2), nn.Flatten(),
+                        nn.Linear(8 * 16 * 16, 10))
+    with torch.no_grad():
+        net[4].weight.mul_(1e4)
+    ramp = torch.linspace(0, 1, 64)
+    images = torch.stack([ramp.view(1, 1, 64).expand(3, 64, 64), torch.rand(3, 64, 64) ** 4])
+    for fusion in ("dam", "gaf", "none"):
+        L, G, fused, desc = AttentionDescriptor(net, tap="2", input_size=(32, 32), fusion=fusion).parts(images)
+        assert bool((G == 0).all())
+        if fusion == "none":
+            assert 0.5 < float(desc[0] @ desc[1]) < 0.99
+        else:
+            assert torch.equal(desc, torch.zeros_like(desc))  # no evidence: cosine 0 with every frame

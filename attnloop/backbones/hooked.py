@@ -178,8 +178,9 @@ class HookedBackbone(nn.Module):
                 logits = self.module(self.preprocess(x))
         except Exception as exc:
             hint = "" if self.input_size else (
-                "; set input_size=(H, W) to the image size the network takes (images are resized to it), or "
-                "probe_size=(H, W) when your images already come at that size")
+                "; set input_size=(H, W) to the image size the network takes (images are resized to it), or, "
+                "building HookedBackbone(module, tap, probe_size=(H, W)) yourself, the size your images already "
+                "come at")
             raise ValueError(f"{what} failed ({type(exc).__name__}: {exc}){hint}") from exc
         finally:
             for h in handles:
