@@ -161,7 +161,7 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
     """
     from slam.io import open_sequence
     from slam.options import UsageError, config_from_args, describe_rig, resolve_rig
-    from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+    from slam.pipeline import camera_of, evaluate_run, prepare_output_dir, run_slam, write_outputs
 
     demo_options = [flag for dest, flag in DEMO_OPTIONS.items() if dest in given]
     if demo_options and not args.demo:
@@ -204,7 +204,10 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
         seq_dir = _generate_demo_logged(args, out)
         seq = open_sequence(seq_dir)
     if not args.quiet:
-        print(f"camera: {describe_rig(resolve_rig(args, seq))}", file=sys.stderr)
+        cam = camera_of(seq)
+        named = f"{cam['name']}, " if cam["name"] else ""
+        print(f"camera: {named}intrinsics {' '.join(f'{v:g}' for v in cam['intrinsics'])}; "
+              f"{describe_rig(resolve_rig(args, seq))}", file=sys.stderr)
     run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step, frames=args.frames,
                    progress=None if not args.quiet else False, descriptor=descriptor, save_map=args.save_map,
                    map_dir=saved)

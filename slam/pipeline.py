@@ -96,6 +96,9 @@ class RunResult:
     relocalisation: object | None = None  # slam.maps.RelocalisationReport of a run in a saved map (map_dir)
     map_origin: torch.Tensor | None = None  # (7,) ground truth of the saved map's origin (map_dir), if known
     saved_map: Path | None = None  # where save_map wrote the run's map
+    #: the sequence's camera: ``{"name": "fr2" / "calibration.txt" / None, "intrinsics": [fx, fy, cx, cy]}``
+    camera: dict | None = None
+    groundtruth_note: str | None = None  # why no frame has ground truth when the sequence has a file of it
 
 
 def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
@@ -233,6 +236,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         raise FloatingPointError(f"{sequence.name}: {int(bad.sum())} of {n} poses are not finite (first: frame "
                                  f"{first}); check the settings and intrinsics")
     gt = view.groundtruth
+    gt_note = None if gt is not None else unmatched_groundtruth(sequence, view.timestamps)
     gt_arr = torch.from_numpy(np.stack([
         p if p is not None else np.full(7, np.nan) for p in (view.groundtruth_pose(i) for i in range(n))
     ])) if gt is not None else None
@@ -249,7 +253,28 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         saved_to = write_map(save_map, reloc.merged_map(view) if grown else capture_map(slam, view))
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
                      frame_step=int(frame_step), map=cloud, backbone=backbone, relocalisation=report,
-                     map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to)
+                     map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to,
+                     camera=camera_of(sequence), groundtruth_note=gt_note)
+
+
+def unmatched_groundtruth(sequence: RGBDSequence, stamps: np.ndarray) -> str | None:
+    """Why frames stamped ``stamps`` have no ground truth when the sequence has a ground-truth file (a
+    clock offset, another sequence's file); None when it has none."""
+    traj = getattr(sequence, "groundtruth_trajectory", None)
+    if traj is None or len(traj) == 0 or len(stamps) == 0:
+        return None
+    t = traj.timestamps.numpy()
+    return (f"{sequence.groundtruth_file} has {len(t)} poses ({t.min():.3f} to {t.max():.3f} s), none within "
+            f"{getattr(sequence, 'max_difference', 0.02):g} s of the {len(stamps)} frames used ({stamps.min():.3f} "
+            f"to {stamps.max():.3f} s): a clock offset, or another sequence's ground truth?")
+
+
+def camera_of(sequence: RGBDSequence) -> dict:
+    """The sequence's camera for reports: its name where the reader chose one (a TUM folder's fr1/fr2/fr3,
+    ``ros``, ``calibration.txt``; None otherwise) and its intrinsics ``[fx, fy, cx, cy]``."""
+    K = np.asarray(sequence.K, dtype=np.float64)
+    return {"name": getattr(sequence, "camera_name", None),
+            "intrinsics": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]}
 
 
 class _FeaturesAhead:
@@ -361,6 +386,8 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
         m["descriptor"] = ({"backbone": run.backbone, "requested_backbone": d.backbone, "fusion": d.fusion,
                             "seed": d.seed, "weights": d.weights} if run.config.loop.enabled else None)
         m["rig"] = describe_rig(rig_of(run.config))
+    if run.camera is not None:
+        m["camera"] = run.camera
     if run.map is not None:
         run.map_cloud = run.map.points(res.keyframe_trajectory.poses)
         m["map"] = {"points": int(run.map_cloud[0].shape[0]), "keyframes": len(run.map),
@@ -375,7 +402,7 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
     gt_len = 0 if run.groundtruth is None else len(run.groundtruth)
     tracked = res.num_frames - res.num_lost - res.num_skipped  # the first frame counts: it sets the origin
     if run.groundtruth is None:
-        m["ate_unavailable"] = "the sequence has no ground truth"
+        m["ate_unavailable"] = run.groundtruth_note or "the sequence has no ground truth"
     elif gt_len < 3:
         m["ate_unavailable"] = f"only {gt_len} frame(s) with ground truth (the alignment needs 3)"
     elif tracked <= 1:

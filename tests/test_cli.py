@@ -115,6 +115,7 @@ def test_demo_writes_every_output_and_its_sequence(demo_run):
     assert m["ate_rmse"] is None and m["ate_unavailable"].startswith("no frame was tracked") and m["num_lost"] == 11
     assert m["backbone"] is None and m["descriptor"] is None  # --no-loop: no descriptor was built
     assert m["rig"].startswith("registered")
+    assert m["camera"]["name"] == "calibration.txt" and len(m["camera"]["intrinsics"]) == 4
 
 
 def test_map_points_lie_on_the_rooms_surfaces(room_run, room_sequence):

@@ -344,3 +344,59 @@ def test_frames_then_runs_in_the_reading_thread(tum_dir):
     for prefetch in (0, 1):
         with pytest.raises(KeyError, match="then failed"):
             list(seq.frames(on_error="skip", prefetch=prefetch, then=boom))
+
+
+def test_a_subset_of_frames_is_paired_with_ground_truth_among_itself(tmp_path):
+    # 30 Hz frames, 25 Hz ground truth from +17 ms. On all six frames TUM's greedy one-to-one association gives
+    # the pose at 0.017 to frame 1 (16.3 ms) rather than frame 0 (17 ms); every 2nd frame (--frame-step 2) must
+    # be paired among itself, as evaluate_ate.py pairs the run's trajectory: frames 0, 2, 4 get poses 0, 1, 3.
+    d = tmp_path / "rgbd_dataset_freiburg1_xyz"
+    d.mkdir()
+    frames = [100.0 + k / 30 for k in range(6)]
+    gt = [100.0 + 0.017 + 0.04 * j for j in range(5)]
+    (d / "rgb.txt").write_text("".join(f"{t:.6f} rgb/{k}.png\n" for k, t in enumerate(frames)))
+    (d / "depth.txt").write_text("".join(f"{t:.6f} depth/{k}.png\n" for k, t in enumerate(frames)))
+    (d / "groundtruth.txt").write_text("".join(f"{t:.4f} {j} 0 0 0 0 0 1\n" for j, t in enumerate(gt)))
+    seq = open_sequence(d)
+    assert seq.groundtruth_pose(0) is None and seq.groundtruth_pose(1)[0] == 0.0
+    view = seq[::2]
+    assert [view.groundtruth_pose(i)[0] for i in range(3)] == [0.0, 1.0, 3.0]
+    assert view.groundtruth.timestamps.tolist() == list(view.timestamps)
+    # a view of a view pairs among its own frames too: frames 0 and 4 of the sequence
+    assert [p[0] for p in (view[::2].groundtruth_pose(i) for i in range(2))] == [0.0, 3.0]
+
+
+def test_the_camera_comes_from_the_name_given_even_through_a_symlink(tmp_path):
+    plain = tmp_path / "my_copy"
+    plain.mkdir()
+    for name in ("rgb.txt", "depth.txt"):
+        (plain / name).write_text("1.0 x.png\n")
+    link = tmp_path / "rgbd_dataset_freiburg2_xyz"
+    link.symlink_to(plain, target_is_directory=True)
+    seq = open_sequence(link)
+    assert (seq.name, seq.camera_name) == ("rgbd_dataset_freiburg2_xyz", "fr2") and seq.K[0, 0] == 520.9
+    # the other way round: a plainly named link to the folder that carries the camera
+    back = tmp_path / "data"
+    back.symlink_to(tmp_path / "rgbd_dataset_freiburg3_x", target_is_directory=True)
+    (tmp_path / "rgbd_dataset_freiburg3_x").mkdir()
+    for name in ("rgb.txt", "depth.txt"):
+        (tmp_path / "rgbd_dataset_freiburg3_x" / name).write_text("1.0 x.png\n")
+    assert open_sequence(back).camera_name == "fr3"
+
+
+def test_ground_truth_that_matches_no_frame_says_so(tmp_path):
+    from slam.pipeline import camera_of, unmatched_groundtruth
+
+    d = tmp_path / "rgbd_dataset_freiburg1_xyz"
+    d.mkdir()
+    (d / "rgb.txt").write_text("".join(f"{10 + k / 30:.6f} rgb/{k}.png\n" for k in range(4)))
+    (d / "depth.txt").write_text("".join(f"{10 + k / 30:.6f} depth/{k}.png\n" for k in range(4)))
+    (d / "groundtruth.txt").write_text("".join(f"{110 + k / 30:.4f} 0 0 0 0 0 0 1\n" for k in range(4)))
+    seq = open_sequence(d)
+    assert seq.groundtruth is None and len(seq.groundtruth_trajectory) == 4
+    note = unmatched_groundtruth(seq, seq.timestamps)
+    assert "groundtruth.txt has 4 poses (110.000 to 110.100 s), none within 0.02 s of the 4 frames used " \
+           "(10.000 to 10.100 s)" in note
+    assert camera_of(seq) == {"name": "fr1", "intrinsics": [517.3, 516.5, 318.6, 255.3]}
+    (d / "groundtruth.txt").unlink()
+    assert unmatched_groundtruth(open_sequence(d), seq.timestamps) is None  # no file: nothing to explain

@@ -183,3 +183,12 @@ def test_interpolate_gaps_by_hand():
         assert abs(float(so3_log(out[k][3:]).norm()) - s * math.pi / 2) < 1e-12
     assert torch.equal(interpolate_gaps(ts, poses, torch.ones(6, dtype=torch.bool)), poses)
     assert interpolate_gaps(ts[:0], poses[:0], placed[:0]).shape == (0, 7)
+
+
+def test_a_lost_frames_warning_names_its_stamp_and_image(caplog):
+    # the run's index shifts with --frame-step; the stamp and the file find the frame in rgb.txt
+    frame = _blank(3)
+    frame.rgb_path = "/data/seq/rgb/1305031102.175304.png"
+    with caplog.at_level("WARNING", logger="slam.odometry.frontend"):
+        RGBDSLAM(_odometry_only()).track(frame)
+    assert "frame 3 (t 0.100000, 1305031102.175304.png) lost before initialisation" in caplog.text

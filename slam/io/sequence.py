@@ -161,6 +161,15 @@ class RGBDSequence(ABC):
             return None
         return frame if then is None else then(frame)
 
+    def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
+        """``(len(indices), 7)`` ground truth of a subset of the frames, as if they were the sequence.
+
+        A reader that associates ground truth by time (TUM: one-to-one, greedy) associates again for the
+        subset: a frame that lost its pose to a neighbour left out may get it back, as TUM's
+        ``evaluate_ate.py`` would pair the subset's trajectory. Here: the frames' own rows.
+        """
+        return self._groundtruth_array()[indices]
+
     def groundtruth_pose(self, i: int) -> np.ndarray | None:
         """``(7,)`` ground truth of frame ``i`` or None."""
         pose = self._groundtruth_array()[i]
@@ -197,10 +206,17 @@ class SequenceView(RGBDSequence):
     def _load(self, i: int) -> RGBDFrame:
         frame = self.parent._load(int(self.indices[i]))
         frame.index = i
+        pose = self._groundtruth_array()[i]
+        frame.pose_gt = None if np.isnan(pose).any() else pose.copy()
         return frame
 
     def _groundtruth_array(self) -> np.ndarray:
-        return self.parent._groundtruth_array()[self.indices]
+        if getattr(self, "_gt", None) is None:
+            self._gt = self.parent._groundtruth_of(self.indices)
+        return self._gt
+
+    def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
+        return self.parent._groundtruth_of(self.indices[indices])
 
 
 def _has_7scenes_frames(folder: Path) -> bool:

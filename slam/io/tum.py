@@ -7,12 +7,17 @@
   order of increasing time difference, each frame and each pose at most once, so a pose taken by one
   frame is not given to its neighbour even when it is that neighbour's nearest (frames 1.000, 1.010 and
   1.030 with poses at 1.005 and 1.100: the 1.005 pose, none, none). This is exactly the pairing of TUM's
-  ``evaluate_ate.py`` (its ``associate``, offset 0); frames left without a pose have none.
+  ``evaluate_ate.py`` (its ``associate``, offset 0); frames left without a pose have none. A subset of
+  the frames (``seq[::2]``, a run's ``--frame-step``) is paired among itself, as ``evaluate_ate.py``
+  pairs the trajectory of those frames. Ground truth that matches no frame at all (a clock offset) is
+  kept as read (:attr:`TUMSequence.groundtruth_trajectory`) so a run can say so.
+* rgb entries without a depth entry within 0.02 s are not frames (logged at INFO, with their count).
 * Depth: 16-bit PNG, 5000 units per metre, 0 = invalid -> float32 metres with 0.0 invalid.
 * Intrinsics: ``K`` if given, else ``camera`` (``fr1``/``fr2``/``fr3``/``ros``), else a
   ``calibration.txt`` in the folder (first non-comment line ``fx fy cx cy`` [+ 5 distortion
   coefficients], as the synthetic sequences of :mod:`slam.synthetic` write it), else inferred from the
-  folder name (``freiburg1`` / ``fr1`` ...), else the ROS default with a warning. TUM recommends the
+  folder name as given (a symlink's own name first, then its target's: ``freiburg1`` / ``fr1`` ...),
+  else the ROS default with a warning. TUM recommends the
   ROS default *without undistortion* for the pre-registered depth; ``undistort=True`` remaps both
   images with the fr1/fr2 distortion instead (depth by nearest neighbour).
 
@@ -224,13 +229,19 @@ class TUMSequence(RGBDSequence):
         self.root = Path(root).expanduser()
         if not self.root.is_dir():
             raise DatasetNotFoundError(self.root, "sequence folder does not exist")
-        self.name = self.root.resolve().name
+        # the name as given (a symlink's, which may carry the camera: rgbd_dataset_freiburg2_x -> my_copy);
+        # the target's where the given path has none (".." and the like)
+        given = self.root.absolute().name
+        self.name = given if given not in ("", ".", "..") else self.root.resolve().name
         rgb_stamps, rgb_names = read_file_list(self.root / "rgb.txt")
         depth_stamps, depth_names = read_file_list(self.root / "depth.txt")
         i, j = associate(rgb_stamps, depth_stamps, max_difference)
         if i.numel() == 0:
             raise DatasetError(self.root, f"no rgb.txt and depth.txt timestamps are within {max_difference} s")
         i, j = i.numpy(), j.numpy()
+        if len(i) < len(rgb_stamps):  # TUM's association leaves them out; say how many, once
+            logger.info("%s: %d of %d rgb.txt entries have no depth.txt entry within %g s: not used",
+                        self.root, len(rgb_stamps) - len(i), len(rgb_stamps), max_difference)
         self._timestamps = rgb_stamps[i]
         self.depth_timestamps = depth_stamps[j]
         self._rgb = [rgb_names[k] for k in i]
@@ -244,7 +255,8 @@ class TUMSequence(RGBDSequence):
             self.camera_name = "calibration.txt"
             self.K, self.distortion = cam.K, np.asarray(cam.distortion, dtype=np.float64)
         else:
-            self.camera_name = camera if camera is not None else camera_from_name(self.name)
+            self.camera_name = camera if camera is not None else (camera_from_name(self.name)
+                                                                  or camera_from_name(self.root.resolve().name))
             if self.camera_name is None:
                 logger.warning("%s: camera not given and not in the folder name (fr1/fr2/fr3); using the ROS "
                                "default intrinsics 525, 525, 319.5, 239.5", self.root)
@@ -258,14 +270,30 @@ class TUMSequence(RGBDSequence):
         self._maps = None
 
         self.groundtruth_file: Path | None = self.root / "groundtruth.txt"
-        gt = np.full((len(self._timestamps), 7), np.nan)
+        self.max_difference = float(max_difference)  # the association tolerance (s), rgb-depth and ground truth
+        self._gt_trajectory = None
         if self.groundtruth_file.is_file():
-            traj = read_tum_trajectory(self.groundtruth_file)
-            a, b = associate(self._timestamps, traj.timestamps, max_difference)
-            gt[a.numpy()] = traj.poses.numpy()[b.numpy()]
+            self._gt_trajectory = read_tum_trajectory(self.groundtruth_file)
         else:
             self.groundtruth_file = None
-        self._gt = gt
+        self._gt = self._associate_groundtruth(self._timestamps)
+
+    @property
+    def groundtruth_trajectory(self):
+        """The poses of ``groundtruth.txt`` as read (a :class:`~slam.io.trajectory.Trajectory`), None
+        without the file; :attr:`groundtruth` holds those associated with frames."""
+        return self._gt_trajectory
+
+    def _associate_groundtruth(self, stamps: np.ndarray) -> np.ndarray:
+        gt = np.full((len(stamps), 7), np.nan)
+        if self._gt_trajectory is not None and len(stamps):
+            a, b = associate(stamps, self._gt_trajectory.timestamps, self.max_difference)
+            gt[a.numpy()] = self._gt_trajectory.poses.numpy()[b.numpy()]
+        return gt
+
+    def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
+        # TUM's association is one-to-one: the subset's frames are paired among themselves
+        return self._associate_groundtruth(self._timestamps[indices])
 
     def __len__(self) -> int:
         return len(self._timestamps)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass
 from enum import Enum
@@ -44,6 +45,13 @@ Tensor = torch.Tensor
 logger = logging.getLogger(__name__)
 
 __all__ = ["Keyframe", "KeyframeEdge", "RGBDOdometry", "TrackResult", "TrackStatus"]
+
+
+def _describe_frame(frame: RGBDFrame) -> str:
+    # the index is the run's (it shifts with --frame-step): the stamp and the image find the frame in its list
+    path = getattr(frame, "rgb_path", None)
+    return (f"frame {int(frame.index)} (t {float(frame.timestamp):.6f}"
+            + (f", {os.path.basename(path)}" if path else "") + ")")
 
 
 class TrackStatus(Enum):
@@ -222,8 +230,9 @@ class RGBDOdometry:
         """LOST: constant-velocity pose; maybe force a keyframe after too many lost frames."""
         index, ts = int(frame.index), float(frame.timestamp)
         kf = self.keyframe
+        where = _describe_frame(frame)
         if kf is None:
-            logger.warning("frame %d lost before initialisation: %s", index, reason)
+            logger.warning("%s lost before initialisation: %s", where, reason)
             return TrackResult(index, ts, se3_identity(dtype=torch.float64), -1,
                                se3_identity(dtype=torch.float64), False, TrackStatus.LOST, reason, 0)
         self._lost_count += 1
@@ -239,7 +248,7 @@ class RGBDOdometry:
             reason += (f"; lost for {self._lost_count} frames: new keyframe {edge.j} at the "
                        f"constant-velocity pose (weak edge)")
         self._last = None  # an untracked frame must not be promoted
-        logger.warning("frame %d lost: %s", index, reason)
+        logger.warning("%s lost: %s", where, reason)
         kf_now = self.keyframe
         T_out = se3_identity(dtype=torch.float64) if edge is not None else T_kf
         return TrackResult(index, ts, pose, kf_now.id, T_out, edge is not None, TrackStatus.LOST, reason, 0,
