@@ -63,6 +63,7 @@ from slam.eval.place_recognition import (
     sequence_candidates,
     sequence_similarity,
 )
+from slam.io.images import FrameReadError, read_rgb
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
@@ -73,10 +74,10 @@ def data_root() -> Path:
 
 
 def load_rgb(path: Path) -> np.ndarray:
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise FileNotFoundError(f"cannot read image {path}")
-    return np.ascontiguousarray(bgr[:, :, ::-1])
+    """``(H, W, 3)`` uint8 RGB, through the SLAM's reader: grey images replicated, a missing, corrupt or
+    truncated file refused naming it (:class:`slam.io.images.FrameReadError`; cv2.imread would decode
+    half a JPEG and fill the rest with grey)."""
+    return read_rgb(str(path))
 
 
 def grayscale(images: list[np.ndarray]) -> list[np.ndarray]:
@@ -368,8 +369,11 @@ def protocols_kitchen(data: Path, step: int = 5):
 
 def protocols_folders(query: Path, reference: Path, gt_file: Path, data: Path):
     q_files, r_files = folder_images(query), folder_images(reference)
-    q = [load_rgb(p) for p in q_files]
-    r = [load_rgb(p) for p in r_files]
+    try:
+        q = [load_rgb(p) for p in q_files]
+        r = [load_rgb(p) for p in r_files]
+    except FrameReadError as err:  # one line naming the file, not a traceback
+        raise SystemExit(str(err)) from None
     try:
         gt = read_ground_truth(gt_file, num_references=len(r))
     except (OSError, ValueError) as err:  # the reader's named errors say which file and what is wrong

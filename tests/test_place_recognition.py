@@ -593,3 +593,16 @@ def test_benchmark_never_trains_orb_on_the_evaluated_images(load_script, capsys)
     img = np.zeros((32, 32, 3), np.uint8)
     sims = bench.all_methods([img], [img], [], methods=("orb",))
     assert sims == {} and "ORB-BoW: not measured" in capsys.readouterr().out
+
+
+def test_benchmark_refuses_a_truncated_image_naming_it(tmp_path, load_script):
+    # cv2.imread decoded half a JPEG and filled the rest with grey (only a libjpeg warning on stderr)
+    bench = load_script("benchmarks/place_recognition.py")
+    ok, data = cv2.imencode(".jpg", np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    (tmp_path / "query").mkdir()
+    (tmp_path / "query" / "0.jpg").write_bytes(data.tobytes()[: len(data) // 2])
+    grey = np.full((48, 64), 90, np.uint8)
+    cv2.imwrite(str(tmp_path / "g.png"), grey)
+    assert bench.load_rgb(tmp_path / "g.png").shape == (48, 64, 3)  # grey replicated, as before
+    with pytest.raises(SystemExit, match="0.jpg: not a decodable image"):
+        bench.protocols_folders(tmp_path / "query", tmp_path / "query", tmp_path / "gt.npy", tmp_path)
