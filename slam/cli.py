@@ -225,8 +225,10 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
             print(f"saved the map grown by this recording ({run.relocalisation.map_keyframes} + "
                   f"{metrics['num_keyframes']} keyframes) into {run.saved_map}")
         else:
+            kept = ("" if Path(run.saved_map) == Path(args.save_map) else
+                    f" (not into {args.save_map}: that is the map it was not placed in, kept as it was)")
             print(f"saved this recording's own map ({metrics['num_keyframes']} keyframes, its own world) into "
-                  f"{run.saved_map}")
+                  f"{run.saved_map}{kept}")
     wrote = ["trajectory.txt", "loops.txt", "metrics.json", "trajectory.png"]
     if run.map is not None:
         wrote.append(f"map.ply ({metrics['map']['points']} points)")

@@ -250,7 +250,14 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         # a run in a map it was placed in saves the grown map; otherwise (no map, or never relocalised)
         # its own, in its own world
         grown = reloc is not None and report.relocalised
-        saved_to = write_map(save_map, reloc.merged_map(view) if grown else capture_map(slam, view))
+        target = save_map
+        if reloc is not None and not grown and saved.path is not None and _same_folder(save_map, saved.path):
+            # asked to grow the map in place, but not placed in it: its own map there would replace every
+            # earlier session by this recording alone. The map stays; this recording's goes beside it.
+            target = _free_sibling(Path(save_map), ".unplaced")
+            logger.warning("%s: this recording was not placed in the map, which is kept as it was; its own map "
+                           "goes into %s", save_map, target)
+        saved_to = write_map(target, reloc.merged_map(view) if grown else capture_map(slam, view))
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
                      frame_step=int(frame_step), map=cloud, backbone=backbone, relocalisation=report,
                      map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to,
@@ -267,6 +274,23 @@ def unmatched_groundtruth(sequence: RGBDSequence, stamps: np.ndarray) -> str | N
     return (f"{sequence.groundtruth_file} has {len(t)} poses ({t.min():.3f} to {t.max():.3f} s), none within "
             f"{getattr(sequence, 'max_difference', 0.02):g} s of the {len(stamps)} frames used ({stamps.min():.3f} "
             f"to {stamps.max():.3f} s): a clock offset, or another sequence's ground truth?")
+
+
+def _same_folder(a, b) -> bool:
+    try:
+        return Path(a).resolve() == Path(b).resolve()
+    except OSError:
+        return False
+
+
+def _free_sibling(path: Path, suffix: str) -> Path:
+    """``path`` + ``suffix`` (then ``-2``, ``-3`` ...): the first name beside ``path`` that does not exist."""
+    k = 1
+    while True:
+        candidate = path.with_name(path.name + suffix + ("" if k == 1 else f"-{k}"))
+        if not candidate.exists():
+            return candidate
+        k += 1
 
 
 def camera_of(sequence: RGBDSequence) -> dict:

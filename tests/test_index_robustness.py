@@ -288,3 +288,41 @@ def test_index_file_version_must_be_supported(tmp_path, version):
         assert "no format version" in msg
     else:  # the version found
         assert re.search(rf"version {re.escape(repr(version))} ", msg), msg
+
+
+def test_save_writes_the_name_given_atomically(tmp_path, monkeypatch):
+    from attnloop.index import IndexConfig, IndexFileError, KeyframeIndex, persistence
+
+    index = KeyframeIndex(IndexConfig(backend="exact"))
+    index.add(torch.eye(4), ids=[2, 3, 5, 8])
+    index.save(tmp_path / "session1.idx")  # numpy would have written session1.idx.npz
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session1.idx"]
+    assert KeyframeIndex.load(tmp_path / "session1.idx").search(torch.eye(4)[2], k=1)[0].tolist() == [5]
+    # a save that fails half-way leaves the previous file whole (it was truncated in place)
+    bigger = KeyframeIndex(IndexConfig(backend="exact"))
+    bigger.add(torch.rand(50, 4))
+
+    def failing(f, **arrays):
+        f.write(b"PK\x03\x04 half a zip")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(persistence.np, "savez", failing)
+    with pytest.raises(OSError, match="disk full"):
+        bigger.save(tmp_path / "session1.idx")
+    monkeypatch.undo()
+    assert len(KeyframeIndex.load(tmp_path / "session1.idx")) == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session1.idx"]  # no temporary file left
+    np.save(tmp_path / "array.npy", np.zeros(3))
+    with pytest.raises(IndexFileError, match="array.npy: a .npy array"):
+        KeyframeIndex.load(tmp_path / "array.npy")
+
+
+def test_descriptors_of_an_empty_index_names_the_id():
+    from attnloop.index import IndexConfig, KeyframeIndex, LoopCandidateDetector
+
+    index = KeyframeIndex(IndexConfig(backend="exact"))
+    with pytest.raises(ValueError, match=r"unknown keyframe id\(s\) \[0\]"):
+        index.descriptors_of([0])
+    assert index.descriptors_of([]).shape[0] == 0
+    with pytest.raises(ValueError, match="unknown keyframe id"):
+        LoopCandidateDetector().similarities(0)

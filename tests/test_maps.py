@@ -547,3 +547,49 @@ def test_cli_saves_a_map_and_runs_a_recording_in_it(tmp_path, capsys):
     assert "saved the map grown by this recording" in out
     assert len(load_map(tmp_path / "grown")) == len(load_map(tmp_path / "map")) + json.loads(
         (tmp_path / "b" / "metrics.json").read_text())["num_keyframes"]
+
+
+def test_growing_a_map_in_place_with_a_recording_not_placed_in_it_keeps_the_map(room_sessions, tmp_path):
+    # --map X --save-map X, and the recording is of another place: its own map would have replaced X (every
+    # earlier session) by itself; X stays, the recording's map goes beside it
+    import shutil
+
+    from slam.pipeline import run_slam
+    from slam.synthetic.building_tour import building_sequence
+
+    acc = tmp_path / "acc"
+    shutil.copytree(room_sessions["folder"], acc)
+    before = load_map(acc)
+    seq = building_sequence(num_frames=2400, seed=0, width=SIZE[0], height=SIZE[1])
+    run = run_slam(seq, room_sessions["cfg"], progress=False, descriptor=room_sessions["desc"], frames=(0, 60),
+                   map_dir=acc, save_map=acc)
+    assert not run.relocalisation.relocalised
+    _assert_same_map(load_map(acc), before)
+    assert run.saved_map == tmp_path / "acc.unplaced" and len(load_map(run.saved_map)) == run.result.num_keyframes
+
+
+def test_a_map_left_in_its_hidden_folders_by_an_interrupted_save_is_named(tmp_path):
+    # save_map replaces a map by two renames; killed between them, the map folder is gone and the previous
+    # (complete) map waits in .m.<hex>.old: the error must say where, not just "no such map folder"
+    save_map(tmp_path / "m", _hand_map())
+    (tmp_path / "m").rename(tmp_path / ".m.1a2b3c4d.old")
+    with pytest.raises(FileNotFoundError, match=r"stopped half-way.*\.m\.1a2b3c4d\.old; rename the one to keep"):
+        load_map(tmp_path / "m")
+
+
+def test_an_index_of_another_dimension_is_refused_when_the_map_is_opened(tmp_path):
+    import hashlib
+
+    from attnloop.index import IndexConfig, KeyframeIndex
+    from attnloop.index import save_index as write_index
+
+    saved = _hand_map(M=6, D=16)
+    save_map(tmp_path / "m", saved)
+    other = KeyframeIndex(IndexConfig(backend="exact"))
+    other.add(torch.rand(6, 8), ids=saved.index_ids)
+    write_index(other, tmp_path / "m" / "index.npz")
+    _rewrite_manifest(tmp_path / "m", files={**json.loads((tmp_path / "m" / "manifest.json").read_text())["files"],
+                                             "index": {"name": "index.npz", "sha256": hashlib.sha256(
+                                                 (tmp_path / "m" / "index.npz").read_bytes()).hexdigest()}})
+    with pytest.raises(MapFormatError, match="descriptors of 8 values, the keyframes' .* have 16"):
+        load_map(tmp_path / "m")

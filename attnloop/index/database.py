@@ -186,7 +186,10 @@ class KeyframeIndex:
 
     def descriptors_of(self, ids) -> Tensor:
         """Stored descriptors ``(M, D)`` (float32) of keyframe ids ``(M,)``; ValueError naming an unknown id."""
-        return torch.from_numpy(self._store.rows(self.rows_of(ids).numpy()))
+        rows = self.rows_of(ids).numpy()  # first: it names an unknown id, also in an empty index
+        if self._store is None:  # an empty index and no id asked for
+            return torch.zeros((0, self.dim or 0), dtype=torch.float32)
+        return torch.from_numpy(self._store.rows(rows))
 
     def rows_of(self, ids) -> Tensor:
         """Buffer rows of the given keyframe ids ``(M,)``; ValueError naming an unknown id."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import uuid
 import zipfile
 
 import numpy as np
@@ -39,10 +40,30 @@ def _name(file) -> str:
 
 
 def save_index(index: KeyframeIndex, file) -> None:
-    """Write ``index`` to ``file`` (a path or a binary file object) as described in the module docstring."""
+    """Write ``index`` to ``file`` (a path or a binary file object) as described in the module docstring.
+
+    A path is written exactly as named (numpy would append ``.npz`` to another name) and atomically: into
+    a temporary file beside it, renamed over it once complete, so a failed or interrupted save leaves the
+    previous file as it was.
+    """
     state = index.state_dict()
     meta = state.pop("meta")
-    np.savez(file, meta=np.array(json.dumps(meta)), **state)
+    if not isinstance(file, (str, os.PathLike)):
+        np.savez(file, meta=np.array(json.dumps(meta)), **state)
+        return
+    path = os.fspath(file)
+    folder, base = os.path.split(path)
+    tmp = os.path.join(folder, f".{base}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, meta=np.array(json.dumps(meta)), **state)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
 
 
 def load_index(file, config: IndexConfig | None = None) -> KeyframeIndex:
@@ -62,10 +83,16 @@ def load_index(file, config: IndexConfig | None = None) -> KeyframeIndex:
     """
     name = _name(file)
     try:
-        with np.load(file, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
+        data = np.load(file, allow_pickle=False)
     except FileNotFoundError:
         raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise IndexFileError(f"{name}: not a keyframe-index .npz file ({exc})") from exc
+    if not isinstance(data, np.lib.npyio.NpzFile):  # a single .npy array
+        raise IndexFileError(f"{name}: a .npy array, not a keyframe-index .npz file")
+    try:
+        with data:
+            arrays = {k: data[k] for k in data.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise IndexFileError(f"{name}: not a keyframe-index .npz file ({exc})") from exc
     if "meta" not in arrays:

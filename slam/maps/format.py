@@ -286,6 +286,14 @@ def _check_rows(path: Path, arrays: dict, rows: dict) -> None:
 def _read_manifest(folder: Path) -> dict:
     mpath = folder / MANIFEST
     if not folder.is_dir():
+        # save_map replaces a map by two renames (old aside, new in): a process killed between them leaves
+        # the map only in the hidden folders beside it, both complete
+        left = sorted(p for p in folder.parent.glob(f".{folder.name}.*.old") if (p / MANIFEST).is_file()) + \
+            sorted(p for p in folder.parent.glob(f".{folder.name}.*.tmp") if (p / MANIFEST).is_file())
+        if left:
+            raise FileNotFoundError(f"{folder}: no such map folder, but a save that was replacing it stopped "
+                                    f"half-way: the previous map (.old) and the new one (.tmp) are in "
+                                    f"{', '.join(str(p) for p in left)}; rename the one to keep to {folder}")
         raise FileNotFoundError(f"{folder}: no such map folder")
     if not mpath.is_file():
         raise MapFormatError(f"{folder}: no {MANIFEST} (not a saved map)")
@@ -395,6 +403,9 @@ def load_map(path) -> SavedMap:
     if len(np.unique(ids)) != M or len(index) != M:  # a search must answer only this map's keyframes
         raise MapFormatError(f"{files['index']}: holds {len(index)} keyframes for {M} keyframes in {kp.name} "
                              f"({len(np.unique(ids))} distinct index ids); each keyframe must be in it exactly once")
+    D = kf["descriptor"].shape[1]
+    if M and index.dim != D:  # else the first map query fails, mid-run, without naming the map
+        raise MapFormatError(f"{files['index']}: descriptors of {index.dim} values, the keyframes' ({kp.name}) have {D}")
     info = {k: v for k, v in manifest.items() if k not in ("format", "version", "files")}
     return SavedMap(torch.from_numpy(kf["pose"].astype(np.float64)), torch.from_numpy(kf["frame_index"].astype(np.int64)),
                     torch.from_numpy(kf["timestamp"].astype(np.float64)), torch.from_numpy(ids),
