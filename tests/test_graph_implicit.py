@@ -212,9 +212,10 @@ def test_an_unconstrained_pose_is_reported_in_the_backward_pass():
     z = graph.measurements.clone().requires_grad_(True)
     lonely = PoseGraph(P, graph.ii, graph.jj, z, graph.information)
     res = optimize(lonely, differentiable=True)
-    with pytest.raises(RuntimeError, match="Hessian .* not positive definite"):
+    with pytest.raises(RuntimeError, match=r"2 separate components, and 1 of them hold no pose \(their first poses: 8\)"
+                                           r".*fixed=\(0, 8\)"):
         res.graph.poses.sum().backward()
-    held = optimize(lonely, differentiable=True, fixed=(0, 8))  # holding it is the remedy
+    held = optimize(lonely, differentiable=True, fixed=(0, 8))  # holding it is the remedy the message names
     held.graph.poses.sum().backward()
     assert torch.isfinite(z.grad).all()
 
@@ -244,3 +245,54 @@ def test_edge_hessians_equal_direct_second_order_autograd(chart, kernel):
     (g,) = torch.autograd.grad(f, d, create_graph=True)
     ref = torch.stack([torch.autograd.grad(g[:, c].sum(), d, retain_graph=True)[0] for c in range(12)], 1)
     assert torch.allclose(H, ref, atol=1e-10 * float(ref.abs().max()), rtol=0)
+
+
+def test_two_components_name_the_one_that_holds_no_pose():
+    # it converged, and every pose is constrained: the second loop moves as a whole at the same cost
+    a, b = _chain_graph(8, seed=1), _chain_graph(8, seed=2)
+    z = torch.cat([a.measurements, b.measurements]).requires_grad_(True)
+    two = PoseGraph(torch.cat([a.poses, b.poses]), torch.cat([a.ii, b.ii + 8]), torch.cat([a.jj, b.jj + 8]), z,
+                    torch.cat([a.information, b.information]))
+    res = optimize(two, differentiable=True)
+    assert res.status == "converged"
+    with pytest.raises(RuntimeError, match=r"2 separate components.*first poses: 8\).*fixed=\(0, 8\)"):
+        res.graph.poses.sum().backward()
+    optimize(two, differentiable=True, fixed=(0, 8)).graph.poses.sum().backward()
+    assert torch.isfinite(z.grad).all()
+
+
+def test_gradients_of_a_run_stopped_early_warn():
+    graph = _chain_graph()
+    z = graph.measurements.clone().requires_grad_(True)
+    with pytest.warns(RuntimeWarning, match="status max_iterations after 1 iteration.*those of the optimum"):
+        optimize(dataclasses.replace(graph, measurements=z), differentiable=True, max_iterations=1)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        optimize(dataclasses.replace(graph, measurements=z), differentiable=True)  # converged: no warning
+        optimize(graph, max_iterations=1)  # not differentiable: nothing to warn about
+
+
+@pytest.mark.parametrize("init", ["chordal", "spanning_tree"])
+def test_an_initial_guess_keeps_the_gradient_towards_the_anchor(init):
+    # the result is anchored on the input pose 0 whatever the initial guess: its gradient must survive the
+    # initialisation (it was None), and equal the one without it
+    graph = _chain_graph()
+    w = torch.randn(graph.num_poses, 7, dtype=F64, generator=torch.Generator().manual_seed(3))
+    w[:, 3:] = 0.0  # positions only: an initial guess may end at the same poses with some quaternions q -> -q
+    grads = []
+    for how in ("none", init):
+        P = graph.poses.clone().requires_grad_(True)
+        (optimize(dataclasses.replace(graph, poses=P), differentiable=True, initialization=how, **TIGHT)
+         .graph.poses * w).sum().backward()
+        grads.append(P.grad)
+    assert grads[1] is not None and float(grads[0][0].abs().sum()) > 0
+    assert float((grads[1] - grads[0]).abs().max()) < 1e-6 * float(grads[0].abs().max())
+
+
+@pytest.mark.parametrize("field,value", [("differentiable", "no"), ("verbose", 1), ("max_iterations", "3"),
+                                         ("max_iterations", -1), ("max_iterations", True)])
+def test_flags_and_counts_are_type_checked(field, value):
+    with pytest.raises(ValueError, match=field):
+        optimize(_chain_graph(), **{field: value})

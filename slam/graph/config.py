@@ -65,12 +65,20 @@ class OptimizerConfig:
     # the optimised poses carry a grad_fn when the measurements, information matrices or held poses require
     # grad: implicit differentiation at the optimum (slam.graph.implicit; one sparse factorisation and solve
     # of the cost's Hessian per backward). Exact at a stationary point: tighten rel_tol for precise gradients.
+    # They are the optimum's: a run stopped before it (max_iterations, solver_failed) warns that they do not
+    # describe the poses it returned. First order only (a second derivative raises).
     differentiable: bool = False
     verbose: bool = False  # print one line per iteration
 
     def validate(self, method: str = "lm") -> OptimizerConfig:
         """Check the settings for ``method`` (``"lm"`` or ``"gn"``: GN has no damping to check); a
         ``ValueError`` names the first bad one. Returns ``self``."""
+        for name in ("differentiable", "check_information", "verbose"):
+            if not isinstance(getattr(self, name), bool):  # bool("no") is True: a string here is a mistake
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        it = self.max_iterations
+        if isinstance(it, bool) or not isinstance(it, int) or it < 0:
+            raise ValueError(f"max_iterations must be an integer >= 0, got {it!r}")
         choices = (("damping", ("identity", "diagonal")), ("lambda_update", ("gtsam", "nielsen")),
                    ("gauge", ("free", "first", "prior")), ("backend", BACKENDS))
         for name, allowed in choices:

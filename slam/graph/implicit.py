@@ -45,6 +45,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import List, Optional, Tuple
 
+import numpy as np
 import torch
 
 from slam.graph.config import OptimizerConfig
@@ -177,6 +178,21 @@ def _prior_hessian(spec: _Spec, x: Tensor, poses: Tensor) -> Tensor:
     return 0.5 * (H + H.T)
 
 
+def _unanchored_components(ii: Tensor, jj: Tensor, n: int, held, prior: bool) -> Tuple[int, List[int]]:
+    """The number of connected components of the edges, and the first pose of each that holds no pose (the
+    gauge's prior, on pose 0, holds pose 0's component)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    i, j = ii.cpu().numpy(), jj.cpu().numpy()
+    _, label = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)
+    anchored = {int(label[h]) for h in held} | ({int(label[0])} if prior else set())
+    first = {}
+    for p, c in enumerate(label.tolist()):
+        first.setdefault(c, p)
+    return len(first), sorted(p for c, p in first.items() if c not in anchored)
+
+
 def implicit_vjp(spec: _Spec, x: Tensor, meas: Tensor, info: Tensor, poses: Tensor, grad_x: Tensor,
                  needs: Tuple[bool, bool, bool] = (True, True, True)):
     """The gradients of ``L`` w.r.t. the measurements ``(E, 7)``, the information ``(E, 6, 6)`` and the input
@@ -214,6 +230,13 @@ def implicit_vjp(spec: _Spec, x: Tensor, meas: Tensor, info: Tensor, poses: Tens
         try:
             v = make_solver(spec.solver, pattern.size).solve(pattern, H, rhs)
         except LinearSolverError as exc:
+            count, loose = _unanchored_components(spec.ii, spec.jj, N, spec.held, spec.prior_weight is not None)
+            if loose:  # each such component can move as a whole at the same cost: no minimum is strict
+                hold = sorted(set(int(h) for h in spec.held) | set(loose))
+                raise RuntimeError(
+                    f"implicit differentiation: the graph has {count} separate components, and {len(loose)} of them "
+                    f"hold no pose (their first poses: {', '.join(str(c) for c in loose[:5])}), so each can move as "
+                    f"a whole at the same cost; hold a pose in every component (fixed={tuple(hold[:8])})") from None
             raise RuntimeError("implicit differentiation: the cost's Hessian at the optimised poses is not "
                                f"positive definite ({exc}); they are not a strict local minimum (optimise to "
                                "convergence, or hold poses that no edge constrains)") from None

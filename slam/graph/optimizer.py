@@ -47,6 +47,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple, Union
 
@@ -104,7 +105,13 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
         cfg = dataclasses.replace(cfg, fixed=tuple(int(f) for f in cfg.fixed) + tuple(graph.fixed.tolist()))
     with limit_threads(cfg.num_threads):  # torch's, BLAS's (and OpenCV's) counts, restored after
         if initialization != "none":  # (its time counts in timings["setup"])
+            given = graph.poses
             graph = initialize(graph, initialization, fixed=cfg.fixed)
+            if given.requires_grad:
+                # the initial guess keeps the anchor and the held poses as given: their rows stay the
+                # caller's tensor, so the optimum's gradient towards them (its gauge) is not lost
+                same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
+                graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
         return _optimize(graph, method, kernel, solver, cfg, t_start)
 
 
@@ -136,6 +143,12 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     if cfg.differentiable:
         from slam.graph.implicit import attach_gradients
 
+        # (GN's "diverged" is also how it ends at an optimum with tight tolerances: a round-off step)
+        if run.status in (Status.MAX_ITERATIONS, Status.SOLVER_FAILED):
+            warnings.warn(f"optimize(differentiable=True) stopped with status {run.status} after {run.iterations} "
+                          "iteration(s): the implicit gradients are those of the optimum, not of the poses "
+                          "returned; optimise to convergence (max_iterations, rel_tol) for gradients that "
+                          "match them", RuntimeWarning, stacklevel=3)
         x = attach_gradients(graph, x, cfg, kern, gauge, solver)
     result_graph = graph.with_poses(x.to(dtype=graph.poses.dtype, device=graph.poses.device),
                                     check=False)  # finite: only finite costs are accepted
