@@ -125,3 +125,65 @@ def test_association_option(tmp_path, capsys):
     assert main([*common, "--association", "tum"]) == 2 and "within 0.015625 s" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main([*common, "--association", "greedy"])
+
+
+def test_the_plot_shows_the_alignment_the_figures_used(tmp_path, monkeypatch):
+    # --align sim3 on an estimate at 0.37 of the true scale: the plot drew it with its own rigid alignment
+    # (2.6 x too small) under a title that named the Sim(3) scale
+    import slam.eval.plot as plot_module
+
+    t = torch.arange(40, dtype=torch.float64) * 0.1
+    gt = torch.zeros(40, 7, dtype=torch.float64)
+    gt[:, 0], gt[:, 1], gt[:, 6] = torch.cos(t), torch.sin(t), 1.0
+    est = gt.clone()
+    est[:, :3] = 0.37 * gt[:, :3] + torch.tensor([2.0, -1.0, 0.5], dtype=torch.float64)
+    write_tum_trajectory(tmp_path / "gt.txt", Trajectory(t, gt))
+    write_tum_trajectory(tmp_path / "est.txt", Trajectory(t, est))
+    drawn = {}
+    original = plot_module.plot_trajectory
+
+    def capture(path, estimate, reference=None, align=True, **kw):
+        drawn["align"] = align
+        return original(path, estimate, reference, align=align, **kw)
+
+    monkeypatch.setattr(plot_module, "plot_trajectory", capture)
+    assert main(["ate", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--align", "sim3", "--plot",
+                 str(tmp_path / "ate.png")]) == 0
+    res = drawn["align"]
+    assert abs(res.scale - 1 / 0.37) < 1e-9 and res.rmse < 1e-9  # the figure is given the Sim(3) result
+    est_pos = est[:, :3]
+    aligned = res.scale * est_pos @ res.rotation.T + res.translation
+    assert torch.allclose(aligned, gt[:, :3], atol=1e-9)
+
+
+def test_rpe_frames_delta_must_be_whole_and_bad_files_are_named(tmp_path, capsys):
+    gt = tmp_path / "gt.txt"
+    gt.write_text("".join(f"{k}.0 {k} 0 0 0 0 0 1\n" for k in range(6)))
+    assert main(["rpe", str(gt), str(gt), "--delta", "2.5"]) == 2  # it ran 2 frames apart
+    assert "whole number of frames, got 2.5" in capsys.readouterr().err
+    assert main(["rpe", str(gt), str(gt), "--delta", "2", "--delta-unit", "seconds"]) == 0  # seconds need not
+    capsys.readouterr()
+    empty = tmp_path / "empty.txt"
+    empty.write_text("# nothing\n")
+    assert main(["ate", str(gt), str(empty)]) == 2
+    assert f"estimate {empty} holds no pose" in capsys.readouterr().err
+    assert main(["ate", str(gt), str(tmp_path)]) == 2
+    assert "a folder, not a trajectory file" in capsys.readouterr().err
+
+
+def test_plotting_with_an_ate_result_draws_its_aligned_estimate():
+    # the same picture as the estimate aligned by hand and drawn without alignment
+    from slam.eval.metrics import ate
+    from slam.eval.plot import plot_trajectory
+
+    t = torch.arange(30, dtype=torch.float64) * 0.2
+    gt = torch.zeros(30, 7, dtype=torch.float64)
+    gt[:, 0], gt[:, 1], gt[:, 6] = torch.cos(t), 0.5 * torch.sin(2 * t), 1.0
+    est = gt.clone()
+    est[:, :3] = 2.5 * gt[:, :3] + 1.0
+    ref, raw = Trajectory(t, gt), Trajectory(t, est)
+    res = ate(ref, raw, alignment="sim3")
+    by_hand = Trajectory(t, res.estimate_aligned.poses)
+    a = plot_trajectory(None, raw, ref, align=res, plane="xy", title="x")
+    b = plot_trajectory(None, by_hand, ref, align=False, plane="xy", title="x")
+    assert np.array_equal(a, b)

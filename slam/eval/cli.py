@@ -116,10 +116,12 @@ def _run(args: argparse.Namespace) -> dict:
 
             plot_trajectory(args.plot, as_trajectory(args.estimate, "estimate"),
                             as_trajectory(args.reference, "reference"), plane=args.plane,
-                            align=args.align != "none", labels=tuple(args.labels),
+                            align=res, labels=tuple(args.labels),
                             title=f"ATE {res.rmse:.4f} m ({what})")
             print(f"wrote {args.plot}")
     else:
+        if args.delta_unit == "frames" and not float(args.delta).is_integer():  # evo_rpe refuses it too
+            raise ValueError(f"--delta in frames must be a whole number of frames, got {args.delta:g}")
         delta = int(args.delta) if args.delta_unit == "frames" else args.delta
         res = rpe(args.reference, args.estimate, delta=delta, delta_unit=args.delta_unit,
                   all_pairs=args.all_pairs, alignment=args.align, **common)

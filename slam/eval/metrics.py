@@ -14,14 +14,17 @@
   reference, ``P`` estimate, evo's convention); the translation error is ``|t(E)|`` in metres, the
   rotation error the angle of ``E`` in degrees. ``delta_unit="frames"`` reproduces ``evo_rpe`` (pairs
   ``(0, d), (d, 2d), ...``, or every ``(i, i + d)`` with ``all_pairs``); ``delta_unit="seconds"`` picks
-  pairs ``delta`` seconds apart as TUM's ``evaluate_rpe.py --fixed_delta`` (its default is 1 s): the
-  partner of ``i`` is the stamp nearest to ``t_i + delta``, used when it is within half a frame of it
-  (evo has no time unit for its RPE). Consecutive pairs chain: the next start is the partner; a start
-  without a later partner (the end of a segment before a gap in the stamps) hands over to the next pose,
-  so the chain resumes after a gap.
-  TUM's script measures the translation of ``(P_i^-1 P_j)(Q_i^-1 Q_j)^-1`` instead of evo's
-  ``(Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; the rotation angles are identical, the translations differ
-  only to second order.
+  pairs ``delta`` seconds apart, as TUM's ``evaluate_rpe.py --fixed_delta`` does in spirit (its default is
+  1 s; evo has no time unit for its RPE): the partner of ``i`` is the stamp nearest to ``t_i + delta``,
+  used when it is within half a frame of it. Consecutive pairs chain: the next start is the partner; a
+  start without a later partner (the end of a segment before a gap in the stamps) hands over to the next
+  pose, so the chain resumes after a gap. TUM's script pairs differently: it takes the nearest stamp
+  whatever the gap and never pairs with the last pose, so its pair count differs (fr3_long_office: 2870
+  pairs against 2732 here, RMSE 0.0736 against 0.0738 m).
+  TUM's script also measures the translation of ``(P_i^-1 P_j)(Q_i^-1 Q_j)^-1`` instead of evo's
+  ``(Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``: the rotation angles are identical, the translations are not (to first
+  order where the rotation is off: a 1 m step with a 5 degree turning error is 0.087 m in TUM's, 0 in
+  evo's and here). These figures are evo's.
 
 Example:
     >>> import torch
@@ -227,7 +230,10 @@ def _associated(reference: TrajectoryLike, estimate: TrajectoryLike, max_differe
     ref = as_trajectory(reference, "reference")
     est = as_trajectory(estimate, "estimate")
     if len(ref) == 0 or len(est) == 0:
-        raise ValueError(f"cannot evaluate an empty trajectory ({len(ref)} reference, {len(est)} estimated poses)")
+        empty = [f"{what} {os.fspath(x) if isinstance(x, (str, os.PathLike)) else ''}".strip()
+                 for what, x, t in (("reference", reference, ref), ("estimate", estimate, est)) if len(t) == 0]
+        raise ValueError(f"cannot evaluate an empty trajectory ({len(ref)} reference, {len(est)} estimated poses): "
+                         f"{' and '.join(empty)} holds no pose")
     i, j = association_indices(ref.timestamps, est.timestamps, max_difference, offset, association)
     if i.numel() == 0:
         raise ValueError(

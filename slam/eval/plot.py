@@ -218,7 +218,7 @@ def plot_trajectory(
     reference: Trajectory | None = None,
     loops: torch.Tensor | None = None,
     plane: str = "auto",
-    align: bool = True,
+    align: bool | object = True,
     size: tuple[int, int] = (800, 700),
     title: str | None = None,
     labels: tuple[str, str] = ("ground truth", "estimate"),
@@ -233,7 +233,9 @@ def plot_trajectory(
             drawn as a line between the estimated positions nearest in time to ``a`` and ``b``.
         plane: ``"auto"`` (the two axes with the largest spread of the ground truth, else of the
             estimate; the title says which), or ``"xy"``, ``"xz"``, ``"yz"``.
-        align: rigidly align the estimate to the reference first (as the ATE does) so both share a frame.
+        align: rigidly align the estimate to the reference first (as the ATE does) so both share a frame;
+            or an :class:`~slam.eval.metrics.ATEResult`, whose alignment (rotation, translation, scale) is
+            applied: the figure then shows what that result measured (Sim(3), a time offset, ...).
         size: ``(W, H)`` pixels.
         title: figure title (default names the plane).
         labels: legend entries of the reference and of the estimate.
@@ -249,12 +251,14 @@ def plot_trajectory(
     ref_pos = None
     if reference is not None:
         ref_pos = reference.poses[:, :3].detach().to("cpu", torch.float64)
-        if align and len(estimate) > 0 and len(reference) > 0:
-            from slam.eval.metrics import ate  # local: metrics imports this module's siblings
+        from slam.eval.metrics import ATEResult, ate  # local: metrics imports this module's siblings
 
+        given = align if isinstance(align, ATEResult) else None
+        if given is not None or (align and len(estimate) > 0 and len(reference) > 0):
             try:
-                result = ate(reference, estimate)
-                est_pos = est_pos @ result.rotation.cpu().T + result.translation.cpu()
+                result = given if given is not None else ate(reference, estimate)
+                R, t = result.rotation.detach().to("cpu", torch.float64), result.translation.detach().to("cpu", torch.float64)
+                est_pos = result.scale * est_pos @ R.T + t
             except ValueError as e:
                 warnings.warn(f"trajectory plot: estimate not aligned to the reference ({e})", stacklevel=2)
     if plane == "auto":

@@ -129,6 +129,8 @@ def _split_fields(line: str) -> tuple[list[str], int | None]:
 
 def _read_lines(source: PathOrFile) -> list[str]:
     if isinstance(source, (str, os.PathLike)) and not os.path.isfile(os.fspath(source)):
+        if os.path.isdir(os.fspath(source)):
+            raise IsADirectoryError(f"{os.fspath(source)}: a folder, not a trajectory file")
         raise FileNotFoundError(f"trajectory file not found: {os.fspath(source)}")
     if not isinstance(source, (str, os.PathLike)) and not hasattr(source, "read"):
         raise TypeError(f"expected a path or a text file object, got {type(source).__name__}")
