@@ -18,12 +18,12 @@ import sys
 import slam.allocator
 from slam.cli import call_reporting_errors
 from slam.io import open_sequence
-from slam.options import add_run_arguments, config_from_args, given_options
+from slam.options import add_run_arguments, config_from_args, given_options, reader_options
 from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
 
 
 def run(args: argparse.Namespace, given: frozenset[str] = frozenset()) -> int:
-    sequence = open_sequence(args.sequence, camera=args.camera)
+    sequence = open_sequence(args.sequence, **reader_options(args))
     # every threshold, with its default, lives in slam/config.py; flags that others make idle are refused
     config = config_from_args(args, sequence, given=given)
     out = prepare_output_dir(args.out)  # checked (and the previous run's outputs removed) before the work

@@ -12,7 +12,7 @@ from pathlib import Path
 from attnloop.fusion import FUSION_MODES
 from slam.eval import plot_pr_curves
 from slam.io import open_sequence
-from slam.options import config_from_args, run_options
+from slam.options import config_from_args, reader_options, run_options
 from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
 
 __all__ = ["MODES", "markdown_table", "run_ablation"]
@@ -47,7 +47,7 @@ def run_ablation(sequences, out_dir, options=None, modes=MODES, *, configure=Non
     if bad:
         raise ValueError(f"unknown fusion mode(s) {bad}; choose from {', '.join(FUSION_MODES)}")
     out_dir = Path(out_dir)
-    opened = [open_sequence(path, camera=opts.camera) for path in sequences]  # every folder checked first
+    opened = [open_sequence(path, **reader_options(opts)) for path in sequences]  # every folder checked first
     configs = {(mode, k): config_from_args(opts, seq, fusion=mode, given=given) for mode in modes
                for k, seq in enumerate(opened)}
     if configure is not None:

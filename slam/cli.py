@@ -160,7 +160,7 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
     other options make idle are refused.
     """
     from slam.io import open_sequence
-    from slam.options import UsageError, config_from_args, describe_rig, resolve_rig
+    from slam.options import UsageError, config_from_args, describe_rig, reader_options, resolve_rig
     from slam.pipeline import camera_of, evaluate_run, prepare_output_dir, run_slam, write_outputs
 
     demo_options = [flag for dest, flag in DEMO_OPTIONS.items() if dest in given]
@@ -174,6 +174,8 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
         raise UsageError("a SEQUENCE folder is required (or --demo)")
     if args.demo and args.camera is not None:
         raise UsageError("--camera applies to TUM sequence folders, not to --demo")
+    if args.demo and args.depth_scale is not None:
+        raise UsageError("--depth-scale applies to a SEQUENCE folder, not to --demo (it writes its own)")
     if (args.save_map is not None or args.map_dir is not None) and args.no_loop:
         raise UsageError("--save-map and --map need loop closure (its descriptors and verification); drop --no-loop")
     saved = None
@@ -189,7 +191,7 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
     if args.demo:
         _check_demo_args(args)
     else:
-        seq = open_sequence(args.sequence, camera=args.camera)
+        seq = open_sequence(args.sequence, **reader_options(args))
     # every setting checked (--weights a file too) before any output is touched or the demo rendered
     cfg = config_from_args(args, seq, given=given)
     # The loop descriptor is built here, not in run_slam: weights that cannot be found (or downloaded) or
@@ -213,8 +215,8 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
                    map_dir=saved)
     metrics = evaluate_run(run)
     write_outputs(run, out)
-    tracked = metrics["num_frames"] - metrics["num_lost"] - metrics["num_skipped"]
-    if tracked <= 1:
+    tracked = metrics["num_frames"] - metrics["num_lost"] - metrics["num_skipped"]  # the first frame included
+    if tracked < min(2, metrics["num_frames"]):  # a one-frame run that initialised tracked all it could
         print(f"{PROG}: warning: no frame could be tracked ({metrics['num_lost']} lost, {metrics['num_skipped']} "
               "unreadable); see the warnings above", file=sys.stderr)
     print(_summary(run, metrics))

@@ -55,6 +55,7 @@ __all__ = [
     "non_negative_int",
     "positive_float",
     "positive_int",
+    "reader_options",
     "resolve_rig",
     "rig_of",
     "run_options",
@@ -205,6 +206,9 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
                         "-0.025 0 0); poses are reported for the depth camera")
     g.add_argument("--registered", action="store_true",
                    help="colour and depth are registered (colour pixel = depth pixel): no rig, even on 7-Scenes")
+    g.add_argument("--depth-scale", type=positive_float, default=None, metavar="UNITS",
+                   help="depth PNG units per metre (default: the dataset's, TUM 5000, 7-Scenes 1000); 1000 for "
+                        "sequences in TUM's layout written in millimetres")
 
     g = parser.add_argument_group("compute")
     g.add_argument("--threads", type=positive_int, default=None, metavar="N",
@@ -229,6 +233,17 @@ def _default_voxel() -> float:
     from slam.mapping import MapConfig
 
     return MapConfig().voxel_size
+
+
+def reader_options(args: argparse.Namespace) -> dict:
+    """The keyword arguments of :func:`slam.io.open_sequence` the run's flags set (``--camera``,
+    ``--depth-scale``); the dataset's own where a flag is not given.
+
+    Example:
+        >>> reader_options(run_options(depth_scale=1000.0))
+        {'depth_scale': 1000.0}
+    """
+    return {k: v for k, v in (("camera", args.camera), ("depth_scale", args.depth_scale)) if v is not None}
 
 
 def run_options(options: argparse.Namespace | None = None, **overrides) -> argparse.Namespace:

@@ -250,3 +250,12 @@ def test_cli_runs_on_real_frames_with_the_kinect_rig_by_default(redkitchen_dir, 
     m = _strict_json(out / "metrics.json")
     assert "525 525 320 240" in m["rig"] and "-0.025 0 0" in m["rig"]  # no rig flag given
     assert math.isfinite(m["ate_rmse"]) and m["ate_rmse"] < 0.05
+
+
+def test_a_one_frame_run_that_initialised_does_not_warn(room_sequence, tmp_path, capsys):
+    # it said "no frame could be tracked ... see the warnings above" with no warning above
+    assert main([str(room_sequence), "--no-loop", "--no-map", "--quiet", "--max-frames", "1",
+                 "--out", str(tmp_path / "one")]) == 0
+    assert "no frame could be tracked" not in capsys.readouterr().err
+    m = _strict_json(tmp_path / "one" / "metrics.json")
+    assert m["num_frames"] == 1 and m["num_lost"] == 0

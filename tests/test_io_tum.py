@@ -400,3 +400,22 @@ def test_ground_truth_that_matches_no_frame_says_so(tmp_path):
     assert camera_of(seq) == {"name": "fr1", "intrinsics": [517.3, 516.5, 318.6, 255.3]}
     (d / "groundtruth.txt").unlink()
     assert unmatched_groundtruth(open_sequence(d), seq.timestamps) is None  # no file: nothing to explain
+
+
+def test_depth_scale_reads_millimetre_depth(tum_dir):
+    # the depth PNGs hold 10000 at (3, 3): TUM's 5000 per metre gives 2 m, millimetres (1000) 10 m
+    assert open_sequence(tum_dir)[1].depth[3, 3] == 2.0
+    assert open_sequence(tum_dir, depth_scale=1000)[1].depth[3, 3] == 10.0
+    for bad in (0, -5000, float("nan"), "mm", True):
+        with pytest.raises(DatasetError, match="depth_scale must be a positive number"):
+            open_sequence(tum_dir, depth_scale=bad)
+
+
+def test_the_command_passes_depth_scale_and_camera_to_the_reader(tum_dir, capsys):
+    from slam.cli import main
+    from slam.options import reader_options, run_options
+
+    assert reader_options(run_options()) == {}
+    assert reader_options(run_options(camera="fr2", depth_scale=1000.0)) == {"camera": "fr2", "depth_scale": 1000.0}
+    assert main(["--demo", "--out", str(tum_dir.parent / "o"), "--depth-scale", "1000"]) == 2
+    assert "--depth-scale applies to a SEQUENCE folder" in capsys.readouterr().err

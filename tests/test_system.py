@@ -192,3 +192,18 @@ def test_a_lost_frames_warning_names_its_stamp_and_image(caplog):
     with caplog.at_level("WARNING", logger="slam.odometry.frontend"):
         RGBDSLAM(_odometry_only()).track(frame)
     assert "frame 3 (t 0.100000, 1305031102.175304.png) lost before initialisation" in caplog.text
+
+
+def test_keyframe_decisions_are_logged_at_info(caplog):
+    # --verbose (INFO) said it logs every keyframe decision, and logged only the first keyframe
+    from slam.synthetic import SyntheticSequence
+
+    seq = SyntheticSequence("loop", num_frames=60, seed=0, width=160, height=120)
+    slam = RGBDSLAM(_odometry_only())
+    with caplog.at_level("INFO", logger="slam.odometry.frontend"):
+        for i in range(0, 60, 3):
+            slam.track(seq[i])
+    decisions = [r.getMessage() for r in caplog.records if "new keyframe" in r.getMessage()
+                 or "promoted to keyframe" in r.getMessage()]  # tracked (INFO), or forced after a loss (WARNING)
+    assert any(r.levelname == "INFO" and "new keyframe:" in r.getMessage() for r in caplog.records)
+    assert len(decisions) == slam.finish().num_keyframes - 1  # every keyframe after the first says why

@@ -35,7 +35,8 @@ from slam.io.frame import RGBDFrame
 from slam.io.images import FrameReadError
 from slam.io.trajectory import Trajectory
 
-__all__ = ["DatasetError", "DatasetNotFoundError", "DatasetWarning", "RGBDSequence", "SequenceView", "open_sequence"]
+__all__ = ["DatasetError", "DatasetNotFoundError", "DatasetWarning", "RGBDSequence", "SequenceView", "check_depth_scale",
+           "open_sequence"]
 
 logger = logging.getLogger(__name__)
 
@@ -57,6 +58,18 @@ class DatasetError(ValueError):
 
 class DatasetNotFoundError(DatasetError, FileNotFoundError):
     """The sequence folder or one of its required list files does not exist."""
+
+
+def check_depth_scale(depth_scale, root) -> float:
+    """``depth_scale`` (depth units per metre) as a float, or a :class:`DatasetError` naming ``root``."""
+    try:
+        value = float(depth_scale)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if isinstance(depth_scale, bool) or not (value > 0 and value < float("inf")):
+        raise DatasetError(root, f"depth_scale must be a positive number of depth units per metre (TUM 5000, "
+                                 f"millimetres 1000), got {depth_scale!r}")
+    return value
 
 
 class DatasetWarning(UserWarning):
@@ -235,7 +248,7 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
         path: the sequence folder.
         camera: TUM only: ``"fr1"``, ``"fr2"``, ``"fr3"`` or ``"ros"`` (default: from the folder name).
         K: ``(3, 3)`` intrinsics overriding the dataset's.
-        **kwargs: passed to the reader.
+        **kwargs: passed to the reader (both take ``depth_scale``, depth units per metre).
 
     Raises:
         DatasetNotFoundError: the folder does not exist.

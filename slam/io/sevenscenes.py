@@ -32,7 +32,7 @@ import torch
 from slam.input_checks import MAX_COORDINATE, TextDecodeError, read_text_lines
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
-from slam.io.sequence import DatasetError, DatasetNotFoundError, DatasetWarning, RGBDSequence
+from slam.io.sequence import DatasetError, DatasetNotFoundError, DatasetWarning, RGBDSequence, check_depth_scale
 from slam.lie import rotmat_project, se3_from_matrix
 
 __all__ = [
@@ -151,10 +151,12 @@ class SevenScenesSequence(RGBDSequence):
 
     depth_scale = SEVENSCENES_DEPTH_SCALE
 
-    def __init__(self, root, K=None, fps: float = SEVENSCENES_FPS):
+    def __init__(self, root, K=None, fps: float = SEVENSCENES_FPS, depth_scale: float | None = None):
         self.root = Path(root).expanduser()
         if isinstance(fps, bool) or not isinstance(fps, Real) or not math.isfinite(fps) or not fps > 0:
             raise DatasetError(self.root, f"fps must be a finite positive number, got {fps!r}")
+        if depth_scale is not None:
+            self.depth_scale = check_depth_scale(depth_scale, self.root)
         if not self.root.is_dir():
             raise DatasetNotFoundError(self.root, "sequence folder does not exist")
         self.name = self.root.resolve().name

@@ -41,7 +41,7 @@ from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
 from slam.input_checks import TextDecodeError, read_text_lines
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
-from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence
+from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence, check_depth_scale
 from slam.io.trajectory import _split_fields, read_tum_trajectory
 
 __all__ = [
@@ -209,6 +209,8 @@ class TUMSequence(RGBDSequence):
         K: ``(3, 3)`` intrinsics overriding ``camera``.
         max_difference: association tolerance in seconds (TUM: 0.02).
         undistort: remap colour (bilinear) and depth (nearest) with the camera's distortion.
+        depth_scale: depth units per metre (default TUM's 5000; 1000 for millimetre PNGs, as many
+            sensors and datasets in this layout write them).
 
     Raises:
         DatasetNotFoundError: missing folder, ``rgb.txt`` or ``depth.txt``.
@@ -225,10 +227,12 @@ class TUMSequence(RGBDSequence):
     depth_scale = TUM_DEPTH_FACTOR
 
     def __init__(self, root, camera: str | None = None, K=None, max_difference: float = TUM_MAX_DIFFERENCE,
-                 undistort: bool = False):
+                 undistort: bool = False, depth_scale: float | None = None):
         self.root = Path(root).expanduser()
         if not self.root.is_dir():
             raise DatasetNotFoundError(self.root, "sequence folder does not exist")
+        if depth_scale is not None:
+            self.depth_scale = check_depth_scale(depth_scale, self.root)
         # the name as given (a symlink's, which may carry the camera: rgbd_dataset_freiburg2_x -> my_copy);
         # the target's where the given path has none (".." and the like)
         given = self.root.absolute().name

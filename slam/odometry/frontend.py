@@ -222,8 +222,10 @@ class RGBDOdometry:
             except (ValueError, TypeError, cv2.error) as exc:
                 return None, f"unusable frame: {exc}"
         if feats.num_valid < self.config.min_valid_points:
-            return feats, (f"too few keypoints with valid depth ({feats.num_valid} of {len(feats)}; "
-                           f"need {self.config.min_valid_points})")
+            # "valid": a depth in [min_depth, max_depth] whose neighbours agree within max_depth_jump
+            # (not on a depth edge): very noisy depth fails the second with the depth present
+            return feats, (f"too few keypoints with valid depth, in range and off depth edges ({feats.num_valid} "
+                           f"of {len(feats)}; need {self.config.min_valid_points})")
         return feats, ""
 
     def _lost(self, frame: RGBDFrame, feats: FrameFeatures | None, reason: str) -> TrackResult:
@@ -371,7 +373,7 @@ class RGBDOdometry:
         self._last = _LastFrame(index, ts, frame.rgb, feats, T_kf if not is_kf else self._T_kf_last,
                                 res.information, tracked=True)
         reason_out = "; ".join(notes)
-        if status is TrackStatus.RECOVERED:
+        if status is TrackStatus.RECOVERED or edge is not None:  # every keyframe decision (--verbose shows them)
             logger.info("frame %d: %s", index, reason_out)
         kf_id = self.keyframe.id
         T_out = se3_identity(dtype=torch.float64) if is_kf else T_kf
