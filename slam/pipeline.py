@@ -362,7 +362,8 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
     Keys: ``sequence``, ``num_frames``, ``frame_step``, ``num_keyframes``, ``num_loops``, ``num_lost``,
     ``num_skipped``, ``fps``, ``wall_seconds``, ``time_per_stage``, ``backbone`` (as built; null without
     loop closure), ``rig``, ``map`` (points of the merged map, keyframes, points and MB kept during the run); ``ate_rmse`` (rigid SE(3) alignment, TUM association) and ``ate``
-    (statistics), ``odometry_ate_rmse`` (before the pose graph), ``rpe_1frame`` / ``rpe_1s`` (translation
+    (statistics), ``ate_tracked`` (the same over the tracked frames only, without the lost and unreadable
+    ones' interpolated poses), ``odometry_ate_rmse`` (before the pose graph), ``rpe_1frame`` / ``rpe_1s`` (translation
     m, rotation deg) and ``loops_true`` / ``loops_false`` (accepted loops judged by ground-truth distance
     and angle, :class:`slam.eval.LoopGroundTruthConfig`; ``loop_hypotheses_false``: the false ones among
     the verified loops by final status, beside ``loop_hypotheses``, all of them by status, and
@@ -449,6 +450,16 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
             m["ate"] = {"rmse": a.rmse, "mean": a.mean, "median": a.median, "std": a.std, "max": a.max,
                         "num_pairs": a.num_pairs}
             m["odometry_ate_rmse"] = odo
+            # over the tracked frames alone (lost and unreadable ones are interpolated guesses): what a
+            # system that writes tracked frames only (ORB-SLAM) would be scored on
+            m["ate_tracked"] = None
+            if res.tracked is not None:
+                kept = torch.nonzero(res.tracked).flatten()
+                try:
+                    t = ate(run.groundtruth, res.trajectory.subset(kept))
+                    m["ate_tracked"] = {"rmse": t.rmse, "num_pairs": t.num_pairs}
+                except ValueError as e:  # too few tracked frames with ground truth to align
+                    m["ate_tracked"] = {"unavailable": str(e)}
     if m["ate_rmse"] is not None:
         for key, kw in (("rpe_1frame", {"delta": 1, "delta_unit": "frames"}),
                         ("rpe_1s", {"delta": 1.0, "delta_unit": "seconds"})):

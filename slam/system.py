@@ -128,6 +128,8 @@ class SLAMResult:
         timings: seconds and calls per stage.
         loop_hypotheses: every verified loop, with its final ``status`` (kept / inconsistent / switched_off).
         corrections: the online optimisations, in order.
+        tracked: ``(N,)`` bool per frame: placed by tracking (not lost, not unreadable): the frames that a
+            system which outputs tracked frames only (ORB-SLAM's trajectory files) would report.
     """
 
     trajectory: Trajectory
@@ -145,6 +147,7 @@ class SLAMResult:
     timings: Dict[str, Dict[str, float]]
     loop_hypotheses: List[LoopClosure] = field(default_factory=list)
     corrections: List[BackendResult] = field(default_factory=list)
+    tracked: Optional[Tensor] = None
 
 
 def interpolate_gaps(timestamps: Tensor, poses: Tensor, placed: Tensor) -> Tensor:
@@ -454,6 +457,11 @@ class RGBDSLAM:
             return poses
         return depth_camera_poses(poses, self._T_rgb_depth)
 
+    def _placed(self) -> Tensor:
+        """``(N,)`` bool: the frames placed by tracking (not lost, not skipped)."""
+        return torch.tensor([f.status not in (TrackStatus.LOST.value, "skipped") for f in self._frames],
+                            dtype=torch.bool)
+
     def _frames_trajectory(self, kf_poses: Tensor, interpolate_lost: bool = False) -> Trajectory:
         n = len(self._frames)
         ts = torch.tensor([f.timestamp for f in self._frames], dtype=torch.float64)
@@ -464,8 +472,7 @@ class RGBDSLAM:
         base = kf_poses[kf] if kf_poses.shape[0] else se3_identity(n, dtype=torch.float64)
         poses = se3_compose(base, T)
         if interpolate_lost:
-            placed = torch.tensor([f.status not in (TrackStatus.LOST.value, "skipped") for f in self._frames])
-            poses = interpolate_gaps(ts, poses, placed)
+            poses = interpolate_gaps(ts, poses, self._placed())
         return Trajectory(ts, self._output_frame(poses))
 
     @config_threads
@@ -511,4 +518,4 @@ class RGBDSLAM:
             loops=self.loops, queries=queries, graph=graph, optimization=opt,
             num_frames=len(self._frames), num_keyframes=self.graph.num_keyframes, num_lost=self._num_lost,
             num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
-            corrections=list(self._corrections))
+            corrections=list(self._corrections), tracked=self._placed())

@@ -207,3 +207,27 @@ def test_keyframe_decisions_are_logged_at_info(caplog):
                  or "promoted to keyframe" in r.getMessage()]  # tracked (INFO), or forced after a loss (WARNING)
     assert any(r.levelname == "INFO" and "new keyframe:" in r.getMessage() for r in caplog.records)
     assert len(decisions) == slam.finish().num_keyframes - 1  # every keyframe after the first says why
+
+
+def test_metrics_give_the_ate_of_the_tracked_frames_alone():
+    # lost frames are interpolated guesses in the trajectory; ate_tracked leaves them out, as a system that
+    # writes tracked frames only would be scored
+    from slam.eval import ate
+    from slam.pipeline import evaluate_run, run_slam
+    from slam.synthetic import SyntheticSequence
+
+    class Covered(SyntheticSequence):  # the lens covered for frames 20-25: no depth
+        def _load(self, i):
+            frame = super()._load(i)
+            if 20 <= i <= 25:
+                frame.depth[:] = 0.0
+            return frame
+
+    seq = Covered("loop", num_frames=60, seed=0, width=160, height=120)
+    run = run_slam(seq, _odometry_only(), progress=False)
+    m = evaluate_run(run)
+    res = run.result
+    assert not res.tracked[20:26].any() and int((~res.tracked).sum()) == m["num_lost"] >= 6
+    kept = torch.nonzero(res.tracked).flatten()
+    ref = ate(run.groundtruth, res.trajectory.subset(kept))
+    assert m["ate_tracked"] == {"rmse": ref.rmse, "num_pairs": 60 - m["num_lost"]} and m["ate"]["num_pairs"] == 60
