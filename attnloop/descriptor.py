@@ -552,6 +552,11 @@ class AttentionDescriptor(nn.Module):
             if not self.differentiable:
                 net.requires_grad_(False)
         elif isinstance(backbone, nn.Module):
+            made = [n for n, p in backbone.named_parameters() if p.is_inference()]
+            if made:  # the seeded backward cannot save them: the first call would fail with torch's error
+                raise ValueError(f"{type(backbone).__name__}'s parameters ({made[0]}, ...) are inference tensors: "
+                                 "the module was built under torch.inference_mode(); build it outside (calling "
+                                 "the descriptor under inference_mode is fine)")
             if pretrained is not None or weights is not None:
                 raise ValueError("pretrained=/weights= apply to a backbone name; a module comes with its own weights")
             if attend is not None:
@@ -564,11 +569,6 @@ class AttentionDescriptor(nn.Module):
                                      f"{', '.join(extra)}= apply to a plain classifier module")
                 net = backbone
             elif tap is not None:
-                made = [n for n, p in backbone.named_parameters() if p.is_inference()]
-                if made:  # the seeded backward through the head would fail at the first call
-                    raise ValueError(f"{type(backbone).__name__}'s parameters ({made[0]}, ...) are inference tensors: "
-                                     "the module was built under torch.inference_mode(); build it outside (calling "
-                                     "the descriptor under inference_mode is fine)")
                 net = HookedBackbone(backbone, tap, input_size=input_size, mean=mean, std=std)
             else:
                 raise TypeError(

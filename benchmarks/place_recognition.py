@@ -63,7 +63,7 @@ from slam.eval.place_recognition import (
     sequence_candidates,
     sequence_similarity,
 )
-from slam.io.images import FrameReadError, read_rgb
+from slam.io.images import FrameReadError
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
@@ -74,10 +74,18 @@ def data_root() -> Path:
 
 
 def load_rgb(path: Path) -> np.ndarray:
-    """``(H, W, 3)`` uint8 RGB, through the SLAM's reader: grey images replicated, a missing, corrupt or
-    truncated file refused naming it (:class:`slam.io.images.FrameReadError`; cv2.imread would decode
-    half a JPEG and fill the rest with grey)."""
-    return read_rgb(str(path))
+    """``(H, W, 3)`` uint8 RGB as OpenCV's colour mode decodes it (grey replicated, 16-bit scaled, a phone's
+    EXIF rotation applied), from the file's bytes: a missing, corrupt or truncated file is a
+    :class:`slam.io.images.FrameReadError` naming it (cv2.imread decodes half a JPEG and fills the rest
+    with grey; cv2.imdecode refuses it)."""
+    try:
+        buf = np.fromfile(str(path), dtype=np.uint8)
+    except OSError as e:
+        raise FrameReadError(str(path), f"cannot read file ({e.__class__.__name__}: {e})") from None
+    bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR) if buf.size else None
+    if bgr is None:
+        raise FrameReadError(str(path), "not a decodable image (empty, truncated or corrupt file)")
+    return np.ascontiguousarray(bgr[:, :, ::-1])
 
 
 def grayscale(images: list[np.ndarray]) -> list[np.ndarray]:
@@ -399,7 +407,8 @@ def missed_queries(results: dict, gt: torch.Tensor, query_names: list[str], refe
         if all(bool(r.correct[q]) for r in results.values()):
             continue
         true = ", ".join(reference_names[j] for j in torch.nonzero(gt[q]).flatten().tolist())
-        cells = [f"{reference_names[int(r.best[q])]} ({int(r.first_true_rank[q]) + 1})" for r in results.values()]
+        cells = [f"{reference_names[int(r.best[q])]} ({int(r.first_true_rank[q]) + 1})" if int(r.best[q]) >= 0
+                 else "no candidate" for r in results.values()]
         missed = sum(not bool(r.correct[q]) for r in results.values())
         rows.append(f"| {query_names[q]} | {true} | {missed} of {len(results)} | " + " | ".join(cells) + " |")
     return rows

@@ -39,7 +39,7 @@ import torch
 
 from slam.config import SLAMConfig
 from slam.io.images import FrameReadError
-from slam.io.sequence import RGBDSequence
+from slam.io.sequence import RGBDSequence, SequenceView
 from slam.io.trajectory import Trajectory, write_tum_trajectory
 from slam.mapping import PointCloudMap, write_ply
 from slam.progress import Progress
@@ -254,7 +254,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         if reloc is not None and not grown and saved.path is not None and _same_folder(save_map, saved.path):
             # asked to grow the map in place, but not placed in it: its own map there would replace every
             # earlier session by this recording alone. The map stays; this recording's goes beside it.
-            target = _free_sibling(Path(save_map), ".unplaced")
+            target = _free_sibling(Path(save_map).resolve(), ".unplaced")  # "." has no name to extend
             logger.warning("%s: this recording was not placed in the map, which is kept as it was; its own map "
                            "goes into %s", save_map, target)
         saved_to = write_map(target, reloc.merged_map(view) if grown else capture_map(slam, view))
@@ -267,12 +267,13 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
 def unmatched_groundtruth(sequence: RGBDSequence, stamps: np.ndarray) -> str | None:
     """Why frames stamped ``stamps`` have no ground truth when the sequence has a ground-truth file (a
     clock offset, another sequence's file); None when it has none."""
-    traj = getattr(sequence, "groundtruth_trajectory", None)
+    reader = _reader_of(sequence)
+    traj = getattr(reader, "groundtruth_trajectory", None)
     if traj is None or len(traj) == 0 or len(stamps) == 0:
         return None
     t = traj.timestamps.numpy()
-    return (f"{sequence.groundtruth_file} has {len(t)} poses ({t.min():.3f} to {t.max():.3f} s), none within "
-            f"{getattr(sequence, 'max_difference', 0.02):g} s of the {len(stamps)} frames used ({stamps.min():.3f} "
+    return (f"{reader.groundtruth_file} has {len(t)} poses ({t.min():.3f} to {t.max():.3f} s), none within "
+            f"{getattr(reader, 'max_difference', 0.02):g} s of the {len(stamps)} frames used ({stamps.min():.3f} "
             f"to {stamps.max():.3f} s): a clock offset, or another sequence's ground truth?")
 
 
@@ -293,11 +294,18 @@ def _free_sibling(path: Path, suffix: str) -> Path:
         k += 1
 
 
+def _reader_of(sequence: RGBDSequence) -> RGBDSequence:
+    # the sequence a view (seq[::2], seq[a:b]) was cut from: it holds the reader's camera and ground truth
+    while isinstance(sequence, SequenceView):
+        sequence = sequence.parent
+    return sequence
+
+
 def camera_of(sequence: RGBDSequence) -> dict:
     """The sequence's camera for reports: its name where the reader chose one (a TUM folder's fr1/fr2/fr3,
     ``ros``, ``calibration.txt``; None otherwise) and its intrinsics ``[fx, fy, cx, cy]``."""
     K = np.asarray(sequence.K, dtype=np.float64)
-    return {"name": getattr(sequence, "camera_name", None),
+    return {"name": getattr(_reader_of(sequence), "camera_name", None),
             "intrinsics": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]}
 
 

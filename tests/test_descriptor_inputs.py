@@ -162,6 +162,10 @@ def test_built_under_inference_mode_then_used_with_autograd(settings):
         net = nn.Sequential(nn.Conv2d(3, 4, 3), nn.ReLU(), nn.Flatten(), nn.Linear(4 * 30 * 30, 5))
     with pytest.raises(ValueError, match="inference tensors.*build it outside"):
         AttentionDescriptor(net, tap="1", input_size=(32, 32))
+    with torch.inference_mode():
+        lite = efficientnet_lite0(pretrained=False, tap="stage6+stage7", attend="stage6+stage7")
+    with pytest.raises(ValueError, match="inference tensors.*build it outside"):  # a library backbone module too
+        AttentionDescriptor(lite)
 
 
 def test_the_functional_descriptor_checks_what_the_recipe_checks():

@@ -296,3 +296,9 @@ def test_an_initial_guess_keeps_the_gradient_towards_the_anchor(init):
 def test_flags_and_counts_are_type_checked(field, value):
     with pytest.raises(ValueError, match=field):
         optimize(_chain_graph(), **{field: value})
+
+
+def test_numpy_integers_and_booleans_are_integers_and_booleans():
+    import numpy as np
+
+    assert optimize(_chain_graph(), max_iterations=np.int64(3), differentiable=np.bool_(False)).iterations <= 3

@@ -398,6 +398,9 @@ def test_ground_truth_that_matches_no_frame_says_so(tmp_path):
     assert "groundtruth.txt has 4 poses (110.000 to 110.100 s), none within 0.02 s of the 4 frames used " \
            "(10.000 to 10.100 s)" in note
     assert camera_of(seq) == {"name": "fr1", "intrinsics": [517.3, 516.5, 318.6, 255.3]}
+    # a run on a view of it (--frame-step) reports the same: the view asks the sequence it was cut from
+    assert camera_of(seq[::2]) == camera_of(seq) and "none within 0.02 s of the 2 frames" in \
+        unmatched_groundtruth(seq[::2], seq[::2].timestamps)
     (d / "groundtruth.txt").unlink()
     assert unmatched_groundtruth(open_sequence(d), seq.timestamps) is None  # no file: nothing to explain
 
@@ -411,10 +414,21 @@ def test_depth_scale_reads_millimetre_depth(tum_dir):
             open_sequence(tum_dir, depth_scale=bad)
 
 
-def test_the_command_passes_depth_scale_and_camera_to_the_reader(tum_dir, capsys):
+def test_the_command_passes_depth_scale_and_camera_to_the_reader(tum_dir, capsys, monkeypatch):
+    import slam.io
     from slam.cli import main
     from slam.options import reader_options, run_options
 
+    seen = {}
+
+    def opened(path, **kw):
+        seen.update(kw)
+        raise DatasetError(path, "stop here")
+
+    monkeypatch.setattr(slam.io, "open_sequence", opened)
+    assert main([str(tum_dir), "--out", str(tum_dir.parent / "o"), "--depth-scale", "1000", "--camera", "fr2"]) == 2
+    assert seen == {"camera": "fr2", "depth_scale": 1000.0}
+    monkeypatch.undo()
     assert reader_options(run_options()) == {}
     assert reader_options(run_options(camera="fr2", depth_scale=1000.0)) == {"camera": "fr2", "depth_scale": 1000.0}
     assert main(["--demo", "--out", str(tum_dir.parent / "o"), "--depth-scale", "1000"]) == 2

@@ -543,6 +543,10 @@ def test_benchmark_lists_the_queries_a_method_misses(load_script, capsys):
     results = {m: evaluate(s, gt) for m, s in (("good", good), ("bad", bad))}
     rows = bench.missed_queries(results, gt, ["q0", "q1"], ["r0", "r1", "r2"])
     assert rows == ["| q1 | r2 | 1 of 2 | r2 (1) | r1 (2) |"]
+    # a query whose candidates are all masked has none (not the last reference)
+    none = {"m": evaluate(good, gt, candidates=torch.tensor([[True, True, True], [False, False, False]]))}
+    assert bench.missed_queries(none, torch.tensor([[True, False, False], [False, False, True]]), ["q0", "q1"],
+                                ["r0", "r1", "r2"]) == ["| q1 | r2 | 1 of 1 | no candidate |"]
     bench.report("toy", {"good": good, "bad": bad}, {"p": (gt, torch.ones_like(gt))}, None,
                  names=(["q0", "q1"], ["r0", "r1", "r2"]))
     out = capsys.readouterr().out

@@ -289,7 +289,8 @@ def plot_trajectory(
         ax.polyline(img, ref2, GREY, 2)
         legend.append((labels[0], GREY, "line"))
     ax.polyline(img, est2, PALETTE[0], 2)
-    legend.append((labels[1] + (" (aligned)" if ref_pos is not None and align else ""), PALETTE[0], "line"))
+    aligned = getattr(align, "alignment", "se3") != "none" if not isinstance(align, bool) else align
+    legend.append((labels[1] + (" (aligned)" if ref_pos is not None and aligned else ""), PALETTE[0], "line"))
     if loops is not None and len(loops) and len(est2):
         loops_np = torch.as_tensor(loops).detach().to("cpu", torch.float64).numpy().reshape(-1, 2)
         stamps = estimate.timestamps.detach().to("cpu", torch.float64).numpy()

@@ -12,7 +12,10 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from numbers import Integral
 from typing import Optional, Tuple
+
+import numpy as np
 
 __all__ = ["BACKENDS", "OptimizerConfig"]
 
@@ -74,10 +77,11 @@ class OptimizerConfig:
         """Check the settings for ``method`` (``"lm"`` or ``"gn"``: GN has no damping to check); a
         ``ValueError`` names the first bad one. Returns ``self``."""
         for name in ("differentiable", "check_information", "verbose"):
-            if not isinstance(getattr(self, name), bool):  # bool("no") is True: a string here is a mistake
+            # bool("no") is True: a string or a number here is a mistake (numpy's bool is a bool)
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         it = self.max_iterations
-        if isinstance(it, bool) or not isinstance(it, int) or it < 0:
+        if isinstance(it, (bool, np.bool_)) or not isinstance(it, Integral) or it < 0:
             raise ValueError(f"max_iterations must be an integer >= 0, got {it!r}")
         choices = (("damping", ("identity", "diagonal")), ("lambda_update", ("gtsam", "nielsen")),
                    ("gauge", ("free", "first", "prior")), ("backend", BACKENDS))
