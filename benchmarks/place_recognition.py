@@ -63,7 +63,7 @@ from slam.eval.place_recognition import (
     sequence_candidates,
     sequence_similarity,
 )
-from slam.io.images import FrameReadError
+from slam.io.images import FrameReadError, _decode
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
@@ -77,15 +77,8 @@ def load_rgb(path: Path) -> np.ndarray:
     """``(H, W, 3)`` uint8 RGB as OpenCV's colour mode decodes it (grey replicated, 16-bit scaled, a phone's
     EXIF rotation applied), from the file's bytes: a missing, corrupt or truncated file is a
     :class:`slam.io.images.FrameReadError` naming it (cv2.imread decodes half a JPEG and fills the rest
-    with grey; cv2.imdecode refuses it)."""
-    try:
-        buf = np.fromfile(str(path), dtype=np.uint8)
-    except OSError as e:
-        raise FrameReadError(str(path), f"cannot read file ({e.__class__.__name__}: {e})") from None
-    bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR) if buf.size else None
-    if bgr is None:
-        raise FrameReadError(str(path), "not a decodable image (empty, truncated or corrupt file)")
-    return np.ascontiguousarray(bgr[:, :, ::-1])
+    with grey; the SLAM's decoder refuses it)."""
+    return np.ascontiguousarray(_decode(str(path), cv2.IMREAD_COLOR)[:, :, ::-1])
 
 
 def grayscale(images: list[np.ndarray]) -> list[np.ndarray]:

@@ -464,7 +464,7 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
             if res.tracked is not None:
                 kept = torch.nonzero(res.tracked).flatten()
                 try:
-                    t = ate(run.groundtruth, res.trajectory.subset(kept))
+                    t = a if len(kept) == res.num_frames else ate(run.groundtruth, res.trajectory.subset(kept))
                     m["ate_tracked"] = {"rmse": t.rmse, "num_pairs": t.num_pairs}
                 except ValueError as e:  # too few tracked frames with ground truth to align
                     m["ate_tracked"] = {"unavailable": str(e)}

@@ -160,7 +160,7 @@ def test_rpe_frames_delta_must_be_whole_and_bad_files_are_named(tmp_path, capsys
     gt = tmp_path / "gt.txt"
     gt.write_text("".join(f"{k}.0 {k} 0 0 0 0 0 1\n" for k in range(6)))
     assert main(["rpe", str(gt), str(gt), "--delta", "2.5"]) == 2  # it ran 2 frames apart
-    assert "whole number of frames, got 2.5" in capsys.readouterr().err
+    assert "delta in frames must be a positive integer, got 2.5" in capsys.readouterr().err
     assert main(["rpe", str(gt), str(gt), "--delta", "2", "--delta-unit", "seconds"]) == 0  # seconds need not
     capsys.readouterr()
     empty = tmp_path / "empty.txt"

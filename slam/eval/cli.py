@@ -120,9 +120,10 @@ def _run(args: argparse.Namespace) -> dict:
                             title=f"ATE {res.rmse:.4f} m ({what})")
             print(f"wrote {args.plot}")
     else:
-        if args.delta_unit == "frames" and not float(args.delta).is_integer():  # evo_rpe refuses it too
-            raise ValueError(f"--delta in frames must be a whole number of frames, got {args.delta:g}")
-        delta = int(args.delta) if args.delta_unit == "frames" else args.delta
+        # a whole frame count as an int; any other value goes to rpe() as given, which refuses a fraction of a
+        # frame (int() here truncated 2.5 to 2)
+        whole = args.delta_unit == "frames" and float(args.delta).is_integer()
+        delta = int(args.delta) if whole else args.delta
         res = rpe(args.reference, args.estimate, delta=delta, delta_unit=args.delta_unit,
                   all_pairs=args.all_pairs, alignment=args.align, **common)
         out = res.to_dict()

@@ -248,12 +248,13 @@ def plot_trajectory(
     if len(labels) != 2 or not all(isinstance(s, str) for s in labels):
         raise ValueError(f"labels must be two strings (reference, estimate), got {labels!r}")
     est_pos = estimate.poses[:, :3].detach().to("cpu", torch.float64)
+    from slam.eval.metrics import ATEResult, ate  # local: metrics imports this module's siblings
+
+    given = align if isinstance(align, ATEResult) else None
+    aligned = given.alignment != "none" if given is not None else bool(align)
     ref_pos = None
     if reference is not None:
         ref_pos = reference.poses[:, :3].detach().to("cpu", torch.float64)
-        from slam.eval.metrics import ATEResult, ate  # local: metrics imports this module's siblings
-
-        given = align if isinstance(align, ATEResult) else None
         if given is not None or (align and len(estimate) > 0 and len(reference) > 0):
             try:
                 result = given if given is not None else ate(reference, estimate)
@@ -289,7 +290,6 @@ def plot_trajectory(
         ax.polyline(img, ref2, GREY, 2)
         legend.append((labels[0], GREY, "line"))
     ax.polyline(img, est2, PALETTE[0], 2)
-    aligned = getattr(align, "alignment", "se3") != "none" if not isinstance(align, bool) else align
     legend.append((labels[1] + (" (aligned)" if ref_pos is not None and aligned else ""), PALETTE[0], "line"))
     if loops is not None and len(loops) and len(est2):
         loops_np = torch.as_tensor(loops).detach().to("cpu", torch.float64).numpy().reshape(-1, 2)

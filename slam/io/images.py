@@ -31,9 +31,10 @@ class FrameReadError(RuntimeError):
         super().__init__(f"{self.path}: {reason}")
 
 
-def _decode(path: str) -> np.ndarray:
-    # One read + imdecode instead of cv2.imread: it tells "missing" from "undecodable" and handles
-    # non-ASCII paths on every platform, at the same cost.
+def _decode(path: str, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    # One read + imdecode instead of cv2.imread: it tells "missing" from "undecodable", refuses a truncated
+    # JPEG (imread decodes half of it and fills the rest with grey) and handles non-ASCII paths on every
+    # platform, at the same cost. ``flags``: cv2.imdecode's.
     try:
         buf = np.fromfile(path, dtype=np.uint8)
     except FileNotFoundError:
@@ -42,7 +43,7 @@ def _decode(path: str) -> np.ndarray:
         raise FrameReadError(path, f"cannot read file ({e.__class__.__name__}: {e})") from None
     except ValueError as e:  # a name no file can have (e.g. a NUL byte from a corrupted list file)
         raise FrameReadError(repr(path), f"not a valid file name ({e})") from None
-    image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    image = cv2.imdecode(buf, flags) if buf.size else None
     if image is None:
         raise FrameReadError(path, "not a decodable image (empty or corrupt file)")
     return image
