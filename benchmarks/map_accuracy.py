@@ -8,19 +8,15 @@ printed after the rigid alignment of the whole trajectory to the ground truth (t
 removes the start pose's own error.
 
     attnloop-slam --demo --out runs/demo
-    python benchmarks/map_accuracy.py runs/demo
+    python -m benchmarks.map_accuracy runs/demo
 """
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from slam.eval import ate
 from slam.io import read_tum_trajectory

@@ -51,7 +51,7 @@ SHARED = "../shared/data"
 #: commands of plain shell: allowed in a block, listed as not checked
 PLAIN_SHELL = {"cd", "git", "source", ".", "export", "mkdir", "ls", "cat", "echo", "rm", "cp", "mv", "head",
                "tail", "evo_ape", "evo_rpe", "evo_traj", "nproc", "unzip", "tar", "wget", "curl"}
-COMMAND_START = re.compile(r"^(attnloop-slam|attnloop-eval|python3? (?:examples|benchmarks)/\w+\.py)\b")
+COMMAND_START = re.compile(r"^(attnloop-slam|attnloop-eval|python3? (?:examples|benchmarks)/\w+\.py|python3? -m benchmarks\.\w+)\b")
 
 
 @dataclass
@@ -195,6 +195,9 @@ def _plan_command(argv: list[str], where: str, plan: Plan) -> None:
             if module == "venv":
                 return
             cli = {"slam.cli": "attnloop-slam", "slam.eval.cli": "attnloop-eval"}.get(module)
+            if module.startswith("benchmarks."):
+                cli = script_of(module)
+                assert (ROOT / cli).is_file(), f"{where}: {cli} is not a script of the repository"
             assert cli, f"{where}: python -m {module} is not a command the docs test knows"
             name, rest = cli, args
         else:
@@ -211,6 +214,13 @@ def _plan_command(argv: list[str], where: str, plan: Plan) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- synopses
+def script_of(command: str) -> str:
+    """The script a command runs: ``benchmarks.x`` (``python -m benchmarks.x``) is ``benchmarks/x.py``."""
+    if re.fullmatch(r"benchmarks\.\w+", command):
+        return command.replace(".", "/", 1) + ".py"
+    return command
+
+
 def synopsis_flags(text: str) -> list[tuple]:
     """(command, flag) for each ``--flag`` in lines of ``text`` that start with a command (or continue one)."""
     found, command = [], None
@@ -218,7 +228,7 @@ def synopsis_flags(text: str) -> list[tuple]:
         s = line.strip()
         m = COMMAND_START.match(s)
         if m:
-            command = m.group(1).split()[-1]
+            command = script_of(m.group(1).split()[-1])
         elif not (s.startswith(("[", "--"))) or command is None:
             command = None
             continue
