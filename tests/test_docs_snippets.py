@@ -7,7 +7,7 @@ How each fenced block is treated, by its language tag:
   ``../shared/data`` skips, with the rest of its page, when the data is absent (env ``ATTNLOOP_DATA``).
 * ``bash`` / ``sh`` / ``shell`` / ``console``: split into commands (``&&``, ``;``, ``|``, line
   continuations, ``# comments``). ``attnloop-slam``, ``attnloop-eval``, ``python examples/x.py``,
-  ``python benchmarks/x.py`` (and ``python -m slam.cli`` ...): the arguments are parsed by that command's own
+  ``python benchmarks/x.py``, ``python -m benchmarks.x`` (and ``python -m slam.cli`` ...): the arguments are parsed by that command's own
   parser without running it (every flag must exist, every value parse), and a ``../shared/data`` path must
   exist when the data is there; ``--help`` commands run, and so do ``attnloop-eval`` commands whose files
   the page's python blocks wrote. ``pip install``: every extra named must be one of
@@ -22,9 +22,6 @@ How each fenced block is treated, by its language tag:
 Inline code spans of the prose that start with a command (``attnloop-slam ... --flag``) have their
 ``--flags`` checked as well. ``python -m pytest -q -s tests/test_docs_snippets.py`` prints the tally of
 every page (how many blocks ran, were parsed, are not code, were skipped and why).
-
-Counts on 2026-12-02 (main with the docs branch): 42 blocks, 18 run, 19 parsed (32 commands), 5 not code,
-0 skipped; per page in docs/benchmarks.md, section "Documentation snippets and --help".
 """
 from __future__ import annotations
 
@@ -313,7 +310,7 @@ def docs_workdir(tmp_path, monkeypatch):
 # what the snippets of a page must have computed (beyond running)
 PAGE_CHECKS = {
     "docs/your_own_cnn.md": lambda ns: ns["d"].shape == (4, 5 * 256) and ns["res_desc"].backbone.tap_shape == (256, 7, 7),
-    "docs/attention.md": lambda ns: ns["vec"].shape == (1, 2560) and ns["rnn_vec"].shape == (1, 1024) and bool(torch.isfinite(ns["d_gaf"]).all()),
+    "docs/method.md": lambda ns: ns["vec"].shape == (1, 2560) and ns["rnn_vec"].shape == (1, 1024) and bool(torch.isfinite(ns["d_gaf"]).all()),
     "docs/api.md": lambda ns: len(ns["states"]) == len(ns["result"].trajectory) == 60
     and ns["result"].num_keyframes > 0 and ns["error"].rmse < 0.1 and ns["kinect"]._T_rgb_depth is not None,
     "docs/pipeline.md": lambda ns: len(ns["result"].trajectory) == 30 and ns["metrics"]["ate_rmse"] is not None,
@@ -334,9 +331,9 @@ def test_every_block_is_classified():
 
 
 def test_pages_are_found():
-    assert {"README.md", "docs/attention.md", "docs/pipeline.md", "docs/api.md", "docs/benchmarks.md"} <= set(PAGES)
+    assert {"README.md", "docs/method.md", "docs/pipeline.md", "docs/api.md", "docs/results.md"} <= set(PAGES)
     counts = {p: len(blocks(p)) for p in PAGES}
-    assert counts["README.md"] >= 6 and counts["docs/api.md"] >= 6 and counts["docs/benchmarks.md"] >= 12, counts
+    assert counts["README.md"] >= 4 and counts["docs/api.md"] >= 6 and counts["docs/results.md"] >= 12, counts
 
 
 def _page_commands(page: str):
