@@ -14,7 +14,7 @@ layout.
 
 Columns beyond ATE and loops: the ATE's maximum, the final chi2 per edge, and each edge kind's median squared
 Mahalanobis error against ground truth with the information the back end used (a calibrated edge: the chi2
-of 6 dof, median 5.35; docs/benchmarks.md, "Information scales"). ``--set FIELD=VALUE`` overrides config
+of 6 dof, median 5.35). ``--set FIELD=VALUE`` overrides config
 fields of every run (e.g. ``loop.information_scale=0.005``).
 
 ``--fps-ab R``: afterwards, R rounds on the first sequence of the first mode (as ``attnloop-slam`` runs it by

@@ -12,7 +12,7 @@ busy and the median over rounds of the busy/idle ratio (the default's goal: <= 1
 checks that the caller's torch/OpenCV thread counts are the same after every run.
 
 Timings are only comparable within one run of this script; on a machine that other work also loads, the
-"idle" column is not idle: re-run it quietly for the figures of docs/benchmarks.md.
+"idle" column is not idle: re-run it quietly for the figures of docs/results.md.
 """
 from __future__ import annotations
 
