@@ -35,12 +35,11 @@ import resource
 import statistics
 import time
 
-import numpy as np
 import torch
 
 from attnloop import AttentionDescriptor, WeightsNotFoundError, build_backbone
 from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
-from benchmarks._common import test_frames
+from benchmarks._common import quartiles, test_frames
 
 
 def build(name: str) -> torch.nn.Module:
@@ -102,7 +101,7 @@ def bench(name: str, batch: int, rounds: int, warmup: int) -> list[str]:
     base = times["default"]
     rows = []
     for key, values in times.items():
-        q25, q50, q75 = (float(v) for v in np.percentile(values, [25, 50, 75]))
+        q25, q50, q75 = quartiles(values)
         paired = statistics.median(t / b for t, b in zip(values, base))
         rows.append(f"| {name} | {batch} | {key} | {q50:.1f} | {q25:.1f}-{q75:.1f} | {paired:.2f} |")
     return rows
