@@ -43,7 +43,7 @@ from slam.eval.loops import LoopGroundTruthConfig
 from slam.eval.place_recognition import evaluate, ground_truth_from_poses, sequence_candidates
 
 # (method, k_sigma, min_margin, min_similarity)
-SETTINGS = ([("mad", k, 0.02, 0.0) for k in (1.5, 2.0, 3.0, 4.0)] + [("std", 3.0, 0.02, 0.0)]
+SETTINGS = ([("mad", k, 0.02, 0.0) for k in (1.5, 2.0, 3.0, 4.0)]
             + [("mad", k, 0.005, 0.0) for k in (1.0, 1.5, 2.0)]
             + [("mad", 1.0, 0.005, f) for f in (0.90, 0.93, 0.95)])
 
