@@ -28,7 +28,6 @@ from slam.graph import (
     read_g2o,
     write_g2o,
 )
-from slam.graph.config import BACKENDS
 from slam.graph.initialization import INITIALIZATIONS
 from slam.options import UsageError, check_device, positive_int
 
@@ -65,9 +64,6 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("--solver", default="auto", choices=["auto", "sparse", "superlu", "dense", "pcg"],
                    help="linear solver of each step: sparse Cholesky, SuperLU, dense Cholesky, preconditioned conjugate "
                         "gradients; auto = dense for small systems, sparse above (default: auto)")
-    p.add_argument("--backend", default=defaults.backend, choices=BACKENDS,
-                   help="where the per-edge work runs: torch (the default, the reference), auto (the accelerator: "
-                        "its C kernels when they were built, else numpy), c, numpy")
     p.add_argument("--threads", type=positive_int, default=defaults.num_threads, metavar="N",
                    help=f"torch and BLAS threads of the optimisation (default {defaults.num_threads}; "
                         "docs/devices.md)")
@@ -109,7 +105,7 @@ def main(argv: Optional[List[str]] = None) -> OptimizationResult:
     res = optimize(graph, args.method, kernel=args.kernel, solver=args.solver, initialization=args.initialization,
                    kernel_width=args.kernel_width,
                    max_iterations=args.max_iterations, gauge=args.gauge, damping=args.damping,
-                   lambda_update=args.lambda_update, backend=args.backend, verbose=args.verbose,
+                   lambda_update=args.lambda_update, verbose=args.verbose,
                    num_threads=args.threads)
     print(summary(args.input, res))
     if res.message:

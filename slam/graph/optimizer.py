@@ -1,16 +1,11 @@
 """Gauss-Newton and Levenberg-Marquardt for pose graphs over sparse normal equations.
 
-Each iteration linearises every edge at once (the closed forms of :mod:`slam.graph.fused`, the torch
-reference), scatters the per-edge blocks into a fixed sparse pattern (:mod:`slam.graph.linear`), solves
-``(H + lambda D) dx = -g`` and retracts ``T <- T exp(dx)`` (right perturbation). The pieces are separate:
-the per-edge maths behind :class:`~slam.graph.problem.PoseGraphProblem` (torch, or the accelerator of
-:mod:`slam.graph.accel`), the robust kernel (:mod:`slam.graph.costs`), the linear solver
-(:mod:`slam.graph.linear`) and here the outer loop with its step rules (Gauss-Newton, LM with GTSAM's
+Each iteration linearises every edge at once (the closed forms of :mod:`slam.graph.fused`), scatters the
+per-edge blocks into a fixed sparse pattern (:mod:`slam.graph.linear`), solves ``(H + lambda D) dx = -g``
+and retracts ``T <- T exp(dx)`` (right perturbation). The pieces are separate: the per-edge maths behind
+:class:`~slam.graph.problem.PoseGraphProblem`, the robust kernel (:mod:`slam.graph.costs`), the linear
+solver (:mod:`slam.graph.linear`) and here the outer loop with its step rules (Gauss-Newton, LM with GTSAM's
 schedule or Nielsen's gain-ratio rule).
-
-Backends (``OptimizerConfig.backend``): ``"torch"`` (the default) runs the reference on any device;
-``"auto"`` runs a CPU graph on the accelerator (its C kernels when built, else numpy; ~3-10x less call
-overhead on small graphs); all take the same steps up to round-off (tested).
 
 Gauge (a pose graph is invariant to moving all poses rigidly): ``"free"`` (default for LM) leaves the
 gauge to the LM damping, as GTSAM does without a prior: the damped step is then the smallest of the
@@ -53,7 +48,6 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 
 import torch
 
-from slam.graph.accel import ACCELERATORS, accelerator_for
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.initialization import initialize
@@ -115,12 +109,6 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
         return _optimize(graph, method, kernel, solver, cfg, t_start)
 
 
-def _backend(graph: PoseGraph, cfg: OptimizerConfig, gauge: str) -> str:
-    """``"torch"``, ``"c"`` or ``"numpy"`` for this call (see ``OptimizerConfig.backend``)."""
-    acc = accelerator_for(graph, cfg, gauge)
-    return "torch" if acc is None else acc.name
-
-
 def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfig,
               t_start: float) -> OptimizationResult:
     method = method.lower()
@@ -134,9 +122,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     # GN has no damping to take care of a free gauge: it holds the first pose instead
     gauge = "first" if (method == "gn" and cfg.gauge == "free") else cfg.gauge
     kern = make_kernel(kernel, cfg.kernel_width)
-    backend = _backend(graph, cfg, gauge)
-    prob = TorchProblem(graph, cfg, kern, gauge, solver) if backend == "torch" else \
-        ACCELERATORS[backend].problem(graph, cfg, kern, gauge, solver)
+    prob = TorchProblem(graph, cfg, kern, gauge, solver)
     tm = {"setup": time.perf_counter() - t_start, "linearize": 0.0, "solve": 0.0, "evaluate": 0.0}
     run = _minimize(prob, method, cfg, tm, t_start)
     x = prob.finish(run.best.x, run.iterations > 0)
@@ -158,8 +144,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         graph=result_graph, chi2=run.best.chi2, initial_chi2=run.initial_chi2, status=run.status,
         iterations=run.iterations, robust_cost=run.best.cost if kern is not None else None,
         cost_history=run.costs, lambda_history=run.lambdas, time_history=run.times, timings=tm,
-        weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message,
-        backend=backend)
+        weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message)
 
 
 # -- the outer loop ---------------------------------------------------------------------------------

@@ -3,8 +3,7 @@
 :class:`PoseGraphProblem` is the interface between the outer loop (Gauss-Newton / Levenberg-Marquardt in
 :mod:`slam.graph.optimizer`) and the per-edge maths: evaluate the cost at some poses, linearise there into
 ``(H, g)``, solve the damped system, retract a step, and hand back the result. :class:`TorchProblem`
-implements it with the fused torch kernels of :mod:`slam.graph.fused` on any device; the accelerator
-(:mod:`slam.graph.accel`) implements it with numpy or C on the CPU and is tested against this one. What
+implements it with the fused torch kernels of :mod:`slam.graph.fused` on any device. What
 a problem holds between calls (its poses, ``H``, ``dx``) is its own array type: the outer loop only passes
 them back.
 
