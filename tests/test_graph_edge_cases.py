@@ -88,6 +88,10 @@ def test_status_and_history_at_max_iterations():
     res = optimize(graph, max_iterations=1)
     assert res.status == "max_iterations" and res.iterations == 1 and len(res.cost_history) == 2
     assert res.cost_history[1] < res.cost_history[0]
+    # why it stopped and what to try: a better start, or more iterations once the start is one
+    assert "max_iterations=1" in res.message and "initialization='chordal'" in res.message
+    res = optimize(graph, max_iterations=1, initialization="chordal")
+    assert res.status == "max_iterations" and "lambda_update='nielsen'" in res.message
     res = optimize(graph, max_iterations=0)
     assert res.status == "max_iterations" and res.iterations == 0 and len(res.cost_history) == 1
 

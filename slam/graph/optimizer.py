@@ -82,7 +82,10 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
         initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"`` (rotations by
             chordal relaxation, then translations by least squares, as GTSAM's ``InitializePose3``) or
             ``"spanning_tree"`` (composed along a breadth-first tree of the edges); see
-            :mod:`slam.graph.initialization`. ``initial_chi2`` is then the chi2 of that guess.
+            :mod:`slam.graph.initialization`. ``initial_chi2`` is then the chi2 of that guess. The default
+            keeps the caller's poses (a warm start, as the SLAM back end's); from raw odometry over a long
+            trajectory (input_INTEL_g2o.g2o) LM crawls, and a run that stops at ``max_iterations`` says so in
+            ``result.message`` with what to try.
 
     Returns:
         An :class:`OptimizationResult` (``result.graph``, ``result.chi2``, ``result.status``,
@@ -106,7 +109,21 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
                 # caller's tensor, so the optimum's gradient towards them (its gauge) is not lost
                 same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
                 graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
-        return _optimize(graph, method, kernel, solver, cfg, t_start)
+        res = _optimize(graph, method, kernel, solver, cfg, t_start)
+    if res.status == Status.MAX_ITERATIONS and res.iterations:
+        res.message = _stall_advice(res, cfg, initialization)
+    return res
+
+
+def _stall_advice(res: OptimizationResult, cfg: OptimizerConfig, initialization: str) -> str:
+    """Why a run stopped at ``max_iterations`` and what to try (``OptimizationResult.message``)."""
+    last = (res.cost_history[-2] - res.cost_history[-1]) / res.cost_history[-2]
+    text = (f"stopped at max_iterations={cfg.max_iterations} with the cost still falling ({last:.2g} of it in the "
+            f"last iteration; converged means < rel_tol={cfg.rel_tol:g})")
+    if initialization == "none":
+        return (text + "; if the initial guess is far from the optimum (raw odometry over a long trajectory), try "
+                "initialization='chordal' (or 'spanning_tree'), else more iterations")
+    return text + ": try more iterations, or damping='diagonal' with lambda_update='nielsen'"
 
 
 def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfig,
