@@ -60,11 +60,11 @@ def quat_identity(*shape: int, dtype=None, device=None) -> Tensor:
     return q
 
 
-def quat_normalize(q: Tensor) -> Tensor:
-    """Unit quaternion ``(..., 4)``, sign chosen so that ``qw >= 0``."""
+def quat_normalize(q: Tensor, positive_w: bool = True) -> Tensor:
+    """Unit quaternion ``(..., 4)``, sign chosen so that ``qw >= 0`` (kept as given when not ``positive_w``)."""
     _check_last(q, 4, "q")
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny)
-    return torch.where(q[..., 3:4] < 0, -q, q)
+    return torch.where(q[..., 3:4] < 0, -q, q) if positive_w else q
 
 
 def quat_conj(q: Tensor) -> Tensor:
@@ -254,10 +254,11 @@ def se3_identity(*shape: int, dtype=None, device=None) -> Tensor:
     return p
 
 
-def se3_normalize(pose: Tensor) -> Tensor:
-    """Re-normalise the quaternion part (``qw >= 0``) of poses ``(..., 7)``."""
+def se3_normalize(pose: Tensor, positive_w: bool = True) -> Tensor:
+    """Re-normalise the quaternion part (``qw >= 0``, or its sign kept when not ``positive_w``) of poses
+    ``(..., 7)``."""
     _check_last(pose, 7, "pose")
-    return torch.cat([pose[..., :3], quat_normalize(pose[..., 3:])], dim=-1)
+    return torch.cat([pose[..., :3], quat_normalize(pose[..., 3:], positive_w)], dim=-1)
 
 
 def se3_exp(xi: Tensor) -> Tensor:
