@@ -26,7 +26,8 @@ examples:
   attnloop-slam SEQUENCE --frames 850:1000 --map maps/kitchen --out runs/tuesday         # placed in that map
 
 outputs in --out: trajectory.txt (TUM format), loops.txt, metrics.json, trajectory.png, map.ply
-(and demo_sequence/ with its groundtruth.txt for --demo). Exit code 2: a usage or input error.
+(and demo_sequence/ with its groundtruth.txt for --demo). Exit code 2: a usage or input error; 1: a run
+that tracked too few of its frames (SLAMConfig.min_tracked_fraction): metrics.json alone, no trajectory.
 """
 
 PROG = "attnloop-slam"
@@ -215,7 +216,11 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
                    map_dir=saved)
     metrics = evaluate_run(run)
     write_outputs(run, out)
-    tracked = metrics["num_frames"] - metrics["num_lost"] - metrics["num_skipped"]  # the first frame included
+    if metrics["status"] == "failed":
+        print(f"{PROG}: error: {metrics['failure']}; no trajectory written ({out / 'metrics.json'} says what "
+              "happened)", file=sys.stderr)
+        return 1
+    tracked = metrics["num_tracked"]
     if tracked < min(2, metrics["num_frames"]):  # a one-frame run that initialised tracked all it could
         print(f"{PROG}: warning: no frame could be tracked ({metrics['num_lost']} lost, {metrics['num_skipped']} "
               "unreadable); see the warnings above", file=sys.stderr)

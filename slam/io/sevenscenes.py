@@ -32,7 +32,8 @@ import torch
 from slam.input_checks import MAX_COORDINATE, TextDecodeError, read_text_lines
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
-from slam.io.sequence import DatasetError, DatasetNotFoundError, DatasetWarning, RGBDSequence, check_depth_scale
+from slam.io.sequence import (DatasetError, DatasetNotFoundError, DatasetWarning, RGBDSequence, check_depth_scale,
+                               check_depth_units)
 from slam.lie import rotmat_project, se3_from_matrix
 
 __all__ = [
@@ -197,6 +198,8 @@ class SevenScenesSequence(RGBDSequence):
                 raise DatasetError(path, str(e).removeprefix(f"{path} ")) from None
         else:
             self.K = SEVENSCENES_K.copy()
+        check_depth_units(self.root, [self.root / name for name in self._depth[:10]], self.depth_scale,
+                          SEVENSCENES_INVALID_DEPTH)
 
     def __len__(self) -> int:
         return len(self._color)
