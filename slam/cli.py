@@ -175,6 +175,8 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
         raise UsageError("a SEQUENCE folder is required (or --demo)")
     if args.demo and args.camera is not None:
         raise UsageError("--camera applies to TUM sequence folders, not to --demo")
+    if args.demo and args.intrinsics is not None:
+        raise UsageError("--intrinsics applies to a SEQUENCE folder, not to --demo (it writes its own)")
     if args.demo and args.depth_scale is not None:
         raise UsageError("--depth-scale applies to a SEQUENCE folder, not to --demo (it writes its own)")
     if (args.save_map is not None or args.map_dir is not None) and args.no_loop:

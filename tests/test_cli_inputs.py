@@ -115,3 +115,112 @@ def test_min_tracked_fraction_is_checked():
         SLAMConfig(min_tracked_fraction=1.5)
     with pytest.raises(ValueError, match="min_tracked_fraction must be in"):
         SLAMConfig(min_tracked_fraction=float("nan"))
+
+
+# --- --intrinsics: a registered camera's, on any folder ------------------------------------------------------
+
+
+def _open_with(argv, folder):
+    from slam.cli import build_parser
+    from slam.io import open_sequence
+    from slam.options import config_from_args, reader_options
+
+    args = build_parser().parse_args([str(folder), "--out", "o", *argv])
+    seq = open_sequence(args.sequence, **reader_options(args))
+    return seq, config_from_args(args, seq)
+
+
+def test_intrinsics_on_7scenes_replace_its_camera_and_its_rig(redkitchen_dir):
+    seq, cfg = _open_with(["--intrinsics", "580", "581", "321", "241"], redkitchen_dir)
+    np.testing.assert_array_equal(seq.K, [[580, 0, 321], [0, 581, 241], [0, 0, 1]])
+    assert cfg.odometry.features.rgb_intrinsics is None  # registered: the Kinect v1 rig is not applied
+    assert cfg.odometry.features.rgb_from_depth_translation == (0.0, 0.0, 0.0)
+    # with --rgb-intrinsics they are the depth camera's, and the rig is the flags'
+    seq, cfg = _open_with(["--intrinsics", "580", "581", "321", "241", "--rgb-intrinsics", "525", "525", "320", "240",
+                           "--rgb-from-depth", "-0.02", "0", "0"], redkitchen_dir)
+    assert seq.K[0, 0] == 580 and cfg.odometry.features.rgb_intrinsics == (525.0, 525.0, 320.0, 240.0)
+    assert cfg.odometry.features.rgb_from_depth_translation == (-0.02, 0.0, 0.0)
+
+
+def test_intrinsics_on_tum_replace_calibration_txt(tmp_path):
+    seq_dir = _write_frames(tmp_path / "seq", n=2)
+    (seq_dir / "calibration.txt").write_text("# fx fy cx cy\n500 500 32 24\n")
+    seq, _ = _open_with([], seq_dir)
+    assert seq.K[0, 0] == 500 and seq.camera_name == "calibration.txt"
+    seq, cfg = _open_with(["--intrinsics", "60", "61", "31.5", "23.5"], seq_dir)
+    np.testing.assert_array_equal(seq.K, [[60, 0, 31.5], [0, 61, 23.5], [0, 0, 1]])
+    assert cfg.odometry.features.rgb_intrinsics is None
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--intrinsics", "0", "500", "320", "240"], "--intrinsics: focal lengths must be positive"),
+    (["--intrinsics", "500", "500", "320", "240", "--camera", "fr1"], "--intrinsics and --camera"),
+])
+def test_intrinsics_that_cannot_be_used_are_refused(argv, expected, tmp_path, capsys):
+    seq = _write_frames(tmp_path / "seq", n=2)
+    assert main([str(seq), "--out", str(tmp_path / "out"), "--no-loop", *argv]) == 2
+    assert expected in _one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_camera_on_7scenes_names_a_flag_that_exists(redkitchen_dir, tmp_path, capsys):
+    assert main([str(redkitchen_dir), "--out", str(tmp_path / "out"), "--camera", "fr1", "--no-loop"]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "--intrinsics FX FY CX CY" in line, line
+    seq, _ = _open_with(["--intrinsics", "517.3", "516.5", "318.6", "255.3"], redkitchen_dir)  # what it says works
+    assert seq.K[0, 0] == 517.3
+
+
+def test_a_demo_too_fast_to_track_fails_with_the_reason(tmp_path, capsys):
+    """12 frames for the room's whole loop: every frame after the first is lost (too few matches)."""
+    out = tmp_path / "out"
+    assert main(["--demo", "--demo-frames", "12", "--demo-size", "160", "120", "--no-loop", "--quiet",
+                 "--out", str(out)]) == 1
+    line = _one_error_line(capsys.readouterr().err)
+    assert "1 of 12 frames tracked (11 lost, 0 unreadable)" in line and "frame 1 lost: registration failed" in line
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "failed" and m["ate_unavailable"].startswith("no frame was tracked")
+    assert not (out / "trajectory.txt").exists() and (out / "demo_sequence" / "rgb.txt").is_file()
+
+
+# --- timestamps in nanoseconds --------------------------------------------------------------------------------
+
+
+def _restamp(src, dst, per_second: int):
+    """A copy of the TUM folder ``src`` whose list and ground-truth stamps are in 1/per_second s (integers)."""
+    import shutil
+
+    shutil.copytree(src, dst, symlinks=True)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        lines = []
+        for line in (src / name).read_text().splitlines():
+            if line.strip() and not line.startswith("#"):
+                first, rest = line.split(maxsplit=1)
+                line = f"{round(float(first) * per_second)} {rest}"
+            lines.append(line)
+        (dst / name).write_text("\n".join(lines) + "\n")
+    return dst
+
+
+def test_nanosecond_stamps_are_converted_with_a_notice_and_close_the_same_loops(tmp_path, caplog):
+    """The room demo (300 frames at 160 x 120) with its stamps in nanoseconds: one notice, then the run of the
+    seconds version to the bit: its loops (the 3 s exclusion window applies again), poses and ATE."""
+    from slam.synthetic.demo import generate_demo
+
+    seconds = generate_demo(tmp_path / "seconds", width=160, height=120)
+    nanos = _restamp(seconds, tmp_path / "nanos", 10 ** 9)
+    assert (nanos / "rgb.txt").read_text().splitlines()[3].startswith("1700000000000000000 ")
+    runs = {}
+    for name, seq in (("s", seconds), ("ns", nanos)):
+        out = tmp_path / f"out_{name}"
+        assert main([str(seq), "--out", str(out), "--no-map", "--quiet"]) == 0
+        runs[name] = out
+    notices = [r.getMessage() for r in caplog.records if "nanoseconds" in r.getMessage()]
+    assert len(notices) == 1 and "rgb.txt in nanoseconds (30 Hz)" in notices[0], notices
+    assert "groundtruth.txt in nanoseconds" in notices[0] and "converted to seconds" in notices[0]
+    loops = (runs["s"] / "loops.txt").read_text()
+    assert loops.count("\n") > 10 and (runs["ns"] / "loops.txt").read_text() == loops
+    np.testing.assert_allclose(np.loadtxt(runs["ns"] / "trajectory.txt"), np.loadtxt(runs["s"] / "trajectory.txt"),
+                               rtol=0, atol=1e-6)
+    m_s, m_ns = (json.loads((runs[k] / "metrics.json").read_text()) for k in ("s", "ns"))
+    assert m_ns["ate_rmse"] == m_s["ate_rmse"] and m_ns["num_loops"] == m_s["num_loops"] == loops.count("\n") - 1

@@ -76,6 +76,7 @@ def check_depth_scale(depth_scale, root) -> float:
 KNOWN_DEPTH_SCALES = {1000.0: "millimetres", 5000.0: "TUM's 1/5000 m"}
 # frames whose depth the check reads (the first readable ones among the first few)
 _UNIT_CHECK_FRAMES, _UNIT_CHECK_TRIES = 3, 10
+_TYPICAL_DEPTH = 2.0  # metres: an indoor RGB-D view's median depth, to order the scales an error suggests
 
 
 def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values: tuple[int, ...] = (0,)) -> None:
@@ -115,10 +116,10 @@ def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values:
         return
     raw = med * scale
     fits = [c for c in KNOWN_DEPTH_SCALES if c != scale and lo <= raw / c <= hi]
-    if fits:
-        best = min(fits, key=lambda c: abs(np.log(raw / c) - np.log(np.sqrt(lo * hi))))
-        fix = (f"{KNOWN_DEPTH_SCALES[best]}? give --depth-scale {best:g} (depth_scale={best:g} in Python), which "
-               f"puts it at {raw / best:.3g} m")
+    if fits:  # the likeliest first: nearest a room's typical 2 m
+        fits.sort(key=lambda c: abs(np.log(raw / c / _TYPICAL_DEPTH)))
+        fix = " or ".join(f"{KNOWN_DEPTH_SCALES[c]}? give --depth-scale {c:g} (depth_scale={c:g} in Python), which "
+                          f"puts it at {raw / c:.3g} m" for c in fits)
     else:
         fix = f"give --depth-scale UNITS, the depth images' units per metre (median raw value {raw:g})"
     raise DatasetError(root, f"depth at {scale:g} units per metre has a median of {med:.3g} m in its first "
@@ -299,8 +300,9 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
 
     Args:
         path: the sequence folder.
-        camera: TUM only: ``"fr1"``, ``"fr2"``, ``"fr3"`` or ``"ros"`` (default: from the folder name).
-        K: ``(3, 3)`` intrinsics overriding the dataset's.
+        camera: TUM only: ``"fr1"``, ``"fr2"``, ``"fr3"`` or ``"ros"`` (default: from the folder name); a
+            7-Scenes folder refuses it (give ``K``).
+        K: ``(3, 3)`` intrinsics overriding the dataset's (``--intrinsics``).
         **kwargs: passed to the reader (both take ``depth_scale``, depth units per metre).
 
     Raises:
@@ -322,7 +324,8 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
         from slam.io.sevenscenes import SevenScenesSequence
 
         if camera is not None:
-            raise DatasetError(root, f"camera={camera!r} applies to TUM sequences only; pass K for 7-Scenes")
+            raise DatasetError(root, f"camera={camera!r} applies to TUM sequences only; give a 7-Scenes folder's "
+                                     "intrinsics with --intrinsics FX FY CX CY (K= in Python)")
         return SevenScenesSequence(root, K=K, **kwargs)
     subfolders: list[str] = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("seq-"))
     if subfolders:

@@ -21,7 +21,8 @@
 * Depth: 16-bit PNG, 5000 units per metre, 0 = invalid -> float32 metres with 0.0 invalid.
 * Intrinsics: ``K`` if given, else ``camera`` (``fr1``/``fr2``/``fr3``/``ros``), else a
   ``calibration.txt`` in the folder (first non-comment line ``fx fy cx cy`` [+ 5 distortion
-  coefficients], as the synthetic sequences of :mod:`slam.synthetic` write it), else inferred from the
+  coefficients], as the synthetic sequences of :mod:`slam.synthetic` write it; with a colour/depth rig it
+  holds the depth camera's: docs/pipeline.md), else inferred from the
   folder name as given (a symlink's own name first, then its target's: ``freiburg1`` / ``fr1`` ...),
   else the ROS default with a warning. TUM recommends the
   ROS default *without undistortion* for the pre-registered depth; ``undistort=True`` remaps both
