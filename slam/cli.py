@@ -284,6 +284,8 @@ def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
     """
     try:
         return fn(*args, **kwargs)
+    except BrokenPipeError:  # the reader of stdout went away (| head): not an error of the input
+        raise
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
@@ -295,7 +297,26 @@ def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
         return 2
 
 
+def stdout_gone() -> int:
+    """The exit code of a command whose reader closed its output early (``attnloop-eval ... | head``), as
+    Python's documentation of SIGPIPE recommends: standard output is pointed at ``os.devnull``, so that the
+    flush at exit does not raise (and print "[Errno 32] Broken pipe") again, and the code is 1."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # a replaced sys.stdout without a file descriptor
+        pass
+    return 1
+
+
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except BrokenPipeError:
+        return stdout_gone()
+
+
+def _main(argv: list[str] | None) -> int:
     from slam.options import given_options
 
     parser = build_parser()
@@ -313,9 +334,16 @@ def main(argv: list[str] | None = None) -> int:
     elif not args.quiet:
         logging.getLogger("slam.system").setLevel(logging.INFO)
         logging.getLogger("slam.synthetic").setLevel(logging.INFO)  # the demo's rendering progress
-    with warnings.catch_warnings():  # a library warning (a DatasetWarning, say) is one line, as errors are
-        warnings.showwarning = _show_warning
-        return call_reporting_errors(PROG, run_command, args, given)
+    notice = logging.getLogger("attnloop.backbones")  # which backbone 'auto' chose: not a warning to --quiet
+    level = notice.level
+    if args.quiet:
+        notice.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():  # a library warning (a DatasetWarning, say) is one line, as errors are
+            warnings.showwarning = _show_warning
+            return call_reporting_errors(PROG, run_command, args, given)
+    finally:
+        notice.setLevel(level)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
