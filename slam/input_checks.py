@@ -37,8 +37,8 @@ from typing import IO, List, Optional, Tuple, Union
 
 import numpy as np
 
-__all__ = ["MAX_COORDINATE", "PathOrFile", "TextDecodeError", "read_text_lines", "source_name", "timestamp_unit",
-           "unit_quaternions"]
+__all__ = ["MAX_COORDINATE", "TIME_UNITS", "PathOrFile", "TextDecodeError", "read_text_lines", "source_name",
+           "timestamp_unit", "unit_quaternions"]
 
 PathOrFile = Union[str, "os.PathLike[str]", IO[str], IO[bytes]]
 
@@ -141,10 +141,11 @@ def unit_quaternions(q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return r / np.where(n > 0, n, 1.0), zero
 
 
-# (unit, units per second, the smallest median spacing read as that unit). The boundaries split the
-# frame rates of cameras and motion capture, 0.1-100 Hz, without overlap: seconds 0.01-10, milliseconds
-# 10-1e4, microseconds 1e4-1e7, nanoseconds 1e7-1e10.
-_STAMP_UNITS = (("nanoseconds", 1e9, 1e7), ("microseconds", 1e6, 1e4), ("milliseconds", 1e3, 10.0))
+#: Units of time by name, in units per second.
+TIME_UNITS = {"seconds": 1.0, "milliseconds": 1e3, "microseconds": 1e6, "nanoseconds": 1e9}
+# (unit, the smallest median spacing read as that unit). The boundaries split the frame rates of cameras,
+# 0.1-100 Hz, without overlap: seconds 0.01-10, milliseconds 10-1e4, microseconds 1e4-1e7, nanoseconds 1e7-1e10.
+_STAMP_UNITS = (("nanoseconds", 1e7), ("microseconds", 1e4), ("milliseconds", 10.0))
 FRAME_NUMBERS = "frame numbers"
 
 
@@ -172,7 +173,7 @@ def timestamp_unit(stamps) -> Tuple[str, Optional[float], float]:
     d = float(np.median(np.diff(t)))
     if d == 1.0 and bool(np.all(t == np.round(t))):
         return FRAME_NUMBERS, None, d
-    for unit, per_second, least in _STAMP_UNITS:
+    for unit, least in _STAMP_UNITS:
         if d >= least:
-            return unit, per_second, d
+            return unit, TIME_UNITS[unit], d
     return "seconds", 1.0, d

@@ -227,3 +227,20 @@ def test_the_depth_check_leaves_unreadable_and_empty_depth_to_the_run(tmp_path):
     for k in range(3):
         (root / f"frame-{k:06d}.depth.png").write_bytes(b"not a png")
     assert len(SevenScenesSequence(root)) == 3  # the run reports unreadable frames, one by one
+
+
+def test_fast_ground_truth_in_nanoseconds_takes_the_unit_that_meets_the_frames(tmp_path, caplog):
+    """Motion capture at 200 Hz in nanoseconds is spaced 5e6 apart, like a camera's microseconds: the unit
+    that puts it within the frames' span is the one taken."""
+    secs = [1.0 + k / 30 for k in range(4)]
+    root = _write_tum(tmp_path / "seq", secs)
+    for name in ("rgb.txt", "depth.txt"):
+        lines = [ln if ln.startswith("#") else f"{round(float(ln.split()[0]) * 1e9)} {ln.split(maxsplit=1)[1]}"
+                 for ln in (root / name).read_text().splitlines()]
+        (root / name).write_text("\n".join(lines) + "\n")
+    gt = [1.0 + k / 200 for k in range(30)]
+    (root / "groundtruth.txt").write_text("".join(f"{round(t * 1e9)} {k} 0 0 0 0 0 1\n" for k, t in enumerate(gt)))
+    seq = TUMSequence(root)
+    np.testing.assert_allclose(seq.groundtruth_trajectory.timestamps.numpy(), gt, rtol=0, atol=1e-9)
+    assert seq.groundtruth_pose(0) is not None and seq.groundtruth_pose(3)[0] == 20  # 1.1 s: pose 20
+    assert "groundtruth.txt in nanoseconds (200 Hz)" in caplog.text

@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
-from slam.input_checks import TextDecodeError, read_text_lines, timestamp_unit
+from slam.input_checks import TIME_UNITS, TextDecodeError, read_text_lines, timestamp_unit
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
 from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence, check_depth_scale, check_depth_units
@@ -163,10 +163,18 @@ def read_calibration_file(path: Path) -> TUMCamera:
     raise DatasetError(path, "no 'fx fy cx cy' line")
 
 
-def _in_seconds(stamps: np.ndarray, path: Path, converted: list[str]) -> np.ndarray:
+def _in_seconds(stamps: np.ndarray, path: Path, converted: list[str], frames: np.ndarray | None = None) -> np.ndarray:
     """``stamps`` in seconds: milli-, micro- and nanoseconds (by their spacing, :func:`timestamp_unit`) are
-    divided (``converted`` records which file, for one notice); frame numbers are a :class:`DatasetError`."""
+    divided (``converted`` records which file, for one notice); frame numbers are a :class:`DatasetError`.
+
+    ``frames``: the frames' stamps in seconds; given, the unit that puts ``stamps`` within their span wins
+    (motion capture at 120 Hz or more in nanoseconds is spaced like a camera's microseconds)."""
     unit, per_second, spacing = timestamp_unit(stamps)
+    if frames is not None and len(frames) and len(stamps):
+        lo, hi = float(frames.min()), float(frames.max())
+        overlap = [(name, u) for name, u in TIME_UNITS.items() if stamps.min() / u <= hi and stamps.max() / u >= lo]
+        if len(overlap) == 1:
+            unit, per_second = overlap[0]
     if per_second is None:
         raise DatasetError(path, "the timestamps are frame numbers (whole numbers 1 apart), not seconds: write each "
                                  "frame's time in seconds (its number divided by the frame rate, e.g. / 30 at 30 Hz)")
@@ -304,7 +312,7 @@ class TUMSequence(RGBDSequence):
         if self.groundtruth_file.is_file():
             gt = read_tum_trajectory(self.groundtruth_file)
             stamps = gt.timestamps.numpy()
-            seconds = _in_seconds(stamps, self.groundtruth_file, converted)
+            seconds = _in_seconds(stamps, self.groundtruth_file, converted, self._timestamps)
             self._gt_trajectory = gt if seconds is stamps else Trajectory(torch.from_numpy(seconds), gt.poses)
         else:
             self.groundtruth_file = None
