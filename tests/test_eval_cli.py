@@ -222,6 +222,9 @@ def test_stamps_that_do_not_overlap_get_a_t_offset_hint(tmp_path, capsys):
     assert "do not overlap" in err and "--t-offset 1000.000000" in err and len(err.splitlines()) == 1
     assert main(["ate", str(gt), str(est), "--t-offset", "1000"]) == 0  # the hint works: ATE 0
     assert float(capsys.readouterr().out.split()[2]) == pytest.approx(0.0, abs=1e-9)
+    write_tum_trajectory(est, Trajectory(t + 1000.05, poses))  # overlapping, half a sample (0.1 s) apart
+    assert main(["ate", str(gt), str(est)]) == 2
+    assert "overlap in time but are sampled apart: try a larger tolerance (--t-max-diff" in capsys.readouterr().err
     write_tum_trajectory(est, Trajectory(t * 1e9, poses))  # nanoseconds against seconds
     assert main(["ate", str(gt), str(est)]) == 2
     assert "the reference's stamps look like seconds and the estimate's like nanoseconds" in capsys.readouterr().err

@@ -231,7 +231,8 @@ def _no_pairs_hint(ref_t: torch.Tensor, est_t: torch.Tensor, offset: float, max_
 
     units = [timestamp_unit(t.detach().cpu().numpy())[0] for t in (ref_t, est_t)]
     if units[0] != units[1]:
-        return f"; the reference's stamps look like {units[0]} and the estimate's like {units[1]}: write both in seconds"
+        return (f"; the reference's stamps look like {units[0]} and the estimate's like {units[1]}: write both in "
+                "seconds")
     r0, r1 = float(ref_t.min()), float(ref_t.max())
     e0, e1 = float(est_t.min()) + offset, float(est_t.max()) + offset
     if e1 < r0 or e0 > r1:  # disjoint spans: clocks with different origins
@@ -239,7 +240,7 @@ def _no_pairs_hint(ref_t: torch.Tensor, est_t: torch.Tensor, offset: float, max_
         return (f"; the two do not overlap in time: if their clocks differ, give the offset that makes them "
                 f"overlap (--t-offset {shift:.6f} in attnloop-eval, offset={shift:.6f} in Python, lines up the "
                 f"first poses)")
-    return f"; they overlap in time but are sampled apart: try a larger tolerance (--t-max-diff, max_difference)"
+    return "; they overlap in time but are sampled apart: try a larger tolerance (--t-max-diff, max_difference)"
 
 
 def _associated(reference: TrajectoryLike, estimate: TrajectoryLike, max_difference: float, offset: float,
