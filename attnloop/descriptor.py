@@ -668,14 +668,27 @@ class AttentionDescriptor(nn.Module):
                 "(e.g. descriptor.to(images.device))"
             )
 
+    def _check_grad(self, images: torch.Tensor) -> None:
+        # without differentiable the output is detached: a backward() would fail with torch's bare "element
+        # 0 of tensors does not require grad", far from the cause
+        if images.requires_grad and not self.differentiable and torch.is_grad_enabled():
+            raise ValueError("images require grad, but this descriptor was built with differentiable=False: its "
+                             "output is detached from them; build it with differentiable=True to backpropagate "
+                             "to the images (or pass images.detach())")
+
     def parts(self, images: torch.Tensor) -> DescriptorParts:
         """Descriptor with its intermediates (L, G, fused) for inspection; see :class:`DescriptorParts`.
 
         Args:
             images: :math:`(B, 3, H, W)` uint8 or [0, 1] float.
+
+        Raises:
+            ValueError: images that require grad (under autograd) given to a descriptor built with
+                ``differentiable=False``, whose output would silently be detached from them.
         """
         check_images(images)
         self._check_device(images)
+        self._check_grad(images)
         if images.shape[0] == 0:
             shape = (0, *self.backbone.tap_shape)
             dtype = self._dtype()
@@ -704,6 +717,7 @@ class AttentionDescriptor(nn.Module):
         # descriptor is the one parts() gives.
         check_images(images)
         self._check_device(images)
+        self._check_grad(images)
         if images.shape[0] == 0:
             return self.parts(images).descriptor
         with eval_mode(self.backbone), torch.no_grad():

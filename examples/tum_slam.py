@@ -30,9 +30,10 @@ def run(args: argparse.Namespace, given: frozenset[str] = frozenset()) -> int:
     run = run_slam(sequence, config, max_frames=args.max_frames, frame_step=args.frame_step)
     metrics = evaluate_run(run)
     write_outputs(run, out)
-    keys = ("num_frames", "num_keyframes", "num_loops", "fps", "backbone", "ate_rmse", "ate_unavailable")
+    keys = ("status", "failure", "num_frames", "num_keyframes", "num_loops", "fps", "backbone", "ate_rmse",
+            "ate_unavailable")
     print({k: metrics[k] for k in keys if k in metrics})
-    return 0
+    return 1 if metrics["status"] == "failed" else 0  # too few frames tracked: metrics.json alone, as attnloop-slam
 
 
 def main(argv=None) -> int:

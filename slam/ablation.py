@@ -80,7 +80,8 @@ def _number(value, digits: int) -> str:
 
 
 def markdown_table(table) -> str:
-    """The paper's Table 1 layout: rows = fusion modes, columns = sequences + average ("-": no ATE)."""
+    """The paper's Table 1 layout: rows = fusion modes, columns = sequences + average ("-": no ATE; "n/a":
+    loops or recall that could not be measured)."""
     modes = list(table)
     names = list(next(iter(table.values())))
     head = "| fusion | " + " | ".join(names) + " | average |"
@@ -93,12 +94,17 @@ def markdown_table(table) -> str:
     lines += ["", ("Loop closure (per sequence: accepted true/false; max recall at 100% precision before -> after "
                   "verification):"), "", head.replace(" average |", ""), "|" + "---|" * (len(names) + 1)]
     for mode in modes:
-        cells = []
-        for n in names:
-            m = table[mode][n]
-            det = m.get("loop_detection") or {}
-            b = det.get("before_verification", {}).get("max_recall_at_full_precision")
-            a = det.get("after_verification", {}).get("max_recall_at_full_precision")
-            cells.append(f"{m.get('loops_true', '?')}/{m.get('loops_false', '?')}; {_number(b, 2)} -> {_number(a, 2)}")
-        lines.append(f"| {mode} | " + " | ".join(cells) + " |")
+        lines.append(f"| {mode} | " + " | ".join(_loop_cell(table[mode][n]) for n in names) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _loop_cell(m: dict) -> str:
+    """``true/false; recall before -> after``, each part ``n/a`` where nothing could be measured: no ground
+    truth to judge the loops, no revisit in it (a recall of no positives), no keyframe query."""
+    loops = f"{m['loops_true']}/{m['loops_false']}" if m.get("loops_true") is not None else "n/a"
+    det = m.get("loop_detection") or {}
+    before, after = det.get("before_verification") or {}, det.get("after_verification") or {}
+    if not before.get("num_positives"):
+        return f"{loops}; n/a"
+    return (f"{loops}; {_number(before.get('max_recall_at_full_precision'), 2)} -> "
+            f"{_number(after.get('max_recall_at_full_precision'), 2)}")

@@ -26,7 +26,8 @@ examples:
   attnloop-slam SEQUENCE --frames 850:1000 --map maps/kitchen --out runs/tuesday         # placed in that map
 
 outputs in --out: trajectory.txt (TUM format), loops.txt, metrics.json, trajectory.png, map.ply
-(and demo_sequence/ with its groundtruth.txt for --demo). Exit code 2: a usage or input error.
+(and demo_sequence/ with its groundtruth.txt for --demo). Exit code 2: a usage or input error; 1: a run
+that tracked too few of its frames (SLAMConfig.min_tracked_fraction): metrics.json alone, no trajectory.
 """
 
 PROG = "attnloop-slam"
@@ -174,6 +175,8 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
         raise UsageError("a SEQUENCE folder is required (or --demo)")
     if args.demo and args.camera is not None:
         raise UsageError("--camera applies to TUM sequence folders, not to --demo")
+    if args.demo and args.intrinsics is not None:
+        raise UsageError("--intrinsics applies to a SEQUENCE folder, not to --demo (it writes its own)")
     if args.demo and args.depth_scale is not None:
         raise UsageError("--depth-scale applies to a SEQUENCE folder, not to --demo (it writes its own)")
     if (args.save_map is not None or args.map_dir is not None) and args.no_loop:
@@ -215,7 +218,11 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
                    map_dir=saved)
     metrics = evaluate_run(run)
     write_outputs(run, out)
-    tracked = metrics["num_frames"] - metrics["num_lost"] - metrics["num_skipped"]  # the first frame included
+    if metrics["status"] == "failed":
+        print(f"{PROG}: error: {metrics['failure']}; no trajectory written ({out / 'metrics.json'} says what "
+              "happened)", file=sys.stderr)
+        return 1
+    tracked = metrics["num_tracked"]
     if tracked < min(2, metrics["num_frames"]):  # a one-frame run that initialised tracked all it could
         print(f"{PROG}: warning: no frame could be tracked ({metrics['num_lost']} lost, {metrics['num_skipped']} "
               "unreadable); see the warnings above", file=sys.stderr)
@@ -277,6 +284,8 @@ def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
     """
     try:
         return fn(*args, **kwargs)
+    except BrokenPipeError:  # the reader of stdout went away (| head): not an error of the input
+        raise
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
@@ -288,7 +297,26 @@ def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
         return 2
 
 
+def stdout_gone() -> int:
+    """The exit code of a command whose reader closed its output early (``attnloop-eval ... | head``), as
+    Python's documentation of SIGPIPE recommends: standard output is pointed at ``os.devnull``, so that the
+    flush at exit does not raise (and print "[Errno 32] Broken pipe") again, and the code is 1."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # a replaced sys.stdout without a file descriptor
+        pass
+    return 1
+
+
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except BrokenPipeError:
+        return stdout_gone()
+
+
+def _main(argv: list[str] | None) -> int:
     from slam.options import given_options
 
     parser = build_parser()
@@ -306,9 +334,16 @@ def main(argv: list[str] | None = None) -> int:
     elif not args.quiet:
         logging.getLogger("slam.system").setLevel(logging.INFO)
         logging.getLogger("slam.synthetic").setLevel(logging.INFO)  # the demo's rendering progress
-    with warnings.catch_warnings():  # a library warning (a DatasetWarning, say) is one line, as errors are
-        warnings.showwarning = _show_warning
-        return call_reporting_errors(PROG, run_command, args, given)
+    notice = logging.getLogger("attnloop.backbones")  # which backbone 'auto' chose: not a warning to --quiet
+    level = notice.level
+    if args.quiet:
+        notice.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():  # a library warning (a DatasetWarning, say) is one line, as errors are
+            warnings.showwarning = _show_warning
+            return call_reporting_errors(PROG, run_command, args, given)
+    finally:
+        notice.setLevel(level)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -195,8 +195,14 @@ class SLAMConfig:
     # threads than free cores made a run ~9x slower while another process used a core; one thread loses
     # little on an idle machine (benchmarks/threads.py, docs/devices.md).
     threads: Optional[int] = 1
+    # a run that tracks fewer than this fraction of its frames failed (slam.pipeline: no trajectory written,
+    # exit code 1): its poses are constant-velocity guesses, and frames that all fail alike are an input error
+    # (8-bit depth, swapped lists, undecodable images), not a hard sequence
+    min_tracked_fraction: float = 0.1
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.min_tracked_fraction <= 1.0:
+            raise ValueError(f"SLAMConfig.min_tracked_fraction must be in [0, 1], got {self.min_tracked_fraction!r}")
         # the map's depth range with the odometry's filling a None (MapConfig checks its own fields itself)
         f = self.odometry.features
         lo = f.min_depth if self.map.min_depth is None else self.map.min_depth

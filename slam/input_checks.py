@@ -10,6 +10,9 @@
 * :data:`MAX_COORDINATE`: the largest position coordinate (metres) a reader accepts. No map is larger,
   and a value like ``1e300`` would overflow when squared (an ATE of ``inf``, a JSON file with
   ``Infinity``).
+* :func:`timestamp_unit`: the unit timestamps are in, from their spacing (seconds, milli-, micro-,
+  nanoseconds, or frame numbers), so that a reader converts them or refuses them instead of reading
+  nanoseconds as seconds (every time window, 3 s between loop keyframes say, then means nothing).
 * :func:`unit_quaternions`: normalisation that neither overflows (``1e200 1e200 0 0`` is a valid
   quaternion, not ``[0, 0, 0, 0]``) nor underflows, and says which quaternions are zero.
 
@@ -34,7 +37,8 @@ from typing import IO, List, Optional, Tuple, Union
 
 import numpy as np
 
-__all__ = ["MAX_COORDINATE", "PathOrFile", "TextDecodeError", "read_text_lines", "source_name", "unit_quaternions"]
+__all__ = ["MAX_COORDINATE", "TIME_UNITS", "PathOrFile", "TextDecodeError", "read_text_lines", "source_name",
+           "timestamp_unit", "unit_quaternions"]
 
 PathOrFile = Union[str, "os.PathLike[str]", IO[str], IO[bytes]]
 
@@ -135,3 +139,41 @@ def unit_quaternions(q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     n = np.sqrt((r * r).sum(axis=-1, keepdims=True))
     zero = (scale[..., 0] * n[..., 0] < _MIN_QUATERNION_NORM) | (scale[..., 0] == 0)
     return r / np.where(n > 0, n, 1.0), zero
+
+
+#: Units of time by name, in units per second.
+TIME_UNITS = {"seconds": 1.0, "milliseconds": 1e3, "microseconds": 1e6, "nanoseconds": 1e9}
+# (unit, the smallest median spacing read as that unit). The boundaries split the frame rates of cameras,
+# 0.1-100 Hz, without overlap: seconds 0.01-10, milliseconds 10-1e4, microseconds 1e4-1e7, nanoseconds 1e7-1e10.
+_STAMP_UNITS = (("nanoseconds", 1e7), ("microseconds", 1e4), ("milliseconds", 10.0))
+FRAME_NUMBERS = "frame numbers"
+
+
+def timestamp_unit(stamps) -> Tuple[str, Optional[float], float]:
+    """The unit of timestamps, from the median spacing of the distinct ones.
+
+    Args:
+        stamps: ``(N,)`` timestamps, in any order.
+
+    Returns:
+        ``(unit, units_per_second, spacing)``: ``("seconds", 1.0, d)``, ``("milliseconds", 1e3, d)``,
+        ``("microseconds", 1e6, d)``, ``("nanoseconds", 1e9, d)``, or ``("frame numbers", None, 1.0)`` for
+        whole numbers one apart (no time at all); ``d`` is the median spacing in the unit found (0 for fewer
+        than two distinct stamps, read as seconds).
+
+    Example:
+        >>> timestamp_unit([1.7e18, 1.7e18 + 33_333_333, 1.7e18 + 66_666_667])[:2]
+        ('nanoseconds', 1000000000.0)
+        >>> timestamp_unit([0.0, 0.033, 0.067])[:2], timestamp_unit([0, 1, 2, 3])[:2]
+        (('seconds', 1.0), ('frame numbers', None))
+    """
+    t = np.unique(np.asarray(stamps, dtype=np.float64))
+    if t.size < 2:
+        return "seconds", 1.0, 0.0
+    d = float(np.median(np.diff(t)))
+    if d == 1.0 and bool(np.all(t == np.round(t))):
+        return FRAME_NUMBERS, None, d
+    for unit, least in _STAMP_UNITS:
+        if d >= least:
+            return unit, TIME_UNITS[unit], d
+    return "seconds", 1.0, d

@@ -198,6 +198,10 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
     g = parser.add_argument_group("camera (default: from the dataset)")
     g.add_argument("--camera", default=None,
                    help="TUM camera: fr1, fr2, fr3 or ros (default: from the folder name, or its calibration.txt)")
+    g.add_argument("--intrinsics", nargs=4, type=finite_float, default=None, metavar=("FX", "FY", "CX", "CY"),
+                   help="intrinsics of a registered camera (colour pixel = depth pixel), on any folder: they replace "
+                        "the dataset's (--camera, calibration.txt, camera-intrinsics.txt) and no rig is applied, "
+                        "also on 7-Scenes; with --rgb-intrinsics they are the depth camera's")
     g.add_argument("--rgb-intrinsics", nargs=4, type=finite_float, default=None, metavar=("FX", "FY", "CX", "CY"),
                    help="colour camera intrinsics when colour and depth are not registered; the depth is "
                         "warped into the colour camera (default for 7-Scenes: the Kinect v1's 525 525 320 240)")
@@ -237,13 +241,24 @@ def _default_voxel() -> float:
 
 def reader_options(args: argparse.Namespace) -> dict:
     """The keyword arguments of :func:`slam.io.open_sequence` the run's flags set (``--camera``,
-    ``--depth-scale``); the dataset's own where a flag is not given.
+    ``--depth-scale``, ``--intrinsics`` as ``K``); the dataset's own where a flag is not given.
+
+    Raises:
+        UsageError: ``--intrinsics`` with ``--camera``, or intrinsics that cannot be a camera.
 
     Example:
         >>> reader_options(run_options(depth_scale=1000.0))
         {'depth_scale': 1000.0}
     """
-    return {k: v for k, v in (("camera", args.camera), ("depth_scale", args.depth_scale)) if v is not None}
+    options = {k: v for k, v in (("camera", args.camera), ("depth_scale", args.depth_scale)) if v is not None}
+    given = getattr(args, "intrinsics", None)
+    if given is not None:
+        if "camera" in options:
+            raise UsageError("--intrinsics and --camera both give the camera's intrinsics: drop one of them")
+        check_intrinsics(*given, what="--intrinsics")
+        fx, fy, cx, cy = (float(v) for v in given)
+        options["K"] = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return options
 
 
 def run_options(options: argparse.Namespace | None = None, **overrides) -> argparse.Namespace:
@@ -482,7 +497,8 @@ def check_config(config: SLAMConfig) -> SLAMConfig:
 
 
 def resolve_rig(args: argparse.Namespace, sequence=None) -> CameraRig:
-    """The rig of a run: ``--registered``, else the flags over the dataset's own (:func:`dataset_rig`).
+    """The rig of a run: ``--registered``, else the flags over the dataset's own (:func:`dataset_rig`), which
+    ``--intrinsics`` (a registered camera's) replaces by none.
 
     ``--rgb-from-depth`` alone keeps the dataset's colour intrinsics (7-Scenes); on a registered dataset
     it needs ``--rgb-intrinsics``. ``--rgb-intrinsics`` alone on a registered dataset means zero baseline.
@@ -497,7 +513,10 @@ def resolve_rig(args: argparse.Namespace, sequence=None) -> CameraRig:
             raise UsageError("--registered means no rig: it cannot be combined with --rgb-intrinsics or "
                              "--rgb-from-depth")
         return CameraRig(None, (0.0, 0.0, 0.0), "--registered")
-    default = dataset_rig(sequence) if sequence is not None else REGISTERED
+    if getattr(args, "intrinsics", None) is not None:  # a registered camera's, whatever the dataset's rig
+        default = CameraRig(None, (0.0, 0.0, 0.0), "--intrinsics")
+    else:
+        default = dataset_rig(sequence) if sequence is not None else REGISTERED
     if given_k is None and given_t is None:
         return default
     if given_k is None and default.registered:

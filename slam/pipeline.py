@@ -99,6 +99,7 @@ class RunResult:
     #: the sequence's camera: ``{"name": "fr2" / "calibration.txt" / None, "intrinsics": [fx, fy, cx, cy]}``
     camera: dict | None = None
     groundtruth_note: str | None = None  # why no frame has ground truth when the sequence has a file of it
+    first_untracked: str | None = None  # why the first frame that was lost or unreadable was
 
 
 def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
@@ -196,6 +197,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     # the keyframes' points are computed in a worker thread, in keyframe order (the map is only read at the end)
     map_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-map") if cloud is not None else None
     map_jobs = []
+    first_untracked = None
     try:
         for i in bar:
             with slam.timer("io_wait"):  # decoding runs ahead in threads: this is only the time waited for it
@@ -217,6 +219,8 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
                     reloc.check_mergeable(slam.keyframes[0].rgb.shape)
                     check_merge = False
                 reloc.observe(state)
+            if first_untracked is None and state.status in ("lost", "skipped"):
+                first_untracked = f"frame {i} {state.status}: {state.reason}"
             if i % 10 == 0:
                 bar.set_postfix(f"kf={len(slam.keyframes)} loops={len(slam.loops)}"
                                 + ("" if reloc is None else f" in_map={'yes' if reloc.relocalised else 'no'}"))
@@ -261,7 +265,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
                      frame_step=int(frame_step), map=cloud, backbone=backbone, relocalisation=report,
                      map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to,
-                     camera=camera_of(sequence), groundtruth_note=gt_note)
+                     camera=camera_of(sequence), groundtruth_note=gt_note, first_untracked=first_untracked)
 
 
 def unmatched_groundtruth(sequence: RGBDSequence, stamps: np.ndarray) -> str | None:
@@ -378,6 +382,10 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
     ``online_corrections``) when there is ground truth to evaluate against;
     otherwise ``ate_rmse`` is None and ``ate_unavailable`` says why (no ground truth, fewer than 3
     frames with it, a camera that never moves, ...). A run never fails here for want of ground truth.
+    ``num_tracked``: the frames placed by tracking (the first one included); ``status``: ``"ok"``, or
+    ``"failed"`` when that is fewer than ``SLAMConfig.min_tracked_fraction`` of the frames, with
+    ``failure`` saying so and why the first untracked frame was (:func:`write_outputs` then writes no
+    trajectory).
 
     Args:
         run: a :class:`RunResult`.
@@ -434,6 +442,13 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
     m["ate_rmse"] = None
     gt_len = 0 if run.groundtruth is None else len(run.groundtruth)
     tracked = res.num_frames - res.num_lost - res.num_skipped  # the first frame counts: it sets the origin
+    m["num_tracked"] = tracked
+    least = run.config.min_tracked_fraction if run.config is not None else SLAMConfig.min_tracked_fraction
+    m["status"] = "ok" if tracked >= least * res.num_frames else "failed"
+    if m["status"] == "failed":
+        m["failure"] = (f"{tracked} of {res.num_frames} frames tracked ({res.num_lost} lost, {res.num_skipped} "
+                        f"unreadable), fewer than {least:.0%} (SLAMConfig.min_tracked_fraction)"
+                        + (f"; the first: {run.first_untracked}" if run.first_untracked else ""))
     if run.groundtruth is None:
         m["ate_unavailable"] = run.groundtruth_note or "the sequence has no ground truth"
     elif gt_len < 3:
@@ -649,6 +664,10 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
     (:func:`prepare_output_dir` without clearing), so a name taken by a folder fails before anything is
     written.
 
+    A failed run (``metrics["status"] == "failed"``: fewer frames tracked than
+    ``SLAMConfig.min_tracked_fraction``) writes ``metrics.json`` alone, with ``failure`` saying why, and
+    removes the other outputs an earlier run left: poses that are constant-velocity guesses are no result.
+
     Args:
         run: an evaluated :class:`RunResult` (:func:`evaluate_run` is called if it was not).
         out_dir: created if needed.
@@ -664,6 +683,11 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
     out = prepare_output_dir(out_dir, clear=False)
     if not run.metrics:
         evaluate_run(run)
+    if run.metrics.get("status") == "failed":  # guessed poses are no result: metrics.json says what happened
+        prepare_output_dir(out, clear=True)  # an earlier run's files would pass for this one's
+        _replace_atomically(out / "metrics.json", (json.dumps(json_safe(run.metrics), indent=2, allow_nan=False)
+                                                   + "\n").encode("utf-8"))
+        return out
     res = run.result
     write_map = run.map is not None if map_ply is None else bool(map_ply)
     if write_map and run.map is None:

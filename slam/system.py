@@ -64,6 +64,8 @@ from slam.threads import config_threads
 from slam.timing import StageTimer
 
 logger = logging.getLogger(__name__)
+# unreadable frames listed one by one in the log (the rest only counted)
+_LISTED_SKIPS = 3
 Tensor = torch.Tensor
 
 __all__ = ["FrameState", "LoopClosure", "LoopQuery", "RGBDSLAM", "SLAMResult"]
@@ -433,8 +435,12 @@ class RGBDSLAM:
             timestamp: its timestamp.
             reason: why it was skipped (logged and kept).
         """
-        logger.warning("frame %d skipped: %s", index, reason)
         self._num_skipped += 1
+        if self._num_skipped <= _LISTED_SKIPS:  # a folder of bad files is a few lines, not one per frame
+            logger.warning("frame %d skipped: %s%s", index, reason, "" if self._num_skipped < _LISTED_SKIPS else
+                           " (further unreadable frames are not listed; metrics.json counts them)")
+        else:
+            logger.debug("frame %d skipped: %s", index, reason)
         if self._frames:
             prev = self._frames[-1]
             kf_id, T = prev.keyframe_id, prev.T_kf_frame

@@ -58,12 +58,12 @@ def test_auto_without_vgg16_weights_uses_lite0_with_one_notice(empty_hub, caplog
     desc = AttentionDescriptor()  # the default: "auto"
     assert desc.backbone_name == "efficientnet_lite0"
     assert desc.backbone.tap_shape == AttentionDescriptor("efficientnet_lite0").backbone.tap_shape  # the same recipe
-    notices = [r for r in caplog.records if r.name == "attnloop"]
+    notices = [r for r in caplog.records if r.name == "attnloop.backbones"]
     assert len(notices) == 1
     msg = notices[0].getMessage()
     assert "\n" not in msg and "EfficientNet-Lite0" in msg and str(empty_hub) in msg
     AttentionDescriptor("auto")  # once per process
-    assert len([r for r in caplog.records if r.name == "attnloop"]) == 1
+    assert len([r for r in caplog.records if r.name == "attnloop.backbones"]) == 1
 
 
 def test_auto_with_vgg16_in_the_hub_cache(empty_hub, fake_vgg16, caplog):
@@ -74,7 +74,7 @@ def test_auto_with_vgg16_in_the_hub_cache(empty_hub, fake_vgg16, caplog):
     desc = AttentionDescriptor("auto", seed=0)
     assert desc.backbone_name == "vgg16" and desc.backbone.tap_shape == (512, 7, 7)
     assert fake_vgg16 == [{"pretrained": True, "weights": None, "tap": "pool5"}]
-    assert not [r for r in caplog.records if r.name == "attnloop"]  # no notice when VGG16 is found
+    assert not [r for r in caplog.records if r.name == "attnloop.backbones"]  # no notice when VGG16 is found
 
 
 def test_auto_with_an_explicit_path_is_vgg16(empty_hub, fake_vgg16, tmp_path):

@@ -11,7 +11,7 @@ import torch
 
 from slam.cli import build_parser, main
 
-DEMO = ["--demo", "--demo-frames", "12", "--demo-size", "160", "120", "--quiet"]
+DEMO = ["--demo", "--demo-frames", "24", "--demo-size", "160", "120", "--quiet"]
 
 
 def _strict_json(path):
@@ -77,7 +77,7 @@ def test_offline_without_vgg16_weights_says_what_to_do(tmp_path, monkeypatch, ca
 
 @pytest.fixture(scope="module")
 def demo_run(tmp_path_factory):
-    """A short demo (12 frames, 160 x 120, odometry only): the command's outputs."""
+    """A short demo (24 frames, 160 x 120, odometry only): the command's outputs."""
     out = tmp_path_factory.mktemp("demo")
     assert main([*DEMO, "--no-loop", "--out", str(out)]) == 0
     return out
@@ -108,11 +108,12 @@ def test_demo_writes_every_output_and_its_sequence(demo_run):
     assert (out / "demo_sequence" / "groundtruth.txt").is_file()  # the generated folder stays inside --out
     assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left
     traj = np.loadtxt(out / "trajectory.txt")
-    assert traj.shape == (12, 8) and np.isfinite(traj).all()
+    assert traj.shape == (24, 8) and np.isfinite(traj).all()
     m = _strict_json(out / "metrics.json")
-    assert m["num_frames"] == 12 and m["frame_step"] == 1
-    # 12 frames for a whole loop are too fast to track: a handled state, the metrics say why there is no ATE
-    assert m["ate_rmse"] is None and m["ate_unavailable"].startswith("no frame was tracked") and m["num_lost"] == 11
+    assert m["num_frames"] == 24 and m["frame_step"] == 1
+    # 24 frames for a whole loop are fast: some are lost, most tracked (a run of 12 tracks none:
+    # tests/test_cli_inputs.py), so the run is a result
+    assert m["status"] == "ok" and m["num_tracked"] == 24 - m["num_lost"] >= 12 and m["ate_rmse"] < 0.5
     assert m["backbone"] is None and m["descriptor"] is None  # --no-loop: no descriptor was built
     assert m["rig"].startswith("registered")
     assert m["camera"]["name"] == "calibration.txt" and len(m["camera"]["intrinsics"]) == 4

@@ -10,7 +10,7 @@ from slam.cli import build_parser, main
 from slam.options import UsageError, config_from_args, given_options, non_negative_int
 
 OUTPUTS = ("trajectory.txt", "loops.txt", "metrics.json", "trajectory.png", "map.ply")
-DEMO = ["--demo", "--demo-frames", "12", "--demo-size", "160", "120"]
+DEMO = ["--demo", "--demo-frames", "24", "--demo-size", "160", "120"]
 
 
 def _exit_code(argv) -> int:

@@ -248,9 +248,10 @@ def test_differentiable_values_equal_the_fast_path(lite64):
 def test_default_descriptor_stays_frozen_and_detached():
     desc = AttentionDescriptor("efficientnet_lite0", pretrained=False)
     assert not any(p.requires_grad for p in desc.backbone.parameters())
-    x = torch.rand(1, 3, 64, 64, requires_grad=True)
-    d = desc(x)
+    d = desc(torch.rand(1, 3, 64, 64))
     assert d.grad_fn is None and not d.requires_grad
+    with pytest.raises(ValueError, match="differentiable=True"):  # never a silently detached output
+        desc(torch.rand(1, 3, 64, 64, requires_grad=True))
 
 
 def test_attended_stage_G_is_second_order_through_the_head():

@@ -200,3 +200,19 @@ def test_an_empty_batch_stays_in_the_graph_when_differentiable():
     assert torch.equal(net[0].weight.grad, torch.zeros_like(net[0].weight))
     with torch.no_grad():
         assert not d(x).requires_grad
+
+
+@pytest.mark.parametrize("fusion", ["dam", "none"])
+def test_images_that_require_grad_need_differentiable(frames, fusion):
+    """A detached output would make backward() fail with torch's bare message, far from the cause."""
+    model = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=0, tap="stage7", fusion=fusion)
+    images = (frames[:1].float() / 255).requires_grad_(True)
+    with pytest.raises(ValueError, match=r"differentiable=False.*differentiable=True"):
+        model(images)
+    with torch.no_grad():  # no autograd asked for: nothing to lose
+        assert model(images).shape == (1, model.out_dim)
+    assert model(images.detach()).shape == (1, model.out_dim)
+    grad_model = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=0, tap="stage7", fusion=fusion,
+                                     differentiable=True)
+    grad_model(images).sum().backward()
+    assert images.grad is not None and float(images.grad.abs().sum()) > 0

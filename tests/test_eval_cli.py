@@ -191,3 +191,63 @@ def test_plotting_with_an_ate_result_draws_its_aligned_estimate():
     # a result without alignment leaves the estimate as it is and does not call it aligned
     c = plot_trajectory(None, raw, ref, align=ate(ref, raw, alignment="none"), plane="xy", title="x")
     assert np.array_equal(c, plot_trajectory(None, raw, ref, align=False, plane="xy", title="x"))
+
+
+def test_without_a_metric_it_is_the_ate(tmp_path, capsys):
+    t = torch.arange(20, dtype=torch.float64) / 10
+    poses = torch.zeros(20, 7, dtype=torch.float64)
+    poses[:, 0], poses[:, 1], poses[:, 6] = t, torch.sin(t), 1.0
+    gt, est = tmp_path / "gt.txt", tmp_path / "est.txt"
+    write_tum_trajectory(gt, Trajectory(t, poses))
+    moved = poses.clone()
+    moved[:, 2] += 0.01 * torch.cos(7 * t)  # 1 cm of wobble off the plane
+    write_tum_trajectory(est, Trajectory(t, moved))
+    assert main([str(gt), str(est), "--align", "none"]) == 0
+    bare = capsys.readouterr().out
+    assert main(["ate", str(gt), str(est), "--align", "none"]) == 0
+    assert bare == capsys.readouterr().out and bare.startswith("ATE RMSE ")
+    rms = float(torch.sqrt(torch.mean((0.01 * torch.cos(7 * t)) ** 2)))  # by hand: no alignment
+    assert float(bare.split()[2]) == pytest.approx(rms, abs=1e-6)
+
+
+def test_stamps_that_do_not_overlap_get_a_t_offset_hint(tmp_path, capsys):
+    t = torch.arange(20, dtype=torch.float64) / 10
+    poses = torch.zeros(20, 7, dtype=torch.float64)
+    poses[:, 0], poses[:, 1], poses[:, 6] = t, torch.sin(t), 1.0
+    gt, est = tmp_path / "gt.txt", tmp_path / "est.txt"
+    write_tum_trajectory(gt, Trajectory(t + 1000.0, poses))  # a clock that started 1000 s earlier
+    write_tum_trajectory(est, Trajectory(t, poses))
+    assert main(["ate", str(gt), str(est)]) == 2
+    err = capsys.readouterr().err
+    assert "do not overlap" in err and "--t-offset 1000.000000" in err and len(err.splitlines()) == 1
+    assert main(["ate", str(gt), str(est), "--t-offset", "1000"]) == 0  # the hint works: ATE 0
+    assert float(capsys.readouterr().out.split()[2]) == pytest.approx(0.0, abs=1e-9)
+    write_tum_trajectory(est, Trajectory(t + 1000.05, poses))  # overlapping, half a sample (0.1 s) apart
+    assert main(["ate", str(gt), str(est)]) == 2
+    assert "overlap in time but are sampled apart: try a larger tolerance (--t-max-diff" in capsys.readouterr().err
+    write_tum_trajectory(est, Trajectory(t * 1e9, poses))  # nanoseconds against seconds
+    assert main(["ate", str(gt), str(est)]) == 2
+    assert "the reference's stamps look like seconds and the estimate's like nanoseconds" in capsys.readouterr().err
+
+
+def _closed_stdout(argv) -> tuple[int, str]:
+    """Run ``python -m argv`` with its stdout closed before it writes (a reader that stopped: ``| head``)."""
+    import subprocess
+    import sys
+
+    p = subprocess.Popen([sys.executable, "-m", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.close()  # the reader is gone before the first line (the imports take longer)
+    err = p.stderr.read().decode()
+    return p.wait(), err
+
+
+def test_a_reader_that_stops_early_is_no_error(files):
+    """``attnloop-eval ... | head``: no "[Errno 32] Broken pipe": exit code 1, Python's own for EPIPE."""
+    code, err = _closed_stdout(["slam.eval.cli", "ate", *map(str, files)])
+    assert code == 1 and err == "", err
+
+
+def test_a_reader_that_stops_early_is_no_error_for_the_slam_command(tmp_path):
+    code, err = _closed_stdout(["slam.cli", "--demo", "--demo-frames", "24", "--demo-size", "160", "120", "--no-loop",
+                                "--no-map", "--quiet", "--out", str(tmp_path / "out")])
+    assert code == 1 and "Broken pipe" not in err and "Traceback" not in err, err

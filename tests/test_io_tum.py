@@ -185,7 +185,7 @@ def test_undistort_keeps_depth_values_and_principal_point(tmp_path):
     (root / "depth").mkdir()
     yy, xx = np.mgrid[0:480, 0:640]
     rgb = np.stack([xx % 256, yy % 256, (xx + yy) % 256], -1).astype(np.uint8)
-    depth = (1000 + (xx // 40) * 100 + (yy // 40) * 7).astype(np.uint16)
+    depth = (5000 + (xx // 40) * 500 + (yy // 40) * 35).astype(np.uint16)  # 1-3.2 m at TUM's 5000 per metre
     cv2.imwrite(str(root / "rgb" / "a.png"), rgb)
     cv2.imwrite(str(root / "depth" / "a.png"), depth)
     (root / "rgb.txt").write_text("1.0 rgb/a.png\n")

@@ -153,3 +153,94 @@ def test_tum_groundtruth_is_greedy_one_to_one(tmp_path):
     assert seq[1].pose_gt is None
     gt = seq.groundtruth
     assert gt.timestamps.tolist() == [1.0] and gt.poses[0, 0].item() == 1.0
+
+
+# --- units: timestamps by their spacing, depth by its median ------------------------------------------------
+
+
+@pytest.mark.parametrize("stamps, unit, per_second", [
+    ([1.7e9 + k / 30 for k in range(5)], "seconds", 1.0),
+    ([k * 0.1 for k in range(5)], "seconds", 1.0),  # 10 Hz from 0
+    ([2.0 * k for k in range(5)], "seconds", 1.0),  # every 2 s: slow, but seconds
+    ([1.7e12 + 33.3 * k for k in range(5)], "milliseconds", 1e3),
+    ([1.7e15 + 33333.0 * k for k in range(5)], "microseconds", 1e6),
+    ([1.7e18 + 33333333.0 * k for k in range(5)], "nanoseconds", 1e9),
+    ([1e7 * k for k in range(5)], "nanoseconds", 1e9),  # 100 Hz, from 0
+    ([0, 1, 2, 3, 4], "frame numbers", None),
+    ([5.0], "seconds", 1.0),
+])
+def test_timestamp_unit_from_the_spacing(stamps, unit, per_second):
+    from slam.input_checks import timestamp_unit
+
+    found, factor, _ = timestamp_unit(np.array(stamps))
+    assert (found, factor) == (unit, per_second)
+
+
+@pytest.mark.parametrize("per_second", [1000, 10 ** 6, 10 ** 9])
+def test_tum_stamps_in_sub_second_units_are_read_as_seconds(tmp_path, per_second, caplog):
+    secs = [1.0 + k / 30 for k in range(4)]
+    plain = _write_tum(tmp_path / "s", secs, gt_stamps=secs)
+    scaled = _write_tum(tmp_path / "x", secs, gt_stamps=secs)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        lines = [ln if ln.startswith("#") else f"{round(float(ln.split()[0]) * per_second)} {ln.split(maxsplit=1)[1]}"
+                 for ln in (scaled / name).read_text().splitlines()]
+        (scaled / name).write_text("\n".join(lines) + "\n")
+    a, b = TUMSequence(plain), TUMSequence(scaled)
+    step = 0.5 / per_second + 1e-9  # the stamps were rounded to whole units
+    np.testing.assert_allclose(b.timestamps, a.timestamps, rtol=0, atol=step)
+    np.testing.assert_allclose(b.groundtruth.timestamps.numpy(), a.groundtruth.timestamps.numpy(), rtol=0, atol=step)
+    assert len(b) == 4 and b.groundtruth_pose(3) is not None
+    unit = {1000: "milliseconds", 10 ** 6: "microseconds", 10 ** 9: "nanoseconds"}[per_second]
+    notices = [r.getMessage() for r in caplog.records if "converted to seconds" in r.getMessage()]
+    hz = "30.3" if per_second == 1000 else "30"  # whole milliseconds: 33 apart
+    assert len(notices) == 1 and f"rgb.txt in {unit} ({hz} Hz)" in notices[0], notices
+
+
+def test_tum_frame_numbers_for_stamps_are_refused_with_the_fix(tmp_path):
+    root = _write_tum(tmp_path / "seq", [0.0, 1.0, 2.0])
+    with pytest.raises(DatasetError, match=r"rgb\.txt: the timestamps are frame numbers .* / 30 at 30 Hz"):
+        TUMSequence(root)
+
+
+def test_depth_at_the_wrong_scale_is_refused_naming_the_right_one(tmp_path):
+    root = _write_7scenes(tmp_path / "seq")  # 1500 mm everywhere
+    assert SevenScenesSequence(root)[0].depth[0, 0] == 1.5
+    with pytest.raises(DatasetError, match=r"median of 0\.3 m .*outside the 0\.5-20 m.*millimetres\? give "
+                                           r"--depth-scale 1000 .*puts it at 1\.5 m"):
+        SevenScenesSequence(root, depth_scale=5000)
+    with pytest.raises(DatasetError, match=r"median of 1\.5e\+03 m .*--depth-scale 1000"):
+        open_sequence(root, depth_scale=1)
+    tum = _write_tum(tmp_path / "tum", [1.0, 1.1])  # 5000 units: 1 m
+    with pytest.raises(DatasetError, match=r"median of 0\.2 m") as info:
+        TUMSequence(tum, depth_scale=25000)  # 0.2 m: too near; both known scales fit, 1 m nearest a room's 2 m
+    assert str(info.value).endswith("TUM's 1/5000 m? give --depth-scale 5000 (depth_scale=5000 in Python), which puts "
+                                    "it at 1 m or millimetres? give --depth-scale 1000 (depth_scale=1000 in Python), "
+                                    "which puts it at 5 m")
+
+
+def test_the_depth_check_leaves_unreadable_and_empty_depth_to_the_run(tmp_path):
+    root = _write_7scenes(tmp_path / "zeros")
+    for k in range(3):
+        cv2.imwrite(str(root / f"frame-{k:06d}.depth.png"), np.zeros((H, W), np.uint16))
+    assert len(SevenScenesSequence(root, depth_scale=5000)) == 3  # nothing valid: nothing to judge
+    root = _write_7scenes(tmp_path / "bad")
+    for k in range(3):
+        (root / f"frame-{k:06d}.depth.png").write_bytes(b"not a png")
+    assert len(SevenScenesSequence(root)) == 3  # the run reports unreadable frames, one by one
+
+
+def test_fast_ground_truth_in_nanoseconds_takes_the_unit_that_meets_the_frames(tmp_path, caplog):
+    """Motion capture at 200 Hz in nanoseconds is spaced 5e6 apart, like a camera's microseconds: the unit
+    that puts it within the frames' span is the one taken."""
+    secs = [1.0 + k / 30 for k in range(4)]
+    root = _write_tum(tmp_path / "seq", secs)
+    for name in ("rgb.txt", "depth.txt"):
+        lines = [ln if ln.startswith("#") else f"{round(float(ln.split()[0]) * 1e9)} {ln.split(maxsplit=1)[1]}"
+                 for ln in (root / name).read_text().splitlines()]
+        (root / name).write_text("\n".join(lines) + "\n")
+    gt = [1.0 + k / 200 for k in range(30)]
+    (root / "groundtruth.txt").write_text("".join(f"{round(t * 1e9)} {k} 0 0 0 0 0 1\n" for k, t in enumerate(gt)))
+    seq = TUMSequence(root)
+    np.testing.assert_allclose(seq.groundtruth_trajectory.timestamps.numpy(), gt, rtol=0, atol=1e-9)
+    assert seq.groundtruth_pose(0) is not None and seq.groundtruth_pose(3)[0] == 20  # 1.1 s: pose 20
+    assert "groundtruth.txt in nanoseconds (200 Hz)" in caplog.text

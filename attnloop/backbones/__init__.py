@@ -19,7 +19,7 @@ classifier becomes one with :class:`HookedBackbone` (``AttentionDescriptor(backb
 Built-in backbones by name (:func:`build_backbone`): ``vgg16`` (the paper's), ``efficientnet_lite0``
 (weights in a pip package, works offline) and ``auto``: VGG16 when its ImageNet weights are at hand
 without a download (an explicit ``weights`` path, or the torch hub cache), otherwise
-EfficientNet-Lite0 with a one-line notice (once per process, on the ``attnloop`` logger).
+EfficientNet-Lite0 with a one-line notice (once per process, on the ``attnloop.backbones`` logger).
 """
 from __future__ import annotations
 
@@ -57,7 +57,8 @@ BACKBONES = {"vgg16": "pool5", "efficientnet_lite0": "stage7"}
 #: The name that picks one of :data:`BACKBONES` by what is installed (see :func:`resolve_backbone_name`).
 AUTO = "auto"
 
-_log = logging.getLogger("attnloop")
+# a child of the "attnloop" logger: a command can silence the notice (attnloop-slam --quiet) and no other warning
+_log = logging.getLogger("attnloop.backbones")
 _auto_notice_given = False
 
 
@@ -73,7 +74,7 @@ def resolve_backbone_name(name: str, pretrained: bool = True, weights: str | Pat
 
     ``"auto"`` gives ``"vgg16"`` when its ImageNet checkpoint is found without a download (``weights``
     is given: it is taken as VGG16's checkpoint; or ``vgg16-397923af.pth`` is in the torch hub cache),
-    otherwise ``"efficientnet_lite0"``, with a one-line notice on the ``attnloop`` logger (once per
+    otherwise ``"efficientnet_lite0"``, with a one-line notice on the ``attnloop.backbones`` logger (once per
     process). Without pretrained weights (``pretrained=False`` and no ``weights``) it is always
     ``"efficientnet_lite0"``, the smaller network, whatever the machine holds.
 

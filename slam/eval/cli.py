@@ -7,6 +7,7 @@ The command only parses arguments; the figures come from :func:`slam.eval.ate` a
 Examples::
 
     attnloop-eval ate groundtruth.txt trajectory.txt                 # prints the RMSE in metres (rigid alignment)
+    attnloop-eval groundtruth.txt trajectory.txt                     # the same: ate is the default
     attnloop-eval ate groundtruth.txt trajectory.txt --align sim3 --plot ate.png --labels "mocap" "ours"
     attnloop-eval rpe groundtruth.txt trajectory.txt --delta 1 --delta-unit seconds --all-pairs
     attnloop-eval ate groundtruth.txt trajectory.txt --json ate.json  # every statistic, machine-readable
@@ -29,6 +30,7 @@ from slam.eval.associate import TUM_MAX_DIFFERENCE
 __all__ = ["build_parser", "main"]
 
 _STAT_KEYS = ("rmse", "mean", "median", "std", "min", "max", "sse")
+_METRICS = ("ate", "rpe")
 
 
 def _positive(text: str) -> float:
@@ -53,9 +55,11 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="examples:\n"
                "  attnloop-eval ate groundtruth.txt trajectory.txt\n"
+               "  attnloop-eval groundtruth.txt trajectory.txt          # the same: ate by default\n"
                "  attnloop-eval ate groundtruth.txt trajectory.txt --align sim3 --plot ate.png\n"
                "  attnloop-eval rpe groundtruth.txt trajectory.txt --delta 1 --delta-unit seconds --all-pairs\n")
-    sub = p.add_subparsers(dest="metric", required=True, metavar="{ate,rpe}")
+    sub = p.add_subparsers(dest="metric", required=True, metavar="{ate,rpe}",
+                           help="the metric (default ate: 'attnloop-eval GT EST' is 'attnloop-eval ate GT EST')")
     for name, text in (("ate", "absolute trajectory error: camera-centre distance after alignment (evo_ape -a)"),
                        ("rpe", "relative pose error over a fixed delta (evo_rpe)")):
         s = sub.add_parser(name, help=text, description=text)
@@ -135,6 +139,17 @@ def _run(args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from slam.cli import stdout_gone
+
+    try:
+        return _main(sys.argv[1:] if argv is None else list(argv))
+    except BrokenPipeError:  # attnloop-eval ... | head
+        return stdout_gone()
+
+
+def _main(argv: list[str]) -> int:
+    if argv and not argv[0].startswith("-") and argv[0] not in _METRICS:
+        argv = ["ate", *argv]  # attnloop-eval GT EST: the ATE, the metric TUM and evo report first
     args = build_parser().parse_args(argv)
     from slam.io import DatasetError
 
@@ -143,6 +158,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.json:
             Path(args.json).write_text(json.dumps(out, indent=2, allow_nan=False) + "\n")
             print(f"wrote {args.json}")
+    except BrokenPipeError:
+        raise
     except (DatasetError, OSError, ValueError) as e:
         print(f"attnloop-eval: {e}", file=sys.stderr)
         return 2

@@ -218,6 +218,24 @@ class RPEResult:
                 "num_pairs": self.num_pairs}
 
 
+def _no_pairs_hint(ref_t: torch.Tensor, est_t: torch.Tensor, offset: float, max_difference: float) -> str:
+    """What to try when no stamps pair: other units, a clock offset (--t-offset), or a larger tolerance."""
+    from slam.input_checks import timestamp_unit
+
+    units = [timestamp_unit(t.detach().cpu().numpy())[0] for t in (ref_t, est_t)]
+    if units[0] != units[1]:
+        return (f"; the reference's stamps look like {units[0]} and the estimate's like {units[1]}: write both in "
+                "seconds")
+    r0, r1 = float(ref_t.min()), float(ref_t.max())
+    e0, e1 = float(est_t.min()) + offset, float(est_t.max()) + offset
+    if e1 < r0 or e0 > r1:  # disjoint spans: clocks with different origins
+        shift = r0 - (e0 - offset)
+        return (f"; the two do not overlap in time: if their clocks differ, give the offset that makes them "
+                f"overlap (--t-offset {shift:.6f} in attnloop-eval, offset={shift:.6f} in Python, lines up the "
+                f"first poses)")
+    return "; they overlap in time but are sampled apart: try a larger tolerance (--t-max-diff, max_difference)"
+
+
 def _associated(reference: TrajectoryLike, estimate: TrajectoryLike, max_difference: float, offset: float,
                 association: str):
     ref = as_trajectory(reference, "reference")
@@ -233,6 +251,7 @@ def _associated(reference: TrajectoryLike, estimate: TrajectoryLike, max_differe
             f"no timestamps of the estimate ({len(est)} poses, {float(est.timestamps[0]):.3f}..."
             f"{float(est.timestamps[-1]):.3f} s) are within {max_difference} s of the reference "
             f"({len(ref)} poses, {float(ref.timestamps[0]):.3f}...{float(ref.timestamps[-1]):.3f} s)"
+            + _no_pairs_hint(ref.timestamps, est.timestamps, offset, max_difference)
         )
     return ref.subset(i.to(ref.poses.device)), est.subset(j.to(est.poses.device))
 

@@ -39,11 +39,17 @@ import numpy as np
 
 from slam.input_checks import MAX_COORDINATE, unit_quaternions
 
-__all__ = ["MAX_DEPTH_MEDIAN", "RGBDFrame", "check_frame", "check_intrinsics"]
+__all__ = ["DEPTH_MEDIAN_RANGE", "MAX_DEPTH_MEDIAN", "RGBDFrame", "check_frame", "check_intrinsics",
+           "median_valid_depth"]
 
 # metres: no RGB-D sensor's typical (median) depth is beyond this, while depth in millimetres (~1000-4000)
 # or TUM's raw units (~5000-20000) always is
 MAX_DEPTH_MEDIAN = 100.0
+# metres: the median valid depth of an RGB-D camera's view of a scene. Kinect v1/v2, Azure Kinect, Xtion and
+# RealSense D4xx measure from 0.3-0.5 m on, so half of the valid pixels nearer than 0.5 m is not a scene at the
+# right scale (millimetres read as TUM's 1/5000 m put a 2.5 m scene at 0.5 m); beyond 20 m is outside every
+# such sensor's range. The readers check their first frames against it (slam.io.sequence).
+DEPTH_MEDIAN_RANGE = (0.5, 20.0)
 
 
 def _not_torch(x, name: str, expected: str) -> None:
@@ -119,14 +125,20 @@ def _check_depth(depth, shape) -> np.ndarray:
     if lo < 0:
         raise ValueError(f"depth has negative values (min {lo:g}); expected metres >= 0 with 0 for no measurement")
     if hi > MAX_DEPTH_MEDIAN:
-        sample = depth[::4, ::4]
-        valid = sample[sample > 0]
-        med = float(np.median(valid)) if valid.size else 0.0
+        med = median_valid_depth(depth)
         if med > MAX_DEPTH_MEDIAN:
             raise ValueError(f"depth must be metres, but its median valid value is {med:g} (beyond "
                              f"{MAX_DEPTH_MEDIAN:g} m): millimetres or raw sensor units? divide by your depth scale "
                              "(TUM 5000, Kinect millimetres 1000)")
     return depth
+
+
+def median_valid_depth(depth: np.ndarray) -> float:
+    """The median of the valid (> 0) values of ``depth (H, W)`` on every 4th row and column (cheap, and the
+    same figure as the full image's to a fraction of a percent); 0.0 when nothing is valid."""
+    sample = np.asarray(depth)[::4, ::4]
+    valid = sample[sample > 0]
+    return float(np.median(valid)) if valid.size else 0.0
 
 
 def _check_pose(pose) -> Optional[np.ndarray]:

@@ -31,12 +31,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from slam.io.frame import RGBDFrame
-from slam.io.images import FrameReadError
+from slam.io.frame import DEPTH_MEDIAN_RANGE, RGBDFrame, median_valid_depth
+from slam.io.images import FrameReadError, depth_to_metres, read_depth_raw
 from slam.io.trajectory import Trajectory
 
 __all__ = ["DatasetError", "DatasetNotFoundError", "DatasetWarning", "RGBDSequence", "SequenceView", "check_depth_scale",
-           "open_sequence"]
+           "check_depth_units", "open_sequence"]
 
 logger = logging.getLogger(__name__)
 
@@ -70,6 +70,60 @@ def check_depth_scale(depth_scale, root) -> float:
         raise DatasetError(root, f"depth_scale must be a positive number of depth units per metre (TUM 5000, "
                                  f"millimetres 1000), got {depth_scale!r}")
     return value
+
+
+#: Depth units per metre of the common 16-bit depth images, and what they are.
+KNOWN_DEPTH_SCALES = {1000.0: "millimetres", 5000.0: "TUM's 1/5000 m"}
+# frames whose depth the check reads (the first readable ones among the first few)
+_UNIT_CHECK_FRAMES, _UNIT_CHECK_TRIES = 3, 10
+_TYPICAL_DEPTH = 2.0  # metres: an indoor RGB-D view's median depth, to order the scales an error suggests
+
+
+def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values: tuple[int, ...] = (0,)) -> None:
+    """Refuse depth whose scale is wrong: the median valid depth of the first readable frames (up to 3
+    of the first 10; unreadable ones are left to the run, which reports them) outside
+    :data:`~slam.io.frame.DEPTH_MEDIAN_RANGE` metres at ``scale``.
+
+    Millimetre depth read as TUM's 5000 units per metre (or TUM's read as millimetres) gives depth 5 times
+    too small (large): the run would track, at a wrong scale, without a word. Three PNG decodes, once per
+    sequence.
+
+    Args:
+        root: the sequence folder (named by the error).
+        depth_paths: the depth images of the frames, in order (the first 10 are read at most).
+        scale: the depth units per metre in use.
+        invalid_values: raw values meaning "no measurement".
+
+    Raises:
+        DatasetError: one line naming the median found, the scale in use, the likely one and ``--depth-scale``.
+    """
+    medians = []
+    for path in depth_paths[:_UNIT_CHECK_TRIES]:
+        try:
+            depth = depth_to_metres(read_depth_raw(str(path)), scale, invalid_values)
+        except FrameReadError:
+            continue
+        med = median_valid_depth(depth)
+        if med > 0:
+            medians.append(med)
+        if len(medians) == _UNIT_CHECK_FRAMES:
+            break
+    if not medians:
+        return
+    med = float(np.median(medians))
+    lo, hi = DEPTH_MEDIAN_RANGE
+    if lo <= med <= hi:
+        return
+    raw = med * scale
+    fits = [c for c in KNOWN_DEPTH_SCALES if c != scale and lo <= raw / c <= hi]
+    if fits:  # the likeliest first: nearest a room's typical 2 m
+        fits.sort(key=lambda c: abs(np.log(raw / c / _TYPICAL_DEPTH)))
+        fix = " or ".join(f"{KNOWN_DEPTH_SCALES[c]}? give --depth-scale {c:g} (depth_scale={c:g} in Python), which "
+                          f"puts it at {raw / c:.3g} m" for c in fits)
+    else:
+        fix = f"give --depth-scale UNITS, the depth images' units per metre (median raw value {raw:g})"
+    raise DatasetError(root, f"depth at {scale:g} units per metre has a median of {med:.3g} m in its first "
+                             f"{len(medians)} frame(s), outside the {lo:g}-{hi:g} m of an RGB-D camera: {fix}")
 
 
 class DatasetWarning(UserWarning):
@@ -246,8 +300,9 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
 
     Args:
         path: the sequence folder.
-        camera: TUM only: ``"fr1"``, ``"fr2"``, ``"fr3"`` or ``"ros"`` (default: from the folder name).
-        K: ``(3, 3)`` intrinsics overriding the dataset's.
+        camera: TUM only: ``"fr1"``, ``"fr2"``, ``"fr3"`` or ``"ros"`` (default: from the folder name); a
+            7-Scenes folder refuses it (give ``K``).
+        K: ``(3, 3)`` intrinsics overriding the dataset's (``--intrinsics``).
         **kwargs: passed to the reader (both take ``depth_scale``, depth units per metre).
 
     Raises:
@@ -269,7 +324,8 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
         from slam.io.sevenscenes import SevenScenesSequence
 
         if camera is not None:
-            raise DatasetError(root, f"camera={camera!r} applies to TUM sequences only; pass K for 7-Scenes")
+            raise DatasetError(root, f"camera={camera!r} applies to TUM sequences only; give a 7-Scenes folder's "
+                                     "intrinsics with --intrinsics FX FY CX CY (K= in Python)")
         return SevenScenesSequence(root, K=K, **kwargs)
     subfolders: list[str] = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("seq-"))
     if subfolders:

@@ -4,8 +4,12 @@ Layout: ``frame-%06d.color.(png|jpg)``, ``frame-%06d.depth.png`` (16-bit millime
 invalid), ``frame-%06d.pose.txt`` (4x4 camera-to-world, optional), optional ``camera-intrinsics.txt``
 (3x3; default fx = fy = 585, cx = 320, cy = 240). Pose rotations are projected onto the nearest
 rotation matrix (KinectFusion's are off by up to 5e-4). There are no timestamps: frame number ``k`` is at
-``k / 30`` s. Colour and depth come from two unregistered cameras; they are treated as registered, as
-is customary for this dataset.
+``k / 30`` s. Colour and depth come from two unregistered cameras. This reader gives the images as they are
+and ``K`` of the depth camera (the frame of the depth images and of the ground truth); it does not
+register them. ``attnloop-slam`` applies the Kinect v1 rig by default (:data:`slam.options.KINECT_V1_RIG`:
+the colour camera's intrinsics and the 2.5 cm baseline; ``--registered`` or ``--intrinsics`` treats the two
+as one registered camera, as is customary for this dataset); a Python caller chooses with
+:func:`slam.options.config_from_args` (the same default) or ``SLAMConfig()`` (registered).
 
 Frames are found from the colour files at open time (one directory listing); images and poses are read
 only when a frame is requested. A pose file with non-finite entries (7-Scenes marks lost tracking so)
@@ -32,7 +36,8 @@ import torch
 from slam.input_checks import MAX_COORDINATE, TextDecodeError, read_text_lines
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
-from slam.io.sequence import DatasetError, DatasetNotFoundError, DatasetWarning, RGBDSequence, check_depth_scale
+from slam.io.sequence import (DatasetError, DatasetNotFoundError, DatasetWarning, RGBDSequence, check_depth_scale,
+                               check_depth_units)
 from slam.lie import rotmat_project, se3_from_matrix
 
 __all__ = [
@@ -135,13 +140,16 @@ class SevenScenesSequence(RGBDSequence):
 
     Args:
         root: a folder holding ``frame-XXXXXX.color.*`` files (e.g. ``redkitchen/seq-01``).
-        K: ``(3, 3)`` intrinsics overriding ``camera-intrinsics.txt`` / the default.
+        K: ``(3, 3)`` intrinsics overriding ``camera-intrinsics.txt`` / the default (the depth camera's; a
+            registered camera's when the run has no rig).
+        depth_scale: depth units per metre (default 1000, millimetres).
         fps: frame rate giving the timestamps ``k / fps``: a finite number > 0.
 
     Raises:
         DatasetNotFoundError: the folder does not exist.
-        DatasetError: ``fps`` is not a finite positive number (a bool is refused too), no colour frames, or
-            a malformed ``camera-intrinsics.txt``.
+        DatasetError: ``fps`` is not a finite positive number (a bool is refused too), no colour frames, a
+            malformed ``camera-intrinsics.txt``, or depth whose median is not a camera's at ``depth_scale``
+            (:func:`~slam.io.sequence.check_depth_units`).
 
     Example:
         >>> seq = SevenScenesSequence("7scenes-redkitchen")  # doctest: +SKIP
@@ -197,6 +205,8 @@ class SevenScenesSequence(RGBDSequence):
                 raise DatasetError(path, str(e).removeprefix(f"{path} ")) from None
         else:
             self.K = SEVENSCENES_K.copy()
+        check_depth_units(self.root, [self.root / name for name in self._depth[:10]], self.depth_scale,
+                          SEVENSCENES_INVALID_DEPTH)
 
     def __len__(self) -> int:
         return len(self._color)

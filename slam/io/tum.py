@@ -12,10 +12,17 @@
   pairs the trajectory of those frames. Ground truth that matches no frame at all (a clock offset) is
   kept as read (:attr:`TUMSequence.groundtruth_trajectory`) so a run can say so.
 * rgb entries without a depth entry within 0.02 s are not frames (logged at INFO, with their count).
+* Timestamps are seconds. Lists (and ``groundtruth.txt``) whose spacing says milli-, micro- or nanoseconds
+  (:func:`slam.input_checks.timestamp_unit`: a median spacing of 10 or more) are converted, with one
+  warning; frame numbers (whole numbers 1 apart) are a :class:`DatasetError`.
+* The depth of the first frames is checked against ``depth_scale``
+  (:func:`slam.io.sequence.check_depth_units`): millimetres read as 1/5000 m are a :class:`DatasetError`
+  naming the scale to give.
 * Depth: 16-bit PNG, 5000 units per metre, 0 = invalid -> float32 metres with 0.0 invalid.
 * Intrinsics: ``K`` if given, else ``camera`` (``fr1``/``fr2``/``fr3``/``ros``), else a
   ``calibration.txt`` in the folder (first non-comment line ``fx fy cx cy`` [+ 5 distortion
-  coefficients], as the synthetic sequences of :mod:`slam.synthetic` write it), else inferred from the
+  coefficients], as the synthetic sequences of :mod:`slam.synthetic` write it; with a colour/depth rig it
+  holds the depth camera's: docs/pipeline.md), else inferred from the
   folder name as given (a symlink's own name first, then its target's: ``freiburg1`` / ``fr1`` ...),
   else the ROS default with a warning. TUM recommends the
   ROS default *without undistortion* for the pre-registered depth; ``undistort=True`` remaps both
@@ -36,13 +43,14 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
-from slam.input_checks import TextDecodeError, read_text_lines
+from slam.input_checks import TIME_UNITS, TextDecodeError, read_text_lines, timestamp_unit
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
-from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence, check_depth_scale
-from slam.io.trajectory import _split_fields, read_tum_trajectory
+from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence, check_depth_scale, check_depth_units
+from slam.io.trajectory import Trajectory, _split_fields, read_tum_trajectory
 
 __all__ = [
     "TUM_CAMERAS",
@@ -155,6 +163,27 @@ def read_calibration_file(path: Path) -> TUMCamera:
     raise DatasetError(path, "no 'fx fy cx cy' line")
 
 
+def _in_seconds(stamps: np.ndarray, path: Path, converted: list[str], frames: np.ndarray | None = None) -> np.ndarray:
+    """``stamps`` in seconds: milli-, micro- and nanoseconds (by their spacing, :func:`timestamp_unit`) are
+    divided (``converted`` records which file, for one notice); frame numbers are a :class:`DatasetError`.
+
+    ``frames``: the frames' stamps in seconds; given, the unit that puts ``stamps`` within their span wins
+    (motion capture at 120 Hz or more in nanoseconds is spaced like a camera's microseconds)."""
+    unit, per_second, spacing = timestamp_unit(stamps)
+    if frames is not None and len(frames) and len(stamps):
+        lo, hi = float(frames.min()), float(frames.max())
+        overlap = [(name, u) for name, u in TIME_UNITS.items() if stamps.min() / u <= hi and stamps.max() / u >= lo]
+        if len(overlap) == 1:
+            unit, per_second = overlap[0]
+    if per_second is None:
+        raise DatasetError(path, "the timestamps are frame numbers (whole numbers 1 apart), not seconds: write each "
+                                 "frame's time in seconds (its number divided by the frame rate, e.g. / 30 at 30 Hz)")
+    if per_second != 1.0:
+        converted.append(f"{path.name} in {unit} ({per_second / spacing:.3g} Hz)")
+        return stamps / per_second
+    return stamps
+
+
 def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
     """Read a TUM list file (``rgb.txt``, ``depth.txt``): ``timestamp filename`` per line, exactly two fields.
 
@@ -215,7 +244,8 @@ class TUMSequence(RGBDSequence):
     Raises:
         DatasetNotFoundError: missing folder, ``rgb.txt`` or ``depth.txt``.
         DatasetError: malformed or empty lists, no rgb/depth pair within ``max_difference``, an unknown
-            ``camera`` (naming the folder).
+            ``camera`` (naming the folder), frame numbers for timestamps, depth whose median is not a
+            camera's at ``depth_scale``.
         TrajectoryFormatError: a malformed ``groundtruth.txt`` line.
 
     Example:
@@ -239,6 +269,9 @@ class TUMSequence(RGBDSequence):
         self.name = given if given not in ("", ".", "..") else self.root.resolve().name
         rgb_stamps, rgb_names = read_file_list(self.root / "rgb.txt")
         depth_stamps, depth_names = read_file_list(self.root / "depth.txt")
+        converted: list[str] = []  # lists whose timestamps were not seconds (one notice for all)
+        rgb_stamps = _in_seconds(rgb_stamps, self.root / "rgb.txt", converted)
+        depth_stamps = _in_seconds(depth_stamps, self.root / "depth.txt", converted)
         i, j = associate(rgb_stamps, depth_stamps, max_difference)
         if i.numel() == 0:
             raise DatasetError(self.root, f"no rgb.txt and depth.txt timestamps are within {max_difference} s")
@@ -277,10 +310,16 @@ class TUMSequence(RGBDSequence):
         self.max_difference = float(max_difference)  # the association tolerance (s), rgb-depth and ground truth
         self._gt_trajectory = None
         if self.groundtruth_file.is_file():
-            self._gt_trajectory = read_tum_trajectory(self.groundtruth_file)
+            gt = read_tum_trajectory(self.groundtruth_file)
+            stamps = gt.timestamps.numpy()
+            seconds = _in_seconds(stamps, self.groundtruth_file, converted, self._timestamps)
+            self._gt_trajectory = gt if seconds is stamps else Trajectory(torch.from_numpy(seconds), gt.poses)
         else:
             self.groundtruth_file = None
+        if converted:
+            logger.warning("%s: timestamps of %s: converted to seconds", self.root, ", ".join(converted))
         self._gt = self._associate_groundtruth(self._timestamps)
+        check_depth_units(self.root, [self.root / name for name in self._depth[:10]], self.depth_scale)
 
     @property
     def groundtruth_trajectory(self):
