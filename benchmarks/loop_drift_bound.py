@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from slam.config import SLAMConfig
+from slam.config import SLAMConfig, override
 from slam.io import open_sequence
 from slam.lie import se3_between, so3_log
 from slam.loop.acceptance import DriftBoundConfig, drift_limits
@@ -71,10 +71,11 @@ def main() -> None:
     print("|" + "---|" * 8)
     for name, seq, rig in seqs:
         cfg = SLAMConfig()
-        cfg.loop.enabled = False
+        cfg = override(cfg, {"loop.enabled": False})
         if rig:
-            cfg.odometry.features.rgb_intrinsics = (525.0, 525.0, 320.0, 240.0)
-            cfg.odometry.features.rgb_from_depth_translation = (-0.025, 0.0, 0.0)
+            cfg = override(cfg, {
+                "odometry.features.rgb_intrinsics": (525.0, 525.0, 320.0, 240.0),
+                "odometry.features.rgb_from_depth_translation": (-0.025, 0.0, 0.0)})
         run = run_slam(seq, cfg, progress=False)
         d = pairs_of(run)
         if not len(d):

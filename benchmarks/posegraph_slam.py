@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import slam.backend  # noqa: E402  (after the sys.path line)
-from slam.config import SLAMConfig  # noqa: E402
+from slam.config import SLAMConfig  # noqa: E402, override
 from slam.graph import compiled_kernels, optimize, write_g2o  # noqa: E402
 
 
@@ -40,10 +40,11 @@ def capture_run(data: Path, max_frames, backbone: str):
     from slam.pipeline import run_slam
 
     cfg = SLAMConfig()
-    cfg.loop.descriptor.backbone = backbone
-    cfg.loop.descriptor.fusion = "dam"
-    cfg.odometry.features.rgb_intrinsics = (525.0, 525.0, 320.0, 240.0)
-    cfg.odometry.features.rgb_from_depth_translation = (-0.025, 0.0, 0.0)
+    cfg = override(cfg, {
+        "loop.descriptor.backbone": backbone,
+        "loop.descriptor.fusion": "dam",
+        "odometry.features.rgb_intrinsics": (525.0, 525.0, 320.0, 240.0),
+        "odometry.features.rgb_from_depth_translation": (-0.025, 0.0, 0.0)})
     calls = []
     real = slam.backend.optimize
 

@@ -42,7 +42,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from slam.config import SLAMConfig
+from slam.config import SLAMConfig, override
 from slam.eval.metrics import ate
 from slam.io import open_sequence
 from slam.io.images import FrameReadError
@@ -64,9 +64,10 @@ def run_one(seq_dir: Path, tx: float, max_frames: int | None = None) -> dict:
         ``frames``, ``ate_se3``, ``ate_sim3``, ``scale``, ``seconds`` (NaN where undefined).
     """
     cfg = SLAMConfig()
-    cfg.loop.enabled = False
-    cfg.odometry.features.rgb_intrinsics = RGB_INTRINSICS
-    cfg.odometry.features.rgb_from_depth_translation = (float(tx), 0.0, 0.0)
+    cfg = override(cfg, {
+        "loop.enabled": False,
+        "odometry.features.rgb_intrinsics": RGB_INTRINSICS,
+        "odometry.features.rgb_from_depth_translation": (float(tx), 0.0, 0.0)})
     seq = open_sequence(seq_dir)
     n = len(seq) if max_frames is None else min(int(max_frames), len(seq))
     view = seq[:n]

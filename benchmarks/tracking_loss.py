@@ -27,14 +27,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from slam.config import SLAMConfig
+from slam.config import SLAMConfig, override
 from slam.eval.metrics import ate
 from slam.io import open_sequence
 from slam.io.sevenscenes import SevenScenesSequence
 from slam.io.trajectory import Trajectory
 from slam.lie import se3_between
 from slam.loop.closer import build_descriptor
-from slam.options import config_from_args, run_options
+from slam.options import resolve_settings
 from slam.system import RGBDSLAM
 
 
@@ -53,8 +53,9 @@ def config(seq, recover_after_loss: bool = False, threads: int | None = None) ->
     """What ``attnloop-slam`` runs on ``seq`` (its dataset's rig), with the default descriptor's backbone named
     and no point cloud (not measured here); ``recover_after_loss``: ``LoopClosureConfig.recover_after_loss``;
     ``threads``: ``SLAMConfig.threads`` (None: its default)."""
-    cfg = config_from_args(run_options(backbone="efficientnet_lite0", no_map=True, threads=threads), seq)
-    cfg.loop.recover_after_loss = recover_after_loss
+    cfg = resolve_settings({"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False, "threads": threads},
+                           sequence=seq).config
+    cfg = override(cfg, {"loop.recover_after_loss": recover_after_loss})
     return cfg
 
 

@@ -206,12 +206,13 @@ def frame_range(text: str) -> tuple[int, int]:
     return lo, hi
 
 
-def _device(float64: bool):
+def _device(flag: str, float64: bool = False):
+    """The argparse type of a device flag: :func:`slam.config.check_device`'s checks, naming ``flag``."""
     def parse(text: str) -> str:
         try:
-            return check_device(text, "device", float64=float64)
+            return check_device(text, flag, float64=float64)
         except ValueError as e:
-            raise argparse.ArgumentTypeError(str(e).replace("device ", "", 1)) from None
+            raise argparse.ArgumentTypeError(str(e).removeprefix(f"{flag} ")) from None  # argparse names it
     return parse
 
 
@@ -264,7 +265,7 @@ OPTIONS: tuple[Option, ...] = (
            "the paper's presets (or loop.descriptor.num_rnn > 0) have (attnloop-slam refuses --seed without --demo "
            "for a descriptor without them)", type=non_negative_int, metavar="N"),
     Option("--device", "loop.descriptor.device", "loop closure", "torch device of the descriptor network, e.g. cpu, "
-           "cuda, cuda:1, mps (default: cpu; docs/devices.md says what runs where)", type=_device(False)),
+           "cuda, cuda:1, mps (default: cpu; docs/devices.md says what runs where)", type=_device("--device")),
     Option("--max-frames", "run.max_frames", "frames", "use only the first N input frames", type=positive_int,
            metavar="N"),
     Option("--frame-step", "run.frame_step", "frames", "use every Nth frame (more motion between frames: more "
@@ -291,7 +292,7 @@ OPTIONS: tuple[Option, ...] = (
            "slow them many times on a busy machine)", type=positive_int, metavar="N"),
     Option("--backend-device", "backend.device", "compute", "torch device of the pose-graph optimisation, e.g. "
            "cuda to share the descriptor's (float64: not mps; default: cpu, as the keyframe graph is small)",
-           type=_device(True), metavar="DEVICE"),
+           type=_device("--backend-device", float64=True), metavar="DEVICE"),
     Option("--map-voxel", "map.voxel_size", "map", f"voxel size of map.ply (default: {_default('map.voxel_size'):.3g}"
            " m)", type=positive_float, metavar="METRES"),
     Option("--no-map", "map.enabled", "map", "do not build or write map.ply", const=False),
@@ -315,6 +316,8 @@ def add_run_arguments(parser: argparse.ArgumentParser, exclude: tuple[str, ...] 
         kw = dict(opt.kwargs)
         if "const" in kw:
             kw["action"] = "store_const"
+        elif "metavar" not in kw and "choices" not in kw:
+            kw["metavar"] = opt.flag[2:].upper()
         g.add_argument(opt.flag, dest=opt.key, default=argparse.SUPPRESS, help=opt.help, **kw)
 
 

@@ -1,5 +1,6 @@
 """examples/tum_slam.py and examples/ablation.py: their --help reads as written, they share the command's
 options (rig flags, --frame-step) and report errors as it does."""
+from slam.config import override
 from __future__ import annotations
 
 import json
@@ -96,7 +97,7 @@ def test_run_ablation_applies_configure_and_calls_measure(tiny_sequence, tmp_pat
     seen = []
 
     def configure(cfg):
-        cfg.backend.optimize_on_loop = False
+        cfg = override(cfg, {"backend.optimize_on_loop": False})
         return cfg
 
     def measure(run, metrics):

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from slam.config import SLAMConfig
+from slam.config import SLAMConfig, override
 from slam.io import open_sequence
 from slam.pipeline import evaluate_run, run_slam
 
@@ -50,9 +50,10 @@ def test_smoke_20_frames(redkitchen_dir, tmp_path, capsys, load_script):
 
     # the same trajectory as the public pipeline's (depth-camera poses)
     cfg = SLAMConfig()
-    cfg.loop.enabled = False
-    cfg.odometry.features.rgb_intrinsics = rs.RGB_INTRINSICS
-    cfg.odometry.features.rgb_from_depth_translation = (-0.025, 0.0, 0.0)
+    cfg = override(cfg, {
+        "loop.enabled": False,
+        "odometry.features.rgb_intrinsics": rs.RGB_INTRINSICS,
+        "odometry.features.rgb_from_depth_translation": (-0.025, 0.0, 0.0)})
     ref = evaluate_run(run_slam(open_sequence(redkitchen_dir), cfg, max_frames=20, progress=False))
     assert ref["ate_rmse"] == pytest.approx(rows[1]["ate_se3"], abs=1e-12)
     assert ref["num_keyframes"] == rows[1]["keyframes"]
