@@ -339,9 +339,10 @@ def _set_path(data: dict, key: str, value) -> None:
     data[last] = value
 
 
-def override(config, changes: Mapping[str, Any]):
+def override(config, changes: Mapping[str, Any], prefix: str = ""):
     """``config`` with fields changed by dotted path (``{"loop.descriptor.fusion": "eam"}``), every
-    config on the way rebuilt with :func:`dataclasses.replace` (and so checked).
+    config on the way rebuilt with :func:`dataclasses.replace` (and so checked); ``prefix``: the key of
+    ``config`` itself in the messages (``"run."``).
 
     Raises:
         ConfigError: an unknown key or a bad value, naming the key.
@@ -349,7 +350,7 @@ def override(config, changes: Mapping[str, Any]):
     nested: dict = {}
     for key, value in changes.items():
         _set_path(nested, key, value)
-    return _merge(config, nested, "")
+    return _merge(config, nested, prefix)
 
 
 def _field_value(current, value, key: str, values_type=None):

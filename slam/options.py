@@ -427,7 +427,7 @@ def resolve_settings(settings: Optional[Mapping[str, Any]] = None, file=None, se
         run = config_from_dict(run_data, RunOptions(), prefix="run.")
     except ConfigError as e:
         raise ConfigError(f"{file}: {e}") from None
-    run = override(run, {k[4:]: v for k, v in settings.items() if k.startswith("run.")})
+    run = override(run, {k[4:]: v for k, v in settings.items() if k.startswith("run.")}, prefix="run.")
     if sequence is not None and not hasattr(sequence, "K"):
         from slam.io import open_sequence
 
