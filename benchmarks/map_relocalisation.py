@@ -48,7 +48,8 @@ def _per_keyframe_loop_ms(metrics: dict) -> float:
 def kitchen(data: Path, map_frames, session_frames, other: bool) -> dict:
     folder = data / "7scenes-redkitchen"
     seq = open_sequence(folder)
-    cfg = resolve_settings({"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False}, sequence=seq).config
+    settings = {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False}
+    cfg = resolve_settings(settings, sequence=seq).config
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         mdir = Path(tmp) / "kitchen_map"

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import slam.backend  # noqa: E402  (after the sys.path line)
-from slam.config import SLAMConfig  # noqa: E402, override
+from slam.config import SLAMConfig, override  # noqa: E402
 from slam.graph import compiled_kernels, optimize, write_g2o  # noqa: E402
 
 

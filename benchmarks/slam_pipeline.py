@@ -39,10 +39,10 @@ from pathlib import Path
 import torch
 
 from slam.ablation import COLUMNS, markdown_table, run_ablation
+from slam.config import ConfigError, override
 from slam.graph.costs import edge_residuals
 from slam.io import open_sequence
 from slam.lie import se3_compose, se3_inv
-from slam.config import ConfigError, override
 from slam.options import resolve_settings
 from slam.pipeline import evaluate_run, run_slam
 

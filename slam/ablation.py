@@ -59,7 +59,7 @@ def camera_group(name: str) -> str:
 
 
 def _paper_name(name: str) -> str:
-    return name[len("rgbd_dataset_"):] if name.startswith("rgbd_dataset_") else name
+    return name.removeprefix("rgbd_dataset_")
 
 
 def run_ablation(sequences, out_dir, settings: Optional[Mapping[str, Any]] = None, columns=None, *,

@@ -128,7 +128,7 @@ class DescriptorConfig:
                 if own is not None and value is not None and value != own:
                     raise ValueError(f"{n}.{name} is {own!r} in the preset {self.preset!r}, got {value!r} "
                                      f"(leave it None, or choose another preset)")
-        self.recipe  # the recipe's own checks, now rather than when the descriptor is built
+        _ = self.recipe  # the recipe's own checks, now rather than when the descriptor is built
 
     @property
     def recipe(self):

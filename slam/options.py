@@ -36,8 +36,16 @@ import numpy as np
 
 from attnloop.fusion import FUSION_MODES
 from attnloop.presets import PRESETS
-from slam.config import (ConfigError, SLAMConfig, check_device, config_from_dict, config_to_dict, override,
-                         read_toml, save_config)
+from slam.config import (
+    ConfigError,
+    SLAMConfig,
+    check_device,
+    config_from_dict,
+    config_to_dict,
+    override,
+    read_toml,
+    save_config,
+)
 from slam.odometry.config import check_choice, check_int, check_number
 
 __all__ = [
@@ -421,8 +429,10 @@ def resolve_settings(settings: Optional[Mapping[str, Any]] = None, file=None, se
     """
     settings = dict(settings or {})
     data = read_toml(file) if file is not None else {}
-    run_data = data.pop("run", {}) if isinstance(data.get("run"), Mapping) else data.pop("run", {})
+    run_data = data.pop("run", {})
     try:
+        if not isinstance(run_data, Mapping):
+            raise ConfigError(f"run: expected a table of RunOptions fields, got {run_data!r}")
         base = config_from_dict(data)
         run = config_from_dict(run_data, RunOptions(), prefix="run.")
     except ConfigError as e:

@@ -115,9 +115,9 @@ def test_unknown_name_lists_auto():
 def test_the_papers_presets_never_fall_back_to_another_network(empty_hub, preset, caplog):
     # without VGG16's weights (hub cache empty, downloads off) the paper's descriptor is refused, naming the
     # file and how to give it; it used to become EfficientNet-Lite0 with one log line
-    with caplog.at_level(logging.INFO, logger="attnloop"):
-        with pytest.raises(WeightsNotFoundError, match=r"vgg16-397923af\.pth.*weights='/path/to/vgg16-397923af\.pth'"):
-            AttentionDescriptor(preset=preset)
+    with caplog.at_level(logging.INFO, logger="attnloop"), pytest.raises(
+            WeightsNotFoundError, match=r"vgg16-397923af\.pth.*weights='/path/to/vgg16-397923af\.pth'"):
+        AttentionDescriptor(preset=preset)
     assert "EfficientNet-Lite0" not in caplog.text
 
 

@@ -4,9 +4,9 @@ repeating the run."""
 from __future__ import annotations
 
 import math
-import tomllib
 
 import pytest
+import tomllib
 
 from slam.cli import main
 from slam.config import ConfigError, SLAMConfig, config_from_dict, config_to_dict, load_config, override, toml_text

@@ -11,7 +11,7 @@ import pytest
 
 from attnloop.index import LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
-from slam.backend import OPTIMIZER_METHODS, PoseGraphBackend, check_backend_config
+from slam.backend import OPTIMIZER_METHODS
 from slam.config import BackendConfig, LoopClosureConfig, SLAMConfig, override
 from slam.loop.consistency import ConsistencyConfig
 from slam.mapping import MapConfig

@@ -519,7 +519,8 @@ def test_kitchen_second_session_in_the_first_sessions_world(redkitchen_dir, tmp_
     from slam.pipeline import evaluate_run, run_slam
 
     seq = open_sequence(redkitchen_dir)
-    cfg = resolve_settings({"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False}, sequence=seq).config
+    settings = {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False}
+    cfg = resolve_settings(settings, sequence=seq).config
     run_slam(seq, cfg, progress=False, frames=(0, 600), save_map=tmp_path / "kitchen")
     run = run_slam(seq, cfg, progress=False, frames=(850, 1000), map_dir=tmp_path / "kitchen")
     rel = evaluate_run(run)["relocalisation"]
