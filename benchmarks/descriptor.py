@@ -16,9 +16,9 @@ Weights do not change the cost: VGG16 uses seeded random weights (no download ne
 Lite0 the packaged ImageNet weights when installed.
 
 Usage:
-    python benchmarks/descriptor.py                       # both backbones, batch 1 and 8
-    python benchmarks/descriptor.py --backbones efficientnet_lite0 --batches 1 --rounds 30
-    python benchmarks/descriptor.py --threads 1           # steadier on a busy shared machine
+    python -m benchmarks.descriptor                       # both backbones, batch 1 and 8
+    python -m benchmarks.descriptor --backbones efficientnet_lite0 --batches 1 --rounds 30
+    python -m benchmarks.descriptor --threads 1           # steadier on a busy shared machine
 
 Prints markdown tables.
 """
@@ -29,34 +29,13 @@ import platform
 import statistics
 import time
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor
 from attnloop.fusion import FUSION_MODES
 from attnloop.guided_backprop import guided_backprop
-
-
-def frames(batch: int, seed: int = 0) -> torch.Tensor:
-    """Smooth random 640 x 480 uint8 RGB frames (B, 3, 480, 640), channels-last like a decoded image."""
-    g = torch.Generator().manual_seed(seed)
-    small = torch.rand(batch, 3, 30, 40, generator=g)
-    big = F.interpolate(small, size=(480, 640), mode="bilinear", align_corners=False)
-    noise = 0.05 * torch.rand(batch, 3, 480, 640, generator=g)
-    img = ((big + noise).clamp(0, 1) * 255).round().to(torch.uint8)
-    return img.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)  # HWC memory, as from numpy
-
-
-def time_call(fn) -> float:
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
-
-
-def quartiles(values: list[float]) -> tuple[float, float, float]:
-    q = np.percentile(values, [25, 50, 75])
-    return float(q[0]), float(q[1]), float(q[2])
+from benchmarks._common import quartiles, time_call
+from benchmarks._common import test_frames as frames
 
 
 def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> list[str]:
@@ -74,7 +53,7 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
     paper = AttentionDescriptor(name, fusion="dam", pretrained=pretrained, preset="paper")
     every_stage = None
     if not all(getattr(net, "attended_groups", (True,))):
-        # A/B: the same joined tap with G at every stage (the default before session 4 of issue 13), whose
+        # A/B: the same joined tap with G at every stage (what the joined tap costs without ``attend``), whose
         # backward also crosses the blocks between the stages (Lite0: 13.1 % of a forward against 5.5 %).
         every_stage = AttentionDescriptor(name, fusion="dam", pretrained=pretrained, attend=net.tap)
         # the same weights (not a copy) as the default's network, so neither gets a cache advantage

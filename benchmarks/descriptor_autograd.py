@@ -21,8 +21,8 @@ The descriptor is the library's default (its tap, input size and recipe). Weight
 cost: EfficientNet-Lite0 uses its packaged ImageNet weights when installed, VGG16 seeded random weights.
 
 Usage:
-    python benchmarks/descriptor_autograd.py                                  # EfficientNet-Lite0, batch 1 and 4
-    python benchmarks/descriptor_autograd.py --backbones efficientnet_lite0 vgg16 --batches 1 --rounds 6
+    python -m benchmarks.descriptor_autograd                                  # EfficientNet-Lite0, batch 1 and 4
+    python -m benchmarks.descriptor_autograd --backbones efficientnet_lite0 vgg16 --batches 1 --rounds 6
 
 Prints a markdown table.
 """
@@ -35,20 +35,11 @@ import resource
 import statistics
 import time
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor, WeightsNotFoundError, build_backbone
 from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
-
-
-def frames(batch: int, seed: int = 0) -> torch.Tensor:
-    """Smooth random 640 x 480 RGB frames (B, 3, 480, 640), float in [0, 1]."""
-    g = torch.Generator().manual_seed(seed)
-    small = torch.rand(batch, 3, 30, 40, generator=g)
-    big = F.interpolate(small, size=(480, 640), mode="bilinear", align_corners=False)
-    return (big + 0.05 * torch.rand(batch, 3, 480, 640, generator=g)).clamp(0, 1)
+from benchmarks._common import quartiles, test_frames
 
 
 def build(name: str) -> torch.nn.Module:
@@ -98,7 +89,7 @@ def peak_rss_growth_mb(fn) -> float:
 
 
 def bench(name: str, batch: int, rounds: int, warmup: int) -> list[str]:
-    images = frames(batch)
+    images = test_frames(batch, uint8=False)
     fns = variants(name, images)
     times: dict[str, list[float]] = {k: [] for k in fns}
     for r in range(warmup + rounds):
@@ -110,7 +101,7 @@ def bench(name: str, batch: int, rounds: int, warmup: int) -> list[str]:
     base = times["default"]
     rows = []
     for key, values in times.items():
-        q25, q50, q75 = (float(v) for v in np.percentile(values, [25, 50, 75]))
+        q25, q50, q75 = quartiles(values)
         paired = statistics.median(t / b for t, b in zip(values, base))
         rows.append(f"| {name} | {batch} | {key} | {q50:.1f} | {q25:.1f}-{q75:.1f} | {paired:.2f} |")
     return rows
@@ -133,7 +124,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     notes = []
     for name in args.backbones:
-        fns = variants(name, frames(1))  # memory first, before any timing run raised the peak
+        fns = variants(name, test_frames(1, uint8=False))  # memory first, before any timing run raised the peak
         plain = peak_rss_growth_mb(fns["default"])
         diff = peak_rss_growth_mb(fns["differentiable forward + backward"])
         notes.append(f"{name}, batch 1: peak resident-set growth of the first default call {plain:.0f} MB, then of "

@@ -23,13 +23,13 @@ ones outside the window, and whether the loop detector accepts the same candidat
 ``exact_below`` belongs).
 
 Usage:
-    python benchmarks/index.py                                   # 1e4 and 1e5; clustered, real; all variants
-    python benchmarks/index.py --sizes 1000000 --data clustered real --variants exact faiss-pca128 \\
+    python -m benchmarks.index                                   # 1e4 and 1e5; clustered, real; all variants
+    python -m benchmarks.index --sizes 1000000 --data clustered real --variants exact faiss-pca128 \\
         --storage float16 --exact-queries 20 --build-threads 2 --stream 50  # the 10^6 run
-    python benchmarks/index.py --diagnose --sizes 1000000 --data clustered real --storage float16  # code vs graph
-    python benchmarks/index.py --diagnose --sizes 200000 --data clustered --graphs 32:80 64:80 --ef-sweep 64 128 256 512
-    python benchmarks/index.py --real-sets --skip-synthetic
-    python benchmarks/index.py --crossover --skip-synthetic
+    python -m benchmarks.index --diagnose --sizes 1000000 --data clustered real --storage float16  # code vs graph
+    python -m benchmarks.index --diagnose --sizes 200000 --data clustered --graphs 32:80 64:80 --ef-sweep 64 128 256 512
+    python -m benchmarks.index --real-sets --skip-synthetic
+    python -m benchmarks.index --crossover --skip-synthetic
 
 Prints markdown tables.
 """
@@ -46,7 +46,6 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-from index_data import Clustered, RealStatistics, exact_reference, real_descriptors
 
 from attnloop.index import (
     FaissConfig,
@@ -58,6 +57,7 @@ from attnloop.index import (
     faiss_available,
     fit_pca,
 )
+from benchmarks.index_data import Clustered, RealStatistics, exact_reference, real_descriptors
 
 DEFAULT = IndexConfig()
 # name -> (IndexConfig settings, the query-time knob and its swept values)
@@ -67,9 +67,8 @@ VARIANTS = {
     "flann-pca128": ({"backend": "flann", "reduce_dim": 128}, ("checks", [128, 512, 2048])),
     "faiss": ({"backend": "faiss", "reduce_dim": None}, ("ef_search", [32, 64, 128])),
     "faiss-pca128": ({"backend": "faiss", "reduce_dim": 128}, ("ef_search", [32, 64, 128])),
-    "faiss-pca128-whiten": ({"backend": "faiss", "reduce_dim": 128, "whiten": True}, ("ef_search", [32, 64, 128])),
     "faiss-pca256": ({"backend": "faiss", "reduce_dim": 256}, ("ef_search", [32, 64, 128])),
-    # the default before issue 16.2's 10^6 measurement: half the links
+    # half the default's links: what loses recall at 10^6 keyframes
     "faiss-pca128-m32": ({"backend": "faiss", "reduce_dim": 128, "faiss": FaissConfig(m=32)},
                          ("ef_search", [64, 128])),
     # the choices behind the defaults (--real-sets): fewer candidates, faiss's default ef_construction
@@ -77,7 +76,7 @@ VARIANTS = {
     "faiss-efc40": ({"backend": "faiss", "reduce_dim": None, "faiss": FaissConfig(ef_construction=40)},
                     ("ef_search", [64])),
 }
-SYNTHETIC_VARIANTS = ["exact", "flann", "flann-pca128", "faiss", "faiss-pca128", "faiss-pca128-whiten",
+SYNTHETIC_VARIANTS = ["exact", "flann", "flann-pca128", "faiss", "faiss-pca128",
                       "faiss-pca256"]
 SPREAD = {"clustered": 1.0, "hard": 1.5}
 
@@ -346,7 +345,7 @@ def _detector_run(desc: torch.Tensor, name: str, window: int, first_query: int) 
 
 
 def diagnose(args, real: dict | None) -> None:
-    """Where the default's recall goes: the PCA code or the HNSW graph on it (issue 16.2).
+    """Where the default's recall goes: the PCA code or the HNSW graph on it .
 
     For each descriptor set and size: the code of ``IndexConfig.reduce_dim`` (fitted as the index fits it)
     searched *exactly* over every row, its top ``R`` re-scored with the stored descriptors (the code's
@@ -368,7 +367,7 @@ def diagnose(args, real: dict | None) -> None:
             for _, rows in data.chunks():
                 store.add(rows)
             x = store._store.view()
-            code = fit_pca(x, DEFAULT.reduce_dim, whiten=DEFAULT.whiten, seed=DEFAULT.seed)
+            code = fit_pca(x, DEFAULT.reduce_dim, seed=DEFAULT.seed)
             top = _code_topr(code, x, queries, max(widths))
             print("| candidates from | R | recall@10 after re-scoring |\n|---|---:|---:|")
             for r in widths:

@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from benchmarks._common import data_root
+
 CHUNK = 65536  # rows generated (and added to an index) at a time
 
 
@@ -114,14 +116,6 @@ def exact_reference(data: _Places, queries: np.ndarray, k: int, storage: str = "
 # ----------------------------------------------------------------------------------------------
 # Real descriptors (cached: computing them takes minutes on a busy CPU)
 # ----------------------------------------------------------------------------------------------
-def data_root():
-    """The shared data folder (env ``ATTNLOOP_DATA``, default ``../shared/data`` beside the repository)."""
-    import os
-    from pathlib import Path
-
-    return Path(os.environ.get("ATTNLOOP_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
-
-
 def _image_descriptors(files, backbone: str, fusion: str) -> torch.Tensor:
     import cv2
 

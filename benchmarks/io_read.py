@@ -9,9 +9,9 @@ prefetching the reading should hide behind it). Files are read once before timin
 two 10^4-stamp streams, ground-truth loop pairs of the 1000 redkitchen poses.
 
 Usage:
-    python benchmarks/io_read.py                 # 300 frames
-    python benchmarks/io_read.py --frames 1000
-    ATTNLOOP_DATA=/path/to/data python benchmarks/io_read.py
+    python -m benchmarks.io_read                 # 300 frames
+    python -m benchmarks.io_read --frames 1000
+    ATTNLOOP_DATA=/path/to/data python -m benchmarks.io_read
 
 Prints markdown tables. "min" approximates the cost on an idle machine (other processes only add
 time); median/mean/p90 show what a shared machine gives.
@@ -28,11 +28,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks._common import add_data_argument
 from slam.eval import LoopGroundTruthConfig, associate, ate, ground_truth_loops, rpe
 from slam.io import RGBDFrame, Trajectory, check_frame, open_sequence, read_depth_raw, read_rgb
 from slam.lie import se3_compose, se3_exp
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _times(fn, items, repeat=1):
@@ -56,7 +55,7 @@ def main():
     ap.add_argument("--frames", type=int, default=300, help="frames read per variant")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     ap.add_argument("--work-ms", type=float, default=20.0, help="simulated per-frame work of the caller")
-    ap.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data"), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
+    add_data_argument(ap)
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)

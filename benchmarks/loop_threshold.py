@@ -9,7 +9,7 @@ and for ``preset="paper"``, fusion ``dam``. Recall at 100 % precision of the raw
 given for reference (the best any single similarity threshold can do).
 
 Usage:
-    python benchmarks/loop_threshold.py [--data ../shared/data] [--step 5]
+    python -m benchmarks.loop_threshold [--data ../shared/data] [--step 5]
 
 ``--streams``: the keyframe streams the SLAM system itself makes, on every sequence given (the kitchen at
 each ``--kitchen-steps``, ``--room DIR``, ``--building DIR``): an odometry-only run picks the keyframes
@@ -22,30 +22,28 @@ them / queries with an eligible true match), and the best candidate's precision.
 in ``--cache`` (``<sequence>_step<N>_<fusion>_<descriptor_version>.npz``: another default descriptor is
 described anew), so a second sweep is instant::
 
-    python benchmarks/loop_threshold.py --streams --kitchen-steps 1 3 6 --room runs/room_seq \
+    python -m benchmarks.loop_threshold --streams --kitchen-steps 1 3 6 --room runs/room_seq \
         --building runs/building_seq --cache runs/loop_streams
 """
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from index_data import descriptor_version
-from place_recognition import data_root, kitchen_poses, load_rgb
-
 from attnloop import AttentionDescriptor
 from attnloop.index import LoopCandidateDetector, LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
+from benchmarks._common import DATA_HELP, data_root
+from benchmarks.index_data import descriptor_version
+from benchmarks.place_recognition import kitchen_poses, load_rgb
 from slam.eval.loops import LoopGroundTruthConfig
 from slam.eval.place_recognition import evaluate, ground_truth_from_poses, sequence_candidates
 
 # (method, k_sigma, min_margin, min_similarity)
-SETTINGS = ([("mad", k, 0.02, 0.0) for k in (1.5, 2.0, 3.0, 4.0)] + [("std", 3.0, 0.02, 0.0)]
+SETTINGS = ([("mad", k, 0.02, 0.0) for k in (1.5, 2.0, 3.0, 4.0)]
             + [("mad", k, 0.005, 0.0) for k in (1.0, 1.5, 2.0)]
             + [("mad", 1.0, 0.005, f) for f in (0.90, 0.93, 0.95)])
 
@@ -208,7 +206,7 @@ def streams_main(args) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=data_root(), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
+    parser.add_argument("--data", type=Path, default=data_root(), help=DATA_HELP)
     parser.add_argument("--step", type=int, default=5, help="every STEP-th kitchen frame is a keyframe")
     parser.add_argument("--presets", nargs="+", default=["default", "paper"], choices=["default", "paper"], help="descriptor presets to compare")
     parser.add_argument("--streams", action="store_true", help="sweep on the SLAM's keyframe streams (see above)")

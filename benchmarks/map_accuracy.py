@@ -8,20 +8,17 @@ printed after the rigid alignment of the whole trajectory to the ground truth (t
 removes the start pose's own error.
 
     attnloop-slam --demo --out runs/demo
-    python benchmarks/map_accuracy.py runs/demo
+    python -m benchmarks.map_accuracy runs/demo
 """
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
+from benchmarks._common import table
 from slam.eval import ate
 from slam.io import read_tum_trajectory
 from slam.lie import quat_to_rotmat
@@ -36,10 +33,9 @@ def distances(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.concatenate([scene.surface_distance(c).numpy() for c in torch.split(room, 200_000)])
 
 
-def row(name: str, d: np.ndarray) -> str:
+def row(name: str, d: np.ndarray) -> list[str]:
     q = np.quantile(d, [0.5, 0.9, 0.99])
-    return (f"| {name} | {q[0] * 1000:.1f} | {q[1] * 1000:.1f} | {q[2] * 1000:.1f} | {100 * (d < 0.02).mean():.1f} "
-            f"| {100 * (d < 0.05).mean():.1f} |")
+    return [name, *(f"{1000 * v:.1f}" for v in q), f"{100 * (d < 0.02).mean():.1f}", f"{100 * (d < 0.05).mean():.1f}"]
 
 
 def main() -> None:
@@ -53,10 +49,9 @@ def main() -> None:
     a = ate(gt, est)
     print(f"{args.run}: {pts.shape[0]} points ({'coloured' if cols is not None else 'no colour'}), "
           f"{(args.run / 'map.ply').stat().st_size / 1e6:.2f} MB, trajectory ATE {a.rmse:.4f} m")
-    print("| placed with | median (mm) | 90 % (mm) | 99 % (mm) | < 2 cm (%) | < 5 cm (%) |")
-    print("|---|---|---|---|---|---|")
-    print(row("first ground-truth pose", distances(pts, quat_to_rotmat(g0[3:]).numpy(), g0[:3].numpy())))
-    print(row("ATE alignment", distances(pts, a.rotation.numpy(), a.translation.numpy())))
+    print(table(["placed with", "median (mm)", "90 % (mm)", "99 % (mm)", "< 2 cm (%)", "< 5 cm (%)"],
+                [row("first ground-truth pose", distances(pts, quat_to_rotmat(g0[3:]).numpy(), g0[:3].numpy())),
+                 row("ATE alignment", distances(pts, a.rotation.numpy(), a.translation.numpy()))]))
 
 
 if __name__ == "__main__":

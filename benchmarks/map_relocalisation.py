@@ -1,6 +1,6 @@
-"""Two sessions in one world: map a recording, save it, place a later recording in it (issue 16.3).
+"""Two sessions in one world: map a recording, save it, place a later recording in it.
 
-    python benchmarks/map_relocalisation.py [--data ../shared/data] [--map-frames 0:600]
+    python -m benchmarks.map_relocalisation [--data ../shared/data] [--map-frames 0:600]
         [--session-frames 850:1000] [--skip-other] [--skip-rtabmap]
 
 * **Kitchen, two sessions** (7-Scenes redkitchen, the Kinect v1 rig, EfficientNet-Lite0): frames
@@ -24,13 +24,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import tempfile
 import time
 from pathlib import Path
 
 import torch
 
+from benchmarks._common import add_data_argument
 from slam.config import override
 from slam.io import open_sequence
 from slam.maps import RelocalisationConfig, load_map
@@ -128,8 +128,7 @@ def rtabmap(data: Path, k: int) -> dict | None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"),
-                   help="the shared data folder (default: $ATTNLOOP_DATA, else ../shared/data)")
+    add_data_argument(p)
     p.add_argument("--map-frames", type=frame_range, default=(0, 600), metavar="START:END",
                    help="redkitchen frames of the first session, mapped and saved (default 0:600)")
     p.add_argument("--session-frames", type=frame_range, default=(850, 1000), metavar="START:END",

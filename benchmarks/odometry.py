@@ -18,10 +18,10 @@ milliseconds of the tracking call per frame, image decoding excluded (reported a
 
 Usage::
 
-    python benchmarks/odometry.py                       # all methods, all 1000 frames
-    python benchmarks/odometry.py --methods ours --max-frames 300 --threads 2   # default: 1 thread
-    python benchmarks/odometry.py --methods ours-rig                 # the default run's odometry, per stage
-    python benchmarks/odometry.py --markdown out.md     # also write the table to a file
+    python -m benchmarks.odometry                       # all methods, all 1000 frames
+    python -m benchmarks.odometry --methods ours --max-frames 300 --threads 2   # default: 1 thread
+    python -m benchmarks.odometry --methods ours-rig                 # the default run's odometry, per stage
+    python -m benchmarks.odometry --markdown out.md     # also write the table to a file
 
 Frames are read by a private loader (cv2) until the project's ``slam.io`` reader is switched in.
 """
@@ -39,9 +39,7 @@ import cv2
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
+from benchmarks._common import data_root
 from slam.config import override
 from slam.io.frame import RGBDFrame
 from slam.lie import se3_from_matrix
@@ -267,7 +265,7 @@ def run(name: str, folder: Path, n: int) -> dict:
 
 
 def main(argv=None) -> None:
-    default_data = Path(os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data")) / "7scenes-redkitchen"
+    default_data = data_root() / "7scenes-redkitchen"
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=default_data, help="7-Scenes sequence folder")
     ap.add_argument("--max-frames", type=int, default=1000, help="kitchen frames to track")

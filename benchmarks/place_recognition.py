@@ -25,14 +25,14 @@ Methods (all L2-normalised, cosine similarity; ORB-BoW with its own score):
   scikit-image's photographs for the kitchen.
 
 Usage:
-    python benchmarks/place_recognition.py [--data ../shared/data] [--sets rtabmap kitchen] [--out runs/pr]
-    python benchmarks/place_recognition.py --methods orb      # the ORB-BoW anchor alone (2 min)
-    python benchmarks/place_recognition.py --methods orb --bow-seeds 0 1 2 3 4   # its spread over vocabularies
-    python benchmarks/place_recognition.py --grayscale        # grayscale copies (the held-out corridor is grayscale)
-    python benchmarks/place_recognition.py --downscale 4      # every image at 1/4 of its width and height
-    python benchmarks/place_recognition.py --sequence 1 3 5   # also score sequences of 3 and 5 frames (SeqSLAM)
-    python benchmarks/place_recognition.py --misses           # and which queries each method misses, and how
-    python benchmarks/place_recognition.py --sets --query corridor/query --reference corridor/ref \\
+    python -m benchmarks.place_recognition [--data ../shared/data] [--sets rtabmap kitchen] [--out runs/pr]
+    python -m benchmarks.place_recognition --methods orb      # the ORB-BoW anchor alone (2 min)
+    python -m benchmarks.place_recognition --methods orb --bow-seeds 0 1 2 3 4   # its spread over vocabularies
+    python -m benchmarks.place_recognition --grayscale        # grayscale copies (the held-out corridor is grayscale)
+    python -m benchmarks.place_recognition --downscale 4      # every image at 1/4 of its width and height
+    python -m benchmarks.place_recognition --sequence 1 3 5   # also score sequences of 3 and 5 frames (SeqSLAM)
+    python -m benchmarks.place_recognition --misses           # and which queries each method misses, and how
+    python -m benchmarks.place_recognition --sets --query corridor/query --reference corridor/ref \\
         --ground-truth corridor/ground_truth_new.npy
 
 Prints markdown tables (R@1, R@5, R@10, AUC-PR as VPR-Bench defines it, recall at 100 % precision and
@@ -41,7 +41,6 @@ its threshold) and writes one PR-curve PNG per protocol to ``--out``.
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import sys
 import time
@@ -54,6 +53,7 @@ import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor
 from attnloop.fusion import FUSION_MODES
+from benchmarks._common import DATA_HELP, data_root
 from slam.eval.loops import LoopGroundTruthConfig
 from slam.eval.place_recognition import (
     evaluate,
@@ -65,12 +65,8 @@ from slam.eval.place_recognition import (
 )
 from slam.io.images import FrameReadError, _decode
 
-ROOT = Path(__file__).resolve().parents[1]
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
 
-
-def data_root() -> Path:
-    return Path(os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data"))
 
 
 def load_rgb(path: Path) -> np.ndarray:
@@ -455,7 +451,7 @@ def report_sequences(set_name: str, sims: dict[str, torch.Tensor], protos: dict,
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=data_root(), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
+    parser.add_argument("--data", type=Path, default=data_root(), help=DATA_HELP)
     parser.add_argument("--sets", nargs="*", default=["rtabmap", "kitchen"], choices=["rtabmap", "kitchen"], help="the shared sets to run (none: only --query/--reference)")
     parser.add_argument("--query", type=Path, help="a folder of query images (with --reference and --ground-truth)")
     parser.add_argument("--reference", type=Path, help="a folder of reference images")

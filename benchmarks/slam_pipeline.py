@@ -1,9 +1,9 @@
 """End-to-end SLAM: ATE against odometry alone, loops (true/false, and what the group check and the back end
 rejected), recall at 100 % precision, frames/s, for every fusion mode, on real and synthetic sequences.
 
-    python benchmarks/slam_pipeline.py [--data ../shared/data] [--frame-step N] [--out runs/bench_slam]
-    python benchmarks/slam_pipeline.py --building runs/building_seq [--modes dam]  # the aliased building
-    python benchmarks/slam_pipeline.py --modes dam --fps-ab 3                       # online correction's cost
+    python -m benchmarks.slam_pipeline [--data ../shared/data] [--frame-step N] [--out runs/bench_slam]
+    python -m benchmarks.slam_pipeline --building runs/building_seq [--modes dam]  # the aliased building
+    python -m benchmarks.slam_pipeline --modes dam --fps-ab 3                       # online correction's cost
 
 Sequences: 7-Scenes redkitchen (``--data``; its Kinect v1 rig, as ``attnloop-slam`` sets it) unless
 ``--no-kitchen``; the building tour when ``--building DIR`` names its folder (generated there first if the
@@ -14,7 +14,7 @@ layout.
 
 Columns beyond ATE and loops: the ATE's maximum, the final chi2 per edge, and each edge kind's median squared
 Mahalanobis error against ground truth with the information the back end used (a calibrated edge: the chi2
-of 6 dof, median 5.35; docs/benchmarks.md, "Information scales"). ``--set FIELD=VALUE`` overrides config
+of 6 dof, median 5.35). ``--set FIELD=VALUE`` overrides config
 fields of every run (e.g. ``loop.information_scale=0.005``).
 
 ``--fps-ab R``: afterwards, R rounds on the first sequence of the first mode (as ``attnloop-slam`` runs it by
@@ -26,7 +26,7 @@ checkout, e.g. ``git worktree add DIR 07d01e5``), each the default ``attnloop-sl
 sequence in a fresh process (``python -m slam.cli SEQ --out ... --quiet``, its ``--max-frames``,
 ``--frame-step``, ``--modes``' first fusion): the frames/s each run writes in ``metrics.json``, the CPU
 seconds of its process (every thread) per frame, the median of each and of the per-round ratios. The
-code A/B of issue 14 (frame rate); with ``--no-kitchen --sequence DIR`` on any other sequence.
+frame rate's code A/B; with ``--no-kitchen --sequence DIR`` on any other sequence.
 """
 import argparse
 import ast
@@ -38,6 +38,7 @@ from pathlib import Path
 
 import torch
 
+from benchmarks._common import add_data_argument
 from slam.ablation import COLUMNS, markdown_table, run_ablation
 from slam.config import ConfigError, override
 from slam.graph.costs import edge_residuals
@@ -174,7 +175,7 @@ def _code_ab(seq_dir, args) -> list:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"), help="the shared data folder (default: ATTNLOOP_DATA or ../shared/data)")
+    add_data_argument(p)
     p.add_argument("--no-kitchen", action="store_true", help="leave out 7-Scenes redkitchen")
     p.add_argument("--building", default=None, metavar="DIR",
                    help="the building tour's folder (generated there when it does not exist)")

@@ -3,8 +3,8 @@
 Prints a markdown table. Timings are wall-clock and process-CPU seconds; the 1-minute load average is
 printed too, because on a shared machine the wall-clock time mostly measures the other processes.
 
-    python benchmarks/synthetic.py                 # 300 frames at 640 x 480, loop
-    python benchmarks/synthetic.py --quick         # only the default settings (workers=2)
+    python -m benchmarks.synthetic                 # 300 frames at 640 x 480, loop
+    python -m benchmarks.synthetic --quick         # only the default settings (workers=2)
 """
 from __future__ import annotations
 

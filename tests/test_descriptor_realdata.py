@@ -7,7 +7,7 @@ to every negative: a frame that the ground truth puts more than 0.8 m away or wh
 
 To stay cheap in CI the negatives come from every 5th frame (0, 5, ..., 995: 46, 49 and 52 negatives
 for the three queries) instead of all 1000 frames: 200 images through the network, 9-25 s on two
-cores. ``benchmarks/descriptor_margins.py`` runs the full sequence (231/241/261 negatives).
+cores.
 """
 from __future__ import annotations
 
@@ -108,7 +108,7 @@ def test_revisit_beats_every_far_view(kitchen, fusion):
 def test_revisit_beats_every_far_view_paper_preset(kitchen, fusion):
     d = kitchen["paper"].from_attention(kitchen["paper_tap"], kitchen["paper_grad"], fusion=fusion)
     margins = _margins(kitchen, d)
-    # the paper's configuration (flat RNNs over the raw stage7 map): measured +0.061 to +0.126 (docs/attention.md)
+    # the paper's configuration (flat RNNs over the raw stage7 map): measured +0.061 to +0.126
     assert min(margins) > 0.02, f"{fusion}: margins {margins}"
 
 

@@ -7,7 +7,7 @@ How each fenced block is treated, by its language tag:
   ``../shared/data`` skips, with the rest of its page, when the data is absent (env ``ATTNLOOP_DATA``).
 * ``bash`` / ``sh`` / ``shell`` / ``console``: split into commands (``&&``, ``;``, ``|``, line
   continuations, ``# comments``). ``attnloop-slam``, ``attnloop-eval``, ``python examples/x.py``,
-  ``python benchmarks/x.py`` (and ``python -m slam.cli`` ...): the arguments are parsed by that command's own
+  ``python benchmarks/x.py``, ``python -m benchmarks.x`` (and ``python -m slam.cli`` ...): the arguments are parsed by that command's own
   parser without running it (every flag must exist, every value parse), and a ``../shared/data`` path must
   exist when the data is there; ``--help`` commands run, and so do ``attnloop-eval`` commands whose files
   the page's python blocks wrote. ``pip install``: every extra named must be one of
@@ -22,9 +22,6 @@ How each fenced block is treated, by its language tag:
 Inline code spans of the prose that start with a command (``attnloop-slam ... --flag``) have their
 ``--flags`` checked as well. ``python -m pytest -q -s tests/test_docs_snippets.py`` prints the tally of
 every page (how many blocks ran, were parsed, are not code, were skipped and why).
-
-Counts on 2026-12-02 (main with the docs branch): 42 blocks, 18 run, 19 parsed (32 commands), 5 not code,
-0 skipped; per page in docs/benchmarks.md, section "Documentation snippets and --help".
 """
 from __future__ import annotations
 
@@ -51,7 +48,7 @@ SHARED = "../shared/data"
 #: commands of plain shell: allowed in a block, listed as not checked
 PLAIN_SHELL = {"cd", "git", "source", ".", "export", "mkdir", "ls", "cat", "echo", "rm", "cp", "mv", "head",
                "tail", "evo_ape", "evo_rpe", "evo_traj", "nproc", "unzip", "tar", "wget", "curl"}
-COMMAND_START = re.compile(r"^(attnloop-slam|attnloop-eval|python3? (?:examples|benchmarks)/\w+\.py)\b")
+COMMAND_START = re.compile(r"^(attnloop-slam|attnloop-eval|python3? (?:examples|benchmarks)/\w+\.py|python3? -m benchmarks\.\w+)\b")
 
 
 @dataclass
@@ -195,6 +192,9 @@ def _plan_command(argv: list[str], where: str, plan: Plan) -> None:
             if module == "venv":
                 return
             cli = {"slam.cli": "attnloop-slam", "slam.eval.cli": "attnloop-eval"}.get(module)
+            if module.startswith("benchmarks."):
+                cli = script_of(module)
+                assert (ROOT / cli).is_file(), f"{where}: {cli} is not a script of the repository"
             assert cli, f"{where}: python -m {module} is not a command the docs test knows"
             name, rest = cli, args
         else:
@@ -211,6 +211,13 @@ def _plan_command(argv: list[str], where: str, plan: Plan) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- synopses
+def script_of(command: str) -> str:
+    """The script a command runs: ``benchmarks.x`` (``python -m benchmarks.x``) is ``benchmarks/x.py``."""
+    if re.fullmatch(r"benchmarks\.\w+", command):
+        return command.replace(".", "/", 1) + ".py"
+    return command
+
+
 def synopsis_flags(text: str) -> list[tuple]:
     """(command, flag) for each ``--flag`` in lines of ``text`` that start with a command (or continue one)."""
     found, command = [], None
@@ -218,7 +225,7 @@ def synopsis_flags(text: str) -> list[tuple]:
         s = line.strip()
         m = COMMAND_START.match(s)
         if m:
-            command = m.group(1).split()[-1]
+            command = script_of(m.group(1).split()[-1])
         elif not (s.startswith(("[", "--"))) or command is None:
             command = None
             continue
@@ -303,7 +310,7 @@ def docs_workdir(tmp_path, monkeypatch):
 # what the snippets of a page must have computed (beyond running)
 PAGE_CHECKS = {
     "docs/your_own_cnn.md": lambda ns: ns["d"].shape == (4, 5 * 256) and ns["res_desc"].backbone.tap_shape == (256, 7, 7),
-    "docs/attention.md": lambda ns: ns["vec"].shape == (1, 2560) and ns["rnn_vec"].shape == (1, 1024) and bool(torch.isfinite(ns["d_gaf"]).all()),
+    "docs/method.md": lambda ns: ns["vec"].shape == (1, 2560) and ns["rnn_vec"].shape == (1, 1024) and bool(torch.isfinite(ns["d_gaf"]).all()),
     "docs/api.md": lambda ns: len(ns["states"]) == len(ns["result"].trajectory) == 60
     and ns["result"].num_keyframes > 0 and ns["error"].rmse < 0.1 and ns["kinect"]._T_rgb_depth is not None,
     "docs/pipeline.md": lambda ns: len(ns["result"].trajectory) == 30 and ns["metrics"]["ate_rmse"] is not None,
@@ -324,9 +331,9 @@ def test_every_block_is_classified():
 
 
 def test_pages_are_found():
-    assert {"README.md", "docs/attention.md", "docs/pipeline.md", "docs/api.md", "docs/benchmarks.md"} <= set(PAGES)
+    assert {"README.md", "docs/method.md", "docs/pipeline.md", "docs/api.md", "docs/results.md"} <= set(PAGES)
     counts = {p: len(blocks(p)) for p in PAGES}
-    assert counts["README.md"] >= 6 and counts["docs/api.md"] >= 6 and counts["docs/benchmarks.md"] >= 12, counts
+    assert counts["README.md"] >= 4 and counts["docs/api.md"] >= 6 and counts["docs/results.md"] >= 12, counts
 
 
 def _page_commands(page: str):

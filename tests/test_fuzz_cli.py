@@ -13,7 +13,6 @@ must hold in every case:
   file is left in the output folder;
 * after an error: no output of this run is in the folder.
 
-The case count and outcomes are in docs/benchmarks.md ("Fuzzing the command line").
 """
 from __future__ import annotations
 

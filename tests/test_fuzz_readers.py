@@ -12,7 +12,7 @@ Allowed outcomes:
 
 Anything else (``UnicodeDecodeError``, ``OverflowError``, ``IndexError``, a NaN or Infinity in what was
 read, a 7-Scenes frame that lost its image because of its pose file) fails the test. The counts of cases
-and outcomes are printed (``pytest -s``) and quoted in docs/benchmarks.md.
+and outcomes are printed (``pytest -s``).
 """
 from __future__ import annotations
 

@@ -509,7 +509,7 @@ def test_faiss_code_is_refit_as_the_rows_grow():
 
 @needs_faiss
 def test_faiss_links_reach_the_graph_and_hold_recall_among_many_places():
-    # The 10^6 loss was the graph's degree (docs/benchmarks.md, "Keyframe index at scale"): on many
+    # The 10^6 loss was the graph's degree (docs/scale.md): on many
     # isotropic places the same search (ef_search 10, no wider re-rank) finds more of the exact top-10
     # with more links. Measured here: m = 8 -> 0.64, m = 32 -> 0.87 (one faiss thread: a reproducible graph).
     import faiss

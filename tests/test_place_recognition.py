@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import io
 import math
-import sys
 
 import cv2
 import numpy as np
@@ -440,119 +439,6 @@ def test_plot(tmp_path):
     assert cv2.imread(str(tmp_path / "pr.png")).shape == (260, 320, 3)
 
 
-def test_benchmark_reads_a_folder_in_the_order_of_its_ground_truth(tmp_path, load_script):
-    # VPR-Bench indexes images by the integer in their names; unpadded names must not sort as strings
-    bench = load_script("benchmarks/place_recognition.py")
-    for name in ("10.jpg", "2.jpg", "0.jpg", "1.png", "01.png", "notes.txt", "img11.jpg", "img9.jpg"):
-        (tmp_path / name).write_bytes(b"")
-    assert [p.name for p in bench.folder_images(tmp_path)] == ["0.jpg", "01.png", "1.png", "2.jpg", "10.jpg",
-                                                                "img9.jpg", "img11.jpg"]
-    padded = tmp_path / "padded"
-    padded.mkdir()
-    for i in (11, 0, 2):
-        (padded / f"{i:07d}.jpg").write_bytes(b"")
-    assert [p.name for p in bench.folder_images(padded)] == ["0000000.jpg", "0000002.jpg", "0000011.jpg"]
-    (tmp_path / "empty").mkdir()
-    with pytest.raises(SystemExit, match="no images"):
-        bench.folder_images(tmp_path / "empty")
-
-
-def test_benchmark_grayscale_copies(load_script):
-    # --grayscale: each image's luminance (OpenCV's weights) in all three channels, uint8, shape kept
-    bench = load_script("benchmarks/place_recognition.py")
-    rgb = np.random.default_rng(0).integers(0, 256, (2, 6, 8, 3), dtype=np.uint8)
-    out = bench.grayscale(list(rgb))
-    assert len(out) == 2 and all(o.shape == (6, 8, 3) and o.dtype == np.uint8 for o in out)
-    lum = np.rint(0.299 * rgb[0, ..., 0] + 0.587 * rgb[0, ..., 1] + 0.114 * rgb[0, ..., 2])
-    assert np.abs(out[0][..., 0].astype(int) - lum.astype(int)).max() <= 1
-    assert (out[0][..., 0] == out[0][..., 1]).all() and (out[0][..., 1] == out[0][..., 2]).all()
-    assert np.array_equal(bench.grayscale([out[0]])[0], out[0])  # grey stays grey
-
-
-def test_benchmark_downscaled_copies(load_script):
-    # --downscale N: each image shrunk N times by area averaging (sizes rounded down); 1 leaves the list as is
-    bench = load_script("benchmarks/place_recognition.py")
-    rgb = np.random.default_rng(0).integers(0, 256, (9, 13, 3), dtype=np.uint8)
-    assert bench.downscaled([rgb], 1)[0] is rgb
-    small = bench.downscaled([rgb, rgb[:4, :4]], 4)
-    assert small[0].shape == (2, 3, 3) and small[0].dtype == np.uint8 and small[1].shape == (1, 1, 3)
-    # where N divides the size, every output pixel is the mean of its N x N block (rounded to uint8)
-    even = rgb[:8, :12]
-    blocks = even.astype(float).reshape(2, 4, 3, 4, 3).mean((1, 3))
-    assert np.abs(bench.downscaled([even], 4)[0].astype(float) - blocks).max() <= 0.5 + 1e-9
-    assert bench.downscaled([rgb], 64)[0].shape == (1, 1, 3)  # never below one pixel
-
-
-def test_benchmark_measures_a_grayscale_vpr_bench_folder_pair(tmp_path, load_script, monkeypatch, capsys):
-    # The path a held-out VPR-Bench set is measured through: folders of single-channel images named 0 ... 11
-    # (unpadded: a string sort would misalign them), a ground_truth_new.npy of [query, [references]] rows.
-    # Query q is reference 11 - q (twelve different photographs, grey, 128 x 96) shifted 3 pixels with
-    # noise, so every descriptor must find it first.
-    skdata = pytest.importorskip("skimage.data", reason="scikit-image provides the photographs")
-    bench = load_script("benchmarks/place_recognition.py")
-    rng = np.random.default_rng(0)
-    (tmp_path / "query").mkdir()
-    (tmp_path / "ref").mkdir()
-    names = ("astronaut", "chelsea", "coffee", "rocket", "camera", "coins", "moon", "page", "text", "brick",
-             "gravel", "grass")  # bundled in scikit-image's wheel: nothing is downloaded
-    for r, name in enumerate(names):
-        photo = getattr(skdata, name)()
-        grey = cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY) if photo.ndim == 3 else photo
-        ref = cv2.resize(grey, (131, 96), interpolation=cv2.INTER_AREA)
-        cv2.imwrite(str(tmp_path / "ref" / f"{r}.png"), ref[:, :128])
-        query = np.clip(ref[:, 3:131].astype(int) + rng.integers(-8, 9, (96, 128)), 0, 255).astype(np.uint8)
-        cv2.imwrite(str(tmp_path / "query" / f"{11 - r}.png"), query)
-    rows = np.empty((12, 2), dtype=object)
-    for q in range(12):
-        rows[q, 0], rows[q, 1] = q, [11 - q]
-    np.save(tmp_path / "ground_truth_new.npy", rows, allow_pickle=True)
-    monkeypatch.setattr(sys, "argv", ["place_recognition.py", "--sets", "--query", str(tmp_path / "query"),
-                                      "--reference", str(tmp_path / "ref"), "--ground-truth",
-                                      str(tmp_path / "ground_truth_new.npy"), "--methods", "default"])
-    bench.main()
-    out = capsys.readouterr().out
-    assert "12 queries, 12 with a true match" in out
-    rows = [[c.strip() for c in line.strip("|").split("|")] for line in out.splitlines()
-            if line.startswith("| ") and not line.startswith("| method")]
-    got = {c[0]: float(c[1]) for c in rows}  # method: R@1
-    assert set(got) == {"none", "dam", "eam", "gaf", "ega", "GAP", "GeM"}
-    assert all(v == 1.0 for v in got.values()), got
-
-
-def test_benchmark_reports_each_sequence_length(load_script, capsys):
-    # --sequence 1 3: the single-image tables, then the same protocols scored over sequences of 3 frames
-    bench = load_script("benchmarks/place_recognition.py")
-    s = torch.full((6, 6), 0.2)
-    s[4, 2], s[3, 1], s[5, 3], s[5, 0] = 0.9, 0.9, 0.6, 0.95
-    gt = torch.zeros(6, 6, dtype=torch.bool)
-    gt[5, 3] = True
-    bench.report_sequences("toy", {"m": s}, {"p": (gt, torch.ones_like(gt))}, None, "", [1, 3])
-    out = capsys.readouterr().out
-    tables = out.split("### toy: sequences of 3 frames")
-    assert len(tables) == 2
-    assert "| m | 0.000 |" in tables[0] and "| m | 1.000 |" in tables[1]
-
-
-def test_benchmark_lists_the_queries_a_method_misses(load_script, capsys):
-    # --misses: a query some method misses, with every method's best candidate and the rank of its best true
-    # match; a query every method finds is not listed
-    bench = load_script("benchmarks/place_recognition.py")
-    gt = torch.tensor([[True, False, False], [False, False, True]])
-    good = torch.tensor([[0.9, 0.1, 0.2], [0.1, 0.3, 0.8]])
-    bad = torch.tensor([[0.9, 0.1, 0.2], [0.1, 0.9, 0.5]])  # query 1: reference 1 first, its match 2nd
-    results = {m: evaluate(s, gt) for m, s in (("good", good), ("bad", bad))}
-    rows = bench.missed_queries(results, gt, ["q0", "q1"], ["r0", "r1", "r2"])
-    assert rows == ["| q1 | r2 | 1 of 2 | r2 (1) | r1 (2) |"]
-    # a query whose candidates are all masked has none (not the last reference)
-    none = {"m": evaluate(good, gt, candidates=torch.tensor([[True, True, True], [False, False, False]]))}
-    assert bench.missed_queries(none, torch.tensor([[True, False, False], [False, False, True]]), ["q0", "q1"],
-                                ["r0", "r1", "r2"]) == ["| q1 | r2 | 1 of 1 | no candidate |"]
-    bench.report("toy", {"good": good, "bad": bad}, {"p": (gt, torch.ones_like(gt))}, None,
-                 names=(["q0", "q1"], ["r0", "r1", "r2"]))
-    out = capsys.readouterr().out
-    assert "Queries some method misses (1)" in out and "| query | true matches | missed by | good | bad |" in out
-
-
 def test_evaluate_reads_a_vpr_bench_file_with_unmatched_trailing_references(tmp_path):
     # Tokyo 24/7-style distractors: references 3 and 4 match no query, so the file alone says 3 columns; the
     # similarity's 5 columns are the reference set
@@ -565,48 +451,3 @@ def test_evaluate_reads_a_vpr_bench_file_with_unmatched_trailing_references(tmp_
     assert r.recall_at(1) == 0.5 and r.recall_at(2) == 1.0
     with pytest.raises(TypeError, match="pass the file's path"):
         evaluate(sim, np.load(tmp_path / "gt.npy", allow_pickle=True))
-
-
-def test_benchmark_folder_mode_mixes_image_sizes_skips_hidden_files_and_names_bad_paths(tmp_path, load_script):
-    bench = load_script("benchmarks/place_recognition.py")
-    a, b = np.zeros((4, 6, 3), np.uint8), np.zeros((5, 6, 3), np.uint8)
-    assert [len(r) for r in bench.same_size_batches([a, a, b, a, a, a], 2)] == [2, 1, 2, 1]
-    assert [r[0].shape for r in bench.same_size_batches([a, a, b], 8)] == [a.shape, b.shape]
-    for name in ("0.jpg", "._0.jpg", ".hidden.png"):
-        (tmp_path / name).write_bytes(b"")
-    assert [p.name for p in bench.folder_images(tmp_path)] == ["0.jpg"]
-    with pytest.raises(SystemExit, match="not a folder of images"):
-        bench.folder_images(tmp_path / "missing")
-    with pytest.raises(SystemExit, match="not a folder of images"):
-        bench.folder_images(tmp_path / "0.jpg")
-
-
-def test_benchmark_reports_vpr_bench_accuracy_when_some_queries_have_no_match(load_script, capsys):
-    bench = load_script("benchmarks/place_recognition.py")
-    gt = torch.tensor([[True, False], [False, False]])
-    sim = torch.tensor([[0.9, 0.1], [0.5, 0.4]])
-    bench.report("toy", {"m": sim}, {"p": (gt, torch.ones_like(gt))}, None)
-    out = capsys.readouterr().out
-    assert "| m | 1.000 |" in out  # R@1 over the one query with a match
-    assert "over all 2 queries): m 0.500" in out  # VPR-Bench's accuracy over both
-
-
-def test_benchmark_never_trains_orb_on_the_evaluated_images(load_script, capsys):
-    # no training images at all: the anchor is reported as not measured rather than fitted on the queries
-    bench = load_script("benchmarks/place_recognition.py")
-    img = np.zeros((32, 32, 3), np.uint8)
-    sims = bench.all_methods([img], [img], [], methods=("orb",))
-    assert sims == {} and "ORB-BoW: not measured" in capsys.readouterr().out
-
-
-def test_benchmark_refuses_a_truncated_image_naming_it(tmp_path, load_script):
-    # cv2.imread decoded half a JPEG and filled the rest with grey (only a libjpeg warning on stderr)
-    bench = load_script("benchmarks/place_recognition.py")
-    ok, data = cv2.imencode(".jpg", np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8))
-    (tmp_path / "query").mkdir()
-    (tmp_path / "query" / "0.jpg").write_bytes(data.tobytes()[: len(data) // 2])
-    grey = np.full((48, 64), 90, np.uint8)
-    cv2.imwrite(str(tmp_path / "g.png"), grey)
-    assert bench.load_rgb(tmp_path / "g.png").shape == (48, 64, 3)  # grey replicated, as before
-    with pytest.raises(SystemExit, match="0.jpg: not a decodable image"):
-        bench.protocols_folders(tmp_path / "query", tmp_path / "query", tmp_path / "gt.npy", tmp_path)

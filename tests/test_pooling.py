@@ -275,7 +275,7 @@ def test_default_configuration():
     d = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False)
     assert d.backbone.tap == "stage6+stage7" and d.backbone.input_size == (224, 288)
     assert d.backbone.tap_shape == (512, 7, 9) and d.tap_groups == (192, 320)
-    # the attention at stage7 only; stage6 pooled unfused (docs/attention.md, session 4)
+    # the attention at stage7 only; stage6 pooled unfused (docs/method.md)
     assert d.backbone.attend == "stage7" and d.attended_groups == (False, True)
     r = d.recipe
     # no RNNs (session 6): the regional code, L2-normalised, is the descriptor

@@ -1,0 +1,1 @@
+"""Benchmark scripts: one per figure of docs/results.md, each run as ``python -m benchmarks.NAME``."""
