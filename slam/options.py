@@ -20,7 +20,7 @@ config file's ``odometry.features`` rig) override it, ``--registered`` says colo
 Example:
     >>> s = resolve_settings({"odometry.features.rgb_intrinsics": (525, 525, 320, 240), "run.frame_step": 3})
     >>> s.config.odometry.features.rgb_intrinsics, s.run.frame_step
-    ((525, 525, 320, 240), 3)
+    ((525.0, 525.0, 320.0, 240.0), 3)
 """
 from __future__ import annotations
 
