@@ -215,16 +215,6 @@ def frame_range(text: str) -> tuple[int, int]:
     return lo, hi
 
 
-def _device(flag: str, float64: bool = False):
-    """The argparse type of a device flag: :func:`slam.config.check_device`'s checks, naming ``flag``."""
-    def parse(text: str) -> str:
-        try:
-            return check_device(text, flag, float64=float64)
-        except ValueError as e:
-            raise argparse.ArgumentTypeError(str(e).removeprefix(f"{flag} ")) from None  # argparse names it
-    return parse
-
-
 def _default(key: str):
     obj = SLAMConfig()
     for part in key.split("."):
@@ -273,7 +263,7 @@ OPTIONS: tuple[Option, ...] = (
            "the paper's presets (or loop.descriptor.num_rnn > 0) have (attnloop-slam refuses --seed without --demo "
            "for a descriptor without them)", type=non_negative_int, metavar="N"),
     Option("--device", "loop.descriptor.device", "loop closure", "torch device of the descriptor network, e.g. cpu, "
-           "cuda, cuda:1, mps (default: cpu; docs/devices.md says what runs where)", type=_device("--device")),
+           "cuda, cuda:1, mps (default: cpu; docs/devices.md says what runs where)"),
     Option("--max-frames", "run.max_frames", "frames", "use only the first N input frames", type=positive_int,
            metavar="N"),
     Option("--frame-step", "run.frame_step", "frames", "use every Nth frame (more motion between frames: more "
@@ -300,7 +290,7 @@ OPTIONS: tuple[Option, ...] = (
            "slow them many times on a busy machine)", type=positive_int, metavar="N"),
     Option("--backend-device", "backend.device", "compute", "torch device of the pose-graph optimisation, e.g. "
            "cuda to share the descriptor's (float64: not mps; default: cpu, as the keyframe graph is small)",
-           type=_device("--backend-device", float64=True), metavar="DEVICE"),
+           metavar="DEVICE"),
     Option("--map-voxel", "map.voxel_size", "map", f"voxel size of map.ply (default: {_default('map.voxel_size'):.3g}"
            " m)", type=positive_float, metavar="METRES"),
     Option("--no-map", "map.enabled", "map", "do not build or write map.ply", const=False),
@@ -411,6 +401,21 @@ def _rig_settings(settings: dict, file_data: Mapping, sequence) -> None:
     settings[_K_KEY], settings[_T_KEY] = K, t
 
 
+def _override_naming_the_flag(config: SLAMConfig, settings: dict) -> SLAMConfig:
+    """:func:`slam.config.override`; a value it refuses is a :class:`UsageError` naming its flag."""
+    try:
+        return override(config, settings)
+    except ConfigError as e:
+        for key, value in settings.items():  # which one: the first refused on its own
+            try:
+                override(config, {key: value})
+            except ConfigError as own:
+                if key not in _FLAGS:  # a library caller's key: the config's own message names it
+                    raise own from None
+                raise UsageError(f"{_FLAGS[key]} {value!r}: {own}") from None
+        raise e from None
+
+
 def resolve_settings(settings: Optional[Mapping[str, Any]] = None, file=None, sequence=None, *,
                      demo: bool = False) -> RunSettings:
     """A run's :class:`RunSettings`: the defaults, then the TOML ``file``, then ``settings`` (flags).
@@ -445,7 +450,7 @@ def resolve_settings(settings: Optional[Mapping[str, Any]] = None, file=None, se
     if sequence is not None:
         check_sequence_intrinsics(sequence)
     _rig_settings(settings, data, sequence)
-    config = override(base, {k: v for k, v in settings.items() if not k.startswith("run.")})
+    config = _override_naming_the_flag(base, {k: v for k, v in settings.items() if not k.startswith("run.")})
     _refuse_idle(settings, config, demo)
     if config.loop.enabled:
         check_weights_file(config.loop.descriptor.weights)  # a wrong path found before the work

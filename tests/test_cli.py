@@ -238,8 +238,8 @@ def _exit_code(argv) -> int:
 def test_cuda_on_a_cpu_only_torch_is_a_clear_error(tmp_path, capsys):
     if torch.cuda.is_available():
         pytest.skip("a CUDA device is present")
-    assert _exit_code([*DEMO, "--device", "cuda", "--out", str(tmp_path / "o")]) == 2
-    assert "argument --device: 'cuda': CUDA is not available" in capsys.readouterr().err
+    assert main([*DEMO, "--device", "cuda", "--out", str(tmp_path / "o")]) == 2
+    assert "attnloop-slam: --device 'cuda': " in (err := capsys.readouterr().err) and "CUDA is not available" in err
 
 
 @pytest.mark.timeout(600)

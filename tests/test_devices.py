@@ -14,7 +14,7 @@ from slam.backend import PoseGraphBackend
 from slam.config import BackendConfig, DescriptorConfig, SLAMConfig, override
 from slam.keyframe_graph import EdgeKind, KeyframeGraph
 from slam.lie import se3_between, se3_compose, se3_exp, se3_identity
-from slam.options import add_run_arguments, check_device, given_settings, resolve_settings
+from slam.options import UsageError, add_run_arguments, check_device, given_settings, resolve_settings
 
 D = torch.float64
 SCALE = {EdgeKind.ODOMETRY: 1.0, EdgeKind.LOOP: 1.0}
@@ -57,26 +57,21 @@ def test_flags_set_the_two_devices_and_default_to_the_cpu():
     assert cfg.loop.descriptor.device == "cpu" and cfg.backend.device == "cpu"
 
 
-def _usage_error(capsys, *argv) -> str:
-    """argparse's usage error (exit code 2) of ``argv``: its message."""
-    with pytest.raises(SystemExit) as e:
-        _parse(*argv)
-    assert e.value.code == 2
-    return capsys.readouterr().err
-
-
-@pytest.mark.parametrize("flag", ["--device", "--backend-device"])
-def test_unusable_devices_are_errors_naming_the_flag(flag, capsys):
-    assert f"argument {flag}: 'bogus' is not a torch device" in _usage_error(capsys, flag, "bogus")
-    assert f"argument {flag}: 'xla': device type 'xla' is not supported" in _usage_error(capsys, flag, "xla")
+@pytest.mark.parametrize("flag, field", [("--device", "DescriptorConfig.device"),
+                                         ("--backend-device", "BackendConfig.device")])
+def test_unusable_devices_are_errors_naming_the_flag(flag, field):
+    with pytest.raises(UsageError, match=f"^{flag} 'bogus': .*{field} 'bogus' is not a torch device"):
+        _config(flag, "bogus")
+    with pytest.raises(UsageError, match=f"^{flag} 'xla': .*device type 'xla' is not supported"):
+        _config(flag, "xla")
     if not torch.cuda.is_available():
-        err = _usage_error(capsys, flag, "cuda")
-        assert f"argument {flag}: 'cuda': CUDA is not available" in err and f"use {flag} cpu" in err
+        with pytest.raises(UsageError, match=f"^{flag} 'cuda': .*CUDA is not available"):
+            _config(flag, "cuda")
 
 
-def test_the_pose_graph_needs_float64_so_not_mps(capsys):
-    assert "argument --backend-device: 'mps': the pose graph is solved in float64" in _usage_error(
-        capsys, "--backend-device", "mps")
+def test_the_pose_graph_needs_float64_so_not_mps():
+    with pytest.raises(UsageError, match="^--backend-device 'mps': .*the pose graph is solved in float64"):
+        _config("--backend-device", "mps")
     assert check_device("cpu", "--backend-device", float64=True) == "cpu"
 
 
