@@ -11,9 +11,9 @@ fusion modes: none, dam, eam, gaf, ega. Writes into --out:
                         the loop closure: accepted loops (true/false by ground truth) and the maximum recall
                         at 100 % precision of the detector before and after geometric verification
   table1.json           every run's metrics
-  config.toml           the settings of the runs (the columns change the descriptor's preset and fusion)
   pr_<sequence>.png     precision/recall curves (before verification) of the columns
-  <column>/<sequence>/  each run's trajectory.txt, loops.txt, metrics.json, trajectory.png, map.ply
+  <column>/<sequence>/  each run's trajectory.txt, loops.txt, metrics.json, trajectory.png, map.ply and
+                        config.toml (attnloop-slam --config of it repeats that run)
 
 The options are attnloop-slam's (a 7-Scenes folder gets the Kinect v1 rig by default; --frame-step N
 uses every Nth frame). Usage:
@@ -31,15 +31,14 @@ from pathlib import Path
 
 from slam.ablation import markdown_table, run_ablation
 from slam.cli import call_reporting_errors
-from slam.options import add_run_arguments, given_settings, resolve_settings
+from slam.options import add_run_arguments, given_settings
 from slam.pipeline import json_safe
 
 
 def run(args: argparse.Namespace) -> int:
-    settings = given_settings(args)
-    table = run_ablation(args.sequences, args.out, settings, config_file=args.config_file, quiet=args.quiet)
+    table = run_ablation(args.sequences, args.out, given_settings(args), config_file=args.config_file,
+                         quiet=args.quiet)
     out = Path(args.out)
-    resolve_settings(settings, args.config_file).save(out / "config.toml")
     md = markdown_table(table)
     (out / "table1.md").write_text(md)
     (out / "table1.json").write_text(json.dumps(json_safe(table), indent=2, allow_nan=False))

@@ -21,7 +21,7 @@ from typing import Any, Optional
 from attnloop.fusion import FUSION_MODES
 from slam.config import override
 from slam.eval import plot_pr_curves
-from slam.options import resolve_settings
+from slam.options import RunSettings, resolve_settings
 from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
 
 __all__ = ["COLUMNS", "PAPER_TABLE1", "camera_group", "columns_for", "markdown_table", "run_ablation"]
@@ -69,7 +69,8 @@ def run_ablation(sequences, out_dir, settings: Optional[Mapping[str, Any]] = Non
     Args:
         sequences: sequence folders.
         out_dir: each run writes into ``out_dir/<column>/<sequence>/`` (every such folder is checked, and
-            its previous outputs removed, before the first run); ``pr_<sequence>.png`` beside them.
+            its previous outputs removed, before the first run), with its ``config.toml`` (``attnloop-slam
+            --config`` of it repeats that run); ``pr_<sequence>.png`` beside them.
         settings: ``{key: value}`` as :func:`slam.options.resolve_settings` takes them (a command's
             flags: ``{"loop.descriptor.backbone": "efficientnet_lite0", "run.frame_step": 3}``).
         columns: ``{column: settings}`` (default: :func:`columns_for` the preset of ``settings``).
@@ -103,6 +104,7 @@ def run_ablation(sequences, out_dir, settings: Optional[Mapping[str, Any]] = Non
                            progress=False if quiet else None)
             metrics = evaluate_run(run)
             write_outputs(run, targets[(col, k)])
+            RunSettings(configs[(col, k)], spec.run).save(targets[(col, k)] / "config.toml")  # --config repeats it
             if measure is not None:
                 measure(run, metrics)
             name = spec.sequence.name

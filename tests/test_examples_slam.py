@@ -78,7 +78,14 @@ def test_ablation_runs_our_columns_and_writes_its_table(tiny_sequence, tmp_path,
     for mode in data:
         assert (out / mode / "seq" / "trajectory.txt").is_file()
     assert "frames/s" not in capsys.readouterr().out  # --quiet: the tables only
-    assert 'preset = "default"' in (out / "config.toml").read_text()
+    text = (out / "gaf" / "seq" / "config.toml").read_text()  # each run's own settings, its column's fusion
+    assert 'preset = "default"' in text and 'fusion = "gaf"' in text
+    from slam.cli import main
+
+    again = tmp_path / "again"
+    assert main([str(tiny_sequence), "--config", str(out / "gaf" / "seq" / "config.toml"), "--out", str(again),
+                 "--quiet"]) == 0
+    assert (again / "trajectory.txt").read_text() == (out / "gaf" / "seq" / "trajectory.txt").read_text()
 
 
 def test_ablation_refuses_a_bad_folder_before_any_run(tmp_path, load_script, capsys):
