@@ -1,12 +1,12 @@
 """Pose-graph optimisation: slam.graph.optimize vs GTSAM 4.3 Levenberg-Marquardt, side by side.
 
 For every g2o file in the pose-graph data folder both optimisers start from the file's VERTEX values
-(the odometry initial guess, as ``gtsam.readG2o`` takes it) with default settings; ours runs once per
-backend (``--backends``: the torch reference and the accelerator's C kernels by default). The runs
-alternate (GTSAM, ours with each backend, GTSAM, ...) and the median wall time of the optimisation alone
-(reading excluded) is reported, one row per file and backend. GTSAM's error is ``0.5 * chi2``; the table
+(the odometry initial guess, as ``gtsam.readG2o`` takes it) with default settings. The runs
+alternate (GTSAM, ours, GTSAM, ...) and the median wall time of the optimisation alone
+(reading excluded) is reported, one row per file. GTSAM's error is ``0.5 * chi2``; the table
 reports GTSAM's error and ours (``chi2 / 2``), and GTSAM's own ``graph.error`` evaluated at our solution (the
-same objective, computed by GTSAM).
+same objective, computed by GTSAM). The CPU time (``time.process_time``) is given too: on a machine that
+other processes load, it varies less than the wall time.
 "s to GTSAM's error" is the wall time from the start of our call until our error was first within 1e-7
 (relative) of GTSAM's final error or below it (``OptimizationResult.time_history``): where GTSAM stops
 without progress (INTEL: it returns its initial guess) this, not the full run, is the comparable figure.
@@ -17,8 +17,7 @@ A robustness figure follows: sphere2500 with 5% extra edges that are random fals
 rigid alignment) is taken against the solution of the clean graph.
 
 Usage:
-    python benchmarks/posegraph.py [--data DIR] [--repeats 5] [--files a b] [--backends torch c] [--no-robust]
-                                   [--out FILE.md]
+    python benchmarks/posegraph.py [--data DIR] [--repeats 5] [--files a b] [--no-robust] [--out FILE.md]
 """
 from __future__ import annotations
 
@@ -42,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from slam.eval.align import umeyama_alignment
-from slam.graph import PoseGraph, compiled_kernels, optimize, read_g2o
+from slam.graph import PoseGraph, optimize, read_g2o
 
 FILES = ["tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "input_M3500_g2o", "input_INTEL_g2o"]
 
@@ -81,12 +80,12 @@ def run_gtsam(path: Path, three_d: bool):
     import gtsam
 
     graph, initial = gtsam.readG2o(str(path), three_d)
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     opt = gtsam.LevenbergMarquardtOptimizer(graph, initial, gtsam.LevenbergMarquardtParams())
     result = opt.optimize()
     dt = time.perf_counter() - t
-    return {"time": dt, "error": graph.error(result), "initial_error": graph.error(initial),
-            "iterations": opt.iterations(), "graph": graph}
+    return {"time": dt, "cpu": time.process_time() - c, "error": graph.error(result),
+            "initial_error": graph.error(initial), "iterations": opt.iterations(), "graph": graph}
 
 
 def time_to_reach(result, error: float, rtol: float = 1e-7):
@@ -105,9 +104,9 @@ def ms(seconds: float) -> str:
 
 
 def run_ours(graph: PoseGraph, **kw):
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     res = optimize(graph, "lm", **kw)
-    return {"time": time.perf_counter() - t, "result": res}
+    return {"time": time.perf_counter() - t, "cpu": time.process_time() - c, "result": res}
 
 
 def peak_rss_mb() -> float:
@@ -123,21 +122,21 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def memory_probe(path: str, backend: str) -> None:
+def memory_probe(path: str) -> None:
     """Child process: peak RSS of reading + optimising one file (printed as JSON)."""
     base = peak_rss_mb()
     import tracemalloc
 
     tracemalloc.start()
     g = read_g2o(path)
-    res = optimize(g, "lm", backend=backend)
+    res = optimize(g, "lm")
     _, py_peak = tracemalloc.get_traced_memory()
     print(json.dumps({"baseline_mb": base, "peak_mb": peak_rss_mb(), "python_peak_mb": py_peak / 2 ** 20,
                       "status": str(res.status)}))
 
 
-def measure_memory(path: Path, backend: str) -> dict:
-    out = subprocess.run([sys.executable, __file__, "--memory-probe", str(path), "--backends", backend],
+def measure_memory(path: Path) -> dict:
+    out = subprocess.run([sys.executable, __file__, "--memory-probe", str(path)],
                          capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -174,8 +173,6 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", help="folder with the g2o files (default $ATTNLOOP_DATA/posegraph)")
     ap.add_argument("--files", nargs="*", default=FILES, help="g2o files of the shared posegraph folder (default: all)")
-    ap.add_argument("--backends", nargs="+", default=None,
-                    help="our backends (default: torch and c, or torch and numpy without the C kernels)")
     ap.add_argument("--repeats", type=int, default=5, help="timing repeats (the median is reported)")
     ap.add_argument("--no-robust", action="store_true", help="skip the robust-kernel runs on sphere2500")
     ap.add_argument("--no-memory", action="store_true", help="skip the memory measurements")
@@ -183,28 +180,26 @@ def main() -> None:
     ap.add_argument("--memory-probe", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.memory_probe:
-        memory_probe(args.memory_probe, args.backends[0])
+        memory_probe(args.memory_probe)
         return
-    backends = args.backends or ["torch", "c" if compiled_kernels() else "numpy"]
     try:
         import gtsam  # noqa: F401
     except ImportError:
         sys.exit("GTSAM is needed for the side-by-side comparison: pip install 'attnloop[bench]'")
     folder = data_dir(args.data)
-    lines = [f"Command: `python benchmarks/posegraph.py --repeats {args.repeats} --backends {' '.join(backends)}`, "
+    lines = [f"Command: `python benchmarks/posegraph.py --repeats {args.repeats}`, "
              f"{datetime.datetime.now():%Y-%m-%d %H:%M}, {platform.processor() or platform.machine()}, "
              f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at start, torch "
-             f"{torch.__version__}, gtsam {importlib.metadata.version('gtsam')}, C kernels "
-             f"{'built' if compiled_kernels() else 'not built'}.", ""]
-    lines += ["| file | backend | poses | edges | GTSAM error | ours (chi2/2) | ratio | GTSAM error at our poses "
-              "| iters GTSAM / ours | GTSAM ms | ours ms | time ratio | ours: ms to GTSAM's error (ratio) "
+             f"{torch.__version__}, gtsam {importlib.metadata.version('gtsam')}.", ""]
+    lines += ["| file | poses | edges | GTSAM error | ours (chi2/2) | ratio | GTSAM error at our poses "
+              "| iters GTSAM / ours | GTSAM ms | ours ms | time ratio | CPU ms GTSAM / ours (ratio) "
+              "| ours: ms to GTSAM's error (ratio) "
               "| ours: setup / linearize / solve / evaluate ms (medians) | peak RSS MB | status |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     # warm-up (imports, first-call allocations) outside the timings
     warm = read_g2o(folder / "tinyGrid3D.g2o") if (folder / "tinyGrid3D.g2o").exists() else None
     if warm is not None:
-        for b in backends:
-            optimize(warm, backend=b)
+        optimize(warm)
     for name in args.files:
         path = folder / f"{name}.g2o"
         if not path.exists():
@@ -212,61 +207,63 @@ def main() -> None:
             continue
         three_d = is_3d(path)
         g = read_g2o(path)
-        gt_runs, our_runs = [], {b: [] for b in backends}
+        gt_runs, our_runs = [], []
         run_gtsam(path, three_d)
-        for b in backends:
-            run_ours(g, backend=b)
+        run_ours(g)
         for _ in range(args.repeats):
             gt_runs.append(run_gtsam(path, three_d))
-            for b in backends:
-                our_runs[b].append(run_ours(g, backend=b))
+            our_runs.append(run_ours(g))
         gt = gt_runs[-1]
         t_gt = statistics.median(r["time"] for r in gt_runs)
-        for b in backends:
-            ours = our_runs[b][-1]["result"]
-            t_ours = statistics.median(r["time"] for r in our_runs[b])
-            reach = [time_to_reach(r["result"], gt["error"]) for r in our_runs[b]]
-            t_reach = statistics.median(reach) if None not in reach else None
-            reach_txt = "not reached" if t_reach is None else f"{ms(t_reach)} ({t_reach / t_gt:.2f})"
-            err_ours = ours.chi2 / 2
-            gt_at_ours = gt["graph"].error(gtsam_values(ours.graph, three_d))
-            # the median of each stage over the runs (one run's split is noisy at sub-millisecond scale)
-            tm = {k: statistics.median(r["result"].timings[k] for r in our_runs[b]) for k in ours.timings}
-            mem = {} if args.no_memory else measure_memory(path, b)
-            row = (f"| {name} | {b} | {g.num_poses} | {g.num_edges} | {gt['error']:.6f} | {err_ours:.6f} | "
-                   f"{err_ours / gt['error']:.7f} | {gt_at_ours:.6f} | {gt['iterations']} / {ours.iterations} | "
-                   f"{ms(t_gt)} | {ms(t_ours)} | {t_ours / t_gt:.2f} | {reach_txt} | "
-                   f"{' / '.join(ms(tm[k]) for k in ('setup', 'linearize', 'solve', 'evaluate'))} | "
-                   f"{mem.get('peak_mb', float('nan')):.0f} | "
-                   f"{ours.status} |")
-            lines.append(row)
-            print(row, flush=True)
+        ours = our_runs[-1]["result"]
+        t_ours = statistics.median(r["time"] for r in our_runs)
+        c_gt, c_ours = (statistics.median(r["cpu"] for r in runs) for runs in (gt_runs, our_runs))
+        reach = [time_to_reach(r["result"], gt["error"]) for r in our_runs]
+        t_reach = statistics.median(reach) if None not in reach else None
+        reach_txt = "not reached" if t_reach is None else f"{ms(t_reach)} ({t_reach / t_gt:.2f})"
+        err_ours = ours.chi2 / 2
+        gt_at_ours = gt["graph"].error(gtsam_values(ours.graph, three_d))
+        # the median of each stage over the runs (one run's split is noisy at sub-millisecond scale)
+        tm = {k: statistics.median(r["result"].timings[k] for r in our_runs) for k in ours.timings}
+        mem = {} if args.no_memory else measure_memory(path)
+        row = (f"| {name} | {g.num_poses} | {g.num_edges} | {gt['error']:.6f} | {err_ours:.6f} | "
+               f"{err_ours / gt['error']:.7f} | {gt_at_ours:.6f} | {gt['iterations']} / {ours.iterations} | "
+               f"{ms(t_gt)} | {ms(t_ours)} | {t_ours / t_gt:.2f} | {ms(c_gt)} / {ms(c_ours)} ({c_ours / c_gt:.2f}) | "
+               f"{reach_txt} | "
+               f"{' / '.join(ms(tm[k]) for k in ('setup', 'linearize', 'solve', 'evaluate'))} | "
+               f"{mem.get('peak_mb', float('nan')):.0f} | "
+               f"{ours.status} |")
+        lines.append(row)
+        print(row, flush=True)
     intel = folder / "input_INTEL_g2o.g2o"
     if "input_INTEL_g2o" in args.files and intel.exists():
-        # GTSAM stops at its first linearisation on this file (indeterminate system); our LM with the
-        # defaults is still descending after 100 iterations. Marquardt's scaled damping converges.
-        # Nielsen's gain-ratio rule (g2o, Ceres) reaches a lower minimum than the x2 / /2 schedule.
+        # GTSAM stops at its first linearisation on this file (indeterminate system); our LM from the file's
+        # vertices (raw odometry) is still descending after 100 iterations. Marquardt's scaled damping
+        # converges in hundreds, Nielsen's gain-ratio rule (g2o, Ceres) lower than the x2 / /2 schedule; a
+        # start composed along a spanning tree of the edges (examples/optimize_g2o.py's default) or the
+        # chordal one converges in a few, lower still.
         g = read_g2o(intel)
         lines.append("")
-        for kw in (dict(damping="diagonal", lambda_factor=2.0), dict(damping="diagonal", lambda_update="nielsen")):
+        for kw in ({"damping": "diagonal", "lambda_factor": 2.0}, {"damping": "diagonal", "lambda_update": "nielsen"},
+                   {"initialization": "spanning_tree"}, {"initialization": "chordal"}):
             t = time.perf_counter()
-            res = optimize(g, "lm", max_iterations=1000, backend=backends[0], **kw)
+            res = optimize(g, "lm", max_iterations=1000, **kw)
             how = ", ".join(f"{k}={v!r}" for k, v in kw.items())
-            lines.append(f"input_INTEL_g2o with `{how}, max_iterations=1000` ({backends[0]}): chi2/2 = "
+            lines.append(f"input_INTEL_g2o with `{how}, max_iterations=1000`: chi2/2 = "
                          f"{res.chi2 / 2:.4f} after {res.iterations} iterations ({res.status}), "
                          f"{time.perf_counter() - t:.1f} s.")
             print(lines[-1], flush=True)
     if not args.no_memory:
-        base = measure_memory(folder / "tinyGrid3D.g2o", backends[0])["baseline_mb"]
+        base = measure_memory(folder / "tinyGrid3D.g2o")["baseline_mb"]
         lines += ["", "Peak RSS (VmHWM) is that of a fresh process reading and optimising the file, python + "
                   f"torch + numpy/scipy imports included (~{base:.0f} MB before reading)."]
     if not args.no_robust and (folder / "sphere2500.g2o").exists():
         g = read_g2o(folder / "sphere2500.g2o")
-        clean = optimize(g, backend=backends[0])
+        clean = optimize(g)
         bad, k = add_false_loops(g)
         P = clean.graph.poses[:, :3]
         extent = float((P.amax(0) - P.amin(0)).norm())
-        lines += ["", f"Robustness ({backends[0]} backend): sphere2500 + {k} random false loop closures "
+        lines += ["", f"Robustness: sphere2500 + {k} random false loop closures "
                       f"(5% of {g.num_edges}, seed 0; "
                       f"trajectory extent {extent:.1f} m). ATE = RMSE of positions vs the clean solution "
                       "after rigid alignment.", "",
@@ -275,7 +272,7 @@ def main() -> None:
                   "|---|---|---|---|---|---|---|"]
         for kern in [None, "huber", "cauchy", "tukey", "geman_mcclure"]:
             t = time.perf_counter()
-            res = optimize(bad, "lm", kernel=kern, backend=backends[0])
+            res = optimize(bad, "lm", kernel=kern)
             dt = time.perf_counter() - t
             w = res.weights
             row = (f"| {kern or 'none'} | {ate(res.graph.poses, clean.graph.poses):.4f} | "

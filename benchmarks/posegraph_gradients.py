@@ -33,7 +33,8 @@ sys.path.insert(0, str(ROOT))
 
 import slam.graph.implicit as implicit  # noqa: E402  (after the sys.path line)
 from slam.graph import OptimizerConfig, edge_jacobians, edge_residuals, optimize, read_g2o  # noqa: E402
-from slam.graph.problem import TorchProblem, unit_quaternions  # noqa: E402
+from slam.graph.problem import TorchProblem  # noqa: E402
+from slam.lie import se3_normalize  # noqa: E402
 
 F64 = torch.float64
 TIGHT = dict(rel_tol=0.0, abs_tol=0.0)
@@ -54,7 +55,7 @@ def optimum(graph, **kw):
 
 def gauss_newton_hessians(spec, x, meas, info, poses):
     """``2 J^T Omega J`` per edge ``(E, 12, 12)``: the Gauss-Newton matrix in place of the exact Hessian."""
-    r, D = edge_residuals(x, spec.ii, spec.jj, unit_quaternions(meas), spec.chart)
+    r, D = edge_residuals(x, spec.ii, spec.jj, se3_normalize(meas, positive_w=False), spec.chart)
     Ji, Jj = edge_jacobians(x, spec.ii, spec.jj, D, r, spec.chart)
     J = torch.cat([Ji, Jj], -1)
     return 2.0 * J.mT @ (0.5 * (info + info.mT)) @ J

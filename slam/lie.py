@@ -27,7 +27,7 @@ import torch
 Tensor = torch.Tensor
 
 __all__ = [
-    "quat_normalize", "quat_mul", "quat_conj", "quat_rotate", "quat_to_rotmat", "rotmat_to_quat",
+    "quat_normalize", "quat_mul", "quat_conj", "quat_rotate", "quat_to_rotmat", "quat_angle", "rotmat_to_quat",
     "rotmat_project",
     "quat_identity", "so3_hat", "so3_vee", "so3_exp", "so3_log", "so3_left_jacobian",
     "so3_left_jacobian_inv", "so3_right_jacobian", "so3_right_jacobian_inv", "se3_identity", "se3_exp",
@@ -60,11 +60,11 @@ def quat_identity(*shape: int, dtype=None, device=None) -> Tensor:
     return q
 
 
-def quat_normalize(q: Tensor) -> Tensor:
-    """Unit quaternion ``(..., 4)``, sign chosen so that ``qw >= 0``."""
+def quat_normalize(q: Tensor, positive_w: bool = True) -> Tensor:
+    """Unit quaternion ``(..., 4)``, sign chosen so that ``qw >= 0`` (kept as given when not ``positive_w``)."""
     _check_last(q, 4, "q")
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny)
-    return torch.where(q[..., 3:4] < 0, -q, q)
+    return torch.where(q[..., 3:4] < 0, -q, q) if positive_w else q
 
 
 def quat_conj(q: Tensor) -> Tensor:
@@ -92,19 +92,39 @@ def quat_rotate(q: Tensor, v: Tensor) -> Tensor:
     return v + qw * t + torch.cross(qv, t, dim=-1)
 
 
-def quat_to_rotmat(q: Tensor) -> Tensor:
-    """Rotation matrices ``(..., 3, 3)`` from unit quaternions ``(..., 4)`` (``[x, y, z, w]``)."""
-    _check_last(q, 4, "q")
-    x, y, z, w = q.unbind(-1)
+def _rotmat_entries(x, y, z, w) -> list:
+    """The nine entries (row-major) of the rotation matrix of the unit quaternion ``[x, y, z, w]``, from
+    tensors or Python floats alike."""
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
-    rows = [
+    return [
         1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
         2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
         2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
     ]
-    return torch.stack(rows, dim=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def quat_to_rotmat(q: Tensor) -> Tensor:
+    """Rotation matrices ``(..., 3, 3)`` from unit quaternions ``(..., 4)`` (``[x, y, z, w]``).
+
+    A single float64 quaternion that needs no gradient (RANSAC's refinement and inlier checks take one per
+    pose) is computed from Python floats: the same products and sums in the same order, so the same bits,
+    in ~6 us instead of ~90 us of twenty tensor operations.
+    """
+    _check_last(q, 4, "q")
+    if q.shape == (4,) and q.dtype == torch.float64 and not q.requires_grad:
+        return torch.tensor(_rotmat_entries(*q.tolist()), dtype=q.dtype, device=q.device).view(3, 3)
+    return torch.stack(_rotmat_entries(*q.unbind(-1)), dim=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def quat_angle(q: Tensor) -> Tensor:
+    """Rotation angles in radians ``(...)``, in ``[0, pi]``, of quaternions ``(..., 4)`` ``[x, y, z, w]``.
+
+    ``2 atan2(|v|, |w|)``: accurate for tiny and for large angles (``acos`` is not near 0); the norm of the
+    quaternion does not matter.
+    """
+    return 2.0 * torch.atan2(q[..., :3].norm(dim=-1), q[..., 3].abs())
 
 
 def rotmat_to_quat(R: Tensor) -> Tensor:
@@ -254,10 +274,11 @@ def se3_identity(*shape: int, dtype=None, device=None) -> Tensor:
     return p
 
 
-def se3_normalize(pose: Tensor) -> Tensor:
-    """Re-normalise the quaternion part (``qw >= 0``) of poses ``(..., 7)``."""
+def se3_normalize(pose: Tensor, positive_w: bool = True) -> Tensor:
+    """Re-normalise the quaternion part (``qw >= 0``, or its sign kept when not ``positive_w``) of poses
+    ``(..., 7)``."""
     _check_last(pose, 7, "pose")
-    return torch.cat([pose[..., :3], quat_normalize(pose[..., 3:])], dim=-1)
+    return torch.cat([pose[..., :3], quat_normalize(pose[..., 3:], positive_w)], dim=-1)
 
 
 def se3_exp(xi: Tensor) -> Tensor:

@@ -1,8 +1,5 @@
-"""The supernodal sparse Cholesky (slam.graph.cholesky) against dense references on random SPD systems.
-
-Every test runs twice: with the C kernels doing the small fronts (slam.graph.accel._kernels.factor_group /
-solve_group, the CPU default when they were built) and without them (LAPACK front by front and torch
-batched groups, as where they were not built)."""
+"""The supernodal sparse Cholesky (slam.graph.cholesky) against dense references on random SPD systems
+(LAPACK front by front and torch batched groups)."""
 import threading
 
 import numpy as np
@@ -10,18 +7,8 @@ import pytest
 import torch
 
 import slam.graph.cholesky as chol
-from slam.graph.accel import _compiled
 from slam.graph.cholesky import NotPositiveDefiniteError, SymbolicCholesky
 from slam.graph.linear import build_pattern
-
-
-@pytest.fixture(autouse=True, params=["c", "lapack"])
-def fronts(request, monkeypatch):
-    if request.param == "c" and _compiled.kernels is None:
-        pytest.skip("the C kernels slam.graph.accel._kernels were not built")
-    if request.param == "lapack":
-        monkeypatch.setattr(_compiled, "kernels", None)
-    return request.param
 
 
 def _chain(n):
@@ -282,7 +269,7 @@ def _assert_solves(f, A, b):
     np.testing.assert_allclose(f.solve(b), ref, rtol=0, atol=1e-9 * np.abs(ref).max())
 
 
-def test_interrupted_factorisation_leaves_earlier_factor_intact(monkeypatch, fronts):
+def test_interrupted_factorisation_leaves_earlier_factor_intact(monkeypatch):
     """A factorisation that raises half way (bad input, KeyboardInterrupt) must not stay as the buffer's
     'owner': the earlier factor, already moved to its own copy, would then be moved again at the next
     factorisation, i.e. replaced by the half-done buffer (finite, wrong solutions)."""
@@ -295,7 +282,7 @@ def test_interrupted_factorisation_leaves_earlier_factor_intact(monkeypatch, fro
     f1 = sym.factor(vals1)
     with pytest.raises((IndexError, RuntimeError)):  # values of the wrong length
         sym.factor(vals2[:-2 * k * k])
-    calls, saved = [], (_compiled.kernels, chol._factor_numpy_group)
+    calls, saved = [], chol._factor_numpy_group
 
     def interrupt_fifth(orig):
         def call(*args):
@@ -305,18 +292,10 @@ def test_interrupted_factorisation_leaves_earlier_factor_intact(monkeypatch, fro
             return orig(*args)
         return call
 
-    if _compiled.kernels is not None:  # the small fronts go through the C kernels: interrupt those
-        class Interrupted:
-            factor_group = staticmethod(interrupt_fifth(_compiled.kernels.factor_group))
-            solve_group = staticmethod(_compiled.kernels.solve_group)
-
-        monkeypatch.setattr(_compiled, "kernels", Interrupted)
-    else:
-        monkeypatch.setattr(chol, "_factor_numpy_group", interrupt_fifth(chol._factor_numpy_group))
+    monkeypatch.setattr(chol, "_factor_numpy_group", interrupt_fifth(chol._factor_numpy_group))
     with pytest.raises(KeyboardInterrupt):
         sym.factor(vals2)
-    monkeypatch.setattr(_compiled, "kernels", saved[0])
-    monkeypatch.setattr(chol, "_factor_numpy_group", saved[1])
+    monkeypatch.setattr(chol, "_factor_numpy_group", saved)
     f2 = sym.factor(vals2)
     _assert_solves(f2, A2, b)
     _assert_solves(f1, A1, b)

@@ -88,6 +88,10 @@ def test_status_and_history_at_max_iterations():
     res = optimize(graph, max_iterations=1)
     assert res.status == "max_iterations" and res.iterations == 1 and len(res.cost_history) == 2
     assert res.cost_history[1] < res.cost_history[0]
+    # why it stopped and what to try: a better start, or more iterations once the start is one
+    assert "max_iterations=1" in res.message and "initialization='chordal'" in res.message
+    res = optimize(graph, max_iterations=1, initialization="chordal")
+    assert res.status == "max_iterations" and "lambda_update='nielsen'" in res.message
     res = optimize(graph, max_iterations=0)
     assert res.status == "max_iterations" and res.iterations == 0 and len(res.cost_history) == 1
 
@@ -111,3 +115,56 @@ def test_g2o_malformed_lines_name_the_line(info, match):
 def test_g2o_noncontiguous_ids():
     g = read_g2o(io.StringIO(_V + _E + _I + "\n"))
     assert g.vertex_ids.tolist() == [0, 7] and g.ii.tolist() == [1] and g.jj.tolist() == [0]
+
+
+def _random_graph(seed=7, N=10, E=30):
+    """Random poses, measurements near the relative poses and random SPD information matrices."""
+    g = torch.Generator().manual_seed(seed)
+    P = se3_exp(torch.randn(N, 6, generator=g, dtype=D) * 1.2)
+    ii = torch.randint(0, N, (E,), generator=g)
+    jj = (ii + torch.randint(1, N, (E,), generator=g)) % N
+    Z = se3_compose(se3_between(P[ii], P[jj]), se3_exp(torch.randn(E, 6, generator=g, dtype=D) * 0.3))
+    W = torch.randn(E, 6, 6, generator=g, dtype=D)
+    return PoseGraph(P, ii, jj, Z, W @ W.mT + torch.eye(6, dtype=D))
+
+
+def test_inputs_found_in_review_are_normalised_or_refused(monkeypatch):
+    """Slightly non-unit measurement quaternions, ``fixed`` as an array, other dtypes, poses that require
+    grad, non-finite inputs, bad LM settings and a degenerate Nielsen model."""
+    import numpy as np
+
+    from slam.graph.problem import TorchProblem
+
+    graph = _random_graph()
+    unit = optimize(graph)
+    # measurement quaternions within the 1e-3 the graph validates are normalised: the same optimum
+    Z = graph.measurements.clone()
+    Z[:, 3:] *= 1.0005
+    res = optimize(PoseGraph(graph.poses, graph.ii, graph.jj, Z, graph.information))
+    assert res.chi2 == pytest.approx(unit.chi2, rel=1e-9) and res.iterations == unit.iterations
+    assert torch.allclose(res.graph.poses, unit.graph.poses, atol=1e-9)
+    for fixed in (np.array([3, 5]), torch.tensor([3, 5]), [3, 5]):
+        fx = optimize(graph, fixed=fixed)
+        assert float((fx.graph.poses[[3, 5]] - graph.poses[[3, 5]]).abs().max()) < 1e-15  # held
+    grad = PoseGraph(graph.poses.clone().requires_grad_(True), graph.ii, graph.jj, graph.measurements,
+                     graph.information)
+    assert optimize(grad).chi2 == pytest.approx(unit.chi2, rel=1e-9)
+    bf = optimize(graph.to(dtype=torch.bfloat16))
+    assert bf.graph.poses.dtype == torch.bfloat16 and bf.status == "converged"
+    nan_z = graph.measurements.clone()
+    nan_z[4, 0] = float("nan")
+    bad = PoseGraph(graph.poses, graph.ii, graph.jj, graph.measurements, graph.information)
+    bad.measurements = nan_z  # after validation, as a caller mutating the tensors would
+    with pytest.raises(ValueError, match="initial cost is nan"):
+        optimize(bad)
+    nan_info = graph.information.clone()
+    nan_info[6, 2, 2] = float("nan")
+    bad.measurements, bad.information = graph.measurements, nan_info
+    with pytest.raises(ValueError, match=r"information\[6\]"):
+        optimize(bad, check_information=False)
+    with pytest.raises(ValueError, match="lambda_init > 0"):
+        optimize(graph, lambda_init=0.0)
+    # a model that predicts no decrease must not break the Nielsen rule (treated as a poor step)
+    monkeypatch.setattr(TorchProblem, "predicted_decrease", lambda self, dx, g, lam: 0.0)
+    res = optimize(graph, lambda_update="nielsen")
+    assert res.status == "converged" and res.chi2 == pytest.approx(unit.chi2, rel=1e-6)

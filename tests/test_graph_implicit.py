@@ -24,7 +24,6 @@ def _optimum(graph, method="lm", **kw):
     result does."""
     P = optimize(graph, method, **TIGHT, **kw).graph.poses.detach()
     kernel = make_kernel(kw.pop("kernel", None))
-    kw.pop("backend", None)
     gauge = kw.get("gauge", "free")
     # the free gauge's result is re-anchored on pose 0 only when no pose is fixed; with a fixed pose, pose 0
     # is free and must be polished too (holding it kept its ~sqrt(eps) error: 1.2e-6 relative at h = 1e-5)
@@ -157,7 +156,7 @@ def test_gradients_match_finite_differences_on_a_small_graph(case):
     assert _rel(ad, fd) <= 1e-6, (ad, fd)  # measured 4e-11 - 2e-8
 
 
-def test_planar_forced_graphs_and_every_backend():
+def test_planar_forced_graphs():
     graph = _chain_graph(planar=True)
     gen = torch.Generator().manual_seed(2)
     u = torch.randn(graph.num_edges, 7, generator=gen, dtype=F64)
@@ -165,16 +164,6 @@ def test_planar_forced_graphs_and_every_backend():
     w = torch.randn(graph.num_poses, 7, generator=gen, dtype=F64)
     ad, fd = _directional(graph, "measurements", u, w, 1e-5, planar=True)
     assert _rel(ad, fd) <= 1e-6, (ad, fd)
-    grads = []
-    for backend in ("torch", "numpy", "c", "auto"):
-        z = graph.measurements.clone().requires_grad_(True)
-        try:
-            res = optimize(dataclasses.replace(graph, measurements=z), differentiable=True, backend=backend, **TIGHT)
-        except ValueError:  # "c" without the build
-            continue
-        (res.graph.poses * w).sum().backward()
-        grads.append(z.grad)
-    assert len(grads) >= 3 and all(torch.allclose(g, grads[0], rtol=1e-6, atol=1e-8) for g in grads)
 
 
 def test_interface_dtypes_and_what_carries_no_gradient():

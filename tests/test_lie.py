@@ -6,6 +6,7 @@ import torch
 
 from slam.lie import (
     SE3,
+    quat_angle,
     quat_mul,
     quat_normalize,
     quat_rotate,
@@ -234,3 +235,31 @@ def test_cross_check_with_kornia():
     ks = liegroup.Se3(Quaternion(torch.cat([q[:, 3:], q[:, :3]], -1)), ours[:, :3])
     assert torch.allclose(ks.log().detach(), se3_log(ours), atol=1e-8)
     assert torch.allclose(liegroup.So3.hat(xi[:, 3:]), so3_hat(xi[:, 3:]))
+
+
+def test_single_quaternion_rotation_matrix_is_the_batched_one_bit_for_bit():
+    """One float64 quaternion is computed from Python floats: the same bits as the tensor formula on 2000
+    rotations (non-unit ones included), and the matrix of a hand-computed case."""
+    g = torch.Generator().manual_seed(0)
+    q = torch.randn(2000, 4, generator=g, dtype=torch.float64)
+    q[:1000] /= q[:1000].norm(dim=1, keepdim=True)
+    ref = quat_to_rotmat(q)
+    assert all(torch.equal(quat_to_rotmat(qi), ri) for qi, ri in zip(q, ref))
+    half = math.sqrt(0.5)  # 90 degrees about z: x -> y
+    R = quat_to_rotmat(torch.tensor([0.0, 0.0, half, half], dtype=torch.float64))
+    assert torch.allclose(R, torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]], dtype=torch.float64), atol=1e-15)
+    z = torch.tensor([0.1, 0.2, 0.3, 0.9], dtype=torch.float64, requires_grad=True)
+    quat_to_rotmat(z).sum().backward()  # a quaternion that requires grad takes the tensor formula
+    assert z.grad is not None and torch.isfinite(z.grad).all()
+
+
+def test_quat_angle_against_hand_values_and_the_logarithm():
+    q = torch.tensor([[0.0, 0.0, math.sin(0.35), math.cos(0.35)],  # 0.7 rad about z
+                      [0.0, 0.0, 0.0, -1.0],  # the identity, negative sign
+                      [1.0, 0.0, 0.0, 0.0],  # pi about x
+                      [0.0, 2e-9, 0.0, 1.0]], dtype=torch.float64)  # 4e-9 rad: acos would lose it
+    assert torch.allclose(quat_angle(q), torch.tensor([0.7, 0.0, math.pi, 4e-9], dtype=torch.float64),
+                          rtol=1e-12, atol=0)
+    r = so3_exp(torch.randn(500, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64))
+    assert torch.allclose(quat_angle(r), so3_log(r).norm(dim=-1), atol=1e-12)
+    assert torch.allclose(quat_angle(-3.0 * r), quat_angle(r), atol=1e-12)  # sign and scale do not matter

@@ -1,22 +1,16 @@
 """Gauss-Newton / Levenberg-Marquardt on pose graphs: exact solutions, loop closing, solvers, gauge,
-robust kernels, the planar reduction, errors, and agreement with GTSAM on a shared benchmark file.
-
-Every test runs three times: on the torch reference (the default backend), and on the accelerator's C kernels
-and its numpy functions (slam.graph.accel), forced through ``slam.graph.optimizer._backend``.
-"""
+robust kernels, the planar reduction, errors, and agreement with GTSAM on a shared benchmark file."""
 import math
 
 import pytest
 import torch
 
-import slam.graph.optimizer as optimizer_module
 from slam.graph import (
     Cauchy,
     OptimizerConfig,
     PoseGraph,
     PoseGraphOptimizer,
     Status,
-    compiled_kernels,
     edge_chi2,
     edge_residuals,
     graph_chi2,
@@ -26,29 +20,6 @@ from slam.graph import (
 from slam.lie import se3_between, se3_compose, se3_exp, se3_log
 
 F64 = torch.float64
-
-
-@pytest.fixture(autouse=True, params=["c", "numpy", "torch"])
-def backend(request, monkeypatch):
-    """Run the test on every backend: a call of this module that names no backend runs as ``backend="auto"``
-    forced to the parameter's (the C and numpy paths fall back to torch where they must, e.g. the prior
-    gauge)."""
-    if request.param == "c" and not compiled_kernels():
-        pytest.skip("the C kernels slam.graph.accel._kernels were not built")
-    real_backend, real_optimize = optimizer_module._backend, optimize
-
-    def forced(graph, cfg, gauge):
-        got = real_backend(graph, cfg, gauge)
-        return got if cfg.backend != "auto" or got == "torch" else request.param
-
-    def on_backend(graph, *args, **kwargs):
-        if "backend" not in kwargs and "config" not in kwargs:
-            kwargs["backend"] = "auto" if request.param != "torch" else "torch"
-        return real_optimize(graph, *args, **kwargs)
-
-    monkeypatch.setattr(optimizer_module, "_backend", forced)
-    monkeypatch.setitem(globals(), "optimize", on_backend)
-    return request.param
 
 
 def _truth(n=24, radius=4.0, planar=False):
@@ -254,14 +225,14 @@ def test_matches_gtsam_levenberg_marquardt(posegraph_dir, name):
     assert ours.chi2 / 2 == pytest.approx(gtsam_error, rel=1e-6)
 
 
-def test_torch_fallback_of_the_fused_kernels_gives_the_same_result(monkeypatch, backend):
+def test_torch_fallback_of_the_fused_kernels_gives_the_same_result(monkeypatch):
     """Off the CPU the fused kernels use torch.matmul / copy_ instead of numpy: same optimum (this runs
-    the torch branch on the CPU), and the same as the numpy backend's."""
+    the torch branch on the CPU)."""
     from slam.graph import fused
 
     graph, _ = _loop_graph(20, sigma=0.05, seed=2, extra=[(3, 12), (5, 17)])
     ref = optimize(graph, kernel="huber")
     monkeypatch.setattr(fused, "_numpy_ok", lambda *ts: False)
-    res = optimize(graph, kernel="huber", backend="torch")
+    res = optimize(graph, kernel="huber")
     assert res.iterations == ref.iterations and res.chi2 == pytest.approx(ref.chi2, rel=1e-10)
     assert torch.allclose(res.graph.poses, ref.graph.poses, atol=1e-9)

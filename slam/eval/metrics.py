@@ -51,6 +51,7 @@ from slam.eval.align import transform_poses, umeyama_alignment
 from slam.eval.associate import TUM_MAX_DIFFERENCE, association_indices
 from slam.input_checks import MAX_COORDINATE, unit_quaternions
 from slam.io.trajectory import Trajectory, read_tum_trajectory
+from slam.lie import quat_angle as rotation_angle
 from slam.lie import se3_between
 
 __all__ = ["ATEResult", "ErrorStats", "RPEResult", "as_trajectory", "ate", "rotation_angle", "rpe"]
@@ -93,14 +94,6 @@ def as_trajectory(x: TrajectoryLike, what: str = "trajectory") -> Trajectory:
     refuse(zero, lambda k: f"has a zero quaternion {P[k, 3:].tolist()}")
     poses = torch.cat([poses[:, :3], torch.from_numpy(q).to(poses.device)], dim=-1)
     return Trajectory(stamps, poses)
-
-
-def rotation_angle(q: torch.Tensor) -> torch.Tensor:
-    """Rotation angles in radians ``(...)`` of quaternions ``(..., 4)`` ``[x, y, z, w]``.
-
-    ``2 atan2(|v|, |w|)``: accurate for tiny and for large angles (``acos`` is not near 0).
-    """
-    return 2.0 * torch.atan2(q[..., :3].norm(dim=-1), q[..., 3].abs())
 
 
 @dataclass

@@ -10,7 +10,6 @@ Example:
     >>> res.graph.poses.shape, round(res.chi2, 9), str(res.status)
     (torch.Size([2, 7]), 0.0, 'converged')
 """
-from slam.graph.accel import compiled_kernels
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import (
     CHI2_95_6DOF,
@@ -61,7 +60,6 @@ __all__ = [
     "SuperLUSolver",
     "TrivialKernel",
     "Tukey",
-    "compiled_kernels",
     "edge_chi2",
     "edge_jacobians",
     "edge_residuals",

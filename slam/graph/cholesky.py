@@ -20,10 +20,8 @@ in order of their height in the elimination tree (those of one height and one sh
 factoring its pivot block with ``potrf``, its rows with ``trsm``, and adding its update ``-L21 L21^T``
 (lower triangle, packed) straight into the panels of the supernodes that own its columns. Nothing but the
 factor is stored: a multifrontal scheme keeps every update matrix until its parent is done, which took
-4x the factor's memory on a 20000-pose graph. On the CPU, when the C kernels of ``slam.graph.accel._kernels``
-were built, supernodes with fronts of at most ``_C_MAX_FRONT`` rows are factored and solved there, a
-group per call with plain loops (most supernodes of a pose graph are small: LAPACK's or torch's ~20 us
-per call were most of a 500-pose factorisation); the larger ones keep LAPACK.
+4x the factor's memory on a 20000-pose graph. On the CPU, groups of a single supernode (most of them
+near the root) are factored front by front with direct LAPACK calls of a few microseconds each.
 
 Example:
     >>> import torch
@@ -46,7 +44,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.graph.accel import _compiled
 from slam.graph.blas_threads import limit_blas_threads
 
 _EMPTY = np.zeros(0, dtype=np.int64)
@@ -431,21 +428,18 @@ class SymbolicCholesky:
         self._torch_cache = {}
         self.timings = tick.times  # seconds per stage of the analysis (for profiling)
 
-    def workspace(self, device, compiled: bool = True) -> _Workspace:
+    def workspace(self, device) -> _Workspace:
         """Index tensors, the panel buffer and the solve vector on ``device``, with every per-group view
-        made once (cached): a factorisation then only launches the numeric kernels. ``compiled``: small
-        fronts through the C kernels when they were built (else LAPACK and torch only)."""
-        key = (str(device), bool(compiled))
+        made once (cached): a factorisation then only launches the numeric kernels."""
+        key = str(device)
         if key not in self._torch_cache:
-            self._torch_cache[key] = _Workspace(self, device, compiled)
+            self._torch_cache[key] = _Workspace(self, device)
         return self._torch_cache[key]
 
-    def factor(self, values, compiled: bool = True) -> NumericCholesky:
+    def factor(self, values) -> NumericCholesky:
         """Numeric factorisation for the values ``(nnz,)`` (torch tensor or numpy array) of the pattern;
-        raises :class:`NotPositiveDefiniteError` when a pivot block is not positive definite. ``compiled``:
-        on the CPU, supernodes with small fronts go through the C kernels when they were built (the
-        default); False keeps to LAPACK and torch (what runs without the build)."""
-        return NumericCholesky(self, values, compiled)
+        raises :class:`NotPositiveDefiniteError` when a pivot block is not positive definite."""
+        return NumericCholesky(self, values)
 
 
 def _rfp_rows_cols(d: int):
@@ -510,18 +504,12 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
 # calls (a few us each) instead of batched torch calls (10-20 us each whatever the batch size).
 _NUMPY_MAX_BATCH = 3
 
-# Supernodes with fronts of at most this many rows are factored and solved by the C kernels
-# (slam.graph.accel._kernels.factor_group / solve_group: plain loops, one call per group) when they were built:
-# below it the ~20 us of LAPACK/torch calls per front cost more than the front's arithmetic. The sweep
-# behind 128: benchmarks/cholesky_small_fronts.py (docs/benchmarks.md; 500 poses 5.9 -> 2.7 ms).
-_C_MAX_FRONT = 128
 
 
-def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None, in_c=None):
+def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None):
     """Per-group views of the panel buffer ``buf`` (torch, flat): :class:`_NumpyGroup` objects for the
-    groups factored front by front (``cpu``), tuples for the batched ones; none for the groups flagged in
-    ``in_c`` (the C kernels work on the buffer by offsets). ``index`` holds the index tensors already made
-    for another buffer of the same pattern (they do not depend on the buffer)."""
+    groups factored front by front (``cpu``), tuples for the batched ones. ``index`` holds the index
+    tensors already made for another buffer of the same pattern (they do not depend on the buffer)."""
     import torch
 
     def t(a):
@@ -529,9 +517,7 @@ def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, in
 
     bufnp = buf.numpy() if cpu else None
     out, idx = [], []
-    for gi, g in enumerate(sym.groups):
-        if in_c is not None and in_c[gi]:
-            continue
+    for g in sym.groups:
         B, p, m = g.size, g.p, g.m
         d = m - p
         nl = d * (d + 1) // 2  # entries of one packed update
@@ -565,7 +551,7 @@ class _Workspace:
     ten or more for a batched torch call.
     """
 
-    def __init__(self, sym: SymbolicCholesky, device, compiled: bool = True):
+    def __init__(self, sym: SymbolicCholesky, device):
         import torch
 
         self.lock = threading.Lock()  # the buffers are shared by the factorisations of this pattern
@@ -578,22 +564,10 @@ class _Workspace:
         self.buf = torch.zeros(sym.buffer_size, dtype=torch.float64, device=device)
         self.y = torch.zeros(sym.size, dtype=torch.float64, device=device)
         self.ynp = self.y.numpy() if self.cpu else None
-        # the groups the C kernels do (CPU, small fronts): no views or index tensors are made for them
-        C = _compiled.kernels  # None when not built: LAPACK and torch do every front
-        self.in_c = [compiled and C is not None and self.cpu and g.m <= _C_MAX_FRONT for g in sym.groups]
         # the packed update of a front-by-front supernode: one scratch vector, as large as the largest one
-        d_max = max([g.m - g.p for g, c in zip(sym.groups, self.in_c) if g.size <= _NUMPY_MAX_BATCH and not c]
-                    + [0])
+        d_max = max([g.m - g.p for g in sym.groups if g.size <= _NUMPY_MAX_BATCH] + [0])
         self.scratch = np.zeros(d_max * (d_max + 1) // 2) if self.cpu else None
-        self.groups, self.index = _group_views(sym, self.buf, device, self.cpu, self.scratch, in_c=self.in_c)
-        # per group of the pattern: its entries in self.groups (the views the other paths use; none for
-        # a C group), whether the C kernels do it, and its rows as int64 for the C solve
-        self.spans, i = [], 0
-        for g, c in zip(sym.groups, self.in_c):
-            n = 0 if c else g.size if self.cpu and g.size <= _NUMPY_MAX_BATCH else 1
-            rows = np.ascontiguousarray(g.rows, dtype=np.int64) if c else None
-            self.spans.append((g, i, i + n, c, rows))
-            i += n
+        self.groups, self.index = _group_views(sym, self.buf, device, self.cpu, self.scratch)
 
 
 _IN_PLACE = {}
@@ -651,8 +625,7 @@ def _factor_numpy_group(grp: _NumpyGroup, buf, in_place: bool, dpotrf, dtrsm, ds
     # OpenBLAS's dpotrf does not test for NaN (reference LAPACK, and torch's cholesky_ex, report it). A NaN
     # anywhere in the pivot block's lower triangle reaches its last diagonal entry (every later row divides
     # by the NaN pivot), and a NaN in F21 reaches an ancestor's diagonal through the update (a, a); an
-    # infinite pivot stays on the diagonal (later rows divide by it and stay finite). Both fail, as in the C
-    # kernel (factor_group).
+    # infinite pivot stays on the diagonal (later rows divide by it and stay finite). Both fail.
     if not info and not np.isfinite(X.diagonal()).all():
         info = grp.p
     if grp.d and not info:
@@ -679,7 +652,7 @@ class NumericCholesky:
     copies at every call (the old ``f`` is alive while the new one is made: ``del f`` first).
     """
 
-    def __init__(self, sym: SymbolicCholesky, values, compiled: bool = True):
+    def __init__(self, sym: SymbolicCholesky, values):
         import weakref
 
         import torch
@@ -689,7 +662,7 @@ class NumericCholesky:
         # detached: the workspace buffer is shared by every factorisation of the pattern, and in-place ops
         # from a tensor that requires grad would make it require grad (its numpy views then fail)
         v = v.detach().to(torch.float64)
-        ws = self.ws = sym.workspace(v.device, compiled)
+        ws = self.ws = sym.workspace(v.device)
         infos = []
         failed = False
         # numpy's BLAS runs single-threaded here (see limit_blas_threads)
@@ -708,14 +681,7 @@ class NumericCholesky:
             buf.zero_()
             # rows of k values (see _Workspace); faster than buf[dst] = v[src]
             buf.view(-1, k).index_copy_(0, ws.dst, torch.index_select(v.reshape(-1, k), 0, ws.src))
-            bufnp = buf.numpy() if ws.cpu else None
-            for g, i0, i1, c, _ in ws.spans:
-                if c:
-                    failed = _compiled.kernels.factor_group(bufnp, g.offset, g.size, g.p, g.m, g.upd) != 0
-                else:
-                    failed = self._factor_groups(ws.groups[i0:i1], buf, infos, in_place, lapack)
-                if failed:
-                    break
+            failed = self._factor_groups(ws.groups, buf, infos, in_place, lapack)
             failed = failed or bool(infos and bool(torch.cat(infos).any()))
             # set before the lock is released: a factorisation in another thread may detach this factor as
             # soon as it is the owner, and must find its views to replace
@@ -752,7 +718,7 @@ class NumericCholesky:
         """Move this factor to a private copy of the buffer (called before the workspace is reused)."""
         ws = self.ws
         self.buf = ws.buf.clone()
-        self.groups, _ = _group_views(self.sym, self.buf, ws.device, ws.cpu, ws.scratch, ws.index, ws.in_c)
+        self.groups, _ = _group_views(self.sym, self.buf, ws.device, ws.cpu, ws.scratch, ws.index)
 
     def solve(self, b):
         """``x = H^-1 b`` for ``b (n k,)`` (numpy array or torch tensor; returns the same kind)."""
@@ -766,18 +732,8 @@ class NumericCholesky:
         with ws.lock, limit_blas_threads(1 if ws.cpu else None):
             y, ynp = ws.y, ws.ynp
             torch.index_select(bt.detach().to(torch.float64), 0, ws.perm, out=y)
-            groups = self.groups
-            bufnp = self.buf.numpy() if ws.cpu else None
-            for g, i0, i1, c, rows in ws.spans:
-                if c:
-                    _compiled.kernels.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, True)
-                    continue
-                self._forward(groups[i0:i1], y, ynp, in_place, dtrsv)
-            for g, i0, i1, c, rows in reversed(ws.spans):
-                if c:
-                    _compiled.kernels.solve_group(bufnp, g.offset, g.size, g.p, g.m, g.col0, rows, ynp, False)
-                    continue
-                self._backward(groups[i0:i1], y, ynp, in_place, dtrsv)
+            self._forward(self.groups, y, ynp, in_place, dtrsv)
+            self._backward(self.groups, y, ynp, in_place, dtrsv)
             x = torch.empty_like(y)
             x[ws.perm] = y
         return x.numpy() if is_np else x.to(bt.dtype)

@@ -17,10 +17,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-__all__ = ["BACKENDS", "OptimizerConfig"]
-
-# where the per-edge maths of an optimisation runs (see OptimizerConfig.backend)
-BACKENDS = ("auto", "torch", "c", "numpy")
+__all__ = ["OptimizerConfig"]
 
 
 @dataclass
@@ -47,18 +44,8 @@ class OptimizerConfig:
     kernel_width: Optional[float] = None  # width of a kernel given by name (default sqrt(chi2_0.95(6)))
     planar: Optional[bool] = None  # solve only (x, y, yaw); None: auto-detect with PoseGraph.is_planar()
     check_information: bool = True  # check every information matrix is SPD before optimising
-    # where the per-edge maths (residuals, Jacobians, assembly, retraction) runs: "torch" = the reference
-    # (slam.graph.fused; any device); "auto" = the accelerator (slam.graph.accel) for a CPU graph it supports:
-    # its C kernels when they were built (setup.py), else its numpy functions, torch otherwise; "c", "numpy" =
-    # require one (neither has the "prior" gauge or the "r3so3" chart). Every backend takes the same steps up
-    # to round-off; the linear solver (solver=) is chosen separately. The default is torch: the accelerator
-    # pays off on small graphs solved many times (tinyGrid3D ~10x) and is within ~30 % on the large files;
-    # in the SLAM pipeline its keyframe graph (87 poses on the kitchen) takes < 0.05 % of the run either way
-    # (benchmarks/posegraph_slam.py, docs/benchmarks.md)
-    backend: str = "torch"
     # solver "auto": a dense Cholesky up to this many unknowns (no symbolic analysis), the sparse one above.
-    # None: the crossover of the backend measured by benchmarks/posegraph_backends.py on sphere2500
-    # subgraphs: 400 on numpy (dense wins at 420 unknowns, loses at 480), 240 on torch (wins at 240, loses at 360)
+    # None: 240, the crossover measured on sphere2500 subgraphs (dense wins at 240 unknowns, loses at 360)
     dense_max: Optional[int] = None
     # torch and BLAS threads during the call (restored afterwards; None leaves them; BLAS through
     # threadpoolctl, see slam.graph.blas_threads). The work is many small batched ops: on a busy CPU torch's
@@ -84,7 +71,7 @@ class OptimizerConfig:
         if isinstance(it, (bool, np.bool_)) or not isinstance(it, Integral) or it < 0:
             raise ValueError(f"max_iterations must be an integer >= 0, got {it!r}")
         choices = (("damping", ("identity", "diagonal")), ("lambda_update", ("gtsam", "nielsen")),
-                   ("gauge", ("free", "first", "prior")), ("backend", BACKENDS))
+                   ("gauge", ("free", "first", "prior")))
         for name, allowed in choices:
             value = getattr(self, name)
             if value not in allowed:

@@ -1,11 +1,9 @@
-"""The pose-graph maths in torch, the one reference: residuals, their Jacobians, normal-equation blocks and
-the retraction, vectorised over edges, on any device, differentiable.
+"""The pose-graph maths in torch: residuals, their Jacobians, normal-equation blocks and the retraction,
+vectorised over edges, on any device, differentiable.
 
-Every other implementation is checked against these functions: the public residuals and Jacobians of
-:mod:`slam.graph.costs` are thin wrappers of them, the accelerator (:mod:`slam.graph.accel`, numpy and C)
-is tested against them to round-off, and they are themselves tested against :mod:`slam.lie` (the group
-operations composed one by one), finite differences and float64 gradcheck (``tests/test_graph_host.py``,
-``tests/test_pose_graph.py``).
+The public residuals and Jacobians of :mod:`slam.graph.costs` are thin wrappers of these functions, which
+are tested against :mod:`slam.lie` (the group operations composed one by one), finite differences and
+float64 gradcheck (``tests/test_graph_fused.py``, ``tests/test_pose_graph.py``).
 
 Why closed forms instead of composing :mod:`slam.lie`: one Levenberg-Marquardt iteration is a few dozen
 element-wise operations over all edges plus batched products of tiny matrices. A pose composition in

@@ -53,8 +53,8 @@ from slam.graph.costs import RobustKernel, edge_chi2
 from slam.graph.fused import error_poses, se3_residuals, se3_retract
 from slam.graph.linear import LinearSolverError, assemble_blocks, build_pattern, make_solver
 from slam.graph.pose_graph import PoseGraph
-from slam.graph.problem import PLANAR_DIMS, held_poses, unit_quaternions
-from slam.lie import se3_ad, se3_adjoint, se3_between, se3_identity, se3_inv
+from slam.graph.problem import PLANAR_DIMS, held_poses
+from slam.lie import se3_ad, se3_adjoint, se3_between, se3_identity, se3_inv, se3_normalize
 
 __all__ = ["attach_gradients", "held_for_gradients", "implicit_vjp"]
 
@@ -118,8 +118,8 @@ def _objective(spec: _Spec, x: Tensor, delta: Tensor, meas: Tensor, info: Tensor
                free: Tensor) -> Tensor:
     """The optimised cost at ``x exp(delta)`` for the free poses and the held poses' inputs (a scalar)."""
     moved = se3_retract(x, delta)
-    P = torch.where(free[:, None], moved, unit_quaternions(poses))
-    r, _ = se3_residuals(P, spec.ii, spec.jj, se3_inv(unit_quaternions(meas)), spec.chart)
+    P = torch.where(free[:, None], moved, se3_normalize(poses, positive_w=False))
+    r, _ = se3_residuals(P, spec.ii, spec.jj, se3_inv(se3_normalize(meas, positive_w=False)), spec.chart)
     s = edge_chi2(r, 0.5 * (info + info.transpose(-1, -2)))  # the information as the symmetric matrix it is
     f = (s if spec.kernel is None else spec.kernel(s)[0]).sum()
     if spec.prior_weight is not None:
@@ -130,7 +130,7 @@ def _objective(spec: _Spec, x: Tensor, delta: Tensor, meas: Tensor, info: Tensor
 def _prior_cost(spec: _Spec, poses: Tensor, P0: Tensor) -> Tensor:
     """The ``"prior"`` gauge's term ``w |Log(p0^-1 T_0)|^2`` (``p0`` the input pose 0, ``T_0 = P0 (1, 7)``)."""
     one = torch.zeros(1, dtype=torch.long, device=P0.device)
-    r0, _ = se3_residuals(torch.cat([unit_quaternions(poses[:1]), P0]), one, one + 1,
+    r0, _ = se3_residuals(torch.cat([se3_normalize(poses[:1], positive_w=False), P0]), one, one + 1,
                           se3_identity(1, dtype=P0.dtype, device=P0.device))
     return spec.prior_weight * (r0 * r0).sum()
 
@@ -147,7 +147,7 @@ def _edge_hessians(spec: _Spec, x: Tensor, meas: Tensor, info: Tensor, poses: Te
     the time.
     """
     E, dt, dev = spec.ii.shape[0], x.dtype, x.device
-    tD, qD = error_poses(x, spec.ii, spec.jj, se3_inv(unit_quaternions(meas)))
+    tD, qD = error_poses(x, spec.ii, spec.jj, se3_inv(se3_normalize(meas, positive_w=False)))
     A = se3_adjoint(se3_between(x[spec.jj], x[spec.ii]))
     eye = se3_identity(E, dtype=dt, device=dev)
     ar = torch.arange(E, device=dev)
@@ -253,7 +253,8 @@ def implicit_vjp(spec: _Spec, x: Tensor, meas: Tensor, info: Tensor, poses: Tens
         with torch.enable_grad():
             p = p64.detach().requires_grad_(True)
             held = ~free
-            (direct,) = torch.autograd.grad((unit_quaternions(p)[held] * grad_x.to(dt)[held]).sum(), p)
+            unit = se3_normalize(p, positive_w=False)
+            (direct,) = torch.autograd.grad((unit[held] * grad_x.to(dt)[held]).sum(), p)
         grads[2] = direct if grads[2] is None else grads[2] + direct
     out = []
     for need, g, ref in zip(needs, grads, (meas, info, poses)):

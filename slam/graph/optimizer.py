@@ -1,16 +1,11 @@
 """Gauss-Newton and Levenberg-Marquardt for pose graphs over sparse normal equations.
 
-Each iteration linearises every edge at once (the closed forms of :mod:`slam.graph.fused`, the torch
-reference), scatters the per-edge blocks into a fixed sparse pattern (:mod:`slam.graph.linear`), solves
-``(H + lambda D) dx = -g`` and retracts ``T <- T exp(dx)`` (right perturbation). The pieces are separate:
-the per-edge maths behind :class:`~slam.graph.problem.PoseGraphProblem` (torch, or the accelerator of
-:mod:`slam.graph.accel`), the robust kernel (:mod:`slam.graph.costs`), the linear solver
-(:mod:`slam.graph.linear`) and here the outer loop with its step rules (Gauss-Newton, LM with GTSAM's
+Each iteration linearises every edge at once (the closed forms of :mod:`slam.graph.fused`), scatters the
+per-edge blocks into a fixed sparse pattern (:mod:`slam.graph.linear`), solves ``(H + lambda D) dx = -g``
+and retracts ``T <- T exp(dx)`` (right perturbation). The pieces are separate: the per-edge maths behind
+:class:`~slam.graph.problem.PoseGraphProblem`, the robust kernel (:mod:`slam.graph.costs`), the linear
+solver (:mod:`slam.graph.linear`) and here the outer loop with its step rules (Gauss-Newton, LM with GTSAM's
 schedule or Nielsen's gain-ratio rule).
-
-Backends (``OptimizerConfig.backend``): ``"torch"`` (the default) runs the reference on any device;
-``"auto"`` runs a CPU graph on the accelerator (its C kernels when built, else numpy; ~3-10x less call
-overhead on small graphs); all take the same steps up to round-off (tested).
 
 Gauge (a pose graph is invariant to moving all poses rigidly): ``"free"`` (default for LM) leaves the
 gauge to the LM damping, as GTSAM does without a prior: the damped step is then the smallest of the
@@ -53,7 +48,6 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 
 import torch
 
-from slam.graph.accel import ACCELERATORS, accelerator_for
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.initialization import initialize
@@ -88,7 +82,10 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
         initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"`` (rotations by
             chordal relaxation, then translations by least squares, as GTSAM's ``InitializePose3``) or
             ``"spanning_tree"`` (composed along a breadth-first tree of the edges); see
-            :mod:`slam.graph.initialization`. ``initial_chi2`` is then the chi2 of that guess.
+            :mod:`slam.graph.initialization`. ``initial_chi2`` is then the chi2 of that guess. The default
+            keeps the caller's poses (a warm start, as the SLAM back end's); from raw odometry over a long
+            trajectory (input_INTEL_g2o.g2o) LM crawls, and a run that stops at ``max_iterations`` says so in
+            ``result.message`` with what to try.
 
     Returns:
         An :class:`OptimizationResult` (``result.graph``, ``result.chi2``, ``result.status``,
@@ -112,13 +109,21 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
                 # caller's tensor, so the optimum's gradient towards them (its gauge) is not lost
                 same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
                 graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
-        return _optimize(graph, method, kernel, solver, cfg, t_start)
+        res = _optimize(graph, method, kernel, solver, cfg, t_start)
+    if res.status == Status.MAX_ITERATIONS and res.iterations:
+        res.message = _stall_advice(res, cfg, initialization)
+    return res
 
 
-def _backend(graph: PoseGraph, cfg: OptimizerConfig, gauge: str) -> str:
-    """``"torch"``, ``"c"`` or ``"numpy"`` for this call (see ``OptimizerConfig.backend``)."""
-    acc = accelerator_for(graph, cfg, gauge)
-    return "torch" if acc is None else acc.name
+def _stall_advice(res: OptimizationResult, cfg: OptimizerConfig, initialization: str) -> str:
+    """Why a run stopped at ``max_iterations`` and what to try (``OptimizationResult.message``)."""
+    last = (res.cost_history[-2] - res.cost_history[-1]) / res.cost_history[-2]
+    text = (f"stopped at max_iterations={cfg.max_iterations} with the cost still falling ({last:.2g} of it in the "
+            f"last iteration; converged means < rel_tol={cfg.rel_tol:g})")
+    if initialization == "none":
+        return (text + "; if the initial guess is far from the optimum (raw odometry over a long trajectory), try "
+                "initialization='chordal' (or 'spanning_tree'), else more iterations")
+    return text + ": try more iterations, or damping='diagonal' with lambda_update='nielsen'"
 
 
 def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfig,
@@ -134,9 +139,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     # GN has no damping to take care of a free gauge: it holds the first pose instead
     gauge = "first" if (method == "gn" and cfg.gauge == "free") else cfg.gauge
     kern = make_kernel(kernel, cfg.kernel_width)
-    backend = _backend(graph, cfg, gauge)
-    prob = TorchProblem(graph, cfg, kern, gauge, solver) if backend == "torch" else \
-        ACCELERATORS[backend].problem(graph, cfg, kern, gauge, solver)
+    prob = TorchProblem(graph, cfg, kern, gauge, solver)
     tm = {"setup": time.perf_counter() - t_start, "linearize": 0.0, "solve": 0.0, "evaluate": 0.0}
     run = _minimize(prob, method, cfg, tm, t_start)
     x = prob.finish(run.best.x, run.iterations > 0)
@@ -158,8 +161,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         graph=result_graph, chi2=run.best.chi2, initial_chi2=run.initial_chi2, status=run.status,
         iterations=run.iterations, robust_cost=run.best.cost if kern is not None else None,
         cost_history=run.costs, lambda_history=run.lambdas, time_history=run.times, timings=tm,
-        weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message,
-        backend=backend)
+        weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message)
 
 
 # -- the outer loop ---------------------------------------------------------------------------------

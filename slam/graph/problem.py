@@ -3,8 +3,7 @@
 :class:`PoseGraphProblem` is the interface between the outer loop (Gauss-Newton / Levenberg-Marquardt in
 :mod:`slam.graph.optimizer`) and the per-edge maths: evaluate the cost at some poses, linearise there into
 ``(H, g)``, solve the damped system, retract a step, and hand back the result. :class:`TorchProblem`
-implements it with the fused torch kernels of :mod:`slam.graph.fused` on any device; the accelerator
-(:mod:`slam.graph.accel`) implements it with numpy or C on the CPU and is tested against this one. What
+implements it with the fused torch kernels of :mod:`slam.graph.fused` on any device. What
 a problem holds between calls (its poses, ``H``, ``dx``) is its own array type: the outer loop only passes
 them back.
 
@@ -37,10 +36,10 @@ from slam.graph.costs import RobustKernel
 from slam.graph.fused import bmm, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
 from slam.graph.linear import BlockPattern, LinearSolverError, assemble_blocks, build_pattern, make_solver
 from slam.graph.pose_graph import PoseGraph
-from slam.lie import se3_compose, se3_inv, se3_log, se3_right_jacobian_inv
+from slam.lie import se3_compose, se3_inv, se3_log, se3_normalize, se3_right_jacobian_inv
 
 __all__ = ["PLANAR_DIMS", "SYMMETRY_RTOL", "PoseGraphProblem", "TorchProblem", "held_poses", "information_factor",
-           "is_symmetric", "unit_quaternions"]
+           "is_symmetric"]
 
 Tensor = torch.Tensor
 
@@ -85,15 +84,6 @@ class PoseGraphProblem(Protocol):
 
 
 # -- setup shared by every problem ------------------------------------------------------------------
-def unit_quaternions(P):
-    """``(..., 7)`` poses (tensor or array) with their quaternions scaled to unit norm (a copy)."""
-    if isinstance(P, Tensor):
-        return torch.cat([P[..., :3], P[..., 3:] / P[..., 3:].norm(dim=-1, keepdim=True)], dim=-1)
-    P = P.copy()
-    P[..., 3:] /= np.sqrt((P[..., 3:] ** 2).sum(-1, keepdims=True))
-    return P
-
-
 def held_poses(cfg: OptimizerConfig, gauge: str, num_poses: int) -> List[int]:
     """Indices of the poses held constant: ``cfg.fixed`` (any sequence, array or tensor of ints), plus pose 0
     for the ``"first"`` gauge; a ``ValueError`` names an index out of range."""
@@ -148,9 +138,9 @@ class TorchProblem:
         dt = torch.float64
         # unit quaternions (validated to 1e-3) made exact, in the poses and in the measurements; the sign
         # is kept so that untouched poses come back as they went in
-        self.poses = unit_quaternions(graph.poses.detach().to(dt))
+        self.poses = se3_normalize(graph.poses.detach().to(dt), positive_w=False)
         self.ii, self.jj = graph.ii, graph.jj
-        self.meas = unit_quaternions(graph.measurements.detach().to(dt))
+        self.meas = se3_normalize(graph.measurements.detach().to(dt), positive_w=False)
         self.zinv = se3_inv(self.meas)  # constant per call: inverted once
         self.chart = graph.chart
         # J_i^T = -Ad(z^-1)^T J_l^-1(r)^T: the constant factor made once (the "r3so3" chart has its own)

@@ -53,7 +53,6 @@ class OptimizationResult:
         weights: ``(E,)`` final kernel weights (all ones without a kernel): near 0 marks a rejected edge.
         message: why the optimiser stopped, where a status alone does not say (a solver failure, a GN step
             that increased the cost).
-        backend: where the per-edge maths ran: ``"torch"``, ``"c"`` or ``"numpy"``.
     """
 
     graph: PoseGraph
@@ -68,7 +67,6 @@ class OptimizationResult:
     timings: Dict[str, float] = field(default_factory=dict)
     weights: Optional[Tensor] = None
     message: str = ""
-    backend: str = "torch"
 
     @property
     def error(self) -> float:

@@ -198,28 +198,8 @@ def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> Tensor:
     return torch.cat([t, rotmat_to_quat(R)], dim=-1)
 
 
-def rotation_matrix(q: Tensor) -> Tensor:
-    """``(..., 3, 3)`` rotation matrices of unit quaternions ``(..., 4)`` ``[x, y, z, w]``: exactly
-    :func:`slam.lie.quat_to_rotmat`, computed from Python floats for a single float64 quaternion.
-
-    The same products and sums in the same order (IEEE double either way, so the same bits: tested), in
-    ~6 us instead of ~90 us of twenty tensor operations; RANSAC's refinement and the inlier checks take
-    one per pose. A quaternion that requires a gradient goes through :func:`slam.lie.quat_to_rotmat`.
-
-    Example:
-        >>> q = torch.tensor([0.0, 0.0, 0.6, 0.8], dtype=torch.float64)
-        >>> torch.equal(rotation_matrix(q), quat_to_rotmat(q))
-        True
-    """
-    if q.shape != (4,) or q.dtype != torch.float64 or q.requires_grad:  # (Python floats carry no gradient)
-        return quat_to_rotmat(q)
-    x, y, z, w = q.tolist()
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    return torch.tensor([[1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)],
-                         [2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)],
-                         [2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)]], dtype=q.dtype, device=q.device)
+# the name slam.odometry.ransac imports; the one implementation is slam.lie's
+rotation_matrix = quat_to_rotmat
 
 
 def transform_points(pose: Tensor, points: Tensor) -> Tensor:
@@ -232,7 +212,7 @@ def transform_points(pose: Tensor, points: Tensor) -> Tensor:
     if pose.shape[-1] != 7 or points.shape[-1] != 3:
         raise ValueError(f"pose must be (..., 7) and points (..., N, 3), got {tuple(pose.shape)} "
                          f"and {tuple(points.shape)}")
-    R = rotation_matrix(pose[..., 3:])
+    R = quat_to_rotmat(pose[..., 3:])
     return points @ R.transpose(-1, -2) + pose[..., None, :3]
 
 
