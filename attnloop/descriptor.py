@@ -55,7 +55,7 @@ from .backbones.preprocess import check_images
 from .fusion import FUSION_MODES
 from .guided_backprop import eval_mode, guided_backprop
 from .pooling import POOLINGS, fuse_groups, regional_code, regional_code_dim
-from .presets import DEFAULT_BACKBONE_SETTINGS, PAPER_BACKBONE_SETTINGS, PAPER_RECIPE_SETTINGS, PRESETS
+from .presets import preset as preset_named
 from .rnn_pool import RandomRNNPool, random_rnn_pool
 
 __all__ = [
@@ -432,9 +432,14 @@ class AttentionDescriptor(nn.Module):
             and a second-order backward through the head (docs/benchmarks.md, "Differentiable descriptor").
         recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` (leave those at
             their defaults then); it also sets ``pooling``, ``gem_p`` and ``levels``.
-        preset: ``"paper"``: the paper's exact configuration (:mod:`attnloop.presets`: the paper's tap
-            at 224 x 224, flat RNN pooling of the raw fused map, the merge, 16 RNNs); only ``fusion``,
-            ``seed`` and the backbone choice stay free. None: the measured default.
+        preset: a name of :data:`attnloop.presets.PRESETS`: ``"paper"``, the paper's exact configuration
+            (the paper's tap at 224 x 224, flat RNN pooling of the raw fused map, the merge, 16 RNNs; only
+            ``fusion``, ``seed`` and the backbone choice stay free), ``"guclu2019"``, the paper's baseline
+            (the same without attention and without the merge; only ``seed`` and the backbone stay free).
+            With either, ``backbone="auto"`` is VGG16 and its weights must be found
+            (:class:`attnloop.backbones.weights.WeightsNotFoundError` otherwise, naming
+            ``vgg16-397923af.pth``); EfficientNet-Lite0 only when named. None or ``"default"``: the
+            measured default.
         pooling: ``"regional"`` (default: the regional GeM code, which is the descriptor itself; with
             ``num_rnn > 0`` the RNNs encode it) or ``"flat"`` (the paper's RNNs over the whole fused map);
             see :mod:`attnloop.pooling`.
@@ -500,17 +505,17 @@ class AttentionDescriptor(nn.Module):
         settings = {k: getattr(_DEFAULT, k) if v is _UNSET else v for k, v in passed.items()}
         passed = {k: v for k, v in passed.items() if v is not _UNSET}  # given by the caller
         changed = [k for k, v in passed.items() if v != getattr(_DEFAULT, k)]
-        if preset is not None:
-            if preset not in PRESETS:
-                raise ValueError(f"unknown preset {preset!r}; choose one of {PRESETS}")
-            # a setting given explicitly must be the paper's (fusion and seed stay free)
-            fixed = [k for k, v in passed.items() if k not in ("fusion", "seed")
-                     and v != PAPER_RECIPE_SETTINGS.get(k, getattr(_DEFAULT, k))]
+        chosen = preset_named(preset)  # None: the default
+        if chosen.fixed:
+            # a setting given explicitly must be the preset's (the seed, and the paper's fusion, stay free)
+            free = ("seed",) if chosen.fusion is not None else ("fusion", "seed")
+            own = {**chosen.recipe, **({"fusion": chosen.fusion} if chosen.fusion is not None else {})}
+            fixed = [k for k, v in passed.items() if k not in free and v != own.get(k, getattr(_DEFAULT, k))]
             if recipe is not None or fixed or tap is not None or attend is not None:
                 extra = (["recipe"] if recipe is not None else []) + (["tap"] if tap else []) + (
                     ["attend"] if attend is not None else [])
-                raise ValueError(f"preset={preset!r} fixes the recipe and the tap; also given: {fixed + extra}")
-            given = DescriptorRecipe(**{**settings, **PAPER_RECIPE_SETTINGS})
+                raise ValueError(f"preset={chosen.name!r} fixes the recipe and the tap; also given: {fixed + extra}")
+            given = DescriptorRecipe(**{**settings, **own})
         elif recipe is not None:
             if not isinstance(recipe, DescriptorRecipe):
                 raise TypeError(f"recipe must be a DescriptorRecipe, got {type(recipe).__name__}")
@@ -521,6 +526,8 @@ class AttentionDescriptor(nn.Module):
         else:
             given = DescriptorRecipe(**settings)
         self.recipe = given
+        #: The preset's name (``"default"`` unless ``preset=`` named another).
+        self.preset = chosen.name
         for name, value in (("differentiable", differentiable), ("pretrained", pretrained)):
             # bool("no") is True: a string or a number here is a mistake, not a flag
             if not isinstance(value, bool) and not (name == "pretrained" and value is None):
@@ -536,9 +543,11 @@ class AttentionDescriptor(nn.Module):
                                      f"the built-in backbone {backbone!r} has its own preprocessing")
             use_pretrained = True if pretrained is None else bool(pretrained)
             self.pretrained = use_pretrained or weights is not None
+            if backbone == "auto" and chosen.auto_backbone != "auto":
+                backbone = chosen.auto_backbone  # the paper's network, its weights required: never another
             self.backbone_name = resolve_backbone_name(backbone, use_pretrained, weights)
             # tap=None: the configuration's tap and input size; an explicit tap: at the backbone's own input.
-            settings = (PAPER_BACKBONE_SETTINGS if preset else DEFAULT_BACKBONE_SETTINGS).get(self.backbone_name, {})
+            settings = chosen.backbone_settings.get(self.backbone_name, {})
             settings = {"tap": tap} if tap is not None else dict(settings)
             if attend is not None:
                 settings["attend"] = attend

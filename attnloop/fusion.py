@@ -3,12 +3,18 @@
 ``G`` is the guided gradient of the softmax output with respect to ``L`` (same shape as ``L``). The
 operators rescale ``L`` by a normalised version of ``G``:
 
-* ``none``: ``L`` (the paper's no-attention baseline of Table 1);
+* ``none``: ``L``, no attention (the paper's Table 1 baseline, Guclu et al. 2019, is another descriptor:
+  no attention and no merge of channel pairs before the RNNs, :mod:`attnloop.presets` ``guclu2019``);
 * ``dam`` (direct attention map): ``L * N(G)``, ``N`` over ``(C, H, W)`` of each sample;
 * ``eam`` (exponential attention map): ``L * exp(N(G))``;
 * ``gaf`` (global attention fusion): ``L * N(sum_c N(G_c))``, the inner ``N`` per channel map over
   ``(H, W)``, the outer ``N`` over ``(H, W)`` of the channel sum, broadcast over the channels;
 * ``ega`` (exponential global attention): ``L * exp(N(sum_c N(G_c)))``.
+
+The inner ``N`` per channel is our reading of the paper's ``N(sum_i N(G_ij))``, whose notation does not say
+over what the inner normalisation runs. The other reading, one inner ``N`` over the whole ``(C, H, W)`` of
+each sample (as DAM's), makes it an affine map shared by every channel, which the outer ``N`` removes:
+GAF would then be ``L * N(sum_c G_c)`` and EGA ``L * exp(N(sum_c G_c))``.
 
 ``N`` is a per-sample min-max normalisation to ``[0, 1]`` (:func:`minmax_normalize`); a constant map
 normalises to zeros (never NaN), so with a flat attention map DAM/GAF give zeros and EAM/EGA give ``L``;

@@ -43,7 +43,7 @@ __all__ = ["ThresholdConfig", "accept_mask", "adaptive_threshold"]
 _MAD_TO_SIGMA = 1.4826  # MAD of a Gaussian = 0.6745 sigma
 
 
-@dataclass
+@dataclass(frozen=True)
 class ThresholdConfig:
     """Parameters of :func:`adaptive_threshold` (see the module docstring for the rule)."""
 

@@ -107,9 +107,9 @@ def variant_config(name: str, n: int, storage: str) -> IndexConfig:
 def set_knob(index: KeyframeIndex, name: str, value) -> None:
     # The structures read these at query time.
     if name == "checks":
-        index.config.flann = replace(index.config.flann, checks=value)
+        index.use_config(replace(index.config, flann=replace(index.config.flann, checks=value)))
     elif name == "ef_search":
-        index.config.faiss = replace(index.config.faiss, ef_search=value)
+        index.use_config(replace(index.config, faiss=replace(index.config.faiss, ef_search=value)))
 
 
 def make_data(kind: str, n: int, dim: int, real: dict | None):
@@ -207,7 +207,7 @@ def measure(indexes: dict, queries: np.ndarray, ref: np.ndarray, k: int, rounds:
 
 def stream(index: KeyframeIndex, data, n_stream: int, k: int, window: int) -> str:
     """The SLAM use on a built index: search (window) then add, one new keyframe at a time."""
-    index.config.exact_below = DEFAULT.exact_below  # as a SLAM run would have it (the bulk build used n)
+    index.use_config(replace(index.config, exact_below=DEFAULT.exact_below))  # as a SLAM run (the bulk build used n)
     n0 = len(index)
     new = data.queries(n_stream, seed=777)  # new views of stored places: revisits
     builds0 = index.num_builds

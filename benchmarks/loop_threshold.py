@@ -63,7 +63,7 @@ def keyframe_stream(path: Path, step: int, fusion: str, cache: Path | None) -> d
 
     from slam.io import open_sequence
     from slam.loop.closer import build_descriptor
-    from slam.options import config_from_args, run_options
+    from slam.options import resolve_settings
     from slam.pipeline import loop_ground_truth_for_step
     from slam.system import RGBDSLAM
 
@@ -75,13 +75,14 @@ def keyframe_stream(path: Path, step: int, fusion: str, cache: Path | None) -> d
     if f is not None and f.exists():
         z = np.load(f)
         return {k: torch.from_numpy(z[k]) for k in z.files} | {"name": name}
-    cfg = config_from_args(run_options(no_loop=True, backbone="efficientnet_lite0", no_map=True), seq)
+    cfg = resolve_settings({"loop.enabled": False, "map.enabled": False}, sequence=seq).config
     view = seq[0:len(seq):step]
     slam = RGBDSLAM(cfg)
     for frame in view.frames(prefetch=2):
         slam.track(frame)
     kfs = slam.keyframes
-    lcfg = config_from_args(run_options(backbone="efficientnet_lite0", no_map=True), seq, fusion=fusion).loop
+    lcfg = resolve_settings({"loop.descriptor.backbone": "efficientnet_lite0", "loop.descriptor.fusion": fusion,
+                             "map.enabled": False}, sequence=seq).config.loop
     gt_kf = torch.from_numpy(np.stack([view.groundtruth_pose(kf.frame_index) for kf in kfs]))
     chi2 = edge_calibration(slam, lcfg, gt_kf, cfg)
     model = build_descriptor(lcfg.descriptor)

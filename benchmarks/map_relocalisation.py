@@ -31,9 +31,10 @@ from pathlib import Path
 import torch
 
 from benchmarks._common import add_data_argument
+from slam.config import override
 from slam.io import open_sequence
 from slam.maps import RelocalisationConfig, load_map
-from slam.options import config_from_args, frame_range, run_options
+from slam.options import frame_range, resolve_settings
 from slam.pipeline import evaluate_run, run_slam
 
 
@@ -47,7 +48,8 @@ def _per_keyframe_loop_ms(metrics: dict) -> float:
 def kitchen(data: Path, map_frames, session_frames, other: bool) -> dict:
     folder = data / "7scenes-redkitchen"
     seq = open_sequence(folder)
-    cfg = config_from_args(run_options(backbone="efficientnet_lite0", no_map=True), seq)
+    settings = {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False}
+    cfg = resolve_settings(settings, sequence=seq).config
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         mdir = Path(tmp) / "kitchen_map"
@@ -76,12 +78,14 @@ def kitchen(data: Path, map_frames, session_frames, other: bool) -> dict:
             from slam.synthetic import SyntheticSequence
 
             room = SyntheticSequence("loop", num_frames=300, seed=0, width=320, height=240)
-            rcfg = config_from_args(run_options(backbone="efficientnet_lite0", no_map=True), room)
+            rcfg = resolve_settings({"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False},
+                                    sequence=room).config
             # a map only serves its own camera rig (MapMismatchError otherwise): the room's registered
             # frames are read with the kitchen's Kinect v1 rig, which tracks them well enough for this check
             rig = saved.rig
-            rcfg.odometry.features.rgb_intrinsics = tuple(rig["rgb_intrinsics"]) if rig["rgb_intrinsics"] else None
-            rcfg.odometry.features.rgb_from_depth_translation = tuple(rig["rgb_from_depth"])
+            rcfg = override(rcfg, {
+                "odometry.features.rgb_intrinsics": tuple(rig["rgb_intrinsics"]) if rig["rgb_intrinsics"] else None,
+                "odometry.features.rgb_from_depth_translation": tuple(rig["rgb_from_depth"])})
             run = run_slam(room, rcfg, progress=False, frames=(0, 80), map_dir=saved)
             r = evaluate_run(run)["relocalisation"]
             out["other_place"] = {"recording": "synthetic room loop, frames 0-79", "relocalised": r["relocalised"],

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from benchmarks._common import data_root
+from slam.config import override
 from slam.io.frame import RGBDFrame
 from slam.lie import se3_from_matrix
 from slam.odometry import OdometryConfig, RGBDOdometry, TrackStatus
@@ -224,12 +225,13 @@ def make(name: str):
         return Ours(OdometryConfig())
     if name == "ours-rgbK":
         cfg = OdometryConfig()
-        cfg.features.rgb_intrinsics = (525.0, 525.0, 320.0, 240.0)
+        cfg = override(cfg, {"features.rgb_intrinsics": (525.0, 525.0, 320.0, 240.0)})
         return Ours(cfg)
     if name == "ours-rig":  # what attnloop-slam runs on 7-Scenes: the depth warped into the colour camera
         cfg = OdometryConfig()
-        cfg.features.rgb_intrinsics = (525.0, 525.0, 320.0, 240.0)
-        cfg.features.rgb_from_depth_translation = (-0.025, 0.0, 0.0)
+        cfg = override(cfg, {
+            "features.rgb_intrinsics": (525.0, 525.0, 320.0, 240.0),
+            "features.rgb_from_depth_translation": (-0.025, 0.0, 0.0)})
         return Ours(cfg)
     if name == "sift-3d3d":
         return SiftRansacAnchor()

@@ -39,11 +39,12 @@ from pathlib import Path
 import torch
 
 from benchmarks._common import add_data_argument
-from slam.ablation import MODES, markdown_table, run_ablation
+from slam.ablation import COLUMNS, markdown_table, run_ablation
+from slam.config import ConfigError, override
 from slam.graph.costs import edge_residuals
 from slam.io import open_sequence
 from slam.lie import se3_compose, se3_inv
-from slam.options import config_from_args, run_options
+from slam.options import resolve_settings
 from slam.pipeline import evaluate_run, run_slam
 
 
@@ -80,24 +81,21 @@ def edge_chi2_against_truth(run) -> dict:
 def apply_overrides(cfg, settings):
     """Set config fields from ``["backend.odometry_information_scale=1.0", ...]`` (values as Python
     literals); an unknown field is an error naming it."""
+    changes = {}
     for item in settings:
         key, sep, value = item.partition("=")
         if not sep:
             raise SystemExit(f"--set expects FIELD=VALUE, got {item!r}")
-        *path, last = key.split(".")
-        obj = cfg
-        for part in path:
-            obj = getattr(obj, part)
-        if not hasattr(obj, last):
-            raise SystemExit(f"--set: the config has no field {key!r}")
         try:
-            v = ast.literal_eval(value)
+            changes[key] = ast.literal_eval(value)
         except (ValueError, SyntaxError):
-            v = value
-        setattr(obj, last, v)
-        if hasattr(obj, "__post_init__"):
-            obj.__post_init__()
-    return cfg
+            changes[key] = value
+    try:
+        return override(cfg, changes)  # the config's own checks run on the new values
+    except ConfigError as e:
+        if "unknown key" in str(e):
+            raise SystemExit(f"--set: the config has no field: {e}") from None
+        raise
 
 
 def _fmt(x, digits=4):
@@ -186,7 +184,8 @@ def main() -> None:
     p.add_argument("--frame-step", type=int, default=1, help="use every N-th frame")
     p.add_argument("--max-frames", type=int, default=None, help="first frames to run (default: all)")
     p.add_argument("--out", default="runs/bench_slam", help="output folder")
-    p.add_argument("--modes", nargs="+", default=list(MODES), help="fusion modes to run (default: all)")
+    p.add_argument("--modes", nargs="+", default=list(COLUMNS["default"]),
+                   help="fusion modes to run (default: all)")
     p.add_argument("--fps-ab", type=int, default=0, metavar="R", help="rounds of the online-correction A/B")
     p.add_argument("--fps-ref", default=None, metavar="DIR",
                    help="with --fps-ab: A/B of this checkout's code against the checkout in DIR instead")
@@ -209,7 +208,9 @@ def main() -> None:
     seqs += [Path(s) for s in args.sequence]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    opts = {"backbone": args.backbone, "frame_step": args.frame_step, "max_frames": args.max_frames, "no_map": True}
+    opts = {"loop.descriptor.backbone": args.backbone, "run.frame_step": args.frame_step,
+            "run.max_frames": args.max_frames, "map.enabled": False}
+    opts = {k: v for k, v in opts.items() if v is not None}
 
     code_ab = None  # the code A/B runs first (and alone with --fps-only), its table goes at the end
     if args.fps_ab > 0 and args.fps_ref:
@@ -221,7 +222,7 @@ def main() -> None:
     odo = {}
     for s in seqs:
         seq = open_sequence(s)
-        cfg = apply_overrides(config_from_args(run_options(no_loop=True, **opts), seq), args.set)
+        cfg = apply_overrides(resolve_settings({**opts, "loop.enabled": False}, sequence=seq).config, args.set)
         run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step, progress=False)
         odo[seq.name] = evaluate_run(run)
         odo[seq.name]["edge_chi2_vs_truth"] = edge_chi2_against_truth(run)
@@ -239,8 +240,8 @@ def main() -> None:
               f"{m.get('loop_hypotheses')} (false {m.get('loop_hypotheses_false')}), final chi2 {m['final_chi2']} "
               f"over {m['num_edges']} edges, edge chi2 vs truth {m['edge_chi2_vs_truth']}", flush=True)
 
-    table = run_ablation(seqs, out, modes=args.modes, configure=lambda cfg: apply_overrides(cfg, args.set),
-                         measure=measure, **opts)
+    table = run_ablation(seqs, out, opts, {m: COLUMNS["default"][m] for m in args.modes},
+                         configure=lambda cfg: apply_overrides(cfg, args.set), measure=measure)
 
     head = ("| run | ATE RMSE (m) | ATE max (m) | vs odometry | loops kept (true/false) | inconsistent / switched off (false) "
             "| max recall @100% P before -> after verification | final chi2 / edge | median edge chi2 vs truth "
@@ -264,8 +265,8 @@ def main() -> None:
         for _ in range(args.fps_ab):
             for online in (True, False):
                 # the command's default run: the map is built too
-                cfg = config_from_args(run_options(**{**opts, "no_map": False}), seq, fusion=args.modes[0])
-                cfg.backend.optimize_on_loop = online
+                cfg = resolve_settings({**opts, "map.enabled": True, "loop.descriptor.fusion": args.modes[0],
+                                        "backend.optimize_on_loop": online}, sequence=seq).config
                 m = evaluate_run(run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step,
                                           progress=False))
                 fps[online].append(m["fps"])

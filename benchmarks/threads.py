@@ -3,7 +3,7 @@
     python -m benchmarks.threads [--data ../shared/data] [--frames 150] [--rounds 3] [--threads 2 4]
 
 Runs what ``attnloop-slam ../shared/data/7scenes-redkitchen --max-frames 150 --out DIR`` runs (its config
-from :func:`slam.options.config_from_args`, the map on; outputs not written) with each thread setting, idle
+from :func:`slam.options.resolve_settings`, the map on; outputs not written) with each thread setting, idle
 and busy, interleaved in one process: every round runs every setting idle, then starts ``--busy`` spinning
 subprocesses (``while True: pass``, one core each) and runs every setting again, then stops them. Settings:
 the config's default (``SLAMConfig.threads``), then each ``--threads N`` (default: torch's own count in this
@@ -29,7 +29,7 @@ import torch
 from benchmarks._common import add_data_argument
 from slam.config import SLAMConfig
 from slam.io import open_sequence
-from slam.options import config_from_args, run_options
+from slam.options import resolve_settings
 from slam.pipeline import run_slam
 from slam.threads import thread_counts
 
@@ -48,8 +48,8 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 
 
 def _run(seq, threads, frames: int) -> tuple[float, dict]:
-    cfg = config_from_args(run_options(), seq)  # what attnloop-slam builds for this folder with no flags
-    cfg.threads = threads
+    # what attnloop-slam builds for this folder with --threads only
+    cfg = resolve_settings({"threads": threads}, sequence=seq).config
     before = thread_counts()
     t0 = time.perf_counter()
     run = run_slam(seq, cfg, max_frames=frames, progress=False)

@@ -32,7 +32,7 @@ from slam.graph import (
     write_g2o,
 )
 from slam.graph.initialization import INITIALIZATIONS
-from slam.options import UsageError, check_device, positive_int
+from slam.options import check_device, positive_int
 
 
 def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
@@ -80,7 +80,7 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
         p.error("--max-iterations must be >= 0")
     try:
         check_device(args.device, "--device", float64=True)
-    except UsageError as e:
+    except ValueError as e:
         p.error(str(e))
     return args
 

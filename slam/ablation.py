@@ -1,77 +1,122 @@
-"""The paper's ablation (Table 1): the SLAM system with each attention fusion on one or more sequences.
+"""Table 1 of the paper: the SLAM system with each descriptor column on one or more sequences.
 
-Used by ``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``. Each run's config comes from the
-same options as ``attnloop-slam`` (:func:`slam.options.config_from_args`), so a 7-Scenes folder gets
-its Kinect v1 rig and ``--frame-step`` means the same here as there.
+Used by ``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``. Each run's settings come from the
+same options as ``attnloop-slam`` (:func:`slam.options.resolve_settings`), so a 7-Scenes folder gets
+its Kinect v1 rig and ``run.frame_step`` means the same here as there.
+
+The paper's Table 1 has one row per TUM sequence, the columns baseline (Guclu et al. 2019: the
+``guclu2019`` preset), GAF, EAM, EGA and DAM (the ``paper`` preset with each fusion), and the averages
+of the fr1 and fr2 sequences. :func:`markdown_table` writes that layout, with an average row per camera
+group (fr1, fr2, fr3, other), and beside each of our figures the paper's where :data:`PAPER_TABLE1`
+holds it (``0.0213 (paper 0.020)``). With the ``default`` preset the columns are our fusion modes.
 """
 from __future__ import annotations
 
 import math
+import re
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any, Optional
 
 from attnloop.fusion import FUSION_MODES
+from slam.config import override
 from slam.eval import plot_pr_curves
-from slam.io import open_sequence
-from slam.options import config_from_args, reader_options, run_options
+from slam.options import RunSettings, resolve_settings
 from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
 
-__all__ = ["MODES", "markdown_table", "run_ablation"]
+__all__ = ["COLUMNS", "PAPER_TABLE1", "camera_group", "columns_for", "markdown_table", "run_ablation"]
 
-MODES = FUSION_MODES  # the rows of the table: every fusion mode (attnloop.fusion is the one list)
+_PAPER_FUSIONS = ("gaf", "eam", "ega", "dam")  # the paper's column order after the baseline
+
+#: Table 1's columns by layout: column name -> the descriptor settings of its runs.
+COLUMNS: dict[str, dict[str, dict[str, Any]]] = {
+    "paper": {"baseline": {"loop.descriptor.preset": "guclu2019", "loop.descriptor.fusion": None},
+              **{m.upper(): {"loop.descriptor.preset": "paper", "loop.descriptor.fusion": m} for m in _PAPER_FUSIONS}},
+    "default": {m: {"loop.descriptor.preset": "default", "loop.descriptor.fusion": m} for m in FUSION_MODES},
+}
+
+#: The paper's Table 1 RMS-ATE figures (m), ``{TUM sequence: {column: value}}`` (the sequence as in TUM's
+#: folder names without ``rgbd_dataset_``, e.g. ``freiburg1_room``). EMPTY: the paper's table could not be
+#: read where this was written (only its abstract was at hand); fill it from the paper's Table 1 and every
+#: cell of those sequences shows the paper's figure beside ours.
+PAPER_TABLE1: dict[str, dict[str, float]] = {}
 
 
-def run_ablation(sequences, out_dir, options=None, modes=MODES, *, configure=None, measure=None, given=None,
-                 **overrides):
-    """Run every mode on every sequence; returns ``{mode: {sequence: metrics}}``.
+def columns_for(preset: Optional[str]) -> dict[str, dict[str, Any]]:
+    """The columns of a preset's table: the paper's layout for ``paper`` and ``guclu2019``, else ours."""
+    return COLUMNS["default" if preset in (None, "default") else "paper"]
+
+
+def camera_group(name: str) -> str:
+    """``fr1``, ``fr2``, ``fr3`` for a TUM sequence folder name (``rgbd_dataset_freiburg1_room``), else ``other``.
+
+    Example:
+        >>> camera_group("rgbd_dataset_freiburg2_desk"), camera_group("7scenes-redkitchen")
+        ('fr2', 'other')
+    """
+    m = re.search(r"freiburg([123])", name)
+    return f"fr{m.group(1)}" if m else "other"
+
+
+def _paper_name(name: str) -> str:
+    return name.removeprefix("rgbd_dataset_")
+
+
+def run_ablation(sequences, out_dir, settings: Optional[Mapping[str, Any]] = None, columns=None, *,
+                 config_file=None, configure=None, measure=None, quiet: bool = False):
+    """Run every column on every sequence; returns ``{column: {sequence: metrics}}``.
 
     Args:
         sequences: sequence folders.
-        out_dir: each run writes into ``out_dir/<mode>/<sequence>/`` (every such folder is checked, and
-            its previous outputs removed, before the first run); ``pr_<sequence>.png`` beside them.
-        options: an ``argparse.Namespace`` of :func:`slam.options.add_run_arguments` (None: the defaults).
-        modes: the fusion modes (rows).
-        configure: optional ``SLAMConfig -> SLAMConfig``, applied to each run's config (e.g. settings that
-            have no command-line option).
+        out_dir: each run writes into ``out_dir/<column>/<sequence>/`` (every such folder is checked, and
+            its previous outputs removed, before the first run), with its ``config.toml`` (``attnloop-slam
+            --config`` of it repeats that run); ``pr_<sequence>.png`` beside them.
+        settings: ``{key: value}`` as :func:`slam.options.resolve_settings` takes them (a command's
+            flags: ``{"loop.descriptor.backbone": "efficientnet_lite0", "run.frame_step": 3}``).
+        columns: ``{column: settings}`` (default: :func:`columns_for` the preset of ``settings``).
+        config_file: a TOML config file under ``settings`` (``--config``).
+        configure: optional ``SLAMConfig -> SLAMConfig``, applied to each run's config.
         measure: optional ``(run, metrics) -> None``, called after each run with its
             :class:`~slam.pipeline.RunResult` and its metrics (to add figures that need the run itself).
-        given: the options given on the command line (:func:`slam.options.given_options`): those that
-            other options make idle are refused, as by ``attnloop-slam``; None: not known.
-        **overrides: option values by name, over ``options`` (e.g. ``backbone="efficientnet_lite0"``,
-            ``max_frames=300``, ``frame_step=3``, ``rgb_intrinsics=(525, 525, 320, 240)``).
+        quiet: no progress bar and no line per run.
 
     Raises:
-        slam.options.UsageError: an unknown option or mode, or an unusable setting.
+        slam.options.UsageError, slam.config.ConfigError: an unusable setting, naming it.
     """
-    opts = run_options(options, **overrides)
-    bad = [m for m in modes if m not in FUSION_MODES]
-    if bad:
-        raise ValueError(f"unknown fusion mode(s) {bad}; choose from {', '.join(FUSION_MODES)}")
+    settings = dict(settings or {})
+    if columns is None:
+        columns = columns_for(settings.get("loop.descriptor.preset"))
     out_dir = Path(out_dir)
-    opened = [open_sequence(path, **reader_options(opts)) for path in sequences]  # every folder checked first
-    configs = {(mode, k): config_from_args(opts, seq, fusion=mode, given=given) for mode in modes
-               for k, seq in enumerate(opened)}
+    specs = [resolve_settings(settings, config_file, path) for path in sequences]  # every folder checked first
+    configs = {(col, k): override(spec.config, changes) for col, changes in columns.items()
+               for k, spec in enumerate(specs)}
     if configure is not None:
         configs = {key: configure(cfg) for key, cfg in configs.items()}
-    targets = {(mode, k): prepare_output_dir(out_dir / mode / seq.name) for mode in modes
-               for k, seq in enumerate(opened)}
-    table = {}
-    curves = {}
-    for mode in modes:
-        table[mode] = {}
-        for k, seq in enumerate(opened):
-            run = run_slam(seq, configs[(mode, k)], max_frames=opts.max_frames, frame_step=opts.frame_step)
+    targets = {(col, k): prepare_output_dir(out_dir / col / spec.sequence.name) for col in columns
+               for k, spec in enumerate(specs)}
+    table: dict[str, dict[str, dict]] = {}
+    curves: dict[str, dict] = {}
+    for col in columns:
+        table[col] = {}
+        for k, spec in enumerate(specs):
+            run = run_slam(spec.sequence, configs[(col, k)], max_frames=spec.run.max_frames,
+                           frame_step=spec.run.frame_step, frames=spec.run.frames,
+                           progress=False if quiet else None)
             metrics = evaluate_run(run)
-            write_outputs(run, targets[(mode, k)])
+            write_outputs(run, targets[(col, k)])
+            RunSettings(configs[(col, k)], spec.run).save(targets[(col, k)] / "config.toml")  # --config repeats it
             if measure is not None:
                 measure(run, metrics)
-            table[mode][seq.name] = metrics
+            name = spec.sequence.name
+            table[col][name] = metrics
             if "before_verification" in run.loop_curves:
-                curves.setdefault(seq.name, {})[mode] = run.loop_curves["before_verification"]
-            ate = metrics.get("ate_rmse")
-            print(f"{mode:5s} {seq.name}: ATE {'-' if ate is None else f'{ate:.4f} m'}, "
-                  f"{metrics['num_loops']} loops, {metrics['fps']:.1f} frames/s", flush=True)
-    for name, by_mode in curves.items():
-        plot_pr_curves(out_dir / f"pr_{name}.png", by_mode, title=f"{name}: loop detection before verification")
+                curves.setdefault(name, {})[col] = run.loop_curves["before_verification"]
+            if not quiet:
+                ate = metrics.get("ate_rmse")
+                print(f"{col:8s} {name}: ATE {'-' if ate is None else f'{ate:.4f} m'}, {metrics['num_loops']} loops, "
+                      f"{metrics['fps']:.1f} frames/s", flush=True)
+    for name, by_col in curves.items():
+        plot_pr_curves(out_dir / f"pr_{name}.png", by_col, title=f"{name}: loop detection before verification")
     return table
 
 
@@ -79,22 +124,47 @@ def _number(value, digits: int) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
-def markdown_table(table) -> str:
-    """The paper's Table 1 layout: rows = fusion modes, columns = sequences + average ("-": no ATE; "n/a":
-    loops or recall that could not be measured)."""
-    modes = list(table)
+def _mean(values) -> Optional[float]:
+    known = [v for v in values if v is not None and math.isfinite(v)]
+    return sum(known) / len(known) if known and len(known) == len(values) else None
+
+
+def markdown_table(table, paper: Optional[Mapping[str, Mapping[str, float]]] = None) -> str:
+    """Table 1's layout: one row per sequence, one column per descriptor, an average row per camera group
+    (fr1, fr2, fr3, other; "-" where a run has no ATE), then the loop closure per sequence and column.
+
+    Args:
+        table: :func:`run_ablation`'s ``{column: {sequence: metrics}}``.
+        paper: the paper's figures ``{sequence: {column: value}}`` (default :data:`PAPER_TABLE1`), shown
+            as ``ours (paper x)`` where known.
+    """
+    paper = PAPER_TABLE1 if paper is None else paper
+    cols = list(table)
     names = list(next(iter(table.values())))
-    head = "| fusion | " + " | ".join(names) + " | average |"
-    lines = ["RMS-ATE (m):", "", head, "|" + "---|" * (len(names) + 2)]
-    for mode in modes:
-        vals = [table[mode][n].get("ate_rmse") for n in names]
-        known = [v for v in vals if v is not None and math.isfinite(v)]
-        avg = sum(known) / len(known) if len(known) == len(vals) and known else None
-        lines.append(f"| {mode} | " + " | ".join(_number(v, 4) for v in vals) + f" | {_number(avg, 4)} |")
-    lines += ["", ("Loop closure (per sequence: accepted true/false; max recall at 100% precision before -> after "
-                  "verification):"), "", head.replace(" average |", ""), "|" + "---|" * (len(names) + 1)]
-    for mode in modes:
-        lines.append(f"| {mode} | " + " | ".join(_loop_cell(table[mode][n]) for n in names) + " |")
+
+    def cell(value, sequence, col) -> str:
+        ref = paper.get(_paper_name(sequence), {}).get(col) if sequence is not None else None
+        return _number(value, 4) + ("" if ref is None else f" (paper {ref:.3f})")
+
+    head = "| sequence | " + " | ".join(cols) + " |"
+    rule = "|" + "---|" * (len(cols) + 1)
+    lines = ["RMS-ATE (m):", "", head, rule]
+    by_group: dict[str, list[str]] = {}
+    for n in names:
+        by_group.setdefault(camera_group(n), []).append(n)
+    for group in ("fr1", "fr2", "fr3", "other"):
+        for n in by_group.get(group, []):
+            lines.append(f"| {n} | " + " | ".join(cell(table[c][n].get("ate_rmse"), n, c) for c in cols) + " |")
+    for group in ("fr1", "fr2", "fr3", "other"):
+        if group in by_group:
+            avgs = [_mean([table[c][n].get("ate_rmse") for n in by_group[group]]) for c in cols]
+            refs = [_mean([paper.get(_paper_name(n), {}).get(c) for n in by_group[group]]) for c in cols]
+            lines.append(f"| {group} average | " + " | ".join(
+                _number(a, 4) + ("" if r is None else f" (paper {r:.3f})") for a, r in zip(avgs, refs)) + " |")
+    lines += ["", ("Loop closure (accepted true/false; max recall at 100% precision before -> after "
+                   "verification):"), "", head, rule]
+    for n in names:
+        lines.append(f"| {n} | " + " | ".join(_loop_cell(table[c][n]) for c in cols) + " |")
     return "\n".join(lines) + "\n"
 
 

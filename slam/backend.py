@@ -191,7 +191,7 @@ class PoseGraphBackend:
     def __init__(self, config, information_scale: Dict[EdgeKind, float]):
         self.config = config
         self.information_scale = dict(information_scale)
-        check_backend_config(config)  # again: the config may have been changed since it was built
+        check_backend_config(config)  # any object with these fields, not only a (frozen, checked) BackendConfig
 
     def _kernel(self, kinds: Tensor, loop_kernel: Optional[RobustKernel]) -> RobustKernel:
         odo = make_kernel(self.config.kernel, self.config.kernel_width)

@@ -1,13 +1,16 @@
 """``attnloop-slam``: run the attention-guided RGB-D SLAM on a sequence folder or the built-in demo.
 
-Argument parsing and error reporting only: :func:`slam.options.config_from_args` builds the config,
-:mod:`slam.pipeline` runs, evaluates and writes. Every error a user can cause (a wrong folder, a bad
+Argument parsing and error reporting only: :func:`slam.options.resolve_settings` builds the config (the
+defaults, then a ``--config`` TOML file, then the flags), :mod:`slam.pipeline` runs, evaluates and writes;
+the run's effective config goes beside its outputs as ``config.toml`` (``--config OUT/config.toml``
+repeats the run). Every error a user can cause (a wrong folder, a bad
 flag, missing weights, an output folder that cannot take the files) is one line on stderr and exit
 code 2, before the work starts wherever it can be found then.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import shutil
@@ -20,12 +23,13 @@ examples:
   attnloop-slam --demo --out runs/demo                       # built-in synthetic room, offline, prints the ATE
   attnloop-slam --demo --demo-scene room --no-loop --out runs/demo_odometry
   attnloop-slam ../shared/data/7scenes-redkitchen --out runs/kitchen    # 7-Scenes: Kinect v1 rig by default
-  attnloop-slam ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room --backbone vgg16   # the paper's setting
+  attnloop-slam ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room --preset paper  # the paper's descriptor
+  attnloop-slam SEQUENCE --config runs/kitchen/config.toml --out runs/again                # a run repeated
   attnloop-slam SEQUENCE --out runs/step3 --frame-step 3     # every 3rd frame: more drift for the loops
   attnloop-slam SEQUENCE --frames 0:600 --save-map maps/kitchen --out runs/monday          # map, saved
   attnloop-slam SEQUENCE --frames 850:1000 --map maps/kitchen --out runs/tuesday         # placed in that map
 
-outputs in --out: trajectory.txt (TUM format), loops.txt, metrics.json, trajectory.png, map.ply
+outputs in --out: trajectory.txt (TUM format), loops.txt, metrics.json, trajectory.png, map.ply, config.toml
 (and demo_sequence/ with its groundtruth.txt for --demo). Exit code 2: a usage or input error; 1: a run
 that tracked too few of its frames (SLAMConfig.min_tracked_fraction): metrics.json alone, no trajectory.
 """
@@ -34,7 +38,7 @@ PROG = "attnloop-slam"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from slam.options import add_run_arguments, frame_range, positive_int
+    from slam.options import add_run_arguments, positive_int
     from slam.synthetic.demo import DEFAULT_DEMO_SCENE, DEMO_SCENES
 
     p = argparse.ArgumentParser(
@@ -47,9 +51,6 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "replaced)")
     add_run_arguments(p)
     g = p.add_argument_group("maps (docs/pipeline.md, 'Maps that persist')")
-    g.add_argument("--frames", type=frame_range, default=None, metavar="START:END",
-                   help="the recording is input frames START .. END-1 only, numbered from 0 (a slice of a "
-                        "longer sequence as a recording of its own)")
     g.add_argument("--save-map", default=None, metavar="DIR",
                    help="save the run's map (keyframes, pose graph, index) into DIR for a later --map; with "
                         "--map, the map grown by this recording (or its own map when it did not relocalise)")
@@ -61,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--demo", action="store_true",
                    help="generate a synthetic sequence into OUT/demo_sequence and run on it")
     scenes = "; ".join(f"{k}: {v.description}" for k, v in DEMO_SCENES.items())
-    g.add_argument("--demo-scene", choices=tuple(DEMO_SCENES), default=DEFAULT_DEMO_SCENE,
+    g.add_argument("--demo-scene", choices=tuple(DEMO_SCENES), default=None,
                    help=f"{scenes} (default: {DEFAULT_DEMO_SCENE})")
     g.add_argument("--demo-trajectory", default=None, metavar="NAME",
                    help="camera path (room: " + ", ".join(DEMO_SCENES[DEFAULT_DEMO_SCENE].trajectories)
@@ -90,8 +91,10 @@ DEMO_OPTIONS = {"demo_scene": "--demo-scene", "demo_trajectory": "--demo-traject
 
 def _check_demo_args(args) -> None:
     from slam.options import UsageError
-    from slam.synthetic.demo import DEMO_SCENES
+    from slam.synthetic.demo import DEFAULT_DEMO_SCENE, DEMO_SCENES
 
+    if args.demo_scene is None:
+        args.demo_scene = DEFAULT_DEMO_SCENE
     scene = DEMO_SCENES[args.demo_scene]
     if args.demo_trajectory is not None and args.demo_trajectory not in scene.trajectories:
         raise UsageError(f"--demo-trajectory {args.demo_trajectory!r}: the {args.demo_scene} scene has "
@@ -106,7 +109,7 @@ def _check_demo_args(args) -> None:
         raise UsageError(f"--demo-size {w} {h}: images must be at least 16 x 16 pixels")
 
 
-def _generate_demo(args, out: Path) -> Path:
+def _generate_demo(args, out: Path, seed: int) -> Path:
     """The demo sequence in OUT/demo_sequence, generated under a temporary name and renamed into place."""
     from slam.options import UsageError
     from slam.synthetic.demo import generate_demo
@@ -121,7 +124,7 @@ def _generate_demo(args, out: Path) -> Path:
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         generate_demo(tmp, scene=args.demo_scene, trajectory=args.demo_trajectory, num_frames=args.demo_frames,
-                      seed=args.seed, width=args.demo_size[0], height=args.demo_size[1], progress=not args.quiet)
+                      seed=seed, width=args.demo_size[0], height=args.demo_size[1], progress=not args.quiet)
         tmp.rename(target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -154,17 +157,14 @@ def _relocalisation_summary(r: dict) -> str:
     return line
 
 
-def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -> int:
-    """Everything after parsing: checks, demo generation, the run, its evaluation and outputs.
-
-    ``given``: the options given on the command line (:func:`slam.options.given_options`); those that
-    other options make idle are refused.
-    """
+def run_command(args: argparse.Namespace) -> int:
+    """Everything after parsing: checks, demo generation, the run, its evaluation and outputs."""
     from slam.io import open_sequence
-    from slam.options import UsageError, config_from_args, describe_rig, reader_options, resolve_rig
+    from slam.options import UsageError, describe_rig, given_settings, reader_options, resolve_settings, rig_of
     from slam.pipeline import camera_of, evaluate_run, prepare_output_dir, run_slam, write_outputs
 
-    demo_options = [flag for dest, flag in DEMO_OPTIONS.items() if dest in given]
+    settings = given_settings(args)
+    demo_options = [flag for dest, flag in DEMO_OPTIONS.items() if getattr(args, dest) is not None]
     if demo_options and not args.demo:
         raise UsageError(f"{', '.join(demo_options)} set{'s' if len(demo_options) == 1 else ''} the built-in "
                          f"sequence of --demo, which is not given: add --demo (without a SEQUENCE folder) or drop "
@@ -173,13 +173,13 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
         raise UsageError("give either a SEQUENCE folder or --demo, not both")
     if not args.demo and not args.sequence:
         raise UsageError("a SEQUENCE folder is required (or --demo)")
-    if args.demo and args.camera is not None:
+    if args.demo and "run.camera" in settings:
         raise UsageError("--camera applies to TUM sequence folders, not to --demo")
-    if args.demo and args.intrinsics is not None:
+    if args.demo and "run.intrinsics" in settings:
         raise UsageError("--intrinsics applies to a SEQUENCE folder, not to --demo (it writes its own)")
-    if args.demo and args.depth_scale is not None:
+    if args.demo and "run.depth_scale" in settings:
         raise UsageError("--depth-scale applies to a SEQUENCE folder, not to --demo (it writes its own)")
-    if (args.save_map is not None or args.map_dir is not None) and args.no_loop:
+    if (args.save_map is not None or args.map_dir is not None) and settings.get("loop.enabled") is False:
         raise UsageError("--save-map and --map need loop closure (its descriptors and verification); drop --no-loop")
     saved = None
     if args.map_dir is not None:
@@ -190,13 +190,14 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
         from slam.maps import prepare_map_dir
 
         prepare_map_dir(args.save_map)
-    seq = None
     if args.demo:
         _check_demo_args(args)
-    else:
-        seq = open_sequence(args.sequence, **reader_options(args))
     # every setting checked (--weights a file too) before any output is touched or the demo rendered
-    cfg = config_from_args(args, seq, given=given)
+    spec = resolve_settings(settings, args.config_file, None if args.demo else args.sequence, demo=args.demo)
+    cfg, opts, seq = spec.config, spec.run, spec.sequence
+    if not cfg.loop.enabled and (args.save_map is not None or args.map_dir is not None):
+        raise UsageError("--save-map and --map need loop closure (its descriptors and verification); the config "
+                         "sets loop.enabled = false")
     # The loop descriptor is built here, not in run_slam: weights that cannot be found (or downloaded) or
     # cannot be loaded stop the command before the previous run's outputs are removed or a demo rendered.
     descriptor = None
@@ -205,15 +206,20 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
 
         descriptor = build_descriptor(cfg.loop.descriptor)
     out = prepare_output_dir(args.out)  # checked, and the previous run's outputs removed, before the work
+    if descriptor is not None and cfg.loop.descriptor.backbone == "auto":  # the network "auto" chose on this machine
+        from slam.config import override
+
+        spec = dataclasses.replace(spec, config=override(cfg, {"loop.descriptor.backbone": descriptor.backbone_name}))
+    spec.save(out / "config.toml")  # the effective settings: --config of this file repeats the run
     if args.demo:
-        seq_dir = _generate_demo_logged(args, out)
-        seq = open_sequence(seq_dir)
+        seq_dir = _generate_demo_logged(args, out, cfg.loop.descriptor.seed)
+        seq = open_sequence(seq_dir, **reader_options(opts))
     if not args.quiet:
         cam = camera_of(seq)
         named = f"{cam['name']}, " if cam["name"] else ""
         print(f"camera: {named}intrinsics {' '.join(f'{v:g}' for v in cam['intrinsics'])}; "
-              f"{describe_rig(resolve_rig(args, seq))}", file=sys.stderr)
-    run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step, frames=args.frames,
+              f"{describe_rig(rig_of(cfg))}", file=sys.stderr)
+    run = run_slam(seq, cfg, max_frames=opts.max_frames, frame_step=opts.frame_step, frames=opts.frames,
                    progress=None if not args.quiet else False, descriptor=descriptor, save_map=args.save_map,
                    map_dir=saved)
     metrics = evaluate_run(run)
@@ -238,14 +244,14 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
                     f" (not into {args.save_map}: that is the map it was not placed in, kept as it was)")
             print(f"saved this recording's own map ({metrics['num_keyframes']} keyframes, its own world) into "
                   f"{run.saved_map}{kept}")
-    wrote = ["trajectory.txt", "loops.txt", "metrics.json", "trajectory.png"]
+    wrote = ["trajectory.txt", "loops.txt", "metrics.json", "trajectory.png", "config.toml"]
     if run.map is not None:
         wrote.append(f"map.ply ({metrics['map']['points']} points)")
     print(f"wrote {out / wrote[0]}, " + ", ".join(wrote[1:]))
     return 0
 
 
-def _generate_demo_logged(args, out: Path) -> Path:
+def _generate_demo_logged(args, out: Path, seed: int) -> Path:
     from slam.synthetic.demo import DEMO_SCENES
 
     scene = DEMO_SCENES[args.demo_scene]
@@ -254,7 +260,7 @@ def _generate_demo_logged(args, out: Path) -> Path:
         trajectory = args.demo_trajectory or scene.default_trajectory
         print(f"generating the synthetic '{args.demo_scene}' sequence ({trajectory}, {n} frames, "
               f"{args.demo_size[0]}x{args.demo_size[1]}) into {out / 'demo_sequence'} ...", file=sys.stderr)
-    return _generate_demo(args, out)
+    return _generate_demo(args, out, seed)
 
 
 def user_error_message(exc: BaseException) -> str | None:
@@ -317,11 +323,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    from slam.options import given_options
-
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    given = given_options(parser, argv)  # the flags typed, for refusing those that others make idle
+    args = build_parser().parse_args(argv)
     if not args.system_malloc:
         from slam.allocator import keep_freed_memory
 
@@ -341,7 +343,7 @@ def _main(argv: list[str] | None) -> int:
     try:
         with warnings.catch_warnings():  # a library warning (a DatasetWarning, say) is one line, as errors are
             warnings.showwarning = _show_warning
-            return call_reporting_errors(PROG, run_command, args, given)
+            return call_reporting_errors(PROG, run_command, args)
     finally:
         notice.setLevel(level)
 

@@ -1,14 +1,35 @@
-"""Typed configuration of the whole SLAM system (every default commented)."""
+"""Typed configuration of the whole SLAM system (every default commented), and its TOML form.
+
+Every config is a frozen dataclass checked when it is built (its ``__post_init__``, with the
+``check_*`` helpers of :mod:`slam.odometry.config`: a ValueError naming ``Class.field``). Change one
+with :func:`dataclasses.replace`, or a nested field by its dotted path with :func:`override`.
+
+TOML (``attnloop-slam --config FILE.toml``; every run writes its effective ``config.toml``): one table
+per nested config, keyed as the fields (``[loop.descriptor]``, ``fusion = "eam"``); a key left out keeps
+its default. TOML has no null: a field set to None is written ``"None"``. :func:`config_from_dict`
+refuses an unknown key or a bad value with one line naming it.
+
+Example:
+    >>> cfg = override(SLAMConfig(), {"loop.descriptor.fusion": "eam", "threads": 2})
+    >>> cfg.loop.descriptor.fusion, cfg.threads
+    ('eam', 2)
+    >>> config_from_dict(config_to_dict(cfg)) == cfg
+    True
+"""
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Optional
+from pathlib import Path
+from typing import Any, Optional
 
 from attnloop.backbones import AUTO, BACKBONES
-from attnloop.descriptor import DescriptorRecipe
 from attnloop.fusion import FUSION_MODES
 from attnloop.index import LoopDetectorConfig
+from attnloop.presets import PRESETS, preset
 from attnloop.threshold import ThresholdConfig
 from slam.backend import check_backend_config
 from slam.loop.acceptance import DriftBoundConfig
@@ -17,32 +38,125 @@ from slam.mapping import MapConfig
 from slam.maps.config import RelocalisationConfig
 from slam.odometry.config import OdometryConfig, RegistrationConfig, check_choice, check_int, check_number
 
+__all__ = ["BackendConfig", "ConfigError", "DescriptorConfig", "LoopClosureConfig", "SLAMConfig", "check_device",
+           "config_from_dict", "config_to_dict", "load_config", "override", "save_config", "toml_text"]
 
-@dataclass
+
+class ConfigError(ValueError):
+    """A config key or value that cannot be used (the message names the key)."""
+
+
+def check_device(device, what: str, float64: bool = False) -> Optional[str]:
+    """A torch device name this torch can use (None stays None: the CPU).
+
+    Args:
+        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"`` or None.
+        what: the field or flag named in the error.
+        float64: the work needs float64 (the pose graph): MPS, which has none, is refused.
+
+    Raises:
+        ValueError: a name torch does not know (``"bogus"``), or a device this machine lacks.
+    """
+    if device is None:
+        return None
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise ValueError(f"{what} {device!r} is not a torch device (e.g. cpu, cuda, cuda:1, mps)") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            build = "a CPU-only torch build" if torch.version.cuda is None else "no CUDA device is visible"
+            raise ValueError(f"{what} {device!r}: CUDA is not available ({build}); use {what} cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{what} {device!r}: only {torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type == "mps":
+        if float64:
+            raise ValueError(f"{what} {device!r}: the pose graph is solved in float64, which MPS lacks; use "
+                             f"{what} cpu")
+        if not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
+            raise ValueError(f"{what} {device!r}: MPS is not available on this machine; use {what} cpu")
+    elif dev.type != "cpu":
+        raise ValueError(f"{what} {device!r}: device type {dev.type!r} is not supported (cpu, cuda, mps)")
+    return device
+
+
+@dataclass(frozen=True)
 class DescriptorConfig:
-    """The attention-guided keyframe descriptor (:class:`attnloop.AttentionDescriptor`)."""
+    """The attention-guided keyframe descriptor (:class:`attnloop.AttentionDescriptor`).
 
-    backbone: str = "auto"  # "vgg16" (the paper's) when its weights are found, else "efficientnet_lite0" (offline)
-    fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega" (the paper's default: DAM)
-    # Random recursive NNs after the pooling (num_rnn * 64 dims; the paper's 16, 1024 dims). 0: none, the
-    # descriptor is the regional code itself (2560 dims), the descriptor's measured default (docs/attention.md).
-    num_rnn: int = DescriptorRecipe.num_rnn
-    seed: int = 0  # seed of the random RNN weights when num_rnn > 0 (part of the model: same seed, same descriptor)
+    ``preset`` names the descriptor (:mod:`attnloop.presets`: ``default``, ``paper``, ``guclu2019``);
+    ``fusion`` and ``num_rnn`` left at None take the preset's.
+
+    Example:
+        >>> DescriptorConfig(preset="paper").recipe.out_dim
+        1024
+    """
+
+    preset: str = "default"  # attnloop.presets.PRESETS: the measured default, the paper's, its baseline's
+    # "vgg16" (the paper's) when its weights are found, else "efficientnet_lite0" (offline); with the paper's
+    # presets "auto" is VGG16, its weights required
+    backbone: str = "auto"
+    fusion: Optional[str] = None  # "none" | "dam" | "eam" | "gaf" | "ega"; None: the preset's (DAM; guclu2019 none)
+    # Random RNNs after the pooling (num_rnn * 64 dims). None: the preset's: 0 for the default (the
+    # regional code itself is the descriptor, 2560 dims: docs/attention.md), 16 (1024 dims) for the others.
+    num_rnn: Optional[int] = None
+    seed: int = 0  # seed of the random RNN weights when there are RNNs (same seed, same descriptor)
     pretrained: bool = True  # ImageNet weights; False = seeded random weights (plumbing tests only)
     weights: Optional[str] = None  # explicit checkpoint path (else torch hub cache, else download)
     device: Optional[str] = None  # None: CPU (library code follows its inputs; this picks where they live)
 
     def __post_init__(self) -> None:
         n = "DescriptorConfig"
+        check_choice(n, "preset", self.preset, tuple(PRESETS))
         check_choice(n, "backbone", self.backbone, (AUTO, *BACKBONES))
-        check_choice(n, "fusion", self.fusion, FUSION_MODES)
-        check_int(n, "num_rnn", self.num_rnn, 0)
+        if self.fusion is not None:
+            check_choice(n, "fusion", self.fusion, FUSION_MODES)
+        if self.num_rnn is not None:
+            check_int(n, "num_rnn", self.num_rnn, 0)
         check_int(n, "seed", self.seed, 0)
         if not isinstance(self.pretrained, bool):
-            raise ValueError(f"DescriptorConfig.pretrained must be True or False, got {self.pretrained!r}")
+            raise ValueError(f"{n}.pretrained must be True or False, got {self.pretrained!r}")
+        if self.weights is not None and not isinstance(self.weights, (str, Path)):
+            raise ValueError(f"{n}.weights must be a file path or None, got {self.weights!r}")
+        check_device(self.device, f"{n}.device")
+        p = preset(self.preset)
+        if p.fixed:
+            for name, own in (("num_rnn", p.recipe.get("num_rnn")), ("fusion", p.fusion)):
+                value = getattr(self, name)
+                if own is not None and value is not None and value != own:
+                    raise ValueError(f"{n}.{name} is {own!r} in the preset {self.preset!r}, got {value!r} "
+                                     f"(leave it None, or choose another preset)")
+        _ = self.recipe  # the recipe's own checks, now rather than when the descriptor is built
+
+    @property
+    def recipe(self):
+        """The :class:`attnloop.descriptor.DescriptorRecipe` of this config (the preset's, with ``fusion``,
+        ``num_rnn`` and ``seed``)."""
+        from attnloop.descriptor import DescriptorRecipe
+
+        p = preset(self.preset)
+        settings = dict(p.recipe)
+        fusion = self.fusion if self.fusion is not None else p.fusion
+        if fusion is not None:
+            settings["fusion"] = fusion
+        if self.num_rnn is not None:
+            settings["num_rnn"] = self.num_rnn
+        return DescriptorRecipe(**settings, seed=self.seed)
+
+    def settings(self) -> dict:
+        """The keyword arguments of :class:`attnloop.AttentionDescriptor` this config stands for."""
+        kw = {"backbone": self.backbone, "preset": self.preset, "seed": self.seed, "pretrained": self.pretrained,
+              "weights": None if self.weights is None else str(self.weights)}
+        if self.fusion is not None:
+            kw["fusion"] = self.fusion
+        if self.num_rnn is not None:
+            kw["num_rnn"] = self.num_rnn
+        return kw
 
 
-@dataclass
+@dataclass(frozen=True)
 class LoopClosureConfig:
     """Loop detection (descriptor + index + adaptive threshold), geometric verification and acceptance."""
 
@@ -74,7 +188,8 @@ class LoopClosureConfig:
     # without the RNNs, 0.857-0.863 with them).
     # Backbones not listed (VGG16, a custom descriptor) keep ``detector.threshold``.
     threshold_by_backbone: dict = field(default_factory=lambda: {
-        "efficientnet_lite0": ThresholdConfig(k_sigma=1.5, min_margin=0.005, min_similarity=0.85, min_samples=16)})
+        "efficientnet_lite0": ThresholdConfig(k_sigma=1.5, min_margin=0.005, min_similarity=0.85, min_samples=16)},
+        metadata={"values": ThresholdConfig})
     # verification re-uses the odometry's matching + RANSAC, with stricter acceptance:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     max_candidates: int = 5  # candidates verified per query keyframe (most similar first), 1..detector.top_k
@@ -145,7 +260,7 @@ class LoopClosureConfig:
                 raise ValueError(f"LoopClosureConfig.threshold_by_backbone[{backbone!r}]: {e}") from None
 
 
-@dataclass
+@dataclass(frozen=True)
 class BackendConfig:
     """Pose-graph optimisation over the keyframes (slam.backend)."""
 
@@ -178,9 +293,10 @@ class BackendConfig:
 
     def __post_init__(self) -> None:
         check_backend_config(self)  # names checked by the factories slam.backend dispatches on
+        check_device(self.device, "BackendConfig.device", float64=True)
 
 
-@dataclass
+@dataclass(frozen=True)
 class SLAMConfig:
     """Everything :class:`slam.system.RGBDSLAM` needs."""
 
@@ -201,8 +317,10 @@ class SLAMConfig:
     min_tracked_fraction: float = 0.1
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.min_tracked_fraction <= 1.0:
-            raise ValueError(f"SLAMConfig.min_tracked_fraction must be in [0, 1], got {self.min_tracked_fraction!r}")
+        from slam.threads import check_threads
+
+        check_threads(self.threads, "SLAMConfig.threads")
+        check_number("SLAMConfig", "min_tracked_fraction", self.min_tracked_fraction, 0.0, 1.0)
         # the map's depth range with the odometry's filling a None (MapConfig checks its own fields itself)
         f = self.odometry.features
         lo = f.min_depth if self.map.min_depth is None else self.map.min_depth
@@ -210,3 +328,179 @@ class SLAMConfig:
         if not hi > lo:
             raise ValueError(f"SLAMConfig.map: the depth range must have max_depth > min_depth, got min_depth {lo!r}, "
                              f"max_depth {hi!r} (None takes odometry.features': {f.min_depth!r}, {f.max_depth!r})")
+
+
+# ----------------------------------------------------------------------------------------------------
+# changing a nested field, and the TOML form
+NONE = "None"  # TOML has no null: how a None field is spelt in a file
+
+
+def _set_path(data: dict, key: str, value) -> None:
+    *tables, last = key.split(".")
+    for t in tables:
+        data = data.setdefault(t, {})
+        if not isinstance(data, dict):
+            raise ConfigError(f"{key}: {t} is a value, not a table")
+    data[last] = value
+
+
+def override(config, changes: Mapping[str, Any], prefix: str = ""):
+    """``config`` with fields changed by dotted path (``{"loop.descriptor.fusion": "eam"}``), every
+    config on the way rebuilt with :func:`dataclasses.replace` (and so checked); ``prefix``: the key of
+    ``config`` itself in the messages (``"run."``).
+
+    Raises:
+        ConfigError: an unknown key or a bad value, naming the key.
+    """
+    nested: dict = {}
+    for key, value in changes.items():
+        _set_path(nested, key, value)
+    return _merge(config, nested, prefix)
+
+
+def _field_value(current, value, key: str, values_type=None):
+    if isinstance(value, Mapping) and values_type is not None:  # a dict of configs (threshold_by_backbone)
+        out = dict(current)
+        for name, table in value.items():
+            if not isinstance(table, Mapping):
+                raise ConfigError(f"{key}.{name}: expected a table of {values_type.__name__} fields, got {table!r}")
+            out[name] = _merge(current.get(name, values_type()), table, f"{key}.{name}.")
+        return out
+    if dataclasses.is_dataclass(current) and isinstance(value, Mapping):
+        return _merge(current, value, f"{key}.")
+    if dataclasses.is_dataclass(current):
+        raise ConfigError(f"{key}: expected a table of {type(current).__name__} fields, got {value!r}")
+    if value == NONE:
+        return None
+    if isinstance(value, list):
+        return tuple(value)
+    return value
+
+
+def _merge(config, changes: Mapping, prefix: str):
+    fields = {f.name: f for f in dataclasses.fields(config)}
+    kwargs = {}
+    for name, value in changes.items():
+        key = f"{prefix}{name}"
+        if name not in fields:
+            raise ConfigError(f"unknown key {key!r}; {type(config).__name__} has {', '.join(fields)}")
+        f = fields[name]
+        kwargs[name] = _field_value(getattr(config, name), value, key, f.metadata.get("values"))
+    try:
+        return dataclasses.replace(config, **kwargs)
+    except (ValueError, TypeError) as e:
+        where = f"{prefix.rstrip('.')}: " if prefix else ""
+        raise ConfigError(f"{where}{e}") from None
+
+
+def config_from_dict(data: Mapping, base=None, prefix: str = ""):
+    """The config of nested tables (a TOML file's) over ``base`` (None: ``SLAMConfig()``; any config
+    dataclass), every nested config built with :func:`dataclasses.replace` (and so checked).
+
+    Args:
+        data: ``{field: value or table}``.
+        base: the config the tables change.
+        prefix: the key of ``base`` in the file, for the messages (``"run."``).
+
+    Raises:
+        ConfigError: an unknown key or a bad value, naming the key.
+    """
+    return _merge(base if base is not None else SLAMConfig(), data, prefix)
+
+
+def config_to_dict(config) -> dict:
+    """A config as nested dicts of plain values (tuples as lists, None as ``"None"``): the TOML form."""
+    out = {}
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            out[f.name] = config_to_dict(value)
+        elif isinstance(value, dict):
+            out[f.name] = {k: config_to_dict(v) if dataclasses.is_dataclass(v) else v for k, v in value.items()}
+        elif value is None:
+            out[f.name] = NONE
+        elif isinstance(value, (tuple, list)):
+            out[f.name] = list(value)
+        elif isinstance(value, Path):
+            out[f.name] = str(value)
+        else:
+            out[f.name] = value
+    return out
+
+
+def _toml_value(value, key: str) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, numbers.Integral):
+        return str(int(value))
+    if isinstance(value, numbers.Real):
+        v = float(value)
+        if math.isnan(v):
+            return "nan"
+        return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf")
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v, key) for v in value) + "]"
+    raise ConfigError(f"{key}: {type(value).__name__} {value!r} has no TOML form")
+
+
+def toml_text(data: Mapping, header: str = "") -> str:
+    """Nested dicts as TOML text: each table's values, then its sub-tables as ``[a.b]`` sections."""
+    lines = [f"# {line}" if line else "#" for line in header.splitlines()]
+
+    def table(d: Mapping, path: str) -> None:
+        values = [(k, v) for k, v in d.items() if not isinstance(v, Mapping)]
+        if path and (values or not any(isinstance(v, Mapping) for v in d.values())):
+            lines.extend(["", f"[{path}]"])
+        for k, v in values:
+            lines.append(f"{k} = {_toml_value(v, f'{path}.{k}' if path else k)}")
+        for k, v in d.items():
+            if isinstance(v, Mapping):
+                table(v, f"{path}.{k}" if path else k)
+
+    table(data, "")
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def read_toml(path) -> dict:
+    """A TOML file's tables (tomllib, or tomli before Python 3.11).
+
+    Raises:
+        ConfigError: the file cannot be read or is not TOML, naming it (and the line).
+    """
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python < 3.11
+        import tomli as tomllib
+    p = Path(path).expanduser()
+    try:
+        with open(p, "rb") as fh:
+            return tomllib.load(fh)
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read the config file ({e.strerror or e})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{p}: not a valid TOML file: {e}") from None
+
+
+def load_config(path, base: Optional[SLAMConfig] = None) -> SLAMConfig:
+    """The :class:`SLAMConfig` of a TOML file (:func:`config_from_dict`).
+
+    Raises:
+        ConfigError: ``FILE: <what is wrong>``, naming the key.
+    """
+    data = read_toml(path)
+    try:
+        return config_from_dict(data, base)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+
+
+def save_config(config: SLAMConfig, path, extra: Optional[Mapping] = None) -> Path:
+    """Write ``config`` (plus ``extra`` tables, e.g. a command's run options) as TOML to ``path``."""
+    data = config_to_dict(config)
+    if extra:
+        data.update(extra)
+    p = Path(path)
+    p.write_text(toml_text(data, "attnloop SLAM configuration (slam.config): every setting of the run"))
+    return p

@@ -41,7 +41,7 @@ __all__ = ["MapConfig", "PLYFormatError", "PointCloudMap", "keyframe_cloud", "re
 PathOrFile = Union[str, os.PathLike, BinaryIO]
 
 
-@dataclass
+@dataclass(frozen=True)
 class MapConfig:
     """The keyframe point-cloud map written as ``map.ply``."""
 

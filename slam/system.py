@@ -26,8 +26,8 @@ are placed on the keyframe estimates as of the last wait.
 Example:
     >>> import numpy as np
     >>> from slam.io.frame import RGBDFrame
-    >>> cfg = SLAMConfig()
-    >>> cfg.loop.enabled = False
+    >>> from slam.config import override
+    >>> cfg = override(SLAMConfig(), {"loop.enabled": False})
     >>> slam = RGBDSLAM(cfg)
     >>> K = np.array([[525., 0, 319.5], [0, 525., 239.5], [0, 0, 1]])
     >>> state = slam.track(RGBDFrame(0, 0.0, np.zeros((48, 64, 3), np.uint8), np.zeros((48, 64), np.float32), K))

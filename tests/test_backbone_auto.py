@@ -1,4 +1,5 @@
-"""Backbone "auto" (issue 17.2): VGG16 when its weights are at hand without a download, else EfficientNet-Lite0."""
+"""Backbone "auto": VGG16 when its weights are at hand without a download, else EfficientNet-Lite0; with the
+paper's presets VGG16 always (its weights required), never another network in its place."""
 from __future__ import annotations
 
 import importlib.util
@@ -108,3 +109,28 @@ def test_vgg16_by_name_still_fails_clearly_without_weights(empty_hub):
 def test_unknown_name_lists_auto():
     with pytest.raises(ValueError, match=r"unknown backbone 'resnet50'; choose one of \['auto', "):
         resolve_backbone_name("resnet50")
+
+
+@pytest.mark.parametrize("preset", ["paper", "guclu2019"])
+def test_the_papers_presets_never_fall_back_to_another_network(empty_hub, preset, caplog):
+    # without VGG16's weights (hub cache empty, downloads off) the paper's descriptor is refused, naming the
+    # file and how to give it; it used to become EfficientNet-Lite0 with one log line
+    with caplog.at_level(logging.INFO, logger="attnloop"), pytest.raises(
+            WeightsNotFoundError, match=r"vgg16-397923af\.pth.*weights='/path/to/vgg16-397923af\.pth'"):
+        AttentionDescriptor(preset=preset)
+    assert "EfficientNet-Lite0" not in caplog.text
+
+
+@pytest.mark.parametrize("preset", ["paper", "guclu2019"])
+def test_the_papers_presets_with_auto_build_vgg16_from_the_cache(empty_hub, fake_vgg16, preset):
+    empty_hub.mkdir(parents=True)
+    (empty_hub / "vgg16-397923af.pth").write_bytes(b"placeholder")
+    desc = AttentionDescriptor(preset=preset)
+    assert desc.backbone_name == "vgg16" and desc.preset == preset
+    assert fake_vgg16 == [{"pretrained": True, "weights": None, "tap": "pool5"}]
+
+
+@needs_lite0
+def test_lite0_with_the_paper_preset_only_when_named(empty_hub):
+    desc = AttentionDescriptor("efficientnet_lite0", preset="paper")
+    assert desc.backbone_name == "efficientnet_lite0" and desc.out_dim == 1024

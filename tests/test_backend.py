@@ -145,11 +145,11 @@ def kitchen_graph(redkitchen_dir):
     from slam.lie import se3_inv
     from slam.odometry.features import extract_features
     from slam.odometry.registration import register
-    from slam.options import config_from_args, run_options
+    from slam.options import resolve_settings
     from slam.threads import limit_threads
 
     seq = open_sequence(redkitchen_dir)
-    cfg = config_from_args(run_options(no_loop=True), seq)
+    cfg = resolve_settings({"loop.enabled": False}, sequence=seq).config
     with limit_threads(1):
         frames = [seq[i] for i in range(0, 1000, 12)]
         feats = [extract_features(f.rgb, f.depth, f.K, cfg.odometry.features) for f in frames]

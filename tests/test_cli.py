@@ -28,13 +28,17 @@ def _tum_folder(tmp_path):
     return seq
 
 
-def test_parser_defaults_are_the_papers():
+def test_flags_not_typed_leave_the_configs_defaults():
     from attnloop.fusion import FUSION_MODES
+    from slam.config import SLAMConfig
+    from slam.options import RunOptions, given_settings, resolve_settings
 
     args = build_parser().parse_args(["seq", "--out", "o"])
-    assert (args.fusion, args.no_loop, args.max_frames, args.frame_step) == ("dam", False, None, 1)
-    assert (args.demo_scene, args.registered, args.no_map, args.backbone) == ("room", False, False, "auto")
-    fusion = next(a for a in build_parser()._actions if a.dest == "fusion")
+    assert given_settings(args) == {} and args.demo_scene is None and args.config_file is None
+    spec = resolve_settings(given_settings(args))
+    assert spec.config == SLAMConfig() and spec.run == RunOptions()
+    assert spec.config.loop.descriptor.recipe.fusion == "dam"  # the default preset's fusion
+    fusion = next(a for a in build_parser()._actions if a.dest == "loop.descriptor.fusion")
     assert tuple(fusion.choices) == FUSION_MODES  # one list of modes
 
 
@@ -236,7 +240,7 @@ def test_cuda_on_a_cpu_only_torch_is_a_clear_error(tmp_path, capsys):
     if torch.cuda.is_available():
         pytest.skip("a CUDA device is present")
     assert main([*DEMO, "--device", "cuda", "--out", str(tmp_path / "o")]) == 2
-    assert "CUDA is not available" in capsys.readouterr().err
+    assert "attnloop-slam: --device 'cuda': " in (err := capsys.readouterr().err) and "CUDA is not available" in err
 
 
 @pytest.mark.timeout(600)

@@ -102,7 +102,7 @@ def test_a_run_where_no_frame_tracks_fails_with_one_line_and_no_trajectory(broke
     assert "0 of 10 frames tracked (0 lost, 10 unreadable)" in line and cause in line, line
     assert "min_tracked_fraction" in line and "metrics.json" in line
     assert len(err.splitlines()) <= 4, err  # three frames listed, then counted: not one line per frame
-    assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["config.toml", "metrics.json"]  # the settings, no result
     m = json.loads((out / "metrics.json").read_text())
     assert (m["status"], m["num_tracked"], m["num_skipped"], m["num_frames"]) == ("failed", 0, 10, 10)
     assert cause in m["failure"]
@@ -111,9 +111,9 @@ def test_a_run_where_no_frame_tracks_fails_with_one_line_and_no_trajectory(broke
 def test_min_tracked_fraction_is_checked():
     from slam.config import SLAMConfig
 
-    with pytest.raises(ValueError, match="min_tracked_fraction must be in"):
+    with pytest.raises(ValueError, match="min_tracked_fraction must be"):
         SLAMConfig(min_tracked_fraction=1.5)
-    with pytest.raises(ValueError, match="min_tracked_fraction must be in"):
+    with pytest.raises(ValueError, match="min_tracked_fraction must be"):
         SLAMConfig(min_tracked_fraction=float("nan"))
 
 
@@ -122,12 +122,11 @@ def test_min_tracked_fraction_is_checked():
 
 def _open_with(argv, folder):
     from slam.cli import build_parser
-    from slam.io import open_sequence
-    from slam.options import config_from_args, reader_options
+    from slam.options import given_settings, resolve_settings
 
     args = build_parser().parse_args([str(folder), "--out", "o", *argv])
-    seq = open_sequence(args.sequence, **reader_options(args))
-    return seq, config_from_args(args, seq)
+    spec = resolve_settings(given_settings(args), None, args.sequence)
+    return spec.sequence, spec.config
 
 
 def test_intrinsics_on_7scenes_replace_its_camera_and_its_rig(redkitchen_dir):
@@ -153,7 +152,8 @@ def test_intrinsics_on_tum_replace_calibration_txt(tmp_path):
 
 
 @pytest.mark.parametrize("argv, expected", [
-    (["--intrinsics", "0", "500", "320", "240"], "--intrinsics: focal lengths must be positive"),
+    (["--intrinsics", "0", "500", "320", "240"], "--intrinsics (0.0, 500.0, 320.0, 240.0): run: RunOptions.intrinsics: focal "
+                                                 "lengths must be positive"),
     (["--intrinsics", "500", "500", "320", "240", "--camera", "fr1"], "--intrinsics and --camera"),
 ])
 def test_intrinsics_that_cannot_be_used_are_refused(argv, expected, tmp_path, capsys):

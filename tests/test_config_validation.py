@@ -11,8 +11,8 @@ import pytest
 
 from attnloop.index import LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
-from slam.backend import OPTIMIZER_METHODS, PoseGraphBackend, check_backend_config
-from slam.config import BackendConfig, LoopClosureConfig, SLAMConfig
+from slam.backend import OPTIMIZER_METHODS
+from slam.config import BackendConfig, LoopClosureConfig, SLAMConfig, override
 from slam.loop.consistency import ConsistencyConfig
 from slam.mapping import MapConfig
 from slam.odometry.config import (
@@ -178,31 +178,31 @@ def test_nested_configs_are_checked_when_built():
     LoopClosureConfig(detector=LoopDetectorConfig(top_k=3), max_candidates=3)
 
 
-def test_the_backend_rechecks_a_config_changed_after_it_was_built():
-    cfg = BackendConfig()
-    cfg.gnc_steps = 0  # would give no GNC solve (an UnboundLocalError in optimize before)
-    with pytest.raises(ValueError, match=r"BackendConfig\.gnc_steps"):
-        PoseGraphBackend(cfg, {})
-    cfg = BackendConfig()
-    cfg.method = "LN"
-    with pytest.raises(ValueError, match=r"BackendConfig\.method"):
-        check_backend_config(cfg)
+def _configs(obj, path="config"):
+    yield path, obj
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _configs(value, f"{path}.{f.name}")
 
 
-def test_run_slam_checks_fields_set_after_the_config_was_built():
-    # __post_init__ runs at construction only; check_config (run_slam's first step) runs every nested
-    # config's checks again, so a field assigned later is refused before the work, naming its path
-    from slam.options import UsageError, check_config
-
+def test_every_config_is_frozen_and_changed_by_replace():
+    # a field set after the config was built would skip its checks (every frame lost on detector "ORB",
+    # no loop ever verified at max_candidates 0): no config can be changed in place
     cfg = SLAMConfig()
-    assert check_config(cfg) is cfg
-    cfg.odometry.features.detector = "ORB"  # was: every frame reported lost, "unknown detector"
-    with pytest.raises(UsageError, match=r"^config\.odometry\.features: FeatureConfig\.detector must be one of"):
-        check_config(cfg)
-    cfg = SLAMConfig()
-    cfg.loop.max_candidates = 0  # was: loop closure on, and nothing ever verified
-    with pytest.raises(UsageError, match=r"^config\.loop: LoopClosureConfig\.max_candidates must be an integer >= 1"):
-        check_config(cfg)
+    for path, obj in _configs(cfg):
+        name = dataclasses.fields(obj)[0].name
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(obj, name, getattr(obj, name))
+    assert len(list(_configs(cfg))) >= 15  # every nested config was visited
+    with pytest.raises(ValueError, match=r"FeatureConfig\.detector must be one of"):
+        override(cfg, {"odometry.features.detector": "ORB"})
+    with pytest.raises(ValueError, match=r"^loop: LoopClosureConfig\.max_candidates must be an integer >= 1"):
+        override(cfg, {"loop.max_candidates": 0})
+    changed = override(cfg, {"odometry.features.detector": "sift", "loop.max_candidates": 3})
+    assert (changed.odometry.features.detector, changed.loop.max_candidates) == ("sift", 3)
+    assert (cfg.odometry.features.detector, cfg.loop.max_candidates) == ("orb", 5)  # the original unchanged
+    assert changed.odometry.registration is cfg.odometry.registration  # what is not changed is shared
 
 
 @pytest.mark.parametrize("kwargs, match", [

@@ -1,10 +1,12 @@
 """examples/tum_slam.py and examples/ablation.py: their --help reads as written, they share the command's
-options (rig flags, --frame-step) and report errors as it does."""
+options (rig flags, --frame-step, --config, --preset) and report errors as it does."""
 from __future__ import annotations
 
 import json
 
 import pytest
+
+from slam.config import override
 
 
 @pytest.fixture(scope="module")
@@ -20,8 +22,8 @@ def tiny_sequence(tmp_path_factory):
 @pytest.mark.parametrize("script, lines", [
     ("examples/tum_slam.py", ["    python examples/tum_slam.py ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room"]),
     ("examples/ablation.py", [("  python examples/ablation.py ~/data/rgbd_dataset_freiburg1_room "
-                              "~/data/rgbd_dataset_freiburg2_desk \\"), ("      --backbone vgg16 --out runs/table1"
-                              "          # the paper's setting (VGG16 weights needed)")]),
+                              "~/data/rgbd_dataset_freiburg2_desk \\"), ("      --preset paper --weights "
+                              "vgg16-397923af.pth --out runs/table1     # the paper's descriptor and columns")]),
 ])
 def test_help_keeps_the_docstrings_lines(script, lines, load_script, capsys):
     mod = load_script(script)
@@ -31,7 +33,8 @@ def test_help_keeps_the_docstrings_lines(script, lines, load_script, capsys):
     out = capsys.readouterr().out
     for line in lines:
         assert line in out.splitlines(), line
-    for flag in ("--rgb-intrinsics", "--rgb-from-depth", "--registered", "--frame-step", "--backbone"):
+    for flag in ("--rgb-intrinsics", "--rgb-from-depth", "--registered", "--frame-step", "--backbone", "--preset",
+                 "--config"):
         assert flag in out
 
 
@@ -64,16 +67,25 @@ def test_tum_slam_refuses_a_flag_another_makes_idle_as_the_command_does(tiny_seq
     assert err.startswith("tum_slam.py: --no-loop") and "--fusion" in err and not out.exists()
 
 
-def test_ablation_runs_two_modes_and_writes_its_table(tiny_sequence, tmp_path, load_script, capsys):
+def test_ablation_runs_our_columns_and_writes_its_table(tiny_sequence, tmp_path, load_script, capsys):
     mod = load_script("examples/ablation.py")
     out = tmp_path / "abl"
-    assert mod.main([str(tiny_sequence), "--out", str(out), "--modes", "none", "dam", "--no-loop", "--no-map"]) == 0
+    assert mod.main([str(tiny_sequence), "--out", str(out), "--no-loop", "--no-map", "--quiet"]) == 0
     table = (out / "table1.md").read_text()
-    assert "| none |" in table and "| dam |" in table
+    assert "| sequence | none | dam | eam | gaf | ega |" in table and "| other average |" in table
     data = json.loads((out / "table1.json").read_text(), parse_constant=lambda c: pytest.fail(c))
-    assert set(data) == {"none", "dam"}
-    for mode in ("none", "dam"):
+    assert list(data) == ["none", "dam", "eam", "gaf", "ega"]
+    for mode in data:
         assert (out / mode / "seq" / "trajectory.txt").is_file()
+    assert "frames/s" not in capsys.readouterr().out  # --quiet: the tables only
+    text = (out / "gaf" / "seq" / "config.toml").read_text()  # each run's own settings, its column's fusion
+    assert 'preset = "default"' in text and 'fusion = "gaf"' in text
+    from slam.cli import main
+
+    again = tmp_path / "again"
+    assert main([str(tiny_sequence), "--config", str(out / "gaf" / "seq" / "config.toml"), "--out", str(again),
+                 "--quiet"]) == 0
+    assert (again / "trajectory.txt").read_text() == (out / "gaf" / "seq" / "trajectory.txt").read_text()
 
 
 def test_ablation_refuses_a_bad_folder_before_any_run(tmp_path, load_script, capsys):
@@ -96,15 +108,15 @@ def test_run_ablation_applies_configure_and_calls_measure(tiny_sequence, tmp_pat
     seen = []
 
     def configure(cfg):
-        cfg.backend.optimize_on_loop = False
-        return cfg
+        return override(cfg, {"backend.optimize_on_loop": False})
 
     def measure(run, metrics):
         seen.append((run.sequence_name, run.config.loop.descriptor.fusion, run.config.backend.optimize_on_loop))
         metrics["extra"] = len(seen)
 
-    table = run_ablation([tiny_sequence], tmp_path / "abl", modes=("none", "dam"), configure=configure,
-                         measure=measure, no_loop=True, no_map=True)
+    columns = {m: {"loop.descriptor.fusion": m} for m in ("none", "dam")}
+    table = run_ablation([tiny_sequence], tmp_path / "abl", {"loop.enabled": False, "map.enabled": False}, columns,
+                         configure=configure, measure=measure, quiet=True)
     name = tiny_sequence.name
     assert seen == [(name, "none", False), (name, "dam", False)]
     assert [table[m][name]["extra"] for m in ("none", "dam")] == [1, 2]

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from slam.config import override
 from slam.io import RGBDFrame, check_intrinsics
 from slam.io.frame import MAX_DEPTH_MEDIAN
 
@@ -109,7 +110,7 @@ def test_track_refuses_the_same_mistakes(field, value, error, pattern):
     from slam.system import RGBDSLAM
 
     cfg = SLAMConfig()
-    cfg.loop.enabled = False
+    cfg = override(cfg, {"loop.enabled": False})
     slam = RGBDSLAM(cfg)
     good = _frame()
     assert slam.track(good).status == "lost"  # a blank frame: lost, not an error
@@ -125,6 +126,6 @@ def test_track_takes_only_frames():
     from slam.system import RGBDSLAM
 
     cfg = SLAMConfig()
-    cfg.loop.enabled = False
+    cfg = override(cfg, {"loop.enabled": False})
     with pytest.raises(TypeError, match=r"track\(\) takes a slam.io.RGBDFrame, got dict"):
         RGBDSLAM(cfg).track(dict(index=0, timestamp=0.0, rgb=RGB, depth=DEPTH, K=K))

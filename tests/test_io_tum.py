@@ -417,7 +417,7 @@ def test_depth_scale_reads_millimetre_depth(tum_dir):
 def test_the_command_passes_depth_scale_and_camera_to_the_reader(tum_dir, capsys, monkeypatch):
     import slam.io
     from slam.cli import main
-    from slam.options import reader_options, run_options
+    from slam.options import RunOptions, reader_options
 
     seen = {}
 
@@ -429,7 +429,7 @@ def test_the_command_passes_depth_scale_and_camera_to_the_reader(tum_dir, capsys
     assert main([str(tum_dir), "--out", str(tum_dir.parent / "o"), "--depth-scale", "1000", "--camera", "fr2"]) == 2
     assert seen == {"camera": "fr2", "depth_scale": 1000.0}
     monkeypatch.undo()
-    assert reader_options(run_options()) == {}
-    assert reader_options(run_options(camera="fr2", depth_scale=1000.0)) == {"camera": "fr2", "depth_scale": 1000.0}
+    assert reader_options(RunOptions()) == {}
+    assert reader_options(RunOptions(camera="fr2", depth_scale=1000.0)) == {"camera": "fr2", "depth_scale": 1000.0}
     assert main(["--demo", "--out", str(tum_dir.parent / "o"), "--depth-scale", "1000"]) == 2
     assert "--depth-scale applies to a SEQUENCE folder" in capsys.readouterr().err

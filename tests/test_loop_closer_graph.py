@@ -18,7 +18,7 @@ from slam.loop import LoopCloser
 from slam.odometry.config import OdometryConfig
 from slam.odometry.features import extract_features
 from slam.odometry.frontend import Keyframe
-from slam.options import config_from_args, run_options
+from slam.options import resolve_settings
 from slam.synthetic import SyntheticSequence
 from slam.system import RGBDSLAM
 
@@ -269,9 +269,11 @@ def _covered_lens_config(seq, recover_after_loss: bool = False, threads: int | N
     """What ``attnloop-slam`` runs on ``seq`` (its dataset's rig), with the default descriptor's backbone named
     and no point cloud (not measured here); ``recover_after_loss``: ``LoopClosureConfig.recover_after_loss``;
     ``threads``: ``SLAMConfig.threads`` (None: its default)."""
-    cfg = config_from_args(run_options(backbone="efficientnet_lite0", no_map=True, threads=threads), seq)
-    cfg.loop.recover_after_loss = recover_after_loss
-    return cfg
+    settings = {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False,
+                "loop.recover_after_loss": recover_after_loss}
+    if threads is not None:
+        settings["threads"] = threads
+    return resolve_settings(settings, sequence=seq).config
 
 
 def _covered_lens_run(seq, descriptor, gap: tuple[int, int] | None, recover_after_loss: bool = False,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from slam.config import LoopClosureConfig, SLAMConfig
+from slam.config import LoopClosureConfig, SLAMConfig, override
 from slam.lie import rotmat_to_quat, se3_between, se3_compose, se3_exp, so3_log
 from slam.loop.acceptance import drift_limits
 from slam.loop.verification import verify_candidate
@@ -81,10 +81,9 @@ def room_loop_runs():
 
     seq = SyntheticSequence("loop", num_frames=300, width=W, height=H, seed=0)
     cfg_on = SLAMConfig()
-    cfg_on.loop.descriptor.backbone = "efficientnet_lite0"
+    cfg_on = override(cfg_on, {"loop.descriptor.backbone": "efficientnet_lite0"})
     cfg_off = SLAMConfig()
-    cfg_off.loop.descriptor.backbone = "efficientnet_lite0"
-    cfg_off.backend.optimize_on_loop = False
+    cfg_off = override(cfg_off, {"loop.descriptor.backbone": "efficientnet_lite0", "backend.optimize_on_loop": False})
     desc = build_descriptor(cfg_on.loop.descriptor)
     on, off = RGBDSLAM(cfg_on, descriptor=desc), RGBDSLAM(cfg_off, descriptor=desc)
     states_on, states_off, gt = [], [], []
@@ -158,7 +157,7 @@ def test_loop_closer_takes_the_threshold_calibrated_for_its_descriptor():
         other = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=True, **kw))
         assert other.threshold == cfg.detector.threshold, kw
     random_cfg = LoopClosureConfig()
-    random_cfg.descriptor.pretrained = False
+    random_cfg = override(random_cfg, {"descriptor.pretrained": False})
     rnd = LoopCloser(random_cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=False))
     assert rnd.threshold == cfg.detector.threshold
     # random weights passed in under a config that says pretrained: the descriptor's own word counts

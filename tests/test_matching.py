@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from slam.config import override
 from slam.odometry.config import MatchConfig
 from slam.odometry.matching import (
     _FORBIDDEN,
@@ -140,8 +141,9 @@ def test_guided_matching_on_kitchen_frames_equals_the_dense_one(redkitchen_dir):
     from slam.odometry.geometry import project, transform_points
 
     cfg = OdometryConfig()
-    cfg.features.rgb_intrinsics = (525.0, 525.0, 320.0, 240.0)
-    cfg.features.rgb_from_depth_translation = (-0.025, 0.0, 0.0)
+    cfg = override(cfg, {
+        "features.rgb_intrinsics": (525.0, 525.0, 320.0, 240.0),
+        "features.rgb_from_depth_translation": (-0.025, 0.0, 0.0)})
     seq = open_sequence(redkitchen_dir)
     feats = {i: extract_features(seq[i].rgb, seq[i].depth, seq.K, cfg.features) for i in (300, 303, 310)}
     mc = cfg.registration.matching

@@ -1,25 +1,28 @@
-"""slam.options: the one mapping from run options to SLAMConfig (dataset rigs, overrides, checks), and the
-API refusing settings that would give NaN poses."""
+"""slam.options: the one mapping from run settings (flags, a library caller's keys, a config file) to
+SLAMConfig and RunOptions: dataset rigs, overrides, checks; and the API refusing settings that would give
+NaN poses."""
 from __future__ import annotations
 
 import argparse
+import math
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
+from slam.config import ConfigError, SLAMConfig, override
 from slam.options import (
     KINECT_V1_RIG,
+    OPTIONS,
     REGISTERED,
+    RunOptions,
     UsageError,
     add_run_arguments,
-    check_config,
     check_device,
-    config_from_args,
     dataset_rig,
-    resolve_rig,
-    run_options,
+    given_settings,
+    resolve_settings,
 )
 
 
@@ -27,6 +30,16 @@ def _parse(*argv):
     p = argparse.ArgumentParser()
     add_run_arguments(p)
     return p.parse_args(list(argv))
+
+
+def _config(*argv, sequence=None):
+    """The config the command builds from ``argv`` (and the dataset's rig of ``sequence``)."""
+    return resolve_settings(given_settings(_parse(*argv)), sequence=sequence).config
+
+
+def _rig(cfg):
+    f = cfg.odometry.features
+    return f.rgb_intrinsics, f.rgb_from_depth_translation
 
 
 @pytest.fixture(scope="module")
@@ -54,33 +67,45 @@ def test_dataset_rig_7scenes_is_the_kinect_tum_is_registered(folders):
     assert dataset_rig(open_sequence(tum)) is REGISTERED
     assert dataset_rig(open_sequence(seven)) is KINECT_V1_RIG
     assert dataset_rig(open_sequence(seven)[0:2]) is KINECT_V1_RIG  # a view reads its parent's files
-    cfg = config_from_args(_parse(), open_sequence(seven))
-    f = cfg.odometry.features
-    assert f.rgb_intrinsics == (525.0, 525.0, 320.0, 240.0) and f.rgb_from_depth_translation == (-0.025, 0.0, 0.0)
-    assert config_from_args(_parse(), open_sequence(tum)).odometry.features.rgb_intrinsics is None
+    assert _rig(_config(sequence=open_sequence(seven))) == ((525.0, 525.0, 320.0, 240.0), (-0.025, 0.0, 0.0))
+    assert _rig(_config(sequence=seven)) == _rig(_config(sequence=open_sequence(seven)))  # a folder is opened
+    assert _rig(_config(sequence=open_sequence(tum))) == (None, (0.0, 0.0, 0.0))
 
 
 def test_flags_override_the_dataset_rig(folders):
     from slam.io import open_sequence
 
     tum, seven = map(open_sequence, folders)
-    r = resolve_rig(_parse("--rgb-from-depth", "-0.03", "0", "0"), seven)  # baseline only: the K stays
-    assert r.rgb_intrinsics == KINECT_V1_RIG.rgb_intrinsics and r.rgb_from_depth == (-0.03, 0.0, 0.0)
-    r = resolve_rig(_parse("--rgb-intrinsics", "520", "521", "319", "241"), seven)  # K only: the baseline stays
-    assert r.rgb_intrinsics == (520.0, 521.0, 319.0, 241.0) and r.rgb_from_depth == (-0.025, 0.0, 0.0)
-    assert resolve_rig(_parse("--registered"), seven).registered
-    r = resolve_rig(_parse("--rgb-intrinsics", "520", "521", "319", "241"), tum)  # a registered dataset
-    assert r.rgb_from_depth == (0.0, 0.0, 0.0)
+    # baseline only: the K stays; K only: the baseline stays
+    assert _rig(_config("--rgb-from-depth", "-0.03", "0", "0", sequence=seven)) == (
+        KINECT_V1_RIG.rgb_intrinsics, (-0.03, 0.0, 0.0))
+    assert _rig(_config("--rgb-intrinsics", "520", "521", "319", "241", sequence=seven)) == (
+        (520.0, 521.0, 319.0, 241.0), (-0.025, 0.0, 0.0))
+    assert _rig(_config("--registered", sequence=seven)) == (None, (0.0, 0.0, 0.0))
+    assert _rig(_config("--rgb-intrinsics", "520", "521", "319", "241", sequence=tum)) == (  # a registered dataset
+        (520.0, 521.0, 319.0, 241.0), (0.0, 0.0, 0.0))
     with pytest.raises(UsageError, match="--rgb-intrinsics"):
-        resolve_rig(_parse("--rgb-from-depth", "-0.025", "0", "0"), tum)
+        _config("--rgb-from-depth", "-0.025", "0", "0", sequence=tum)
     with pytest.raises(UsageError, match="--registered"):
-        resolve_rig(_parse("--registered", "--rgb-from-depth", "0", "0", "0"), seven)
+        _config("--registered", "--rgb-from-depth", "0", "0", "0", sequence=seven)
+
+
+def test_a_config_files_rig_is_kept_over_the_datasets(folders, tmp_path):
+    # a run's config.toml holds the rig it ran with: read back on the same 7-Scenes folder it must stay
+    from slam.io import open_sequence
+
+    seven = open_sequence(folders[1])
+    spec = resolve_settings({"rig.registered": True}, sequence=seven)
+    spec.save(tmp_path / "config.toml")
+    again = resolve_settings({}, tmp_path / "config.toml", seven)
+    assert _rig(again.config) == (None, (0.0, 0.0, 0.0)) and again.config == spec.config
 
 
 @pytest.mark.parametrize("argv", [
     ["--rgb-from-depth", "inf", "0", "0"], ["--rgb-from-depth", "nan", "0", "0"],
     ["--rgb-intrinsics", "525", "525", "inf", "240"], ["--frame-step", "0"], ["--max-frames", "-3"],
     ["--map-voxel", "0"], ["--map-voxel", "inf"], ["--fusion", "bogus"], ["--backbone", "bogus"],
+    ["--preset", "bogus"],
 ])
 def test_non_finite_or_out_of_range_flags_are_usage_errors(argv, capsys):
     with pytest.raises(SystemExit) as e:
@@ -94,73 +119,75 @@ def test_non_finite_or_out_of_range_flags_are_usage_errors(argv, capsys):
 ])
 def test_impossible_intrinsics_are_refused_when_given(values, match):
     with pytest.raises(UsageError, match=match):
-        config_from_args(_parse("--rgb-intrinsics", *values.split()))
+        _config("--rgb-intrinsics", *values.split())
 
 
 def test_device_names_are_checked():
-    assert check_device(None) is None and check_device("cpu") == "cpu"
-    with pytest.raises(UsageError, match="not a torch device"):
-        check_device("bogus")
-    with pytest.raises(UsageError, match="not a torch device"):
-        check_device("cuda:x")
+    assert check_device(None, "d") is None and check_device("cpu", "d") == "cpu"
+    with pytest.raises(ValueError, match="not a torch device"):
+        check_device("bogus", "d")
+    with pytest.raises(ValueError, match="not a torch device"):
+        check_device("cuda:x", "d")
     if not torch.cuda.is_available():
-        with pytest.raises(UsageError, match="CUDA is not available"):
-            check_device("cuda")
-        with pytest.raises(UsageError, match="CUDA is not available"):
-            config_from_args(_parse("--device", "cuda:0"))
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            check_device("cuda", "d")
 
 
-def test_check_config_refuses_nan_anywhere_and_a_non_finite_rig():
-    from slam.config import SLAMConfig
-
-    check_config(SLAMConfig())  # the defaults pass
-    cfg = SLAMConfig()
-    cfg.loop.max_translation = float("inf")  # an infinite bound switches a check off: allowed
-    check_config(cfg)
-    cfg.odometry.registration.ransac.inlier_threshold = float("nan")
-    with pytest.raises(UsageError, match="config.odometry.registration.ransac.inlier_threshold is NaN"):
-        check_config(cfg)
-    cfg = SLAMConfig()
-    cfg.odometry.features.rgb_intrinsics = (525.0, 525.0, 320.0, 240.0)
-    cfg.odometry.features.rgb_from_depth_translation = (float("inf"), 0.0, 0.0)
-    with pytest.raises(UsageError, match="rgb_from_depth_translation must be finite"):
-        check_config(cfg)
+def test_configs_refuse_nan_anywhere_and_a_non_finite_rig():
+    cfg = override(SLAMConfig(), {"loop.max_translation": math.inf})  # an infinite bound switches a check off
+    assert cfg.loop.max_translation == math.inf
+    with pytest.raises(ConfigError, match=r"odometry\.registration\.ransac: RansacConfig\.inlier_threshold"):
+        override(SLAMConfig(), {"odometry.registration.ransac.inlier_threshold": math.nan})
+    with pytest.raises(ConfigError, match="rgb_from_depth_translation must be 3 finite numbers"):
+        override(SLAMConfig(), {"odometry.features.rgb_intrinsics": (525.0, 525.0, 320.0, 240.0),
+                                "odometry.features.rgb_from_depth_translation": (math.inf, 0.0, 0.0)})
 
 
 def test_run_slam_refuses_what_would_give_nan_poses(folders):
-    """Through the API: an infinite baseline and zero intrinsics are refused, not returned as NaN poses."""
-    from slam.config import SLAMConfig
+    """Through the API: zero intrinsics and a bad frame step are refused, not returned as NaN poses."""
     from slam.io import open_sequence
     from slam.pipeline import run_slam
 
     seq = open_sequence(folders[0])
-    cfg = SLAMConfig()
-    cfg.loop.enabled = False
-    cfg.odometry.features.rgb_intrinsics = (50.0, 50.0, 32.0, 24.0)
-    cfg.odometry.features.rgb_from_depth_translation = (float("inf"), 0.0, 0.0)
-    with pytest.raises(ValueError, match="must be finite"):
-        run_slam(seq, cfg, progress=False)
-    cfg = SLAMConfig()
-    cfg.loop.enabled = False
+    cfg = override(SLAMConfig(), {"loop.enabled": False})
     seq.K = np.zeros((3, 3))
     with pytest.raises(ValueError, match="focal lengths must be positive"):
         run_slam(seq, cfg, progress=False)
     with pytest.raises(ValueError, match="frame_step"):
         run_slam(open_sequence(folders[0]), cfg, frame_step=0)
+    with pytest.raises(TypeError, match="SLAMConfig"):
+        run_slam(open_sequence(folders[0]), {"loop": {"enabled": False}})
 
 
-def test_run_options_defaults_and_overrides():
-    ns = run_options(frame_step=3, backbone="efficientnet_lite0")
-    assert (ns.frame_step, ns.backbone, ns.fusion, ns.registered) == (3, "efficientnet_lite0", "dam", False)
-    with pytest.raises(UsageError, match="unknown run option 'step'"):
-        run_options(step=3)
+def test_a_library_callers_keys_are_the_flags_keys():
+    flags = ("--no-loop", "--frame-step", "3", "--threads", "2", "--map-voxel", "0.05", "--camera", "fr2")
+    typed = given_settings(_parse(*flags))
+    assert typed == {"loop.enabled": False, "run.frame_step": 3, "threads": 2, "map.voxel_size": 0.05,
+                     "run.camera": "fr2"}
+    spec = resolve_settings(typed)
+    assert spec.run == RunOptions(frame_step=3, camera="fr2")
+    assert spec.config == override(SLAMConfig(), {"loop.enabled": False, "threads": 2, "map.voxel_size": 0.05})
+    with pytest.raises(ConfigError, match="unknown key 'loop.fusoin'; LoopClosureConfig has enabled, descriptor"):
+        resolve_settings({"loop.fusoin": "dam"})
+    with pytest.raises(ConfigError, match="unknown key 'run.step'; RunOptions has frame_step"):
+        resolve_settings({"run.step": 3})
+    assert all(opt.key.startswith(("run.", "rig.")) or _has_field(opt.key) for opt in OPTIONS)
+
+
+def _has_field(key: str) -> bool:
+    obj = SLAMConfig()
+    for part in key.split("."):
+        if not hasattr(obj, part):
+            return False
+        obj = getattr(obj, part)
+    return True
 
 
 def test_one_list_of_fusion_modes():
     from attnloop.fusion import FUSION_MODES
-    from slam.ablation import MODES
+    from slam.ablation import COLUMNS
 
-    assert MODES is FUSION_MODES
+    assert tuple(COLUMNS["default"]) == FUSION_MODES
     p = argparse.ArgumentParser()
     add_run_arguments(p)
-    assert tuple(next(a for a in p._actions if a.dest == "fusion").choices) == FUSION_MODES
+    assert tuple(next(a for a in p._actions if a.dest == "loop.descriptor.fusion").choices) == FUSION_MODES

@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 
+from slam.config import override
 from slam.lie import se3_between, so3_log
 
 
@@ -50,7 +51,7 @@ def loop_run():
 
     seq = SyntheticSequence("loop", num_frames=300, seed=0)  # Kinect-like depth and image noise
     cfg = SLAMConfig()
-    cfg.loop.descriptor.backbone = "efficientnet_lite0"
+    cfg = override(cfg, {"loop.descriptor.backbone": "efficientnet_lite0"})
     run = run_slam(seq, cfg, progress=False)
     evaluate_run(run)
     return run

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from slam.config import SLAMConfig
+from slam.config import SLAMConfig, override
 from slam.io.frame import RGBDFrame
 from slam.lie import se3_between, so3_log
 from slam.system import RGBDSLAM
@@ -17,7 +17,7 @@ K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
 
 def _odometry_only() -> SLAMConfig:
     cfg = SLAMConfig()
-    cfg.loop.enabled = False
+    cfg = override(cfg, {"loop.enabled": False})
     return cfg
 
 
@@ -84,8 +84,9 @@ def test_unregistered_kinect_rig_on_real_frames(redkitchen_dir):
     from slam.pipeline import evaluate_run, run_slam
 
     cfg = _odometry_only()
-    cfg.odometry.features.rgb_intrinsics = (525.0, 525.0, 320.0, 240.0)
-    cfg.odometry.features.rgb_from_depth_translation = (-0.025, 0.0, 0.0)
+    cfg = override(cfg, {
+        "odometry.features.rgb_intrinsics": (525.0, 525.0, 320.0, 240.0),
+        "odometry.features.rgb_from_depth_translation": (-0.025, 0.0, 0.0)})
     run = run_slam(_kitchen_slice(redkitchen_dir, 0, 120), cfg, progress=False)
     m = evaluate_run(run)
     assert m["num_lost"] == 0
@@ -101,8 +102,7 @@ def kitchen_loop_run(redkitchen_dir):
     from slam.pipeline import evaluate_run, run_slam
 
     cfg = SLAMConfig()
-    cfg.loop.descriptor.backbone = "efficientnet_lite0"
-    cfg.loop.descriptor.fusion = "dam"
+    cfg = override(cfg, {"loop.descriptor.backbone": "efficientnet_lite0", "loop.descriptor.fusion": "dam"})
     run = run_slam(_kitchen_slice(redkitchen_dir, 270, 560), cfg, progress=False)
     evaluate_run(run)
     return run

@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from slam.config import SLAMConfig
+from slam.config import SLAMConfig, override
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -27,7 +27,7 @@ def room_runs():
 
     seq = SyntheticSequence("loop", num_frames=300, width=W, height=H, seed=0)
     cfg = SLAMConfig()
-    cfg.loop.descriptor.backbone = "efficientnet_lite0"
+    cfg = override(cfg, {"loop.descriptor.backbone": "efficientnet_lite0"})
     desc = build_descriptor(cfg.loop.descriptor)
     plain = RGBDSLAM(cfg, descriptor=desc)
     worker = RGBDSLAM(cfg, descriptor=desc, background_loops=True)
@@ -124,7 +124,7 @@ def test_run_slam_equals_the_plain_streaming_api(tmp_path):
 
     seq = open_sequence(generate_sequence(tmp_path / "seq", num_frames=80, width=W, height=H))
     cfg = SLAMConfig()
-    cfg.loop.descriptor.backbone = "efficientnet_lite0"
+    cfg = override(cfg, {"loop.descriptor.backbone": "efficientnet_lite0"})
     desc = build_descriptor(cfg.loop.descriptor)
     run = run_slam(seq, cfg, progress=False, descriptor=desc)
     plain = RGBDSLAM(cfg, descriptor=desc)

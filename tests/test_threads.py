@@ -8,8 +8,8 @@ import cv2
 import pytest
 import torch
 
-from slam.config import SLAMConfig
-from slam.options import UsageError, add_run_arguments, check_config, config_from_args
+from slam.config import ConfigError, SLAMConfig, override
+from slam.options import add_run_arguments, given_settings, resolve_settings
 from slam.threads import check_threads, limit_threads, thread_counts
 
 
@@ -17,6 +17,10 @@ def _parse(*argv):
     p = argparse.ArgumentParser()
     add_run_arguments(p)
     return p.parse_args(list(argv))
+
+def _config(*argv, sequence=None):
+    """The config the command builds from ``argv`` (and the dataset's rig of ``sequence``)."""
+    return resolve_settings(given_settings(_parse(*argv)), sequence=sequence).config
 
 
 @pytest.fixture
@@ -52,10 +56,10 @@ def test_bad_counts_are_refused_by_name(bad):
         check_threads(bad)
     with pytest.raises(ValueError, match="whole number"), limit_threads(bad):
         pass
-    cfg = SLAMConfig()
-    cfg.threads = bad
-    with pytest.raises(UsageError, match="config.threads"):
-        check_config(cfg)
+    with pytest.raises(ConfigError, match="SLAMConfig.threads must be a whole number"):
+        override(SLAMConfig(), {"threads": bad})
+    with pytest.raises(ValueError, match="SLAMConfig.threads must be a whole number"):
+        SLAMConfig(threads=bad)
 
 
 def test_numpy_integers_are_counts():
@@ -66,8 +70,8 @@ def test_numpy_integers_are_counts():
 
 def test_threads_flag_and_default():
     assert SLAMConfig().threads == 1
-    assert config_from_args(_parse()).threads == 1
-    assert config_from_args(_parse("--threads", "3")).threads == 3
+    assert _config().threads == 1
+    assert _config("--threads", "3").threads == 3
     for bad in ("0", "-2", "1.5", "x"):
         with pytest.raises(SystemExit):  # argparse's usage error (exit code 2) naming --threads
             _parse("--threads", bad)
@@ -105,9 +109,7 @@ def test_run_slam_computes_with_the_configs_threads_and_restores_the_callers(tin
 
     seen = _record_track(monkeypatch)
     cfg = SLAMConfig()
-    cfg.loop.enabled = False
-    cfg.map.enabled = False
-    cfg.threads = threads
+    cfg = override(cfg, {"loop.enabled": False, "map.enabled": False, "threads": threads})
     run = run_slam(tiny_sequence, cfg, progress=False)
     assert len(seen) == len(tiny_sequence) == run.result.num_frames
     assert set(seen) == {(threads, threads)}
@@ -118,9 +120,7 @@ def test_run_slam_with_threads_none_leaves_the_callers(tiny_sequence, caller_cou
     from slam.pipeline import run_slam
 
     seen = _record_track(monkeypatch)
-    cfg = SLAMConfig()
-    cfg.loop.enabled = cfg.map.enabled = False
-    cfg.threads = None
+    cfg = override(SLAMConfig(), {"loop.enabled": False, "map.enabled": False, "threads": None})
     run_slam(tiny_sequence, cfg, progress=False)
     assert set(seen) == {(2, 2)}
 
@@ -129,8 +129,7 @@ def test_a_failed_run_restores_the_callers_threads(tiny_sequence, caller_counts,
     from slam.pipeline import run_slam
 
     seen = _record_track(monkeypatch, fail_at=2)
-    cfg = SLAMConfig()
-    cfg.loop.enabled = cfg.map.enabled = False
+    cfg = override(SLAMConfig(), {"loop.enabled": False, "map.enabled": False})
     with pytest.raises(RuntimeError, match="on purpose"):
         run_slam(tiny_sequence, cfg, progress=False)
     assert seen == [(1, 1), (1, 1)]
@@ -142,8 +141,7 @@ def test_the_streaming_api_computes_with_the_configs_threads(tiny_sequence, call
 
     seen = []
     cfg = SLAMConfig()
-    cfg.loop.enabled = False
-    cfg.threads = 1
+    cfg = override(cfg, {"loop.enabled": False, "threads": 1})
     slam = RGBDSLAM(cfg)
     odo_track = slam.odometry.track
 

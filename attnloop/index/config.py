@@ -20,7 +20,7 @@ BACKENDS = ("auto", "exact", "flann", "faiss")
 STORAGE_DTYPES = ("float32", "float16")
 
 
-@dataclass
+@dataclass(frozen=True)
 class FlannConfig:
     """The paper's FLANN priority-search k-means tree (OpenCV's ``cv2.flann_Index``, algorithm 2).
 
@@ -48,7 +48,7 @@ class FlannConfig:
             raise ValueError("FlannConfig.rebuild_every must be >= 1 and rebuild_fraction >= 0")
 
 
-@dataclass
+@dataclass(frozen=True)
 class FaissConfig:
     """A faiss HNSW graph (``faiss.IndexHNSWFlat``, L2 on the unit descriptors or on their PCA codes).
 
@@ -84,7 +84,7 @@ class FaissConfig:
             raise ValueError(f"FaissConfig.retrain_growth must be > 0 (inf: never), got {self.retrain_growth}")
 
 
-@dataclass
+@dataclass(frozen=True)
 class IndexConfig:
     """Parameters of :class:`attnloop.index.KeyframeIndex`.
 

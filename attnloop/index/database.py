@@ -150,6 +150,15 @@ class KeyframeIndex:
         """Descriptor size ``D`` (``None`` before the first add)."""
         return None if self._store is None else self._store.dim
 
+    def use_config(self, config: IndexConfig) -> None:
+        """Replace the settings read at query time (``flann.checks``, ``faiss.ef_search``, ``exact_below``,
+        ``rerank``) here and in the built structure: a config is frozen, so a new one takes its place."""
+        if not isinstance(config, IndexConfig):
+            raise TypeError(f"config must be an IndexConfig, got {type(config).__name__}")
+        self.config = config
+        if self._structure is not None:
+            self._structure.config = config
+
     @property
     def n_indexed(self) -> int:
         """Rows covered by the current structure (the rest is scanned exactly)."""

@@ -17,7 +17,7 @@ Tensor = torch.Tensor
 __all__ = ["LoopCandidateDetector", "LoopCandidates", "LoopDetectorConfig"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class LoopDetectorConfig:
     """Parameters of :class:`LoopCandidateDetector`.
 

@@ -9,7 +9,7 @@ and ``K`` of the depth camera (the frame of the depth images and of the ground t
 register them. ``attnloop-slam`` applies the Kinect v1 rig by default (:data:`slam.options.KINECT_V1_RIG`:
 the colour camera's intrinsics and the 2.5 cm baseline; ``--registered`` or ``--intrinsics`` treats the two
 as one registered camera, as is customary for this dataset); a Python caller chooses with
-:func:`slam.options.config_from_args` (the same default) or ``SLAMConfig()`` (registered).
+:func:`slam.options.resolve_settings` (the same default) or ``SLAMConfig()`` (registered).
 
 Frames are found from the colour files at open time (one directory listing); images and poses are read
 only when a frame is requested. A pose file with non-finite entries (7-Scenes marks lost tracking so)

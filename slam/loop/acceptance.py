@@ -38,7 +38,7 @@ Tensor = torch.Tensor
 __all__ = ["DriftBoundConfig", "drift_limits", "pairwise_consistent"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class DriftBoundConfig:
     """The affine drift bound (see the module docstring); rates measured in docs/benchmarks.md."""
 

@@ -141,8 +141,7 @@ def build_descriptor(config, timer: Optional[StageTimer] = None) -> torch.nn.Mod
 
     timer = timer or StageTimer()
     with timer("descriptor_init"):
-        model = AttentionDescriptor(backbone=config.backbone, fusion=config.fusion, num_rnn=config.num_rnn,
-                                    seed=config.seed, pretrained=config.pretrained, weights=config.weights)
+        model = AttentionDescriptor(**config.settings())
         model.eval()
         if config.device:
             model = model.to(config.device)

@@ -58,7 +58,7 @@ Tensor = torch.Tensor
 __all__ = ["ConsistencyConfig", "GroupConsistency", "maximum_clique"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class ConsistencyConfig:
     """Settings of :class:`GroupConsistency`."""
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 
-@dataclass
+@dataclass(frozen=True)
 class RelocalisationConfig:
     """How a new recording is placed in a saved map.
 

@@ -175,7 +175,8 @@ def descriptor_probe(model: torch.nn.Module) -> list[float] | None:
 def _descriptor_info(slam) -> dict:
     d = slam.config.loop.descriptor
     model = slam.loop_closer.descriptor
-    return {"backbone": getattr(model, "backbone_name", d.backbone), "fusion": d.fusion, "num_rnn": d.num_rnn,
+    recipe = d.recipe  # the preset's values where the config leaves them None
+    return {"backbone": getattr(model, "backbone_name", d.backbone), "fusion": recipe.fusion, "num_rnn": recipe.num_rnn,
             "seed": d.seed, "dim": slam.loop_closer.detector.index.dim, "probe": descriptor_probe(model)}
 
 

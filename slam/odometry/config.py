@@ -74,7 +74,7 @@ def check_choice(owner: str, name: str, value, allowed: tuple) -> None:
         raise ValueError(f"{owner}.{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
 
 
-@dataclass
+@dataclass(frozen=True)
 class FeatureConfig:
     """Keypoint detection, description and back-projection."""
 
@@ -146,7 +146,7 @@ class FeatureConfig:
                              f"{self.rgb_from_depth_translation!r}")
 
 
-@dataclass
+@dataclass(frozen=True)
 class MatchConfig:
     """Descriptor matching (always Kornia's matchers, ``kornia.feature.match_*``)."""
 
@@ -170,7 +170,7 @@ class MatchConfig:
         check_number(n, "guided_radius_px", self.guided_radius_px, 0)  # 0: unguided
 
 
-@dataclass
+@dataclass(frozen=True)
 class RansacConfig:
     """3D-3D RANSAC over 3-point hypotheses, then a refinement on the inliers."""
 
@@ -213,7 +213,7 @@ class RansacConfig:
         check_int(n, "seed", self.seed)
 
 
-@dataclass
+@dataclass(frozen=True)
 class RegistrationConfig:
     """Two-frame registration: matching + RANSAC + the checks that decide success."""
 
@@ -240,7 +240,7 @@ class RegistrationConfig:
         check_number(n, "depth_sigma_c", self.depth_sigma_c, finite=True)
 
 
-@dataclass
+@dataclass(frozen=True)
 class OdometryConfig:
     """Frame-to-keyframe tracking and keyframe selection."""
 
