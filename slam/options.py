@@ -289,7 +289,8 @@ OPTIONS: tuple[Option, ...] = (
     Option("--intrinsics", "run.intrinsics", "camera (default: from the dataset)",
            "intrinsics of a registered camera (colour pixel = depth pixel), on any folder: they replace the dataset's "
            "(--camera, calibration.txt, camera-intrinsics.txt) and no rig is applied, also on 7-Scenes; with "
-           "--rgb-intrinsics they are the depth camera's", nargs=4, type=finite_float, metavar=("FX", "FY", "CX", "CY")),
+           "--rgb-intrinsics they are the depth camera's", nargs=4, type=finite_float,
+           metavar=("FX", "FY", "CX", "CY")),
     Option("--rgb-intrinsics", "odometry.features.rgb_intrinsics", "camera (default: from the dataset)",
            "colour camera intrinsics when colour and depth are not registered; the depth is warped into the colour "
            "camera (default for 7-Scenes: the Kinect v1's 525 525 320 240)", nargs=4, type=finite_float,

@@ -152,8 +152,8 @@ def test_intrinsics_on_tum_replace_calibration_txt(tmp_path):
 
 
 @pytest.mark.parametrize("argv, expected", [
-    (["--intrinsics", "0", "500", "320", "240"], "--intrinsics (0.0, 500.0, 320.0, 240.0): run: RunOptions.intrinsics: focal "
-                                                 "lengths must be positive"),
+    (["--intrinsics", "0", "500", "320", "240"],
+     "--intrinsics (0.0, 500.0, 320.0, 240.0): run: RunOptions.intrinsics: focal lengths must be positive"),
     (["--intrinsics", "500", "500", "320", "240", "--camera", "fr1"], "--intrinsics and --camera"),
 ])
 def test_intrinsics_that_cannot_be_used_are_refused(argv, expected, tmp_path, capsys):
