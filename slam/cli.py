@@ -177,6 +177,8 @@ def run_command(args: argparse.Namespace) -> int:
         raise UsageError("--camera applies to TUM sequence folders, not to --demo")
     if args.demo and "run.intrinsics" in settings:
         raise UsageError("--intrinsics applies to a SEQUENCE folder, not to --demo (it writes its own)")
+    if args.demo and "run.depth_check" in settings:
+        raise UsageError("--no-depth-check applies to a SEQUENCE folder, not to --demo (it writes its own)")
     if args.demo and "run.depth_scale" in settings:
         raise UsageError("--depth-scale applies to a SEQUENCE folder, not to --demo (it writes its own)")
     if (args.save_map is not None or args.map_dir is not None) and settings.get("loop.enabled") is False:

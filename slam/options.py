@@ -131,6 +131,8 @@ class RunOptions:
     depth_scale: Optional[float] = None  # depth PNG units per metre; None: the dataset's
     # (fx, fy, cx, cy) of a registered camera, replacing the dataset's intrinsics; no rig is applied
     intrinsics: Optional[tuple] = None
+    # the first frames' median depth checked against the depth scale (a wrong unit fails before the run)
+    depth_check: bool = True
 
     def __post_init__(self) -> None:
         n = "RunOptions"
@@ -157,6 +159,8 @@ class RunOptions:
                 raise ValueError(f"{n}.intrinsics must be [fx, fy, cx, cy], got {self.intrinsics!r}")
             check_intrinsics(*self.intrinsics, what=f"{n}.intrinsics")
             object.__setattr__(self, "intrinsics", tuple(float(v) for v in self.intrinsics))
+        if not isinstance(self.depth_check, bool):
+            raise ValueError(f"{n}.depth_check must be true or false, got {self.depth_check!r}")
         if self.intrinsics is not None and self.camera is not None:
             raise ValueError("--intrinsics and --camera both give the camera's intrinsics: drop one of them")
 
@@ -173,6 +177,8 @@ def reader_options(run: RunOptions) -> dict:
     if run.intrinsics is not None:
         fx, fy, cx, cy = run.intrinsics
         options["K"] = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    if not run.depth_check:
+        options["check_units"] = False
     return options
 
 
@@ -303,6 +309,9 @@ OPTIONS: tuple[Option, ...] = (
     Option("--depth-scale", "run.depth_scale", "camera (default: from the dataset)",
            "depth PNG units per metre (default: the dataset's, TUM 5000, 7-Scenes 1000); 1000 for sequences in "
            "TUM's layout written in millimetres", type=positive_float, metavar="UNITS"),
+    Option("--no-depth-check", "run.depth_check", "camera (default: from the dataset)",
+           "do not refuse a sequence whose first frames' median depth at the depth scale is outside 0.5-20 m (the "
+           "check that catches depth in the wrong unit); for scenes that really are that near or far", const=False),
     Option("--threads", "threads", "compute", f"torch, BLAS and OpenCV threads of the run (default: "
            f"{_default('threads')}: the work is many small per-frame operations, and more threads than free cores "
            "slow them many times on a busy machine)", type=positive_int, metavar="N"),

@@ -63,6 +63,23 @@ def test_tum_depth_scale_on_7scenes_is_refused_naming_the_scale(redkitchen_dir, 
     assert not out.exists()
 
 
+def test_no_depth_check_opens_a_scene_nearer_than_the_check_allows(redkitchen_dir, tmp_path, capsys):
+    """A sequence whose median depth really is below 0.5 m (here: the kitchen at 1/5 scale) opens with the flag."""
+    seq = _kitchen_as_tum(redkitchen_dir, tmp_path / "kitchen_tum")
+    from slam.io import open_sequence
+    from slam.io.sequence import DatasetError
+
+    with pytest.raises(DatasetError, match="--no-depth-check"):
+        open_sequence(seq)
+    near = open_sequence(seq, check_units=False)[0].depth
+    assert abs(float(np.median(near[near > 0])) - 1.878 / 5) < 0.003  # read at 5000 units per metre, as asked
+    out = tmp_path / "out"
+    assert main([str(seq), "--out", str(out), "--no-loop", "--no-map", "--quiet", "--max-frames", "5",
+                 "--no-depth-check"]) == 0
+    assert (out / "trajectory.txt").is_file()
+    assert main(["--demo", "--out", str(tmp_path / "d"), "--no-depth-check"]) == 2  # the demo writes its own depth
+
+
 def _write_frames(root, n=10, depth_dtype=np.uint16, truncate_rgb=False, swap_lists=False):
     """A TUM-layout folder of ``n`` textured frames at 1-2 m; optionally broken as users break them."""
     rng = np.random.default_rng(0)

@@ -123,7 +123,8 @@ def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values:
     else:
         fix = f"give --depth-scale UNITS, the depth images' units per metre (median raw value {raw:g})"
     raise DatasetError(root, f"depth at {scale:g} units per metre has a median of {med:.3g} m in its first "
-                             f"{len(medians)} frame(s), outside the {lo:g}-{hi:g} m of an RGB-D camera: {fix}")
+                             f"{len(medians)} frame(s), outside the {lo:g}-{hi:g} m of an RGB-D camera: {fix} "
+                             "(--no-depth-check if the scene really is that near or far)")
 
 
 class DatasetWarning(UserWarning):
@@ -303,7 +304,9 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
         camera: TUM only: ``"fr1"``, ``"fr2"``, ``"fr3"`` or ``"ros"`` (default: from the folder name); a
             7-Scenes folder refuses it (give ``K``).
         K: ``(3, 3)`` intrinsics overriding the dataset's (``--intrinsics``).
-        **kwargs: passed to the reader (both take ``depth_scale``, depth units per metre).
+        **kwargs: passed to the reader (both take ``depth_scale``, depth units per metre, and
+            ``check_units=False``, which skips :func:`check_depth_units` for a scene nearer than 0.5 m or
+            farther than 20 m).
 
     Raises:
         DatasetNotFoundError: the folder does not exist.

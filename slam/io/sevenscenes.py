@@ -159,7 +159,8 @@ class SevenScenesSequence(RGBDSequence):
 
     depth_scale = SEVENSCENES_DEPTH_SCALE
 
-    def __init__(self, root, K=None, fps: float = SEVENSCENES_FPS, depth_scale: float | None = None):
+    def __init__(self, root, K=None, fps: float = SEVENSCENES_FPS, depth_scale: float | None = None,
+                 check_units: bool = True):
         self.root = Path(root).expanduser()
         if isinstance(fps, bool) or not isinstance(fps, Real) or not math.isfinite(fps) or not fps > 0:
             raise DatasetError(self.root, f"fps must be a finite positive number, got {fps!r}")
@@ -205,8 +206,9 @@ class SevenScenesSequence(RGBDSequence):
                 raise DatasetError(path, str(e).removeprefix(f"{path} ")) from None
         else:
             self.K = SEVENSCENES_K.copy()
-        check_depth_units(self.root, [self.root / name for name in self._depth[:10]], self.depth_scale,
-                          SEVENSCENES_INVALID_DEPTH)
+        if check_units:
+            check_depth_units(self.root, [self.root / name for name in self._depth[:10]], self.depth_scale,
+                              SEVENSCENES_INVALID_DEPTH)
 
     def __len__(self) -> int:
         return len(self._color)

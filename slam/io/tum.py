@@ -257,7 +257,7 @@ class TUMSequence(RGBDSequence):
     depth_scale = TUM_DEPTH_FACTOR
 
     def __init__(self, root, camera: str | None = None, K=None, max_difference: float = TUM_MAX_DIFFERENCE,
-                 undistort: bool = False, depth_scale: float | None = None):
+                 undistort: bool = False, depth_scale: float | None = None, check_units: bool = True):
         self.root = Path(root).expanduser()
         if not self.root.is_dir():
             raise DatasetNotFoundError(self.root, "sequence folder does not exist")
@@ -319,7 +319,8 @@ class TUMSequence(RGBDSequence):
         if converted:
             logger.warning("%s: timestamps of %s: converted to seconds", self.root, ", ".join(converted))
         self._gt = self._associate_groundtruth(self._timestamps)
-        check_depth_units(self.root, [self.root / name for name in self._depth[:10]], self.depth_scale)
+        if check_units:
+            check_depth_units(self.root, [self.root / name for name in self._depth[:10]], self.depth_scale)
 
     @property
     def groundtruth_trajectory(self):
