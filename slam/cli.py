@@ -12,6 +12,7 @@ import logging
 import os
 import shutil
 import sys
+import traceback
 import warnings
 from pathlib import Path
 
@@ -210,9 +211,21 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
         named = f"{cam['name']}, " if cam["name"] else ""
         print(f"camera: {named}intrinsics {' '.join(f'{v:g}' for v in cam['intrinsics'])}; "
               f"{describe_rig(resolve_rig(args, seq))}", file=sys.stderr)
-    run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step, frames=args.frames,
-                   progress=None if not args.quiet else False, descriptor=descriptor, save_map=args.save_map,
-                   map_dir=saved)
+    from slam.system import LoopWorkerError
+
+    try:
+        run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step, frames=args.frames,
+                       progress=None if not args.quiet else False, descriptor=descriptor, save_map=args.save_map,
+                       map_dir=saved)
+    except LoopWorkerError as exc:  # a fault, not a usage error: the frames tracked so far are written, exit 1
+        if exc.run is not None:
+            evaluate_run(exc.run)
+            write_outputs(exc.run, out)
+        traceback.print_exception(type(exc.__cause__), exc.__cause__, exc.__cause__.__traceback__, file=sys.stderr)
+        frames = exc.run.result.num_frames if exc.run is not None else 0
+        print(f"{PROG}: error: {exc}; the run stopped: {out / 'trajectory.txt'} and metrics.json hold the "
+              f"{frames} frames tracked before it", file=sys.stderr)
+        return 1
     metrics = evaluate_run(run)
     write_outputs(run, out)
     tracked = metrics["num_frames"] - metrics["num_lost"] - metrics["num_skipped"]  # the first frame included

@@ -43,12 +43,13 @@ from slam.io.sequence import RGBDSequence, SequenceView
 from slam.io.trajectory import Trajectory, write_tum_trajectory
 from slam.mapping import PointCloudMap, write_ply
 from slam.progress import Progress
-from slam.system import RGBDSLAM, SLAMResult
+from slam.system import RGBDSLAM, LoopWorkerError, SLAMResult
 from slam.threads import limit_threads
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["OUTPUT_FILES", "OutputDirError", "RunResult", "evaluate_run", "json_safe", "loop_ground_truth_for_step",
+           "loop_worker_metrics",
            "prepare_output_dir", "run_slam", "write_outputs"]
 
 #: The files a run writes into its output folder (``map.ply`` unless the map is off).
@@ -196,6 +197,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     # the keyframes' points are computed in a worker thread, in keyframe order (the map is only read at the end)
     map_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-map") if cloud is not None else None
     map_jobs = []
+    failure = None
     try:
         for i in bar:
             with slam.timer("io_wait"):  # decoding runs ahead in threads: this is only the time waited for it
@@ -223,11 +225,15 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         result = slam.finish()
         for job in map_jobs:
             job.result()  # a map error is the run's error
+    except LoopWorkerError as exc:  # the run stops; what was tracked is still returned (exc.run) to be written
+        failure = exc
+        result = slam.result_so_far()
+        logger.error("%s: %s; stopped after %d frames", sequence.name, exc, result.num_frames)
     finally:
         if map_worker is not None:
             map_worker.shutdown(wait=True, cancel_futures=True)
     report = None
-    if reloc is not None:
+    if reloc is not None and failure is None:
         result, report = reloc.finish(result)
     wall = time.perf_counter() - start
     bad = ~torch.isfinite(result.trajectory.poses).all(dim=-1)
@@ -238,12 +244,12 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     gt = view.groundtruth
     gt_note = None if gt is not None else unmatched_groundtruth(sequence, view.timestamps)
     gt_arr = torch.from_numpy(np.stack([
-        p if p is not None else np.full(7, np.nan) for p in (view.groundtruth_pose(i) for i in range(n))
+        p if p is not None else np.full(7, np.nan) for p in (view.groundtruth_pose(i) for i in range(result.num_frames))
     ])) if gt is not None else None
     closer = slam.loop_closer
     backbone = getattr(closer.descriptor, "backbone_name", None) if closer is not None else None
     saved_to = None
-    if save_map is not None:
+    if save_map is not None and failure is None:
         from slam.maps import capture_map
         from slam.maps import save_map as write_map
 
@@ -258,10 +264,14 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
             logger.warning("%s: this recording was not placed in the map, which is kept as it was; its own map "
                            "goes into %s", save_map, target)
         saved_to = write_map(target, reloc.merged_map(view) if grown else capture_map(slam, view))
-    return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
-                     frame_step=int(frame_step), map=cloud, backbone=backbone, relocalisation=report,
-                     map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to,
-                     camera=camera_of(sequence), groundtruth_note=gt_note)
+    run = RunResult(result, sequence.name, wall, result.num_frames / max(wall, 1e-9), gt, gt_arr, config=config,
+                    frame_step=int(frame_step), map=cloud, backbone=backbone, relocalisation=report,
+                    map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to,
+                    camera=camera_of(sequence), groundtruth_note=gt_note)
+    if failure is not None:
+        failure.run = run
+        raise failure
+    return run
 
 
 def unmatched_groundtruth(sequence: RGBDSequence, stamps: np.ndarray) -> str | None:
@@ -414,6 +424,9 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
                                "total_ms": round(1000 * sum(c.seconds for c in res.corrections), 3),
                                "max_ms": round(1000 * max((c.seconds for c in res.corrections), default=0.0), 3)},
     }
+    m["loop_worker"] = loop_worker_metrics(res, run.config)
+    if res.error is not None:
+        m["error"] = res.error  # the run stopped early: the outputs hold the frames tracked before it
     if run.config is not None:
         d = run.config.loop.descriptor
         m["descriptor"] = ({"backbone": run.backbone, "requested_backbone": d.backbone, "fusion": d.fusion,
@@ -495,6 +508,30 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
         m["relocalisation"] = _relocalisation_metrics(run)
     run.metrics = m
     return m
+
+
+def loop_worker_metrics(result: SLAMResult, config: SLAMConfig | None = None) -> dict[str, object]:
+    """The loop worker's lag over a run (``metrics.json``'s ``loop_worker``): the keyframes whose loop work was
+    waiting when each frame was tracked (:attr:`slam.system.RGBDSLAM.loop_lag`), its maximum and, per fifth of
+    the run's frames, its maximum and mean; ``backlog`` is ``BackendConfig.loop_backlog`` (0: tracking waits
+    for the worker, the outputs are deterministic; N: it runs up to N keyframes ahead).
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> r = SimpleNamespace(loop_lag=torch.tensor([0, 1, 1, 0, 2, 0, 0, 1, 0, 3]))
+        >>> m = loop_worker_metrics(r)
+        >>> m["lag_max"], m["lag_per_fifth"]["max"], m["lag_per_fifth"]["mean"]
+        (3, [1, 1, 2, 1, 3], [0.5, 0.5, 1.0, 0.5, 1.5])
+    """
+    lag = result.loop_lag if result.loop_lag is not None else torch.zeros(0, dtype=torch.int64)
+    backlog = config.backend.loop_backlog if config is not None else None
+    out: dict[str, object] = {"backlog": backlog,
+                              "mode": None if backlog is None else ("waits" if backlog == 0 else "runs ahead"),
+                              "lag_max": int(lag.max()) if lag.numel() else 0}
+    parts = [p for p in torch.tensor_split(lag, 5) if p.numel()] if lag.numel() else []
+    out["lag_per_fifth"] = {"max": [int(p.max()) for p in parts],
+                            "mean": [round(float(p.double().mean()), 3) for p in parts]}
+    return out
 
 
 def _relocalisation_metrics(run: RunResult) -> dict[str, object]:
