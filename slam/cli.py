@@ -34,7 +34,7 @@ PROG = "attnloop-slam"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from slam.options import add_run_arguments, frame_range, positive_int
+    from slam.options import add_localize_argument, add_run_arguments, frame_range, positive_int
     from slam.synthetic.demo import DEFAULT_DEMO_SCENE, DEMO_SCENES
 
     p = argparse.ArgumentParser(
@@ -57,6 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="relocalise this recording in the map saved in DIR: poses in that map's world, or in "
                         "this recording's own frame when no place of the map is recognised (said on stdout "
                         "and in metrics.json)")
+    add_localize_argument(g)
     g = p.add_argument_group("demo")
     g.add_argument("--demo", action="store_true",
                    help="generate a synthetic sequence into OUT/demo_sequence and run on it")

@@ -225,6 +225,27 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
     g.add_argument("--no-map", action="store_true", help="do not build or write map.ply")
 
 
+def add_localize_argument(parser) -> None:
+    """Add ``--localize`` (localisation only in the ``--map``; ``RelocalisationConfig.localize``) to a parser or
+    argument group that also has ``--map DIR`` (``dest="map_dir"``) and ``--save-map``."""
+    parser.add_argument("--localize", action="store_true",
+                        help="with --map: only localise this recording in the map (no loops of its own, no map.ply, "
+                             "memory flat however long it runs); the map folder is left as it is")
+
+
+def _check_localize(args: argparse.Namespace, given: Collection[str]) -> str | None:
+    """Why ``--localize`` cannot be honoured with the other flags (None when it can, or is not given)."""
+    if not getattr(args, "localize", False):
+        return None
+    if getattr(args, "map_dir", None) is None:
+        return "--localize localises in a saved map: give it with --map DIR"
+    if getattr(args, "save_map", None) is not None:
+        return "--localize leaves the map as it is and builds none to save; drop --save-map or --localize"
+    if "map_voxel" in given or getattr(args, "no_map", False):
+        return "--localize builds no map.ply: drop --map-voxel / --no-map"
+    return None
+
+
 def _default_threads() -> int | None:
     return SLAMConfig().threads
 
@@ -329,6 +350,9 @@ def _refuse_idle_options(args: argparse.Namespace, given: Collection[str], confi
     if getattr(args, "no_map", False) and "map_voxel" in given:
         problems.append("--map-voxel sets the voxel size of map.ply, which --no-map does not build; drop one of "
                         "them")
+    localize = _check_localize(args, given)
+    if localize is not None:
+        problems.append(localize)
     if problems:
         raise UsageError("; ".join(problems))
 
@@ -555,6 +579,9 @@ def config_from_args(args: argparse.Namespace, sequence=None, fusion: str | None
     if voxel is not None:
         cfg.map.voxel_size = float(voxel)
     cfg.map.enabled = not getattr(args, "no_map", False)
+    if getattr(args, "localize", False):
+        cfg.relocalisation.localize = True
+        cfg.map.enabled = False  # localisation builds no map.ply (the saved map is the map)
     return check_config(cfg)
 
 

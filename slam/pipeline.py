@@ -130,21 +130,27 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
             keyframe: a grown map holds one size).
         map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording
             in: every pose is then reported in the map's world, or, when it never relocalises, in its
-            own (``run.relocalisation`` says which; ``config.relocalisation`` sets how).
+            own (``run.relocalisation`` says which; ``config.relocalisation`` sets how). With
+            ``config.relocalisation.localize`` the recording is only localised in it: no loops of its
+            own, no map.ply, keyframes released once used (memory flat over any length), nothing saved.
 
     Returns:
         :class:`RunResult`.
 
     Raises:
         ValueError: nothing to process, a ``frame_step`` < 1, a config that would give NaN poses
-            (:class:`slam.options.UsageError`) or intrinsics that cannot be a camera.
+            (:class:`slam.options.UsageError`), intrinsics that cannot be a camera, or localisation
+            (``config.relocalisation.localize``) without ``map_dir`` or with ``save_map``.
         FloatingPointError: the run produced non-finite poses (never silently returned).
         slam.maps.MapMismatchError: ``map_dir`` made with another descriptor, feature detector or camera rig,
             or (with ``save_map``) keyframe images of another size.
     """
-    from slam.options import check_config, check_sequence_intrinsics
+    from slam.options import UsageError, check_config, check_sequence_intrinsics
 
     config = check_config(config if config is not None else SLAMConfig())
+    if config.relocalisation.localize and (map_dir is None or save_map is not None):
+        raise UsageError("localisation only (config.relocalisation.localize) needs a saved map (map_dir) and saves "
+                         "none (save_map)")
     if isinstance(frame_step, bool) or not isinstance(frame_step, (int, np.integer)) or frame_step < 1:
         raise ValueError(f"frame_step must be an integer >= 1, got {frame_step!r}")
     check_sequence_intrinsics(sequence)
@@ -178,14 +184,17 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     stamps = view.timestamps
     # loop work in a worker thread (the same results; the relocaliser reads the loop closer after each frame,
     # so a run in a saved map keeps it in this thread)
-    slam = RGBDSLAM(config, descriptor=descriptor, background_loops=saved is None)
+    localize = config.relocalisation.localize
+    # keyframe images are kept only for a map to save (capture_map stores them)
+    slam = RGBDSLAM(config, descriptor=descriptor, background_loops=saved is None, localize=localize,
+                    keep_images=save_map is not None)
     reloc = None
     if saved is not None:
         from slam.maps import MapRelocaliser
 
         reloc = MapRelocaliser(saved, slam, config.relocalisation)
     check_merge = reloc is not None and save_map is not None
-    cloud = PointCloudMap.for_config(config) if config.map.enabled else None
+    cloud = PointCloudMap.for_config(config) if config.map.enabled and not localize else None
     recent: deque = deque(maxlen=4)  # the frames a new keyframe can come from (this one or a promoted one)
     start = time.perf_counter()
     # decode ahead in threads; an unreadable frame comes as its FrameReadError, so it is only skipped
@@ -350,9 +359,19 @@ def _add_to_map(cloud: PointCloudMap, slam: RGBDSLAM, new_ids: list[int], recent
             logger.debug("map: no image kept for keyframe %d (frame %d)", kf_id, slam.keyframes[kf_id].frame_index)
             continue
         try:
-            cloud.add(kf_id, frame.rgb, frame.depth, frame.K)
+            cloud.add(kf_id, frame.rgb, frame.depth, frame.K, reference=map_reference(slam, kf_id))
         except ValueError as e:  # a frame odd enough for the map but not for tracking: leave its points out
             logger.warning("map: keyframe %d (frame %d) left out: %s", kf_id, frame.index, e)
+
+
+def map_reference(slam: RGBDSLAM, kf_id: int):
+    """``(parent id, its pose of keyframe kf_id)`` in the depth camera's frame (the map's), by the odometry edge
+    that made the keyframe: what :meth:`slam.mapping.PointCloudMap.add` compares its points with; None for the
+    first keyframe and after a tracking loss (a weak edge: a guess)."""
+    if kf_id == 0:
+        return None
+    edge = slam.odometry.edges[kf_id - 1]
+    return None if edge.weak else (edge.i, slam.depth_camera_pose(edge.T_ij))
 
 
 def loop_ground_truth_for_step(frame_step: int = 1):

@@ -233,14 +233,24 @@ class RGBDSLAM:
             for the whole run (:func:`slam.threads.limit_threads`, as :func:`slam.pipeline.run_slam` does),
             since the worker computes between the calls. Work handed to the worker is never dropped:
             :meth:`finish` waits for all of it; a failure of it is raised as :class:`LoopWorkerError`.
+        localize: localisation in a saved map (:class:`slam.maps.MapRelocaliser` with
+            ``RelocalisationConfig.localize``): keyframes serve tracking and the map queries only; they are
+            entered in the graph (the merge into the map's world needs it: a few hundred bytes each) but
+            not described nor searched for loops here, and :meth:`release_keyframe` drops their features
+            and image once used, so memory stays flat over any length.
+        keep_images: keep each keyframe's downsized image (``Keyframe.rgb``) after its loop work described it
+            (what a saved map stores: :func:`slam.maps.capture_map`); False drops it then (None), the
+            largest part of a keyframe (230 kB at 320 x 240) that nothing reads again.
 
     Call :meth:`track` once per frame in input order (or :meth:`skip` for a frame that could not be read),
     then :meth:`finish`.
     """
 
     def __init__(self, config: Optional[SLAMConfig] = None, descriptor: Optional[torch.nn.Module] = None,
-                 background_loops: bool = False):
+                 background_loops: bool = False, localize: bool = False, keep_images: bool = True):
         self.config = config or SLAMConfig()
+        self.localize = bool(localize)
+        self.keep_images = bool(keep_images) or self.localize  # localisation releases them itself, once queried
         self.odometry = RGBDOdometry(self.config.odometry)
         self.timer = StageTimer()
         self.graph = KeyframeGraph()
@@ -260,7 +270,7 @@ class RGBDSLAM:
         # the loop worker (background_loops): the last keyframe's work in flight, and the keyframe estimates
         # the reports use meanwhile (the tracking thread never reads the graph while the worker may write it)
         self._worker: Optional[ThreadPoolExecutor] = None
-        if background_loops and self.loop_closer is not None:
+        if background_loops and self.loop_closer is not None and not self.localize:
             self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-loops")
         self._jobs: deque = deque()  # (future, keyframe ids) handed to the worker, oldest first
         self._failure: Optional[LoopWorkerError] = None  # the worker failed: every later call raises it
@@ -280,8 +290,26 @@ class RGBDSLAM:
     # ------------------------------------------------------------------------------------------
     @property
     def keyframes(self) -> List[Keyframe]:
-        """The odometry's keyframes (features and downsized RGB)."""
+        """The odometry's keyframes (features and downsized RGB; None once :meth:`release_keyframe` dropped them)."""
         return self.odometry.keyframes
+
+    def release_keyframe(self, kf_id: int) -> None:
+        """Drop a keyframe's features and image (``Keyframe.features`` / ``rgb`` become None), keeping its
+        pose, graph entry and odometry edge: for a keyframe nothing will register against again (in
+        localisation, once it is no longer tracking's reference and has queried the map).
+
+        Raises:
+            ValueError: ``kf_id`` is tracking's current reference keyframe (it is registered against), or a
+                run that closes loops among its own keyframes (any of them can be a loop candidate later).
+        """
+        if not self.localize and self.loop_closer is not None:
+            raise ValueError("release_keyframe() is for localisation (RGBDSLAM(localize=True)): a run that closes "
+                             "loops verifies candidates against every keyframe's features")
+        kfs = self.odometry.keyframes
+        if kf_id == len(kfs) - 1:
+            raise ValueError(f"keyframe {kf_id} is tracking's reference: its features are still registered against")
+        kfs[kf_id].features = None
+        kfs[kf_id].rgb = None
 
     @property
     def loops(self) -> List[LoopClosure]:
@@ -355,13 +383,15 @@ class RGBDSLAM:
         new_loops, changed = [], False
         for kf in kfs:
             self._add_to_graph(kf)
-            if self.loop_closer is not None:
+            if self.loop_closer is not None and not self.localize:
                 update = self.loop_closer.close(kf, self.odometry.keyframes, self.graph,
                                                 through_loops=self._corrected,
                                                 min_loop_weight=self.config.backend.switch_off_weight)
                 self._apply(update)
                 new_loops.extend(lp for lp in update.new if lp.consistent)
                 changed = changed or bool(update)
+            if not self.keep_images:  # described (or never to be): nothing reads it again
+                kf.rgb = None
         correction = None
         if changed and self.config.backend.optimize_on_loop:
             correction = self._correct()
@@ -537,6 +567,12 @@ class RGBDSLAM:
         if self._T_rgb_depth is None:
             return poses
         return depth_camera_poses(poses, self._T_rgb_depth)
+
+    def depth_camera_pose(self, poses: Tensor) -> Tensor:
+        """Poses ``(..., 7)`` of the tracked camera (absolute, or one keyframe's in another: an odometry edge)
+        as the depth camera's, the frame every reported pose and the map's points are in (the same poses
+        for registered frames)."""
+        return self._output_frame(poses)
 
     def _placed(self) -> Tensor:
         """``(N,)`` bool: the frames placed by tracking (not lost, not skipped)."""
