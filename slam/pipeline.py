@@ -404,7 +404,8 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
     m, rotation deg) and ``loops_true`` / ``loops_false`` (accepted loops judged by ground-truth distance
     and angle, :class:`slam.eval.LoopGroundTruthConfig`; ``loop_hypotheses_false``: the false ones among
     the verified loops by final status, beside ``loop_hypotheses``, all of them by status, and
-    ``online_corrections``) when there is ground truth to evaluate against;
+    ``online_corrections``) when there is ground truth to evaluate against; ``loop_worker`` (its lag:
+    :func:`loop_worker_metrics`) always, and ``error`` when the run stopped on a :class:`LoopWorkerError`;
     otherwise ``ate_rmse`` is None and ``ate_unavailable`` says why (no ground truth, fewer than 3
     frames with it, a camera that never moves, ...). A run never fails here for want of ground truth.
 

