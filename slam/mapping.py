@@ -329,12 +329,13 @@ class PointCloudMap:
         if not ids:
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
         counts = np.array([self._clouds[k][0].shape[0] for k in ids])
-        which = np.repeat(np.arange(len(ids)), counts)
+        ends = np.cumsum(counts)
         R = _rotation_matrices(poses[ids, 3:])  # (m, 3, 3)
         t = poses[ids, :3]
-        local = np.concatenate([self._clouds[k][0] for k in ids]).astype(np.float64)
-        local *= np.repeat(np.array([self._clouds[k][1] for k in ids]), counts)[:, None]
-        world = np.einsum("nij,nj->ni", R[which], local) + t[which]
+        world = np.empty((int(ends[-1]), 3), np.float64)  # placed keyframe by keyframe: no (N, 3, 3) temporary
+        for j, k in enumerate(ids):
+            q, step, _ = self._clouds[k]
+            world[ends[j] - counts[j]:ends[j]] = (q * step) @ R[j].T + t[j]
         colors = np.concatenate([self._clouds[k][2] for k in ids])
         return voxel_downsample(world, colors, self.config.voxel_size)
 
