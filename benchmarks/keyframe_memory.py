@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     p.add_argument("--save-map", action="store_true", help="run as with --save-map (keyframe images kept)")
     args = p.parse_args(argv)
 
-    import slam.pipeline as pipeline
+    from slam import pipeline
     from slam.io import open_sequence
     from slam.options import config_from_args, frame_range, run_options
 

@@ -24,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from slam.io.sequence import RGBDSequence  # noqa: E402
+from slam.io.sequence import RGBDSequence
 
 
 class Laps(RGBDSequence):

@@ -43,7 +43,7 @@ import logging
 import math
 from array import array
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
@@ -267,8 +267,8 @@ class RGBDSLAM:
         self._num_lost = 0
         self._num_skipped = 0
         self._finished = False
-        # the loop worker (background_loops): the last keyframe's work in flight, and the keyframe estimates
-        # the reports use meanwhile (the tracking thread never reads the graph while the worker may write it)
+        # the loop worker (background_loops): the keyframes' work in flight, and the keyframe estimates the
+        # reports use meanwhile (the tracking thread never reads the graph while the worker may write it)
         self._worker: Optional[ThreadPoolExecutor] = None
         if background_loops and self.loop_closer is not None and not self.localize:
             self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-loops")
@@ -409,7 +409,7 @@ class RGBDSLAM:
                 break
             try:
                 job_loops, job_correction, job_snapshot = fut.result()
-            except BaseException as exc:
+            except Exception as exc:  # noqa: BLE001  (any error of the worker's; a Ctrl-C while waiting is not)
                 self._jobs.popleft()
                 self._fail(ids, exc)
             self._jobs.popleft()

@@ -9,7 +9,6 @@ import json
 
 import pytest
 import torch
-
 from test_maps import SESSION_FRAMES, room_sessions  # noqa: F401  (the map, and the relocalised recording)
 
 
@@ -32,7 +31,7 @@ def _folder_state(folder):
 
 
 @pytest.fixture(scope="module")
-def room_map(room_sessions):
+def room_map(room_sessions):  # noqa: F811  (test_maps' fixture, used here)
     """test_maps.py's map of the room's loop and the recording relocalised in it, run here with localisation."""
     return {**room_sessions, "relocalised": room_sessions["second"]}
 
@@ -69,7 +68,7 @@ def test_localisation_places_the_recording_as_relocalisation_does_and_leaves_the
 def test_localisation_keeps_no_keyframe_data_beyond_trackings_reference(room_map, monkeypatch):
     """Ten laps of the recording (750 frames, forward and backward) hold the keyframe data of one keyframe,
     as one lap does; the run stays placed in the map throughout."""
-    import slam.pipeline as pipeline
+    from slam import pipeline
 
     captured = {}
 
