@@ -147,6 +147,7 @@ def check_backend_config(config) -> None:
     check_int(n, "gnc_steps", config.gnc_steps, 1)
     check_number(n, "gnc_factor", config.gnc_factor, 1, finite=True)  # the width shrinks (1: stays) per solve
     check_int(n, "max_iterations", config.max_iterations, 1)
+    check_int(n, "loop_backlog", config.loop_backlog, 0)
     check_int(n, "online_max_iterations", config.online_max_iterations, 1)
     check_number(n, "odometry_information_scale", config.odometry_information_scale, 0, lo_open=True, finite=True)
     check_number(n, "switch_off_weight", config.switch_off_weight, 0, 1)

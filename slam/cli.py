@@ -15,6 +15,7 @@ import logging
 import os
 import shutil
 import sys
+import traceback
 import warnings
 from pathlib import Path
 
@@ -183,6 +184,8 @@ def run_command(args: argparse.Namespace) -> int:
         raise UsageError("--depth-scale applies to a SEQUENCE folder, not to --demo (it writes its own)")
     if (args.save_map is not None or args.map_dir is not None) and settings.get("loop.enabled") is False:
         raise UsageError("--save-map and --map need loop closure (its descriptors and verification); drop --no-loop")
+    if settings.get("relocalisation.localize"):
+        _check_localize(args)
     saved = None
     if args.map_dir is not None:
         from slam.maps import load_map
@@ -197,6 +200,8 @@ def run_command(args: argparse.Namespace) -> int:
     # every setting checked (--weights a file too) before any output is touched or the demo rendered
     spec = resolve_settings(settings, args.config_file, None if args.demo else args.sequence, demo=args.demo)
     cfg, opts, seq = spec.config, spec.run, spec.sequence
+    if cfg.relocalisation.localize:  # set by the config file
+        _check_localize(args)
     if not cfg.loop.enabled and (args.save_map is not None or args.map_dir is not None):
         raise UsageError("--save-map and --map need loop closure (its descriptors and verification); the config "
                          "sets loop.enabled = false")
@@ -221,9 +226,21 @@ def run_command(args: argparse.Namespace) -> int:
         named = f"{cam['name']}, " if cam["name"] else ""
         print(f"camera: {named}intrinsics {' '.join(f'{v:g}' for v in cam['intrinsics'])}; "
               f"{describe_rig(rig_of(cfg))}", file=sys.stderr)
-    run = run_slam(seq, cfg, max_frames=opts.max_frames, frame_step=opts.frame_step, frames=opts.frames,
-                   progress=None if not args.quiet else False, descriptor=descriptor, save_map=args.save_map,
-                   map_dir=saved)
+    from slam.system import LoopWorkerError
+
+    try:
+        run = run_slam(seq, cfg, max_frames=opts.max_frames, frame_step=opts.frame_step, frames=opts.frames,
+                       progress=None if not args.quiet else False, descriptor=descriptor, save_map=args.save_map,
+                       map_dir=saved)
+    except LoopWorkerError as exc:  # a fault, not a usage error: the frames tracked so far are written, exit 1
+        if exc.run is not None:
+            evaluate_run(exc.run)
+            write_outputs(exc.run, out)
+        traceback.print_exception(type(exc.__cause__), exc.__cause__, exc.__cause__.__traceback__, file=sys.stderr)
+        frames = exc.run.result.num_frames if exc.run is not None else 0
+        print(f"{PROG}: error: {exc}; the run stopped: {out / 'trajectory.txt'} and metrics.json hold the "
+              f"{frames} frames tracked before it", file=sys.stderr)
+        return 1
     metrics = evaluate_run(run)
     write_outputs(run, out)
     if metrics["status"] == "failed":
@@ -348,6 +365,16 @@ def _main(argv: list[str] | None) -> int:
             return call_reporting_errors(PROG, run_command, args)
     finally:
         notice.setLevel(level)
+
+
+def _check_localize(args: argparse.Namespace) -> None:
+    """Refuse ``--localize`` without the map it localises in, or with a map to save."""
+    from slam.options import UsageError
+
+    if args.map_dir is None:
+        raise UsageError("--localize localises in a saved map: give it with --map DIR")
+    if args.save_map is not None:
+        raise UsageError("--localize leaves the map as it is and builds none to save; drop --save-map or --localize")
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -282,6 +282,14 @@ class BackendConfig:
     # corrected pose and re-anchor tracking on it, so that track() reports corrected poses (one keyframe
     # later with the worker). False: the graph is optimised once, in finish(), and track() reports odometry.
     optimize_on_loop: bool = True
+    # The loop worker (RGBDSLAM(background_loops=True), run_slam): how many keyframes' loop work may still be
+    # waiting (queued or running) when tracking hands over the next keyframe. 0: tracking waits until the
+    # worker is idle, so every report and the result are the same, bit for bit, on any machine (offline
+    # runs, benchmarks). N >= 1: tracking runs ahead of a slow worker by up to N keyframes and waits only
+    # beyond that (a live camera: the frame rate holds while a costly loop is checked; the loops and
+    # corrections reach the reports later, and the result then depends on timing). RGBDSLAM.loop_lag
+    # reports the keyframes waiting; metrics.json's loop_worker its maximum and its course per fifth.
+    loop_backlog: int = 0
     online_max_iterations: int = 10  # LM iterations of an online correction (bounds its time; >= 1)
     # A loop edge whose final kernel weight falls below this is reported switched off by the back end (0..1).
     switch_off_weight: float = 0.1

@@ -1,9 +1,13 @@
 """A coloured point-cloud map of the keyframes' depth, placed with the optimised poses, and its PLY file.
 
 While a run goes, :class:`PointCloudMap` keeps, for every keyframe, its depth back-projected into the
-keyframe's own (depth) camera frame with the colours of its pixels, voxel-downsampled there: a few
-thousand points per keyframe (at most one per sampled pixel), so the memory grows like the keyframes'
-own images do. At the end :meth:`PointCloudMap.points` places every keyframe's points with the final
+keyframe's own (depth) camera frame with the colours of its pixels, voxel-downsampled there, and only the
+points that the keyframes just before it (``MapConfig.overlap_keyframes``, placed by the odometry between
+them) do not already hold in the same voxel: consecutive keyframes see mostly the same surfaces, so a
+keyframe keeps what it adds. The points are kept compactly: coordinates as int16 multiples of a per-keyframe
+step (at most ``voxel_size / 16``: 1.25 mm at 2 cm voxels) and uint8 colours, 9 bytes a point.
+The points stay in their keyframe's frame because the keyframes move when loops correct the graph: at the
+end :meth:`PointCloudMap.points` places every keyframe's points with the final
 (optimised) keyframe poses, in the trajectory's frame, and merges them on one voxel grid; :func:`write_ply`
 writes them as a binary little-endian PLY (``x y z`` float32, ``red green blue`` uchar) that MeshLab,
 CloudCompare, Open3D and RTAB-Map open.
@@ -35,6 +39,8 @@ from typing import BinaryIO, Union
 import numpy as np
 import torch
 
+from slam.odometry.config import check_int
+
 __all__ = ["MapConfig", "PLYFormatError", "PointCloudMap", "keyframe_cloud", "read_ply", "voxel_downsample",
            "write_ply"]
 
@@ -57,6 +63,10 @@ class MapConfig:
     # Depth range kept in the map (m); None: the odometry's (FeatureConfig.min_depth / max_depth).
     min_depth: float | None = None
     max_depth: float | None = None
+    # A keyframe keeps only its points in voxels (of its own frame) that none of this many keyframes before it
+    # holds, placed by the odometry between them (PointCloudMap.add's reference): consecutive keyframes see
+    # mostly the same surfaces. 0: every keyframe keeps all its points.
+    overlap_keyframes: int = 3
 
     def __post_init__(self):
         for name in ("voxel_size", "sample_depth"):
@@ -67,6 +77,7 @@ class MapConfig:
             v = getattr(self, name)
             if v is not None and not (isinstance(v, (int, float)) and v >= 0):  # inf: no far bound
                 raise ValueError(f"MapConfig.{name} must be None or a number >= 0, got {v!r}")
+        check_int("MapConfig", "overlap_keyframes", self.overlap_keyframes, 0)
         if self.min_depth is not None and self.max_depth is not None and not self.max_depth > self.min_depth:
             raise ValueError(f"MapConfig: max_depth ({self.max_depth}) must be > min_depth ({self.min_depth})")
 
@@ -197,8 +208,27 @@ def _rotation_matrices(q: np.ndarray) -> np.ndarray:
     return quat_to_rotmat(torch.from_numpy(np.ascontiguousarray(q, dtype=np.float64))).numpy()
 
 
+def _voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """One int64 per voxel of ``points`` ``(N, 3)`` (21 bits an axis: +-10^6 voxels, 20 km at 2 cm; farther
+    points share keys, which only makes the overlap test keep fewer of them)."""
+    c = np.clip(np.floor(points / voxel_size), -(1 << 20), (1 << 20) - 1).astype(np.int64) + (1 << 20)
+    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+
+
+def _matrix(pose) -> np.ndarray:
+    """``(4, 4)`` of a ``(7,)`` ``[t, q_xyzw]`` pose."""
+    p = np.asarray(pose.detach().cpu().numpy() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = _rotation_matrices(p[None, 3:])[0]
+    T[:3, 3] = p[:3]
+    return T
+
+
 class PointCloudMap:
     """The keyframes' coloured points, each kept in its keyframe's camera frame until it is placed.
+
+    Per keyframe: the points it adds to the keyframes just before it (``MapConfig.overlap_keyframes``), as
+    int16 coordinates times a step of its own and uint8 colours (9 bytes a point), plus the step.
 
     Args:
         config: :class:`MapConfig`.
@@ -215,7 +245,9 @@ class PointCloudMap:
         self.rgb_intrinsics = None if rgb_intrinsics is None else tuple(float(v) for v in rgb_intrinsics)
         self.rgb_from_depth = tuple(float(v) for v in rgb_from_depth)
         self.depth_range = (float(depth_range[0]), float(depth_range[1]))
-        self._clouds: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._clouds: dict[int, tuple[np.ndarray, float, np.ndarray]] = {}  # id -> (int16 (N, 3), step, uint8)
+        # the last keyframes' full clouds for the overlap test: (id, 4x4 pose in a local chain, points)
+        self._recent: list[tuple[int, np.ndarray, np.ndarray]] = []
 
     @classmethod
     def for_config(cls, config) -> PointCloudMap:
@@ -223,12 +255,40 @@ class PointCloudMap:
         f = config.odometry.features
         return cls(config.map, f.rgb_intrinsics, tuple(f.rgb_from_depth_translation), (f.min_depth, f.max_depth))
 
-    def add(self, keyframe_id: int, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray) -> int:
-        """Keep the points of keyframe ``keyframe_id`` (replacing any it had); returns how many."""
+    def add(self, keyframe_id: int, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray,
+            reference: tuple[int, torch.Tensor] | None = None) -> int:
+        """Keep the points of keyframe ``keyframe_id`` (replacing any it had) that the last
+        ``overlap_keyframes`` keyframes added do not hold; returns how many are kept.
+
+        Args:
+            keyframe_id: its id.
+            rgb, depth, K: its frame (see :func:`keyframe_cloud`).
+            reference: ``(id, T_ref_kf)``: a keyframe added before and this keyframe's ``(7,)`` pose in it (the
+                odometry edge). Keyframes joined to this one through such references are the ones compared;
+                None (or a reference not among the last ones): nothing is compared, every point is kept.
+        """
         pts, cols = keyframe_cloud(rgb, depth, K, self.config, self.rgb_intrinsics, self.rgb_from_depth,
                                    self.depth_range)
-        self._clouds[int(keyframe_id)] = (pts, cols)
-        return int(pts.shape[0])
+        n_recent = self.config.overlap_keyframes
+        local = np.eye(4)
+        by_id = {k: T for k, T, _ in self._recent}
+        if reference is not None and int(reference[0]) in by_id and n_recent:
+            local = by_id[int(reference[0])] @ _matrix(reference[1])
+        else:
+            self._recent = []  # a new chain: nothing to compare with
+        keep = np.ones(pts.shape[0], bool)
+        if self._recent and pts.shape[0]:
+            inv = np.linalg.inv(local)
+            held = np.concatenate([(q @ (inv @ T)[:3, :3].T + (inv @ T)[:3, 3]) for _, T, q in self._recent])
+            keep = ~np.isin(_voxel_keys(pts.astype(np.float64), self.config.voxel_size),
+                            _voxel_keys(held, self.config.voxel_size))
+        if n_recent:
+            self._recent = (self._recent + [(int(keyframe_id), local, pts.astype(np.float64))])[-n_recent:]
+        kept = pts[keep]
+        reach = float(np.abs(kept).max()) if kept.size else 0.0
+        step = max(self.config.voxel_size / 16.0, reach / 32000.0)
+        self._clouds[int(keyframe_id)] = (np.rint(kept / step).astype(np.int16), step, cols[keep])
+        return int(kept.shape[0])
 
     def __len__(self) -> int:
         """Number of keyframes with points."""
@@ -237,12 +297,17 @@ class PointCloudMap:
     @property
     def num_points(self) -> int:
         """Points kept over all keyframes (before the final merge)."""
-        return sum(p.shape[0] for p, _ in self._clouds.values())
+        return sum(q.shape[0] for q, _, _ in self._clouds.values())
 
     @property
     def nbytes(self) -> int:
         """Memory held by the points and colours."""
-        return sum(p.nbytes + c.nbytes for p, c in self._clouds.values())
+        return sum(q.nbytes + c.nbytes + 8 for q, _, c in self._clouds.values())
+
+    def local_points(self, keyframe_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframe ``keyframe_id``'s kept points ``(N, 3)`` float32 in its camera frame, and colours ``(N, 3)``."""
+        q, step, c = self._clouds[int(keyframe_id)]
+        return (q.astype(np.float64) * step).astype(np.float32), c
 
     def points(self, keyframe_poses: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """Every keyframe's points placed with its pose, merged on the voxel grid.
@@ -264,12 +329,14 @@ class PointCloudMap:
         if not ids:
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
         counts = np.array([self._clouds[k][0].shape[0] for k in ids])
-        which = np.repeat(np.arange(len(ids)), counts)
+        ends = np.cumsum(counts)
         R = _rotation_matrices(poses[ids, 3:])  # (m, 3, 3)
         t = poses[ids, :3]
-        local = np.concatenate([self._clouds[k][0] for k in ids]).astype(np.float64)
-        world = np.einsum("nij,nj->ni", R[which], local) + t[which]
-        colors = np.concatenate([self._clouds[k][1] for k in ids])
+        world = np.empty((int(ends[-1]), 3), np.float64)  # placed keyframe by keyframe: no (N, 3, 3) temporary
+        for j, k in enumerate(ids):
+            q, step, _ = self._clouds[k]
+            world[ends[j] - counts[j]:ends[j]] = (q * step) @ R[j].T + t[j]
+        colors = np.concatenate([self._clouds[k][2] for k in ids])
         return voxel_downsample(world, colors, self.config.voxel_size)
 
 

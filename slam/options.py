@@ -321,6 +321,9 @@ OPTIONS: tuple[Option, ...] = (
     Option("--map-voxel", "map.voxel_size", "map", f"voxel size of map.ply (default: {_default('map.voxel_size'):.3g}"
            " m)", type=positive_float, metavar="METRES"),
     Option("--no-map", "map.enabled", "map", "do not build or write map.ply", const=False),
+    Option("--localize", "relocalisation.localize", "map", "with --map: only localise this recording in the map (no "
+           "loops of its own, no map.ply, memory flat however long it runs); the map folder is left as it is",
+           const=True),
 )
 
 
@@ -393,7 +396,9 @@ def _refuse_idle(settings: Mapping[str, Any], config: SLAMConfig, demo: bool) ->
             problems.append("--seed does nothing without --demo: it seeds the generated sequence and the "
                             "descriptor's random weights, and this descriptor has none (no RNNs: "
                             "loop.descriptor.num_rnn is 0; a pretrained backbone); drop --seed")
-    if settings.get("map.enabled") is False and "map.voxel_size" in settings:
+    if config.relocalisation.localize and ("map.voxel_size" in settings or "map.enabled" in settings):
+        problems.append("--localize builds no map.ply: drop --map-voxel / --no-map")
+    elif settings.get("map.enabled") is False and "map.voxel_size" in settings:
         problems.append("--map-voxel sets the voxel size of map.ply, which --no-map does not build; drop one of "
                         "them")
     if problems:
@@ -484,6 +489,8 @@ def resolve_settings(settings: Optional[Mapping[str, Any]] = None, file=None, se
     _rig_settings(settings, data, sequence, run)
     config = _override_naming_the_flag(base, {k: v for k, v in settings.items() if not k.startswith("run.")})
     _refuse_idle(settings, config, demo)
+    if config.relocalisation.localize and config.map.enabled:  # localisation builds no map: the saved one is the map
+        config = override(config, {"map.enabled": False})
     if config.loop.enabled:
         check_weights_file(config.loop.descriptor.weights)  # a wrong path found before the work
     return RunSettings(config, run, sequence)

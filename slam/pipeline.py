@@ -43,12 +43,13 @@ from slam.io.sequence import RGBDSequence, SequenceView
 from slam.io.trajectory import Trajectory, write_tum_trajectory
 from slam.mapping import PointCloudMap, write_ply
 from slam.progress import Progress
-from slam.system import RGBDSLAM, SLAMResult
+from slam.system import RGBDSLAM, LoopWorkerError, SLAMResult
 from slam.threads import limit_threads
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["OUTPUT_FILES", "OutputDirError", "RunResult", "evaluate_run", "json_safe", "loop_ground_truth_for_step",
+           "loop_worker_metrics",
            "prepare_output_dir", "run_slam", "write_outputs"]
 
 #: The files a run writes into its output folder (``map.ply`` unless the map is off).
@@ -132,23 +133,29 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
             keyframe: a grown map holds one size).
         map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording
             in: every pose is then reported in the map's world, or, when it never relocalises, in its
-            own (``run.relocalisation`` says which; ``config.relocalisation`` sets how).
+            own (``run.relocalisation`` says which; ``config.relocalisation`` sets how). With
+            ``config.relocalisation.localize`` the recording is only localised in it: no loops of its
+            own, no map.ply, keyframes released once used (memory flat over any length), nothing saved.
 
     Returns:
         :class:`RunResult`.
 
     Raises:
         ValueError: nothing to process, a ``frame_step`` < 1, a config that would give NaN poses
-            (:class:`slam.options.UsageError`) or intrinsics that cannot be a camera.
+            (:class:`slam.options.UsageError`), intrinsics that cannot be a camera, or localisation
+            (``config.relocalisation.localize``) without ``map_dir`` or with ``save_map``.
         FloatingPointError: the run produced non-finite poses (never silently returned).
         slam.maps.MapMismatchError: ``map_dir`` made with another descriptor, feature detector or camera rig,
             or (with ``save_map``) keyframe images of another size.
     """
-    from slam.options import check_sequence_intrinsics
+    from slam.options import UsageError, check_sequence_intrinsics
 
     config = config if config is not None else SLAMConfig()
     if not isinstance(config, SLAMConfig):
         raise TypeError(f"config must be a slam.config.SLAMConfig, got {type(config).__name__}")
+    if config.relocalisation.localize and (map_dir is None or save_map is not None):
+        raise UsageError("localisation only (config.relocalisation.localize) needs a saved map (map_dir) and saves "
+                         "none (save_map)")
     if isinstance(frame_step, bool) or not isinstance(frame_step, (int, np.integer)) or frame_step < 1:
         raise ValueError(f"frame_step must be an integer >= 1, got {frame_step!r}")
     check_sequence_intrinsics(sequence)
@@ -182,14 +189,17 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     stamps = view.timestamps
     # loop work in a worker thread (the same results; the relocaliser reads the loop closer after each frame,
     # so a run in a saved map keeps it in this thread)
-    slam = RGBDSLAM(config, descriptor=descriptor, background_loops=saved is None)
+    localize = config.relocalisation.localize
+    # keyframe images are kept only for a map to save (capture_map stores them)
+    slam = RGBDSLAM(config, descriptor=descriptor, background_loops=saved is None, localize=localize,
+                    keep_images=save_map is not None)
     reloc = None
     if saved is not None:
         from slam.maps import MapRelocaliser
 
         reloc = MapRelocaliser(saved, slam, config.relocalisation)
     check_merge = reloc is not None and save_map is not None
-    cloud = PointCloudMap.for_config(config) if config.map.enabled else None
+    cloud = PointCloudMap.for_config(config) if config.map.enabled and not localize else None
     recent: deque = deque(maxlen=4)  # the frames a new keyframe can come from (this one or a promoted one)
     start = time.perf_counter()
     # decode ahead in threads; an unreadable frame comes as its FrameReadError, so it is only skipped
@@ -202,6 +212,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     map_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-map") if cloud is not None else None
     map_jobs = []
     first_untracked = None
+    failure = None
     try:
         for i in bar:
             with slam.timer("io_wait"):  # decoding runs ahead in threads: this is only the time waited for it
@@ -231,11 +242,15 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         result = slam.finish()
         for job in map_jobs:
             job.result()  # a map error is the run's error
+    except LoopWorkerError as exc:  # the run stops; what was tracked is still returned (exc.run) to be written
+        failure = exc
+        result = slam.result_so_far()
+        logger.error("%s: %s; stopped after %d frames", sequence.name, exc, result.num_frames)
     finally:
         if map_worker is not None:
             map_worker.shutdown(wait=True, cancel_futures=True)
     report = None
-    if reloc is not None:
+    if reloc is not None and failure is None:
         result, report = reloc.finish(result)
     wall = time.perf_counter() - start
     bad = ~torch.isfinite(result.trajectory.poses).all(dim=-1)
@@ -246,13 +261,13 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     gt = view.groundtruth
     gt_note = None if gt is not None else unmatched_groundtruth(sequence, view.timestamps)
     gt_arr = torch.from_numpy(np.stack([
-        p if p is not None else np.full(7, np.nan) for p in (view.groundtruth_pose(i) for i in range(n))
+        p if p is not None else np.full(7, np.nan) for p in (view.groundtruth_pose(i) for i in range(result.num_frames))
     ])) if gt is not None else None
     closer = slam.loop_closer
     backbone = getattr(closer.descriptor, "backbone_name", None) if closer is not None else None
     descriptor_dim = getattr(closer.descriptor, "out_dim", None) if closer is not None else None
     saved_to = None
-    if save_map is not None:
+    if save_map is not None and failure is None:
         from slam.maps import capture_map
         from slam.maps import save_map as write_map
 
@@ -267,11 +282,15 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
             logger.warning("%s: this recording was not placed in the map, which is kept as it was; its own map "
                            "goes into %s", save_map, target)
         saved_to = write_map(target, reloc.merged_map(view) if grown else capture_map(slam, view))
-    return RunResult(result, sequence.name, wall, n / max(wall, 1e-9), gt, gt_arr, config=config,
-                     frame_step=int(frame_step), map=cloud, backbone=backbone, descriptor_dim=descriptor_dim,
-                     relocalisation=report,
-                     map_origin=None if saved is None else saved.groundtruth_origin, saved_map=saved_to,
-                     camera=camera_of(sequence), groundtruth_note=gt_note, first_untracked=first_untracked)
+    run = RunResult(result, sequence.name, wall, result.num_frames / max(wall, 1e-9), gt, gt_arr, config=config,
+                    frame_step=int(frame_step), map=cloud, backbone=backbone, descriptor_dim=descriptor_dim,
+                    relocalisation=report, map_origin=None if saved is None else saved.groundtruth_origin,
+                    saved_map=saved_to, camera=camera_of(sequence), groundtruth_note=gt_note,
+                    first_untracked=first_untracked)
+    if failure is not None:
+        failure.run = run
+        raise failure
+    return run
 
 
 def unmatched_groundtruth(sequence: RGBDSequence, stamps: np.ndarray) -> str | None:
@@ -350,9 +369,19 @@ def _add_to_map(cloud: PointCloudMap, slam: RGBDSLAM, new_ids: list[int], recent
             logger.debug("map: no image kept for keyframe %d (frame %d)", kf_id, slam.keyframes[kf_id].frame_index)
             continue
         try:
-            cloud.add(kf_id, frame.rgb, frame.depth, frame.K)
+            cloud.add(kf_id, frame.rgb, frame.depth, frame.K, reference=map_reference(slam, kf_id))
         except ValueError as e:  # a frame odd enough for the map but not for tracking: leave its points out
             logger.warning("map: keyframe %d (frame %d) left out: %s", kf_id, frame.index, e)
+
+
+def map_reference(slam: RGBDSLAM, kf_id: int):
+    """``(parent id, its pose of keyframe kf_id)`` in the depth camera's frame (the map's), by the odometry edge
+    that made the keyframe: what :meth:`slam.mapping.PointCloudMap.add` compares its points with; None for the
+    first keyframe and after a tracking loss (a weak edge: a guess)."""
+    if kf_id == 0:
+        return None
+    edge = slam.odometry.edges[kf_id - 1]
+    return None if edge.weak else (edge.i, slam.depth_camera_pose(edge.T_ij))
 
 
 def loop_ground_truth_for_step(frame_step: int = 1):
@@ -385,7 +414,8 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
     m, rotation deg) and ``loops_true`` / ``loops_false`` (accepted loops judged by ground-truth distance
     and angle, :class:`slam.eval.LoopGroundTruthConfig`; ``loop_hypotheses_false``: the false ones among
     the verified loops by final status, beside ``loop_hypotheses``, all of them by status, and
-    ``online_corrections``) when there is ground truth to evaluate against;
+    ``online_corrections``) when there is ground truth to evaluate against; ``loop_worker`` (its lag:
+    :func:`loop_worker_metrics`) always, and ``error`` when the run stopped on a :class:`LoopWorkerError`;
     otherwise ``ate_rmse`` is None and ``ate_unavailable`` says why (no ground truth, fewer than 3
     frames with it, a camera that never moves, ...). A run never fails here for want of ground truth.
     ``num_tracked``: the frames placed by tracking (the first one included); ``status``: ``"ok"``, or
@@ -428,6 +458,9 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
                                "total_ms": round(1000 * sum(c.seconds for c in res.corrections), 3),
                                "max_ms": round(1000 * max((c.seconds for c in res.corrections), default=0.0), 3)},
     }
+    m["loop_worker"] = loop_worker_metrics(res, run.config)
+    if res.error is not None:
+        m["error"] = res.error  # the run stopped early: the outputs hold the frames tracked before it
     if run.config is not None:
         d = run.config.loop.descriptor
         recipe = dataclasses.asdict(d.recipe)
@@ -519,6 +552,30 @@ def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
         m["relocalisation"] = _relocalisation_metrics(run)
     run.metrics = m
     return m
+
+
+def loop_worker_metrics(result: SLAMResult, config: SLAMConfig | None = None) -> dict[str, object]:
+    """The loop worker's lag over a run (``metrics.json``'s ``loop_worker``): the keyframes whose loop work was
+    waiting when each frame was tracked (:attr:`slam.system.RGBDSLAM.loop_lag`), its maximum and, per fifth of
+    the run's frames, its maximum and mean; ``backlog`` is ``BackendConfig.loop_backlog`` (0: tracking waits
+    for the worker, the outputs are deterministic; N: it runs up to N keyframes ahead).
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> r = SimpleNamespace(loop_lag=torch.tensor([0, 1, 1, 0, 2, 0, 0, 1, 0, 3]))
+        >>> m = loop_worker_metrics(r)
+        >>> m["lag_max"], m["lag_per_fifth"]["max"], m["lag_per_fifth"]["mean"]
+        (3, [1, 1, 2, 1, 3], [0.5, 0.5, 1.0, 0.5, 1.5])
+    """
+    lag = result.loop_lag if result.loop_lag is not None else torch.zeros(0, dtype=torch.int64)
+    backlog = config.backend.loop_backlog if config is not None else None
+    out: dict[str, object] = {"backlog": backlog,
+                              "mode": None if backlog is None else ("waits" if backlog == 0 else "runs ahead"),
+                              "lag_max": int(lag.max()) if lag.numel() else 0}
+    parts = [p for p in torch.tensor_split(lag, 5) if p.numel()] if lag.numel() else []
+    out["lag_per_fifth"] = {"max": [int(p.max()) for p in parts],
+                            "mean": [round(float(p.double().mean()), 3) for p in parts]}
+    return out
 
 
 def _relocalisation_metrics(run: RunResult) -> dict[str, object]:

@@ -41,7 +41,9 @@ from __future__ import annotations
 
 import logging
 import math
-from concurrent.futures import Future, ThreadPoolExecutor
+from array import array
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
@@ -68,7 +70,26 @@ logger = logging.getLogger(__name__)
 _LISTED_SKIPS = 3
 Tensor = torch.Tensor
 
-__all__ = ["FrameState", "LoopClosure", "LoopQuery", "RGBDSLAM", "SLAMResult"]
+__all__ = ["FrameState", "LoopClosure", "LoopQuery", "LoopWorkerError", "RGBDSLAM", "SLAMResult"]
+
+
+class LoopWorkerError(RuntimeError):
+    """The loop worker failed on a keyframe's loop work: the run cannot go on (its graph is half-updated).
+
+    Raised by the :meth:`RGBDSLAM.track` (or :meth:`RGBDSLAM.finish`) that finds the failure, and by every
+    later call; the worker's own exception is its ``__cause__``. :meth:`RGBDSLAM.result_so_far` still gives
+    the frames tracked so far. ``run`` is set by :func:`slam.pipeline.run_slam` to the partial
+    :class:`slam.pipeline.RunResult`, whose outputs can still be written.
+
+    Attributes:
+        keyframes: the ids of the keyframes whose work failed.
+        run: the partial run (set by :func:`slam.pipeline.run_slam`), else None.
+    """
+
+    def __init__(self, message: str, keyframes=()):
+        super().__init__(message)
+        self.keyframes = list(keyframes)
+        self.run = None
 
 
 @dataclass
@@ -132,6 +153,10 @@ class SLAMResult:
         corrections: the online optimisations, in order.
         tracked: ``(N,)`` bool per frame: placed by tracking (not lost, not unreadable): the frames that a
             system which outputs tracked frames only (ORB-SLAM's trajectory files) would report.
+        loop_lag: ``(N,)`` int64 per frame: the keyframes whose loop work was waiting (queued or running in
+            the loop worker) when the frame's :meth:`RGBDSLAM.track` returned (zeros without the worker).
+        error: why the run stopped early (:class:`LoopWorkerError`; :meth:`RGBDSLAM.result_so_far`), else
+            None. Such a result holds the poses as tracking reported them, not optimised.
     """
 
     trajectory: Trajectory
@@ -150,6 +175,8 @@ class SLAMResult:
     loop_hypotheses: List[LoopClosure] = field(default_factory=list)
     corrections: List[BackendResult] = field(default_factory=list)
     tracked: Optional[Tensor] = None
+    loop_lag: Optional[Tensor] = None
+    error: Optional[str] = None
 
 
 def interpolate_gaps(timestamps: Tensor, poses: Tensor, placed: Tensor) -> Tensor:
@@ -203,17 +230,29 @@ class RGBDSLAM:
             L2-normalised descriptors (default: :class:`attnloop.AttentionDescriptor` built from
             ``config.loop.descriptor``).
         background_loops: run each keyframe's loop work in a worker thread (see the module docstring): the
-            same results, loops reported one keyframe later. The caller keeps the thread counts for the whole
-            run (:func:`slam.threads.limit_threads`, as :func:`slam.pipeline.run_slam` does), since the worker
-            computes between the calls.
+            same results, loops reported one keyframe later (``BackendConfig.loop_backlog = 0``), or tracking
+            running ahead of the worker by up to ``loop_backlog`` keyframes. The caller keeps the thread counts
+            for the whole run (:func:`slam.threads.limit_threads`, as :func:`slam.pipeline.run_slam` does),
+            since the worker computes between the calls. Work handed to the worker is never dropped:
+            :meth:`finish` waits for all of it; a failure of it is raised as :class:`LoopWorkerError`.
+        localize: localisation in a saved map (:class:`slam.maps.MapRelocaliser` with
+            ``RelocalisationConfig.localize``): keyframes serve tracking and the map queries only; they are
+            entered in the graph (the merge into the map's world needs it: a few hundred bytes each) but
+            not described nor searched for loops here, and :meth:`release_keyframe` drops their features
+            and image once used, so memory stays flat over any length.
+        keep_images: keep each keyframe's downsized image (``Keyframe.rgb``) after its loop work described it
+            (what a saved map stores: :func:`slam.maps.capture_map`); False drops it then (None), the
+            largest part of a keyframe (230 kB at 320 x 240) that nothing reads again.
 
     Call :meth:`track` once per frame in input order (or :meth:`skip` for a frame that could not be read),
     then :meth:`finish`.
     """
 
     def __init__(self, config: Optional[SLAMConfig] = None, descriptor: Optional[torch.nn.Module] = None,
-                 background_loops: bool = False):
+                 background_loops: bool = False, localize: bool = False, keep_images: bool = True):
         self.config = config or SLAMConfig()
+        self.localize = bool(localize)
+        self.keep_images = bool(keep_images) or self.localize  # localisation releases them itself, once queried
         self.odometry = RGBDOdometry(self.config.odometry)
         self.timer = StageTimer()
         self.graph = KeyframeGraph()
@@ -230,12 +269,15 @@ class RGBDSLAM:
         self._num_lost = 0
         self._num_skipped = 0
         self._finished = False
-        # the loop worker (background_loops): the last keyframe's work in flight, and the keyframe estimates
-        # the reports use meanwhile (the tracking thread never reads the graph while the worker may write it)
+        # the loop worker (background_loops): the keyframes' work in flight, and the keyframe estimates the
+        # reports use meanwhile (the tracking thread never reads the graph while the worker may write it)
         self._worker: Optional[ThreadPoolExecutor] = None
-        if background_loops and self.loop_closer is not None:
+        if background_loops and self.loop_closer is not None and not self.localize:
             self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-loops")
-        self._pending: Optional[Future] = None
+        self._jobs: deque = deque()  # (future, keyframe ids) handed to the worker, oldest first
+        self._failure: Optional[LoopWorkerError] = None  # the worker failed: every later call raises it
+        self._broken = False  # set by the worker thread when a job raised: the jobs queued after it do nothing
+        self._lag = array("q")  # per frame: keyframes waiting for the worker when track() returned
         self._shown: List[Tensor] = []  # per keyframe: [estimate, odometry pose] as reported
         self._shown_corrected = False  # the shown estimates include loop corrections
         # The front end tracks the camera whose pixels the keypoints live in: the colour camera when the
@@ -250,8 +292,26 @@ class RGBDSLAM:
     # ------------------------------------------------------------------------------------------
     @property
     def keyframes(self) -> List[Keyframe]:
-        """The odometry's keyframes (features and downsized RGB)."""
+        """The odometry's keyframes (features and downsized RGB; None once :meth:`release_keyframe` dropped them)."""
         return self.odometry.keyframes
+
+    def release_keyframe(self, kf_id: int) -> None:
+        """Drop a keyframe's features and image (``Keyframe.features`` / ``rgb`` become None), keeping its
+        pose, graph entry and odometry edge: for a keyframe nothing will register against again (in
+        localisation, once it is no longer tracking's reference and has queried the map).
+
+        Raises:
+            ValueError: ``kf_id`` is tracking's current reference keyframe (it is registered against), or a
+                run that closes loops among its own keyframes (any of them can be a loop candidate later).
+        """
+        if not self.localize and self.loop_closer is not None:
+            raise ValueError("release_keyframe() is for localisation (RGBDSLAM(localize=True)): a run that closes "
+                             "loops verifies candidates against every keyframe's features")
+        kfs = self.odometry.keyframes
+        if kf_id == len(kfs) - 1:
+            raise ValueError(f"keyframe {kf_id} is tracking's reference: its features are still registered against")
+        kfs[kf_id].features = None
+        kfs[kf_id].rgb = None
 
     @property
     def loops(self) -> List[LoopClosure]:
@@ -260,6 +320,13 @@ class RGBDSLAM:
 
     def _hypotheses(self) -> List[LoopClosure]:
         return self.loop_closer.hypotheses if self.loop_closer is not None else []
+
+    @property
+    def loop_lag(self) -> int:
+        """Keyframes whose loop work is waiting in the loop worker (queued or running); 0 without it. With
+        ``BackendConfig.loop_backlog = N`` it is at most N + the keyframes of one hand-over after a
+        :meth:`track`."""
+        return sum(len(ids) for fut, ids in self._jobs if not fut.done())
 
     # ------------------------------------------------------------------------------------------
     @config_threads  # SLAMConfig.threads for the call, the caller's counts after (slam.threads)
@@ -281,6 +348,8 @@ class RGBDSLAM:
         """
         if self._finished:
             raise RuntimeError("track() called after finish(); create a new RGBDSLAM")
+        if self._failure is not None:
+            raise self._failure
         if not isinstance(frame, RGBDFrame):
             raise TypeError(f"track() takes a slam.io.RGBDFrame, got {type(frame).__name__}")
         check_frame(frame)  # again: a field set after construction (frame.depth = depth_mm) is an error too
@@ -298,6 +367,7 @@ class RGBDSLAM:
             new_loops, correction = self._keyframe_work(kfs)
         else:
             new_loops, correction = self._submit(kfs)
+        self._lag.append(self.loop_lag)
         if res.keyframe_id >= 0:
             est, odo_kf = self._keyframe_poses(res.keyframe_id)
             pose = se3_compose(est, T_kf)
@@ -315,53 +385,93 @@ class RGBDSLAM:
         new_loops, changed = [], False
         for kf in kfs:
             self._add_to_graph(kf)
-            if self.loop_closer is not None:
+            if self.loop_closer is not None and not self.localize:
                 update = self.loop_closer.close(kf, self.odometry.keyframes, self.graph,
                                                 through_loops=self._corrected,
                                                 min_loop_weight=self.config.backend.switch_off_weight)
                 self._apply(update)
                 new_loops.extend(lp for lp in update.new if lp.consistent)
                 changed = changed or bool(update)
+            if not self.keep_images:  # described (or never to be): nothing reads it again
+                kf.rgb = None
         correction = None
         if changed and self.config.backend.optimize_on_loop:
             correction = self._correct()
         return new_loops, correction
 
     # -- the loop worker (background_loops) -------------------------------------------------------------
+    def _collect(self, keep: int):
+        """Wait for the oldest jobs until at most ``keep`` keyframes' work is still waiting, and take the
+        results of every finished job at the head of the queue (in order): (kept loops, the last correction,
+        the graph's estimates after the last of them or None). A job that raised is a :class:`LoopWorkerError`."""
+        loops, correction, snapshot = [], None, None
+        while self._jobs:
+            fut, ids = self._jobs[0]
+            if not fut.done() and self.loop_lag <= keep:
+                break
+            try:
+                job_loops, job_correction, job_snapshot = fut.result()
+            except Exception as exc:  # noqa: BLE001  (any error of the worker's; a Ctrl-C while waiting is not)
+                self._jobs.popleft()
+                self._fail(ids, exc)
+            self._jobs.popleft()
+            loops.extend(job_loops)
+            correction = job_correction if job_correction is not None else correction
+            snapshot = job_snapshot
+        return loops, correction, snapshot
+
+    def _fail(self, ids, exc: BaseException):
+        self._failure = LoopWorkerError(f"the loop worker failed on keyframe{'s' if len(ids) > 1 else ''} "
+                                        f"{', '.join(map(str, ids))}: {type(exc).__name__}: {exc}", ids)
+        self._failure.__cause__ = exc
+        raise self._failure
+
     def _wait(self):
-        """The loop work in flight, finished: (kept loops, correction), or ([], None) when there was none."""
-        if self._pending is None:
-            return [], None
-        pending, self._pending = self._pending, None
-        return pending.result()  # re-raises the worker's error here
+        """All the work handed to the worker, finished: (kept loops, correction, snapshot)."""
+        return self._collect(keep=0)
 
     def _submit(self, kfs: List[Keyframe]):
-        """Wait for the last keyframe's work, hand the new keyframes' work to the worker; the reports then use
-        the graph as it stands after the wait (the new keyframes chained on it by their odometry edges)."""
+        """Take the finished work (waiting while more than ``BackendConfig.loop_backlog`` keyframes' work is
+        waiting), hand the new keyframes' work to the worker; the reports then use the graph as the last
+        finished job left it (later keyframes chained on it by their odometry edges)."""
         if not kfs:
             return [], None
-        new_loops, correction = self._wait()
-        self._shown = [[e, o] for e, o in zip(self.graph.estimates(), self.graph.odometry_poses())]
-        self._shown_corrected = self._corrected
-        for kf in kfs:
+        new_loops, correction, snapshot = self._collect(keep=self.config.backend.loop_backlog)
+        if snapshot is not None:
+            est, odo, self._shown_corrected = snapshot
+            self._shown = [[e, o] for e, o in zip(est, odo)]
+        self._chain_shown(self.odometry.keyframes[: kfs[-1].id + 1])
+        ids = [kf.id for kf in kfs]
+        self._jobs.append((self._worker.submit(self._background_work, list(kfs)), ids))
+        return [lp for lp in new_loops if lp.status == "kept"], correction
+
+    def _chain_shown(self, keyframes: List[Keyframe]) -> None:
+        """Reported poses for ``keyframes`` beyond those shown: chained on their parent's by the odometry edge."""
+        for kf in keyframes[len(self._shown):]:
             if kf.id == 0:
                 self._shown.append([kf.pose.clone(), kf.pose.clone()])
             else:
                 edge = self.odometry.edges[kf.id - 1]
                 est, odo = self._shown[edge.i]
                 self._shown.append([se3_compose(est, edge.T_ij), se3_compose(odo, edge.T_ij)])
-        self._pending = self._worker.submit(self._background_work, list(kfs))
-        return [lp for lp in new_loops if lp.status == "kept"], correction
 
     def _background_work(self, kfs: List[Keyframe]):
-        # The front end chained each keyframe's pose on its parent's as it stood then, which may have been
-        # before the last correction re-anchored it; in the tracking thread it would have been after. The
-        # graph must start from the same estimate: chain it again now (the same operation on the same values).
-        for kf in kfs:
-            if kf.id > 0:
-                edge = self.odometry.edges[kf.id - 1]
-                kf.pose = se3_compose(self.odometry.keyframes[edge.i].pose, edge.T_ij)
-        return self._keyframe_work(kfs)
+        if self._broken:  # an earlier job failed: the graph is half-updated, nothing more is done on it
+            raise RuntimeError("not run: an earlier keyframe's loop work failed")
+        try:
+            # The front end chained each keyframe's pose on its parent's as it stood then, which may have been
+            # before the last correction re-anchored it; in the tracking thread it would have been after. The
+            # graph must start from the same estimate: chain it again now (the same operation on the same values).
+            for kf in kfs:
+                if kf.id > 0:
+                    edge = self.odometry.edges[kf.id - 1]
+                    kf.pose = se3_compose(self.odometry.keyframes[edge.i].pose, edge.T_ij)
+            loops, correction = self._keyframe_work(kfs)
+            # what the tracking thread shows once it takes this result (it never reads the graph meanwhile)
+            return loops, correction, (self.graph.estimates(), self.graph.odometry_poses(), self._corrected)
+        except BaseException:
+            self._broken = True
+            raise
 
     def _reported_corrected(self) -> bool:
         return self._shown_corrected if self._worker is not None else self._corrected
@@ -447,6 +557,7 @@ class RGBDSLAM:
         else:
             kf_id, T = -1, se3_identity(dtype=torch.float64)
         self._frames.append(_FrameRecord(int(index), float(timestamp), kf_id, T.clone(), "skipped"))
+        self._lag.append(self.loop_lag)
         if kf_id >= 0:
             est, odo_kf = self._keyframe_poses(kf_id)
             pose = self._output_frame(se3_compose(est, T))
@@ -462,6 +573,12 @@ class RGBDSLAM:
         if self._T_rgb_depth is None:
             return poses
         return depth_camera_poses(poses, self._T_rgb_depth)
+
+    def depth_camera_pose(self, poses: Tensor) -> Tensor:
+        """Poses ``(..., 7)`` of the tracked camera (absolute, or one keyframe's in another: an odometry edge)
+        as the depth camera's, the frame every reported pose and the map's points are in (the same poses
+        for registered frames)."""
+        return self._output_frame(poses)
 
     def _placed(self) -> Tensor:
         """``(N,)`` bool: the frames placed by tracking (not lost, not skipped)."""
@@ -491,6 +608,8 @@ class RGBDSLAM:
         Returns:
             :class:`SLAMResult`.
         """
+        if self._failure is not None:
+            raise self._failure
         self._finished = True
         if self._worker is not None:
             try:
@@ -524,4 +643,41 @@ class RGBDSLAM:
             loops=self.loops, queries=queries, graph=graph, optimization=opt,
             num_frames=len(self._frames), num_keyframes=self.graph.num_keyframes, num_lost=self._num_lost,
             num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
-            corrections=list(self._corrections), tracked=self._placed())
+            corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame())
+
+    def _lag_per_frame(self) -> Tensor:
+        lag = torch.tensor(self._lag.tolist(), dtype=torch.int64)
+        if lag.numel() < len(self._frames):  # skip() and the tracking thread's keyframe work: nothing waits
+            lag = torch.cat([lag, torch.zeros(len(self._frames) - lag.numel(), dtype=torch.int64)])
+        return lag
+
+    @config_threads
+    def result_so_far(self) -> SLAMResult:
+        """The frames tracked so far, placed as :meth:`track` reported them (no final optimisation), after a
+        :class:`LoopWorkerError`: what a run that stopped on it can still write (``SLAMResult.error`` says why).
+
+        The worker is stopped first (the work queued behind the failure is not run). Keyframes are placed on
+        the estimates as the last finished loop work left them, later ones chained by their odometry edges.
+        """
+        self._finished = True
+        if self._worker is not None:
+            self._worker.shutdown(wait=True, cancel_futures=True)
+            self._jobs.clear()
+        self._chain_shown(self.odometry.keyframes)
+        if self._shown:
+            est = torch.stack([e for e, _ in self._shown])
+            odo = torch.stack([o for _, o in self._shown])
+        else:
+            est = odo = torch.zeros(0, 7, dtype=torch.float64)
+        kfs = self.odometry.keyframes
+        kf_ts = torch.tensor([kf.timestamp for kf in kfs], dtype=torch.float64)
+        return SLAMResult(
+            trajectory=self._frames_trajectory(est, interpolate_lost=True),
+            odometry_trajectory=self._frames_trajectory(odo),
+            keyframe_trajectory=Trajectory(kf_ts, self._output_frame(est.clone())),
+            keyframe_frames=torch.tensor([kf.frame_index for kf in kfs], dtype=torch.long),
+            loops=[lp for lp in self._hypotheses() if lp.status == "kept"], queries=[], graph=None,
+            optimization=None, num_frames=len(self._frames), num_keyframes=len(kfs), num_lost=self._num_lost,
+            num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
+            corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame(),
+            error=None if self._failure is None else str(self._failure))

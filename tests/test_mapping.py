@@ -187,3 +187,61 @@ def test_map_of_exact_frames_lies_on_the_scene_surfaces():
     assert np.median(dist) < 2e-3, np.median(dist)
     assert np.quantile(dist, 0.99) < 0.02 * np.sqrt(3) / 2, np.quantile(dist, 0.99)
     assert cols.std() > 10  # photo textures, not a flat colour
+
+
+def test_kept_points_are_int16_steps_within_half_a_step_of_the_cloud():
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    depth = rng.uniform(1.0, 3.5, (48, 64)).astype(np.float32)
+    cfg = MapConfig(voxel_size=0.02)
+    m = PointCloudMap(cfg)
+    n = m.add(0, rgb, depth, _K())
+    ref_pts, ref_cols = keyframe_cloud(rgb, depth, _K(), cfg)
+    pts, cols = m.local_points(0)
+    q, step, _ = m._clouds[0]
+    assert q.dtype == np.int16 and step == cfg.voxel_size / 16  # 1.25 mm: reach 3.5 m needs only 0.11 mm
+    assert n == ref_pts.shape[0] and (cols == ref_cols).all()
+    assert np.abs(pts - ref_pts).max() <= step / 2 + 1e-6  # float32 coordinates of metres
+    assert m.nbytes == n * 9 + 8  # 6 bytes of coordinates and 3 of colour a point, the step
+
+
+def test_a_far_cloud_takes_a_coarser_step_within_int16():
+    cfg = MapConfig(voxel_size=0.02, max_depth=200.0)
+    m = PointCloudMap(cfg)
+    m.add(0, np.full((48, 64, 3), 9, np.uint8), np.full((48, 64), 150.0, np.float32), _K())
+    q, step, _ = m._clouds[0]
+    pts = m.local_points(0)[0]
+    ref = keyframe_cloud(np.full((48, 64, 3), 9, np.uint8), np.full((48, 64), 150.0, np.float32), _K(), cfg)[0]
+    assert step == pytest.approx(150.0 / 32000) and np.abs(q).max() <= 32000
+    assert np.abs(pts - ref).max() <= step / 2 + 1e-5
+
+
+def test_a_keyframe_keeps_only_what_the_keyframes_before_it_do_not_hold():
+    """A wall 2 m ahead seen from three camera positions 0.5 m apart along it: the second and third views
+    keep only the strip the earlier ones did not see; the merged map equals the one that keeps every point
+    to a voxel."""
+    K = _K(f=50.0)
+    rgb = np.full((48, 64, 3), 120, np.uint8)
+    depth = np.full((48, 64), 2.0, np.float32)  # the view spans 2 * 2.0 * 32 / 50 = 2.56 m of the wall
+    step = torch.tensor([0.5, 0, 0, 0, 0, 0, 1], dtype=torch.float64)  # 0.5 m to the right, same orientation
+    poses = torch.tensor([[0.5 * k, 0, 0, 0, 0, 0, 1] for k in range(3)], dtype=torch.float64)
+    full, compact = PointCloudMap(MapConfig(voxel_size=0.05, overlap_keyframes=0)), PointCloudMap(MapConfig(voxel_size=0.05))
+    for k in range(3):
+        ref = None if k == 0 else (k - 1, step)
+        all_pts = full.add(k, rgb, depth, K, reference=ref)
+        kept = compact.add(k, rgb, depth, K, reference=ref)
+        if k == 0:
+            assert kept == all_pts
+        else:  # the new 0.5 m strip of a 2.56 m view: about a fifth of its voxels
+            assert 0.15 < kept / all_pts < 0.25, (kept, all_pts)
+            assert compact.local_points(k)[0][:, 0].min() > 1.28 - 0.5 - 0.05 - 1e-6  # the right edge only
+    a, b = full.points(poses)[0], compact.points(poses)[0]
+    d = np.linalg.norm(a[:, None] - b[None], axis=-1).min(1)
+    assert b.shape[0] < a.shape[0] * 1.01 and d.max() < 0.05 * np.sqrt(3)
+    # a keyframe without a reference among the recent ones starts a new chain: it keeps everything
+    assert compact.add(7, rgb, depth, K, reference=(5, step)) == all_pts
+
+
+def test_overlap_keyframes_must_be_a_count():
+    with pytest.raises(ValueError, match="MapConfig.overlap_keyframes must be an integer >= 0, got -1"):
+        MapConfig(overlap_keyframes=-1)

@@ -118,7 +118,7 @@ def test_run_slam_equals_the_plain_streaming_api(tmp_path):
     from slam.io import open_sequence
     from slam.loop.closer import build_descriptor
     from slam.mapping import PointCloudMap
-    from slam.pipeline import run_slam
+    from slam.pipeline import map_reference, run_slam
     from slam.synthetic import generate_sequence
     from slam.system import RGBDSLAM
 
@@ -133,7 +133,7 @@ def test_run_slam_equals_the_plain_streaming_api(tmp_path):
         frame = seq[i]
         state = plain.track(frame)
         for kf_id in state.new_keyframes:
-            cloud.add(kf_id, frame.rgb, frame.depth, frame.K)
+            cloud.add(kf_id, frame.rgb, frame.depth, frame.K, reference=map_reference(plain, kf_id))
     res = plain.finish()
     assert run.result.num_keyframes == res.num_keyframes > 3
     assert torch.equal(run.result.trajectory.poses, res.trajectory.poses)

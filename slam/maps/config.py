@@ -25,6 +25,11 @@ class RelocalisationConfig:
     # cupboard), two independent views agreeing on one placement rarely are (ORB-SLAM3 asks the same of
     # a map merge: several covisible keyframes).
     min_agreeing: int = 2
+    # Localisation only (--localize): the recording is tracked and placed in the map without growing
+    # anything: its keyframes serve tracking and the map queries only (no loop closing among them, no
+    # index of them, no map.ply), their features and images are released once queried, and no map is
+    # saved. Memory then stays flat however long the recording; the map folder is only read.
+    localize: bool = False
 
     def __post_init__(self) -> None:
         if self.max_candidates < 1 or self.min_agreeing < 1:

@@ -364,6 +364,10 @@ class MapRelocaliser:
         self._t0 = time.perf_counter()
         self._query_seconds = 0.0
         self._merged_poses: Tensor | None = None  # the recording's keyframes in the map's world (finish)
+        self._released = 0  # localisation: keyframes before this one have been released
+        if slam.localize != self.config.localize:
+            raise ValueError(f"RelocalisationConfig.localize is {self.config.localize}, but the system was built "
+                             f"with localize={slam.localize}: build RGBDSLAM(config, localize=config.localize)")
 
     def check_mergeable(self, keyframe_image_shape) -> None:
         """Raise :class:`MapMismatchError` when keyframe images of ``keyframe_image_shape`` ``(h, w, 3)``
@@ -394,15 +398,24 @@ class MapRelocaliser:
                 self._query(kf_id)
             self._query_seconds += time.perf_counter() - t
             self.report.queries += 1
+        if self.slam.localize:  # queried, and no longer tracking's reference: nothing registers against them
+            last = len(self.slam.keyframes) - 1
+            for k in range(self._released, last):
+                self.slam.release_keyframe(k)
+            self._released = max(self._released, last)
 
     def _query(self, kf_id: int) -> None:
         cfg, loop_cfg = self.config, self.slam.config.loop
         kf = self.slam.keyframes[kf_id]
-        index = self.slam.loop_closer.detector.index
-        if len(index) != self.slam.graph.num_keyframes:  # the loop closer describes every keyframe, in order
-            raise RuntimeError(f"the loop closer's index holds {len(index)} keyframes, the graph "
-                               f"{self.slam.graph.num_keyframes}")
-        desc = index.descriptors_of(index.ids[kf_id:kf_id + 1])[0]  # the descriptor it just computed
+        if self.slam.localize:  # no loop closing, no index of the recording: described here, once
+            with self.slam.timer("descriptor"):
+                desc = self.slam.loop_closer.describe(kf).detach().to("cpu", torch.float32)
+        else:
+            index = self.slam.loop_closer.detector.index
+            if len(index) != self.slam.graph.num_keyframes:  # the loop closer describes every keyframe, in order
+                raise RuntimeError(f"the loop closer's index holds {len(index)} keyframes, the graph "
+                                   f"{self.slam.graph.num_keyframes}")
+            desc = index.descriptors_of(index.ids[kf_id:kf_id + 1])[0]  # the descriptor it just computed
         ids, sims = self.map.index.search(desc, k=cfg.max_candidates)
         graph = self.slam.graph
         lengths = None
