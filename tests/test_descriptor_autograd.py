@@ -1,4 +1,4 @@
-"""The differentiable descriptor (issue 15.1): autograd against central finite differences, float64.
+"""The differentiable descriptor: autograd against central finite differences, float64.
 
 The finite-difference references use small random CNNs with a smooth activation (softplus): a ReLU
 network has kinks that a central difference crosses (with millions of ReLU6 units, EfficientNet-Lite0's

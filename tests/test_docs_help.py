@@ -4,7 +4,7 @@ Each is run as ``python SCRIPT --help`` would run it (``tests/docs_commands.py``
 all): exit code 0, a usage line, every argument with a help string, and a description or epilog written in
 lines and paragraphs of its own (a list, an indented example) only under a formatter that keeps them
 (``argparse.RawDescriptionHelpFormatter``), so that no lines run together. The usage examples that the help
-texts give (``python benchmarks/x.py --flag``) name options their script has.
+texts give (``python -m benchmarks.x --flag``) name options their script has.
 """
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ def test_help(name, helps):
 
 
 def test_commands_in_the_help_texts_exist(helps):
-    """The usage examples of every help text (``python benchmarks/x.py --flag ...``) name options that exist."""
+    """The usage examples of every help text (``python -m benchmarks.x --flag ...``) name options that exist."""
     from test_docs_snippets import synopsis_flags
 
     found = [(c, f, name) for name, h in helps.items() for c, f in synopsis_flags(h.get("help", ""))]

@@ -276,7 +276,7 @@ def test_umeyama_degenerate_inputs():
 
 
 def test_non_finite_and_absurd_input_is_refused_by_name():
-    """Issue 17: no ATE of inf and no NaN RPE from what a trajectory holds."""
+    """No ATE of inf and no NaN RPE from what a trajectory holds."""
     stamps = torch.arange(10, dtype=torch.float64)
     poses = torch.zeros(10, 7, dtype=torch.float64)
     poses[:, 0], poses[:, 1], poses[:, 6] = stamps, stamps ** 2, 1.0
