@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from docs_commands import COMMANDS, ask
+from helpers import synopsis_flags
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,8 +55,6 @@ def test_help(name, helps):
 
 def test_commands_in_the_help_texts_exist(helps):
     """The usage examples of every help text (``python -m benchmarks.x --flag ...``) name options that exist."""
-    from test_docs_snippets import synopsis_flags
-
     found = [(c, f, name) for name, h in helps.items() for c, f in synopsis_flags(h.get("help", ""))]
     wrong = [f"{where}'s help: {c} has no option {f}" if c in helps else f"{where}'s help: no command {c}"
              for c, f, where in found if f not in (helps.get(c, {}).get("options") or [])]

@@ -5,7 +5,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from torch import nn
-from lite_nets import condition_head
+from helpers import condition_head
 
 from attnloop import AttentionDescriptor
 from attnloop.backbones import build_backbone
