@@ -18,7 +18,7 @@ from attnloop.fusion import FUSION_MODES
 from attnloop.guided_backprop import _clamp_scope, clamp_negative_grad, softmax_seeded_gradient
 
 EPS = 1e-6  # central differences in float64: truncation ~eps^2, roundoff ~1e-16 / eps
-RTOL = 1e-4  # the bound; measured agreement is ~1e-7
+RTOL = 1e-4  # required agreement; measured agreement is ~1e-7
 
 
 def smooth_vgg(seed: int = 0) -> nn.Sequential:

@@ -15,7 +15,7 @@ from helpers import perturb_trajectory  # known drift, noise and a global rigid 
 from slam.eval.cli import main
 from slam.io.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
 
-TOL = 1e-6  # metres: the bound
+TOL = 1e-6  # metres: agreement with evo required
 
 
 @pytest.fixture(scope="module", params=["fr1_xyz-groundtruth.txt", "fr3_long_office_household-groundtruth.txt"])

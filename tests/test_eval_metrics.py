@@ -19,7 +19,7 @@ from evo.core import geometry, sync
 from evo.core.units import Unit
 from evo.tools import file_interface
 
-TOL = 1e-6  # the bound; the observed differences are ~1e-12
+TOL = 1e-6  # required agreement with evo; the observed differences are ~1e-12
 
 
 def _clean_copy(src, dst):
