@@ -17,6 +17,14 @@ def data_root() -> Path:
     return Path(os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data")).resolve()
 
 
+def pytest_collection_modifyitems(config, items):
+    # Every fixture of the shared data (redkitchen_dir, posegraph_dir, tum_gt_dir, a test file's own) depends on
+    # data_dir, so the fixtures a test uses say whether it reads the data: ``-m "not realdata"`` runs the rest.
+    for item in items:
+        if "data_dir" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.realdata)
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     """The shared data folder; skips the test with a reason when it is absent."""

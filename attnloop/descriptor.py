@@ -17,7 +17,7 @@ For a batch of images:
 5. d is L2-normalised (``normalize=True``), so the dot product of two descriptors is their cosine.
 
 ``preset="paper"`` gives the paper's configuration exactly (:mod:`attnloop.presets`); the default is
-the one measured best for place recognition (docs/attention.md, "Place recognition").
+the one measured best for place recognition (docs/results.md, "Place recognition").
 
 The recipe of steps 2-5 (fusion, pooling, RNN count and size, seed, scaling, merge, L2) is one
 :class:`DescriptorRecipe`. ``AttentionDescriptor(..., differentiable=True)`` keeps the whole chain in
@@ -27,8 +27,8 @@ a differentiable function of the images and of the backbone's weights, for train
 Why no RNNs by default: on the regional code they are a random projection from 2560 to 1024 dims,
 which loses place evidence. Without them every fusion mode gains in mean R@1 and R@P100 over four
 real place-recognition protocols (against the mean over 8 RNN seeds), the descriptor no longer depends
-on an RNN seed, and the RNNs' 10.5 MB of weights are no longer read per frame (docs/attention.md,
-"Session 6"). ``num_rnn=16`` (and ``preset="paper"``) keep the paper's encoding.
+on an RNN seed, and the RNNs' 10.5 MB of weights are no longer read per frame (docs/method.md).
+``num_rnn=16`` (and ``preset="paper"``) keep the paper's encoding.
 
 The scaling of step 4 is ours, not the paper's: it makes the descriptor independent of the fused map's overall scale
 (which differs between fusion modes and frames) and sets the operating point of the RNNs' tanh. With
@@ -36,7 +36,7 @@ raw features at EfficientNet's stage7 the pre-activations W_r x have a standard 
 (median over frames, depending on the fusion), so the tanh saturates and the 1024 dims degrade to a
 1024-bit sign hash; at norm 10 it is 0.29 and the pooling is close to a random projection. On the
 7-Scenes redkitchen revisits this raises the loop-closure margins and narrows their spread over RNN
-seeds (docs/attention.md).
+seeds.
 """
 from __future__ import annotations
 
@@ -104,7 +104,7 @@ class DescriptorRecipe:
 
     fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega" (the paper's default: DAM)
     # Random RNNs after the pooling; the descriptor then has num_rnn * out_features dims (the paper: 16,
-    # 1024 dims). 0 (ours): no RNNs, the descriptor is the pooled code itself (docs/attention.md, "Session 6").
+    # 1024 dims). 0 (ours): no RNNs, the descriptor is the pooled code itself (docs/method.md).
     num_rnn: int = 0
     out_features: int = _RNN_DEFAULTS["out_features"]  # output size of each RNN (the paper's 64); an RNN setting
     seed: int = 0  # seed of the RNN weights (and of a name-built backbone's random weights when not pretrained)
@@ -429,7 +429,7 @@ class AttentionDescriptor(nn.Module):
         mean: a classifier module's per-channel input mean on [0, 1] RGB; None: none.
         std: a classifier module's per-channel input std on [0, 1] RGB; None: none.
         differentiable: keep the computation in autograd (see above). Costs a graph of the backbone
-            and a second-order backward through the head (docs/benchmarks.md, "Differentiable descriptor").
+            and a second-order backward through the head (docs/results.md, "The descriptor's cost").
         recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` (leave those at
             their defaults then); it also sets ``pooling``, ``gem_p`` and ``levels``.
         preset: a name of :data:`attnloop.presets.PRESETS`: ``"paper"``, the paper's exact configuration
@@ -444,8 +444,8 @@ class AttentionDescriptor(nn.Module):
             ``num_rnn > 0`` the RNNs encode it) or ``"flat"`` (the paper's RNNs over the whole fused map);
             see :mod:`attnloop.pooling`.
         attend: a name-built EfficientNet-Lite0's stages of a joined tap where G is computed and fused
-            (the default: ``stage7`` of ``stage6+stage7``; ``"stage6+stage7"`` attends both, the default
-            until 2026-12-02); None: the configuration's, or every stage of an explicit ``tap``.
+            (the default: ``stage7`` of ``stage6+stage7``; ``"stage6+stage7"`` attends both); None: the
+            configuration's, or every stage of an explicit ``tap``.
 
     Attributes:
         pretrained: whether a name-built backbone loaded ImageNet weights (None for a module passed in:
@@ -645,7 +645,7 @@ class AttentionDescriptor(nn.Module):
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """As :meth:`torch.nn.Module.load_state_dict`; with ``strict``, a state dict of a descriptor with the
-        paper's RNNs (the default until 2026-12-02) loaded into one without them, or the reverse, is refused
+        paper's RNNs loaded into one without them, or the reverse, is refused
         with the setting that differs named (``num_rnn``) rather than torch's bare key lists."""
         has = "pool.weights" in state_dict
         # only a state dict of this descriptor's own keys otherwise (not a wrapper's prefixed ones)
@@ -655,11 +655,11 @@ class AttentionDescriptor(nn.Module):
                 n = int(state_dict["pool.weights"].shape[0])
                 raise RuntimeError(f"the state dict holds random RNN weights (pool.weights, shape "
                                    f"{tuple(state_dict['pool.weights'].shape)}): it was saved by a descriptor with "
-                                   f"num_rnn={n} (the default until 2026-12-02), and this one has no RNNs; build it "
+                                   f"num_rnn={n}, and this one has no RNNs; build it "
                                    f"with num_rnn={n}")
             raise RuntimeError(f"this descriptor has {self.recipe.num_rnn} random RNNs (pool.weights) and the state "
-                               "dict has none: it was saved by a descriptor with num_rnn=0 (the default since "
-                               "2026-12-02); build this one with num_rnn=0")
+                               "dict has none: it was saved by a descriptor with num_rnn=0 (the "
+                               "default); build this one with num_rnn=0")
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def _dtype(self) -> torch.dtype:

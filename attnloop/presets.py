@@ -1,8 +1,8 @@
 """The descriptor's named configurations: ``default`` (ours, measured), ``paper`` and ``guclu2019``.
 
 One source of truth for what ``AttentionDescriptor(backbone, preset=NAME)`` and
-``slam.config.DescriptorConfig(preset=NAME)`` build. The choices and their figures are in docs/attention.md
-("Place recognition").
+``slam.config.DescriptorConfig(preset=NAME)`` build. The choices and their figures are in docs/method.md
+("What the default changes, and why") and docs/results.md ("Place recognition").
 
 * **default** (ours): EfficientNet-Lite0 tapped at stage6 and stage7 together (192 + 320 channels,
   7 x 9 at a 224 x 288 input, which keeps a 4:3 frame's aspect), the attention G computed and fused at

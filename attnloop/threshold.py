@@ -51,7 +51,7 @@ class ThresholdConfig:
     # How many robust standard deviations above the centre a candidate must be. On 7-Scenes redkitchen
     # (EfficientNet-Lite0, window 30 frames) the top-1 was a true revisit for 91-95% of the queries
     # accepted at 3 (recall 46-65%) and 95-98% at 4 (recall 28-39%): 3 feeds geometric verification
-    # with more true loops; see docs/benchmarks.md, section "Keyframe index".
+    # with more true loops.
     k_sigma: float = 3.0
     min_margin: float = 0.02  # the threshold is at least this far above the centre (flat -> nothing)
     min_similarity: float = 0.0  # absolute cosine floor (0 = off: the relative rule alone decides)

@@ -1,7 +1,7 @@
 """g2o files from the wild, each kind built from the shared benchmark files, read and optimised side by side
 with GTSAM 4.3.
 
-The held-out files of issue 17 are not here, so each kind is made from the shared files (seeded):
+Each kind is made from the shared files (seeded):
 
 * ``non-PD``: 1 % of the edges get their smallest information eigenvalue made slightly negative (-1 % of
   it: a covariance printed with too few digits);
@@ -24,7 +24,7 @@ chordal guess alone against GTSAM's ``InitializePose3`` on the 3D files (interle
 ``--repeats``) and gives the chi2 of each guess.
 
 Usage:
-    python benchmarks/g2o_wild.py [--data DIR] [--out FILE.md] [--repeats 3] [--only-init]
+    python -m benchmarks.g2o_wild [--data DIR] [--out FILE.md] [--repeats 3] [--only-init]
 """
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ For each file (default smallGrid3D and sphere2500; float64, the torch backend):
    backward pass, medians of ``--repeats``.
 
 Usage:
-    python benchmarks/posegraph_gradients.py [--data DIR] [--files smallGrid3D sphere2500] [--trials 3]
+    python -m benchmarks.posegraph_gradients [--data DIR] [--files smallGrid3D sphere2500] [--trials 3]
 """
 from __future__ import annotations
 
@@ -85,7 +85,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     data = Path(args.data or os.environ.get("ATTNLOOP_DATA", ROOT.parent / "shared" / "data")) / "posegraph"
-    lines = [f"Command: `python benchmarks/posegraph_gradients.py --files {' '.join(args.files)} --trials "
+    lines = [f"Command: `python -m benchmarks.posegraph_gradients --files {' '.join(args.files)} --trials "
              f"{args.trials} --step {args.step:g}`, {datetime.datetime.now():%Y-%m-%d %H:%M}, {os.cpu_count()} CPUs, "
              f"load average {os.getloadavg()[0]:.1f} at start, torch {torch.__version__}, float64, torch backend.",
              "", "| file | poses | edges | trial | central difference | implicit (exact Hessian) | rel. error | "

@@ -28,7 +28,7 @@ both optimisers converge at every size up to 50000 with it. Pass ``--sigma-r 0.0
 generator's default.
 
 Usage:
-    python benchmarks/posegraph_scaling.py [--sizes 1000 5000 10000 20000] [--repeats 1] [--seed 0]
+    python -m benchmarks.posegraph_scaling [--sizes 1000 5000 10000 20000] [--repeats 1] [--seed 0]
         [--sigma-t 0.05] [--sigma-r 0.003] [--no-memory] [--out FILE.md]
     (add 50000 to --sizes for the largest case: ~2 minutes with --repeats 3, ~1.3 GB for ours)
 """
@@ -121,7 +121,7 @@ def run_ours(graph) -> dict:
 
 
 def header(args) -> list[str]:
-    cmd = "python benchmarks/posegraph_scaling.py " + " ".join(sys.argv[1:])
+    cmd = "python -m benchmarks.posegraph_scaling " + " ".join(sys.argv[1:])
     return [(f"Command: `{cmd.strip()}`, {datetime.date.today().isoformat()}, "
             f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load average "
             f"{os.getloadavg()[0]:.1f} at start, torch {torch.__version__}, gtsam "

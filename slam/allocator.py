@@ -4,9 +4,7 @@ Every frame allocates and frees the same tensors, a few hundred kB to a few MB e
 the depth warp, the matcher's tables). glibc serves a block above its mmap threshold (128 kB at start,
 raised by later frees, 32 MB at most) with ``mmap`` and returns it with ``munmap`` when freed, and it trims
 the free top of its heap above the trim threshold. Either way the next frame's tensors land on fresh pages,
-which the kernel zero-fills on first touch: thousands of minor page faults per CNN forward on CPU
-(``benchmarks/allocator.py``; figures in docs/benchmarks.md, "Session 5 (2026-12-02): G in closed form,
-and the allocator").
+which the kernel zero-fills on first touch: thousands of minor page faults per CNN forward on CPU.
 
 :func:`keep_freed_memory` sets, through glibc's ``mallopt``, the mmap threshold to its maximum (32 MB: a
 frame's tensors come from the heap), the trim threshold to 256 MB and the top pad to 64 MB, so freed memory

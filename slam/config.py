@@ -100,7 +100,7 @@ class DescriptorConfig:
     backbone: str = "auto"
     fusion: Optional[str] = None  # "none" | "dam" | "eam" | "gaf" | "ega"; None: the preset's (DAM; guclu2019 none)
     # Random RNNs after the pooling (num_rnn * 64 dims). None: the preset's: 0 for the default (the
-    # regional code itself is the descriptor, 2560 dims: docs/attention.md), 16 (1024 dims) for the others.
+    # regional code itself is the descriptor, 2560 dims: docs/method.md), 16 (1024 dims) for the others.
     num_rnn: Optional[int] = None
     seed: int = 0  # seed of the random RNN weights when there are RNNs (same seed, same descriptor)
     pretrained: bool = True  # ImageNet weights; False = seeded random weights (plumbing tests only)
@@ -178,9 +178,8 @@ class LoopClosureConfig:
     # loop closer builds that descriptor (an absolute floor is a property of the descriptor: the paper
     # preset's similarities sit near 0.55, the Lite0 default's near 0.85). EfficientNet-Lite0: chosen on the
     # SLAM's own keyframe streams of every sequence at hand (the kitchen at frame steps 1, 3 and 6, the room
-    # demo, the building; benchmarks/loop_threshold.py --streams, docs/benchmarks.md; re-measured with the
-    # stage7-only attention G, and again without the RNNs): the relative rule of before plus a floor of
-    # 0.85 keeps the kitchen's candidates (recall 0.55-0.61, 1-2 fewer false ones) and sends fewer false
+    # demo, the building; docs/results.md, "Loop candidates"): the relative rule plus a floor of 0.85 keeps
+    # the kitchen's candidates (recall 0.55-0.61, 1-2 fewer false ones) and sends fewer false
     # candidates to verification on the room (0 vs 19) and the building (710 vs 1143; recall 0.93 both).
     # A lower k_sigma (0.5 or 1) raises the kitchen's recall to 0.75-0.80, but its extra loops cost the
     # default kitchen run its target (measured with the RNNs: 49 loops vs 33, all true, 0.0301 m vs 0.0293).
@@ -212,8 +211,7 @@ class LoopClosureConfig:
     # off: ATE of the tracked frames 0.030 m against odometry's 1.275 m, no loop across it with the caps),
     # but after a blind walk an identical room is taken for the old one (the building, 4 s without depth on
     # the way into S1's twin: 82 false loops; with the caps none, and the run stays in two pieces; 3.3-3.4
-    # m either way). benchmarks/tracking_loss.py, docs/benchmarks.md. False: the caps hold, a false loop
-    # costs more than a missed one.
+    # m either way). False: the caps hold, a false loop costs more than a missed one.
     recover_after_loss: bool = False
     # Group consistency of the loops (slam.loop.consistency: the largest set of mutually consistent loops).
     consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
@@ -223,8 +221,8 @@ class LoopClosureConfig:
     # sigmas). Loop edges get a further 1/10: measured against the redkitchen ground truth, a verified loop
     # edge (wide baseline, up to 45 deg) errs by a median 22 mm / 1.6 deg vs 14 mm / 0.7 deg for an
     # odometry edge between keyframes, with more systematic error (colour/depth misregistration grows
-    # with the viewpoint change); 1/1000 gave ATE 4.36 cm vs 4.55 cm at 1/100 (docs/benchmarks.md).
-    # Against ground truth (docs/benchmarks.md, "Information scales"): on the real kitchen (frame steps 1,
+    # with the viewpoint change); 1/1000 gave ATE 4.36 cm vs 4.55 cm at 1/100.
+    # Against ground truth: on the real kitchen (frame steps 1,
     # 3, 6) true odometry edges have a median squared Mahalanobis error of 3.4-5.1 at x 0.01 (the chi2 of
     # 6 dof, median 5.35, that the robust kernels' widths assume) and true loop edges 0.85-1.0 at x 0.001.
     # Loops weighted to match (x 0.005) made the default kitchen run worse (ATE 0.0320 m vs 0.0301, the same

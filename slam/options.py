@@ -104,8 +104,8 @@ class CameraRig:
 #: Colour and depth already registered (TUM RGB-D, the synthetic sequences).
 REGISTERED = CameraRig(None, (0.0, 0.0, 0.0), "")
 #: The Kinect v1 of 7-Scenes: the colour camera's nominal intrinsics, and the depth camera 2.5 cm to its
-#: side (the sign and size chosen by the inlier RMSE of the odometry, no ground truth needed:
-#: benchmarks/rig_scan.py, docs/benchmarks.md "Rig baseline scan").
+#: side (the sign and size chosen by the inlier RMSE of the odometry, no ground truth needed; its effect on the
+#: ATE: docs/results.md, "SLAM accuracy").
 KINECT_V1_RIG = CameraRig((525.0, 525.0, 320.0, 240.0), (-0.025, 0.0, 0.0), "7-Scenes default: Kinect v1")
 
 

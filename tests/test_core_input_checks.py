@@ -1,4 +1,4 @@
-"""Regression tests of a correctness review of fusion, pooling, rnn_pool, guided_backprop and the backbones.
+"""Regression tests of fusion, pooling, rnn_pool, guided_backprop and the backbones on bad input.
 
 Each test pins a defect that the code had: a wrong shape, dtype or value accepted silently, an empty
 batch crashing, NaN hidden, a documented behaviour the code did not have.

@@ -78,7 +78,7 @@ def test_depth_camera_poses_hand_case():
 
 
 # ---------------------------------------------------------------------------------------------------------
-# The warp against its first implementation (issue 14, frame rate): the grid-then-2x2-minimum z-buffer and
+# The warp against its first implementation (a scatter, slower): the grid-then-2x2-minimum z-buffer and
 # the numpy path must give the same bits as the four-way scatter it replaced.
 
 def _reference_warp(depth, K_depth, K_rgb, T_rgb_depth, rgb_size, min_depth=0.0):

@@ -298,10 +298,10 @@ def test_what_applies_without_rnns(lite, images):
 
 
 def test_a_state_dict_of_the_other_encoding_names_num_rnn():
-    # the default until 2026-12-02 had the paper's 16 RNNs: its state dict does not load silently, strict or not
+    # a descriptor with the paper's 16 RNNs and one without: neither state dict loads silently into the other
     old = AttentionDescriptor("efficientnet_lite0", pretrained=False, num_rnn=16)
     new = AttentionDescriptor("efficientnet_lite0", pretrained=False)
-    with pytest.raises(RuntimeError, match=r"saved by a descriptor with num_rnn=16 .*build it with num_rnn=16"):
+    with pytest.raises(RuntimeError, match=r"saved by a descriptor with num_rnn=16, .*build it with num_rnn=16"):
         new.load_state_dict(old.state_dict())
     with pytest.raises(RuntimeError, match=r"has 16 random RNNs .*saved by a descriptor with num_rnn=0"):
         old.load_state_dict(new.state_dict())

@@ -1,4 +1,4 @@
-"""Descriptor input handling (issue 17.6): dtype casts, range and finiteness checks, eval mode during the computation."""
+"""Descriptor input handling: dtype casts, range and finiteness checks, eval mode during the computation."""
 from __future__ import annotations
 
 import pytest
@@ -115,7 +115,7 @@ def test_train_mode_changes_nothing(frames):
         assert torch.allclose(out[i:i + 1], ref_single[i], atol=1e-6)
     assert net.training and net.trunk[1].training and net.head[1].training  # modes restored
     assert torch.equal(net.trunk[1].running_mean, stats)  # no running-statistics update
-    # GuidedBackprop alone, in a parent in train mode, as issue 17 found it
+    # GuidedBackprop alone, in a parent in train mode
     gbp = nn.ModuleDict({"gbp": GuidedBackprop(net)}).train()
     _, g_train = gbp["gbp"](frames)
     net.eval()

@@ -98,7 +98,7 @@ def test_ground_truth_of_the_pairs(kitchen):
 def test_revisit_beats_every_far_view(kitchen, fusion):
     d = kitchen["desc"].from_attention(kitchen["tap"], kitchen["grad"], fusion=fusion)
     margins = _margins(kitchen, d)
-    # measured 2026-12-02, the default descriptor (regional code, no RNNs), every-5th-frame negatives:
+    # the default descriptor (regional code, no RNNs), every-5th-frame negatives:
     # +0.009 (dam, 255/950) to +0.041 (gaf, 250/945). Its cosines are higher for every frame of the room
     # (pooled codes), so the margins are smaller in absolute terms than the flat pipeline's; the ranking is the test.
     assert min(margins) > 0.005, f"{fusion}: margins {margins}"

@@ -4,7 +4,7 @@ Each is run as ``python SCRIPT --help`` would run it (``tests/docs_commands.py``
 all): exit code 0, a usage line, every argument with a help string, and a description or epilog written in
 lines and paragraphs of its own (a list, an indented example) only under a formatter that keeps them
 (``argparse.RawDescriptionHelpFormatter``), so that no lines run together. The usage examples that the help
-texts give (``python benchmarks/x.py --flag``) name options their script has.
+texts give (``python -m benchmarks.x --flag``) name options their script has.
 """
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from docs_commands import COMMANDS, ask
+from helpers import synopsis_flags
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,9 +54,7 @@ def test_help(name, helps):
 
 
 def test_commands_in_the_help_texts_exist(helps):
-    """The usage examples of every help text (``python benchmarks/x.py --flag ...``) name options that exist."""
-    from test_docs_snippets import synopsis_flags
-
+    """The usage examples of every help text (``python -m benchmarks.x --flag ...``) name options that exist."""
     found = [(c, f, name) for name, h in helps.items() for c, f in synopsis_flags(h.get("help", ""))]
     wrong = [f"{where}'s help: {c} has no option {f}" if c in helps else f"{where}'s help: no command {c}"
              for c, f, where in found if f not in (helps.get(c, {}).get("options") or [])]

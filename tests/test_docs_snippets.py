@@ -33,6 +33,7 @@ from pathlib import Path
 import pytest
 import torch
 from docs_commands import ask
+from helpers import COMMAND_START, script_of, synopsis_flags
 
 from conftest import data_root
 
@@ -48,7 +49,6 @@ SHARED = "../shared/data"
 #: commands of plain shell: allowed in a block, listed as not checked
 PLAIN_SHELL = {"cd", "git", "source", ".", "export", "mkdir", "ls", "cat", "echo", "rm", "cp", "mv", "head",
                "tail", "evo_ape", "evo_rpe", "evo_traj", "nproc", "unzip", "tar", "wget", "curl"}
-COMMAND_START = re.compile(r"^(attnloop-slam|attnloop-eval|python3? (?:examples|benchmarks)/\w+\.py|python3? -m benchmarks\.\w+)\b")
 
 
 @dataclass
@@ -211,29 +211,6 @@ def _plan_command(argv: list[str], where: str, plan: Plan) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- synopses
-def script_of(command: str) -> str:
-    """The script a command runs: ``benchmarks.x`` (``python -m benchmarks.x``) is ``benchmarks/x.py``."""
-    if re.fullmatch(r"benchmarks\.\w+", command):
-        return command.replace(".", "/", 1) + ".py"
-    return command
-
-
-def synopsis_flags(text: str) -> list[tuple]:
-    """(command, flag) for each ``--flag`` in lines of ``text`` that start with a command (or continue one)."""
-    found, command = [], None
-    for line in text.splitlines():
-        s = line.strip()
-        m = COMMAND_START.match(s)
-        if m:
-            command = script_of(m.group(1).split()[-1])
-        elif not (s.startswith(("[", "--"))) or command is None:
-            command = None
-            continue
-        for flag in re.findall(r"(?<![\w-])(--[a-z][\w-]*)", s):
-            found.append((command, flag))
-    return found
-
-
 def inline_spans(page: str) -> list[str]:
     text = (ROOT / page).read_text(encoding="utf-8")
     text = re.sub(r"^(`{3,}|~{3,}).*?^\1\s*$", "", text, flags=re.DOTALL | re.MULTILINE)  # fenced blocks out

@@ -10,12 +10,12 @@ import zipfile
 import numpy as np
 import pytest
 import torch
-from test_eval_metrics import _perturb  # known drift, noise and a global rigid motion
+from helpers import perturb_trajectory  # known drift, noise and a global rigid motion
 
 from slam.eval.cli import main
 from slam.io.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
 
-TOL = 1e-6  # metres: the issue's bound
+TOL = 1e-6  # metres: agreement with evo required
 
 
 @pytest.fixture(scope="module", params=["fr1_xyz-groundtruth.txt", "fr3_long_office_household-groundtruth.txt"])
@@ -25,7 +25,7 @@ def files(request, tum_gt_dir, tmp_path_factory):
     gt = read_tum_trajectory(tum_gt_dir / request.param)
     gt_path, est_path = tmp / "gt.txt", tmp / "est.txt"
     write_tum_trajectory(gt_path, gt)  # '#' header: evo rejects the shared files' bare 'timestamp ...' line
-    write_tum_trajectory(est_path, Trajectory(gt.timestamps, _perturb(gt.poses, gt.timestamps, seed=3)))
+    write_tum_trajectory(est_path, Trajectory(gt.timestamps, perturb_trajectory(gt.poses, gt.timestamps, seed=3)))
     return gt_path, est_path
 
 

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from helpers import MUTATIONS, mutate
 
 from slam.cli import main
 
@@ -402,16 +403,11 @@ def test_a_run_with_loops_records_its_backbone(base, tmp_path, capsys, monkeypat
     assert m["descriptor"]["fusion"] == "dam"
 
 
-# seeded mutations of the sequence's own text files (the readers' helpers, tests/mutations.py)
+# seeded mutations of the sequence's own text files (tests/helpers.py)
 _LISTS = ("rgb.txt", "depth.txt", "groundtruth.txt", "calibration.txt")
-try:
-    from mutations import MUTATIONS, mutate
-except ImportError:  # the readers' fuzz helpers are not in this checkout
-    MUTATIONS, mutate = (), None
 FILE_CASES = [(kind, _LISTS[(k + seed) % len(_LISTS)], seed) for seed in (0, 1) for k, kind in enumerate(MUTATIONS)]
 
 
-@pytest.mark.skipif(not FILE_CASES, reason="tests/mutations.py (the readers' mutation helpers) not present")
 @pytest.mark.parametrize("kind, name, seed", FILE_CASES, ids=[f"{c[1]}-{c[0]}-{c[2]}" for c in FILE_CASES])
 def test_mutated_text_files(kind, name, seed, base, tmp_path, capsys):
     """A seeded mutation of one list / ground-truth / calibration file: a finished run or a named error."""

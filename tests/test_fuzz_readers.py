@@ -1,7 +1,7 @@
 """Fuzz test of the readers: mutated real files give a result or one of the named errors, nothing else.
 
 Real inputs (the shared TUM lists and ground truth, 7-Scenes pose files and images, g2o graphs) are
-mutated by ``tests/mutations.py`` (seeded: a failing case is reproduced from its printed seed) and read.
+mutated by ``tests/helpers.py`` (seeded: a failing case is reproduced from its printed seed) and read.
 Allowed outcomes:
 
 * a result whose every number is finite (warnings of the documented kinds allowed: ``DatasetWarning``,
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from mutations import MUTATIONS, mutate
+from helpers import MUTATIONS, mutate
 
 from slam.graph import G2OFormatError, read_g2o
 from slam.io import DatasetError, FrameReadError, SevenScenesSequence, TUMSequence

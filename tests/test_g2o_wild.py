@@ -1,6 +1,6 @@
 """g2o files from the wild: non-positive-definite information, edges only, FIX lines, comments, odd bytes.
 
-The held-out files of issue 17 are not here; each kind is built from the shared benchmark files or by hand.
+Each kind is built from the shared benchmark files or by hand.
 """
 from __future__ import annotations
 

@@ -168,7 +168,7 @@ def test_depth_sigma_kinect_model():
 
 
 def test_rotation_matrix_is_quat_to_rotmat_bit_for_bit():
-    """The scalar path (one float64 quaternion, issue 14's frame rate) against slam.lie on 5000 rotations, tiny
+    """The scalar path (one float64 quaternion, for the frame rate) against slam.lie on 5000 rotations, tiny
     and non-unit ones included; other shapes and dtypes go through slam.lie itself."""
     from slam.odometry.geometry import rotation_matrix, transform_points
 

@@ -1,4 +1,4 @@
-"""Edge cases checked in a correctness review of slam/lie.py and slam/graph (regression tests)."""
+"""Edge cases of slam/lie.py and slam/graph (regression tests)."""
 import io
 import math
 
@@ -128,7 +128,7 @@ def _random_graph(seed=7, N=10, E=30):
     return PoseGraph(P, ii, jj, Z, W @ W.mT + torch.eye(6, dtype=D))
 
 
-def test_inputs_found_in_review_are_normalised_or_refused(monkeypatch):
+def test_odd_inputs_are_normalised_or_refused(monkeypatch):
     """Slightly non-unit measurement quaternions, ``fixed`` as an array, other dtypes, poses that require
     grad, non-finite inputs, bad LM settings and a degenerate Nielsen model."""
     import numpy as np

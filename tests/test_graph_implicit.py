@@ -95,7 +95,7 @@ def _rel(a, b):
 
 
 def test_gradient_wrt_measurement_translations_matches_finite_differences_on_smallgrid3d(posegraph_dir):
-    """The issue's check: smallGrid3D, float64, d(optimised poses)/d(measurements' translations) against
+    """smallGrid3D, float64, d(optimised poses)/d(measurements' translations) against
     central differences of re-optimised poses (Richardson-extrapolated), pose 0 held by the free gauge's
     re-anchoring, and a gauge-invariant relative translation."""
     graph = read_g2o(posegraph_dir / "smallGrid3D.g2o")
@@ -109,7 +109,7 @@ def test_gradient_wrt_measurement_translations_matches_finite_differences_on_sma
         # amplifies (h = 1e-5: errors up to 3e-3, h = 1e-4: 4e-5); h = 1 mm has an h^2 error of 4e-5, which
         # Richardson's combination of h and 2 h cancels (measured: ~2e-6 and below)
         ad, fd = _directional(graph, "measurements", u, w, 1e-3, richardson=True)
-        assert _rel(ad, fd) <= 1e-6, (trial, ad, fd)  # the issue asks <= 1e-4; measured <= 6e-10
+        assert _rel(ad, fd) <= 1e-6, (trial, ad, fd)  # required <= 1e-4; measured <= 6e-10
     # gauge-invariant: the translation of the last pose seen from the first (autograd vs differences)
     warm = graph.with_poses(_optimum(graph))
     z = warm.measurements.clone().requires_grad_(True)

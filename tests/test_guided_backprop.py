@@ -5,7 +5,7 @@ import importlib
 
 import pytest
 import torch
-from lite_nets import condition_head
+from helpers import condition_head
 from torch import nn
 from torch.autograd.functional import vjp
 

@@ -1,4 +1,4 @@
-"""Attention in your own model (issue 18.2): AttentionDescriptor(backbone=module, tap="name") on any classifier."""
+"""Attention in your own model: AttentionDescriptor(backbone=module, tap="name") on any classifier."""
 from __future__ import annotations
 
 import pytest

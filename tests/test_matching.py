@@ -1,4 +1,4 @@
-"""Guided matching without the dense matrix (issue 14, frame rate): the pairs within the radius, the ratio test
+"""Guided matching without the dense matrix (for the frame rate): the pairs within the radius, the ratio test
 on them and numpy's popcount give the same matches as Kornia on the full (Na, Nb) matrix, on real kitchen
 frames and on generated input full of ties, empty rows and degenerate positions."""
 import kornia.feature as KF

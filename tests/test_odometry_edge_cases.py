@@ -1,4 +1,4 @@
-"""Review of slam.odometry: edge cases that used to give wrong results (each case failed before its fix).
+"""slam.odometry's edge cases that used to give wrong results (each case failed before its fix).
 
 Every expected value is hand-computed or comes from an independent reference (Kornia's dense matcher on
 the full Hamming matrix), never from the code under test.

@@ -240,7 +240,7 @@ def test_read_vpr_bench(tmp_path):
 
 
 def test_numeric_q_by_2_arrays_are_matrices_for_read_ground_truth(tmp_path):
-    """Item 4: one reading per function, whatever the values: read_ground_truth -> a binary matrix,
+    """One reading per function, whatever the values: read_ground_truth -> a binary matrix,
     read_vpr_bench_ground_truth -> [query, reference] rows."""
     path = _saved(tmp_path, "amb.npy", np.array([[0.0, 0.0], [1.0, 1.0]]))
     assert read_ground_truth(path).tolist() == [[False, False], [True, True]]
@@ -278,7 +278,7 @@ def test_read_vpr_bench_errors(tmp_path):
 
 
 def test_read_vpr_bench_validates_indices_and_num_references(tmp_path):
-    """Item 5: no StopIteration, overflow or huge allocation; no bool, string or fractional index."""
+    """No StopIteration, overflow or huge allocation; no bool, string or fractional index."""
     no_match = _saved(tmp_path, "n.npy", _vpr_rows([(0, []), (1, [])]))
     for bad in (-1, 2.7, 3.0, True, "3"):
         with pytest.raises((TypeError, ValueError), match="num_references must be a non-negative integer"):
@@ -314,7 +314,7 @@ def test_read_vpr_bench_validates_indices_and_num_references(tmp_path):
 
 
 def test_read_matrix_refuses_non_binary_values(tmp_path):
-    """Item 3: a grey level, a JPEG's artefacts, -1 or 0.5 are refused (named file, first (row, column), value)."""
+    """A grey level, a JPEG's artefacts, -1 or 0.5 are refused (named file, first (row, column), value)."""
     img = np.zeros((4, 4), np.uint8)
     img[1, 0] = 255
     img[2, 1] = 128

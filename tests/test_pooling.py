@@ -5,7 +5,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from torch import nn
-from lite_nets import condition_head
+from helpers import condition_head
 
 from attnloop import AttentionDescriptor
 from attnloop.backbones import build_backbone
@@ -278,7 +278,7 @@ def test_default_configuration():
     # the attention at stage7 only; stage6 pooled unfused (docs/method.md)
     assert d.backbone.attend == "stage7" and d.attended_groups == (False, True)
     r = d.recipe
-    # no RNNs (session 6): the regional code, L2-normalised, is the descriptor
+    # no RNNs: the regional code, L2-normalised, is the descriptor
     assert (r.pooling, r.gem_p, r.levels, r.num_rnn, r.merges) == ("regional", 2.0, (1, 2), 0, False)
     assert d.pool is None and d.out_dim == 2560
     x = torch.randint(0, 256, (2, 3, 120, 160), dtype=torch.uint8)
@@ -290,7 +290,7 @@ def test_default_configuration():
                           descriptor_from_attention(parts.tap, parts.grad, None, "gaf",
                                                     groups=(192, 320), attended=(False, True))[1])
     assert d(x[:0]).shape == (0, 2560)
-    # num_rnn=16: the paper's RNNs on that code (the default until session 6), input at norm 10
+    # num_rnn=16: the paper's RNNs on that code, input at norm 10
     rnns = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False, num_rnn=16)
     assert rnns.pool.weights.shape == (16, 64, 2560) and rnns.out_dim == 1024
     ref = F.normalize(random_rnn_pool(10.0 * F.normalize(code, dim=1)[:, :, None, None], rnns.pool.weights,

@@ -159,7 +159,7 @@ def test_the_streaming_api_computes_with_the_configs_threads(tiny_sequence, call
 
 
 def test_a_nested_limit_to_the_same_count_queries_nothing(caller_counts, monkeypatch):
-    """track() inside run_slam: the inner limit neither reads nor sets OpenCV's count (issue 14: ~1 ms a call
+    """track() inside run_slam: the inner limit neither reads nor sets OpenCV's count (~1 ms a call
     while the reader's threads run); another count, or torch changed by hand, takes the full path."""
     import threading
 

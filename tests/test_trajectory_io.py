@@ -166,7 +166,7 @@ def test_real_groundtruth_matches_evo_reader(tum_gt_dir, tmp_path):
 
 
 def test_values_from_the_wild(tmp_path):
-    """Issue 17: overflow in the quaternion check, non-UTF-8 bytes, float32 stamps, precision on writing."""
+    """Overflow in the quaternion check, non-UTF-8 bytes, float32 stamps, precision on writing."""
     traj = read_tum_trajectory(io.StringIO("1.0 0 0 0 1e200 1e200 0 0\n2.0 0 0 0 1e-3 0 0 1e-3\n"))
     assert torch.allclose(traj.poses[0, 3:], torch.tensor([0.5 ** 0.5, 0.5 ** 0.5, 0, 0], dtype=torch.float64))
     assert torch.isfinite(traj.poses).all()

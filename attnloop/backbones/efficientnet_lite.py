@@ -18,13 +18,13 @@ conv after batch-norm and ReLU6, 1280 x 7 x 7). The default is ``stage7``, the l
 the head conv (320 x 7 x 7). It is a linear bottleneck (projection conv + batch-norm, no activation), so
 L is signed. ``head`` is a poor tap for attention: between it and the logits there is only the global
 average pool and the linear classifier, so G = dS/dL is constant over (H, W) in every channel and the
-global attention fusions (GAF/EGA) degenerate (zeros / L). See docs/attention.md for the margins.
+global attention fusions (GAF/EGA) degenerate (zeros / L).
 
 EfficientNet has no max-pool, hence no block transitions in the sense of the partial guided backprop
 (negative gradients are zeroed only at max-pool transitions): :meth:`EfficientNetLite0.forward_from_tap`
 never applies its ``transition`` and G is the plain softmax-seeded gradient. This matters: zeroing the
 negative gradient at the signed stage7 tap (as one does at VGG's non-negative pool5) deletes a
-class-dependent half of L and breaks DAM on real revisits (docs/attention.md).
+class-dependent half of L and breaks DAM on real revisits (docs/method.md, "What the default changes").
 """
 from __future__ import annotations
 
@@ -228,7 +228,7 @@ class EfficientNetLite(nn.Module):
             sequence (e.g. ``stage7`` of ``stage6+stage7``); None: all of them. G is zero on the other stages' channels,
             which the descriptor passes to the pooling unfused (:attr:`attended_groups`), and the seeded
             backward stops at the first attended stage: Lite0's stage7 alone costs 5.5 % of a forward
-            in multiply-adds, stage6 + stage7 13.1 % (docs/attention.md).
+            in multiply-adds, stage6 + stage7 13.1 % (docs/method.md).
 
     Shape:
         - images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1]

@@ -1,7 +1,7 @@
 """Typed settings of the RGB-D odometry: every threshold lives here, with its default explained.
 
 The defaults were chosen by measurement on the 7-Scenes ``redkitchen`` sequence (640x480 Kinect v1,
-see ``docs/benchmarks.md, section "Odometry"``); they are sensible for any 640x480 structured-light RGB-D camera.
+see docs/results.md, "Odometry"); they are sensible for any 640x480 structured-light RGB-D camera.
 
 Example:
     >>> cfg = OdometryConfig()

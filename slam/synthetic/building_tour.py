@@ -41,7 +41,7 @@ __all__ = ["BUILDING_DEPTH_NOISE", "BUILDING_IMAGE_NOISE", "DEFAULT_TOUR", "Tour
 # reads 0.9 cm short at 2 m, 2 cm at 3 m, in every frame), axial noise correlated over the sensor's
 # matching blocks, and the colour camera's motion blur (20 ms exposure). With the room demo's idealised
 # sensor, odometry alone drifted 0.08 m RMSE over the 53 m tour, less than a real Kinect does over such a
-# walk (docs/benchmarks.md, "The aliased building").
+# walk (docs/results.md, "SLAM accuracy", has the building's figures).
 BUILDING_DEPTH_NOISE = DepthNoiseConfig(disparity_distortion=0.1, noise_correlation_px=1.5)
 BUILDING_IMAGE_NOISE = ImageNoiseConfig(exposure_time=0.02)
 

@@ -1,0 +1,227 @@
+"""Helpers shared by several test files (a test file imports from here, never from another test file).
+
+* :func:`condition_head`: random-weight EfficientNet-Lite networks whose seeded gradient is well conditioned,
+  for comparing two computations of G.
+* :data:`MUTATIONS`, :func:`mutate`: seeded mutations of real input files, for the fuzz tests (readers, CLI).
+  ``mutate(data, kind, rng)`` returns a mutated copy of a file's bytes. Each kind models a way files from the
+  wild go wrong: cut short, a corrupted byte, a byte that is not UTF-8, a number replaced by NaN / inf / a huge
+  value, a line with a field too many or too few, an empty file, a repeated line, comments (whole-line and
+  trailing), Windows line endings and a byte-order mark, text where a number belongs. ``rng`` is a
+  :class:`random.Random`, so a case is reproduced from its seed.
+* :func:`perturb_trajectory`: an estimate with known drift, noise and a global rigid motion, for the metrics.
+* :data:`COMMAND_START`, :func:`script_of`, :func:`synopsis_flags`: the commands and ``--flags`` that a
+  documentation text names, for the docs tests.
+
+Example:
+    >>> import random
+    >>> mutate(b"1.0 2.0 3.0\\n", "huge_number", random.Random(0)) != b"1.0 2.0 3.0\\n"
+    True
+"""
+from __future__ import annotations
+
+import math
+import random
+import re
+
+import torch
+import torch.nn.functional as F
+
+from slam.lie import se3_compose, se3_exp
+
+__all__ = ["COMMAND_START", "MUTATIONS", "condition_head", "mutate", "perturb_trajectory", "script_of",
+           "synopsis_flags"]
+
+
+# ------------------------------------------------------------------------------------------ lite nets
+def condition_head(net, seed: int = 0):
+    """Scale a random-weight EfficientNet-Lite's head conv and classifier: head pre-activations and logits of std 2.
+
+    Random weights fade to ~1e-9 by the head and leave a softmax flat to 1e-10. There G = J^T S is a
+    cancellation (S_k - |S|^2) at rounding level, and two correct summation orders (autograd's, the closed
+    form's) do not agree on it. Scaled, ReLU6 masks about half of the head and the seed is far from zero.
+    The head's batch-norm gets random affine weights and statistics first (every factor of its backward
+    then counts).
+    Deterministic: two networks of one seed stay identical.
+
+    Args:
+        net: an :class:`attnloop.backbones.efficientnet_lite.EfficientNetLite` (any dtype), changed in place.
+        seed: seed of the images the scales are measured on.
+
+    Returns:
+        ``net``.
+    """
+    dtype = net._fc.weight.dtype
+    gen = torch.Generator().manual_seed(seed)
+    images = 0.1 + 0.8 * torch.rand(4, 3, *net.input_size, generator=gen)
+    with torch.no_grad():
+        # batch-norm statistics and affine weights of a trained head, not the init's ones and zeros
+        bn = net._bn1
+        for t, lo, hi in ((bn.weight, 0.5, 2.0), (bn.bias, -0.5, 0.5), (bn.running_mean, -0.5, 0.5),
+                          (bn.running_var, 0.5, 2.0)):
+            t.copy_(lo + (hi - lo) * torch.rand(t.shape, generator=gen, dtype=torch.float64))
+        h = F.relu6(net._bn0(net._conv_stem(net.preprocess(images.to(dtype)))))
+        for block in net._blocks:
+            h = block(h)
+        slope = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+        net._conv_head.weight.mul_(2.0 / float((net._conv_head(h) * slope[:, None, None]).std()))
+        pooled = F.relu6(bn(net._conv_head(h))).mean(dim=(2, 3))
+        net._fc.weight.mul_(2.0 / float(net._fc(pooled).std()))
+    return net
+
+
+# ------------------------------------------------------------------------------------------ mutations
+_NUMBER = re.compile(rb"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
+_BAD_NUMBERS = (b"nan", b"inf", b"-inf", b"NaN", b"1e309")
+_HUGE_NUMBERS = (b"1e300", b"-1e300", b"1e200", b"1e20", b"100000000000000000000", b"1e-320", b"9" * 400)
+_NOT_UTF8 = (b"\xff", b"\xfe", b"\xe9", b"\xc3\x28", b"\x80", b"\xed\xa0\x80")
+
+
+def _lines(data: bytes) -> list:
+    return data.split(b"\n")
+
+
+def _numbers(data: bytes) -> list:
+    return list(_NUMBER.finditer(data))
+
+
+def _replace_number(data: bytes, rng: random.Random, choices) -> bytes:
+    found = _numbers(data)
+    if not found:
+        return data + rng.choice(choices)
+    m = rng.choice(found)
+    return data[:m.start()] + rng.choice(choices) + data[m.end():]
+
+
+def _content_lines(lines: list) -> list:
+    return [k for k, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith(b"#")] or [0]
+
+
+def _truncate(data, rng):
+    return data[:rng.randrange(len(data) + 1)] if data else data
+
+
+def _flip_byte(data, rng):
+    if not data:
+        return bytes([rng.randrange(256)])
+    k = rng.randrange(len(data))
+    return data[:k] + bytes([data[k] ^ (1 << rng.randrange(8))]) + data[k + 1:]
+
+
+def _not_utf8(data, rng):
+    k = rng.randrange(len(data) + 1)
+    return data[:k] + rng.choice(_NOT_UTF8) + data[k:]
+
+
+def _field_count(data, rng):
+    lines = _lines(data)
+    k = rng.choice(_content_lines(lines))
+    fields = lines[k].split()
+    if fields and rng.random() < 0.5:
+        fields.pop(rng.randrange(len(fields)))
+    else:
+        fields.insert(rng.randrange(len(fields) + 1), rng.choice([b"0", b"1.5", b"7"]))
+    lines[k] = b" ".join(fields)
+    return b"\n".join(lines)
+
+
+def _duplicate_line(data, rng):
+    lines = _lines(data)
+    k = rng.choice(_content_lines(lines))
+    lines.insert(k + rng.choice([0, 1, 2]), lines[k])
+    return b"\n".join(lines)
+
+
+def _comments(data, rng):
+    lines = _lines(data)
+    k = rng.choice(_content_lines(lines))
+    if rng.random() < 0.5:
+        lines[k] = lines[k] + rng.choice([b" # trailing comment", b"\t#x", b" #"])
+    else:
+        lines.insert(k, rng.choice([b"# a comment", b"   # indented", b"#", b""]))
+    return b"\n".join(lines)
+
+
+def _text_for_number(data, rng):
+    return _replace_number(data, rng, (b"x", b"one", b"1,5", b"--1", b"0x10", b"1.2.3", b""))
+
+
+def _line_endings(data, rng):
+    out = data.replace(b"\n", b"\r\n") if rng.random() < 0.5 else data.replace(b"\n", b"\r")
+    return (b"\xef\xbb\xbf" + out) if rng.random() < 0.5 else out
+
+
+def _swap_lines(data, rng):
+    lines = _lines(data)
+    idx = _content_lines(lines)
+    a, b = rng.choice(idx), rng.choice(idx)
+    lines[a], lines[b] = lines[b], lines[a]
+    return b"\n".join(lines)
+
+
+_KINDS = {
+    "truncate": _truncate,
+    "flip_byte": _flip_byte,
+    "not_utf8": _not_utf8,
+    "non_finite": lambda d, r: _replace_number(d, r, _BAD_NUMBERS),
+    "huge_number": lambda d, r: _replace_number(d, r, _HUGE_NUMBERS),
+    "field_count": _field_count,
+    "empty": lambda d, r: b"" if r.random() < 0.5 else b"\n\n# only a comment\n",
+    "duplicate_line": _duplicate_line,
+    "comments": _comments,
+    "text_for_number": _text_for_number,
+    "line_endings": _line_endings,
+    "swap_lines": _swap_lines,
+}
+
+# the kinds of mutation, in a fixed order
+MUTATIONS = tuple(_KINDS)
+
+
+def mutate(data: bytes, kind: str, rng: random.Random) -> bytes:
+    """A mutated copy of ``data`` (the bytes of a file); ``kind`` is one of :data:`MUTATIONS`."""
+    if kind not in _KINDS:
+        raise ValueError(f"kind must be one of {MUTATIONS}, got {kind!r}")
+    return _KINDS[kind](bytes(data), rng)
+
+
+# ------------------------------------------------------------------------------------------ trajectories
+def perturb_trajectory(poses: torch.Tensor, stamps: torch.Tensor, seed: int, scale: float = 1.0) -> torch.Tensor:
+    """Known drift (growing yaw and translation), per-pose noise, then a global rigid motion."""
+    g = torch.Generator().manual_seed(seed)
+    n = poses.shape[0]
+    dt = (stamps - stamps[0])[:, None]
+    drift = torch.cat([dt * torch.tensor([0.01, -0.005, 0.008], dtype=torch.float64),
+                       dt * torch.tensor([0.0, 0.0, 0.004], dtype=torch.float64)], -1)
+    noise = torch.cat([torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.005,
+                       torch.randn(n, 3, generator=g, dtype=torch.float64) * math.radians(0.3)], -1)
+    est = se3_compose(se3_exp(drift), se3_compose(poses, se3_exp(noise)))
+    est = torch.cat([est[:, :3] * scale, est[:, 3:]], -1)
+    world = se3_exp(torch.tensor([0.4, -1.0, 2.0, 0.3, -0.2, 1.1], dtype=torch.float64))
+    return se3_compose(world.expand(n, 7), est)
+
+
+# ------------------------------------------------------------------------------------------ docs
+COMMAND_START = re.compile(r"^(attnloop-slam|attnloop-eval|python3? (?:examples|benchmarks)/\w+\.py|python3? -m benchmarks\.\w+)\b")
+
+
+def script_of(command: str) -> str:
+    """The script a command runs: ``benchmarks.x`` (``python -m benchmarks.x``) is ``benchmarks/x.py``."""
+    if re.fullmatch(r"benchmarks\.\w+", command):
+        return command.replace(".", "/", 1) + ".py"
+    return command
+
+
+def synopsis_flags(text: str) -> list[tuple]:
+    """(command, flag) for each ``--flag`` in lines of ``text`` that start with a command (or continue one)."""
+    found, command = [], None
+    for line in text.splitlines():
+        s = line.strip()
+        m = COMMAND_START.match(s)
+        if m:
+            command = script_of(m.group(1).split()[-1])
+        elif not (s.startswith(("[", "--"))) or command is None:
+            command = None
+            continue
+        for flag in re.findall(r"(?<![\w-])(--[a-z][\w-]*)", s):
+            found.append((command, flag))
+    return found
