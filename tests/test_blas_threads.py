@@ -31,9 +31,8 @@ def test_the_blas_threads_are_set_inside_and_restored_after():
             assert _counts() == [2] * len(before)
     assert _counts() == before
     # restored when the block raises, too
-    with pytest.raises(KeyError):
-        with bt.limit_blas_threads(1):
-            raise KeyError("x")
+    with pytest.raises(KeyError), bt.limit_blas_threads(1):
+        raise KeyError("x")
     assert _counts() == before
     with pytest.raises(ValueError, match="n must be >= 1"):
         bt.limit_blas_threads(0)

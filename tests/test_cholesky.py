@@ -263,7 +263,7 @@ def test_ordering_is_superlus_minimum_degree(name):
     assert sorted(order.tolist()) == list(range(nv))
 
 
-# review of the in-place factorisation (error paths, threads, NaN, autograd, empty patterns)
+# the in-place factorisation's edge cases (error paths, threads, NaN, autograd, empty patterns)
 def _assert_solves(f, A, b):
     ref = np.linalg.solve(A, b)
     np.testing.assert_allclose(f.solve(b), ref, rtol=0, atol=1e-9 * np.abs(ref).max())

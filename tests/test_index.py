@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from helpers import unit_rows
 
 from attnloop.index import (
     FaissConfig,
@@ -29,8 +30,7 @@ def _unit(x: torch.Tensor) -> torch.Tensor:
     return x / x.norm(dim=-1, keepdim=True)
 
 
-def random_data(n: int, d: int, seed: int = 0) -> torch.Tensor:
-    return _unit(torch.randn(n, d, generator=torch.Generator().manual_seed(seed)))
+random_data = unit_rows
 
 
 def clustered_data(n: int, d: int, clusters: int = 40, spread: float = 0.5, seed: int = 0) -> torch.Tensor:

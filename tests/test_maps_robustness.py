@@ -1,5 +1,5 @@
-"""Review of slam.maps (the saved-map format, relocalisation's checks) and slam.mapping (PLY, voxels):
-each test pins a defect found in review, with exact numbers."""
+"""Edge cases of slam.maps (the saved-map format, relocalisation's checks) and slam.mapping (PLY, voxels):
+each test pins a case that once gave a wrong result, with exact numbers."""
 from __future__ import annotations
 
 import hashlib
@@ -11,7 +11,8 @@ import types
 import numpy as np
 import pytest
 import torch
-from test_maps import _assert_same_map, _hand_map
+from helpers import assert_same_map as _assert_same_map
+from helpers import hand_map as _hand_map
 
 from attnloop.index import IndexConfig, KeyframeIndex
 from slam.keyframe_graph import GraphEdge

@@ -5,9 +5,9 @@ the full Hamming matrix), never from the code under test.
 """
 import math
 
+import kornia.feature as KF
 import pytest
 import torch
-import kornia.feature as KF
 
 from slam.odometry.config import MatchConfig, RansacConfig
 from slam.odometry.features import FrameFeatures

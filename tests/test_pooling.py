@@ -4,8 +4,8 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.nn.functional as F
-from torch import nn
 from helpers import condition_head
+from torch import nn
 
 from attnloop import AttentionDescriptor
 from attnloop.backbones import build_backbone

@@ -1,4 +1,4 @@
-"""The tracking thread's helpers (issue 14, frame rate): loop work in a worker thread, features extracted ahead.
+"""The tracking thread's helpers: loop work in a worker thread, features extracted ahead.
 
 Both must leave the run's result unchanged, bit for bit: the same graph, loops, corrections and trajectory
 as the plain streaming API; only *when* a loop shows in the frame reports changes (one keyframe later).

@@ -7,7 +7,7 @@ A map folder written by :func:`save_map` holds:
   dimension, and its descriptor of a fixed probe image: a map is only searchable with the same descriptor,
   :func:`slam.maps.relocalise.descriptor_probe`), the camera rig the poses are in, the
   ground-truth pose of the recording's first tracked frame (its first keyframe, the world's origin; for
-  evaluating later sessions; null without ground truth; maps saved before 2026-12-02 hold frame 0's),
+  evaluating later sessions; null without ground truth; maps saved without a descriptor probe hold frame 0's),
   and per data file its name and SHA-256 (a file that does not match is reported corrupt);
 * ``keyframes.npz``: per keyframe ``pose (M, 7)`` float64 (world-from-camera of the *tracked* camera,
   the colour camera on an unregistered rig; the world is the first tracked frame's depth camera as in

@@ -307,7 +307,7 @@ class MapRelocaliser:
             if key in theirs and theirs[key] != mine[key]:
                 remedy = ""
                 if key == "num_rnn":
-                    remedy = ("; the default descriptor has no RNNs since 2026-12-02 (loop.descriptor.num_rnn = 0): "
+                    remedy = ("; the default descriptor has no RNNs (loop.descriptor.num_rnn = 0): "
                               f"set loop.descriptor.num_rnn = {theirs[key]!r} to use this map, or record its session again")
                 raise MapMismatchError(f"{where}: the map was made with descriptor {key}={theirs[key]!r}, this run "
                                        f"uses {mine[key]!r}; its index cannot be searched with another descriptor"
@@ -323,10 +323,10 @@ class MapRelocaliser:
                                    f"entries, this run's {run_dim}; its index cannot be searched with another "
                                    "descriptor")
         if "probe" not in theirs and theirs.get("backbone") == "efficientnet_lite0" and theirs.get("fusion") != "none":
-            # saved before the probe existed (2026-12-02), so with the default of then: G at stage6 and stage7
+            # saved without a descriptor probe, by a version whose EfficientNet-Lite0 default attended stage6 and stage7
             raise MapMismatchError(
-                f"{where}: saved before 2026-12-02 with the previous EfficientNet-Lite0 default (attention at stage6 "
-                "and stage7; this version's attends stage7 only): its index cannot be searched with this "
+                f"{where}: saved without a descriptor probe, by a version whose EfficientNet-Lite0 default attended "
+                "stage6 and stage7 (this version's attends stage7 only): its index cannot be searched with this "
                 "descriptor; record the map's session again with this version")
         if theirs.get("probe") is None or mine["probe"] is None:
             logger.warning("%s: no descriptor probe to compare (%s): the map's descriptor is assumed to be this "
