@@ -33,7 +33,7 @@ PROG = "attnloop-slam"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from slam.options import add_run_arguments, frame_range, positive_int
+    from slam.options import add_laps_argument, add_run_arguments, frame_range, positive_int
     from slam.synthetic.demo import DEFAULT_DEMO_SCENE, DEMO_SCENES
 
     p = argparse.ArgumentParser(
@@ -45,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (created; the previous run's outputs in it are "
                                                 "replaced)")
     add_run_arguments(p)
+    add_laps_argument(p.add_argument_group("laps"))
     g = p.add_argument_group("maps (docs/pipeline.md, 'Maps that persist')")
     g.add_argument("--frames", type=frame_range, default=None, metavar="START:END",
                    help="the recording is input frames START .. END-1 only, numbered from 0 (a slice of a "
@@ -160,7 +161,7 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
     other options make idle are refused.
     """
     from slam.io import open_sequence
-    from slam.options import UsageError, config_from_args, describe_rig, reader_options, resolve_rig
+    from slam.options import UsageError, apply_laps, config_from_args, describe_rig, reader_options, resolve_rig
     from slam.pipeline import camera_of, evaluate_run, prepare_output_dir, run_slam, write_outputs
 
     demo_options = [flag for dest, flag in DEMO_OPTIONS.items() if dest in given]
@@ -205,6 +206,7 @@ def run_command(args: argparse.Namespace, given: frozenset[str] = frozenset()) -
     if args.demo:
         seq_dir = _generate_demo_logged(args, out)
         seq = open_sequence(seq_dir)
+    seq = apply_laps(args, seq)
     if not args.quiet:
         cam = camera_of(seq)
         named = f"{cam['name']}, " if cam["name"] else ""

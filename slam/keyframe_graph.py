@@ -45,7 +45,38 @@ from slam.lie import se3_compose, so3_log
 
 Tensor = torch.Tensor
 
-__all__ = ["EdgeKind", "GraphEdge", "KeyframeGraph"]
+__all__ = ["EdgeKind", "GraphEdge", "GrowingArray", "KeyframeGraph"]
+
+
+class GrowingArray:
+    """A numpy array that grows by rows in amortised O(1) (capacity doubling): :attr:`view` is its rows so far.
+
+    Example:
+        >>> a = GrowingArray(np.float64)
+        >>> a.append(1.5); a.append(2.0)
+        >>> a.view.tolist(), len(a)
+        ([1.5, 2.0], 2)
+    """
+
+    def __init__(self, dtype, row_shape: tuple = ()):
+        self._buf = np.zeros((8, *row_shape), dtype=dtype)
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, row) -> None:
+        if self._n == self._buf.shape[0]:
+            grown = np.zeros((2 * self._n, *self._buf.shape[1:]), dtype=self._buf.dtype)
+            grown[: self._n] = self._buf
+            self._buf = grown
+        self._buf[self._n] = row
+        self._n += 1
+
+    @property
+    def view(self) -> np.ndarray:
+        """The rows so far (a view: it changes with the next append that does not reallocate)."""
+        return self._buf[: self._n]
 
 
 class EdgeKind(IntEnum):
@@ -105,8 +136,8 @@ class KeyframeGraph:
         self.edges: List[GraphEdge] = []
         # distance travelled from keyframe 0 along the odometry edges, while they form a chain (each edge
         # from the previous keyframe, as the front end makes them): chain distances are then differences
-        self._travelled: List[float] = []
-        self._weak_before: list[int] = []  # weak edges on the chain from keyframe 0 (chain distances across one: inf)
+        self._travelled = GrowingArray(np.float64)
+        self._weak_before = GrowingArray(np.int64)  # weak edges on the chain from keyframe 0 (distances across one: inf)
         self._chain = True
         self._joined: list[set[int]] = []  # per keyframe, the keyframes an edge joins it to
 
@@ -154,8 +185,8 @@ class KeyframeGraph:
         self.edges.append(GraphEdge(i, j, T.clone(), information.detach().to(torch.float64).cpu().clone(),
                                     EdgeKind.ODOMETRY, weak=weak))
         self._chain = self._chain and i == j - 1
-        self._travelled.append(self._travelled[i] + self.edges[-1].length)
-        self._weak_before.append(self._weak_before[i] + int(bool(weak)))
+        self._travelled.append(self._travelled.view[i] + self.edges[-1].length)
+        self._weak_before.append(self._weak_before.view[i] + int(bool(weak)))
         self._joined.append(set() if weak else {i})  # a weak edge measured nothing: a loop may still join them
         if not weak:
             self._joined[i].add(j)
@@ -239,6 +270,24 @@ class KeyframeGraph:
                          torch.stack([e.T_ij for e in edges]), info)
 
     # ------------------------------------------------------------------------------------------
+    def chain_positions(self, ids) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """Where keyframes lie along the odometry chain: (metres travelled from keyframe 0 ``(k,)`` float64,
+        weak edges passed since keyframe 0 ``(k,)`` int64), or None when the odometry edges are no chain.
+
+        The odometry distance of two keyframes (:meth:`path_lengths` without loops) is then the difference
+        of their metres where their weak-edge counts are equal, and ``inf`` otherwise: O(1) per pair.
+        """
+        if not self._chain:
+            return None
+        idx = np.asarray(ids, dtype=np.int64)
+        return self._travelled.view[idx], self._weak_before.view[idx]
+
+    @property
+    def num_weak(self) -> int:
+        """Weak odometry edges so far (forced after tracking losses)."""
+        return sum(e.weak for e in self.edges if e.kind is EdgeKind.ODOMETRY) if not self._chain \
+            else int(self._weak_before.view[-1]) if len(self._weak_before) else 0
+
     def path_lengths(self, source: int, through_loops: bool = True, min_edge_length: float = 0.0,
                      min_loop_weight: float = 0.0) -> np.ndarray:
         """Distance travelled ``(M,)`` (metres) from keyframe ``source`` to every keyframe along the graph.
@@ -255,7 +304,7 @@ class KeyframeGraph:
         if not 0 <= source < n:
             raise ValueError(f"source keyframe {source} out of range for {n} keyframes")
         if not through_loops and self._chain and min_edge_length <= 0:
-            c, weak = np.asarray(self._travelled), np.asarray(self._weak_before)
+            c, weak = self._travelled.view, self._weak_before.view
             return np.where(weak == weak[source], np.abs(c - c[source]), np.inf)
         use = [e for e in self.edges if e.active and ((e.kind is EdgeKind.ODOMETRY and not e.weak)
                                                       or (e.kind is EdgeKind.LOOP and through_loops

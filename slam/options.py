@@ -225,6 +225,23 @@ def add_run_arguments(parser: argparse.ArgumentParser, fusion: bool = True) -> N
     g.add_argument("--no-map", action="store_true", help="do not build or write map.ply")
 
 
+def add_laps_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--laps N``: the sequence played N times, alternately forward and backward (:mod:`slam.io.laps`)."""
+    parser.add_argument("--laps", type=positive_int, default=1, metavar="N",
+                        help="play the sequence N times, forward, backward, forward, ... (continuous motion, "
+                             "timestamps increasing): a long run that revisits every place, without new data; "
+                             "--frames, --max-frames and --frame-step then select from the laps' frames")
+
+
+def apply_laps(args: argparse.Namespace, sequence):
+    """``sequence`` played as ``args.laps`` laps (:class:`slam.io.laps.LapSequence`), or itself for one lap."""
+    if getattr(args, "laps", 1) <= 1:
+        return sequence
+    from slam.io.laps import LapSequence
+
+    return LapSequence(sequence, args.laps)
+
+
 def _default_threads() -> int | None:
     return SLAMConfig().threads
 
