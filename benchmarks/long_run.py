@@ -144,7 +144,7 @@ def main(argv=None) -> int:
     p.add_argument("--cache", default=None,
                    help="folder of the rendered building (reused when present; default: a temporary one)")
     p.add_argument("--laps", type=int, default=5, help="laps, alternately forward and backward (default 5)")
-    p.add_argument("--frame-step", type=int, default=1)
+    p.add_argument("--frame-step", type=int, default=1, help="use every Nth frame of the laps (default 1)")
     p.add_argument("--no-map", action="store_true", help="do not build the map (map.ply's points)")
     p.add_argument("--threads", type=int, default=None, help="SLAMConfig.threads (default: the config's)")
     p.add_argument("--json", default=None, metavar="FILE", help="write the figures here too")

@@ -284,7 +284,10 @@ class LoopCloser:
         update = LoopUpdate()
         if not query.candidates:
             return update
-        lengths = graph.path_lengths(kf.id, through_loops=through_loops, min_loop_weight=min_loop_weight)
+        # the distances to the candidates only: a search that stops once they are reached
+        ids = [c for c, _ in eligible]
+        lengths = dict(zip(ids, graph.path_lengths_to(kf.id, ids, through_loops=through_loops,
+                                                       min_loop_weight=min_loop_weight).tolist()))
         for cand_id, score in eligible:
             a = keyframes[cand_id]
             with self.timer("verification"):
