@@ -54,3 +54,17 @@ def test_laps_option(source):
     assert isinstance(laps, LapSequence) and len(laps) == 10
     with pytest.raises(SystemExit):
         p.parse_args(["--laps", "0"])
+
+
+def test_cli_runs_the_laps(tmp_path):
+    import json
+
+    from slam.cli import main
+
+    out = tmp_path / "run"
+    assert main(["--demo", "--demo-frames", "12", "--demo-size", "64", "48", "--laps", "3", "--no-loop",
+                 "--no-map", "--quiet", "--out", str(out)]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["num_frames"] == 36
+    stamps = np.loadtxt(out / "trajectory.txt")[:, 0]
+    assert stamps.size == 36 and np.all(np.diff(stamps) > 0)
