@@ -156,7 +156,7 @@ def main(argv=None) -> int:
 
     import tempfile
 
-    import slam.pipeline as pipeline
+    from slam import pipeline
     from slam.io import open_sequence
     from slam.io.laps import LapSequence
     from slam.options import config_from_args, run_options

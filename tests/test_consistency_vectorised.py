@@ -10,7 +10,6 @@ loss, and a recorded real loop set (the building demo tour played as two laps: 1
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import numpy as np

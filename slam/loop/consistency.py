@@ -86,9 +86,10 @@ class ConsistencyConfig:
     support_radius: float = 2.0  # m
     # The pairwise bound: the drift bound of slam.loop.acceptance on the summed length of the two paths.
     bound: DriftBoundConfig = field(default_factory=DriftBoundConfig)
-    # Exact maximum clique up to this many hypotheses; beyond, the newest ones are checked greedily
-    # against the kept group (bounds the cost on very long runs), and while there is no group, the group
-    # is the exact clique of the newest max(max_exact, min_group) hypotheses.
+    # Exact maximum clique up to this many hypotheses (every pair compared); beyond, each new one joins the
+    # group when it agrees with the group's loops within the capped length of it (the module docstring:
+    # the cost per loop stays bounded on very long runs), and while there is no group, the group is the
+    # exact clique of the newest max(max_exact, min_group) hypotheses.
     max_exact: int = 400
 
     def __post_init__(self) -> None:
