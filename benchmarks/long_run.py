@@ -151,7 +151,7 @@ def main(argv=None) -> int:
     p.add_argument("--save-loops", default=None, metavar="FILE",
                    help="save the verified loops in order and the keyframes' odometry chain (.npz): a real loop "
                         "set for replaying the group check (tests/test_consistency_vectorised.py)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (the rendering and the run)")
     args = p.parse_args(argv)
 
     import tempfile
