@@ -161,7 +161,8 @@ def _relocalisation_summary(r: dict) -> str:
 def run_command(args: argparse.Namespace) -> int:
     """Everything after parsing: checks, demo generation, the run, its evaluation and outputs."""
     from slam.io import open_sequence
-    from slam.options import UsageError, describe_rig, given_settings, reader_options, resolve_settings, rig_of
+    from slam.options import (UsageError, apply_laps, describe_rig, given_settings, reader_options, resolve_settings,
+                              rig_of)
     from slam.pipeline import camera_of, evaluate_run, prepare_output_dir, run_slam, write_outputs
 
     settings = given_settings(args)
@@ -221,6 +222,7 @@ def run_command(args: argparse.Namespace) -> int:
     if args.demo:
         seq_dir = _generate_demo_logged(args, out, cfg.loop.descriptor.seed)
         seq = open_sequence(seq_dir, **reader_options(opts))
+        seq = apply_laps(opts, seq)
     if not args.quiet:
         cam = camera_of(seq)
         named = f"{cam['name']}, " if cam["name"] else ""

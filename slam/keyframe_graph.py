@@ -33,6 +33,7 @@ Example:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Dict, List, Optional
@@ -45,7 +46,38 @@ from slam.lie import se3_compose, so3_log
 
 Tensor = torch.Tensor
 
-__all__ = ["EdgeKind", "GraphEdge", "KeyframeGraph"]
+__all__ = ["EdgeKind", "GraphEdge", "GrowingArray", "KeyframeGraph"]
+
+
+class GrowingArray:
+    """A numpy array that grows by rows in amortised O(1) (capacity doubling): :attr:`view` is its rows so far.
+
+    Example:
+        >>> a = GrowingArray(np.float64)
+        >>> a.append(1.5); a.append(2.0)
+        >>> a.view.tolist(), len(a)
+        ([1.5, 2.0], 2)
+    """
+
+    def __init__(self, dtype, row_shape: tuple = ()):
+        self._buf = np.zeros((8, *row_shape), dtype=dtype)
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, row) -> None:
+        if self._n == self._buf.shape[0]:
+            grown = np.zeros((2 * self._n, *self._buf.shape[1:]), dtype=self._buf.dtype)
+            grown[: self._n] = self._buf
+            self._buf = grown
+        self._buf[self._n] = row
+        self._n += 1
+
+    @property
+    def view(self) -> np.ndarray:
+        """The rows so far (a view: it changes with the next append that does not reallocate)."""
+        return self._buf[: self._n]
 
 
 class EdgeKind(IntEnum):
@@ -100,15 +132,22 @@ class KeyframeGraph:
     """
 
     def __init__(self) -> None:
-        self._odometry: List[Tensor] = []
-        self._estimate: List[Tensor] = []
+        # (M, 7) float64 rows, grown in amortised O(1): the poses are read and replaced as a block (every
+        # online correction reads and sets them all) without stacking M tensors each time
+        self._odometry = GrowingArray(np.float64, (7,))
+        self._estimate = GrowingArray(np.float64, (7,))
+        # per edge, its measurement and information as rows (the pose graph is built from them by indexing)
+        self._edge_T = GrowingArray(np.float64, (7,))
+        self._edge_info = GrowingArray(np.float64, (6, 6))
         self.edges: List[GraphEdge] = []
         # distance travelled from keyframe 0 along the odometry edges, while they form a chain (each edge
         # from the previous keyframe, as the front end makes them): chain distances are then differences
-        self._travelled: List[float] = []
-        self._weak_before: list[int] = []  # weak edges on the chain from keyframe 0 (chain distances across one: inf)
+        self._travelled = GrowingArray(np.float64)
+        self._weak_before = GrowingArray(np.int64)  # weak edges on the chain from keyframe 0 (distances across one: inf)
         self._chain = True
         self._joined: list[set[int]] = []  # per keyframe, the keyframes an edge joins it to
+        self._incident: list[list[int]] = []  # per keyframe, the indices of its edges (for local searches)
+        self._edge_length = GrowingArray(np.float64)  # per edge, |t_ij| (its measurement never changes)
 
     # ------------------------------------------------------------------------------------------
     @property
@@ -122,12 +161,13 @@ class KeyframeGraph:
     def add_keyframe(self, pose: Tensor) -> int:
         """Add a keyframe with no edge (the first one; or a map's origin). Returns its id."""
         p = pose.detach().to(torch.float64).cpu().clone()
-        self._chain = self._chain and not self._odometry
-        self._odometry.append(p)
-        self._estimate.append(p.clone())
+        self._chain = self._chain and not len(self._odometry)
+        self._odometry.append(p.numpy())
+        self._estimate.append(p.numpy())
         self._travelled.append(0.0)
         self._weak_before.append(0)
         self._joined.append(set())
+        self._incident.append([])
         return len(self._odometry) - 1
 
     def add_odometry(self, i: int, T_ij: Tensor, information: Tensor, estimate: Tensor,
@@ -148,15 +188,17 @@ class KeyframeGraph:
         if not 0 <= i < self.num_keyframes:
             raise ValueError(f"odometry edge from keyframe {i}: only {self.num_keyframes} keyframes exist")
         T = T_ij.detach().to(torch.float64).cpu()
-        self._odometry.append(se3_compose(self._odometry[i], T))
-        self._estimate.append(estimate.detach().to(torch.float64).cpu().clone())
+        self._odometry.append(se3_compose(self.odometry_pose(i), T).numpy())
+        self._estimate.append(estimate.detach().to(torch.float64).cpu().numpy())
         j = len(self._odometry) - 1
         self.edges.append(GraphEdge(i, j, T.clone(), information.detach().to(torch.float64).cpu().clone(),
                                     EdgeKind.ODOMETRY, weak=weak))
         self._chain = self._chain and i == j - 1
-        self._travelled.append(self._travelled[i] + self.edges[-1].length)
-        self._weak_before.append(self._weak_before[i] + int(bool(weak)))
+        self._travelled.append(self._travelled.view[i] + self.edges[-1].length)
+        self._weak_before.append(self._weak_before.view[i] + int(bool(weak)))
         self._joined.append(set() if weak else {i})  # a weak edge measured nothing: a loop may still join them
+        self._incident.append([])
+        self._new_edge()
         if not weak:
             self._joined[i].add(j)
         return j
@@ -168,9 +210,18 @@ class KeyframeGraph:
             raise ValueError(f"loop edge {i} -> {j}: need two distinct keyframes of {n}")
         self.edges.append(GraphEdge(i, j, T_ij.detach().to(torch.float64).cpu().clone(),
                                     information.detach().to(torch.float64).cpu().clone(), EdgeKind.LOOP))
+        self._new_edge()
         self._joined[i].add(j)
         self._joined[j].add(i)
         return len(self.edges) - 1
+
+    def _new_edge(self) -> None:
+        e = self.edges[-1]
+        self._edge_length.append(e.length)
+        self._edge_T.append(e.T_ij.numpy())
+        self._edge_info.append(e.information.numpy())
+        self._incident[e.i].append(len(self.edges) - 1)
+        self._incident[e.j].append(len(self.edges) - 1)
 
     def joined(self, k: int) -> set[int]:
         """The keyframes a measured edge (odometry or loop, active or not; not a weak edge, which is a guess)
@@ -182,26 +233,25 @@ class KeyframeGraph:
     # ------------------------------------------------------------------------------------------
     def odometry_poses(self) -> Tensor:
         """``(M, 7)`` float64 odometry-chained keyframe poses."""
-        return torch.stack(self._odometry) if self._odometry else torch.zeros(0, 7, dtype=torch.float64)
+        return torch.from_numpy(self._odometry.view.copy())
 
     def estimates(self) -> Tensor:
         """``(M, 7)`` float64 current keyframe pose estimates."""
-        return torch.stack(self._estimate) if self._estimate else torch.zeros(0, 7, dtype=torch.float64)
+        return torch.from_numpy(self._estimate.view.copy())
 
     def estimate(self, k: int) -> Tensor:
         """``(7,)`` current estimate of keyframe ``k``."""
-        return self._estimate[k]
+        return torch.from_numpy(self._estimate.view[k].copy())
 
     def odometry_pose(self, k: int) -> Tensor:
         """``(7,)`` odometry pose of keyframe ``k``."""
-        return self._odometry[k]
+        return torch.from_numpy(self._odometry.view[k].copy())
 
     def set_estimates(self, poses: Tensor) -> None:
         """Replace the estimates of keyframes ``0 .. P-1`` by ``poses (P, 7)`` (P may lag behind new keyframes)."""
         if poses.ndim != 2 or poses.shape[-1] != 7 or poses.shape[0] > self.num_keyframes:
             raise ValueError(f"poses must have shape (P <= {self.num_keyframes}, 7), got {tuple(poses.shape)}")
-        for k, p in enumerate(poses.detach().to(torch.float64).cpu()):
-            self._estimate[k] = p.clone()
+        self._estimate.view[: poses.shape[0]] = poses.detach().to(torch.float64).cpu().numpy()
 
     def edge_kinds(self, active_only: bool = False) -> Tensor:
         """``(E,)`` int64 :class:`EdgeKind` codes of the edges, in :meth:`pose_graph` order."""
@@ -224,21 +274,96 @@ class KeyframeGraph:
             the graph (None when there are no keyframes); its edges are in :attr:`edges` order (the
             inactive ones left out when ``active_only``).
         """
-        if not self._odometry:
+        if not len(self._odometry):
             return None
         P = self.estimates() if poses is None else poses.to(torch.float64)
-        edges = [e for e in self.edges if e.active or not active_only]
-        if not edges:
+        sel = np.fromiter((k for k, e in enumerate(self.edges) if e.active or not active_only), np.int64)
+        if not sel.size:
             return PoseGraph(P, torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long),
                              torch.zeros(0, 7, dtype=torch.float64), torch.zeros(0, 6, 6, dtype=torch.float64))
+        edges = [self.edges[k] for k in sel]
         scale = torch.tensor([float(information_scale[e.kind]) for e in edges], dtype=torch.float64)
-        info = torch.stack([e.information for e in edges])
+        if self._rows_in_step():  # the measurements as rows: one index instead of stacking E tensors
+            T = torch.from_numpy(self._edge_T.view[sel])
+            info = torch.from_numpy(self._edge_info.view[sel])
+        else:
+            T = torch.stack([e.T_ij for e in edges])
+            info = torch.stack([e.information for e in edges])
         info = 0.5 * (info + info.transpose(-1, -2)) * scale[:, None, None]
         return PoseGraph(P, torch.tensor([e.i for e in edges], dtype=torch.long),
-                         torch.tensor([e.j for e in edges], dtype=torch.long),
-                         torch.stack([e.T_ij for e in edges]), info)
+                         torch.tensor([e.j for e in edges], dtype=torch.long), T, info)
+
+    def _rows_in_step(self) -> bool:
+        """The per-edge rows match :attr:`edges` (a caller may have cut the public list short)."""
+        return len(self._edge_T) == len(self.edges)
 
     # ------------------------------------------------------------------------------------------
+    def chain_positions(self, ids) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """Where keyframes lie along the odometry chain: (metres travelled from keyframe 0 ``(k,)`` float64,
+        weak edges passed since keyframe 0 ``(k,)`` int64), or None when the odometry edges are no chain.
+
+        The odometry distance of two keyframes (:meth:`path_lengths` without loops) is then the difference
+        of their metres where their weak-edge counts are equal, and ``inf`` otherwise: O(1) per pair.
+        """
+        if not self._chain:
+            return None
+        idx = np.asarray(ids, dtype=np.int64)
+        return self._travelled.view[idx], self._weak_before.view[idx]
+
+    @property
+    def num_weak(self) -> int:
+        """Weak odometry edges so far (forced after tracking losses)."""
+        return sum(e.weak for e in self.edges if e.kind is EdgeKind.ODOMETRY) if not self._chain \
+            else int(self._weak_before.view[-1]) if len(self._weak_before) else 0
+
+    def path_lengths_to(self, source: int, targets, through_loops: bool = True, min_loop_weight: float = 0.0
+                        ) -> np.ndarray:
+        """:meth:`path_lengths` from ``source`` to ``targets`` only ``(k,)``: the same distances, found by a
+        search that stops once every target is reached (its cost is that of the graph around the source
+        out to the farthest target, not the whole graph's), or by chain positions without loops.
+        """
+        n = self.num_keyframes
+        if not 0 <= source < n:
+            raise ValueError(f"source keyframe {source} out of range for {n} keyframes")
+        tg = np.asarray(targets, dtype=np.int64).reshape(-1)
+        if tg.size and not (0 <= tg.min() and tg.max() < n):
+            raise ValueError(f"target keyframes {tg.tolist()} out of range for {n} keyframes")
+        if not through_loops and self._chain:
+            c, weak = self._travelled.view, self._weak_before.view
+            return np.where(weak[tg] == weak[source], np.abs(c[tg] - c[source]), np.inf)
+        if not self._rows_in_step():
+            return self.path_lengths(source, through_loops=through_loops, min_loop_weight=min_loop_weight)[tg]
+        import heapq
+
+        left = set(tg.tolist())
+        dist = {source: 0.0}
+        done = set()
+        heap = [(0.0, source)]
+        lengths = self._edge_length.view
+        while heap and left:
+            d, u = heapq.heappop(heap)
+            if u in done:
+                continue
+            done.add(u)
+            left.discard(u)
+            for k in self._incident[u]:
+                e = self.edges[k]
+                if not e.active:
+                    continue
+                if e.kind is EdgeKind.ODOMETRY:
+                    if e.weak:
+                        continue
+                elif not (through_loops and e.weight >= min_loop_weight):
+                    continue
+                v = e.j if e.i == u else e.i
+                if v in done:
+                    continue
+                nd = d + max(float(lengths[k]), 1e-9)  # as path_lengths: an edge is never shorter than 1e-9
+                if nd < dist.get(v, math.inf):
+                    dist[v] = nd
+                    heapq.heappush(heap, (nd, v))
+        return np.array([dist.get(int(t), math.inf) for t in tg], dtype=np.float64)
+
     def path_lengths(self, source: int, through_loops: bool = True, min_edge_length: float = 0.0,
                      min_loop_weight: float = 0.0) -> np.ndarray:
         """Distance travelled ``(M,)`` (metres) from keyframe ``source`` to every keyframe along the graph.
@@ -255,7 +380,7 @@ class KeyframeGraph:
         if not 0 <= source < n:
             raise ValueError(f"source keyframe {source} out of range for {n} keyframes")
         if not through_loops and self._chain and min_edge_length <= 0:
-            c, weak = np.asarray(self._travelled), np.asarray(self._weak_before)
+            c, weak = self._travelled.view, self._weak_before.view
             return np.where(weak == weak[source], np.abs(c - c[source]), np.inf)
         use = [e for e in self.edges if e.active and ((e.kind is EdgeKind.ODOMETRY and not e.weak)
                                                       or (e.kind is EdgeKind.LOOP and through_loops

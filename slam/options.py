@@ -59,6 +59,7 @@ __all__ = [
     "RunSettings",
     "UsageError",
     "add_run_arguments",
+    "apply_laps",
     "check_device",
     "check_intrinsics",
     "check_sequence_intrinsics",
@@ -133,10 +134,12 @@ class RunOptions:
     intrinsics: Optional[tuple] = None
     # the first frames' median depth checked against the depth scale (a wrong unit fails before the run)
     depth_check: bool = True
+    laps: int = 1  # the sequence played N times, forward, backward, forward, ... (slam.io.laps)
 
     def __post_init__(self) -> None:
         n = "RunOptions"
         check_int(n, "frame_step", self.frame_step, 1)
+        check_int(n, "laps", self.laps, 1)
         if self.max_frames is not None:
             check_int(n, "max_frames", self.max_frames, 1)
         if self.frames is not None:
@@ -180,6 +183,15 @@ def reader_options(run: RunOptions) -> dict:
     if not run.depth_check:
         options["check_units"] = False
     return options
+
+
+def apply_laps(run: RunOptions, sequence):
+    """``sequence`` played as ``run.laps`` laps (:class:`slam.io.laps.LapSequence`), or itself for one lap."""
+    if run.laps <= 1:
+        return sequence
+    from slam.io.laps import LapSequence
+
+    return LapSequence(sequence, run.laps)
 
 
 def finite_float(text: str) -> float:
@@ -288,6 +300,9 @@ OPTIONS: tuple[Option, ...] = (
     Option("--frame-step", "run.frame_step", "frames", "use every Nth frame (more motion between frames: more "
            "drift for the loops to correct); the trajectory and the metrics are on those frames", type=positive_int,
            metavar="N"),
+    Option("--laps", "run.laps", "frames", "play the sequence N times, forward, backward, forward, ... (continuous "
+           "motion, timestamps increasing): a long run that revisits every place, without new data; --frames, "
+           "--max-frames and --frame-step then select from the laps' frames", type=positive_int, metavar="N"),
     Option("--frames", "run.frames", "frames", "the recording is input frames START .. END-1 only, numbered from 0 "
            "(a slice of a longer sequence as a recording of its own)", type=frame_range, metavar="START:END"),
     Option("--camera", "run.camera", "camera (default: from the dataset)",
@@ -493,7 +508,7 @@ def resolve_settings(settings: Optional[Mapping[str, Any]] = None, file=None, se
         config = override(config, {"map.enabled": False})
     if config.loop.enabled:
         check_weights_file(config.loop.descriptor.weights)  # a wrong path found before the work
-    return RunSettings(config, run, sequence)
+    return RunSettings(config, run, apply_laps(run, sequence) if sequence is not None else None)
 
 
 def check_weights_file(weights, what: str = "--weights") -> None:

@@ -184,8 +184,8 @@ class _GivenConsistency(GroupConsistency):
         super().__init__(config)
         self._given = np.asarray(adjacency, bool)
 
-    def _consistent(self, i, j, graph, lengths):
-        return bool(self._given[i, j]), 0.0
+    def _compare(self, new, others, graph):
+        return self._given[others, new].copy(), np.zeros(others.size)
 
 
 def _kept_after_each(config, adjacency):

@@ -186,7 +186,7 @@ def _fake_run(dim: int):
                                   "loop.descriptor.seed": 0})
     index = KeyframeIndex(IndexConfig(backend="exact"))  # empty: the run has not started
     closer = types.SimpleNamespace(descriptor=Describe(), detector=types.SimpleNamespace(index=index))
-    return types.SimpleNamespace(config=cfg, loop_closer=closer)
+    return types.SimpleNamespace(config=cfg, loop_closer=closer, localize=False)
 
 
 def test_a_map_of_another_descriptor_length_is_refused_without_probes(caplog):

@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from slam.lie import se3_between, se3_compose, so3_log
@@ -35,7 +36,8 @@ from slam.loop.verification import DriftLimits
 
 Tensor = torch.Tensor
 
-__all__ = ["DriftBoundConfig", "drift_limits", "pairwise_consistent"]
+__all__ = ["DriftBoundConfig", "capped_length", "drift_limits", "drift_limits_array", "pairwise_consistent",
+           "pairwise_errors"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,25 @@ class DriftBoundConfig:
             raise ValueError(f"DriftBoundConfig values must be finite and >= 0, got {values}")
 
 
+def drift_limits_array(path_length, config: DriftBoundConfig) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`drift_limits` of many path lengths at once: (translations m, rotations deg), each ``(k,)``.
+
+    Args:
+        path_length: ``(k,)`` metres (``inf``: the caps).
+        config: :class:`DriftBoundConfig`.
+    """
+    L = np.asarray(path_length, dtype=np.float64)
+    if not bool(np.all(L >= 0)):
+        raise ValueError(f"path_length must be >= 0, got {L[~(L >= 0)][:3].tolist()}")
+    finite = np.isfinite(L)
+    Lf = np.where(finite, L, 0.0)
+    t = np.where(finite, np.minimum(config.translation_base + config.translation_per_metre * Lf,
+                                    config.max_translation), config.max_translation)
+    r = np.where(finite, np.minimum(config.rotation_base_deg + config.rotation_per_metre_deg * Lf,
+                                    config.max_rotation_deg), config.max_rotation_deg)
+    return t, r
+
+
 def drift_limits(path_length: float, config: DriftBoundConfig) -> DriftLimits:
     """The allowed disagreement after ``path_length`` metres travelled between two keyframes.
 
@@ -71,12 +92,20 @@ def drift_limits(path_length: float, config: DriftBoundConfig) -> DriftLimits:
     """
     if not path_length >= 0:
         raise ValueError(f"path_length must be >= 0, got {path_length}")
-    L = float(path_length)
-    t = min(config.translation_base + config.translation_per_metre * L, config.max_translation) \
-        if math.isfinite(L) else config.max_translation
-    r = min(config.rotation_base_deg + config.rotation_per_metre_deg * L, config.max_rotation_deg) \
-        if math.isfinite(L) else config.max_rotation_deg
-    return DriftLimits(t, r)
+    t, r = drift_limits_array([float(path_length)], config)
+    return DriftLimits(float(t[0]), float(r[0]))
+
+
+def capped_length(config: DriftBoundConfig) -> float:
+    """The path length from which both bounds are at their caps (``inf`` when one never reaches its cap):
+    beyond it the bound no longer depends on the distance travelled."""
+    def reach(base: float, rate: float, cap: float) -> float:
+        if base >= cap:
+            return 0.0
+        return (cap - base) / rate if rate > 0 else math.inf
+
+    return max(reach(config.translation_base, config.translation_per_metre, config.max_translation),
+               reach(config.rotation_base_deg, config.rotation_per_metre_deg, config.max_rotation_deg))
 
 
 def pairwise_consistent(T_a1b1: Tensor, T_a2b2: Tensor, T_a1a2: Tensor, T_b1b2: Tensor,
@@ -96,7 +125,20 @@ def pairwise_consistent(T_a1b1: Tensor, T_a2b2: Tensor, T_a1a2: Tensor, T_b1b2: 
     Returns:
         (consistent, translation error m, rotation error deg).
     """
-    err = se3_between(se3_compose(T_a1a2, T_a2b2), se3_compose(T_a1b1, T_b1b2))
-    dt = float(err[:3].norm())
-    dr = math.degrees(float(so3_log(err[3:]).norm()))
+    dt, dr = pairwise_errors(T_a1b1, T_a2b2, T_a1a2, T_b1b2)
+    dt, dr = float(dt), float(dr)
     return (dt <= limits.translation and dr <= limits.rotation_deg), dt, dr
+
+
+def pairwise_errors(T_a1b1: Tensor, T_a2b2: Tensor, T_a1a2: Tensor, T_b1b2: Tensor) -> tuple[Tensor, Tensor]:
+    """The cycle error of :func:`pairwise_consistent` for a batch of loop pairs (broadcasting).
+
+    Args:
+        T_a1b1, T_a2b2: ``(..., 7)`` the loops' measured relative poses.
+        T_a1a2, T_b1b2: ``(..., 7)`` the estimate's relative poses between their ends.
+
+    Returns:
+        (translation errors m, rotation errors deg), each ``(...)`` float64 tensors.
+    """
+    err = se3_between(se3_compose(T_a1a2, T_a2b2), se3_compose(T_a1b1, T_b1b2))
+    return err[..., :3].norm(dim=-1), so3_log(err[..., 3:]).norm(dim=-1) * (180.0 / math.pi)  # as math.degrees

@@ -283,7 +283,10 @@ class LoopCloser:
         update = LoopUpdate()
         if not query.candidates:
             return update
-        lengths = graph.path_lengths(kf.id, through_loops=through_loops, min_loop_weight=min_loop_weight)
+        # the distances to the candidates only: a search that stops once they are reached
+        ids = [c for c, _ in eligible]
+        lengths = dict(zip(ids, graph.path_lengths_to(kf.id, ids, through_loops=through_loops,
+                                                       min_loop_weight=min_loop_weight).tolist()))
         for cand_id, score in eligible:
             a = keyframes[cand_id]
             with self.timer("verification"):
@@ -303,10 +306,11 @@ class LoopCloser:
                         "travelled", loop.kf_a, loop.frame_a, loop.kf_b, loop.frame_b, loop.num_inliers,
                         loop.path_length)
             with self.timer("loop_consistency"):
-                kept = set(self.consistency.add(loop.kf_a, loop.kf_b, loop.T_ab, graph))
-            for lp in self._loops:
-                was = lp.consistent
-                lp.consistent = lp.id in kept
+                flipped = self.consistency.update(loop.kf_a, loop.kf_b, loop.T_ab, graph)
+            loop.consistent = self.consistency.is_kept(loop.id)
+            for i in flipped:  # only the loops whose kept state changed are visited
+                lp = self._loops[i]
+                was, lp.consistent = lp.consistent, self.consistency.is_kept(i)
                 if lp is not loop and lp.consistent != was and lp not in update.changed:
                     update.changed.append(lp)
             if not loop.consistent:
