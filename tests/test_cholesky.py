@@ -488,3 +488,33 @@ def test_pattern_without_variables(k):
     sym = SymbolicCholesky(pat)
     assert sym.num_supernodes == 0 and sym.size == 0
     assert sym.factor(np.zeros(0)).solve(np.zeros(0)).shape == (0,)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_postorder_is_the_recursive_one(seed):
+    """The postorder of a random forest (parents above their children, as in an elimination tree) equals a
+    recursive depth-first search that visits roots and children in increasing order."""
+    import sys
+
+    from slam.graph.cholesky import _postorder
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400))
+    parent = [int(rng.integers(j + 1, n)) if j < n - 1 and rng.random() < 0.9 else -1 for j in range(n)]
+    children = {j: [c for c in range(n) if parent[c] == j] for j in range(n)}
+    out = []
+
+    def visit(v):
+        for c in children[v]:
+            visit(c)
+        out.append(v)
+
+    limit = sys.getrecursionlimit()
+    sys.setrecursionlimit(max(limit, 2 * n + 100))
+    try:
+        for r in (j for j in range(n) if parent[j] < 0):
+            visit(r)
+    finally:
+        sys.setrecursionlimit(limit)
+    assert _postorder(parent).tolist() == out
+    assert _postorder([]).tolist() == []

