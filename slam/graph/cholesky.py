@@ -227,7 +227,12 @@ def _relaxed_supernodes(n: int, parent: list, struct: list, relax) -> list:
             nz = zeros + extra
             total = nc * (nc + 1) // 2 + nc * r_new
             frac = nz / total
-            if any(nc <= mc and frac <= mz for mc, mz in relax):
+            merge = False
+            for mc, mz in relax:  # a plain loop: a generator per column cost more than the test
+                if nc <= mc and frac <= mz:
+                    merge = True
+                    break
+            if merge:
                 zeros = nz
                 continue
         first.append(j)
@@ -433,8 +438,9 @@ class SymbolicCholesky:
         self.buffer_size = lay.buffer_size
         self.perm_scalar = (self.order[:, None] * k + np.arange(k)).reshape(-1)  # permuted scalar -> original
         # the diagonal entries of every pivot block in the panel buffer (a panel is m x p, row-major)
-        self.diag = np.concatenate([lay.off[s] + np.arange(p) * (p + 1) for s, p in enumerate(self.p)]
-                                   or [_EMPTY])
+        pw = np.asarray(self.p, dtype=np.int64)
+        within = np.arange(int(pw.sum())) - np.repeat(np.cumsum(pw) - pw, pw)  # i = 0 .. p - 1 per supernode
+        self.diag = np.repeat(lay.off, pw) + within * (np.repeat(pw, pw) + 1)
         self.nnz_L = int(sum(p * (p + 1) // 2 + (m - p) * p for p, m in zip(self.p, self.m)))
         self._torch_cache = {}
         self.timings = tick.times  # seconds per stage of the analysis (for profiling)
