@@ -280,6 +280,8 @@ def main() -> None:
                    f"{res.iterations} | {res.status} | {dt:.1f} |")
             lines.append(row)
             print(row, flush=True)
+    # the machine may be shared: the load at the end beside the one at the start says how steady it was
+    lines[0] = lines[0].replace(" at start,", f" at start, {os.getloadavg()[0]:.1f} at end,")
     text = "\n".join(lines)
     print()
     print(text)

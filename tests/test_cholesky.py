@@ -395,6 +395,55 @@ def test_nan_values_raise_on_both_paths(where, batched, monkeypatch):
 
 
 @pytest.mark.parametrize("batched", [False, True])
+@pytest.mark.parametrize("bad", ["inf_diagonal", "nan_off_diagonal_block"])
+def test_non_finite_values_raise_on_both_paths(bad, batched, monkeypatch):
+    """An infinite pivot (it stays on the diagonal: later rows divide by it and stay finite) and a NaN in an
+    off-diagonal block (it reaches an ancestor's pivot through the update) are not positive definite on
+    both paths, wherever the bad entry sits in the elimination order."""
+    import slam.graph.cholesky as chol
+
+    if batched:
+        monkeypatch.setattr(chol, "_NUMPY_MAX_BATCH", 0)
+    ii, jj, n, k = CASES["loops_k6"]
+    A, pat, vals = _system(ii, jj, n, k, seed=5)
+    sym = SymbolicCholesky(pat)
+    rows, cols = pat.block_rows.numpy(), pat.block_cols.numpy()
+    if bad == "inf_diagonal":
+        targets = [[pat.diag_pos.numpy()[sym.order[q] * k + 2]] for q in (0, pat.num_vars // 2, pat.num_vars - 1)]
+    else:  # entry (1, 2) of an off-diagonal block and (2, 1) of its mirror (the factor reads one triangle)
+        key = rows * n + cols
+        off = np.flatnonzero(rows != cols)
+        targets = [[q * k * k + k + 2, np.searchsorted(key, cols[q] * n + rows[q]) * k * k + 2 * k + 1]
+                   for q in (off[0], off[len(off) // 2], off[-1])]
+    for pos in targets:
+        worse = vals.copy()
+        worse[pos] = np.inf if bad == "inf_diagonal" else np.nan
+        with pytest.raises(NotPositiveDefiniteError):
+            sym.factor(worse)
+    _assert_solves(sym.factor(vals), A, np.ones(A.shape[0]))
+
+
+@pytest.mark.parametrize("k", [3, 6])
+@pytest.mark.parametrize("r", [1, 2, 5, 13])
+def test_update_positions_follow_their_definition(k, r):
+    """Entry ``(a, b)`` of a supernode's packed update lands at ``base[pair] + (a % k) * pt[pair] + b % k``
+    with ``pair`` the block pair ``(a // k, b // k)``: checked entry by entry (a Python loop over the
+    packed order) on random bases and strides."""
+    from slam.graph.cholesky import _rfp_rows_cols, _update_positions
+
+    rng = np.random.default_rng(r * k)
+    B, d = 3, k * r
+    npair = r * (r + 1) // 2
+    base, pt = rng.integers(0, 10 ** 6, (B, npair)), rng.integers(1, 500, (B, npair))
+    pair_of = {(al, be): q for q, (al, be) in enumerate((al, be) for al in range(r) for be in range(al + 1))}
+    a, b = _rfp_rows_cols(d)
+    want = [[base[s, pair_of[x // k, y // k]] + (x % k) * pt[s, pair_of[x // k, y // k]] + y % k
+             for x, y in zip(a.tolist(), b.tolist())] for s in range(B)]
+    got = _update_positions(base, pt, d, k)
+    assert got.dtype == np.int32 and np.array_equal(got, np.asarray(want).reshape(-1))
+
+
+@pytest.mark.parametrize("batched", [False, True])
 @pytest.mark.parametrize("where", ["first", "middle", "last"])
 def test_not_positive_definite_in_any_supernode_then_good_values(where, batched, monkeypatch):
     """A failing pivot in the first, a middle or the last supernode raises on both paths; a factor made
@@ -439,3 +488,33 @@ def test_pattern_without_variables(k):
     sym = SymbolicCholesky(pat)
     assert sym.num_supernodes == 0 and sym.size == 0
     assert sym.factor(np.zeros(0)).solve(np.zeros(0)).shape == (0,)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_postorder_is_the_recursive_one(seed):
+    """The postorder of a random forest (parents above their children, as in an elimination tree) equals a
+    recursive depth-first search that visits roots and children in increasing order."""
+    import sys
+
+    from slam.graph.cholesky import _postorder
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400))
+    parent = [int(rng.integers(j + 1, n)) if j < n - 1 and rng.random() < 0.9 else -1 for j in range(n)]
+    children = {j: [c for c in range(n) if parent[c] == j] for j in range(n)}
+    out = []
+
+    def visit(v):
+        for c in children[v]:
+            visit(c)
+        out.append(v)
+
+    limit = sys.getrecursionlimit()
+    sys.setrecursionlimit(max(limit, 2 * n + 100))
+    try:
+        for r in (j for j in range(n) if parent[j] < 0):
+            visit(r)
+    finally:
+        sys.setrecursionlimit(limit)
+    assert _postorder(parent).tolist() == out
+    assert _postorder([]).tolist() == []

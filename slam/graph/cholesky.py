@@ -20,7 +20,7 @@ in order of their height in the elimination tree (those of one height and one sh
 factoring its pivot block with ``potrf``, its rows with ``trsm``, and adding its update ``-L21 L21^T``
 (lower triangle, packed) straight into the panels of the supernodes that own its columns. Nothing but the
 factor is stored: a multifrontal scheme keeps every update matrix until its parent is done, which took
-4x the factor's memory on a 20000-pose graph. On the CPU, groups of a single supernode (most of them
+4x the factor's memory on a 20000-pose graph. On the CPU, groups of a few supernodes (most of them
 near the root) are factored front by front with direct LAPACK calls of a few microseconds each.
 
 Example:
@@ -106,23 +106,23 @@ def _etree(n: int, ptr: np.ndarray, col: np.ndarray) -> list[int]:
     return parent
 
 
-def _postorder(parent: list[int]) -> list[int]:
+def _postorder(parent: list[int]) -> np.ndarray:
+    """A postorder of the forest ``parent`` (``-1`` for roots): children in increasing order, roots too.
+
+    The reverse of a preorder that visits children in decreasing order, found by scipy's depth-first search
+    (in C) from a virtual root above the roots: 4x faster than a Python stack on 3500 nodes.
+    """
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import depth_first_order
+
     n = len(parent)
-    children: list[list[int]] = [[] for _ in range(n)]
-    roots = []
-    for j in range(n):
-        (children[parent[j]] if parent[j] >= 0 else roots).append(j)
-    post: list[int] = []
-    stack = [(r, False) for r in reversed(roots)]
-    while stack:
-        v, done = stack.pop()
-        if done:
-            post.append(v)
-            continue
-        stack.append((v, True))
-        for c in reversed(children[v]):
-            stack.append((c, False))
-    return post
+    par = np.asarray(parent, dtype=np.int64).reshape(-1)
+    par = np.where(par >= 0, par, n)  # the virtual root n
+    kids = np.argsort(par * (n + 1) + (n - 1 - np.arange(n)))  # by parent, then decreasing
+    indptr = np.searchsorted(par[kids], np.arange(n + 2))
+    graph = csr_matrix((np.ones(n), kids, indptr), shape=(n + 1, n + 1))
+    pre = depth_first_order(graph, n, directed=True, return_predecessors=False)
+    return pre[:0:-1].astype(np.int64)
 
 
 class _Ticker:
@@ -174,7 +174,7 @@ def _permuted(bptr: np.ndarray, bcol: np.ndarray, order: np.ndarray):
     iperm[order] = np.arange(n)
     rows = iperm[np.repeat(np.arange(n), np.diff(bptr))]
     cols = iperm[bcol]
-    srt = np.lexsort((cols, rows))
+    srt = np.argsort(rows * n + cols)  # the entries are distinct: one key sorts as (row, col) (3x lexsort's speed)
     pr, pc = rows[srt], cols[srt]
     return pr, pc, np.searchsorted(pr, np.arange(n + 1))
 
@@ -184,7 +184,7 @@ def _postordered_etree(n: int, bptr: np.ndarray, bcol: np.ndarray, order: np.nda
     postordered position -> variable and ``parent`` (list) in the same numbering."""
     _, pc, ptr = _permuted(bptr, bcol, order)
     parent0 = _etree(n, ptr, pc)
-    post = np.asarray(_postorder(parent0), dtype=np.int64)  # post[q] = node (in the first numbering)
+    post = _postorder(parent0)  # post[q] = node (in the first numbering)
     newpos = np.empty(n, dtype=np.int64)
     newpos[post] = np.arange(n)
     par0 = np.asarray(parent0, dtype=np.int64)[post]
@@ -227,7 +227,12 @@ def _relaxed_supernodes(n: int, parent: list, struct: list, relax) -> list:
             nz = zeros + extra
             total = nc * (nc + 1) // 2 + nc * r_new
             frac = nz / total
-            if any(nc <= mc and frac <= mz for mc, mz in relax):
+            merge = False
+            for mc, mz in relax:  # a plain loop: a generator per column cost more than the test
+                if nc <= mc and frac <= mz:
+                    merge = True
+                    break
+            if merge:
                 zeros = nz
                 continue
         first.append(j)
@@ -246,9 +251,7 @@ def _supernode_tree(pattern, relax) -> _Tree:
     struct = _column_structures(n, parent, pr, pc)
     first = _relaxed_supernodes(n, parent, struct, relax)
     ns = len(first) - 1
-    sn_of = np.empty(n, dtype=np.int64)
-    for s in range(ns):
-        sn_of[first[s]:first[s + 1]] = s
+    sn_of = np.repeat(np.arange(ns), np.diff(first))
     sn_parent = [int(sn_of[parent[first[s + 1] - 1]]) if parent[first[s + 1] - 1] >= 0 else -1
                  for s in range(ns)]
     ncols = [first[s + 1] - first[s] for s in range(ns)]
@@ -266,14 +269,11 @@ def _supernode_tree(pattern, relax) -> _Tree:
     # relabel the columns so that every group is one contiguous run: a height-major order is a
     # topological order of the elimination tree, so the fill is unchanged, and the solves can take
     # each group's unknowns as a slice
-    lab = np.empty(n, dtype=np.int64)
+    gorder = np.fromiter(itertools.chain.from_iterable(sns for _, sns in group_list), dtype=np.int64, count=ns)
+    nc = np.asarray(ncols, dtype=np.int64)
     nf = np.empty(ns, dtype=np.int64)  # new first column of each supernode
-    pos = 0
-    for _, sns in group_list:
-        for s in sns:
-            nf[s] = pos
-            lab[first[s]:first[s + 1]] = np.arange(pos, pos + ncols[s])
-            pos += ncols[s]
+    nf[gorder] = np.cumsum(nc[gorder]) - nc[gorder]
+    lab = np.repeat(nf - np.asarray(first[:-1], dtype=np.int64), nc) + np.arange(n)
     final = np.empty(n, dtype=np.int64)
     final[lab] = order
     return _Tree(final, lab, first, ncols, nrows, sn_parent, height, group_list, nf, struct)
@@ -369,19 +369,32 @@ def _factor_groups(tree: _Tree, lay: _Layout) -> list:
     own = lay.owner[b_blk]
     pair_pt = k * lay.ncols[own]
     pair_base = lay.off[own] + lay.local(own, a_blk) * k * pair_pt + (b_blk - lay.nf[own]) * k
-    groups = []
-    i0 = 0
-    for (_, c, r), sns in tree.groups:
-        p, m = k * c, k * (c + r)
-        B = len(sns)
+    # the update positions of all the groups with the same number of rows r in one call (their
+    # supernodes' pairs gathered), then split per group: ~30 distinct r against ~170 groups
+    sizes = np.array([len(sns) for _, sns in tree.groups], dtype=np.int64)
+    i0s = np.zeros(len(sizes) + 1, dtype=np.int64)
+    i0s[1:] = np.cumsum(sizes)
+    by_r: dict = {}
+    for gi, ((_, _, r), _) in enumerate(tree.groups):
         if r:
-            rows = rows_all[gstart[i0]:gstart[i0 + B]]
-            sl = slice(pstart[i0], pstart[i0 + B])
-            upd = _update_positions(pair_base[sl].reshape(B, -1), pair_pt[sl].reshape(B, -1), k * r, k)
+            by_r.setdefault(r, []).append(gi)
+    upd_of = {}
+    for r, gis in by_r.items():
+        sel = np.concatenate([np.arange(pstart[i0s[gi]], pstart[i0s[gi + 1]]) for gi in gis])
+        npr = r * (r + 1) // 2
+        upd = _update_positions(pair_base[sel].reshape(-1, npr), pair_pt[sel].reshape(-1, npr), k * r, k)
+        nl = k * r * (k * r + 1) // 2
+        cuts = np.cumsum(sizes[gis]) * nl
+        upd_of.update(zip(gis, np.split(upd, cuts[:-1])))
+    groups = []
+    for gi, ((_, c, r), sns) in enumerate(tree.groups):
+        p, m = k * c, k * (c + r)
+        B, i0 = len(sns), i0s[gi]
+        if r:
+            rows, upd = rows_all[gstart[i0]:gstart[i0 + B]], upd_of[gi]
         else:
             rows, upd = _EMPTY, _EMPTY.astype(np.int32)
         groups.append(_Group(B, p, m, int(lay.off[sns[0]]), int(k * tree.nf[sns[0]]), rows, upd))
-        i0 += B
     return groups
 
 
@@ -424,6 +437,10 @@ class SymbolicCholesky:
         self.height, self.sn_parent = tree.height, tree.sn_parent
         self.buffer_size = lay.buffer_size
         self.perm_scalar = (self.order[:, None] * k + np.arange(k)).reshape(-1)  # permuted scalar -> original
+        # the diagonal entries of every pivot block in the panel buffer (a panel is m x p, row-major)
+        pw = np.asarray(self.p, dtype=np.int64)
+        within = np.arange(int(pw.sum())) - np.repeat(np.cumsum(pw) - pw, pw)  # i = 0 .. p - 1 per supernode
+        self.diag = np.repeat(lay.off, pw) + within * (np.repeat(pw, pw) + 1)
         self.nnz_L = int(sum(p * (p + 1) // 2 + (m - p) * p for p, m in zip(self.p, self.m)))
         self._torch_cache = {}
         self.timings = tick.times  # seconds per stage of the analysis (for profiling)
@@ -465,14 +482,15 @@ def _rfp_order(d: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=512)
-def _tril_and_tri(r: int, h: int):
-    """``np.tril_indices(r)`` and ``np.tri(h, dtype=bool).T`` (read-only; made once per size: numpy's
-    helpers cost ~40 us per call, and a symbolic analysis asks for the same few sizes hundreds of times)."""
-    al, be = np.tril_indices(r)
-    tri = np.tri(h, dtype=bool).T
-    for a in (al, be, tri):
-        a.flags.writeable = False
-    return al, be, tri
+def _packed_pairs(d: int, k: int):
+    """Per entry of the packed lower triangle of a ``d x d`` update (:func:`_rfp_rows_cols`) its block pair
+    (row-major lower: ``alpha (alpha + 1) / 2 + beta``) and its row and column inside the ``k x k`` block
+    (read-only; made once per size)."""
+    a, b = _rfp_rows_cols(d)
+    pair, ia, ib = (a // k) * (a // k + 1) // 2 + b // k, (a % k).astype(np.int32), (b % k).astype(np.int32)
+    for x in (pair, ia, ib):
+        x.flags.writeable = False
+    return pair, ia, ib
 
 
 def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.ndarray:
@@ -483,26 +501,22 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
     panel of the supernode owning column ``b``, at its row ``a``: the structure of that column holds every
     such row (the fill of the elimination). ``base, pt (B, npairs)`` give, per lower block pair (row-major),
     the position of its first entry and the owner's row stride. The upper halves of diagonal blocks are not
-    in the packed triangle; the lower triangle of a pivot block is all LAPACK reads.
+    in the packed triangle; the lower triangle of a pivot block is all LAPACK reads. Only the packed
+    entries are computed (building the full ``d x d`` map and selecting half took 3x the work).
     """
-    B, r, h = base.shape[0], d // k, d // 2
-    al, be, tri = _tril_and_tri(r, h)
-    b3 = np.zeros((B, r, r), dtype=np.int64)
-    p3 = np.zeros((B, r, r), dtype=np.int64)
-    b3[:, al, be], p3[:, al, be] = base, pt
-    ar = np.arange(k)
-    full = (b3[:, :, None, :, None] + ar[:, None, None] * p3[:, :, None, :, None] + ar).reshape(B, d, d)
-    # the packed layout (see _rfp_rows_cols), column c of the (lda x (d - h)) Fortran array as row c here:
-    # row h + c of the triangle (entries 0..h + c), then column c of its leading h x h triangle below it
-    out = np.empty((B, d - h, d + 1 - d % 2), dtype=np.int32)
-    out[:, :, :d] = full[:, h:, :]
-    np.copyto(out[:, :h, h + 1:], full[:, :h, :h].transpose(0, 2, 1), where=tri)
+    pair, ia, ib = _packed_pairs(d, k)
+    out = base.astype(np.int32)[:, pair]  # int32 throughout (the layout checks the buffer fits)
+    out += ia * pt.astype(np.int32)[:, pair]
+    out += ib
     return out.reshape(-1)
 
 
 # On the CPU, groups of at most this many fronts are factored front by front with direct LAPACK/BLAS
-# calls (a few us each) instead of batched torch calls (10-20 us each whatever the batch size).
-_NUMPY_MAX_BATCH = 3
+# calls (a few us each) instead of batched torch calls (10-20 us each whatever the batch size). Four
+# factorisations and solves, interleaved on a loaded 2-core machine, ms at 3 / 10 / 16 / 20 / all:
+# parking-garage 46.8 / 42.9 / - / 40.4 / 39.3, M3500 45.7 / 40.8 / 41.9 / 43.4 / 63.6, sphere2500 153 / 142 / - /
+# 143 / 166, smallGrid3D 6.5 / 6.2 / - / 5.5 / 5.4
+_NUMPY_MAX_BATCH = 16
 
 
 
@@ -546,7 +560,7 @@ class _Workspace:
     """Per-device state of a :class:`SymbolicCholesky`: index tensors, the panel buffer the factor is
     computed in, the permuted right-hand side, and views into both for every group.
 
-    On the CPU, groups of a single supernode (most groups near the root) run through numpy views of the
+    On the CPU, groups of a few supernodes (most groups near the root) run through numpy views of the
     same memory and direct LAPACK/BLAS calls (scipy), whose call overhead is a few microseconds against
     ten or more for a batched torch call.
     """
@@ -564,6 +578,7 @@ class _Workspace:
         self.buf = torch.zeros(sym.buffer_size, dtype=torch.float64, device=device)
         self.y = torch.zeros(sym.size, dtype=torch.float64, device=device)
         self.ynp = self.y.numpy() if self.cpu else None
+        self.bufnp = self.buf.numpy() if self.cpu else None
         # the packed update of a front-by-front supernode: one scratch vector, as large as the largest one
         d_max = max([g.m - g.p for g in sym.groups if g.size <= _NUMPY_MAX_BATCH] + [0])
         self.scratch = np.zeros(d_max * (d_max + 1) // 2) if self.cpu else None
@@ -593,8 +608,8 @@ def _lapack_in_place() -> bool:
 
 
 class _NumpyGroup:
-    """A one-supernode group on the CPU: numpy views of its panel, its index tensors and the scratch
-    vector of its packed update."""
+    """A supernode factored front by front on the CPU: numpy views of its panel, its index tensors and
+    the scratch vector of its packed update."""
 
     __slots__ = ("F11", "F21", "S", "S_t", "c0", "c1", "d", "dst", "p", "rows")
 
@@ -618,24 +633,20 @@ def _factor_numpy_group(grp: _NumpyGroup, buf, in_place: bool, dpotrf, dtrsm, ds
     """Factor one supernode in place in its panel (LAPACK on the Fortran views: a row-major ``F11`` is
     the Fortran ``F11^T``, whose upper triangle is F11's lower one) and add its update to the panels of
     the supernodes that own its columns; returns LAPACK's ``info``."""
+    # positional arguments: f2py parses keywords at ~0.4 us each, and this runs for hundreds of fronts
     X = grp.F11.T  # upper: U = L^T
-    U, info = dpotrf(X, lower=0, clean=0, overwrite_a=1)
+    U, info = dpotrf(X, 0, 0, 1)  # lower=0, clean=0, overwrite_a=1
     if not in_place:
         X[...] = U
-    # OpenBLAS's dpotrf does not test for NaN (reference LAPACK, and torch's cholesky_ex, report it). A NaN
-    # anywhere in the pivot block's lower triangle reaches its last diagonal entry (every later row divides
-    # by the NaN pivot), and a NaN in F21 reaches an ancestor's diagonal through the update (a, a); an
-    # infinite pivot stays on the diagonal (later rows divide by it and stay finite). Both fail.
-    if not info and not np.isfinite(X.diagonal()).all():
-        info = grp.p
+    # OpenBLAS's dpotrf does not test for NaN: NumericCholesky checks every pivot once after the loop
     if grp.d and not info:
         Y = grp.F21.T  # (p, d) Fortran: F21^T, becomes L21^T = L^-1 F21^T
-        Z = dtrsm(1.0, X, Y, side=0, lower=0, trans_a=1, overwrite_b=1)
+        Z = dtrsm(1.0, X, Y, 0, 0, 1, 0, 1)  # side=0, lower=0, trans_a=1, diag=0, overwrite_b=1
         if not in_place:
             Y[...] = Z
         # -L21 L21^T, its lower triangle only and packed (dsfrk: half the flops of a product and half the
         # values to scatter), then into the panels
-        V = dsfrk(grp.d, grp.p, -1.0, Y, 0.0, grp.S, transr="N", uplo="U", trans="T", overwrite_c=1)
+        V = dsfrk(grp.d, grp.p, -1.0, Y, 0.0, grp.S, "N", "U", "T", 1)  # transr, uplo, trans, overwrite_c
         if not in_place:
             grp.S[...] = V
         buf.index_add_(0, grp.dst, grp.S_t)
@@ -679,10 +690,22 @@ class NumericCholesky:
             in_place = _lapack_in_place()
             lapack = _lapack_functions()
             buf.zero_()
-            # rows of k values (see _Workspace); faster than buf[dst] = v[src]
-            buf.view(-1, k).index_copy_(0, ws.dst, torch.index_select(v.reshape(-1, k), 0, ws.src))
+            if ws.cpu:
+                # rows of k values as k * 8-byte records: numpy's take and put copy them whole (parking-garage:
+                # 0.3 ms against 2.1 for torch's index_select + index_copy_ of (k,) rows)
+                rec = np.dtype((np.void, 8 * k))
+                np.put(ws.bufnp.view(rec), sym.dst, np.take(v.contiguous().numpy().view(rec), sym.src))
+            else:
+                buf.view(-1, k).index_copy_(0, ws.dst, torch.index_select(v.reshape(-1, k), 0, ws.src))
             failed = self._factor_groups(ws.groups, buf, infos, in_place, lapack)
             failed = failed or bool(infos and bool(torch.cat(infos).any()))
+            # OpenBLAS's dpotrf does not test for NaN (reference LAPACK, and torch's cholesky_ex, report it). A
+            # NaN in a pivot block's lower triangle reaches its last diagonal entry (every later row divides by
+            # the NaN pivot), a NaN in F21 reaches an ancestor's diagonal through the update (a, a), and an
+            # infinite pivot stays on the diagonal (later rows divide by it and stay finite): one test of
+            # every pivot after the loop catches all three
+            if not failed and ws.cpu and not np.isfinite(np.take(ws.bufnp, sym.diag)).all():
+                failed = True
             # set before the lock is released: a factorisation in another thread may detach this factor as
             # soon as it is the owner, and must find its views to replace
             self.buf, self.groups = buf, ws.groups
@@ -746,7 +769,8 @@ class NumericCholesky:
         for grp in groups:
             if type(grp) is _NumpyGroup:
                 # L z = y as U^T z = y on the Fortran view (in place on the contiguous slice)
-                z = dtrsv(grp.F11.T, ynp[grp.c0:grp.c1], lower=0, trans=1, overwrite_x=1)
+                # incx, offx, lower=0, trans=1, diag, overwrite_x=1 (positional: see _factor_numpy_group)
+                z = dtrsv(grp.F11.T, ynp[grp.c0:grp.c1], 1, 0, 0, 1, 0, 1)
                 if not in_place:
                     ynp[grp.c0:grp.c1] = z
                 if grp.d:
@@ -768,7 +792,7 @@ class NumericCholesky:
                 yc = ynp[grp.c0:grp.c1]
                 if grp.d:
                     yc -= grp.F21.T @ ynp[grp.rows]
-                z = dtrsv(grp.F11.T, yc, lower=0, trans=0, overwrite_x=1)
+                z = dtrsv(grp.F11.T, yc, 1, 0, 0, 0, 0, 1)  # incx, offx, lower=0, trans=0, diag, overwrite_x=1
                 if not in_place:
                     yc[...] = z
                 continue
