@@ -161,8 +161,15 @@ def _relocalisation_summary(r: dict) -> str:
 def run_command(args: argparse.Namespace) -> int:
     """Everything after parsing: checks, demo generation, the run, its evaluation and outputs."""
     from slam.io import open_sequence
-    from slam.options import (UsageError, apply_laps, describe_rig, given_settings, reader_options, resolve_settings,
-                              rig_of)
+    from slam.options import (
+        UsageError,
+        apply_laps,
+        describe_rig,
+        given_settings,
+        reader_options,
+        resolve_settings,
+        rig_of,
+    )
     from slam.pipeline import camera_of, evaluate_run, prepare_output_dir, run_slam, write_outputs
 
     settings = given_settings(args)
