@@ -96,8 +96,7 @@ def _seed_everything():
 @pytest.fixture(autouse=True)
 def _leave_the_allocator(monkeypatch):
     # attnloop-slam's main() keeps freed memory in its process for good (slam.allocator); the tests that
-    # call it in-process must not change the test process's allocator (tests/test_allocator.py measures
-    # it in fresh interpreters).
+    # call it in-process must not change the test process's allocator.
     from slam import allocator
 
     monkeypatch.setattr(allocator, "keep_freed_memory", lambda: False)

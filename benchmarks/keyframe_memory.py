@@ -2,8 +2,8 @@
 descriptor, the map's points, the pose graph's entry. Array payloads only (numpy / torch ``nbytes``), not the
 Python objects around them.
 
-    OMP_NUM_THREADS=1 python benchmarks/keyframe_memory.py /work/shared/data/7scenes-redkitchen --frames 0:300
-    OMP_NUM_THREADS=1 python benchmarks/keyframe_memory.py --demo-frames 600      # the built-in building scene
+    OMP_NUM_THREADS=1 python -m benchmarks.keyframe_memory /work/shared/data/7scenes-redkitchen --frames 0:300
+    OMP_NUM_THREADS=1 python -m benchmarks.keyframe_memory --demo-frames 600      # the built-in building scene
 """
 from __future__ import annotations
 
@@ -14,8 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def _nbytes(x) -> int:

@@ -7,8 +7,8 @@ the same frames (forward, backward, ...: continuous motion, a longer recording).
 in the map's world without alignment, whether the map folder is byte-identical afterwards, and the resident
 memory (VmRSS, sampled every 0.2 s) per fifth of each long run.
 
-    OMP_NUM_THREADS=1 python benchmarks/localize.py
-    OMP_NUM_THREADS=1 python benchmarks/localize.py --laps 10 --map /tmp/localize_map   # reuse a saved map
+    OMP_NUM_THREADS=1 python -m benchmarks.localize
+    OMP_NUM_THREADS=1 python -m benchmarks.localize --laps 10 --map /tmp/localize_map   # reuse a saved map
 """
 from __future__ import annotations
 
@@ -22,37 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from slam.io.sequence import RGBDSequence
-
-
-class Laps(RGBDSequence):
-    """``base`` played ``laps`` times, forward then backward (the motion stays continuous), stamped on at
-    its median frame interval; frame ``i`` is ``base[order[i]]``."""
-
-    def __init__(self, base: RGBDSequence, laps: int):
-        self.base, self.laps = base, int(laps)
-        self.root, self.name, self.K = base.root, f"{base.name} x{laps}", base.K
-        lap = np.arange(len(base))
-        self.order = np.concatenate([lap if k % 2 == 0 else lap[::-1] for k in range(self.laps)])
-        dt = float(np.median(np.diff(base.timestamps))) if len(base) > 1 else 1.0
-        self._stamps = float(base.timestamps[0]) + dt * np.arange(len(self.order))
-
-    def __len__(self) -> int:
-        return len(self.order)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._stamps
-
-    def _load(self, i: int):
-        frame = self.base[int(self.order[i])]
-        return dataclasses.replace(frame, index=i, timestamp=float(self._stamps[i]))
-
-    def _groundtruth_array(self) -> np.ndarray:
-        return np.stack([np.asarray(self.base.groundtruth_pose(int(j)) if self.base.groundtruth_pose(int(j))
-                                    is not None else np.full(7, np.nan)) for j in self.order])
+from benchmarks._common import data_root
+from slam.io.laps import LapSequence
 
 
 def rss_mb() -> float:
@@ -93,7 +64,7 @@ def folder_digest(folder: Path) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", default="/work/shared/data/7scenes-redkitchen", help="the sequence folder")
+    p.add_argument("--data", default=str(data_root() / "7scenes-redkitchen"), help="the sequence folder")
     p.add_argument("--map-frames", default="0:600", help="frames START:END saved as the map")
     p.add_argument("--frames", default="850:1000", help="frames START:END placed in it")
     p.add_argument("--laps", type=int, default=10, help="laps of --frames for the long localisation run")
@@ -133,7 +104,7 @@ def main(argv=None) -> int:
 
     report("relocalised (--map)", run_slam(seq, cfg, progress=False, frames=(start, end), map_dir=map_dir))
     report("localised (--map --localize)", run_slam(seq, local, progress=False, frames=(start, end), map_dir=map_dir))
-    laps = Laps(seq[start:end], args.laps)
+    laps = LapSequence(seq[start:end], args.laps)
     with RSSSampler() as s:
         run = run_slam(laps, local, progress=False, map_dir=map_dir)
     report(f"localised, {args.laps} laps", run, s)

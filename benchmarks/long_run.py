@@ -17,11 +17,11 @@ no new rendering), and run through :func:`slam.pipeline.run_slam` as ``attnloop-
 and at the end keyframes, accepted loops (true / false by ground truth, as ``metrics.json`` judges them) and
 the ATE. The figures go to stdout and, with ``--json``, to a file.
 
-Usage (docs/benchmarks.md)::
+Usage (figures in docs/results.md)::
 
-    python benchmarks/long_run.py --demo-frames 600 --laps 2 --cache /tmp/building600
-    python benchmarks/long_run.py --laps 5 --cache /tmp/building2400        # five tours, 12,000 frames
-    python benchmarks/long_run.py --sequence /path/to/tum_folder --laps 3
+    python -m benchmarks.long_run --demo-frames 600 --laps 2 --cache /tmp/building600
+    python -m benchmarks.long_run --laps 5 --cache /tmp/building2400        # five tours, 12,000 frames
+    python -m benchmarks.long_run --sequence /path/to/tum_folder --laps 3
 """
 from __future__ import annotations
 
@@ -32,8 +32,6 @@ import resource
 import sys
 import time
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 LOOP_STAGES = ("descriptor", "loop_detection", "verification", "loop_consistency", "online_correction")
 

@@ -17,7 +17,7 @@ A robustness figure follows: sphere2500 with 5% extra edges that are random fals
 rigid alignment) is taken against the solution of the clean graph.
 
 Usage:
-    python benchmarks/posegraph.py [--data DIR] [--repeats 5] [--files a b] [--no-robust] [--out FILE.md]
+    python -m benchmarks.posegraph [--data DIR] [--repeats 5] [--files a b] [--no-robust] [--out FILE.md]
 """
 from __future__ import annotations
 
@@ -38,7 +38,6 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from slam.eval.align import umeyama_alignment
 from slam.graph import PoseGraph, optimize, read_g2o
@@ -136,8 +135,8 @@ def memory_probe(path: str) -> None:
 
 
 def measure_memory(path: Path) -> dict:
-    out = subprocess.run([sys.executable, __file__, "--memory-probe", str(path)],
-                         capture_output=True, text=True, check=True)
+    out = subprocess.run([sys.executable, "-m", "benchmarks.posegraph", "--memory-probe", str(path)],
+                         capture_output=True, text=True, check=True, cwd=ROOT)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -187,7 +186,7 @@ def main() -> None:
     except ImportError:
         sys.exit("GTSAM is needed for the side-by-side comparison: pip install 'attnloop[bench]'")
     folder = data_dir(args.data)
-    lines = [f"Command: `python benchmarks/posegraph.py --repeats {args.repeats}`, "
+    lines = [f"Command: `python -m benchmarks.posegraph --repeats {args.repeats}`, "
              f"{datetime.datetime.now():%Y-%m-%d %H:%M}, {platform.processor() or platform.machine()}, "
              f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at start, torch "
              f"{torch.__version__}, gtsam {importlib.metadata.version('gtsam')}.", ""]

@@ -29,12 +29,10 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-import slam.graph.implicit as implicit  # noqa: E402  (after the sys.path line)
-from slam.graph import OptimizerConfig, edge_jacobians, edge_residuals, optimize, read_g2o  # noqa: E402
-from slam.graph.problem import TorchProblem  # noqa: E402
-from slam.lie import se3_normalize  # noqa: E402
+from slam.graph import OptimizerConfig, edge_jacobians, edge_residuals, implicit, optimize, read_g2o
+from slam.graph.problem import TorchProblem
+from slam.lie import se3_normalize
 
 F64 = torch.float64
 TIGHT = dict(rel_tol=0.0, abs_tol=0.0)

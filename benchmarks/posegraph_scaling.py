@@ -51,7 +51,6 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # the imports below need the repository on the path
 
 from slam.eval.align import umeyama_alignment
 from slam.graph import optimize, read_g2o, write_g2o

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from slam.graph import PoseGraph
-from slam.lie import se3_compose, so3_log
+from slam.lie import quat_angle, se3_compose
 
 Tensor = torch.Tensor
 
@@ -121,7 +121,7 @@ class GraphEdge:
     @property
     def rotation(self) -> float:
         """Rotation angle of the measurement (radians)."""
-        return float(so3_log(self.T_ij[3:]).norm())
+        return float(quat_angle(self.T_ij[3:]))
 
 
 class KeyframeGraph:

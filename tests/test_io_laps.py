@@ -1,13 +1,12 @@
 """LapSequence: a sequence played as laps, forward and backward, with increasing timestamps; --laps."""
 from __future__ import annotations
 
-import argparse
 
 import numpy as np
 import pytest
 
 from slam.io.laps import LapSequence, lap_indices
-from slam.options import add_laps_argument, apply_laps
+from slam.options import RunOptions, apply_laps, resolve_settings
 from slam.synthetic import SyntheticSequence
 
 
@@ -47,13 +46,12 @@ def test_lap_arguments_are_checked(source):
 
 
 def test_laps_option(source):
-    p = argparse.ArgumentParser()
-    add_laps_argument(p)
-    assert apply_laps(p.parse_args([]), source) is source
-    laps = apply_laps(p.parse_args(["--laps", "2"]), source)
+    assert apply_laps(RunOptions(), source) is source
+    laps = apply_laps(RunOptions(laps=2), source)
     assert isinstance(laps, LapSequence) and len(laps) == 10
-    with pytest.raises(SystemExit):
-        p.parse_args(["--laps", "0"])
+    assert len(resolve_settings({"run.laps": 2}, None, source).sequence) == 10  # every entry point gets the laps
+    with pytest.raises(ValueError, match="RunOptions.laps must be an integer >= 1"):
+        RunOptions(laps=0)
 
 
 def test_cli_runs_the_laps(tmp_path):
@@ -62,9 +60,9 @@ def test_cli_runs_the_laps(tmp_path):
     from slam.cli import main
 
     out = tmp_path / "run"
-    assert main(["--demo", "--demo-frames", "12", "--demo-size", "64", "48", "--laps", "3", "--no-loop",
+    assert main(["--demo", "--demo-frames", "24", "--demo-size", "160", "120", "--laps", "2", "--no-loop",
                  "--no-map", "--quiet", "--out", str(out)]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["num_frames"] == 36
+    assert metrics["num_frames"] == 48 and metrics["status"] == "ok"
     stamps = np.loadtxt(out / "trajectory.txt")[:, 0]
-    assert stamps.size == 36 and np.all(np.diff(stamps) > 0)
+    assert stamps.size == 48 and np.all(np.diff(stamps) > 0)

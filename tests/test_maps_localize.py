@@ -14,15 +14,10 @@ from slam.config import override
 
 
 def _laps(base, laps: int):
-    """``base`` played ``laps`` times, forward then backward (benchmarks/localize.py's Laps)."""
-    import importlib.util
-    from pathlib import Path
+    """``base`` played ``laps`` times, forward then backward."""
+    from slam.io.laps import LapSequence
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "localize.py"
-    spec = importlib.util.spec_from_file_location("benchmark_localize", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.Laps(base, laps)
+    return LapSequence(base, laps)
 
 
 def _folder_state(folder):

@@ -10,8 +10,8 @@
 - :class:`LoopCandidateDetector`: per new keyframe, search + adaptive threshold + temporal consistency.
 - :func:`exact_search`: the brute-force reference.
 
-Figures (recall, time per query, build time, memory from 10^4 to 10^6 keyframes): docs/benchmarks.md,
-section "Keyframe index at scale"; beyond one machine: docs/scale.md.
+Figures (recall, time per query, build time, memory from 10^4 to 10^6 keyframes): docs/results.md,
+"Keyframe index"; beyond one machine: docs/scale.md.
 """
 from __future__ import annotations
 

@@ -65,7 +65,7 @@ class FaissConfig:
     # and 0.69 at 10^6, where ef_search 256 gained only a few points; m = 64 gave 1.000 and 0.995
     # (m = 48 with ef_construction 120: 0.958, as slow to build); at 10^6 m = 64 gives 0.982 at ~2 ms.
     # Cost: 1.5-2x the build time, ~1.2x the query time at 10^5, 256 more bytes of links per keyframe.
-    # docs/benchmarks.md, "Keyframe index at scale".
+    # docs/results.md, "Keyframe index".
     m: int = 64
     # Candidate list while inserting. faiss's default 40 built a graph that lost 11% of recall@10 on the
     # real kitchen descriptors (a trajectory: a thin manifold) where 80 lost none; build time ~2x.
@@ -73,7 +73,7 @@ class FaissConfig:
     ef_search: int = 64  # candidate list while searching (raised to the number of rows asked for)
     # Refit the PCA code and rebuild once the rows added since the fit reach this fraction of the rows it
     # was fitted on (1.0: at every doubling, so all the rebuilds together cost about one final build;
-    # inf: never). Between refits, new places are coded by the old fit: docs/benchmarks.md measures it.
+    # inf: never). Between refits, new places are coded by the old fit.
     retrain_growth: float = 1.0
 
     def __post_init__(self) -> None:
@@ -96,15 +96,14 @@ class IndexConfig:
 
     backend: str = "auto"  # "auto" | "exact" | "flann" | "faiss" (BACKENDS)
     # Below this many eligible keyframes a plain scan answers (exact, and faster than a structure there:
-    # docs/benchmarks.md, section "Keyframe index at scale"); no structure is built below it.
+    # docs/results.md, "Keyframe index"); no structure is built below it.
     exact_below: int = 4096
     # PCA code the approximate structure is built on (None: the full descriptors). The stored descriptors
     # stay full: candidates are re-scored exactly, so the code only has to keep the true neighbours among
     # the rerank * k candidates. 128 dims build and search ~2x faster than 256 and keep 94% of the kitchen
     # descriptors' variance; with rerank 8 the kitchen (graph from 32 keyframes on, window 30) keeps
-    # recall@10 0.981 (256 dims: 0.998; full descriptors: 1.000). docs/benchmarks.md, "Keyframe index at
-    # scale", has every variant on every set (measured on the 1024-d descriptor of before 2026-12-02; the
-    # default's is 2560-d now, not re-measured).
+    # recall@10 0.981 (256 dims: 0.998; full descriptors: 1.000), measured on the paper's 1024-d encoding;
+    # docs/results.md, "Keyframe index".
     reduce_dim: int | None = 128
     # PCA-whitening (unit-variance components, codes L2-normalised) instead of PCA: it lost recall on real
     # descriptors (kitchen 0.86 vs 0.99), kept for measurement.

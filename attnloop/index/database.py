@@ -23,7 +23,7 @@ descriptors) and merged with the exact tail; the structure proposes ``rerank * k
 only approximation is whether it finds the true neighbours among them. FLANN with ``checks=-1`` (exhaustive
 tree search) on the full descriptors (``reduce_dim=None``) finds them: the answer equals a brute-force
 search. The HNSW graph, and any structure on a PCA code, claims no exactness (recall is measured:
-docs/benchmarks.md). Re-scoring is in float64 and ties (duplicate frames) go to the lower id, so every
+docs/results.md). Re-scoring is in float64 and ties (duplicate frames) go to the lower id, so every
 backend orders equal answers alike: an exact scan keeps every row that can reach the top ``k`` (all copies
 of the ``k``-th value, within float32 rounding), and when every proposal of a structure ties with or beats
 the ``k``-th answer, at least two of them tied, its list may end inside a group of copies: the eligible

@@ -13,7 +13,7 @@ through the accepted loops once they have been optimised into it (:meth:`Keyfram
 A weak edge (forced after a tracking loss at a constant-velocity guess) bounds nothing: a path across it
 is infinitely long and the caps apply, so the loops that mend the gap are not refused for disagreeing
 with a guess less than the caps off (with ``LoopClosureConfig.recover_after_loss``, however far off;
-:meth:`slam.loop.LoopCloser.limits`, benchmarks/tracking_loss.py).
+:meth:`slam.loop.LoopCloser.limits`).
 The same bound, on the sum of the two paths, decides whether two loops agree with each other
 (:func:`pairwise_consistent`, used by the group check of :mod:`slam.loop.consistency`).
 
@@ -42,7 +42,7 @@ __all__ = ["DriftBoundConfig", "capped_length", "drift_limits", "drift_limits_ar
 
 @dataclass(frozen=True)
 class DriftBoundConfig:
-    """The affine drift bound (see the module docstring); rates measured in docs/benchmarks.md."""
+    """The affine drift bound (see the module docstring); rates measured on the kitchen's odometry."""
 
     # At L = 0 the two poses differ only by the loop's own error and the estimate's local error: a verified
     # loop edge errs by a median ~25 mm / 1.1 deg on redkitchen (up to ~10 cm / 4 deg), so 0.15 m / 8 deg.

@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import torch
 
-from slam.lie import se3_between, so3_log
+from slam.lie import quat_angle, se3_between
 from slam.odometry.features import FrameFeatures
 from slam.odometry.registration import register
 
@@ -75,7 +75,7 @@ class Verification:
 
 
 def _rotation_deg(q: Tensor) -> float:
-    return math.degrees(float(so3_log(q).norm()))
+    return math.degrees(float(quat_angle(q)))
 
 
 def verify_candidate(a: FrameFeatures, b: FrameFeatures, estimate_ab: Tensor, limits: DriftLimits,

@@ -26,7 +26,6 @@ __all__ = [
     "project",
     "registration_information",
     "rigid_jacobian",
-    "rotation_matrix",
     "transform_points",
 ]
 
@@ -196,10 +195,6 @@ def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> Tensor:
     R = (U * D[..., None, :]) @ Vh
     t = mu_d[..., 0, :] - (R @ mu_s[..., 0, :, None])[..., 0]
     return torch.cat([t, rotmat_to_quat(R)], dim=-1)
-
-
-# the name slam.odometry.ransac imports; the one implementation is slam.lie's
-rotation_matrix = quat_to_rotmat
 
 
 def transform_points(pose: Tensor, points: Tensor) -> Tensor:

@@ -26,9 +26,9 @@ from dataclasses import dataclass
 
 import torch
 
-from slam.lie import se3_compose, se3_exp, se3_identity, so3_hat
+from slam.lie import quat_to_rotmat, se3_compose, se3_exp, se3_identity, so3_hat
 from slam.odometry.config import RansacConfig
-from slam.odometry.geometry import kabsch, rotation_matrix, transform_points
+from slam.odometry.geometry import kabsch, transform_points
 
 Tensor = torch.Tensor
 
@@ -107,7 +107,7 @@ def refine_rigid(pose: Tensor, src: Tensor, dst: Tensor, cov_src: Tensor, cov_ds
     _check_cov(cov_dst, src.shape[0], "cov_dst")
     eye = torch.eye(3, dtype=src.dtype, device=src.device)
     J = torch.cat([eye.expand(src.shape[0], 3, 3), -so3_hat(src)], dim=-1)  # (N, 3, 6), d(T exp(xi) p)
-    R0 = rotation_matrix(pose[3:])
+    R0 = quat_to_rotmat(pose[3:])
     # Residual covariance in the *source* frame: R^T (R S_src R^T + S_dst) R = S_src + R^T S_dst R. It is
     # evaluated once at the initial rotation (the refinement moves it by a fraction of a degree), so the
     # per-point blocks J^T W J and J^T W are computed once.
@@ -115,7 +115,7 @@ def refine_rigid(pose: Tensor, src: Tensor, dst: Tensor, cov_src: Tensor, cov_ds
     JtW = J.transpose(1, 2) @ W  # (N, 6, 3)
     JtWJ = JtW @ J  # (N, 6, 6)
     for _ in range(iterations):
-        R = rotation_matrix(pose[3:])
+        R = quat_to_rotmat(pose[3:])
         r = (src @ R.transpose(0, 1) + pose[:3] - dst) @ R  # R^T r: the residual in the source frame
         m = torch.sqrt(((W @ r[..., None])[..., 0] * r).sum(-1).clamp_min(0))  # Mahalanobis distance
         w = torch.where(m <= huber_delta, torch.ones_like(m), huber_delta / m.clamp_min(1e-12))
