@@ -215,7 +215,7 @@ def test_depth_at_the_wrong_scale_is_refused_naming_the_right_one(tmp_path):
         TUMSequence(tum, depth_scale=25000)  # 0.2 m: too near; both known scales fit, 1 m nearest a room's 2 m
     assert str(info.value).endswith("TUM's 1/5000 m? give --depth-scale 5000 (depth_scale=5000 in Python), which puts "
                                     "it at 1 m or millimetres? give --depth-scale 1000 (depth_scale=1000 in Python), "
-                                    "which puts it at 5 m")
+                                    "which puts it at 5 m (--no-depth-check if the scene really is that near or far)")
 
 
 def test_the_depth_check_leaves_unreadable_and_empty_depth_to_the_run(tmp_path):

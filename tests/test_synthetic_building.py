@@ -229,8 +229,12 @@ def test_demo_scene_building_runs_from_the_command_line(tmp_path, capsys):
 
     assert DEMO_SCENES["building"].default_size == (320, 240) and DEMO_SCENES["building"].default_frames >= 2000
     out = tmp_path / "run"
+    # 60 frames of the 2400-frame tour move too far between frames to track: the run's outputs, not its
+    # tracking, are what this checks, so the failed-run rule is switched off in a config file
+    config = tmp_path / "lenient.toml"
+    config.write_text("min_tracked_fraction = 0.0\n")
     argv = ["--demo", "--demo-scene", "building", "--demo-frames", "60", "--demo-size", "160", "120",
-            "--no-loop", "--quiet", "--out", str(out)]
+            "--no-loop", "--quiet", "--out", str(out), "--config", str(config)]
     assert main(argv) == 0, capsys.readouterr().err
     for name in ("trajectory.txt", "loops.txt", "metrics.json"):
         assert (out / name).is_file(), name
