@@ -222,7 +222,9 @@ def main() -> None:
     odo = {}
     for s in seqs:
         seq = open_sequence(s)
-        cfg = apply_overrides(resolve_settings({**opts, "loop.enabled": False}, sequence=seq).config, args.set)
+        odometry_opts = {k: v for k, v in opts.items() if not k.startswith("loop.")}  # idle without the loops
+        cfg = apply_overrides(resolve_settings({**odometry_opts, "loop.enabled": False}, sequence=seq).config,
+                              args.set)
         run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step, progress=False)
         odo[seq.name] = evaluate_run(run)
         odo[seq.name]["edge_chi2_vs_truth"] = edge_chi2_against_truth(run)
