@@ -289,6 +289,12 @@ class BackendConfig:
     # reports the keyframes waiting; metrics.json's loop_worker its maximum and its course per fifth.
     loop_backlog: int = 0
     online_max_iterations: int = 10  # LM iterations of an online correction (bounds its time; >= 1)
+    # Online correction over a window: the keyframes within this many of the new keyframes and of the ends
+    # of the loops that changed the graph, the keyframes they are joined to held fixed as its boundary, so
+    # that a correction costs the same at any length of run (a whole-graph solve grows with it); finish()
+    # still optimises the whole graph. None: the whole graph at every correction (its cost grows with the
+    # run, each correction spreads over the whole loop at once). Larger windows move more of the graph per loop.
+    online_window: Optional[int] = 50
     # A loop edge whose final kernel weight falls below this is reported switched off by the back end (0..1).
     switch_off_weight: float = 0.1
     # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU. The
