@@ -276,8 +276,8 @@ class BackendConfig:
     odometry_information_scale: float = 0.01  # multiplies the odometry edges' information (see loop.information_scale)
     # Online correction: after a keyframe whose loops changed the graph, optimise it (with the keyframe's
     # other loop work: in track(), or in the loop worker of RGBDSLAM(background_loops=True), which run_slam
-    # uses; deterministic either way, a few ms for a few hundred keyframes), move every keyframe to its
-    # corrected pose and re-anchor tracking on it, so that track() reports corrected poses (one keyframe
+    # uses; deterministic either way; over online_window), move the keyframes to their corrected poses
+    # and re-anchor tracking on them, so that track() reports corrected poses (one keyframe
     # later with the worker). False: the graph is optimised once, in finish(), and track() reports odometry.
     optimize_on_loop: bool = True
     # The loop worker (RGBDSLAM(background_loops=True), run_slam): how many keyframes' loop work may still be
