@@ -157,7 +157,7 @@ def main(argv=None) -> int:
     from slam import pipeline
     from slam.io import open_sequence
     from slam.io.laps import LapSequence
-    from slam.options import config_from_args, run_options
+    from slam.options import resolve_settings
 
     if args.sequence is not None:
         source = open_sequence(args.sequence)
@@ -165,8 +165,10 @@ def main(argv=None) -> int:
         cache = Path(args.cache) if args.cache else Path(tempfile.mkdtemp(prefix="long_run_")) / "building"
         source = open_sequence(building_folder(cache, args.demo_frames, args.quiet))
     seq = LapSequence(source, args.laps)
-    opts = run_options(no_map=args.no_map, threads=args.threads)
-    cfg = config_from_args(opts, seq)
+    settings = {"map.enabled": False} if args.no_map else {}
+    if args.threads is not None:
+        settings["threads"] = args.threads
+    cfg = resolve_settings(settings, None, seq).config
     rec = Recorder()
     pipeline.RGBDSLAM = rec.system_class()  # the run's own system, timed per frame
     t0 = time.perf_counter()

@@ -276,8 +276,8 @@ class BackendConfig:
     odometry_information_scale: float = 0.01  # multiplies the odometry edges' information (see loop.information_scale)
     # Online correction: after a keyframe whose loops changed the graph, optimise it (with the keyframe's
     # other loop work: in track(), or in the loop worker of RGBDSLAM(background_loops=True), which run_slam
-    # uses; deterministic either way, a few ms for a few hundred keyframes), move every keyframe to its
-    # corrected pose and re-anchor tracking on it, so that track() reports corrected poses (one keyframe
+    # uses; deterministic either way; over online_window), move the keyframes to their corrected poses
+    # and re-anchor tracking on them, so that track() reports corrected poses (one keyframe
     # later with the worker). False: the graph is optimised once, in finish(), and track() reports odometry.
     optimize_on_loop: bool = True
     # The loop worker (RGBDSLAM(background_loops=True), run_slam): how many keyframes' loop work may still be
@@ -289,6 +289,12 @@ class BackendConfig:
     # reports the keyframes waiting; metrics.json's loop_worker its maximum and its course per fifth.
     loop_backlog: int = 0
     online_max_iterations: int = 10  # LM iterations of an online correction (bounds its time; >= 1)
+    # Online correction over a window: the keyframes within this many of the new keyframes and of the ends
+    # of the loops that changed the graph, the keyframes they are joined to held fixed as its boundary, so
+    # that a correction costs the same at any length of run (a whole-graph solve grows with it); finish()
+    # still optimises the whole graph. None: the whole graph at every correction (its cost grows with the
+    # run, each correction spreads over the whole loop at once). Larger windows move more of the graph per loop.
+    online_window: Optional[int] = 50
     # A loop edge whose final kernel weight falls below this is reported switched off by the back end (0..1).
     switch_off_weight: float = 0.1
     # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU. The

@@ -383,6 +383,7 @@ class RGBDSLAM:
         """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
         online correction or None)."""
         new_loops, changed = [], False
+        touched = {kf.id for kf in kfs}  # where the graph changed: the online correction's window is around them
         for kf in kfs:
             self._add_to_graph(kf)
             if self.loop_closer is not None and not self.localize:
@@ -392,11 +393,12 @@ class RGBDSLAM:
                 self._apply(update)
                 new_loops.extend(lp for lp in update.new if lp.consistent)
                 changed = changed or bool(update)
+                touched.update(k for lp in update.new + update.changed for k in (lp.kf_a, lp.kf_b))
             if not self.keep_images:  # described (or never to be): nothing reads it again
                 kf.rgb = None
         correction = None
         if changed and self.config.backend.optimize_on_loop:
-            correction = self._correct()
+            correction = self._correct(touched)
         return new_loops, correction
 
     # -- the loop worker (background_loops) -------------------------------------------------------------
@@ -509,8 +511,14 @@ class RGBDSLAM:
             lp.weight = w
             lp.switched_off = w < thr
 
-    def _correct(self) -> Optional[BackendResult]:
-        """Online correction: optimise, move the keyframes, re-anchor the front end on them."""
+    def _correct(self, touched=()) -> Optional[BackendResult]:
+        """Online correction: optimise, move the keyframes, re-anchor the front end on them.
+
+        Args:
+            touched: the keyframes where the graph changed (the new ones, the ends of the loops added or
+                switched); with ``BackendConfig.online_window`` only the keyframes within that many of them
+                move.
+        """
         if not self.graph.loop_edges(active_only=True):
             if self._corrected:  # every loop left the group: back to odometry
                 self.graph.set_estimates(self.graph.odometry_poses())
@@ -518,10 +526,11 @@ class RGBDSLAM:
                 self._corrected = False
             return None
         with self.timer("online_correction"):
-            result = self.backend.optimize(self.graph, online=True)
+            free = self._online_window(touched)
+            result = self.backend.optimize(self.graph, online=True, free=free)
             self.graph.set_estimates(result.poses)
             self._record_weights(result)
-            self._reanchor()
+            self._reanchor(free)
         self._corrected = True
         self._corrections.append(result)
         logger.debug("online correction at keyframe %d: %d loops, chi2 %.3g -> %.3g in %d iterations, %.1f ms",
@@ -529,12 +538,30 @@ class RGBDSLAM:
                     result.iterations, 1000 * result.seconds)
         return result
 
-    def _reanchor(self) -> None:
+    def _online_window(self, touched) -> Optional[List[int]]:
+        """The keyframes an online correction moves: those within ``BackendConfig.online_window`` of a
+        touched keyframe but keyframe 0, or None (the whole graph) when the window is off or covers every
+        keyframe. Keyframe 0 is held as the whole-graph optimisation holds it: it fixes the world frame, so
+        that the corrections and :meth:`finish` place the map alike."""
+        width, m = self.config.backend.online_window, self.graph.num_keyframes
+        if width is None or not touched:
+            return None
+        free = torch.zeros(m, dtype=torch.bool)
+        for k in set(touched):
+            free[max(0, k - width): min(m, k + width + 1)] = True
+        if bool(free.all()):
+            return None
+        free[0] = False
+        return torch.nonzero(free)[:, 0].tolist()
+
+    def _reanchor(self, ids: Optional[List[int]] = None) -> None:
         """The front end's keyframes take the graph's estimates: tracking continues from the corrected pose
-        of its reference keyframe (frames are tracked relative to it, so nothing else moves)."""
+        of its reference keyframe (frames are tracked relative to it, so nothing else moves). ``ids``: only
+        these keyframes moved (default: any may have)."""
         est = self.graph.estimates()
-        for kf in self.odometry.keyframes[: est.shape[0]]:
-            kf.pose = est[kf.id].clone()
+        kfs = self.odometry.keyframes
+        for k in (range(min(len(kfs), est.shape[0])) if ids is None else ids):
+            kfs[k].pose = est[k].clone()
 
     @config_threads
     def skip(self, index: int, timestamp: float, reason: str) -> FrameState:

@@ -230,3 +230,53 @@ def test_planted_false_loops_are_switched_off_in_a_real_graph(kitchen_graph):
     e_res, e_clean, e_plain = _error(res.poses, truth), _error(clean.poses, truth), _error(plain.poses, truth)
     assert e_res < 1.1 * e_clean + 0.005, (e_res, e_clean)
     assert e_plain > 2 * e_clean, (e_plain, e_clean)
+
+
+def _line_with_a_loop():
+    """Keyframes 0..8 one metre apart along x (odometry measures 1 m per step), and a loop 2 -> 8 that
+    measures 5 m: pure translations, identity information, quadratic kernels (a linear least-squares
+    problem with a hand-computable optimum)."""
+    g = KeyframeGraph()
+    eye = torch.eye(6, dtype=D)
+    g.add_keyframe(se3_identity(dtype=D))
+    step = se3_exp(torch.tensor([1.0, 0, 0, 0, 0, 0], dtype=D))
+    for j in range(1, 9):
+        g.add_odometry(j - 1, step, eye, se3_compose(g.estimate(j - 1), step))
+    g.add_loop(2, 8, se3_exp(torch.tensor([5.0, 0, 0, 0, 0, 0], dtype=D)), eye)
+    cfg = dataclasses.replace(BackendConfig(), kernel=None, loop_kernel="none")
+    return g, PoseGraphBackend(cfg, SCALE)
+
+
+def test_a_window_moves_only_its_keyframes_to_the_optimum_with_its_boundary_held():
+    g, backend = _line_with_a_loop()
+    start = g.estimates()
+    res = backend.optimize(g, online=True, free=[5, 6, 7, 8])
+    # outside the window (4 and 2 are its boundary, the others are not in it): exactly as they were
+    assert torch.equal(res.poses[:5], start[:5])
+    # inside: the 1 m misclosure of the cycle 2 -> 8 split evenly over the five edges with a free end (4-5,
+    # 5-6, 6-7, 7-8 and the loop), 0.2 m each, by hand
+    x = res.poses[5:, 0]
+    assert torch.allclose(x, torch.tensor([4.8, 5.6, 6.4, 7.2], dtype=D), atol=1e-6), x
+    assert torch.allclose(res.poses[5:, 1:3], torch.zeros(4, 2, dtype=D), atol=1e-9)
+    assert list(res.loop_weights) == [8]  # the loop is an edge of the window
+    # a window with the loop's far end alone: its boundary (1, 3 and 8) holds it; the loop edge is still in it
+    res2 = backend.optimize(g, online=True, free=[2])
+    others = torch.tensor([0, 1, 3, 4, 5, 6, 7, 8])
+    assert torch.equal(res2.poses[others], start[others]) and not torch.equal(res2.poses[2], start[2])
+    with pytest.raises(ValueError, match="free keyframe 9"):
+        backend.optimize(g, online=True, free=[9])
+    with pytest.raises(ValueError, match="BackendConfig.online_window"):
+        BackendConfig(online_window=0)
+
+
+def test_the_final_optimisation_after_windowed_corrections_is_the_full_optimum():
+    g, backend = _line_with_a_loop()
+    g.set_estimates(backend.optimize(g, online=True, free=[5, 6, 7, 8]).poses)
+    final = backend.optimize(g, online=False)
+    # the whole cycle 2 -> 8 (six odometry edges and the loop) shares the 1 m misclosure: 1/7 m per edge, by hand
+    want = torch.tensor([0.0, 1, 2] + [2 + k * 6 / 7 for k in range(1, 7)], dtype=D)
+    assert torch.allclose(final.poses[:, 0], want, atol=1e-6), final.poses[:, 0]
+    # a window that covers every keyframe is the whole graph
+    full = backend.optimize(g, online=True, free=range(9))
+    whole = backend.optimize(g, online=True)
+    assert torch.equal(full.poses, whole.poses)
