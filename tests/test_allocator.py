@@ -43,6 +43,7 @@ def _forward_faults(setting: str) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(allocator._glibc() is None, reason="glibc's mallopt only (Linux with glibc)")
 def test_kept_memory_removes_the_forward_page_faults():
     # Each setting in a fresh interpreter: mallopt is for the whole process and for good.

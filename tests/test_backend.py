@@ -185,6 +185,7 @@ def _chi2_against_truth(g, truth, kind, scale):
     return scale * torch.einsum("ei,eij,ej->e", r, torch.stack([e.information for e in E]), r)
 
 
+@pytest.mark.slow
 def test_information_scales_against_truth_on_real_edges(kitchen_graph):
     """With the default scales, true odometry edges of the real kitchen err by the chi2 of 6 dof that the
     robust kernels' widths assume (median 5.35): measured median 4.1 (82 edges, 12 frames apart). The loop

@@ -219,6 +219,7 @@ def _restamp(src, dst, per_second: int):
     return dst
 
 
+@pytest.mark.slow
 def test_nanosecond_stamps_are_converted_with_a_notice_and_close_the_same_loops(tmp_path, caplog):
     """The room demo (300 frames at 160 x 120) with its stamps in nanoseconds: one notice, then the run of the
     seconds version to the bit: its loops (the 3 s exclusion window applies again), poses and ATE."""

@@ -239,6 +239,7 @@ def _recorded_graph(data):
     return g
 
 
+@pytest.mark.slow
 def test_recorded_real_loop_set():
     """The loops the building tour (600 frames) played as two laps verified (1,325, recorded by
     ``benchmarks/long_run.py --demo-frames 600 --laps 2 --save-loops``), replayed. Through the exact phase
@@ -250,6 +251,7 @@ def test_recorded_real_loop_set():
     _replay(ConsistencyConfig(), hyp[:260], g)
 
 
+@pytest.mark.slow
 def test_recorded_loops_far_apart_are_not_compared():
     """The one place where the batched check decides otherwise, on the recorded set: past max_exact the
     pairwise check compares a new loop with every loop of the group, and at 56-59 m of path apart the

@@ -85,6 +85,7 @@ def _margins(k, descriptors: torch.Tensor) -> list[float]:
     return out
 
 
+@pytest.mark.slow
 def test_ground_truth_of_the_pairs(kitchen):
     poses = kitchen["poses"]
     q, p = poses[250], poses[945]

@@ -310,6 +310,7 @@ def _covered_lens_run(seq, descriptor, gap: tuple[int, int] | None, recover_afte
             "seconds": time.perf_counter() - t0}
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("frames, gap, recover", [(600, (300, 400), False), (1000, (300, 600), True)])
 def test_loops_across_a_covered_lens_mend_the_guess(redkitchen_dir, frames, gap, recover):

@@ -99,6 +99,7 @@ def _err_to_gt(pose, gt, gt0):
     return float(se3_between(se3_between(gt0, gt), pose)[:3].norm())
 
 
+@pytest.mark.slow
 def test_online_correction_moves_the_reported_poses(room_loop_runs):
     states_on, res_on, states_off, res_off, gt = room_loop_runs
     assert res_on.loops, "the revisit of the first views was not closed"

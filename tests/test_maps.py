@@ -144,6 +144,7 @@ def test_map_world_errors_by_hand():
 
 
 # ------------------------------------------------------------------------------------ two sessions
+@pytest.mark.slow
 def test_a_session_placed_in_the_map_saves_the_grown_map(room_sessions):
     base, grown = load_map(room_sessions["folder"]), load_map(room_sessions["grown"])
     second = room_sessions["second"]
@@ -207,6 +208,7 @@ def test_second_session_is_placed_in_the_first_sessions_world(room_sessions):
     assert unplaced["rmse"] > 10 * err["rmse"]  # what "placed at the origin" would have cost
 
 
+@pytest.mark.slow
 def test_a_recording_of_another_place_does_not_relocalise(room_sessions):
     from slam.pipeline import evaluate_run, run_slam
     from slam.synthetic.building_tour import building_sequence
@@ -433,6 +435,7 @@ def test_run_slam_frames_is_a_recording_of_its_own():
 
 
 # ------------------------------------------------------------------------------------ real data
+@pytest.mark.slow
 @pytest.mark.timeout(1800)
 def test_kitchen_second_session_in_the_first_sessions_world(redkitchen_dir, tmp_path):
     """7-Scenes redkitchen as two sessions: frames 0-599 mapped and saved, then frames 850-999 as a
@@ -454,6 +457,7 @@ def test_kitchen_second_session_in_the_first_sessions_world(redkitchen_dir, tmp_
     assert rel["map_world_errors"]["rmse"] < 0.05, rel["map_world_errors"]
 
 
+@pytest.mark.slow
 def test_cli_saves_a_map_and_runs_a_recording_in_it(tmp_path, capsys):
     """The two flags end to end on a small demo: the second run of the same frames is placed in the first's
     map (said on stdout and in metrics.json), and --save-map with --map writes the grown map."""
@@ -477,6 +481,7 @@ def test_cli_saves_a_map_and_runs_a_recording_in_it(tmp_path, capsys):
         (tmp_path / "b" / "metrics.json").read_text())["num_keyframes"]
 
 
+@pytest.mark.slow
 def test_growing_a_map_in_place_with_a_recording_not_placed_in_it_keeps_the_map(room_sessions, tmp_path):
     # --map X --save-map X, and the recording is of another place: its own map would have replaced X (every
     # earlier session) by itself; X stays, the recording's map goes beside it

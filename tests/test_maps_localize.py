@@ -12,6 +12,8 @@ import torch
 from conftest import SESSION_FRAMES
 from slam.config import override
 
+pytestmark = pytest.mark.slow  # whole SLAM runs of over ~5 s (pytest -m "not slow" leaves them out)
+
 
 def _laps(base, laps: int):
     """``base`` played ``laps`` times, forward then backward."""

@@ -116,6 +116,7 @@ def test_the_command_runs_the_paper_preset_with_given_weights(random_vgg16, empt
     assert 'preset = "paper"' in text and 'backbone = "vgg16"' in text
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_ablation_writes_table1_in_the_papers_layout(random_vgg16, empty_hub, tiny_sequence, tmp_path, load_script,
                                                     capsys):

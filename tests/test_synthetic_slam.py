@@ -9,6 +9,8 @@ import torch
 from slam.config import override
 from slam.lie import se3_between, so3_log
 
+pytestmark = pytest.mark.slow  # whole SLAM runs of over ~5 s (pytest -m "not slow" leaves them out)
+
 
 @pytest.fixture(scope="module")
 def noise_free():

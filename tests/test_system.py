@@ -108,6 +108,7 @@ def kitchen_loop_run(redkitchen_dir):
     return run
 
 
+@pytest.mark.slow
 def test_loop_found_and_true_on_real_slice(kitchen_loop_run):
     m = kitchen_loop_run.metrics
     assert m["num_loops"] >= 1, "the revisit of frames ~280-300 at ~520-540 was not closed"

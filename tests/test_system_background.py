@@ -10,7 +10,7 @@ import torch
 
 from slam.config import SLAMConfig, override
 
-pytestmark = pytest.mark.usefixtures("one_thread")
+pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.slow]  # whole SLAM runs of over ~5 s (pytest -m "not slow" leaves them out)
 
 W, H = 160, 120  # small: the room still closes its loop (40 loops, 9 online corrections)
 
