@@ -28,7 +28,7 @@ differentiates G through the recorded backward (where a clamp ``max(g, 0)`` has 
 is the identity and must be differentiated as one. So once the seeded backward is done, the clamps
 of that forward pass are switched to identities (:func:`clamp_negative_grad` outside such a
 computation always clamps). Measured against central finite differences in float64 the directional
-derivatives agree to ~1e-7 relative (tests/test_descriptor_autograd.py); with the clamps left on,
+derivatives agree to ~1e-7 relative (tests/attnloop/test_descriptor_autograd.py); with the clamps left on,
 autograd is off by 10-100 % for the fusions that use G.
 
 Either way nothing (``.grad``, hooks, requires_grad flags) is left on the model, and the backbone runs in

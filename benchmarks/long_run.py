@@ -148,7 +148,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", default=None, metavar="FILE", help="write the figures here too")
     p.add_argument("--save-loops", default=None, metavar="FILE",
                    help="save the verified loops in order and the keyframes' odometry chain (.npz): a real loop "
-                        "set for replaying the group check (tests/test_consistency_vectorised.py)")
+                        "set for replaying the group check (tests/slam/loop/test_consistency_vectorised.py)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (the rendering and the run)")
     args = p.parse_args(argv)
 

@@ -227,7 +227,7 @@ class LoopClosureConfig:
     # 6 dof, median 5.35, that the robust kernels' widths assume) and true loop edges 0.85-1.0 at x 0.001.
     # Loops weighted to match (x 0.005) made the default kitchen run worse (ATE 0.0320 m vs 0.0301, the same
     # 49 loops): their errors are systematic, shared by neighbouring loops, not independent as the weighting
-    # assumes. DCS still switches false loops off at x 0.001 (tests/test_backend.py, a real graph).
+    # assumes. DCS still switches false loops off at x 0.001 (tests/slam/test_backend.py, a real graph).
     information_scale: float = 0.001  # multiplies the loop edges' information
 
     def __post_init__(self) -> None:

@@ -533,7 +533,7 @@ def se3_to_kornia(pose: Tensor):
 
     Kornia stores quaternions scalar-first (``[w, x, y, z]``); its tangent vectors are ``[rho, phi]`` and its
     adjoint acts on them, as here, so ``log``, ``exp``, composition, inversion, ``adjoint`` and the action on
-    points agree (``tests/test_lie.py``). Differentiable: the returned group's tensors are functions of
+    points agree (``tests/slam/test_lie.py``). Differentiable: the returned group's tensors are functions of
     ``pose``.
 
     Example:

@@ -75,7 +75,7 @@ def _mmd_order(n: int, bptr: np.ndarray, bcol: np.ndarray) -> np.ndarray:
     B = sp.csc_matrix((vals, bcol, bptr), shape=(n, n))
     # SuperLU orders the columns from the pattern alone, before it factors; its incomplete LU with every
     # entry dropped gives the same ordering as its LU without the factorisation, which on a 50000-pose
-    # graph took 4.7 s of the 4.7 s (0.08 s now; tests/test_cholesky.py compares the two orderings)
+    # graph took 4.7 s of the 4.7 s (0.08 s now; tests/slam/graph/test_cholesky.py compares the two orderings)
     ilu = sla.spilu(B, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, drop_tol=1e300, fill_factor=1.0,
                     options={"SymmetricMode": True})
     return np.argsort(ilu.perm_c)

@@ -3,7 +3,7 @@ vectorised over edges, on any device, differentiable.
 
 The public residuals and Jacobians of :mod:`slam.graph.costs` are thin wrappers of these functions, which
 are tested against :mod:`slam.lie` (the group operations composed one by one), finite differences and
-float64 gradcheck (``tests/test_graph_fused.py``, ``tests/test_pose_graph.py``).
+float64 gradcheck (``tests/slam/graph/test_graph_fused.py``, ``tests/slam/graph/test_pose_graph.py``).
 
 Why closed forms instead of composing :mod:`slam.lie`: one Levenberg-Marquardt iteration is a few dozen
 element-wise operations over all edges plus batched products of tiny matrices. A pose composition in

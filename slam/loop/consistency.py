@@ -32,7 +32,7 @@ defaults: from there on the bound is its caps, the aliasing limit, whatever the 
 that agrees with every loop of its neighbourhood agrees with the drift, and the local-support rule keeps
 out the lone ones). Comparing farther loops measured the odometry's drift rather than the loop: on the
 building tour played twice, true loops 56-59 m of path apart disagreed by 1.51-1.52 m, just past the
-1.5 m cap, and a true loop was refused for it (tests/test_consistency_vectorised.py). The loops compared
+1.5 m cap, and a true loop was refused for it (tests/slam/loop/test_consistency_vectorised.py). The loops compared
 are a suffix of the group (ordered by their newer end, which only moves forward), found by bisection;
 loops joined across a tracking loss (their ends on different sides of a weak edge) are compared through
 the guess as before. Pairwise results are kept sparse (the pairs that disagree, the pairs near enough to

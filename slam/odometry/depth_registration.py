@@ -75,7 +75,7 @@ def register_depth_to_color(depth: Tensor, K_depth: Tensor, K_rgb: Tensor, T_rgb
 
 
 # Both warps compute the same floating-point operations in the same order as the first implementation
-# (kept in tests/test_depth_registration.py as the reference, bitwise equal on the kitchen's frames), with
+# (kept in tests/slam/odometry/test_depth_registration.py as the reference, bitwise equal on the kitchen's frames), with
 # two changes that cannot change a result:
 # * the z-buffer is a minimum over a grid of splat origins (each point's top-left pixel x0, y0 in
 #   [-1, w) x [-1, h)), then a 2x2 minimum filter: pixel (y, x) takes the nearest of the points whose

@@ -116,7 +116,7 @@ def test_demo_writes_every_output_and_its_sequence(demo_run):
     m = _strict_json(out / "metrics.json")
     assert m["num_frames"] == 24 and m["frame_step"] == 1
     # 24 frames for a whole loop are fast: some are lost, most tracked (a run of 12 tracks none:
-    # tests/test_cli_inputs.py), so the run is a result
+    # tests/cli/test_cli_inputs.py), so the run is a result
     assert m["status"] == "ok" and m["num_tracked"] == 24 - m["num_lost"] >= 12 and m["ate_rmse"] < 0.5
     assert m["backbone"] is None and m["descriptor"] is None  # --no-loop: no descriptor was built
     assert m["rig"].startswith("registered")
@@ -140,7 +140,7 @@ def test_map_points_lie_on_the_rooms_surfaces(room_run, room_sequence):
     room = torch.from_numpy((pts @ R.T + t).astype(np.float32))
     dist = default_room_scene().surface_distance(room).numpy()
     # within the odometry's own error (ATE ~2.4 cm at 160 x 120) plus the 2 cm voxels; the same points
-    # placed with the true poses are within 6 mm (median), tests/test_mapping.py checks that exactly
+    # placed with the true poses are within 6 mm (median), tests/slam/maps/test_mapping.py checks that exactly
     assert m["ate_rmse"] < 0.04
     assert np.median(dist) < 0.025, np.median(dist)
     assert np.quantile(dist, 0.9) < 0.08, np.quantile(dist, 0.9)

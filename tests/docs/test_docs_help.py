@@ -15,7 +15,7 @@ import pytest
 from docs_commands import COMMANDS, ask
 from helpers import synopsis_flags
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def scripts() -> list[str]:

@@ -20,7 +20,7 @@ How each fenced block is treated, by its language tag:
   and counted with its reason.
 
 Inline code spans of the prose that start with a command (``attnloop-slam ... --flag``) have their
-``--flags`` checked as well. ``python -m pytest -q -s tests/test_docs_snippets.py`` prints the tally of
+``--flags`` checked as well. ``python -m pytest -q -s tests/docs/test_docs_snippets.py`` prints the tally of
 every page (how many blocks ran, were parsed, are not code, were skipped and why).
 """
 from __future__ import annotations
@@ -37,7 +37,7 @@ from helpers import COMMAND_START, script_of, synopsis_flags
 
 from conftest import data_root
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAGES = ["README.md"] + sorted(f"docs/{p.name}" for p in (ROOT / "docs").glob("*.md"))
 
 PYTHON = {"python", "py"}
@@ -206,7 +206,7 @@ def _plan_command(argv: list[str], where: str, plan: Plan) -> None:
         plan.parse.append((name, rest, where))
     else:
         assert name in PLAIN_SHELL, (f"{where}: {name} is not a command the docs test can check; teach "
-                                     "tests/test_docs_snippets.py or mark the block <!-- docs-test: skip why -->")
+                                     "tests/docs/test_docs_snippets.py or mark the block <!-- docs-test: skip why -->")
         plan.unchecked.append(where)
 
 

@@ -22,7 +22,7 @@ from slam.loop.acceptance import DriftBoundConfig, drift_limits, pairwise_consis
 from slam.loop.consistency import ConsistencyConfig, GroupConsistency, maximum_clique
 
 D = torch.float64
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[2] / "data"
 
 
 class ReferenceConsistency:

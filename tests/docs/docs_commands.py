@@ -32,7 +32,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 #: installed commands (pyproject's [project.scripts]) and the module that builds each one's parser
 COMMANDS = {"attnloop-slam": "slam.cli", "attnloop-eval": "slam.eval.cli"}

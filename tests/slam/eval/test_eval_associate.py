@@ -1,6 +1,6 @@
 """Timestamp association (evo's nearest-neighbour rule by default, TUM's greedy rule on request) and RPE
 pairs in seconds, on hand-computed cases (no evo needed; the comparison with evo is in
-tests/test_eval_metrics.py). Stamps are binary fractions where a boundary is tested, so that the
+tests/slam/eval/test_eval_metrics.py). Stamps are binary fractions where a boundary is tested, so that the
 differences are exact."""
 from __future__ import annotations
 
