@@ -187,7 +187,7 @@ class OrbBagOfWords:
     """A flat ORB vocabulary with tf-idf weights and DBoW2's L1 score (see the module docstring).
 
     The vocabulary is learnt by :func:`k_majority`: the same words at any thread count and whether or
-    not faiss is installed (tests/attnloop/index/test_index.py).
+    not faiss is installed.
     """
 
     def __init__(self, words: int = 1000, features: int = 1000, seed: int = 0):
