@@ -57,6 +57,7 @@ __all__ = [
     "TUM_DEPTH_FACTOR",
     "TUMCamera",
     "TUMSequence",
+    "associate_groundtruth",
     "camera_from_name",
     "read_calibration_file",
     "read_file_list",
@@ -132,6 +133,16 @@ def _lines(path: Path) -> list[str]:
         return read_text_lines(path)[1]
     except TextDecodeError as e:
         raise DatasetError(path, e.reason, e.line) from None
+
+
+def associate_groundtruth(stamps: np.ndarray, trajectory: Trajectory | None, max_difference: float) -> np.ndarray:
+    """``(N, 7)`` ground truth of frames at ``stamps (N,)`` seconds: the poses of ``trajectory`` paired with them by
+    TUM's one-to-one association (as ``evaluate_ate.py``), NaN rows where none is within ``max_difference``."""
+    gt = np.full((len(stamps), 7), np.nan)
+    if trajectory is not None and len(stamps):
+        a, b = associate(stamps, trajectory.timestamps, max_difference)
+        gt[a.numpy()] = trajectory.poses.numpy()[b.numpy()]
+    return gt
 
 
 def read_calibration_file(path: Path) -> TUMCamera:
@@ -329,11 +340,7 @@ class TUMSequence(RGBDSequence):
         return self._gt_trajectory
 
     def _associate_groundtruth(self, stamps: np.ndarray) -> np.ndarray:
-        gt = np.full((len(stamps), 7), np.nan)
-        if self._gt_trajectory is not None and len(stamps):
-            a, b = associate(stamps, self._gt_trajectory.timestamps, self.max_difference)
-            gt[a.numpy()] = self._gt_trajectory.poses.numpy()[b.numpy()]
-        return gt
+        return associate_groundtruth(stamps, self._gt_trajectory, self.max_difference)
 
     def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
         # TUM's association is one-to-one: the subset's frames are paired among themselves
