@@ -339,8 +339,8 @@ def write_rgbd_bag(path, frames, K, ros2: bool = False, depth_encoding: str = "3
         rgb_c, depth_c, info_c = (writer.add_connection(t, m, typestore=store) for t, m in zip(
             topics, ("sensor_msgs/msg/Image", "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo")))
         for k, (t, rgb, depth, *depth_t) in enumerate(frames):
-            ns = int(round(t * 1e9))
-            depth_ns = int(round(depth_t[0] * 1e9)) if depth_t else ns
+            ns = round(t * 1e9)
+            depth_ns = round(depth_t[0] * 1e9) if depth_t else ns
             if k == 0:
                 arrays = {n: np.zeros(s) for n, s in (("d", 5), ("r", 9), ("p", 12))}
                 arrays["k"] = np.asarray(K, np.float64).reshape(9)

@@ -13,6 +13,7 @@ encoding or the file.
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 from pathlib import Path
 
@@ -250,10 +251,8 @@ class RosbagSequence(RGBDSequence):
             self._reader.close()
 
     def __del__(self):
-        try:
+        with contextlib.suppress(Exception):  # at interpreter exit rosbags' modules may be gone already
             self.close()
-        except Exception:  # noqa: BLE001 - at interpreter exit rosbags' modules may be gone already
-            pass
 
 
 def _pixels(msg, dtype, channels: int, topic: str) -> np.ndarray:

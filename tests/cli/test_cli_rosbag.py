@@ -7,8 +7,8 @@ import sys
 
 import numpy as np
 import pytest
-
 from helpers import write_rgbd_bag
+
 from slam.cli import main
 from slam.io import open_sequence
 from slam.io.trajectory import read_tum_trajectory, write_tum_trajectory
@@ -58,8 +58,8 @@ def _small_bag(path, **kwargs):
 
 
 @pytest.mark.parametrize("case,expected", [
-    ("topic", "x.bag: no topic /camera/depth/image (the bag has: /camera/rgb/camera_info, /camera/rgb/image_color, "
-              "/depth); name the topic with --depth-topic"),
+    ("topic", ("x.bag: no topic /camera/depth/image (the bag has: /camera/rgb/camera_info, /camera/rgb/image_color, "
+               "/depth); name the topic with --depth-topic")),
     ("encoding", "x.bag: /camera/depth/image: unsupported image encoding '8UC1' (expected 32FC1, 16UC1)"),
     ("truncated", "x.bag: not a readable ROS bag: truncated or corrupt"),
 ])

@@ -6,8 +6,8 @@ import tracemalloc
 
 import numpy as np
 import pytest
-
 from helpers import TUM_BAG_TOPICS, write_rgbd_bag
+
 from slam.io import DatasetError, open_sequence
 from slam.io.trajectory import Trajectory, write_tum_trajectory
 
