@@ -22,9 +22,9 @@ import numpy as np
 from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import FrameReadError, depth_to_metres
-from slam.io.sequence import DatasetError, RGBDSequence, check_depth_scale, check_depth_units
+from slam.io.sequence import DatasetError, check_depth_scale, check_depth_units
 from slam.io.trajectory import read_tum_trajectory
-from slam.io.tum import associate_groundtruth, tum_camera
+from slam.io.tum import TimeAssociatedSequence, tum_camera
 
 __all__ = ["BAG_OPTIONS", "COLOUR_ENCODINGS", "DEPTH_ENCODINGS", "TUM_TOPICS", "RosbagSequence", "is_rosbag"]
 
@@ -77,7 +77,7 @@ def _stamp(msg) -> float:
     return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
 
 
-class RosbagSequence(RGBDSequence):
+class RosbagSequence(TimeAssociatedSequence):
     """An RGB-D sequence in a ROS bag, read lazily (see the module docstring).
 
     Args:
@@ -184,8 +184,8 @@ class RosbagSequence(RGBDSequence):
             self.K = self._camera_info()
         self.max_difference = float(max_difference)
         self.groundtruth_file = None if groundtruth is None else Path(groundtruth).expanduser()
-        self.groundtruth_trajectory = None if groundtruth is None else read_tum_trajectory(self.groundtruth_file)
-        self._gt = associate_groundtruth(self._timestamps, self.groundtruth_trajectory, self.max_difference)
+        self._gt_trajectory = None if groundtruth is None else read_tum_trajectory(self.groundtruth_file)
+        self._gt = self._associate_groundtruth(self._timestamps)
         if check_units and self.depth_encoding == "16UC1":
             check_depth_units(self.root, range(min(len(self), 10)), self.depth_scale, read=self._raw_depth)
 
@@ -231,19 +231,6 @@ class RosbagSequence(RGBDSequence):
         pose = self._gt[i]
         return RGBDFrame(index=i, timestamp=float(self._timestamps[i]), rgb=rgb, depth=depth, K=self.K.copy(),
                          pose_gt=None if np.isnan(pose).any() else pose.copy())
-
-    def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
-        return associate_groundtruth(self._timestamps[indices], self.groundtruth_trajectory, self.max_difference)
-
-    def __len__(self) -> int:
-        return len(self._timestamps)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._timestamps
-
-    def _groundtruth_array(self) -> np.ndarray:
-        return self._gt
 
     def close(self) -> None:
         """Close the bag (also when the sequence is garbage-collected)."""
