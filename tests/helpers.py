@@ -36,8 +36,8 @@ from slam.lie import se3_compose, se3_exp
 from slam.maps import SavedMap
 from slam.odometry.features import FrameFeatures
 
-__all__ = ["COMMAND_START", "MUTATIONS", "TUM_BAG_TOPICS", "condition_head", "mutate", "perturb_trajectory", "script_of",
-           "synopsis_flags", "write_rgbd_bag"]
+__all__ = ["COMMAND_START", "MUTATIONS", "TUM_BAG_TOPICS", "condition_head", "mutate", "perturb_trajectory",
+           "script_of", "synopsis_flags", "write_rgbd_bag"]
 
 
 # ------------------------------------------------------------------------------------------ lite nets

@@ -111,8 +111,9 @@ class RosbagSequence(TimeAssociatedSequence):
         self.topics = {k: v if v is not None else TUM_TOPICS[k] for k, v in topics.items()}
         self._errors = _reader_errors()
         self._lock = threading.Lock()
-        self._reader = AnyReader([self.root])
+        self._reader = None
         try:
+            self._reader = AnyReader([self.root])
             self._reader.open()
         except self._errors as e:
             raise DatasetError(self.root, f"not a readable ROS bag: truncated or corrupt ({e})") from None
@@ -127,7 +128,8 @@ class RosbagSequence(TimeAssociatedSequence):
         found = [c for c in self._reader.connections if c.topic == topic]
         if not found:
             have = ", ".join(sorted({c.topic for c in self._reader.connections})) or "none"
-            raise DatasetError(self.root, f"no topic {topic} (the bag has: {have}); name the topic with {BAG_OPTIONS[key]}")
+            raise DatasetError(self.root, f"no topic {topic} (the bag has: {have}); name the topic with "
+                                          f"{BAG_OPTIONS[key]}")
         return found[0]
 
     def _scan(self, key: str, encodings: tuple[str, ...]):
@@ -213,7 +215,8 @@ class RosbagSequence(TimeAssociatedSequence):
                 raw = cursor.raw(int(k))
             return self._reader.deserialize(raw, cursor.connection.msgtype)
         except (StopIteration, *self._errors) as e:
-            raise FrameReadError(str(self.root), f"{cursor.connection.topic} message {k}: cannot read it ({e})") from None
+            raise FrameReadError(str(self.root), f"{cursor.connection.topic} message {k}: cannot read it ({e})"
+                                 ) from None
 
     def _raw_depth(self, i: int) -> np.ndarray:
         msg = self._message("depth", self._depth_index[i])

@@ -137,3 +137,18 @@ def test_without_rosbags_the_extra_is_named(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)
     with pytest.raises(DatasetError, match=r"pip install attnloop\[rosbag\]"):
         open_sequence(path)
+
+
+def test_intrinsics_and_depth_scale_options(tmp_path):
+    path = write_rgbd_bag(tmp_path / "x.bag", _frames(2), K)
+    # TUM's fr1 camera (517.3 516.5 318.6 255.3) or given intrinsics replace the camera info's
+    assert open_sequence(path, camera="fr1").K[0].tolist() == [517.3, 0.0, 318.6]
+    given = np.array([[500.0, 0.0, 300.0], [0.0, 501.0, 200.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_array_equal(open_sequence(path, K=given).K, given)
+    with pytest.raises(DatasetError, match="depth_scale .* applies to 16UC1 depth; /camera/depth/image is 32FC1"):
+        open_sequence(path, depth_scale=5000)
+    mm = write_rgbd_bag(tmp_path / "mm.bag", _frames(2), K, depth_encoding="16UC1")
+    # 16UC1 read at TUM's 5000 units per metre: 1 m of millimetres is 0.2 m, refused by the unit check
+    with pytest.raises(DatasetError, match="--depth-scale 1000"):
+        open_sequence(mm, depth_scale=5000)
+    assert open_sequence(mm, depth_scale=5000, check_units=False)[0].depth[5, 5] == np.float32(0.2)
