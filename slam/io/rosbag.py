@@ -14,6 +14,7 @@ encoding or the file.
 from __future__ import annotations
 
 import contextlib
+import sqlite3
 import threading
 from pathlib import Path
 
@@ -50,8 +51,9 @@ def _reader_errors():
     from rosbags.rosbag2 import ReaderError as Reader2Error
     from rosbags.serde import SerdeError
 
-    # a truncated chunk surfaces as whatever its parser met first
-    return AnyReaderError, Reader1Error, Reader2Error, SerdeError, EOFError, KeyError, ValueError, OSError
+    # a truncated chunk or database surfaces as whatever its parser met first
+    return (AnyReaderError, Reader1Error, Reader2Error, SerdeError, sqlite3.DatabaseError, EOFError, KeyError,
+            ValueError, OSError)
 
 
 class _Cursor:
