@@ -127,6 +127,15 @@ def test_bad_bags_name_what_is_wrong(tmp_path, case, expected):
     assert "\n" not in str(e.value)
 
 
+def test_a_truncated_ros2_bag_names_its_folder(tmp_path):
+    path = write_rgbd_bag(tmp_path / "bag", _frames(3), K, ros2=True)
+    (db,) = path.glob("*.db3")
+    db.write_bytes(db.read_bytes()[: db.stat().st_size // 2])
+    with pytest.raises(DatasetError) as e:
+        open_sequence(path)
+    assert str(e.value).startswith(f"{path}: not a readable ROS bag: truncated or corrupt")
+
+
 def test_bag_options_refused_on_a_folder(tmp_path):
     with pytest.raises(DatasetError, match="--depth-topic applies to a ROS bag"):
         open_sequence(tmp_path, depth_topic="/d")
