@@ -25,7 +25,7 @@ examples:
   attnloop-slam --demo --demo-scene room --no-loop --out runs/demo_odometry
   attnloop-slam ../shared/data/7scenes-redkitchen --out runs/kitchen    # 7-Scenes: Kinect v1 rig by default
   attnloop-slam ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room --preset paper  # the paper's descriptor
-  attnloop-slam rgbd_dataset_freiburg1_xyz.bag --ground-truth groundtruth.txt --out runs/xyz_bag  # TUM's bag
+  attnloop-slam rgbd_dataset_freiburg1_xyz.bag --camera fr1 --ground-truth groundtruth.txt --out runs/xyz_bag
   attnloop-slam SEQUENCE --config runs/kitchen/config.toml --out runs/again                # a run repeated
   attnloop-slam SEQUENCE --out runs/step3 --frame-step 3     # every 3rd frame: more drift for the loops
   attnloop-slam SEQUENCE --frames 0:600 --save-map maps/kitchen --out runs/monday          # map, saved
