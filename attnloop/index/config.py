@@ -105,9 +105,6 @@ class IndexConfig:
     # recall@10 0.981 (256 dims: 0.998; full descriptors: 1.000), measured on the paper's 1024-d encoding;
     # docs/results.md, "Keyframe index".
     reduce_dim: int | None = 128
-    # PCA-whitening (unit-variance components, codes L2-normalised) instead of PCA: it lost recall on real
-    # descriptors (kitchen 0.86 vs 0.99), kept for measurement.
-    whiten: bool = False
     rerank: int = 8  # the structure proposes rerank * k rows per query, all re-scored exactly (4: kitchen 0.93)
     storage: str = "float32"  # dtype of the stored descriptors: "float32" | "float16" (half the memory)
     background: bool = True  # build structures in a worker thread; queries use the old one meanwhile

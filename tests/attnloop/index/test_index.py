@@ -467,11 +467,6 @@ def test_pca_code_identities():
     x2 = (torch.randn(4000, 5, generator=g) * torch.tensor([5.0, 4.0, 1.0, 1.0, 1.0])) @ basis.t()
     two = fit_pca(x2.numpy(), dim=2)
     assert two.kept == pytest.approx(41.0 / 44.0, abs=0.01)
-    # Whitening: unit-variance components (before the codes are L2-normalised).
-    w = fit_pca(x2.numpy(), dim=2, whiten=True)
-    raw = (x2.numpy() - w.mean) @ w.components * w.scale
-    np.testing.assert_allclose(raw.std(0), [1.0, 1.0], rtol=0.05)
-    np.testing.assert_allclose(np.linalg.norm(w.encode(x2.numpy()[:10]), axis=1), 1.0, rtol=1e-5)
     # More components than the fitting rows support: only those with variance are kept.
     assert fit_pca(x[:20], dim=64).dim == 19  # 20 rows span at most 19 directions about their mean
     with pytest.raises(ValueError, match="dimension 32"):
@@ -566,7 +561,7 @@ def _persist_configs():
     ]
     if faiss_available():
         out += [("faiss", IndexConfig(backend="faiss", exact_below=256, reduce_dim=None, background=False)),
-                ("faiss+pca", IndexConfig(backend="faiss", exact_below=256, reduce_dim=16, whiten=True,
+                ("faiss+pca", IndexConfig(backend="faiss", exact_below=256, reduce_dim=16,
                                           background=False))]
     return out
 
