@@ -232,20 +232,6 @@ def test_frontend_tracks_a_synthetic_trajectory_with_keyframes_and_edges():
     assert odo.keyframes[0].rgb.shape == (240, 320, 3)  # stored at half size
 
 
-def test_frontend_previous_frame_keyframe_policy():
-    tex = _texture(3)
-    odo = RGBDOdometry(OdometryConfig(keyframe_translation=0.05, keyframe_policy="previous"))
-    poses = [_pose(0.012 * i, 0.004 * i, 0.0, 0.0, 0.004 * i, 0.002 * i) for i in range(12)]
-    results = [odo.track(_planar_frame(p, tex, i)) for i, p in enumerate(poses)]
-    assert all(r.status in (TrackStatus.OK, TrackStatus.INITIALIZED) for r in results)
-    promoted = [r for r in results[1:] if r.edge is not None]
-    assert promoted and all(not r.is_keyframe for r in promoted)
-    for r in promoted:  # the new keyframe is the previous frame, and this frame is expressed in it
-        assert odo.keyframes[r.edge.j].frame_index == r.index - 1 and r.keyframe_id == r.edge.j
-    for r, p in zip(results, poses):
-        assert _err(r.pose, p)[0] < 0.01
-
-
 def test_frontend_bad_frames_are_lost_then_recovered_and_forced_keyframe():
     tex = _texture(4)
     odo = RGBDOdometry(OdometryConfig(max_lost_frames=3))
