@@ -24,19 +24,9 @@ The recipe of steps 2-5 (fusion, pooling, RNN count and size, seed, scaling, mer
 autograd (:func:`attnloop.guided_backprop.guided_backprop` with ``create_graph``): the descriptor is then
 a differentiable function of the images and of the backbone's weights, for training through it.
 
-Why no RNNs by default: on the regional code they are a random projection from 2560 to 1024 dims,
-which loses place evidence. Without them every fusion mode gains in mean R@1 and R@P100 over four
-real place-recognition protocols (against the mean over 8 RNN seeds), the descriptor no longer depends
-on an RNN seed, and the RNNs' 10.5 MB of weights are no longer read per frame (docs/method.md).
-``num_rnn=16`` (and ``preset="paper"``) keep the paper's encoding.
-
-The scaling of step 4 is ours, not the paper's: it makes the descriptor independent of the fused map's overall scale
-(which differs between fusion modes and frames) and sets the operating point of the RNNs' tanh. With
-raw features at EfficientNet's stage7 the pre-activations W_r x have a standard deviation of 5 to 17
-(median over frames, depending on the fusion), so the tanh saturates and the 1024 dims degrade to a
-1024-bit sign hash; at norm 10 it is 0.29 and the pooling is close to a random projection. On the
-7-Scenes redkitchen revisits this raises the loop-closure margins and narrows their spread over RNN
-seeds.
+No RNNs by default: on the regional code they are a random projection (2560 -> 1024 dims) that loses
+place evidence (docs/method.md). The scaling of step 4 is ours: it makes the descriptor independent of the
+fused map's scale and keeps the RNNs' tanh out of saturation.
 """
 from __future__ import annotations
 
@@ -62,8 +52,6 @@ __all__ = [
     "AttentionDescriptor",
     "DescriptorParts",
     "DescriptorRecipe",
-    "attention_descriptor",
-    "attention_descriptor_parts",
     "descriptor_from_attention",
 ]
 
@@ -196,15 +184,6 @@ class DescriptorParts(NamedTuple):
     descriptor: torch.Tensor
 
 
-def _unit_scale(grad: torch.Tensor) -> torch.Tensor:
-    # Every fusion uses G only through min-max normalisations, which ignore a positive per-sample
-    # scale, but minmax_normalize treats ranges below 1e-12 as constant. G = J^T S can be that small
-    # (a flat softmax: random weights, or an image the classifier finds meaningless), so G is brought
-    # to max |G| = 1 per sample first. An all-zero G stays zero.
-    peak = grad.detach().abs().amax(dim=tuple(range(1, grad.ndim)), keepdim=True)
-    return grad / peak.clamp_min(torch.finfo(grad.dtype).tiny)
-
-
 def _scale_to_norm(x: torch.Tensor, norm: float) -> torch.Tensor:
     # Per-sample L2 normalisation to `norm`; an all-zero sample stays zero (no NaN).
     flat = x.reshape(x.shape[0], -1)
@@ -290,85 +269,6 @@ def descriptor_from_attention(
     if normalize:
         desc = F.normalize(desc, dim=1)
     return fused, desc
-
-
-def attention_descriptor_parts(
-    images: torch.Tensor,
-    backbone: nn.Module,
-    rnn_weights: torch.Tensor | None,
-    fusion: str = "dam",
-    normalize: bool = True,
-    pool_scale: float | None = 10.0,
-    merge: bool | None = None,
-    create_graph: bool = False,
-    *,
-    pooling: str = "regional",
-    gem_p: float = 2.0,
-    levels: Sequence[int] = (1, 2),
-) -> DescriptorParts:
-    """Compute the descriptor and keep every intermediate (L, G, fused, descriptor).
-
-    Args:
-        images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1], on the backbone's device.
-        backbone: a backbone of :mod:`attnloop.backbones` (eval mode).
-        rnn_weights: :math:`(R, O, I)` random RNN weights (:func:`attnloop.rnn_pool.random_rnn_weights`)
-            with ``I`` as :func:`descriptor_from_attention` says; None: no RNNs (the default descriptor's).
-        fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
-        normalize: L2-normalise the descriptor.
-        pool_scale: L2 norm the RNNs' input is scaled to (with ``rnn_weights`` only); None feeds it raw
-            (the paper).
-        merge: average element c with c + C/2 of the RNNs' input; None: for ``flat`` pooling only.
-        create_graph: keep every part differentiable w.r.t. the images and the backbone's weights
-            (see :func:`attnloop.guided_backprop.guided_backprop`).
-        pooling: ``"regional"`` or ``"flat"`` (see :func:`descriptor_from_attention`).
-        gem_p: the GeM exponent (regional pooling).
-        levels: the grids of the regional pooling.
-
-    Returns:
-        :class:`DescriptorParts` with the descriptor of shape :math:`(B, R \\cdot O)` (without RNNs: the
-        pooled code's size).
-    """
-    check_images(images)
-    tap, grad = guided_backprop(backbone, images, create_graph=create_graph)
-    fused, desc = descriptor_from_attention(tap, grad, rnn_weights, fusion, normalize, pool_scale, merge,
-                                            pooling=pooling, gem_p=gem_p, levels=levels,
-                                            groups=getattr(backbone, "tap_groups", None),
-                                            attended=getattr(backbone, "attended_groups", None))
-    return DescriptorParts(tap, grad, fused, desc)
-
-
-def attention_descriptor(
-    images: torch.Tensor,
-    backbone: nn.Module,
-    rnn_weights: torch.Tensor | None,
-    fusion: str = "dam",
-    normalize: bool = True,
-    pool_scale: float | None = 10.0,
-    merge: bool | None = None,
-    create_graph: bool = False,
-    *,
-    pooling: str = "regional",
-    gem_p: float = 2.0,
-    levels: Sequence[int] = (1, 2),
-) -> torch.Tensor:
-    """Attention-guided descriptor of a batch of images (see :func:`attention_descriptor_parts`).
-
-    Returns:
-        :math:`(B, R \\cdot O)` descriptors (without RNNs: the pooled code's size), unit L2 norm when
-        ``normalize``.
-
-    Example:
-        >>> from attnloop.backbones import efficientnet_lite0
-        >>> from attnloop.rnn_pool import random_rnn_weights
-        >>> net = efficientnet_lite0(pretrained=False)
-        >>> w = random_rnn_weights(16, 160 * 7 * 7, 64, seed=0)
-        >>> attention_descriptor(torch.rand(2, 3, 96, 128), net, w, fusion="ega", pooling="flat").shape
-        torch.Size([2, 1024])
-    """
-    return attention_descriptor_parts(
-        images, backbone, rnn_weights, fusion, normalize, pool_scale, merge, create_graph=create_graph,
-        pooling=pooling, gem_p=gem_p, levels=levels,
-    ).descriptor
 
 
 _PROTOCOL = ("preprocess", "forward_to_tap", "tap_shape")
@@ -710,11 +610,12 @@ class AttentionDescriptor(nn.Module):
                     zero = (sum(t.sum() for t in tied) * 0).to(dtype)
                     empty, desc = empty + zero, desc + zero
             return DescriptorParts(empty, empty, empty, desc)
+        tap, grad = guided_backprop(self.backbone, images, create_graph=self.differentiable)
         r = self.recipe
-        return attention_descriptor_parts(
-            images, self.backbone, self.rnn_weights, r.fusion, r.normalize, self.pool_scale, r.merges,
-            create_graph=self.differentiable, pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
-        )
+        fused, desc = descriptor_from_attention(tap, grad, self.rnn_weights, r.fusion, r.normalize, self.pool_scale,
+                                                r.merges, pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
+                                                groups=self.tap_groups, attended=self.attended_groups)
+        return DescriptorParts(tap, grad, fused, desc)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         if self.recipe.fusion == "none" and not self.differentiable:
