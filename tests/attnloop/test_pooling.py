@@ -8,8 +8,7 @@ from helpers import condition_head
 from torch import nn
 
 from attnloop import AttentionDescriptor
-from attnloop.backbones import build_backbone
-from attnloop.backbones import efficientnet_lite0
+from attnloop.backbones import build_backbone, efficientnet_lite0
 from attnloop.descriptor import DescriptorRecipe, descriptor_from_attention
 from attnloop.fusion import fuse
 from attnloop.guided_backprop import guided_backprop, softmax_seeded_gradient
