@@ -163,9 +163,8 @@ class LoopClosureConfig:
     enabled: bool = True  # False = odometry only (--no-loop)
     descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
     # Keyframe ids are milliseconds since the first keyframe, so ``window`` is a time (3 s) at any frame rate or
-    # step. The detector's own temporal consistency stays off (verified loops pass the group check below). The
-    # threshold is low (median + 1.5 robust sigmas, from 16 keyframes on): geometric verification rejects the
-    # false candidates (docs/results.md, "Loop candidates").
+    # step. The threshold is low (median + 1.5 robust sigmas, from 16 keyframes on): geometric verification and
+    # the group check below reject the false candidates (docs/results.md, "Loop candidates").
     detector: LoopDetectorConfig = field(default_factory=lambda: LoopDetectorConfig(
         window=3000, threshold=ThresholdConfig(k_sigma=1.5, min_samples=16)))
     # The threshold calibrated for a backbone's default descriptor replaces ``detector.threshold`` when the

@@ -42,11 +42,6 @@ def test_the_defaults_build_and_survive_replace():
         BackendConfig(loop_kernel=k)
 
 
-def test_the_slam_detector_keeps_temporal_consistency_off():
-    det = LoopClosureConfig().detector
-    assert det.consistency == 1 and det.consistency_radius == LoopDetectorConfig().consistency_radius
-
-
 # infinite bounds switch a check off and stay allowed
 @pytest.mark.parametrize("cls, kwargs", [
     (MatchConfig, dict(max_hamming=math.inf, ratio=1.0, guided_radius_px=0.0)),
