@@ -108,10 +108,6 @@ class IndexConfig:
     rerank: int = 8  # the structure proposes rerank * k rows per query, all re-scored exactly (4: kitchen 0.93)
     storage: str = "float32"  # dtype of the stored descriptors: "float32" | "float16" (half the memory)
     background: bool = True  # build structures in a worker thread; queries use the old one meanwhile
-    # L2-normalise added descriptors and queries (similarity = cosine). False (similarity = the raw dot
-    # product) only with backend "exact": the structures rank by L2 distance, which orders rows like the
-    # dot product only for unit-length rows.
-    normalize: bool = True
     seed: int = 0  # seed of the k-means centres (flann) and of the PCA's fitting sample
     flann: FlannConfig = field(default_factory=FlannConfig)
     faiss: FaissConfig = field(default_factory=FaissConfig)
@@ -127,11 +123,6 @@ class IndexConfig:
             raise ValueError(f"IndexConfig.reduce_dim must be None or >= 1, got {self.reduce_dim}")
         if self.rerank < 1:
             raise ValueError(f"IndexConfig.rerank must be >= 1, got {self.rerank}")
-        if not self.normalize and self.backend != "exact":
-            raise ValueError(f"IndexConfig(normalize=False) needs backend='exact', got backend={self.backend!r}: "
-                             "the flann and faiss structures ('auto' builds one above exact_below) rank rows by "
-                             "L2 distance, which orders them like the dot product only for unit-length "
-                             "descriptors; keep normalize=True or use backend='exact'")
 
 
 def faiss_available() -> bool:
@@ -163,9 +154,17 @@ def config_to_dict(config: IndexConfig) -> dict:
     return out
 
 
+#: Settings that files saved by earlier versions hold, with the one value still meant (PCA-whitening and
+#: the raw dot product are gone: descriptors are L2-normalised and coded by plain PCA).
+_RETIRED = {"whiten": False, "normalize": True}
+
+
 def config_from_dict(data: dict) -> IndexConfig:
     """Inverse of :func:`config_to_dict`; ValueError naming unknown keys."""
     data = dict(data)
+    for key, kept in _RETIRED.items():
+        if key in data and data.pop(key) != kept:
+            raise ValueError(f"IndexConfig.{key} is no longer supported (only {key}={kept} is)")
     nested = {"flann": FlannConfig, "faiss": FaissConfig}
     kwargs: dict[str, Any] = {}
     for name, cls in nested.items():
