@@ -72,11 +72,6 @@ def _check_pool_scale(pool_scale: float | None) -> None:
         raise ValueError(f"pool_scale must be positive and finite, or None, got {pool_scale}")
 
 
-def _check_flat_settings(pooling: str, gem_p: float, levels: Sequence[int]) -> None:
-    if pooling == "flat" and (gem_p != 2.0 or tuple(levels) != (1, 2)):
-        raise ValueError("gem_p and levels apply to pooling='regional' only")
-
-
 @dataclass(frozen=True)
 class DescriptorRecipe:
     """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seeds.
@@ -101,21 +96,12 @@ class DescriptorRecipe:
     pool_scale: float | None = _RNN_DEFAULTS["pool_scale"]
     merge: bool | None = None  # average element c with c + C/2 of the RNNs' input; None: for "flat" only
     pooling: str = "regional"  # "regional": regional GeM code first (ours); "flat": the whole map (the paper)
-    gem_p: float = 2.0  # the GeM exponent of the regional pooling
-    levels: tuple[int, ...] = (1, 2)  # grids of the regional pooling: the whole map and 2 x 2 cells
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_MODES:
             raise ValueError(f"unknown fusion {self.fusion!r}; choose one of {FUSION_MODES}")
         if self.pooling not in POOLINGS:
             raise ValueError(f"unknown pooling {self.pooling!r}; choose one of {POOLINGS}")
-        if not (float(self.gem_p) > 0 and float(self.gem_p) < float("inf")):
-            raise ValueError(f"gem_p must be positive and finite, got {self.gem_p}")
-        levels = tuple(self.levels) if isinstance(self.levels, (tuple, list)) else (self.levels,)
-        if not levels or any(isinstance(v, bool) or int(v) != v or v < 1 for v in levels):
-            raise ValueError(f"levels must be positive grid sizes such as (1, 2), got {self.levels!r}")
-        object.__setattr__(self, "levels", tuple(int(v) for v in levels))
-        _check_flat_settings(self.pooling, self.gem_p, self.levels)
         for name, least in (("num_rnn", 0), ("out_features", 1), ("seed", 0)):
             v = getattr(self, name)
             # a whole float (16.0) is fine for the counts; a seed must be an integer (1.5 would be truncated
@@ -200,8 +186,6 @@ def descriptor_from_attention(
     merge: bool | None = None,
     *,
     pooling: str = "regional",
-    gem_p: float = 2.0,
-    levels: Sequence[int] = (1, 2),
     groups: Sequence[int] | None = None,
     attended: Sequence[bool] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -213,7 +197,7 @@ def descriptor_from_attention(
         tap: the tap activations L, :math:`(B, C, h, w)`.
         grad: the guided gradient G, :math:`(B, C, h, w)`.
         rnn_weights: :math:`(R, O, I)` random RNN weights: for ``flat`` pooling ``I = C/2 * h * w``
-            (``C * h * w`` without merge); for ``regional`` ``I = regional_code_dim(groups, levels)``
+            (``C * h * w`` without merge); for ``regional`` ``I = regional_code_dim(groups)``
             (halved with merge). None: no RNNs, the descriptor is the regional code itself (``pooling``
             regional; ``pool_scale`` and ``merge`` left at their defaults).
         fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
@@ -222,8 +206,6 @@ def descriptor_from_attention(
         merge: average element c with c + C/2 of the RNNs' input (the paper's merge); None: True for
             ``flat``, False for ``regional`` pooling.
         pooling: ``"regional"`` (regional GeM code, :mod:`attnloop.pooling`) or ``"flat"`` (the paper).
-        gem_p: the GeM exponent (regional pooling).
-        levels: the grids of the regional pooling.
         groups: channel counts of a joined tap's stages (the backbone's ``tap_groups``): each group is
             fused and pooled on its own; None: one group.
         attended: per group, whether it is fused (the backbone's ``attended_groups``); a group not
@@ -248,7 +230,6 @@ def descriptor_from_attention(
     """
     if pooling not in POOLINGS:
         raise ValueError(f"unknown pooling {pooling!r}; choose one of {POOLINGS}")
-    _check_flat_settings(pooling, gem_p, levels)
     _check_pool_scale(pool_scale)
     fused = fuse_groups(tap, grad, fusion, groups, attended)
     if rnn_weights is None:
@@ -259,11 +240,11 @@ def descriptor_from_attention(
         if pooling == "flat":
             raise ValueError("pooling='flat' is the paper's input of the random RNNs, and rnn_weights=None has none; "
                              "pass RNN weights, or pooling='regional'")
-        desc = regional_code(fused, groups, gem_p, levels)
+        desc = regional_code(fused, groups)
     else:
         if merge is None:
             merge = pooling == "flat"
-        pool_in = fused if pooling == "flat" else regional_code(fused, groups, gem_p, levels)[:, :, None, None]
+        pool_in = fused if pooling == "flat" else regional_code(fused, groups)[:, :, None, None]
         pool_in = pool_in if pool_scale is None else _scale_to_norm(pool_in, float(pool_scale))
         desc = random_rnn_pool(pool_in, rnn_weights, merge=merge)
     if normalize:
@@ -331,7 +312,7 @@ class AttentionDescriptor(nn.Module):
         differentiable: keep the computation in autograd (see above). Costs a graph of the backbone
             and a second-order backward through the head (docs/results.md, "The descriptor's cost").
         recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` (leave those at
-            their defaults then); it also sets ``pooling``, ``gem_p`` and ``levels``.
+            their defaults then); it also sets ``pooling``.
         preset: a name of :data:`attnloop.presets.PRESETS`: ``"paper"``, the paper's exact configuration
             (the paper's tap at 224 x 224, flat RNN pooling of the raw fused map, the merge, 16 RNNs; only
             ``fusion``, ``seed`` and the backbone choice stay free), ``"guclu2019"``, the paper's baseline
@@ -498,7 +479,7 @@ class AttentionDescriptor(nn.Module):
             raise ValueError(f"{self.backbone_name}: attended_groups {self.attended_groups} has not one flag per "
                              f"tap group {self.tap_groups}")
         if given.pooling == "regional":
-            channels, height, width = regional_code_dim(self.tap_groups, given.levels), 1, 1
+            channels, height, width = regional_code_dim(self.tap_groups), 1, 1
         if given.merges and channels % 2:
             raise ValueError(f"the RNNs' input of {self.backbone_name} has {channels} channels, an odd number: "
                              "merge=True averages channel c with c + C/2; pass merge=False or tap a layer with "
@@ -613,7 +594,7 @@ class AttentionDescriptor(nn.Module):
         tap, grad = guided_backprop(self.backbone, images, create_graph=self.differentiable)
         r = self.recipe
         fused, desc = descriptor_from_attention(tap, grad, self.rnn_weights, r.fusion, r.normalize, self.pool_scale,
-                                                r.merges, pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
+                                                r.merges, pooling=r.pooling,
                                                 groups=self.tap_groups, attended=self.attended_groups)
         return DescriptorParts(tap, grad, fused, desc)
 
@@ -651,7 +632,7 @@ class AttentionDescriptor(nn.Module):
         mode = self.recipe.fusion if fusion is None else fusion
         r = self.recipe
         return descriptor_from_attention(tap, grad, self.rnn_weights, mode, r.normalize, self.pool_scale, r.merges,
-                                         pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
+                                         pooling=r.pooling,
                                          groups=self.tap_groups, attended=self.attended_groups)[1]
 
     def extra_repr(self) -> str:

@@ -278,7 +278,7 @@ def test_default_configuration():
     assert d.backbone.attend == "stage7" and d.attended_groups == (False, True)
     r = d.recipe
     # no RNNs: the regional code, L2-normalised, is the descriptor
-    assert (r.pooling, r.gem_p, r.levels, r.num_rnn, r.merges) == ("regional", 2.0, (1, 2), 0, False)
+    assert (r.pooling, r.num_rnn, r.merges) == ("regional", 0, False)
     assert d.pool is None and d.out_dim == 2560
     x = torch.randint(0, 256, (2, 3, 120, 160), dtype=torch.uint8)
     parts = d.parts(x)
@@ -323,12 +323,6 @@ def test_paper_preset_configuration(backbone, tap_shape, rnn_in):
 def test_recipe_checks():
     with pytest.raises(ValueError, match="unknown pooling"):
         DescriptorRecipe(pooling="max")
-    with pytest.raises(ValueError, match="gem_p"):
-        DescriptorRecipe(gem_p=0.0)
-    with pytest.raises(ValueError, match="levels"):
-        DescriptorRecipe(levels=(0,))
-    with pytest.raises(ValueError, match="apply to pooling='regional' only"):
-        DescriptorRecipe(pooling="flat", gem_p=3.0)
     assert DescriptorRecipe(pooling="flat", num_rnn=16).merges and not DescriptorRecipe(num_rnn=16).merges
     assert DescriptorRecipe(merge=True, num_rnn=16).merges
     assert not DescriptorRecipe(merge=False).merges  # no RNNs: nothing to merge
