@@ -284,18 +284,17 @@ def test_threshold_flat_distribution_gives_nothing():
     assert adaptive_threshold(flat, ThresholdConfig(min_margin=0.05)).item() == pytest.approx(0.85)
 
 
-def test_threshold_std_method_floor_and_few_samples():
+def test_threshold_floor_and_few_samples():
     s = torch.tensor([0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0], dtype=torch.float64)
-    cfg = ThresholdConfig(method="std", k_sigma=1.0, min_margin=0.0, min_samples=8)
-    torch.testing.assert_close(adaptive_threshold(s, cfg), s.mean() + s.std(unbiased=False))
-    floored = ThresholdConfig(method="std", k_sigma=0.0, min_margin=0.0, min_similarity=0.95, min_samples=8)
+    cfg = ThresholdConfig(k_sigma=1.0, min_margin=0.0, min_samples=8)
+    # median 0.55, |s - 0.55| has median 0.25: 0.55 + 1.4826 * 0.25
+    torch.testing.assert_close(adaptive_threshold(s, cfg), torch.tensor(0.55 + 1.4826 * 0.25, dtype=torch.float64))
+    floored = ThresholdConfig(k_sigma=0.0, min_margin=0.0, min_similarity=0.95, min_samples=8)
     assert adaptive_threshold(s, floored).item() == pytest.approx(0.95)
     assert adaptive_threshold(s[:7], cfg).item() == float("inf")  # fewer than min_samples
     assert adaptive_threshold(torch.zeros(0)).item() == float("inf")
     with pytest.raises(ValueError, match=r"\(N,\)"):
         adaptive_threshold(torch.rand(2, 5))
-    with pytest.raises(ValueError, match="method"):
-        ThresholdConfig(method="median")
 
 
 # ------------------------------------------------------------------ detector
