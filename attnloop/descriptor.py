@@ -507,16 +507,6 @@ class AttentionDescriptor(nn.Module):
         """The fusion mode (:attr:`recipe`; another one per call: :meth:`from_attention`'s ``fusion``)."""
         return self.recipe.fusion
 
-    @property
-    def normalize(self) -> bool:
-        """Whether descriptors are L2-normalised (:attr:`recipe`)."""
-        return self.recipe.normalize
-
-    @property
-    def pool_scale(self) -> float | None:
-        """L2 norm of the RNNs' input, None for raw (:attr:`recipe`; unused without RNNs)."""
-        return None if self.recipe.pool_scale is None else float(self.recipe.pool_scale)
-
     def train(self, mode: bool = True) -> AttentionDescriptor:
         """Set the training flag; a name-built backbone stays in eval mode (batch-norm, dropout)."""
         super().train(mode)
@@ -593,7 +583,7 @@ class AttentionDescriptor(nn.Module):
             return DescriptorParts(empty, empty, empty, desc)
         tap, grad = guided_backprop(self.backbone, images, create_graph=self.differentiable)
         r = self.recipe
-        fused, desc = descriptor_from_attention(tap, grad, self.rnn_weights, r.fusion, r.normalize, self.pool_scale,
+        fused, desc = descriptor_from_attention(tap, grad, self.rnn_weights, r.fusion, r.normalize, r.pool_scale,
                                                 r.merges, pooling=r.pooling,
                                                 groups=self.tap_groups, attended=self.attended_groups)
         return DescriptorParts(tap, grad, fused, desc)
@@ -631,11 +621,12 @@ class AttentionDescriptor(nn.Module):
                              f"got {tuple(tap.shape)}")
         mode = self.recipe.fusion if fusion is None else fusion
         r = self.recipe
-        return descriptor_from_attention(tap, grad, self.rnn_weights, mode, r.normalize, self.pool_scale, r.merges,
+        return descriptor_from_attention(tap, grad, self.rnn_weights, mode, r.normalize, r.pool_scale, r.merges,
                                          pooling=r.pooling,
                                          groups=self.tap_groups, attended=self.attended_groups)[1]
 
     def extra_repr(self) -> str:
-        rnn = f"num_rnn={self.recipe.num_rnn}, pool_scale={self.pool_scale}" if self.pool is not None else "num_rnn=0"
-        return (f"backbone={self.backbone_name!r}, fusion={self.fusion!r}, differentiable={self.differentiable}, "
-                f"normalize={self.normalize}, pooling={self.recipe.pooling!r}, {rnn}, out_dim={self.out_dim}")
+        r = self.recipe
+        rnn = f"num_rnn={r.num_rnn}, pool_scale={r.pool_scale}" if self.pool is not None else "num_rnn=0"
+        return (f"backbone={self.backbone_name!r}, fusion={r.fusion!r}, differentiable={self.differentiable}, "
+                f"normalize={r.normalize}, pooling={r.pooling!r}, {rnn}, out_dim={self.out_dim}")
