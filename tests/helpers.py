@@ -52,7 +52,7 @@ def condition_head(net, seed: int = 0):
     Deterministic: two networks of one seed stay identical.
 
     Args:
-        net: an :class:`attnloop.backbones.efficientnet_lite.EfficientNetLite` (any dtype), changed in place.
+        net: an :class:`attnloop.backbones.efficientnet_lite.EfficientNetLite0` (any dtype), changed in place.
         seed: seed of the images the scales are measured on.
 
     Returns:
