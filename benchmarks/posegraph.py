@@ -41,6 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 from slam.eval.align import umeyama_alignment
 from slam.graph import PoseGraph, optimize, read_g2o
+from slam.threads import limit_threads
 
 FILES = ["tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "input_M3500_g2o", "input_INTEL_g2o"]
 
@@ -289,4 +290,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with limit_threads(1):  # torch's and BLAS's pools: the work is many small operations (docs/devices.md)
+        main()
