@@ -30,6 +30,8 @@ Example:
 """
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Union
 
@@ -207,6 +209,12 @@ class LinearSolver:
         raise NotImplementedError
 
 
+#: Symbolic analyses kept between calls (each holds its factor's workspace, the size of the factor).
+SYMBOLIC_CACHE_SIZE = 4
+_SYMBOLIC: OrderedDict = OrderedDict()  # pattern key -> SymbolicCholesky, least recently used first
+_SYMBOLIC_LOCK = threading.Lock()
+
+
 class SparseCholeskySolver(LinearSolver):
     """Supernodal sparse Cholesky (:class:`slam.graph.cholesky.SymbolicCholesky`), float64.
 
@@ -222,11 +230,24 @@ class SparseCholeskySolver(LinearSolver):
                               "use solver='dense' or 'pcg'")
 
     def symbolic(self, pattern: BlockPattern):
+        """The analysis of ``pattern``: made once per distinct pattern and kept for the last
+        :data:`SYMBOLIC_CACHE_SIZE` patterns (a graph optimised again, or a problem of the same edges, skips it;
+        parking-garage: 15 ms of a 110 ms optimisation)."""
         from slam.graph.cholesky import SymbolicCholesky
 
-        if "symbolic" not in pattern._cache:
-            pattern._cache["symbolic"] = SymbolicCholesky(pattern)
-        return pattern._cache["symbolic"]
+        sym = pattern._cache.get("symbolic")
+        if sym is None:
+            key = (pattern.k, pattern.num_vars, pattern.block_rows.cpu().numpy().tobytes(),
+                   pattern.block_cols.cpu().numpy().tobytes())
+            with _SYMBOLIC_LOCK:
+                sym = _SYMBOLIC.pop(key, None)
+            sym = sym or SymbolicCholesky(pattern)
+            with _SYMBOLIC_LOCK:
+                _SYMBOLIC[key] = sym  # most recently used last
+                while len(_SYMBOLIC) > SYMBOLIC_CACHE_SIZE:
+                    _SYMBOLIC.popitem(last=False)
+            pattern._cache["symbolic"] = sym
+        return sym
 
     def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
         from slam.graph.cholesky import NotPositiveDefiniteError
