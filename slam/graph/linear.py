@@ -186,7 +186,8 @@ def assemble_blocks(pattern: BlockPattern, blocks: Tensor, g_edges: Tensor, out=
         g = torch.zeros(pattern.num_vars + 1, k, dtype=g_edges.dtype, device=g_edges.device)
     else:
         H, g = out[0].zero_(), out[1].zero_()
-    H.index_add_(0, pattern.edge_blocks.view(-1), blocks.reshape(E * 4, k, k))
+    # rows of k * k values: torch's index_add_ took 2x as long over (k, k) slices
+    H.view(-1, k * k).index_add_(0, pattern.edge_blocks.view(-1), blocks.reshape(E * 4, k * k))
     g.index_add_(0, pattern.edge_vars.view(-1), g_edges.reshape(E * 2, k))
     return H[:-1].view(-1), g[:-1].view(-1)
 
