@@ -50,11 +50,12 @@ import torch
 
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, make_kernel
-from slam.graph.initialization import initialize
+from slam.graph.initialization import fits_edges, initial_poses, initialize
 from slam.graph.linear import LinearSolver, LinearSolverError
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.problem import PoseGraphProblem, TorchProblem
 from slam.graph.result import OptimizationResult, Status
+from slam.lie import se3_normalize
 
 __all__ = ["METHODS", "OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
 
@@ -80,7 +81,8 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
             (e.g. ``optimize(g, max_iterations=10, gauge="prior")``).
         initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"`` (rotations by
             chordal relaxation, then translations by least squares, as GTSAM's ``InitializePose3``) or
-            ``"spanning_tree"`` (composed along a breadth-first tree of the edges); see
+            ``"spanning_tree"`` (composed along a breadth-first tree of the edges) or ``"auto"`` (the graph's
+            poses when their chi2 per edge is at most ``AUTO_CHI2_PER_EDGE``, else the spanning tree); see
             :mod:`slam.graph.initialization`. ``initial_chi2`` is then the chi2 of that guess. The default
             keeps the caller's poses (a warm start, as the SLAM back end's); from raw odometry over a long
             trajectory (input_INTEL_g2o.g2o) LM crawls, and a run that stops at ``max_iterations`` says so in
@@ -99,7 +101,7 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
     cfg = dataclasses.replace(config or OptimizerConfig(), **overrides)
     if isinstance(graph, PoseGraph) and graph.fixed.numel():  # the graph's own held poses (g2o FIX lines)
         cfg = dataclasses.replace(cfg, fixed=tuple(int(f) for f in cfg.fixed) + tuple(graph.fixed.tolist()))
-    if initialization != "none":  # (its time counts in timings["setup"])
+    if initialization not in ("none", "auto"):  # (its time counts in timings["setup"]; "auto" in _optimize)
         given = graph.poses
         graph = initialize(graph, initialization, fixed=cfg.fixed)
         if given.requires_grad:
@@ -107,7 +109,7 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
             # caller's tensor, so the optimum's gradient towards them (its gauge) is not lost
             same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
             graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
-    res = _optimize(graph, method, kernel, solver, cfg, t_start)
+    res = _optimize(graph, method, kernel, solver, cfg, t_start, initialization == "auto")
     if res.status == Status.MAX_ITERATIONS and res.iterations:
         res.message = _stall_advice(res, cfg, initialization)
     return res
@@ -125,7 +127,7 @@ def _stall_advice(res: OptimizationResult, cfg: OptimizerConfig, initialization:
 
 
 def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfig,
-              t_start: float) -> OptimizationResult:
+              t_start: float, auto_start: bool = False) -> OptimizationResult:
     method = method.lower()
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -138,8 +140,14 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     gauge = "first" if (method == "gn" and cfg.gauge == "free") else cfg.gauge
     kern = make_kernel(kernel, cfg.kernel_width)
     prob = TorchProblem(graph, cfg, kern, gauge, solver)
+    start = None
+    if auto_start:  # the graph's poses, evaluated once, unless they fit the edges too poorly
+        start = prob.evaluate(prob.poses)
+        if not fits_edges(start[1], graph.num_edges):
+            tree = initial_poses(graph, "spanning_tree", cfg.fixed).detach().to(prob.poses)
+            prob.poses, start = se3_normalize(tree, positive_w=False), None
     tm = {"setup": time.perf_counter() - t_start, "linearize": 0.0, "solve": 0.0, "evaluate": 0.0}
-    run = _minimize(prob, method, cfg, tm, t_start)
+    run = _minimize(prob, method, cfg, tm, t_start, start)
     x = prob.finish(run.best.x, run.iterations > 0)
     if cfg.differentiable:
         from slam.graph.implicit import attach_gradients
@@ -255,10 +263,11 @@ def _lm_step(prob: PoseGraphProblem, cur: _Iterate, H, g, damping: _GtsamDamping
 
 
 def _minimize(prob: PoseGraphProblem, method: str, cfg: OptimizerConfig, tm: Dict[str, float],
-              t_start: float) -> _Run:
-    """Gauss-Newton or Levenberg-Marquardt iterations on ``prob`` from its initial poses."""
+              t_start: float, start=None) -> _Run:
+    """Gauss-Newton or Levenberg-Marquardt iterations on ``prob`` from its initial poses (``start``: their
+    ``prob.evaluate`` when already made)."""
     t = time.perf_counter()
-    cost, chi2, cache = prob.evaluate(prob.poses)
+    cost, chi2, cache = prob.evaluate(prob.poses) if start is None else start
     cur = _Iterate(cost, chi2, prob.poses, cache)
     tm["evaluate"] += time.perf_counter() - t
     if not math.isfinite(cost):
