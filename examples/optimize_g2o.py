@@ -67,9 +67,9 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("--lambda-update", choices=["gtsam", "nielsen"], default=defaults.lambda_update,
                    help="how LM's lambda moves: gtsam = divided / multiplied by 10 after a good / bad step; nielsen = "
                         f"the gain-ratio rule of g2o and Ceres (default: {defaults.lambda_update})")
-    p.add_argument("--solver", default="auto", choices=["auto", "sparse", "superlu", "dense", "pcg"],
-                   help="linear solver of each step: sparse Cholesky, SuperLU, dense Cholesky, preconditioned "
-                        "conjugate gradients; auto = dense for small systems, sparse above (default: auto)")
+    p.add_argument("--solver", default="auto", choices=["auto", "sparse", "dense"],
+                   help="linear solver of each step: sparse or dense Cholesky; auto = dense for small systems, "
+                        "sparse above (default: auto)")
     p.add_argument("--threads", type=positive_int, default=1, metavar="N",
                    help="torch and BLAS threads of the script (default 1: many small operations; docs/devices.md)")
     p.add_argument("--device", default=None, metavar="DEV",

@@ -226,7 +226,7 @@ def _solve_anchored(A: sp.csr_matrix, rhs: np.ndarray, free_cols: np.ndarray, he
     b = rhs - Ah @ x_held
     H = (Af.T @ Af).tocsc()
     # symmetric mode without pivoting (H is SPD: every component has an anchor), minimum degree on H:
-    # 4x faster than SuperLU's default on sphere2500's rotation system (as slam.graph.linear.SuperLUSolver)
+    # 4x faster than SuperLU's default on sphere2500's rotation system
     lu = spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     return lu.solve(np.asarray(Af.T @ b))
 

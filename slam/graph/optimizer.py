@@ -3,7 +3,7 @@
 Each iteration linearises every edge at once (the closed forms of :mod:`slam.graph.fused`), scatters the
 per-edge blocks into a fixed sparse pattern (:mod:`slam.graph.linear`), solves ``(H + lambda D) dx = -g``
 and retracts ``T <- T exp(dx)`` (right perturbation). The pieces are separate: the per-edge maths behind
-:class:`~slam.graph.problem.PoseGraphProblem`, the robust kernel (:mod:`slam.graph.costs`), the linear
+:class:`~slam.graph.problem.TorchProblem`, the robust kernel (:mod:`slam.graph.costs`), the linear
 solver (:mod:`slam.graph.linear`) and here the outer loop with its step rules (Gauss-Newton, LM with GTSAM's
 schedule or Nielsen's gain-ratio rule).
 
@@ -53,7 +53,7 @@ from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.initialization import fits_edges, initial_poses, initialize
 from slam.graph.linear import LinearSolver, LinearSolverError
 from slam.graph.pose_graph import PoseGraph
-from slam.graph.problem import PoseGraphProblem, TorchProblem
+from slam.graph.problem import TorchProblem
 from slam.graph.result import OptimizationResult, Status
 from slam.lie import se3_normalize
 
@@ -61,6 +61,7 @@ __all__ = ["METHODS", "OptimizationResult", "OptimizerConfig", "PoseGraphOptimiz
 
 #: The outer loops :func:`optimize` runs (case-insensitive): Levenberg-Marquardt, Gauss-Newton.
 METHODS = ("lm", "gn")
+LAMBDA_MIN = 1e-12  # LM's lambda is clamped above this
 
 Tensor = torch.Tensor
 
@@ -75,7 +76,7 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
         method: ``"lm"`` (Levenberg-Marquardt) or ``"gn"`` (Gauss-Newton).
         kernel: ``None``, a name (``"huber"``, ``"cauchy"``, ``"tukey"``, ``"geman_mcclure"``) or a
             :class:`~slam.graph.costs.RobustKernel` object.
-        solver: ``"auto"`` (sparse direct when scipy is importable), ``"sparse"``, ``"dense"``, ``"pcg"`` or a
+        solver: ``"auto"`` (dense Cholesky for small systems, else sparse), ``"sparse"``, ``"dense"`` or a
             :class:`~slam.graph.linear.LinearSolver`.
         config: an :class:`OptimizerConfig`; keyword ``overrides`` replace its fields
             (e.g. ``optimize(g, max_iterations=10, gauge="prior")``).
@@ -207,8 +208,8 @@ class _GtsamDamping:
         self.lam *= self.cfg.lambda_factor
         return self.lam <= self.cfg.lambda_max
 
-    def accept(self, prob: PoseGraphProblem, dx, g, decrease: float) -> None:
-        self.lam = max(self.lam / self.cfg.lambda_factor, self.cfg.lambda_min)
+    def accept(self, prob: TorchProblem, dx, g, decrease: float) -> None:
+        self.lam = max(self.lam / self.cfg.lambda_factor, LAMBDA_MIN)
 
 
 class _NielsenDamping(_GtsamDamping):
@@ -223,15 +224,15 @@ class _NielsenDamping(_GtsamDamping):
         self.lam, self.nu = self.lam * self.nu, self.nu * 2.0
         return self.lam <= self.cfg.lambda_max
 
-    def accept(self, prob: PoseGraphProblem, dx, g, decrease: float) -> None:
+    def accept(self, prob: TorchProblem, dx, g, decrease: float) -> None:
         pred = prob.predicted_decrease(dx, g, self.lam)
         # gain ratio; clipped where the formula saturates anyway (and a broken model counts as poor)
         rho = min(max(decrease / pred, -1.0), 2.0) if pred > 0 else 0.0
-        self.lam = max(self.lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), self.cfg.lambda_min)
+        self.lam = max(self.lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAMBDA_MIN)
         self.nu = 2.0
 
 
-def _trial(prob: PoseGraphProblem, x, H, g, lam: float, tm: Dict[str, float]) -> Tuple[Optional[_Iterate], str]:
+def _trial(prob: TorchProblem, x, H, g, lam: float, tm: Dict[str, float]) -> Tuple[Optional[_Iterate], str]:
     """The step of ``(H + lambda D) dx = -g`` from ``x`` and its cost; None (and why) when the solve fails or
     the cost is NaN."""
     t = time.perf_counter()
@@ -250,7 +251,7 @@ def _trial(prob: PoseGraphProblem, x, H, g, lam: float, tm: Dict[str, float]) ->
     return _Iterate(cost, chi2, x_new, cache, dx), ""
 
 
-def _lm_step(prob: PoseGraphProblem, cur: _Iterate, H, g, damping: _GtsamDamping, cfg: OptimizerConfig,
+def _lm_step(prob: TorchProblem, cur: _Iterate, H, g, damping: _GtsamDamping, cfg: OptimizerConfig,
              tm: Dict[str, float]) -> Tuple[Optional[_Iterate], str]:
     """Damped steps from ``cur``, lambda growing, until one lowers the cost; None (and why) when lambda
     passes ``lambda_max`` first."""
@@ -262,7 +263,7 @@ def _lm_step(prob: PoseGraphProblem, cur: _Iterate, H, g, damping: _GtsamDamping
             return None, message or f"no decrease of the cost with lambda up to {cfg.lambda_max:g}"
 
 
-def _minimize(prob: PoseGraphProblem, method: str, cfg: OptimizerConfig, tm: Dict[str, float],
+def _minimize(prob: TorchProblem, method: str, cfg: OptimizerConfig, tm: Dict[str, float],
               t_start: float, start=None) -> _Run:
     """Gauss-Newton or Levenberg-Marquardt iterations on ``prob`` from its initial poses (``start``: their
     ``prob.evaluate`` when already made)."""
@@ -280,9 +281,6 @@ def _minimize(prob: PoseGraphProblem, method: str, cfg: OptimizerConfig, tm: Dic
     if prob.size == 0:
         run.status, run.message = Status.CONVERGED, "every pose is fixed"
     while run.status == Status.MAX_ITERATIONS and run.iterations < cfg.max_iterations:
-        if cur.cost <= cfg.cost_tol:
-            run.status = Status.CONVERGED
-            break
         t = time.perf_counter()
         H, g = prob.linearize(cur.x, cur.cache)
         tm["linearize"] += time.perf_counter() - t
@@ -314,7 +312,7 @@ def _minimize(prob: PoseGraphProblem, method: str, cfg: OptimizerConfig, tm: Dic
             damping.accept(prob, cur.dx, g, decrease)
         if run.status == Status.DIVERGED:
             break
-        if decrease < cfg.abs_tol or decrease < cfg.rel_tol * (cur.cost + decrease) or cur.cost <= cfg.cost_tol:
+        if decrease < cfg.abs_tol or decrease < cfg.rel_tol * (cur.cost + decrease):
             run.status = Status.CONVERGED
     return run
 

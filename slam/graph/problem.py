@@ -1,11 +1,9 @@
-"""The least-squares problem the optimiser's outer loop drives, and its torch implementation (the reference).
+"""The least-squares problem the optimiser's outer loop drives.
 
-:class:`PoseGraphProblem` is the interface between the outer loop (Gauss-Newton / Levenberg-Marquardt in
-:mod:`slam.graph.optimizer`) and the per-edge maths: evaluate the cost at some poses, linearise there into
-``(H, g)``, solve the damped system, retract a step, and hand back the result. :class:`TorchProblem`
-implements it with the fused torch kernels of :mod:`slam.graph.fused` on any device. What
-a problem holds between calls (its poses, ``H``, ``dx``) is its own array type: the outer loop only passes
-them back.
+:class:`TorchProblem` stands between the outer loop (Gauss-Newton / Levenberg-Marquardt in
+:mod:`slam.graph.optimizer`) and the per-edge maths of :mod:`slam.graph.fused`: evaluate the cost at some
+poses, linearise there into ``(H, g)``, solve the damped system, retract a step, and hand back the result,
+on any device.
 
 Everything that does not change during a call is made once: the pattern and the symbolic Cholesky
 analysis, the inverted measurements and ``Ad(z^-1)``, the Cholesky factors of the information matrices,
@@ -21,14 +19,13 @@ Example:
     >>> cost, chi2, cache = prob.evaluate(prob.poses)
     >>> H, grad = prob.linearize(prob.poses, cache)
     >>> x = prob.retract(prob.poses, prob.solve(H, grad, 0.0))
-    >>> round(cost, 6), round(prob.evaluate(x)[0], 12), isinstance(prob, PoseGraphProblem)
-    (1.0, 0.0, True)
+    >>> round(cost, 6), round(prob.evaluate(x)[0], 12)
+    (1.0, 0.0)
 """
 from __future__ import annotations
 
-from typing import Any, List, Optional, Protocol, Tuple, runtime_checkable
+from typing import List, Optional
 
-import numpy as np
 import torch
 
 from slam.graph.config import OptimizerConfig
@@ -38,49 +35,12 @@ from slam.graph.linear import BlockPattern, LinearSolverError, assemble_blocks, 
 from slam.graph.pose_graph import PoseGraph
 from slam.lie import se3_compose, se3_inv, se3_log, se3_normalize, se3_right_jacobian_inv
 
-__all__ = ["PLANAR_DIMS", "SYMMETRY_RTOL", "PoseGraphProblem", "TorchProblem", "held_poses", "information_factor",
-           "is_symmetric"]
+__all__ = ["PLANAR_DIMS", "SYMMETRY_RTOL", "TorchProblem", "held_poses", "information_factor"]
 
 Tensor = torch.Tensor
 
 PLANAR_DIMS = (0, 1, 5)  # x, y, yaw in the [rho, phi] tangent order
 SYMMETRY_RTOL = 1e-6  # an information matrix is symmetric when |A - A^T| <= this * its largest diagonal entry
-
-
-@runtime_checkable
-class PoseGraphProblem(Protocol):
-    """One optimisation's state, as the outer loop sees it (``X``: the problem's poses, e.g. a tensor or
-    an array ``(N, 7)``; ``H``, ``g``, ``dx``: its linear system, opaque to the loop).
-
-    Attributes:
-        poses: the initial poses ``X``.
-        size: the number of unknowns (0 when every pose is held).
-    """
-
-    poses: Any
-    size: int
-
-    def evaluate(self, poses) -> Tuple[float, float, Any]:
-        """``(cost, chi2, cache)`` at ``poses``: the optimised cost (robust, plus a gauge prior), the plain
-        ``sum r^T Omega r`` and what :meth:`linearize` reuses."""
-
-    def linearize(self, poses, cache) -> Tuple[Any, Any]:
-        """``(H, g)``: the Gauss-Newton system ``J^T W Omega J``, ``J^T W Omega r`` at ``poses``."""
-
-    def solve(self, H, g, lam: float) -> Any:
-        """``dx`` solving ``(H + lambda D) dx = -g``; raises :class:`~slam.graph.linear.LinearSolverError`."""
-
-    def predicted_decrease(self, dx, g, lam: float) -> float:
-        """Decrease of the cost predicted by the damped quadratic model: ``dx^T (lambda D dx - g)``."""
-
-    def retract(self, poses, dx) -> Any:
-        """``T exp(dx)`` for the free poses (the held ones unchanged)."""
-
-    def finish(self, poses, moved: bool) -> Tensor:
-        """The result ``(N, 7)`` float64 tensor (moved back onto pose 0 for the free gauge when ``moved``)."""
-
-    def weights(self, cache) -> Optional[Tensor]:
-        """``(E,)`` robust-kernel weights at the cached poses, or None without a kernel."""
 
 
 # -- setup shared by every problem ------------------------------------------------------------------
@@ -92,14 +52,6 @@ def held_poses(cfg: OptimizerConfig, gauge: str, num_poses: int) -> List[int]:
         if not 0 <= f < num_poses:
             raise ValueError(f"fixed pose index {f} is out of range [0, {num_poses})")
     return fixed
-
-
-def is_symmetric(info: np.ndarray) -> bool:
-    """Every ``(6, 6)`` matrix of ``info (E, 6, 6)`` (numpy) symmetric (the rule of :func:`information_factor`)."""
-    if (info == info.transpose(0, 2, 1)).all():  # the usual case, exactly (g2o files store a triangle)
-        return True
-    scale = np.maximum(info.diagonal(0, 1, 2).max(1), np.finfo(np.float64).tiny)
-    return bool((np.abs(info - info.transpose(0, 2, 1)).max((1, 2)) <= SYMMETRY_RTOL * scale).all())
 
 
 def information_factor(graph: PoseGraph, info: Tensor, check: bool) -> Tensor:
@@ -121,7 +73,7 @@ def information_factor(graph: PoseGraph, info: Tensor, check: bool) -> Tensor:
 
 # -- the torch problem --------------------------------------------------------------------------------
 class TorchProblem:
-    """:class:`PoseGraphProblem` in torch (float64 on the graph's device): the fused kernels of
+    """One optimisation's state in torch (float64 on the graph's device): the fused kernels of
     :mod:`slam.graph.fused`, the block-sparse system of :mod:`slam.graph.linear` and its solvers.
 
     Args:
@@ -177,7 +129,7 @@ class TorchProblem:
         self.reanchor = gauge == "free" and not fixed
         if gauge == "prior" and bool(free[0]):
             self.prior = (self.poses[0].clone(), cfg.prior_weight, int(self.pattern.var_index[0]))
-        self.lin = make_solver(solver, self.pattern.size, 240 if cfg.dense_max is None else cfg.dense_max)
+        self.lin = make_solver(solver, self.pattern.size)
         self.size = self.pattern.size
         self.damping = cfg.damping
         self._dscale: Optional[Tensor] = None
@@ -201,6 +153,7 @@ class TorchProblem:
         return cost, chi2, (r, aux, w)
 
     def linearize(self, poses: Tensor, cache):
+        """``(H (nnz,), g (n k,))``: the Gauss-Newton system ``J^T W Omega J``, ``J^T W Omega r`` at ``poses``."""
         r, aux, w = cache
         JT = se3_jacobians_t(r, aux, self.neg_adz_t, self.JT, poses, self.ii, self.jj, self.ws)
         L = self.L
@@ -222,6 +175,7 @@ class TorchProblem:
         return H, g
 
     def solve(self, H: Tensor, g: Tensor, lam: float) -> Tensor:
+        """``dx (n k,)`` solving ``(H + lambda D) dx = -g``; raises :class:`~slam.graph.linear.LinearSolverError`."""
         Hd = H
         if lam > 0:  # into a buffer kept for the call: H (megabytes) is copied at every trial
             Hd = self.H_damped.copy_(H)
@@ -233,10 +187,12 @@ class TorchProblem:
         return dx
 
     def predicted_decrease(self, dx: Tensor, g: Tensor, lam: float) -> float:
+        """Decrease of the cost predicted by the damped quadratic model: ``dx^T (lambda D dx - g)``."""
         D = self._dscale if self._dscale is not None else 1.0
         return float(dx @ (lam * D * dx - g))
 
     def retract(self, poses: Tensor, dx: Tensor) -> Tensor:
+        """``T exp(dx)`` for the free poses ``(N, 7)`` (the held ones unchanged)."""
         xi = dx.view(-1, self.k)
         if self.dims is not None:
             xi = xi.new_zeros(xi.shape[0], 6).index_copy_(1, self.dims, xi)
@@ -258,4 +214,5 @@ class TorchProblem:
         return x
 
     def weights(self, cache) -> Optional[Tensor]:
+        """``(E,)`` robust-kernel weights at the cached poses, or None without a kernel."""
         return cache[2]

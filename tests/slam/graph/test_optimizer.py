@@ -98,7 +98,7 @@ def test_noisy_loop_is_closed_at_a_stationary_point():
     assert res.error == pytest.approx(res.chi2 / 2) and set(res.timings) >= {"linearize", "solve", "total"}
 
 
-@pytest.mark.parametrize("solver", ["auto", "superlu", "dense", "pcg"])
+@pytest.mark.parametrize("solver", ["auto", "dense"])
 def test_linear_solvers_agree(solver):
     g, _ = _loop_graph(n=20, sigma=0.05, seed=3, extra=[(3, 12)])
     ref = optimize(g, solver="sparse")
