@@ -11,6 +11,12 @@ other processes load, it varies less than the wall time.
 (relative) of GTSAM's final error or below it (``OptimizationResult.time_history``): where GTSAM stops
 without progress (INTEL: it returns its initial guess) this, not the full run, is the comparable figure.
 Peak memory is the peak resident set size of a fresh process that reads and optimises one file.
+"ours ms, first call" is the untimed warm-up call on the file: it makes the sparse Cholesky's symbolic
+analysis, which the timed calls find made (it is kept per sparsity pattern).
+
+``--starts`` prints instead, for every file, LM from the file's vertices (``initialization="none"``) against
+``"auto"`` (examples/optimize_g2o.py's default: the vertices when their chi2 per edge is at most 100, else a
+spanning tree of the edges): chi2, iterations, status and the median time of interleaved runs.
 
 A robustness figure follows: sphere2500 with 5% extra edges that are random false loop closures
 (seeded), optimised without a kernel and with each robust kernel; the ATE (RMSE of positions after a
@@ -18,6 +24,7 @@ rigid alignment) is taken against the solution of the clean graph.
 
 Usage:
     python -m benchmarks.posegraph [--data DIR] [--repeats 5] [--files a b] [--no-robust] [--out FILE.md]
+    python -m benchmarks.posegraph --starts [--repeats 5]
 """
 from __future__ import annotations
 
@@ -169,6 +176,40 @@ def add_false_loops(graph: PoseGraph, fraction: float = 0.05, seed: int = 0) -> 
     return bad, k
 
 
+def compare_starts(folder: Path, files, repeats: int) -> None:
+    """LM from the file's vertices (the old default of examples/optimize_g2o.py) against ``"auto"`` (its
+    default), runs interleaved, median CPU and wall ms."""
+    when = f"{datetime.datetime.now():%Y-%m-%d %H:%M}"
+    print(f"Command: `python -m benchmarks.posegraph --starts --repeats {repeats}`, {when}, {os.cpu_count()} CPUs, "
+          f"load average {os.getloadavg()[0]:.1f} at start.\n")
+    print("| file | vertices: chi2 | iters, status | ms (CPU ms) | auto: start | chi2 | iters, status | ms (CPU ms) "
+          "| time ratio (CPU) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in files:
+        path = folder / f"{name}.g2o"
+        if not path.exists():
+            continue
+        g = read_g2o(path)
+        runs: dict = {"none": [], "auto": []}
+        for init in ("none", "auto"):  # warm-up: imports, the symbolic analyses of both starts
+            optimize(g, initialization=init)
+        for _ in range(repeats):
+            for init in runs:
+                t, c = time.perf_counter(), time.process_time()
+                res = optimize(g, initialization=init)
+                runs[init].append((time.perf_counter() - t, time.process_time() - c, res))
+        cells = []
+        for init, rs in runs.items():
+            res = rs[-1][2]
+            wall, cpu = (statistics.median(r[i] for r in rs) for i in (0, 1))
+            kept = res.initial_chi2 == runs["none"][-1][2].initial_chi2
+            start = "" if init == "none" else ("vertices | " if kept else "tree | ")
+            text = f"{start}{res.chi2:.6g} | {res.iterations}, {res.status} | {ms(wall)} ({ms(cpu)})"
+            cells.append((wall, cpu, text))
+        (w0, c0, a), (w1, c1, b) = cells
+        print(f"| {name} | {a} | {b} | {w1 / w0:.2f} ({c1 / c0:.2f}) |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", help="folder with the g2o files (default $ATTNLOOP_DATA/posegraph)")
@@ -177,10 +218,14 @@ def main() -> None:
     ap.add_argument("--no-robust", action="store_true", help="skip the robust-kernel runs on sphere2500")
     ap.add_argument("--no-memory", action="store_true", help="skip the memory measurements")
     ap.add_argument("--out", help="also write the markdown to this file")
+    ap.add_argument("--starts", action="store_true", help="only compare the starts 'none' and 'auto' on every file")
     ap.add_argument("--memory-probe", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.memory_probe:
         memory_probe(args.memory_probe)
+        return
+    if args.starts:
+        compare_starts(data_dir(args.data), args.files, args.repeats)
         return
     try:
         import gtsam  # noqa: F401
@@ -194,8 +239,9 @@ def main() -> None:
     lines += ["| file | poses | edges | GTSAM error | ours (chi2/2) | ratio | GTSAM error at our poses "
               "| iters GTSAM / ours | GTSAM ms | ours ms | time ratio | CPU ms GTSAM / ours (ratio) "
               "| ours: ms to GTSAM's error (ratio) "
-              "| ours: setup / linearize / solve / evaluate ms (medians) | peak RSS MB | status |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| ours: setup / linearize / solve / evaluate ms (medians) | ours ms, first call | peak RSS MB "
+              "| status |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     # warm-up (imports, first-call allocations) outside the timings
     warm = read_g2o(folder / "tinyGrid3D.g2o") if (folder / "tinyGrid3D.g2o").exists() else None
     if warm is not None:
@@ -209,7 +255,7 @@ def main() -> None:
         g = read_g2o(path)
         gt_runs, our_runs = [], []
         run_gtsam(path, three_d)
-        run_ours(g)
+        first = run_ours(g)["time"]
         for _ in range(args.repeats):
             gt_runs.append(run_gtsam(path, three_d))
             our_runs.append(run_ours(g))
@@ -230,7 +276,7 @@ def main() -> None:
                f"{err_ours / gt['error']:.7f} | {gt_at_ours:.6f} | {gt['iterations']} / {ours.iterations} | "
                f"{ms(t_gt)} | {ms(t_ours)} | {t_ours / t_gt:.2f} | {ms(c_gt)} / {ms(c_ours)} ({c_ours / c_gt:.2f}) | "
                f"{reach_txt} | "
-               f"{' / '.join(ms(tm[k]) for k in ('setup', 'linearize', 'solve', 'evaluate'))} | "
+               f"{' / '.join(ms(tm[k]) for k in ('setup', 'linearize', 'solve', 'evaluate'))} | {ms(first)} | "
                f"{mem.get('peak_mb', float('nan')):.0f} | "
                f"{ours.status} |")
         lines.append(row)
@@ -240,8 +286,9 @@ def main() -> None:
         # GTSAM stops at its first linearisation on this file (indeterminate system); our LM from the file's
         # vertices (raw odometry) is still descending after 100 iterations. Marquardt's scaled damping
         # converges in hundreds, Nielsen's gain-ratio rule (g2o, Ceres) lower than the x2 / /2 schedule; a
-        # start composed along a spanning tree of the edges (examples/optimize_g2o.py's default) or the
-        # chordal one converges in a few, lower still.
+        # start composed along a spanning tree of the edges or the
+        # chordal one converges in a few, lower still ("auto", examples/optimize_g2o.py's default, takes the tree
+        # here: the vertices' chi2 is ~4500 per edge).
         g = read_g2o(intel)
         lines.append("")
         for kw in ({"damping": "diagonal", "lambda_factor": 2.0}, {"damping": "diagonal", "lambda_update": "nielsen"},
