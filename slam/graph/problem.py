@@ -32,15 +32,14 @@ from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel
 from slam.graph.fused import bmm, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
 from slam.graph.linear import BlockPattern, LinearSolverError, assemble_blocks, build_pattern, make_solver
-from slam.graph.pose_graph import PoseGraph
+from slam.graph.pose_graph import PoseGraph, require_spd_information
 from slam.lie import se3_compose, se3_inv, se3_log, se3_normalize, se3_right_jacobian_inv
 
-__all__ = ["PLANAR_DIMS", "SYMMETRY_RTOL", "TorchProblem", "held_poses", "information_factor"]
+__all__ = ["PLANAR_DIMS", "TorchProblem", "held_poses", "information_factor"]
 
 Tensor = torch.Tensor
 
 PLANAR_DIMS = (0, 1, 5)  # x, y, yaw in the [rho, phi] tangent order
-SYMMETRY_RTOL = 1e-6  # an information matrix is symmetric when |A - A^T| <= this * its largest diagonal entry
 
 
 # -- setup shared by every problem ------------------------------------------------------------------
@@ -59,15 +58,7 @@ def information_factor(graph: PoseGraph, info: Tensor, check: bool) -> Tensor:
     a ``ValueError`` names the first edge whose matrix is not symmetric positive definite (the symmetry
     is only checked when ``check``)."""
     L, fail = torch.linalg.cholesky_ex(info)
-    bad = fail != 0
-    if check and not torch.equal(info, info.mT):  # exactly symmetric: the usual case (g2o stores a triangle)
-        # the largest entry of an SPD matrix is on its diagonal (any other matrix fails the Cholesky)
-        scale = info.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(info.dtype).tiny)
-        bad = bad | ((info - info.transpose(-1, -2)).abs().amax(dim=(-2, -1)) > SYMMETRY_RTOL * scale)
-    if bool(bad.any()):
-        k = int(bad.nonzero()[0, 0])
-        raise ValueError(f"information[{k}] (edge {int(graph.ii[k])} -> {int(graph.jj[k])}) is not "
-                         f"symmetric positive definite")
+    require_spd_information(info, graph.ii, graph.jj, fail, symmetry=check)
     return L.contiguous()  # LAPACK's factors are column-major: row-major ones multiply ~3x faster
 
 
