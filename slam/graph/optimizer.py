@@ -150,6 +150,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     tm = {"setup": time.perf_counter() - t_start, "linearize": 0.0, "solve": 0.0, "evaluate": 0.0}
     run = _minimize(prob, method, cfg, tm, t_start, start)
     x = prob.finish(run.best.x, run.iterations > 0)
+    prob.release()
     if cfg.differentiable:
         from slam.graph.implicit import attach_gradients
 
