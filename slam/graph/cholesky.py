@@ -556,6 +556,9 @@ class _Workspace:
         # the packed update of a front-by-front supernode: one scratch vector, as large as the largest one
         d_max = max([g.m - g.p for g in sym.groups if g.size <= _NUMPY_MAX_BATCH] + [0])
         self.scratch = np.zeros(d_max * (d_max + 1) // 2) if self.cpu else None
+        # H's rows on their way to the panels (kept: a fresh array of H's size per factorisation costs its
+        # page faults each time)
+        self.rows = np.empty(sym.src.shape[0], dtype=np.dtype((np.void, 8 * sym.k))) if self.cpu else None
         self.groups, self.index = _group_views(sym, self.buf, device, self.cpu, self.scratch)
 
 
@@ -666,8 +669,8 @@ class NumericCholesky:
             if ws.cpu:
                 # rows of k values as k * 8-byte records: numpy's take and put copy them whole (parking-garage:
                 # 0.3 ms against 2.1 for torch's index_select + index_copy_ of (k,) rows)
-                rec = np.dtype((np.void, 8 * k))
-                np.put(ws.bufnp.view(rec), sym.dst, np.take(v.contiguous().numpy().view(rec), sym.src))
+                rows = np.take(v.contiguous().numpy().view(ws.rows.dtype), sym.src, out=ws.rows)
+                np.put(ws.bufnp.view(ws.rows.dtype), sym.dst, rows)
             else:
                 buf.view(-1, k).index_copy_(0, ws.dst, torch.index_select(v.reshape(-1, k), 0, ws.src))
             failed = self._factor_groups(ws.groups, buf, infos, in_place, lapack)
