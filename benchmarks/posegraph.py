@@ -14,6 +14,11 @@ Peak memory is the peak resident set size of a fresh process that reads and opti
 "ours ms, first call" is the untimed warm-up call on the file: it makes the sparse Cholesky's symbolic
 analysis, which the timed calls find made (it is kept per sparsity pattern).
 
+``--solvers`` prints instead, for the three files of the comparison, one damped Gauss-Newton system at the
+file's vertices solved by the project's sparse Cholesky, scipy's SuperLU (minimum degree, symmetric mode) and,
+when scikit-sparse is installed, CHOLMOD (its default supernodal analysis): the fastest of ``--repeats`` runs of
+the symbolic analysis and of one factorisation + solve, and the largest difference to our solution.
+
 ``--starts`` prints instead, for every file, LM from the file's vertices (``initialization="none"``) against
 ``"auto"`` (examples/optimize_g2o.py's default: the vertices when their chi2 per edge is at most 100, else a
 spanning tree of the edges): chi2, iterations, status and the median time of interleaved runs.
@@ -25,6 +30,7 @@ rigid alignment) is taken against the solution of the clean graph.
 Usage:
     python -m benchmarks.posegraph [--data DIR] [--repeats 5] [--files a b] [--no-robust] [--out FILE.md]
     python -m benchmarks.posegraph --starts [--repeats 5]
+    python -m benchmarks.posegraph --solvers [--repeats 5]
 """
 from __future__ import annotations
 
@@ -176,6 +182,62 @@ def add_false_loops(graph: PoseGraph, fraction: float = 0.05, seed: int = 0) -> 
     return bad, k
 
 
+def compare_solvers(folder: Path, repeats: int) -> None:
+    """Symbolic analysis and one factorisation + solve of the same damped system by our sparse Cholesky,
+    scipy's SuperLU and CHOLMOD (scikit-sparse, when installed); fastest of ``repeats`` runs, ms."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    from slam.graph import OptimizerConfig
+    from slam.graph.cholesky import SymbolicCholesky
+    from slam.graph.problem import TorchProblem
+
+    try:
+        from sksparse.cholmod import analyze
+    except ImportError:
+        analyze = None
+
+    def fastest(f):
+        out = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            f()
+            out.append(time.perf_counter() - t)
+        return ms(min(out))
+
+    print(f"Command: `python -m benchmarks.posegraph --solvers --repeats {repeats}`, load average "
+          f"{os.getloadavg()[0]:.1f} at start; CHOLMOD: {'scikit-sparse' if analyze else 'not installed'}.\n")
+    print("| file | unknowns | ours: analysis / factor + solve ms | SuperLU: factor + solve ms | "
+          "CHOLMOD: analysis / factor + solve ms | largest difference to ours |")
+    print("|---|---|---|---|---|---|")
+    for name in ("sphere2500", "parking-garage", "smallGrid3D"):
+        prob = TorchProblem(read_g2o(folder / f"{name}.g2o"), OptimizerConfig(), None, "free", "sparse")
+        H, g = prob.linearize(prob.poses, prob.evaluate(prob.poses)[2])
+        pat, k = prob.pattern, prob.pattern.k
+        H = H.clone().index_add_(0, pat.diag_pos, torch.full_like(g, 1e-5))  # LM's first damping
+        sym = SymbolicCholesky(pat)
+        x = sym.factor(H).solve(-g).numpy()
+        indptr = np.searchsorted(pat.block_rows.numpy(), np.arange(pat.num_vars + 1))
+        A = sp.bsr_matrix((H.numpy().reshape(-1, k, k), pat.block_cols.numpy(), indptr),
+                          shape=(pat.size, pat.size)).tocsc()
+        b = -g.numpy()
+
+        def superlu():
+            return sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                            options={"SymmetricMode": True}).solve(b)
+
+        diffs = [np.abs(superlu() - x).max()]
+        row = (f"| {name} | {pat.size} | {fastest(lambda: SymbolicCholesky(pat))} / "
+               f"{fastest(lambda: sym.factor(H).solve(-g))} | {fastest(superlu)} | ")
+        if analyze is None:
+            row += "- | "
+        else:
+            F = analyze(A)
+            diffs.append(np.abs(F.cholesky(A)(b) - x).max())
+            row += f"{fastest(lambda: analyze(A))} / {fastest(lambda: F.cholesky(A)(b))} | "
+        print(row + f"{max(diffs) / np.abs(x).max():.1e} (relative) |", flush=True)
+
+
 def compare_starts(folder: Path, files, repeats: int) -> None:
     """LM from the file's vertices (the old default of examples/optimize_g2o.py) against ``"auto"`` (its
     default), runs interleaved, median CPU and wall ms."""
@@ -219,6 +281,7 @@ def main() -> None:
     ap.add_argument("--no-memory", action="store_true", help="skip the memory measurements")
     ap.add_argument("--out", help="also write the markdown to this file")
     ap.add_argument("--starts", action="store_true", help="only compare the starts 'none' and 'auto' on every file")
+    ap.add_argument("--solvers", action="store_true", help="only compare sparse solvers on one system per file")
     ap.add_argument("--memory-probe", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.memory_probe:
@@ -226,6 +289,9 @@ def main() -> None:
         return
     if args.starts:
         compare_starts(data_dir(args.data), args.files, args.repeats)
+        return
+    if args.solvers:
+        compare_solvers(data_dir(args.data), args.repeats)
         return
     try:
         import gtsam  # noqa: F401
