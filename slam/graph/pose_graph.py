@@ -282,7 +282,7 @@ class PoseGraph:
 
 def planar_arrays(poses: np.ndarray, measurements: np.ndarray, information: np.ndarray, tol: float = 1e-9) -> bool:
     """The rule of :meth:`PoseGraph.is_planar` on float64 arrays ``poses (N, 7)``, ``measurements (E, 7)``,
-    ``information (E, 6, 6)`` (numpy: the optimiser's setup runs it on the arrays it already holds)."""
+    ``information (E, 6, 6)``."""
     # z, qx, qy: columns 2:5 of the poses and measurements (a NaN is not planar)
     if not all((np.abs(p[:, 2:5]) <= tol).all() for p in (poses, measurements)):
         return False
