@@ -13,7 +13,8 @@ Solvers (``solver.solve(pattern, values, b) -> x``), both torch on any device:
   the factor's panels (:mod:`slam.graph.cholesky`; symbolic analysis cached per pattern, numeric work in
   batched torch calls plus direct LAPACK calls for single fronts on the CPU). One factorisation and solve
   took 9-31 ms on parking-garage and sphere2500, where scipy's SuperLU (minimum degree, symmetric mode) took
-  34-97 ms and CHOLMOD (scikit-sparse 0.4.16, SuiteSparse 5.12, OpenBLAS) 18-56 ms (one core, loaded).
+  34-97 ms and CHOLMOD (scikit-sparse 0.4.16, SuiteSparse 5.12, OpenBLAS) 18-56 ms (one core, loaded;
+  ``python -m benchmarks.posegraph --solvers``).
 * :class:`DenseCholeskySolver` — ``torch.linalg.cholesky`` on the dense matrix, for small systems (it
   skips the symbolic analysis).
 
