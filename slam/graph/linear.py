@@ -198,7 +198,7 @@ class LinearSolver:
 
 
 #: Symbolic analyses kept between calls (each holds its factor's workspace, the size of the factor).
-SYMBOLIC_CACHE_SIZE = 4
+SYMBOLIC_CACHE_SIZE = 2
 _SYMBOLIC: OrderedDict = OrderedDict()  # pattern key -> SymbolicCholesky, least recently used first
 _SYMBOLIC_LOCK = threading.Lock()
 
