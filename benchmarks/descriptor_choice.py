@@ -11,6 +11,8 @@ a note when its data is absent):
   (the same module's protocols); and the kitchen's revisit margins: the cosine of frames 250, 255, 260 with
   their revisits 945, 950, 955 minus their best cosine with a frame of the every-5th set more than 0.8 m or
   60 degrees away (``tests/attnloop/test_descriptor_realdata.py``'s pairs and negatives);
+* ``--query DIR --reference DIR --ground-truth FILE``: a user's pair of folders, every query against every
+  reference (``benchmarks.place_recognition``'s reading of them);
 * ``nordland``: nordland-64x32, every 10th image (358 winter queries against the 358 summer references of the
   same frames), a match within one sampled frame (winter image i shows summer image i's place).
 
@@ -24,7 +26,8 @@ to the tap only).
 
 Usage:
     OMP_NUM_THREADS=1 python -m benchmarks.descriptor_choice [--data ../shared/data] [--cache runs/choice]
-    OMP_NUM_THREADS=1 python -m benchmarks.descriptor_choice --candidates today stage5-224 --timing-rounds 0
+    OMP_NUM_THREADS=1 python -m benchmarks.descriptor_choice --candidates default stage5-224 --timing-rounds 0
+    OMP_NUM_THREADS=1 python -m benchmarks.descriptor_choice --query Q --reference R --ground-truth GT   # and a pair
 """
 from __future__ import annotations
 
@@ -44,7 +47,13 @@ from attnloop import AttentionDescriptor, descriptor_from_attention
 from attnloop.backbones import build_backbone
 from attnloop.fusion import FUSION_MODES
 from benchmarks._common import add_data_argument, table
-from benchmarks.place_recognition import load_rgb, protocols_kitchen, protocols_rtabmap, same_size_batches
+from benchmarks.place_recognition import (
+    load_rgb,
+    protocols_folders,
+    protocols_kitchen,
+    protocols_rtabmap,
+    same_size_batches,
+)
 from slam.eval.place_recognition import evaluate
 
 
@@ -61,16 +70,13 @@ class Candidate:
                               attend=self.attend)
 
 
-#: Name -> candidate; ``today`` is the default before this choice.
+#: Name -> candidate; ``default`` is the default's (:data:`attnloop.presets.DEFAULT_BACKBONE_SETTINGS`).
 CANDIDATES = {
-    "today": Candidate("stage6+stage7", (224, 288), "stage7"),
-    "stage6+stage7-224": Candidate("stage6+stage7", (224, 224), "stage7"),
+    "default": Candidate("stage6+stage7", (224, 288), "stage7"),
     "stage5-224": Candidate("stage5", (224, 224)),
     "stage5-288": Candidate("stage5", (224, 288)),
     "stage4+stage5-224": Candidate("stage4+stage5", (224, 224)),
     "stage4+stage5-288": Candidate("stage4+stage5", (224, 288)),
-    "stage4+stage5-288-G5": Candidate("stage4+stage5", (224, 288), "stage5"),
-    "stage4+stage5-192": Candidate("stage4+stage5", (192, 256)),
 }
 
 #: Pooling name -> (GeM exponent, grids) of the regional code (:mod:`attnloop.pooling`).
@@ -93,9 +99,13 @@ def protocols_nordland(data: Path, every: int = 10, tolerance: int = 1):
     return q, r, {"nordland": (gt, torch.ones_like(gt))}
 
 
-def load_sets(data: Path) -> dict:
-    """Set name -> (images, number of queries, {protocol: (gt, candidates)}); the queries are the first images."""
+def load_sets(data: Path, folders: tuple[Path, Path, Path] | None = None) -> dict:
+    """Set name -> (images, number of queries, {protocol: (gt, candidates)}); the queries are the first images.
+    ``folders``: a user's (query, reference, ground truth), as ``folders``."""
     sets = {}
+    if folders is not None:
+        q, r, _, protos, _ = protocols_folders(*folders, data)
+        sets["folders"] = (q + r, len(q), {"folders": protos["pairs"]})
     got = protocols_rtabmap(data)
     if got is not None:
         images, _, _, protos, _ = got
@@ -143,8 +153,9 @@ def codes_of(cand: Candidate, sets: dict, cache: Path | None) -> dict:
     """{set: {(pooling, fusion): (N, D) codes}} of one candidate (read from / written to ``cache``)."""
     out = {}
     for set_name, (images, _, _) in sets.items():
-        file = None if cache is None else cache / f"{cand.tap}_{cand.input_size[0]}x{cand.input_size[1]}_" \
-                                               f"{cand.attend}_{set_name}.pt"
+        h, w = cand.input_size
+        # a user's folders are not cached: another pair would read this one's codes
+        file = None if cache is None or set_name == "folders" else cache / f"{cand.tap}_{h}x{w}_{cand.attend}_{set_name}.pt"
         if file is not None and file.is_file():
             out[set_name] = torch.load(file)
             continue
@@ -226,12 +237,17 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_data_argument(p)
     p.add_argument("--candidates", nargs="+", default=list(CANDIDATES), choices=list(CANDIDATES))
+    p.add_argument("--query", type=Path, help="a folder of query images (with --reference and --ground-truth)")
+    p.add_argument("--reference", type=Path, help="a folder of reference images")
+    p.add_argument("--ground-truth", type=Path, help="the query x reference ground truth of --query (.npy or image)")
     p.add_argument("--cache", type=Path, default=None, help="folder for each candidate's codes (reruns read them)")
     p.add_argument("--timing-rounds", type=int, default=7, help="rounds of the ms-per-keyframe timing (0: none)")
     p.add_argument("--out", type=Path, default=None, help="write every figure to OUT/descriptor_choice.json")
     args = p.parse_args()
+    if (args.query is None) != (args.reference is None) or (args.query is not None and args.ground_truth is None):
+        p.error("--query, --reference and --ground-truth go together")
     torch.set_num_threads(1)
-    sets = load_sets(args.data)
+    sets = load_sets(args.data, None if args.query is None else (args.query, args.reference, args.ground_truth))
     if not sets:
         raise SystemExit(f"no set found under {args.data}")
     print(f"# Descriptor choice ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, 1 thread, load "
@@ -274,8 +290,8 @@ def main() -> None:
         timing = ms_per_keyframe({n: CANDIDATES[n] for n in args.candidates}, args.timing_rounds, args.data)
         print(f"\n## ms per keyframe (320 x 240, batch 1, 1 thread, median of {args.timing_rounds} interleaved "
               f"rounds; load {os.getloadavg()[0]:.1f})\n")
-        ref = timing.get("today", {}).get("dam")
-        print(table(["candidate", "dam ms", "none ms", "dam / today's dam"],
+        ref = timing.get("default", {}).get("dam")
+        print(table(["candidate", "dam ms", "none ms", "dam / the default's dam"],
                     [[n, f"{t['dam']:.1f}", f"{t['none']:.1f}", f"{t['dam'] / ref:.2f}" if ref else "-"]
                      for n, t in timing.items()]))
     if args.out is not None:
