@@ -155,7 +155,9 @@ def codes_of(cand: Candidate, sets: dict, cache: Path | None) -> dict:
     for set_name, (images, _, _) in sets.items():
         h, w = cand.input_size
         # a user's folders are not cached: another pair would read this one's codes
-        file = None if cache is None or set_name == "folders" else cache / f"{cand.tap}_{h}x{w}_{cand.attend}_{set_name}.pt"
+        file = None
+        if cache is not None and set_name != "folders":
+            file = cache / f"{cand.tap}_{h}x{w}_{cand.attend}_{set_name}.pt"
         if file is not None and file.is_file():
             out[set_name] = torch.load(file)
             continue
