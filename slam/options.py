@@ -135,6 +135,9 @@ class RunOptions:
     # the first frames' median depth checked against the depth scale (a wrong unit fails before the run)
     depth_check: bool = True
     laps: int = 1  # the sequence played N times, forward, backward, forward, ... (slam.io.laps)
+    viewer: bool = False  # show the run live in a spawned rerun viewer (slam.viewer)
+    connect: Optional[str] = None  # stream the run to the rerun viewer at this address
+    rrd: Optional[str] = None  # record the run to this .rrd file
 
     def __post_init__(self) -> None:
         n = "RunOptions"
@@ -166,6 +169,14 @@ class RunOptions:
             raise ValueError(f"{n}.depth_check must be true or false, got {self.depth_check!r}")
         if self.intrinsics is not None and self.camera is not None:
             raise ValueError("--intrinsics and --camera both give the camera's intrinsics: drop one of them")
+        if not isinstance(self.viewer, bool):
+            raise ValueError(f"{n}.viewer must be true or false, got {self.viewer!r}")
+        for name in ("connect", "rrd"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, str) or not value):
+                raise ValueError(f"{n}.{name} must be a non-empty string, got {value!r}")
+        if self.viewer and self.connect is not None:
+            raise ValueError("--viewer spawns a viewer and --connect streams to a running one: give one of them")
 
 
 def reader_options(run: RunOptions) -> dict:
@@ -327,6 +338,13 @@ OPTIONS: tuple[Option, ...] = (
     Option("--no-depth-check", "run.depth_check", "camera (default: from the dataset)",
            "do not refuse a sequence whose first frames' median depth at the depth scale is outside 0.5-20 m (the "
            "check that catches depth in the wrong unit); for scenes that really are that near or far", const=False),
+    Option("--viewer", "run.viewer", "viewer (pip install 'attnloop[viewer]')", "show the run live in the rerun "
+           "viewer, spawned: the camera with its image, the keyframe path, the map, the loops, frames/s and inliers "
+           "(slam.viewer)", const=True),
+    Option("--connect", "run.connect", "viewer (pip install 'attnloop[viewer]')", "stream the run to a rerun viewer "
+           "already running at ADDR (HOST:PORT, e.g. 127.0.0.1:9876, or a rerun+http:// URL)", metavar="ADDR"),
+    Option("--rrd", "run.rrd", "viewer (pip install 'attnloop[viewer]')", "record the run to FILE (.rrd) to watch "
+           "later with `rerun FILE`; with --viewer or --connect too", metavar="FILE"),
     Option("--threads", "threads", "compute", f"torch, BLAS and OpenCV threads of the run (default: "
            f"{_default('threads')}: the work is many small per-frame operations, and more threads than free cores "
            "slow them many times on a busy machine)", type=positive_int, metavar="N"),

@@ -108,7 +108,7 @@ class RunResult:
 def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
              progress: bool | None = None, descriptor: torch.nn.Module | None = None,
              prefetch: int = 2, frame_step: int = 1, frames: tuple[int, int] | None = None,
-             save_map: str | os.PathLike | None = None, map_dir=None) -> RunResult:
+             save_map: str | os.PathLike | None = None, map_dir=None, observer=None) -> RunResult:
     """Track every frame of ``sequence`` (or every ``frame_step``-th) and optimise.
 
     A frame that cannot be read (missing or corrupt image) is skipped with a warning and placed by constant
@@ -137,6 +137,9 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
             own (``run.relocalisation`` says which; ``config.relocalisation`` sets how). With
             ``config.relocalisation.localize`` the recording is only localised in it: no loops of its
             own, no map.ply, keyframes released once used (memory flat over any length), nothing saved.
+        observer: called as ``observer.frame(frame, state, slam)`` after each frame (``frame`` None when it could
+            not be read; ``state`` its :class:`slam.system.FrameState`) and ``observer.finish(result)`` with the
+            final :class:`slam.system.SLAMResult`: :class:`slam.viewer.RunViewer` draws the run.
 
     Returns:
         :class:`RunResult`.
@@ -162,12 +165,12 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
     check_sequence_intrinsics(sequence)
     with limit_threads(config.threads):  # the caller's counts are restored when the run ends (or fails)
         return _run(sequence, config, max_frames, progress, descriptor, prefetch, frame_step, frames, save_map,
-                    map_dir)
+                    map_dir, observer)
 
 
 def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, progress: bool | None,
          descriptor: torch.nn.Module | None, prefetch: int, frame_step: int, frames: tuple[int, int] | None,
-         save_map, map_dir) -> RunResult:
+         save_map, map_dir, observer) -> RunResult:
     if frames is not None:
         start, end = (int(v) for v in frames)
         if not 0 <= start < min(end, len(sequence)):
@@ -236,6 +239,8 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
                     reloc.check_mergeable(slam.keyframes[0].rgb.shape)
                     check_merge = False
                 reloc.observe(state)
+            if observer is not None:
+                observer.frame(None if isinstance(frame_or_error, FrameReadError) else frame_or_error, state, slam)
             if first_untracked is None and state.status in ("lost", "skipped"):
                 first_untracked = f"frame {i} {state.status}: {state.reason}"
             if i % 10 == 0:
@@ -256,6 +261,8 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     report = None
     if reloc is not None and failure is None:
         result, report = reloc.finish(result)
+    if observer is not None:
+        observer.finish(result)
     wall = time.perf_counter() - start
     bad = ~torch.isfinite(result.trajectory.poses).all(dim=-1)
     if bool(bad.any()):
