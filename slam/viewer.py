@@ -21,7 +21,9 @@ user's rerun config); recording to a file (``--rrd``) sends nothing.
 """
 from __future__ import annotations
 
+import logging
 import os
+import sys
 import threading
 import time
 from collections import deque
@@ -33,6 +35,8 @@ import numpy as np
 import torch
 
 from slam.options import RunOptions, UsageError
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["VIEWER_EXTRA", "VIEWER_FLAGS", "RunViewer", "check_viewer", "open_viewer", "viewer_flags"]
 
@@ -57,7 +61,8 @@ def _rerun(flags: list[str]):
 
 
 def check_viewer(run: RunOptions) -> None:
-    """Refuse, before any work, a viewer without rerun installed or an ``rrd`` file that cannot be written.
+    """Refuse, before any work, a viewer without rerun installed, a viewer to spawn without a display (Linux), or
+    an ``rrd`` file that cannot be written.
 
     Raises:
         UsageError: naming the flags and the extra to install, or the file.
@@ -66,6 +71,11 @@ def check_viewer(run: RunOptions) -> None:
     if not flags:
         return
     _rerun(flags)
+    if run.viewer and sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
+                                                                 or os.environ.get("WAYLAND_DISPLAY")):
+        raise UsageError("--viewer: no display to show the viewer on (DISPLAY and WAYLAND_DISPLAY unset); record the "
+                         "run with --rrd FILE and open it with `rerun FILE` where there is one, or stream it with "
+                         "--connect HOST:PORT to a viewer running there")
     if run.rrd:
         path = Path(run.rrd).expanduser()
         if path.is_dir() or not path.parent.is_dir() or not os.access(path.parent, os.W_OK):
@@ -156,7 +166,10 @@ class RunViewer:
         self._worker.shutdown(wait=True)
         if self._error is None:
             self._send_stats()
-        self.rec.flush()
+        try:
+            self.rec.flush()
+        except RuntimeError as e:  # a viewer that went away or never came: the run's own outputs are still written
+            logger.warning("rerun: %s", e)
         self.rec.disconnect()
         if self._error is not None:
             raise self._error

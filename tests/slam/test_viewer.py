@@ -174,3 +174,26 @@ def test_viewer_settings_checked(tmp_path):
     with pytest.raises(UsageError, match="--rrd .*: not a file in a writable folder"):
         check_viewer(RunOptions(rrd=str(tmp_path / "missing" / "r.rrd")))
     check_viewer(RunOptions(rrd=str(tmp_path / "r.rrd")))
+
+
+def test_viewer_to_spawn_without_a_display_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("rerun")
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main([*DEMO, "--out", str(tmp_path / "out"), "--viewer"]) == 2
+    err = capsys.readouterr().err
+    assert "--viewer: no display" in err and "--rrd FILE" in err and not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_a_viewer_that_never_answers_costs_the_run_nothing(tmp_path, rerun_offline, caplog):
+    """--connect to an address where nothing listens (rerun gives up after ~8 s): a warning, and the run's outputs
+    and its recording are written all the same."""
+    out = tmp_path / "O"
+    argv = ["--demo", "--demo-frames", "24", "--demo-size", "160", "120", "--no-loop", "--quiet", "--out", str(out),
+            "--connect", "127.0.0.1:9", "--rrd", str(tmp_path / "r.rrd")]
+    assert main(argv) == 0
+    assert (out / "trajectory.txt").is_file() and (out / "metrics.json").is_file()
+    assert "unable to connect" in caplog.text
+    assert sorted(f for f, _ in _read(tmp_path / "r.rrd")["/world/camera"]["Image:buffer"]) == list(range(24))
