@@ -32,8 +32,9 @@ examples:
   attnloop-slam SEQUENCE --frames 850:1000 --map maps/kitchen --out runs/tuesday         # placed in that map
 
 outputs in --out: trajectory.txt (TUM format), loops.txt, metrics.json, trajectory.png, map.ply, config.toml
-(and demo_sequence/ with its groundtruth.txt for --demo). Exit code 2: a usage or input error; 1: a run
-that tracked too few of its frames (SLAMConfig.min_tracked_fraction): metrics.json alone, no trajectory.
+(and demo_sequence/ with its groundtruth.txt for --demo); --rrd FILE: the run as a rerun recording. Exit code
+2: a usage or input error; 1: a run that tracked too few of its frames (SLAMConfig.min_tracked_fraction):
+metrics.json alone, no trajectory.
 """
 
 PROG = "attnloop-slam"
@@ -210,6 +211,9 @@ def run_command(args: argparse.Namespace) -> int:
     # every setting checked (--weights a file too) before any output is touched or the demo rendered
     spec = resolve_settings(settings, args.config_file, None if args.demo else args.sequence, demo=args.demo)
     cfg, opts, seq = spec.config, spec.run, spec.sequence
+    from slam.viewer import check_viewer, open_viewer
+
+    check_viewer(opts)  # rerun installed, the --rrd file writable: before any output is touched
     if cfg.relocalisation.localize:  # set by the config file
         _check_localize(args)
     if not cfg.loop.enabled and (args.save_map is not None or args.map_dir is not None):
@@ -239,10 +243,11 @@ def run_command(args: argparse.Namespace) -> int:
               f"{describe_rig(rig_of(cfg))}", file=sys.stderr)
     from slam.system import LoopWorkerError
 
+    viewer = open_viewer(opts, name=seq.name)
     try:
         run = run_slam(seq, cfg, max_frames=opts.max_frames, frame_step=opts.frame_step, frames=opts.frames,
                        progress=None if not args.quiet else False, descriptor=descriptor, save_map=args.save_map,
-                       map_dir=saved)
+                       map_dir=saved, observer=viewer)
     except LoopWorkerError as exc:  # a fault, not a usage error: the frames tracked so far are written, exit 1
         if exc.run is not None:
             evaluate_run(exc.run)
@@ -252,6 +257,9 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"{PROG}: error: {exc}; the run stopped: {out / 'trajectory.txt'} and metrics.json hold the "
               f"{frames} frames tracked before it", file=sys.stderr)
         return 1
+    finally:
+        if viewer is not None:
+            viewer.close()  # the recording flushed and its file complete before the outputs
     metrics = evaluate_run(run)
     write_outputs(run, out)
     if metrics["status"] == "failed":

@@ -140,6 +140,9 @@ class RunOptions:
     depth_topic: Optional[str] = None
     camera_info_topic: Optional[str] = None
     ground_truth: Optional[str] = None
+    viewer: bool = False  # show the run live in a spawned rerun viewer (slam.viewer)
+    connect: Optional[str] = None  # stream the run to the rerun viewer at this address
+    rrd: Optional[str] = None  # record the run to this .rrd file
 
     def __post_init__(self) -> None:
         n = "RunOptions"
@@ -175,6 +178,14 @@ class RunOptions:
                 raise ValueError(f"{n}.{name} must be a non-empty string, got {value!r}")
         if self.intrinsics is not None and self.camera is not None:
             raise ValueError("--intrinsics and --camera both give the camera's intrinsics: drop one of them")
+        if not isinstance(self.viewer, bool):
+            raise ValueError(f"{n}.viewer must be true or false, got {self.viewer!r}")
+        for name in ("connect", "rrd"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, str) or not value):
+                raise ValueError(f"{n}.{name} must be a non-empty string, got {value!r}")
+        if self.viewer and self.connect is not None:
+            raise ValueError("--viewer spawns a viewer and --connect streams to a running one: give one of them")
 
 
 def reader_options(run: RunOptions) -> dict:
@@ -349,6 +360,13 @@ OPTIONS: tuple[Option, ...] = (
     Option("--ground-truth", "run.ground_truth", "ROS bag", "a bag's ground truth, a TUM trajectory file "
            "(timestamp tx ty tz qx qy qz qw), paired with the frames by time as a TUM folder's groundtruth.txt",
            metavar="FILE"),
+    Option("--viewer", "run.viewer", "viewer (pip install 'attnloop[viewer]')", "show the run live in the rerun "
+           "viewer, spawned: the camera with its image, the keyframe path, the map, the loops, frames/s and inliers "
+           "(slam.viewer)", const=True),
+    Option("--connect", "run.connect", "viewer (pip install 'attnloop[viewer]')", "stream the run to a rerun viewer "
+           "already running at ADDR (HOST:PORT, e.g. 127.0.0.1:9876, or a rerun+http:// URL)", metavar="ADDR"),
+    Option("--rrd", "run.rrd", "viewer (pip install 'attnloop[viewer]')", "record the run to FILE (.rrd) to watch "
+           "later with `rerun FILE`; with --viewer or --connect too", metavar="FILE"),
     Option("--threads", "threads", "compute", f"torch, BLAS and OpenCV threads of the run (default: "
            f"{_default('threads')}: the work is many small per-frame operations, and more threads than free cores "
            "slow them many times on a busy machine)", type=positive_int, metavar="N"),
