@@ -238,7 +238,8 @@ def mean_score(cell: dict, half: str) -> float:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_data_argument(p)
-    p.add_argument("--candidates", nargs="+", default=list(CANDIDATES), choices=list(CANDIDATES))
+    p.add_argument("--candidates", nargs="+", default=list(CANDIDATES), choices=list(CANDIDATES),
+                   help="the taps and input sizes to measure (default: all)")
     p.add_argument("--query", type=Path, help="a folder of query images (with --reference and --ground-truth)")
     p.add_argument("--reference", type=Path, help="a folder of reference images")
     p.add_argument("--ground-truth", type=Path, help="the query x reference ground truth of --query (.npy or image)")
