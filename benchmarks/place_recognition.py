@@ -9,7 +9,7 @@ Sets (each skipped with a note when its data is absent):
   45 degrees). ``fwd``: each frame against those at least 100 frames earlier; ``split``: the second
   half of the sequence (frames 500-995) against the first.
 * ``--query DIR --reference DIR --ground-truth FILE``: a VPR-Bench-style pair of folders (images in
-  natural order of their names, numbers compared as numbers: VPR-Bench's order) with a ``ground_truth_new.npy`` or a binary matrix (:mod:`slam.eval.place_recognition`).
+  natural order of their names, numbers compared as numbers: VPR-Bench's order) with a ``ground_truth_new.npy`` or a binary matrix (:mod:`attnloop.vpr.evaluate`).
 
 Methods (all L2-normalised, cosine similarity; ORB-BoW with its own score):
 
@@ -53,9 +53,7 @@ import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor
 from attnloop.fusion import FUSION_MODES
-from benchmarks._common import DATA_HELP, data_root
-from slam.eval.loops import LoopGroundTruthConfig
-from slam.eval.place_recognition import (
+from attnloop.vpr.evaluate import (
     evaluate,
     ground_truth_from_poses,
     plot_place_recognition,
@@ -63,6 +61,8 @@ from slam.eval.place_recognition import (
     sequence_candidates,
     sequence_similarity,
 )
+from benchmarks._common import DATA_HELP, data_root
+from slam.eval.loops import LoopGroundTruthConfig
 from slam.io.images import FrameReadError, _decode
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
@@ -468,7 +468,7 @@ def main() -> None:
                         help="evaluate every image (the ORB-BoW vocabulary's included) at 1/N of its width and "
                              "height: a low-resolution camera (default 1: as read)")
     parser.add_argument("--sequence", nargs="+", type=int, default=[1], metavar="N",
-                        help="score each pair over N frames (slam.eval.place_recognition.sequence_similarity: "
+                        help="score each pair over N frames (attnloop.vpr.evaluate.sequence_similarity: "
                              "the pair and the N - 1 pairs before it, SeqSLAM's diagonal); one set of tables "
                              "per N (default: 1, single images)")
     parser.add_argument("--bow-seeds", nargs="+", type=int, default=[0],

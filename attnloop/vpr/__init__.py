@@ -1,0 +1,2 @@
+"""Place recognition on image collections: describe, index, query, evaluate (the ``attnloop-vpr`` command).
+"""
