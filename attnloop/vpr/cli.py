@@ -196,8 +196,15 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """A usage error in one line (its subcommands' parsers are of this class too)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: {message} (--help: usage)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="attnloop-vpr", description=__doc__.split("\n")[0])
+    parser = _Parser(prog="attnloop-vpr", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     images_help = "folders (images in natural order), glob patterns, image files or text files of paths"
 
@@ -210,7 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("describe", help="the descriptor of every image, as resumable .npy shards and a manifest")
     d.add_argument("images", nargs="+", help=images_help)
     d.add_argument("--out", type=Path, required=True, metavar="DIR", help="descriptor folder (an existing one resumes)")
-    d.add_argument("--shard-size", type=_positive_int, default=4096, metavar="N", help="images per shard (4096)")
+    d.add_argument("--shard-size", type=_positive_int, default=None, metavar="N",
+                   help="images per shard (default: the folder's when resuming, else 4096)")
     d.add_argument("--strict", action="store_true", help="stop at the first unreadable image (default: name, skip)")
     d.add_argument("--no-progress", action="store_true", help="no progress bar")
     d.add_argument("--engine", choices=("local", "ray"), default="local",

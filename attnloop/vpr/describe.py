@@ -177,8 +177,12 @@ def ray_engine(settings: dict, items, batch_size: int = 16, actors: int = 1, cpu
     """``(index, row, error)`` of every ``(index, path)`` of ``items`` from Ray Data (in any order): the paths,
     then ``map_batches`` on a pool of ``actors`` :class:`RayDescribe` actors. ``ray.init()`` starts a local
     Ray unless ``address`` names a cluster (``"auto"``, ``"ray://host:10001"``)."""
+    import logging
+
     import ray
 
+    logging.getLogger("ray.data").setLevel(logging.WARNING)
+    ray.data.DataContext.get_current().enable_progress_bars = False
     if not ray.is_initialized():
         ray.init(address=address, include_dashboard=False, log_to_driver=False,
                  runtime_env={"env_vars": {"OMP_NUM_THREADS": str(max(1, int(cpus_per_actor)))}})
@@ -233,7 +237,7 @@ def read_manifest(out) -> dict:
     return manifest
 
 
-def describe(inputs: Sequence, out, model: torch.nn.Module, settings: dict | None = None, *, shard_size: int = 4096,
+def describe(inputs: Sequence, out, model: torch.nn.Module, settings: dict | None = None, *, shard_size: int | None = None,
              engine: str = "local", strict: bool = False, progress: bool = True, warn=None, **engine_options) -> dict:
     """Describe every image of ``inputs`` into shards in ``out``, going on from a previous run there.
 
@@ -243,7 +247,7 @@ def describe(inputs: Sequence, out, model: torch.nn.Module, settings: dict | Non
         model: the descriptor, ``(B, 3, H, W)`` uint8 -> ``(B, D)``.
         settings: the :class:`slam.config.DescriptorConfig` fields the model was built from (recorded; the
             Ray engine's actors build their model from them).
-        shard_size: images per shard.
+        shard_size: images per shard (default: the folder's, else 4096).
         engine: ``"local"`` or ``"ray"``; ``engine_options`` go to :func:`local_engine` / :func:`ray_engine`.
         strict: refuse the first unreadable image (:class:`VPRInputError`; finished shards are kept).
         progress: a tqdm bar on stderr.
@@ -257,20 +261,22 @@ def describe(inputs: Sequence, out, model: torch.nn.Module, settings: dict | Non
     """
     from attnloop import __version__
 
+    out = Path(out)
+    old = read_manifest(out) if (out / MANIFEST).is_file() else None
+    shard_size = shard_size or (old["shard_size"] if old else 4096)
     if isinstance(shard_size, bool) or int(shard_size) != shard_size or shard_size < 1:
         raise VPRInputError(f"shard_size must be a positive integer, got {shard_size!r}")
     warn = warn or (lambda line: print(line, file=sys.stderr))
     paths = image_paths(inputs)
-    out = Path(out)
     identity = {"format": FORMAT, "paths": paths, "shard_size": int(shard_size), "descriptor": settings,
                 "recipe": asdict(model.recipe) if hasattr(model, "recipe") else None, "model": model_identity(model)}
     manifest = {**identity, "library": {"attnloop": __version__, "torch": torch.__version__}, "dim": None,
                 "shards": []}
-    if (out / MANIFEST).is_file():
-        old = read_manifest(out)
+    if old:
         for key, value in identity.items():
             if json.loads(json.dumps(value)) != old.get(key):
-                raise VPRInputError(f"{out}: holds descriptors with another {key}; describe into a new --out folder")
+                what = "of other images" if key == "paths" else f"with another {key.replace('_', ' ')}"
+                raise VPRInputError(f"{out}: holds descriptors {what}; describe into a new --out folder")
         manifest.update(dim=old.get("dim"), shards=[s for s in old["shards"] if (out / s["file"]).is_file()
                                                     and _sha256(out / s["file"]) == s["sha256"]])
     out.mkdir(parents=True, exist_ok=True)
