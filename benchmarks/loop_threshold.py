@@ -36,10 +36,11 @@ import torch
 from attnloop import AttentionDescriptor
 from attnloop.index import LoopCandidateDetector, LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
+from attnloop.vpr.describe import load_rgb
 from attnloop.vpr.evaluate import evaluate, ground_truth_from_poses, sequence_candidates
 from benchmarks._common import DATA_HELP, data_root
 from benchmarks.index_data import descriptor_version
-from benchmarks.place_recognition import kitchen_poses, load_rgb
+from benchmarks.place_recognition import kitchen_poses
 from slam.eval.loops import LoopGroundTruthConfig
 
 # (method, k_sigma, min_margin, min_similarity)

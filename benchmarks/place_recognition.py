@@ -41,7 +41,6 @@ its threshold) and writes one PR-curve PNG per protocol to ``--out``.
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import time
 from pathlib import Path
@@ -53,6 +52,7 @@ import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor
 from attnloop.fusion import FUSION_MODES
+from attnloop.vpr.describe import VPRInputError, folder_images, load_rgb
 from attnloop.vpr.evaluate import (
     evaluate,
     ground_truth_from_poses,
@@ -63,18 +63,7 @@ from attnloop.vpr.evaluate import (
 )
 from benchmarks._common import DATA_HELP, data_root
 from slam.eval.loops import LoopGroundTruthConfig
-from slam.io.images import FrameReadError, _decode
-
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
-
-
-
-def load_rgb(path: Path) -> np.ndarray:
-    """``(H, W, 3)`` uint8 RGB as OpenCV's colour mode decodes it (grey replicated, 16-bit scaled, a phone's
-    EXIF rotation applied), from the file's bytes: a missing, corrupt or truncated file is a
-    :class:`slam.io.images.FrameReadError` naming it (cv2.imread decodes half a JPEG and fills the rest
-    with grey; the SLAM's decoder refuses it)."""
-    return np.ascontiguousarray(_decode(str(path), cv2.IMREAD_COLOR)[:, :, ::-1])
+from slam.io.images import FrameReadError
 
 
 def grayscale(images: list[np.ndarray]) -> list[np.ndarray]:
@@ -90,32 +79,6 @@ def downscaled(images: list[np.ndarray], factor: int) -> list[np.ndarray]:
         return images
     return [cv2.resize(im, (max(1, im.shape[1] // factor), max(1, im.shape[0] // factor)),
                        interpolation=cv2.INTER_AREA) for im in images]
-
-
-def natural_key(path: Path) -> tuple:
-    """Sort key of a file name with its digit runs compared as numbers: ``2.jpg`` before ``10.jpg``.
-
-    VPR-Bench numbers a dataset's images by the integer in their name (its loader sorts by it) and its
-    ``ground_truth_new.npy`` indexes them in that order; a plain string sort would put ``10.jpg`` second
-    and misalign every query of a folder without zero padding.
-    """
-    # the name itself breaks ties (01.jpg and 1.jpg), so the order never depends on the file system's
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", path.name)], path.name
-
-
-def folder_images(folder: Path) -> list[Path]:
-    """The images of ``folder`` in natural order (:func:`natural_key`), the order of its ground truth.
-
-    Hidden files (``.name``: macOS's ``._0000.jpg`` resource forks) are not images of the set.
-    """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise SystemExit(f"{folder}: not a folder of images")
-    files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")),
-                   key=natural_key)
-    if not files:
-        raise SystemExit(f"no images in {folder}")
-    return files
 
 
 # ------------------------------------------------------------------------------------------ ORB-BoW
@@ -365,7 +328,10 @@ def protocols_kitchen(data: Path, step: int = 5):
 
 
 def protocols_folders(query: Path, reference: Path, gt_file: Path, data: Path):
-    q_files, r_files = folder_images(query), folder_images(reference)
+    try:
+        q_files, r_files = folder_images(query), folder_images(reference)
+    except (OSError, VPRInputError) as err:
+        raise SystemExit(str(err)) from None
     try:
         q = [load_rgb(p) for p in q_files]
         r = [load_rgb(p) for p in r_files]
