@@ -197,11 +197,7 @@ def ray_engine(settings: dict, items, batch_size: int = 16, actors: int = 1, cpu
 
 # ------------------------------------------------------------------------------------------ shards
 def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    return hashlib.sha256(path.read_bytes()).hexdigest()  # a shard is tens of MB
 
 
 def model_identity(model: torch.nn.Module) -> dict:

@@ -13,20 +13,20 @@ from attnloop.vpr.cli import main
 LITE0 = ["--backbone", "efficientnet_lite0", "--no-progress", "--shard-size", "32"]
 
 
+def _shared_set(data_dir: Path, name: str, marker: str) -> Path:
+    if not (data_dir / name / marker).is_file():
+        pytest.skip(f"{name} not found at {data_dir / name}")
+    return data_dir / name
+
+
 @pytest.fixture(scope="module")
 def rtabmap_dir(data_dir: Path) -> Path:
-    path = data_dir / "rtabmap-samples"
-    if not (path / "samples_GT.bmp").is_file():
-        pytest.skip(f"rtabmap-samples not found at {path}")
-    return path
+    return _shared_set(data_dir, "rtabmap-samples", "samples_GT.bmp")
 
 
 @pytest.fixture(scope="module")
 def nordland_dir(data_dir: Path) -> Path:
-    path = data_dir / "nordland-64x32"
-    if not (path / "gt_index_aligned.csv").is_file():
-        pytest.skip(f"nordland-64x32 not found at {path}")
-    return path
+    return _shared_set(data_dir, "nordland-64x32", "gt_index_aligned.csv")
 
 
 @pytest.fixture(scope="module")
