@@ -123,10 +123,11 @@ def describe_batch(model: torch.nn.Module, decoded: Sequence[tuple[int, np.ndarr
     is not finite or has zero norm is an error, never a row.
     """
     run: list[tuple[int, np.ndarray]] = []
+    device = next(model.parameters(), torch.empty(0)).device  # the model's (a GPU actor's): the batch goes there
 
     def flush():
         with torch.no_grad():
-            x = torch.from_numpy(np.stack([im for _, im in run])).permute(0, 3, 1, 2)
+            x = torch.from_numpy(np.stack([im for _, im in run])).permute(0, 3, 1, 2).to(device)
             d = model(x).float().cpu().numpy()
         for (index, _), row in zip(run, d):
             ok = np.isfinite(row).all() and np.linalg.norm(row) > 0
