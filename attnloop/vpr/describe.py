@@ -182,11 +182,12 @@ def ray_engine(settings: dict, items, batch_size: int = 16, actors: int = 1, cpu
 
     import ray
 
-    logging.getLogger("ray.data").setLevel(logging.WARNING)
-    ray.data.DataContext.get_current().enable_progress_bars = False
     if not ray.is_initialized():
         ray.init(address=address, include_dashboard=False, log_to_driver=False,
                  runtime_env={"env_vars": {"OMP_NUM_THREADS": str(max(1, int(cpus_per_actor)))}})
+    context = ray.data.DataContext.get_current()
+    context.enable_progress_bars = context.print_on_execution_start = False  # our tqdm bar says it
+    logging.getLogger("ray.data").setLevel(logging.WARNING)
     ds = ray.data.from_items([{"index": i, "path": p} for i, p in items], override_num_blocks=max(1, actors * 4))
     ds = ds.map_batches(RayDescribe, fn_constructor_kwargs={"settings": settings,
                                                             "threads": max(1, int(cpus_per_actor))},
@@ -283,6 +284,8 @@ def describe(inputs: Sequence, out, model: torch.nn.Module, settings: dict | Non
     items = [(i, paths[i]) for a, b in pending for i in range(a, b)]
     if engine == "local":
         rows = local_engine(model, items, **engine_options)
+    elif engine == "ray" and settings is None:
+        raise VPRInputError("the Ray engine's actors build their model from the settings: give them")
     elif engine == "ray":
         rows = ray_engine(settings, items, **engine_options)
     else:
