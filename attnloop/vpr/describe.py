@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp")
+LIST_SUFFIXES = (".txt", ".lst", ".list")
 MANIFEST = "manifest.json"
 FORMAT = "attnloop-vpr-descriptors/1"
 
@@ -66,8 +67,8 @@ def folder_images(folder) -> list[Path]:
 
 def image_paths(inputs: Sequence) -> list[str]:
     """The images named by ``inputs``, in order: each is a folder (its images in natural order), a glob
-    pattern (natural order), an image file, or a text file of paths (one a line, ``#`` comments; relative
-    paths are relative to the list's folder).
+    pattern (natural order), an image file, or a text file of paths (``.txt``, ``.lst``, ``.list``: one a line,
+    ``#`` comments; relative paths are relative to the list's folder).
 
     Raises:
         VPRInputError: an input that exists as none of these, or matches no image.
@@ -79,12 +80,15 @@ def image_paths(inputs: Sequence) -> list[str]:
             out += [str(f) for f in folder_images(p)]
         elif p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES:
             out.append(item)
-        elif p.is_file():
+        elif p.is_file() and p.suffix.lower() in LIST_SUFFIXES:
             lines = [s.strip() for s in p.read_text(errors="replace").splitlines()]
             listed = [s if os.path.isabs(s) else str(p.parent / s) for s in lines if s and not s.startswith("#")]
             if not listed:
                 raise VPRInputError(f"{item}: a list file with no image path in it")
             out += listed
+        elif p.is_file():
+            raise VPRInputError(f"{item}: neither an image ({', '.join(IMAGE_SUFFIXES)}) nor a list of paths "
+                                f"({', '.join(LIST_SUFFIXES)})")
         elif glob.has_magic(item):
             found = sorted((f for f in glob.glob(item) if Path(f).suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
             if not found:

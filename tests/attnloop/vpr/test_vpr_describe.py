@@ -62,6 +62,9 @@ def test_image_paths_folder_glob_and_list(tmp_path):
     assert image_paths([tmp_path / "list.txt"]) == [str(tmp_path / "a" / "2.png"), paths[4]]
     with pytest.raises(VPRInputError, match="nowhere"):
         image_paths([tmp_path / "nowhere"])
+    np.save(tmp_path / "x.npy", np.zeros(3))
+    with pytest.raises(VPRInputError, match="x.npy: neither an image"):
+        image_paths([tmp_path / "x.npy"])
 
 
 def test_shards_manifest_and_rows(tmp_path):
