@@ -4,7 +4,8 @@
    beforehand, a plain batched loop over the descriptor (decode, then ``model(batch)``, in this process), the
    local engine (:func:`attnloop.vpr.describe`:
    a DataLoader worker decodes, shards and manifest written), and Ray Data with 1 and 2 actors of one CPU
-   each (Ray started before the clock, the actors' model build inside it). One torch thread per model.
+   each (Ray started before the clock, the actors' model build inside it). One torch thread per model; each
+   way ``--rounds`` times, interleaved, the best round reported (other work shares the CPU).
 2. The engines' agreement: the same paths in order, the largest difference between their descriptors.
 3. Memory: bytes per descriptor in the shards, per million descriptors.
 4. The sharded index (:class:`attnloop.vpr.ShardedIndex`) against one index on ``--index-size`` synthetic unit
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -50,38 +52,42 @@ def plain_loop(model, paths: list[str], batch: int) -> np.ndarray:
     return np.stack(rows)
 
 
-def throughput(paths: list[str], batch: int, skip_ray: bool) -> tuple[list[list], dict]:
+def throughput(paths: list[str], batch: int, skip_ray: bool, rounds: int) -> tuple[list[list], dict]:
+    """Each way to describe ``paths``, ``rounds`` times interleaved (the CPU is shared: the best round counts)."""
     torch.set_num_threads(1)
     model, settings = _model()
     plain_loop(model, paths[:1], batch)  # the first call's one-off costs are no engine's
-    rows, out = [], {}
     decoded = [(i, load_rgb(p), None) for i, p in enumerate(paths)]
-    t = time.perf_counter()
-    for s in range(0, len(paths), batch):
-        list(describe_batch(model, decoded[s:s + batch]))
-    rows.append(["the descriptor alone (images decoded beforehand)", 1, time.perf_counter() - t])
-    del decoded
-    t = time.perf_counter()
-    out["plain"] = plain_loop(model, paths, batch)
-    rows.append(["plain batched loop (decode, describe)", 1, time.perf_counter() - t])
-    with tempfile.TemporaryDirectory() as tmp:
-        t = time.perf_counter()
-        describe(paths, Path(tmp) / "local", model, settings, progress=False, batch_size=batch, workers=1)
-        rows.append(["local engine (1 decoding worker)", 1, time.perf_counter() - t])
-        out["local"] = load_descriptors(Path(tmp) / "local")
-        out["bytes_per_row"] = (Path(tmp) / "local" / "shard-00000.npy").stat().st_size / len(paths)
-        if not skip_ray:
-            import ray
+    out: dict = {}
+    tmp = Path(tempfile.mkdtemp())
 
-            ray.init(include_dashboard=False, log_to_driver=False, num_cpus=2)
-            for actors in (1, 2):
-                t = time.perf_counter()
-                describe(paths, Path(tmp) / f"ray{actors}", model, settings, progress=False, engine="ray",
-                         batch_size=batch, actors=actors)
-                rows.append([f"Ray Data, {actors} actor(s) x 1 CPU", actors, time.perf_counter() - t])
-                out[f"ray{actors}"] = load_descriptors(Path(tmp) / f"ray{actors}")
-            ray.shutdown()
-    return [[name, n, f"{s:.1f}", f"{len(paths) / s:.2f}", f"{len(paths) / s / n:.2f}"] for name, n, s in rows], out
+    def engine(name, **kw):
+        shutil.rmtree(tmp / name, ignore_errors=True)
+        describe(paths, tmp / name, model, settings, progress=False, batch_size=batch, **kw)
+        out[name] = load_descriptors(tmp / name)
+
+    ways = [("the descriptor alone (images decoded beforehand)", 1,
+             lambda: [list(describe_batch(model, decoded[s:s + batch])) for s in range(0, len(paths), batch)]),
+            ("plain batched loop (decode, describe)", 1, lambda: out.update(plain=plain_loop(model, paths, batch))),
+            ("local engine (1 decoding worker)", 1, lambda: engine("local", workers=1))]
+    if not skip_ray:
+        import ray
+
+        ray.init(include_dashboard=False, log_to_driver=False, num_cpus=2)
+        ways += [(f"Ray Data, {n} actor(s) x 1 CPU", n, lambda n=n: engine(f"ray{n}", engine="ray", actors=n))
+                 for n in (1, 2)]
+    best = {name: float("inf") for name, _, _ in ways}
+    for _ in range(rounds):
+        for name, _, fn in ways:
+            t = time.perf_counter()
+            fn()
+            best[name] = min(best[name], time.perf_counter() - t)
+    if not skip_ray:
+        ray.shutdown()
+    out["bytes_per_row"] = (tmp / "local" / "shard-00000.npy").stat().st_size / len(paths)
+    shutil.rmtree(tmp)
+    return [[name, n, f"{best[name]:.1f}", f"{len(paths) / best[name]:.2f}", f"{len(paths) / best[name] / n:.2f}"]
+            for name, n, _ in ways], out
 
 
 def sharded_index(n: int, dim: int, shards: int, backend: str, queries: int, k: int = 10) -> list:
@@ -117,6 +123,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_data_argument(parser)
     parser.add_argument("--repeat", type=int, default=2, help="describe the 84 rtabmap images this many times (2)")
+    parser.add_argument("--rounds", type=int, default=2, help="timed rounds of each way, interleaved; the best "
+                        "counts (2)")
     parser.add_argument("--batch", type=int, default=16, help="images per batch (16)")
     parser.add_argument("--skip-describe", action="store_true", help="only the index")
     parser.add_argument("--skip-ray", action="store_true", help="no Ray rows")
@@ -130,7 +138,7 @@ def main() -> None:
           f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f})")
     if not args.skip_describe:
         paths = [str(args.data / "rtabmap-samples" / f"{i}.jpg") for i in range(1, 85)] * args.repeat
-        rows, out = throughput(paths, args.batch, args.skip_ray)
+        rows, out = throughput(paths, args.batch, args.skip_ray, args.rounds)
         print(f"\n## Describe: {len(paths)} images (rtabmap-samples x {args.repeat}), EfficientNet-Lite0 default, "
               f"batch {args.batch}\n")
         print(table(["engine", "workers", "s", "images/s", "images/s per worker"], rows))
