@@ -16,14 +16,9 @@ import numpy as np
 import torch
 
 from attnloop.vpr.describe import MANIFEST, VPRInputError, describe, describe_images, load_descriptors, read_manifest
+from slam.options import non_negative_int, positive_int
 
 _DESCRIPTOR_PREFIX = "loop.descriptor."
-
-
-def _positive_int(text: str) -> int:
-    from slam.options import positive_int
-
-    return positive_int(text)
 
 
 def _add_descriptor_arguments(parser: argparse.ArgumentParser) -> None:
@@ -209,15 +204,16 @@ def build_parser() -> argparse.ArgumentParser:
     images_help = "folders (images in natural order), glob patterns, image files or text files of paths"
 
     def loader(p):
-        p.add_argument("--batch-size", type=_positive_int, default=16, metavar="N", help="images per batch (16)")
-        p.add_argument("--workers", type=int, default=2, metavar="N",
+        p.add_argument("--batch-size", type=positive_int, default=16, metavar="N", help="images per batch (16)")
+        p.add_argument("--workers", type=non_negative_int, default=2, metavar="N",
                        help="DataLoader processes decoding images (2; 0: decode in the main process)")
-        p.add_argument("--threads", type=_positive_int, default=None, metavar="N", help="torch threads (torch's default)")
+        p.add_argument("--threads", type=positive_int, default=None, metavar="N",
+                       help="torch threads (torch's default)")
 
     d = sub.add_parser("describe", help="the descriptor of every image, as resumable .npy shards and a manifest")
     d.add_argument("images", nargs="+", help=images_help)
     d.add_argument("--out", type=Path, required=True, metavar="DIR", help="descriptor folder (an existing one resumes)")
-    d.add_argument("--shard-size", type=_positive_int, default=None, metavar="N",
+    d.add_argument("--shard-size", type=positive_int, default=None, metavar="N",
                    help="images per shard (default: the folder's when resuming, else 4096)")
     d.add_argument("--strict", action="store_true", help="stop at the first unreadable image (default: name, skip)")
     d.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -225,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="local: a DataLoader and this process's model; ray: Ray Data with an actor pool")
     d.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="Ray cluster to join (auto, ray://HOST:10001); default: a local Ray on this machine")
-    d.add_argument("--ray-actors", type=_positive_int, default=1, metavar="N", help="actors, each holding a model (1)")
+    d.add_argument("--ray-actors", type=positive_int, default=1, metavar="N", help="actors, each holding a model (1)")
     d.add_argument("--ray-cpus", type=float, default=1.0, metavar="C", help="CPUs (= torch threads) per actor (1)")
     d.add_argument("--ray-gpus", type=float, default=0.0, metavar="G", help="GPUs per actor (0)")
     loader(d)
@@ -235,14 +231,14 @@ def build_parser() -> argparse.ArgumentParser:
     i = sub.add_parser("index", help="the keyframe index of a descriptor folder, one per shard when too large")
     i.add_argument("dir", type=Path, help="descriptor folder")
     i.add_argument("--backend", choices=("auto", "exact", "flann", "faiss"), default="auto", help="index backend")
-    i.add_argument("--max-rows", type=_positive_int, default=None, metavar="N",
+    i.add_argument("--max-rows", type=positive_int, default=None, metavar="N",
                    help="descriptors per index (default: as many as half the memory holds)")
     i.set_defaults(func=cmd_index)
 
     q = sub.add_parser("query", help="the top-k references of query images, as CSV")
     q.add_argument("dir", type=Path, help="descriptor folder (its index if built, else an exact scan)")
     q.add_argument("images", nargs="+", help=images_help)
-    q.add_argument("-k", type=_positive_int, default=10, help="matches per query (10)")
+    q.add_argument("-k", type=positive_int, default=10, help="matches per query (10)")
     q.add_argument("--out", type=Path, default=None, metavar="FILE.csv", help="CSV file (default: stdout)")
     loader(q)
     q.set_defaults(func=cmd_query)
@@ -259,9 +255,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-angle", type=float, default=45.0, metavar="DEG", help="with --poses: degrees (45)")
     e.add_argument("--aligned", type=int, default=None, metavar="K",
                    help="index-aligned sets: query i matches references i-K .. i+K (frames before --step)")
-    e.add_argument("--min-gap", type=_positive_int, default=None, metavar="N",
+    e.add_argument("--min-gap", type=positive_int, default=None, metavar="N",
                    help="one set against itself: each image against those at least N earlier")
-    e.add_argument("--step", type=_positive_int, default=1, metavar="N", help="every Nth query and reference (1)")
+    e.add_argument("--step", type=positive_int, default=1, metavar="N", help="every Nth query and reference (1)")
     e.add_argument("--rtabmap", metavar="DIR", help="RTAB-Map's samples (84 images, samples_GT.bmp), gap 10")
     e.add_argument("--nordland", metavar="DIR", help="Nordland: winter vs summer, --aligned K (1), --step N")
     e.add_argument("--out", type=Path, default=None, metavar="DIR", help="write metrics.json and pr.png there")

@@ -239,8 +239,9 @@ def read_manifest(out) -> dict:
     return manifest
 
 
-def describe(inputs: Sequence, out, model: torch.nn.Module, settings: dict | None = None, *, shard_size: int | None = None,
-             engine: str = "local", strict: bool = False, progress: bool = True, warn=None, **engine_options) -> dict:
+def describe(inputs: Sequence, out, model: torch.nn.Module, settings: dict | None = None, *,
+             shard_size: int | None = None, engine: str = "local", strict: bool = False, progress: bool = True,
+             warn=None, **engine_options) -> dict:
     """Describe every image of ``inputs`` into shards in ``out``, going on from a previous run there.
 
     Args:
