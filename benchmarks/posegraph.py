@@ -11,6 +11,17 @@ other processes load, it varies less than the wall time.
 (relative) of GTSAM's final error or below it (``OptimizationResult.time_history``): where GTSAM stops
 without progress (INTEL: it returns its initial guess) this, not the full run, is the comparable figure.
 Peak memory is the peak resident set size of a fresh process that reads and optimises one file.
+"ours ms, first call" is the untimed warm-up call on the file: it makes the sparse Cholesky's symbolic
+analysis, which the timed calls find made (it is kept per sparsity pattern).
+
+``--solvers`` prints instead, for the three files of the comparison, one damped Gauss-Newton system at the
+file's vertices solved by the project's sparse Cholesky, scipy's SuperLU (minimum degree, symmetric mode) and,
+when scikit-sparse is installed, CHOLMOD (its default supernodal analysis): the fastest of ``--repeats`` runs of
+the symbolic analysis and of one factorisation + solve, and the largest difference to our solution.
+
+``--starts`` prints instead, for every file, LM from the file's vertices (``initialization="none"``) against
+``"auto"`` (examples/optimize_g2o.py's default: the vertices when their chi2 per edge is at most 100, else a
+spanning tree of the edges): chi2, iterations, status and the median time of interleaved runs.
 
 A robustness figure follows: sphere2500 with 5% extra edges that are random false loop closures
 (seeded), optimised without a kernel and with each robust kernel; the ATE (RMSE of positions after a
@@ -18,6 +29,8 @@ rigid alignment) is taken against the solution of the clean graph.
 
 Usage:
     python -m benchmarks.posegraph [--data DIR] [--repeats 5] [--files a b] [--no-robust] [--out FILE.md]
+    python -m benchmarks.posegraph --starts [--repeats 5]
+    python -m benchmarks.posegraph --solvers [--repeats 5]
 """
 from __future__ import annotations
 
@@ -41,6 +54,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 from slam.eval.align import umeyama_alignment
 from slam.graph import PoseGraph, optimize, read_g2o
+from slam.threads import limit_threads
 
 FILES = ["tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "input_M3500_g2o", "input_INTEL_g2o"]
 
@@ -168,6 +182,96 @@ def add_false_loops(graph: PoseGraph, fraction: float = 0.05, seed: int = 0) -> 
     return bad, k
 
 
+def compare_solvers(folder: Path, repeats: int) -> None:
+    """Symbolic analysis and one factorisation + solve of the same damped system by our sparse Cholesky,
+    scipy's SuperLU and CHOLMOD (scikit-sparse, when installed); fastest of ``repeats`` runs, ms."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    from slam.graph import OptimizerConfig
+    from slam.graph.cholesky import SymbolicCholesky
+    from slam.graph.problem import TorchProblem
+
+    try:
+        from sksparse.cholmod import analyze
+    except ImportError:
+        analyze = None
+
+    def fastest(f):
+        out = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            f()
+            out.append(time.perf_counter() - t)
+        return ms(min(out))
+
+    print(f"Command: `python -m benchmarks.posegraph --solvers --repeats {repeats}`, load average "
+          f"{os.getloadavg()[0]:.1f} at start; CHOLMOD: {'scikit-sparse' if analyze else 'not installed'}.\n")
+    print("| file | unknowns | ours: analysis / factor + solve ms | SuperLU: factor + solve ms | "
+          "CHOLMOD: analysis / factor + solve ms | largest difference to ours |")
+    print("|---|---|---|---|---|---|")
+    for name in ("sphere2500", "parking-garage", "smallGrid3D"):
+        prob = TorchProblem(read_g2o(folder / f"{name}.g2o"), OptimizerConfig(), None, "free", "sparse")
+        H, g = prob.linearize(prob.poses, prob.evaluate(prob.poses)[2])
+        pat, k = prob.pattern, prob.pattern.k
+        H = H.clone().index_add_(0, pat.diag_pos, torch.full_like(g, 1e-5))  # LM's first damping
+        sym = SymbolicCholesky(pat)
+        x = sym.factor(H).solve(-g).numpy()
+        indptr = np.searchsorted(pat.block_rows.numpy(), np.arange(pat.num_vars + 1))
+        A = sp.bsr_matrix((H.numpy().reshape(-1, k, k), pat.block_cols.numpy(), indptr),
+                          shape=(pat.size, pat.size)).tocsc()
+        b = -g.numpy()
+
+        def superlu():
+            return sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                            options={"SymmetricMode": True}).solve(b)
+
+        diffs = [np.abs(superlu() - x).max()]
+        row = (f"| {name} | {pat.size} | {fastest(lambda: SymbolicCholesky(pat))} / "
+               f"{fastest(lambda: sym.factor(H).solve(-g))} | {fastest(superlu)} | ")
+        if analyze is None:
+            row += "- | "
+        else:
+            F = analyze(A)
+            diffs.append(np.abs(F.cholesky(A)(b) - x).max())
+            row += f"{fastest(lambda: analyze(A))} / {fastest(lambda: F.cholesky(A)(b))} | "
+        print(row + f"{max(diffs) / np.abs(x).max():.1e} (relative) |", flush=True)
+
+
+def compare_starts(folder: Path, files, repeats: int) -> None:
+    """LM from the file's vertices (the old default of examples/optimize_g2o.py) against ``"auto"`` (its
+    default), runs interleaved, median CPU and wall ms."""
+    when = f"{datetime.datetime.now():%Y-%m-%d %H:%M}"
+    print(f"Command: `python -m benchmarks.posegraph --starts --repeats {repeats}`, {when}, {os.cpu_count()} CPUs, "
+          f"load average {os.getloadavg()[0]:.1f} at start.\n")
+    print("| file | vertices: chi2 | iters, status | ms (CPU ms) | auto: start | chi2 | iters, status | ms (CPU ms) "
+          "| time ratio (CPU) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in files:
+        path = folder / f"{name}.g2o"
+        if not path.exists():
+            continue
+        g = read_g2o(path)
+        runs: dict = {"none": [], "auto": []}
+        for init in ("none", "auto"):  # warm-up: imports, the symbolic analyses of both starts
+            optimize(g, initialization=init)
+        for _ in range(repeats):
+            for init in runs:
+                t, c = time.perf_counter(), time.process_time()
+                res = optimize(g, initialization=init)
+                runs[init].append((time.perf_counter() - t, time.process_time() - c, res))
+        cells = []
+        for init, rs in runs.items():
+            res = rs[-1][2]
+            wall, cpu = (statistics.median(r[i] for r in rs) for i in (0, 1))
+            kept = res.initial_chi2 == runs["none"][-1][2].initial_chi2
+            start = "" if init == "none" else ("vertices | " if kept else "tree | ")
+            text = f"{start}{res.chi2:.6g} | {res.iterations}, {res.status} | {ms(wall)} ({ms(cpu)})"
+            cells.append((wall, cpu, text))
+        (w0, c0, a), (w1, c1, b) = cells
+        print(f"| {name} | {a} | {b} | {w1 / w0:.2f} ({c1 / c0:.2f}) |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", help="folder with the g2o files (default $ATTNLOOP_DATA/posegraph)")
@@ -176,10 +280,18 @@ def main() -> None:
     ap.add_argument("--no-robust", action="store_true", help="skip the robust-kernel runs on sphere2500")
     ap.add_argument("--no-memory", action="store_true", help="skip the memory measurements")
     ap.add_argument("--out", help="also write the markdown to this file")
+    ap.add_argument("--starts", action="store_true", help="only compare the starts 'none' and 'auto' on every file")
+    ap.add_argument("--solvers", action="store_true", help="only compare sparse solvers on one system per file")
     ap.add_argument("--memory-probe", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.memory_probe:
         memory_probe(args.memory_probe)
+        return
+    if args.starts:
+        compare_starts(data_dir(args.data), args.files, args.repeats)
+        return
+    if args.solvers:
+        compare_solvers(data_dir(args.data), args.repeats)
         return
     try:
         import gtsam  # noqa: F401
@@ -193,8 +305,9 @@ def main() -> None:
     lines += ["| file | poses | edges | GTSAM error | ours (chi2/2) | ratio | GTSAM error at our poses "
               "| iters GTSAM / ours | GTSAM ms | ours ms | time ratio | CPU ms GTSAM / ours (ratio) "
               "| ours: ms to GTSAM's error (ratio) "
-              "| ours: setup / linearize / solve / evaluate ms (medians) | peak RSS MB | status |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| ours: setup / linearize / solve / evaluate ms (medians) | ours ms, first call | peak RSS MB "
+              "| status |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     # warm-up (imports, first-call allocations) outside the timings
     warm = read_g2o(folder / "tinyGrid3D.g2o") if (folder / "tinyGrid3D.g2o").exists() else None
     if warm is not None:
@@ -208,7 +321,7 @@ def main() -> None:
         g = read_g2o(path)
         gt_runs, our_runs = [], []
         run_gtsam(path, three_d)
-        run_ours(g)
+        first = run_ours(g)["time"]
         for _ in range(args.repeats):
             gt_runs.append(run_gtsam(path, three_d))
             our_runs.append(run_ours(g))
@@ -229,7 +342,7 @@ def main() -> None:
                f"{err_ours / gt['error']:.7f} | {gt_at_ours:.6f} | {gt['iterations']} / {ours.iterations} | "
                f"{ms(t_gt)} | {ms(t_ours)} | {t_ours / t_gt:.2f} | {ms(c_gt)} / {ms(c_ours)} ({c_ours / c_gt:.2f}) | "
                f"{reach_txt} | "
-               f"{' / '.join(ms(tm[k]) for k in ('setup', 'linearize', 'solve', 'evaluate'))} | "
+               f"{' / '.join(ms(tm[k]) for k in ('setup', 'linearize', 'solve', 'evaluate'))} | {ms(first)} | "
                f"{mem.get('peak_mb', float('nan')):.0f} | "
                f"{ours.status} |")
         lines.append(row)
@@ -239,8 +352,9 @@ def main() -> None:
         # GTSAM stops at its first linearisation on this file (indeterminate system); our LM from the file's
         # vertices (raw odometry) is still descending after 100 iterations. Marquardt's scaled damping
         # converges in hundreds, Nielsen's gain-ratio rule (g2o, Ceres) lower than the x2 / /2 schedule; a
-        # start composed along a spanning tree of the edges (examples/optimize_g2o.py's default) or the
-        # chordal one converges in a few, lower still.
+        # start composed along a spanning tree of the edges or the
+        # chordal one converges in a few, lower still ("auto", examples/optimize_g2o.py's default, takes the tree
+        # here: the vertices' chi2 is ~4500 per edge).
         g = read_g2o(intel)
         lines.append("")
         for kw in ({"damping": "diagonal", "lambda_factor": 2.0}, {"damping": "diagonal", "lambda_update": "nielsen"},
@@ -289,4 +403,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with limit_threads(1):  # torch's and BLAS's pools: the work is many small operations (docs/devices.md)
+        main()

@@ -32,6 +32,7 @@ from pathlib import Path
 from slam.ablation import markdown_table, run_ablation
 from slam.cli import call_reporting_errors
 from slam.options import add_run_arguments, given_settings
+from slam.viewer import VIEWER_FLAGS
 from slam.pipeline import json_safe
 
 
@@ -52,7 +53,7 @@ def main(argv=None) -> int:
     p.add_argument("sequences", nargs="+", help="TUM RGB-D or 7-Scenes sequence folders")
     p.add_argument("--out", default="runs/ablation", help="output folder (default: runs/ablation)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or per-run lines (the tables are printed)")
-    add_run_arguments(p, exclude=("--fusion",))  # the columns set the fusion
+    add_run_arguments(p, exclude=("--fusion", *VIEWER_FLAGS))  # the columns set the fusion; a viewer shows one run
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     # the command's messages for missing weights, a wrong folder, a bad flag (exit code 2)

@@ -7,12 +7,13 @@
 
 Reads ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT`` or 2D ``VERTEX_SE2`` / ``EDGE_SE2`` files (``FIX`` lines are
 held; a file with edges only gets its poses from a spanning tree of the edges). The start is by default
-the poses composed along a breadth-first spanning tree of the edges: a file's vertices are often raw
-odometry, from which LM crawls on input_INTEL_g2o.g2o (100 iterations to chi2 109,178, where this start
-converges in 5 to 215.84; on the other shared files one iteration fewer, on tinyGrid3D one more). ``chordal``
-(GTSAM's InitializePose3) is the start for large measurement noise; ``none`` keeps the file's vertices (a
-solution to refine). The script prints the cost before and after (chi2 = sum r^T Omega r; GTSAM's error is
-chi2 / 2), the iterations, the status and the time split, and writes the optimised graph (2D files stay 2D).
+``auto``: the file's vertices when they already fit the edges (chi2 per edge at most 100), else the poses
+composed along a breadth-first spanning tree of the edges. A file's vertices are often raw odometry, from
+which LM crawls on input_INTEL_g2o.g2o (100 iterations to chi2 109,178, where the tree's start converges in 5 to
+215.84). ``chordal`` (GTSAM's InitializePose3) is the start for large measurement noise; ``none`` keeps the
+file's vertices (a solution to refine), ``spanning_tree`` always composes the tree. The script prints the cost
+before and after (chi2 = sum r^T Omega r; GTSAM's error is chi2 / 2), the iterations, the status and the time
+split, and writes the optimised graph (2D files stay 2D).
 """
 from __future__ import annotations
 
@@ -33,6 +34,7 @@ from slam.graph import (
 )
 from slam.graph.initialization import INITIALIZATIONS
 from slam.options import check_device, positive_int
+from slam.threads import limit_threads
 
 
 def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
@@ -43,10 +45,11 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("-o", "--output", default=None, help="write the optimised graph here (g2o)")
     p.add_argument("--method", choices=["lm", "gn"], default="lm",
                    help="lm = Levenberg-Marquardt (GTSAM's default), gn = Gauss-Newton (default: lm)")
-    p.add_argument("--initialization", choices=INITIALIZATIONS, default="spanning_tree",
+    p.add_argument("--initialization", choices=INITIALIZATIONS, default="auto",
                    help="initial guess: none = the file's vertices; chordal = rotations by chordal relaxation, "
                         "then translations by least squares (GTSAM's InitializePose3; for large noise); "
-                        "spanning_tree = composed along a breadth-first tree of the edges (default: spanning_tree)")
+                        "spanning_tree = composed along a breadth-first tree of the edges; auto = the vertices when "
+                        "their chi2 per edge is at most 100, else the tree (default: auto)")
     p.add_argument("--strict", action="store_true",
                    help="refuse a file the reader would repair with a warning (an information matrix that is not "
                         "positive definite, a repeated line)")
@@ -64,12 +67,11 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("--lambda-update", choices=["gtsam", "nielsen"], default=defaults.lambda_update,
                    help="how LM's lambda moves: gtsam = divided / multiplied by 10 after a good / bad step; nielsen = "
                         f"the gain-ratio rule of g2o and Ceres (default: {defaults.lambda_update})")
-    p.add_argument("--solver", default="auto", choices=["auto", "sparse", "superlu", "dense", "pcg"],
-                   help="linear solver of each step: sparse Cholesky, SuperLU, dense Cholesky, preconditioned "
-                        "conjugate gradients; auto = dense for small systems, sparse above (default: auto)")
-    p.add_argument("--threads", type=positive_int, default=defaults.num_threads, metavar="N",
-                   help=f"torch and BLAS threads of the optimisation (default {defaults.num_threads}; "
-                        "docs/devices.md)")
+    p.add_argument("--solver", default="auto", choices=["auto", "sparse", "dense"],
+                   help="linear solver of each step: sparse or dense Cholesky; auto = dense for small systems, "
+                        "sparse above (default: auto)")
+    p.add_argument("--threads", type=positive_int, default=1, metavar="N",
+                   help="torch and BLAS threads of the script (default 1: many small operations; docs/devices.md)")
     p.add_argument("--device", default=None, metavar="DEV",
                    help="torch device of the graph, e.g. cuda (float64: not mps; default cpu; the torch backend)")
     p.add_argument("-v", "--verbose", action="store_true", help="one line per iteration")
@@ -105,11 +107,11 @@ def main(argv: Optional[List[str]] = None) -> OptimizationResult:
         sys.exit(f"error: {exc}")
     if args.device is not None:
         graph = graph.to(args.device)
-    res = optimize(graph, args.method, kernel=args.kernel, solver=args.solver, initialization=args.initialization,
-                   kernel_width=args.kernel_width,
-                   max_iterations=args.max_iterations, gauge=args.gauge, damping=args.damping,
-                   lambda_update=args.lambda_update, verbose=args.verbose,
-                   num_threads=args.threads)
+    with limit_threads(args.threads):
+        res = optimize(graph, args.method, kernel=args.kernel, solver=args.solver,
+                       initialization=args.initialization, kernel_width=args.kernel_width,
+                       max_iterations=args.max_iterations, gauge=args.gauge, damping=args.damping,
+                       lambda_update=args.lambda_update, verbose=args.verbose)
     print(summary(args.input, res))
     if res.message:
         print(f"note: {res.message}")

@@ -20,16 +20,21 @@ import sys
 from slam.cli import call_reporting_errors
 from slam.options import add_run_arguments, given_settings, resolve_settings
 from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+from slam.viewer import check_viewer, open_viewer
 
 
 def run(args: argparse.Namespace) -> int:
     # every threshold, with its default, lives in slam/config.py; flags that others make idle are refused
     spec = resolve_settings(given_settings(args), args.config_file, args.sequence)
+    check_viewer(spec.run)  # --viewer, --connect, --rrd: rerun installed, the file writable
     out = prepare_output_dir(args.out)  # checked (and the previous run's outputs removed) before the work
     spec.save(out / "config.toml")  # --config of it repeats the run
     opts = spec.run
+    viewer = open_viewer(opts, name=spec.sequence.name)  # None without those flags
     run = run_slam(spec.sequence, spec.config, max_frames=opts.max_frames, frame_step=opts.frame_step,
-                   frames=opts.frames)
+                   frames=opts.frames, observer=viewer)
+    if viewer is not None:
+        viewer.close()
     metrics = evaluate_run(run)
     write_outputs(run, out)
     keys = ("status", "failure", "num_frames", "num_keyframes", "num_loops", "fps", "descriptor", "ate_rmse",

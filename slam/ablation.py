@@ -21,8 +21,9 @@ from typing import Any, Optional
 from attnloop.fusion import FUSION_MODES
 from slam.config import override
 from slam.eval import plot_pr_curves
-from slam.options import RunSettings, resolve_settings
+from slam.options import RunSettings, UsageError, resolve_settings
 from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+from slam.viewer import viewer_flags
 
 __all__ = ["COLUMNS", "PAPER_TABLE1", "camera_group", "columns_for", "markdown_table", "run_ablation"]
 
@@ -88,6 +89,9 @@ def run_ablation(sequences, out_dir, settings: Optional[Mapping[str, Any]] = Non
         columns = columns_for(settings.get("loop.descriptor.preset"))
     out_dir = Path(out_dir)
     specs = [resolve_settings(settings, config_file, path) for path in sequences]  # every folder checked first
+    if viewer_flags(specs[0].run):
+        raise UsageError(f"{', '.join(viewer_flags(specs[0].run))}: the viewer shows one run, an ablation makes "
+                         "many; watch one with attnloop-slam")
     configs = {(col, k): override(spec.config, changes) for col, changes in columns.items()
                for k, spec in enumerate(specs)}
     if configure is not None:

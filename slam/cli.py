@@ -25,14 +25,16 @@ examples:
   attnloop-slam --demo --demo-scene room --no-loop --out runs/demo_odometry
   attnloop-slam ../shared/data/7scenes-redkitchen --out runs/kitchen    # 7-Scenes: Kinect v1 rig by default
   attnloop-slam ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room --preset paper  # the paper's descriptor
+  attnloop-slam rgbd_dataset_freiburg1_xyz.bag --camera fr1 --ground-truth groundtruth.txt --out runs/xyz_bag
   attnloop-slam SEQUENCE --config runs/kitchen/config.toml --out runs/again                # a run repeated
   attnloop-slam SEQUENCE --out runs/step3 --frame-step 3     # every 3rd frame: more drift for the loops
   attnloop-slam SEQUENCE --frames 0:600 --save-map maps/kitchen --out runs/monday          # map, saved
   attnloop-slam SEQUENCE --frames 850:1000 --map maps/kitchen --out runs/tuesday         # placed in that map
 
 outputs in --out: trajectory.txt (TUM format), loops.txt, metrics.json, trajectory.png, map.ply, config.toml
-(and demo_sequence/ with its groundtruth.txt for --demo). Exit code 2: a usage or input error; 1: a run
-that tracked too few of its frames (SLAMConfig.min_tracked_fraction): metrics.json alone, no trajectory.
+(and demo_sequence/ with its groundtruth.txt for --demo); --rrd FILE: the run as a rerun recording. Exit code
+2: a usage or input error; 1: a run that tracked too few of its frames (SLAMConfig.min_tracked_fraction):
+metrics.json alone, no trajectory.
 """
 
 PROG = "attnloop-slam"
@@ -44,10 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(
         prog=PROG, formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EXAMPLES,
-        description="Attention-guided loop-closing RGB-D SLAM on a TUM RGB-D or 7-Scenes sequence folder, or on a\n"
-                    "built-in synthetic sequence with exact ground truth (--demo).")
+        description="Attention-guided loop-closing RGB-D SLAM on a TUM RGB-D or 7-Scenes sequence folder, a ROS\n"
+                    "bag, or a built-in synthetic sequence with exact ground truth (--demo).")
     p.add_argument("sequence", nargs="?", help="sequence folder (TUM RGB-D: rgb.txt, depth.txt; 7-Scenes: "
-                                               "frame-XXXXXX.color.*); omit with --demo")
+                                               "frame-XXXXXX.color.*), ROS1 .bag file or ROS2 bag folder "
+                                               "(attnloop[rosbag]); omit with --demo")
     p.add_argument("--out", required=True, help="output folder (created; the previous run's outputs in it are "
                                                 "replaced)")
     add_run_arguments(p)
@@ -208,6 +211,9 @@ def run_command(args: argparse.Namespace) -> int:
     # every setting checked (--weights a file too) before any output is touched or the demo rendered
     spec = resolve_settings(settings, args.config_file, None if args.demo else args.sequence, demo=args.demo)
     cfg, opts, seq = spec.config, spec.run, spec.sequence
+    from slam.viewer import check_viewer, open_viewer
+
+    check_viewer(opts)  # rerun installed, the --rrd file writable: before any output is touched
     if cfg.relocalisation.localize:  # set by the config file
         _check_localize(args)
     if not cfg.loop.enabled and (args.save_map is not None or args.map_dir is not None):
@@ -237,10 +243,11 @@ def run_command(args: argparse.Namespace) -> int:
               f"{describe_rig(rig_of(cfg))}", file=sys.stderr)
     from slam.system import LoopWorkerError
 
+    viewer = open_viewer(opts, name=seq.name)
     try:
         run = run_slam(seq, cfg, max_frames=opts.max_frames, frame_step=opts.frame_step, frames=opts.frames,
                        progress=None if not args.quiet else False, descriptor=descriptor, save_map=args.save_map,
-                       map_dir=saved)
+                       map_dir=saved, observer=viewer)
     except LoopWorkerError as exc:  # a fault, not a usage error: the frames tracked so far are written, exit 1
         if exc.run is not None:
             evaluate_run(exc.run)
@@ -250,6 +257,9 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"{PROG}: error: {exc}; the run stopped: {out / 'trajectory.txt'} and metrics.json hold the "
               f"{frames} frames tracked before it", file=sys.stderr)
         return 1
+    finally:
+        if viewer is not None:
+            viewer.close()  # the recording flushed and its file complete before the outputs
     metrics = evaluate_run(run)
     write_outputs(run, out)
     if metrics["status"] == "failed":

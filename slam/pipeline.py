@@ -36,13 +36,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from slam.config import SLAMConfig
 from slam.io.images import FrameReadError
 from slam.io.sequence import RGBDSequence, SequenceView
 from slam.io.trajectory import Trajectory, write_tum_trajectory
 from slam.mapping import PointCloudMap, write_ply
-from slam.progress import Progress
 from slam.system import RGBDSLAM, LoopWorkerError, SLAMResult
 from slam.threads import limit_threads
 
@@ -108,7 +108,7 @@ class RunResult:
 def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
              progress: bool | None = None, descriptor: torch.nn.Module | None = None,
              prefetch: int = 2, frame_step: int = 1, frames: tuple[int, int] | None = None,
-             save_map: str | os.PathLike | None = None, map_dir=None) -> RunResult:
+             save_map: str | os.PathLike | None = None, map_dir=None, observer=None) -> RunResult:
     """Track every frame of ``sequence`` (or every ``frame_step``-th) and optimise.
 
     A frame that cannot be read (missing or corrupt image) is skipped with a warning and placed by constant
@@ -121,7 +121,8 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         sequence: an opened sequence (:func:`slam.io.open_sequence`).
         config: :class:`slam.config.SLAMConfig` (frozen, checked when built).
         max_frames: use only the first ``max_frames`` input frames.
-        progress: show a progress bar (None: when stderr is a terminal).
+        progress: show a progress bar on stderr, with frames/s and the time left (tqdm; None: when stderr is a
+            terminal).
         descriptor: a prebuilt descriptor model (else built from the config).
         prefetch: frames decoded ahead in background threads.
         frame_step: use input frames ``0, N, 2N, ...`` of those (the trajectory and metrics are on them).
@@ -136,6 +137,9 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
             own (``run.relocalisation`` says which; ``config.relocalisation`` sets how). With
             ``config.relocalisation.localize`` the recording is only localised in it: no loops of its
             own, no map.ply, keyframes released once used (memory flat over any length), nothing saved.
+        observer: called as ``observer.frame(frame, state, slam)`` after each frame (``frame`` None when it could
+            not be read; ``state`` its :class:`slam.system.FrameState`) and ``observer.finish(result)`` with the
+            final :class:`slam.system.SLAMResult`: :class:`slam.viewer.RunViewer` draws the run.
 
     Returns:
         :class:`RunResult`.
@@ -161,12 +165,12 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
     check_sequence_intrinsics(sequence)
     with limit_threads(config.threads):  # the caller's counts are restored when the run ends (or fails)
         return _run(sequence, config, max_frames, progress, descriptor, prefetch, frame_step, frames, save_map,
-                    map_dir)
+                    map_dir, observer)
 
 
 def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, progress: bool | None,
          descriptor: torch.nn.Module | None, prefetch: int, frame_step: int, frames: tuple[int, int] | None,
-         save_map, map_dir) -> RunResult:
+         save_map, map_dir, observer) -> RunResult:
     if frames is not None:
         start, end = (int(v) for v in frames)
         if not 0 <= start < min(end, len(sequence)):
@@ -203,7 +207,8 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     recent: deque = deque(maxlen=4)  # the frames a new keyframe can come from (this one or a promoted one)
     start = time.perf_counter()
     # decode ahead in threads; an unreadable frame comes as its FrameReadError, so it is only skipped
-    bar = Progress(range(n), total=n, desc=sequence.name, enabled=progress)
+    bar = tqdm(range(n), desc=sequence.name, unit="frame", mininterval=0.2, disable=None if progress is None
+               else not progress)
     # the reader threads extract each frame's odometry features as they decode it (a pure function of the
     # frame: the same features as in the tracking thread, which then only matches and registers)
     ahead = _FeaturesAhead(config.odometry.features) if prefetch > 0 else None
@@ -234,11 +239,14 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
                     reloc.check_mergeable(slam.keyframes[0].rgb.shape)
                     check_merge = False
                 reloc.observe(state)
+            if observer is not None:
+                observer.frame(None if isinstance(frame_or_error, FrameReadError) else frame_or_error, state, slam)
             if first_untracked is None and state.status in ("lost", "skipped"):
                 first_untracked = f"frame {i} {state.status}: {state.reason}"
             if i % 10 == 0:
-                bar.set_postfix(f"kf={len(slam.keyframes)} loops={len(slam.loops)}"
-                                + ("" if reloc is None else f" in_map={'yes' if reloc.relocalised else 'no'}"))
+                bar.set_postfix_str(f"kf={len(slam.keyframes)} loops={len(slam.loops)}"
+                                    + ("" if reloc is None else f" in_map={'yes' if reloc.relocalised else 'no'}"),
+                                    refresh=False)
         result = slam.finish()
         for job in map_jobs:
             job.result()  # a map error is the run's error
@@ -247,11 +255,14 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         result = slam.result_so_far()
         logger.error("%s: %s; stopped after %d frames", sequence.name, exc, result.num_frames)
     finally:
+        bar.close()
         if map_worker is not None:
             map_worker.shutdown(wait=True, cancel_futures=True)
     report = None
     if reloc is not None and failure is None:
         result, report = reloc.finish(result)
+    if observer is not None:
+        observer.finish(result)
     wall = time.perf_counter() - start
     bad = ~torch.isfinite(result.trajectory.poses).all(dim=-1)
     if bool(bad.any()):

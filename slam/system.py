@@ -478,6 +478,12 @@ class RGBDSLAM:
     def _reported_corrected(self) -> bool:
         return self._shown_corrected if self._worker is not None else self._corrected
 
+    def keyframe_poses(self) -> Tensor:
+        """``(M, 7)`` float64 the keyframes' poses (the depth camera's) as :meth:`track`'s reports place them now:
+        corrected by the loops optimised so far, later keyframes chained by odometry (what a viewer draws)."""
+        est = [e for e, _ in self._shown] if self._worker is not None else list(self.graph.estimates())
+        return self._output_frame(torch.stack(est)) if est else torch.zeros(0, 7, dtype=torch.float64)
+
     def _keyframe_poses(self, kf_id: int):
         """(estimate, odometry pose) of a keyframe, as the reports show them."""
         if self._worker is not None:

@@ -622,7 +622,7 @@ def plot_place_recognition(
 ) -> np.ndarray:
     """Draw the best-match PR curves (:attr:`PlaceRecognitionResult.curve`) of several methods to a PNG.
 
-    The figure is :func:`slam.eval.loops.plot_pr_curves`'s (OpenCV, no matplotlib): a step line per
+    The figure is :func:`slam.eval.plot.plot_pr_curves`'s (matplotlib): a step line per
     method, a dot at its recall at 100 % precision, the legend giving R@P100 and the average precision.
 
     Args:

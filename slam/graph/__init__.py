@@ -30,9 +30,7 @@ from slam.graph.linear import (
     DenseCholeskySolver,
     LinearSolver,
     LinearSolverError,
-    PCGSolver,
     SparseCholeskySolver,
-    SuperLUSolver,
     make_solver,
 )
 from slam.graph.optimizer import PoseGraphOptimizer, optimize
@@ -51,13 +49,11 @@ __all__ = [
     "LinearSolverError",
     "OptimizationResult",
     "OptimizerConfig",
-    "PCGSolver",
     "PoseGraph",
     "PoseGraphOptimizer",
     "RobustKernel",
     "SparseCholeskySolver",
     "Status",
-    "SuperLUSolver",
     "TrivialKernel",
     "Tukey",
     "edge_chi2",

@@ -44,8 +44,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.graph.blas_threads import limit_blas_threads
-
 _EMPTY = np.zeros(0, dtype=np.int64)
 
 __all__ = ["NotPositiveDefiniteError", "NumericCholesky", "SymbolicCholesky"]
@@ -125,20 +123,6 @@ def _postorder(parent: list[int]) -> np.ndarray:
     return pre[:0:-1].astype(np.int64)
 
 
-class _Ticker:
-    def __init__(self):
-        import time
-
-        self.clock = time.perf_counter
-        self.last = self.clock()
-        self.times = {}
-
-    def __call__(self, name: str) -> None:
-        now = self.clock()
-        self.times[name] = now - self.last
-        self.last = now
-
-
 @dataclass
 class _Tree:
     """The supernodal elimination tree of a block pattern, in the order the factor is stored.
@@ -148,7 +132,6 @@ class _Tree:
         lab: ``(n,)`` position in the postorder -> final position (what the row structures are mapped by).
         first: ``ns + 1`` first postorder column of each supernode (then ``n``).
         ncols, nrows: per supernode its block columns and the block rows below its pivot block.
-        sn_parent, height: per supernode its parent (-1 for a root) and its height in the tree.
         groups: ``((height, ncols, nrows), [supernodes])`` sorted: the batches factored together.
         nf: ``(ns,)`` final first column of each supernode.
         struct: per postorder column the set of block rows below the diagonal (postorder labels).
@@ -159,8 +142,6 @@ class _Tree:
     first: list
     ncols: list
     nrows: list
-    sn_parent: list
-    height: list
     groups: list
     nf: np.ndarray
     struct: list
@@ -276,7 +257,7 @@ def _supernode_tree(pattern, relax) -> _Tree:
     lab = np.repeat(nf - np.asarray(first[:-1], dtype=np.int64), nc) + np.arange(n)
     final = np.empty(n, dtype=np.int64)
     final[lab] = order
-    return _Tree(final, lab, first, ncols, nrows, sn_parent, height, group_list, nf, struct)
+    return _Tree(final, lab, first, ncols, nrows, group_list, nf, struct)
 
 
 class _Layout:
@@ -404,7 +385,7 @@ class SymbolicCholesky:
     The stages (each its own function): the supernodal elimination tree (:func:`_supernode_tree`: ordering,
     etree, column structures, relaxed supernodes, level groups), the panel layout (:class:`_Layout`), the
     gather map of ``H`` into the panels (:func:`_gather_map`) and the per-group solve rows and update
-    positions (:func:`_factor_groups`). ``timings`` holds their seconds.
+    positions (:func:`_factor_groups`).
 
     Args:
         pattern: the block pattern of the SPD matrix.
@@ -419,22 +400,16 @@ class SymbolicCholesky:
     def __init__(self, pattern, relax=((2, 1.0), (6, 0.8), (16, 0.2), (10 ** 9, 0.05))):
         n, k = pattern.num_vars, pattern.k
         self.n, self.k, self.size = n, k, n * k
-        tick = _Ticker()
         tree = _supernode_tree(pattern, relax)
-        tick("tree")
         lay = _Layout(tree, k)
         if lay.buffer_size >= 2 ** 31:
             raise ValueError(f"the factor has {lay.buffer_size} entries: more than int32 positions address")
-        tick("layout")
         self.src, self.dst = _gather_map(pattern, tree, lay)
-        tick("gather")
         self.groups = _factor_groups(tree, lay)
-        tick("groups")
         self.order = tree.order  # position -> original block variable
         self.num_supernodes = len(tree.ncols)
         self.p = [k * c for c in tree.ncols]
         self.m = [k * (c + r) for c, r in zip(tree.ncols, tree.nrows)]
-        self.height, self.sn_parent = tree.height, tree.sn_parent
         self.buffer_size = lay.buffer_size
         self.perm_scalar = (self.order[:, None] * k + np.arange(k)).reshape(-1)  # permuted scalar -> original
         # the diagonal entries of every pivot block in the panel buffer (a panel is m x p, row-major)
@@ -443,7 +418,6 @@ class SymbolicCholesky:
         self.diag = np.repeat(lay.off, pw) + within * (np.repeat(pw, pw) + 1)
         self.nnz_L = int(sum(p * (p + 1) // 2 + (m - p) * p for p, m in zip(self.p, self.m)))
         self._torch_cache = {}
-        self.timings = tick.times  # seconds per stage of the analysis (for profiling)
 
     def workspace(self, device) -> _Workspace:
         """Index tensors, the panel buffer and the solve vector on ``device``, with every per-group view
@@ -582,6 +556,9 @@ class _Workspace:
         # the packed update of a front-by-front supernode: one scratch vector, as large as the largest one
         d_max = max([g.m - g.p for g in sym.groups if g.size <= _NUMPY_MAX_BATCH] + [0])
         self.scratch = np.zeros(d_max * (d_max + 1) // 2) if self.cpu else None
+        # H's rows on their way to the panels (kept: a fresh array of H's size per factorisation costs its
+        # page faults each time)
+        self.rows = np.empty(sym.src.shape[0], dtype=np.dtype((np.void, 8 * sym.k))) if self.cpu else None
         self.groups, self.index = _group_views(sym, self.buf, device, self.cpu, self.scratch)
 
 
@@ -676,8 +653,7 @@ class NumericCholesky:
         ws = self.ws = sym.workspace(v.device)
         infos = []
         failed = False
-        # numpy's BLAS runs single-threaded here (see limit_blas_threads)
-        with ws.lock, limit_blas_threads(1 if ws.cpu else None):
+        with ws.lock:
             prev = ws.owner() if ws.owner is not None else None
             if prev is not None:
                 prev._detach()
@@ -693,8 +669,8 @@ class NumericCholesky:
             if ws.cpu:
                 # rows of k values as k * 8-byte records: numpy's take and put copy them whole (parking-garage:
                 # 0.3 ms against 2.1 for torch's index_select + index_copy_ of (k,) rows)
-                rec = np.dtype((np.void, 8 * k))
-                np.put(ws.bufnp.view(rec), sym.dst, np.take(v.contiguous().numpy().view(rec), sym.src))
+                rows = np.take(v.contiguous().numpy().view(ws.rows.dtype), sym.src, out=ws.rows)
+                np.put(ws.bufnp.view(ws.rows.dtype), sym.dst, rows)
             else:
                 buf.view(-1, k).index_copy_(0, ws.dst, torch.index_select(v.reshape(-1, k), 0, ws.src))
             failed = self._factor_groups(ws.groups, buf, infos, in_place, lapack)
@@ -752,7 +728,7 @@ class NumericCholesky:
         bt = torch.from_numpy(b) if is_np else b
         ws = self.ws
         in_place = _lapack_in_place()
-        with ws.lock, limit_blas_threads(1 if ws.cpu else None):
+        with ws.lock:
             y, ynp = ws.y, ws.ynp
             torch.index_select(bt.detach().to(torch.float64), 0, ws.perm, out=y)
             self._forward(self.groups, y, ynp, in_place, dtrsv)

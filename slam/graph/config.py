@@ -27,10 +27,8 @@ class OptimizerConfig:
     max_iterations: int = 100  # outer iterations (accepted or GN steps); GTSAM's default is 100
     rel_tol: float = 1e-5  # converged when (cost - new_cost) < rel_tol * cost  (GTSAM relativeErrorTol)
     abs_tol: float = 2e-5  # converged when cost - new_cost < abs_tol  (GTSAM absoluteErrorTol 1e-5 x 2)
-    cost_tol: float = 0.0  # converged when the cost falls to this value
     lambda_init: float = 1e-5  # initial LM damping (GTSAM's default)
     lambda_factor: float = 10.0  # lambda /= factor after a good step, *= factor after a bad one
-    lambda_min: float = 1e-12  # lower clamp of lambda
     lambda_max: float = 1e10  # LM gives up (status lambda_limit) beyond this damping
     damping: str = "identity"  # "identity": H + lambda I (GTSAM's default); "diagonal": H + lambda diag(H)
     # how lambda moves (LM only): "gtsam" (/= lambda_factor after a good step, *= after a bad one: GTSAM's
@@ -44,14 +42,6 @@ class OptimizerConfig:
     kernel_width: Optional[float] = None  # width of a kernel given by name (default sqrt(chi2_0.95(6)))
     planar: Optional[bool] = None  # solve only (x, y, yaw); None: auto-detect with PoseGraph.is_planar()
     check_information: bool = True  # check every information matrix is SPD before optimising
-    # solver "auto": a dense Cholesky up to this many unknowns (no symbolic analysis), the sparse one above.
-    # None: 240, the crossover measured on sphere2500 subgraphs (dense wins at 240 unknowns, loses at 360)
-    dense_max: Optional[int] = None
-    # torch and BLAS threads during the call (restored afterwards; None leaves them; BLAS through
-    # threadpoolctl, see slam.graph.blas_threads). The work is many small batched ops: on a busy CPU torch's
-    # OpenMP pool slowed them 10-40x when it had more threads than free cores, while one thread loses little
-    # on an idle machine.
-    num_threads: Optional[int] = 1
     # the optimised poses carry a grad_fn when the measurements, information matrices or held poses require
     # grad: implicit differentiation at the optimum (slam.graph.implicit; one sparse factorisation and solve
     # of the cost's Hessian per backward). Exact at a stationary point: tighten rel_tol for precise gradients.
@@ -81,8 +71,4 @@ class OptimizerConfig:
         if method == "lm" and not lm_ok:
             raise ValueError("LM needs lambda_init > 0, lambda_factor > 1 and lambda_max > lambda_init, got "
                              f"{self.lambda_init}, {self.lambda_factor}, {self.lambda_max}")
-        if self.dense_max is not None and self.dense_max < 0:
-            raise ValueError(f"dense_max must be >= 0 or None, got {self.dense_max}")
-        if self.num_threads is not None and self.num_threads < 1:
-            raise ValueError(f"num_threads must be >= 1 or None, got {self.num_threads}")
         return self

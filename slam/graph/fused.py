@@ -88,15 +88,21 @@ def copy_(dst: Tensor, src: Tensor) -> Tensor:
     return dst.copy_(src)
 
 
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    """Row-wise dot products ``(E, 1)`` of ``(E, 3)`` vectors (torch's sum over a dimension of 3 took 3x)."""
+    p = a * b
+    return p[:, :1] + p[:, 1:2] + p[:, 2:]
+
+
 def _qmul(a: Tensor, b: Tensor, conj_b: bool = False) -> Tensor:
     """Hamilton product ``a * b`` (or ``a * b^*``) of quaternions ``(E, 4)`` ``[x, y, z, w]``."""
     av, aw, bv, bw = a[:, :3], a[:, 3:], b[:, :3], b[:, 3:]
     if conj_b:  # b^* = (-bv, bw)
         v = bw * av - aw * bv - torch.linalg.cross(av, bv)
-        w = aw * bw + (av * bv).sum(-1, keepdim=True)
+        w = aw * bw + _dot(av, bv)
     else:
         v = aw * bv + bw * av + torch.linalg.cross(av, bv)
-        w = aw * bw - (av * bv).sum(-1, keepdim=True)
+        w = aw * bw - _dot(av, bv)
     return torch.cat([v, w], dim=-1)
 
 
@@ -137,7 +143,7 @@ def _log_terms(q: Tensor):
     unselected one passes no NaN to the gradients.
     """
     v, w = q[:, :3], q[:, 3:]
-    n2 = (v * v).sum(-1, keepdim=True)
+    n2 = _dot(v, v)
     # |w| (abs's second derivative, like atan2's, is a python decomposition in torch 2.13 whose first call
     # imports torch._dynamo: seconds)
     aw = torch.where(w < 0, -w, w)
@@ -176,7 +182,7 @@ def se3_residuals(poses: Tensor, ii: Tensor, jj: Tensor, zinv: Tensor, chart: st
     if chart == "se3":
         # rho = J_l^-1(phi) t = t - phi x t / 2 + c (phi (phi . t) - theta^2 t)
         pxt = torch.linalg.cross(phi, t)
-        rho = t - 0.5 * pxt + c * (phi * (phi * t).sum(-1, keepdim=True) - theta2 * t)
+        rho = t - 0.5 * pxt + c * (phi * _dot(phi, t) - theta2 * t)
     elif chart == "r3so3":
         rho = t
     else:
@@ -243,7 +249,7 @@ def _jl_inv_and_q(r: Tensor, theta2: Tensor, c: Tensor) -> Tuple[Tensor, Tensor]
     series = _Q_SERIES.to(r.dtype)
     series = series[0] + theta2 * (series[1] + theta2 * series[2])
     c1, c2, c3 = torch.where(small, series, exact).split(1, dim=-1)
-    s = (phi * rho).sum(-1, keepdim=True)
+    s = _dot(phi, rho)
     v = (0.5 - c2 * theta2) * rho + (2.0 * c2 - c1) * s * phi
     sym = rho_i * phi_j + phi_i * rho_j  # rho phi^T + phi rho^T
     M = c1 * sym - (2.0 * c3 * s) * pp + (2.0 * s * (c3 * theta2 - c1)) * eye + v[:, Hx] * sg
@@ -328,7 +334,7 @@ def se3_retract(poses: Tensor, xi: Tensor) -> Tensor:
     has no derivative at 0: autograd through a step of zero is exact, to second order).
     """
     rho, phi = xi[:, :3], xi[:, 3:]
-    theta2 = (phi * phi).sum(-1, keepdim=True)
+    theta2 = _dot(phi, phi)
     small = theta2 < _SMALL.get(xi.dtype, 1e-2) ** 2
     t = torch.where(small, 1.0, theta2).sqrt()
     k = torch.where(small, 0.5 - theta2 / 48.0, torch.sin(0.5 * t) / t)  # sin(t/2) / t
@@ -342,14 +348,16 @@ def se3_retract(poses: Tensor, xi: Tensor) -> Tensor:
 
 
 def _buffer(ws: Optional[dict], name: str, shape, like: Tensor) -> Tensor:
-    """A tensor of ``shape`` kept in the dict ``ws`` between calls (fresh when ``ws`` is None): freshly
-    allocated megabyte arrays cost their page faults on every iteration (~0.15 ms per MB here)."""
+    """A contiguous tensor of ``shape`` in storage kept in the dict ``ws`` between calls (fresh when ``ws`` is
+    None; a larger one kept there serves a smaller shape): freshly allocated megabyte arrays cost their page
+    faults on every iteration (~0.15 ms per MB here)."""
     if ws is None:
         return like.new_empty(shape)
+    need = math.prod(shape)
     t = ws.get(name)
-    if t is None or t.shape != shape or t.dtype != like.dtype or t.device != like.device:
-        t = ws[name] = like.new_empty(shape)
-    return t
+    if t is None or t.numel() < need or t.dtype != like.dtype or t.device != like.device:
+        t = ws[name] = like.new_empty(need)
+    return t[:need].view(shape)
 
 
 def normal_blocks(JT: Tensor, L: Tensor, weights: Optional[Tensor] = None,

@@ -7,19 +7,16 @@ once (:func:`build_pattern`, vectorised, no Python loop over edges) as a list of
 the other, and every iteration only adds the four ``k x k`` blocks of each edge's
 ``[J_i, J_j]^T W Omega [J_i, J_j]`` into it with one ``index_add_`` over block ids.
 
-Solvers (all ``solver.solve(pattern, values, b) -> x``):
+Solvers (``solver.solve(pattern, values, b) -> x``), both torch on any device:
 
 * :class:`SparseCholeskySolver` — sparse direct: a right-looking supernodal Cholesky computed in place in
   the factor's panels (:mod:`slam.graph.cholesky`; symbolic analysis cached per pattern, numeric work in
-  batched torch calls plus direct LAPACK calls for single fronts on the CPU). Needs scipy (ordering, LAPACK). The
-  default when scipy is importable.
-* :class:`SuperLUSolver` — scipy's SuperLU (symmetric mode, minimum-degree ordering): a reference
-  sparse direct solver, CPU only, ~1.5-2x slower on the benchmark graphs.
-* :class:`DenseCholeskySolver` — ``torch.linalg.cholesky`` on the dense matrix: pure torch, any device,
-  for systems up to a few thousand unknowns.
-* :class:`PCGSolver` — block-Jacobi preconditioned conjugate gradient in pure torch (block-sparse
-  mat-vec), any device and size; iterative, so less exact than the direct solvers, and slow on long
-  chains (ill-conditioned).
+  batched torch calls plus direct LAPACK calls for single fronts on the CPU). One factorisation and solve
+  took 9-31 ms on parking-garage and sphere2500, where scipy's SuperLU (minimum degree, symmetric mode) took
+  34-97 ms and CHOLMOD (scikit-sparse 0.4.16, SuiteSparse 5.12, OpenBLAS) 18-56 ms (one core, loaded;
+  ``python -m benchmarks.posegraph --solvers``).
+* :class:`DenseCholeskySolver` — ``torch.linalg.cholesky`` on the dense matrix, for small systems (it
+  skips the symbolic analysis).
 
 Example:
     >>> import torch
@@ -30,6 +27,8 @@ Example:
 """
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Union
 
@@ -37,18 +36,16 @@ import numpy as np
 import torch
 
 __all__ = [
+    "DENSE_MAX",
     "BlockPattern",
     "DenseCholeskySolver",
     "LinearSolver",
     "LinearSolverError",
-    "PCGSolver",
     "SparseCholeskySolver",
-    "SuperLUSolver",
     "assemble",
     "assemble_blocks",
     "build_pattern",
     "make_solver",
-    "scipy_available",
     "to_dense",
 ]
 
@@ -57,14 +54,6 @@ Tensor = torch.Tensor
 
 class LinearSolverError(RuntimeError):
     """The linear system could not be solved (singular / indefinite / did not converge)."""
-
-
-def scipy_available() -> bool:
-    try:
-        import scipy.sparse.linalg  # noqa: F401
-    except ImportError:  # pragma: no cover - scipy is installed in dev
-        return False
-    return True
 
 
 @dataclass
@@ -184,7 +173,8 @@ def assemble_blocks(pattern: BlockPattern, blocks: Tensor, g_edges: Tensor, out=
         g = torch.zeros(pattern.num_vars + 1, k, dtype=g_edges.dtype, device=g_edges.device)
     else:
         H, g = out[0].zero_(), out[1].zero_()
-    H.index_add_(0, pattern.edge_blocks.view(-1), blocks.reshape(E * 4, k, k))
+    # rows of k * k values: torch's index_add_ took 2x as long over (k, k) slices
+    H.view(-1, k * k).index_add_(0, pattern.edge_blocks.view(-1), blocks.reshape(E * 4, k * k))
     g.index_add_(0, pattern.edge_vars.view(-1), g_edges.reshape(E * 2, k))
     return H[:-1].view(-1), g[:-1].view(-1)
 
@@ -207,6 +197,12 @@ class LinearSolver:
         raise NotImplementedError
 
 
+#: Symbolic analyses kept between calls (each holds its factor's workspace, the size of the factor).
+SYMBOLIC_CACHE_SIZE = 2
+_SYMBOLIC: OrderedDict = OrderedDict()  # pattern key -> SymbolicCholesky, least recently used first
+_SYMBOLIC_LOCK = threading.Lock()
+
+
 class SparseCholeskySolver(LinearSolver):
     """Supernodal sparse Cholesky (:class:`slam.graph.cholesky.SymbolicCholesky`), float64.
 
@@ -216,17 +212,25 @@ class SparseCholeskySolver(LinearSolver):
 
     name = "sparse"
 
-    def __init__(self):
-        if not scipy_available():  # pragma: no cover
-            raise ImportError("SparseCholeskySolver needs scipy for its ordering (pip install scipy); "
-                              "use solver='dense' or 'pcg'")
-
     def symbolic(self, pattern: BlockPattern):
+        """The analysis of ``pattern``: made once per distinct pattern and kept for the last
+        :data:`SYMBOLIC_CACHE_SIZE` patterns (a graph optimised again, or a problem of the same edges, skips it;
+        parking-garage: 15 ms of a 110 ms optimisation)."""
         from slam.graph.cholesky import SymbolicCholesky
 
-        if "symbolic" not in pattern._cache:
-            pattern._cache["symbolic"] = SymbolicCholesky(pattern)
-        return pattern._cache["symbolic"]
+        sym = pattern._cache.get("symbolic")
+        if sym is None:
+            key = (pattern.k, pattern.num_vars, pattern.block_rows.cpu().numpy().tobytes(),
+                   pattern.block_cols.cpu().numpy().tobytes())
+            with _SYMBOLIC_LOCK:
+                sym = _SYMBOLIC.pop(key, None)
+            sym = sym or SymbolicCholesky(pattern)
+            with _SYMBOLIC_LOCK:
+                _SYMBOLIC[key] = sym  # most recently used last
+                while len(_SYMBOLIC) > SYMBOLIC_CACHE_SIZE:
+                    _SYMBOLIC.popitem(last=False)
+            pattern._cache["symbolic"] = sym
+        return sym
 
     def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
         from slam.graph.cholesky import NotPositiveDefiniteError
@@ -242,45 +246,6 @@ class SparseCholeskySolver(LinearSolver):
         if not bool(torch.isfinite(x).all()):
             raise LinearSolverError("sparse Cholesky produced non-finite values (singular system)")
         return x.to(b.dtype)
-
-
-class SuperLUSolver(LinearSolver):
-    """Sparse direct solve with scipy's SuperLU (symmetric mode, multiple-minimum-degree ordering on
-    ``H``, no pivoting: for an SPD matrix this is a sparse LDL^T/Cholesky-like factorisation).
-
-    Args:
-        ordering: SuperLU column ordering; ``"MMD_AT_PLUS_A"`` (minimum degree on ``H + H^T``) gave
-            2-5x less fill than COLAMD on the benchmark graphs.
-    """
-
-    name = "superlu"
-
-    def __init__(self, ordering: str = "MMD_AT_PLUS_A"):
-        if not scipy_available():  # pragma: no cover
-            raise ImportError("SuperLUSolver needs scipy (pip install scipy); use solver='dense' or 'pcg'")
-        self.ordering = ordering
-
-    def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
-        import numpy as np
-        import scipy.sparse as sp
-        import scipy.sparse.linalg as sla
-
-        if pattern.size == 0:
-            return b.clone()
-        n, k = pattern.num_vars, pattern.k
-        rows = pattern.block_rows.cpu().numpy()
-        indptr = np.searchsorted(rows, np.arange(n + 1))
-        data = values.detach().to("cpu", torch.float64).numpy().reshape(-1, k, k)
-        A = sp.bsr_matrix((data, pattern.block_cols.cpu().numpy(), indptr), shape=(n * k, n * k)).tocsc()
-        try:
-            lu = sla.splu(A, permc_spec=self.ordering, diag_pivot_thresh=0.0,
-                          options={"SymmetricMode": True})
-            x = lu.solve(b.detach().to("cpu", torch.float64).numpy())
-        except RuntimeError as exc:  # "Factor is exactly singular"
-            raise LinearSolverError(f"sparse factorisation failed: {exc}") from None
-        if not np.isfinite(x).all():
-            raise LinearSolverError("sparse factorisation produced non-finite values (singular system)")
-        return torch.from_numpy(x).to(device=b.device, dtype=b.dtype)
 
 
 class DenseCholeskySolver(LinearSolver):
@@ -300,96 +265,21 @@ class DenseCholeskySolver(LinearSolver):
         return torch.cholesky_solve(b[:, None], L)[:, 0]
 
 
-class PCGSolver(LinearSolver):
-    """Block-Jacobi preconditioned conjugate gradient in pure torch (block-sparse mat-vec).
-
-    Args:
-        rtol: stop when ``||H x - b|| <= rtol ||b||``.
-        max_iterations: CG iteration cap (raises :class:`LinearSolverError` if not met and ``strict``).
-        strict: raise when the tolerance is not met; otherwise return the last iterate.
-    """
-
-    name = "pcg"
-
-    def __init__(self, rtol: float = 1e-10, max_iterations: int = 2000, strict: bool = False):
-        self.rtol = rtol
-        self.max_iterations = max_iterations
-        self.strict = strict
-        self.last_iterations = 0
-
-    def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
-        m = pattern.size
-        if m == 0:
-            return b.clone()
-        dev = values.device
-        k = pattern.k
-        blocks = values.view(-1, k, k)
-        brow, bcol = pattern.block_rows.to(dev), pattern.block_cols.to(dev)
-
-        def matvec(v: Tensor) -> Tensor:  # block-sparse: y[row] += B @ x[col]
-            prod = (blocks @ v.view(-1, k)[bcol][:, :, None])[..., 0]
-            return torch.zeros_like(v).view(-1, k).index_add_(0, brow, prod).view(-1)
-
-        D = blocks[pattern.diag_blocks.to(dev)]  # (n, k, k)
-        L, info = torch.linalg.cholesky_ex(D)
-        if bool((info != 0).any()):
-            raise LinearSolverError("PCG: a diagonal block of H is not positive definite")
-
-        def precond(r: Tensor) -> Tensor:
-            return torch.cholesky_solve(r.reshape(-1, k, 1), L).reshape(-1)
-
-        x = torch.zeros_like(b)
-        r = b.clone()
-        z = precond(r)
-        p = z.clone()
-        rz = torch.dot(r, z)
-        bn = b.norm()
-        tol = self.rtol * bn
-        it = 0
-        for it in range(1, self.max_iterations + 1):
-            Ap = matvec(p)
-            pAp = torch.dot(p, Ap)
-            if not bool(pAp > 0):
-                raise LinearSolverError("PCG: the matrix is not positive definite")
-            alpha = rz / pAp
-            x = x + alpha * p
-            r = r - alpha * Ap
-            if bool(r.norm() <= tol):
-                break
-            z = precond(r)
-            rz_new = torch.dot(r, z)
-            p = z + (rz_new / rz) * p
-            rz = rz_new
-        self.last_iterations = it
-        if self.strict and bool(r.norm() > tol):
-            raise LinearSolverError(f"PCG did not reach rtol={self.rtol} in {self.max_iterations} iterations")
-        return x
+#: ``"auto"`` takes the dense Cholesky up to this many unknowns (40 poses), the sparse one above: the crossover
+#: measured on sphere2500 subgraphs (dense wins at 240 unknowns, loses at 360)
+DENSE_MAX = 240
 
 
-def make_solver(solver: Union[None, str, LinearSolver], size: int = 0, dense_max: int = 240) -> LinearSolver:
-    """A solver from a name (``"auto"``, ``"sparse"``, ``"superlu"``, ``"dense"``, ``"pcg"``) or an object.
-
-    ``"auto"``: the dense Cholesky up to ``dense_max`` unknowns (240 = 40 poses; it skips the sparse
-    symbolic analysis, about 2x faster there), then the sparse direct solver when scipy is importable,
-    else the dense Cholesky up to 6000 unknowns and PCG beyond.
-    """
+def make_solver(solver: Union[None, str, LinearSolver], size: int = 0) -> LinearSolver:
+    """A solver from a name (``"auto"``, ``"sparse"``, ``"dense"``) or a :class:`LinearSolver` object;
+    ``"auto"`` (or None) is the dense Cholesky up to :data:`DENSE_MAX` unknowns, else the sparse one."""
     if isinstance(solver, LinearSolver):
         return solver
     name = "auto" if solver is None else str(solver).lower()
     if name == "auto":
-        if size <= dense_max:
-            return DenseCholeskySolver()
-        if scipy_available():
-            return SparseCholeskySolver()
-        return DenseCholeskySolver() if size <= 6000 else PCGSolver()
-    if name in ("sparse", "cholesky"):
+        name = "dense" if size <= DENSE_MAX else "sparse"
+    if name == "sparse":
         return SparseCholeskySolver()
-    if name in ("superlu", "splu"):
-        return SuperLUSolver()
     if name == "dense":
         return DenseCholeskySolver()
-    if name in ("pcg", "cg"):
-        return PCGSolver()
-    raise ValueError(f"unknown linear solver {solver!r}; expected 'auto', 'sparse', 'superlu', 'dense', "
-                     "'pcg' "
-                     "or a LinearSolver")
+    raise ValueError(f"unknown linear solver {solver!r}; expected 'auto', 'sparse', 'dense' or a LinearSolver")

@@ -3,7 +3,7 @@
 Each iteration linearises every edge at once (the closed forms of :mod:`slam.graph.fused`), scatters the
 per-edge blocks into a fixed sparse pattern (:mod:`slam.graph.linear`), solves ``(H + lambda D) dx = -g``
 and retracts ``T <- T exp(dx)`` (right perturbation). The pieces are separate: the per-edge maths behind
-:class:`~slam.graph.problem.PoseGraphProblem`, the robust kernel (:mod:`slam.graph.costs`), the linear
+:class:`~slam.graph.problem.TorchProblem`, the robust kernel (:mod:`slam.graph.costs`), the linear
 solver (:mod:`slam.graph.linear`) and here the outer loop with its step rules (Gauss-Newton, LM with GTSAM's
 schedule or Nielsen's gain-ratio rule).
 
@@ -50,17 +50,18 @@ import torch
 
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, make_kernel
-from slam.graph.initialization import initialize
+from slam.graph.initialization import fits_edges, initial_poses, initialize
 from slam.graph.linear import LinearSolver, LinearSolverError
 from slam.graph.pose_graph import PoseGraph
-from slam.graph.problem import PoseGraphProblem, TorchProblem
+from slam.graph.problem import TorchProblem
 from slam.graph.result import OptimizationResult, Status
-from slam.threads import limit_threads
+from slam.lie import se3_normalize
 
 __all__ = ["METHODS", "OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
 
 #: The outer loops :func:`optimize` runs (case-insensitive): Levenberg-Marquardt, Gauss-Newton.
 METHODS = ("lm", "gn")
+LAMBDA_MIN = 1e-12  # LM's lambda is clamped above this
 
 Tensor = torch.Tensor
 
@@ -75,13 +76,14 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
         method: ``"lm"`` (Levenberg-Marquardt) or ``"gn"`` (Gauss-Newton).
         kernel: ``None``, a name (``"huber"``, ``"cauchy"``, ``"tukey"``, ``"geman_mcclure"``) or a
             :class:`~slam.graph.costs.RobustKernel` object.
-        solver: ``"auto"`` (sparse direct when scipy is importable), ``"sparse"``, ``"dense"``, ``"pcg"`` or a
+        solver: ``"auto"`` (dense Cholesky for small systems, else sparse), ``"sparse"``, ``"dense"`` or a
             :class:`~slam.graph.linear.LinearSolver`.
         config: an :class:`OptimizerConfig`; keyword ``overrides`` replace its fields
             (e.g. ``optimize(g, max_iterations=10, gauge="prior")``).
         initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"`` (rotations by
             chordal relaxation, then translations by least squares, as GTSAM's ``InitializePose3``) or
-            ``"spanning_tree"`` (composed along a breadth-first tree of the edges); see
+            ``"spanning_tree"`` (composed along a breadth-first tree of the edges) or ``"auto"`` (the graph's
+            poses when their chi2 per edge is at most ``AUTO_CHI2_PER_EDGE``, else the spanning tree); see
             :mod:`slam.graph.initialization`. ``initial_chi2`` is then the chi2 of that guess. The default
             keeps the caller's poses (a warm start, as the SLAM back end's); from raw odometry over a long
             trajectory (input_INTEL_g2o.g2o) LM crawls, and a run that stops at ``max_iterations`` says so in
@@ -100,16 +102,15 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
     cfg = dataclasses.replace(config or OptimizerConfig(), **overrides)
     if isinstance(graph, PoseGraph) and graph.fixed.numel():  # the graph's own held poses (g2o FIX lines)
         cfg = dataclasses.replace(cfg, fixed=tuple(int(f) for f in cfg.fixed) + tuple(graph.fixed.tolist()))
-    with limit_threads(cfg.num_threads):  # torch's, BLAS's (and OpenCV's) counts, restored after
-        if initialization != "none":  # (its time counts in timings["setup"])
-            given = graph.poses
-            graph = initialize(graph, initialization, fixed=cfg.fixed)
-            if given.requires_grad:
-                # the initial guess keeps the anchor and the held poses as given: their rows stay the
-                # caller's tensor, so the optimum's gradient towards them (its gauge) is not lost
-                same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
-                graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
-        res = _optimize(graph, method, kernel, solver, cfg, t_start)
+    if initialization not in ("none", "auto"):  # (its time counts in timings["setup"]; "auto" in _optimize)
+        given = graph.poses
+        graph = initialize(graph, initialization, fixed=cfg.fixed)
+        if given.requires_grad:
+            # the initial guess keeps the anchor and the held poses as given: their rows stay the
+            # caller's tensor, so the optimum's gradient towards them (its gauge) is not lost
+            same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
+            graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
+    res = _optimize(graph, method, kernel, solver, cfg, t_start, initialization == "auto")
     if res.status == Status.MAX_ITERATIONS and res.iterations:
         res.message = _stall_advice(res, cfg, initialization)
     return res
@@ -127,7 +128,7 @@ def _stall_advice(res: OptimizationResult, cfg: OptimizerConfig, initialization:
 
 
 def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfig,
-              t_start: float) -> OptimizationResult:
+              t_start: float, auto_start: bool = False) -> OptimizationResult:
     method = method.lower()
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -140,9 +141,16 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     gauge = "first" if (method == "gn" and cfg.gauge == "free") else cfg.gauge
     kern = make_kernel(kernel, cfg.kernel_width)
     prob = TorchProblem(graph, cfg, kern, gauge, solver)
+    start = None
+    if auto_start:  # the graph's poses, evaluated once, unless they fit the edges too poorly
+        start = prob.evaluate(prob.poses)
+        if not fits_edges(start[1], graph.num_edges):
+            tree = initial_poses(graph, "spanning_tree", cfg.fixed).detach().to(prob.poses)
+            prob.poses, start = se3_normalize(tree, positive_w=False), None
     tm = {"setup": time.perf_counter() - t_start, "linearize": 0.0, "solve": 0.0, "evaluate": 0.0}
-    run = _minimize(prob, method, cfg, tm, t_start)
+    run = _minimize(prob, method, cfg, tm, t_start, start)
     x = prob.finish(run.best.x, run.iterations > 0)
+    prob.release()
     if cfg.differentiable:
         from slam.graph.implicit import attach_gradients
 
@@ -201,8 +209,8 @@ class _GtsamDamping:
         self.lam *= self.cfg.lambda_factor
         return self.lam <= self.cfg.lambda_max
 
-    def accept(self, prob: PoseGraphProblem, dx, g, decrease: float) -> None:
-        self.lam = max(self.lam / self.cfg.lambda_factor, self.cfg.lambda_min)
+    def accept(self, prob: TorchProblem, dx, g, decrease: float) -> None:
+        self.lam = max(self.lam / self.cfg.lambda_factor, LAMBDA_MIN)
 
 
 class _NielsenDamping(_GtsamDamping):
@@ -217,15 +225,15 @@ class _NielsenDamping(_GtsamDamping):
         self.lam, self.nu = self.lam * self.nu, self.nu * 2.0
         return self.lam <= self.cfg.lambda_max
 
-    def accept(self, prob: PoseGraphProblem, dx, g, decrease: float) -> None:
+    def accept(self, prob: TorchProblem, dx, g, decrease: float) -> None:
         pred = prob.predicted_decrease(dx, g, self.lam)
         # gain ratio; clipped where the formula saturates anyway (and a broken model counts as poor)
         rho = min(max(decrease / pred, -1.0), 2.0) if pred > 0 else 0.0
-        self.lam = max(self.lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), self.cfg.lambda_min)
+        self.lam = max(self.lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAMBDA_MIN)
         self.nu = 2.0
 
 
-def _trial(prob: PoseGraphProblem, x, H, g, lam: float, tm: Dict[str, float]) -> Tuple[Optional[_Iterate], str]:
+def _trial(prob: TorchProblem, x, H, g, lam: float, tm: Dict[str, float]) -> Tuple[Optional[_Iterate], str]:
     """The step of ``(H + lambda D) dx = -g`` from ``x`` and its cost; None (and why) when the solve fails or
     the cost is NaN."""
     t = time.perf_counter()
@@ -244,7 +252,7 @@ def _trial(prob: PoseGraphProblem, x, H, g, lam: float, tm: Dict[str, float]) ->
     return _Iterate(cost, chi2, x_new, cache, dx), ""
 
 
-def _lm_step(prob: PoseGraphProblem, cur: _Iterate, H, g, damping: _GtsamDamping, cfg: OptimizerConfig,
+def _lm_step(prob: TorchProblem, cur: _Iterate, H, g, damping: _GtsamDamping, cfg: OptimizerConfig,
              tm: Dict[str, float]) -> Tuple[Optional[_Iterate], str]:
     """Damped steps from ``cur``, lambda growing, until one lowers the cost; None (and why) when lambda
     passes ``lambda_max`` first."""
@@ -256,11 +264,12 @@ def _lm_step(prob: PoseGraphProblem, cur: _Iterate, H, g, damping: _GtsamDamping
             return None, message or f"no decrease of the cost with lambda up to {cfg.lambda_max:g}"
 
 
-def _minimize(prob: PoseGraphProblem, method: str, cfg: OptimizerConfig, tm: Dict[str, float],
-              t_start: float) -> _Run:
-    """Gauss-Newton or Levenberg-Marquardt iterations on ``prob`` from its initial poses."""
+def _minimize(prob: TorchProblem, method: str, cfg: OptimizerConfig, tm: Dict[str, float],
+              t_start: float, start=None) -> _Run:
+    """Gauss-Newton or Levenberg-Marquardt iterations on ``prob`` from its initial poses (``start``: their
+    ``prob.evaluate`` when already made)."""
     t = time.perf_counter()
-    cost, chi2, cache = prob.evaluate(prob.poses)
+    cost, chi2, cache = prob.evaluate(prob.poses) if start is None else start
     cur = _Iterate(cost, chi2, prob.poses, cache)
     tm["evaluate"] += time.perf_counter() - t
     if not math.isfinite(cost):
@@ -273,9 +282,6 @@ def _minimize(prob: PoseGraphProblem, method: str, cfg: OptimizerConfig, tm: Dic
     if prob.size == 0:
         run.status, run.message = Status.CONVERGED, "every pose is fixed"
     while run.status == Status.MAX_ITERATIONS and run.iterations < cfg.max_iterations:
-        if cur.cost <= cfg.cost_tol:
-            run.status = Status.CONVERGED
-            break
         t = time.perf_counter()
         H, g = prob.linearize(cur.x, cur.cache)
         tm["linearize"] += time.perf_counter() - t
@@ -307,7 +313,7 @@ def _minimize(prob: PoseGraphProblem, method: str, cfg: OptimizerConfig, tm: Dic
             damping.accept(prob, cur.dx, g, decrease)
         if run.status == Status.DIVERGED:
             break
-        if decrease < cfg.abs_tol or decrease < cfg.rel_tol * (cur.cost + decrease) or cur.cost <= cfg.cost_tol:
+        if decrease < cfg.abs_tol or decrease < cfg.rel_tol * (cur.cost + decrease):
             run.status = Status.CONVERGED
     return run
 

@@ -25,7 +25,9 @@ import torch
 
 from slam.lie import se3_normalize
 
-__all__ = ["CHARTS", "PoseGraph", "first_bad_information"]
+__all__ = ["CHARTS", "SYMMETRY_RTOL", "PoseGraph", "first_bad_information", "require_spd_information"]
+
+SYMMETRY_RTOL = 1e-6  # an information matrix is symmetric when |A - A^T| <= this * its largest diagonal entry
 
 Tensor = torch.Tensor
 
@@ -169,10 +171,7 @@ class PoseGraph:
                 raise ValueError(f"{name}[{k}] has a quaternion of norm {float(qn[k]):.6g}, expected 1 "
                                  f"(use slam.lie.se3_normalize)")
         if check_information and e:
-            k = first_bad_information(self.information)
-            if k is not None:
-                raise ValueError(f"information[{k}] (edge {int(self.ii[k])} -> {int(self.jj[k])}) is not "
-                                 f"symmetric positive definite")
+            require_spd_information(self.information, self.ii, self.jj)
         return self
 
     # ------------------------------------------------------------------------------------------
@@ -283,7 +282,7 @@ class PoseGraph:
 
 def planar_arrays(poses: np.ndarray, measurements: np.ndarray, information: np.ndarray, tol: float = 1e-9) -> bool:
     """The rule of :meth:`PoseGraph.is_planar` on float64 arrays ``poses (N, 7)``, ``measurements (E, 7)``,
-    ``information (E, 6, 6)`` (numpy: the optimiser's setup runs it on the arrays it already holds)."""
+    ``information (E, 6, 6)``."""
     # z, qx, qy: columns 2:5 of the poses and measurements (a NaN is not planar)
     if not all((np.abs(p[:, 2:5]) <= tol).all() for p in (poses, measurements)):
         return False
@@ -294,15 +293,28 @@ def planar_arrays(poses: np.ndarray, measurements: np.ndarray, information: np.n
     return bool((cross <= tol * scale[:, None, None]).all())
 
 
-def first_bad_information(information: Tensor, rtol: float = 1e-6) -> Optional[int]:
-    """Index of the first information matrix ``(E, 6, 6)`` that is not symmetric positive definite or None."""
+def first_bad_information(information: Tensor, fail: Optional[Tensor] = None, symmetry: bool = True) -> Optional[int]:
+    """Index of the first information matrix ``(E, 6, 6)`` that is not symmetric positive definite, or None.
+
+    ``fail``: the ``info`` of a ``torch.linalg.cholesky_ex`` of these matrices already made (else made here);
+    ``symmetry=False`` skips the symmetry test (|A - A^T| <= :data:`SYMMETRY_RTOL` times the largest diagonal entry).
+    """
     if information.shape[0] == 0:
         return None
-    scale = information.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(information.dtype).tiny)
-    asym = (information - information.transpose(-1, -2)).abs().amax(dim=(-2, -1)) > rtol * scale
-    _, info = torch.linalg.cholesky_ex(information.to(torch.float64))
-    bad = asym | (info != 0)
-    if bool(bad.any()):
-        return int(bad.nonzero()[0, 0])
-    return None
+    if fail is None:
+        _, fail = torch.linalg.cholesky_ex(information.to(torch.float64))
+    bad = fail != 0
+    if symmetry and not torch.equal(information, information.mT):  # exactly symmetric: g2o stores a triangle
+        # the largest entry of an SPD matrix is on its diagonal (any other matrix fails the Cholesky)
+        scale = information.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(information.dtype).tiny)
+        bad = bad | ((information - information.mT).abs().amax(dim=(-2, -1)) > SYMMETRY_RTOL * scale)
+    return int(bad.nonzero()[0, 0]) if bool(bad.any()) else None
 
+
+def require_spd_information(information: Tensor, ii: Tensor, jj: Tensor, fail: Optional[Tensor] = None,
+                      symmetry: bool = True) -> None:
+    """A ``ValueError`` naming the first edge (of ``ii, jj (E,)``) whose information matrix is not symmetric
+    positive definite (:func:`first_bad_information`)."""
+    k = first_bad_information(information, fail, symmetry)
+    if k is not None:
+        raise ValueError(f"information[{k}] (edge {int(ii[k])} -> {int(jj[k])}) is not symmetric positive definite")

@@ -79,7 +79,8 @@ _UNIT_CHECK_FRAMES, _UNIT_CHECK_TRIES = 3, 10
 _TYPICAL_DEPTH = 2.0  # metres: an indoor RGB-D view's median depth, to order the scales an error suggests
 
 
-def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values: tuple[int, ...] = (0,)) -> None:
+def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values: tuple[int, ...] = (0,),
+                      read: Callable[[object], np.ndarray] = read_depth_raw) -> None:
     """Refuse depth whose scale is wrong: the median valid depth of the first readable frames (up to 3
     of the first 10; unreadable ones are left to the run, which reports them) outside
     :data:`~slam.io.frame.DEPTH_MEDIAN_RANGE` metres at ``scale``.
@@ -93,6 +94,7 @@ def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values:
         depth_paths: the depth images of the frames, in order (the first 10 are read at most).
         scale: the depth units per metre in use.
         invalid_values: raw values meaning "no measurement".
+        read: ``depth_paths[k] -> (H, W)`` raw depth (default: the 16-bit PNG reader); raises FrameReadError.
 
     Raises:
         DatasetError: one line naming the median found, the scale in use, the likely one and ``--depth-scale``.
@@ -100,7 +102,7 @@ def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values:
     medians = []
     for path in depth_paths[:_UNIT_CHECK_TRIES]:
         try:
-            depth = depth_to_metres(read_depth_raw(str(path)), scale, invalid_values)
+            depth = depth_to_metres(read(path), scale, invalid_values)
         except FrameReadError:
             continue
         med = median_valid_depth(depth)
@@ -293,11 +295,14 @@ def _has_7scenes_frames(folder: Path) -> bool:
 
 
 def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **kwargs) -> RGBDSequence:
-    """Open a TUM RGB-D or 7-Scenes sequence folder, detecting the layout.
+    """Open a TUM RGB-D or 7-Scenes sequence folder or a ROS bag, detecting the layout.
 
     * TUM RGB-D: the folder holds ``rgb.txt`` and ``depth.txt`` (-> :class:`slam.io.tum.TUMSequence`).
     * 7-Scenes: the folder holds ``frame-XXXXXX.color.(png|jpg)`` files
       (-> :class:`slam.io.sevenscenes.SevenScenesSequence`).
+    * ROS bag: a ROS1 ``.bag`` file or a ROS2 bag folder (``metadata.yaml``)
+      (-> :class:`slam.io.rosbag.RosbagSequence`; it alone takes ``rgb_topic``, ``depth_topic``,
+      ``camera_info_topic`` and ``groundtruth``).
 
     Args:
         path: the sequence folder.
@@ -316,8 +321,16 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
     root = Path(path).expanduser()
     if not root.exists():
         raise DatasetNotFoundError(root, "sequence folder does not exist")
+    from slam.io.rosbag import BAG_OPTIONS, RosbagSequence, is_rosbag
+
+    if is_rosbag(root):
+        return RosbagSequence(root, camera=camera, K=K, **kwargs)
+    given = [flag for key, flag in BAG_OPTIONS.items() if kwargs.pop(key, None) is not None]
+    if given:
+        raise DatasetError(root, f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to a ROS bag "
+                                 "(a .bag file or a ROS2 bag folder); a sequence folder's ground truth is its own")
     if not root.is_dir():
-        raise DatasetError(root, "expected a sequence folder, got a file")
+        raise DatasetError(root, "expected a sequence folder, a ROS1 .bag file or a ROS2 bag folder, got a file")
     has_rgb, has_depth = (root / "rgb.txt").is_file(), (root / "depth.txt").is_file()
     if has_rgb or has_depth:
         from slam.io.tum import TUMSequence

@@ -69,6 +69,18 @@ def test_the_presets_are_the_papers_settings():
     assert PRESETS["paper"].auto_backbone == PRESETS["guclu2019"].auto_backbone == "vgg16"
 
 
+def test_the_default_taps_lite0_at_stage6_and_stage7_with_the_attention_at_stage7():
+    from attnloop import AttentionDescriptor
+
+    d = AttentionDescriptor("efficientnet_lite0", pretrained=False)
+    net = d.backbone
+    assert (net.tap, net.input_size, net.tap_groups, net.attended_groups) == (
+        "stage6+stage7", (224, 288), (192, 320), (False, True))
+    assert (d.preset, d.recipe.fusion, d.recipe.pooling, d.recipe.levels, d.recipe.gem_p, d.recipe.num_rnn) == (
+        "default", "dam", "regional", (1, 2), 2.0, 0)
+    assert d.out_dim == 5 * (192 + 320)  # the whole map and 2 x 2 regions, per stage
+
+
 @pytest.mark.parametrize("kwargs, match", [
     (dict(preset="guclu2019", fusion="dam"), r"DescriptorConfig\.fusion is 'none' in the preset 'guclu2019'"),
     (dict(preset="paper", num_rnn=8), r"DescriptorConfig\.num_rnn is 16 in the preset 'paper', got 8"),

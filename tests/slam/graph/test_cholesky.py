@@ -518,3 +518,24 @@ def test_postorder_is_the_recursive_one(seed):
         sys.setrecursionlimit(limit)
     assert _postorder(parent).tolist() == out
     assert _postorder([]).tolist() == []
+
+
+def test_symbolic_analysis_is_shared_by_equal_patterns_across_calls():
+    """Two problems of the same edges (the same graph optimised twice) share one analysis, which still
+    solves each one's values exactly; another pattern gets its own; the least recent is dropped."""
+    import slam.graph.linear as lin
+
+    solver = lin.SparseCholeskySolver()
+    ii, jj = _loops(30, 8, seed=3)
+    systems = [_system(ii, jj, 30, 3, seed) for seed in (0, 1)]  # equal patterns, built apart, other values
+    first = solver.symbolic(systems[0][1])
+    assert solver.symbolic(systems[1][1]) is first
+    held = _system(ii, jj, 30, 3, 0, free=np.arange(30) > 0)[1]  # pose 0 held: another pattern
+    assert solver.symbolic(held) is not first
+    b = np.random.default_rng(2).standard_normal(90)
+    for A, pat, vals in systems:
+        x = solver.solve(pat, torch.from_numpy(vals), torch.from_numpy(b))
+        np.testing.assert_allclose(x.numpy(), np.linalg.solve(A, b), rtol=0, atol=1e-9)
+    for n in range(lin.SYMBOLIC_CACHE_SIZE):  # as many newer patterns as the cache holds
+        solver.symbolic(_system(*_chain(5 + n), 5 + n, 3, 0)[1])
+    assert solver.symbolic(_system(ii, jj, 30, 3, 0)[1]) is not first

