@@ -168,6 +168,10 @@ def cmd_evaluate(args) -> int:
     s = _evaluation_set(args)
     q_paths, q = _images_or_descriptors(s.query, args)
     r_paths, r = (q_paths, q) if s.reference is None else _images_or_descriptors(s.reference, args)
+    typed = [k[len(_DESCRIPTOR_PREFIX):].replace("_", "-") for k in vars(args) if k.startswith(_DESCRIPTOR_PREFIX)]
+    if typed and not hasattr(args, "model"):
+        raise VPRInputError(f"--{', --'.join(typed)}: the sets are descriptor folders, described already; the "
+                            "descriptor flags apply to images")
     gt, cand = s.ground_truth, s.candidates
     if gt is None:
         gt = aligned_ground_truth(range(len(q_paths)), range(len(r_paths)), args.aligned)
@@ -278,7 +282,8 @@ def main(argv=None) -> int:
         torch.set_num_threads(args.threads)
     try:
         return args.func(args)
-    except (VPRInputError, UsageError, GroundTruthFormatError, ShapeMismatchError, WeightsNotFoundError) as e:
+    except (VPRInputError, UsageError, GroundTruthFormatError, ShapeMismatchError, WeightsNotFoundError,
+            ImportError) as e:  # ImportError: an index backend whose package is not installed (it names it)
         print(f"attnloop-vpr {args.command}: {e}", file=sys.stderr)
         return 2
 

@@ -115,3 +115,6 @@ def test_evaluate_aligned_sets_and_bad_ground_truth(described, tmp_path, capsys)
     assert err.count("\n") == 1 and "gt.npy" in err
     assert _code(["evaluate", "--query", out, "--ground-truth", tmp_path / "gt.npy"]) == 2
     assert "--min-gap" in capsys.readouterr().err
+    # descriptor flags on descriptor folders would do nothing: refused
+    assert _code(["evaluate", "--query", out, "--reference", out, "--aligned", "0", "--fusion", "gaf"]) == 2
+    assert "--fusion" in capsys.readouterr().err
