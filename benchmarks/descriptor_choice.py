@@ -46,6 +46,7 @@ import torch
 from attnloop import AttentionDescriptor, descriptor_from_attention
 from attnloop.backbones import build_backbone
 from attnloop.fusion import FUSION_MODES
+from attnloop.vpr.evaluate import evaluate
 from benchmarks._common import add_data_argument, table
 from benchmarks.place_recognition import (
     load_rgb,
@@ -54,7 +55,6 @@ from benchmarks.place_recognition import (
     protocols_rtabmap,
     same_size_batches,
 )
-from slam.eval.place_recognition import evaluate
 
 
 @dataclass(frozen=True)

@@ -36,11 +36,12 @@ import torch
 from attnloop import AttentionDescriptor
 from attnloop.index import LoopCandidateDetector, LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
+from attnloop.vpr.describe import load_rgb
+from attnloop.vpr.evaluate import evaluate, ground_truth_from_poses, sequence_candidates
 from benchmarks._common import DATA_HELP, data_root
 from benchmarks.index_data import descriptor_version
-from benchmarks.place_recognition import kitchen_poses, load_rgb
+from benchmarks.place_recognition import kitchen_poses
 from slam.eval.loops import LoopGroundTruthConfig
-from slam.eval.place_recognition import evaluate, ground_truth_from_poses, sequence_candidates
 
 # (method, k_sigma, min_margin, min_similarity)
 SETTINGS = ([("mad", k, 0.02, 0.0) for k in (1.5, 2.0, 3.0, 4.0)]

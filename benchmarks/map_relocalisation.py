@@ -98,7 +98,7 @@ def rtabmap(data: Path, k: int) -> dict | None:
 
     from attnloop import AttentionDescriptor
     from attnloop.index import IndexConfig, KeyframeIndex
-    from slam.eval.place_recognition import read_ground_truth
+    from attnloop.vpr.evaluate import read_ground_truth
     from slam.io.images import read_rgb
 
     d = data / "rtabmap-samples"

@@ -9,7 +9,7 @@ Sets (each skipped with a note when its data is absent):
   45 degrees). ``fwd``: each frame against those at least 100 frames earlier; ``split``: the second
   half of the sequence (frames 500-995) against the first.
 * ``--query DIR --reference DIR --ground-truth FILE``: a VPR-Bench-style pair of folders (images in
-  natural order of their names, numbers compared as numbers: VPR-Bench's order) with a ``ground_truth_new.npy`` or a binary matrix (:mod:`slam.eval.place_recognition`).
+  natural order of their names, numbers compared as numbers: VPR-Bench's order) with a ``ground_truth_new.npy`` or a binary matrix (:mod:`attnloop.vpr.evaluate`).
 
 Methods (all L2-normalised, cosine similarity; ORB-BoW with its own score):
 
@@ -41,7 +41,6 @@ its threshold) and writes one PR-curve PNG per protocol to ``--out``.
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import time
 from pathlib import Path
@@ -53,9 +52,8 @@ import torch.nn.functional as F
 
 from attnloop import AttentionDescriptor
 from attnloop.fusion import FUSION_MODES
-from benchmarks._common import DATA_HELP, data_root
-from slam.eval.loops import LoopGroundTruthConfig
-from slam.eval.place_recognition import (
+from attnloop.vpr.describe import VPRInputError, folder_images, load_rgb
+from attnloop.vpr.evaluate import (
     evaluate,
     ground_truth_from_poses,
     plot_place_recognition,
@@ -63,18 +61,9 @@ from slam.eval.place_recognition import (
     sequence_candidates,
     sequence_similarity,
 )
-from slam.io.images import FrameReadError, _decode
-
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
-
-
-
-def load_rgb(path: Path) -> np.ndarray:
-    """``(H, W, 3)`` uint8 RGB as OpenCV's colour mode decodes it (grey replicated, 16-bit scaled, a phone's
-    EXIF rotation applied), from the file's bytes: a missing, corrupt or truncated file is a
-    :class:`slam.io.images.FrameReadError` naming it (cv2.imread decodes half a JPEG and fills the rest
-    with grey; the SLAM's decoder refuses it)."""
-    return np.ascontiguousarray(_decode(str(path), cv2.IMREAD_COLOR)[:, :, ::-1])
+from benchmarks._common import DATA_HELP, data_root
+from slam.eval.loops import LoopGroundTruthConfig
+from slam.io.images import FrameReadError
 
 
 def grayscale(images: list[np.ndarray]) -> list[np.ndarray]:
@@ -90,32 +79,6 @@ def downscaled(images: list[np.ndarray], factor: int) -> list[np.ndarray]:
         return images
     return [cv2.resize(im, (max(1, im.shape[1] // factor), max(1, im.shape[0] // factor)),
                        interpolation=cv2.INTER_AREA) for im in images]
-
-
-def natural_key(path: Path) -> tuple:
-    """Sort key of a file name with its digit runs compared as numbers: ``2.jpg`` before ``10.jpg``.
-
-    VPR-Bench numbers a dataset's images by the integer in their name (its loader sorts by it) and its
-    ``ground_truth_new.npy`` indexes them in that order; a plain string sort would put ``10.jpg`` second
-    and misalign every query of a folder without zero padding.
-    """
-    # the name itself breaks ties (01.jpg and 1.jpg), so the order never depends on the file system's
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", path.name)], path.name
-
-
-def folder_images(folder: Path) -> list[Path]:
-    """The images of ``folder`` in natural order (:func:`natural_key`), the order of its ground truth.
-
-    Hidden files (``.name``: macOS's ``._0000.jpg`` resource forks) are not images of the set.
-    """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise SystemExit(f"{folder}: not a folder of images")
-    files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")),
-                   key=natural_key)
-    if not files:
-        raise SystemExit(f"no images in {folder}")
-    return files
 
 
 # ------------------------------------------------------------------------------------------ ORB-BoW
@@ -365,7 +328,10 @@ def protocols_kitchen(data: Path, step: int = 5):
 
 
 def protocols_folders(query: Path, reference: Path, gt_file: Path, data: Path):
-    q_files, r_files = folder_images(query), folder_images(reference)
+    try:
+        q_files, r_files = folder_images(query), folder_images(reference)
+    except (OSError, VPRInputError) as err:
+        raise SystemExit(str(err)) from None
     try:
         q = [load_rgb(p) for p in q_files]
         r = [load_rgb(p) for p in r_files]
@@ -468,7 +434,7 @@ def main() -> None:
                         help="evaluate every image (the ORB-BoW vocabulary's included) at 1/N of its width and "
                              "height: a low-resolution camera (default 1: as read)")
     parser.add_argument("--sequence", nargs="+", type=int, default=[1], metavar="N",
-                        help="score each pair over N frames (slam.eval.place_recognition.sequence_similarity: "
+                        help="score each pair over N frames (attnloop.vpr.evaluate.sequence_similarity: "
                              "the pair and the N - 1 pairs before it, SeqSLAM's diagonal); one set of tables "
                              "per N (default: 1, single images)")
     parser.add_argument("--bow-seeds", nargs="+", type=int, default=[0],

@@ -14,7 +14,7 @@ frames apart (the camera came back), a negative is farther than 1 m or turned mo
 epoch the negatives are mined: for every anchor the most similar of 32 random negatives (under the
 current model). Batch-norm keeps its running statistics (eval mode, as the descriptor always runs it).
 
-Evaluation (``slam.eval.place_recognition.evaluate``), default (ImageNet) vs fine-tuned, every fusion mode:
+Evaluation (``attnloop.vpr.evaluate.evaluate``), default (ImageNet) vs fine-tuned, every fusion mode:
 
 - rtabmap-samples (84 corridor images, RTAB-Map's ground-truth loop matrix; another place, another
   camera, never seen in training): each image against those at least 10 earlier;
@@ -45,8 +45,8 @@ import torch.nn.functional as F
 from attnloop import AttentionDescriptor, WeightsNotFoundError, softmax_seeded_gradient
 from attnloop.backbones.efficientnet_lite import EfficientNetLite0
 from attnloop.fusion import FUSION_MODES
+from attnloop.vpr.evaluate import evaluate, ground_truth_from_poses, read_ground_truth, sequence_candidates
 from slam.eval.loops import LoopGroundTruthConfig
-from slam.eval.place_recognition import evaluate, ground_truth_from_poses, read_ground_truth, sequence_candidates
 from slam.io.images import read_rgb
 from slam.io.sevenscenes import SevenScenesSequence
 from slam.threads import limit_threads

@@ -209,7 +209,7 @@ def perturb_trajectory(poses: torch.Tensor, stamps: torch.Tensor, seed: int, sca
 
 
 # ------------------------------------------------------------------------------------------ docs
-COMMAND_START = re.compile(r"^(attnloop-slam|attnloop-eval|python3? (?:examples|benchmarks)/\w+\.py|python3? -m benchmarks\.\w+)\b")
+COMMAND_START = re.compile(r"^(attnloop-slam|attnloop-eval|attnloop-vpr|python3? (?:examples|benchmarks)/\w+\.py|python3? -m benchmarks\.\w+)\b")
 
 
 def script_of(command: str) -> str:

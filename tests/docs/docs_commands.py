@@ -35,7 +35,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 
 #: installed commands (pyproject's [project.scripts]) and the module that builds each one's parser
-COMMANDS = {"attnloop-slam": "slam.cli", "attnloop-eval": "slam.eval.cli"}
+COMMANDS = {"attnloop-slam": "slam.cli", "attnloop-eval": "slam.eval.cli", "attnloop-vpr": "attnloop.vpr.cli"}
 
 
 class _Captured(Exception):

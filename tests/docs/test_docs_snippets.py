@@ -191,7 +191,8 @@ def _plan_command(argv: list[str], where: str, plan: Plan) -> None:
                 return
             if module == "venv":
                 return
-            cli = {"slam.cli": "attnloop-slam", "slam.eval.cli": "attnloop-eval"}.get(module)
+            cli = {"slam.cli": "attnloop-slam", "slam.eval.cli": "attnloop-eval", "attnloop.vpr.cli": "attnloop-vpr"}.get(
+                module)
             if module.startswith("benchmarks."):
                 cli = script_of(module)
                 assert (ROOT / cli).is_file(), f"{where}: {cli} is not a script of the repository"
@@ -201,7 +202,7 @@ def _plan_command(argv: list[str], where: str, plan: Plan) -> None:
             assert rest and rest[0].endswith(".py"), f"{where}: python without a script"
             assert (ROOT / rest[0]).is_file(), f"{where}: {rest[0]} is not a script of the repository"
             name, rest = rest[0], rest[1:]
-    if name in ("attnloop-slam", "attnloop-eval") or name.endswith(".py"):
+    if name in ("attnloop-slam", "attnloop-eval", "attnloop-vpr") or name.endswith(".py"):
         _shared_paths_exist(rest, where)
         plan.parse.append((name, rest, where))
     else:

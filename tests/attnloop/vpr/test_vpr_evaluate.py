@@ -1,4 +1,4 @@
-"""slam.eval.place_recognition: recall@k, the best-match PR curve, VPR-Bench's AUC-PR, the readers."""
+"""attnloop.vpr.evaluate: recall@k, the best-match PR curve, VPR-Bench's AUC-PR, the readers."""
 from __future__ import annotations
 
 import io
@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from slam.eval.loops import LoopGroundTruthConfig, ground_truth_loops
-from slam.eval.place_recognition import (
+from attnloop.vpr.evaluate import (
     GroundTruthFormatError,
     ShapeMismatchError,
     evaluate,
@@ -22,6 +21,7 @@ from slam.eval.place_recognition import (
     sequence_candidates,
     sequence_similarity,
 )
+from slam.eval.loops import LoopGroundTruthConfig, ground_truth_loops
 from slam.lie import so3_exp
 
 

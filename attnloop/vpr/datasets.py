@@ -1,0 +1,92 @@
+"""Place-recognition sets as image paths and a ground truth.
+
+Example:
+    >>> s = aligned_set([f"q{i}.png" for i in range(4)], [f"r{i}.png" for i in range(4)], tolerance=1)
+    >>> s.ground_truth.int().tolist()[0]
+    [1, 1, 0, 0]
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+
+from attnloop.vpr.describe import VPRInputError
+
+
+class VPRSet(NamedTuple):
+    """Query and reference images and what counts as a match.
+
+    Attributes:
+        query: Q image paths.
+        reference: R image paths, or None: the queries against themselves.
+        ground_truth: ``(Q, R)`` bool (``(Q, Q)`` without references): reference r shows query q's place.
+        candidates: ``(Q, R)`` bool, the pairs a query may return (None: all).
+    """
+
+    query: list
+    reference: list | None
+    ground_truth: torch.Tensor
+    candidates: torch.Tensor | None = None
+
+
+def aligned_ground_truth(query_index, reference_index, tolerance: int) -> torch.Tensor:
+    """Index-aligned ground truth: query q matches reference r when their frame numbers differ by at most
+    ``tolerance``. ``(Q,)``, ``(R,)`` integers -> ``(Q, R)`` bool."""
+    if isinstance(tolerance, bool) or int(tolerance) != tolerance or tolerance < 0:
+        raise VPRInputError(f"tolerance must be a non-negative integer, got {tolerance!r}")
+    q, r = torch.as_tensor(query_index), torch.as_tensor(reference_index)
+    return (q[:, None] - r[None, :]).abs() <= int(tolerance)
+
+
+def aligned_set(query: list, reference: list, tolerance: int = 1, step: int = 1) -> VPRSet:
+    """Two frame-synchronised sequences (image i of both shows one place), every ``step``-th image of each;
+    ``tolerance`` counts frames of the full sequences (so it means the same at any ``step``)."""
+    if len(query) != len(reference):
+        raise VPRInputError(f"index-aligned sets need as many queries as references, got {len(query)} and "
+                            f"{len(reference)}")
+    if isinstance(step, bool) or int(step) != step or step < 1:
+        raise VPRInputError(f"step must be a positive integer, got {step!r}")
+    keep = list(range(0, len(query), int(step)))
+    gt = aligned_ground_truth(keep, keep, tolerance)
+    return VPRSet([query[i] for i in keep], [reference[i] for i in keep], gt)
+
+
+def nordland(root, step: int = 1, tolerance: int = 1) -> VPRSet:
+    """Nordland (the SeqSLAM trim, ``nordland-64x32``): winter queries against summer references.
+
+    The seasons are frame-synchronised; ``gt_index_aligned.csv`` pairs them (query_idx, ref_idx,
+    query_file, ref_file). A match is a reference within ``tolerance`` frames of the query's (frames of
+    the trimmed set, every 10th of the ride); ``step`` keeps every ``step``-th pair.
+
+    Args:
+        root: the folder holding ``gt_index_aligned.csv``, ``winter/`` and ``summer/``.
+        step: subsampling (``--step 10``: 358 of the 3576 pairs).
+        tolerance: frames either side counted as the same place.
+
+    Returns:
+        a :class:`VPRSet` (``ground_truth`` ``(Q, Q)``).
+    """
+    root = Path(root)
+    try:
+        with open(root / "gt_index_aligned.csv", newline="") as f:
+            rows = list(csv.DictReader(f))
+    except OSError as e:
+        raise VPRInputError(f"{root / 'gt_index_aligned.csv'}: {e.strerror or e}") from None
+    rows.sort(key=lambda r: int(r["query_idx"]))
+    if any(int(r["query_idx"]) != int(r["ref_idx"]) or int(r["query_idx"]) != i for i, r in enumerate(rows)):
+        raise VPRInputError(f"{root / 'gt_index_aligned.csv'}: not index-aligned pairs 0, 1, 2, ...")
+    return aligned_set([str(root / r["query_file"]) for r in rows], [str(root / r["ref_file"]) for r in rows],
+                       tolerance, step)
+
+
+def rtabmap(root, min_gap: int = 10) -> VPRSet:
+    """RTAB-Map's samples: 84 corridor images against themselves, each against those at least ``min_gap``
+    earlier, RTAB-Map's ``samples_GT.bmp`` as the ground truth."""
+    from attnloop.vpr.evaluate import read_ground_truth, sequence_candidates
+
+    root = Path(root)
+    return VPRSet([str(root / f"{i}.jpg") for i in range(1, 85)], None, read_ground_truth(root / "samples_GT.bmp"),
+                  sequence_candidates(84, min_gap))
