@@ -168,7 +168,7 @@ def ask(jobs: list[dict]) -> list[dict]:
         return []
     env = dict(os.environ, OMP_NUM_THREADS="1",
                PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-    r = subprocess.run([sys.executable, str(ROOT / "tests" / "docs_commands.py")], input=json.dumps(jobs),
+    r = subprocess.run([sys.executable, str(ROOT / "tests" / "docs" / "docs_commands.py")], input=json.dumps(jobs),
                        capture_output=True, text=True, cwd=ROOT, env=env, timeout=600, check=False)
     assert r.returncode == 0 and "@@RESULTS@@" in r.stdout, f"docs_commands.py failed:\n{r.stderr[-3000:]}"
     return json.loads(r.stdout.rsplit("@@RESULTS@@", 1)[1])
