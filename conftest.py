@@ -93,15 +93,6 @@ def _seed_everything():
     yield
 
 
-@pytest.fixture(autouse=True)
-def _leave_the_allocator(monkeypatch):
-    # attnloop-slam's main() keeps freed memory in its process for good (slam.allocator); the tests that
-    # call it in-process must not change the test process's allocator.
-    from slam import allocator
-
-    monkeypatch.setattr(allocator, "keep_freed_memory", lambda: False)
-
-
 #: the synthetic room's loop split in two recordings: the first maps its start (MAP_FRAMES), the second starts
 #: elsewhere and comes back to it (SESSION_FRAMES)
 SIZE = (320, 240)

@@ -73,10 +73,6 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--demo-size", type=positive_int, nargs=2, default=None, metavar=("W", "H"),
                    help="image size (default: the scene's, room 640 480, building 320 240; 320 240 renders ~4x "
                         "faster than 640 480)")
-    g = p.add_argument_group("process")
-    g.add_argument("--system-malloc", action="store_true",
-                   help="leave glibc's allocator as it is; by default this command keeps freed tensor memory "
-                        "in the process (slam.allocator: 6-9 %% more frames/s on CPU, fewer page faults)")
     g = p.add_argument_group("messages").add_mutually_exclusive_group()
     g.add_argument("--quiet", action="store_true",
                    help="no progress bar or progress lines: on stderr warnings and errors only (the summary is "
@@ -170,7 +166,7 @@ def run_command(args: argparse.Namespace) -> int:
         resolve_settings,
         rig_of,
     )
-    from slam.pipeline import camera_of, evaluate_run, prepare_output_dir, run_slam, write_outputs
+    from slam.pipeline import camera_of, prepare_output_dir
 
     settings = given_settings(args)
     demo_options = [flag for dest, flag in DEMO_OPTIONS.items() if getattr(args, dest) is not None]
@@ -235,6 +231,14 @@ def run_command(args: argparse.Namespace) -> int:
         named = f"{cam['name']}, " if cam["name"] else ""
         print(f"camera: {named}intrinsics {' '.join(f'{v:g}' for v in cam['intrinsics'])}; "
               f"{describe_rig(rig_of(cfg))}", file=sys.stderr)
+    from slam.threads import limit_threads
+
+    with limit_threads(cfg.threads):  # the command's one thread limit: the run, its evaluation and its outputs
+        return _run_and_write(args, seq, cfg, opts, descriptor, saved, out)
+
+
+def _run_and_write(args: argparse.Namespace, seq, cfg, opts, descriptor, saved, out: Path) -> int:
+    from slam.pipeline import evaluate_run, run_slam, write_outputs
     from slam.system import LoopWorkerError
 
     try:
@@ -352,10 +356,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
-    if not args.system_malloc:
-        from slam.allocator import keep_freed_memory
-
-        keep_freed_memory()  # this command owns its process; the library never does this
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     if args.verbose:
