@@ -33,6 +33,7 @@ from slam.graph import (
 )
 from slam.graph.initialization import INITIALIZATIONS
 from slam.options import check_device, positive_int
+from slam.threads import limit_threads
 
 
 def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
@@ -67,9 +68,8 @@ def parse_args(argv: Optional[List[str]] = None) -> argparse.Namespace:
     p.add_argument("--solver", default="auto", choices=["auto", "sparse", "superlu", "dense", "pcg"],
                    help="linear solver of each step: sparse Cholesky, SuperLU, dense Cholesky, preconditioned "
                         "conjugate gradients; auto = dense for small systems, sparse above (default: auto)")
-    p.add_argument("--threads", type=positive_int, default=defaults.num_threads, metavar="N",
-                   help=f"torch and BLAS threads of the optimisation (default {defaults.num_threads}; "
-                        "docs/devices.md)")
+    p.add_argument("--threads", type=positive_int, default=1, metavar="N",
+                   help="torch and BLAS threads of the optimisation (default 1; docs/devices.md)")
     p.add_argument("--device", default=None, metavar="DEV",
                    help="torch device of the graph, e.g. cuda (float64: not mps; default cpu; the torch backend)")
     p.add_argument("-v", "--verbose", action="store_true", help="one line per iteration")
@@ -105,11 +105,10 @@ def main(argv: Optional[List[str]] = None) -> OptimizationResult:
         sys.exit(f"error: {exc}")
     if args.device is not None:
         graph = graph.to(args.device)
-    res = optimize(graph, args.method, kernel=args.kernel, solver=args.solver, initialization=args.initialization,
-                   kernel_width=args.kernel_width,
-                   max_iterations=args.max_iterations, gauge=args.gauge, damping=args.damping,
-                   lambda_update=args.lambda_update, verbose=args.verbose,
-                   num_threads=args.threads)
+    with limit_threads(args.threads):  # the one thread limit of this program, around all its work
+        res = optimize(graph, args.method, kernel=args.kernel, solver=args.solver, initialization=args.initialization,
+                       kernel_width=args.kernel_width, max_iterations=args.max_iterations, gauge=args.gauge,
+                       damping=args.damping, lambda_update=args.lambda_update, verbose=args.verbose)
     print(summary(args.input, res))
     if res.message:
         print(f"note: {res.message}")

@@ -20,6 +20,7 @@ import sys
 from slam.cli import call_reporting_errors
 from slam.options import add_run_arguments, given_settings, resolve_settings
 from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+from slam.threads import limit_threads
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,10 +29,11 @@ def run(args: argparse.Namespace) -> int:
     out = prepare_output_dir(args.out)  # checked (and the previous run's outputs removed) before the work
     spec.save(out / "config.toml")  # --config of it repeats the run
     opts = spec.run
-    run = run_slam(spec.sequence, spec.config, max_frames=opts.max_frames, frame_step=opts.frame_step,
-                   frames=opts.frames)
-    metrics = evaluate_run(run)
-    write_outputs(run, out)
+    with limit_threads(spec.config.threads):  # one thread limit for the whole work (docs/devices.md)
+        run = run_slam(spec.sequence, spec.config, max_frames=opts.max_frames, frame_step=opts.frame_step,
+                       frames=opts.frames)
+        metrics = evaluate_run(run)
+        write_outputs(run, out)
     keys = ("status", "failure", "num_frames", "num_keyframes", "num_loops", "fps", "descriptor", "ate_rmse",
             "ate_unavailable")
     print({k: metrics[k] for k in keys if k in metrics})

@@ -114,8 +114,8 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
     A frame that cannot be read (missing or corrupt image) is skipped with a warning and placed by constant
     velocity, so the trajectory still has one pose per used frame. With ``config.map.enabled`` the
     keyframes' coloured points are kept for ``map.ply`` (:class:`slam.mapping.PointCloudMap`). torch, BLAS
-    and OpenCV compute with ``config.threads`` threads during the run (:func:`slam.threads.limit_threads`);
-    the caller's counts are restored when it returns.
+    and OpenCV compute with ``config.threads`` threads during the run: the run's one thread limit
+    (:func:`slam.threads.limit_threads`); the caller's counts are restored when it returns.
 
     Args:
         sequence: an opened sequence (:func:`slam.io.open_sequence`).
@@ -428,12 +428,6 @@ def evaluate_run(run: RunResult, loop_gt=None) -> dict[str, object]:
         loop_gt: :class:`slam.eval.LoopGroundTruthConfig` for judging loops (default: its thresholds, the
             frame gap in the run's frames, :func:`loop_ground_truth_for_step`).
     """
-    # the map's merge and the alignments with the run's thread count, as the run itself
-    with limit_threads(run.config.threads if run.config is not None else None):
-        return _evaluate(run, loop_gt)
-
-
-def _evaluate(run: RunResult, loop_gt) -> dict[str, object]:
     from slam.eval import ate, is_true_loop, rpe
     from slam.options import describe_rig, rig_of
 

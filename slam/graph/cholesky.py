@@ -44,7 +44,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam.graph.blas_threads import limit_blas_threads
 
 _EMPTY = np.zeros(0, dtype=np.int64)
 
@@ -676,8 +675,7 @@ class NumericCholesky:
         ws = self.ws = sym.workspace(v.device)
         infos = []
         failed = False
-        # numpy's BLAS runs single-threaded here (see limit_blas_threads)
-        with ws.lock, limit_blas_threads(1 if ws.cpu else None):
+        with ws.lock:
             prev = ws.owner() if ws.owner is not None else None
             if prev is not None:
                 prev._detach()
@@ -752,7 +750,7 @@ class NumericCholesky:
         bt = torch.from_numpy(b) if is_np else b
         ws = self.ws
         in_place = _lapack_in_place()
-        with ws.lock, limit_blas_threads(1 if ws.cpu else None):
+        with ws.lock:
             y, ynp = ws.y, ws.ynp
             torch.index_select(bt.detach().to(torch.float64), 0, ws.perm, out=y)
             self._forward(self.groups, y, ynp, in_place, dtrsv)

@@ -47,11 +47,6 @@ class OptimizerConfig:
     # solver "auto": a dense Cholesky up to this many unknowns (no symbolic analysis), the sparse one above.
     # None: 240, the crossover measured on sphere2500 subgraphs (dense wins at 240 unknowns, loses at 360)
     dense_max: Optional[int] = None
-    # torch and BLAS threads during the call (restored afterwards; None leaves them; BLAS through
-    # threadpoolctl, see slam.graph.blas_threads). The work is many small batched ops: on a busy CPU torch's
-    # OpenMP pool slowed them 10-40x when it had more threads than free cores, while one thread loses little
-    # on an idle machine.
-    num_threads: Optional[int] = 1
     # the optimised poses carry a grad_fn when the measurements, information matrices or held poses require
     # grad: implicit differentiation at the optimum (slam.graph.implicit; one sparse factorisation and solve
     # of the cost's Hessian per backward). Exact at a stationary point: tighten rel_tol for precise gradients.
@@ -83,6 +78,4 @@ class OptimizerConfig:
                              f"{self.lambda_init}, {self.lambda_factor}, {self.lambda_max}")
         if self.dense_max is not None and self.dense_max < 0:
             raise ValueError(f"dense_max must be >= 0 or None, got {self.dense_max}")
-        if self.num_threads is not None and self.num_threads < 1:
-            raise ValueError(f"num_threads must be >= 1 or None, got {self.num_threads}")
         return self

@@ -55,7 +55,6 @@ from slam.graph.linear import LinearSolver, LinearSolverError
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.problem import PoseGraphProblem, TorchProblem
 from slam.graph.result import OptimizationResult, Status
-from slam.threads import limit_threads
 
 __all__ = ["METHODS", "OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
 
@@ -100,16 +99,15 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
     cfg = dataclasses.replace(config or OptimizerConfig(), **overrides)
     if isinstance(graph, PoseGraph) and graph.fixed.numel():  # the graph's own held poses (g2o FIX lines)
         cfg = dataclasses.replace(cfg, fixed=tuple(int(f) for f in cfg.fixed) + tuple(graph.fixed.tolist()))
-    with limit_threads(cfg.num_threads):  # torch's, BLAS's (and OpenCV's) counts, restored after
-        if initialization != "none":  # (its time counts in timings["setup"])
-            given = graph.poses
-            graph = initialize(graph, initialization, fixed=cfg.fixed)
-            if given.requires_grad:
-                # the initial guess keeps the anchor and the held poses as given: their rows stay the
-                # caller's tensor, so the optimum's gradient towards them (its gauge) is not lost
-                same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
-                graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
-        res = _optimize(graph, method, kernel, solver, cfg, t_start)
+    if initialization != "none":  # (its time counts in timings["setup"])
+        given = graph.poses
+        graph = initialize(graph, initialization, fixed=cfg.fixed)
+        if given.requires_grad:
+            # the initial guess keeps the anchor and the held poses as given: their rows stay the
+            # caller's tensor, so the optimum's gradient towards them (its gauge) is not lost
+            same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
+            graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
+    res = _optimize(graph, method, kernel, solver, cfg, t_start)
     if res.status == Status.MAX_ITERATIONS and res.iterations:
         res.message = _stall_advice(res, cfg, initialization)
     return res

@@ -147,12 +147,12 @@ def test_optimize_g2o_takes_threads_and_device(tmp_path, load_script, monkeypatc
     real = ex.optimize
 
     def spy(graph, *a, **kw):
-        seen.update(device=graph.device, threads=kw.get("num_threads"))
+        seen.update(device=graph.device, threads=torch.get_num_threads())
         return real(graph, *a, **kw)
 
     monkeypatch.setattr(ex, "optimize", spy)
     ex.main([str(src)])
-    assert seen == {"device": torch.device("cpu"), "threads": 1}  # OptimizerConfig.num_threads
+    assert seen == {"device": torch.device("cpu"), "threads": 1}  # the example's --threads default
     res = ex.main([str(src), "--threads", "2", "--device", "cpu"])
     assert seen == {"device": torch.device("cpu"), "threads": 2} and res.chi2 < 1e-9
     for bad in (["--threads", "0"], ["--device", "bogus"], ["--device", "mps"]):
