@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 import torch
 
-from slam.eval.plot import PALETTE, Axes, _text, draw_legend, save_image
+from slam.eval.plot import PALETTE, Axes, draw_text, draw_legend, save_image
 
 __all__ = [
     "LoopEvaluation",
@@ -72,7 +72,7 @@ def _check_poses(poses: torch.Tensor) -> torch.Tensor:
     return poses.to(torch.float64)
 
 
-def _close(pa: torch.Tensor, pb: torch.Tensor, cfg: LoopGroundTruthConfig) -> torch.Tensor:
+def poses_close(pa: torch.Tensor, pb: torch.Tensor, cfg: LoopGroundTruthConfig) -> torch.Tensor:
     """Pairwise-broadcast closeness of poses ``(..., 7)``: distance and angle below the thresholds."""
     dist = (pa[..., :3] - pb[..., :3]).norm(dim=-1)
     qa = pa[..., 3:] / pa[..., 3:].norm(dim=-1, keepdim=True)
@@ -99,7 +99,7 @@ def is_true_loop(poses: torch.Tensor, pairs: torch.Tensor, config: LoopGroundTru
     if pairs.numel() and (pairs.min() < 0 or pairs.max() >= poses.shape[0]):
         raise ValueError(f"pair indices must be in [0, {poses.shape[0]}), got {pairs.min()}..{pairs.max()}")
     gap = (pairs[:, 0] - pairs[:, 1]).abs() >= config.min_frame_gap
-    return gap & _close(poses[pairs[:, 0]], poses[pairs[:, 1]], config)
+    return gap & poses_close(poses[pairs[:, 0]], poses[pairs[:, 1]], config)
 
 
 def ground_truth_loops(poses: torch.Tensor, config: LoopGroundTruthConfig = LoopGroundTruthConfig(),
@@ -125,7 +125,7 @@ def ground_truth_loops(poses: torch.Tensor, config: LoopGroundTruthConfig = Loop
     out = []
     for s in range(0, idx.numel(), chunk):
         rows = idx[s:s + chunk]
-        # the same tests as _close, as matrices: exact distances (no |a|^2 - 2ab + |b|^2 shortcut)
+        # the same tests as poses_close, as matrices: exact distances (no |a|^2 - 2ab + |b|^2 shortcut)
         dist = torch.cdist(pos[s:s + chunk], pos, compute_mode="donot_use_mm_for_euclid_dist")
         ok = (dist < config.max_distance) & ((q[s:s + chunk] @ q.T).abs() > cos_max)
         ok &= (rows[:, None] - idx[None, :]) >= config.min_frame_gap
@@ -331,7 +331,7 @@ def plot_pr_curves(
         legend.append((f"{label} (R@P100 {c.max_recall_at_full_precision:.2f}, AP {c.average_precision:.2f})",
                        color, "line"))
     if not items:
-        _text(img, "no curves", (W // 2, H // 2), 0.6, anchor="center")
+        draw_text(img, "no curves", (W // 2, H // 2), 0.6, anchor="center")
     draw_legend(img, legend, "bottom-left", (ax.left, ax.top, ax.right, ax.bottom))
     if path is not None:
         save_image(path, img)

@@ -62,7 +62,7 @@ def _fmt(v: float, step: float) -> str:
     return "0" if s.strip("-0.") == "" else s
 
 
-def _text(img, s: str, org: tuple[int, int], scale=0.45, color: Color = BLACK, thickness=1, anchor="left"):
+def draw_text(img, s: str, org: tuple[int, int], scale=0.45, color: Color = BLACK, thickness=1, anchor="left"):
     (w, h), _ = cv2.getTextSize(s, FONT, scale, thickness)
     x, y = org
     if anchor == "center":
@@ -132,18 +132,18 @@ class Axes:
             if grid:
                 cv2.line(img, (u, self.top), (u, self.bottom), LIGHT, 1)
             cv2.line(img, (u, self.bottom), (u, self.bottom + 5), BLACK, 1)
-            _text(img, _fmt(v, xstep), (u, self.bottom + 20), 0.4, anchor="center")
+            draw_text(img, _fmt(v, xstep), (u, self.bottom + 20), 0.4, anchor="center")
         for v in np.arange(math.ceil(self.y0 / ystep - 1e-9), math.floor(self.y1 / ystep + 1e-9) + 1) * ystep:
             y = int(self.to_px([[self.x0, v]])[0, 1])
             if grid:
                 cv2.line(img, (self.left, y), (self.right, y), LIGHT, 1)
             cv2.line(img, (self.left - 5, y), (self.left, y), BLACK, 1)
-            _text(img, _fmt(v, ystep), (self.left - 8, y + 4), 0.4, anchor="right")
+            draw_text(img, _fmt(v, ystep), (self.left - 8, y + 4), 0.4, anchor="right")
         cv2.rectangle(img, (self.left, self.top), (self.right, self.bottom), BLACK, 1)
-        _text(img, xlabel, ((self.left + self.right) // 2, self.bottom + 42), 0.5, anchor="center")
+        draw_text(img, xlabel, ((self.left + self.right) // 2, self.bottom + 42), 0.5, anchor="center")
         _vertical_text(img, ylabel, (14, (self.top + self.bottom) // 2))
         if title:
-            _text(img, title, ((self.left + self.right) // 2, self.top - 15), 0.55, anchor="center")
+            draw_text(img, title, ((self.left + self.right) // 2, self.top - 15), 0.55, anchor="center")
 
     def polyline(self, img, xy: np.ndarray, color: Color, thickness: int = 2):
         if len(xy) >= 2:
@@ -170,7 +170,7 @@ def draw_legend(img, entries: Sequence[tuple[str, Color, str]], corner: str = "t
             cv2.circle(img, (x0 + 20, y), 4, color, -1, cv2.LINE_AA)
         else:
             cv2.line(img, (x0 + 8, y), (x0 + 32, y), color, 2, cv2.LINE_AA)
-        _text(img, label, (x0 + 40, y + 5), 0.45)
+        draw_text(img, label, (x0 + 40, y + 5), 0.45)
 
 
 def save_image(path: str | os.PathLike, img: np.ndarray) -> None:
@@ -313,7 +313,7 @@ def plot_trajectory(
     cv2.line(img, (x0, y0), (x0 + bar, y0), BLACK, 2)
     for x in (x0, x0 + bar):
         cv2.line(img, (x, y0 - 4), (x, y0 + 4), BLACK, 2)
-    _text(img, f"{_fmt(step, step)} m", (x0 + bar // 2, y0 - 8), 0.45, anchor="center")
+    draw_text(img, f"{_fmt(step, step)} m", (x0 + bar // 2, y0 - 8), 0.45, anchor="center")
 
     if path is not None:
         save_image(path, img)

@@ -50,7 +50,7 @@ from slam.input_checks import TIME_UNITS, TextDecodeError, read_text_lines, time
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
 from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence, check_depth_scale, check_depth_units
-from slam.io.trajectory import Trajectory, _split_fields, read_tum_trajectory
+from slam.io.trajectory import Trajectory, split_fields, read_tum_trajectory
 
 __all__ = [
     "TUM_CAMERAS",
@@ -203,7 +203,7 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
-        fields, empty = _split_fields(line)
+        fields, empty = split_fields(line)
         if not entries and fields and fields[0].lower() == "timestamp":
             continue  # an uncommented column header before the data
         if empty is not None:
