@@ -25,7 +25,7 @@ import math
 import sys
 from pathlib import Path
 
-from slam.eval.associate import TUM_MAX_DIFFERENCE
+from slam.io.associate import TUM_MAX_DIFFERENCE
 
 __all__ = ["build_parser", "main"]
 

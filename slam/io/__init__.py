@@ -16,8 +16,8 @@ from slam.io.sequence import (
     DatasetWarning,
     RGBDSequence,
     SequenceView,
-    open_sequence,
 )
+from slam.io.detect import open_sequence
 from slam.io.sevenscenes import SevenScenesSequence
 from slam.io.trajectory import Trajectory, TrajectoryFormatError, read_tum_trajectory, write_tum_trajectory
 from slam.io.tum import (

@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 import torch
 
-from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
+from slam.io.associate import TUM_MAX_DIFFERENCE, associate
 from slam.input_checks import TIME_UNITS, TextDecodeError, read_text_lines, timestamp_unit
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from slam.eval.associate import associate
+from slam.io.associate import associate
 from slam.io import (
     TUM_CAMERAS,
     DatasetError,
