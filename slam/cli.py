@@ -335,22 +335,12 @@ def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
         return 2
 
 
-def stdout_gone() -> int:
-    """The exit code of a command whose reader closed its output early (``attnloop-eval ... | head``), as
-    Python's documentation of SIGPIPE recommends: standard output is pointed at ``os.devnull``, so that the
-    flush at exit does not raise (and print "[Errno 32] Broken pipe") again, and the code is 1."""
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError, AttributeError):  # a replaced sys.stdout without a file descriptor
-        pass
-    return 1
-
-
 def main(argv: list[str] | None = None) -> int:
     try:
         return _main(argv)
     except BrokenPipeError:
+        from slam.eval.cli import stdout_gone
+
         return stdout_gone()
 
 
