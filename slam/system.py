@@ -311,6 +311,11 @@ class RGBDSLAM:
         kfs[kf_id].features = None
         kfs[kf_id].rgb = None
 
+    def keyframe_index(self):
+        """The loop closer's :class:`attnloop.index.KeyframeIndex`: one descriptor per keyframe that finished its
+        loop work, in keyframe order (empty when localising: nothing is entered); None without loop closure."""
+        return None if self.loop_closer is None else self.loop_closer.detector.index
+
     @property
     def loops(self) -> List[LoopClosure]:
         """Loops in effect so far (verified, consistent, not switched off)."""
