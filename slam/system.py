@@ -231,8 +231,9 @@ class RGBDSLAM:
         background_loops: run each keyframe's loop work in a worker thread (see the module docstring): the
             same results, loops reported one keyframe later (``BackendConfig.loop_backlog = 0``), or tracking
             running ahead of the worker by up to ``loop_backlog`` keyframes. Every call computes with the
-            caller's thread counts (set once for the run: :func:`slam.threads.limit_threads`). Work handed to the worker is never dropped:
-            :meth:`finish` waits for all of it; a failure of it is raised as :class:`LoopWorkerError`.
+            caller's thread counts (set once for the run: :func:`slam.threads.limit_threads`). Work handed to
+            the worker is never dropped: :meth:`finish` waits for all of it; a failure of it is raised as
+            :class:`LoopWorkerError`.
         localize: localisation in a saved map (:class:`slam.maps.MapRelocaliser` with
             ``RelocalisationConfig.localize``): keyframes serve tracking and the map queries only; they are
             entered in the graph (the merge into the map's world needs it: a few hundred bytes each) but
