@@ -33,8 +33,6 @@ from .descriptor import (
     AttentionDescriptor,
     DescriptorParts,
     DescriptorRecipe,
-    attention_descriptor,
-    attention_descriptor_parts,
     descriptor_from_attention,
 )
 from .fusion import FUSION_MODES, Fusion, dam, eam, ega, fuse, gaf, minmax_normalize, no_attention
@@ -53,8 +51,6 @@ __all__ = [
     "HookedBackbone",
     "RandomRNNPool",
     "WeightsNotFoundError",
-    "attention_descriptor",
-    "attention_descriptor_parts",
     "build_backbone",
     "clamp_negative_grad",
     "dam",

@@ -24,19 +24,9 @@ The recipe of steps 2-5 (fusion, pooling, RNN count and size, seed, scaling, mer
 autograd (:func:`attnloop.guided_backprop.guided_backprop` with ``create_graph``): the descriptor is then
 a differentiable function of the images and of the backbone's weights, for training through it.
 
-Why no RNNs by default: on the regional code they are a random projection from 2560 to 1024 dims,
-which loses place evidence. Without them every fusion mode gains in mean R@1 and R@P100 over four
-real place-recognition protocols (against the mean over 8 RNN seeds), the descriptor no longer depends
-on an RNN seed, and the RNNs' 10.5 MB of weights are no longer read per frame (docs/method.md).
-``num_rnn=16`` (and ``preset="paper"``) keep the paper's encoding.
-
-The scaling of step 4 is ours, not the paper's: it makes the descriptor independent of the fused map's overall scale
-(which differs between fusion modes and frames) and sets the operating point of the RNNs' tanh. With
-raw features at EfficientNet's stage7 the pre-activations W_r x have a standard deviation of 5 to 17
-(median over frames, depending on the fusion), so the tanh saturates and the 1024 dims degrade to a
-1024-bit sign hash; at norm 10 it is 0.29 and the pooling is close to a random projection. On the
-7-Scenes redkitchen revisits this raises the loop-closure margins and narrows their spread over RNN
-seeds.
+No RNNs by default: on the regional code they are a random projection (2560 -> 1024 dims) that loses
+place evidence (docs/method.md). The scaling of step 4 is ours: it makes the descriptor independent of the
+fused map's scale and keeps the RNNs' tanh out of saturation.
 """
 from __future__ import annotations
 
@@ -62,8 +52,6 @@ __all__ = [
     "AttentionDescriptor",
     "DescriptorParts",
     "DescriptorRecipe",
-    "attention_descriptor",
-    "attention_descriptor_parts",
     "descriptor_from_attention",
 ]
 
@@ -82,11 +70,6 @@ def _unused_rnn_settings(out_features: int = _RNN_DEFAULTS["out_features"],
 def _check_pool_scale(pool_scale: float | None) -> None:
     if pool_scale is not None and not (float(pool_scale) > 0 and float(pool_scale) < float("inf")):
         raise ValueError(f"pool_scale must be positive and finite, or None, got {pool_scale}")
-
-
-def _check_flat_settings(pooling: str, gem_p: float, levels: Sequence[int]) -> None:
-    if pooling == "flat" and (gem_p != 2.0 or tuple(levels) != (1, 2)):
-        raise ValueError("gem_p and levels apply to pooling='regional' only")
 
 
 @dataclass(frozen=True)
@@ -113,21 +96,12 @@ class DescriptorRecipe:
     pool_scale: float | None = _RNN_DEFAULTS["pool_scale"]
     merge: bool | None = None  # average element c with c + C/2 of the RNNs' input; None: for "flat" only
     pooling: str = "regional"  # "regional": regional GeM code first (ours); "flat": the whole map (the paper)
-    gem_p: float = 2.0  # the GeM exponent of the regional pooling
-    levels: tuple[int, ...] = (1, 2)  # grids of the regional pooling: the whole map and 2 x 2 cells
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_MODES:
             raise ValueError(f"unknown fusion {self.fusion!r}; choose one of {FUSION_MODES}")
         if self.pooling not in POOLINGS:
             raise ValueError(f"unknown pooling {self.pooling!r}; choose one of {POOLINGS}")
-        if not (float(self.gem_p) > 0 and float(self.gem_p) < float("inf")):
-            raise ValueError(f"gem_p must be positive and finite, got {self.gem_p}")
-        levels = tuple(self.levels) if isinstance(self.levels, (tuple, list)) else (self.levels,)
-        if not levels or any(isinstance(v, bool) or int(v) != v or v < 1 for v in levels):
-            raise ValueError(f"levels must be positive grid sizes such as (1, 2), got {self.levels!r}")
-        object.__setattr__(self, "levels", tuple(int(v) for v in levels))
-        _check_flat_settings(self.pooling, self.gem_p, self.levels)
         for name, least in (("num_rnn", 0), ("out_features", 1), ("seed", 0)):
             v = getattr(self, name)
             # a whole float (16.0) is fine for the counts; a seed must be an integer (1.5 would be truncated
@@ -196,15 +170,6 @@ class DescriptorParts(NamedTuple):
     descriptor: torch.Tensor
 
 
-def _unit_scale(grad: torch.Tensor) -> torch.Tensor:
-    # Every fusion uses G only through min-max normalisations, which ignore a positive per-sample
-    # scale, but minmax_normalize treats ranges below 1e-12 as constant. G = J^T S can be that small
-    # (a flat softmax: random weights, or an image the classifier finds meaningless), so G is brought
-    # to max |G| = 1 per sample first. An all-zero G stays zero.
-    peak = grad.detach().abs().amax(dim=tuple(range(1, grad.ndim)), keepdim=True)
-    return grad / peak.clamp_min(torch.finfo(grad.dtype).tiny)
-
-
 def _scale_to_norm(x: torch.Tensor, norm: float) -> torch.Tensor:
     # Per-sample L2 normalisation to `norm`; an all-zero sample stays zero (no NaN).
     flat = x.reshape(x.shape[0], -1)
@@ -221,8 +186,6 @@ def descriptor_from_attention(
     merge: bool | None = None,
     *,
     pooling: str = "regional",
-    gem_p: float = 2.0,
-    levels: Sequence[int] = (1, 2),
     groups: Sequence[int] | None = None,
     attended: Sequence[bool] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -234,7 +197,7 @@ def descriptor_from_attention(
         tap: the tap activations L, :math:`(B, C, h, w)`.
         grad: the guided gradient G, :math:`(B, C, h, w)`.
         rnn_weights: :math:`(R, O, I)` random RNN weights: for ``flat`` pooling ``I = C/2 * h * w``
-            (``C * h * w`` without merge); for ``regional`` ``I = regional_code_dim(groups, levels)``
+            (``C * h * w`` without merge); for ``regional`` ``I = regional_code_dim(groups)``
             (halved with merge). None: no RNNs, the descriptor is the regional code itself (``pooling``
             regional; ``pool_scale`` and ``merge`` left at their defaults).
         fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
@@ -243,8 +206,6 @@ def descriptor_from_attention(
         merge: average element c with c + C/2 of the RNNs' input (the paper's merge); None: True for
             ``flat``, False for ``regional`` pooling.
         pooling: ``"regional"`` (regional GeM code, :mod:`attnloop.pooling`) or ``"flat"`` (the paper).
-        gem_p: the GeM exponent (regional pooling).
-        levels: the grids of the regional pooling.
         groups: channel counts of a joined tap's stages (the backbone's ``tap_groups``): each group is
             fused and pooled on its own; None: one group.
         attended: per group, whether it is fused (the backbone's ``attended_groups``); a group not
@@ -269,7 +230,6 @@ def descriptor_from_attention(
     """
     if pooling not in POOLINGS:
         raise ValueError(f"unknown pooling {pooling!r}; choose one of {POOLINGS}")
-    _check_flat_settings(pooling, gem_p, levels)
     _check_pool_scale(pool_scale)
     fused = fuse_groups(tap, grad, fusion, groups, attended)
     if rnn_weights is None:
@@ -280,95 +240,16 @@ def descriptor_from_attention(
         if pooling == "flat":
             raise ValueError("pooling='flat' is the paper's input of the random RNNs, and rnn_weights=None has none; "
                              "pass RNN weights, or pooling='regional'")
-        desc = regional_code(fused, groups, gem_p, levels)
+        desc = regional_code(fused, groups)
     else:
         if merge is None:
             merge = pooling == "flat"
-        pool_in = fused if pooling == "flat" else regional_code(fused, groups, gem_p, levels)[:, :, None, None]
+        pool_in = fused if pooling == "flat" else regional_code(fused, groups)[:, :, None, None]
         pool_in = pool_in if pool_scale is None else _scale_to_norm(pool_in, float(pool_scale))
         desc = random_rnn_pool(pool_in, rnn_weights, merge=merge)
     if normalize:
         desc = F.normalize(desc, dim=1)
     return fused, desc
-
-
-def attention_descriptor_parts(
-    images: torch.Tensor,
-    backbone: nn.Module,
-    rnn_weights: torch.Tensor | None,
-    fusion: str = "dam",
-    normalize: bool = True,
-    pool_scale: float | None = 10.0,
-    merge: bool | None = None,
-    create_graph: bool = False,
-    *,
-    pooling: str = "regional",
-    gem_p: float = 2.0,
-    levels: Sequence[int] = (1, 2),
-) -> DescriptorParts:
-    """Compute the descriptor and keep every intermediate (L, G, fused, descriptor).
-
-    Args:
-        images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1], on the backbone's device.
-        backbone: a backbone of :mod:`attnloop.backbones` (eval mode).
-        rnn_weights: :math:`(R, O, I)` random RNN weights (:func:`attnloop.rnn_pool.random_rnn_weights`)
-            with ``I`` as :func:`descriptor_from_attention` says; None: no RNNs (the default descriptor's).
-        fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
-        normalize: L2-normalise the descriptor.
-        pool_scale: L2 norm the RNNs' input is scaled to (with ``rnn_weights`` only); None feeds it raw
-            (the paper).
-        merge: average element c with c + C/2 of the RNNs' input; None: for ``flat`` pooling only.
-        create_graph: keep every part differentiable w.r.t. the images and the backbone's weights
-            (see :func:`attnloop.guided_backprop.guided_backprop`).
-        pooling: ``"regional"`` or ``"flat"`` (see :func:`descriptor_from_attention`).
-        gem_p: the GeM exponent (regional pooling).
-        levels: the grids of the regional pooling.
-
-    Returns:
-        :class:`DescriptorParts` with the descriptor of shape :math:`(B, R \\cdot O)` (without RNNs: the
-        pooled code's size).
-    """
-    check_images(images)
-    tap, grad = guided_backprop(backbone, images, create_graph=create_graph)
-    fused, desc = descriptor_from_attention(tap, grad, rnn_weights, fusion, normalize, pool_scale, merge,
-                                            pooling=pooling, gem_p=gem_p, levels=levels,
-                                            groups=getattr(backbone, "tap_groups", None),
-                                            attended=getattr(backbone, "attended_groups", None))
-    return DescriptorParts(tap, grad, fused, desc)
-
-
-def attention_descriptor(
-    images: torch.Tensor,
-    backbone: nn.Module,
-    rnn_weights: torch.Tensor | None,
-    fusion: str = "dam",
-    normalize: bool = True,
-    pool_scale: float | None = 10.0,
-    merge: bool | None = None,
-    create_graph: bool = False,
-    *,
-    pooling: str = "regional",
-    gem_p: float = 2.0,
-    levels: Sequence[int] = (1, 2),
-) -> torch.Tensor:
-    """Attention-guided descriptor of a batch of images (see :func:`attention_descriptor_parts`).
-
-    Returns:
-        :math:`(B, R \\cdot O)` descriptors (without RNNs: the pooled code's size), unit L2 norm when
-        ``normalize``.
-
-    Example:
-        >>> from attnloop.backbones import efficientnet_lite0
-        >>> from attnloop.rnn_pool import random_rnn_weights
-        >>> net = efficientnet_lite0(pretrained=False)
-        >>> w = random_rnn_weights(16, 160 * 7 * 7, 64, seed=0)
-        >>> attention_descriptor(torch.rand(2, 3, 96, 128), net, w, fusion="ega", pooling="flat").shape
-        torch.Size([2, 1024])
-    """
-    return attention_descriptor_parts(
-        images, backbone, rnn_weights, fusion, normalize, pool_scale, merge, create_graph=create_graph,
-        pooling=pooling, gem_p=gem_p, levels=levels,
-    ).descriptor
 
 
 _PROTOCOL = ("preprocess", "forward_to_tap", "tap_shape")
@@ -431,7 +312,7 @@ class AttentionDescriptor(nn.Module):
         differentiable: keep the computation in autograd (see above). Costs a graph of the backbone
             and a second-order backward through the head (docs/results.md, "The descriptor's cost").
         recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` (leave those at
-            their defaults then); it also sets ``pooling``, ``gem_p`` and ``levels``.
+            their defaults then); it also sets ``pooling``.
         preset: a name of :data:`attnloop.presets.PRESETS`: ``"paper"``, the paper's exact configuration
             (the paper's tap at 224 x 224, flat RNN pooling of the raw fused map, the merge, 16 RNNs; only
             ``fusion``, ``seed`` and the backbone choice stay free), ``"guclu2019"``, the paper's baseline
@@ -598,7 +479,7 @@ class AttentionDescriptor(nn.Module):
             raise ValueError(f"{self.backbone_name}: attended_groups {self.attended_groups} has not one flag per "
                              f"tap group {self.tap_groups}")
         if given.pooling == "regional":
-            channels, height, width = regional_code_dim(self.tap_groups, given.levels), 1, 1
+            channels, height, width = regional_code_dim(self.tap_groups), 1, 1
         if given.merges and channels % 2:
             raise ValueError(f"the RNNs' input of {self.backbone_name} has {channels} channels, an odd number: "
                              "merge=True averages channel c with c + C/2; pass merge=False or tap a layer with "
@@ -625,16 +506,6 @@ class AttentionDescriptor(nn.Module):
     def fusion(self) -> str:
         """The fusion mode (:attr:`recipe`; another one per call: :meth:`from_attention`'s ``fusion``)."""
         return self.recipe.fusion
-
-    @property
-    def normalize(self) -> bool:
-        """Whether descriptors are L2-normalised (:attr:`recipe`)."""
-        return self.recipe.normalize
-
-    @property
-    def pool_scale(self) -> float | None:
-        """L2 norm of the RNNs' input, None for raw (:attr:`recipe`; unused without RNNs)."""
-        return None if self.recipe.pool_scale is None else float(self.recipe.pool_scale)
 
     def train(self, mode: bool = True) -> AttentionDescriptor:
         """Set the training flag; a name-built backbone stays in eval mode (batch-norm, dropout)."""
@@ -710,11 +581,12 @@ class AttentionDescriptor(nn.Module):
                     zero = (sum(t.sum() for t in tied) * 0).to(dtype)
                     empty, desc = empty + zero, desc + zero
             return DescriptorParts(empty, empty, empty, desc)
+        tap, grad = guided_backprop(self.backbone, images, create_graph=self.differentiable)
         r = self.recipe
-        return attention_descriptor_parts(
-            images, self.backbone, self.rnn_weights, r.fusion, r.normalize, self.pool_scale, r.merges,
-            create_graph=self.differentiable, pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
-        )
+        fused, desc = descriptor_from_attention(tap, grad, self.rnn_weights, r.fusion, r.normalize, r.pool_scale,
+                                                r.merges, pooling=r.pooling,
+                                                groups=self.tap_groups, attended=self.attended_groups)
+        return DescriptorParts(tap, grad, fused, desc)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         if self.recipe.fusion == "none" and not self.differentiable:
@@ -749,11 +621,12 @@ class AttentionDescriptor(nn.Module):
                              f"got {tuple(tap.shape)}")
         mode = self.recipe.fusion if fusion is None else fusion
         r = self.recipe
-        return descriptor_from_attention(tap, grad, self.rnn_weights, mode, r.normalize, self.pool_scale, r.merges,
-                                         pooling=r.pooling, gem_p=r.gem_p, levels=r.levels,
+        return descriptor_from_attention(tap, grad, self.rnn_weights, mode, r.normalize, r.pool_scale, r.merges,
+                                         pooling=r.pooling,
                                          groups=self.tap_groups, attended=self.attended_groups)[1]
 
     def extra_repr(self) -> str:
-        rnn = f"num_rnn={self.recipe.num_rnn}, pool_scale={self.pool_scale}" if self.pool is not None else "num_rnn=0"
-        return (f"backbone={self.backbone_name!r}, fusion={self.fusion!r}, differentiable={self.differentiable}, "
-                f"normalize={self.normalize}, pooling={self.recipe.pooling!r}, {rnn}, out_dim={self.out_dim}")
+        r = self.recipe
+        rnn = f"num_rnn={r.num_rnn}, pool_scale={r.pool_scale}" if self.pool is not None else "num_rnn=0"
+        return (f"backbone={self.backbone_name!r}, fusion={r.fusion!r}, differentiable={self.differentiable}, "
+                f"normalize={r.normalize}, pooling={r.pooling!r}, {rnn}, out_dim={self.out_dim}")

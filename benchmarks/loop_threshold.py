@@ -237,7 +237,7 @@ def main() -> None:
         print(f"| {label} | top-1 similarity at 100 % precision: {r.threshold_at_full_precision:.3f} | - | 1.000 | "
               f"{r.recall_at_full_precision:.3f} | 0 |")
         for method, k, margin, floor in SETTINGS:
-            cfg = LoopDetectorConfig(window=gap, threshold=ThresholdConfig(method=method, k_sigma=k, min_margin=margin,
+            cfg = LoopDetectorConfig(window=gap, threshold=ThresholdConfig(k_sigma=k, min_margin=margin,
                                                                            min_similarity=floor, min_samples=16),
                                      threshold_samples=4096)
             det = LoopCandidateDetector(cfg)

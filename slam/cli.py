@@ -26,6 +26,7 @@ examples:
   attnloop-slam --demo --demo-scene room --no-loop --out runs/demo_odometry
   attnloop-slam ../shared/data/7scenes-redkitchen --out runs/kitchen    # 7-Scenes: Kinect v1 rig by default
   attnloop-slam ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room --preset paper  # the paper's descriptor
+  attnloop-slam rgbd_dataset_freiburg1_xyz.bag --camera fr1 --ground-truth groundtruth.txt --out runs/xyz_bag
   attnloop-slam SEQUENCE --config runs/kitchen/config.toml --out runs/again                # a run repeated
   attnloop-slam SEQUENCE --out runs/step3 --frame-step 3     # every 3rd frame: more drift for the loops
   attnloop-slam SEQUENCE --frames 0:600 --save-map maps/kitchen --out runs/monday          # map, saved
@@ -45,10 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(
         prog=PROG, formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EXAMPLES,
-        description="Attention-guided loop-closing RGB-D SLAM on a TUM RGB-D or 7-Scenes sequence folder, or on a\n"
-                    "built-in synthetic sequence with exact ground truth (--demo).")
+        description="Attention-guided loop-closing RGB-D SLAM on a TUM RGB-D or 7-Scenes sequence folder, a ROS\n"
+                    "bag, or a built-in synthetic sequence with exact ground truth (--demo).")
     p.add_argument("sequence", nargs="?", help="sequence folder (TUM RGB-D: rgb.txt, depth.txt; 7-Scenes: "
-                                               "frame-XXXXXX.color.*); omit with --demo")
+                                               "frame-XXXXXX.color.*), ROS1 .bag file or ROS2 bag folder "
+                                               "(attnloop[rosbag]); omit with --demo")
     p.add_argument("--out", required=True, help="output folder (created; the previous run's outputs in it are "
                                                 "replaced)")
     add_run_arguments(p)

@@ -166,30 +166,15 @@ class LoopClosureConfig:
 
     enabled: bool = True  # False = odometry only (--no-loop)
     descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
-    # The loop closer gives the detector keyframe ids in *milliseconds since the first keyframe*, so that
-    # ``window`` is a time, whatever the frame rate or frame step: keyframes within 3000 ms are never loop
-    # candidates (they are the odometry's business; so are keyframes joined to the query by an edge, at any
-    # time: slam.loop.closer). The detector's own temporal consistency stays off
-    # (``consistency=1``, its default, so ``consistency_radius`` is unused; were it turned on, the radius
-    # would be in ms too): verified loops are filtered by group consistency instead (``consistency``
-    # below). The adaptive threshold needs 16 eligible keyframes before it proposes anything, and is set
-    # low (median + 1.5 robust sigmas): in one small room many views are similar, and geometric
-    # verification rejects the false candidates (on redkitchen: 20 loops accepted, all true, vs 3 at the
-    # index's default 3 sigmas).
+    # Keyframe ids are milliseconds since the first keyframe, so ``window`` is a time (3 s) at any frame rate or
+    # step. The threshold is low (median + 1.5 robust sigmas, from 16 keyframes on): geometric verification and
+    # the group check below reject the false candidates (docs/results.md, "Loop candidates").
     detector: LoopDetectorConfig = field(default_factory=lambda: LoopDetectorConfig(
         window=3000, threshold=ThresholdConfig(k_sigma=1.5, min_samples=16)))
     # The threshold calibrated for a backbone's default descriptor replaces ``detector.threshold`` when the
-    # loop closer builds that descriptor (an absolute floor is a property of the descriptor: the paper
-    # preset's similarities sit near 0.55, the Lite0 default's near 0.85). EfficientNet-Lite0: chosen on the
-    # SLAM's own keyframe streams of every sequence at hand (the kitchen at frame steps 1, 3 and 6, the room
-    # demo, the building; docs/results.md, "Loop candidates"): the relative rule plus a floor of 0.85 keeps
-    # the kitchen's candidates (recall 0.55-0.61, 1-2 fewer false ones) and sends fewer false
-    # candidates to verification on the room (0 vs 19) and the building (710 vs 1143; recall 0.93 both).
-    # A lower k_sigma (0.5 or 1) raises the kitchen's recall to 0.75-0.80, but its extra loops cost the
-    # default kitchen run its target (measured with the RNNs: 49 loops vs 33, all true, 0.0301 m vs 0.0293).
-    # Every fusion mode shares the scale (median similarity of kitchen frames >= 100 apart: 0.854-0.860
-    # without the RNNs, 0.857-0.863 with them).
-    # Backbones not listed (VGG16, a custom descriptor) keep ``detector.threshold``.
+    # loop closer builds that descriptor: an absolute floor is a property of the descriptor (the Lite0 default's
+    # similarities sit near 0.85, the paper preset's near 0.55; docs/results.md, "Loop candidates"). Backbones
+    # not listed (VGG16, a custom descriptor) keep ``detector.threshold``.
     threshold_by_backbone: dict = field(default_factory=lambda: {
         "efficientnet_lite0": ThresholdConfig(k_sigma=1.5, min_margin=0.005, min_similarity=0.85, min_samples=16)},
         metadata={"values": ThresholdConfig})
@@ -198,40 +183,26 @@ class LoopClosureConfig:
     max_candidates: int = 5  # candidates verified per query keyframe (most similar first), 1..detector.top_k
     min_inliers: int = 40  # RANSAC inliers an accepted loop needs
     min_inlier_ratio: float = 0.25  # inliers / matches
-    # A loop edge joins views this close (measured relative pose) and this little turned: farther views
-    # overlap too little to trust. Set below the evaluation's 0.5 m / 45 deg so that a measured relative
-    # pose a few cm off cannot admit a pair that ground truth puts just outside (seen on redkitchen at 0.5:
-    # a pair measured < 0.5 m that ground truth puts at 0.538 m).
+    # A loop edge joins views this close and this little turned (farther views overlap too little); below the
+    # evaluation's 0.5 m / 45 deg so that a measured pose a few cm off cannot admit a pair just outside it.
     max_translation: float = 0.4  # m
     max_rotation_deg: float = 40.0  # degrees
     # Consistency with the current estimate of the same relative pose, within a bound that grows with the
     # distance travelled between the two keyframes (slam.loop.acceptance): a "loop" that contradicts it by
     # more is an aliased place (repeated texture, an identical room), not a revisit.
     drift: DriftBoundConfig = field(default_factory=DriftBoundConfig)
-    # Across a tracking loss (a weak edge: the forced keyframe's constant-velocity guess) no measured path
-    # joins two keyframes, so the drift bound's caps (1.5 m / 45 deg) are all that is left of the estimate.
-    # True: no bound at all there, and loops a loss separates are not compared (the group check alone
-    # decides). It mends a loss of any length (the kitchen without depth for 10 s, the guess 3 m / 90 deg
-    # off: ATE of the tracked frames 0.030 m against odometry's 1.275 m, no loop across it with the caps),
-    # but after a blind walk an identical room is taken for the old one (the building, 4 s without depth on
-    # the way into S1's twin: 82 false loops; with the caps none, and the run stays in two pieces; 3.3-3.4
-    # m either way). False: the caps hold, a false loop costs more than a missed one.
+    # Across a tracking loss (a weak edge) no measured path joins two keyframes, so the drift bound's caps are
+    # all that is left of the estimate. True: no bound there (it mends a long loss, but after a blind walk an
+    # identical room can be taken for the old one); False: the caps hold, a false loop costs more than a missed one.
     recover_after_loss: bool = False
     # Group consistency of the loops (slam.loop.consistency: the largest set of mutually consistent loops).
     consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
-    # The information of an edge comes from its RANSAC inliers as if their errors were independent; they
-    # are not (keypoint localisation, depth bias), and the measured frame-to-frame error is ~10x the
-    # point-based sigma. Scaling by 1/100 makes chi2 meaningful for the robust kernel (whose width is in
-    # sigmas). Loop edges get a further 1/10: measured against the redkitchen ground truth, a verified loop
-    # edge (wide baseline, up to 45 deg) errs by a median 22 mm / 1.6 deg vs 14 mm / 0.7 deg for an
-    # odometry edge between keyframes, with more systematic error (colour/depth misregistration grows
-    # with the viewpoint change); 1/1000 gave ATE 4.36 cm vs 4.55 cm at 1/100.
-    # Against ground truth: on the real kitchen (frame steps 1,
-    # 3, 6) true odometry edges have a median squared Mahalanobis error of 3.4-5.1 at x 0.01 (the chi2 of
-    # 6 dof, median 5.35, that the robust kernels' widths assume) and true loop edges 0.85-1.0 at x 0.001.
-    # Loops weighted to match (x 0.005) made the default kitchen run worse (ATE 0.0320 m vs 0.0301, the same
-    # 49 loops): their errors are systematic, shared by neighbouring loops, not independent as the weighting
-    # assumes. DCS still switches false loops off at x 0.001 (tests/slam/test_backend.py, a real graph).
+    # An edge's information comes from its RANSAC inliers as if their errors were independent; they are not
+    # (keypoint localisation, depth bias): the measured error is ~10x the point-based sigma. Odometry edges get
+    # 1/100 (backend.odometry_information_scale): on the real kitchen their median squared Mahalanobis error is
+    # then 3.4-5.1, near the chi2(6) median 5.35 that the robust kernels' widths assume. Loop edges (wide
+    # baseline, errors shared by neighbouring loops) get 1/1000: true loop edges then score 0.85-1.0, and
+    # weighting them to match (1/200) made the kitchen worse (ATE 0.0320 m vs 0.0301).
     information_scale: float = 0.001  # multiplies the loop edges' information
 
     def __post_init__(self) -> None:
@@ -278,33 +249,24 @@ class BackendConfig:
     gnc_factor: float = 4.0  # >= 1
     max_iterations: int = 50  # LM iterations of the final optimisation (>= 1)
     odometry_information_scale: float = 0.01  # multiplies the odometry edges' information (see loop.information_scale)
-    # Online correction: after a keyframe whose loops changed the graph, optimise it (with the keyframe's
-    # other loop work: in track(), or in the loop worker of RGBDSLAM(background_loops=True), which run_slam
-    # uses; deterministic either way; over online_window), move the keyframes to their corrected poses
-    # and re-anchor tracking on them, so that track() reports corrected poses (one keyframe
-    # later with the worker). False: the graph is optimised once, in finish(), and track() reports odometry.
+    # Online correction: after a keyframe whose loops changed the graph, optimise it (over online_window), move
+    # the keyframes to their corrected poses and re-anchor tracking on them, so that track() reports corrected
+    # poses (one keyframe later with the loop worker). False: the graph is optimised once, in finish().
     optimize_on_loop: bool = True
-    # The loop worker (RGBDSLAM(background_loops=True), run_slam): how many keyframes' loop work may still be
-    # waiting (queued or running) when tracking hands over the next keyframe. 0: tracking waits until the
-    # worker is idle, so every report and the result are the same, bit for bit, on any machine (offline
-    # runs, benchmarks). N >= 1: tracking runs ahead of a slow worker by up to N keyframes and waits only
-    # beyond that (a live camera: the frame rate holds while a costly loop is checked; the loops and
-    # corrections reach the reports later, and the result then depends on timing). RGBDSLAM.loop_lag
-    # reports the keyframes waiting; metrics.json's loop_worker its maximum and its course per fifth.
+    # Keyframes whose loop work may still wait in the loop worker (RGBDSLAM(background_loops=True), run_slam)
+    # when tracking hands over the next one. 0: tracking waits for the worker, so the result is the same bit for
+    # bit on any machine. N >= 1: tracking runs ahead of a slow worker by up to N keyframes (a live camera keeps
+    # its frame rate; the result then depends on timing). RGBDSLAM.loop_lag reports the keyframes waiting.
     loop_backlog: int = 0
     online_max_iterations: int = 10  # LM iterations of an online correction (bounds its time; >= 1)
-    # Online correction over a window: the keyframes within this many of the new keyframes and of the ends
-    # of the loops that changed the graph, the keyframes they are joined to held fixed as its boundary, so
-    # that a correction costs the same at any length of run (a whole-graph solve grows with it); finish()
-    # still optimises the whole graph. None: the whole graph at every correction (its cost grows with the
-    # run, each correction spreads over the whole loop at once). Larger windows move more of the graph per loop.
+    # Online correction over a window: the keyframes within this many of the new keyframes and of the changed
+    # loops' ends, their neighbours held fixed, so that a correction costs the same at any length of run;
+    # finish() still optimises the whole graph. None: the whole graph at every correction.
     online_window: Optional[int] = 50
     # A loop edge whose final kernel weight falls below this is reported switched off by the back end (0..1).
     switch_off_weight: float = 0.1
-    # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU. The
-    # keyframe graph is small (87 keyframes on the 7-Scenes kitchen, < 0.05 % of the run) and each LM
-    # iteration reads its cost back to decide the step, so an accelerator gains nothing at this size;
-    # set it (--backend-device) to keep a large graph beside the descriptor (docs/devices.md).
+    # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU; the
+    # keyframe graph is small, so an accelerator pays only for a large graph kept beside the descriptor.
     device: Optional[str] = None
 
     def __post_init__(self) -> None:
@@ -322,10 +284,9 @@ class SLAMConfig:
     map: MapConfig = field(default_factory=MapConfig)  # map.ply of a run (slam.pipeline)
     # placing a recording in a saved map (run_slam(map_dir=...), --map; slam.maps)
     relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
-    # torch, BLAS and OpenCV threads during slam.pipeline.run_slam (the caller's restored afterwards; None
-    # leaves them as they are). One: the work is many small per-frame operations, and a pool with more
-    # threads than free cores made a run ~9x slower while another process used a core; one thread loses
-    # little on an idle machine (benchmarks/threads.py, docs/devices.md).
+    # torch, BLAS and OpenCV threads during slam.pipeline.run_slam (None leaves them as they are). One: the work
+    # is many small per-frame operations, and a pool larger than the free cores slows a run many times over
+    # (benchmarks/threads.py, docs/devices.md).
     threads: Optional[int] = 1
     # a run that tracks fewer than this fraction of its frames failed (slam.pipeline: no trajectory written,
     # exit code 1): its poses are constant-velocity guesses, and frames that all fail alike are an input error

@@ -27,14 +27,11 @@ import torch
 Tensor = torch.Tensor
 
 __all__ = [
-    "quat_normalize", "quat_mul", "quat_conj", "quat_rotate", "quat_to_rotmat", "quat_angle", "rotmat_to_quat",
-    "rotmat_project",
-    "quat_identity", "so3_hat", "so3_vee", "so3_exp", "so3_log", "so3_left_jacobian",
-    "so3_left_jacobian_inv", "so3_right_jacobian", "so3_right_jacobian_inv", "se3_identity", "se3_exp",
-    "se3_log", "se3_inv", "se3_compose",
-    "se3_between", "se3_act", "se3_adjoint", "se3_hat", "se3_to_matrix", "se3_from_matrix",
-    "se3_normalize", "se3_ad", "se3_left_jacobian", "se3_left_jacobian_inv", "se3_right_jacobian",
-    "se3_right_jacobian_inv", "se3_to_kornia", "se3_from_kornia", "SE3",
+    "quat_angle", "quat_conj", "quat_mul", "quat_normalize", "quat_rotate", "quat_to_rotmat", "rotmat_project",
+    "rotmat_to_quat", "se3_act", "se3_ad", "se3_adjoint", "se3_between", "se3_compose", "se3_exp", "se3_from_kornia",
+    "se3_from_matrix", "se3_hat", "se3_identity", "se3_inv", "se3_left_jacobian_inv", "se3_log", "se3_normalize",
+    "se3_right_jacobian_inv", "se3_to_kornia", "se3_to_matrix", "so3_exp", "so3_hat", "so3_left_jacobian",
+    "so3_left_jacobian_inv", "so3_log", "so3_right_jacobian_inv",
 ]
 
 
@@ -53,13 +50,6 @@ def _check_last(x: Tensor, n: int, name: str) -> None:
 # ----------------------------------------------------------------------------------------------
 # Quaternions [qx, qy, qz, qw]
 # ----------------------------------------------------------------------------------------------
-def quat_identity(*shape: int, dtype=None, device=None) -> Tensor:
-    """Identity quaternions of shape ``(*shape, 4)``."""
-    q = torch.zeros(*shape, 4, dtype=dtype, device=device)
-    q[..., 3] = 1.0
-    return q
-
-
 def quat_normalize(q: Tensor, positive_w: bool = True) -> Tensor:
     """Unit quaternion ``(..., 4)``, sign chosen so that ``qw >= 0`` (kept as given when not ``positive_w``)."""
     _check_last(q, 4, "q")
@@ -183,11 +173,6 @@ def so3_hat(phi: Tensor) -> Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(phi.shape[:-1] + (3, 3))
 
 
-def so3_vee(W: Tensor) -> Tensor:
-    """Inverse of :func:`so3_hat`: ``(..., 3, 3) -> (..., 3)``."""
-    return torch.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], dim=-1)
-
-
 def _theta(phi: Tensor):
     theta2 = (phi * phi).sum(-1, keepdim=True)
     small = theta2 < _small(phi.dtype) ** 2
@@ -249,14 +234,6 @@ def so3_left_jacobian_inv(phi: Tensor) -> Tensor:
     W = so3_hat(phi)
     eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand_as(W)
     return eye - 0.5 * W + c * (W @ W)
-
-
-def so3_right_jacobian(phi: Tensor) -> Tensor:
-    """Right Jacobian ``J_r(phi) = J_l(-phi)`` of SO(3), ``(..., 3, 3)``.
-
-    ``exp(phi + d) ~= exp(phi) exp(J_r(phi) d)`` for a small ``d``.
-    """
-    return so3_left_jacobian(-phi)
 
 
 def so3_right_jacobian_inv(phi: Tensor) -> Tensor:
@@ -403,19 +380,6 @@ def _se3_q(xi: Tensor) -> Tensor:
     return so3_hat(v) + E
 
 
-def se3_left_jacobian(xi: Tensor) -> Tensor:
-    """Left Jacobian of SE(3) ``(..., 6, 6)`` for ``[rho, phi] (..., 6)``: ``[[J_l, Q], [0, J_l]]``.
-
-    ``exp(xi + d) ~= exp(J_l(xi) d) exp(xi)`` for a small ``d`` (Barfoot, State Estimation, 7.1.5).
-    """
-    _check_last(xi, 6, "xi")
-    J = so3_left_jacobian(xi[..., 3:])
-    Q = _se3_q(xi)
-    top = torch.cat([J, Q], dim=-1)
-    bottom = torch.cat([torch.zeros_like(J), J], dim=-1)
-    return torch.cat([top, bottom], dim=-2)
-
-
 def se3_left_jacobian_inv(xi: Tensor) -> Tensor:
     """Inverse left Jacobian of SE(3), ``(..., 6, 6)``: ``[[J_l^-1, -J_l^-1 Q J_l^-1], [0, J_l^-1]]``."""
     _check_last(xi, 6, "xi")
@@ -424,14 +388,6 @@ def se3_left_jacobian_inv(xi: Tensor) -> Tensor:
     top = torch.cat([Ji, -(Ji @ Q @ Ji)], dim=-1)
     bottom = torch.cat([torch.zeros_like(Ji), Ji], dim=-1)
     return torch.cat([top, bottom], dim=-2)
-
-
-def se3_right_jacobian(xi: Tensor) -> Tensor:
-    """Right Jacobian ``J_r(xi) = J_l(-xi)`` of SE(3) ``(..., 6, 6)``.
-
-    ``exp(xi + d) ~= exp(xi) exp(J_r(xi) d)`` for a small ``d``.
-    """
-    return se3_left_jacobian(-xi)
 
 
 def se3_right_jacobian_inv(xi: Tensor) -> Tensor:
@@ -459,75 +415,6 @@ def se3_from_matrix(T: Tensor) -> Tensor:
     return torch.cat([T[..., :3, 3], rotmat_to_quat(T[..., :3, :3])], dim=-1)
 
 
-class SE3:
-    """A thin, readable wrapper around a ``(..., 7)`` pose tensor.
-
-    Example:
-        >>> X = SE3.exp(torch.zeros(2, 6))
-        >>> (X @ X.inv()).data.shape
-        torch.Size([2, 7])
-        >>> X.act(torch.ones(2, 3)).shape
-        torch.Size([2, 3])
-    """
-
-    __slots__ = ("data",)
-
-    def __init__(self, data: Tensor):
-        _check_last(data, 7, "data")
-        self.data = data
-
-    @classmethod
-    def identity(cls, *shape: int, dtype=None, device=None) -> "SE3":
-        return cls(se3_identity(*shape, dtype=dtype, device=device))
-
-    @classmethod
-    def exp(cls, xi: Tensor) -> "SE3":
-        return cls(se3_exp(xi))
-
-    @classmethod
-    def from_matrix(cls, T: Tensor) -> "SE3":
-        return cls(se3_from_matrix(T))
-
-    def log(self) -> Tensor:
-        return se3_log(self.data)
-
-    def inv(self) -> "SE3":
-        return SE3(se3_inv(self.data))
-
-    def __matmul__(self, other: "SE3") -> "SE3":
-        return SE3(se3_compose(self.data, other.data))
-
-    def act(self, points: Tensor) -> Tensor:
-        return se3_act(self.data, points)
-
-    def adjoint(self) -> Tensor:
-        return se3_adjoint(self.data)
-
-    def matrix(self) -> Tensor:
-        return se3_to_matrix(self.data)
-
-    @property
-    def translation(self) -> Tensor:
-        return self.data[..., :3]
-
-    @property
-    def quaternion(self) -> Tensor:
-        return self.data[..., 3:]
-
-    @property
-    def shape(self) -> torch.Size:
-        return self.data.shape[:-1]
-
-    def __getitem__(self, idx) -> "SE3":
-        return SE3(self.data[idx])
-
-    def __repr__(self) -> str:
-        return f"SE3(shape={tuple(self.shape)}, dtype={self.data.dtype})"
-
-
-# ----------------------------------------------------------------------------------------------
-# Kornia's Lie groups at the boundary (kornia.geometry.liegroup: w-first quaternions)
-# ----------------------------------------------------------------------------------------------
 def se3_to_kornia(pose: Tensor):
     """A :class:`kornia.geometry.liegroup.Se3` (batch shape ``(...)``) from poses ``(..., 7)`` ``[t, q_xyzw]``.
 

@@ -116,6 +116,11 @@ class RunOptions:
     # the first frames' median depth checked against the depth scale (a wrong unit fails before the run)
     depth_check: bool = True
     laps: int = 1  # the sequence played N times, forward, backward, forward, ... (slam.io.laps)
+    # a ROS bag's topics (None: TUM RGB-D's, slam.io.rosbag.TUM_TOPICS) and its ground truth (a TUM trajectory file)
+    rgb_topic: Optional[str] = None
+    depth_topic: Optional[str] = None
+    camera_info_topic: Optional[str] = None
+    ground_truth: Optional[str] = None
 
     def __post_init__(self) -> None:
         n = "RunOptions"
@@ -145,6 +150,10 @@ class RunOptions:
             object.__setattr__(self, "intrinsics", tuple(float(v) for v in self.intrinsics))
         if not isinstance(self.depth_check, bool):
             raise ValueError(f"{n}.depth_check must be true or false, got {self.depth_check!r}")
+        for name in ("rgb_topic", "depth_topic", "camera_info_topic", "ground_truth"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, str) and value):
+                raise ValueError(f"{n}.{name} must be a non-empty string, got {value!r}")
         if self.intrinsics is not None and self.camera is not None:
             raise ValueError("--intrinsics and --camera both give the camera's intrinsics: drop one of them")
 
@@ -157,7 +166,10 @@ def reader_options(run: RunOptions) -> dict:
         >>> reader_options(RunOptions(depth_scale=1000.0))
         {'depth_scale': 1000.0}
     """
-    options = {k: v for k, v in (("camera", run.camera), ("depth_scale", run.depth_scale)) if v is not None}
+    given = (("camera", run.camera), ("depth_scale", run.depth_scale), ("rgb_topic", run.rgb_topic),
+             ("depth_topic", run.depth_topic), ("camera_info_topic", run.camera_info_topic),
+             ("groundtruth", run.ground_truth))
+    options = {k: v for k, v in given if v is not None}
     if run.intrinsics is not None:
         fx, fy, cx, cy = run.intrinsics
         options["K"] = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -308,6 +320,16 @@ OPTIONS: tuple[Option, ...] = (
     Option("--no-depth-check", "run.depth_check", "camera (default: from the dataset)",
            "do not refuse a sequence whose first frames' median depth at the depth scale is outside 0.5-20 m (the "
            "check that catches depth in the wrong unit); for scenes that really are that near or far", const=False),
+    Option("--rgb-topic", "run.rgb_topic", "ROS bag", "a bag's colour images, rgb8, bgr8 or mono8 (default: TUM "
+           "RGB-D's /camera/rgb/image_color)", metavar="TOPIC"),
+    Option("--depth-topic", "run.depth_topic", "ROS bag", "a bag's depth images registered to the colour ones, 32FC1 "
+           "metres (NaN: no depth) or 16UC1 millimetres (default: TUM RGB-D's /camera/depth/image)", metavar="TOPIC"),
+    Option("--camera-info-topic", "run.camera_info_topic", "ROS bag", "a bag's colour camera info, whose K gives the "
+           "intrinsics (default: TUM RGB-D's /camera/rgb/camera_info; --intrinsics or --camera replace it)",
+           metavar="TOPIC"),
+    Option("--ground-truth", "run.ground_truth", "ROS bag", "a bag's ground truth, a TUM trajectory file "
+           "(timestamp tx ty tz qx qy qz qw), paired with the frames by time as a TUM folder's groundtruth.txt",
+           metavar="FILE"),
     Option("--threads", "threads", "compute", f"torch, BLAS and OpenCV threads of the run (default: "
            f"{_default('threads')}: the work is many small per-frame operations, and more threads than free cores "
            "slow them many times on a busy machine)", type=positive_int, metavar="N"),

@@ -13,6 +13,7 @@
   documentation text names, for the docs tests.
 * :func:`unit_rows`: seeded unit-norm rows, for the keyframe index.
 * :func:`hand_map`, :func:`assert_same_map`: a made-up saved map and map equality, for the map tests.
+* :func:`write_rgbd_bag`: RGB-D frames written as a ROS1 or ROS2 bag with rosbags' writer, for the bag reader.
 
 Example:
     >>> import random
@@ -35,8 +36,8 @@ from slam.lie import se3_compose, se3_exp
 from slam.maps import SavedMap
 from slam.odometry.features import FrameFeatures
 
-__all__ = ["COMMAND_START", "MUTATIONS", "condition_head", "mutate", "perturb_trajectory", "script_of",
-           "synopsis_flags"]
+__all__ = ["COMMAND_START", "MUTATIONS", "TUM_BAG_TOPICS", "condition_head", "mutate", "perturb_trajectory",
+           "script_of", "synopsis_flags", "write_rgbd_bag"]
 
 
 # ------------------------------------------------------------------------------------------ lite nets
@@ -51,7 +52,7 @@ def condition_head(net, seed: int = 0):
     Deterministic: two networks of one seed stay identical.
 
     Args:
-        net: an :class:`attnloop.backbones.efficientnet_lite.EfficientNetLite` (any dtype), changed in place.
+        net: an :class:`attnloop.backbones.efficientnet_lite.EfficientNetLite0` (any dtype), changed in place.
         seed: seed of the images the scales are measured on.
 
     Returns:
@@ -289,3 +290,74 @@ def unit_rows(n: int, d: int, seed: int = 0) -> torch.Tensor:
     """``(n, d)`` rows of a seeded normal draw, each scaled to unit norm."""
     x = torch.randn(n, d, generator=torch.Generator().manual_seed(seed))
     return x / x.norm(dim=-1, keepdim=True)
+
+
+# ---------------------------------------------------------------------------------------------- ROS bags
+#: TUM RGB-D's bag topics: colour, depth, colour camera info.
+TUM_BAG_TOPICS = ("/camera/rgb/image_color", "/camera/depth/image", "/camera/rgb/camera_info")
+
+
+def write_rgbd_bag(path, frames, K, ros2: bool = False, depth_encoding: str = "32FC1", rgb_encoding: str = "rgb8",
+                   topics=TUM_BAG_TOPICS):
+    """Write RGB-D frames as a ROS bag with rosbags' own writer and typestore (sensor_msgs/Image, CameraInfo).
+
+    Args:
+        path: a ``.bag`` file (ROS1) or a new folder (``ros2=True``, sqlite3 storage).
+        frames: iterable of ``(timestamp s, rgb (H, W, 3) uint8 RGB, depth (H, W) float32 metres, 0 = none)``
+            and optionally the depth's own timestamp; read one at a time. ``rgb`` or ``depth`` None: no message.
+        K: ``(3, 3)`` intrinsics written once on the camera-info topic.
+        depth_encoding: ``"32FC1"`` (metres, NaN where 0) or ``"16UC1"`` (millimetres, 0 where none).
+        rgb_encoding: ``"rgb8"``, ``"bgr8"`` or ``"mono8"`` (the first channel) or any other name (rgb8 bytes).
+        topics: colour, depth and camera-info topics.
+    """
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
+    Image, Info = store.types["sensor_msgs/msg/Image"], store.types["sensor_msgs/msg/CameraInfo"]
+    Header, Time = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
+    Roi = store.types["sensor_msgs/msg/RegionOfInterest"]
+    if ros2:
+        from rosbags.rosbag2 import Writer
+
+        writer, serialize = Writer(path, version=9), store.serialize_cdr
+    else:
+        from rosbags.rosbag1 import Writer
+
+        writer, serialize = Writer(path), store.serialize_ros1
+
+    def header(ns: int):
+        stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
+        return Header(stamp=stamp, frame_id="camera") if ros2 else Header(seq=0, stamp=stamp, frame_id="camera")
+
+    def image(ns, pixels, encoding):
+        h, w = pixels.shape[:2]
+        data = np.ascontiguousarray(pixels).reshape(-1).view(np.uint8)
+        return Image(header=header(ns), height=h, width=w, encoding=encoding, is_bigendian=0,
+                     step=data.size // h, data=data)
+
+    with writer:
+        rgb_c, depth_c, info_c = (writer.add_connection(t, m, typestore=store) for t, m in zip(
+            topics, ("sensor_msgs/msg/Image", "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo")))
+        for k, (t, rgb, depth, *depth_t) in enumerate(frames):
+            ns = round(t * 1e9)
+            depth_ns = round(depth_t[0] * 1e9) if depth_t else ns
+            if k == 0:
+                arrays = {n: np.zeros(s) for n, s in (("d", 5), ("r", 9), ("p", 12))}
+                arrays["k"] = np.asarray(K, np.float64).reshape(9)
+                fields = arrays if ros2 else {n.upper(): a for n, a in arrays.items()}
+                h, w = (rgb if rgb is not None else depth).shape[:2]
+                info = Info(header=header(ns), height=h, width=w, distortion_model="plumb_bob",
+                            binning_x=0, binning_y=0, roi=Roi(x_offset=0, y_offset=0, height=0, width=0,
+                                                               do_rectify=False), **fields)
+                writer.write(info_c, ns, serialize(info, "sensor_msgs/msg/CameraInfo"))
+            if rgb is not None:
+                colour = {"bgr8": rgb[..., ::-1], "mono8": rgb[..., 0]}.get(rgb_encoding, rgb)
+                writer.write(rgb_c, ns, serialize(image(ns, colour, rgb_encoding), "sensor_msgs/msg/Image"))
+            if depth is None:
+                continue
+            if depth_encoding == "16UC1":
+                d = np.round(depth * 1000.0).astype(np.uint16)
+            else:
+                d = np.where(depth > 0, depth, np.float32(np.nan)).astype(np.float32)
+            writer.write(depth_c, depth_ns, serialize(image(depth_ns, d, depth_encoding), "sensor_msgs/msg/Image"))
+    return path

@@ -126,7 +126,7 @@ def build_backbone(
         seed: seed of the random weights when not pretrained.
         input_size: EfficientNet-Lite0's network input (H, W) (default 224 x 224); VGG16 takes 224 x 224 only.
         attend: EfficientNet-Lite0's stages of a joined tap where G is computed (None: all;
-            :class:`attnloop.backbones.efficientnet_lite.EfficientNetLite`); VGG16's tap is one layer.
+            :class:`attnloop.backbones.efficientnet_lite.EfficientNetLite0`); VGG16's tap is one layer.
 
     Example:
         >>> build_backbone("vgg16", pretrained=False).tap_shape

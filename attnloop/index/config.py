@@ -54,21 +54,16 @@ class FaissConfig:
 
     The graph grows one keyframe at a time (every ``add`` inserts into it), so it never needs a rebuild
     for growth. Only its trained part, the PCA code of ``IndexConfig.reduce_dim``, goes stale as the robot
-    reaches places unlike those it was fitted on (on the kitchen, frames after a fit keep 30-50% of their
-    energy in the code against 93% of the fitted ones); the graph is rebuilt with a new code, in a worker
+    reaches places unlike those it was fitted on; the graph is rebuilt with a new code, in a worker
     thread, once the rows have grown by ``retrain_growth`` since the fit.
     """
 
-    # Links per node (2 m on the bottom layer). The graph's degree, not the code or ef_search, is what holds
-    # recall as the collection grows on high-dimensional data: on the clustered set (PCA-128 code, whose
-    # exact search keeps recall@10 >= 0.995 up to 10^6 rows), m = 32 gave 0.97-0.99 at 2x10^5, 0.84 at 5x10^5
-    # and 0.69 at 10^6, where ef_search 256 gained only a few points; m = 64 gave 1.000 and 0.995
-    # (m = 48 with ef_construction 120: 0.958, as slow to build); at 10^6 m = 64 gives 0.982 at ~2 ms.
-    # Cost: 1.5-2x the build time, ~1.2x the query time at 10^5, 256 more bytes of links per keyframe.
-    # docs/results.md, "Keyframe index".
+    # Links per node (2 m on the bottom layer): the graph's degree, more than the code or ef_search, holds
+    # recall as the collection grows (m = 32 fell to 0.69 recall@10 at 10^6 rows, m = 64 kept 0.98), for
+    # 1.5-2x the build time (docs/results.md, "Keyframe index").
     m: int = 64
-    # Candidate list while inserting. faiss's default 40 built a graph that lost 11% of recall@10 on the
-    # real kitchen descriptors (a trajectory: a thin manifold) where 80 lost none; build time ~2x.
+    # Candidate list while inserting: faiss's default 40 lost recall on the real kitchen descriptors (a thin
+    # manifold), 80 lost none.
     ef_construction: int = 80
     ef_search: int = 64  # candidate list while searching (raised to the number of rows asked for)
     # Refit the PCA code and rebuild once the rows added since the fit reach this fraction of the rows it
@@ -98,23 +93,13 @@ class IndexConfig:
     # Below this many eligible keyframes a plain scan answers (exact, and faster than a structure there:
     # docs/results.md, "Keyframe index"); no structure is built below it.
     exact_below: int = 4096
-    # PCA code the approximate structure is built on (None: the full descriptors). The stored descriptors
-    # stay full: candidates are re-scored exactly, so the code only has to keep the true neighbours among
-    # the rerank * k candidates. 128 dims build and search ~2x faster than 256 and keep 94% of the kitchen
-    # descriptors' variance; with rerank 8 the kitchen (graph from 32 keyframes on, window 30) keeps
-    # recall@10 0.981 (256 dims: 0.998; full descriptors: 1.000), measured on the paper's 1024-d encoding;
-    # docs/results.md, "Keyframe index".
+    # PCA code the approximate structure is built on (None: the full descriptors). Candidates are re-scored
+    # on the full stored descriptors, so the code only has to keep the true neighbours among the rerank * k
+    # candidates (docs/results.md, "Keyframe index").
     reduce_dim: int | None = 128
-    # PCA-whitening (unit-variance components, codes L2-normalised) instead of PCA: it lost recall on real
-    # descriptors (kitchen 0.86 vs 0.99), kept for measurement.
-    whiten: bool = False
     rerank: int = 8  # the structure proposes rerank * k rows per query, all re-scored exactly (4: kitchen 0.93)
     storage: str = "float32"  # dtype of the stored descriptors: "float32" | "float16" (half the memory)
     background: bool = True  # build structures in a worker thread; queries use the old one meanwhile
-    # L2-normalise added descriptors and queries (similarity = cosine). False (similarity = the raw dot
-    # product) only with backend "exact": the structures rank by L2 distance, which orders rows like the
-    # dot product only for unit-length rows.
-    normalize: bool = True
     seed: int = 0  # seed of the k-means centres (flann) and of the PCA's fitting sample
     flann: FlannConfig = field(default_factory=FlannConfig)
     faiss: FaissConfig = field(default_factory=FaissConfig)
@@ -130,11 +115,6 @@ class IndexConfig:
             raise ValueError(f"IndexConfig.reduce_dim must be None or >= 1, got {self.reduce_dim}")
         if self.rerank < 1:
             raise ValueError(f"IndexConfig.rerank must be >= 1, got {self.rerank}")
-        if not self.normalize and self.backend != "exact":
-            raise ValueError(f"IndexConfig(normalize=False) needs backend='exact', got backend={self.backend!r}: "
-                             "the flann and faiss structures ('auto' builds one above exact_below) rank rows by "
-                             "L2 distance, which orders them like the dot product only for unit-length "
-                             "descriptors; keep normalize=True or use backend='exact'")
 
 
 def faiss_available() -> bool:
@@ -166,9 +146,17 @@ def config_to_dict(config: IndexConfig) -> dict:
     return out
 
 
+#: Settings that files saved by earlier versions hold, with the one value still meant (PCA-whitening and
+#: the raw dot product are gone: descriptors are L2-normalised and coded by plain PCA).
+_RETIRED = {"whiten": False, "normalize": True}
+
+
 def config_from_dict(data: dict) -> IndexConfig:
     """Inverse of :func:`config_to_dict`; ValueError naming unknown keys."""
     data = dict(data)
+    for key, kept in _RETIRED.items():
+        if key in data and data.pop(key) != kept:
+            raise ValueError(f"IndexConfig.{key} is no longer supported (only {key}={kept} is)")
     nested = {"flann": FlannConfig, "faiss": FaissConfig}
     kwargs: dict[str, Any] = {}
     for name, cls in nested.items():

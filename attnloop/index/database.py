@@ -2,7 +2,6 @@
 
 Descriptors are L2-normalised, so the cosine similarity is a dot product and the Euclidean distance that the
 structures rank by is ``|a - b|^2 = 2 - 2 a.b``: the nearest neighbours in L2 are the most similar keyframes.
-(``IndexConfig(normalize=False)``, the raw dot product, is therefore refused for every backend but ``"exact"``.)
 
 **Rows.** All descriptors live in one growing buffer (:class:`~attnloop.index.storage.KeyframeStore`,
 float32 or float16; rows are never modified). Below ``exact_below`` keyframes (and for the ``"exact"``
@@ -252,8 +251,7 @@ class KeyframeIndex:
         ts = np.full(m, np.nan) if timestamps is None else np.atleast_1d(_as_array(timestamps, np.float64))
         if ts.shape != (m,):
             raise ValueError(f"timestamps must have shape ({m},), got {tuple(ts.shape)}")
-        if self.config.normalize:
-            x = _l2_normalize(x)
+        x = _l2_normalize(x)
         self._poll()
         self._store.append(x, new_ids, ts)
         self._extend()
@@ -345,8 +343,7 @@ class KeyframeIndex:
         if bad.any():
             where = "the query contains" if single else f"query rows {np.flatnonzero(bad)[:10].tolist()} contain"
             raise ValueError(f"{where} NaN or inf (as float32)")
-        if self.config.normalize:
-            q = _l2_normalize(q)
+        q = _l2_normalize(q)
         if max_id is None:
             max_ids = None
         else:
@@ -429,8 +426,7 @@ class KeyframeIndex:
 
     def _tolerance(self, q: np.ndarray) -> float:
         """How far below the k-th value of a float32 scan a row of the exact top k can score."""
-        row_norm = _UNIT_ROW_NORM if self.config.normalize else self._store.max_norm()
-        return scan_tolerance(self._store.dim, float(np.linalg.norm(q.astype(np.float64))), row_norm)
+        return scan_tolerance(self._store.dim, float(np.linalg.norm(q.astype(np.float64))), _UNIT_ROW_NORM)
 
     def _scan(self, q, q64, start: int, stop: int, k: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` best of rows ``[start, stop)``: a float32 scan keeps every row that can be among them
@@ -595,13 +591,12 @@ class KeyframeIndex:
         out = cls(use, dim=dim)
         if n:
             out._store.append(desc.astype(out._store.dtype, copy=False), ids, ts)
-            if use.normalize:
-                norms = out._store.row_norms()
-                bad = (norms != 0) & (np.abs(norms - 1) > _UNIT_ROW_NORM - 1)
-                if np.any(bad):
-                    raise ValueError(f"descriptor rows {np.flatnonzero(bad)[:5].tolist()} have norms "
-                                     f"{np.round(norms[bad][:5], 4).tolist()}: the config normalises "
-                                     "descriptors, so every stored row must have norm 1 (or 0)")
+            norms = out._store.row_norms()
+            bad = (norms != 0) & (np.abs(norms - 1) > _UNIT_ROW_NORM - 1)
+            if np.any(bad):
+                raise ValueError(f"descriptor rows {np.flatnonzero(bad)[:5].tolist()} have norms "
+                                 f"{np.round(norms[bad][:5], 4).tolist()}: descriptors are L2-normalised, so "
+                                 "every stored row must have norm 1 (or 0)")
         if smeta is not None and smeta["kind"] == backend:
             sarrays = {k[len("structure."):]: v for k, v in state.items() if k.startswith("structure.")}
             try:

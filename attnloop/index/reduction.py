@@ -3,9 +3,7 @@
 For unit descriptors ``x, q`` the squared distance ``|x - q|^2 = 2 - 2 x.q`` ranks like the cosine, and
 ``|P^T (x - q)|^2`` (``P`` the top principal directions) is that distance less the energy outside the
 code's span. So the structure ranks by L2 between the codes ``z = P^T (x - mean)``, and the index re-scores
-the candidates with the full descriptors. With ``whiten=True`` the components are divided by their standard
-deviation and the codes L2-normalised (PCA-whitening, Jegou & Chum, ECCV 2012): it changes the ranking
-(rare directions count more), which only the exact re-scoring undoes.
+the candidates with the full descriptors.
 
 Example:
     >>> x = np.random.default_rng(0).standard_normal((500, 32)).astype(np.float32)
@@ -25,7 +23,6 @@ __all__ = ["PCACode", "fit_pca"]
 _CHUNK = 16384  # rows encoded at a time (bounds the float32 temporaries of a float16 input)
 _FEW = 16  # up to this many rows (queries) are encoded with numpy
 _MAX_FIT_ROWS = 65536  # rows the PCA is fitted on at most (a seeded sample): the covariance is D x D anyway
-_EIG_FLOOR = 1e-6  # relative floor of the eigenvalues a whitening divides by
 
 
 @dataclass
@@ -35,14 +32,12 @@ class PCACode:
     Attributes:
         mean: ``(D,)`` mean of the fitting rows.
         components: ``(D, d)`` orthonormal principal directions, largest variance first.
-        scale: ``(d,)`` whitening factors ``1 / sqrt(eigenvalue)``, or ``None`` (plain PCA).
         kept: share of the fitting rows' centred energy the ``d`` components keep (in-sample: rows it was
             not fitted on keep less).
     """
 
     mean: np.ndarray
     components: np.ndarray
-    scale: np.ndarray | None
     kept: float
 
     @property
@@ -62,9 +57,6 @@ class PCACode:
             raise ValueError(f"PCA code of dimension {self.mean.shape[0]} got descriptors {tuple(x.shape)}")
         if x.shape[0] <= _FEW and not energy:  # a query: numpy directly (torch's conversions cost more here)
             z = (np.asarray(x, dtype=np.float32) - self.mean) @ self.components
-            if self.scale is not None:
-                z *= self.scale
-                z /= np.maximum(np.linalg.norm(z, axis=1, keepdims=True), 1e-12)
             return z.astype(np.float32, copy=False)
         out = np.empty((x.shape[0], self.dim), dtype=np.float32)
         kept, total = np.empty(x.shape[0]), np.empty(x.shape[0])
@@ -76,37 +68,30 @@ class PCACode:
             if energy:
                 kept[lo:hi] = (z * z).sum(1).double().numpy()
                 total[lo:hi] = (xc * xc).sum(1).double().numpy()
-            if self.scale is not None:
-                z = torch.nn.functional.normalize(z * torch.from_numpy(self.scale), dim=1)
             out[lo:hi] = z.numpy()
         return (out, (kept, total)) if energy else out
 
     def state(self) -> dict:
         """Arrays and numbers that :meth:`from_state` restores."""
-        out = {"mean": self.mean, "components": self.components, "kept": np.float64(self.kept)}
-        if self.scale is not None:
-            out["scale"] = self.scale
-        return out
+        return {"mean": self.mean, "components": self.components, "kept": np.float64(self.kept)}
 
     @classmethod
     def from_state(cls, state: dict, dim: int | None = None) -> PCACode:
         """The code :meth:`state` describes; ValueError naming a missing, misshapen or non-finite entry.
 
         Args:
-            state: ``mean``, ``components``, ``kept`` and (whitened codes) ``scale``.
+            state: ``mean``, ``components`` and ``kept``.
             dim: the descriptor size ``D`` the code must take (``None``: the one ``mean`` has).
         """
+        arrays = {}
         for key in ("mean", "components", "kept"):
             if key not in state:
                 raise ValueError(f"the PCA code lacks its {key!r}")
-        arrays = {}
-        for key in ("mean", "components", "kept", "scale"):
-            if key in state and state[key] is not None:
-                a = np.asarray(state[key])
-                if a.dtype.kind not in "fiu" or not np.all(np.isfinite(a)):
-                    raise ValueError(f"the PCA code's {key!r} must hold finite numbers (dtype {a.dtype})")
-                arrays[key] = a
-        mean, comp, kept, scale = (arrays["mean"], arrays["components"], arrays["kept"], arrays.get("scale"))
+            a = np.asarray(state[key])
+            if a.dtype.kind not in "fiu" or not np.all(np.isfinite(a)):
+                raise ValueError(f"the PCA code's {key!r} must hold finite numbers (dtype {a.dtype})")
+            arrays[key] = a
+        mean, comp, kept = arrays["mean"], arrays["components"], arrays["kept"]
         d_in = mean.shape[0] if mean.ndim == 1 else -1
         if mean.ndim != 1 or (dim is not None and d_in != int(dim)):
             raise ValueError(f"the PCA code's mean has shape {tuple(mean.shape)}, the descriptors have "
@@ -114,16 +99,13 @@ class PCACode:
         if comp.ndim != 2 or comp.shape[0] != d_in or not 1 <= comp.shape[1] <= d_in:
             raise ValueError(f"the PCA code's components have shape {tuple(comp.shape)}, need ({d_in}, d) "
                              f"with 1 <= d <= {d_in}")
-        if scale is not None and (scale.shape != (comp.shape[1],) or not np.all(scale > 0)):
-            raise ValueError(f"the PCA code's scale has shape {tuple(scale.shape)}, need ({comp.shape[1]},) "
-                             f"positive factors")
         if kept.size != 1:
             raise ValueError(f"the PCA code's 'kept' must be one number, got shape {tuple(kept.shape)}")
         return cls(np.ascontiguousarray(mean, np.float32), np.ascontiguousarray(comp, np.float32),
-                   None if scale is None else np.ascontiguousarray(scale, np.float32), float(kept.reshape(())))
+                   float(kept.reshape(())))
 
 
-def fit_pca(x: np.ndarray, dim: int, whiten: bool = False, seed: int = 0) -> PCACode:
+def fit_pca(x: np.ndarray, dim: int, seed: int = 0) -> PCACode:
     """Fit a PCA code of ``dim`` components to descriptors ``x (N, D)`` (float32 or float16).
 
     Fitted on at most 65536 rows (a seeded sample). The code keeps ``min(dim, D, rows - 1)`` components:
@@ -132,7 +114,6 @@ def fit_pca(x: np.ndarray, dim: int, whiten: bool = False, seed: int = 0) -> PCA
     Args:
         x: ``(N, D)`` descriptors, ``N >= 2``.
         dim: requested code size.
-        whiten: divide the components by their standard deviation and L2-normalise the codes.
         seed: seed of the fitting sample.
 
     Returns:
@@ -151,9 +132,5 @@ def fit_pca(x: np.ndarray, dim: int, whiten: bool = False, seed: int = 0) -> PCA
     evals, evecs = evals.flip(0).clamp(min=0.0), evecs.flip(1)
     keep = max(1, min(int(dim), d_in, xs.shape[0] - 1))
     total = float(evals.sum())
-    scale = None
-    if whiten:
-        floor = _EIG_FLOOR * max(float(evals[0]), 1e-30)
-        scale = (1.0 / torch.sqrt(evals[:keep] + floor)).float().numpy()
     kept = float(evals[:keep].sum()) / total if total > 0 else 1.0
-    return PCACode(mean.float().numpy(), np.ascontiguousarray(evecs[:, :keep].float().numpy()), scale, kept)
+    return PCACode(mean.float().numpy(), np.ascontiguousarray(evecs[:, :keep].float().numpy()), kept)

@@ -34,7 +34,6 @@ class KeyframeStore:
         self._desc = np.zeros((0, self.dim), dtype=self.dtype)
         self._ids = np.zeros(0, dtype=np.int64)
         self._ts = np.zeros(0, dtype=np.float64)
-        self._norm_max, self._norm_rows = 0.0, 0  # largest row norm of rows [0, _norm_rows) (max_norm)
 
     # ------------------------------------------------------------------ growth
     def append(self, x: np.ndarray, ids: np.ndarray, timestamps: np.ndarray) -> None:
@@ -97,14 +96,6 @@ class KeyframeStore:
             chunk = torch.from_numpy(self._desc[lo: min(lo + step, stop)]).double()
             out[lo - start: lo - start + chunk.shape[0]] = torch.linalg.vector_norm(chunk, dim=1).numpy()
         return out
-
-    def max_norm(self) -> float:
-        """The largest row norm (0 when empty); kept up to date incrementally as rows are added."""
-        if self._norm_rows < self.n:
-            norms = self.row_norms(self._norm_rows, self.n)
-            self._norm_max = max(self._norm_max, float(norms.max(initial=0.0)))
-            self._norm_rows = self.n
-        return self._norm_max
 
     def matvec_rows(self, q: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Similarities ``(M,)`` (float32) of ``q (D,)`` to the given rows ``(M,)``, gathered a chunk at a time."""

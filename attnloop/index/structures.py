@@ -42,7 +42,7 @@ def import_faiss():
 def _fit_code(x: np.ndarray, config: IndexConfig) -> PCACode | None:
     if config.reduce_dim is None:
         return None
-    return fit_pca(x, config.reduce_dim, whiten=config.whiten, seed=config.seed)
+    return fit_pca(x, config.reduce_dim, seed=config.seed)
 
 
 def _codes(x: np.ndarray, code: PCACode | None) -> np.ndarray:
@@ -68,9 +68,6 @@ def _code_from_state(arrays: dict, dim: int, config: IndexConfig) -> PCACode | N
     code = PCACode.from_state(sub, dim)
     if code.dim > config.reduce_dim:
         raise ValueError(f"the saved PCA code has {code.dim} components, more than reduce_dim={config.reduce_dim}")
-    if (code.scale is not None) != bool(config.whiten):
-        raise ValueError(f"the saved PCA code is {'' if code.scale is not None else 'not '}whitened, its config "
-                         f"says whiten={config.whiten}")
     return code
 
 

@@ -28,15 +28,12 @@ Example:
 from __future__ import annotations
 
 import math
-import os
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 import torch
 
-from slam.eval.plot import PALETTE, Axes, draw_text, draw_legend, save_image
+from slam.eval.plot import plot_pr_curves
 
 __all__ = [
     "LoopEvaluation",
@@ -291,48 +288,3 @@ def evaluate_loop_candidates(
         num_positives = int(torch.unique(gt[:, 0]).numel()) if mode == "best_per_query" else int(gt.shape[0])
     curve = precision_recall_curve(scores, labels, num_positives)
     return LoopEvaluation(curve, pairs, scores, labels, mode)
-
-
-def plot_pr_curves(
-    path: str | os.PathLike | None,
-    curves: Mapping[str, PRCurve] | Sequence[tuple[str, PRCurve]],
-    title: str = "Loop closure: precision / recall",
-    size: tuple[int, int] = (640, 520),
-) -> np.ndarray:
-    """Draw one or more precision/recall curves (e.g. before/after verification, per fusion mode).
-
-    Each curve is a step line (recall on x, precision on y, both 0..1); a dot marks its maximum recall
-    at 100% precision, which the legend also gives (``R@P100``).
-
-    Args:
-        path: PNG to write, or None.
-        curves: ``{label: PRCurve}`` or ``[(label, PRCurve), ...]``.
-        title: figure title.
-        size: ``(W, H)`` pixels.
-
-    Returns:
-        the ``(H, W, 3)`` uint8 BGR image.
-    """
-    items = list(curves.items()) if isinstance(curves, Mapping) else list(curves)
-    W, H = size
-    img = np.full((H, W, 3), 255, np.uint8)
-    ax = Axes.fit(size, (0.0, 1.0), (0.0, 1.02), margins=(70, 45, 20, 55))
-    ax.draw_frame(img, "recall", "precision", title, 0.1, 0.1)
-    legend = []
-    for k, (label, c) in enumerate(items):
-        color = PALETTE[k % len(PALETTE)]
-        r, p = c.recall.cpu().numpy(), c.precision.cpu().numpy()
-        # a step curve: precision holds until the next recall value
-        xs = np.repeat(r, 2)[1:]
-        ys = np.repeat(p, 2)[:-1]
-        ax.polyline(img, np.stack([xs, ys], axis=-1), color, 2)
-        pt = ax.to_px([[c.max_recall_at_full_precision, 1.0]])[0]
-        cv2.circle(img, (int(pt[0]), int(pt[1])), 5, color, -1, cv2.LINE_AA)
-        legend.append((f"{label} (R@P100 {c.max_recall_at_full_precision:.2f}, AP {c.average_precision:.2f})",
-                       color, "line"))
-    if not items:
-        draw_text(img, "no curves", (W // 2, H // 2), 0.6, anchor="center")
-    draw_legend(img, legend, "bottom-left", (ax.left, ax.top, ax.right, ax.bottom))
-    if path is not None:
-        save_image(path, img)
-    return img

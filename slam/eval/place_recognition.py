@@ -51,7 +51,7 @@ import cv2
 import numpy as np
 import torch
 
-from slam.eval.loops import LoopGroundTruthConfig, PRCurve, poses_close, plot_pr_curves, precision_recall_curve
+from slam.eval.loops import LoopGroundTruthConfig, PRCurve, plot_pr_curves, poses_close, precision_recall_curve
 
 __all__ = [
     "GroundTruthFormatError",
@@ -622,7 +622,7 @@ def plot_place_recognition(
 ) -> np.ndarray:
     """Draw the best-match PR curves (:attr:`PlaceRecognitionResult.curve`) of several methods to a PNG.
 
-    The figure is :func:`slam.eval.loops.plot_pr_curves`'s (OpenCV, no matplotlib): a step line per
+    The figure is :func:`slam.eval.plot.plot_pr_curves`'s (matplotlib): a step line per
     method, a dot at its recall at 100 % precision, the legend giving R@P100 and the average precision.
 
     Args:

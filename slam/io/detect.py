@@ -1,9 +1,10 @@
-"""Open a sequence folder as the reader of its layout (TUM RGB-D or 7-Scenes), detected from its files."""
+"""Open a sequence folder (TUM RGB-D, 7-Scenes) or a ROS bag as the reader of its layout, detected from its files."""
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
+from slam.io.rosbag import BAG_OPTIONS, RosbagSequence, is_rosbag
 from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence
 from slam.io.sevenscenes import SevenScenesSequence
 from slam.io.tum import TUMSequence
@@ -17,11 +18,14 @@ def _has_7scenes_frames(folder: Path) -> bool:
 
 
 def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **kwargs) -> RGBDSequence:
-    """Open a TUM RGB-D or 7-Scenes sequence folder, detecting the layout.
+    """Open a TUM RGB-D or 7-Scenes sequence folder or a ROS bag, detecting the layout.
 
     * TUM RGB-D: the folder holds ``rgb.txt`` and ``depth.txt`` (-> :class:`slam.io.tum.TUMSequence`).
     * 7-Scenes: the folder holds ``frame-XXXXXX.color.(png|jpg)`` files
       (-> :class:`slam.io.sevenscenes.SevenScenesSequence`).
+    * ROS bag: a ROS1 ``.bag`` file or a ROS2 bag folder (``metadata.yaml``)
+      (-> :class:`slam.io.rosbag.RosbagSequence`; it alone takes ``rgb_topic``, ``depth_topic``,
+      ``camera_info_topic`` and ``groundtruth``).
 
     Args:
         path: the sequence folder.
@@ -29,8 +33,8 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
             7-Scenes folder refuses it (give ``K``).
         K: ``(3, 3)`` intrinsics overriding the dataset's (``--intrinsics``).
         **kwargs: passed to the reader (both take ``depth_scale``, depth units per metre, and
-            ``check_units=False``, which skips :func:`~slam.io.sequence.check_depth_units` for a scene nearer than 0.5 m or
-            farther than 20 m).
+            ``check_units=False``, which skips :func:`~slam.io.sequence.check_depth_units` for a scene nearer
+            than 0.5 m or farther than 20 m).
 
     Raises:
         DatasetNotFoundError: the folder does not exist.
@@ -40,8 +44,14 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
     root = Path(path).expanduser()
     if not root.exists():
         raise DatasetNotFoundError(root, "sequence folder does not exist")
+    if is_rosbag(root):
+        return RosbagSequence(root, camera=camera, K=K, **kwargs)
+    given = [flag for key, flag in BAG_OPTIONS.items() if kwargs.pop(key, None) is not None]
+    if given:
+        raise DatasetError(root, f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to a ROS bag "
+                                 "(a .bag file or a ROS2 bag folder); a sequence folder's ground truth is its own")
     if not root.is_dir():
-        raise DatasetError(root, "expected a sequence folder, got a file")
+        raise DatasetError(root, "expected a sequence folder, a ROS1 .bag file or a ROS2 bag folder, got a file")
     has_rgb, has_depth = (root / "rgb.txt").is_file(), (root / "depth.txt").is_file()
     if has_rgb or has_depth:
         return TUMSequence(root, camera=camera, K=K, **kwargs)

@@ -21,7 +21,6 @@ Depth is float32 metres with **0.0 marking invalid pixels** (never NaN), as :cla
 from __future__ import annotations
 
 import logging
-import os
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -35,8 +34,8 @@ from slam.io.frame import DEPTH_MEDIAN_RANGE, RGBDFrame, median_valid_depth
 from slam.io.images import FrameReadError, depth_to_metres, read_depth_raw
 from slam.io.trajectory import Trajectory
 
-__all__ = ["DatasetError", "DatasetNotFoundError", "DatasetWarning", "RGBDSequence", "SequenceView", "check_depth_scale",
-           "check_depth_units"]
+__all__ = ["DatasetError", "DatasetNotFoundError", "DatasetWarning", "RGBDSequence", "SequenceView",
+           "check_depth_scale", "check_depth_units"]
 
 logger = logging.getLogger(__name__)
 
@@ -79,7 +78,8 @@ _UNIT_CHECK_FRAMES, _UNIT_CHECK_TRIES = 3, 10
 _TYPICAL_DEPTH = 2.0  # metres: an indoor RGB-D view's median depth, to order the scales an error suggests
 
 
-def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values: tuple[int, ...] = (0,)) -> None:
+def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values: tuple[int, ...] = (0,),
+                      read: Callable[[object], np.ndarray] = read_depth_raw) -> None:
     """Refuse depth whose scale is wrong: the median valid depth of the first readable frames (up to 3
     of the first 10; unreadable ones are left to the run, which reports them) outside
     :data:`~slam.io.frame.DEPTH_MEDIAN_RANGE` metres at ``scale``.
@@ -93,6 +93,7 @@ def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values:
         depth_paths: the depth images of the frames, in order (the first 10 are read at most).
         scale: the depth units per metre in use.
         invalid_values: raw values meaning "no measurement".
+        read: ``depth_paths[k] -> (H, W)`` raw depth (default: the 16-bit PNG reader); raises FrameReadError.
 
     Raises:
         DatasetError: one line naming the median found, the scale in use, the likely one and ``--depth-scale``.
@@ -100,7 +101,7 @@ def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values:
     medians = []
     for path in depth_paths[:_UNIT_CHECK_TRIES]:
         try:
-            depth = depth_to_metres(read_depth_raw(str(path)), scale, invalid_values)
+            depth = depth_to_metres(read(path), scale, invalid_values)
         except FrameReadError:
             continue
         med = median_valid_depth(depth)

@@ -57,6 +57,7 @@ __all__ = [
     "TUM_DEPTH_FACTOR",
     "TUMCamera",
     "TUMSequence",
+    "TimeAssociatedSequence",
     "camera_from_name",
     "read_calibration_file",
     "read_file_list",
@@ -228,7 +229,49 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
     return stamps, names
 
 
-class TUMSequence(RGBDSequence):
+class TimeAssociatedSequence(RGBDSequence):
+    """Stamped frames whose ground truth is a trajectory file paired with them by TUM's one-to-one association
+    (``evaluate_ate.py``): a TUM folder's ``groundtruth.txt``, a ROS bag's ``--ground-truth``.
+
+    A subclass sets ``_timestamps`` ``(N,)`` seconds, ``_gt_trajectory`` (a
+    :class:`~slam.io.trajectory.Trajectory` or None), ``max_difference`` (seconds) and then
+    ``_gt = self._associate_groundtruth(self._timestamps)``.
+    """
+
+    _timestamps: np.ndarray
+    _gt: np.ndarray
+    _gt_trajectory: Trajectory | None = None
+    max_difference: float = TUM_MAX_DIFFERENCE
+
+    @property
+    def groundtruth_trajectory(self) -> Trajectory | None:
+        """The ground-truth poses as read, None without a file; :attr:`groundtruth` holds those paired with frames."""
+        return self._gt_trajectory
+
+    def _associate_groundtruth(self, stamps: np.ndarray) -> np.ndarray:
+        """``(N, 7)`` ground truth of frames at ``stamps (N,)``, NaN rows where none is within ``max_difference``."""
+        gt = np.full((len(stamps), 7), np.nan)
+        if self._gt_trajectory is not None and len(stamps):
+            a, b = associate(stamps, self._gt_trajectory.timestamps, self.max_difference)
+            gt[a.numpy()] = self._gt_trajectory.poses.numpy()[b.numpy()]
+        return gt
+
+    def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
+        # the association is one-to-one: the subset's frames are paired among themselves
+        return self._associate_groundtruth(self._timestamps[indices])
+
+    def __len__(self) -> int:
+        return len(self._timestamps)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._timestamps
+
+    def _groundtruth_array(self) -> np.ndarray:
+        return self._gt
+
+
+class TUMSequence(TimeAssociatedSequence):
     """A TUM RGB-D sequence folder, read lazily.
 
     Args:
@@ -321,33 +364,6 @@ class TUMSequence(RGBDSequence):
         self._gt = self._associate_groundtruth(self._timestamps)
         if check_units:
             check_depth_units(self.root, [self.root / name for name in self._depth[:10]], self.depth_scale)
-
-    @property
-    def groundtruth_trajectory(self):
-        """The poses of ``groundtruth.txt`` as read (a :class:`~slam.io.trajectory.Trajectory`), None
-        without the file; :attr:`groundtruth` holds those associated with frames."""
-        return self._gt_trajectory
-
-    def _associate_groundtruth(self, stamps: np.ndarray) -> np.ndarray:
-        gt = np.full((len(stamps), 7), np.nan)
-        if self._gt_trajectory is not None and len(stamps):
-            a, b = associate(stamps, self._gt_trajectory.timestamps, self.max_difference)
-            gt[a.numpy()] = self._gt_trajectory.poses.numpy()[b.numpy()]
-        return gt
-
-    def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
-        # TUM's association is one-to-one: the subset's frames are paired among themselves
-        return self._associate_groundtruth(self._timestamps[indices])
-
-    def __len__(self) -> int:
-        return len(self._timestamps)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._timestamps
-
-    def _groundtruth_array(self) -> np.ndarray:
-        return self._gt
 
     def paths(self, i: int) -> tuple[Path, Path]:
         """The colour and depth files of frame ``i``."""

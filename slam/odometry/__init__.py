@@ -10,7 +10,7 @@ from slam.odometry.config import (
     RansacConfig,
     RegistrationConfig,
 )
-from slam.odometry.features import FeatureExtractor, FrameFeatures, bucket_keypoints, extract_features
+from slam.odometry.features import FrameFeatures, bucket_keypoints, extract_features
 from slam.odometry.frontend import Keyframe, KeyframeEdge, RGBDOdometry, TrackResult, TrackStatus
 from slam.odometry.geometry import (
     backproject,
@@ -28,7 +28,6 @@ from slam.odometry.registration import RegistrationResult, register
 
 __all__ = [
     "FeatureConfig",
-    "FeatureExtractor",
     "FrameFeatures",
     "Keyframe",
     "KeyframeEdge",

@@ -14,13 +14,12 @@ import math
 import numbers
 from dataclasses import dataclass, field
 
-__all__ = ["DETECTORS", "KEYFRAME_POLICIES", "MATCH_METHODS", "FeatureConfig", "MatchConfig", "OdometryConfig",
+__all__ = ["DETECTORS", "MATCH_METHODS", "FeatureConfig", "MatchConfig", "OdometryConfig",
            "RansacConfig", "RegistrationConfig"]
 
 # The one list of each choice (``__post_init__`` refuses any other name when the config is built).
 DETECTORS = ("orb", "sift")  # FeatureConfig.detector (slam.odometry.features)
 MATCH_METHODS = ("smnn", "snn", "mnn")  # MatchConfig.method (slam.odometry.matching, Kornia's match_*)
-KEYFRAME_POLICIES = ("current", "previous")  # OdometryConfig.keyframe_policy (slam.odometry.frontend)
 
 
 def _range_text(lo, hi, lo_open: bool, hi_open: bool) -> str:
@@ -257,10 +256,6 @@ class OdometryConfig:
     # a registration across a small overlap costs more than the extra keyframe-to-keyframe steps.
     keyframe_min_inliers: int = 180
     keyframe_min_inlier_ratio: float = 0.15
-    # Which frame becomes the keyframe when a criterion fires: "previous" promotes the last frame that
-    # still met every criterion (its edge is the stronger one) and re-tracks the current frame against it;
-    # "current" makes the current frame the keyframe (no extra registration).
-    keyframe_policy: str = "current"
     # After this many consecutive lost frames a keyframe is forced at the constant-velocity pose, linked
     # by a weak edge (weak_edge_information * I) so tracking can restart.
     max_lost_frames: int = 3
@@ -276,7 +271,6 @@ class OdometryConfig:
         check_number(n, "keyframe_rotation_deg", self.keyframe_rotation_deg, 0)
         check_int(n, "keyframe_min_inliers", self.keyframe_min_inliers, 0)
         check_number(n, "keyframe_min_inlier_ratio", self.keyframe_min_inlier_ratio, 0, 1)
-        check_choice(n, "keyframe_policy", self.keyframe_policy, KEYFRAME_POLICIES)
         check_int(n, "max_lost_frames", self.max_lost_frames, 1)
         check_number(n, "weak_edge_information", self.weak_edge_information, 0, lo_open=True, finite=True)
         check_number(n, "keyframe_rgb_scale", self.keyframe_rgb_scale, 0, 1, lo_open=True)

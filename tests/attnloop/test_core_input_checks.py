@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import nn
 
-from attnloop.backbones.efficientnet_lite import EfficientNetLite, efficientnet_lite_taps
+from attnloop.backbones.efficientnet_lite import EfficientNetLite0, efficientnet_lite_taps
 from attnloop.backbones.preprocess import prepare_images
 from attnloop.fusion import dam, eam, fuse, gaf, minmax_normalize
 from attnloop.guided_backprop import guided_backprop, softmax_seeded_gradient
@@ -168,14 +168,14 @@ def test_guided_backprop_rejects_non_tensors():
 def test_efficientnet_input_size_validated(size):
     # (224, 224, 3) passed as (224, 224) (the length check came after the truncation); 100.7 became 100.
     with pytest.raises(ValueError, match="input_size"):
-        efficientnet_lite_taps("lite0", size)
+        efficientnet_lite_taps(size)
     with pytest.raises(ValueError, match="input_size"), torch.device("meta"):
-        EfficientNetLite("lite0", input_size=size)
+        EfficientNetLite0(input_size=size)
 
 
 def test_efficientnet_input_size_valid_forms():
-    assert efficientnet_lite_taps("lite0", (120.0, 160))["stage7"] == (15, 320, (4, 5))
-    assert efficientnet_lite_taps("lite0", 64)["stage7"][2] == (2, 2)
+    assert efficientnet_lite_taps((120.0, 160))["stage7"] == (15, 320, (4, 5))
+    assert efficientnet_lite_taps(64)["stage7"][2] == (2, 2)
 
 
 def test_prepare_images_rejects_non_float_dtype():

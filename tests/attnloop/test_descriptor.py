@@ -9,8 +9,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from attnloop import AttentionDescriptor, DescriptorParts
-from attnloop.descriptor import DescriptorRecipe, attention_descriptor, descriptor_from_attention
+from attnloop.descriptor import DescriptorRecipe, descriptor_from_attention
 from attnloop.fusion import FUSION_MODES, fuse
+from attnloop.guided_backprop import guided_backprop
 from attnloop.rnn_pool import random_rnn_pool
 
 
@@ -144,7 +145,8 @@ def test_raw_pool_input_option(lite, images):
 
 
 def test_functional_form_matches_module(lite, images):
-    d = attention_descriptor(images, lite.backbone, lite.pool.weights, fusion="dam", pooling="flat")
+    tap, grad = guided_backprop(lite.backbone, images)
+    _fused, d = descriptor_from_attention(tap, grad, lite.pool.weights, fusion="dam", pooling="flat")
     assert torch.allclose(d, lite(images))
     _fused, d2 = descriptor_from_attention(torch.zeros(1, 320, 7, 7), torch.ones(1, 320, 7, 7),
                                           lite.pool.weights, "gaf", pooling="flat")

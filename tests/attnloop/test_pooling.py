@@ -8,8 +8,7 @@ from helpers import condition_head
 from torch import nn
 
 from attnloop import AttentionDescriptor
-from attnloop.backbones import build_backbone
-from attnloop.backbones.efficientnet_lite import efficientnet_lite
+from attnloop.backbones import build_backbone, efficientnet_lite0
 from attnloop.descriptor import DescriptorRecipe, descriptor_from_attention
 from attnloop.fusion import fuse
 from attnloop.guided_backprop import guided_backprop, softmax_seeded_gradient
@@ -107,9 +106,9 @@ def test_fuse_groups_is_fusion_per_group():
 
 def test_joined_tap_equals_the_separate_taps():
     kw = {"pretrained": False, "seed": 3, "input_size": (96, 128)}
-    joined = condition_head(efficientnet_lite("lite0", tap="stage6+stage7", **kw))
-    s6 = condition_head(efficientnet_lite("lite0", tap="stage6", **kw))
-    s7 = condition_head(efficientnet_lite("lite0", tap="stage7", **kw))  # G by the closed form
+    joined = condition_head(efficientnet_lite0(tap="stage6+stage7", **kw))
+    s6 = condition_head(efficientnet_lite0(tap="stage6", **kw))
+    s7 = condition_head(efficientnet_lite0(tap="stage7", **kw))  # G by the closed form
     assert joined.tap_shape == (512, 3, 4) and joined.tap_groups == (192, 320)
     x = torch.randint(0, 256, (2, 3, 60, 80), dtype=torch.uint8)
     L, G = guided_backprop(joined, x)
@@ -121,16 +120,16 @@ def test_joined_tap_equals_the_separate_taps():
     with torch.no_grad():
         assert torch.allclose(joined(x), s7(x), atol=1e-5)  # the classifier is unchanged
     with pytest.raises(ValueError, match="different resolutions"):
-        efficientnet_lite("lite0", pretrained=False, tap="stage5+stage7")
+        efficientnet_lite0(pretrained=False, tap="stage5+stage7")
     with pytest.raises(ValueError, match="unknown EfficientNet-Lite tap"):
-        efficientnet_lite("lite0", pretrained=False, tap="stage7+head")
+        efficientnet_lite0(pretrained=False, tap="stage7+head")
 
 
 @pytest.mark.parametrize("tap", ["stage6+stage7", "stage4+stage5"])
 def test_joined_tap_runs_each_block_once_with_the_two_call_gradients(tap):
     # forward_split (the descriptor's no-autograd path) records the blocks between the joined stages once
     # and replays their backward; it must give the gradients of forward_from_tap(forward_to_tap(x)).
-    net = efficientnet_lite("lite0", tap=tap, pretrained=False, seed=5, input_size=(96, 128))
+    net = efficientnet_lite0(tap=tap, pretrained=False, seed=5, input_size=(96, 128))
     calls = [0] * len(net._blocks)
     hooks = [b.register_forward_hook(lambda *a, k=k: calls.__setitem__(k, calls[k] + 1))
              for k, b in enumerate(net._blocks)]
@@ -173,8 +172,8 @@ def test_attend_computes_G_at_the_named_stages_only(tap, attend, closed):
     # closed: EfficientNet's closed form (G at the last stage); otherwise the one-pass autograd path
     # (forward_split; with the closed form switched off where it would apply).
     kw = {"pretrained": False, "seed": 5, "input_size": (96, 128)}
-    both = condition_head(efficientnet_lite("lite0", tap=tap, **kw))
-    net = condition_head(efficientnet_lite("lite0", tap=tap, attend=attend, **kw))
+    both = condition_head(efficientnet_lite0(tap=tap, **kw))
+    net = condition_head(efficientnet_lite0(tap=tap, attend=attend, **kw))
     second = tap.split("+")[1]
     assert net.attend == attend and net.attended_groups == ((False, True) if attend == second else (True, False))
     if not closed:
@@ -208,14 +207,14 @@ def test_attend_computes_G_at_the_named_stages_only(tap, attend, closed):
 
 def test_attend_names_stages_of_the_tap():
     with pytest.raises(ValueError, match="must name stages of the tap"):
-        efficientnet_lite("lite0", pretrained=False, tap="stage6+stage7", attend="stage5")
+        efficientnet_lite0(pretrained=False, tap="stage6+stage7", attend="stage5")
     with pytest.raises(ValueError, match="must name stages of the tap"):
-        efficientnet_lite("lite0", pretrained=False, tap="stage7", attend="")
-    assert efficientnet_lite("lite0", pretrained=False, tap="stage7", attend="stage7").attended_groups == (True,)
-    assert efficientnet_lite("lite0", pretrained=False, tap="stage7+stage6").attend == "stage6+stage7"
-    assert efficientnet_lite("lite0", pretrained=False, tap="stage6+stage7", attend=["stage7"]).attend == "stage7"
+        efficientnet_lite0(pretrained=False, tap="stage7", attend="")
+    assert efficientnet_lite0(pretrained=False, tap="stage7", attend="stage7").attended_groups == (True,)
+    assert efficientnet_lite0(pretrained=False, tap="stage7+stage6").attend == "stage6+stage7"
+    assert efficientnet_lite0(pretrained=False, tap="stage6+stage7", attend=["stage7"]).attend == "stage7"
     with pytest.raises(ValueError, match="must name stages of the tap"):
-        efficientnet_lite("lite0", pretrained=False, tap="stage6+stage7", attend=[])
+        efficientnet_lite0(pretrained=False, tap="stage6+stage7", attend=[])
     assert build_backbone("vgg16", pretrained=False, attend="pool5").tap == "pool5"  # its one layer, attended
     with pytest.raises(ValueError, match="VGG16's tap is one layer"):
         build_backbone("vgg16", pretrained=False, attend="pool4")
@@ -228,7 +227,7 @@ def test_attend_on_a_three_stage_tap(attended):
     # last two stage6 blocks and stage7 (blocks 13, 14, 15, all 7 x 9) and check every pattern, a middle
     # stage not attended included, against G with every stage attended (zeroed where not attended).
     def joined(flags):
-        net = condition_head(efficientnet_lite("lite0", pretrained=False, seed=2, tap="stage6+stage7",
+        net = condition_head(efficientnet_lite0(pretrained=False, seed=2, tap="stage6+stage7",
                                                input_size=(96, 128)))
         net.tap_groups, net._group_blocks = (192, 192, 320), (13, 14, 15)
         net.tap_shape = (704, 3, 4)
@@ -279,7 +278,7 @@ def test_default_configuration():
     assert d.backbone.attend == "stage7" and d.attended_groups == (False, True)
     r = d.recipe
     # no RNNs: the regional code, L2-normalised, is the descriptor
-    assert (r.pooling, r.gem_p, r.levels, r.num_rnn, r.merges) == ("regional", 2.0, (1, 2), 0, False)
+    assert (r.pooling, r.num_rnn, r.merges) == ("regional", 0, False)
     assert d.pool is None and d.out_dim == 2560
     x = torch.randint(0, 256, (2, 3, 120, 160), dtype=torch.uint8)
     parts = d.parts(x)
@@ -324,12 +323,6 @@ def test_paper_preset_configuration(backbone, tap_shape, rnn_in):
 def test_recipe_checks():
     with pytest.raises(ValueError, match="unknown pooling"):
         DescriptorRecipe(pooling="max")
-    with pytest.raises(ValueError, match="gem_p"):
-        DescriptorRecipe(gem_p=0.0)
-    with pytest.raises(ValueError, match="levels"):
-        DescriptorRecipe(levels=(0,))
-    with pytest.raises(ValueError, match="apply to pooling='regional' only"):
-        DescriptorRecipe(pooling="flat", gem_p=3.0)
     assert DescriptorRecipe(pooling="flat", num_rnn=16).merges and not DescriptorRecipe(num_rnn=16).merges
     assert DescriptorRecipe(merge=True, num_rnn=16).merges
     assert not DescriptorRecipe(merge=False).merges  # no RNNs: nothing to merge

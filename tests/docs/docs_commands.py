@@ -163,7 +163,7 @@ def run_help(command: str) -> dict:
 
 
 def ask(jobs: list[dict]) -> list[dict]:
-    """Answers of tests/docs_commands.py to ``jobs``, in a fresh interpreter (one per call)."""
+    """Answers of tests/docs/docs_commands.py to ``jobs``, in a fresh interpreter (one per call)."""
     if not jobs:
         return []
     env = dict(os.environ, OMP_NUM_THREADS="1",

@@ -17,7 +17,6 @@ from slam.loop.consistency import ConsistencyConfig
 from slam.mapping import MapConfig
 from slam.odometry.config import (
     DETECTORS,
-    KEYFRAME_POLICIES,
     MATCH_METHODS,
     FeatureConfig,
     MatchConfig,
@@ -37,17 +36,10 @@ def test_the_defaults_build_and_survive_replace():
         FeatureConfig(detector=d)
     for m in MATCH_METHODS:
         MatchConfig(method=m)
-    for p in KEYFRAME_POLICIES:
-        OdometryConfig(keyframe_policy=p)
     for m in OPTIMIZER_METHODS + ("GN",):
         BackendConfig(method=m)
     for k in ("dcs", "gnc", "GNC", "none", "huber", "cauchy", "tukey", "geman_mcclure", None):
         BackendConfig(loop_kernel=k)
-
-
-def test_the_slam_detector_keeps_temporal_consistency_off():
-    det = LoopClosureConfig().detector
-    assert det.consistency == 1 and det.consistency_radius == LoopDetectorConfig().consistency_radius
 
 
 # infinite bounds switch a check off and stay allowed
@@ -112,8 +104,6 @@ def test_edge_values_are_accepted(cls, kwargs):
     (RegistrationConfig, dict(depth_sigma_b=-1.0), r"RegistrationConfig\.depth_sigma_b"),
     (RegistrationConfig, dict(depth_sigma_c=math.inf), r"RegistrationConfig\.depth_sigma_c"),
     # OdometryConfig
-    (OdometryConfig, dict(keyframe_policy="prev"),
-     r"OdometryConfig\.keyframe_policy must be one of 'current', 'previous', got 'prev'"),
     (OdometryConfig, dict(keyframe_rgb_scale=0.0), r"OdometryConfig\.keyframe_rgb_scale must be in \(0, 1\]"),
     (OdometryConfig, dict(keyframe_rgb_scale=-1.0), r"OdometryConfig\.keyframe_rgb_scale"),
     (OdometryConfig, dict(min_valid_points=-1), r"OdometryConfig\.min_valid_points"),

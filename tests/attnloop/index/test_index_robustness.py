@@ -21,7 +21,7 @@ from attnloop.index import (
     exact_search,
     faiss_available,
 )
-from attnloop.index.config import config_from_dict, config_to_dict
+from attnloop.index.config import config_to_dict
 from attnloop.threshold import ThresholdConfig, accept_mask, adaptive_threshold
 
 
@@ -33,40 +33,22 @@ def _brute(db: torch.Tensor, q: torch.Tensor, k: int, max_id: int | None = None)
     return order.tolist(), s[order]
 
 
-# ------------------------------------------------------------------ 1. normalize=False: the exact backend only
-@pytest.mark.parametrize("backend", ["auto", "flann", "faiss"])
-def test_normalize_false_is_refused_for_structure_backends(backend):
-    with pytest.raises(ValueError, match="normalize=False.*backend='exact'"):
-        IndexConfig(backend=backend, normalize=False)
-    with pytest.raises(ValueError, match="normalize=False"):
-        config_from_dict({**config_to_dict(IndexConfig(backend="exact", normalize=False)), "backend": backend})
-
-
-def test_normalize_false_exact_ranks_by_dot_product(tmp_path):
-    g = torch.Generator().manual_seed(0)
-    db = _data(2000, 32) * (torch.rand(2000, 1, generator=g) * 3 + 0.1)  # norms 0.1 .. 3.1
-    queries = _data(20, 32, seed=1) * 2.0
-    index = KeyframeIndex(IndexConfig(backend="exact", normalize=False))
-    index.add(db)
-    ids, sims = index.search(queries, k=10, max_id=1500)
-    for j in range(20):
-        ref_ids, ref_sims = _brute(db, queries[j], 10, max_id=1500)
-        assert ids[j].tolist() == ref_ids
-        assert torch.equal(sims[j], ref_sims)
-    # The raw dot product, not the cosine: a long row at 45 degrees beats a short parallel one.
-    two = KeyframeIndex(IndexConfig(backend="exact", normalize=False))
-    two.add(torch.tensor([[0.5, 0.0], [3.0, 3.0]]))
-    ids2, sims2 = two.search(torch.tensor([1.0, 0.0]), k=2)
-    assert ids2.tolist() == [1, 0] and sims2.tolist() == [3.0, 0.5]
-    index.save(tmp_path / "dot.npz")
-    assert torch.equal(KeyframeIndex.load(tmp_path / "dot.npz").search(queries, k=10, max_id=1500)[0], ids)
-    # A file claiming normalize=False with a structure backend is refused (naming the file).
+# ------------------------------------------------------------------ 1. files saved with retired settings
+def test_a_file_with_retired_settings_loads_at_their_kept_value(tmp_path):
+    index = KeyframeIndex(IndexConfig(backend="exact"))
+    index.add(_data(50, 16))
     state = index.state_dict()
     meta = state.pop("meta")
-    meta["config"]["backend"] = "flann"
-    np.savez(tmp_path / "bad.npz", meta=np.array(json.dumps(meta)), **state)
-    with pytest.raises(IndexFileError, match=r"bad\.npz.*normalize=False"):
-        KeyframeIndex.load(tmp_path / "bad.npz")
+    for extra, ok in (({"whiten": False, "normalize": True}, True), ({"normalize": False}, False),
+                      ({"whiten": True}, False)):
+        meta["config"] = {**config_to_dict(index.config), **extra}
+        np.savez(tmp_path / "old.npz", meta=np.array(json.dumps(meta)), **state)
+        if ok:
+            assert torch.equal(KeyframeIndex.load(tmp_path / "old.npz").search(_data(3, 16), k=5)[0],
+                               index.search(_data(3, 16), k=5)[0])
+        else:
+            with pytest.raises(IndexFileError, match=rf"old\.npz.*{next(iter(extra))}.* no longer supported"):
+                KeyframeIndex.load(tmp_path / "old.npz")
 
 
 # ------------------------------------------------------------------ 3. non-finite queries

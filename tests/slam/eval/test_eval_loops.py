@@ -18,7 +18,6 @@ from slam.eval.loops import (
     plot_pr_curves,
     precision_recall_curve,
 )
-from slam.eval.plot import PALETTE
 from slam.lie import quat_normalize, quat_to_rotmat, so3_exp
 
 
@@ -152,13 +151,15 @@ def test_plot_pr_curves(tmp_path):
     one = plot_pr_curves(tmp_path / "one.png", {"before": a})
     two = plot_pr_curves(tmp_path / "sub" / "two.png", [("before", a), ("after", b)], size=(500, 400))
     assert one.shape == (520, 640, 3) and two.shape == (400, 500, 3) and one.dtype == np.uint8
+    assert (tmp_path / "one.png").stat().st_size > 0
     assert np.array_equal(cv2.imread(str(tmp_path / "sub" / "two.png")), two)
 
-    def count(img, color):
-        return int((np.abs(img.astype(int) - np.array(color)).sum(-1) < 30).sum())
+    def count(img, rgb):  # matplotlib's first two colours, C0 and C1
+        return int((np.abs(img.astype(int) - np.array(rgb[::-1])).sum(-1) < 30).sum())
 
-    assert count(one, PALETTE[0]) > 200 and count(one, PALETTE[1]) == 0
-    assert count(two, PALETTE[1]) > 200
+    c0, c1 = (31, 119, 180), (255, 127, 14)
+    assert count(one, c0) > 200 and count(one, c1) == 0
+    assert count(two, c1) > 200
     assert plot_pr_curves(None, {}).shape == (520, 640, 3)
 
 

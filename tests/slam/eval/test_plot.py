@@ -1,4 +1,4 @@
-"""trajectory.png: plane choice, alignment, loop edges, axes; all drawn with OpenCV."""
+"""trajectory.png (matplotlib): the PNG at its size, the plane, the error colouring with a reference, loop edges."""
 from __future__ import annotations
 
 import math
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from slam.eval.plot import PALETTE, Axes, choose_plane, nice_step, plot_trajectory
+from slam.eval.plot import choose_plane, plot_trajectory
 from slam.io.trajectory import Trajectory
 from slam.lie import se3_compose, se3_exp
 
@@ -26,16 +26,14 @@ def _loop_trajectory(n=200, axis_flat=1):
     return Trajectory(t / 30.0, poses)
 
 
-def _mask(img, color, tol=40):
-    return (np.abs(img.astype(int) - np.array(color)).sum(-1) < tol)
+def _count(img, rgb, tol=40) -> int:
+    """Pixels of ``img`` (BGR) within ``tol`` of the colour ``rgb``."""
+    return int((np.abs(img.astype(int) - np.array(rgb[::-1])).sum(-1) < tol).sum())
 
 
-def test_nice_step_and_axes():
-    assert [nice_step(s) for s in (1.0, 3.0, 0.12, 12.0, 0.0)] == [0.2, 0.5, 0.02, 2.0, 1.0]
-    ax = Axes.fit((400, 300), (0.0, 2.0), (0.0, 1.0), margins=(50, 20, 10, 30), equal=True)
-    assert (ax.right - ax.left) / (ax.x1 - ax.x0) == pytest.approx((ax.bottom - ax.top) / (ax.y1 - ax.y0))
-    assert ax.to_px([[ax.x0, ax.y0], [ax.x1, ax.y1]]).tolist() == [[50, 270], [390, 20]]
-    assert ax.x0 <= 0.0 and ax.x1 >= 2.0 and ax.y0 <= 0.0 and ax.y1 >= 1.0
+#: matplotlib's first colour (an estimate without error colouring) and its fourth (loop edges); the two ends of
+#: the jet colour map (the smallest and the largest error)
+C0, C3, JET_LOW, JET_HIGH = (31, 119, 180), (214, 39, 40), (0, 0, 127), (127, 0, 0)
 
 
 @pytest.mark.parametrize("flat, plane", [(2, (0, 1)), (1, (0, 2)), (0, (1, 2))])
@@ -45,29 +43,38 @@ def test_choose_plane(flat, plane):
         choose_plane(torch.zeros(4, 2))
 
 
-def test_alignment_puts_estimate_on_ground_truth(tmp_path):
+def test_png_written_at_its_size(tmp_path):
     ref = _loop_trajectory()
     X = se3_exp(torch.tensor([3.0, -1.0, 2.0, 0.3, 1.0, -0.2], dtype=torch.float64))
-    moved = Trajectory(ref.timestamps, se3_compose(X.expand(len(ref), 7), ref.poses))
-    alone = plot_trajectory(None, ref)  # the estimate drawn where the ground truth is
-    aligned = plot_trajectory(tmp_path / "a.png", moved, ref)
-    unaligned = plot_trajectory(None, moved, ref, align=False, plane="xz")
-    m0, m1, m2 = (_mask(img, PALETTE[0]) for img in (alone, aligned, unaligned))
-    iou = (m0 & m1).sum() / (m0 | m1).sum()
-    assert iou > 0.9 and m0.sum() > 1000
-    assert (m0 & m2).sum() / (m0 | m2).sum() < 0.2
-    assert np.array_equal(cv2.imread(str(tmp_path / "a.png")), aligned)
-    assert aligned.shape == (700, 800, 3) and aligned.dtype == np.uint8
+    noisy = ref.poses.clone()
+    noisy[:, :3] += 0.02 * torch.randn(len(ref), 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    moved = Trajectory(ref.timestamps, se3_compose(X.expand(len(ref), 7), noisy))
+    for name, args, kwargs, shape in (("alone.png", (moved,), {}, (700, 800, 3)),
+                                      ("sub/ate.png", (moved, ref), {}, (600, 1300, 3)),
+                                      ("small.png", (moved, ref), {"size": (500, 300)}, (300, 500, 3))):
+        img = plot_trajectory(tmp_path / name, *args, **kwargs)
+        assert img.shape == shape and img.dtype == np.uint8 and (tmp_path / name).stat().st_size > 0
+        assert np.array_equal(cv2.imread(str(tmp_path / name)), img)
+
+
+def test_each_pose_coloured_by_its_error_with_a_reference():
+    ref = _loop_trajectory()
+    noisy = ref.poses.clone()
+    noisy[:, :3] += 0.02 * torch.randn(len(ref), 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    est = Trajectory(ref.timestamps, noisy)
+    coloured = plot_trajectory(None, est, ref)
+    plain = plot_trajectory(None, est, ref, align=False)
+    assert _count(coloured, JET_LOW) > 20 and _count(coloured, JET_HIGH) > 20  # the least and the most wrong poses
+    assert _count(plain, JET_LOW) == 0 and _count(plain, C0) > 500
 
 
 def test_loop_edges_are_drawn():
     traj = _loop_trajectory()
-    without = plot_trajectory(None, traj, traj)
+    without = plot_trajectory(None, traj)
     # loops between points on opposite sides of the circle: long chords, clearly visible
     loops = torch.stack([traj.timestamps[[150, 160]], traj.timestamps[[25, 35]]], -1)
-    with_loops = plot_trajectory(None, traj, traj, loops=loops)
-    assert _mask(without, PALETTE[1]).sum() == 0
-    assert _mask(with_loops, PALETTE[1]).sum() > 300
+    with_loops = plot_trajectory(None, traj, loops=loops)
+    assert _count(without, C3) == 0 and _count(with_loops, C3) > 300
     # a loop given by timestamps far off any pose still maps to the nearest poses
     plot_trajectory(None, traj, loops=torch.tensor([[-5.0, 1e9]], dtype=torch.float64))
 
@@ -79,8 +86,10 @@ def test_edge_cases_and_errors():
     traj = _loop_trajectory()
     far = Trajectory(traj.timestamps + 1000.0, traj.poses)
     with pytest.warns(UserWarning, match="not aligned"):
-        plot_trajectory(None, far, traj)
+        assert plot_trajectory(None, far, traj).shape == (700, 800, 3)  # no error panel without an ATE
     with pytest.raises(ValueError, match="plane"):
         plot_trajectory(None, traj, plane="xw")
+    with pytest.raises(ValueError, match="size"):
+        plot_trajectory(None, traj, size=(0, 100))
     with pytest.raises(TypeError):
         plot_trajectory(None, traj.poses)
