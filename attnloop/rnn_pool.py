@@ -35,7 +35,7 @@ Tensor = torch.Tensor
 __all__ = ["RandomRNNPool", "merge_channels", "random_rnn_pool", "random_rnn_weights"]
 
 
-def _check_bchw(x: Tensor, name: str = "x") -> None:
+def check_bchw(x: Tensor, name: str = "x") -> None:
     if not isinstance(x, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     if x.dim() != 4:
@@ -57,7 +57,7 @@ def merge_channels(x: Tensor) -> Tensor:
         >>> merge_channels(torch.rand(2, 512, 7, 7)).shape
         torch.Size([2, 256, 7, 7])
     """
-    _check_bchw(x)
+    check_bchw(x)
     c = x.shape[1]
     if c % 2 != 0:
         raise ValueError(f"merge_channels needs an even number of channels, got x of shape {tuple(x.shape)}")
@@ -126,7 +126,7 @@ def random_rnn_pool(x: Tensor, weights: Tensor, merge: bool = True) -> Tensor:
         >>> random_rnn_pool(torch.rand(3, 512, 7, 7), w).shape
         torch.Size([3, 1024])
     """
-    _check_bchw(x)
+    check_bchw(x)
     if not isinstance(weights, Tensor) or weights.dim() != 3:
         shape = tuple(weights.shape) if isinstance(weights, Tensor) else type(weights).__name__
         raise ValueError(f"weights must have shape (num_rnn, out_features, in_features), got {shape}")
@@ -205,7 +205,7 @@ class RandomRNNPool(nn.Module):
         return self.num_rnn * self.out_features
 
     def forward(self, x: Tensor) -> Tensor:
-        _check_bchw(x)
+        check_bchw(x)
         if tuple(x.shape[1:]) != (self.in_channels, *self.in_size):
             raise ValueError(f"expected x of shape (B, {self.in_channels}, {self.in_size[0]}, "
                              f"{self.in_size[1]}), got {tuple(x.shape)}")

@@ -77,7 +77,8 @@ def main(argv=None) -> int:
 
     from slam.io import open_sequence
     from slam.options import frame_range, resolve_settings
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
 
     seq = open_sequence(args.data)
     cfg = resolve_settings({"map.enabled": False}, None, seq).config
@@ -91,7 +92,7 @@ def main(argv=None) -> int:
     local = dataclasses.replace(cfg, relocalisation=dataclasses.replace(cfg.relocalisation, localize=True))
 
     def report(name, run, sampler=None):
-        m = evaluate_run(run)
+        m = evaluate_run(run).as_dict()
         rel = m["relocalisation"]
         err = rel["map_world_errors"] or {}
         line = (f"{name}: {m['num_frames']} frames, {m['num_keyframes']} keyframes, {m['num_loops']} own loops, "

@@ -158,6 +158,7 @@ def main(argv=None) -> int:
     from slam.io import open_sequence
     from slam.io.laps import LapSequence
     from slam.options import resolve_settings
+    from slam.report import evaluate_run
 
     if args.sequence is not None:
         source = open_sequence(args.sequence)
@@ -174,7 +175,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     run = pipeline.run_slam(seq, cfg, frame_step=args.frame_step, progress=False if args.quiet else None)
     wall = time.perf_counter() - t0
-    m = pipeline.evaluate_run(run)
+    m = evaluate_run(run).as_dict()
     fifths = rec.fifths()
     first, last = fifths[0], fifths[-1]
     report = {

@@ -65,7 +65,7 @@ def keyframe_stream(path: Path, step: int, fusion: str, cache: Path | None) -> d
     from slam.io import open_sequence
     from slam.loop.closer import build_descriptor
     from slam.options import resolve_settings
-    from slam.pipeline import loop_ground_truth_for_step
+    from slam.report import loop_ground_truth_for_step
     from slam.system import RGBDSLAM
 
     seq = open_sequence(path)

@@ -35,7 +35,8 @@ from slam.config import override
 from slam.io import open_sequence
 from slam.maps import RelocalisationConfig, load_map
 from slam.options import frame_range, resolve_settings
-from slam.pipeline import evaluate_run, run_slam
+from slam.pipeline import run_slam
+from slam.report import evaluate_run
 
 
 def _per_keyframe_loop_ms(metrics: dict) -> float:
@@ -55,7 +56,7 @@ def kitchen(data: Path, map_frames, session_frames, other: bool) -> dict:
         mdir = Path(tmp) / "kitchen_map"
         t = time.perf_counter()
         first = run_slam(seq, cfg, progress=False, frames=map_frames, save_map=mdir)
-        m1 = evaluate_run(first)
+        m1 = evaluate_run(first).as_dict()
         out["map"] = {"frames": list(map_frames), "keyframes": m1["num_keyframes"], "loops": m1["num_loops"],
                       "ate_rmse": m1["ate_rmse"], "seconds": round(time.perf_counter() - t, 1),
                       "size_mb": round(sum(f.stat().st_size for f in mdir.iterdir()) / 1e6, 2)}
@@ -63,7 +64,7 @@ def kitchen(data: Path, map_frames, session_frames, other: bool) -> dict:
         saved = load_map(mdir)
         out["map"]["load_seconds"] = round(time.perf_counter() - t, 3)
         second = run_slam(seq, cfg, progress=False, frames=session_frames, map_dir=saved)
-        m2 = evaluate_run(second)
+        m2 = evaluate_run(second).as_dict()
         rel = m2["relocalisation"]
         loop_ms = _per_keyframe_loop_ms(m2)
         out["session"] = {"frames": list(session_frames), "num_frames": m2["num_frames"],
@@ -87,7 +88,7 @@ def kitchen(data: Path, map_frames, session_frames, other: bool) -> dict:
                 "odometry.features.rgb_intrinsics": tuple(rig["rgb_intrinsics"]) if rig["rgb_intrinsics"] else None,
                 "odometry.features.rgb_from_depth_translation": tuple(rig["rgb_from_depth"])})
             run = run_slam(room, rcfg, progress=False, frames=(0, 80), map_dir=saved)
-            r = evaluate_run(run)["relocalisation"]
+            r = evaluate_run(run).as_dict()["relocalisation"]
             out["other_place"] = {"recording": "synthetic room loop, frames 0-79", "relocalised": r["relocalised"],
                                   "link_hypotheses": r["link_hypotheses"], "queries": r["queries"], "reason": r["reason"]}
     return out

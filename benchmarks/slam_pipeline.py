@@ -45,7 +45,8 @@ from slam.graph.costs import edge_residuals
 from slam.io import open_sequence
 from slam.lie import se3_compose, se3_inv
 from slam.options import resolve_settings
-from slam.pipeline import evaluate_run, run_slam
+from slam.pipeline import run_slam
+from slam.report import evaluate_run
 
 
 def edge_chi2_against_truth(run) -> dict:
@@ -226,7 +227,7 @@ def main() -> None:
         cfg = apply_overrides(resolve_settings({**odometry_opts, "loop.enabled": False}, sequence=seq).config,
                               args.set)
         run = run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step, progress=False)
-        odo[seq.name] = evaluate_run(run)
+        odo[seq.name] = evaluate_run(run).as_dict()
         odo[seq.name]["edge_chi2_vs_truth"] = edge_chi2_against_truth(run)
         print(f"odometry {seq.name}: ATE {_fmt(odo[seq.name].get('ate_rmse'))} m, max "
               f"{_fmt(odo[seq.name].get('ate', {}).get('max'))} m; edge chi2 vs truth "
@@ -242,7 +243,8 @@ def main() -> None:
               f"{m.get('loop_hypotheses')} (false {m.get('loop_hypotheses_false')}), final chi2 {m['final_chi2']} "
               f"over {m['num_edges']} edges, edge chi2 vs truth {m['edge_chi2_vs_truth']}", flush=True)
 
-    table = run_ablation(seqs, out, opts, {m: COLUMNS["default"][m] for m in args.modes},
+    specs = [resolve_settings(opts, sequence=s) for s in seqs]
+    table = run_ablation(specs, out, {m: COLUMNS["default"][m] for m in args.modes},
                          configure=lambda cfg: apply_overrides(cfg, args.set), measure=measure)
 
     head = ("| run | ATE RMSE (m) | ATE max (m) | vs odometry | loops kept (true/false) | inconsistent / switched off (false) "
@@ -270,7 +272,7 @@ def main() -> None:
                 cfg = resolve_settings({**opts, "map.enabled": True, "loop.descriptor.fusion": args.modes[0],
                                         "backend.optimize_on_loop": online}, sequence=seq).config
                 m = evaluate_run(run_slam(seq, cfg, max_frames=args.max_frames, frame_step=args.frame_step,
-                                          progress=False))
+                                          progress=False)).as_dict()
                 fps[online].append(m["fps"])
                 print(f"fps A/B online={online}: {m['fps']:.2f} frames/s, ATE {_fmt(m.get('ate_rmse'))}", flush=True)
         ratios = [a / b for a, b in zip(fps[True], fps[False])]

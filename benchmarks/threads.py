@@ -1,6 +1,14 @@
 """Wall time of the kitchen command on an idle machine and with cores kept busy by another process.
 
     python -m benchmarks.threads [--data ../shared/data] [--frames 150] [--rounds 3] [--threads 2 4]
+    python -m benchmarks.threads --command [--rounds 2] [--frames N] [--compare OTHER_CHECKOUT]
+
+``--command`` times the whole command of docs/results.md's kitchen figure, ``python -m slam.cli
+../shared/data/7scenes-redkitchen --out DIR --quiet`` (every frame unless ``--frames``), in a fresh process
+each time with no OMP/MKL/OpenBLAS thread variable set (its own thread limit is all it has), idle then busy in
+each round, and prints each run's wall time, frames/s, ATE, loops and the load average, then the median of the
+busy/idle ratios (the goal: <= 1.5). ``--compare DIR`` runs the same command from another checkout of the
+repository in the same rounds (another version of the code under the same load).
 
 Runs what ``attnloop-slam ../shared/data/7scenes-redkitchen --max-frames 150 --out DIR`` runs (its config
 from :func:`slam.options.resolve_settings`, the map on; outputs not written) with each thread setting, idle
@@ -17,10 +25,12 @@ Timings are only comparable within one run of this script; on a machine that oth
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -61,10 +71,62 @@ def _run(seq, threads, frames: int) -> tuple[float, dict]:
     return wall, stages
 
 
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def _command(folder: Path, frames: int | None, out: Path, code: Path) -> dict:
+    """One run of the kitchen command in its own process: wall time and what its metrics.json says."""
+    env = {k: v for k, v in os.environ.items() if k not in _THREAD_VARIABLES}
+    argv = [sys.executable, "-m", "slam.cli", str(folder), "--out", str(out), "--quiet"]
+    if frames is not None:
+        argv += ["--max-frames", str(frames)]
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL, cwd=code)
+    wall = time.perf_counter() - t0
+    m = json.loads((out / "metrics.json").read_text())
+    return {"wall": wall, "fps": m["fps"], "ate": m["ate_rmse"], "loops": m["num_loops"], "load": load}
+
+
+def _command_rounds(folder: Path, frames: int | None, rounds: int, busy: int, compare: Path | None) -> int:
+    codes = {"this": Path(__file__).resolve().parents[1]}
+    if compare is not None:
+        codes[str(compare)] = compare.resolve()
+    print(f"# threads.py --command: python -m slam.cli {folder} --quiet"
+          + (f" --max-frames {frames}" if frames else "") + f"; {rounds} round(s), busy = {busy} spinning "
+          f"process(es); {os.cpu_count()} CPUs, torch {torch.__version__}; "
+          f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}", flush=True)
+    ratios: dict[str, list[float]] = {name: [] for name in codes}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(rounds):
+            for name, code in codes.items():
+                walls = {}
+                for cond in ("idle", "busy"):
+                    procs = _spinners(busy) if cond == "busy" else []
+                    try:
+                        m = _command(folder, frames, Path(tmp) / cond, code)
+                    finally:
+                        _stop(procs)
+                    walls[cond] = m["wall"]
+                    print(f"round {r + 1} {name} {cond}: {m['wall']:.1f} s wall, {m['fps']:.1f} frames/s, ATE "
+                          f"{m['ate']:.4f} m, {m['loops']} loops (load average before it {m['load']:.2f})", flush=True)
+                ratios[name].append(walls["busy"] / walls["idle"])
+                print(f"round {r + 1} {name}: busy / idle {ratios[name][-1]:.2f}", flush=True)
+    for name, rs in ratios.items():
+        print(f"\nthe command ({name}): busy/idle wall-time ratio, median of {rounds} round(s): "
+              f"{statistics.median(rs):.2f} (goal <= 1.5)")
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_data_argument(p)
-    p.add_argument("--frames", type=int, default=150, help="input frames per run (default 150)")
+    p.add_argument("--frames", type=int, default=None,
+                   help="input frames per run (default 150; with --command every frame)")
+    p.add_argument("--command", action="store_true",
+                   help="time the whole kitchen command, each run in its own process (python -m slam.cli)")
+    p.add_argument("--compare", type=Path, default=None, metavar="DIR",
+                   help="with --command: also run the command from this other checkout, in the same rounds")
     p.add_argument("--rounds", type=int, default=3, help="idle/busy rounds (default 3)")
     p.add_argument("--busy", type=int, default=1, help="spinning processes in the busy runs (default 1)")
     p.add_argument("--threads", type=int, nargs="*", default=None,
@@ -75,6 +137,9 @@ def main(argv=None) -> int:
     if not folder.is_dir():
         print(f"threads.py: {folder} not found (set --data or ATTNLOOP_DATA)", file=sys.stderr)
         return 2
+    if args.command:
+        return _command_rounds(folder, args.frames, args.rounds, args.busy, args.compare)
+    args.frames = 150 if args.frames is None else args.frames
     seq = open_sequence(folder)
     default = SLAMConfig().threads
     extra = args.threads if args.threads is not None else [torch.get_num_threads()]

@@ -31,14 +31,17 @@ from pathlib import Path
 
 from slam.ablation import markdown_table, run_ablation
 from slam.cli import call_reporting_errors
-from slam.options import add_run_arguments, given_settings
+from slam.options import add_run_arguments, given_settings, resolve_settings
+from slam.outputs import json_safe
+from slam.threads import limit_threads
 from slam.viewer import VIEWER_FLAGS
-from slam.pipeline import json_safe
 
 
 def run(args: argparse.Namespace) -> int:
-    table = run_ablation(args.sequences, args.out, given_settings(args), config_file=args.config_file,
-                         quiet=args.quiet)
+    # every folder and setting checked before the first run, as attnloop-slam checks them
+    specs = [resolve_settings(given_settings(args), args.config_file, path) for path in args.sequences]
+    with limit_threads(specs[0].config.threads):  # one thread limit for all the runs (docs/devices.md)
+        table = run_ablation(specs, args.out, quiet=args.quiet)
     out = Path(args.out)
     md = markdown_table(table)
     (out / "table1.md").write_text(md)

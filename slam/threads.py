@@ -1,4 +1,4 @@
-"""The thread counts a run computes with: torch's intra-op pool, the BLAS libraries' and OpenCV's.
+"""The thread counts a run computes with: torch's intra-op pool, the BLAS and OpenMP libraries' and OpenCV's.
 
 Most of the pipeline's work is many small operations on one frame (the depth warp, ORB matching, RANSAC
 hypotheses, a pose graph of a hundred keyframes). On a machine where another process keeps a core busy,
@@ -8,15 +8,13 @@ the README's kitchen command on 60 frames took 41.7 s with torch's default threa
 only large operation, the descriptor's CNN, runs once per keyframe (benchmarks/threads.py, figures in
 docs/results.md "Threads"). So a run takes ``SLAMConfig.threads = 1`` by default.
 
-:func:`limit_threads` sets the counts for a block and restores the caller's afterwards: a library must not
-change its caller's process state for good. :func:`slam.pipeline.run_slam` applies it around the whole
-run; :class:`slam.system.RGBDSLAM` applies it in each ``track`` / ``finish`` call (:func:`config_threads`;
-~0.5 ms a call when the counts differ, nothing when they are already set), so a program driving it frame
-by frame gets the configured count without doing anything, or wraps its own loop in one limit.
-
-torch's inter-op pool is left alone (it can only be sized before its first use, and the pipeline does
-not use it). BLAS goes through ``threadpoolctl`` (``attnloop[accel]``): without it BLAS keeps its own
-count (:func:`slam.graph.blas_threads.blas_thread_control` says which).
+:func:`limit_threads` is the one place that sets them: entered once where a run, an example or a benchmark
+starts (``attnloop-slam`` around the whole command, :func:`slam.pipeline.run_slam` around its run), never
+below. It restores the caller's counts afterwards: a library must not change its caller's process state
+for good. The library's workers (the frame readers, the loop worker, the map worker) are Python threads,
+each computing with the process-wide counts the context set. torch's inter-op pool is left alone (it can
+only be sized before its first use, and the pipeline does not use it). BLAS and OpenMP go through
+``threadpoolctl``, with scipy's BLAS loaded first so that the pose graph's LAPACK calls are covered too.
 
 Example:
     >>> import torch
@@ -30,18 +28,14 @@ Example:
 from __future__ import annotations
 
 import contextlib
-import functools
 import numbers
-import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import cv2
 import torch
+from threadpoolctl import threadpool_info, threadpool_limits
 
-__all__ = ["check_threads", "config_threads", "limit_threads", "thread_counts"]
-
-# the count the innermost limit_threads of each thread set (None outside any)
-_active = threading.local()
+__all__ = ["check_threads", "limit_threads", "thread_counts"]
 
 
 def check_threads(n: int | None, what: str = "threads") -> int | None:
@@ -58,20 +52,14 @@ def check_threads(n: int | None, what: str = "threads") -> int | None:
 
 
 def thread_counts() -> dict:
-    """The current counts: ``{"torch": int, "opencv": int, "blas": [int, ...]}`` (BLAS: one per library
-    threadpoolctl finds, empty without it)."""
-    from slam.graph.blas_threads import _blas_libraries
-
+    """The current counts: ``{"torch": int, "opencv": int, "blas": [int, ...]}`` (one per BLAS library loaded)."""
     return {"torch": torch.get_num_threads(), "opencv": cv2.getNumThreads(),
-            "blas": [lib.get_num_threads() for lib in _blas_libraries()]}
+            "blas": [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]}
 
 
 @contextlib.contextmanager
 def limit_threads(n: int | None) -> Iterator[None]:
-    """torch, BLAS and OpenCV compute with ``n`` threads inside the block; the previous counts after.
-
-    Inside a block of the same thread limited to the same ``n`` (and torch still at ``n``), it does nothing:
-    a count changed by hand inside the outer block (OpenCV's, BLAS') is then left as it is.
+    """torch, BLAS, OpenMP and OpenCV compute with ``n`` threads inside the block; the previous counts after.
 
     Args:
         n: the thread count (>= 1), or None to change nothing.
@@ -83,40 +71,14 @@ def limit_threads(n: int | None) -> Iterator[None]:
     if n is None:
         yield
         return
-    if getattr(_active, "count", None) == n and torch.get_num_threads() == n:
-        # nested in a limit to the same count in this thread (RGBDSLAM.track inside run_slam): the counts
-        # are set. No query of OpenCV's: cv2.getNumThreads releases the GIL, and taking it back while the
-        # frame reader's threads run cost ~1 ms a call, two calls a frame
-        yield
-        return
-    from slam.graph.blas_threads import limit_blas_threads  # (slam.graph imports this module's users)
+    import scipy.linalg  # noqa: F401  (scipy's own BLAS, which the pose graph calls, loaded before the limit)
 
     prev_torch, prev_cv = torch.get_num_threads(), cv2.getNumThreads()
-    prev_active = getattr(_active, "count", None)
-    if prev_torch != n:  # nested in a limit to the same count (track() inside run_slam): nothing to do
-        torch.set_num_threads(n)
-    if prev_cv != n:
-        cv2.setNumThreads(n)
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
     try:
-        _active.count = n
-        with limit_blas_threads(n):
+        with threadpool_limits(limits=n):
             yield
     finally:
-        _active.count = prev_active
-        if cv2.getNumThreads() != prev_cv:
-            cv2.setNumThreads(prev_cv)
-        if torch.get_num_threads() != prev_torch:
-            torch.set_num_threads(prev_torch)
-
-
-def config_threads(method: Callable) -> Callable:
-    """Decorator of a method of an object with a ``config`` (:class:`slam.config.SLAMConfig`): the method
-    runs under ``limit_threads(self.config.threads)``, so the streaming API (``RGBDSLAM.track`` /
-    ``finish``) computes with the configured threads and gives the caller's back after each call."""
-
-    @functools.wraps(method)
-    def wrapper(self, *args, **kwargs):
-        with limit_threads(getattr(self.config, "threads", None)):
-            return method(self, *args, **kwargs)
-
-    return wrapper
+        cv2.setNumThreads(prev_cv)
+        torch.set_num_threads(prev_torch)

@@ -24,10 +24,10 @@ from attnloop.index.config import (
     faiss_available,
     resolve_backend,
 )
-from attnloop.index.database import KeyframeIndex
+from attnloop.index.database import KeyframeIndex, load_index
 from attnloop.index.detector import LoopCandidateDetector, LoopCandidates, LoopDetectorConfig
 from attnloop.index.exact import exact_search
-from attnloop.index.persistence import IndexFileError, load_index, save_index
+from attnloop.index.persistence import IndexFileError, save_index
 from attnloop.index.reduction import PCACode, fit_pca
 
 __all__ = [

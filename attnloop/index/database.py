@@ -58,8 +58,9 @@ import numpy as np
 import torch
 
 from attnloop.index.config import IndexConfig, config_from_dict, config_to_dict, resolve_backend
-from attnloop.index.exact import _count, scan_tolerance, topk_rows
-from attnloop.index.storage import _GATHER_BYTES, KeyframeStore
+from attnloop.index.exact import check_count, scan_tolerance, topk_rows
+from attnloop.index.storage import GATHER_BYTES, KeyframeStore
+from attnloop.index.persistence import IndexFileError, file_name, read_index_file, save_index
 from attnloop.index.structures import STRUCTURES
 
 Tensor = torch.Tensor
@@ -374,7 +375,7 @@ class KeyframeIndex:
             ValueError: a query with NaN or inf (naming the rows), a wrong dimension, ``k < 1``, a
                 non-integral ``max_id``.
         """
-        k = _count(k, "k", 1)
+        k = check_count(k, "k", 1)
         q, single, max_ids, device = self._prepare_queries(query, max_id)
         self._poll()
         nq = q.shape[0]
@@ -439,7 +440,7 @@ class KeyframeIndex:
     def _select(self, rows: np.ndarray, q64: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` best of the increasing ``rows`` by exact similarity, ties by row (a chunk at a time: many
         duplicates of the k-th value must not make one huge float64 copy)."""
-        chunk = _GATHER_BYTES // (8 * max(1, self._store.dim)) + 1
+        chunk = GATHER_BYTES // (8 * max(1, self._store.dim)) + 1
         best_r, best_s = rows[:0], np.zeros(0, dtype=np.float32)
         for lo in range(0, rows.size, chunk):
             r = np.concatenate([best_r, rows[lo: lo + chunk]])  # the kept rows all precede this chunk's
@@ -462,7 +463,7 @@ class KeyframeIndex:
             ids ``(M,)`` (long) and similarities ``(M,)`` (float32) in id order, on the query's device.
         """
         if max_samples is not None:
-            max_samples = _count(max_samples, "max_samples", 1)
+            max_samples = check_count(max_samples, "max_samples", 1)
         q, single, max_ids, device = self._prepare_queries(query, max_id)
         if not single:
             raise ValueError(f"similarities takes one query of shape (D,), got {tuple(q.shape)}")
@@ -617,13 +618,31 @@ class KeyframeIndex:
         The format is open: ``meta`` is a JSON string (format, version, config, ...), every other entry a
         plain array (no pickles); see :func:`attnloop.index.save_index`.
         """
-        from attnloop.index.persistence import save_index
-
         save_index(self, file)
 
     @classmethod
     def load(cls, file, config: IndexConfig | None = None) -> KeyframeIndex:
-        """Read an index written by :meth:`save`; :class:`~attnloop.index.IndexFileError` names the file."""
-        from attnloop.index.persistence import load_index
+        """Read an index written by :meth:`save` (a path or a binary file object).
 
-        return load_index(file, config)
+        Args:
+            file: a path or a binary file object.
+            config: ``None`` to restore the saved index as it was; another config rebuilds the structure
+                (see :meth:`from_state`).
+
+        Raises:
+            FileNotFoundError: no such file.
+            IndexFileError: not a keyframe-index file, a missing, newer or otherwise unsupported format
+                version, or inconsistent or corrupt contents (a record entry, the arrays, the FLANN tree or
+                faiss graph, the PCA code), naming the file and what is wrong.
+            ImportError: the file holds a faiss graph and faiss is not installed here.
+        """
+        state = read_index_file(file)
+        try:
+            return cls.from_state(state, config)
+        except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError) as exc:
+            raise IndexFileError(f"{file_name(file)}: {exc}") from exc
+
+
+def load_index(file, config: IndexConfig | None = None) -> KeyframeIndex:
+    """Read an index written by :func:`~attnloop.index.save_index` (:meth:`KeyframeIndex.load`)."""
+    return KeyframeIndex.load(file, config)

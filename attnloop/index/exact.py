@@ -11,7 +11,7 @@ Tensor = torch.Tensor
 __all__ = ["exact_search", "matvec", "scan_tolerance", "topk_rows"]
 
 
-def _count(x, name: str, minimum: int) -> int:
+def check_count(x, name: str, minimum: int) -> int:
     """An integer setting (int, numpy or 0-d tensor integer) ``>= minimum``; TypeError/ValueError otherwise."""
     try:
         value = operator.index(x)
@@ -45,7 +45,7 @@ def exact_search(database: Tensor, queries: Tensor, k: int) -> tuple[Tensor, Ten
     if database.dim() != 2 or queries.dim() != 2 or database.shape[1] != queries.shape[1]:
         raise ValueError(f"need database (N, D) and queries (Q, D), got {tuple(database.shape)} and "
                          f"{tuple(queries.shape)}")
-    k = _count(k, "k", 0)
+    k = check_count(k, "k", 0)
     dtype = torch.promote_types(database.dtype, queries.dtype)
     sims = queries.to(dtype) @ database.to(dtype).t()
     kk = min(k, database.shape[0])

@@ -8,6 +8,7 @@ faiss graph or FLANN tree as bytes; ``structure.pca.*``: its PCA code). No pickl
 
 Example:
     >>> import io, torch
+    >>> from attnloop.index import IndexConfig, KeyframeIndex
     >>> index = KeyframeIndex(IndexConfig(backend="exact"))
     >>> index.add(torch.eye(4), ids=[2, 3, 5, 8])
     >>> buf = io.BytesIO(); index.save(buf); _ = buf.seek(0)
@@ -23,24 +24,23 @@ import zipfile
 
 import numpy as np
 
-from attnloop.index.config import IndexConfig
-from attnloop.index.database import KeyframeIndex
-
-__all__ = ["IndexFileError", "load_index", "save_index"]
+__all__ = ["IndexFileError", "file_name", "read_index_file", "save_index"]
 
 
 class IndexFileError(ValueError):
     """A keyframe-index file that cannot be read: the message names the file and what is wrong."""
 
 
-def _name(file) -> str:
+def file_name(file) -> str:
+    """How a path or file object is named in messages."""
     if isinstance(file, (str, os.PathLike)):
         return os.fspath(file)
     return str(getattr(file, "name", "<file object>"))
 
 
-def save_index(index: KeyframeIndex, file) -> None:
-    """Write ``index`` to ``file`` (a path or a binary file object) as described in the module docstring.
+def save_index(index, file) -> None:
+    """Write ``index`` (a :class:`~attnloop.index.KeyframeIndex`) to ``file`` (a path or a binary file object)
+    as described in the module docstring.
 
     A path is written exactly as named (numpy would append ``.npz`` to another name) and atomically: into
     a temporary file beside it, renamed over it once complete, so a failed or interrupted save leaves the
@@ -66,22 +66,14 @@ def save_index(index: KeyframeIndex, file) -> None:
         raise
 
 
-def load_index(file, config: IndexConfig | None = None) -> KeyframeIndex:
-    """Read an index written by :func:`save_index`.
-
-    Args:
-        file: a path or a binary file object.
-        config: ``None`` to restore the saved index as it was; another config rebuilds the structure
-            (see :meth:`KeyframeIndex.from_state`).
+def read_index_file(file) -> dict:
+    """The state (:meth:`~attnloop.index.KeyframeIndex.state_dict`) saved by :func:`save_index` in ``file``.
 
     Raises:
         FileNotFoundError: no such file.
-        IndexFileError: not a keyframe-index file, a missing, newer or otherwise unsupported format version,
-            or inconsistent or corrupt contents (a record entry, the arrays, the FLANN tree or faiss graph,
-            the PCA code), naming the file and what is wrong.
-        ImportError: the file holds a faiss graph and faiss is not installed here.
+        IndexFileError: not a keyframe-index ``.npz`` file, or its ``meta`` entry is missing or not JSON.
     """
-    name = _name(file)
+    name = file_name(file)
     try:
         data = np.load(file, allow_pickle=False)
     except FileNotFoundError:
@@ -101,7 +93,4 @@ def load_index(file, config: IndexConfig | None = None) -> KeyframeIndex:
         meta = json.loads(str(arrays.pop("meta")))
     except json.JSONDecodeError as exc:
         raise IndexFileError(f"{name}: the 'meta' entry is not JSON ({exc})") from exc
-    try:
-        return KeyframeIndex.from_state({"meta": meta, **arrays}, config)
-    except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError) as exc:
-        raise IndexFileError(f"{name}: {exc}") from exc
+    return {"meta": meta, **arrays}

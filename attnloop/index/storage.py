@@ -16,7 +16,7 @@ __all__ = ["KeyframeStore"]
 # 16384 x D x 4 bytes, 160 MB for the default 2560-d descriptor), since a float16 product on the CPU rounds
 # its result to float16.
 _CHUNK = 16384
-_GATHER_BYTES = 1 << 22  # rows gathered (copied) at a time by matvec_rows and the re-scoring: ~4 MB
+GATHER_BYTES = 1 << 22  # rows gathered (copied) at a time by matvec_rows and the re-scoring: ~4 MB
 
 
 class KeyframeStore:
@@ -91,7 +91,7 @@ class KeyframeStore:
         """L2 norms ``(M,)`` (float64) of rows ``[start, stop)``, computed a chunk at a time."""
         stop = self.n if stop is None else stop
         out = np.empty(max(0, stop - start), dtype=np.float64)
-        step = 4 * _GATHER_BYTES // (8 * max(1, self.dim)) + 1  # float64 temporaries of ~16 MB
+        step = 4 * GATHER_BYTES // (8 * max(1, self.dim)) + 1  # float64 temporaries of ~16 MB
         for lo in range(start, stop, step):
             chunk = torch.from_numpy(self._desc[lo: min(lo + step, stop)]).double()
             out[lo - start: lo - start + chunk.shape[0]] = torch.linalg.vector_norm(chunk, dim=1).numpy()
@@ -100,7 +100,7 @@ class KeyframeStore:
     def matvec_rows(self, q: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Similarities ``(M,)`` (float32) of ``q (D,)`` to the given rows ``(M,)``, gathered a chunk at a time."""
         out = np.empty(rows.size, dtype=np.float32)
-        chunk = _GATHER_BYTES // max(1, 4 * self.dim) + 1
+        chunk = GATHER_BYTES // max(1, 4 * self.dim) + 1
         for lo in range(0, rows.size, chunk):
             block = np.take(self._desc, rows[lo: lo + chunk], axis=0)  # faster than fancy indexing
             out[lo: lo + chunk] = matvec(block.astype(np.float32, copy=False), q)

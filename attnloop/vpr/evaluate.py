@@ -51,7 +51,7 @@ import cv2
 import numpy as np
 import torch
 
-from slam.eval.loops import LoopGroundTruthConfig, PRCurve, _close, plot_pr_curves, precision_recall_curve
+from slam.eval.loops import LoopGroundTruthConfig, PRCurve, plot_pr_curves, poses_close, precision_recall_curve
 
 __all__ = [
     "GroundTruthFormatError",
@@ -393,7 +393,7 @@ def ground_truth_from_poses(
 
     q = check(query_poses, "query_poses")
     r = q if reference_poses is None else check(reference_poses, "reference_poses")
-    out = _close(q[:, None, :], r[None, :, :], config)
+    out = poses_close(q[:, None, :], r[None, :, :], config)
     if reference_poses is None:
         out &= sequence_candidates(q.shape[0], config.min_frame_gap)
     return out

@@ -16,7 +16,7 @@ Example:
     (10, 0.0049)
 """
 from slam.eval.align import transform_poses, umeyama_alignment
-from slam.eval.associate import TUM_MAX_DIFFERENCE, associate, associate_nearest, associate_trajectories
+from slam.io.associate import TUM_MAX_DIFFERENCE, associate, associate_nearest, associate_trajectories
 from slam.eval.loops import (
     LoopEvaluation,
     LoopGroundTruthConfig,

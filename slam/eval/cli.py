@@ -22,10 +22,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
-from slam.eval.associate import TUM_MAX_DIFFERENCE
+from slam.io.associate import TUM_MAX_DIFFERENCE
 
 __all__ = ["build_parser", "main"]
 
@@ -138,9 +139,19 @@ def _run(args: argparse.Namespace) -> dict:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    from slam.cli import stdout_gone
+def stdout_gone() -> int:
+    """The exit code of a command whose reader closed its output early (``attnloop-eval ... | head``), as
+    Python's documentation of SIGPIPE recommends: standard output is pointed at ``os.devnull``, so that the
+    flush at exit does not raise (and print "[Errno 32] Broken pipe") again, and the code is 1."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # a replaced sys.stdout without a file descriptor
+        pass
+    return 1
 
+
+def main(argv: list[str] | None = None) -> int:
     try:
         return _main(sys.argv[1:] if argv is None else list(argv))
     except BrokenPipeError:  # attnloop-eval ... | head

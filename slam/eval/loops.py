@@ -69,7 +69,7 @@ def _check_poses(poses: torch.Tensor) -> torch.Tensor:
     return poses.to(torch.float64)
 
 
-def _close(pa: torch.Tensor, pb: torch.Tensor, cfg: LoopGroundTruthConfig) -> torch.Tensor:
+def poses_close(pa: torch.Tensor, pb: torch.Tensor, cfg: LoopGroundTruthConfig) -> torch.Tensor:
     """Pairwise-broadcast closeness of poses ``(..., 7)``: distance and angle below the thresholds."""
     dist = (pa[..., :3] - pb[..., :3]).norm(dim=-1)
     qa = pa[..., 3:] / pa[..., 3:].norm(dim=-1, keepdim=True)
@@ -96,7 +96,7 @@ def is_true_loop(poses: torch.Tensor, pairs: torch.Tensor, config: LoopGroundTru
     if pairs.numel() and (pairs.min() < 0 or pairs.max() >= poses.shape[0]):
         raise ValueError(f"pair indices must be in [0, {poses.shape[0]}), got {pairs.min()}..{pairs.max()}")
     gap = (pairs[:, 0] - pairs[:, 1]).abs() >= config.min_frame_gap
-    return gap & _close(poses[pairs[:, 0]], poses[pairs[:, 1]], config)
+    return gap & poses_close(poses[pairs[:, 0]], poses[pairs[:, 1]], config)
 
 
 def ground_truth_loops(poses: torch.Tensor, config: LoopGroundTruthConfig = LoopGroundTruthConfig(),
@@ -122,7 +122,7 @@ def ground_truth_loops(poses: torch.Tensor, config: LoopGroundTruthConfig = Loop
     out = []
     for s in range(0, idx.numel(), chunk):
         rows = idx[s:s + chunk]
-        # the same tests as _close, as matrices: exact distances (no |a|^2 - 2ab + |b|^2 shortcut)
+        # the same tests as poses_close, as matrices: exact distances (no |a|^2 - 2ab + |b|^2 shortcut)
         dist = torch.cdist(pos[s:s + chunk], pos, compute_mode="donot_use_mm_for_euclid_dist")
         ok = (dist < config.max_distance) & ((q[s:s + chunk] @ q.T).abs() > cos_max)
         ok &= (rows[:, None] - idx[None, :]) >= config.min_frame_gap

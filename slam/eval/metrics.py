@@ -1,10 +1,10 @@
 """Absolute trajectory error (ATE) and relative pose error (RPE) with TUM / evo semantics.
 
 * Both trajectories are associated by timestamp first, by evo's rule (``association="evo"``, default,
-  :func:`slam.eval.associate.associate_nearest`: each stamp of the trajectory with fewer poses, the
+  :func:`slam.io.associate.associate_nearest`: each stamp of the trajectory with fewer poses, the
   estimate when both have as many, gets its nearest partner when ``|dt| <= max_difference = 0.02`` s), so
   the pairs are evo's ``sync.associate_trajectories(ref, est, max_diff=0.02)``; ``association="tum"``
-  uses TUM's greedy one-to-one rule (``|dt| < max_difference``, :func:`slam.eval.associate.associate`)
+  uses TUM's greedy one-to-one rule (``|dt| < max_difference``, :func:`slam.io.associate.associate`)
   as TUM's ``evaluate_ate.py``.
 * ATE: the estimate's positions are aligned to the reference's by Umeyama (rigid SE(3) by default,
   ``alignment="sim3"`` adds a scale, ``"none"`` compares raw), then the per-pair error is the distance
@@ -48,7 +48,7 @@ import numpy as np
 import torch
 
 from slam.eval.align import transform_poses, umeyama_alignment
-from slam.eval.associate import TUM_MAX_DIFFERENCE, association_indices
+from slam.io.associate import TUM_MAX_DIFFERENCE, association_indices
 from slam.input_checks import MAX_COORDINATE, unit_quaternions
 from slam.io.trajectory import Trajectory, read_tum_trajectory
 from slam.lie import quat_angle as rotation_angle

@@ -8,6 +8,7 @@ Example:
     >>> camera_from_name("rgbd_dataset_freiburg1_xyz"), TUM_CAMERAS["fr1"].fx, TUM_DEPTH_FACTOR
     ('fr1', 517.3, 5000.0)
 """
+from slam.io.detect import open_sequence
 from slam.io.frame import RGBDFrame, check_frame, check_intrinsics
 from slam.io.images import FrameReadError, depth_to_metres, read_depth_raw, read_rgb
 from slam.io.sequence import (
@@ -16,7 +17,6 @@ from slam.io.sequence import (
     DatasetWarning,
     RGBDSequence,
     SequenceView,
-    open_sequence,
 )
 from slam.io.sevenscenes import SevenScenesSequence
 from slam.io.trajectory import Trajectory, TrajectoryFormatError, read_tum_trajectory, write_tum_trajectory

@@ -3,7 +3,7 @@
 Read with rosbags (pure Python, ``pip install attnloop[rosbag]``). Opening scans the colour and depth topics once,
 message by message, keeping only each message's stamps; a frame's two images are decoded when it is requested
 (streamed: memory does not grow with the bag's length). Colour and depth are paired by their header stamps with
-TUM's association (:func:`slam.eval.associate.associate`, 20 ms), as TUM's ``associate.py`` pairs ``rgb.txt``
+TUM's association (:func:`slam.io.associate.associate`, 20 ms), as TUM's ``associate.py`` pairs ``rgb.txt``
 and ``depth.txt``; the first message of the camera-info topic gives ``K``.
 
 Encodings: colour ``rgb8``, ``bgr8``, ``mono8``; depth ``32FC1`` (metres, NaN = no depth) or ``16UC1``
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
+from slam.io.associate import TUM_MAX_DIFFERENCE, associate
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import FrameReadError, depth_to_metres
 from slam.io.sequence import DatasetError, check_depth_scale, check_depth_units

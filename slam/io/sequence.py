@@ -1,8 +1,8 @@
-"""The common RGB-D sequence interface and :func:`open_sequence`.
+"""The common RGB-D sequence interface (:func:`slam.io.open_sequence` opens a folder as one).
 
 Errors come at two moments:
 
-* **open time** (``open_sequence`` / the reader's constructor): the folder or a required list file is
+* **open time** (:func:`slam.io.open_sequence` / the reader's constructor): the folder or a required list file is
   missing (:class:`DatasetNotFoundError`, also a ``FileNotFoundError``), the folder is not a known
   layout, a list file has a malformed line or lists nothing, a camera is unknown
   (:class:`DatasetError`, a ``ValueError``).
@@ -21,7 +21,6 @@ Depth is float32 metres with **0.0 marking invalid pixels** (never NaN), as :cla
 from __future__ import annotations
 
 import logging
-import os
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -35,8 +34,8 @@ from slam.io.frame import DEPTH_MEDIAN_RANGE, RGBDFrame, median_valid_depth
 from slam.io.images import FrameReadError, depth_to_metres, read_depth_raw
 from slam.io.trajectory import Trajectory
 
-__all__ = ["DatasetError", "DatasetNotFoundError", "DatasetWarning", "RGBDSequence", "SequenceView", "check_depth_scale",
-           "check_depth_units", "open_sequence"]
+__all__ = ["DatasetError", "DatasetNotFoundError", "DatasetWarning", "RGBDSequence", "SequenceView",
+           "check_depth_scale", "check_depth_units"]
 
 logger = logging.getLogger(__name__)
 
@@ -287,69 +286,3 @@ class SequenceView(RGBDSequence):
 
     def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
         return self.parent._groundtruth_of(self.indices[indices])
-
-
-def _has_7scenes_frames(folder: Path) -> bool:
-    with os.scandir(folder) as it:
-        return any(e.name.startswith("frame-") and ".color." in e.name for e in it)
-
-
-def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **kwargs) -> RGBDSequence:
-    """Open a TUM RGB-D or 7-Scenes sequence folder or a ROS bag, detecting the layout.
-
-    * TUM RGB-D: the folder holds ``rgb.txt`` and ``depth.txt`` (-> :class:`slam.io.tum.TUMSequence`).
-    * 7-Scenes: the folder holds ``frame-XXXXXX.color.(png|jpg)`` files
-      (-> :class:`slam.io.sevenscenes.SevenScenesSequence`).
-    * ROS bag: a ROS1 ``.bag`` file or a ROS2 bag folder (``metadata.yaml``)
-      (-> :class:`slam.io.rosbag.RosbagSequence`; it alone takes ``rgb_topic``, ``depth_topic``,
-      ``camera_info_topic`` and ``groundtruth``).
-
-    Args:
-        path: the sequence folder.
-        camera: TUM only: ``"fr1"``, ``"fr2"``, ``"fr3"`` or ``"ros"`` (default: from the folder name); a
-            7-Scenes folder refuses it (give ``K``).
-        K: ``(3, 3)`` intrinsics overriding the dataset's (``--intrinsics``).
-        **kwargs: passed to the reader (both take ``depth_scale``, depth units per metre, and
-            ``check_units=False``, which skips :func:`check_depth_units` for a scene nearer than 0.5 m or
-            farther than 20 m).
-
-    Raises:
-        DatasetNotFoundError: the folder does not exist.
-        DatasetError: the folder is not a sequence of either layout (the message says what was
-            expected), or the reader rejects it.
-    """
-    root = Path(path).expanduser()
-    if not root.exists():
-        raise DatasetNotFoundError(root, "sequence folder does not exist")
-    from slam.io.rosbag import BAG_OPTIONS, RosbagSequence, is_rosbag
-
-    if is_rosbag(root):
-        return RosbagSequence(root, camera=camera, K=K, **kwargs)
-    given = [flag for key, flag in BAG_OPTIONS.items() if kwargs.pop(key, None) is not None]
-    if given:
-        raise DatasetError(root, f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to a ROS bag "
-                                 "(a .bag file or a ROS2 bag folder); a sequence folder's ground truth is its own")
-    if not root.is_dir():
-        raise DatasetError(root, "expected a sequence folder, a ROS1 .bag file or a ROS2 bag folder, got a file")
-    has_rgb, has_depth = (root / "rgb.txt").is_file(), (root / "depth.txt").is_file()
-    if has_rgb or has_depth:
-        from slam.io.tum import TUMSequence
-
-        return TUMSequence(root, camera=camera, K=K, **kwargs)
-    if _has_7scenes_frames(root):
-        from slam.io.sevenscenes import SevenScenesSequence
-
-        if camera is not None:
-            raise DatasetError(root, f"camera={camera!r} applies to TUM sequences only; give a 7-Scenes folder's "
-                                     "intrinsics with --intrinsics FX FY CX CY (K= in Python)")
-        return SevenScenesSequence(root, K=K, **kwargs)
-    subfolders: list[str] = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("seq-"))
-    if subfolders:
-        raise DatasetError(
-            root, f"this looks like a 7-Scenes scene folder; open one of its sequences, e.g. {root / subfolders[0]}"
-        )
-    raise DatasetError(
-        root,
-        "not an RGB-D sequence folder: expected TUM RGB-D files (rgb.txt, depth.txt, optional groundtruth.txt) "
-        "or 7-Scenes frames (frame-000000.color.png|jpg, frame-000000.depth.png, frame-000000.pose.txt)",
-    )

@@ -112,12 +112,12 @@ class TrajectoryFormatError(ValueError):
         super().__init__(f"{where}: {message}")
 
 
-def _split_fields(line: str) -> tuple[list[str], int | None]:
+def split_fields(line: str) -> tuple[list[str], int | None]:
     """The fields of a line separated by whitespace and/or commas, and the 1-based number of the first
     empty comma-separated cell (``"1,,2"``, a leading or a trailing comma), or None.
 
     Example:
-        >>> _split_fields("1, 2\t3 4"), _split_fields("1,,2")
+        >>> split_fields("1, 2\t3 4"), split_fields("1,,2")
         ((['1', '2', '3', '4'], None), (['1', '2'], 2))
     """
     if "," not in line:
@@ -172,7 +172,7 @@ def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Traje
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
-        fields, empty = _split_fields(line)
+        fields, empty = split_fields(line)
         if not rows and fields and fields[0].lower() == "timestamp":
             continue  # an uncommented column header before the data (some copies of TUM files have one)
         if empty is not None:

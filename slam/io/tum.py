@@ -45,12 +45,12 @@ import cv2
 import numpy as np
 import torch
 
-from slam.eval.associate import TUM_MAX_DIFFERENCE, associate
+from slam.io.associate import TUM_MAX_DIFFERENCE, associate
 from slam.input_checks import TIME_UNITS, TextDecodeError, read_text_lines, timestamp_unit
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
 from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence, check_depth_scale, check_depth_units
-from slam.io.trajectory import Trajectory, _split_fields, read_tum_trajectory
+from slam.io.trajectory import Trajectory, split_fields, read_tum_trajectory
 
 __all__ = [
     "TUM_CAMERAS",
@@ -204,7 +204,7 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
-        fields, empty = _split_fields(line)
+        fields, empty = split_fields(line)
         if not entries and fields and fields[0].lower() == "timestamp":
             continue  # an uncommented column header before the data
         if empty is not None:

@@ -177,7 +177,7 @@ def _descriptor_info(slam) -> dict:
     model = slam.loop_closer.descriptor
     recipe = d.recipe  # the preset's values where the config leaves them None
     return {"backbone": getattr(model, "backbone_name", d.backbone), "fusion": recipe.fusion, "num_rnn": recipe.num_rnn,
-            "seed": d.seed, "dim": slam.loop_closer.detector.index.dim, "probe": descriptor_probe(model)}
+            "seed": d.seed, "dim": slam.keyframe_index().dim, "probe": descriptor_probe(model)}
 
 
 def _run_dim(slam, info: dict) -> int | None:
@@ -216,7 +216,7 @@ def capture_map(slam, sequence=None) -> SavedMap:
     if slam.loop_closer is None:
         raise MapMismatchError("saving a map needs loop closure (its descriptors and index); drop --no-loop")
     kfs = slam.keyframes
-    index = slam.loop_closer.detector.index
+    index = slam.keyframe_index()
     index.wait()
     if len(index) != len(kfs):
         raise RuntimeError(f"the loop closer's index holds {len(index)} keyframes, the front end {len(kfs)}")
@@ -411,7 +411,7 @@ class MapRelocaliser:
             with self.slam.timer("descriptor"):
                 desc = self.slam.loop_closer.describe(kf).detach().to("cpu", torch.float32)
         else:
-            index = self.slam.loop_closer.detector.index
+            index = self.slam.keyframe_index()
             if len(index) != self.slam.graph.num_keyframes:  # the loop closer describes every keyframe, in order
                 raise RuntimeError(f"the loop closer's index holds {len(index)} keyframes, the graph "
                                    f"{self.slam.graph.num_keyframes}")

@@ -46,7 +46,7 @@ from slam.synthetic.scene import (
     BoxSpec,
     RoomConfig,
     Scene,
-    _compose_surface,
+    compose_surface,
     load_photo_textures,
     tensorize,
 )
@@ -332,7 +332,7 @@ def _furniture_faces(rng: np.random.Generator, photos: dict[str, np.ndarray], si
         base, tint = _FURNITURE_BASES[int(rng.integers(len(_FURNITURE_BASES)))]
         big = min(w, h) > 0.25 and k < 4  # sides large enough for a picture (tops stay plain)
         ph = (0.45 * h, 0.75 * h)
-        faces.append(_compose_surface(rng, photos, base, tint, w, h, density, 0.3, 0.6, [name] if big else [],
+        faces.append(compose_surface(rng, photos, base, tint, w, h, density, 0.3, 0.6, [name] if big else [],
                                       ph, (0.05 * h, 0.97 * h)))
     return faces
 
@@ -368,9 +368,9 @@ class _DesignBuilder:
         band = (0.85, H - 0.2)
         out: list[BoxSpec] = []
         # floor and ceiling slabs (extending under the half walls)
-        floor = _compose_surface(rng, self.photos, style.floor[0], style.floor[1], sx, sy, d, 0.6, 0.6,
+        floor = compose_surface(rng, self.photos, style.floor[0], style.floor[1], sx, sy, d, 0.6, 0.6,
                                  [], (1.0, 1.6), (0.0, sy), grout_m=0.6)
-        ceiling = _compose_surface(rng, self.photos, style.ceiling[0], style.ceiling[1], sx, sy, d * 0.5, 1.2,
+        ceiling = compose_surface(rng, self.photos, style.ceiling[0], style.ceiling[1], sx, sy, d * 0.5, 1.2,
                                    0.35, [], (0.5, 0.6), (0.0, sy), grout_m=0.6)
         h = self.hidden
         out.append(BoxSpec("floor", (0.0, 0.0, -0.025), (sx, sy, 0.05), 0.0, [h, h, h, h, h, floor]))
@@ -383,7 +383,7 @@ class _DesignBuilder:
                 seg_len = hi - lo
                 # the posters of the wall go to its spans in turn, as many as fit
                 mine = posters[k::len(spans)] if seg_len > 1.2 else []
-                tex = _compose_surface(rng, self.photos, base, tint, seg_len, H, d, 1.1, 0.55, mine, (0.5, 0.9),
+                tex = compose_surface(rng, self.photos, base, tint, seg_len, H, d, 1.1, 0.55, mine, (0.5, 0.9),
                                        band)
                 # each span is composed on its own: a face's texture columns run to the right of a viewer
                 # facing it (the face frames of slam.synthetic.scene), so no span needs flipping
@@ -400,7 +400,7 @@ class _DesignBuilder:
                 out.append(BoxSpec(f"{wall}_wall_{k}", center, size, 0.0, faces))
             for k, o in enumerate(space.openings.get(wall, [])):  # lintels above the doors
                 lh = H - cfg.door_height
-                lint = _compose_surface(rng, self.photos, base, tint, cfg.door_width, lh, d, 1.1, 0.55, [],
+                lint = compose_surface(rng, self.photos, base, tint, cfg.door_width, lh, d, 1.1, 0.55, [],
                                         (0.1, 0.2), (0.0, lh))
                 faces = [self.jamb] * 4 + [self.jamb, h]
                 faces[_INNER_FACE[wall]] = lint

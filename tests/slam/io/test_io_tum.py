@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-from slam.eval.associate import associate
 from slam.io import (
     TUM_CAMERAS,
     DatasetError,
@@ -19,6 +18,7 @@ from slam.io import (
     camera_from_name,
     open_sequence,
 )
+from slam.io.associate import associate
 
 H, W = 24, 32
 

