@@ -209,7 +209,7 @@ def run_command(args: argparse.Namespace) -> int:
     # every setting checked (--weights a file too) before any output is touched or the demo rendered
     spec = resolve_settings(settings, args.config_file, None if args.demo else args.sequence, demo=args.demo)
     cfg, opts, seq = spec.config, spec.run, spec.sequence
-    from slam.viewer import check_viewer, open_viewer
+    from slam.viewer import check_viewer
 
     check_viewer(opts)  # rerun installed, the --rrd file writable: before any output is touched
     if cfg.relocalisation.localize:  # set by the config file
@@ -250,6 +250,7 @@ def _run_and_write(args: argparse.Namespace, seq, cfg, opts, descriptor, saved, 
     from slam.pipeline import run_slam
     from slam.report import evaluate_run
     from slam.system import LoopWorkerError
+    from slam.viewer import open_viewer
 
     viewer = open_viewer(opts, name=seq.name)
     try:
