@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 import torch
 
-from slam.options import RunOptions, UsageError
+from slam.config import UsageError
 
 logger = logging.getLogger(__name__)
 
@@ -47,8 +47,9 @@ _FIELDS = {"--viewer": "viewer", "--connect": "connect", "--rrd": "rrd"}
 VIEWER_FLAGS = tuple(_FIELDS)
 
 
-def viewer_flags(run: RunOptions) -> list[str]:
-    """The viewer flags ``run`` sets (``--viewer``, ``--connect``, ``--rrd``)."""
+def viewer_flags(run) -> list[str]:
+    """The viewer flags ``run`` sets (``--viewer``, ``--connect``, ``--rrd``); ``run`` is the command's
+    :class:`slam.options.RunOptions`, or anything with its ``viewer``, ``connect`` and ``rrd`` fields."""
     return [flag for flag, name in _FIELDS.items() if getattr(run, name)]
 
 
@@ -60,7 +61,7 @@ def _rerun(flags: list[str]):
     return rerun
 
 
-def check_viewer(run: RunOptions) -> None:
+def check_viewer(run) -> None:
     """Refuse, before any work, a viewer without rerun installed, a viewer to spawn without a display (Linux), or
     an ``rrd`` file that cannot be written.
 
@@ -82,7 +83,7 @@ def check_viewer(run: RunOptions) -> None:
             raise UsageError(f"--rrd {run.rrd}: not a file in a writable folder")
 
 
-def open_viewer(run: RunOptions, name: str = "attnloop-slam", **kwargs) -> RunViewer | None:
+def open_viewer(run, name: str = "attnloop-slam", **kwargs) -> RunViewer | None:
     """The viewer ``run`` asks for: spawned (``viewer``), a running one at ``connect``, and/or the file ``rrd``;
     None when it asks for none. ``kwargs`` go to :class:`RunViewer`."""
     flags = viewer_flags(run)

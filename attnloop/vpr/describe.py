@@ -41,9 +41,9 @@ def load_rgb(path) -> np.ndarray:
     """``(H, W, 3)`` uint8 RGB as OpenCV's colour mode decodes it (grey replicated, 16-bit scaled, EXIF
     rotation applied), from the file's bytes: a missing, corrupt or truncated file is a
     :class:`slam.io.images.FrameReadError` naming it (cv2.imread decodes half a JPEG and fills the rest)."""
-    from slam.io.images import _decode
+    from slam.io.images import decode_image
 
-    return np.ascontiguousarray(_decode(str(path), cv2.IMREAD_COLOR)[:, :, ::-1])
+    return np.ascontiguousarray(decode_image(str(path), cv2.IMREAD_COLOR)[:, :, ::-1])
 
 
 def natural_key(path) -> tuple:

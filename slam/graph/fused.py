@@ -299,7 +299,7 @@ def se3_jacobians_t(r: Tensor, aux, neg_adz_t: Optional[Tensor], out: Optional[T
     out[:, 9:12, 3:] = A
     out[:, 9:12, :3] = Q
     out[:, 12] = r
-    JlT = _buffer(ws, "JlT", (E, 6, 6), r)  # J_j^T with every 3x3 block transposed
+    JlT = workspace_buffer(ws, "JlT", (E, 6, 6), r)  # J_j^T with every 3x3 block transposed
     copy_(JlT.view(E, 2, 3, 2, 3), out[:, 6:12].view(E, 2, 3, 2, 3).transpose(2, 4))
     bmm(neg_adz_t, JlT, out=out[:, :6])
     return out
@@ -347,7 +347,7 @@ def se3_retract(poses: Tensor, xi: Tensor) -> Tensor:
     return torch.cat([poses[:, :3] + _rotate(poses[:, 3:], te), _qmul(poses[:, 3:], qe)], dim=-1)
 
 
-def _buffer(ws: Optional[dict], name: str, shape, like: Tensor) -> Tensor:
+def workspace_buffer(ws: Optional[dict], name: str, shape, like: Tensor) -> Tensor:
     """A contiguous tensor of ``shape`` in storage kept in the dict ``ws`` between calls (fresh when ``ws`` is
     None; a larger one kept there serves a smaller shape): freshly allocated megabyte arrays cost their page
     faults on every iteration (~0.15 ms per MB here)."""
@@ -375,13 +375,13 @@ def normal_blocks(JT: Tensor, L: Tensor, weights: Optional[Tensor] = None,
         ``blocks (E, 4, k, k)`` (``ii, ij, ji, jj``) and ``g (E, 2, k)`` (``i, j``).
     """
     E, m, k = JT.shape
-    AT = bmm(JT, L, out=_buffer(ws, "AT", (E, m, k), JT))  # whitened rows [A_i^T; A_j^T; u^T]
+    AT = bmm(JT, L, out=workspace_buffer(ws, "AT", (E, m, k), JT))  # whitened rows [A_i^T; A_j^T; u^T]
     if weights is not None:
         AT.mul_(weights.sqrt()[:, None, None])
     # one product gives every block, the gradient and chi2: F = [A_i, A_j, u]^T [A_i, A_j, u]
-    A = copy_(_buffer(ws, "A", (E, k, m), JT), AT.transpose(1, 2))  # contiguous operands: numpy's fast loop
-    F = bmm(AT, A, out=_buffer(ws, "F", (E, m, m), JT))
-    blocks = copy_(_buffer(ws, "blocks", (E, 2, 2, k, k), JT),
+    A = copy_(workspace_buffer(ws, "A", (E, k, m), JT), AT.transpose(1, 2))  # contiguous operands: numpy's fast loop
+    F = bmm(AT, A, out=workspace_buffer(ws, "F", (E, m, m), JT))
+    blocks = copy_(workspace_buffer(ws, "blocks", (E, 2, 2, k, k), JT),
                    F[:, :2 * k, :2 * k].view(E, 2, k, 2, k).permute(0, 1, 3, 2, 4))
     g = F[:, :2 * k, 2 * k].reshape(E, 2, k)
     return blocks.view(E, 4, k, k), g

@@ -31,7 +31,8 @@ import torch
 
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel
-from slam.graph.fused import _buffer, bmm, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract
+from slam.graph.fused import (bmm, normal_blocks, se3_adjoint_t, se3_jacobians_t, se3_residuals, se3_retract,
+                              workspace_buffer)
 from slam.graph.linear import BlockPattern, LinearSolverError, assemble_blocks, build_pattern, make_solver
 from slam.graph.pose_graph import PoseGraph, require_spd_information
 from slam.lie import se3_compose, se3_inv, se3_log, se3_normalize, se3_right_jacobian_inv
@@ -126,15 +127,15 @@ class TorchProblem:
             self.L_red = torch.linalg.cholesky(self.info[:, d][:, :, d]).contiguous()
         # the per-edge buffers of the linearisation (slam.graph.fused), the workspace of an earlier problem
         self.ws = _checkout_workspace()
-        self.JT = _buffer(self.ws, "JT", (E, 13, 6), self.meas).zero_()  # its structural zeros stay zero
+        self.JT = workspace_buffer(self.ws, "JT", (E, 13, 6), self.meas).zero_()  # its structural zeros stay zero
         fixed = held_poses(cfg, gauge, N)
         free = torch.ones(N, dtype=torch.bool, device=dev)
         free[fixed] = False
         self.pattern: BlockPattern = build_pattern(self.ii, self.jj, free, self.k)
         k, n = self.k, self.pattern.num_vars
-        self.H_buf = (_buffer(self.ws, "H", (self.pattern.num_blocks + 1, k, k), self.meas),
-                      _buffer(self.ws, "g", (n + 1, k), self.meas))
-        self.H_damped = _buffer(self.ws, "H_damped", (self.pattern.nnz,), self.meas)  # H + lambda D
+        self.H_buf = (workspace_buffer(self.ws, "H", (self.pattern.num_blocks + 1, k, k), self.meas),
+                      workspace_buffer(self.ws, "g", (n + 1, k), self.meas))
+        self.H_damped = workspace_buffer(self.ws, "H_damped", (self.pattern.nnz,), self.meas)  # H + lambda D
         self.all_free = not fixed
         if not self.all_free:
             self.free_idx = free.nonzero()[:, 0]

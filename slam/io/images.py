@@ -31,7 +31,7 @@ class FrameReadError(RuntimeError):
         super().__init__(f"{self.path}: {reason}")
 
 
-def _decode(path: str, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+def decode_image(path: str, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     # One read + imdecode instead of cv2.imread: it tells "missing" from "undecodable", refuses a truncated
     # JPEG (imread decodes half of it and fills the rest with grey) and handles non-ASCII paths on every
     # platform, at the same cost. ``flags``: cv2.imdecode's.
@@ -63,7 +63,7 @@ def read_rgb(path: str) -> np.ndarray:
     Raises:
         FrameReadError: missing file, undecodable data, or not 8-bit.
     """
-    image = _decode(os.fspath(path))
+    image = decode_image(os.fspath(path))
     if image.dtype != np.uint8:
         raise FrameReadError(path, f"colour image must be 8-bit, got {image.dtype}")
     if image.ndim == 2:
@@ -88,7 +88,7 @@ def read_depth_raw(path: str, expected_shape: tuple[int, int] | None = None) -> 
     Raises:
         FrameReadError: missing file, undecodable data, not 16-bit single channel, or wrong size.
     """
-    depth = _decode(os.fspath(path))
+    depth = decode_image(os.fspath(path))
     if depth.dtype != np.uint16:
         raise FrameReadError(path, f"depth image must be 16-bit (uint16), got {depth.dtype}")
     if depth.ndim != 2:

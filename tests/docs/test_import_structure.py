@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("attnloop", "slam")
 #: the command line's modules, and the only modules that may import them (the commands themselves)
 CLI_MODULES = ("slam.cli", "slam.options")
-COMMANDS = ("slam.cli", "slam.eval.cli")
+COMMANDS = ("slam.cli", "slam.eval.cli", "attnloop.vpr.cli")  # the commands build on the flag table
 
 
 def _modules() -> dict[str, Path]:
