@@ -76,8 +76,7 @@ def test_the_default_taps_lite0_at_stage6_and_stage7_with_the_attention_at_stage
     net = d.backbone
     assert (net.tap, net.input_size, net.tap_groups, net.attended_groups) == (
         "stage6+stage7", (224, 288), (192, 320), (False, True))
-    assert (d.preset, d.recipe.fusion, d.recipe.pooling, d.recipe.levels, d.recipe.gem_p, d.recipe.num_rnn) == (
-        "default", "dam", "regional", (1, 2), 2.0, 0)
+    assert (d.preset, d.recipe.fusion, d.recipe.pooling, d.recipe.num_rnn) == ("default", "dam", "regional", 0)
     assert d.out_dim == 5 * (192 + 320)  # the whole map and 2 x 2 regions, per stage
 
 
