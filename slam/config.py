@@ -295,6 +295,10 @@ class BackendConfig:
     # still optimises the whole graph. None: the whole graph at every correction (its cost grows with the
     # run, each correction spreads over the whole loop at once). Larger windows move more of the graph per loop.
     online_window: Optional[int] = 50
+    # ... and of each keyframe of that window only its newest loop edges, at most this many (None: all): a place
+    # revisited lap after lap gathers loops on every pass, so the window's edges (and a correction's cost) would
+    # grow with the run; the newest say where the place is now. finish() uses every loop.
+    online_loops_per_keyframe: Optional[int] = 4
     # A loop edge whose final kernel weight falls below this is reported switched off by the back end (0..1).
     switch_off_weight: float = 0.1
     # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU. The

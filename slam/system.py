@@ -39,6 +39,7 @@ Example:
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from array import array
@@ -150,7 +151,9 @@ class SLAMResult:
         num_frames, num_keyframes, num_lost, num_skipped: counts.
         timings: seconds and calls per stage.
         loop_hypotheses: every verified loop, with its final ``status`` (kept / inconsistent / switched_off).
-        corrections: the online optimisations, in order.
+        corrections: the online optimisations, in order: each one's status, iterations, seconds and chi2;
+            only the last keeps its poses, loop weights and optimiser result (the earlier ones' are in the
+            graph: over a long run they would grow with the square of its length).
         tracked: ``(N,)`` bool per frame: placed by tracking (not lost, not unreadable): the frames that a
             system which outputs tracked frames only (ORB-SLAM's trajectory files) would report.
         loop_lag: ``(N,)`` int64 per frame: the keyframes whose loop work was waiting (queued or running in
@@ -383,7 +386,7 @@ class RGBDSLAM:
         """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
         online correction or None)."""
         new_loops, changed = [], False
-        touched = {kf.id for kf in kfs}  # where the graph changed: the online correction's window is around them
+        touched = [kf.id for kf in kfs]  # where the graph changed, in order: the online correction's window
         for kf in kfs:
             self._add_to_graph(kf)
             if self.loop_closer is not None and not self.localize:
@@ -393,7 +396,7 @@ class RGBDSLAM:
                 self._apply(update)
                 new_loops.extend(lp for lp in update.new if lp.consistent)
                 changed = changed or bool(update)
-                touched.update(k for lp in update.new + update.changed for k in (lp.kf_a, lp.kf_b))
+                touched += [k for lp in update.new + update.changed for k in (lp.kf_a, lp.kf_b)]
             if not self.keep_images:  # described (or never to be): nothing reads it again
                 kf.rgb = None
         correction = None
@@ -532,6 +535,9 @@ class RGBDSLAM:
             self._record_weights(result)
             self._reanchor(free)
         self._corrected = True
+        if self._corrections:  # an earlier correction's poses are in the graph now: its figures are what is kept
+            self._corrections[-1] = dataclasses.replace(self._corrections[-1], poses=result.poses[:0],
+                                                        loop_weights={}, optimization=None, history=[])
         self._corrections.append(result)
         logger.debug("online correction at keyframe %d: %d loops, chi2 %.3g -> %.3g in %d iterations, %.1f ms",
                     self.graph.num_keyframes - 1, len(result.loop_weights), result.initial_chi2, result.chi2,
@@ -542,13 +548,23 @@ class RGBDSLAM:
         """The keyframes an online correction moves: those within ``BackendConfig.online_window`` of a
         touched keyframe but keyframe 0, or None (the whole graph) when the window is off or covers every
         keyframe. Keyframe 0 is held as the whole-graph optimisation holds it: it fixes the world frame, so
-        that the corrections and :meth:`finish` place the map alike."""
+        that the corrections and :meth:`finish` place the map alike.
+
+        ``touched`` is in order of priority (the new keyframes, then the ends of the loops each one added or
+        changed): the window takes their neighbourhoods while it stays within ``2 (2 w + 1)`` keyframes, so a
+        keyframe whose loops reach a place seen on many passes does not widen it pass after pass."""
         width, m = self.config.backend.online_window, self.graph.num_keyframes
         if width is None or not touched:
             return None
         free = torch.zeros(m, dtype=torch.bool)
-        for k in set(touched):
-            free[max(0, k - width): min(m, k + width + 1)] = True
+        size, budget = 0, 2 * (2 * width + 1)
+        for k in dict.fromkeys(touched):
+            lo, hi = max(0, k - width), min(m, k + width + 1)
+            added = hi - lo - int(free[lo:hi].sum())
+            if size and size + added > budget:
+                continue
+            free[lo:hi] = True
+            size += added
         if bool(free.all()):
             return None
         free[0] = False
