@@ -229,6 +229,13 @@ class LoopClosureConfig:
     # 49 loops): their errors are systematic, shared by neighbouring loops, not independent as the weighting
     # assumes. DCS still switches false loops off at x 0.001 (tests/slam/test_backend.py, a real graph).
     information_scale: float = 0.001  # multiplies the loop edges' information
+    # A keyframe made in a mapped place that adds nothing there: one of its loops, kept by the group check,
+    # joins it to an earlier keyframe within the odometry's keyframe thresholds (OdometryConfig.keyframe_*:
+    # tracking against that keyframe would not have made a new one). True: once it is no longer tracking's
+    # reference its features and image are released (RGBDSLAM.released), so it is no loop candidate again
+    # and a place seen on every lap keeps one keyframe's data, not one per lap; its pose and edges stay in
+    # the graph (its frames are placed on it). Off while a map is saved (the map keeps every keyframe).
+    release_revisits: bool = True
 
     def __post_init__(self) -> None:
         n = "LoopClosureConfig"

@@ -266,6 +266,12 @@ class RGBDSLAM:
         if self.config.loop.enabled:
             self.loop_closer = LoopCloser(self.config.loop, descriptor=descriptor, timer=self.timer)
         self._frames: List[_FrameRecord] = []
+        # revisiting keyframes that add nothing (LoopClosureConfig.release_revisits), released once a later
+        # keyframe has replaced them as tracking's reference; a map to save keeps every keyframe
+        self._release = (self.loop_closer is not None and not self.localize and not keep_images
+                         and self.config.loop.release_revisits)
+        self._to_release: List[int] = []
+        self.released: List[int] = []  # keyframes whose features and image were released, in order
         self._loop_of_edge: Dict[int, LoopClosure] = {}
         self._corrections: List[BackendResult] = []
         self._corrected = False  # the estimates include loop corrections
@@ -386,6 +392,7 @@ class RGBDSLAM:
         """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
         online correction or None)."""
         new_loops, changed = [], False
+        self._release_revisits(kfs[-1].id if kfs else None)
         touched = [kf.id for kf in kfs]  # where the graph changed, in order: the online correction's window
         for kf in kfs:
             self._add_to_graph(kf)
@@ -397,12 +404,45 @@ class RGBDSLAM:
                 new_loops.extend(lp for lp in update.new if lp.consistent)
                 changed = changed or bool(update)
                 touched += [k for lp in update.new + update.changed for k in (lp.kf_a, lp.kf_b)]
+                if self._release and self._adds_nothing(kf, update):
+                    self._to_release.append(kf.id)
             if not self.keep_images:  # described (or never to be): nothing reads it again
                 kf.rgb = None
         correction = None
         if changed and self.config.backend.optimize_on_loop:
             correction = self._correct(touched)
         return new_loops, correction
+
+    def _adds_nothing(self, kf: Keyframe, update: LoopUpdate) -> bool:
+        """A kept loop of ``kf`` joins it to an earlier keyframe within the odometry's keyframe thresholds
+        (distance, turn, inliers and their share of that keyframe's valid points): tracking against that
+        keyframe would have made no new one here (LoopClosureConfig.release_revisits)."""
+        oc = self.config.odometry
+        for lp in update.new:
+            a = self.odometry.keyframes[lp.kf_a]
+            v = lp.verification
+            if (lp.consistent and lp.kf_b == kf.id and a.features is not None and v is not None
+                    and v.distance <= oc.keyframe_translation and v.rotation_deg <= oc.keyframe_rotation_deg
+                    and v.num_inliers >= oc.keyframe_min_inliers
+                    and v.num_inliers / max(a.features.num_valid, 1) >= oc.keyframe_min_inlier_ratio):
+                return True
+        return False
+
+    def _release_revisits(self, newest: Optional[int]) -> None:
+        """Release the keyframes marked by :meth:`_adds_nothing` that are older than ``newest`` (tracking's
+        reference is then a later one: nothing registers against them again, and the loop closer skips
+        keyframes without features as candidates)."""
+        if newest is None:
+            return
+        keep = []
+        for k in self._to_release:
+            if k < newest:
+                kf = self.odometry.keyframes[k]
+                kf.features, kf.rgb = None, None
+                self.released.append(k)
+            else:
+                keep.append(k)
+        self._to_release = keep
 
     # -- the loop worker (background_loops) -------------------------------------------------------------
     def _collect(self, keep: int):
