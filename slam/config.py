@@ -249,9 +249,9 @@ class LoopClosureConfig:
         check_number(n, "max_translation", self.max_translation, 0, lo_open=True)  # inf: no bound
         check_number(n, "max_rotation_deg", self.max_rotation_deg, 0, lo_open=True)
         check_number(n, "information_scale", self.information_scale, 0, lo_open=True, finite=True)
-        if not isinstance(self.recover_after_loss, bool):
-            raise ValueError("LoopClosureConfig.recover_after_loss must be True or False, got "
-                             f"{self.recover_after_loss!r}")
+        for flag in ("recover_after_loss", "release_revisits"):
+            if not isinstance(getattr(self, flag), bool):
+                raise ValueError(f"LoopClosureConfig.{flag} must be True or False, got {getattr(self, flag)!r}")
         if not isinstance(self.threshold_by_backbone, dict):
             raise ValueError(f"LoopClosureConfig.threshold_by_backbone must be a dict backbone name -> "
                              f"ThresholdConfig, got {type(self.threshold_by_backbone).__name__}")
