@@ -13,7 +13,8 @@ no new rendering), and run through :func:`slam.pipeline.run_slam` as ``attnloop-
 * loop work per keyframe by stage (``descriptor``, ``loop_detection``, ``verification``,
   ``loop_consistency``, ``online_correction``: milliseconds in the fifth over the keyframes made in it), and
   its total per frame of the fifth;
-* resident memory at the end of the fifth (MB);
+* resident memory at the end of the fifth (MB, read every 10 frames while tracking: the last fifth's does not
+  include :meth:`~slam.system.RGBDSLAM.finish`, the map's merge and the evaluation, which the maximum does);
 
 and at the end keyframes (and those whose features were released: revisits that added nothing,
 ``LoopClosureConfig.release_revisits``), accepted loops (true / false by ground truth, as ``metrics.json``
@@ -83,7 +84,7 @@ class Recorder:
                 kfs = len(self.keyframes)
                 queried = len(self.loop_closer.queries) if self.loop_closer is not None else kfs
                 stages = tuple(self.timer.seconds.get(s, 0.0) for s in LOOP_STAGES)
-                rss = _rss_mb() if len(recorder.rows) % 50 == 0 else recorder.rows[-1][5]
+                rss = _rss_mb() if len(recorder.rows) % 10 == 0 else recorder.rows[-1][5]
                 recorder.rows.append((dt, self.timer.seconds["odometry"] - odo, kfs, kfs - queried, stages, rss))
                 return state
 
@@ -111,7 +112,7 @@ class Recorder:
                 "loop_ms_per_keyframe": sum(by_stage.values()),
                 "loop_ms_per_frame": sum(by_stage.values()) * new_kf / len(rows),
                 "loop_ms_per_keyframe_by_stage": by_stage,
-                "rss_mb": _rss_mb() if p == parts - 1 else rows[-1][5],
+                "rss_mb": rows[-1][5],
             })
             prev_kf, prev_stages = kf, stages
         return out
@@ -190,6 +191,7 @@ def main(argv=None) -> int:
         "lag_max": max(f["lag_max"] for f in fifths),
         "rss_growth_last_four_fifths_mb": last["rss_mb"] - first["rss_mb"],
         "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
+        "rss_after_run_mb": _rss_mb(),
         "keyframes": m["num_keyframes"], "released_keyframes": len(rec.system.released),
         "loops": m["num_loops"], "loops_true": m.get("loops_true"),
         "loops_false": m.get("loops_false"), "loop_hypotheses": m.get("loop_hypotheses"),
@@ -207,7 +209,7 @@ def main(argv=None) -> int:
     print(f"last / first fifth: tracking {r['track_ms_per_frame']:.2f}x, loop work per keyframe "
           f"{r['loop_ms_per_keyframe']:.2f}x (per frame {r['loop_ms_per_frame']:.2f}x); lag at most "
           f"{report['lag_max']} keyframes; RSS +{report['rss_growth_last_four_fifths_mb']:.0f} MB over the last four "
-          f"fifths (max {report['max_rss_mb']:.0f} MB)")
+          f"fifths (after the run {report['rss_after_run_mb']:.0f} MB, max {report['max_rss_mb']:.0f} MB)")
     ate = report["ate_rmse"]
     print(f"keyframes {report['keyframes']} (features released: {report['released_keyframes']}), loops "
           f"{report['loops']} (true {report['loops_true']}, false "

@@ -576,8 +576,9 @@ class RGBDSLAM:
             self._reanchor(free)
         self._corrected = True
         if self._corrections:  # an earlier correction's poses are in the graph now: its figures are what is kept
-            self._corrections[-1] = dataclasses.replace(self._corrections[-1], poses=result.poses[:0],
-                                                        loop_weights={}, optimization=None, history=[])
+            none = torch.zeros(0, 7, dtype=torch.float64)  # not a slice: a view would keep the (M, 7) block alive
+            self._corrections[-1] = dataclasses.replace(self._corrections[-1], poses=none, loop_weights={},
+                                                        optimization=None, history=[])
         self._corrections.append(result)
         logger.debug("online correction at keyframe %d: %d loops, chi2 %.3g -> %.3g in %d iterations, %.1f ms",
                     self.graph.num_keyframes - 1, len(result.loop_weights), result.initial_chi2, result.chi2,

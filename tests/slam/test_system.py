@@ -134,6 +134,7 @@ def test_only_the_last_online_correction_keeps_its_poses(kitchen_loop_run):
     assert len(cors) >= 2
     for c in cors[:-1]:
         assert c.poses.shape == (0, 7) and c.optimization is None and not c.loop_weights and not c.history
+        assert c.poses.untyped_storage().nbytes() == 0  # no view that keeps a (M, 7) block alive
         assert c.iterations >= 1 and c.seconds > 0 and c.chi2 <= c.initial_chi2
     last = cors[-1]
     assert last.poses.shape[1] == 7 and last.poses.shape[0] >= 2 and last.optimization is not None
