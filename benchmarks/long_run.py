@@ -192,6 +192,7 @@ def main(argv=None) -> int:
         "rss_growth_last_four_fifths_mb": last["rss_mb"] - first["rss_mb"],
         "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
         "rss_after_run_mb": _rss_mb(),
+        "map_kept_mb": (m.get("map") or {}).get("kept_mb"),  # the map's points as kept during the run
         "keyframes": m["num_keyframes"], "released_keyframes": len(rec.system.released),
         "loops": m["num_loops"], "loops_true": m.get("loops_true"),
         "loops_false": m.get("loops_false"), "loop_hypotheses": m.get("loop_hypotheses"),
@@ -209,7 +210,8 @@ def main(argv=None) -> int:
     print(f"last / first fifth: tracking {r['track_ms_per_frame']:.2f}x, loop work per keyframe "
           f"{r['loop_ms_per_keyframe']:.2f}x (per frame {r['loop_ms_per_frame']:.2f}x); lag at most "
           f"{report['lag_max']} keyframes; RSS +{report['rss_growth_last_four_fifths_mb']:.0f} MB over the last four "
-          f"fifths (after the run {report['rss_after_run_mb']:.0f} MB, max {report['max_rss_mb']:.0f} MB)")
+          f"fifths (after the run {report['rss_after_run_mb']:.0f} MB, max {report['max_rss_mb']:.0f} MB; the map's "
+          f"points {report['map_kept_mb'] or 0:.1f} MB)")
     ate = report["ate_rmse"]
     print(f"keyframes {report['keyframes']} (features released: {report['released_keyframes']}), loops "
           f"{report['loops']} (true {report['loops_true']}, false "
