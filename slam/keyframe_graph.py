@@ -273,6 +273,13 @@ class KeyframeGraph:
         """Indices into :attr:`edges` of the loop edges."""
         return [k for k, e in enumerate(self.edges) if e.kind is EdgeKind.LOOP and (e.active or not active_only)]
 
+    def has_active_loop(self) -> bool:
+        """Whether any loop edge is active: from the newest loop back, stopping at the first active one (the
+        loops are found in one vectorised pass, not a Python loop over every edge)."""
+        if not self._rows_in_step():
+            return bool(self.loop_edges(active_only=True))
+        return any(self.edges[k].active for k in np.flatnonzero(self._edge_kind.view == int(EdgeKind.LOOP))[::-1])
+
     def pose_graph(self, information_scale: Dict[EdgeKind, float], poses: Optional[Tensor] = None,
                    active_only: bool = True) -> Optional[PoseGraph]:
         """The :class:`~slam.graph.PoseGraph` over the keyframes.

@@ -158,6 +158,8 @@ class SLAMResult:
             system which outputs tracked frames only (ORB-SLAM's trajectory files) would report.
         loop_lag: ``(N,)`` int64 per frame: the keyframes whose loop work was waiting (queued or running in
             the loop worker) when the frame's :meth:`RGBDSLAM.track` returned (zeros without the worker).
+        released: the keyframes whose features and image were released (revisits that added nothing:
+            ``LoopClosureConfig.release_revisits``), in order; their poses stay in the trajectory.
         error: why the run stopped early (:class:`LoopWorkerError`; :meth:`RGBDSLAM.result_so_far`), else
             None. Such a result holds the poses as tracking reported them, not optimised.
     """
@@ -179,6 +181,7 @@ class SLAMResult:
     corrections: List[BackendResult] = field(default_factory=list)
     tracked: Optional[Tensor] = None
     loop_lag: Optional[Tensor] = None
+    released: List[int] = field(default_factory=list)
     error: Optional[str] = None
 
 
@@ -562,7 +565,7 @@ class RGBDSLAM:
                 switched); with ``BackendConfig.online_window`` only the keyframes within that many of them
                 move.
         """
-        if not self.graph.loop_edges(active_only=True):
+        if not self.graph.has_active_loop():
             if self._corrected:  # every loop left the group: back to odometry
                 self.graph.set_estimates(self.graph.odometry_poses())
                 self._reanchor()
@@ -703,7 +706,7 @@ class RGBDSLAM:
         graph, opt = None, None
         kf_odo = self.graph.odometry_poses()
         kf_final = kf_odo
-        if self.graph.loop_edges(active_only=True):
+        if self.graph.has_active_loop():
             with self.timer("optimization"):
                 result = self.backend.optimize(self.graph, online=False)
             self._record_weights(result)
@@ -727,7 +730,8 @@ class RGBDSLAM:
             loops=self.loops, queries=queries, graph=graph, optimization=opt,
             num_frames=len(self._frames), num_keyframes=self.graph.num_keyframes, num_lost=self._num_lost,
             num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
-            corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame())
+            corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame(),
+            released=list(self.released))
 
     def _lag_per_frame(self) -> Tensor:
         lag = torch.tensor(self._lag.tolist(), dtype=torch.int64)
@@ -764,4 +768,4 @@ class RGBDSLAM:
             optimization=None, num_frames=len(self._frames), num_keyframes=len(kfs), num_lost=self._num_lost,
             num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
             corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame(),
-            error=None if self._failure is None else str(self._failure))
+            released=list(self.released), error=None if self._failure is None else str(self._failure))

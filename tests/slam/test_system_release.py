@@ -69,3 +69,15 @@ def test_releasing_revisits_keeps_the_trajectory(lap_runs):
     off = ate(Trajectory(ts, gt), res_off.trajectory).rmse
     assert res.loops and res_off.loops
     assert on <= 1.2 * off + 2e-3, (on, off)
+
+
+def test_a_released_revisit_leaves_the_map(lap_runs):
+    """run_slam drops a released keyframe's points from the map (its place is held by the keyframe it matched)."""
+    from slam.pipeline import run_slam
+
+    seq = lap_runs[0]
+    cfg = override(SLAMConfig(), {"loop.descriptor.backbone": "efficientnet_lite0"})
+    run = run_slam(seq, cfg, progress=False)
+    released = set(run.result.released)
+    assert released and run.map is not None
+    assert set(run.map._clouds) == set(range(run.result.num_keyframes)) - released

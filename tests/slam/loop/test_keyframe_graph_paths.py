@@ -105,3 +105,20 @@ def test_window_graph_gathers_the_window_edges_of_the_whole_graph(seed):
         assert torch.equal(pg.poses, g.estimates()[used])
     with pytest.raises(ValueError, match=f"free keyframe {n}"):
         g.window_graph(scale, [n])
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_has_active_loop_is_any_active_loop_edge(seed):
+    from slam.keyframe_graph import EdgeKind
+
+    g, r = _random_graph(seed)
+    loops = [k for k, e in enumerate(g.edges) if e.kind is EdgeKind.LOOP]
+    for _ in range(3):
+        assert g.has_active_loop() == any(g.edges[k].active for k in loops)
+        for k in loops:  # every loop off, then one back on
+            g.edges[k].active = False
+        if loops:
+            g.edges[r.choice(loops)].active = True
+        else:
+            assert not g.has_active_loop()
+            break
