@@ -11,11 +11,14 @@ no new rendering), and run through :func:`slam.pipeline.run_slam` as ``attnloop-
   database with (read from the system after each frame: its keyframes minus the loop closer's queries;
   the keyframe in flight counts), the maximum and the mean over the fifth;
 * loop work per keyframe by stage (``descriptor``, ``loop_detection``, ``verification``,
-  ``loop_consistency``, ``online_correction``: milliseconds in the fifth over the keyframes made in it);
-* resident memory at the end of the fifth (MB);
+  ``loop_consistency``, ``online_correction``: milliseconds in the fifth over the keyframes made in it), and
+  its total per frame of the fifth;
+* resident memory at the end of the fifth (MB, read every 10 frames while tracking: the last fifth's does not
+  include :meth:`~slam.system.RGBDSLAM.finish`, the map's merge and the evaluation, which the maximum does);
 
-and at the end keyframes, accepted loops (true / false by ground truth, as ``metrics.json`` judges them) and
-the ATE. The figures go to stdout and, with ``--json``, to a file.
+and at the end keyframes (and those whose features were released: revisits that added nothing,
+``LoopClosureConfig.release_revisits``), accepted loops (true / false by ground truth, as ``metrics.json``
+judges them) and the ATE. The figures go to stdout and, with ``--json``, to a file.
 
 Usage (figures in docs/results.md)::
 
@@ -81,7 +84,7 @@ class Recorder:
                 kfs = len(self.keyframes)
                 queried = len(self.loop_closer.queries) if self.loop_closer is not None else kfs
                 stages = tuple(self.timer.seconds.get(s, 0.0) for s in LOOP_STAGES)
-                rss = _rss_mb() if len(recorder.rows) % 50 == 0 else recorder.rows[-1][5]
+                rss = _rss_mb() if len(recorder.rows) % 10 == 0 else recorder.rows[-1][5]
                 recorder.rows.append((dt, self.timer.seconds["odometry"] - odo, kfs, kfs - queried, stages, rss))
                 return state
 
@@ -107,8 +110,9 @@ class Recorder:
                 "lag_max": max(r[3] for r in rows),
                 "lag_mean": sum(r[3] for r in rows) / len(rows),
                 "loop_ms_per_keyframe": sum(by_stage.values()),
+                "loop_ms_per_frame": sum(by_stage.values()) * new_kf / len(rows),
                 "loop_ms_per_keyframe_by_stage": by_stage,
-                "rss_mb": _rss_mb() if p == parts - 1 else rows[-1][5],
+                "rss_mb": rows[-1][5],
             })
             prev_kf, prev_stages = kf, stages
         return out
@@ -183,28 +187,35 @@ def main(argv=None) -> int:
         "wall_s": wall, "fifths": fifths,
         "ratios_last_over_first": {
             "track_ms_per_frame": last["track_ms_per_frame"] / max(first["track_ms_per_frame"], 1e-9),
-            "loop_ms_per_keyframe": last["loop_ms_per_keyframe"] / max(first["loop_ms_per_keyframe"], 1e-9)},
+            "loop_ms_per_keyframe": last["loop_ms_per_keyframe"] / max(first["loop_ms_per_keyframe"], 1e-9),
+            "loop_ms_per_frame": last["loop_ms_per_frame"] / max(first["loop_ms_per_frame"], 1e-9)},
         "lag_max": max(f["lag_max"] for f in fifths),
         "rss_growth_last_four_fifths_mb": last["rss_mb"] - first["rss_mb"],
         "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
-        "keyframes": m["num_keyframes"], "loops": m["num_loops"], "loops_true": m.get("loops_true"),
+        "rss_after_run_mb": _rss_mb(),
+        "map_kept_mb": (m.get("map") or {}).get("kept_mb"),  # the map's points as kept during the run
+        "keyframes": m["num_keyframes"], "released_keyframes": len(rec.system.released),
+        "loops": m["num_loops"], "loops_true": m.get("loops_true"),
         "loops_false": m.get("loops_false"), "loop_hypotheses": m.get("loop_hypotheses"),
         "ate_rmse": m.get("ate_rmse"), "fps": m["fps"],
     }
     print(f"{len(source)} frames x {args.laps} laps = {len(rec.rows)} frames, {wall:.1f} s")
     print(f"{'fifth':>5} {'frames':>13} {'track ms/f':>10} {'odo ms/f':>8} {'kf':>5} {'lag max':>7} {'lag mean':>8} "
-          f"{'loop ms/kf':>10}  {'by stage (ms/kf)':<60} {'RSS MB':>7}")
+          f"{'loop ms/kf':>10} {'loop ms/f':>9}  {'by stage (ms/kf)':<60} {'RSS MB':>7}")
     for k, f in enumerate(fifths):
         st = " ".join(f"{s[:6]}={v:.1f}" for s, v in f["loop_ms_per_keyframe_by_stage"].items())
         print(f"{k + 1:>5} {f['frames'][0]:>6}-{f['frames'][1]:<6} {f['track_ms_per_frame']:>10.2f} "
               f"{f['odometry_ms_per_frame']:>8.2f} {f['keyframes']:>5} {f['lag_max']:>7} {f['lag_mean']:>8.2f} "
-              f"{f['loop_ms_per_keyframe']:>10.1f}  {st:<60} {f['rss_mb']:>7.0f}")
+              f"{f['loop_ms_per_keyframe']:>10.1f} {f['loop_ms_per_frame']:>9.1f}  {st:<60} {f['rss_mb']:>7.0f}")
     r = report["ratios_last_over_first"]
     print(f"last / first fifth: tracking {r['track_ms_per_frame']:.2f}x, loop work per keyframe "
-          f"{r['loop_ms_per_keyframe']:.2f}x; lag at most {report['lag_max']} keyframes; RSS +"
-          f"{report['rss_growth_last_four_fifths_mb']:.0f} MB over the last four fifths (max {report['max_rss_mb']:.0f} MB)")
+          f"{r['loop_ms_per_keyframe']:.2f}x (per frame {r['loop_ms_per_frame']:.2f}x); lag at most "
+          f"{report['lag_max']} keyframes; RSS +{report['rss_growth_last_four_fifths_mb']:.0f} MB over the last four "
+          f"fifths (after the run {report['rss_after_run_mb']:.0f} MB, max {report['max_rss_mb']:.0f} MB; the map's "
+          f"points {report['map_kept_mb'] or 0:.1f} MB)")
     ate = report["ate_rmse"]
-    print(f"keyframes {report['keyframes']}, loops {report['loops']} (true {report['loops_true']}, false "
+    print(f"keyframes {report['keyframes']} (features released: {report['released_keyframes']}), loops "
+          f"{report['loops']} (true {report['loops_true']}, false "
           f"{report['loops_false']}), ATE {'n/a' if ate is None else f'{ate:.4f} m'}, {report['fps']:.2f} frames/s")
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1))

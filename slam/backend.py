@@ -41,7 +41,6 @@ from slam.graph import CHI2_95_6DOF, RobustKernel, make_kernel, optimize
 from slam.graph.costs import GemanMcClure
 from slam.graph.optimizer import METHODS as OPTIMIZER_METHODS  # BackendConfig.method must be one of them
 from slam.graph.optimizer import OptimizationResult
-from slam.graph.pose_graph import PoseGraph
 from slam.keyframe_graph import EdgeKind, KeyframeGraph
 from slam.odometry.config import check_int, check_number  # the configs' shared range checks
 
@@ -152,36 +151,10 @@ def check_backend_config(config) -> None:
     check_int(n, "online_max_iterations", config.online_max_iterations, 1)
     if config.online_window is not None:
         check_int(n, "online_window", config.online_window, 1)
+    if config.online_loops_per_keyframe is not None:
+        check_int(n, "online_loops_per_keyframe", config.online_loops_per_keyframe, 1)
     check_number(n, "odometry_information_scale", config.odometry_information_scale, 0, lo_open=True, finite=True)
     check_number(n, "switch_off_weight", config.switch_off_weight, 0, 1)
-
-
-def _window(pg: PoseGraph, free: Sequence[int]):
-    """The part of ``pg`` that moves ``free``: (its pose graph, the full graph's pose indices of its poses
-    ``(n,)``, the full graph's edge rows of its edges ``(e,)``), or ``(pg, None, None)`` when it is all of it.
-
-    Its edges are those with an end in ``free``; the poses they reach outside ``free`` (and ``pg``'s own held
-    poses) are held fixed. A window with nothing held has no anchor of its own: the whole graph is optimised.
-    """
-    n = pg.num_poses
-    is_free = torch.zeros(n, dtype=torch.bool)
-    idx = torch.as_tensor(list(free), dtype=torch.long)
-    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= n):
-        raise ValueError(f"free keyframe {int(idx[(idx < 0) | (idx >= n)][0])} is not one of the {n} keyframes")
-    is_free[idx] = True
-    is_free[pg.fixed.cpu()] = False
-    ii, jj = pg.ii.cpu(), pg.jj.cpu()
-    rows = torch.nonzero(is_free[ii] | is_free[jj])[:, 0]
-    used = torch.unique(torch.cat([ii[rows], jj[rows], torch.nonzero(is_free)[:, 0]]))
-    held = used[~is_free[used]]
-    if not held.numel():
-        return pg, None, None
-    local = torch.full((n,), -1, dtype=torch.long)
-    local[used] = torch.arange(used.numel())
-    dev = pg.poses.device
-    sub = PoseGraph(pg.poses[used.to(dev)], local[ii[rows]].to(dev), local[jj[rows]].to(dev),
-                    pg.measurements[rows.to(dev)], pg.information[rows.to(dev)], pg.chart, fixed=local[held].to(dev))
-    return sub, used, rows
 
 
 @dataclass
@@ -243,7 +216,9 @@ class PoseGraphBackend:
             free: optimise only these keyframes (a window of the graph): the edges with an end among them,
                 the other keyframes those edges reach held at their start poses as a boundary (they anchor
                 the result), every other keyframe and edge left out and returned unchanged, and only the
-                loops among those edges in ``loop_weights``. None (or every keyframe): the whole graph.
+                loops among those edges in ``loop_weights``; an online one takes the newest
+                ``BackendConfig.online_loops_per_keyframe`` loops of each keyframe of the window
+                (:meth:`KeyframeGraph.window_graph`). None (or every keyframe): the whole graph.
 
         Returns:
             :class:`BackendResult`.
@@ -253,21 +228,28 @@ class PoseGraphBackend:
         """
         cfg = self.config
         t0 = time.perf_counter()
-        pg = graph.pose_graph(self.information_scale, poses=initial)
-        if pg is None or pg.num_edges == 0:
+        window = None
+        if free is not None:  # gathered from the window's keyframes: its cost does not grow with the graph
+            window = graph.window_graph(self.information_scale, free, poses=initial,
+                                        loops_per_keyframe=cfg.online_loops_per_keyframe if online else None,
+                                        fixed=fixed)
+        if window is not None:
+            pg, used, rows = window
+            full_poses = graph.estimates() if initial is None else initial.detach().to(torch.float64).cpu()
+            kinds, active = graph.edge_kind_codes(rows), rows.tolist()
+        else:
+            pg = graph.pose_graph(self.information_scale, poses=initial)
+            if pg is None or pg.num_edges == 0:
+                raise ValueError("the keyframe graph has no edges to optimise")
+            if fixed:
+                pg = dataclasses.replace(pg, fixed=torch.as_tensor(list(fixed), dtype=torch.long))
+            used = None
+            kinds = graph.edge_kinds(active_only=True)
+            active = [k for k, e in enumerate(graph.edges) if e.active]
+        if pg.num_edges == 0:
             raise ValueError("the keyframe graph has no edges to optimise")
-        if fixed:
-            pg = dataclasses.replace(pg, fixed=torch.as_tensor(list(fixed), dtype=torch.long))
-        full_poses, used, rows = pg.poses, None, None
-        if free is not None:
-            pg, used, rows = _window(pg, free)
         if cfg.device is not None:  # BackendConfig.device: solved there, returned on the CPU
             pg = pg.to(cfg.device)
-        kinds = graph.edge_kinds(active_only=True)
-        active = [k for k, e in enumerate(graph.edges) if e.active]
-        if rows is not None:  # the window's edges only
-            kinds = kinds[rows]
-            active = [active[r] for r in rows.tolist()]
         kinds = kinds.to(pg.device)
         loop_rows = [r for r, k in enumerate(active) if graph.edges[k].kind is EdgeKind.LOOP]
         iters = cfg.online_max_iterations if online else cfg.max_iterations

@@ -204,6 +204,13 @@ class LoopClosureConfig:
     # baseline, errors shared by neighbouring loops) get 1/1000: true loop edges then score 0.85-1.0, and
     # weighting them to match (1/200) made the kitchen worse (ATE 0.0320 m vs 0.0301).
     information_scale: float = 0.001  # multiplies the loop edges' information
+    # A keyframe made in a mapped place that adds nothing there: one of its loops, kept by the group check,
+    # joins it to an earlier keyframe within the odometry's keyframe thresholds (OdometryConfig.keyframe_*:
+    # tracking against that keyframe would not have made a new one). True: once it is no longer tracking's
+    # reference its features and image are released (RGBDSLAM.released), so it is no loop candidate again
+    # and a place seen on every lap keeps one keyframe's data, not one per lap; its pose and edges stay in
+    # the graph (its frames are placed on it). Off while a map is saved (the map keeps every keyframe).
+    release_revisits: bool = True
 
     def __post_init__(self) -> None:
         n = "LoopClosureConfig"
@@ -217,9 +224,9 @@ class LoopClosureConfig:
         check_number(n, "max_translation", self.max_translation, 0, lo_open=True)  # inf: no bound
         check_number(n, "max_rotation_deg", self.max_rotation_deg, 0, lo_open=True)
         check_number(n, "information_scale", self.information_scale, 0, lo_open=True, finite=True)
-        if not isinstance(self.recover_after_loss, bool):
-            raise ValueError("LoopClosureConfig.recover_after_loss must be True or False, got "
-                             f"{self.recover_after_loss!r}")
+        for flag in ("recover_after_loss", "release_revisits"):
+            if not isinstance(getattr(self, flag), bool):
+                raise ValueError(f"LoopClosureConfig.{flag} must be True or False, got {getattr(self, flag)!r}")
         if not isinstance(self.threshold_by_backbone, dict):
             raise ValueError(f"LoopClosureConfig.threshold_by_backbone must be a dict backbone name -> "
                              f"ThresholdConfig, got {type(self.threshold_by_backbone).__name__}")
@@ -263,6 +270,10 @@ class BackendConfig:
     # loops' ends, their neighbours held fixed, so that a correction costs the same at any length of run;
     # finish() still optimises the whole graph. None: the whole graph at every correction.
     online_window: Optional[int] = 50
+    # ... and of each keyframe of that window only its newest loop edges, at most this many (None: all): a place
+    # revisited lap after lap gathers loops on every pass, so the window's edges (and a correction's cost) would
+    # grow with the run; the newest say where the place is now. finish() uses every loop.
+    online_loops_per_keyframe: Optional[int] = 4
     # A loop edge whose final kernel weight falls below this is reported switched off by the back end (0..1).
     switch_off_weight: float = 0.1
     # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU; the

@@ -148,6 +148,10 @@ class KeyframeGraph:
         self._joined: list[set[int]] = []  # per keyframe, the keyframes an edge joins it to
         self._incident: list[list[int]] = []  # per keyframe, the indices of its edges (for local searches)
         self._edge_length = GrowingArray(np.float64)  # per edge, |t_ij| (its measurement never changes)
+        self._edge_ij = GrowingArray(np.int64, (2,))  # per edge, its ends (a window's subgraph is gathered by them)
+        self._edge_kind = GrowingArray(np.int64)  # per edge, its EdgeKind code
+        self._odometry_of: list[list[int]] = []  # per keyframe, its odometry edges
+        self._loops_of: list[list[int]] = []  # per keyframe, its loop edges, oldest first
 
     # ------------------------------------------------------------------------------------------
     @property
@@ -168,6 +172,8 @@ class KeyframeGraph:
         self._weak_before.append(0)
         self._joined.append(set())
         self._incident.append([])
+        self._odometry_of.append([])
+        self._loops_of.append([])
         return len(self._odometry) - 1
 
     def add_odometry(self, i: int, T_ij: Tensor, information: Tensor, estimate: Tensor,
@@ -198,6 +204,8 @@ class KeyframeGraph:
         self._weak_before.append(self._weak_before.view[i] + int(bool(weak)))
         self._joined.append(set() if weak else {i})  # a weak edge measured nothing: a loop may still join them
         self._incident.append([])
+        self._odometry_of.append([])
+        self._loops_of.append([])
         self._new_edge()
         if not weak:
             self._joined[i].add(j)
@@ -220,8 +228,12 @@ class KeyframeGraph:
         self._edge_length.append(e.length)
         self._edge_T.append(e.T_ij.numpy())
         self._edge_info.append(e.information.numpy())
-        self._incident[e.i].append(len(self.edges) - 1)
-        self._incident[e.j].append(len(self.edges) - 1)
+        self._edge_ij.append((e.i, e.j))
+        self._edge_kind.append(int(e.kind))
+        k = len(self.edges) - 1
+        for end in (e.i, e.j):
+            self._incident[end].append(k)
+            (self._loops_of if e.kind is EdgeKind.LOOP else self._odometry_of)[end].append(k)
 
     def joined(self, k: int) -> set[int]:
         """The keyframes a measured edge (odometry or loop, active or not; not a weak edge, which is a guess)
@@ -261,6 +273,13 @@ class KeyframeGraph:
         """Indices into :attr:`edges` of the loop edges."""
         return [k for k, e in enumerate(self.edges) if e.kind is EdgeKind.LOOP and (e.active or not active_only)]
 
+    def has_active_loop(self) -> bool:
+        """Whether any loop edge is active: from the newest loop back, stopping at the first active one (the
+        loops are found in one vectorised pass, not a Python loop over every edge)."""
+        if not self._rows_in_step():
+            return bool(self.loop_edges(active_only=True))
+        return any(self.edges[k].active for k in np.flatnonzero(self._edge_kind.view == int(EdgeKind.LOOP))[::-1])
+
     def pose_graph(self, information_scale: Dict[EdgeKind, float], poses: Optional[Tensor] = None,
                    active_only: bool = True) -> Optional[PoseGraph]:
         """The :class:`~slam.graph.PoseGraph` over the keyframes.
@@ -292,6 +311,71 @@ class KeyframeGraph:
         info = 0.5 * (info + info.transpose(-1, -2)) * scale[:, None, None]
         return PoseGraph(P, torch.tensor([e.i for e in edges], dtype=torch.long),
                          torch.tensor([e.j for e in edges], dtype=torch.long), T, info)
+
+    def window_graph(self, information_scale: Dict[EdgeKind, float], free, poses: Optional[Tensor] = None,
+                     loops_per_keyframe: Optional[int] = None, fixed=None):
+        """The part of the graph that moves the keyframes ``free``, gathered from them alone (its cost grows
+        with the window, not with the graph): the active edges with an end in ``free`` (of each free keyframe's
+        loop edges, only the newest ``loops_per_keyframe`` active ones), the keyframes they reach outside
+        ``free`` (and those in ``fixed``) held as its boundary.
+
+        Args:
+            information_scale: as :meth:`pose_graph`.
+            free: keyframe ids that may move.
+            poses: ``(M, 7)`` poses of every keyframe (default: the current estimates).
+            loops_per_keyframe: at most this many loop edges per free keyframe (None: all of them). A revisited
+                place gathers loops on every pass; the newest ones say where it is now.
+            fixed: keyframes held even when in ``free``.
+
+        Returns:
+            ``(pose graph, keyframe ids of its poses (n,) int64, indices into :attr:`edges` of its edges (e,)
+            int64)``, or None when nothing is held (the window is a whole connected part of the graph: it has
+            no anchor of its own) or :attr:`edges` was changed by hand (the per-edge rows do not match it).
+
+        Raises:
+            ValueError: a keyframe of ``free`` is out of range.
+        """
+        n = self.num_keyframes
+        idx = np.unique(np.asarray(list(free), dtype=np.int64))
+        if idx.size and (idx[0] < 0 or idx[-1] >= n):
+            raise ValueError(f"free keyframe {int(idx[(idx < 0) | (idx >= n)][0])} is not one of the {n} keyframes")
+        if not self._rows_in_step():
+            return None
+        is_free = np.zeros(n, dtype=bool)
+        is_free[idx] = True
+        if fixed is not None:
+            is_free[np.asarray(list(fixed), dtype=np.int64)] = False
+        rows = []
+        for k in np.nonzero(is_free)[0].tolist():
+            rows.extend(e for e in self._odometry_of[k] if self.edges[e].active)
+            kept = 0
+            for e in reversed(self._loops_of[k]):
+                if loops_per_keyframe is not None and kept >= loops_per_keyframe:
+                    break
+                if self.edges[e].active:
+                    rows.append(e)
+                    kept += 1
+        rows = np.unique(np.asarray(rows, dtype=np.int64))
+        ij = self._edge_ij.view[rows]
+        used = np.unique(np.concatenate([ij.reshape(-1), np.nonzero(is_free)[0]]))
+        held = used[~is_free[used]]
+        if not held.size:
+            return None
+        local = np.full(n, -1, dtype=np.int64)
+        local[used] = np.arange(used.size)
+        P = (torch.from_numpy(self._estimate.view[used]) if poses is None
+             else poses.detach().to(torch.float64).cpu()[torch.from_numpy(used)])
+        scale = np.array([float(information_scale[kind]) for kind in EdgeKind])[self._edge_kind.view[rows]]
+        info = torch.from_numpy(self._edge_info.view[rows])
+        info = 0.5 * (info + info.transpose(-1, -2)) * torch.from_numpy(scale)[:, None, None]
+        to = torch.from_numpy
+        pg = PoseGraph(P.clone(), to(local[ij[:, 0]]), to(local[ij[:, 1]]), to(self._edge_T.view[rows].copy()), info,
+                       fixed=to(local[held]))
+        return pg, to(used), to(rows)
+
+    def edge_kind_codes(self, rows: Tensor) -> Tensor:
+        """``(e,)`` int64 :class:`EdgeKind` codes of the edges ``rows`` (indices into :attr:`edges`)."""
+        return torch.from_numpy(self._edge_kind.view[rows.numpy()].copy())
 
     def _rows_in_step(self) -> bool:
         """The per-edge rows match :attr:`edges` (a caller may have cut the public list short)."""

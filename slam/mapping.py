@@ -290,6 +290,13 @@ class PointCloudMap:
         self._clouds[int(keyframe_id)] = (np.rint(kept / step).astype(np.int16), step, cols[keep])
         return int(kept.shape[0])
 
+    def drop(self, keyframe_ids) -> None:
+        """Forget the points of keyframes ``keyframe_ids`` (ids without points are skipped): revisits whose
+        place an earlier keyframe's points already hold (:attr:`slam.system.RGBDSLAM.released`), so that a
+        place seen lap after lap keeps one keyframe's points, not one set per lap."""
+        for k in keyframe_ids:
+            self._clouds.pop(int(k), None)
+
     def __len__(self) -> int:
         """Number of keyframes with points."""
         return len(self._clouds)

@@ -190,6 +190,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     # the keyframes' points are computed in a worker thread, in keyframe order (the map is only read at the end)
     map_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-map") if cloud is not None else None
     map_jobs = []
+    dropped = 0  # the keyframes of slam.released whose points the map has been told to drop
     first_untracked = None
     failure = None
     try:
@@ -210,6 +211,10 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
                     if state.new_keyframes:
                         map_jobs.append(map_worker.submit(_add_keyframes_to_map, cloud, slam, state.new_keyframes,
                                                           list(recent)))
+                    released = slam.released[dropped:]  # revisits that added nothing (after their points' job)
+                    if released:
+                        map_jobs.append(map_worker.submit(cloud.drop, released))
+                        dropped += len(released)
             if reloc is not None:
                 if check_merge and slam.keyframes:  # a grown map holds one image size: refuse before the work
                     reloc.check_mergeable(slam.keyframes[0].rgb.shape)

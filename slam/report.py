@@ -31,6 +31,8 @@ class RunReport:
         frame_step: the step between processed input frames.
         num_keyframes, num_loops, num_lost, num_skipped: keyframes, accepted loops, frames lost by tracking,
             frames that could not be read.
+        released_keyframes: revisits that added nothing, their features, image and map points dropped
+            (``LoopClosureConfig.release_revisits``).
         fps: frames per second over ``wall_seconds`` (reading, tracking, loops, final optimisation).
         wall_seconds: the run's wall time.
         time_per_stage: the system's stage timings (:attr:`slam.system.SLAMResult.timings`).
@@ -65,6 +67,7 @@ class RunReport:
     num_frames: Optional[int] = None
     frame_step: Optional[int] = None
     num_keyframes: Optional[int] = None
+    released_keyframes: Optional[int] = None
     num_loops: Optional[int] = None
     num_lost: Optional[int] = None
     num_skipped: Optional[int] = None
@@ -151,6 +154,7 @@ def evaluate_run(run, loop_gt=None) -> RunReport:
         "num_frames": res.num_frames,
         "frame_step": run.frame_step,
         "num_keyframes": res.num_keyframes,
+        "released_keyframes": len(res.released),
         "num_loops": len(res.loops),
         "num_lost": res.num_lost,
         "num_skipped": res.num_skipped,

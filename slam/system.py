@@ -39,6 +39,7 @@ Example:
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from array import array
@@ -149,11 +150,15 @@ class SLAMResult:
         num_frames, num_keyframes, num_lost, num_skipped: counts.
         timings: seconds and calls per stage.
         loop_hypotheses: every verified loop, with its final ``status`` (kept / inconsistent / switched_off).
-        corrections: the online optimisations, in order.
+        corrections: the online optimisations, in order: each one's status, iterations, seconds and chi2;
+            only the last keeps its poses, loop weights and optimiser result (the earlier ones' are in the
+            graph: over a long run they would grow with the square of its length).
         tracked: ``(N,)`` bool per frame: placed by tracking (not lost, not unreadable): the frames that a
             system which outputs tracked frames only (ORB-SLAM's trajectory files) would report.
         loop_lag: ``(N,)`` int64 per frame: the keyframes whose loop work was waiting (queued or running in
             the loop worker) when the frame's :meth:`RGBDSLAM.track` returned (zeros without the worker).
+        released: the keyframes whose features and image were released (revisits that added nothing:
+            ``LoopClosureConfig.release_revisits``), in order; their poses stay in the trajectory.
         error: why the run stopped early (:class:`LoopWorkerError`; :meth:`RGBDSLAM.result_so_far`), else
             None. Such a result holds the poses as tracking reported them, not optimised.
     """
@@ -175,6 +180,7 @@ class SLAMResult:
     corrections: List[BackendResult] = field(default_factory=list)
     tracked: Optional[Tensor] = None
     loop_lag: Optional[Tensor] = None
+    released: List[int] = field(default_factory=list)
     error: Optional[str] = None
 
 
@@ -262,6 +268,12 @@ class RGBDSLAM:
         if self.config.loop.enabled:
             self.loop_closer = LoopCloser(self.config.loop, descriptor=descriptor, timer=self.timer)
         self._frames: List[_FrameRecord] = []
+        # revisiting keyframes that add nothing (LoopClosureConfig.release_revisits), released once a later
+        # keyframe has replaced them as tracking's reference; a map to save keeps every keyframe
+        self._release = (self.loop_closer is not None and not self.localize and not keep_images
+                         and self.config.loop.release_revisits)
+        self._to_release: List[int] = []
+        self.released: List[int] = []  # keyframes whose features and image were released, in order
         self._loop_of_edge: Dict[int, LoopClosure] = {}
         self._corrections: List[BackendResult] = []
         self._corrected = False  # the estimates include loop corrections
@@ -386,7 +398,8 @@ class RGBDSLAM:
         """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
         online correction or None)."""
         new_loops, changed = [], False
-        touched = {kf.id for kf in kfs}  # where the graph changed: the online correction's window is around them
+        self._release_revisits(kfs[-1].id if kfs else None)
+        touched = [kf.id for kf in kfs]  # where the graph changed, in order: the online correction's window
         for kf in kfs:
             self._add_to_graph(kf)
             if self.loop_closer is not None and not self.localize:
@@ -396,13 +409,46 @@ class RGBDSLAM:
                 self._apply(update)
                 new_loops.extend(lp for lp in update.new if lp.consistent)
                 changed = changed or bool(update)
-                touched.update(k for lp in update.new + update.changed for k in (lp.kf_a, lp.kf_b))
+                touched += [k for lp in update.new + update.changed for k in (lp.kf_a, lp.kf_b)]
+                if self._release and self._adds_nothing(kf, update):
+                    self._to_release.append(kf.id)
             if not self.keep_images:  # described (or never to be): nothing reads it again
                 kf.rgb = None
         correction = None
         if changed and self.config.backend.optimize_on_loop:
             correction = self._correct(touched)
         return new_loops, correction
+
+    def _adds_nothing(self, kf: Keyframe, update: LoopUpdate) -> bool:
+        """A kept loop of ``kf`` joins it to an earlier keyframe within the odometry's keyframe thresholds
+        (distance, turn, inliers and their share of that keyframe's valid points): tracking against that
+        keyframe would have made no new one here (LoopClosureConfig.release_revisits)."""
+        oc = self.config.odometry
+        for lp in update.new:
+            a = self.odometry.keyframes[lp.kf_a]
+            v = lp.verification
+            if (lp.consistent and lp.kf_b == kf.id and a.features is not None and v is not None
+                    and v.distance <= oc.keyframe_translation and v.rotation_deg <= oc.keyframe_rotation_deg
+                    and v.num_inliers >= oc.keyframe_min_inliers
+                    and v.num_inliers / max(a.features.num_valid, 1) >= oc.keyframe_min_inlier_ratio):
+                return True
+        return False
+
+    def _release_revisits(self, newest: Optional[int]) -> None:
+        """Release the keyframes marked by :meth:`_adds_nothing` that are older than ``newest`` (tracking's
+        reference is then a later one: nothing registers against them again, and the loop closer skips
+        keyframes without features as candidates)."""
+        if newest is None:
+            return
+        keep = []
+        for k in self._to_release:
+            if k < newest:
+                kf = self.odometry.keyframes[k]
+                kf.features, kf.rgb = None, None
+                self.released.append(k)
+            else:
+                keep.append(k)
+        self._to_release = keep
 
     # -- the loop worker (background_loops) -------------------------------------------------------------
     def _collect(self, keep: int):
@@ -528,7 +574,7 @@ class RGBDSLAM:
                 switched); with ``BackendConfig.online_window`` only the keyframes within that many of them
                 move.
         """
-        if not self.graph.loop_edges(active_only=True):
+        if not self.graph.has_active_loop():
             if self._corrected:  # every loop left the group: back to odometry
                 self.graph.set_estimates(self.graph.odometry_poses())
                 self._reanchor()
@@ -541,6 +587,10 @@ class RGBDSLAM:
             self._record_weights(result)
             self._reanchor(free)
         self._corrected = True
+        if self._corrections:  # an earlier correction's poses are in the graph now: its figures are what is kept
+            none = torch.zeros(0, 7, dtype=torch.float64)  # not a slice: a view would keep the (M, 7) block alive
+            self._corrections[-1] = dataclasses.replace(self._corrections[-1], poses=none, loop_weights={},
+                                                        optimization=None, history=[])
         self._corrections.append(result)
         logger.debug("online correction at keyframe %d: %d loops, chi2 %.3g -> %.3g in %d iterations, %.1f ms",
                     self.graph.num_keyframes - 1, len(result.loop_weights), result.initial_chi2, result.chi2,
@@ -551,13 +601,23 @@ class RGBDSLAM:
         """The keyframes an online correction moves: those within ``BackendConfig.online_window`` of a
         touched keyframe but keyframe 0, or None (the whole graph) when the window is off or covers every
         keyframe. Keyframe 0 is held as the whole-graph optimisation holds it: it fixes the world frame, so
-        that the corrections and :meth:`finish` place the map alike."""
+        that the corrections and :meth:`finish` place the map alike.
+
+        ``touched`` is in order of priority (the new keyframes, then the ends of the loops each one added or
+        changed): the window takes their neighbourhoods while it stays within ``2 (2 w + 1)`` keyframes, so a
+        keyframe whose loops reach a place seen on many passes does not widen it pass after pass."""
         width, m = self.config.backend.online_window, self.graph.num_keyframes
         if width is None or not touched:
             return None
         free = torch.zeros(m, dtype=torch.bool)
-        for k in set(touched):
-            free[max(0, k - width): min(m, k + width + 1)] = True
+        size, budget = 0, 2 * (2 * width + 1)
+        for k in dict.fromkeys(touched):
+            lo, hi = max(0, k - width), min(m, k + width + 1)
+            added = hi - lo - int(free[lo:hi].sum())
+            if size and size + added > budget:
+                continue
+            free[lo:hi] = True
+            size += added
         if bool(free.all()):
             return None
         free[0] = False
@@ -653,7 +713,7 @@ class RGBDSLAM:
         graph, opt = None, None
         kf_odo = self.graph.odometry_poses()
         kf_final = kf_odo
-        if self.graph.loop_edges(active_only=True):
+        if self.graph.has_active_loop():
             with self.timer("optimization"):
                 result = self.backend.optimize(self.graph, online=False)
             self._record_weights(result)
@@ -677,7 +737,8 @@ class RGBDSLAM:
             loops=self.loops, queries=queries, graph=graph, optimization=opt,
             num_frames=len(self._frames), num_keyframes=self.graph.num_keyframes, num_lost=self._num_lost,
             num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
-            corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame())
+            corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame(),
+            released=list(self.released))
 
     def _lag_per_frame(self) -> Tensor:
         lag = torch.tensor(self._lag.tolist(), dtype=torch.int64)
@@ -713,4 +774,4 @@ class RGBDSLAM:
             optimization=None, num_frames=len(self._frames), num_keyframes=len(kfs), num_lost=self._num_lost,
             num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
             corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame(),
-            error=None if self._failure is None else str(self._failure))
+            released=list(self.released), error=None if self._failure is None else str(self._failure))

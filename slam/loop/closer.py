@@ -276,7 +276,10 @@ class LoopCloser:
             return [(k, s) for k, s in pairs if k not in joined]
 
         top = eligible_of(cands.top_ids, cands.top_scores)
-        eligible = eligible_of(cands.ids, cands.scores)[: cfg.max_candidates]
+        # a keyframe whose features were released (a revisit that added nothing) is represented by the one it
+        # matched: it is no candidate
+        eligible = [(k, s) for k, s in eligible_of(cands.ids, cands.scores)
+                    if keyframes[k].features is not None][: cfg.max_candidates]
         top_kf, top_score = top[0] if top else (-1, float("-inf"))
         query = LoopQuery(kf.id, top_kf, top_score, float(cands.threshold), [c for c, _ in eligible], [])
         self._queries.append(query)

@@ -270,6 +270,30 @@ def test_a_window_moves_only_its_keyframes_to_the_optimum_with_its_boundary_held
         BackendConfig(online_window=0)
 
 
+def test_an_online_window_takes_the_newest_loops_of_each_keyframe():
+    """A place revisited three times: three loops 2 -> 8 (5 m each). With one loop per keyframe the window
+    [5, 8] is the single-loop problem (0.2 m per edge, by hand); with all of them the loop weighs 3 against
+    the four odometry edges in series: x8 = (8 / 4 + 7 * 3) / (1 / 4 + 3) = 7.0769 m."""
+    g, backend = _line_with_a_loop()
+    eye = torch.eye(6, dtype=D)
+    for _ in range(2):
+        g.add_loop(2, 8, se3_exp(torch.tensor([5.0, 0, 0, 0, 0, 0], dtype=D)), eye)
+    capped = PoseGraphBackend(dataclasses.replace(backend.config, online_loops_per_keyframe=1), SCALE)
+    res = capped.optimize(g, online=True, free=[5, 6, 7, 8])
+    assert torch.allclose(res.poses[5:, 0], torch.tensor([4.8, 5.6, 6.4, 7.2], dtype=D), atol=1e-6)
+    assert list(res.loop_weights) == [10]  # the newest loop edge only
+    every = PoseGraphBackend(dataclasses.replace(backend.config, online_loops_per_keyframe=None), SCALE)
+    res = every.optimize(g, online=True, free=[5, 6, 7, 8])
+    x8 = (8 / 4 + 7 * 3) / (1 / 4 + 3)
+    want = torch.tensor([4 + k * (x8 - 4) / 4 for k in range(1, 5)], dtype=D)
+    assert torch.allclose(res.poses[5:, 0], want, atol=1e-6), res.poses[5:, 0]
+    assert sorted(res.loop_weights) == [8, 9, 10]
+    # the final optimisation takes every loop whatever the cap
+    assert sorted(capped.optimize(g, online=False).loop_weights) == [8, 9, 10]
+    with pytest.raises(ValueError, match="online_loops_per_keyframe"):
+        BackendConfig(online_loops_per_keyframe=0)
+
+
 def test_the_final_optimisation_after_windowed_corrections_is_the_full_optimum():
     g, backend = _line_with_a_loop()
     g.set_estimates(backend.optimize(g, online=True, free=[5, 6, 7, 8]).poses)

@@ -116,6 +116,7 @@ def test_edge_values_are_accepted(cls, kwargs):
     # LoopClosureConfig
     (LoopClosureConfig, dict(max_candidates=0), r"LoopClosureConfig\.max_candidates must be an integer >= 1"),
     (LoopClosureConfig, dict(recover_after_loss=1), r"LoopClosureConfig\.recover_after_loss must be True or False"),
+    (LoopClosureConfig, dict(release_revisits="no"), r"LoopClosureConfig\.release_revisits must be True or False"),
     (LoopClosureConfig, dict(max_candidates=-1), r"LoopClosureConfig\.max_candidates"),
     (LoopClosureConfig, dict(max_candidates=6),
      r"LoopClosureConfig\.max_candidates \(6\) must be <= LoopClosureConfig\.detector\.top_k \(5\)"),

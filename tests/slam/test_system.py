@@ -130,6 +130,33 @@ def test_loop_closure_reduces_ate_on_real_slice(kitchen_loop_run):
     assert m["ate_rmse"] <= m["odometry_ate_rmse"] + 1e-3, (m["ate_rmse"], m["odometry_ate_rmse"])
 
 
+def test_only_the_last_online_correction_keeps_its_poses(kitchen_loop_run):
+    """Every correction's figures are kept, the poses (M, 7), loop weights and optimiser result only by the
+    last: the earlier ones' poses are in the graph, and keeping them all grows with the square of the run."""
+    cors = kitchen_loop_run.result.corrections
+    assert len(cors) >= 2
+    for c in cors[:-1]:
+        assert c.poses.shape == (0, 7) and c.optimization is None and not c.loop_weights and not c.history
+        assert c.poses.untyped_storage().nbytes() == 0  # no view that keeps a (M, 7) block alive
+        assert c.iterations >= 1 and c.seconds > 0 and c.chi2 <= c.initial_chi2
+    last = cors[-1]
+    assert last.poses.shape[1] == 7 and last.poses.shape[0] >= 2 and last.optimization is not None
+    assert last.loop_weights
+
+
+def test_the_online_window_keeps_within_its_budget():
+    """The neighbourhoods of the touched keyframes, in order, while the window stays within 2 (2 w + 1)
+    keyframes: a loop to a place seen on many passes does not widen it pass after pass."""
+    slam = RGBDSLAM(override(SLAMConfig(), {"loop.enabled": False, "backend.online_window": 50}))
+    for _ in range(1000):
+        slam.graph.add_keyframe(torch.tensor([0, 0, 0, 0, 0, 0, 1.0], dtype=torch.float64))
+    # the new keyframe 999, its loops' ends 120, 400 and 700, and 130 (overlapping 120's neighbourhood)
+    free = slam._online_window([999, 120, 400, 130, 700])
+    assert free == list(range(70, 181)) + list(range(949, 1000))  # 400's and 700's would pass the budget
+    assert len(free) <= 2 * (2 * 50 + 1)
+    assert slam._online_window([10]) == list(range(1, 61))  # keyframe 0 holds the world frame
+
+
 def test_outputs_written(kitchen_loop_run, tmp_path):
     from slam.io import read_tum_trajectory
     from slam.outputs import write_outputs

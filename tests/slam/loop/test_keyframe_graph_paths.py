@@ -68,3 +68,57 @@ def test_growing_array_keeps_its_rows():
     for k in range(100):
         a.append((k, -k))
     assert len(a) == 100 and a.view[:, 0].tolist() == list(range(100)) and a.view[57, 1] == -57
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_window_graph_gathers_the_window_edges_of_the_whole_graph(seed):
+    """The subgraph gathered from the window's keyframes against the edges picked from the whole list by hand:
+    every active edge with a free end (of each free keyframe's loops the newest ``cap`` active ones), their
+    measurements, the information symmetrised and scaled by kind, the poses reached outside the window held."""
+    from slam.keyframe_graph import EdgeKind
+
+    g, r = _random_graph(seed)
+    n = g.num_keyframes
+    scale = {EdgeKind.ODOMETRY: 0.5, EdgeKind.LOOP: 3.0}
+    for cap in (None, 1, 2):
+        free = sorted(r.sample(range(1, n), min(n - 1, r.randint(1, 6))))
+        want = set()
+        for k in free:
+            want |= {e for e, x in enumerate(g.edges) if x.kind is EdgeKind.ODOMETRY and x.active and k in (x.i, x.j)}
+            loops = [e for e, x in enumerate(g.edges) if x.kind is EdgeKind.LOOP and x.active and k in (x.i, x.j)]
+            want |= set(loops if cap is None else loops[len(loops) - cap:] if len(loops) > cap else loops)
+        out = g.window_graph(scale, free, loops_per_keyframe=cap)
+        ends = {g.edges[e].i for e in want} | {g.edges[e].j for e in want} | set(free)
+        if not ends - set(free):  # nothing held: no window of its own
+            assert out is None
+            continue
+        pg, used, rows = out
+        assert rows.tolist() == sorted(want)
+        assert used.tolist() == sorted(ends)
+        assert [int(used[k]) for k in pg.fixed.tolist()] == sorted(ends - set(free))
+        for row, e in enumerate(rows.tolist()):
+            x = g.edges[e]
+            assert (int(used[pg.ii[row]]), int(used[pg.jj[row]])) == (x.i, x.j)
+            assert torch.equal(pg.measurements[row], x.T_ij)
+            info = 0.5 * (x.information + x.information.T) * scale[x.kind]
+            assert torch.allclose(pg.information[row], info, rtol=0, atol=1e-15)
+        assert torch.equal(pg.poses, g.estimates()[used])
+    with pytest.raises(ValueError, match=f"free keyframe {n}"):
+        g.window_graph(scale, [n])
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_has_active_loop_is_any_active_loop_edge(seed):
+    from slam.keyframe_graph import EdgeKind
+
+    g, r = _random_graph(seed)
+    loops = [k for k, e in enumerate(g.edges) if e.kind is EdgeKind.LOOP]
+    for _ in range(3):
+        assert g.has_active_loop() == any(g.edges[k].active for k in loops)
+        for k in loops:  # every loop off, then one back on
+            g.edges[k].active = False
+        if loops:
+            g.edges[r.choice(loops)].active = True
+        else:
+            assert not g.has_active_loop()
+            break

@@ -126,6 +126,19 @@ def test_map_places_each_keyframe_with_its_pose():
     assert m.points(bad)[0].shape[0] == only0.shape[0]
 
 
+def test_a_dropped_keyframe_leaves_the_map():
+    m = PointCloudMap(MapConfig(voxel_size=0.05))
+    rgb = np.full((48, 64, 3), 128, np.uint8)
+    m.add(0, rgb, np.full((48, 64), 2.0, np.float32), _K())
+    m.add(1, rgb, np.full((48, 64), 1.0, np.float32), _K())
+    n0 = keyframe_cloud(rgb, np.full((48, 64), 2.0, np.float32), _K(), m.config)[0].shape[0]
+    poses = torch.tensor([[0.0, 0, 0, 0, 0, 0, 1]] * 2, dtype=torch.float64)
+    m.drop([1, 7])  # 7 has no points: skipped
+    pts, _ = m.points(poses)
+    assert len(m) == 1 and m.num_points == n0 and m.nbytes == 9 * n0 + 8
+    assert np.allclose(pts[:, 2], 2.0, atol=0.05)  # keyframe 0's wall 2 m ahead alone; 1's at 1 m is gone
+
+
 def test_ply_round_trip_and_layout():
     rng = np.random.default_rng(1)
     pts = rng.normal(size=(257, 3)).astype(np.float32)
