@@ -33,7 +33,7 @@ def lap_runs():
     from slam.loop.closer import build_descriptor
     from slam.synthetic import SyntheticSequence
 
-    seq = LapSequence(SyntheticSequence("loop", num_frames=300, width=W, height=H, seed=0), 2)
+    seq = LapSequence(SyntheticSequence("loop", num_frames=200, width=W, height=H, seed=0), 2)
     desc = build_descriptor(override(SLAMConfig(), {"loop.descriptor.backbone": "efficientnet_lite0"}).loop.descriptor)
     gt = torch.stack([torch.from_numpy(seq[k].pose_gt) for k in range(len(seq))])
     return seq, gt, _run(seq, desc, True), _run(seq, desc, False)
