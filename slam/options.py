@@ -153,7 +153,7 @@ class RunOptions:
             object.__setattr__(self, "intrinsics", tuple(float(v) for v in self.intrinsics))
         if not isinstance(self.depth_check, bool):
             raise ValueError(f"{n}.depth_check must be true or false, got {self.depth_check!r}")
-        for name in ("rgb_topic", "depth_topic", "camera_info_topic", "ground_truth"):
+        for name in ("rgb_topic", "depth_topic", "camera_info_topic", "ground_truth", "connect", "rrd"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, str) and value):
                 raise ValueError(f"{n}.{name} must be a non-empty string, got {value!r}")
@@ -161,10 +161,6 @@ class RunOptions:
             raise ValueError("--intrinsics and --camera both give the camera's intrinsics: drop one of them")
         if not isinstance(self.viewer, bool):
             raise ValueError(f"{n}.viewer must be true or false, got {self.viewer!r}")
-        for name in ("connect", "rrd"):
-            value = getattr(self, name)
-            if value is not None and (not isinstance(value, str) or not value):
-                raise ValueError(f"{n}.{name} must be a non-empty string, got {value!r}")
         if self.viewer and self.connect is not None:
             raise ValueError("--viewer spawns a viewer and --connect streams to a running one: give one of them")
 
