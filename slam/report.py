@@ -343,7 +343,7 @@ def loop_precision_recall(run, config=None) -> dict[str, object]:
     for name, pairs, scores in (("before_verification", before_pairs, before_scores),
                                 ("after_verification", after_pairs, after_scores)):
         ev = evaluate_loop_candidates(torch.tensor(pairs), torch.tensor(scores, dtype=torch.float64),
-                                      run.gt_poses_per_frame, cfg, mode="best_per_query", indices=frames)
+                                      run.gt_poses_per_frame, cfg, indices=frames)
         out[name] = ev.curve.to_dict()
         run.loop_curves[name] = ev.curve
     return out

@@ -6,14 +6,10 @@ A pair of frames ``(i, j)`` is a **true loop** when, by ground truth, the camera
 truth (NaN poses) are never part of a true loop. Indices are frame indices of the sequence; a detector
 that works on keyframes maps its keyframe ids to frame indices first.
 
-Two ways to score a detector (``mode``):
-
-* ``"best_per_query"``: each query frame proposes its single best candidate with a score; at a
-  threshold, a query with score >= threshold is a detection, true if its candidate is a true loop.
-  Recall = true detections / queries that have at least one true loop partner *earlier* in the
-  sequence (among ``indices``). This is the usual place-recognition protocol.
-* ``"all_pairs"``: every scored pair is a prediction; recall = true pairs found / all true pairs
-  (``i > j``, among ``indices``).
+A detector is scored per query: each query frame proposes its single best candidate with a score; at a
+threshold, a query with score >= threshold is a detection, true if its candidate is a true loop. Recall =
+true detections / queries that have at least one true loop partner *earlier* in the sequence (among
+``indices``), the usual place-recognition protocol.
 
 Non-finite scores (e.g. ``-inf`` for candidates rejected by geometric verification) are never
 detections, at any threshold.
@@ -39,7 +35,6 @@ __all__ = [
     "LoopEvaluation",
     "LoopGroundTruthConfig",
     "PRCurve",
-    "count_loop_queries",
     "evaluate_loop_candidates",
     "ground_truth_loops",
     "is_true_loop",
@@ -131,13 +126,6 @@ def ground_truth_loops(poses: torch.Tensor, config: LoopGroundTruthConfig = Loop
     return torch.cat(out) if out else torch.zeros(0, 2, dtype=torch.long)
 
 
-def count_loop_queries(poses: torch.Tensor, config: LoopGroundTruthConfig = LoopGroundTruthConfig(),
-                       indices: torch.Tensor | None = None) -> int:
-    """Number of frames (among ``indices``) with at least one true loop partner earlier in the sequence."""
-    pairs = ground_truth_loops(poses, config, indices)
-    return int(torch.unique(pairs[:, 0]).numel())
-
-
 @dataclass
 class PRCurve:
     """A precision/recall curve, one point per distinct score threshold (high to low).
@@ -220,21 +208,19 @@ class LoopEvaluation:
         pairs: ``(P, 2)`` the evaluated predictions (query, candidate).
         scores: ``(P,)`` their scores.
         labels: ``(P,)`` bool: true loop.
-        mode: ``"best_per_query"`` or ``"all_pairs"``.
     """
 
     curve: PRCurve
     pairs: torch.Tensor = field(repr=False)
     scores: torch.Tensor = field(repr=False)
     labels: torch.Tensor = field(repr=False)
-    mode: str = "best_per_query"
 
     @property
     def max_recall_at_full_precision(self) -> float:
         return self.curve.max_recall_at_full_precision
 
     def to_dict(self) -> dict[str, object]:
-        return {"mode": self.mode, "num_predictions": int(self.pairs.shape[0]), **self.curve.to_dict()}
+        return {"num_predictions": int(self.pairs.shape[0]), **self.curve.to_dict()}
 
 
 def _best_per_query(pairs: torch.Tensor, scores: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -253,38 +239,33 @@ def evaluate_loop_candidates(
     scores: torch.Tensor,
     poses: torch.Tensor,
     config: LoopGroundTruthConfig = LoopGroundTruthConfig(),
-    mode: str = "best_per_query",
     indices: torch.Tensor | None = None,
     num_positives: int | None = None,
 ) -> LoopEvaluation:
     """Precision/recall of scored loop candidates against the ground truth.
 
     Args:
-        pairs: ``(M, 2)`` int64 frame indices ``(query, candidate)``. In ``"best_per_query"`` mode several
-            candidates of one query may be given: only the highest-scored one is kept.
+        pairs: ``(M, 2)`` int64 frame indices ``(query, candidate)``; of several candidates of one query only
+            the highest-scored one is kept.
         scores: ``(M,)`` similarity or verification score (higher = more confident); ``-inf`` / NaN =
             rejected.
         poses: ``(N, 7)`` ground truth per frame (NaN rows: unknown).
         config: the true-loop thresholds.
-        mode: ``"best_per_query"`` or ``"all_pairs"`` (see the module docstring).
         indices: frames taking part as queries/database (e.g. keyframes), for the recall denominator.
         num_positives: overrides the recall denominator.
 
     Returns:
         a :class:`LoopEvaluation` with the curve and the labelled predictions.
     """
-    if mode not in ("best_per_query", "all_pairs"):
-        raise ValueError(f"mode must be 'best_per_query' or 'all_pairs', got {mode!r}")
     poses = _check_poses(poses)
     pairs = torch.as_tensor(pairs, dtype=torch.long).reshape(-1, 2).cpu()
     scores = torch.as_tensor(scores, dtype=torch.float64).flatten().cpu()
     if scores.shape[0] != pairs.shape[0]:
         raise ValueError(f"pairs (M, 2) and scores (M,) disagree: {tuple(pairs.shape)} vs {tuple(scores.shape)}")
-    if mode == "best_per_query" and pairs.shape[0]:
+    if pairs.shape[0]:
         pairs, scores = _best_per_query(pairs, scores)
     labels = is_true_loop(poses, pairs, config).cpu()
     if num_positives is None:
-        gt = ground_truth_loops(poses, config, indices)
-        num_positives = int(torch.unique(gt[:, 0]).numel()) if mode == "best_per_query" else int(gt.shape[0])
+        num_positives = int(torch.unique(ground_truth_loops(poses, config, indices)[:, 0]).numel())
     curve = precision_recall_curve(scores, labels, num_positives)
-    return LoopEvaluation(curve, pairs, scores, labels, mode)
+    return LoopEvaluation(curve, pairs, scores, labels)
