@@ -1,30 +1,19 @@
 """Absolute trajectory error (ATE) and relative pose error (RPE) with TUM / evo semantics.
 
-* Both trajectories are associated by timestamp first, by evo's rule (``association="evo"``, default,
-  :func:`slam.io.associate.associate_nearest`: each stamp of the trajectory with fewer poses, the
-  estimate when both have as many, gets its nearest partner when ``|dt| <= max_difference = 0.02`` s), so
-  the pairs are evo's ``sync.associate_trajectories(ref, est, max_diff=0.02)``; ``association="tum"``
-  uses TUM's greedy one-to-one rule (``|dt| < max_difference``, :func:`slam.io.associate.associate`)
-  as TUM's ``evaluate_ate.py``.
+* Both trajectories are associated by timestamp first: ``association="evo"`` (default,
+  :func:`slam.io.associate.associate_nearest`) pairs as evo's ``sync.associate_trajectories(ref, est,
+  max_diff=0.02)``; ``association="tum"`` uses the greedy one-to-one rule of TUM's ``evaluate_ate.py``
+  (:func:`slam.io.associate.associate`).
 * ATE: the estimate's positions are aligned to the reference's by Umeyama (rigid SE(3) by default,
   ``alignment="sim3"`` adds a scale, ``"none"`` compares raw), then the per-pair error is the distance
-  between camera centres. This is ``evo_ape tum REF EST -a --t_max_diff 0.02`` (and TUM's
-  ``evaluate_ate.py`` with ``association="tum"``).
+  between camera centres: ``evo_ape tum REF EST -a --t_max_diff 0.02``.
 * RPE: for index pairs ``(i, j)`` of the associated poses, ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` (``Q``
   reference, ``P`` estimate, evo's convention); the translation error is ``|t(E)|`` in metres, the
   rotation error the angle of ``E`` in degrees. ``delta_unit="frames"`` reproduces ``evo_rpe`` (pairs
-  ``(0, d), (d, 2d), ...``, or every ``(i, i + d)`` with ``all_pairs``); ``delta_unit="seconds"`` picks
-  pairs ``delta`` seconds apart, as TUM's ``evaluate_rpe.py --fixed_delta`` does in spirit (its default is
-  1 s; evo has no time unit for its RPE): the partner of ``i`` is the stamp nearest to ``t_i + delta``,
-  used when it is within half a frame of it. Consecutive pairs chain: the next start is the partner; a
-  start without a later partner (the end of a segment before a gap in the stamps) hands over to the next
-  pose, so the chain resumes after a gap. TUM's script pairs differently: it takes the nearest stamp
-  whatever the gap and never pairs with the last pose, so its pair count differs (fr3_long_office: 2870
-  pairs against 2732 here, RMSE 0.0736 against 0.0738 m).
-  TUM's script also measures the translation of ``(P_i^-1 P_j)(Q_i^-1 Q_j)^-1`` instead of evo's
-  ``(Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``: the rotation angles are identical, the translations are not (to first
-  order where the rotation is off: a 1 m step with a 5 degree turning error is 0.087 m in TUM's, 0 in
-  evo's and here). These figures are evo's.
+  ``(0, d), (d, 2d), ...``, or every ``(i, i + d)`` with ``all_pairs``); ``delta_unit="seconds"`` pairs
+  each start with the stamp nearest to ``t_i + delta`` when it is within half a frame of it (as TUM's
+  ``evaluate_rpe.py --fixed_delta``, 1 s by default). Consecutive pairs chain: the next start is the
+  partner, and a start without a later partner (before a gap in the stamps) hands over to the next pose.
 
 Example:
     >>> import torch
@@ -280,12 +269,10 @@ def ate(
     Args:
         reference: ground truth: a :class:`Trajectory` or a TUM file path.
         estimate: the estimated trajectory: a :class:`Trajectory` or a TUM file path.
-        alignment: ``"se3"`` (rigid, default, TUM/evo ``-a``), ``"sim3"`` (rigid + scale, evo ``-as``)
-            or ``"none"``.
-        max_difference: association tolerance in seconds (TUM: 0.02; evo_ape's own default is 0.01).
+        alignment: ``"se3"`` (rigid, default, evo ``-a``), ``"sim3"`` (rigid + scale, evo ``-as``) or ``"none"``.
+        max_difference: association tolerance in seconds.
         offset: seconds added to the estimate's stamps before association.
-        association: ``"evo"`` (default: evo's nearest-neighbour rule, ``|dt| <= max_difference``) or
-            ``"tum"`` (TUM's greedy one-to-one rule, ``|dt| < max_difference``); see the module notes.
+        association: ``"evo"`` (default, ``|dt| <= max_difference``) or ``"tum"`` (``|dt| < max_difference``).
 
     Returns:
         an :class:`ATEResult` (``.rmse`` in metres).
@@ -315,12 +302,8 @@ def _pairs_frames(n: int, delta: int, all_pairs: bool) -> torch.Tensor:
 
 
 def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool, tol: float | None) -> torch.Tensor:
-    # For a start i: j = the stamp closest to t_i + delta (TUM's find_closest_index), kept when it is
-    # later than i and within tol of the target. Consecutive mode chains j -> next start; a start whose
-    # closest stamp is not later than itself (the last pose before a gap, or the end) hands over to the
-    # next pose, so the chain resumes after a gap. The associated poses follow the short trajectory's
-    # order (evo) or the reference's (TUM), so the estimate's stamps need not be sorted: the pairs are
-    # found in time order and mapped back to the associated indices.
+    # j = the stamp closest to t_i + delta, kept when later than i and within tol of the target. The
+    # associated stamps need not be sorted: pairs are found in time order and mapped back.
     t_in = stamps.detach().to("cpu", torch.float64)
     n = t_in.numel()
     if n < 2:
@@ -328,8 +311,7 @@ def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool, tol: flo
     order = torch.argsort(t_in, stable=True)
     t = t_in[order]
     if tol is None:
-        # half a frame: the nearest stamp of a gap-free stream is always this close to the target,
-        # while a target beyond the end (or in a gap) is not
+        # half a frame: close enough for the nearest stamp of a gap-free stream, not for one past a gap
         tol = 0.5 * float(torch.median(t[1:] - t[:-1]))
     target = t + delta
     k = torch.searchsorted(t, target).clamp(1, max(n - 1, 1))
@@ -369,16 +351,13 @@ def rpe(
     Args:
         reference: ground truth: a :class:`Trajectory` or a TUM file path.
         estimate: a :class:`Trajectory` or a TUM file path.
-        delta: pair distance: an integer number of associated poses (``"frames"``, evo's default 1) or
-            seconds (``"seconds"``; TUM's ``evaluate_rpe.py`` uses 1 s).
+        delta: pair distance: an integer number of associated poses (``"frames"``) or seconds.
         delta_unit: ``"frames"`` or ``"seconds"``.
         all_pairs: use every start pose; otherwise consecutive non-overlapping pairs (evo's default).
         time_tolerance: seconds mode only: a pair ``(i, j)`` is used when ``|t_j - (t_i + delta)|`` is at
-            most this; default half the median interval between the associated stamps (so on a
-            gap-free stream every start gets its nearest partner, and none past the end).
-        alignment: ``"none"`` (default; a rigid alignment does not change the RPE), ``"se3"`` or ``"sim3"``
-            (the scale matters for monocular estimates).
-        max_difference: association tolerance in seconds (TUM: 0.02).
+            most this; default half the median interval between the associated stamps.
+        alignment: ``"none"`` (default; a rigid alignment does not change the RPE), ``"se3"`` or ``"sim3"``.
+        max_difference: association tolerance in seconds.
         offset: seconds added to the estimate's stamps before association.
         association: ``"evo"`` (default) or ``"tum"``, as for :func:`ate`.
 
@@ -395,10 +374,7 @@ def rpe(
     if delta_unit == "seconds" and not delta > 0:
         raise ValueError(f"delta in seconds must be positive, got {delta}")
     ref, est = _associated(reference, estimate, max_difference, offset, association)
-    if alignment != "none":
-        est = _align(ref, est, alignment)[3]
-    else:
-        _align(ref, est, alignment)  # validates the argument
+    est = _align(ref, est, alignment)[3]
     if delta_unit == "frames":
         pairs = _pairs_frames(len(est), int(delta), all_pairs)
     else:

@@ -8,17 +8,10 @@ unrotated, north rooms turned by 180 deg, so that the building is symmetric unde
 its centre except for the rooms' furnishing.
 
 Perceptual aliasing: each room named in ``BuildingConfig.twins`` (a south room ``Sk``) shares its
-*design* (wall, floor and ceiling textures, the same furniture at the same places, the same lights) with
-its image under that half turn, ``N(n+1-k)``. The two look and measure identically from corresponding
-viewpoints; only what is seen through their doors differs. A place-recognition descriptor cannot tell
-them apart and geometric verification registers them happily: the relative pose it measures puts the
-camera in the wrong room, metres from where odometry says it is. The other rooms and the corridor are
-furnished and textured on their own.
-
-Geometry: every wall is two half-thickness boxes back to back, one owned by each side, so each side's
-face carries its own room's texture; a door is a gap in both halves with a lintel above. Floors and
-ceilings are thin slabs per room. Textures come from the same photographs as the room demo
-(:mod:`slam.synthetic.scene`); a texture shared by twin rooms is stored once.
+design (textures, furniture, lights) with its image under that half turn, ``N(n+1-k)``: the two look and
+measure identically from corresponding viewpoints, so a verified loop between them puts the camera metres
+from where it is. Every wall is two half-thickness boxes back to back, each face carrying its own
+space's texture; a door is a gap in both with a lintel above.
 
 World frame: x east (along the corridor), y north, z up; the floor is ``z = 0``; the building spans
 ``[0, n * room_x] x [0, 2 * room_y + corridor_width]``.
@@ -39,10 +32,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
 from slam.synthetic.scene import (
-    PHOTO_FILES,
     BoxSpec,
     RoomConfig,
     Scene,
@@ -50,8 +41,6 @@ from slam.synthetic.scene import (
     load_photo_textures,
     tensorize,
 )
-
-Tensor = torch.Tensor
 
 __all__ = [
     "BuildingConfig",
@@ -82,8 +71,7 @@ class BuildingConfig:
         door_width, door_height: of every door.
         twins: south rooms furnished identically to their image under the building's half turn
             (``"S1"`` -> ``N(n)``): the perceptual aliasing.
-        texel_density: texels per metre of walls, floors and ceilings (160: about a texel per pixel at
-            1.6 m for a 320 x 240 image with f = 262 px).
+        texel_density: texels per metre of walls, floors and ceilings.
         object_texel_density: texels per metre on the furniture.
         seed: seed of the designs (texture composition, furniture jitter of the unique rooms).
         ambient: fraction of the light that does not depend on the surface orientation.
@@ -255,9 +243,6 @@ def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
     return BuildingLayout(cfg, spaces, doors, (width, depth, cfg.height))
 
 
-# ----------------------------------------------------------------------------------------------
-# Designs: textures and furniture of a space in its own frame
-# ----------------------------------------------------------------------------------------------
 @dataclass
 class _Style:
     """How a design's surfaces look: wall bases/tints/posters (west, east, south, north), floor, ceiling."""
@@ -296,10 +281,8 @@ _STYLES = {
                        furniture=("chelsea", "hubble", "ihc", "rocket", "astronaut", "moon", "page", "color")),
 }
 
-# Room furniture in the own frame of a room with a door on its east wall (and the corridor door north);
-# rooms whose neighbour door is on the west get the mirror image. (name, (x, y, z) centre as fractions
-# of the half sizes for x, y and metres for z, (sx, sy, sz), yaw deg). Kept out of the door lanes and
-# off the camera's circle of ~0.85 m around the centre.
+# (name, centre (x, y as fractions of the half sizes, z metres), size (m), yaw deg) in the own frame of a
+# room whose neighbour door is east (mirrored when it is west), out of the door lanes and the camera's circle
 _ROOM_FURNITURE = (
     ("shelf", (-0.38, -0.86, 0.9), (2.0, 0.45, 1.8), 0.0),
     ("cabinet", (0.55, -0.85, 0.45), (1.0, 0.5, 0.9), 0.0),
@@ -323,8 +306,8 @@ _FURNITURE_BASES = (("brick", (0.62, 0.48, 0.40)), ("gravel", (0.70, 0.66, 0.58)
 
 
 def _furniture_faces(rng: np.random.Generator, photos: dict[str, np.ndarray], size, names, density: float):
-    """Six face textures (-x, +x, -y, +y, -z, +z) of a piece of furniture: a tinted, tiled base (texture
-    everywhere, even where a face fills the view from 0.6 m) with the face's photograph framed on it."""
+    """Six face textures (-x, +x, -y, +y, -z, +z) of a piece of furniture: a tinted, tiled base with the
+    face's photograph framed on it."""
     sx, sy, sz = size
     extents = [(sy, sz), (sy, sz), (sx, sz), (sx, sz), (sx, sy), (sx, sy)]
     faces = []
@@ -385,8 +368,6 @@ class _DesignBuilder:
                 mine = posters[k::len(spans)] if seg_len > 1.2 else []
                 tex = compose_surface(rng, self.photos, base, tint, seg_len, H, d, 1.1, 0.55, mine, (0.5, 0.9),
                                        band)
-                # each span is composed on its own: a face's texture columns run to the right of a viewer
-                # facing it (the face frames of slam.synthetic.scene), so no span needs flipping
                 mid = 0.5 * (lo + hi)
                 faces = [self.jamb] * 4 + [h, h]  # the span's ends are door jambs (or hidden in a corner)
                 faces[_INNER_FACE[wall]] = tex
@@ -435,26 +416,16 @@ def _place(box: BoxSpec, space: Space) -> BoxSpec:
                    box.yaw_deg + space.yaw_deg, box.faces, box.inside)
 
 
-def build_building_scene(config: BuildingConfig | None = None, device=None,
-                         photos: dict[str, np.ndarray] | None = None) -> Scene:
-    """The building of :func:`building_layout` as a renderable :class:`~slam.synthetic.scene.Scene`.
-
-    Deterministic by ``config.seed``: the designs are composed in a fixed order (one per design, shared
-    by twins), each from its own seeded generator.
+def build_building_scene(config: BuildingConfig | None = None) -> Scene:
+    """The building of :func:`building_layout` as a renderable :class:`~slam.synthetic.scene.Scene` on the
+    CPU, deterministic by ``config.seed`` (one seeded generator per design, shared by twins).
 
     Args:
         config: :class:`BuildingConfig`.
-        device: where the scene's tensors live (default CPU).
-        photos: textures by name (default :func:`~slam.synthetic.scene.load_photo_textures`).
     """
     cfg = config or BuildingConfig()
     layout = building_layout(cfg)
-    if photos is None:
-        photos = load_photo_textures(cfg.seed)
-    missing = [n for n in PHOTO_FILES if n not in photos]
-    if missing:
-        raise ValueError(f"photos lacks textures named {missing}")
-    builder = _DesignBuilder(cfg, photos)
+    builder = _DesignBuilder(cfg, load_photo_textures(cfg.seed))
     designs: dict[str, list[BoxSpec]] = {}
     boxes: list[BoxSpec] = []
     style_of = {}
@@ -479,8 +450,6 @@ def build_building_scene(config: BuildingConfig | None = None, device=None,
                 mirror = "east" not in s.openings  # the neighbour door is on the west
                 jitter = 0.0 if s.design in cfg.twins else 0.12
             designs[s.design] = builder.boxes(s, _STYLES[style_of[s.design]], rng, furniture, mirror, jitter)
-        elif designs[s.design] and s.openings != layout.space(s.design).openings:
-            raise AssertionError(f"twin rooms {s.design} and {s.name} have different doors")
         boxes.extend(_place(b, s) for b in designs[s.design])
     lights = []
     for s in layout.spaces:
@@ -493,8 +462,7 @@ def build_building_scene(config: BuildingConfig | None = None, device=None,
     room_cfg = RoomConfig(size=layout.extent, texel_density=cfg.texel_density,
                           object_texel_density=cfg.object_texel_density, seed=cfg.seed, ambient=cfg.ambient,
                           lights=tuple(lights))
-    scene = tensorize(boxes, room_cfg)
-    return scene.to(device) if device is not None else scene
+    return tensorize(boxes, room_cfg)
 
 
 @functools.lru_cache(maxsize=2)

@@ -1,11 +1,9 @@
 """A ray-casting renderer in torch for :class:`~slam.synthetic.scene.Scene`, plus Kinect-like sensor noise.
 
-Every pixel's ray is intersected analytically with every box (the slab method, in each box's own
-frame), vectorised over rays x boxes; the nearest hit gives the z-depth, the face and its texture
-coordinates. Textures are sampled trilinearly from a mip pyramid whose level follows the pixel's exact
-footprint on the surface, so textures do not alias (feature detectors need stable texture from frame to
-frame). Shading is Lambertian from point lights without shadows, fixed in the world, so a surface point
-has the same colour in every view (up to the per-frame exposure noise).
+Every pixel's ray is intersected analytically with the boxes (the slab method, in each box's own frame);
+the nearest hit gives the z-depth, the face and its texture coordinates. Textures are sampled trilinearly
+from a mip pyramid at the pixel's footprint (no aliasing from frame to frame); shading is Lambertian from
+point lights fixed in the world, without shadows, so a surface point has the same colour in every view.
 
 Conventions: pinhole ``K (3, 3)``, pixel ``(u, v)`` = (column, row) at integer positions, camera x right,
 y down, z forward; poses ``(..., 7) = [t, q_xyzw]`` camera-to-world. Depth is the z-depth along the
@@ -44,7 +42,6 @@ __all__ = [
     "apply_image_noise",
     "apply_motion_blur",
     "frame_generator",
-    "intersect_boxes",
     "pixel_rays",
     "render_frames",
 ]
@@ -73,11 +70,11 @@ class DepthNoiseConfig:
     """Kinect-v1-like depth corruption (all seeded per frame).
 
     Attributes:
-        sigma_base: axial noise std (m) at ``sigma_ref`` (Nguyen et al. 2012: 0.0012 + 0.0019 (z-0.4)^2).
+        sigma_base: axial noise std (m) at ``sigma_ref`` (Nguyen et al. 2012).
         sigma_quad: growth of the std with ``(z - sigma_ref)^2`` (m per m^2).
         sigma_ref: depth (m) where the std is smallest.
-        focal_baseline: IR focal length (px) x projector baseline (m) of the simulated sensor (580 x
-            0.075), which sets the depth quantisation through the disparity.
+        focal_baseline: IR focal length (px) x projector baseline (m): the depth quantisation through the
+            disparity.
         disparity_step: disparity resolution in pixels (Kinect v1: 1/8); 0 disables the quantisation.
         min_depth: nearer surfaces read as invalid (m).
         max_depth: farther surfaces read as invalid (m).
@@ -86,15 +83,11 @@ class DepthNoiseConfig:
         edge_jump: a pixel whose 3x3 neighbourhood spans more than ``edge_jump * z`` in depth is
             invalid (the sensor's missing readings at occluding edges).
         min_cos_incidence: surfaces seen more grazingly than this (|cos| below) read as invalid.
-        disparity_distortion: a fixed-pattern disparity error (pixels) that grows with the square of the
-            distance from the image centre, reaching this value at the corners: the spatially varying
-            disparity distortion of a structured-light sensor that its factory calibration leaves (as
-            Herrera et al. 2012 model it for the Kinect v1), the same in every frame, so its depth error
-            ``z^2 / focal_baseline * distortion`` grows with depth and does not average out over frames.
-            0: none (the room demo).
-        noise_correlation_px: Gaussian sigma (pixels) of the spatial correlation of the axial noise (a
-            Kinect v1 matches 9 x 9 blocks, so neighbouring pixels share their errors); the std stays
-            ``sigma(z)``. 0: independent pixels (the room demo).
+        disparity_distortion: a fixed-pattern disparity error (pixels), the same in every frame, growing with
+            the squared distance from the image centre to this value at the corners (Herrera et al. 2012).
+            0: none.
+        noise_correlation_px: Gaussian sigma (pixels) of the spatial correlation of the axial noise; the
+            std stays ``sigma(z)``. 0: independent pixels.
     """
 
     sigma_base: float = 0.0012
@@ -120,9 +113,8 @@ class ImageNoiseConfig:
         exposure_sigma: std of the per-frame multiplicative gain (auto-exposure flicker).
         offset_sigma: std of the per-frame additive offset, grey levels.
         pixel_sigma: std of the per-pixel, per-channel Gaussian noise, grey levels.
-        exposure_time: the colour camera's exposure in seconds; the camera moves during it, so each
-            pixel averages the scene along its motion (:func:`apply_motion_blur`). 0: sharp images (the
-            room demo). A Kinect v1's colour camera, auto-exposed indoors, integrates for ~10-30 ms.
+        exposure_time: the colour camera's exposure in seconds, blurring each pixel along its motion
+            (:func:`apply_motion_blur`). 0: sharp images.
         blur_samples: instants averaged over the exposure.
     """
 
@@ -158,10 +150,8 @@ def pixel_rays(K: Tensor, height: int, width: int) -> Tensor:
 def _slab(o_l: Tensor, d_l: Tensor, half: Tensor, inside: bool):
     """Ray parameter ``(M,)`` (inf on a miss) and face ``(M,)`` of one box, rays in its local frame.
 
-    Component-major layout (contiguous rows are faster than ``(M, 3)`` here): ``o_l (3, 1) or (3, M)``,
-    ``d_l (3, M)``, ``half (3, 1)``. Seen from outside the hit is the entry face; seen from inside (the
-    room) it is the exit face. A direction component of exactly 0 gives infinite slab distances, as it
-    should; only an origin lying exactly on a face's plane can give NaN, which reads as a miss.
+    Component-major: ``o_l (3, 1) or (3, M)``, ``d_l (3, M)``, ``half (3, 1)``. Seen from outside the hit is
+    the entry face; seen from inside (the room) it is the exit face. A NaN (origin on a face's plane) misses.
     """
     inv = 1.0 / d_l
     t_lo = (-half - o_l) * inv
@@ -175,35 +165,6 @@ def _slab(o_l: Tensor, d_l: Tensor, half: Tensor, inside: bool):
     t_far = torch.maximum(t_lo, t_hi).min(0).values
     face = 2 * axis + (~torch.gather(positive, 0, axis[None])[0]).long()
     return torch.where((t_near <= t_far) & (t_near > _NEAR), t_near, torch.full_like(t_near, float("inf"))), face
-
-
-def intersect_boxes(origins: Tensor, dirs: Tensor, scene: Scene):
-    """Nearest hits of rays with the scene's boxes.
-
-    Args:
-        origins: ``(M, 3)`` world ray origins.
-        dirs: ``(M, 3)`` world ray directions (any length; ``t`` is measured in units of it).
-        scene: the scene (B boxes).
-
-    Returns:
-        t ``(M,)`` (``inf`` on a miss), box ``(M,)`` int64 and face ``(M,)`` int64 (0..5) of the hit.
-    """
-    if origins.ndim != 2 or origins.shape[-1] != 3 or origins.shape != dirs.shape:
-        raise ValueError(f"origins and dirs must both have shape (M, 3), got {tuple(origins.shape)} and "
-                         f"{tuple(dirs.shape)}")
-    M = origins.shape[0]
-    t_best = torch.full((M,), float("inf"), dtype=dirs.dtype, device=dirs.device)
-    box = torch.zeros(M, dtype=torch.int64, device=dirs.device)
-    face = torch.zeros(M, dtype=torch.int64, device=dirs.device)
-    for b in range(scene.num_boxes):
-        R = scene.rotations[b].to(dirs.dtype)
-        t, f = _slab(R.T @ (origins - scene.centers[b].to(dirs.dtype)).T, R.T @ dirs.T,
-                     scene.half_sizes[b].to(dirs.dtype)[:, None], bool(scene.inside[b]))
-        better = t < t_best
-        t_best = torch.where(better, t, t_best)
-        box = torch.where(better, torch.full_like(box, b), box)
-        face = torch.where(better, f, face)
-    return t_best, box, face
 
 
 def _sample_texture(scene: Scene, tex: Tensor, u: Tensor, v: Tensor, level: Tensor) -> Tensor:
@@ -266,13 +227,8 @@ def _box_corners(scene: Scene) -> np.ndarray:
 def _screen_rects(corners: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, height: int,
                   width: int) -> tuple[np.ndarray, np.ndarray]:
     """Pixel rectangles ``(B, 4)`` int64 ``(u0, u1, v0, v1)`` (end-exclusive) that contain each box's image,
-    and a ``(B,)`` bool mask of the boxes that can be seen at all.
-
-    The box is clipped by the plane ``z = _NEAR`` in front of the camera (rays ignore nearer hits): its
-    image is the hull of the projections of its corners in front of the plane and of the points where its
-    edges cross it, so a box reaching behind the camera (a wall beside it) is bounded as tightly as any
-    other, and a box wholly behind the camera is skipped.
-    """
+    and a ``(B,)`` bool mask of the boxes that can be seen at all: the hull of the projections of its corners
+    in front of the plane ``z = _NEAR`` and of the points where its edges cross that plane."""
     cam = (corners - t) @ R  # (B, 8, 3), world -> camera: R^T (X - t)
     z = cam[..., 2]
     p0, p1 = cam[:, _BOX_EDGES[:, 0]], cam[:, _BOX_EDGES[:, 1]]  # (B, 12, 3)
@@ -302,13 +258,10 @@ def _screen_rects(corners: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarr
 
 
 def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, height: int, width: int,
-                 corners: np.ndarray | None = None):
-    """Nearest hit (t, box, face) of every pixel ray ``rays_c (3, P)`` of one camera; a box is only
-    tested inside the pixel rectangle its near-clipped corners project to (a screen-space bound), so the
-    cost stays ~ pixels rather than pixels x boxes. ``corners``: :func:`_box_corners` of the scene."""
+                 corners: np.ndarray):
+    """Nearest hit (t, box, face) of every pixel ray ``rays_c (3, P)`` of one camera; a box is only tested
+    inside its screen rectangle (:func:`_screen_rects` of ``corners``, :func:`_box_corners`)."""
     dirs = R @ rays_c  # (3, P) world directions
-    if corners is None:
-        corners = _box_corners(scene)
     rects, seen = _screen_rects(corners, R.detach().cpu().double().numpy(), t.detach().cpu().double().numpy(),
                                 K.detach().cpu().double().numpy(), height, width)
     P = dirs.shape[1]
@@ -531,13 +484,10 @@ def apply_motion_blur(rgb: Tensor, depth: Tensor, K: Tensor, poses: Tensor, befo
                       fraction: float, samples: int = 9) -> Tensor:
     """Motion blur of a moving camera in a static scene, from each sharp frame and its exact depth.
 
-    The exposure is centred on the frame's pose and lasts ``fraction`` of the frame interval: half of it
-    on the way from the previous pose (``before``), half on the way to the next (``after``). Each pixel's
-    surface point (its depth back-projected with the frame's pose) is projected into the camera at
-    ``samples`` instants of the exposure; the blurred pixel averages the sharp image at the mirrored
-    positions along that path (the screen-space motion blur of real-time rendering: exact for the
-    sharp image's visible surfaces, approximate where the motion uncovers others). Pixels without depth
-    keep their colour.
+    The exposure is centred on the frame's pose and lasts ``fraction`` of the frame interval, half on the way
+    from the previous pose, half to the next. Each pixel averages the sharp image at the mirrored positions of
+    its surface point's path over ``samples`` instants (screen-space motion blur); pixels without depth keep
+    their colour.
 
     Args:
         rgb: ``(N, H, W, 3)`` uint8 sharp frames.

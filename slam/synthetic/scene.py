@@ -1,10 +1,9 @@
 """The synthetic indoor scene: a textured room holding a handful of textured boxes and panels.
 
 Every primitive is a box (a panel is a thin box) with a yaw about the world z axis (up); the room is a
-box seen from the inside. Each of a box's six faces carries its own texture, composed once at build
-time from photographs bundled inside scikit-image's wheel (``skimage/data/*.png|jpg``, read directly
-with OpenCV, so nothing is downloaded and skimage is not even imported). Without scikit-image the
-textures fall back to seeded procedural patterns and a warning is logged.
+box seen from the inside. Each face carries its own texture, composed from the photographs bundled in
+scikit-image's wheel (read with OpenCV, nothing downloaded); without scikit-image, seeded procedural
+patterns replace them with a warning.
 
 The scene's world frame: x east, y north, z up, metres; the floor is ``z = 0`` and the room spans
 ``[0, size_x] x [0, size_y] x [0, size_z]``.
@@ -44,7 +43,7 @@ __all__ = [
     "procedural_texture",
 ]
 
-# The photographs used, by the name used below -> file inside skimage/data (all bundled in the wheel).
+# name -> file inside skimage/data
 PHOTO_FILES: dict[str, str] = {
     "astronaut": "astronaut.png", "chelsea": "chelsea.png", "coffee": "coffee.png",
     "rocket": "rocket.jpg", "motorcycle": "motorcycle_left.png", "hubble": "hubble_deep_field.jpg",
@@ -65,9 +64,8 @@ class RoomConfig:
 
     Attributes:
         size: room extent (x, y, z) in metres; the camera trajectories assume the default.
-        texel_density: texels per metre of the room's walls, floor and ceiling (256: a texel per pixel
-            at ~2 m with f = 525 px, so textures are sharp at typical viewing distances).
-        object_texel_density: texels per metre on the objects (seen closer, so finer).
+        texel_density: texels per metre of the room's walls, floor and ceiling.
+        object_texel_density: texels per metre on the objects.
         seed: seed of the texture composition (poster placement, crops, tints).
         ambient: fraction of the light that does not depend on the surface orientation.
         lights: point-light positions in world coordinates (Lambertian shading, no shadows).
@@ -149,11 +147,6 @@ class Scene:
     def num_boxes(self) -> int:
         return int(self.centers.shape[0])
 
-    def to(self, device) -> Scene:
-        """A copy with every tensor on ``device``."""
-        kw = {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in self.__dict__.items()}
-        return Scene(**kw)
-
     def surface_distance(self, points: Tensor) -> Tensor:
         """Distance ``(N,)`` from world points ``(N, 3)`` to the nearest surface of the scene."""
         return box_signed_distance(points, self.centers, self.rotations, self.half_sizes).abs().min(-1).values
@@ -183,11 +176,8 @@ def box_signed_distance(points: Tensor, centers: Tensor, rotations: Tensor, half
     return outside + inside
 
 
-# ----------------------------------------------------------------------------------------------
-# Photographs and procedural fallback
-# ----------------------------------------------------------------------------------------------
 def _skimage_data_dir() -> Path | None:
-    # find_spec does not import skimage (slow), it only locates the installed package.
+    # find_spec locates the package without importing it (slow)
     spec = importlib.util.find_spec("skimage")
     if spec is None or not spec.submodule_search_locations:
         return None
@@ -241,12 +231,8 @@ def _load_photos_cached() -> tuple[tuple[str, np.ndarray], ...]:
 
 
 def load_photo_textures(seed: int = 0) -> dict[str, np.ndarray]:
-    """The photographs used as textures, by name (RGB ``(h, w, 3)`` uint8, read-only arrays).
-
-    Read from scikit-image's bundled data folder without network access; any photograph that cannot be
-    read (scikit-image missing, or a file absent) is replaced by a seeded procedural texture, with a
-    warning, so the scene always builds.
-    """
+    """The photographs used as textures, by name (RGB ``(h, w, 3)`` uint8, read-only arrays); any that
+    cannot be read is replaced by a seeded procedural texture, with a warning."""
     photos = dict(_load_photos_cached())
     missing = [n for n in PHOTO_FILES if n not in photos]
     if missing:
@@ -259,9 +245,6 @@ def load_photo_textures(seed: int = 0) -> dict[str, np.ndarray]:
     return photos
 
 
-# ----------------------------------------------------------------------------------------------
-# Texture composition
-# ----------------------------------------------------------------------------------------------
 def _crop_to_aspect(rng: np.random.Generator, img: np.ndarray, aspect: float, min_scale: float) -> np.ndarray:
     """A random crop of ``img`` with width/height ``aspect`` covering at least ``min_scale`` of it."""
     h, w = img.shape[:2]
@@ -302,11 +285,8 @@ def compose_surface(rng: np.random.Generator, photos: dict[str, np.ndarray], bas
                      tint: Sequence[float], width_m: float, height_m: float, density: float,
                      tile_m: float, contrast: float, posters: Sequence[str], poster_height: tuple[float, float],
                      band: tuple[float, float], grout_m: float = 0.0) -> np.ndarray:
-    """A wall/floor texture: a tinted tileable base, optional grout lines, and framed photographs.
-
-    ``band`` is the (min, max) height range in metres, measured from the texture's bottom edge, that
-    the posters must stay inside (so pictures hang at eye level, not on the skirting).
-    """
+    """A wall/floor texture: a tinted tileable base, optional grout lines, and framed photographs
+    hanging inside ``band``, the (min, max) height in metres above the texture's bottom edge."""
     w, h = round(width_m * density), round(height_m * density)
     tex = _tinted_tiling(photos[base], w, h, max(8, int(tile_m * density)), tint, contrast)
     if grout_m > 0:  # tile joints: dark lines on a regular grid
@@ -363,9 +343,7 @@ def _default_boxes(cfg: RoomConfig, photos: dict[str, np.ndarray]) -> list[BoxSp
     X, Y, Z = cfg.size
     d = cfg.texel_density
     wall_band = (0.85, Z - 0.2)
-    # Room faces (seen from the inside). Walls: brick, plaster (gravel), wallpaper (cell), plaster
-    # (grass), each in its own colour with its own framed photographs, so that every direction has a
-    # unique look (loop closure needs it) and no large area is without texture.
+    # every wall in its own colour with its own photographs: each direction looks unique
     west = compose_surface(rng, photos, "brick", (0.72, 0.42, 0.33), Y, Z, d, 1.2, 0.55,
                             ["astronaut", "clock", "coffee", "ihc", "text"], (0.55, 0.95), wall_band)
     east = compose_surface(rng, photos, "gravel", (0.88, 0.82, 0.66), Y, Z, d, 1.0, 0.5,
@@ -386,7 +364,6 @@ def _default_boxes(cfg: RoomConfig, photos: dict[str, np.ndarray]) -> list[BoxSp
     def box(name, center, size, yaw, textures):
         return BoxSpec(name, center, size, yaw, _box_faces(rng, photos, size, textures, od))
 
-    # Objects around the room, ~2-3 m from its centre, in every direction the loop looks at.
     boxes = [
         room,
         box("cabinet", (X - 0.3, Y / 2 + 0.7, 0.45), (0.5, 1.2, 0.9), 0.0,
@@ -411,9 +388,6 @@ def _default_boxes(cfg: RoomConfig, photos: dict[str, np.ndarray]) -> list[BoxSp
     return boxes
 
 
-# ----------------------------------------------------------------------------------------------
-# Tensorisation
-# ----------------------------------------------------------------------------------------------
 def _face_frames(half: np.ndarray, inside: bool):
     """Per face: local corner, u axis, v axis, extent (u, v), visible-side normal (numpy)."""
     origins, us, vs, extents, normals = [], [], [], [], []
@@ -449,16 +423,13 @@ def _mip_chain(tex: np.ndarray, levels: int) -> list[np.ndarray]:
     return chain
 
 
-def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig, mip_levels: int = 8) -> Scene:
-    """Turn box specifications into a :class:`Scene` (float32 geometry, uint8 texture pyramid).
-
-    A texture array used by several faces (the same object) is stored once: identically furnished rooms
-    cost no texture memory.
-    """
+def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig) -> Scene:
+    """Turn box specifications into a :class:`Scene` (float32 geometry, uint8 texture pyramid of 8 levels);
+    a texture array shared by several faces is stored once."""
     centers, rots, halves, inside = [], [], [], []
     fo, fu, fv, fe, fn, ft, fd = [], [], [], [], [], [], []
     textures: list[np.ndarray] = []
-    tex_ids: dict[int, int] = {}  # id() of a texture array -> its texture id: a shared array is stored once
+    tex_ids: dict[int, int] = {}  # id() of a texture array -> its texture id
     for b in boxes:
         if len(b.faces) != 6:
             raise ValueError(f"box {b.name!r} needs 6 face textures, got {len(b.faces)}")
@@ -487,7 +458,7 @@ def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig, mip_levels: int = 8) ->
     cursor = 0
     for tex in textures:
         offs, szs = [], []
-        for lvl in _mip_chain(tex, mip_levels):
+        for lvl in _mip_chain(tex, 8):
             offs.append(cursor)
             szs.append((lvl.shape[1], lvl.shape[0]))
             chunks.append(lvl.reshape(-1, 3))
@@ -510,29 +481,18 @@ def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig, mip_levels: int = 8) ->
     )
 
 
-def build_room_scene(config: RoomConfig | None = None, device=None,
-                     photos: dict[str, np.ndarray] | None = None) -> Scene:
-    """The default demo room: 7 x 6 x 2.8 m, four distinct walls with framed photographs, a tiled floor,
-    a ceiling and nine photo-textured objects (cabinets, crates, a stand, a shelf, a panel, a table).
+def build_room_scene(config: RoomConfig | None = None) -> Scene:
+    """The default demo room on the CPU: 7 x 6 x 2.8 m, four distinct walls with framed photographs, a tiled
+    floor, a ceiling and nine photo-textured objects (cabinets, crates, a stand, a shelf, a panel, a table).
 
     Args:
         config: room settings (default :class:`RoomConfig`).
-        device: where the scene's tensors live (default CPU); rendering follows it.
-        photos: textures by name (default :func:`load_photo_textures`); must hold every name of
-            ``PHOTO_FILES``.
     """
     cfg = config or RoomConfig()
-    if photos is None:
-        photos = load_photo_textures(cfg.seed)
-    missing = [n for n in PHOTO_FILES if n not in photos]
-    if missing:
-        raise ValueError(f"photos lacks textures named {missing}")
-    scene = tensorize(_default_boxes(cfg, photos), cfg)
-    return scene.to(device) if device is not None else scene
+    return tensorize(_default_boxes(cfg, load_photo_textures(cfg.seed)), cfg)
 
 
 @functools.lru_cache(maxsize=1)
 def default_room_scene() -> Scene:
-    """The default room (:func:`build_room_scene` with default settings) on the CPU, built once per
-    process and shared: treat it as read-only."""
+    """:func:`build_room_scene` with default settings, built once per process and shared (read-only)."""
     return build_room_scene()
