@@ -1,16 +1,11 @@
 """The camera's tour of the building (:mod:`slam.synthetic.building`): rooms, doors and the corridor.
 
-In each room the camera walks a circle around the room's centre looking outwards at the walls and the
-furniture (as the room demo's ``loop`` does); it enters through a door walking straight across the room
-to the far side of the circle, and leaves where it faces the next door, so that its heading never jumps.
-Rooms are joined through their shared door when they are neighbours, else along the corridor's centre
-line, panning gently to see its walls. The default tour starts in ``S1``, visits its identically furnished
-twin ``N2`` (the false-loop bait), ``N1`` and ``S2``, and comes back into ``S1`` through the other door,
-circling the other way: a revisit from another direction that closes the loop around the whole building.
-
-Positions and headings are laid out as a dense polyline, smoothed along the arc length (so corners are
-rounded and turns spread out), then timed by the room demo's sampler
-(:mod:`slam.synthetic.trajectories`: slower where the camera turns, seeded hand shake).
+In each room the camera walks a circle around the room's centre looking outwards (as the room demo's
+``loop``); it crosses each room straight from door to circle, so its heading never jumps, and follows the
+corridor's centre line between rooms that are not neighbours. The default tour starts in ``S1``, visits its
+identically furnished twin ``N2`` (the false-loop bait), ``N1`` and ``S2``, and comes back into ``S1``
+through its other door, circling the other way: a loop around the whole building. The dense polyline is
+smoothed along its arc length, then timed by :func:`slam.synthetic.trajectories.sample_path`.
 
 Example:
     >>> from slam.synthetic.building import building_layout
@@ -31,17 +26,13 @@ from slam.io.trajectory import Trajectory
 from slam.synthetic.building import BuildingConfig, BuildingLayout, building_layout, default_building_scene
 from slam.synthetic.render import DepthNoiseConfig, ImageNoiseConfig
 from slam.synthetic.sequence import SyntheticSequence, generate_sequence
-from slam.synthetic.trajectories import TrajectoryConfig, view_direction, sample_path
+from slam.synthetic.trajectories import sample_path, view_direction
 
 __all__ = ["BUILDING_DEPTH_NOISE", "BUILDING_IMAGE_NOISE", "DEFAULT_TOUR", "TourConfig", "Visit",
            "building_sequence", "building_trajectory", "generate_building_sequence", "tour_polyline"]
 
-# The building's sensor, a Kinect v1 as it is rather than as the room demo idealises it: a fixed-pattern
-# disparity distortion that its factory calibration leaves (0.1 px at the image corners: the depth there
-# reads 0.9 cm short at 2 m, 2 cm at 3 m, in every frame), axial noise correlated over the sensor's
-# matching blocks, and the colour camera's motion blur (20 ms exposure). With the room demo's idealised
-# sensor, odometry alone drifted 0.08 m RMSE over the 53 m tour, less than a real Kinect does over such a
-# walk (docs/results.md, "SLAM accuracy", has the building's figures).
+# The building's sensor is a less ideal Kinect v1 than the room demo's: a fixed-pattern disparity distortion,
+# axial noise correlated over the sensor's matching blocks, and motion blur (20 ms exposure).
 BUILDING_DEPTH_NOISE = DepthNoiseConfig(disparity_distortion=0.1, noise_correlation_px=1.5)
 BUILDING_IMAGE_NOISE = ImageNoiseConfig(exposure_time=0.02)
 
@@ -77,9 +68,8 @@ class TourConfig:
         corridor_pan_deg: amplitude of the heading's sway in the corridor (its walls are seen at a slant).
         corridor_pan_period: metres of path per sway.
         door_glance_deg: going through a door the camera looks this far aside (alternately left and right),
-            at the wall beside the door, instead of through it at the far side of the next room (beyond the
-            depth camera's range: a door crossing facing it loses tracking), fading over
-            ``door_glance_sigma`` metres of path on either side.
+            at the wall beside it rather than at the far side of the next room (beyond the depth range),
+            fading over ``door_glance_sigma`` metres of path on either side.
         smoothing: Gaussian sigma (metres of path) of the positions: rounds the corners.
         yaw_smoothing: the same for the heading: spreads the turns.
     """
@@ -195,8 +185,7 @@ def _smooth(x: np.ndarray, sigma_samples: float) -> np.ndarray:
 
 
 def building_trajectory(layout: BuildingLayout, num_frames: int = 2400, seed: int = 0, tour=DEFAULT_TOUR,
-                        config: TourConfig | None = None,
-                        trajectory_config: TrajectoryConfig | None = None) -> Trajectory:
+                        config: TourConfig | None = None) -> Trajectory:
     """The timed tour: camera-to-world poses ``(num_frames, 7)`` at 30 Hz (see the module docstring).
 
     Args:
@@ -205,7 +194,6 @@ def building_trajectory(layout: BuildingLayout, num_frames: int = 2400, seed: in
         seed: hand-shake seed.
         tour: the :class:`Visit` s in order.
         config: :class:`TourConfig`.
-        trajectory_config: timing (:class:`~slam.synthetic.trajectories.TrajectoryConfig`).
     """
     cfg = config or TourConfig()
     P, Y, corridor, doors = tour_polyline(layout, tour, cfg)
@@ -239,7 +227,7 @@ def building_trajectory(layout: BuildingLayout, num_frames: int = 2400, seed: in
         pitch = pitch0 + math.radians(3.0) * np.sin(1.3 * a)
         return np.stack([x, y, z], -1), view_direction(yaw, pitch), math.radians(1.5) * np.sin(0.7 * a)
 
-    return sample_path(path, num_frames, seed, trajectory_config or TrajectoryConfig())
+    return sample_path(path, num_frames, seed)
 
 
 def building_sequence(num_frames: int = 2400, seed: int = 0, width: int = 320, height: int = 240,
@@ -280,8 +268,9 @@ def generate_building_sequence(out_dir: str | os.PathLike, trajectory: str = "to
     """
     if trajectory != "tour":
         raise ValueError(f"the building has one camera path, 'tour'; got {trajectory!r}")
-    seq = building_sequence(num_frames=num_frames, seed=seed, width=width, height=height)
+    cfg = BuildingConfig()
     kwargs.setdefault("depth_noise_config", BUILDING_DEPTH_NOISE)
     kwargs.setdefault("image_noise_config", BUILDING_IMAGE_NOISE)
-    return generate_sequence(out_dir, trajectory=seq.trajectory, width=width, height=height, seed=seed,
-                             scene=seq.scene, trajectory_name="building_tour", **kwargs)
+    return generate_sequence(out_dir, trajectory=building_trajectory(building_layout(cfg), num_frames, seed),
+                             width=width, height=height, seed=seed, scene=default_building_scene(cfg),
+                             trajectory_name="building_tour", **kwargs)

@@ -11,10 +11,7 @@ The folder written by :func:`generate_sequence` is read by the same code as a re
       calibration.txt           "fx fy cx cy" of the pinhole camera (no distortion)
       synthetic.json            the generator's settings (trajectory, frames, seed, noise)
 
-At 640 x 480 the intrinsics are the ROS default (525, 525, 319.5, 239.5), so a TUM reader that ignores
-``calibration.txt`` still gets the right ``K``; other sizes scale them (``synthetic_intrinsics``).
-Frames are deterministic by ``seed`` (noise and hand shake) and do not depend on batching; the scene is
-the default room (:func:`slam.synthetic.scene.build_room_scene`, its own seed fixed).
+Frames are deterministic by ``seed`` (noise and hand shake) and do not depend on batching.
 
 Example:
     >>> seq = SyntheticSequence("loop", num_frames=4, width=32, height=24, scene=_tiny_scene())
@@ -48,7 +45,7 @@ from slam.synthetic.render import (
     render_frames,
 )
 from slam.synthetic.scene import RoomConfig, Scene, build_room_scene, default_room_scene
-from slam.synthetic.trajectories import TrajectoryConfig, make_trajectory
+from slam.synthetic.trajectories import make_trajectory
 from slam.threads import limit_threads
 
 __all__ = [
@@ -104,28 +101,25 @@ class SyntheticSequence(RGBDSequence):
 
     Args:
         trajectory: a name from :data:`slam.synthetic.trajectories.TRAJECTORIES` or a
-            :class:`~slam.io.trajectory.Trajectory` (camera-to-world poses in the room's frame).
+            :class:`~slam.io.trajectory.Trajectory` (camera-to-world poses in the scene's frame).
         num_frames: frames of a named trajectory (ignored for a given Trajectory).
         width: image columns W.
         height: image rows H.
         seed: seeds the depth/image noise of every frame and the trajectory's hand shake.
         depth_noise: Kinect-like depth noise, quantisation and holes (``depth_noise_config``).
         image_noise: exposure and pixel noise (``image_noise_config``).
-        scene: the scene (default: the shared :func:`default_room_scene`); rendering runs on its device.
-        trajectory_config: timing of a named trajectory (default: 30 Hz).
+        scene: the scene (default: the shared :func:`default_room_scene`).
         depth_noise_config: the depth noise model (default :class:`DepthNoiseConfig`).
         image_noise_config: the image noise model (default :class:`ImageNoiseConfig`).
         batch_size: frames rendered together when iterating.
-        trajectory_name: the name of a given Trajectory (in the sequence's name and settings; default
-            ``"custom"``).
+        trajectory_name: the name of a given Trajectory (default ``"custom"``).
     """
 
     depth_scale = DEPTH_FACTOR
 
     def __init__(self, trajectory: str | Trajectory = "loop", num_frames: int = 300, width: int = 640,
                  height: int = 480, seed: int = 0, depth_noise: bool = True, image_noise: bool = True,
-                 scene: Scene | None = None, trajectory_config: TrajectoryConfig | None = None,
-                 depth_noise_config: DepthNoiseConfig | None = None,
+                 scene: Scene | None = None, depth_noise_config: DepthNoiseConfig | None = None,
                  image_noise_config: ImageNoiseConfig | None = None, batch_size: int = 4,
                  trajectory_name: str | None = None):
         if isinstance(trajectory, Trajectory):
@@ -134,7 +128,7 @@ class SyntheticSequence(RGBDSequence):
             self.trajectory = trajectory
             self.trajectory_name = trajectory_name or "custom"
         else:
-            self.trajectory = make_trajectory(trajectory, num_frames, seed=seed, config=trajectory_config)
+            self.trajectory = make_trajectory(trajectory, num_frames, seed=seed)
             self.trajectory_name = str(trajectory)
         self.width, self.height, self.seed = int(width), int(height), int(seed)
         self.K = synthetic_intrinsics(self.width, self.height)
@@ -146,7 +140,6 @@ class SyntheticSequence(RGBDSequence):
         self.root = Path(self.name)
         self._poses = self.trajectory.poses.to(torch.float64).cpu().numpy()
         self._stamps = self.trajectory.timestamps.to(torch.float64).cpu().numpy()
-        # the frame interval the exposure is a fraction of (motion blur)
         self._interval = float(np.median(np.diff(self._stamps))) if len(self._stamps) > 1 else 1.0 / 30.0
 
     def __len__(self) -> int:
@@ -171,8 +164,7 @@ class SyntheticSequence(RGBDSequence):
         seeds = [self.seed * 100_003 + i for i in idx]  # per-frame noise: independent of batching
         depth, rgb = out.depth, out.rgb
         if self.image_noise is not None and self.image_noise.exposure_time > 0:
-            # the camera moves while the colour camera integrates: blur along each pixel's motion, from the
-            # exact depth (before the depth noise) and the poses of the neighbouring frames
+            # blur from the exact depth (before the depth noise) and the neighbouring frames' poses
             n = len(self)
             before = torch.from_numpy(self._poses[[max(i - 1, 0) for i in idx]])  # a frame's own at the ends
             after = torch.from_numpy(self._poses[[min(i + 1, n - 1) for i in idx]])
@@ -224,8 +216,7 @@ def _frame_names(stamps: np.ndarray) -> list[str]:
     """The ``<timestamp>.png`` file names of the frames (1 microsecond resolution, as TUM writes them).
 
     Raises:
-        ValueError: a non-finite timestamp, or two frames whose names (or written stamps) would be the same:
-            one frame's images would overwrite the other's while the lists keep both entries.
+        ValueError: a non-finite timestamp, or two frames whose names would be the same.
     """
     bad = [i for i, t in enumerate(stamps) if not np.isfinite(t)]
     if bad:
@@ -258,9 +249,9 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
 
     Args:
         out_dir: the sequence folder (created; files of the same names are overwritten).
-        trajectory: ``"loop"`` (default; ~1.1 turns, so its end revisits its start), ``"figure_eight"``,
-            ``"out_and_back"``, or a :class:`~slam.io.trajectory.Trajectory`.
-        num_frames: frames (30 Hz; 300 = 10 s). The loop stays below ~0.75 m/s and 45 deg/s at 300.
+        trajectory: ``"loop"`` (default), ``"figure_eight"``, ``"out_and_back"``, or a
+            :class:`~slam.io.trajectory.Trajectory`.
+        num_frames: frames (30 Hz; 300 = 10 s).
         width: image columns.
         height: image rows.
         seed: noise and hand-shake seed; equal seeds give byte-identical files.
@@ -268,10 +259,8 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
         image_noise: exposure and pixel noise.
         scene: the scene (default: the standard room).
         batch_size: frames per rendering task.
-        workers: rendering threads. With more than one, each renders whole frames and torch's own
-            intra-op threads are set to 1 for the duration (restored afterwards): frame-level parallelism
-            scales better than intra-op threads on the small kernels of the renderer and does not
-            collapse on a busy machine. 1 renders in the caller with torch's settings untouched.
+        workers: rendering threads, each rendering whole frames with one torch thread (restored afterwards);
+            1 renders in the caller with torch's settings untouched.
         progress: log a line every ~10 % of the frames.
         **kwargs: passed to :class:`SyntheticSequence` (noise and trajectory configs).
 
@@ -280,7 +269,7 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
 
     Raises:
         ValueError: a trajectory timestamp that is not finite, or two that give the same file name (equal
-            at 1 microsecond, the resolution of ``<timestamp>.png``); nothing is written then.
+            at 1 microsecond); nothing is written then.
     """
     seq = SyntheticSequence(trajectory, num_frames=num_frames, width=width, height=height, seed=seed,
                             depth_noise=depth_noise, image_noise=image_noise, scene=scene, batch_size=batch_size,

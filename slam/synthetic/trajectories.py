@@ -5,13 +5,10 @@ Each path is a smooth curve ``s in [0, 1] -> (position, viewing direction, roll)
 along it so that a combined effort ``sqrt((dl / v_ref)^2 + (dtheta / w_ref)^2)`` grows evenly in time
 (slower where the camera turns fast), starting and stopping smoothly; small seeded hand shake is added.
 
-* ``loop``: around the room's centre on a circle of ~0.9 m radius, looking outwards at the walls and the
-  objects; a little more than one full turn, so the last frames revisit the first views from ~10 cm
-  further out.
-* ``figure_eight``: a lemniscate near the room's centre, facing south and panning with the lobes; it
-  passes its crossing twice with the same heading and ends where it started (a few cm higher).
-* ``out_and_back``: a 3 m sideways sweep facing the north wall, panning, and back along a slightly
-  offset line (up to ~25 cm), revisiting every view in reverse order.
+* ``loop``: 1.1 turns of a ~0.9 m circle around the room's centre, looking outwards: the last frames
+  revisit the first views from ~10 cm further out.
+* ``figure_eight``: a lemniscate facing south, panning with the lobes, back to its start.
+* ``out_and_back``: a 3 m sideways sweep facing the north wall and back along a slightly offset line.
 
 Poses are camera-to-world ``(N, 7) = [t, q_xyzw]`` float64 (camera x right, y down, z forward; world z up).
 
@@ -39,11 +36,8 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "TRAJECTORIES",
     "TrajectoryConfig",
-    "figure_eight_trajectory",
     "look_rotation",
-    "loop_trajectory",
     "make_trajectory",
-    "out_and_back_trajectory",
     "trajectory_rates",
 ]
 
@@ -52,7 +46,7 @@ ROOM_CENTER = (3.5, 3.0)  # centre of the default 7 x 6 m room
 
 @dataclass(frozen=True)
 class TrajectoryConfig:
-    """Timing and hand-shake settings shared by all trajectories.
+    """Timing and hand-shake settings shared by all trajectories (the defaults are used).
 
     Attributes:
         fps: frame rate (TUM and 7-Scenes: 30 Hz).
@@ -98,63 +92,45 @@ def view_direction(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], -1)
 
 
-# Paths: s (S,) in [0, 1] -> positions (S, 3), forward directions (S, 3), roll (S,) radians.
 PathFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
-def _loop_path(turns: float = 1.1, radius: float = 0.9, drift: float = 0.1, height: float = 1.35) -> PathFn:
+def _loop_path(s):
     cx, cy = ROOM_CENTER
-
-    def path(s):
-        th = 2 * math.pi * turns * s
-        r = radius + drift * s / max(turns, 1e-9)  # ~10 cm further out after one turn: a real revisit
-        pos = np.stack([cx + r * np.cos(th), cy + r * np.sin(th), height + 0.06 * np.sin(2 * th)], -1)
-        yaw = th + math.radians(10.0)  # outwards, a little towards the direction of travel
-        pitch = np.radians(-14.0 + 5.0 * np.sin(3 * th))
-        return pos, view_direction(yaw, pitch), np.radians(2.0 * np.sin(th))
-
-    return path
+    th = 2 * math.pi * 1.1 * s
+    r = 0.9 + 0.1 * s / 1.1  # ~10 cm further out after one turn: a real revisit
+    pos = np.stack([cx + r * np.cos(th), cy + r * np.sin(th), 1.35 + 0.06 * np.sin(2 * th)], -1)
+    yaw = th + math.radians(10.0)  # outwards, a little towards the direction of travel
+    pitch = np.radians(-14.0 + 5.0 * np.sin(3 * th))
+    return pos, view_direction(yaw, pitch), np.radians(2.0 * np.sin(th))
 
 
-def _figure_eight_path(half_length: float = 1.2, half_width: float = 0.7, center_y: float = 3.3,
-                       pivot_y: float = 6.0, height: float = 1.3, climb: float = 0.06) -> PathFn:
+def _figure_eight_path(s):
     cx, _ = ROOM_CENTER
-
-    def path(s):
-        a = 2 * math.pi * s
-        x = cx + half_length * np.sin(a)
-        y = center_y + half_width * np.sin(a) * np.cos(a)
-        # Facing south, away from a pivot behind the camera: it pans with the lobes and passes the
-        # crossing twice with the same heading (a revisit half-way through as well as at the end).
-        yaw = np.arctan2(y - pivot_y, x - cx)
-        pos = np.stack([x, y, height + climb * s], -1)
-        pitch = np.radians(-13.0 + 4.0 * np.sin(2 * a))
-        return pos, view_direction(yaw, pitch), np.radians(1.5 * np.sin(a))
-
-    return path
+    a = 2 * math.pi * s
+    x = cx + 1.2 * np.sin(a)
+    y = 3.3 + 0.7 * np.sin(a) * np.cos(a)
+    # facing south, away from a pivot behind the camera: the crossing is passed twice with the same heading
+    yaw = np.arctan2(y - 6.0, x - cx)
+    pos = np.stack([x, y, 1.3 + 0.06 * s], -1)
+    pitch = np.radians(-13.0 + 4.0 * np.sin(2 * a))
+    return pos, view_direction(yaw, pitch), np.radians(1.5 * np.sin(a))
 
 
-def _out_and_back_path(length: float = 3.0, offset: float = 0.12, y_line: float = 3.2,
-                       height: float = 1.35) -> PathFn:
+def _out_and_back_path(s):
     cx, _ = ROOM_CENTER
-
-    def path(s):
-        a = 2 * math.pi * s
-        x = cx - 0.5 * length * np.cos(a)  # out (s < 0.5) and back, at rest at both ends
-        # odd in (s - 0.5): the way back runs up to 2 * offset beside and below the way out
-        y = y_line + offset * np.sin(a)
-        z = height + 0.5 * offset * np.sin(a)
-        yaw = np.radians(90.0 + 30.0 * np.cos(2 * a))  # facing north, panning; equal at s and 1 - s
-        pitch = np.radians(-10.0 + 3.0 * np.cos(2 * a))
-        return np.stack([x, y, z], -1), view_direction(yaw, pitch), np.zeros_like(s)
-
-    return path
+    a = 2 * math.pi * s
+    x = cx - 0.5 * 3.0 * np.cos(a)  # out (s < 0.5) and back, at rest at both ends
+    # odd in (s - 0.5): the way back runs up to 24 cm beside and below the way out
+    y = 3.2 + 0.12 * np.sin(a)
+    z = 1.35 + 0.5 * 0.12 * np.sin(a)
+    yaw = np.radians(90.0 + 30.0 * np.cos(2 * a))  # facing north, panning; equal at s and 1 - s
+    pitch = np.radians(-10.0 + 3.0 * np.cos(2 * a))
+    return np.stack([x, y, z], -1), view_direction(yaw, pitch), np.zeros_like(s)
 
 
 def _speed_profile(tau: np.ndarray, ramp: float) -> np.ndarray:
     """Relative speed over normalised time: cosine ramps up from rest and back down to rest."""
-    if ramp <= 0:
-        return np.ones_like(tau)
     up = np.clip(tau / ramp, 0, 1)
     down = np.clip((1 - tau) / ramp, 0, 1)
     return 0.5 - 0.5 * np.cos(np.pi * np.minimum(up, down))
@@ -171,7 +147,9 @@ def _shake(rng: np.random.Generator, times: np.ndarray, dims: int) -> np.ndarray
     return out
 
 
-def sample_path(path: PathFn, num_frames: int, seed: int, cfg: TrajectoryConfig) -> Trajectory:
+def sample_path(path: PathFn, num_frames: int, seed: int) -> Trajectory:
+    """Frames along ``path`` timed by :class:`TrajectoryConfig`'s defaults (see the module docstring)."""
+    cfg = TrajectoryConfig()
     if num_frames < 2:
         raise ValueError(f"num_frames must be >= 2, got {num_frames}")
     # Effort along a dense sampling of the path.
@@ -217,33 +195,15 @@ def trajectory_rates(traj: Trajectory) -> tuple[Tensor, Tensor]:
     return lin, ang
 
 
-def loop_trajectory(num_frames: int = 300, seed: int = 0, config: TrajectoryConfig | None = None,
-                    turns: float = 1.1) -> Trajectory:
-    """A loop around the room looking outwards; ``turns`` > 1 makes the end overlap the start."""
-    return sample_path(_loop_path(turns=turns), num_frames, seed, config or TrajectoryConfig())
-
-
-def figure_eight_trajectory(num_frames: int = 300, seed: int = 0,
-                            config: TrajectoryConfig | None = None) -> Trajectory:
-    """A figure-eight facing the south wall, panning with the lobes, back to its start."""
-    return sample_path(_figure_eight_path(), num_frames, seed, config or TrajectoryConfig())
-
-
-def out_and_back_trajectory(num_frames: int = 300, seed: int = 0,
-                            config: TrajectoryConfig | None = None) -> Trajectory:
-    """A sideways sweep facing the north wall and back along a slightly offset line."""
-    return sample_path(_out_and_back_path(), num_frames, seed, config or TrajectoryConfig())
-
-
-TRAJECTORIES: dict[str, Callable[..., Trajectory]] = {
-    "loop": loop_trajectory,
-    "figure_eight": figure_eight_trajectory,
-    "out_and_back": out_and_back_trajectory,
+# name -> path: s (S,) in [0, 1] -> positions (S, 3), forward directions (S, 3), roll (S,) radians
+TRAJECTORIES: dict[str, PathFn] = {
+    "loop": _loop_path,
+    "figure_eight": _figure_eight_path,
+    "out_and_back": _out_and_back_path,
 }
 
 
-def make_trajectory(name: str, num_frames: int = 300, seed: int = 0,
-                    config: TrajectoryConfig | None = None) -> Trajectory:
+def make_trajectory(name: str, num_frames: int = 300, seed: int = 0) -> Trajectory:
     """The trajectory called ``name`` (one of ``TRAJECTORIES``) with ``num_frames`` poses.
 
     Returns:
@@ -252,4 +212,4 @@ def make_trajectory(name: str, num_frames: int = 300, seed: int = 0,
     key = name.replace("-", "_").lower()
     if key not in TRAJECTORIES:
         raise ValueError(f"unknown trajectory {name!r}; choose one of {sorted(TRAJECTORIES)}")
-    return TRAJECTORIES[key](num_frames=num_frames, seed=seed, config=config)
+    return sample_path(TRAJECTORIES[key], num_frames, seed)
