@@ -1,15 +1,11 @@
 """TUM-format trajectories: ``timestamp tx ty tz qx qy qz qw`` per line.
 
-The reader is strict: every non-comment line must hold exactly eight finite numbers (separated by
-spaces, tabs or commas, as TUM's own scripts accept; an empty comma-separated cell, as in ``1,,0``, is
-refused rather than merged with its neighbour), a translation within
-:data:`~slam.input_checks.MAX_COORDINATE` and a non-zero quaternion (normalised without overflow, so
-``1e200 1e200 0 0`` is a valid rotation); anything else, and a byte that is not UTF-8, raises
-:class:`TrajectoryFormatError` naming the file and the 1-based line number.
-
-Precision: timestamps are float64 (a :class:`Trajectory` refuses float32 ones, which cannot hold a Unix
-time to better than 128 s), and :func:`write_tum_trajectory` writes every value with the shortest
-decimal that reads back to the same float64 (``repr``), so a written trajectory reads back exactly.
+The reader is strict: every non-comment line must hold exactly eight finite numbers (separated by spaces,
+tabs or commas; an empty comma-separated cell is refused), a translation within
+:data:`~slam.input_checks.MAX_COORDINATE` and a non-zero quaternion (normalised without overflow);
+anything else, and a byte that is not UTF-8, raises :class:`TrajectoryFormatError` naming the file and the
+1-based line number. :func:`write_tum_trajectory` writes the shortest decimals that read back to the same
+float64, so a written trajectory reads back exactly.
 
 Example:
     >>> import io, torch
@@ -43,10 +39,8 @@ class Trajectory:
     """A timed sequence of camera-to-world poses.
 
     Attributes:
-        timestamps: ``(N,)`` float64 seconds. An integer tensor is converted (exactly, below 2^53); a float32
-            or float16 one is refused with a ``TypeError``: at Unix times (~1.3e9 s) float32 steps by 128 s,
-            so the stamps have already collapsed when the tensor was made (``torch.tensor(list)`` is float32
-            by default: pass ``dtype=torch.float64``).
+        timestamps: ``(N,)`` float64 seconds. An integer tensor is converted; a float32 or float16 one is
+            refused with a ``TypeError`` (at Unix times float32 steps by 128 s).
         poses: ``(N, 7)`` float64 ``[tx, ty, tz, qx, qy, qz, qw]`` (other float or integer dtypes are
             converted to float64).
     """
@@ -82,9 +76,9 @@ class Trajectory:
             )
 
     @staticmethod
-    def empty(dtype: torch.dtype = torch.float64, device=None) -> Trajectory:
+    def empty() -> Trajectory:
         """A trajectory with no poses: timestamps ``(0,)``, poses ``(0, 7)``."""
-        return Trajectory(torch.zeros(0, dtype=dtype, device=device), torch.zeros(0, 7, dtype=dtype, device=device))
+        return Trajectory(torch.zeros(0, dtype=torch.float64), torch.zeros(0, 7, dtype=torch.float64))
 
     def subset(self, index: torch.Tensor) -> Trajectory:
         """The poses selected by an index or boolean mask tensor, as a new trajectory."""
@@ -101,8 +95,7 @@ class TrajectoryFormatError(ValueError):
 
     Attributes:
         path: the file name (``"<stream>"`` for an unnamed file object).
-        line_number: 1-based line number of the offending line (None when it cannot be known: a text-mode
-            file object whose decoder failed).
+        line_number: 1-based line number of the offending line (None when a file object's decoder failed).
     """
 
     def __init__(self, path: str, line_number: Optional[int], message: str):
@@ -140,19 +133,15 @@ def _read_lines(source: PathOrFile) -> list[str]:
         raise TrajectoryFormatError(e.path, e.line, e.reason) from None
 
 
-def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Trajectory:
+def read_tum_trajectory(source: PathOrFile) -> Trajectory:
     """Read a TUM trajectory file.
 
-    Lines starting with ``#``, blank lines, and a column-header line starting with the word
-    ``timestamp`` before the first pose are skipped. Values may be separated by spaces, tabs or
-    commas (an empty comma-separated cell is an error). Quaternions are normalised (TUM files print 4 decimals, so they are not exactly unit).
-    The result is sorted by timestamp (a stable sort: unsorted files are accepted).
+    Lines starting with ``#``, blank lines, and a column-header line starting with the word ``timestamp``
+    before the first pose are skipped. Quaternions are normalised. The result is sorted by timestamp (a
+    stable sort); of lines sharing one timestamp the last is kept, as TUM's scripts do, with a warning.
 
     Args:
         source: a path or a file object (text, or binary: then decoded as UTF-8).
-        on_duplicate: what to do with lines sharing one timestamp: ``"last"`` keeps the last one (the
-            behaviour of TUM's dictionary-based scripts), ``"first"`` keeps the first, ``"error"``
-            raises :class:`TrajectoryFormatError`. Kept duplicates are reported with a warning.
 
     Returns:
         a :class:`Trajectory` with timestamps ``(N,)`` and poses ``(N, 7)`` in float64; ``N = 0`` for
@@ -163,8 +152,6 @@ def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Traje
         TrajectoryFormatError: a line is malformed (message ``file:line: reason``).
         TypeError: ``source`` is neither a path nor a text file object.
     """
-    if on_duplicate not in ("last", "first", "error"):
-        raise ValueError(f"on_duplicate must be 'last', 'first' or 'error', got {on_duplicate!r}")
     name = source_name(source)
     rows: list[list[float]] = []
     line_numbers: list[int] = []
@@ -174,7 +161,7 @@ def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Traje
             continue
         fields, empty = split_fields(line)
         if not rows and fields and fields[0].lower() == "timestamp":
-            continue  # an uncommented column header before the data (some copies of TUM files have one)
+            continue  # an uncommented column header before the data
         if empty is not None:
             raise TrajectoryFormatError(name, number, f"comma-separated cell {empty} is empty in {line!r}")
         if len(fields) != 8:
@@ -205,34 +192,23 @@ def read_tum_trajectory(source: PathOrFile, on_duplicate: str = "last") -> Traje
     order = np.argsort(data[:, 0], kind="stable")
     data, lines = data[order], np.asarray(line_numbers)[order]
     same = np.flatnonzero(np.diff(data[:, 0]) == 0.0)
-    if same.size:
-        if on_duplicate == "error":
-            raise TrajectoryFormatError(name, int(lines[same[0] + 1]), f"duplicate timestamp {data[same[0], 0]!r}")
-        # A run of equal stamps keeps its first (or last) member; the stable sort kept file order.
-        drop = same + 1 if on_duplicate == "first" else same
+    if same.size:  # a run of equal stamps keeps its last member (the stable sort kept file order)
         keep = np.ones(len(data), dtype=bool)
-        keep[drop] = False
-        warnings.warn(
-            f"{name}: {same.size} duplicate timestamp(s) (e.g. line {int(lines[same[0] + 1])}); "
-            f"kept the {on_duplicate} pose of each",
-            stacklevel=2,
-        )
+        keep[same] = False
+        warnings.warn(f"{name}: {same.size} duplicate timestamp(s) (e.g. line {int(lines[same[0] + 1])}); "
+                      "kept the last pose of each", stacklevel=2)
         data = data[keep]
     poses = torch.from_numpy(data[:, 1:].copy())
     return Trajectory(torch.from_numpy(data[:, 0].copy()), poses)
 
 
-def write_tum_trajectory(target: PathOrFile, traj: Trajectory, header: bool = True,
-                         precision: Optional[int] = None) -> None:
+def write_tum_trajectory(target: PathOrFile, traj: Trajectory, header: bool = True) -> None:
     """Write a trajectory in TUM format, one ``timestamp tx ty tz qx qy qz qw`` line per pose.
 
     Args:
         target: a path (parent folders must exist) or a text file object.
         traj: timestamps ``(N,)`` and poses ``(N, 7)``; written in the given order.
         header: write a ``# timestamp tx ty tz qx qy qz qw`` comment line first.
-        precision: None (default): every value as the shortest decimal that reads back to the same float64
-            (full precision: the file reads back exactly); an int: that many decimals for the pose values
-            and 6 for the timestamps (TUM's own files), for smaller files.
     """
     if not isinstance(traj, Trajectory):
         raise TypeError(f"expected a Trajectory, got {type(traj).__name__}")
@@ -241,11 +217,7 @@ def write_tum_trajectory(target: PathOrFile, traj: Trajectory, header: bool = Tr
     if not (np.isfinite(stamps).all() and np.isfinite(poses).all()):
         raise ValueError("cannot write a trajectory with non-finite timestamps or poses")
     lines = ["# timestamp tx ty tz qx qy qz qw"] if header else []
-    if precision is None:
-        lines += [" ".join(map(repr, [t, *p])) for t, p in zip(stamps.tolist(), poses.tolist())]
-    else:
-        fmt = "%.6f" + (" %." + str(int(precision)) + "f") * 7
-        lines += [fmt % (t, *p) for t, p in zip(stamps.tolist(), poses.tolist())]
+    lines += [" ".join(map(repr, [t, *p])) for t, p in zip(stamps.tolist(), poses.tolist())]
     text = "\n".join(lines) + ("\n" if lines else "")
     if isinstance(target, (str, os.PathLike)):
         with open(os.fspath(target), "w", encoding="utf-8") as f:
