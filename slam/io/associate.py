@@ -1,22 +1,12 @@
 """Timestamp association: evo's nearest-neighbour rule (the default of ``ate``/``rpe``) and TUM's.
 
-:func:`associate_nearest` is evo's ``sync.associate_trajectories`` (``sync.matching_time_indices``): the
-trajectory with fewer stamps is the "short" one (the *first* when both have as many: evo keeps the second
-only when it is strictly longer, so with equal lengths the second is the short one); every stamp of the
-short one is matched to the nearest stamp of the long one when ``|dt| <= max_difference`` (a closed
-bound); a long stamp may be matched more than once (not one-to-one), and the pairs come in the order of
-the short trajectory. Ties and boundary cases follow evo's expressions exactly, including its linear
-search (first minimum) when the long trajectory's stamps are not sorted.
+:func:`associate_nearest` is evo's ``sync.associate_trajectories``: every stamp of the list with fewer stamps
+(the second when both have as many) is matched to the nearest stamp of the other when ``|dt| <= max_difference``
+(not one-to-one), in the short list's order, with evo's exact expressions and tie rules.
 
-:func:`associate` is TUM's ``associate.py`` (used for rgb/depth frames, :mod:`slam.io.tum`): every pair
-``(a, b)`` with ``|a - (b + offset)| < max_difference`` (strict) is a candidate; candidates are visited by
-increasing difference (ties by ``a``, then ``b``) and a pair is accepted when neither of its stamps is
-taken yet (greedy, one-to-one); the matches are returned sorted by ``a``. Here the candidates come from a
-binary search instead of TUM's all-pairs loop, so it runs in ``O((N + M) log M)`` for sensor streams.
-
-The two rules agree on most sensor streams but not always: on two equal-rate jittered streams a greedy
-one-to-one match can pair a stamp with its second-nearest partner (and pairs can cross), and a pair exactly
-``max_difference`` apart is kept by evo and dropped by TUM.
+:func:`associate` is TUM's ``associate.py``: pairs with ``|a - (b + offset)| < max_difference`` are visited by
+increasing difference (ties by ``a``, then ``b``) and accepted when neither stamp is taken yet (greedy,
+one-to-one), returned sorted by ``a``; candidates come from a binary search, ``O((N + M) log M)``.
 
 Example:
     >>> import torch
@@ -67,7 +57,8 @@ def _empty() -> tuple[torch.Tensor, torch.Tensor]:
 
 def _matching_time_indices(s1: np.ndarray, s2: np.ndarray, max_diff: float,
                            offset_2: float) -> tuple[np.ndarray, np.ndarray]:
-    """evo's ``sync.matching_time_indices``, vectorised with the same floating-point expressions."""
+    """evo's ``sync.matching_time_indices``, vectorised with the same floating-point expressions (its linear
+    search, first minimum, when ``s2`` is not sorted)."""
     s2 = s2 + offset_2
     if not np.all(np.diff(s2) >= 0):
         # evo's linear search: argmin |s2 - s1| (first minimum), kept when <= max_diff
@@ -99,9 +90,6 @@ def associate_nearest(
     offset: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Match two timestamp lists as evo's ``sync.associate_trajectories(first, second, max_diff, offset_2)``.
-
-    The list with fewer stamps (``second`` when both have as many, as evo) is the short one: each of its
-    stamps is paired with the nearest stamp of the other when ``|dt| <= max_difference``; not one-to-one.
 
     Args:
         first: ``(N,)`` seconds (evo's ``traj_1``, the reference).

@@ -1,11 +1,8 @@
 """The frame record every dataset reader yields, and the checks that make a wrong frame an error.
 
-An :class:`RGBDFrame` is checked when it is built (:func:`check_frame`), so a programming mistake (depth in
-millimetres, a uint16 depth image, a greyscale or float colour image, a torch tensor, intrinsics that are
-not a pinhole matrix) raises a ``TypeError`` / ``ValueError`` saying what was expected, instead of a
-frame the tracker silently calls "lost" ("too few keypoints with valid depth (0 of 1000)").
-
-Types and units (what the readers produce, and what a caller streaming its own frames must give):
+An :class:`RGBDFrame` is checked when it is built (:func:`check_frame`): a wrong type, shape or unit raises a
+``TypeError`` / ``ValueError`` saying what was expected. Types and units (what the readers produce, and what
+a caller streaming its own frames must give):
 
 * ``rgb``: numpy ``(H, W, 3)`` uint8, **RGB** channel order (OpenCV's ``imread`` gives BGR: use
   ``cv2.cvtColor(img, cv2.COLOR_BGR2RGB)``; a greyscale image: ``cv2.cvtColor(g, cv2.COLOR_GRAY2RGB)``).
@@ -45,10 +42,7 @@ __all__ = ["DEPTH_MEDIAN_RANGE", "MAX_DEPTH_MEDIAN", "RGBDFrame", "check_frame",
 # metres: no RGB-D sensor's typical (median) depth is beyond this, while depth in millimetres (~1000-4000)
 # or TUM's raw units (~5000-20000) always is
 MAX_DEPTH_MEDIAN = 100.0
-# metres: the median valid depth of an RGB-D camera's view of a scene. Kinect v1/v2, Azure Kinect, Xtion and
-# RealSense D4xx measure from 0.3-0.5 m on, so half of the valid pixels nearer than 0.5 m is not a scene at the
-# right scale (millimetres read as TUM's 1/5000 m put a 2.5 m scene at 0.5 m); beyond 20 m is outside every
-# such sensor's range. The readers check their first frames against it (slam.io.sequence).
+# metres: the median valid depth of an RGB-D camera's view of a scene (sensors measure from 0.3-0.5 m to ~20 m)
 DEPTH_MEDIAN_RANGE = (0.5, 20.0)
 
 
@@ -134,8 +128,8 @@ def _check_depth(depth, shape) -> np.ndarray:
 
 
 def median_valid_depth(depth: np.ndarray) -> float:
-    """The median of the valid (> 0) values of ``depth (H, W)`` on every 4th row and column (cheap, and the
-    same figure as the full image's to a fraction of a percent); 0.0 when nothing is valid."""
+    """The median of the valid (> 0) values of ``depth (H, W)`` on every 4th row and column; 0.0 when nothing
+    is valid."""
     sample = np.asarray(depth)[::4, ::4]
     valid = sample[sample > 0]
     return float(np.median(valid)) if valid.size else 0.0

@@ -1,12 +1,5 @@
-"""Decoding colour and depth images with clear errors.
-
-Every failure to produce a frame's pixels raises :class:`FrameReadError` (it carries the path), so a
-SLAM run can catch it, log a warning and skip the frame. These errors happen at *read time*
-(``sequence[i]``), never when a sequence is opened.
-
-Timing on this machine (640x480, ``benchmarks/io_read.py``): JPEG colour ~1-2 ms, 16-bit PNG depth
-~3 ms.
-"""
+"""Decoding colour and depth images: every failure raises :class:`FrameReadError` carrying the path, at read
+time (``sequence[i]``), so a SLAM run can skip the frame with a warning."""
 from __future__ import annotations
 
 import os
@@ -32,9 +25,8 @@ class FrameReadError(RuntimeError):
 
 
 def decode_image(path: str, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    # One read + imdecode instead of cv2.imread: it tells "missing" from "undecodable", refuses a truncated
-    # JPEG (imread decodes half of it and fills the rest with grey) and handles non-ASCII paths on every
-    # platform, at the same cost. ``flags``: cv2.imdecode's.
+    # read + imdecode rather than cv2.imread: tells "missing" from "undecodable", refuses a truncated JPEG
+    # (imread fills the rest with grey) and handles non-ASCII paths
     try:
         buf = np.fromfile(path, dtype=np.uint8)
     except FileNotFoundError:
@@ -50,9 +42,7 @@ def decode_image(path: str, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
 
 
 def read_rgb(path: str) -> np.ndarray:
-    """Read a colour image as RGB.
-
-    Grey images are replicated to three channels and an alpha channel is dropped.
+    """Read a colour image as RGB (grey replicated to three channels, alpha dropped).
 
     Args:
         path: image file (any format OpenCV decodes: PNG, JPEG, ...).
@@ -102,7 +92,7 @@ def read_depth_raw(path: str, expected_shape: tuple[int, int] | None = None) -> 
 
 
 def depth_to_metres(raw: np.ndarray, scale: float, invalid_values: tuple[int, ...] = (0,)) -> np.ndarray:
-    """Convert raw 16-bit depth to metres.
+    """Convert raw 16-bit depth to metres (a true division keeps exact values exact: 5000 -> 1.0).
 
     Args:
         raw: ``(H, W)`` uint16.
@@ -116,7 +106,6 @@ def depth_to_metres(raw: np.ndarray, scale: float, invalid_values: tuple[int, ..
         >>> depth_to_metres(np.array([[0, 5000, 65535]], dtype=np.uint16), 5000.0, (0, 65535))
         array([[0., 1., 0.]], dtype=float32)
     """
-    # A true division (not a multiplication by 1/scale) keeps exact values exact: 5000 -> 1.0.
     depth = raw.astype(np.float32)
     np.divide(depth, np.float32(scale), out=depth)
     for value in invalid_values:

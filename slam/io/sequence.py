@@ -1,20 +1,12 @@
 """The common RGB-D sequence interface (:func:`slam.io.open_sequence` opens a folder as one).
 
-Errors come at two moments:
-
-* **open time** (:func:`slam.io.open_sequence` / the reader's constructor): the folder or a required list file is
-  missing (:class:`DatasetNotFoundError`, also a ``FileNotFoundError``), the folder is not a known
-  layout, a list file has a malformed line or lists nothing, a camera is unknown
-  (:class:`DatasetError`, a ``ValueError``).
-* **read time** (``sequence[i]``): a listed image is missing, does not decode, or a depth image has the
-  wrong type or size (:class:`slam.io.images.FrameReadError`, carrying the path). A SLAM run catches it
-  and skips the frame with a warning; :meth:`RGBDSequence.frames` with ``on_error="skip"`` does that.
-
-What a reader leaves out without an error (a 7-Scenes pose file that is not a pose: the frame keeps its
-images, its ground truth is unknown, also when the file is not UTF-8 text) it reports with a
-:class:`DatasetWarning` naming the files. A list or calibration file with a byte that is not UTF-8 is a
-:class:`DatasetError` naming the file and the line (``groundtruth.txt``: a
-:class:`~slam.io.trajectory.TrajectoryFormatError`).
+Errors: at **open time** (:func:`slam.io.open_sequence` / the reader's constructor) a missing folder or list
+file is a :class:`DatasetNotFoundError` (also a ``FileNotFoundError``); an unknown layout, a malformed line
+(named by file and line, a byte that is not UTF-8 included) or an unknown camera a :class:`DatasetError` (a
+``ValueError``). At **read time** (``sequence[i]``) a missing or undecodable image is a
+:class:`slam.io.images.FrameReadError` carrying the path, which a run skips with a warning. What a reader
+leaves out without an error (a 7-Scenes pose file that is not a pose) it reports with a
+:class:`DatasetWarning` naming the files.
 
 Depth is float32 metres with **0.0 marking invalid pixels** (never NaN), as :class:`RGBDFrame` says.
 """
@@ -80,13 +72,9 @@ _TYPICAL_DEPTH = 2.0  # metres: an indoor RGB-D view's median depth, to order th
 
 def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values: tuple[int, ...] = (0,),
                       read: Callable[[object], np.ndarray] = read_depth_raw) -> None:
-    """Refuse depth whose scale is wrong: the median valid depth of the first readable frames (up to 3
-    of the first 10; unreadable ones are left to the run, which reports them) outside
+    """Refuse depth whose scale is wrong (millimetres read as TUM's 1/5000 m, or the reverse): the median
+    valid depth of the first readable frames (up to 3 of the first 10) outside
     :data:`~slam.io.frame.DEPTH_MEDIAN_RANGE` metres at ``scale``.
-
-    Millimetre depth read as TUM's 5000 units per metre (or TUM's read as millimetres) gives depth 5 times
-    too small (large): the run would track, at a wrong scale, without a word. Three PNG decodes, once per
-    sequence.
 
     Args:
         root: the sequence folder (named by the error).
@@ -187,11 +175,10 @@ class RGBDSequence(ABC):
             on_error: ``"raise"`` (re-raise :class:`FrameReadError`), ``"skip"`` (log a warning and
                 go on with the next frame) or ``"yield"`` (yield the :class:`FrameReadError` in the
                 frame's place, so a caller can keep one entry per input frame).
-            prefetch: decode up to this many frames ahead in background threads (OpenCV releases the
-                GIL while decoding, so reading overlaps with the caller's work); 0 reads in the caller.
-            then: applied to each frame read, in the thread that read it (work done ahead with the
-                decoding, e.g. feature extraction); its result is yielded in the frame's place (a
-                :class:`FrameReadError` is yielded as it is). An error it raises is raised here.
+            prefetch: decode up to this many frames ahead in background threads; 0 reads in the caller.
+            then: applied to each frame read, in the thread that read it (e.g. feature extraction); its
+                result is yielded in the frame's place (a :class:`FrameReadError` as it is). An error it
+                raises is raised here.
         """
         if on_error not in ("raise", "skip", "yield"):
             raise ValueError(f"on_error must be 'raise', 'skip' or 'yield', got {on_error!r}")
@@ -231,12 +218,8 @@ class RGBDSequence(ABC):
         return frame if then is None else then(frame)
 
     def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
-        """``(len(indices), 7)`` ground truth of a subset of the frames, as if they were the sequence.
-
-        A reader that associates ground truth by time (TUM: one-to-one, greedy) associates again for the
-        subset: a frame that lost its pose to a neighbour left out may get it back, as TUM's
-        ``evaluate_ate.py`` would pair the subset's trajectory. Here: the frames' own rows.
-        """
+        """``(len(indices), 7)`` ground truth of a subset of the frames, as if they were the sequence (a reader
+        associating by time associates again for the subset). Here: the frames' own rows."""
         return self._groundtruth_array()[indices]
 
     def groundtruth_pose(self, i: int) -> np.ndarray | None:

@@ -1,25 +1,17 @@
 """Microsoft 7-Scenes sequences (one ``seq-XX`` folder), read lazily.
 
 Layout: ``frame-%06d.color.(png|jpg)``, ``frame-%06d.depth.png`` (16-bit millimetres, 0 and 65535
-invalid), ``frame-%06d.pose.txt`` (4x4 camera-to-world, optional), optional ``camera-intrinsics.txt``
-(3x3; default fx = fy = 585, cx = 320, cy = 240). Pose rotations are projected onto the nearest
-rotation matrix (KinectFusion's are off by up to 5e-4). There are no timestamps: frame number ``k`` is at
-``k / 30`` s. Colour and depth come from two unregistered cameras. This reader gives the images as they are
-and ``K`` of the depth camera (the frame of the depth images and of the ground truth); it does not
-register them. ``attnloop-slam`` applies the Kinect v1 rig by default (:data:`slam.options.KINECT_V1_RIG`:
-the colour camera's intrinsics and the 2.5 cm baseline; ``--registered`` or ``--intrinsics`` treats the two
-as one registered camera, as is customary for this dataset); a Python caller chooses with
-:func:`slam.options.resolve_settings` (the same default) or ``SLAMConfig()`` (registered).
+invalid), ``frame-%06d.pose.txt`` (4x4 camera-to-world, optional; rotations projected onto the nearest
+rotation), optional ``camera-intrinsics.txt`` (3x3; default fx = fy = 585, cx = 320, cy = 240). Frame ``k``
+is at ``k / 30`` s. Colour and depth come from two unregistered cameras: the images are given as they are
+with ``K`` of the depth camera (the frame of the depth images and of the ground truth); ``attnloop-slam``
+applies the Kinect v1 rig by default (:data:`slam.options.KINECT_V1_RIG`).
 
-Frames are found from the colour files at open time (one directory listing); images and poses are read
-only when a frame is requested. A pose file with non-finite entries (7-Scenes marks lost tracking so)
-means "no ground truth" for that frame. A pose file that cannot be a pose (text, not UTF-8, not 16
-numbers, a last row other than ``0 0 0 1``, a rotation block that is not a rotation: singular values
-outside ``1 +- 0.01`` or a reflection, e.g. all zeros; a translation beyond
-:data:`~slam.input_checks.MAX_COORDINATE`) also gives "no ground truth", with a
-:class:`~slam.io.sequence.DatasetWarning` naming the file: the frame keeps its images for tracking, and
-such a pose is never read as the identity. ``camera-intrinsics.txt`` must hold a pinhole matrix
-(:func:`~slam.io.frame.check_intrinsics`), else :class:`~slam.io.sequence.DatasetError`.
+A pose file with non-finite entries (lost tracking) means "no ground truth" for that frame; so does one that
+cannot be a pose (text, not UTF-8, not 16 numbers, a last row other than ``0 0 0 1``, a rotation block with
+singular values outside ``1 +- 0.01`` or a reflection, a translation beyond
+:data:`~slam.input_checks.MAX_COORDINATE`), with a :class:`~slam.io.sequence.DatasetWarning` naming the file.
+``camera-intrinsics.txt`` must hold a pinhole matrix, else :class:`~slam.io.sequence.DatasetError`.
 """
 from __future__ import annotations
 
@@ -58,8 +50,7 @@ _COLOR_RE = re.compile(r"^frame-(\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
 _PREFERENCE = {"png": 0, "jpg": 1, "jpeg": 1}  # lossless first when both exist
 
 
-# a rotation block whose singular values are further than this from 1 is not a rotation (redkitchen's
-# KinectFusion rotations are within 2e-4)
+# a rotation block whose singular values are further than this from 1 is not a rotation
 _ROTATION_TOLERANCE = 0.01
 
 
@@ -99,11 +90,8 @@ def _pose_problems(T: np.ndarray) -> list:
 
 
 def _matrices_to_poses(T: np.ndarray) -> np.ndarray:
-    """``(N, 4, 4)`` camera-to-world matrices (checked by :func:`_pose_problems`) -> ``(N, 7)`` poses.
-
-    The KinectFusion rotations are not exactly orthonormal (determinants 0.9995-0.9999 in redkitchen):
-    they are replaced by the nearest rotation (polar decomposition, ``U V^T``) before conversion.
-    """
+    """``(N, 4, 4)`` camera-to-world matrices (checked by :func:`_pose_problems`) -> ``(N, 7)`` poses, each
+    rotation block replaced by the nearest rotation (KinectFusion's are not exactly orthonormal)."""
     Tt = torch.from_numpy(np.ascontiguousarray(T, dtype=np.float64))
     R = rotmat_project(Tt[:, :3, :3])
     return se3_from_matrix(torch.cat([R, Tt[:, :3, 3:]], dim=-1)).numpy()

@@ -1,38 +1,24 @@
 """TUM RGB-D sequences (Sturm et al. 2012): ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``.
 
 * Frames are the rgb/depth pairs associated as TUM's ``associate.py`` does (nearest timestamps less than
-  0.02 s apart, greedy one-to-one), in rgb-time order; a frame's timestamp is its rgb stamp.
-* Ground truth of a frame: a ``groundtruth.txt`` pose less than 0.02 s from the rgb stamp, by the same
-  greedy one-to-one association (no interpolation): all frame/pose pairs closer than 0.02 s are taken in
-  order of increasing time difference, each frame and each pose at most once, so a pose taken by one
-  frame is not given to its neighbour even when it is that neighbour's nearest (frames 1.000, 1.010 and
-  1.030 with poses at 1.005 and 1.100: the 1.005 pose, none, none). This is exactly the pairing of TUM's
-  ``evaluate_ate.py`` (its ``associate``, offset 0); frames left without a pose have none. A subset of
-  the frames (``seq[::2]``, a run's ``--frame-step``) is paired among itself, as ``evaluate_ate.py``
-  pairs the trajectory of those frames. Ground truth that matches no frame at all (a clock offset) is
-  kept as read (:attr:`TUMSequence.groundtruth_trajectory`) so a run can say so.
-* rgb entries without a depth entry within 0.02 s are not frames (logged at INFO, with their count).
-* Timestamps are seconds. Lists (and ``groundtruth.txt``) whose spacing says milli-, micro- or nanoseconds
-  (:func:`slam.input_checks.timestamp_unit`: a median spacing of 10 or more) are converted, with one
-  warning; frame numbers (whole numbers 1 apart) are a :class:`DatasetError`.
-* The depth of the first frames is checked against ``depth_scale``
-  (:func:`slam.io.sequence.check_depth_units`): millimetres read as 1/5000 m are a :class:`DatasetError`
-  naming the scale to give.
-* Depth: 16-bit PNG, 5000 units per metre, 0 = invalid -> float32 metres with 0.0 invalid.
-* Intrinsics: ``K`` if given, else ``camera`` (``fr1``/``fr2``/``fr3``/``ros``), else a
-  ``calibration.txt`` in the folder (first non-comment line ``fx fy cx cy`` [+ 5 distortion
-  coefficients], as the synthetic sequences of :mod:`slam.synthetic` write it; with a colour/depth rig it
-  holds the depth camera's: docs/pipeline.md), else inferred from the
-  folder name as given (a symlink's own name first, then its target's: ``freiburg1`` / ``fr1`` ...),
-  else the ROS default with a warning. TUM recommends the
-  ROS default *without undistortion* for the pre-registered depth; ``undistort=True`` remaps both
-  images with the fr1/fr2 distortion instead (depth by nearest neighbour).
+  0.02 s apart, greedy one-to-one), in rgb-time order; a frame's timestamp is its rgb stamp. rgb entries
+  without a depth entry are not frames (logged at INFO).
+* Ground truth of a frame: a ``groundtruth.txt`` pose less than 0.02 s from its rgb stamp, by the same greedy
+  one-to-one association as TUM's ``evaluate_ate.py`` (no interpolation); a subset of the frames
+  (``seq[::2]``) is paired among itself. Ground truth that matches no frame is kept as read
+  (:attr:`TUMSequence.groundtruth_trajectory`).
+* Timestamps are seconds; milli-, micro- or nanoseconds (:func:`slam.input_checks.timestamp_unit`) are
+  converted with one warning; frame numbers are a :class:`DatasetError`.
+* Depth: 16-bit PNG, ``depth_scale`` (5000) units per metre, 0 = invalid -> float32 metres; the first frames'
+  depth is checked against the scale (:func:`slam.io.sequence.check_depth_units`).
+* Intrinsics: ``K`` if given, else ``camera`` (``fr1``/``fr2``/``fr3``/``ros``), else a ``calibration.txt``
+  in the folder (``fx fy cx cy`` [+ 5 distortion coefficients]), else inferred from the folder name (a
+  symlink's own name first, then its target's), else the ROS default with a warning. ``undistort=True``
+  remaps both images with the fr1/fr2 distortion (depth by nearest neighbour).
 
-List files: ``# comments``, blank lines, ``timestamp filename`` per line: exactly these two fields
-(separated by spaces, tabs or a comma; so a file name cannot hold spaces or commas, and an associated
-``t1 rgb/... t2 depth/...`` list is refused rather than read as its first half); an uncommented
-``timestamp filename`` header before the first entry is skipped.
-A repeated timestamp keeps its last line, as TUM's dictionary-based scripts do.
+List files: ``# comments``, blank lines, ``timestamp filename`` per line, exactly these two fields (separated
+by spaces, tabs or a comma); an uncommented ``timestamp filename`` header is skipped; a repeated timestamp
+keeps its last line, as TUM's scripts do.
 """
 from __future__ import annotations
 
@@ -101,8 +87,7 @@ def tum_camera(name: str) -> TUMCamera:
     """The calibration called ``fr1``/``freiburg1``, ``fr2``, ``fr3`` or ``ros``/``default`` (any case).
 
     Raises:
-        ValueError: an unknown name (:class:`TUMSequence` reports it as a :class:`DatasetError` naming
-            its folder).
+        ValueError: an unknown name.
 
     Example:
         >>> tum_camera("freiburg2").fx, tum_camera("fr4")
@@ -165,11 +150,9 @@ def read_calibration_file(path: Path) -> TUMCamera:
 
 
 def _in_seconds(stamps: np.ndarray, path: Path, converted: list[str], frames: np.ndarray | None = None) -> np.ndarray:
-    """``stamps`` in seconds: milli-, micro- and nanoseconds (by their spacing, :func:`timestamp_unit`) are
-    divided (``converted`` records which file, for one notice); frame numbers are a :class:`DatasetError`.
-
-    ``frames``: the frames' stamps in seconds; given, the unit that puts ``stamps`` within their span wins
-    (motion capture at 120 Hz or more in nanoseconds is spaced like a camera's microseconds)."""
+    """``stamps`` in seconds: milli-, micro- and nanoseconds (:func:`timestamp_unit`) are divided (``converted``
+    records which file); frame numbers are a :class:`DatasetError`. Given the frames' stamps in seconds, the
+    unit that puts ``stamps`` within their span wins (fast motion capture in ns is spaced like microseconds)."""
     unit, per_second, spacing = timestamp_unit(stamps)
     if frames is not None and len(frames) and len(stamps):
         lo, hi = float(frames.min()), float(frames.max())
@@ -194,8 +177,7 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
 
     Raises:
         DatasetNotFoundError: the file does not exist.
-        DatasetError: a malformed line (with its number: not exactly two fields, an empty comma-separated
-            cell, a timestamp that is not a finite number) or no entries at all.
+        DatasetError: a malformed line (with its number) or no entries at all.
     """
     if not path.is_file():
         raise DatasetNotFoundError(path, "list file does not exist")
@@ -281,14 +263,13 @@ class TUMSequence(TimeAssociatedSequence):
         K: ``(3, 3)`` intrinsics overriding ``camera``.
         max_difference: association tolerance in seconds (TUM: 0.02).
         undistort: remap colour (bilinear) and depth (nearest) with the camera's distortion.
-        depth_scale: depth units per metre (default TUM's 5000; 1000 for millimetre PNGs, as many
-            sensors and datasets in this layout write them).
+        depth_scale: depth units per metre (default TUM's 5000; 1000 for millimetre PNGs).
+        check_units: check the first frames' median depth at ``depth_scale``.
 
     Raises:
         DatasetNotFoundError: missing folder, ``rgb.txt`` or ``depth.txt``.
         DatasetError: malformed or empty lists, no rgb/depth pair within ``max_difference``, an unknown
-            ``camera`` (naming the folder), frame numbers for timestamps, depth whose median is not a
-            camera's at ``depth_scale``.
+            ``camera``, frame numbers for timestamps, depth whose median is not a camera's at ``depth_scale``.
         TrajectoryFormatError: a malformed ``groundtruth.txt`` line.
 
     Example:
@@ -306,8 +287,7 @@ class TUMSequence(TimeAssociatedSequence):
             raise DatasetNotFoundError(self.root, "sequence folder does not exist")
         if depth_scale is not None:
             self.depth_scale = check_depth_scale(depth_scale, self.root)
-        # the name as given (a symlink's, which may carry the camera: rgbd_dataset_freiburg2_x -> my_copy);
-        # the target's where the given path has none (".." and the like)
+        # the name as given (a symlink's may carry the camera), the target's where it has none ("..")
         given = self.root.absolute().name
         self.name = given if given not in ("", ".", "..") else self.root.resolve().name
         rgb_stamps, rgb_names = read_file_list(self.root / "rgb.txt")
