@@ -14,6 +14,7 @@
 * :func:`unit_rows`: seeded unit-norm rows, for the keyframe index.
 * :func:`hand_map`, :func:`assert_same_map`: a made-up saved map and map equality, for the map tests.
 * :func:`write_rgbd_bag`: RGB-D frames written as a ROS1 or ROS2 bag with rosbags' writer, for the bag reader.
+* :func:`free_space_distance`: a synthetic camera's clearance from every surface, for the synthetic scenes.
 
 Example:
     >>> import random
@@ -36,8 +37,8 @@ from slam.lie import se3_compose, se3_exp
 from slam.maps import SavedMap
 from slam.odometry.features import FrameFeatures
 
-__all__ = ["COMMAND_START", "MUTATIONS", "TUM_BAG_TOPICS", "condition_head", "mutate", "perturb_trajectory",
-           "script_of", "synopsis_flags", "write_rgbd_bag"]
+__all__ = ["COMMAND_START", "MUTATIONS", "TUM_BAG_TOPICS", "condition_head", "free_space_distance", "mutate",
+           "perturb_trajectory", "script_of", "synopsis_flags", "write_rgbd_bag"]
 
 
 # ------------------------------------------------------------------------------------------ lite nets
@@ -361,3 +362,12 @@ def write_rgbd_bag(path, frames, K, ros2: bool = False, depth_encoding: str = "3
                 d = np.where(depth > 0, depth, np.float32(np.nan)).astype(np.float32)
             writer.write(depth_c, depth_ns, serialize(image(depth_ns, d, depth_encoding), "sensor_msgs/msg/Image"))
     return path
+
+
+def free_space_distance(scene, points: torch.Tensor) -> torch.Tensor:
+    """Signed clearance ``(N,)`` of world points ``(N, 3)`` in a :class:`slam.synthetic.scene.Scene`: > 0 inside
+    the room and outside every object (metres to the nearest surface), < 0 inside an object or outside the room."""
+    from slam.synthetic.scene import box_signed_distance
+
+    sd = box_signed_distance(points, scene.centers, scene.rotations, scene.half_sizes)
+    return torch.where(scene.inside.to(points.device)[None], -sd, sd).min(-1).values

@@ -187,16 +187,6 @@ class BuildingLayout:
         others = [s.name for s in self.spaces if s.design == d and s.name != name]
         return others[0] if others else None
 
-    def space_at(self, xy: np.ndarray) -> str | None:
-        """The space whose wall centre lines enclose world point ``xy`` (None outside the building)."""
-        for s in self.spaces:
-            c, sn = math.cos(math.radians(s.yaw_deg)), math.sin(math.radians(s.yaw_deg))
-            d = np.asarray(xy, np.float64) - s.center
-            lx, ly = c * d[0] + sn * d[1], -sn * d[0] + c * d[1]
-            if abs(lx) <= s.size[0] / 2 and abs(ly) <= s.size[1] / 2:
-                return s.name
-        return None
-
 
 def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
     """The rooms, corridor and doors of a building (see the module docstring).

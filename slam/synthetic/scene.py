@@ -151,13 +151,6 @@ class Scene:
         """Distance ``(N,)`` from world points ``(N, 3)`` to the nearest surface of the scene."""
         return box_signed_distance(points, self.centers, self.rotations, self.half_sizes).abs().min(-1).values
 
-    def free_space_distance(self, points: Tensor) -> Tensor:
-        """Signed clearance ``(N,)``: > 0 inside the room and outside every object (metres to the nearest
-        surface), < 0 inside an object or outside the room."""
-        sd = box_signed_distance(points, self.centers, self.rotations, self.half_sizes)
-        sd = torch.where(self.inside.to(points.device)[None], -sd, sd)
-        return sd.min(-1).values
-
 
 def box_signed_distance(points: Tensor, centers: Tensor, rotations: Tensor, half_sizes: Tensor) -> Tensor:
     """Signed distance ``(N, B)`` from points ``(N, 3)`` to oriented boxes (negative inside).
