@@ -1,8 +1,6 @@
-"""Closed-form least-squares alignment of two point sets (Umeyama 1991; Horn's method gives the same
-rigid solution), in torch, following the device and dtype of the inputs (use float64 for evaluation).
-
-``target ~ s * R @ source + t``: rigid SE(3) with ``s = 1`` by default, Sim(3) with ``with_scale``.
-This is the same estimator as evo's ``geometry.umeyama_alignment`` and TUM's ``evaluate_ate.py``.
+"""Closed-form least-squares alignment of two point sets (Umeyama 1991, as evo's ``geometry.umeyama_alignment``)
+in the device and dtype of the inputs: ``target ~ s * R @ source + t``, rigid SE(3) with ``s = 1`` by default,
+Sim(3) with ``with_scale``.
 
 Example:
     >>> src = torch.randn(10, 3, dtype=torch.float64)

@@ -1,10 +1,9 @@
 """RGB-D sequences recorded as ROS bags (a ROS1 ``.bag`` file, as TUM RGB-D ships them, or a ROS2 bag folder).
 
-Read with rosbags (pure Python, ``pip install attnloop[rosbag]``). Opening scans the colour and depth topics once,
-message by message, keeping only each message's stamps; a frame's two images are decoded when it is requested
-(streamed: memory does not grow with the bag's length). Colour and depth are paired by their header stamps with
-TUM's association (:func:`slam.io.associate.associate`, 20 ms), as TUM's ``associate.py`` pairs ``rgb.txt``
-and ``depth.txt``; the first message of the camera-info topic gives ``K``.
+Read with rosbags (``pip install attnloop[rosbag]``). Opening scans the colour and depth topics once, keeping
+only each message's stamps; a frame's images are decoded when it is requested. Colour and depth are paired by
+their header stamps with TUM's association (:func:`slam.io.associate.associate`); the first message of the
+camera-info topic gives ``K``.
 
 Encodings: colour ``rgb8``, ``bgr8``, ``mono8``; depth ``32FC1`` (metres, NaN = no depth) or ``16UC1``
 (millimetres unless ``depth_scale`` says otherwise, 0 = no depth). A missing topic, another encoding, or a bag

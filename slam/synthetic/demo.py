@@ -67,8 +67,7 @@ def _building(out_dir, trajectory: str, num_frames: int, seed: int, width: int, 
 DEMO_SCENES: dict[str, DemoScene] = {
     "room": DemoScene("one photo-textured 7 x 6 m room, a loop back to the first views",
                       _room, _room_trajectories(), "loop", 300),
-    # 320 x 240 by default: 2400 frames render in ~5 CPU-minutes there, the Kinect sensor model included
-    # (4x that at 640 x 480)
+    # 320 x 240 by default: a quarter of the room's pixels, for 8 times its frames
     "building": DemoScene("four rooms around a corridor, two of them furnished identically (perceptual "
                           "aliasing); a 53 m tour back into the first room through its other door",
                           _building, ("tour",), "tour", 2400, min_frames=60, default_size=(320, 240)),

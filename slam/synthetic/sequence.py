@@ -208,10 +208,6 @@ class SyntheticSequence(RGBDSequence):
         }
 
 
-def _list_header(kind: str, name: str) -> list[str]:
-    return [f"# {kind}", f"# file: '{name}'", "# timestamp filename"]
-
-
 def _frame_names(stamps: np.ndarray) -> list[str]:
     """The ``<timestamp>.png`` file names of the frames (1 microsecond resolution, as TUM writes them).
 
@@ -282,15 +278,13 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
     batches = [list(range(s, min(n, s + seq.batch_size))) for s in range(0, n, seq.batch_size)]
     workers = max(1, int(workers))
 
-    def write(idx: list[int], rgb: np.ndarray, raw: np.ndarray) -> None:
+    def task(idx: list[int]) -> None:
+        rgb, raw = seq.render_raw(idx)
         for k, i in enumerate(idx):
             ok = cv2.imwrite(str(out / "rgb" / names[i]), np.ascontiguousarray(rgb[k][:, :, ::-1]))
             ok = ok and cv2.imwrite(str(out / "depth" / names[i]), raw[k])
             if not ok:
                 raise OSError(f"could not write frame {i} into {out}")
-
-    def task(idx: list[int]) -> None:
-        write(idx, *seq.render_raw(idx))
 
     step = max(1, len(batches) // 10)
     with limit_threads(1 if workers > 1 else None):  # the workers share the cores: one thread each
@@ -306,12 +300,10 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
                     if progress and b % step == 0:
                         logger.info("synthetic sequence: %d / %d frames", batches[b][-1] + 1, n)
     stamps = seq.timestamps
-    with open(out / "rgb.txt", "w", encoding="utf-8") as f:
-        f.write("\n".join(_list_header("color images", seq.name)
-                          + [f"{t:.6f} rgb/{nm}" for t, nm in zip(stamps, names)]) + "\n")
-    with open(out / "depth.txt", "w", encoding="utf-8") as f:
-        f.write("\n".join(_list_header("depth maps", seq.name)
-                          + [f"{t:.6f} depth/{nm}" for t, nm in zip(stamps, names)]) + "\n")
+    for sub, kind in (("rgb", "color images"), ("depth", "depth maps")):
+        with open(out / f"{sub}.txt", "w", encoding="utf-8") as f:
+            f.write("\n".join([f"# {kind}", f"# file: '{seq.name}'", "# timestamp filename"]
+                              + [f"{t:.6f} {sub}/{nm}" for t, nm in zip(stamps, names)]) + "\n")
     with open(out / "groundtruth.txt", "w", encoding="utf-8") as f:
         f.write("# ground truth trajectory\n")
         f.write(f"# file: '{seq.name}' (exact: the rendered camera-to-world poses)\n")
