@@ -122,9 +122,7 @@ class SyntheticSequence(RGBDSequence):
                  scene: Scene | None = None, depth_noise_config: DepthNoiseConfig | None = None,
                  image_noise_config: ImageNoiseConfig | None = None, batch_size: int = 4,
                  trajectory_name: str | None = None):
-        if isinstance(trajectory, Trajectory):
-            if trajectory.poses.ndim != 2 or trajectory.poses.shape[-1] != 7:
-                raise ValueError(f"trajectory poses must have shape (N, 7), got {tuple(trajectory.poses.shape)}")
+        if isinstance(trajectory, Trajectory):  # its poses are (N, 7): Trajectory checks them
             self.trajectory = trajectory
             self.trajectory_name = trajectory_name or "custom"
         else:
@@ -156,9 +154,6 @@ class SyntheticSequence(RGBDSequence):
         """Render frames ``indices`` with noise: rgb ``(n, H, W, 3)`` uint8 and raw depth ``(n, H, W)``
         uint16 (5000 per metre, 0 = invalid), exactly the PNGs :func:`generate_sequence` writes."""
         idx = [int(i) for i in indices]
-        if not idx:
-            return (np.zeros((0, self.height, self.width, 3), np.uint8),
-                    np.zeros((0, self.height, self.width), np.uint16))
         K = torch.from_numpy(self.K)
         out = render_frames(self.scene, K, torch.from_numpy(self._poses[idx]), self.height, self.width)
         seeds = [self.seed * 100_003 + i for i in idx]  # per-frame noise: independent of batching
