@@ -67,6 +67,12 @@ def _finite_numbers(values) -> tuple | None:
     return out if ok else None
 
 
+def check_bool(owner: str, name: str, value) -> None:
+    """ValueError naming ``owner.name`` unless ``value`` is True or False."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{owner}.{name} must be True or False, got {value!r}")
+
+
 def check_choice(owner: str, name: str, value, allowed: tuple) -> None:
     """ValueError naming ``owner.name`` unless ``value`` is one of ``allowed`` (exactly: case matters)."""
     if not isinstance(value, str) or value not in allowed:
