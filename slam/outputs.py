@@ -2,16 +2,13 @@
 
 * ``trajectory.txt``: TUM format, one pose per input frame, in input order;
 * ``loops.txt``: one accepted loop per line, ``timestamp_a timestamp_b`` (the two keyframes' own stamps);
-* ``metrics.json``: the run's :class:`slam.report.RunReport` (``ate_rmse``, null with ``ate_unavailable``
-  saying why when there is nothing to evaluate, ``num_loops``, ``fps``, the backbone used and more); valid JSON
-  (no NaN or Infinity: a value that is not finite is written as null and named in ``non_finite``);
+* ``metrics.json``: the run's :class:`slam.report.RunReport`, valid JSON (a value that is not finite is written
+  as null and named in ``non_finite``);
 * ``trajectory.png``: the estimate (and ground truth) seen from above with the loop edges;
 * ``map.ply``: the keyframes' coloured points placed with the optimised poses (:mod:`slam.mapping`).
 
-Each file is written under a temporary name in the same folder and renamed into place
-(:func:`replace_atomically`), so a reader never sees half a file; :func:`prepare_output_dir` checks the
-folder before a run and removes the previous run's outputs, so that files left after a failed run are never
-the previous run's looking current.
+Each file is written under a temporary name and renamed into place (:func:`replace_atomically`);
+:func:`prepare_output_dir` checks the folder before a run and removes the previous run's outputs.
 """
 from __future__ import annotations
 
@@ -91,9 +88,6 @@ def replace_atomically(path: Path, data: bytes) -> None:
 def prepare_output_dir(out_dir: str | os.PathLike, names=OUTPUT_FILES, clear: bool = True) -> Path:
     """Check (and create) an output folder before a run, and remove the previous run's outputs.
 
-    Done before the work starts, so that a folder that cannot take the outputs costs nothing, and a run
-    that fails later leaves no earlier outputs looking like its own.
-
     Args:
         out_dir: the folder (created with its parents).
         names: the output file names that must be free for regular files.
@@ -132,13 +126,8 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
                   map_ply: bool | None = None) -> Path:
     """Write ``trajectory.txt``, ``loops.txt``, ``metrics.json``, ``trajectory.png`` and ``map.ply`` into ``out_dir``.
 
-    Each file is written to a temporary name and renamed; the folder is checked first
-    (:func:`prepare_output_dir` without clearing), so a name taken by a folder fails before anything is
-    written.
-
-    A failed run (``report.status == "failed"``: fewer frames tracked than
-    ``SLAMConfig.min_tracked_fraction``) writes ``metrics.json`` alone, with ``failure`` saying why, and
-    removes the other outputs an earlier run left: poses that are constant-velocity guesses are no result.
+    A failed run (``report.status == "failed"``) writes ``metrics.json`` alone, with ``failure`` saying why, and
+    removes the other outputs an earlier run left.
 
     Args:
         run: a :class:`slam.pipeline.RunResult` (:func:`slam.report.evaluate_run` is called if its ``report``
