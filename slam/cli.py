@@ -161,7 +161,7 @@ def _relocalisation_summary(r: dict) -> str:
 
 def run_command(args: argparse.Namespace) -> int:
     """Everything after parsing: checks, demo generation, the run, its evaluation and outputs."""
-    from slam.config import describe_rig, rig_of
+    from slam.config import describe_rig
     from slam.io import open_sequence
     from slam.options import UsageError, apply_laps, given_settings, reader_options, resolve_settings
     from slam.outputs import prepare_output_dir
@@ -227,7 +227,7 @@ def run_command(args: argparse.Namespace) -> int:
         cam = camera_of(seq)
         named = f"{cam['name']}, " if cam["name"] else ""
         print(f"camera: {named}intrinsics {' '.join(f'{v:g}' for v in cam['intrinsics'])}; "
-              f"{describe_rig(rig_of(cfg))}", file=sys.stderr)
+              f"{describe_rig(cfg)}", file=sys.stderr)
     from slam.threads import limit_threads
 
     with limit_threads(cfg.threads):  # the command's one thread limit: the run, its evaluation and its outputs

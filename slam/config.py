@@ -37,7 +37,7 @@ from slam.odometry.config import OdometryConfig, RegistrationConfig, check_bool,
 
 __all__ = ["REGISTERED", "BackendConfig", "CameraRig", "ConfigError", "DescriptorConfig", "LoopClosureConfig",
            "SLAMConfig", "UsageError", "check_device", "check_intrinsics", "check_sequence_intrinsics",
-           "config_from_dict", "config_to_dict", "describe_rig", "load_config", "override", "rig_of",
+           "config_from_dict", "config_to_dict", "describe_rig", "override", "read_toml",
            "save_config", "toml_text"]
 
 
@@ -371,13 +371,8 @@ def _merge(config, changes: Mapping, prefix: str):
 
 
 def config_from_dict(data: Mapping, base=None, prefix: str = ""):
-    """The config of nested tables (a TOML file's) over ``base`` (None: ``SLAMConfig()``; any config
-    dataclass), every nested config built with :func:`dataclasses.replace` (and so checked).
-
-    Args:
-        data: ``{field: value or table}``.
-        base: the config the tables change.
-        prefix: the key of ``base`` in the file, for the messages (``"run."``).
+    """The config of nested tables ``{field: value or table}`` (a TOML file's) over ``base`` (None:
+    ``SLAMConfig()``; any config dataclass); ``prefix``: the key of ``base`` in the messages (``"run."``).
 
     Raises:
         ConfigError: an unknown key or a bad value, naming the key.
@@ -460,19 +455,6 @@ def read_toml(path) -> dict:
         raise ConfigError(f"{p}: not a valid TOML file: {e}") from None
 
 
-def load_config(path, base: Optional[SLAMConfig] = None) -> SLAMConfig:
-    """The :class:`SLAMConfig` of a TOML file (:func:`config_from_dict`).
-
-    Raises:
-        ConfigError: ``FILE: <what is wrong>``, naming the key.
-    """
-    data = read_toml(path)
-    try:
-        return config_from_dict(data, base)
-    except ConfigError as e:
-        raise ConfigError(f"{path}: {e}") from None
-
-
 def save_config(config: SLAMConfig, path, extra: Optional[Mapping] = None) -> Path:
     """Write ``config`` (plus ``extra`` tables, e.g. a command's run options) as TOML to ``path``."""
     data = config_to_dict(config)
@@ -495,12 +477,10 @@ class CameraRig:
         rgb_intrinsics: ``(fx, fy, cx, cy)`` of the colour camera when it is not the depth camera
             (the frames' ``K`` is then the depth camera's); None: registered (colour pixel = depth pixel).
         rgb_from_depth: position (m) of the depth camera in the colour camera's frame (parallel axes).
-        source: where the rig came from (reported in ``metrics.json``).
     """
 
     rgb_intrinsics: tuple[float, float, float, float] | None
     rgb_from_depth: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    source: str = ""
 
     @property
     def registered(self) -> bool:
@@ -508,7 +488,7 @@ class CameraRig:
 
 
 #: Colour and depth already registered (TUM RGB-D, the synthetic sequences).
-REGISTERED = CameraRig(None, (0.0, 0.0, 0.0), "")
+REGISTERED = CameraRig(None)
 
 
 def check_intrinsics(fx: float, fy: float, cx: float, cy: float, what: str) -> None:
@@ -533,20 +513,13 @@ def check_sequence_intrinsics(sequence) -> None:
     check_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], what=where)
 
 
-def rig_of(config: SLAMConfig) -> CameraRig:
-    """The rig a config tracks with (for reports)."""
+def describe_rig(config: SLAMConfig) -> str:
+    """One line for the log and the report: the rig a config tracks with (registered, or the colour intrinsics
+    and the baseline)."""
     feats = config.odometry.features
     if feats.rgb_intrinsics is None:
-        return REGISTERED
-    return CameraRig(tuple(feats.rgb_intrinsics), tuple(feats.rgb_from_depth_translation), "")
-
-
-def describe_rig(rig: CameraRig) -> str:
-    """One line for the log: ``registered`` or the colour intrinsics and the baseline."""
-    if rig.registered:
-        return f"registered colour and depth ({rig.source})" if rig.source else "registered colour and depth"
-    fx, fy, cx, cy = rig.rgb_intrinsics
-    tx, ty, tz = rig.rgb_from_depth
-    src = f" ({rig.source})" if rig.source else ""
-    return (f"unregistered rig{src}: colour camera {fx:g} {fy:g} {cx:g} {cy:g}, depth camera at "
-            f"{tx:g} {ty:g} {tz:g} m in it")
+        return "registered colour and depth"
+    fx, fy, cx, cy = feats.rgb_intrinsics
+    tx, ty, tz = feats.rgb_from_depth_translation
+    return (f"unregistered rig: colour camera {fx:g} {fy:g} {cx:g} {cy:g}, depth camera at {tx:g} {ty:g} {tz:g} m "
+            "in it")

@@ -73,7 +73,7 @@ __all__ = [
 
 #: The Kinect v1 of 7-Scenes: the colour camera's nominal intrinsics, the depth camera 2.5 cm to its side (chosen
 #: by the odometry's inlier RMSE, without ground truth: docs/results.md, "SLAM accuracy").
-KINECT_V1_RIG = CameraRig((525.0, 525.0, 320.0, 240.0), (-0.025, 0.0, 0.0), "7-Scenes default: Kinect v1")
+KINECT_V1_RIG = CameraRig((525.0, 525.0, 320.0, 240.0), (-0.025, 0.0, 0.0))
 
 
 def dataset_rig(sequence) -> CameraRig:
@@ -431,10 +431,8 @@ def _rig_settings(settings: dict, file_data: Mapping, sequence, run: RunOptions)
                if k in file_data.get("odometry", {}).get("features", {})}
     if in_file:
         return  # the file's rig (a run's config.toml holds the rig it ran with), under any flag given
-    if run.intrinsics is not None:
-        default = CameraRig(None, (0.0, 0.0, 0.0), "--intrinsics")
-    else:
-        default = dataset_rig(sequence) if sequence is not None else REGISTERED
+    # --intrinsics, a registered camera's, replace the dataset's and its rig
+    default = REGISTERED if run.intrinsics is not None or sequence is None else dataset_rig(sequence)
     if given_k is None and given_t is None:
         if not default.registered:
             settings[_K_KEY], settings[_T_KEY] = default.rgb_intrinsics, default.rgb_from_depth

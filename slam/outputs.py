@@ -85,13 +85,12 @@ def replace_atomically(path: Path, data: bytes) -> None:
         raise
 
 
-def prepare_output_dir(out_dir: str | os.PathLike, names=OUTPUT_FILES, clear: bool = True) -> Path:
+def prepare_output_dir(out_dir: str | os.PathLike, clear: bool = True) -> Path:
     """Check (and create) an output folder before a run, and remove the previous run's outputs.
 
     Args:
         out_dir: the folder (created with its parents).
-        names: the output file names that must be free for regular files.
-        clear: remove existing regular files of those names.
+        clear: remove existing regular files of the names in :data:`OUTPUT_FILES`.
 
     Raises:
         OutputDirError: ``out_dir`` is a file, cannot be created or written to, or an output name is taken
@@ -110,7 +109,7 @@ def prepare_output_dir(out_dir: str | os.PathLike, names=OUTPUT_FILES, clear: bo
         os.unlink(probe)
     except OSError as e:
         raise OutputDirError(f"--out {out}: cannot write into the folder ({e.strerror or e})") from None
-    taken = [n for n in names if (out / n).exists() or (out / n).is_symlink()]
+    taken = [n for n in OUTPUT_FILES if (out / n).exists() or (out / n).is_symlink()]
     for name in taken:
         p = out / name
         if p.is_symlink() or not p.is_file():
@@ -122,8 +121,7 @@ def prepare_output_dir(out_dir: str | os.PathLike, names=OUTPUT_FILES, clear: bo
     return out
 
 
-def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
-                  map_ply: bool | None = None) -> Path:
+def write_outputs(run: RunResult, out_dir: str | os.PathLike) -> Path:
     """Write ``trajectory.txt``, ``loops.txt``, ``metrics.json``, ``trajectory.png`` and ``map.ply`` into ``out_dir``.
 
     A failed run (``report.status == "failed"``) writes ``metrics.json`` alone, with ``failure`` saying why, and
@@ -133,8 +131,6 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
         run: a :class:`slam.pipeline.RunResult` (:func:`slam.report.evaluate_run` is called if its ``report``
             is None).
         out_dir: created if needed.
-        plot: also draw ``trajectory.png``.
-        map_ply: write ``map.ply`` (default: when the run kept a map).
 
     Returns:
         the output folder.
@@ -151,35 +147,27 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
                                                   + "\n").encode("utf-8"))
         return out
     res = run.result
-    write_map = run.map is not None if map_ply is None else bool(map_ply)
-    if write_map and run.map is None:
-        raise ValueError("map_ply=True but the run kept no map (config.map.enabled was False)")
     # everything is computed before the first file is replaced
     traj_text = _tum_text(res.trajectory)
     loops_text = "# timestamp_a timestamp_b  (accepted loop closures between keyframes)\n" + "".join(
         f"{lp.timestamp_a:.6f} {lp.timestamp_b:.6f}\n" for lp in res.loops)
     ply = None
-    if write_map:
+    if run.map is not None:
         pts, cols = run.map_cloud if run.map_cloud is not None else run.map.points(res.keyframe_trajectory.poses)
         buf = io.BytesIO()
         write_ply(buf, pts, cols, comment=f"attnloop map of {run.sequence_name}: {len(run.map)} keyframes, "
                                           f"voxel {run.map.config.voxel_size:g} m, the trajectory's frame")
         ply = buf.getvalue()
-    png = None
-    if plot:
-        from slam.eval import plot_trajectory
+    from slam.eval import plot_trajectory
 
-        loops = torch.tensor([[lp.timestamp_a, lp.timestamp_b] for lp in res.loops], dtype=torch.float64
-                             ).reshape(-1, 2)
-        ate_txt = f", ATE {report.ate_rmse * 100:.1f} cm" if report.ate_rmse is not None else ""
-        # aligned to the ground truth as the ATE is, unless the ATE found no alignment (it says why)
-        img = plot_trajectory(None, res.trajectory, run.groundtruth, loops=loops,
-                              align=report.ate_rmse is not None,
-                              title=f"{run.sequence_name}: {len(res.loops)} loops{ate_txt}")
-        ok, enc = cv2.imencode(".png", img)
-        if not ok:
-            raise OSError("could not encode trajectory.png")
-        png = enc.tobytes()
+    loops = torch.tensor([[lp.timestamp_a, lp.timestamp_b] for lp in res.loops], dtype=torch.float64).reshape(-1, 2)
+    ate_txt = f", ATE {report.ate_rmse * 100:.1f} cm" if report.ate_rmse is not None else ""
+    # aligned to the ground truth as the ATE is, unless the ATE found no alignment (it says why)
+    img = plot_trajectory(None, res.trajectory, run.groundtruth, loops=loops, align=report.ate_rmse is not None,
+                          title=f"{run.sequence_name}: {len(res.loops)} loops{ate_txt}")
+    ok, png = cv2.imencode(".png", img)
+    if not ok:
+        raise OSError("could not encode trajectory.png")
     bad: list[str] = []
     metrics = json_safe(metrics, bad=bad)
     if bad:
@@ -189,8 +177,7 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
     replace_atomically(out / "loops.txt", loops_text.encode("utf-8"))
     if ply is not None:
         replace_atomically(out / "map.ply", ply)
-    if png is not None:
-        replace_atomically(out / "trajectory.png", png)
+    replace_atomically(out / "trajectory.png", png.tobytes())
     replace_atomically(out / "metrics.json", (metrics_text + "\n").encode("utf-8"))  # last: the run is complete
     return out
 

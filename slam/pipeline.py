@@ -88,9 +88,9 @@ class RunResult:
 
 
 def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
-             progress: bool | None = None, descriptor: torch.nn.Module | None = None,
-             prefetch: int = 2, frame_step: int = 1, frames: tuple[int, int] | None = None,
-             save_map: str | os.PathLike | None = None, map_dir=None, observer=None) -> RunResult:
+             progress: bool | None = None, descriptor: torch.nn.Module | None = None, frame_step: int = 1,
+             frames: tuple[int, int] | None = None, save_map: str | os.PathLike | None = None, map_dir=None,
+             observer=None) -> RunResult:
     """Track every frame of ``sequence`` (or every ``frame_step``-th) and optimise.
 
     A frame that cannot be read is skipped with a warning and placed by constant velocity. torch, BLAS and
@@ -103,7 +103,6 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         progress: show a progress bar on stderr, with frames/s and the time left (tqdm; None: when stderr is a
             terminal).
         descriptor: a prebuilt descriptor model (else built from the config).
-        prefetch: frames decoded ahead in background threads.
         frame_step: use input frames ``0, N, 2N, ...`` of those (the trajectory and metrics are on them).
         frames: ``(start, end)``: the recording is input frames ``start .. end - 1`` only, re-numbered from
             0 (``max_frames`` and ``frame_step`` then apply to them).
@@ -138,12 +137,12 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         raise ValueError(f"frame_step must be an integer >= 1, got {frame_step!r}")
     check_sequence_intrinsics(sequence)
     with limit_threads(config.threads):  # the caller's counts are restored when the run ends (or fails)
-        return _run(sequence, config, max_frames, progress, descriptor, prefetch, frame_step, frames, save_map,
-                    map_dir, observer)
+        return _run(sequence, config, max_frames, progress, descriptor, frame_step, frames, save_map, map_dir,
+                    observer)
 
 
 def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, progress: bool | None,
-         descriptor: torch.nn.Module | None, prefetch: int, frame_step: int, frames: tuple[int, int] | None,
+         descriptor: torch.nn.Module | None, frame_step: int, frames: tuple[int, int] | None,
          save_map, map_dir, observer) -> RunResult:
     if frames is not None:
         start, end = (int(v) for v in frames)
@@ -182,8 +181,8 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     bar = tqdm(range(n), desc=sequence.name, unit="frame", mininterval=0.2, disable=None if progress is None
                else not progress)
     # the reader threads decode ahead and extract each frame's features; an unreadable frame comes as its error
-    ahead = functools.partial(_features_ahead, config.odometry.features) if prefetch > 0 else None
-    frames = view.frames(on_error="yield", prefetch=prefetch, then=ahead)
+    ahead = functools.partial(_features_ahead, config.odometry.features)
+    frames = view.frames(on_error="yield", prefetch=2, then=ahead)
     # the keyframes' points are computed in a worker thread, in keyframe order (the map is only read at the end)
     map_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-map") if cloud is not None else None
     map_jobs = []
@@ -198,10 +197,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
             if isinstance(frame_or_error, FrameReadError):
                 state = slam.skip(i, float(stamps[i]), str(frame_or_error))
             else:
-                features = None
-                if ahead is not None:
-                    frame_or_error, features = frame_or_error
-                frame = frame_or_error
+                frame, features = frame_or_error
                 state = slam.track(frame, features=features)
                 if cloud is not None:
                     recent.append(frame)

@@ -11,7 +11,7 @@ from typing import Any, Optional
 
 import torch
 
-from slam.config import SLAMConfig, describe_rig, rig_of
+from slam.config import SLAMConfig, describe_rig
 from slam.system import SLAMResult
 
 __all__ = ["RunReport", "evaluate_run", "loop_ground_truth_for_step", "loop_precision_recall", "loop_worker_metrics"]
@@ -167,7 +167,7 @@ def evaluate_run(run, loop_gt=None) -> RunReport:
                             "dim": run.descriptor_dim, "fusion": recipe["fusion"], "seed": d.seed,
                             "weights": None if d.weights is None else str(d.weights), "recipe": recipe}
                            if run.config.loop.enabled else None)
-        m["rig"] = describe_rig(rig_of(run.config))
+        m["rig"] = describe_rig(run.config)
     if run.camera is not None:
         m["camera"] = run.camera
     if run.map is not None:
@@ -234,15 +234,15 @@ def evaluate_run(run, loop_gt=None) -> RunReport:
                 m[key] = {"error": str(e)}
         cfg = loop_gt or loop_ground_truth_for_step(run.frame_step)
         m["loop_ground_truth"] = dataclasses.asdict(cfg)
-        gt = run.gt_poses_per_frame
-        # an accepted loop is judged by closeness alone (the frame-gap rule is for counting revisits)
-        pairs = torch.tensor([[lp.frame_b, lp.frame_a] for lp in res.loops], dtype=torch.long).reshape(-1, 2)
-        judged = is_true_loop(gt, pairs, dataclasses.replace(cfg, min_frame_gap=1))
+        def judge(loops):  # an accepted loop is judged by closeness alone (the frame gap counts revisits)
+            pairs = torch.tensor([[lp.frame_b, lp.frame_a] for lp in loops], dtype=torch.long).reshape(-1, 2)
+            return is_true_loop(run.gt_poses_per_frame, pairs, dataclasses.replace(cfg, min_frame_gap=1))
+
+        judged = judge(res.loops)
         m["loops_true"] = int(judged.sum())
         m["loops_false"] = int((~judged).sum())
         hyp = res.loop_hypotheses
-        pairs = torch.tensor([[lp.frame_b, lp.frame_a] for lp in hyp], dtype=torch.long).reshape(-1, 2)
-        true_hyp = is_true_loop(gt, pairs, dataclasses.replace(cfg, min_frame_gap=1)).tolist()
+        true_hyp = judge(hyp).tolist()
         m["loop_hypotheses_false"] = {s: sum(lp.status == s and not t for lp, t in zip(hyp, true_hyp))
                                       for s in ("kept", "inconsistent", "switched_off")}
         m["loop_detection"] = loop_precision_recall(run, cfg)

@@ -30,7 +30,6 @@ from slam.lie import se3_between, se3_compose, se3_inv, so3_log
 from slam.loop import DriftLimits, drift_limits, maximum_clique, pairwise_consistent, verify_candidate
 from slam.maps.config import RelocalisationConfig
 from slam.maps.format import SavedMap
-from slam.odometry.depth_registration import depth_camera_poses, rig_pose
 from slam.odometry.features import is_binary_detector
 
 logger = logging.getLogger(__name__)
@@ -174,18 +173,6 @@ def _run_dim(slam, info: dict) -> int | None:
         if isinstance(d, (int, np.integer)) and not isinstance(d, bool) and d > 0:
             return int(d)
     return None
-
-
-def _output_rig(config) -> Tensor | None:
-    """``T_rgb_depth`` when the system reports depth-camera poses (as :class:`slam.system.RGBDSLAM` decides)."""
-    f = config.odometry.features
-    if f.rgb_intrinsics is not None and any(float(x) != 0.0 for x in f.rgb_from_depth_translation):
-        return rig_pose(f.rgb_from_depth_translation)
-    return None
-
-
-def _to_output(poses: Tensor, T_rgb_depth: Tensor | None) -> Tensor:
-    return poses if T_rgb_depth is None else depth_camera_poses(poses, T_rgb_depth)
 
 
 def capture_map(slam, sequence=None) -> SavedMap:
@@ -485,9 +472,8 @@ class MapRelocaliser:
         rep.links = [self.links[k] for k in group]
         poses = self._merge(est, rep.links)
         self._merged_poses = poses
-        T_out = _output_rig(self.slam.config)
-        old_kf = _to_output(est, T_out)
-        new_kf = _to_output(poses, T_out)
+        old_kf = self.slam.depth_camera_pose(est)
+        new_kf = self.slam.depth_camera_pose(poses)
         correction = se3_compose(new_kf, se3_inv(old_kf))  # per keyframe: old world -> map world
         kf_of_frame = torch.tensor([max(k, 0) for k in self._frame_kf], dtype=torch.long)
         traj = result.trajectory
@@ -495,7 +481,7 @@ class MapRelocaliser:
             raise RuntimeError(f"{kf_of_frame.numel()} frames observed, the result has {traj.poses.shape[0]}")
         moved = (se3_compose(correction[kf_of_frame], traj.poses) if kf_of_frame.numel() and correction.shape[0]
                  else traj.poses)
-        align_out = _to_output(self._alignment, T_out)
+        align_out = self.slam.depth_camera_pose(self._alignment)
         odo = result.odometry_trajectory
         merged = dataclasses.replace(
             result, trajectory=Trajectory(traj.timestamps, moved),
