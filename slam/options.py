@@ -505,14 +505,14 @@ def resolve_settings(settings: Optional[Mapping[str, Any]] = None, file=None, se
     return RunSettings(config, run, apply_laps(run, sequence) if sequence is not None else None)
 
 
-def check_weights_file(weights, what: str = "--weights") -> None:
-    """Refuse a checkpoint path that is not a readable file, before any work (the error names the path)."""
+def check_weights_file(weights) -> None:
+    """Refuse a ``--weights`` path that is not a readable file, before any work (the error names the path)."""
     if weights is None:
         return
     p = Path(weights).expanduser()
     if not p.exists():
-        raise UsageError(f"{what} {weights}: no such file")
+        raise UsageError(f"--weights {weights}: no such file")
     if not p.is_file():
-        raise UsageError(f"{what} {weights}: not a file (expected a checkpoint such as vgg16-397923af.pth)")
+        raise UsageError(f"--weights {weights}: not a file (expected a checkpoint such as vgg16-397923af.pth)")
     if not os.access(p, os.R_OK):
-        raise UsageError(f"{what} {weights}: the file is not readable")
+        raise UsageError(f"--weights {weights}: the file is not readable")
