@@ -65,11 +65,11 @@ def build_parser() -> argparse.ArgumentParser:
     scenes = "; ".join(f"{k}: {v.description}" for k, v in DEMO_SCENES.items())
     g.add_argument("--demo-scene", choices=tuple(DEMO_SCENES), default=None,
                    help=f"{scenes} (default: {DEFAULT_DEMO_SCENE})")
+    room = DEMO_SCENES[DEFAULT_DEMO_SCENE]
     g.add_argument("--demo-trajectory", default=None, metavar="NAME",
-                   help="camera path (room: " + ", ".join(DEMO_SCENES[DEFAULT_DEMO_SCENE].trajectories)
-                        + "; default: the scene's own)")
+                   help="camera path (room: " + ", ".join(room.trajectories) + "; default: the scene's own)")
     g.add_argument("--demo-frames", type=positive_int, default=None, metavar="N",
-                   help=f"sequence length (default: the scene's, room: {DEMO_SCENES[DEFAULT_DEMO_SCENE].default_frames})")
+                   help=f"sequence length (default: the scene's, room: {room.default_frames})")
     g.add_argument("--demo-size", type=positive_int, nargs=2, default=None, metavar=("W", "H"),
                    help="image size (default: the scene's, room 640 480, building 320 240; 320 240 renders ~4x "
                         "faster than 640 480)")

@@ -297,8 +297,8 @@ def _read_manifest(folder: Path) -> dict:
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise MapFormatError(f"{mpath}: not valid JSON ({exc})") from exc
     if not isinstance(manifest, dict) or manifest.get("format") != MAP_FORMAT:
-        raise MapFormatError(f"{mpath}: 'format' is {manifest.get('format') if isinstance(manifest, dict) else None!r}, "
-                             f"expected {MAP_FORMAT!r}")
+        fmt = manifest.get("format") if isinstance(manifest, dict) else None
+        raise MapFormatError(f"{mpath}: 'format' is {fmt!r}, expected {MAP_FORMAT!r}")
     version = manifest.get("version")
     if not isinstance(version, int) or isinstance(version, bool) or version < 1:
         raise MapFormatError(f"{mpath}: 'version' must be a positive integer, got {version!r}")
@@ -363,7 +363,8 @@ def load_map(path) -> SavedMap:
     for m in range(M):
         s = slice(int(off[m]), int(off[m + 1]))
         feats.append(FrameFeatures(torch.from_numpy(kf["keypoints"][s].astype(np.float32)),
-                                   torch.from_numpy(kf["orb"][s].copy()), torch.from_numpy(kf["points"][s].astype(np.float32)),
+                                   torch.from_numpy(kf["orb"][s].copy()),
+                                   torch.from_numpy(kf["points"][s].astype(np.float32)),
                                    torch.from_numpy(kf["valid"][s].astype(bool)),
                                    torch.from_numpy(kf["sigma_px"][s].astype(np.float32)),
                                    torch.from_numpy(kf["K"][m].astype(np.float64)),
@@ -400,9 +401,11 @@ def load_map(path) -> SavedMap:
                              f"({len(np.unique(ids))} distinct index ids); each keyframe must be in it exactly once")
     D = kf["descriptor"].shape[1]
     if M and index.dim != D:  # else the first map query fails, mid-run, without naming the map
-        raise MapFormatError(f"{files['index']}: descriptors of {index.dim} values, the keyframes' ({kp.name}) have {D}")
+        raise MapFormatError(f"{files['index']}: descriptors of {index.dim} values, the keyframes' ({kp.name}) "
+                             f"have {D}")
     info = {k: v for k, v in manifest.items() if k not in ("format", "version", "files")}
-    return SavedMap(torch.from_numpy(kf["pose"].astype(np.float64)), torch.from_numpy(kf["frame_index"].astype(np.int64)),
+    return SavedMap(torch.from_numpy(kf["pose"].astype(np.float64)),
+                    torch.from_numpy(kf["frame_index"].astype(np.int64)),
                     torch.from_numpy(kf["timestamp"].astype(np.float64)), torch.from_numpy(ids),
                     torch.from_numpy(kf["descriptor"].astype(np.float32)), feats, np.ascontiguousarray(kf["rgb"]),
                     edges, index, info, folder)

@@ -56,7 +56,6 @@ class MapLink:
         num_inliers: RANSAC inliers of the verification.
         T_ab: ``(7,)`` float64 measured relative pose (tracked camera).
         information: ``(6, 6)`` float64 (unscaled).
-        kept: in the consistent group that placed the recording (set by :meth:`MapRelocaliser.finish`).
     """
 
     map_kf: int
@@ -66,7 +65,6 @@ class MapLink:
     num_inliers: int
     T_ab: Tensor
     information: Tensor
-    kept: bool = False
 
 
 @dataclass
@@ -275,7 +273,8 @@ class MapRelocaliser:
                 remedy = ""
                 if key == "num_rnn":
                     remedy = ("; the default descriptor has no RNNs (loop.descriptor.num_rnn = 0): "
-                              f"set loop.descriptor.num_rnn = {theirs[key]!r} to use this map, or record its session again")
+                              f"set loop.descriptor.num_rnn = {theirs[key]!r} to use this map, or record its "
+                              "session again")
                 raise MapMismatchError(f"{where}: the map was made with descriptor {key}={theirs[key]!r}, this run "
                                        f"uses {mine[key]!r}; its index cannot be searched with another descriptor"
                                        + remedy)
@@ -347,11 +346,6 @@ class MapRelocaliser:
     def relocalised(self) -> bool:
         """The recording has been placed in the map (so far)."""
         return self._alignment is not None
-
-    @property
-    def alignment(self) -> Tensor | None:
-        """``(7,)`` the current placement of the recording's (tracked-camera) world in the map's, or None."""
-        return None if self._alignment is None else self._alignment.clone()
 
     # ------------------------------------------------------------------------------------------
     def observe(self, state) -> None:
@@ -467,8 +461,6 @@ class MapRelocaliser:
             self._alignment = None
             return result, rep
         self._place(group, est)
-        for k in group:
-            self.links[k].kept = True
         rep.links = [self.links[k] for k in group]
         poses = self._merge(est, rep.links)
         self._merged_poses = poses
@@ -528,7 +520,8 @@ class MapRelocaliser:
         info["sessions"] = sessions
         return SavedMap(torch.cat([base.poses, self._merged_poses]), torch.cat([base.frame_index, own.frame_index]),
                         torch.cat([base.timestamps, own.timestamps]), ids, descriptors,
-                        list(base.features) + list(own.features), np.concatenate([base.rgb, own.rgb]), edges, index, info)
+                        list(base.features) + list(own.features), np.concatenate([base.rgb, own.rgb]), edges, index,
+                        info)
 
     def _merge(self, est: Tensor, links: list[MapLink]) -> Tensor:
         """Optimise the recording's keyframe graph with its map links, the linked map keyframes fixed."""
@@ -553,8 +546,9 @@ class MapRelocaliser:
             g.add_loop(e.i + U, e.j + U, e.T_ij, e.information)
         for lk in links:
             g.add_loop(slot[lk.map_kf], lk.kf + U, lk.T_ab, lk.information)
-        backend = PoseGraphBackend(slam.config.backend, {EdgeKind.ODOMETRY: slam.config.backend.odometry_information_scale,
-                                                         EdgeKind.LOOP: slam.config.loop.information_scale})
+        scales = {EdgeKind.ODOMETRY: slam.config.backend.odometry_information_scale,
+                  EdgeKind.LOOP: slam.config.loop.information_scale}
+        backend = PoseGraphBackend(slam.config.backend, scales)
         with slam.timer("map_merge"):
             res = backend.optimize(g, fixed=list(range(U)))
         logger.info("merged into the map: %d keyframes, %d map links, chi2 %.3g -> %.3g, %s", est.shape[0], len(links),
