@@ -160,10 +160,12 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike) -> Path:
         ply = buf.getvalue()
     from slam.eval import plot_trajectory
 
-    loops = torch.tensor([[lp.timestamp_a, lp.timestamp_b] for lp in res.loops], dtype=torch.float64).reshape(-1, 2)
+    loops = torch.tensor([[lp.timestamp_a, lp.timestamp_b] for lp in res.loops], dtype=torch.float64
+                         ).reshape(-1, 2)
     ate_txt = f", ATE {report.ate_rmse * 100:.1f} cm" if report.ate_rmse is not None else ""
     # aligned to the ground truth as the ATE is, unless the ATE found no alignment (it says why)
-    img = plot_trajectory(None, res.trajectory, run.groundtruth, loops=loops, align=report.ate_rmse is not None,
+    img = plot_trajectory(None, res.trajectory, run.groundtruth, loops=loops,
+                          align=report.ate_rmse is not None,
                           title=f"{run.sequence_name}: {len(res.loops)} loops{ate_txt}")
     ok, png = cv2.imencode(".png", img)
     if not ok:

@@ -347,6 +347,11 @@ class MapRelocaliser:
         """The recording has been placed in the map (so far)."""
         return self._alignment is not None
 
+    @property
+    def alignment(self) -> Tensor | None:
+        """``(7,)`` the current placement of the recording's (tracked-camera) world in the map's, or None."""
+        return None if self._alignment is None else self._alignment.clone()
+
     # ------------------------------------------------------------------------------------------
     def observe(self, state) -> None:
         """Record a frame's :class:`~slam.system.FrameState`; query the map with its new keyframes."""
