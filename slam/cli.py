@@ -1,12 +1,8 @@
 """``attnloop-slam``: run the attention-guided RGB-D SLAM on a sequence folder or the built-in demo.
 
-Argument parsing and error reporting only: :func:`slam.options.resolve_settings` builds the config (the
-defaults, then a ``--config`` TOML file, then the flags), :mod:`slam.pipeline` runs, :mod:`slam.report`
-evaluates and :mod:`slam.outputs` writes;
-the run's effective config goes beside its outputs as ``config.toml`` (``--config OUT/config.toml``
-repeats the run). Every error a user can cause (a wrong folder, a bad
-flag, missing weights, an output folder that cannot take the files) is one line on stderr and exit
-code 2, before the work starts wherever it can be found then.
+Argument parsing and error reporting only: :func:`slam.options.resolve_settings` builds the config,
+:mod:`slam.pipeline` runs, :mod:`slam.report` evaluates and :mod:`slam.outputs` writes. Every error a user can
+cause is one line on stderr and exit code 2, before the work starts wherever it can be found then.
 """
 from __future__ import annotations
 
@@ -69,11 +65,11 @@ def build_parser() -> argparse.ArgumentParser:
     scenes = "; ".join(f"{k}: {v.description}" for k, v in DEMO_SCENES.items())
     g.add_argument("--demo-scene", choices=tuple(DEMO_SCENES), default=None,
                    help=f"{scenes} (default: {DEFAULT_DEMO_SCENE})")
+    room = DEMO_SCENES[DEFAULT_DEMO_SCENE]
     g.add_argument("--demo-trajectory", default=None, metavar="NAME",
-                   help="camera path (room: " + ", ".join(DEMO_SCENES[DEFAULT_DEMO_SCENE].trajectories)
-                        + "; default: the scene's own)")
+                   help="camera path (room: " + ", ".join(room.trajectories) + "; default: the scene's own)")
     g.add_argument("--demo-frames", type=positive_int, default=None, metavar="N",
-                   help=f"sequence length (default: the scene's, room: {DEMO_SCENES[DEFAULT_DEMO_SCENE].default_frames})")
+                   help=f"sequence length (default: the scene's, room: {room.default_frames})")
     g.add_argument("--demo-size", type=positive_int, nargs=2, default=None, metavar=("W", "H"),
                    help="image size (default: the scene's, room 640 480, building 320 240; 320 240 renders ~4x "
                         "faster than 640 480)")
@@ -113,7 +109,7 @@ def _check_demo_args(args) -> None:
 def _generate_demo(args, out: Path, seed: int) -> Path:
     """The demo sequence in OUT/demo_sequence, generated under a temporary name and renamed into place."""
     from slam.options import UsageError
-    from slam.synthetic.demo import generate_demo
+    from slam.synthetic.demo import DEMO_SCENES, generate_demo
 
     target = out / "demo_sequence"
     if target.exists() or target.is_symlink():
@@ -121,6 +117,11 @@ def _generate_demo(args, out: Path, seed: int) -> Path:
             raise UsageError(f"{target} exists and is not a generated demo sequence; move it away or choose "
                              "another --out")
         shutil.rmtree(target)  # a previous demo: regenerated, so it always matches this run's options
+    if not args.quiet:
+        scene = DEMO_SCENES[args.demo_scene]
+        path, n = args.demo_trajectory or scene.default_trajectory, args.demo_frames or scene.default_frames
+        print(f"generating the synthetic '{args.demo_scene}' sequence ({path}, {n} frames, {args.demo_size[0]}x"
+              f"{args.demo_size[1]}) into {target} ...", file=sys.stderr)
     tmp = out / f".demo_sequence.{os.getpid()}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
@@ -160,16 +161,9 @@ def _relocalisation_summary(r: dict) -> str:
 
 def run_command(args: argparse.Namespace) -> int:
     """Everything after parsing: checks, demo generation, the run, its evaluation and outputs."""
+    from slam.config import describe_rig
     from slam.io import open_sequence
-    from slam.options import (
-        UsageError,
-        apply_laps,
-        describe_rig,
-        given_settings,
-        reader_options,
-        resolve_settings,
-        rig_of,
-    )
+    from slam.options import UsageError, apply_laps, given_settings, reader_options, resolve_settings
     from slam.outputs import prepare_output_dir
     from slam.pipeline import camera_of
 
@@ -183,14 +177,10 @@ def run_command(args: argparse.Namespace) -> int:
         raise UsageError("give either a SEQUENCE folder or --demo, not both")
     if not args.demo and not args.sequence:
         raise UsageError("a SEQUENCE folder is required (or --demo)")
-    if args.demo and "run.camera" in settings:
-        raise UsageError("--camera applies to TUM sequence folders, not to --demo")
-    if args.demo and "run.intrinsics" in settings:
-        raise UsageError("--intrinsics applies to a SEQUENCE folder, not to --demo (it writes its own)")
-    if args.demo and "run.depth_check" in settings:
-        raise UsageError("--no-depth-check applies to a SEQUENCE folder, not to --demo (it writes its own)")
-    if args.demo and "run.depth_scale" in settings:
-        raise UsageError("--depth-scale applies to a SEQUENCE folder, not to --demo (it writes its own)")
+    for key, flag in (("run.camera", "--camera"), ("run.intrinsics", "--intrinsics"),
+                      ("run.depth_check", "--no-depth-check"), ("run.depth_scale", "--depth-scale")):
+        if args.demo and key in settings:
+            raise UsageError(f"{flag} applies to a SEQUENCE folder, not to --demo (it writes its own camera)")
     if (args.save_map is not None or args.map_dir is not None) and settings.get("loop.enabled") is False:
         raise UsageError("--save-map and --map need loop closure (its descriptors and verification); drop --no-loop")
     if settings.get("relocalisation.localize"):
@@ -217,8 +207,7 @@ def run_command(args: argparse.Namespace) -> int:
     if not cfg.loop.enabled and (args.save_map is not None or args.map_dir is not None):
         raise UsageError("--save-map and --map need loop closure (its descriptors and verification); the config "
                          "sets loop.enabled = false")
-    # The loop descriptor is built here, not in run_slam: weights that cannot be found (or downloaded) or
-    # cannot be loaded stop the command before the previous run's outputs are removed or a demo rendered.
+    # built here, not in run_slam: weights that cannot be loaded stop the command before any output is touched
     descriptor = None
     if cfg.loop.enabled:
         from slam.loop.closer import build_descriptor
@@ -231,14 +220,14 @@ def run_command(args: argparse.Namespace) -> int:
         spec = dataclasses.replace(spec, config=override(cfg, {"loop.descriptor.backbone": descriptor.backbone_name}))
     spec.save(out / "config.toml")  # the effective settings: --config of this file repeats the run
     if args.demo:
-        seq_dir = _generate_demo_logged(args, out, cfg.loop.descriptor.seed)
+        seq_dir = _generate_demo(args, out, cfg.loop.descriptor.seed)
         seq = open_sequence(seq_dir, **reader_options(opts))
         seq = apply_laps(opts, seq)
     if not args.quiet:
         cam = camera_of(seq)
         named = f"{cam['name']}, " if cam["name"] else ""
         print(f"camera: {named}intrinsics {' '.join(f'{v:g}' for v in cam['intrinsics'])}; "
-              f"{describe_rig(rig_of(cfg))}", file=sys.stderr)
+              f"{describe_rig(cfg)}", file=sys.stderr)
     from slam.threads import limit_threads
 
     with limit_threads(cfg.threads):  # the command's one thread limit: the run, its evaluation and its outputs
@@ -297,23 +286,8 @@ def _run_and_write(args: argparse.Namespace, seq, cfg, opts, descriptor, saved, 
     return 0
 
 
-def _generate_demo_logged(args, out: Path, seed: int) -> Path:
-    from slam.synthetic.demo import DEMO_SCENES
-
-    scene = DEMO_SCENES[args.demo_scene]
-    n = args.demo_frames or scene.default_frames
-    if not args.quiet:
-        trajectory = args.demo_trajectory or scene.default_trajectory
-        print(f"generating the synthetic '{args.demo_scene}' sequence ({trajectory}, {n} frames, "
-              f"{args.demo_size[0]}x{args.demo_size[1]}) into {out / 'demo_sequence'} ...", file=sys.stderr)
-    return _generate_demo(args, out, seed)
-
-
 def user_error_message(exc: BaseException) -> str | None:
-    """The one-line message of an error a user can cause, or None for anything else (a bug: traceback).
-
-    Shared by the examples so that they report errors as the command does.
-    """
+    """The one-line message of an error a user can cause, or None for anything else (a bug: traceback)."""
     from attnloop.backbones.weights import WeightsNotFoundError
     from slam.io import DatasetError
     from slam.io.images import FrameReadError
@@ -330,10 +304,7 @@ def user_error_message(exc: BaseException) -> str | None:
 
 def call_reporting_errors(prog: str, fn, *args, **kwargs) -> int:
     """``fn(*args, **kwargs)``'s exit code; an error a user can cause (:func:`user_error_message`) is one
-    line on stderr, ``prog: message``, and exit code 2; Ctrl-C is 130; anything else (a bug) propagates.
-
-    The command and the examples run through it, so that they report errors alike.
-    """
+    line on stderr, ``prog: message``, and exit code 2; Ctrl-C is 130; anything else (a bug) propagates."""
     try:
         return fn(*args, **kwargs)
     except BrokenPipeError:  # the reader of stdout went away (| head): not an error of the input

@@ -1,13 +1,8 @@
 """Typed configuration of the whole SLAM system (every default commented), and its TOML form.
 
-Every config is a frozen dataclass checked when it is built (its ``__post_init__``, with the
-``check_*`` helpers of :mod:`slam.odometry.config`: a ValueError naming ``Class.field``). Change one
-with :func:`dataclasses.replace`, or a nested field by its dotted path with :func:`override`.
-
-TOML (``attnloop-slam --config FILE.toml``; every run writes its effective ``config.toml``): one table
-per nested config, keyed as the fields (``[loop.descriptor]``, ``fusion = "eam"``); a key left out keeps
-its default. TOML has no null: a field set to None is written ``"None"``. :func:`config_from_dict`
-refuses an unknown key or a bad value with one line naming it.
+Every config is a frozen dataclass checked when built (a ValueError naming ``Class.field``); change a nested
+field by its dotted path with :func:`override`. TOML (``--config FILE.toml``; every run writes its
+``config.toml``): one table per nested config, a key left out keeps its default, None is written ``"None"``.
 
 Example:
     >>> cfg = override(SLAMConfig(), {"loop.descriptor.fusion": "eam", "threads": 2})
@@ -38,11 +33,11 @@ from slam.loop.acceptance import DriftBoundConfig
 from slam.loop.consistency import ConsistencyConfig
 from slam.mapping import MapConfig
 from slam.maps.config import RelocalisationConfig
-from slam.odometry.config import OdometryConfig, RegistrationConfig, check_choice, check_int, check_number
+from slam.odometry.config import OdometryConfig, RegistrationConfig, check_bool, check_choice, check_int, check_number
 
 __all__ = ["REGISTERED", "BackendConfig", "CameraRig", "ConfigError", "DescriptorConfig", "LoopClosureConfig",
            "SLAMConfig", "UsageError", "check_device", "check_intrinsics", "check_sequence_intrinsics",
-           "config_from_dict", "config_to_dict", "describe_rig", "load_config", "override", "rig_of",
+           "config_from_dict", "config_to_dict", "describe_rig", "override", "read_toml",
            "save_config", "toml_text"]
 
 
@@ -99,12 +94,10 @@ class DescriptorConfig:
     """
 
     preset: str = "default"  # attnloop.presets.PRESETS: the measured default, the paper's, its baseline's
-    # "vgg16" (the paper's) when its weights are found, else "efficientnet_lite0" (offline); with the paper's
-    # presets "auto" is VGG16, its weights required
+    # "auto": "vgg16" when its weights are found (always with the paper's presets), else "efficientnet_lite0"
     backbone: str = "auto"
     fusion: Optional[str] = None  # "none" | "dam" | "eam" | "gaf" | "ega"; None: the preset's (DAM; guclu2019 none)
-    # Random RNNs after the pooling (num_rnn * 64 dims). None: the preset's: 0 for the default (the
-    # regional code itself is the descriptor, 2560 dims: docs/method.md), 16 (1024 dims) for the others.
+    # random RNNs after the pooling (num_rnn * 64 dims); None: the preset's (0 for the default, 16 for the others)
     num_rnn: Optional[int] = None
     seed: int = 0  # seed of the random RNN weights when there are RNNs (same seed, same descriptor)
     pretrained: bool = True  # ImageNet weights; False = seeded random weights (plumbing tests only)
@@ -120,8 +113,7 @@ class DescriptorConfig:
         if self.num_rnn is not None:
             check_int(n, "num_rnn", self.num_rnn, 0)
         check_int(n, "seed", self.seed, 0)
-        if not isinstance(self.pretrained, bool):
-            raise ValueError(f"{n}.pretrained must be True or False, got {self.pretrained!r}")
+        check_bool(n, "pretrained", self.pretrained)
         if self.weights is not None and not isinstance(self.weights, (str, Path)):
             raise ValueError(f"{n}.weights must be a file path or None, got {self.weights!r}")
         check_device(self.device, f"{n}.device")
@@ -295,13 +287,10 @@ class SLAMConfig:
     map: MapConfig = field(default_factory=MapConfig)  # map.ply of a run (slam.pipeline)
     # placing a recording in a saved map (run_slam(map_dir=...), --map; slam.maps)
     relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
-    # torch, BLAS and OpenCV threads during slam.pipeline.run_slam (None leaves them as they are). One: the work
-    # is many small per-frame operations, and a pool larger than the free cores slows a run many times over
-    # (benchmarks/threads.py, docs/devices.md).
+    # torch, BLAS and OpenCV threads during slam.pipeline.run_slam (None leaves them as they are; slam.threads)
     threads: Optional[int] = 1
-    # a run that tracks fewer than this fraction of its frames failed (slam.pipeline: no trajectory written,
-    # exit code 1): its poses are constant-velocity guesses, and frames that all fail alike are an input error
-    # (8-bit depth, swapped lists, undecodable images), not a hard sequence
+    # a run that tracks fewer than this fraction of its frames failed (no trajectory written, exit code 1): the
+    # frames failing alike is an input error (8-bit depth, swapped lists), not a hard sequence
     min_tracked_fraction: float = 0.1
 
     def __post_init__(self) -> None:
@@ -309,7 +298,7 @@ class SLAMConfig:
 
         check_threads(self.threads, "SLAMConfig.threads")
         check_number("SLAMConfig", "min_tracked_fraction", self.min_tracked_fraction, 0.0, 1.0)
-        # the map's depth range with the odometry's filling a None (MapConfig checks its own fields itself)
+        # the map's depth range with the odometry's filling a None
         f = self.odometry.features
         lo = f.min_depth if self.map.min_depth is None else self.map.min_depth
         hi = f.max_depth if self.map.max_depth is None else self.map.max_depth
@@ -382,13 +371,8 @@ def _merge(config, changes: Mapping, prefix: str):
 
 
 def config_from_dict(data: Mapping, base=None, prefix: str = ""):
-    """The config of nested tables (a TOML file's) over ``base`` (None: ``SLAMConfig()``; any config
-    dataclass), every nested config built with :func:`dataclasses.replace` (and so checked).
-
-    Args:
-        data: ``{field: value or table}``.
-        base: the config the tables change.
-        prefix: the key of ``base`` in the file, for the messages (``"run."``).
+    """The config of nested tables ``{field: value or table}`` (a TOML file's) over ``base`` (None:
+    ``SLAMConfig()``; any config dataclass); ``prefix``: the key of ``base`` in the messages (``"run."``).
 
     Raises:
         ConfigError: an unknown key or a bad value, naming the key.
@@ -471,19 +455,6 @@ def read_toml(path) -> dict:
         raise ConfigError(f"{p}: not a valid TOML file: {e}") from None
 
 
-def load_config(path, base: Optional[SLAMConfig] = None) -> SLAMConfig:
-    """The :class:`SLAMConfig` of a TOML file (:func:`config_from_dict`).
-
-    Raises:
-        ConfigError: ``FILE: <what is wrong>``, naming the key.
-    """
-    data = read_toml(path)
-    try:
-        return config_from_dict(data, base)
-    except ConfigError as e:
-        raise ConfigError(f"{path}: {e}") from None
-
-
 def save_config(config: SLAMConfig, path, extra: Optional[Mapping] = None) -> Path:
     """Write ``config`` (plus ``extra`` tables, e.g. a command's run options) as TOML to ``path``."""
     data = config_to_dict(config)
@@ -506,12 +477,10 @@ class CameraRig:
         rgb_intrinsics: ``(fx, fy, cx, cy)`` of the colour camera when it is not the depth camera
             (the frames' ``K`` is then the depth camera's); None: registered (colour pixel = depth pixel).
         rgb_from_depth: position (m) of the depth camera in the colour camera's frame (parallel axes).
-        source: where the rig came from (reported in ``metrics.json``).
     """
 
     rgb_intrinsics: tuple[float, float, float, float] | None
     rgb_from_depth: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    source: str = ""
 
     @property
     def registered(self) -> bool:
@@ -519,7 +488,7 @@ class CameraRig:
 
 
 #: Colour and depth already registered (TUM RGB-D, the synthetic sequences).
-REGISTERED = CameraRig(None, (0.0, 0.0, 0.0), "")
+REGISTERED = CameraRig(None)
 
 
 def check_intrinsics(fx: float, fy: float, cx: float, cy: float, what: str) -> None:
@@ -544,20 +513,13 @@ def check_sequence_intrinsics(sequence) -> None:
     check_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], what=where)
 
 
-def rig_of(config: SLAMConfig) -> CameraRig:
-    """The rig a config tracks with (for reports)."""
+def describe_rig(config: SLAMConfig) -> str:
+    """One line for the log and the report: the rig a config tracks with (registered, or the colour intrinsics
+    and the baseline)."""
     feats = config.odometry.features
     if feats.rgb_intrinsics is None:
-        return REGISTERED
-    return CameraRig(tuple(feats.rgb_intrinsics), tuple(feats.rgb_from_depth_translation), "")
-
-
-def describe_rig(rig: CameraRig) -> str:
-    """One line for the log: ``registered`` or the colour intrinsics and the baseline."""
-    if rig.registered:
-        return f"registered colour and depth ({rig.source})" if rig.source else "registered colour and depth"
-    fx, fy, cx, cy = rig.rgb_intrinsics
-    tx, ty, tz = rig.rgb_from_depth
-    src = f" ({rig.source})" if rig.source else ""
-    return (f"unregistered rig{src}: colour camera {fx:g} {fy:g} {cx:g} {cy:g}, depth camera at "
-            f"{tx:g} {ty:g} {tz:g} m in it")
+        return "registered colour and depth"
+    fx, fy, cx, cy = feats.rgb_intrinsics
+    tx, ty, tz = feats.rgb_from_depth_translation
+    return (f"unregistered rig: colour camera {fx:g} {fy:g} {cx:g} {cy:g}, depth camera at {tx:g} {ty:g} {tz:g} m "
+            "in it")

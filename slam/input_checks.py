@@ -1,20 +1,12 @@
 """Checks every reader of files from the wild shares: UTF-8 text, finite and sane numbers, quaternions.
 
-* :func:`read_text_lines`: the readers of the project's text formats (TUM lists and trajectories,
-  7-Scenes pose and intrinsics files, g2o graphs) read through it, so a byte that is not UTF-8 (a
-  Latin-1 comment, a corrupted or binary file) gives one :class:`TextDecodeError` naming the file, the
-  1-based line and the byte, which each reader re-raises as its own named error (``DatasetError``,
-  ``TrajectoryFormatError``, ``G2OFormatError``). A UTF-8 byte-order mark at the start is dropped; lines
-  end at ``\\n``, ``\\r\\n`` or ``\\r`` (the universal newlines of Python's ``open``, so line numbers are
-  those an editor shows).
-* :data:`MAX_COORDINATE`: the largest position coordinate (metres) a reader accepts. No map is larger,
-  and a value like ``1e300`` would overflow when squared (an ATE of ``inf``, a JSON file with
-  ``Infinity``).
-* :func:`timestamp_unit`: the unit timestamps are in, from their spacing (seconds, milli-, micro-,
-  nanoseconds, or frame numbers), so that a reader converts them or refuses them instead of reading
-  nanoseconds as seconds (every time window, 3 s between loop keyframes say, then means nothing).
-* :func:`unit_quaternions`: normalisation that neither overflows (``1e200 1e200 0 0`` is a valid
-  quaternion, not ``[0, 0, 0, 0]``) nor underflows, and says which quaternions are zero.
+* :func:`read_text_lines`: every reader of the project's text formats reads through it, so a byte that is not
+  UTF-8 gives one :class:`TextDecodeError` naming the file, the 1-based line and the byte;
+* :data:`MAX_COORDINATE`: the largest position coordinate (metres) a reader accepts (``1e300`` would overflow
+  when squared);
+* :func:`timestamp_unit`: the unit timestamps are in, from their spacing, so that nanoseconds are not read as
+  seconds;
+* :func:`unit_quaternions`: normalisation that neither overflows nor underflows, and says which are zero.
 
 Example:
     >>> import io
@@ -44,9 +36,7 @@ PathOrFile = Union[str, "os.PathLike[str]", IO[str], IO[bytes]]
 
 _NEWLINE = re.compile(r"\r\n|\r|\n")
 
-# metres: larger than any map (2.6x the distance to the Moon), small enough that squares and sums of
-# positions stay exact to ~1e-7 m and far from overflow
-MAX_COORDINATE = 1e9
+MAX_COORDINATE = 1e9  # metres: larger than any map, small enough that squares of positions stay far from overflow
 # a quaternion shorter than this is "zero" (TUM files print 4 decimals: real ones have norm ~1)
 _MIN_QUATERNION_NORM = 1e-6
 
@@ -125,9 +115,8 @@ def read_text_lines(source: PathOrFile) -> Tuple[str, List[str]]:
 def unit_quaternions(q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """Unit quaternions ``(N, 4)`` from finite quaternions ``q (N, 4)``, and which of them are zero.
 
-    The norm is computed on ``q / max|q_k|``, so neither ``1e200`` (whose square overflows) nor ``1e-200``
-    (whose square underflows) is lost; a quaternion with norm below ``1e-6`` is reported as zero (its
-    row of the result is then meaningless). The sign is kept.
+    The norm is computed on ``q / max|q_k|`` (no overflow nor underflow); a quaternion with norm below ``1e-6``
+    is reported as zero (its row of the result is then meaningless). The sign is kept.
 
     Returns:
         ``(unit (N, 4) float64, zero (N,) bool)``.
@@ -143,8 +132,7 @@ def unit_quaternions(q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 
 #: Units of time by name, in units per second.
 TIME_UNITS = {"seconds": 1.0, "milliseconds": 1e3, "microseconds": 1e6, "nanoseconds": 1e9}
-# (unit, the smallest median spacing read as that unit). The boundaries split the frame rates of cameras,
-# 0.1-100 Hz, without overlap: seconds 0.01-10, milliseconds 10-1e4, microseconds 1e4-1e7, nanoseconds 1e7-1e10.
+# (unit, the smallest median spacing read as that unit): the boundaries split camera rates, 0.1-100 Hz, without overlap
 _STAMP_UNITS = (("nanoseconds", 1e7), ("microseconds", 1e4), ("milliseconds", 10.0))
 FRAME_NUMBERS = "frame numbers"
 

@@ -6,16 +6,9 @@ flags with :func:`add_run_arguments`; :func:`given_settings` reads the ones type
 :class:`RunSettings`: the :class:`slam.config.SLAMConfig` and the :class:`RunOptions` of the reader and
 the run loop. Library callers pass the same ``{key: value}`` mapping; nobody builds an argparse namespace.
 
-Adding a flag is one line in :data:`OPTIONS`: ``Option("--laps", "run.laps", "frames", "help", type=positive_int)``
-(a key ``a.b.c`` sets ``SLAMConfig().a.b.c``; ``run.x`` sets :class:`RunOptions`' ``x``, which needs
-the field too). Its value is checked where the field is (the config's ``__post_init__``); the argparse
-``type`` only turns the text into a value.
-
-Dataset-aware defaults: the colour/depth rig comes from the folder (:func:`dataset_rig`). A 7-Scenes
-folder gets the Kinect v1 rig (colour intrinsics 525 525 320 240, the depth camera at -0.025 0 0 m in
-the colour camera; chosen without ground truth by the odometry's inlier RMSE, see docs/pipeline.md),
-as a TUM folder gets its camera from its name. ``--rgb-intrinsics`` / ``--rgb-from-depth`` (or the
-config file's ``odometry.features`` rig) override it, ``--registered`` says colour pixel = depth pixel.
+Adding a flag is one line in :data:`OPTIONS` (a key ``a.b.c`` sets ``SLAMConfig().a.b.c``; ``run.x`` sets
+:class:`RunOptions`' ``x``). Its value is checked where the field is; the argparse ``type`` only parses the text.
+The colour/depth rig defaults to the dataset's (:func:`dataset_rig`); the flags or the config file override it.
 
 Example:
     >>> s = resolve_settings({"odometry.features.rgb_intrinsics": (525, 525, 320, 240), "run.frame_step": 3})
@@ -26,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import numbers
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -48,19 +42,15 @@ from slam.config import (
     check_sequence_intrinsics,
     config_from_dict,
     config_to_dict,
-    describe_rig,
     override,
     read_toml,
-    rig_of,
     save_config,
 )
-from slam.odometry.config import check_int, check_number
+from slam.odometry.config import check_bool, check_int, check_number
 
 __all__ = [
     "KINECT_V1_RIG",
     "OPTIONS",
-    "REGISTERED",
-    "CameraRig",
     "Option",
     "RunOptions",
     "RunSettings",
@@ -68,11 +58,8 @@ __all__ = [
     "add_run_arguments",
     "apply_laps",
     "check_device",
-    "check_intrinsics",
-    "check_sequence_intrinsics",
     "check_weights_file",
     "dataset_rig",
-    "describe_rig",
     "finite_float",
     "frame_range",
     "given_settings",
@@ -81,14 +68,12 @@ __all__ = [
     "positive_int",
     "reader_options",
     "resolve_settings",
-    "rig_of",
 ]
 
 
-#: The Kinect v1 of 7-Scenes: the colour camera's nominal intrinsics, and the depth camera 2.5 cm to its
-#: side (the sign and size chosen by the inlier RMSE of the odometry, no ground truth needed; its effect on the
-#: ATE: docs/results.md, "SLAM accuracy").
-KINECT_V1_RIG = CameraRig((525.0, 525.0, 320.0, 240.0), (-0.025, 0.0, 0.0), "7-Scenes default: Kinect v1")
+#: The Kinect v1 of 7-Scenes: the colour camera's nominal intrinsics, the depth camera 2.5 cm to its side (chosen
+#: by the odometry's inlier RMSE, without ground truth: docs/results.md, "SLAM accuracy").
+KINECT_V1_RIG = CameraRig((525.0, 525.0, 320.0, 240.0), (-0.025, 0.0, 0.0))
 
 
 def dataset_rig(sequence) -> CameraRig:
@@ -100,6 +85,7 @@ def dataset_rig(sequence) -> CameraRig:
         if isinstance(seq, SevenScenesSequence):
             return KINECT_V1_RIG
     return REGISTERED
+
 
 @dataclass(frozen=True)
 class RunOptions:
@@ -132,16 +118,11 @@ class RunOptions:
         if self.max_frames is not None:
             check_int(n, "max_frames", self.max_frames, 1)
         if self.frames is not None:
-            ok = isinstance(self.frames, (tuple, list)) and len(self.frames) == 2
-            if ok:
-                try:
-                    check_int(n, "frames[0]", self.frames[0], 0)
-                    check_int(n, "frames[1]", self.frames[1], 1)
-                except ValueError:
-                    ok = False
-            if not ok or self.frames[1] <= self.frames[0]:
-                raise ValueError(f"{n}.frames must be [start, end] with 0 <= start < end, got {self.frames!r}")
-            object.__setattr__(self, "frames", tuple(self.frames))
+            f = self.frames
+            if not (isinstance(f, (tuple, list)) and len(f) == 2 and all(isinstance(v, numbers.Integral) for v in f)
+                    and not any(isinstance(v, bool) for v in f) and 0 <= f[0] < f[1]):
+                raise ValueError(f"{n}.frames must be [start, end] with 0 <= start < end, got {f!r}")
+            object.__setattr__(self, "frames", tuple(f))
         if self.camera is not None and not isinstance(self.camera, str):  # the name is the reader's to check
             raise ValueError(f"{n}.camera must be a TUM camera name such as 'fr1', got {self.camera!r}")
         if self.depth_scale is not None:
@@ -151,16 +132,14 @@ class RunOptions:
                 raise ValueError(f"{n}.intrinsics must be [fx, fy, cx, cy], got {self.intrinsics!r}")
             check_intrinsics(*self.intrinsics, what=f"{n}.intrinsics")
             object.__setattr__(self, "intrinsics", tuple(float(v) for v in self.intrinsics))
-        if not isinstance(self.depth_check, bool):
-            raise ValueError(f"{n}.depth_check must be true or false, got {self.depth_check!r}")
+        check_bool(n, "depth_check", self.depth_check)
         for name in ("rgb_topic", "depth_topic", "camera_info_topic", "ground_truth", "connect", "rrd"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, str) and value):
                 raise ValueError(f"{n}.{name} must be a non-empty string, got {value!r}")
         if self.intrinsics is not None and self.camera is not None:
             raise ValueError("--intrinsics and --camera both give the camera's intrinsics: drop one of them")
-        if not isinstance(self.viewer, bool):
-            raise ValueError(f"{n}.viewer must be true or false, got {self.viewer!r}")
+        check_bool(n, "viewer", self.viewer)
         if self.viewer and self.connect is not None:
             raise ValueError("--viewer spawns a viewer and --connect streams to a running one: give one of them")
 
@@ -452,10 +431,8 @@ def _rig_settings(settings: dict, file_data: Mapping, sequence, run: RunOptions)
                if k in file_data.get("odometry", {}).get("features", {})}
     if in_file:
         return  # the file's rig (a run's config.toml holds the rig it ran with), under any flag given
-    if run.intrinsics is not None:
-        default = CameraRig(None, (0.0, 0.0, 0.0), "--intrinsics")
-    else:
-        default = dataset_rig(sequence) if sequence is not None else REGISTERED
+    # --intrinsics, a registered camera's, replace the dataset's and its rig
+    default = REGISTERED if run.intrinsics is not None or sequence is None else dataset_rig(sequence)
     if given_k is None and given_t is None:
         if not default.registered:
             settings[_K_KEY], settings[_T_KEY] = default.rgb_intrinsics, default.rgb_from_depth
@@ -528,14 +505,14 @@ def resolve_settings(settings: Optional[Mapping[str, Any]] = None, file=None, se
     return RunSettings(config, run, apply_laps(run, sequence) if sequence is not None else None)
 
 
-def check_weights_file(weights, what: str = "--weights") -> None:
-    """Refuse a checkpoint path that is not a readable file, before any work (the error names the path)."""
+def check_weights_file(weights) -> None:
+    """Refuse a ``--weights`` path that is not a readable file, before any work (the error names the path)."""
     if weights is None:
         return
     p = Path(weights).expanduser()
     if not p.exists():
-        raise UsageError(f"{what} {weights}: no such file")
+        raise UsageError(f"--weights {weights}: no such file")
     if not p.is_file():
-        raise UsageError(f"{what} {weights}: not a file (expected a checkpoint such as vgg16-397923af.pth)")
+        raise UsageError(f"--weights {weights}: not a file (expected a checkpoint such as vgg16-397923af.pth)")
     if not os.access(p, os.R_OK):
-        raise UsageError(f"{what} {weights}: the file is not readable")
+        raise UsageError(f"--weights {weights}: the file is not readable")

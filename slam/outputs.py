@@ -2,16 +2,13 @@
 
 * ``trajectory.txt``: TUM format, one pose per input frame, in input order;
 * ``loops.txt``: one accepted loop per line, ``timestamp_a timestamp_b`` (the two keyframes' own stamps);
-* ``metrics.json``: the run's :class:`slam.report.RunReport` (``ate_rmse``, null with ``ate_unavailable``
-  saying why when there is nothing to evaluate, ``num_loops``, ``fps``, the backbone used and more); valid JSON
-  (no NaN or Infinity: a value that is not finite is written as null and named in ``non_finite``);
+* ``metrics.json``: the run's :class:`slam.report.RunReport`, valid JSON (a value that is not finite is written
+  as null and named in ``non_finite``);
 * ``trajectory.png``: the estimate (and ground truth) seen from above with the loop edges;
 * ``map.ply``: the keyframes' coloured points placed with the optimised poses (:mod:`slam.mapping`).
 
-Each file is written under a temporary name in the same folder and renamed into place
-(:func:`replace_atomically`), so a reader never sees half a file; :func:`prepare_output_dir` checks the
-folder before a run and removes the previous run's outputs, so that files left after a failed run are never
-the previous run's looking current.
+Each file is written under a temporary name and renamed into place (:func:`replace_atomically`);
+:func:`prepare_output_dir` checks the folder before a run and removes the previous run's outputs.
 """
 from __future__ import annotations
 
@@ -88,16 +85,12 @@ def replace_atomically(path: Path, data: bytes) -> None:
         raise
 
 
-def prepare_output_dir(out_dir: str | os.PathLike, names=OUTPUT_FILES, clear: bool = True) -> Path:
+def prepare_output_dir(out_dir: str | os.PathLike, clear: bool = True) -> Path:
     """Check (and create) an output folder before a run, and remove the previous run's outputs.
-
-    Done before the work starts, so that a folder that cannot take the outputs costs nothing, and a run
-    that fails later leaves no earlier outputs looking like its own.
 
     Args:
         out_dir: the folder (created with its parents).
-        names: the output file names that must be free for regular files.
-        clear: remove existing regular files of those names.
+        clear: remove existing regular files of the names in :data:`OUTPUT_FILES`.
 
     Raises:
         OutputDirError: ``out_dir`` is a file, cannot be created or written to, or an output name is taken
@@ -116,7 +109,7 @@ def prepare_output_dir(out_dir: str | os.PathLike, names=OUTPUT_FILES, clear: bo
         os.unlink(probe)
     except OSError as e:
         raise OutputDirError(f"--out {out}: cannot write into the folder ({e.strerror or e})") from None
-    taken = [n for n in names if (out / n).exists() or (out / n).is_symlink()]
+    taken = [n for n in OUTPUT_FILES if (out / n).exists() or (out / n).is_symlink()]
     for name in taken:
         p = out / name
         if p.is_symlink() or not p.is_file():
@@ -128,24 +121,16 @@ def prepare_output_dir(out_dir: str | os.PathLike, names=OUTPUT_FILES, clear: bo
     return out
 
 
-def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
-                  map_ply: bool | None = None) -> Path:
+def write_outputs(run: RunResult, out_dir: str | os.PathLike) -> Path:
     """Write ``trajectory.txt``, ``loops.txt``, ``metrics.json``, ``trajectory.png`` and ``map.ply`` into ``out_dir``.
 
-    Each file is written to a temporary name and renamed; the folder is checked first
-    (:func:`prepare_output_dir` without clearing), so a name taken by a folder fails before anything is
-    written.
-
-    A failed run (``report.status == "failed"``: fewer frames tracked than
-    ``SLAMConfig.min_tracked_fraction``) writes ``metrics.json`` alone, with ``failure`` saying why, and
-    removes the other outputs an earlier run left: poses that are constant-velocity guesses are no result.
+    A failed run (``report.status == "failed"``) writes ``metrics.json`` alone, with ``failure`` saying why, and
+    removes the other outputs an earlier run left.
 
     Args:
         run: a :class:`slam.pipeline.RunResult` (:func:`slam.report.evaluate_run` is called if its ``report``
             is None).
         out_dir: created if needed.
-        plot: also draw ``trajectory.png``.
-        map_ply: write ``map.ply`` (default: when the run kept a map).
 
     Returns:
         the output folder.
@@ -162,35 +147,29 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
                                                   + "\n").encode("utf-8"))
         return out
     res = run.result
-    write_map = run.map is not None if map_ply is None else bool(map_ply)
-    if write_map and run.map is None:
-        raise ValueError("map_ply=True but the run kept no map (config.map.enabled was False)")
     # everything is computed before the first file is replaced
     traj_text = _tum_text(res.trajectory)
     loops_text = "# timestamp_a timestamp_b  (accepted loop closures between keyframes)\n" + "".join(
         f"{lp.timestamp_a:.6f} {lp.timestamp_b:.6f}\n" for lp in res.loops)
     ply = None
-    if write_map:
+    if run.map is not None:
         pts, cols = run.map_cloud if run.map_cloud is not None else run.map.points(res.keyframe_trajectory.poses)
         buf = io.BytesIO()
         write_ply(buf, pts, cols, comment=f"attnloop map of {run.sequence_name}: {len(run.map)} keyframes, "
                                           f"voxel {run.map.config.voxel_size:g} m, the trajectory's frame")
         ply = buf.getvalue()
-    png = None
-    if plot:
-        from slam.eval import plot_trajectory
+    from slam.eval import plot_trajectory
 
-        loops = torch.tensor([[lp.timestamp_a, lp.timestamp_b] for lp in res.loops], dtype=torch.float64
-                             ).reshape(-1, 2)
-        ate_txt = f", ATE {report.ate_rmse * 100:.1f} cm" if report.ate_rmse is not None else ""
-        # aligned to the ground truth as the ATE is, unless the ATE found no alignment (it says why)
-        img = plot_trajectory(None, res.trajectory, run.groundtruth, loops=loops,
-                              align=report.ate_rmse is not None,
-                              title=f"{run.sequence_name}: {len(res.loops)} loops{ate_txt}")
-        ok, enc = cv2.imencode(".png", img)
-        if not ok:
-            raise OSError("could not encode trajectory.png")
-        png = enc.tobytes()
+    loops = torch.tensor([[lp.timestamp_a, lp.timestamp_b] for lp in res.loops], dtype=torch.float64
+                         ).reshape(-1, 2)
+    ate_txt = f", ATE {report.ate_rmse * 100:.1f} cm" if report.ate_rmse is not None else ""
+    # aligned to the ground truth as the ATE is, unless the ATE found no alignment (it says why)
+    img = plot_trajectory(None, res.trajectory, run.groundtruth, loops=loops,
+                          align=report.ate_rmse is not None,
+                          title=f"{run.sequence_name}: {len(res.loops)} loops{ate_txt}")
+    ok, png = cv2.imencode(".png", img)
+    if not ok:
+        raise OSError("could not encode trajectory.png")
     bad: list[str] = []
     metrics = json_safe(metrics, bad=bad)
     if bad:
@@ -200,8 +179,7 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike, plot: bool = True,
     replace_atomically(out / "loops.txt", loops_text.encode("utf-8"))
     if ply is not None:
         replace_atomically(out / "map.ply", ply)
-    if png is not None:
-        replace_atomically(out / "trajectory.png", png)
+    replace_atomically(out / "trajectory.png", png.tobytes())
     replace_atomically(out / "metrics.json", (metrics_text + "\n").encode("utf-8"))  # last: the run is complete
     return out
 

@@ -7,6 +7,7 @@ points computed in a map worker, the loop work in the system's loop worker, then
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import time
@@ -25,6 +26,7 @@ from slam.io.images import FrameReadError
 from slam.io.sequence import RGBDSequence, SequenceView
 from slam.io.trajectory import Trajectory
 from slam.mapping import PointCloudMap
+from slam.odometry.features import extract_features
 from slam.report import RunReport
 from slam.system import RGBDSLAM, LoopWorkerError, SLAMResult
 from slam.threads import limit_threads
@@ -32,7 +34,6 @@ from slam.threads import limit_threads
 logger = logging.getLogger(__name__)
 
 __all__ = ["RunResult", "camera_of", "map_reference", "run_slam", "unmatched_groundtruth"]
-
 
 
 @dataclass
@@ -56,6 +57,12 @@ class RunResult:
             keyframe poses (filled by :func:`slam.report.evaluate_run`).
         backbone: the descriptor's backbone as built (None without loop closure).
         descriptor_dim: the size of its descriptors (None without loop closure).
+        relocalisation: the :class:`slam.maps.RelocalisationReport` of a run in a saved map (``map_dir``).
+        map_origin: ``(7,)`` ground truth of the saved map's origin, if known.
+        saved_map: where ``save_map`` wrote the run's map.
+        camera: ``{"name": "fr2" / "calibration.txt" / None, "intrinsics": [fx, fy, cx, cy]}``.
+        groundtruth_note: why no frame has ground truth when the sequence has a file of it.
+        first_untracked: why the first frame that was lost or unreadable was.
     """
 
     result: SLAMResult
@@ -72,26 +79,22 @@ class RunResult:
     backbone: str | None = None
     descriptor_dim: int | None = None
     map_cloud: tuple[np.ndarray, np.ndarray] | None = None
-    relocalisation: object | None = None  # slam.maps.RelocalisationReport of a run in a saved map (map_dir)
-    map_origin: torch.Tensor | None = None  # (7,) ground truth of the saved map's origin (map_dir), if known
-    saved_map: Path | None = None  # where save_map wrote the run's map
-    #: the sequence's camera: ``{"name": "fr2" / "calibration.txt" / None, "intrinsics": [fx, fy, cx, cy]}``
+    relocalisation: object | None = None
+    map_origin: torch.Tensor | None = None
+    saved_map: Path | None = None
     camera: dict | None = None
-    groundtruth_note: str | None = None  # why no frame has ground truth when the sequence has a file of it
-    first_untracked: str | None = None  # why the first frame that was lost or unreadable was
+    groundtruth_note: str | None = None
+    first_untracked: str | None = None
 
 
 def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
-             progress: bool | None = None, descriptor: torch.nn.Module | None = None,
-             prefetch: int = 2, frame_step: int = 1, frames: tuple[int, int] | None = None,
-             save_map: str | os.PathLike | None = None, map_dir=None, observer=None) -> RunResult:
+             progress: bool | None = None, descriptor: torch.nn.Module | None = None, frame_step: int = 1,
+             frames: tuple[int, int] | None = None, save_map: str | os.PathLike | None = None, map_dir=None,
+             observer=None) -> RunResult:
     """Track every frame of ``sequence`` (or every ``frame_step``-th) and optimise.
 
-    A frame that cannot be read (missing or corrupt image) is skipped with a warning and placed by constant
-    velocity, so the trajectory still has one pose per used frame. With ``config.map.enabled`` the
-    keyframes' coloured points are kept for ``map.ply`` (:class:`slam.mapping.PointCloudMap`). torch, BLAS
-    and OpenCV compute with ``config.threads`` threads during the run: the run's one thread limit
-    (:func:`slam.threads.limit_threads`); the caller's counts are restored when it returns.
+    A frame that cannot be read is skipped with a warning and placed by constant velocity. torch, BLAS and
+    OpenCV compute with ``config.threads`` threads during the run (:func:`slam.threads.limit_threads`).
 
     Args:
         sequence: an opened sequence (:func:`slam.io.open_sequence`).
@@ -100,19 +103,15 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         progress: show a progress bar on stderr, with frames/s and the time left (tqdm; None: when stderr is a
             terminal).
         descriptor: a prebuilt descriptor model (else built from the config).
-        prefetch: frames decoded ahead in background threads.
         frame_step: use input frames ``0, N, 2N, ...`` of those (the trajectory and metrics are on them).
         frames: ``(start, end)``: the recording is input frames ``start .. end - 1`` only, re-numbered from
             0 (``max_frames`` and ``frame_step`` then apply to them).
-        save_map: a folder to save the run's map in (:mod:`slam.maps`: keyframes, pose graph, index); with
-            ``map_dir``, the saved map grown by this recording when it relocalised, else its own map (a
-            recording whose keyframe images differ in size from the map's is refused at its first
-            keyframe: a grown map holds one size).
-        map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording
-            in: every pose is then reported in the map's world, or, when it never relocalises, in its
-            own (``run.relocalisation`` says which; ``config.relocalisation`` sets how). With
-            ``config.relocalisation.localize`` the recording is only localised in it: no loops of its
-            own, no map.ply, keyframes released once used (memory flat over any length), nothing saved.
+        save_map: a folder to save the run's map in (:mod:`slam.maps`); with ``map_dir``, the saved map grown
+            by this recording when it relocalised, else its own map.
+        map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording in:
+            every pose is then in the map's world, or in its own when it never relocalises
+            (``run.relocalisation`` says which). With ``config.relocalisation.localize`` the recording is only
+            localised in it: no loops of its own, no map.ply, nothing saved.
         observer: called as ``observer.frame(frame, state, slam)`` after each frame (``frame`` None when it could
             not be read; ``state`` its :class:`slam.system.FrameState`) and ``observer.finish(result)`` with the
             final :class:`slam.system.SLAMResult`: :class:`slam.viewer.RunViewer` draws the run.
@@ -138,12 +137,12 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
         raise ValueError(f"frame_step must be an integer >= 1, got {frame_step!r}")
     check_sequence_intrinsics(sequence)
     with limit_threads(config.threads):  # the caller's counts are restored when the run ends (or fails)
-        return _run(sequence, config, max_frames, progress, descriptor, prefetch, frame_step, frames, save_map,
-                    map_dir, observer)
+        return _run(sequence, config, max_frames, progress, descriptor, frame_step, frames, save_map, map_dir,
+                    observer)
 
 
 def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, progress: bool | None,
-         descriptor: torch.nn.Module | None, prefetch: int, frame_step: int, frames: tuple[int, int] | None,
+         descriptor: torch.nn.Module | None, frame_step: int, frames: tuple[int, int] | None,
          save_map, map_dir, observer) -> RunResult:
     if frames is not None:
         start, end = (int(v) for v in frames)
@@ -165,10 +164,9 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         prepare_map_dir(save_map)
     n = len(view)
     stamps = view.timestamps
-    # loop work in a worker thread (the same results; the relocaliser reads the loop closer after each frame,
-    # so a run in a saved map keeps it in this thread)
+    # loop work in a worker thread, except in a saved map (the relocaliser reads the loop closer every frame);
+    # keyframe images are kept only for a map to save
     localize = config.relocalisation.localize
-    # keyframe images are kept only for a map to save (capture_map stores them)
     slam = RGBDSLAM(config, descriptor=descriptor, background_loops=saved is None, localize=localize,
                     keep_images=save_map is not None)
     reloc = None
@@ -180,13 +178,11 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
     cloud = PointCloudMap.for_config(config) if config.map.enabled and not localize else None
     recent: deque = deque(maxlen=4)  # the frames a new keyframe can come from (this one or a promoted one)
     start = time.perf_counter()
-    # decode ahead in threads; an unreadable frame comes as its FrameReadError, so it is only skipped
     bar = tqdm(range(n), desc=sequence.name, unit="frame", mininterval=0.2, disable=None if progress is None
                else not progress)
-    # the reader threads extract each frame's odometry features as they decode it (a pure function of the
-    # frame: the same features as in the tracking thread, which then only matches and registers)
-    ahead = _FeaturesAhead(config.odometry.features) if prefetch > 0 else None
-    frames = view.frames(on_error="yield", prefetch=prefetch, then=ahead)
+    # the reader threads decode ahead and extract each frame's features; an unreadable frame comes as its error
+    ahead = functools.partial(_features_ahead, config.odometry.features)
+    frames = view.frames(on_error="yield", prefetch=2, then=ahead)
     # the keyframes' points are computed in a worker thread, in keyframe order (the map is only read at the end)
     map_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-map") if cloud is not None else None
     map_jobs = []
@@ -201,10 +197,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
             if isinstance(frame_or_error, FrameReadError):
                 state = slam.skip(i, float(stamps[i]), str(frame_or_error))
             else:
-                features = None
-                if ahead is not None:
-                    frame_or_error, features = frame_or_error
-                frame = frame_or_error
+                frame, features = frame_or_error
                 state = slam.track(frame, features=features)
                 if cloud is not None:
                     recent.append(frame)
@@ -263,13 +256,10 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
         from slam.maps import capture_map
         from slam.maps import save_map as write_map
 
-        # a run in a map it was placed in saves the grown map; otherwise (no map, or never relocalised)
-        # its own, in its own world
         grown = reloc is not None and report.relocalised
         target = save_map
         if reloc is not None and not grown and saved.path is not None and _same_folder(save_map, saved.path):
-            # asked to grow the map in place, but not placed in it: its own map there would replace every
-            # earlier session by this recording alone. The map stays; this recording's goes beside it.
+            # not placed in the map it was to grow in place: the map stays, this recording's goes beside it
             target = _free_sibling(Path(save_map).resolve(), ".unplaced")  # "." has no name to extend
             logger.warning("%s: this recording was not placed in the map, which is kept as it was; its own map "
                            "goes into %s", save_map, target)
@@ -330,40 +320,28 @@ def camera_of(sequence: RGBDSequence) -> dict:
             "intrinsics": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]}
 
 
-class _FeaturesAhead:
-    """``frame -> (frame, features)`` in a reader thread: :func:`slam.odometry.features.extract_features` with
-    the run's settings (None when it fails: the tracking thread then extracts again and reports the frame
-    as lost with the error, as without this)."""
-
-    def __init__(self, config):
-        self.config = config
-
-    def __call__(self, frame):
-        from slam.odometry.features import extract_features
-
-        try:
-            return frame, extract_features(frame.rgb, frame.depth, frame.K, self.config)
-        except (ValueError, TypeError, cv2.error):
-            return frame, None
+def _features_ahead(config, frame):
+    """``(frame, features)`` in a reader thread (None when extraction fails: the tracking thread then extracts
+    again and reports the frame as lost with the error)."""
+    try:
+        return frame, extract_features(frame.rgb, frame.depth, frame.K, config)
+    except (ValueError, TypeError, cv2.error):
+        return frame, None
 
 
 def _add_keyframes_to_map(cloud: PointCloudMap, slam: RGBDSLAM, new_ids: list[int], recent) -> None:
     """Back-project the frames that just became keyframes (this frame, or a promoted earlier one)."""
-    with slam.timer("map"):
-        _add_to_map(cloud, slam, new_ids, recent)
-
-
-def _add_to_map(cloud: PointCloudMap, slam: RGBDSLAM, new_ids: list[int], recent) -> None:
     by_index = {int(f.index): f for f in recent}
-    for kf_id in new_ids:
-        frame = by_index.get(int(slam.keyframes[kf_id].frame_index))
-        if frame is None:  # not among the recent frames: the map misses this keyframe's points
-            logger.debug("map: no image kept for keyframe %d (frame %d)", kf_id, slam.keyframes[kf_id].frame_index)
-            continue
-        try:
-            cloud.add(kf_id, frame.rgb, frame.depth, frame.K, reference=map_reference(slam, kf_id))
-        except ValueError as e:  # a frame odd enough for the map but not for tracking: leave its points out
-            logger.warning("map: keyframe %d (frame %d) left out: %s", kf_id, frame.index, e)
+    with slam.timer("map"):
+        for kf_id in new_ids:
+            frame = by_index.get(int(slam.keyframes[kf_id].frame_index))
+            if frame is None:  # not among the recent frames: the map misses this keyframe's points
+                logger.debug("map: no image kept for keyframe %d (frame %d)", kf_id, slam.keyframes[kf_id].frame_index)
+                continue
+            try:
+                cloud.add(kf_id, frame.rgb, frame.depth, frame.K, reference=map_reference(slam, kf_id))
+            except ValueError as e:  # a frame odd enough for the map but not for tracking: leave its points out
+                logger.warning("map: keyframe %d (frame %d) left out: %s", kf_id, frame.index, e)
 
 
 def map_reference(slam: RGBDSLAM, kf_id: int):

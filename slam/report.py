@@ -11,7 +11,7 @@ from typing import Any, Optional
 
 import torch
 
-from slam.config import SLAMConfig, describe_rig, rig_of
+from slam.config import SLAMConfig, describe_rig
 from slam.system import SLAMResult
 
 __all__ = ["RunReport", "evaluate_run", "loop_ground_truth_for_step", "loop_precision_recall", "loop_worker_metrics"]
@@ -113,13 +113,8 @@ class RunReport:
 
 
 def loop_ground_truth_for_step(frame_step: int = 1):
-    """The default :class:`slam.eval.LoopGroundTruthConfig` for a run on every ``frame_step``-th frame.
-
-    Its ``min_frame_gap`` (100 frames: 3.3 s at 30 Hz, what odometry links rather than a revisit) counts
-    input frames; a run's frame indices are those of the frames it used, so the gap becomes
-    ``ceil(100 / frame_step)`` of them: the same 3.3 s. Left at 100, a run at step 6 would need 20 s
-    between a query and its match, and count the revisits 3-20 s apart, which the loop detector is
-    right to find, as false detections.
+    """The default :class:`slam.eval.LoopGroundTruthConfig` for a run on every ``frame_step``-th frame: its
+    ``min_frame_gap`` (input frames) becomes ``ceil(gap / frame_step)`` of the run's frames, the same time.
 
     Example:
         >>> loop_ground_truth_for_step(6).min_frame_gap, loop_ground_truth_for_step(1).min_frame_gap
@@ -132,14 +127,8 @@ def loop_ground_truth_for_step(frame_step: int = 1):
 
 
 def evaluate_run(run, loop_gt=None) -> RunReport:
-    """The report of a run: what ``metrics.json`` holds (:class:`RunReport`).
-
-    The ATE, the RPE and the loops judged by the ground truth come when the sequence has ground truth to
-    evaluate against; otherwise ``ate_rmse`` is None and ``ate_unavailable`` says why (no ground truth, fewer
-    than 3 frames with it, a camera that never moves, ...): a run never fails here for want of ground truth.
-    ``status`` is ``"failed"`` when fewer than ``SLAMConfig.min_tracked_fraction`` of the frames were tracked
-    (:func:`slam.outputs.write_outputs` then writes no trajectory). Also sets ``run.report`` to it and fills
-    ``run.map_cloud`` (the merged map) and ``run.loop_curves``.
+    """The report of a run: what ``metrics.json`` holds (:class:`RunReport`); also sets ``run.report``,
+    ``run.map_cloud`` and ``run.loop_curves``. Without usable ground truth ``ate_unavailable`` says why.
 
     Args:
         run: a :class:`slam.pipeline.RunResult`.
@@ -162,8 +151,6 @@ def evaluate_run(run, loop_gt=None) -> RunReport:
         "wall_seconds": round(run.wall_seconds, 3),
         "time_per_stage": res.timings,
         "backbone": run.backbone,
-        # every verified loop by its final status (kept / inconsistent / switched_off), and the online
-        # corrections (BackendConfig.optimize_on_loop): how many, and their milliseconds
         "loop_hypotheses": {s: sum(lp.status == s for lp in res.loop_hypotheses)
                             for s in ("kept", "inconsistent", "switched_off")},
         "online_corrections": {"count": len(res.corrections),
@@ -180,7 +167,7 @@ def evaluate_run(run, loop_gt=None) -> RunReport:
                             "dim": run.descriptor_dim, "fusion": recipe["fusion"], "seed": d.seed,
                             "weights": None if d.weights is None else str(d.weights), "recipe": recipe}
                            if run.config.loop.enabled else None)
-        m["rig"] = describe_rig(rig_of(run.config))
+        m["rig"] = describe_rig(run.config)
     if run.camera is not None:
         m["camera"] = run.camera
     if run.map is not None:
@@ -227,8 +214,7 @@ def evaluate_run(run, loop_gt=None) -> RunReport:
             m["ate"] = {"rmse": a.rmse, "mean": a.mean, "median": a.median, "std": a.std, "max": a.max,
                         "num_pairs": a.num_pairs}
             m["odometry_ate_rmse"] = odo
-            # over the tracked frames alone (lost and unreadable ones are interpolated guesses): what a
-            # system that writes tracked frames only (ORB-SLAM) would be scored on
+            # over the tracked frames alone (lost and unreadable ones are guesses)
             m["ate_tracked"] = None
             if res.tracked is not None:
                 kept = torch.nonzero(res.tracked).flatten()
@@ -248,15 +234,15 @@ def evaluate_run(run, loop_gt=None) -> RunReport:
                 m[key] = {"error": str(e)}
         cfg = loop_gt or loop_ground_truth_for_step(run.frame_step)
         m["loop_ground_truth"] = dataclasses.asdict(cfg)
-        gt = run.gt_poses_per_frame
-        # an accepted loop is judged by closeness alone (the frame-gap rule is for counting revisits)
-        pairs = torch.tensor([[lp.frame_b, lp.frame_a] for lp in res.loops], dtype=torch.long).reshape(-1, 2)
-        judged = is_true_loop(gt, pairs, dataclasses.replace(cfg, min_frame_gap=1))
+        def judge(loops):  # an accepted loop is judged by closeness alone (the frame gap counts revisits)
+            pairs = torch.tensor([[lp.frame_b, lp.frame_a] for lp in loops], dtype=torch.long).reshape(-1, 2)
+            return is_true_loop(run.gt_poses_per_frame, pairs, dataclasses.replace(cfg, min_frame_gap=1))
+
+        judged = judge(res.loops)
         m["loops_true"] = int(judged.sum())
         m["loops_false"] = int((~judged).sum())
         hyp = res.loop_hypotheses
-        pairs = torch.tensor([[lp.frame_b, lp.frame_a] for lp in hyp], dtype=torch.long).reshape(-1, 2)
-        true_hyp = is_true_loop(gt, pairs, dataclasses.replace(cfg, min_frame_gap=1)).tolist()
+        true_hyp = judge(hyp).tolist()
         m["loop_hypotheses_false"] = {s: sum(lp.status == s and not t for lp, t in zip(hyp, true_hyp))
                                       for s in ("kept", "inconsistent", "switched_off")}
         m["loop_detection"] = loop_precision_recall(run, cfg)
@@ -269,8 +255,7 @@ def evaluate_run(run, loop_gt=None) -> RunReport:
 def loop_worker_metrics(result: SLAMResult, config: SLAMConfig | None = None) -> dict[str, object]:
     """The loop worker's lag over a run (``metrics.json``'s ``loop_worker``): the keyframes whose loop work was
     waiting when each frame was tracked (:attr:`slam.system.RGBDSLAM.loop_lag`), its maximum and, per fifth of
-    the run's frames, its maximum and mean; ``backlog`` is ``BackendConfig.loop_backlog`` (0: tracking waits
-    for the worker, the outputs are deterministic; N: it runs up to N keyframes ahead).
+    the run's frames, its maximum and mean; ``backlog`` is ``BackendConfig.loop_backlog``.
 
     Example:
         >>> from types import SimpleNamespace
@@ -304,12 +289,8 @@ def _relocalisation_metrics(run) -> dict[str, object]:
 
 
 def loop_precision_recall(run, config=None) -> dict[str, object]:
-    """Precision/recall of the loop detector over the keyframe queries, before and after verification.
-
-    Each query keyframe contributes its best candidate: before verification the most similar eligible
-    keyframe scored by similarity; after verification the most similar *verified* candidate (queries with
-    none score ``-inf``). Positives are the ground-truth revisits among the keyframes
-    (:func:`slam.eval.ground_truth_loops`).
+    """Precision/recall of the loop detector over the keyframe queries, before and after verification: each
+    query's most similar candidate, then its most similar verified one (``-inf`` when none).
 
     Args:
         run: a :class:`slam.pipeline.RunResult`.
@@ -326,7 +307,6 @@ def loop_precision_recall(run, config=None) -> dict[str, object]:
     frames = res.keyframe_frames
     if run.gt_poses_per_frame is None or not res.queries:
         return {}
-    # each verified pair's own similarity (verified: passed geometric verification, kept by the group or not)
     similarity = {(lp.kf_a, lp.kf_b): lp.similarity for lp in res.loop_hypotheses}
     before_pairs, before_scores, after_pairs, after_scores = [], [], [], []
     for q in res.queries:

@@ -1,20 +1,9 @@
 """The thread counts a run computes with: torch's intra-op pool, the BLAS and OpenMP libraries' and OpenCV's.
 
-Most of the pipeline's work is many small operations on one frame (the depth warp, ORB matching, RANSAC
-hypotheses, a pose graph of a hundred keyframes). On a machine where another process keeps a core busy,
-a pool with more threads than free cores waits at every operation's barrier for its descheduled thread:
-the README's kitchen command on 60 frames took 41.7 s with torch's default threads and 4.5 s with one
-(the depth warp went from 15 to 445 ms a frame). One thread loses little on an idle machine, because the
-only large operation, the descriptor's CNN, runs once per keyframe (benchmarks/threads.py, figures in
-docs/results.md "Threads"). So a run takes ``SLAMConfig.threads = 1`` by default.
-
-:func:`limit_threads` is the one place that sets them: entered once where a run, an example or a benchmark
-starts (``attnloop-slam`` around the whole command, :func:`slam.pipeline.run_slam` around its run), never
-below. It restores the caller's counts afterwards: a library must not change its caller's process state
-for good. The library's workers (the frame readers, the loop worker, the map worker) are Python threads,
-each computing with the process-wide counts the context set. torch's inter-op pool is left alone (it can
-only be sized before its first use, and the pipeline does not use it). BLAS and OpenMP go through
-``threadpoolctl``, with scipy's BLAS loaded first so that the pose graph's LAPACK calls are covered too.
+The work is many small per-frame operations: a pool larger than the free cores waits at every barrier for a
+descheduled thread, so a run takes ``SLAMConfig.threads = 1`` by default (figures: docs/results.md, "Threads").
+:func:`limit_threads` is the one place that sets the counts, entered once where a run starts, and restores the
+caller's afterwards. torch's inter-op pool is left alone (it can only be sized before its first use).
 
 Example:
     >>> import torch

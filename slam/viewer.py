@@ -4,20 +4,14 @@
 ``--rrd FILE`` records to a file (``rerun FILE`` opens it); rerun comes with ``pip install 'attnloop[viewer]'``.
 On the ``frame`` timeline (the run's frame index):
 
-* ``world/camera``: the frame's pose (Transform3D, the depth camera's, as ``trajectory.txt``), its pinhole and
-  the colour image (at most ``max_image_width`` = 320 pixels wide: 640 x 480 costs 4x as much to log);
-* ``world/trajectory``: the keyframe path (LineStrips3D), redrawn at each keyframe and each loop correction;
-* ``world/map/<frame>``: each keyframe's depth, every ``map_stride``-th pixel (Points3D, in its camera), placed
-  by its pose (Transform3D), moved again when a correction moves the keyframe;
-* ``world/loops``: one LineStrips3D strip per accepted loop, between its two keyframes;
-* ``stats/fps`` (over the last 30 frames) and ``stats/inliers`` (the frame's registration): Scalars, sent ten
-  frames at a time.
+* ``world/camera``: the frame's pose (the depth camera's, as ``trajectory.txt``), its pinhole and colour image;
+* ``world/trajectory``: the keyframe path, redrawn at each keyframe and each loop correction;
+* ``world/map/<frame>``: each keyframe's subsampled depth points, placed (and moved again) by its pose;
+* ``world/loops``: one strip per accepted loop, between its two keyframes;
+* ``stats/fps`` (over the last 30 frames) and ``stats/inliers``.
 
-When the run ends, every frame's final pose is logged at its frame again, and the path, the map and the loops
-as the final optimisation placed them: the recording ends as ``trajectory.txt`` and ``loops.txt``.
-
-Rerun's viewer collects anonymous usage data until ``rerun analytics disable`` is run once (a setting in the
-user's rerun config); recording to a file (``--rrd``) sends nothing.
+When the run ends, every frame's final pose is logged again, and the path, the map and the loops as the final
+optimisation placed them. Rerun's viewer collects anonymous usage data until ``rerun analytics disable``.
 """
 from __future__ import annotations
 
@@ -83,9 +77,9 @@ def check_viewer(run) -> None:
             raise UsageError(f"--rrd {run.rrd}: not a file in a writable folder")
 
 
-def open_viewer(run, name: str = "attnloop-slam", **kwargs) -> RunViewer | None:
+def open_viewer(run, name: str = "attnloop-slam") -> RunViewer | None:
     """The viewer ``run`` asks for: spawned (``viewer``), a running one at ``connect``, and/or the file ``rrd``;
-    None when it asks for none. ``kwargs`` go to :class:`RunViewer`."""
+    None when it asks for none."""
     flags = viewer_flags(run)
     if not flags:
         return None
@@ -99,7 +93,7 @@ def open_viewer(run, name: str = "attnloop-slam", **kwargs) -> RunViewer | None:
         addr = run.connect
         sinks.append(rr.GrpcSink(addr if addr is None or "://" in addr else f"rerun+http://{addr}/proxy"))
     rec.set_sinks(*sinks)
-    return RunViewer(rec, **kwargs)
+    return RunViewer(rec)
 
 
 def _transform(rr, pose: list):
@@ -110,24 +104,18 @@ class RunViewer:
     """Logs a run to a rerun recording: :func:`slam.pipeline.run_slam` calls :meth:`frame` after each frame and
     :meth:`finish` with the final result (its ``observer``); :meth:`close` when done.
 
-    The logging runs in a thread of its own, in order: the tracking thread only hands over the frame, its state
-    and, at a keyframe or a correction, the keyframes' poses (each rerun call releases and takes back the
-    interpreter's lock, which, made from the tracking thread, waited on the reader and loop threads). At most
-    ``backlog`` frames wait for it; the tracking thread waits beyond that.
+    The logging runs in a thread of its own, in order (rerun calls made from the tracking thread waited on the
+    interpreter's lock); at most 8 frames wait for it, the tracking thread waits beyond that.
 
     Args:
         recording: a ``rerun.RecordingStream`` with its sinks set.
-        max_image_width: a wider colour image is logged resized to this width (its pinhole likewise).
+        max_image_width: a wider colour image is logged resized to this width in pixels (its pinhole likewise).
         map_stride: every ``map_stride``-th pixel of a keyframe's depth, in rows and columns, goes to the map.
-        backlog: frames handed over and not yet logged, at most.
     """
 
-    def __init__(self, recording, max_image_width: int = 320, map_stride: int = 8, backlog: int = 8):
+    def __init__(self, recording, max_image_width: int = 320, map_stride: int = 8):
         import rerun as rr
 
-        if min(int(max_image_width), int(map_stride), int(backlog)) < 1:
-            raise ValueError(f"max_image_width, map_stride and backlog must be >= 1, got {max_image_width}, "
-                             f"{map_stride}, {backlog}")
         self.rr, self.rec = rr, recording
         self.max_image_width, self.map_stride = int(max_image_width), int(map_stride)
         self._recent: deque = deque(maxlen=4)  # the frames a new keyframe can come from (this one or a promoted one)
@@ -139,7 +127,7 @@ class RunViewer:
         self._stats: list[tuple] = []  # (frame, frames/s or None, inliers) not yet sent
         self._pinhole = False
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-viewer")
-        self._slots = threading.BoundedSemaphore(int(backlog))
+        self._slots = threading.BoundedSemaphore(8)
         self._error: BaseException | None = None
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)  # the first camera's axes: x right, y down
 

@@ -3,12 +3,10 @@
 A map folder written by :func:`save_map` holds:
 
 * ``manifest.json``: ``format`` (``"attnloop.map"``), ``version`` (:data:`MAP_FORMAT_VERSION`), when and
-  from what it was made, the descriptor that made the index (backbone as built, fusion, RNN count, seed,
-  dimension, and its descriptor of a fixed probe image: a map is only searchable with the same descriptor,
-  :func:`slam.maps.relocalise.descriptor_probe`), the camera rig the poses are in, the
-  ground-truth pose of the recording's first tracked frame (its first keyframe, the world's origin; for
-  evaluating later sessions; null without ground truth; maps saved without a descriptor probe hold frame 0's),
-  and per data file its name and SHA-256 (a file that does not match is reported corrupt);
+  from what it was made, the descriptor that made the index (with its descriptor of a fixed probe image,
+  :func:`slam.maps.relocalise.descriptor_probe`), the camera rig the poses are in, the ground-truth pose of
+  the recording's first tracked frame (the world's origin; null without ground truth), and per data file its
+  name and SHA-256;
 * ``keyframes.npz``: per keyframe ``pose (M, 7)`` float64 (world-from-camera of the *tracked* camera,
   the colour camera on an unregistered rig; the world is the first tracked frame's depth camera as in
   every output), ``frame_index (M,)``, ``timestamp (M,)``, ``index_id (M,)`` (its id in ``index.npz``),
@@ -23,9 +21,7 @@ A map folder written by :func:`save_map` holds:
 * ``index.npz``: the keyframe index itself (:func:`attnloop.index.save_index`), so that a reloaded
   map answers queries exactly as the saved one.
 
-Every reading error is a :class:`MapFormatError` (or its :class:`MapVersionError`) naming the file; a
-manifest without a file's SHA-256, an index holding other keyframes than ``keyframes.npz`` or an edge count
-other than the manifest's ``num_edges`` are errors too.
+Every reading error is a :class:`MapFormatError` (or its :class:`MapVersionError`) naming the file.
 
 Example:
     >>> import tempfile
@@ -123,8 +119,7 @@ class SavedMap:
 
     @property
     def groundtruth_origin(self) -> Tensor | None:
-        """``(7,)`` ground-truth pose of the mapping recording's first tracked frame (the map world's origin), or
-        None."""
+        """``(7,)`` ground truth of the mapping recording's first tracked frame (the world's origin), or None."""
         g = self.info.get("groundtruth_origin")
         return None if g is None else torch.tensor(g, dtype=torch.float64)
 
@@ -133,8 +128,8 @@ class SavedMap:
 def prepare_map_dir(path) -> Path:
     """Check that ``path`` can take a map (absent, an empty folder or a previous map) before the work.
 
-    A previous map is replaced whole, so it qualifies only when its ``manifest.json`` is an
-    ``attnloop.map`` one (or unreadable: a damaged map) and the folder holds nothing but the map's files.
+    A previous map qualifies only when its ``manifest.json`` is an ``attnloop.map`` one (or unreadable: a damaged
+    map) and the folder holds nothing but the map's files (it is replaced whole).
 
     Raises:
         MapFormatError: a file, a non-empty folder that is not a saved map, or a saved map with other files
@@ -199,8 +194,8 @@ def _features_arrays(features: list) -> dict:
 def save_map(path, saved: SavedMap) -> Path:
     """Write ``saved`` into the folder ``path`` (the format of the module docstring).
 
-    The files are written into a temporary folder beside ``path`` and renamed into place, so a reader
-    never sees half a map and a previous map at ``path`` is replaced only once the new one is complete.
+    The files are written into a temporary folder beside ``path`` and renamed into place: a previous map is
+    replaced only once the new one is complete.
 
     Raises:
         MapFormatError: ``path`` cannot take a map (:func:`prepare_map_dir`).
@@ -302,8 +297,8 @@ def _read_manifest(folder: Path) -> dict:
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise MapFormatError(f"{mpath}: not valid JSON ({exc})") from exc
     if not isinstance(manifest, dict) or manifest.get("format") != MAP_FORMAT:
-        raise MapFormatError(f"{mpath}: 'format' is {manifest.get('format') if isinstance(manifest, dict) else None!r}, "
-                             f"expected {MAP_FORMAT!r}")
+        fmt = manifest.get("format") if isinstance(manifest, dict) else None
+        raise MapFormatError(f"{mpath}: 'format' is {fmt!r}, expected {MAP_FORMAT!r}")
     version = manifest.get("version")
     if not isinstance(version, int) or isinstance(version, bool) or version < 1:
         raise MapFormatError(f"{mpath}: 'version' must be a positive integer, got {version!r}")
@@ -368,7 +363,8 @@ def load_map(path) -> SavedMap:
     for m in range(M):
         s = slice(int(off[m]), int(off[m + 1]))
         feats.append(FrameFeatures(torch.from_numpy(kf["keypoints"][s].astype(np.float32)),
-                                   torch.from_numpy(kf["orb"][s].copy()), torch.from_numpy(kf["points"][s].astype(np.float32)),
+                                   torch.from_numpy(kf["orb"][s].copy()),
+                                   torch.from_numpy(kf["points"][s].astype(np.float32)),
                                    torch.from_numpy(kf["valid"][s].astype(bool)),
                                    torch.from_numpy(kf["sigma_px"][s].astype(np.float32)),
                                    torch.from_numpy(kf["K"][m].astype(np.float64)),
@@ -405,9 +401,11 @@ def load_map(path) -> SavedMap:
                              f"({len(np.unique(ids))} distinct index ids); each keyframe must be in it exactly once")
     D = kf["descriptor"].shape[1]
     if M and index.dim != D:  # else the first map query fails, mid-run, without naming the map
-        raise MapFormatError(f"{files['index']}: descriptors of {index.dim} values, the keyframes' ({kp.name}) have {D}")
+        raise MapFormatError(f"{files['index']}: descriptors of {index.dim} values, the keyframes' ({kp.name}) "
+                             f"have {D}")
     info = {k: v for k, v in manifest.items() if k not in ("format", "version", "files")}
-    return SavedMap(torch.from_numpy(kf["pose"].astype(np.float64)), torch.from_numpy(kf["frame_index"].astype(np.int64)),
+    return SavedMap(torch.from_numpy(kf["pose"].astype(np.float64)),
+                    torch.from_numpy(kf["frame_index"].astype(np.int64)),
                     torch.from_numpy(kf["timestamp"].astype(np.float64)), torch.from_numpy(ids),
                     torch.from_numpy(kf["descriptor"].astype(np.float32)), feats, np.ascontiguousarray(kf["rgb"]),
                     edges, index, info, folder)

@@ -1,21 +1,11 @@
 """Relocalisation of a new recording in a saved map, and the merge of the two into the map's world.
 
-While the new recording is tracked (its own :class:`~slam.system.RGBDSLAM`, its own loops), every new
-keyframe also queries the map: its descriptor (the one the loop closer just computed) -> the map's
-index (the ``max_candidates`` most similar map keyframes) -> the loop closer's geometric verification
-(:func:`slam.loop.verify_candidate`) -> a *map link*: a loop whose older keyframe is a map keyframe.
-Each link places the recording in the map (``T_map_rec = P_map[a] T_ab P_rec[b]^-1``). The recording is
-*relocalised* once links from ``min_agreeing`` distinct keyframes agree on that placement (the loop
-closer's pairwise cycle test, :func:`slam.loop.pairwise_consistent`, with the drift bound of the path
-between them); from then on a candidate must also agree with the placement (the loop closer's drift
-test against the current estimate).
-
-At the end (:meth:`MapRelocaliser.finish`) the recording's keyframe graph and its map links are
-optimised together with the linked map keyframes held fixed (the map is the reference world); every
-frame of the recording, those before the first relocalisation included, is then reported in the map's
-world through its keyframe (ORB-SLAM3's Atlas merges a map the same way). A recording that never
-relocalises keeps its own frame (the first camera at the origin): a new map component, reported as such
-(``relocalised: false`` in the report), never placed by a guess.
+Each new keyframe of the recording queries the map's index; the loop closer's verification
+(:func:`slam.loop.verify_candidate`) turns a candidate into a *map link*, which places the recording in the map
+(``T_map_rec = P_map[a] T_ab P_rec[b]^-1``). The recording is relocalised once links from ``min_agreeing``
+keyframes agree on that placement (:func:`slam.loop.pairwise_consistent`). :meth:`MapRelocaliser.finish`
+optimises the recording's graph with its links, the map's keyframes fixed, and reports every frame in the map's
+world; a recording never relocalised keeps its own frame (``relocalised: false``).
 
 Example:
     >>> cfg = RelocalisationConfig()
@@ -40,7 +30,6 @@ from slam.lie import se3_between, se3_compose, se3_inv, so3_log
 from slam.loop import DriftLimits, drift_limits, maximum_clique, pairwise_consistent, verify_candidate
 from slam.maps.config import RelocalisationConfig
 from slam.maps.format import SavedMap
-from slam.odometry.depth_registration import depth_camera_poses, rig_pose
 from slam.odometry.features import is_binary_detector
 
 logger = logging.getLogger(__name__)
@@ -67,7 +56,6 @@ class MapLink:
         num_inliers: RANSAC inliers of the verification.
         T_ab: ``(7,)`` float64 measured relative pose (tracked camera).
         information: ``(6, 6)`` float64 (unscaled).
-        kept: in the consistent group that placed the recording (set by :meth:`MapRelocaliser.finish`).
     """
 
     map_kf: int
@@ -77,7 +65,6 @@ class MapLink:
     num_inliers: int
     T_ab: Tensor
     information: Tensor
-    kept: bool = False
 
 
 @dataclass
@@ -132,8 +119,7 @@ def _rig(config) -> dict:
 
 
 #: Largest difference (any entry) between the map's and the run's descriptor of the probe image that is
-#: still one descriptor. Threads and devices move an entry by ~1e-7; the descriptors of two recipes by
-#: ~1e-2 (Lite0's default with G at stage6 and stage7 against G at stage7 alone: 0.0096, entries ~0.03).
+#: still one descriptor (threads and devices move an entry by ~1e-7, two recipes by ~1e-2).
 PROBE_TOLERANCE = 1e-3
 
 
@@ -145,11 +131,8 @@ def _probe_image() -> torch.Tensor:
 
 
 def descriptor_probe(model: torch.nn.Module) -> list[float] | None:
-    """The descriptor of a fixed probe image: a fingerprint of everything that makes the descriptor.
-
-    Two models with the same names (backbone, fusion, seed) can still describe differently: another
-    tap, recipe or attnloop version's default, other weights. A saved map keeps this vector, and a run
-    whose own differs by more than :data:`PROBE_TOLERANCE` cannot search the map's index.
+    """The descriptor of a fixed probe image: a fingerprint of everything that makes the descriptor (a run
+    whose own differs from the map's by more than :data:`PROBE_TOLERANCE` cannot search the map's index).
 
     Args:
         model: maps ``(1, 3, H, W)`` uint8 images to ``(1, D)`` descriptors, on the device of its
@@ -190,18 +173,6 @@ def _run_dim(slam, info: dict) -> int | None:
     return None
 
 
-def _output_rig(config) -> Tensor | None:
-    """``T_rgb_depth`` when the system reports depth-camera poses (as :class:`slam.system.RGBDSLAM` decides)."""
-    f = config.odometry.features
-    if f.rgb_intrinsics is not None and any(float(x) != 0.0 for x in f.rgb_from_depth_translation):
-        return rig_pose(f.rgb_from_depth_translation)
-    return None
-
-
-def _to_output(poses: Tensor, T_rgb_depth: Tensor | None) -> Tensor:
-    return poses if T_rgb_depth is None else depth_camera_poses(poses, T_rgb_depth)
-
-
 def capture_map(slam, sequence=None) -> SavedMap:
     """The :class:`SavedMap` of a finished run (its final keyframe poses, features, graph and index).
 
@@ -237,16 +208,13 @@ def capture_map(slam, sequence=None) -> SavedMap:
 
 
 def map_world_errors(trajectory: Tensor, groundtruth: Tensor, origin: Tensor) -> dict | None:
-    """Position errors, without any alignment, of a trajectory reported in a map's world.
-
-    The ground truth is expressed in the map's world by ``origin^-1 G_i`` (``origin``: the ground-truth
-    pose of the mapping recording's first tracked frame). Meaningful only when both recordings' ground truth share
-    one world (sequences of one 7-Scenes scene, one motion-capture room).
+    """Position errors, without any alignment, of a trajectory reported in a map's world: the ground truth
+    ``origin^-1 G_i`` against it (both recordings' ground truth must share one world).
 
     Args:
         trajectory: ``(N, 7)`` estimated poses in the map's world.
         groundtruth: ``(N, 7)`` ground truth of the same frames (NaN rows where unknown).
-        origin: ``(7,)``.
+        origin: ``(7,)`` ground truth of the mapping recording's first tracked frame.
 
     Returns:
         ``{"rmse", "max", "num_frames"}`` (metres), None when no frame has ground truth.
@@ -263,10 +231,8 @@ def map_world_errors(trajectory: Tensor, groundtruth: Tensor, origin: Tensor) ->
 
 
 def _out_of_reach(estimate: Tensor, limits: DriftLimits, config) -> bool:
-    """No measurement can pass verification: a measured pose within the view distance
-    (``config.max_translation`` / ``max_rotation_deg``) that agrees with ``estimate`` within ``limits``
-    puts the estimate within their sums (triangle inequalities on the translation and the rotation
-    angle), so a candidate farther than that is skipped without its registration."""
+    """No measurement can pass verification: one within the view distance that agrees with ``estimate``
+    within ``limits`` puts the estimate within their sums (triangle inequalities)."""
     t = float(estimate[:3].norm())
     r = math.degrees(float(so3_log(estimate[3:]).norm()))
     return t > config.max_translation + limits.translation or r > config.max_rotation_deg + limits.rotation_deg
@@ -299,8 +265,7 @@ class MapRelocaliser:
                                    "drop --no-loop")
         mine = _descriptor_info(slam)
         theirs = saved.descriptor
-        # The seed seeds the RNN weights (and a random backbone's, which the probe below tells apart): without
-        # RNNs on both sides, and both probes there to compare, two seeds give one descriptor.
+        # without RNNs on both sides, and both probes there to compare, two seeds give one descriptor
         probes = theirs.get("probe") is not None and mine["probe"] is not None
         seeded = bool(theirs.get("num_rnn", 1)) or bool(mine["num_rnn"]) or not probes
         for key in ("backbone", "fusion", "num_rnn") + (("seed",) if seeded else ()):
@@ -308,12 +273,12 @@ class MapRelocaliser:
                 remedy = ""
                 if key == "num_rnn":
                     remedy = ("; the default descriptor has no RNNs (loop.descriptor.num_rnn = 0): "
-                              f"set loop.descriptor.num_rnn = {theirs[key]!r} to use this map, or record its session again")
+                              f"set loop.descriptor.num_rnn = {theirs[key]!r} to use this map, or record its "
+                              "session again")
                 raise MapMismatchError(f"{where}: the map was made with descriptor {key}={theirs[key]!r}, this run "
                                        f"uses {mine[key]!r}; its index cannot be searched with another descriptor"
                                        + remedy)
-        # the dimension is checked on its own: without probes to compare, nothing else would tell a map whose
-        # index holds descriptors of another length (a PCA or projection change) until its first search fails
+        # without probes, nothing else would tell a map of another descriptor length before its first search
         dims = {theirs["dim"]} if isinstance(theirs.get("dim"), int) and not isinstance(theirs["dim"], bool) else set()
         if len(saved) and saved.descriptors.ndim == 2:
             dims.add(int(saved.descriptors.shape[1]))
@@ -323,7 +288,6 @@ class MapRelocaliser:
                                    f"entries, this run's {run_dim}; its index cannot be searched with another "
                                    "descriptor")
         if "probe" not in theirs and theirs.get("backbone") == "efficientnet_lite0" and theirs.get("fusion") != "none":
-            # saved without a descriptor probe, by a version whose EfficientNet-Lite0 default attended stage6 and stage7
             raise MapMismatchError(
                 f"{where}: saved without a descriptor probe, by a version whose EfficientNet-Lite0 default attended "
                 "stage6 and stage7 (this version's attends stage7 only): its index cannot be searched with this "
@@ -372,7 +336,7 @@ class MapRelocaliser:
     def check_mergeable(self, keyframe_image_shape) -> None:
         """Raise :class:`MapMismatchError` when keyframe images of ``keyframe_image_shape`` ``(h, w, 3)``
         cannot join the map's in a grown map (:meth:`merged_map`; one image size per map).
-        :func:`slam.pipeline.run_slam` asks at the recording's first keyframe, before the work."""
+        """
         if len(self.map) and tuple(keyframe_image_shape) != tuple(self.map.rgb.shape[1:]):
             raise MapMismatchError(f"{self.report.map_path}: keyframe images of {tuple(self.map.rgb.shape[1:3])} px "
                                    f"in the map, {tuple(keyframe_image_shape[:2])} in this recording: a grown map "
@@ -502,14 +466,11 @@ class MapRelocaliser:
             self._alignment = None
             return result, rep
         self._place(group, est)
-        for k in group:
-            self.links[k].kept = True
         rep.links = [self.links[k] for k in group]
         poses = self._merge(est, rep.links)
         self._merged_poses = poses
-        T_out = _output_rig(self.slam.config)
-        old_kf = _to_output(est, T_out)
-        new_kf = _to_output(poses, T_out)
+        old_kf = self.slam.depth_camera_pose(est)
+        new_kf = self.slam.depth_camera_pose(poses)
         correction = se3_compose(new_kf, se3_inv(old_kf))  # per keyframe: old world -> map world
         kf_of_frame = torch.tensor([max(k, 0) for k in self._frame_kf], dtype=torch.long)
         traj = result.trajectory
@@ -517,7 +478,7 @@ class MapRelocaliser:
             raise RuntimeError(f"{kf_of_frame.numel()} frames observed, the result has {traj.poses.shape[0]}")
         moved = (se3_compose(correction[kf_of_frame], traj.poses) if kf_of_frame.numel() and correction.shape[0]
                  else traj.poses)
-        align_out = _to_output(self._alignment, T_out)
+        align_out = self.slam.depth_camera_pose(self._alignment)
         odo = result.odometry_trajectory
         merged = dataclasses.replace(
             result, trajectory=Trajectory(traj.timestamps, moved),
@@ -564,7 +525,8 @@ class MapRelocaliser:
         info["sessions"] = sessions
         return SavedMap(torch.cat([base.poses, self._merged_poses]), torch.cat([base.frame_index, own.frame_index]),
                         torch.cat([base.timestamps, own.timestamps]), ids, descriptors,
-                        list(base.features) + list(own.features), np.concatenate([base.rgb, own.rgb]), edges, index, info)
+                        list(base.features) + list(own.features), np.concatenate([base.rgb, own.rgb]), edges, index,
+                        info)
 
     def _merge(self, est: Tensor, links: list[MapLink]) -> Tensor:
         """Optimise the recording's keyframe graph with its map links, the linked map keyframes fixed."""
@@ -589,8 +551,9 @@ class MapRelocaliser:
             g.add_loop(e.i + U, e.j + U, e.T_ij, e.information)
         for lk in links:
             g.add_loop(slot[lk.map_kf], lk.kf + U, lk.T_ab, lk.information)
-        backend = PoseGraphBackend(slam.config.backend, {EdgeKind.ODOMETRY: slam.config.backend.odometry_information_scale,
-                                                         EdgeKind.LOOP: slam.config.loop.information_scale})
+        scales = {EdgeKind.ODOMETRY: slam.config.backend.odometry_information_scale,
+                  EdgeKind.LOOP: slam.config.loop.information_scale}
+        backend = PoseGraphBackend(slam.config.backend, scales)
         with slam.timer("map_merge"):
             res = backend.optimize(g, fixed=list(range(U)))
         logger.info("merged into the map: %d keyframes, %d map links, chi2 %.3g -> %.3g, %s", est.shape[0], len(links),

@@ -10,51 +10,24 @@ from slam.odometry.config import (
     RansacConfig,
     RegistrationConfig,
 )
-from slam.odometry.features import FrameFeatures, bucket_keypoints, extract_features
-from slam.odometry.frontend import Keyframe, KeyframeEdge, RGBDOdometry, TrackResult, TrackStatus
-from slam.odometry.geometry import (
-    backproject,
-    depth_sigma,
-    kabsch,
-    point_covariance,
-    project,
-    registration_information,
-    rigid_jacobian,
-    transform_points,
-)
-from slam.odometry.matching import hamming_distance, match_descriptors, match_features, unpack_bits
-from slam.odometry.ransac import RansacResult, ransac_rigid, refine_rigid
+from slam.odometry.features import FrameFeatures, extract_features
+from slam.odometry.frontend import Keyframe, RGBDOdometry, TrackResult, TrackStatus
+from slam.odometry.matching import match_features
 from slam.odometry.registration import RegistrationResult, register
 
 __all__ = [
     "FeatureConfig",
     "FrameFeatures",
     "Keyframe",
-    "KeyframeEdge",
     "MatchConfig",
     "OdometryConfig",
     "RGBDOdometry",
     "RansacConfig",
-    "RansacResult",
     "RegistrationConfig",
     "RegistrationResult",
     "TrackResult",
     "TrackStatus",
-    "backproject",
-    "bucket_keypoints",
-    "depth_sigma",
     "extract_features",
-    "hamming_distance",
-    "kabsch",
-    "match_descriptors",
     "match_features",
-    "point_covariance",
-    "project",
-    "ransac_rigid",
-    "refine_rigid",
     "register",
-    "registration_information",
-    "rigid_jacobian",
-    "transform_points",
-    "unpack_bits",
 ]

@@ -1,7 +1,5 @@
-"""Typed settings of the RGB-D odometry: every threshold lives here, with its default explained.
-
-The defaults were chosen by measurement on the 7-Scenes ``redkitchen`` sequence (640x480 Kinect v1,
-see docs/results.md, "Odometry"); they are sensible for any 640x480 structured-light RGB-D camera.
+"""Typed settings of the RGB-D odometry: every threshold lives here, with its default explained (measured:
+docs/results.md, "Odometry"), and the configs' shared ``check_*`` helpers.
 
 Example:
     >>> cfg = OdometryConfig()
@@ -67,6 +65,12 @@ def _finite_numbers(values) -> tuple | None:
     return out if ok else None
 
 
+def check_bool(owner: str, name: str, value) -> None:
+    """ValueError naming ``owner.name`` unless ``value`` is True or False."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{owner}.{name} must be True or False, got {value!r}")
+
+
 def check_choice(owner: str, name: str, value, allowed: tuple) -> None:
     """ValueError naming ``owner.name`` unless ``value`` is one of ``allowed`` (exactly: case matters)."""
     if not isinstance(value, str) or value not in allowed:
@@ -77,9 +81,7 @@ def check_choice(owner: str, name: str, value, allowed: tuple) -> None:
 class FeatureConfig:
     """Keypoint detection, description and back-projection."""
 
-    # "orb" (OpenCV ORB, 256-bit binary descriptors, ~5 ms at 640x480 here) or "sift" (OpenCV SIFT,
-    # 128-d float, ~50 ms at 640x480: too slow for the 50 ms/frame budget at full resolution).
-    detector: str = "orb"
+    detector: str = "orb"  # "orb" (OpenCV ORB, 256-bit binary) or "sift" (OpenCV SIFT, 128-d float, ~10x slower)
     # Detection runs on the grey image resized by this factor; keypoints are returned in full-size pixels.
     image_scale: float = 1.0
     # Candidates asked from the detector before bucketing (ORB keeps the strongest FAST corners).
@@ -104,15 +106,12 @@ class FeatureConfig:
     max_depth_jump: float = 0.05
     # Pixel noise (std) of a keypoint detected at pyramid level 0; level l gets sigma * scale_factor^l.
     keypoint_sigma_px: float = 1.0
-    # Intrinsics (fx, fy, cx, cy) of the colour camera when the frames are unregistered, i.e. the frame's
-    # K is the depth camera's and the colour image comes from a second camera (7-Scenes: depth K f = 585,
-    # Kinect v1 colour camera f ~ 525). The depth map is then warped into the colour camera
-    # (slam.odometry.depth_registration) and keypoints are lifted there: the tracked frame is the colour
-    # camera's. None: the frames are registered (colour pixel = depth pixel, one K).
+    # Intrinsics (fx, fy, cx, cy) of the colour camera when the frame's K is the depth camera's (unregistered):
+    # the depth map is warped into the colour camera (slam.odometry.depth_registration), the tracked frame is the
+    # colour camera's. None: registered (colour pixel = depth pixel, one K).
     rgb_intrinsics: tuple[float, float, float, float] | None = None
     # With rgb_intrinsics: position (metres) of the depth camera's optical centre in the colour camera's
-    # frame, the axes taken as parallel (p_rgb = p_depth + t). A Kinect v1's IR and colour cameras sit
-    # ~2.5 cm apart along x; the warp moves the depth by the parallax f * t_x / z (~9 px at 1.5 m).
+    # frame, the axes taken as parallel (p_rgb = p_depth + t).
     rgb_from_depth_translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
@@ -251,17 +250,15 @@ class OdometryConfig:
     keyframe_translation: float = 0.15
     keyframe_rotation_deg: float = 12.0
     # ...or when tracking is getting weak: fewer inliers than this, or than this fraction of the
-    # keyframe's valid keypoints (overlap proxy). ATE on redkitchen (1000 frames, colour focal 525) by
-    # keyframe_min_inliers: 80 -> 0.048 m, 120 -> 0.044, 180 -> 0.034 (84 keyframes), 250 -> 0.034 (155):
-    # a registration across a small overlap costs more than the extra keyframe-to-keyframe steps.
+    # keyframe's valid keypoints (overlap proxy): a registration across a small overlap costs more than the
+    # extra keyframe-to-keyframe steps.
     keyframe_min_inliers: int = 180
     keyframe_min_inlier_ratio: float = 0.15
     # After this many consecutive lost frames a keyframe is forced at the constant-velocity pose, linked
     # by a weak edge (weak_edge_information * I) so tracking can restart.
     max_lost_frames: int = 3
     weak_edge_information: float = 1e-2
-    # Keyframe images are stored resized by this factor (0.5: 320x240x3 = 230 kB each) to bound memory;
-    # the place-recognition descriptor resizes to 224 px anyway.
+    # Keyframe images are stored resized by this factor to bound memory (the descriptor resizes to 224 px anyway).
     keyframe_rgb_scale: float = 0.5
 
     def __post_init__(self) -> None:

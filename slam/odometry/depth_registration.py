@@ -1,17 +1,10 @@
 """Depth-to-colour registration of an unregistered RGB-D camera (z-buffered forward warp) in torch.
 
-A structured-light sensor such as the Kinect v1 has separate depth (IR) and colour cameras a few
-centimetres apart, with different intrinsics. Reading the depth image at a colour keypoint's pixel, even
-after rescaling for the focal lengths, reads a different surface point: the parallax is
-``f * baseline / z`` pixels (about 10 px at 1.5 m for a 2.5 cm baseline), which moves every keypoint's
-depth along slanted surfaces and puts keypoints near silhouettes on the wrong surface. Warping the depth
-map into the colour camera, as the OpenNI driver does for registered streams (and as TUM RGB-D ships
-its depth), gives each colour pixel its own depth.
-
-Every valid depth pixel is back-projected with the depth intrinsics, moved into the colour camera by
-``T_rgb_depth`` and projected with the colour intrinsics; where several land on one colour pixel the
-nearest wins (z-buffer). Each point is splatted to the 2x2 colour pixels around its projection so the
-slight magnification between the two cameras leaves no holes.
+A Kinect v1's depth (IR) and colour cameras sit a few centimetres apart: reading the depth at a colour pixel
+reads another surface point (a parallax of ``f * baseline / z`` pixels). Every valid depth pixel is
+back-projected with the depth intrinsics, moved into the colour camera by ``T_rgb_depth`` and projected with
+the colour intrinsics; the nearest wins (z-buffer), splatted to the 2x2 colour pixels around its projection so
+that the slight magnification between the cameras leaves no holes.
 
 Example:
     >>> K = torch.tensor([[525., 0., 319.5], [0., 525., 239.5], [0., 0., 1.]], dtype=torch.float64)
@@ -74,15 +67,11 @@ def register_depth_to_color(depth: Tensor, K_depth: Tensor, K_rgb: Tensor, T_rgb
     return _warp_torch(torch.nan_to_num(depth.to(dtype), nan=0.0), Kd, Kc, R, T[:3], h, w, min_depth)
 
 
-# Both warps compute the same floating-point operations in the same order as the first implementation
-# (kept in tests/slam/odometry/test_depth_registration.py as the reference, bitwise equal on the kitchen's frames), with
-# two changes that cannot change a result:
-# * the z-buffer is a minimum over a grid of splat origins (each point's top-left pixel x0, y0 in
-#   [-1, w) x [-1, h)), then a 2x2 minimum filter: pixel (y, x) takes the nearest of the points whose
-#   2x2 splat covers it, i.e. whose origin is (y or y-1, x or x-1). One scatter of N points instead of 4N.
+# Both warps are bitwise equal to the reference warp of tests/slam/odometry/test_depth_registration.py:
+# * the z-buffer is a minimum over a grid of splat origins (each point's top-left pixel in [-1, w) x [-1, h)),
+#   then a 2x2 minimum filter: one scatter of N points instead of 4N;
 # * terms of the ray R K^-1 [u, v, 1] with a zero coefficient are left out and unit factors not applied
-#   (adding +-0 or multiplying by 1 is exact; at most the sign of a zero changes, which nothing below
-#   can see): for the usual rig (R = I) the ray is a row or a column, and the colour depth is the depth.
+#   (exact: for the usual rig, R = I, the ray is a row or a column, and the colour depth is the depth).
 
 
 def _ray_times_depth(row, u, v, d, t):
@@ -177,11 +166,8 @@ def rig_pose(rgb_from_depth_translation, dtype=torch.float64, device=None) -> Te
 
 
 def depth_camera_poses(rgb_poses: Tensor, T_rgb_depth: Tensor) -> Tensor:
-    """Poses of the depth camera from the tracked colour camera's, the world being the first depth camera's.
-
-    ``P_depth = T_rgb_depth^-1 * P_rgb * T_rgb_depth``: right, the depth camera rides on the colour
-    camera; left, the world frame (the first colour camera's, where tracking starts) moves to the first
-    depth camera's, so an identity stays an identity.
+    """Poses of the depth camera from the tracked colour camera's, the world being the first depth camera's:
+    ``P_depth = T_rgb_depth^-1 * P_rgb * T_rgb_depth`` (an identity stays an identity).
 
     Args:
         rgb_poses: ``(..., 7)`` world-from-colour-camera poses.

@@ -1,8 +1,7 @@
 """Keypoints with descriptors and 3D points: the self-contained record stored with every keyframe.
 
-Detection and description use OpenCV (ORB by default, SIFT as an option) on the grey image; a grid
-bucketing keeps the features spread over the image; the depth image gives each keypoint a camera-frame
-3D point (see :func:`slam.odometry.geometry.backproject`). Everything returned is a torch tensor.
+OpenCV detects and describes (ORB, or SIFT) on the grey image, a grid bucketing spreads the features over the
+image, and the depth gives each keypoint a camera-frame 3D point (:func:`slam.odometry.geometry.backproject`).
 
 Example:
     >>> rgb = np.zeros((48, 64, 3), np.uint8)
@@ -21,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from slam.odometry.config import DETECTORS, FeatureConfig
+from slam.odometry.config import FeatureConfig
 from slam.odometry.depth_registration import register_depth_to_color, rig_pose
 from slam.odometry.geometry import backproject
 
@@ -65,11 +64,6 @@ class FrameFeatures:
     def num_valid(self) -> int:
         """Number of keypoints with a 3D point."""
         return int(self.valid.sum())
-
-    def subset(self, mask: Tensor) -> FrameFeatures:
-        """The features selected by a boolean ``(N,)`` mask or an index tensor."""
-        return replace(self, keypoints=self.keypoints[mask], descriptors=self.descriptors[mask],
-                       points=self.points[mask], valid=self.valid[mask], sigma_px=self.sigma_px[mask])
 
     def to(self, device) -> FrameFeatures:
         """A copy on ``device``."""
@@ -130,11 +124,9 @@ def _detect(gray: np.ndarray, config: FeatureConfig):
                              nlevels=config.orb_levels, fastThreshold=config.fast_threshold)
         kps = orb.detect(gray, None)
         describer = orb
-    elif config.detector == "sift":
+    else:  # "sift" (FeatureConfig checks the name)
         describer = cv2.SIFT_create(nfeatures=config.detect_features)
         kps = describer.detect(gray, None)
-    else:
-        raise ValueError(f"unknown detector {config.detector!r}: expected one of {DETECTORS}")
     if len(kps) == 0:
         return [], None
     xy = np.array([k.pt for k in kps], np.float32)

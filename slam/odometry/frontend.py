@@ -1,16 +1,10 @@
 """RGB-D odometry front end: frame-to-keyframe tracking, keyframe selection, tracking-loss handling.
 
-Every frame is registered against the current keyframe (drift accumulates only from keyframe to
-keyframe), with a constant-velocity motion prior for guided matching. A frame becomes a keyframe when it
-has moved far enough from the keyframe (translation / rotation) or when the overlap gets small (few
-inliers, or few relative to the keyframe's keypoints). When the registration against the keyframe fails,
-the last successfully tracked frame is promoted to a keyframe and the frame is tracked again against it.
-If that fails too, the frame is LOST: its pose is predicted by constant velocity, the reason is logged,
-and the next frame is tracked against the keyframe again; after ``max_lost_frames`` lost frames in a row a
-keyframe is forced at the predicted pose with a weak edge so that tracking can restart from it.
-``track`` never raises for a bad frame (no depth, black image, wrong shapes): it returns a LOST result.
-
-The world frame is the camera frame of the first keyframe.
+Every frame is registered against the current keyframe with a constant-velocity prior for guided matching; it
+becomes a keyframe when it has moved far enough or the overlap gets small. When that registration fails, the
+last tracked frame is promoted to a keyframe and the frame tracked again against it; if that fails too the frame
+is LOST (constant-velocity pose), and after ``max_lost_frames`` lost frames in a row a keyframe is forced at the
+predicted pose with a weak edge. ``track`` never raises for a bad frame. The world is the first keyframe's camera.
 
 Example:
     >>> import numpy as np
@@ -119,14 +113,10 @@ class TrackResult:
         status: :class:`TrackStatus`.
         reason: why the frame is LOST / RECOVERED or a keyframe was made ("" when plainly OK).
         num_inliers: RANSAC inliers of the registration (0 when LOST).
-        edge: the odometry edge created by this call, if any. It ends at this frame's keyframe when
-            ``is_keyframe``; when tracking against the old keyframe failed and the previous frame was
-            promoted to a keyframe, it ends at that promoted keyframe: ``is_keyframe`` is False, ``keyframe_id == edge.j`` and ``keyframes[edge.j].frame_index`` is the
-            previous frame's index. One call can create two edges (the promoted previous frame's, then a
-            weak keyframe forced after ``max_lost_frames``): ``edge`` is the last; the frontend's ``edges`` has all.
+        edge: the last odometry edge created by this call, if any: it ends at this frame's keyframe when
+            ``is_keyframe``, else at the previous frame promoted to a keyframe (``keyframe_id == edge.j``).
         inlier_rmse: 3D RMSE (metres) of the inliers of the registration that placed the frame (NaN when
-            none did: LOST, or the first frame); without ground truth it measures how well the depth and
-            the camera model explain the matches (e.g. to choose a rig's colour/depth baseline).
+            none did: LOST, or the first frame).
     """
 
     index: int
@@ -217,8 +207,6 @@ class RGBDOdometry:
             except (ValueError, TypeError, cv2.error) as exc:
                 return None, f"unusable frame: {exc}"
         if feats.num_valid < self.config.min_valid_points:
-            # "valid": a depth in [min_depth, max_depth] whose neighbours agree within max_depth_jump
-            # (not on a depth edge): very noisy depth fails the second with the depth present
             return feats, (f"too few keypoints with valid depth, in range and off depth edges ({feats.num_valid} "
                            f"of {len(feats)}; need {self.config.min_valid_points})")
         return feats, ""

@@ -1,10 +1,8 @@
 """Descriptor matching with Kornia's matchers, optionally guided by a motion prior.
 
-Binary (ORB) descriptors are compared by Hamming distance: the packed bits are unpacked to ``{0, 1}``
-floats and the distance matrix ``|a| + |b| - 2 a.b`` (exact integers in float32) is handed to
-``kornia.feature.match_*`` through its ``dm=`` argument; float descriptors use Kornia's own L2 ``cdist``.
-A motion prior turns the matcher into a *guided* one: pairs whose predicted position disagrees by more
-than a radius get a prohibitive distance before the nearest-neighbour search.
+Binary (ORB) descriptors are compared by Hamming distance, handed to ``kornia.feature.match_*`` through its
+``dm=`` argument; float descriptors use L2. A motion prior makes the matcher *guided*: pairs whose predicted
+position disagrees by more than a radius get a prohibitive distance before the nearest-neighbour search.
 
 Example:
     >>> a = torch.randint(0, 256, (6, 32), dtype=torch.uint8)
@@ -17,7 +15,7 @@ import kornia.feature as KF
 import numpy as np
 import torch
 
-from slam.odometry.config import MATCH_METHODS, MatchConfig
+from slam.odometry.config import MatchConfig
 from slam.odometry.features import FrameFeatures
 from slam.odometry.geometry import project, transform_points
 
@@ -49,8 +47,7 @@ def unpack_bits(desc: Tensor) -> Tensor:
 def _popcount64(x: Tensor) -> Tensor:
     """Number of set bits of each int64 (numpy's popcount on the CPU, else SWAR; the masks also clear the
     sign fill of the arithmetic shift)."""
-    if x.device.type == "cpu" and _NP_POPCOUNT is not None:
-        # ~40x faster than the SWAR below on the CPU; on unsigned bits (numpy counts a signed value's |x|)
+    if x.device.type == "cpu" and _NP_POPCOUNT is not None:  # on unsigned bits: numpy counts a signed value's |x|
         return torch.from_numpy(_NP_POPCOUNT(x.contiguous().numpy().view(np.uint64)).astype(np.int64))
     x = x - ((x >> 1) & 0x5555555555555555)
     x = (x & 0x3333333333333333) + ((x >> 2) & 0x3333333333333333)
@@ -153,10 +150,8 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
         _, idx = KF.match_smnn(fa, fb, config.ratio, dm=dm)
     elif config.method == "snn":
         _, idx = KF.match_snn(fa, fb, config.ratio, dm=dm)
-    elif config.method == "mnn":
+    else:  # "mnn" (MatchConfig checks the name)
         _, idx = KF.match_mnn(fa, fb, dm=dm)
-    else:
-        raise ValueError(f"unknown matching method {config.method!r}: expected one of {MATCH_METHODS}")
     if idx.shape[0] == 0:
         return empty
     dist = dm[idx[:, 0], idx[:, 1]]
@@ -211,10 +206,8 @@ def guided_pairs(kp: Tensor, uv: Tensor, radius: float) -> Tensor:
     """Every pair ``(i, j)`` with ``|kp_i - uv_j|^2 <= radius^2``, computed in float32 as the dense mask
     ``(kp[:, None] - uv[None]) ** 2`` summed over x, y would be, without forming it.
 
-    Candidates come from a grid of cells slightly larger than ``radius`` (``uv_j`` in the 3 x 3 cells
-    around ``kp_i``'s: a superset of the pairs within ``radius``); the exact float32 test then keeps the
-    same pairs as the dense mask. ``uv`` may hold NaN or huge values (points behind the camera): they pair
-    with nothing, as in the dense mask.
+    Candidates come from the 3 x 3 grid cells (slightly larger than ``radius``) around ``kp_i``'s; the exact
+    float32 test then keeps the dense mask's pairs. NaN or huge ``uv`` (points behind the camera) pair with nothing.
 
     Args:
         kp: ``(N, 2)`` float32 keypoints (finite).

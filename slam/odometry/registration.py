@@ -1,10 +1,7 @@
 """Two-frame RGB-D registration: match features, 3D-3D RANSAC, refine, decide.
 
-This is the geometric verification the loop closure calls between two keyframes and the core of the
-odometry front end. ``register(fa, fb)`` returns ``T_ab``, the pose of frame ``b`` in frame ``a``
-(``p_a = T_ab * p_b``), with the information matrix of that estimate in the tangent of the right
-perturbation ``T_ab * exp(xi)``, ``xi = [rho, phi]`` (the convention of a g2o / GTSAM between-edge
-``i=a, j=b``).
+The core of the odometry front end and the loop closure's geometric verification: ``register(fa, fb)`` returns
+``T_ab``, the pose of frame ``b`` in frame ``a``, with its information (a g2o / GTSAM between-edge ``i=a, j=b``).
 
 Example:
     >>> from slam.odometry.features import FrameFeatures
@@ -79,10 +76,8 @@ def _register_once(fa: FrameFeatures, fb: FrameFeatures, config: RegistrationCon
     t0 = time.perf_counter()
     matches, _ = match_features(fa, fb, config.matching, prior_ab=prior_ab)
     t1 = time.perf_counter()
-    seconds = {"matching": t1 - t0}
     res = _verify(fa, fb, matches, config)
-    seconds["ransac"] = time.perf_counter() - t1
-    res.seconds = seconds
+    res.seconds = {"matching": t1 - t0, "ransac": time.perf_counter() - t1}
     return res
 
 

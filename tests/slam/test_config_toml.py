@@ -9,7 +9,7 @@ import pytest
 import tomllib
 
 from slam.cli import main
-from slam.config import ConfigError, SLAMConfig, config_from_dict, config_to_dict, load_config, override, toml_text
+from slam.config import ConfigError, SLAMConfig, config_from_dict, config_to_dict, override, toml_text
 from slam.options import RunOptions, resolve_settings
 
 
@@ -33,7 +33,7 @@ def test_a_config_survives_toml_with_none_tuples_inf_and_dict_entries():
 def test_a_file_changes_only_what_it_names(tmp_path):
     path = tmp_path / "mine.toml"
     path.write_text('threads = 2\n[loop.descriptor]\nfusion = "eam"\n[odometry.registration.ransac]\nseed = 3\n')
-    cfg = load_config(path)
+    cfg = resolve_settings(file=path).config
     assert cfg == override(SLAMConfig(), {"threads": 2, "loop.descriptor.fusion": "eam",
                                           "odometry.registration.ransac.seed": 3})
 

@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from slam.config import ConfigError, SLAMConfig, override
+from slam.config import REGISTERED, ConfigError, SLAMConfig, override
 from slam.options import (
     KINECT_V1_RIG,
     OPTIONS,
-    REGISTERED,
     RunOptions,
     UsageError,
     add_run_arguments,
