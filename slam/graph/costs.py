@@ -1,7 +1,5 @@
-"""Pose-graph residuals, their analytic Jacobians, and robust kernels, vectorised over edges.
-
-The residuals and Jacobians here are the public, checked entry points to the torch reference of
-:mod:`slam.graph.fused` (one implementation of the maths); the robust kernels are defined here.
+"""Pose-graph residuals, their analytic Jacobians (checked wrappers of :mod:`slam.graph.fused`), and robust
+kernels, vectorised over edges.
 
 For an edge ``(i, j)`` with measurement ``z`` let ``D = z^-1 T_i^-1 T_j`` (the identity when the
 measurement is met exactly). The residual ``r (6,)`` in the ``[rho, phi]`` order is
@@ -11,13 +9,8 @@ measurement is met exactly). The residual ``r (6,)`` in the ``[rho, phi]`` order
 * chart ``"r3so3"``: ``r = [t(D), Log_SO3(R(D))]``; for planar poses this is exactly the
   ``(dx, dy, dtheta)`` error of g2o's ``EDGE_SE2``.
 
-Jacobians are taken w.r.t. right perturbations ``T <- T exp(delta)``. With ``C = dr/d(right perturbation
-of D)`` (``J_r^-1(r)`` for ``"se3"``, ``blockdiag(R(D), J_r^-1(r_phi))`` for ``"r3so3"``):
-``dr/d delta_j = C`` and ``dr/d delta_i = -C Ad(T_j^-1 T_i)`` because
-``z^-1 exp(-delta_i) T_i^-1 T_j = D exp(-Ad(T_j^-1 T_i) delta_i)``.
-
-The cost of an edge is ``rho(s)`` with ``s = r^T Omega r`` (``rho(s) = s`` without a kernel), so a
-robust cost is in the same units as chi2. Kernels give ``rho`` and the IRLS weight ``w = rho'(s)``.
+Jacobians are taken w.r.t. right perturbations ``T <- T exp(delta)``. The cost of an edge is ``rho(s)`` with
+``s = r^T Omega r`` (``rho(s) = s`` without a kernel); kernels give ``rho`` and the IRLS weight ``w = rho'(s)``.
 
 Example:
     >>> import torch
@@ -48,7 +41,6 @@ __all__ = [
     "GemanMcClure",
     "Huber",
     "RobustKernel",
-    "TrivialKernel",
     "Tukey",
     "edge_chi2",
     "edge_jacobians",
@@ -76,7 +68,7 @@ def _check_edges(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor) ->
 
 def edge_residuals(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor,
                    chart: str = "se3") -> Tuple[Tensor, Tensor]:
-    """Residuals of all edges (:func:`slam.graph.fused.se3_residuals`; differentiable).
+    """Residuals of all edges (differentiable).
 
     Args:
         poses: ``(N, 7)`` poses.
@@ -98,8 +90,7 @@ def edge_residuals(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor,
 
 def edge_jacobians(poses: Tensor, ii: Tensor, jj: Tensor, D: Tensor, r: Tensor,
                    chart: str = "se3", measurements: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
-    """Analytic Jacobians of the residuals w.r.t. right perturbations of ``T_i`` and ``T_j``
-    (:func:`slam.graph.fused.se3_jacobians_t`).
+    """Analytic Jacobians of the residuals w.r.t. right perturbations of ``T_i`` and ``T_j``.
 
     Args:
         poses: ``(N, 7)`` poses.
@@ -132,27 +123,17 @@ def edge_chi2(r: Tensor, information: Tensor) -> Tensor:
 
 
 def graph_chi2(graph) -> float:
-    """``sum_e r_e^T Omega_e r_e`` of a :class:`~slam.graph.pose_graph.PoseGraph` at its poses.
-
-    GTSAM reports half of this (its error is ``0.5 * chi2``).
-    """
+    """``sum_e r_e^T Omega_e r_e`` of a :class:`~slam.graph.pose_graph.PoseGraph` at its poses (GTSAM's error
+    is half of it)."""
     if graph.num_edges == 0:
         return 0.0
     r, _ = edge_residuals(graph.poses, graph.ii, graph.jj, graph.measurements, graph.chart)
     return float(edge_chi2(r, graph.information).sum())
 
 
-# ----------------------------------------------------------------------------------------------
-# Robust kernels on s = r^T Omega r (rho(s) ~= s for small s, so robust costs read like chi2)
-# ----------------------------------------------------------------------------------------------
 class RobustKernel:
-    """Base class: ``kernel(s) -> (rho(s), w(s) = rho'(s))`` for squared Mahalanobis norms ``s (E,)``.
-
-    Subclasses implement :meth:`rho_and_weight`; the optimiser uses ``w`` as the IRLS weight of the edge
-    (its information becomes ``w * Omega`` in the normal equations) and ``rho`` as its cost.
-    """
-
-    name = "trivial"
+    """Base class: ``kernel(s) -> (rho(s), w(s) = rho'(s))`` for squared Mahalanobis norms ``s (E,)``;
+    subclasses implement :meth:`rho_and_weight`."""
 
     def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -161,13 +142,6 @@ class RobustKernel:
         if not isinstance(s, Tensor) or s.dim() != 1:
             raise ValueError(f"s must be a tensor of shape (E,), got {getattr(s, 'shape', type(s))}")
         return self.rho_and_weight(s)
-
-
-class TrivialKernel(RobustKernel):
-    """No robustness: ``rho(s) = s``, ``w = 1``."""
-
-    def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
-        return s, torch.ones_like(s)
 
 
 @dataclass
@@ -183,8 +157,6 @@ class _Width(RobustKernel):
 class Huber(_Width):
     """Huber: quadratic up to ``sqrt(s) = width``, linear beyond (``rho = 2 d sqrt(s) - d^2``)."""
 
-    name = "huber"
-
     def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
         d2 = self.width ** 2
         e = torch.sqrt(s.clamp_min(d2))  # >= width: no 0 division on the quadratic branch
@@ -198,8 +170,6 @@ class Huber(_Width):
 class Cauchy(_Width):
     """Cauchy (Lorentzian): ``rho = c^2 log(1 + s / c^2)``, ``w = 1 / (1 + s / c^2)``."""
 
-    name = "cauchy"
-
     def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
         c2 = self.width ** 2
         return c2 * torch.log1p(s / c2), 1.0 / (1.0 + s / c2)
@@ -208,8 +178,6 @@ class Cauchy(_Width):
 @dataclass
 class Tukey(_Width):
     """Tukey biweight: ``rho = c^2/3 (1 - (1 - s/c^2)^3)`` inside ``s < c^2``, constant outside (w = 0)."""
-
-    name = "tukey"
 
     def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
         c2 = self.width ** 2
@@ -220,8 +188,6 @@ class Tukey(_Width):
 @dataclass
 class GemanMcClure(_Width):
     """Geman-McClure: ``rho = c^2 s / (c^2 + s)``, ``w = c^4 / (c^2 + s)^2``."""
-
-    name = "geman_mcclure"
 
     def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
         c2 = self.width ** 2
@@ -236,13 +202,9 @@ _KERNELS = {"huber": Huber, "cauchy": Cauchy, "tukey": Tukey, "geman_mcclure": G
 def make_kernel(kernel: Union[None, str, RobustKernel],
                 width: Optional[float] = None) -> Optional[RobustKernel]:
     """A kernel object from a name (``"huber"``, ``"cauchy"``, ``"tukey"``, ``"geman_mcclure"``), an
-    object (returned as is) or ``None``/``"none"`` (no kernel, returns ``None``).
-
-    Args:
-        kernel: the name or object.
-        width: width on ``sqrt(s)`` for a kernel made from a name (default ``sqrt(chi2_0.95(6)) = 3.55``).
-    """
-    if kernel is None or isinstance(kernel, TrivialKernel):
+    object (returned as is) or ``None``/``"none"`` (returns ``None``); ``width`` on ``sqrt(s)`` for a kernel
+    made from a name (default ``sqrt(chi2_0.95(6)) = 3.55``)."""
+    if kernel is None:
         return None
     if isinstance(kernel, RobustKernel):
         return kernel

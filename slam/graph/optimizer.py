@@ -1,29 +1,16 @@
 """Gauss-Newton and Levenberg-Marquardt for pose graphs over sparse normal equations.
 
-Each iteration linearises every edge at once (the closed forms of :mod:`slam.graph.fused`), scatters the
-per-edge blocks into a fixed sparse pattern (:mod:`slam.graph.linear`), solves ``(H + lambda D) dx = -g``
-and retracts ``T <- T exp(dx)`` (right perturbation). The pieces are separate: the per-edge maths behind
-:class:`~slam.graph.problem.TorchProblem`, the robust kernel (:mod:`slam.graph.costs`), the linear
-solver (:mod:`slam.graph.linear`) and here the outer loop with its step rules (Gauss-Newton, LM with GTSAM's
-schedule or Nielsen's gain-ratio rule).
+Each iteration linearises every edge at once (:class:`~slam.graph.problem.TorchProblem`), solves
+``(H + lambda D) dx = -g`` on a fixed sparse pattern and retracts ``T <- T exp(dx)`` (right perturbation);
+here is the outer loop with its step rules (Gauss-Newton, LM with GTSAM's schedule or Nielsen's rule).
 
-Gauge (a pose graph is invariant to moving all poses rigidly): ``"free"`` (default for LM) leaves the
-gauge to the LM damping, as GTSAM does without a prior: the damped step is then the smallest of the
-equally good Gauss-Newton steps, which from an odometry guess converges in fewer iterations than holding
-pose 0 (parking-garage: 4 instead of 6, the same costs per iteration as GTSAM); the result is then moved
-rigidly so that pose 0 keeps its initial value. ``"first"`` holds pose 0 constant (its unknowns are
-removed; GN always does this), ``"prior"`` adds a strong prior on pose 0. Poses listed in ``fixed`` are
-held constant too (and then anchor the result themselves).
+Gauge: ``"free"`` (LM's default) leaves it to the LM damping, as GTSAM does without a prior, then moves the
+result rigidly so that pose 0 keeps its initial value; ``"first"`` holds pose 0 (GN always does);
+``"prior"`` adds a strong prior on pose 0. Poses in ``fixed`` are held too (and then anchor the result).
 
-Costs: ``chi2 = sum_e r_e^T Omega_e r_e`` (GTSAM's ``graph.error`` is ``0.5 * chi2``); with a robust
-kernel the optimiser minimises ``sum_e rho(s_e)`` (reported as ``robust_cost``), ``chi2`` is still the
-plain sum. For a planar graph (z = roll = pitch = 0 everywhere, as read from a 2D g2o file) the
-problem splits exactly into (x, y, yaw) and (z, roll, pitch) parts with a zero gradient in the latter,
-so only the 3-DoF part is solved (a 4x smaller system, identical result).
-
-Gradients: with ``differentiable=True`` the optimised poses carry a ``grad_fn`` towards the measurements,
-the information matrices and the held poses (implicit differentiation at the optimum,
-:mod:`slam.graph.implicit`).
+Costs: ``chi2 = sum_e r_e^T Omega_e r_e`` (GTSAM's error is ``0.5 * chi2``); with a robust kernel the
+optimiser minimises ``sum_e rho(s_e)`` (``robust_cost``). A planar graph (z = roll = pitch = 0) is solved
+in (x, y, yaw) only: the problem splits exactly.
 
 Example:
     >>> import torch
@@ -80,20 +67,12 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
             :class:`~slam.graph.linear.LinearSolver`.
         config: an :class:`OptimizerConfig`; keyword ``overrides`` replace its fields
             (e.g. ``optimize(g, max_iterations=10, gauge="prior")``).
-        initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"`` (rotations by
-            chordal relaxation, then translations by least squares, as GTSAM's ``InitializePose3``) or
-            ``"spanning_tree"`` (composed along a breadth-first tree of the edges) or ``"auto"`` (the graph's
-            poses when their chi2 per edge is at most ``AUTO_CHI2_PER_EDGE``, else the spanning tree); see
-            :mod:`slam.graph.initialization`. ``initial_chi2`` is then the chi2 of that guess. The default
-            keeps the caller's poses (a warm start, as the SLAM back end's); from raw odometry over a long
-            trajectory (input_INTEL_g2o.g2o) LM crawls, and a run that stops at ``max_iterations`` says so in
-            ``result.message`` with what to try.
+        initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"``, ``"spanning_tree"``
+            or ``"auto"`` (see :mod:`slam.graph.initialization`); ``initial_chi2`` is that guess's chi2.
 
     Returns:
-        An :class:`OptimizationResult` (``result.graph``, ``result.chi2``, ``result.status``,
-        ``result.iterations``, ``result.cost_history``, ``result.timings``). With ``differentiable=True``,
-        ``result.graph.poses`` carries a ``grad_fn`` when the graph's measurements, information or held
-        poses require grad.
+        An :class:`OptimizationResult`. With ``differentiable=True``, ``result.graph.poses`` carries a
+        ``grad_fn`` when the graph's measurements, information or held poses require grad.
 
     Raises:
         ValueError: no edges, bad settings, or a non-positive-definite information matrix.
@@ -105,9 +84,7 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
     if initialization not in ("none", "auto"):  # (its time counts in timings["setup"]; "auto" in _optimize)
         given = graph.poses
         graph = initialize(graph, initialization, fixed=cfg.fixed)
-        if given.requires_grad:
-            # the initial guess keeps the anchor and the held poses as given: their rows stay the
-            # caller's tensor, so the optimum's gradient towards them (its gauge) is not lost
+        if given.requires_grad:  # the anchors' rows stay the caller's tensor (their gradient is kept)
             same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
             graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
     res = _optimize(graph, method, kernel, solver, cfg, t_start, initialization == "auto")
@@ -172,7 +149,6 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message)
 
 
-# -- the outer loop ---------------------------------------------------------------------------------
 @dataclass
 class _Iterate:
     """Poses ``x`` with their cost, chi2 and the problem's cache (and the step ``dx`` that led there)."""
