@@ -32,7 +32,7 @@ from slam.graph.linear import (
     SparseCholeskySolver,
     make_solver,
 )
-from slam.graph.optimizer import PoseGraphOptimizer, optimize
+from slam.graph.optimizer import optimize
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.result import OptimizationResult, Status
 
@@ -49,7 +49,6 @@ __all__ = [
     "OptimizationResult",
     "OptimizerConfig",
     "PoseGraph",
-    "PoseGraphOptimizer",
     "RobustKernel",
     "SparseCholeskySolver",
     "Status",

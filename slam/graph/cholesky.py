@@ -6,18 +6,6 @@ the ``n``-node block graph. The numeric phase is right-looking and in place in t
 ``[L11; L21]``: supernodes of one height and shape form one batch; each factors its pivot block, solves its
 rows and adds its packed update ``-L21 L21^T`` straight into the panels that own its columns (nothing but
 the factor is stored). On the CPU, small groups go front by front through direct LAPACK calls.
-
-Example:
-    >>> import torch
-    >>> from slam.graph.linear import build_pattern
-    >>> ii, jj = torch.tensor([0, 1, 2]), torch.tensor([1, 2, 0])
-    >>> pat = build_pattern(ii, jj, torch.ones(3, dtype=torch.bool), 2)
-    >>> sym = SymbolicCholesky(pat)
-    >>> A = torch.eye(6, dtype=torch.float64) * 4 + 1
-    >>> vals = A.view(3, 2, 3, 2).transpose(1, 2)[pat.block_rows, pat.block_cols].reshape(-1)  # block-major
-    >>> x = sym.factor(vals.numpy()).solve(torch.ones(6, dtype=torch.float64).numpy())
-    >>> bool(abs(A.numpy() @ x - 1).max() < 1e-12)
-    True
 """
 from __future__ import annotations
 

@@ -10,18 +10,6 @@ Notation: ``D = z^-1 T_i^-1 T_j``, ``r = Log(D) = [rho, phi]``,
 ``J_j = J_r^-1(r)``, ``J_i = -J_l^-1(r) Ad(z^-1)``, ``Omega = L L^T`` (Cholesky, constant per call).
 With the whitened rows ``[A_i, A_j, u] = L^T [J_i, J_j, r]`` the blocks of an edge are ``A_a^T A_b`` and
 its gradient ``A_a^T u``: one product of a ``(2k+1, k)`` matrix with its transpose gives all of them.
-
-Example:
-    >>> import torch
-    >>> from slam.lie import se3_exp, se3_inv
-    >>> poses = se3_exp(torch.randn(4, 6, dtype=torch.float64) * 0.1)
-    >>> ii, jj = torch.tensor([0, 1, 2]), torch.tensor([1, 2, 3])
-    >>> zinv = se3_inv(se3_exp(torch.randn(3, 6, dtype=torch.float64) * 0.1))
-    >>> r, aux = se3_residuals(poses, ii, jj, zinv)
-    >>> JT = se3_jacobians_t(r, aux, -se3_adjoint_t(zinv))
-    >>> blocks, g = normal_blocks(JT, torch.eye(6, dtype=torch.float64).expand(3, 6, 6).contiguous())
-    >>> r.shape, JT.shape, blocks.shape, g.shape
-    (torch.Size([3, 6]), torch.Size([3, 13, 6]), torch.Size([3, 4, 6, 6]), torch.Size([3, 2, 6]))
 """
 from __future__ import annotations
 

@@ -5,13 +5,6 @@ The Gauss-Newton system ``H dx = -g`` has one ``k x k`` block per pair of connec
 blocks sorted by (row, column); ``H`` is stored block-major, ``values (nb * k * k,)``, and every iteration adds
 each edge's four blocks into it with one ``index_add_``. Solvers (``solver.solve(pattern, values, b) -> x``):
 :class:`SparseCholeskySolver` (:mod:`slam.graph.cholesky`) and :class:`DenseCholeskySolver` (small systems).
-
-Example:
-    >>> import torch
-    >>> ii, jj = torch.tensor([0, 1, 0]), torch.tensor([1, 2, 2])
-    >>> pat = build_pattern(ii, jj, torch.tensor([False, True, True]), k=6)
-    >>> pat.num_vars, pat.num_blocks, pat.edge_blocks.shape
-    (2, 4, torch.Size([3, 4]))
 """
 from __future__ import annotations
 

@@ -44,7 +44,7 @@ from slam.graph.problem import TorchProblem
 from slam.graph.result import OptimizationResult, Status
 from slam.lie import se3_normalize
 
-__all__ = ["METHODS", "OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
+__all__ = ["METHODS", "OptimizationResult", "OptimizerConfig", "Status", "optimize"]
 
 #: The outer loops :func:`optimize` runs (case-insensitive): Levenberg-Marquardt, Gauss-Newton.
 METHODS = ("lm", "gn")
@@ -292,24 +292,3 @@ def _minimize(prob: TorchProblem, method: str, cfg: OptimizerConfig, tm: Dict[st
         if decrease < cfg.abs_tol or decrease < cfg.rel_tol * (cur.cost + decrease):
             run.status = Status.CONVERGED
     return run
-
-
-class PoseGraphOptimizer:
-    """A reusable optimiser holding its settings: ``PoseGraphOptimizer(method, kernel, **cfg)(graph)``.
-
-    Example:
-        >>> opt = PoseGraphOptimizer("lm", kernel="huber", max_iterations=20)
-        >>> opt.config.max_iterations
-        20
-    """
-
-    def __init__(self, method: str = "lm", kernel: Union[None, str, RobustKernel] = None,
-                 solver: Union[None, str, LinearSolver] = "auto", config: Optional[OptimizerConfig] = None,
-                 **overrides):
-        self.method = method
-        self.kernel = kernel
-        self.solver = solver
-        self.config = dataclasses.replace(config or OptimizerConfig(), **overrides)
-
-    def __call__(self, graph: PoseGraph) -> OptimizationResult:
-        return optimize(graph, self.method, self.kernel, self.solver, self.config)

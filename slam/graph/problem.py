@@ -1,26 +1,6 @@
-"""The least-squares problem the optimiser's outer loop drives.
-
-:class:`TorchProblem` stands between the outer loop (Gauss-Newton / Levenberg-Marquardt in
-:mod:`slam.graph.optimizer`) and the per-edge maths of :mod:`slam.graph.fused`: evaluate the cost at some
-poses, linearise there into ``(H, g)``, solve the damped system, retract a step, and hand back the result,
-on any device.
-
-Everything that does not change during a call is made once: the pattern and the symbolic Cholesky
-analysis, the inverted measurements and ``Ad(z^-1)``, the Cholesky factors of the information matrices,
-and the buffers the per-iteration work writes into.
-
-Example:
-    >>> import torch
-    >>> from slam.lie import se3_exp
-    >>> from slam.graph.config import OptimizerConfig
-    >>> g = PoseGraph.from_lists([se3_exp(torch.zeros(6, dtype=torch.float64))] * 2,
-    ...                          [(0, 1, se3_exp(torch.tensor([1.0, 0, 0, 0, 0, 0], dtype=torch.float64)))])
-    >>> prob = TorchProblem(g, OptimizerConfig(), None, "first", "auto")
-    >>> cost, chi2, cache = prob.evaluate(prob.poses)
-    >>> H, grad = prob.linearize(prob.poses, cache)
-    >>> x = prob.retract(prob.poses, prob.solve(H, grad, 0.0))
-    >>> round(cost, 6), round(prob.evaluate(x)[0], 12)
-    (1.0, 0.0)
+"""The least-squares problem the optimiser's outer loop drives: evaluate the cost at some poses, linearise
+there into ``(H, g)``, solve the damped system, retract a step (the per-edge maths of :mod:`slam.graph.fused`).
+What does not change during a call (pattern, inverted measurements, information factors, buffers) is made once.
 """
 from __future__ import annotations
 
@@ -44,7 +24,6 @@ Tensor = torch.Tensor
 PLANAR_DIMS = (0, 1, 5)  # x, y, yaw in the [rho, phi] tangent order
 
 
-# -- setup shared by every problem ------------------------------------------------------------------
 def held_poses(cfg: OptimizerConfig, gauge: str, num_poses: int) -> List[int]:
     """Indices of the poses held constant: ``cfg.fixed`` (any sequence, array or tensor of ints), plus pose 0
     for the ``"first"`` gauge; a ``ValueError`` names an index out of range."""
@@ -64,7 +43,6 @@ def information_factor(graph: PoseGraph, info: Tensor, check: bool) -> Tensor:
     return L.contiguous()  # LAPACK's factors are column-major: row-major ones multiply ~3x faster
 
 
-# -- buffers kept between problems -----------------------------------------------------------------
 #: Most bytes of per-edge buffers kept for the next problem after an optimisation ends (parking-garage: 33 MB).
 WORKSPACE_MAX_BYTES = 2 ** 28
 _WORKSPACES: List[dict] = []  # at most one, taken by one problem at a time
@@ -72,9 +50,7 @@ _WORKSPACE_LOCK = threading.Lock()
 
 
 def _checkout_workspace() -> dict:
-    """The buffers an earlier problem handed back (or a new dict): reused, their pages are already mapped,
-    where fresh ones cost their page faults again (~10% of an optimisation of parking-garage, measured with
-    glibc's allocator)."""
+    """The buffers an earlier problem handed back (or a new dict): their pages are already mapped."""
     with _WORKSPACE_LOCK:
         return _WORKSPACES.pop() if _WORKSPACES else {}
 
@@ -86,10 +62,8 @@ def _return_workspace(ws: dict) -> None:
             _WORKSPACES.append(ws)
 
 
-# -- the torch problem --------------------------------------------------------------------------------
 class TorchProblem:
-    """One optimisation's state in torch (float64 on the graph's device): the fused kernels of
-    :mod:`slam.graph.fused`, the block-sparse system of :mod:`slam.graph.linear` and its solvers.
+    """One optimisation's state in torch (float64 on the graph's device).
 
     Args:
         graph: the :class:`PoseGraph` (its tensors are detached: the optimisation itself is not
@@ -103,8 +77,7 @@ class TorchProblem:
     def __init__(self, graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str,
                  solver):
         dt = torch.float64
-        # unit quaternions (validated to 1e-3) made exact, in the poses and in the measurements; the sign
-        # is kept so that untouched poses come back as they went in
+        # unit quaternions made exact; the sign is kept so that untouched poses come back as they went in
         self.poses = se3_normalize(graph.poses.detach().to(dt), positive_w=False)
         self.ii, self.jj = graph.ii, graph.jj
         self.meas = se3_normalize(graph.measurements.detach().to(dt), positive_w=False)
@@ -150,7 +123,6 @@ class TorchProblem:
         self.damping = cfg.damping
         self._dscale: Optional[Tensor] = None
 
-    # -- costs ----------------------------------------------------------------------------------
     def evaluate(self, poses: Tensor):
         """Cost, chi2 and ``(r, aux, w)`` (residuals, terms reused by the Jacobians, kernel weights)."""
         r, aux = se3_residuals(poses, self.ii, self.jj, self.zinv, self.chart)

@@ -3,13 +3,6 @@
 Graphs of any size with a known ground truth, built as the public benchmarks were: a walk on a grid, noisy
 relative-pose measurements, loop closures where the walk revisits a cell, and the odometry composed from the
 first pose as the initial guess.
-
-Example:
-    >>> sim = manhattan_world(200, seed=0)
-    >>> sim.graph.poses.shape, sim.ground_truth.shape, sim.num_loops > 0
-    (torch.Size([200, 7]), torch.Size([200, 7]), True)
-    >>> sim.graph.num_edges == 199 + sim.num_loops
-    True
 """
 from __future__ import annotations
 
