@@ -27,7 +27,6 @@ from slam.graph.costs import (
 from slam.graph.g2o import G2OFormatError, G2OWarning, read_g2o, write_g2o
 from slam.graph.linear import (
     DenseCholeskySolver,
-    LinearSolver,
     LinearSolverError,
     SparseCholeskySolver,
     make_solver,
@@ -44,7 +43,6 @@ __all__ = [
     "G2OWarning",
     "GemanMcClure",
     "Huber",
-    "LinearSolver",
     "LinearSolverError",
     "OptimizationResult",
     "OptimizerConfig",

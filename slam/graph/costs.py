@@ -1,8 +1,8 @@
 """Pose-graph residuals, their analytic Jacobians (checked wrappers of :mod:`slam.graph.fused`), and robust
 kernels, vectorised over edges.
 
-For an edge ``(i, j)`` with measurement ``z`` let ``D = z^-1 T_i^-1 T_j`` (the identity when the
-measurement is met exactly). The residual ``r (6,)`` in the ``[rho, phi]`` order is
+For an edge ``(i, j)`` with measurement ``z`` let ``D = z^-1 T_i^-1 T_j``. The residual ``r (6,)`` in the
+``[rho, phi]`` order is
 
 * chart ``"se3"``: ``r = Log(D)``, GTSAM's ``BetweenFactor<Pose3>`` error (so ``chi2 = 2 x`` GTSAM's error);
   for planar poses it is the SE(2) logarithm GTSAM's ``BetweenFactor<Pose2>`` uses;
@@ -51,8 +51,7 @@ __all__ = [
 
 Tensor = torch.Tensor
 
-# 95% quantile of the chi-square distribution with 6 degrees of freedom: an inlier edge has
-# s = r^T Omega r below this with probability 0.95, so kernels of this width leave inliers quadratic.
+# 95% quantile of the chi-square distribution with 6 degrees of freedom (of s = r^T Omega r on an inlier edge)
 CHI2_95_6DOF = 12.591587243743977
 
 
@@ -82,14 +81,12 @@ def edge_residuals(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor,
         (reused by :func:`edge_jacobians`).
     """
     _check_edges(poses, ii, jj, measurements)
-    if chart not in ("se3", "r3so3"):
-        raise ValueError(f"chart must be 'se3' or 'r3so3', got {chart!r}")
     r, aux = fused.se3_residuals(poses, ii, jj, se3_inv(measurements), chart)
     return r, torch.cat([aux[2], aux[3]], dim=-1)
 
 
 def edge_jacobians(poses: Tensor, ii: Tensor, jj: Tensor, D: Tensor, r: Tensor,
-                   chart: str = "se3", measurements: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+                   chart: str = "se3") -> Tuple[Tensor, Tensor]:
     """Analytic Jacobians of the residuals w.r.t. right perturbations of ``T_i`` and ``T_j``.
 
     Args:
@@ -99,16 +96,13 @@ def edge_jacobians(poses: Tensor, ii: Tensor, jj: Tensor, D: Tensor, r: Tensor,
         D: ``(E, 7)`` error poses from :func:`edge_residuals`.
         r: ``(E, 6)`` residuals from :func:`edge_residuals`.
         chart: the chart ``r`` was computed in.
-        measurements: ``(E, 7)``, optional: for the ``"se3"`` chart, ``z^-1`` from them instead of from
-            ``D (T_i^-1 T_j)^-1``.
 
     Returns:
         ``J_i (E, 6, 6)`` and ``J_j (E, 6, 6)`` with
         ``r(T_i exp(d_i), T_j exp(d_j)) ~= r + J_i d_i + J_j d_j``.
     """
     if chart == "se3":
-        zinv = se3_inv(measurements) if measurements is not None else \
-            se3_compose(D, se3_between(poses[jj], poses[ii]))
+        zinv = se3_compose(D, se3_between(poses[jj], poses[ii]))
         _, theta2, c = fused._log_terms(D[:, 3:])
         JT = fused.se3_jacobians_t(r, (theta2, c), -fused.se3_adjoint_t(zinv))
         return JT[:, :6].transpose(1, 2), JT[:, 6:12].transpose(1, 2)

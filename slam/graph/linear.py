@@ -3,15 +3,15 @@
 The Gauss-Newton system ``H dx = -g`` has one ``k x k`` block per pair of connected free poses (``k = 6``, or
 ``3`` for planar graphs). Its pattern depends only on the edges and is built once (:func:`build_pattern`) as
 blocks sorted by (row, column); ``H`` is stored block-major, ``values (nb * k * k,)``, and every iteration adds
-each edge's four blocks into it with one ``index_add_``. Solvers (``solver.solve(pattern, values, b) -> x``):
-:class:`SparseCholeskySolver` (:mod:`slam.graph.cholesky`) and :class:`DenseCholeskySolver` (small systems).
+each edge's four blocks into it with one ``index_add_``. Solvers: :class:`SparseCholeskySolver`
+(:mod:`slam.graph.cholesky`) and :class:`DenseCholeskySolver` (small systems).
 """
 from __future__ import annotations
 
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 import torch
@@ -20,7 +20,6 @@ __all__ = [
     "DENSE_MAX",
     "BlockPattern",
     "DenseCholeskySolver",
-    "LinearSolver",
     "LinearSolverError",
     "SparseCholeskySolver",
     "assemble",
@@ -162,20 +161,13 @@ def to_dense(pattern: BlockPattern, values: Tensor) -> Tensor:
     return A.permute(0, 2, 1, 3).reshape(n * k, n * k)
 
 
-class LinearSolver:
-    """Interface: ``solve(pattern, values (nnz,), b (n k,)) -> x (n k,)`` for the SPD system ``H x = b``."""
-
-    def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:  # pragma: no cover
-        raise NotImplementedError
-
-
 #: Symbolic analyses kept between calls (each holds its factor's workspace, the size of the factor).
 SYMBOLIC_CACHE_SIZE = 2
 _SYMBOLIC: OrderedDict = OrderedDict()  # pattern key -> SymbolicCholesky, least recently used first
 _SYMBOLIC_LOCK = threading.Lock()
 
 
-class SparseCholeskySolver(LinearSolver):
+class SparseCholeskySolver:
     """Supernodal sparse Cholesky (:class:`slam.graph.cholesky.SymbolicCholesky`), float64."""
 
     def symbolic(self, pattern: BlockPattern):
@@ -199,8 +191,6 @@ class SparseCholeskySolver(LinearSolver):
     def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
         from slam.graph.cholesky import NotPositiveDefiniteError
 
-        if pattern.size == 0:
-            return b.clone()
         sym = self.symbolic(pattern)
         try:
             fac = sym.factor(values.detach().to(torch.float64))
@@ -212,13 +202,10 @@ class SparseCholeskySolver(LinearSolver):
         return x.to(b.dtype)
 
 
-class DenseCholeskySolver(LinearSolver):
+class DenseCholeskySolver:
     """Dense ``torch.linalg.cholesky_ex`` + triangular solves (pure torch, follows the device)."""
 
     def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
-        m = pattern.size
-        if m == 0:
-            return b.clone()
         A = to_dense(pattern, values)
         L, info = torch.linalg.cholesky_ex(A)
         if int(info) != 0:
@@ -231,11 +218,10 @@ class DenseCholeskySolver(LinearSolver):
 DENSE_MAX = 240
 
 
-def make_solver(solver: Union[None, str, LinearSolver], size: int = 0) -> LinearSolver:
-    """A solver from a name (``"auto"``, ``"sparse"``, ``"dense"``) or a :class:`LinearSolver` object;
-    ``"auto"`` (or None) is the dense Cholesky up to :data:`DENSE_MAX` unknowns, else the sparse one."""
-    if isinstance(solver, LinearSolver):
-        return solver
+def make_solver(solver: Optional[str], size: int = 0) -> Union[SparseCholeskySolver, DenseCholeskySolver]:
+    """A solver by name (``"auto"``, ``"sparse"``, ``"dense"``): ``solver.solve(pattern, values (nnz,), b (n k,))
+    -> x (n k,)`` for the SPD system ``H x = b``; ``"auto"`` (or None) is the dense Cholesky up to
+    :data:`DENSE_MAX` unknowns, else the sparse one."""
     name = "auto" if solver is None else str(solver).lower()
     if name == "auto":
         name = "dense" if size <= DENSE_MAX else "sparse"
@@ -243,4 +229,4 @@ def make_solver(solver: Union[None, str, LinearSolver], size: int = 0) -> Linear
         return SparseCholeskySolver()
     if name == "dense":
         return DenseCholeskySolver()
-    raise ValueError(f"unknown linear solver {solver!r}; expected 'auto', 'sparse', 'dense' or a LinearSolver")
+    raise ValueError(f"unknown linear solver {solver!r}; expected 'auto', 'sparse' or 'dense'")

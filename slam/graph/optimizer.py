@@ -38,7 +38,7 @@ import torch
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.initialization import fits_edges, initial_poses, initialize
-from slam.graph.linear import LinearSolver, LinearSolverError
+from slam.graph.linear import LinearSolverError
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.problem import TorchProblem
 from slam.graph.result import OptimizationResult, Status
@@ -54,7 +54,7 @@ Tensor = torch.Tensor
 
 
 def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, RobustKernel] = None,
-             solver: Union[None, str, LinearSolver] = "auto", config: Optional[OptimizerConfig] = None,
+             solver: Optional[str] = "auto", config: Optional[OptimizerConfig] = None,
              initialization: str = "none", **overrides) -> OptimizationResult:
     """Optimise the poses of a pose graph.
 
@@ -63,8 +63,7 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
         method: ``"lm"`` (Levenberg-Marquardt) or ``"gn"`` (Gauss-Newton).
         kernel: ``None``, a name (``"huber"``, ``"cauchy"``, ``"tukey"``, ``"geman_mcclure"``) or a
             :class:`~slam.graph.costs.RobustKernel` object.
-        solver: ``"auto"`` (dense Cholesky for small systems, else sparse), ``"sparse"``, ``"dense"`` or a
-            :class:`~slam.graph.linear.LinearSolver`.
+        solver: ``"auto"`` (dense Cholesky for small systems, else sparse), ``"sparse"`` or ``"dense"``.
         config: an :class:`OptimizerConfig`; keyword ``overrides`` replace its fields
             (e.g. ``optimize(g, max_iterations=10, gauge="prior")``).
         initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"``, ``"spanning_tree"``

@@ -71,7 +71,7 @@ class TorchProblem:
         cfg: the :class:`OptimizerConfig`.
         kernel: an optional robust kernel.
         gauge: ``"free"``, ``"first"`` or ``"prior"`` (as resolved by the optimiser: GN holds pose 0).
-        solver: a linear solver or its name (see :func:`slam.graph.linear.make_solver`).
+        solver: a linear solver name (see :func:`slam.graph.linear.make_solver`).
     """
 
     def __init__(self, graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str,
