@@ -140,7 +140,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     result_graph = graph.with_poses(x.to(dtype=graph.poses.dtype, device=graph.poses.device),
                                     check=False)  # finite: only finite costs are accepted
     tm["total"] = time.perf_counter() - t_start
-    w = prob.weights(run.best.cache)
+    w = run.best.cache[2]  # the kernel weights (None without a kernel)
     return OptimizationResult(
         graph=result_graph, chi2=run.best.chi2, initial_chi2=run.initial_chi2, status=run.status,
         iterations=run.iterations, robust_cost=run.best.cost if kern is not None else None,
@@ -173,34 +173,26 @@ class _Run:
     times: List[float]
 
 
-class _GtsamDamping:
-    """LM's lambda on GTSAM's schedule: ``/= lambda_factor`` after an accepted step, ``*=`` after a rejected one."""
+class _Damping:
+    """LM's lambda: GTSAM's schedule (``/= lambda_factor`` after an accepted step, ``*=`` after a rejected one) or
+    Nielsen's gain-ratio rule (g2o, Ceres: after a step with gain ratio ``rho`` (actual / predicted decrease)
+    ``lambda *= max(1/3, 1 - (2 rho - 1)^3)``; after a rejected one ``lambda *= nu``, ``nu`` doubling)."""
 
     def __init__(self, cfg: OptimizerConfig):
-        self.cfg, self.lam = cfg, cfg.lambda_init
+        self.cfg, self.lam, self.nu = cfg, cfg.lambda_init, 2.0
 
     def reject(self) -> bool:
         """Grow lambda after a rejected step; False once it passes ``lambda_max``."""
-        self.lam *= self.cfg.lambda_factor
+        if self.cfg.lambda_update == "nielsen":
+            self.lam, self.nu = self.lam * self.nu, self.nu * 2.0
+        else:
+            self.lam *= self.cfg.lambda_factor
         return self.lam <= self.cfg.lambda_max
 
     def accept(self, prob: TorchProblem, dx, g, decrease: float) -> None:
-        self.lam = max(self.lam / self.cfg.lambda_factor, LAMBDA_MIN)
-
-
-class _NielsenDamping(_GtsamDamping):
-    """Nielsen's gain-ratio rule (g2o, Ceres): after a step with gain ratio ``rho`` (actual / predicted
-    decrease) ``lambda *= max(1/3, 1 - (2 rho - 1)^3)``; after a rejected one ``lambda *= nu``, ``nu`` doubling."""
-
-    def __init__(self, cfg: OptimizerConfig):
-        super().__init__(cfg)
-        self.nu = 2.0
-
-    def reject(self) -> bool:
-        self.lam, self.nu = self.lam * self.nu, self.nu * 2.0
-        return self.lam <= self.cfg.lambda_max
-
-    def accept(self, prob: TorchProblem, dx, g, decrease: float) -> None:
+        if self.cfg.lambda_update != "nielsen":
+            self.lam = max(self.lam / self.cfg.lambda_factor, LAMBDA_MIN)
+            return
         pred = prob.predicted_decrease(dx, g, self.lam)
         # gain ratio; clipped where the formula saturates anyway (and a broken model counts as poor)
         rho = min(max(decrease / pred, -1.0), 2.0) if pred > 0 else 0.0
@@ -227,7 +219,7 @@ def _trial(prob: TorchProblem, x, H, g, lam: float, tm: Dict[str, float]) -> Tup
     return _Iterate(cost, chi2, x_new, cache, dx), ""
 
 
-def _lm_step(prob: TorchProblem, cur: _Iterate, H, g, damping: _GtsamDamping, cfg: OptimizerConfig,
+def _lm_step(prob: TorchProblem, cur: _Iterate, H, g, damping: _Damping, cfg: OptimizerConfig,
              tm: Dict[str, float]) -> Tuple[Optional[_Iterate], str]:
     """Damped steps from ``cur``, lambda growing, until one lowers the cost; None (and why) when lambda
     passes ``lambda_max`` first."""
@@ -251,9 +243,7 @@ def _minimize(prob: TorchProblem, method: str, cfg: OptimizerConfig, tm: Dict[st
         raise ValueError(f"the initial cost is {cost}: a pose, measurement or information matrix holds a "
                          "non-finite value")
     run = _Run(cur, chi2, Status.MAX_ITERATIONS, 0, "", [cost], [], [time.perf_counter() - t_start])
-    damping = None  # Gauss-Newton
-    if method == "lm":
-        damping = _NielsenDamping(cfg) if cfg.lambda_update == "nielsen" else _GtsamDamping(cfg)
+    damping = _Damping(cfg) if method == "lm" else None  # None: Gauss-Newton
     if prob.size == 0:
         run.status, run.message = Status.CONVERGED, "every pose is fixed"
     while run.status == Status.MAX_ITERATIONS and run.iterations < cfg.max_iterations:

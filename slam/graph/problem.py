@@ -17,7 +17,7 @@ from slam.graph.linear import BlockPattern, LinearSolverError, assemble_blocks, 
 from slam.graph.pose_graph import PoseGraph, require_spd_information
 from slam.lie import se3_compose, se3_inv, se3_log, se3_normalize, se3_right_jacobian_inv
 
-__all__ = ["PLANAR_DIMS", "TorchProblem", "held_poses", "information_factor"]
+__all__ = ["PLANAR_DIMS", "TorchProblem", "held_poses"]
 
 Tensor = torch.Tensor
 
@@ -32,15 +32,6 @@ def held_poses(cfg: OptimizerConfig, gauge: str, num_poses: int) -> List[int]:
         if not 0 <= f < num_poses:
             raise ValueError(f"fixed pose index {f} is out of range [0, {num_poses})")
     return fixed
-
-
-def information_factor(graph: PoseGraph, info: Tensor, check: bool) -> Tensor:
-    """Lower Cholesky factors ``(E, 6, 6)`` of the information matrices ``info (E, 6, 6)`` (float64);
-    a ``ValueError`` names the first edge whose matrix is not symmetric positive definite (the symmetry
-    is only checked when ``check``)."""
-    L, fail = torch.linalg.cholesky_ex(info)
-    require_spd_information(info, graph.ii, graph.jj, fail, symmetry=check)
-    return L.contiguous()  # LAPACK's factors are column-major: row-major ones multiply ~3x faster
 
 
 #: Most bytes of per-edge buffers kept for the next problem after an optimisation ends (parking-garage: 33 MB).
@@ -87,7 +78,9 @@ class TorchProblem:
         self.neg_adz_t = se3_adjoint_t(self.zinv).neg_() if graph.chart == "se3" else None
         self.info = graph.information.detach().to(dt)
         # Omega = L L^T: whitens the Jacobians (J^T Omega J = (L^T J)^T (L^T J)) and gives chi2 = |L^T r|^2
-        self.L = information_factor(graph, self.info, cfg.check_information)
+        L, fail = torch.linalg.cholesky_ex(self.info)
+        require_spd_information(self.info, graph.ii, graph.jj, fail, symmetry=cfg.check_information)
+        self.L = L.contiguous()  # LAPACK's factors are column-major: row-major ones multiply faster
         self.kernel = kernel
         N, E = self.poses.shape[0], self.ii.shape[0]
         dev = self.poses.device
@@ -206,7 +199,3 @@ class TorchProblem:
         ws, self.ws = self.ws, None
         if ws is not None:
             _return_workspace(ws)
-
-    def weights(self, cache) -> Optional[Tensor]:
-        """``(E,)`` robust-kernel weights at the cached poses, or None without a kernel."""
-        return cache[2]
