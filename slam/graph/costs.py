@@ -71,8 +71,7 @@ def edge_residuals(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor,
 
     Args:
         poses: ``(N, 7)`` poses.
-        ii: ``(E,)`` long, first pose of each edge.
-        jj: ``(E,)`` long, second pose of each edge.
+        ii, jj: ``(E,)`` long, the first and second pose of each edge.
         measurements: ``(E, 7)`` measured ``z_ij ~= T_i^-1 T_j``.
         chart: ``"se3"`` or ``"r3so3"`` (see the module docstring).
 
@@ -91,8 +90,7 @@ def edge_jacobians(poses: Tensor, ii: Tensor, jj: Tensor, D: Tensor, r: Tensor,
 
     Args:
         poses: ``(N, 7)`` poses.
-        ii: ``(E,)`` first pose of each edge.
-        jj: ``(E,)`` second pose of each edge.
+        ii, jj: ``(E,)`` long, the first and second pose of each edge.
         D: ``(E, 7)`` error poses from :func:`edge_residuals`.
         r: ``(E, 6)`` residuals from :func:`edge_residuals`.
         chart: the chart ``r`` was computed in.

@@ -97,8 +97,7 @@ def error_poses(poses: Tensor, ii: Tensor, jj: Tensor, zinv: Tensor) -> Tuple[Te
 
     Args:
         poses: ``(N, 7)`` poses.
-        ii: ``(E,)`` long first pose of each edge.
-        jj: ``(E,)`` long second pose of each edge.
+        ii, jj: ``(E,)`` long, the first and second pose of each edge.
         zinv: ``(E, 7)`` inverted measurements.
     """
     Pi, Pj = poses[ii], poses[jj]
@@ -139,8 +138,7 @@ def se3_residuals(poses: Tensor, ii: Tensor, jj: Tensor, zinv: Tensor, chart: st
 
     Args:
         poses: ``(N, 7)`` poses.
-        ii: ``(E,)`` first pose of each edge.
-        jj: ``(E,)`` second pose of each edge.
+        ii, jj: ``(E,)`` long, the first and second pose of each edge.
         zinv: ``(E, 7)`` inverted measurements.
         chart: ``"se3"`` (``r = Log(D)``) or ``"r3so3"`` (``r = [t(D), Log_SO3(q(D))]``).
 

@@ -81,8 +81,7 @@ def build_pattern(ii: Tensor, jj: Tensor, free: Tensor, k: int = 6) -> BlockPatt
     """Build the symmetric block pattern of ``H`` for edges ``(ii, jj)``.
 
     Args:
-        ii: ``(E,)`` long first pose of each edge.
-        jj: ``(E,)`` long second pose of each edge.
+        ii, jj: ``(E,)`` long, the first and second pose of each edge.
         free: ``(N,)`` bool, the poses that are optimised (the others are held fixed).
         k: unknowns per pose.
 

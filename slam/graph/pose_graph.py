@@ -110,15 +110,8 @@ class PoseGraph:
                 f"dtype={self.dtype})")
 
     def validate(self, check_information: bool = True) -> PoseGraph:
-        """Check shapes, indices and values; raise ``ValueError`` naming the first problem.
-
-        Args:
-            check_information: also check that every information matrix is symmetric positive
-                definite (one batched Cholesky, ``O(E)``).
-
-        Returns:
-            ``self``, so that ``graph.validate().poses`` chains.
-        """
+        """Check shapes, indices and values (``check_information``: also that every information matrix is
+        symmetric positive definite); a ``ValueError`` names the first problem. Returns ``self``."""
         P, E = self.poses, self.ii
         if P.dim() != 2 or P.shape[-1] != 7:
             raise ValueError(f"poses must have shape (N, 7), got {tuple(P.shape)}")
@@ -233,40 +226,29 @@ class PoseGraph:
         return bool((cross <= tol * scale[:, None, None]).all())
 
     @staticmethod
-    def from_lists(poses: Sequence, edges: Iterable[Tuple], dtype: torch.dtype = torch.float64,
-                   device=None) -> PoseGraph:
-        """Build a graph from a list of poses ``(7,)`` and a list of edges.
-
-        Args:
-            poses: ``N`` poses ``(7,)`` (tensors or sequences), or one ``(N, 7)`` tensor.
-            edges: tuples ``(i, j, measurement (7,))`` or ``(i, j, measurement, information (6, 6))``.
-            dtype: floating dtype of the graph.
-            device: device of the graph.
-
-        Returns:
-            The validated :class:`PoseGraph` (quaternions normalised).
-        """
+    def from_lists(poses: Sequence, edges: Iterable[Tuple]) -> PoseGraph:
+        """A float64 graph from ``N`` poses ``(7,)`` (tensors or sequences, or one ``(N, 7)`` tensor) and edges
+        ``(i, j, measurement (7,))`` or ``(i, j, measurement, information (6, 6))``; quaternions normalised."""
+        f64 = torch.float64
         if isinstance(poses, Tensor):
-            P = poses.to(dtype=dtype, device=device).reshape(-1, 7)
+            P = poses.to(f64).reshape(-1, 7)
         else:
-            P = (torch.stack([torch.as_tensor(p, dtype=dtype, device=device).reshape(7) for p in poses])
-                 if len(poses) else torch.zeros(0, 7, dtype=dtype, device=device))
+            P = (torch.stack([torch.as_tensor(p, dtype=f64).reshape(7) for p in poses]) if len(poses)
+                 else torch.zeros(0, 7, dtype=f64))
         ii, jj, meas, info = [], [], [], []
-        eye = torch.eye(6, dtype=dtype, device=device)
         for k, e in enumerate(edges):
             if len(e) not in (3, 4):
                 raise ValueError(f"edge {k} must be (i, j, measurement) or (i, j, measurement, information), "
                                  f"got a tuple of length {len(e)}")
             ii.append(int(e[0]))
             jj.append(int(e[1]))
-            meas.append(torch.as_tensor(e[2], dtype=dtype, device=device).reshape(7))
-            info.append(eye if len(e) == 3
-                        else torch.as_tensor(e[3], dtype=dtype, device=device).reshape(6, 6))
-        Z = torch.stack(meas) if meas else torch.zeros(0, 7, dtype=dtype, device=device)
-        Om = torch.stack(info) if info else torch.zeros(0, 6, 6, dtype=dtype, device=device)
-        g = PoseGraph(se3_normalize(P), torch.tensor(ii, dtype=torch.long, device=device),
-                      torch.tensor(jj, dtype=torch.long, device=device), se3_normalize(Z), Om)
-        return g.validate()
+            meas.append(torch.as_tensor(e[2], dtype=f64).reshape(7))
+            info.append(torch.eye(6, dtype=f64) if len(e) == 3
+                        else torch.as_tensor(e[3], dtype=f64).reshape(6, 6))
+        Z = torch.stack(meas) if meas else torch.zeros(0, 7, dtype=f64)
+        Om = torch.stack(info) if info else torch.zeros(0, 6, 6, dtype=f64)
+        return PoseGraph(se3_normalize(P), torch.tensor(ii, dtype=torch.long), torch.tensor(jj, dtype=torch.long),
+                         se3_normalize(Z), Om).validate()
 
 
 def require_spd_information(information: Tensor, ii: Tensor, jj: Tensor, fail: Optional[Tensor] = None,
