@@ -489,13 +489,13 @@ class _Workspace:
 _IN_PLACE = {}
 
 
-def _lapack_in_place() -> bool:
-    """Whether scipy's ``dpotrf``, ``dtrsm``, ``dsfrk`` and ``dtrsv`` with ``overwrite_*=1`` write into their
-    (Fortran-contiguous) argument (f2py does, for an array of the right type and order; checked once)."""
-    if "all" not in _IN_PLACE:
-        from scipy.linalg.blas import dtrsm, dtrsv
-        from scipy.linalg.lapack import dpotrf, dsfrk
+def _lapack():
+    """scipy's ``(dpotrf, dtrsm, dsfrk, dtrsv)`` (imported here: scipy.linalg takes ~0.4 s to import) and whether
+    they write into their Fortran-contiguous argument with ``overwrite_*=1`` (f2py does; checked once)."""
+    from scipy.linalg.blas import dtrsm, dtrsv
+    from scipy.linalg.lapack import dpotrf, dsfrk
 
+    if "all" not in _IN_PLACE:
         a = np.array([[4.0, 0.0], [2.0, 5.0]]).T  # Fortran, upper triangle [[4, 2], [., 5]]
         dpotrf(a, lower=0, clean=0, overwrite_a=1)
         b = np.ones((2, 1), order="F")
@@ -505,7 +505,7 @@ def _lapack_in_place() -> bool:
         x = np.ones(1)
         dtrsv(np.full((1, 1), 2.0, order="F"), x, overwrite_x=1)
         _IN_PLACE["all"] = bool(a[0, 0] == 2.0 and b[0, 0] == 0.5 and c[0] == 1.0 and x[0] == 0.5)
-    return _IN_PLACE["all"]
+    return (dpotrf, dtrsm, dsfrk, dtrsv), _IN_PLACE["all"]
 
 
 class _NumpyGroup:
@@ -519,14 +519,6 @@ class _NumpyGroup:
         self.c0, self.c1, self.rows, self.dst = c0, c0 + p, rows, dst
         # the scratch as numpy and as a torch view of the same memory
         self.S, self.S_t = S, S_t
-
-
-def _lapack_functions():
-    """``(dpotrf, dtrsm, dsfrk)`` of scipy (imported here: scipy.linalg takes ~0.4 s to import)."""
-    from scipy.linalg.blas import dtrsm
-    from scipy.linalg.lapack import dpotrf, dsfrk
-
-    return dpotrf, dtrsm, dsfrk
 
 
 def _factor_numpy_group(grp: _NumpyGroup, buf, in_place: bool, dpotrf, dtrsm, dsfrk) -> int:
@@ -580,8 +572,7 @@ class NumericCholesky:
             ws.owner = None
             buf = ws.buf
             k = sym.k
-            in_place = _lapack_in_place()
-            lapack = _lapack_functions()
+            lapack, in_place = _lapack()
             buf.zero_()
             if ws.cpu:
                 # rows of k values as k * 8-byte records: numpy's take and put copy them whole
@@ -609,7 +600,7 @@ class NumericCholesky:
 
         for grp in groups:
             if type(grp) is _NumpyGroup:
-                if _factor_numpy_group(grp, buf, in_place, *lapack) != 0:
+                if _factor_numpy_group(grp, buf, in_place, *lapack[:3]) != 0:
                     return True
                 continue
             B, _, d, F11, F21, _, _, packed, dst = grp
@@ -633,12 +624,10 @@ class NumericCholesky:
     def solve(self, b):
         """``x = H^-1 b`` for ``b (n k,)`` (numpy array or torch tensor; returns the same kind)."""
         import torch
-        from scipy.linalg.blas import dtrsv
-
         is_np = isinstance(b, np.ndarray)
         bt = torch.from_numpy(b) if is_np else b
         ws = self.ws
-        in_place = _lapack_in_place()
+        (_, _, _, dtrsv), in_place = _lapack()
         with ws.lock:
             y, ynp = ws.y, ws.ynp
             torch.index_select(bt.detach().to(torch.float64), 0, ws.perm, out=y)

@@ -1,16 +1,10 @@
 """Pose-graph residuals, their analytic Jacobians (checked wrappers of :mod:`slam.graph.fused`), and robust
 kernels, vectorised over edges.
 
-For an edge ``(i, j)`` with measurement ``z`` let ``D = z^-1 T_i^-1 T_j``. The residual ``r (6,)`` in the
-``[rho, phi]`` order is
-
-* chart ``"se3"``: ``r = Log(D)``, GTSAM's ``BetweenFactor<Pose3>`` error (so ``chi2 = 2 x`` GTSAM's error);
-  for planar poses it is the SE(2) logarithm GTSAM's ``BetweenFactor<Pose2>`` uses;
-* chart ``"r3so3"``: ``r = [t(D), Log_SO3(R(D))]``; for planar poses this is exactly the
-  ``(dx, dy, dtheta)`` error of g2o's ``EDGE_SE2``.
-
-Jacobians are taken w.r.t. right perturbations ``T <- T exp(delta)``. The cost of an edge is ``rho(s)`` with
-``s = r^T Omega r`` (``rho(s) = s`` without a kernel); kernels give ``rho`` and the IRLS weight ``w = rho'(s)``.
+With ``D = z^-1 T_i^-1 T_j`` the residual ``r (6,)`` of an edge, in the ``[rho, phi]`` order, is ``Log(D)`` (chart
+``"se3"``: GTSAM's ``BetweenFactor`` error, chi2 twice GTSAM's error) or ``[t(D), Log_SO3(R(D))]`` (chart
+``"r3so3"``: g2o's ``EDGE_SE2`` error on planar poses). Jacobians are w.r.t. right perturbations
+``T <- T exp(delta)``. A kernel maps ``s = r^T Omega r`` to the cost ``rho(s)`` and the IRLS weight ``rho'(s)``.
 
 Example:
     >>> import torch

@@ -7,10 +7,7 @@ here is the outer loop with its step rules (Gauss-Newton, LM with GTSAM's schedu
 Gauge: ``"free"`` (LM's default) leaves it to the LM damping, as GTSAM does without a prior, then moves the
 result rigidly so that pose 0 keeps its initial value; ``"first"`` holds pose 0 (GN always does);
 ``"prior"`` adds a strong prior on pose 0. Poses in ``fixed`` are held too (and then anchor the result).
-
-Costs: ``chi2 = sum_e r_e^T Omega_e r_e`` (GTSAM's error is ``0.5 * chi2``); with a robust kernel the
-optimiser minimises ``sum_e rho(s_e)`` (``robust_cost``). A planar graph (z = roll = pitch = 0) is solved
-in (x, y, yaw) only: the problem splits exactly.
+A planar graph (z = roll = pitch = 0) is solved in (x, y, yaw) only: the problem splits exactly.
 
 Example:
     >>> import torch
