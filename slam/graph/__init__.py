@@ -1,5 +1,5 @@
-"""Pose graphs: the :class:`PoseGraph` record, g2o I/O, residuals with robust kernels, sparse linear
-solvers and the Gauss-Newton / Levenberg-Marquardt optimiser.
+"""Pose graphs: the :class:`PoseGraph` record, g2o I/O, residuals with robust kernels and the Gauss-Newton /
+Levenberg-Marquardt optimiser over sparse normal equations.
 
 Example:
     >>> import io
@@ -25,12 +25,6 @@ from slam.graph.costs import (
     make_kernel,
 )
 from slam.graph.g2o import G2OFormatError, G2OWarning, read_g2o, write_g2o
-from slam.graph.linear import (
-    DenseCholeskySolver,
-    LinearSolverError,
-    SparseCholeskySolver,
-    make_solver,
-)
 from slam.graph.optimizer import optimize
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.result import OptimizationResult, Status
@@ -38,17 +32,14 @@ from slam.graph.result import OptimizationResult, Status
 __all__ = [
     "CHI2_95_6DOF",
     "Cauchy",
-    "DenseCholeskySolver",
     "G2OFormatError",
     "G2OWarning",
     "GemanMcClure",
     "Huber",
-    "LinearSolverError",
     "OptimizationResult",
     "OptimizerConfig",
     "PoseGraph",
     "RobustKernel",
-    "SparseCholeskySolver",
     "Status",
     "Tukey",
     "edge_chi2",
@@ -56,7 +47,6 @@ __all__ = [
     "edge_residuals",
     "graph_chi2",
     "make_kernel",
-    "make_solver",
     "optimize",
     "read_g2o",
     "write_g2o",

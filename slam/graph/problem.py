@@ -190,12 +190,9 @@ class TorchProblem:
             x0 = self.poses[0]
             x = se3_compose(se3_compose(x0, se3_inv(x[0]))[None], x)
             x[0] = x0
-        if not bool(torch.isfinite(x).all()):  # the LM loop only accepts finite costs: a NaN here is a bug
-            raise FloatingPointError("the optimised poses have a non-finite value")
         return x
 
     def release(self) -> None:
         """Hand the per-edge buffers to the next problem (this one no longer linearises)."""
-        ws, self.ws = self.ws, None
-        if ws is not None:
-            _return_workspace(ws)
+        _return_workspace(self.ws)
+        self.ws = None
