@@ -75,13 +75,11 @@ def _anchors(graph: PoseGraph, fixed: Iterable[int] = ()) -> np.ndarray:
     """``(N,)`` bool: the poses that keep their value (see the module docstring)."""
     n = graph.num_poses
     held = np.zeros(n, dtype=bool)
+    held[graph.fixed.cpu().numpy()] = True  # in range: checked by PoseGraph
     extra = np.asarray(list(fixed), dtype=np.int64).reshape(-1)
-    own = graph.fixed.cpu().numpy() if graph.fixed is not None else np.zeros(0, np.int64)
-    for idx in (own, extra):
-        if idx.size and (idx.min() < 0 or idx.max() >= n):
-            bad = int(idx[(idx < 0) | (idx >= n)][0])
-            raise ValueError(f"fixed pose index {bad} is out of range [0, {n})")
-        held[idx] = True
+    if extra.size and (extra.min() < 0 or extra.max() >= n):
+        raise ValueError(f"fixed pose index {int(extra[(extra < 0) | (extra >= n)][0])} is out of range [0, {n})")
+    held[extra] = True
     ncomp, label = _components(graph)
     has = np.zeros(ncomp, dtype=bool)
     has[label[held]] = True
