@@ -40,7 +40,7 @@ from slam.graph.pose_graph import PoseGraph
 from slam.graph.problem import PLANAR_DIMS, held_poses
 from slam.lie import se3_ad, se3_adjoint, se3_between, se3_identity, se3_inv, se3_normalize
 
-__all__ = ["attach_gradients", "held_for_gradients", "implicit_vjp"]
+__all__ = ["attach_gradients", "implicit_vjp"]
 
 Tensor = torch.Tensor
 
@@ -59,15 +59,6 @@ class _Spec:
     solver: object
 
 
-def held_for_gradients(cfg: OptimizerConfig, gauge: str, num_poses: int) -> List[int]:
-    """The poses whose outputs are their inputs in :func:`implicit_vjp`: the held ones, and for the free
-    gauge without fixed poses pose 0 (the result is re-anchored on it)."""
-    held = held_poses(cfg, gauge, num_poses)
-    if gauge == "free" and not held:
-        held = [0]
-    return sorted(set(held))
-
-
 def attach_gradients(graph: PoseGraph, x: Tensor, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str,
                      solver) -> Tensor:
     """``x (N, 7)`` (float64, the optimum of ``graph``) with a ``grad_fn`` towards ``graph.measurements``,
@@ -75,7 +66,9 @@ def attach_gradients(graph: PoseGraph, x: Tensor, cfg: OptimizerConfig, kernel: 
     inputs = (graph.measurements, graph.information, graph.poses)
     if not torch.is_grad_enabled() or not any(t.requires_grad for t in inputs):
         return x
-    spec = _Spec(graph.ii, graph.jj, graph.chart, kernel, held_for_gradients(cfg, gauge, graph.num_poses),
+    # the poses whose outputs are their inputs: the held ones, else pose 0 that the free gauge re-anchors on
+    held = sorted(set(held_poses(cfg, gauge, graph.num_poses))) or ([0] if gauge == "free" else [])
+    spec = _Spec(graph.ii, graph.jj, graph.chart, kernel, held,
                  cfg.prior_weight if gauge == "prior" else None, PLANAR_DIMS if cfg.planar is True else None,
                  solver)
     return _ImplicitOptimum.apply(x.detach(), spec, *inputs)

@@ -51,11 +51,6 @@ def compose_chain(first: Tensor, steps: Tensor) -> Tensor:
 
     Returns:
         ``(K + 1, 7)`` poses, in the dtype and on the device of ``steps``.
-
-    Example:
-        >>> from slam.lie import se3_identity
-        >>> compose_chain(se3_identity(dtype=torch.float64), se3_identity(5, dtype=torch.float64)).shape
-        torch.Size([6, 7])
     """
     if not isinstance(first, Tensor) or not isinstance(steps, Tensor):
         raise TypeError(f"first and steps must be tensors, got {type(first).__name__} and {type(steps).__name__}")
