@@ -22,7 +22,6 @@ __all__ = [
     "DenseCholeskySolver",
     "LinearSolverError",
     "SparseCholeskySolver",
-    "assemble",
     "assemble_blocks",
     "build_pattern",
     "make_solver",
@@ -121,26 +120,11 @@ def build_pattern(ii: Tensor, jj: Tensor, free: Tensor, k: int = 6) -> BlockPatt
                         t(edge_vars))
 
 
-def assemble(pattern: BlockPattern, H_edges: Tensor, g_edges: Tensor):
-    """Add the per-edge blocks into the sparse system.
-
-    Args:
-        pattern: from :func:`build_pattern`.
-        H_edges: ``(E, 2k, 2k)`` per-edge ``[J_i, J_j]^T W Omega [J_i, J_j]``.
-        g_edges: ``(E, 2k)`` per-edge ``[J_i, J_j]^T W Omega r``.
-
-    Returns:
-        ``values (nb k k,)`` of ``H`` (block-major) and the gradient ``g (n k,)``.
-    """
-    k, E = pattern.k, H_edges.shape[0]
-    blocks = H_edges.view(E, 2, k, 2, k).transpose(2, 3)  # (ii, ij, ji, jj)
-    return assemble_blocks(pattern, blocks, g_edges.view(E, 2, k))
-
-
 def assemble_blocks(pattern: BlockPattern, blocks: Tensor, g_edges: Tensor, out=None):
-    """:func:`assemble` from the blocks ``(E, 2, 2, k, k)`` (or ``(E, 4, k, k)``: ii, ij, ji, jj) and
-    ``g_edges (E, 2, k)``; ``out``: optional ``(H (nb + 1, k, k), g (n + 1, k))`` buffers to sum into (zeroed
-    first; the returned values are views of them)."""
+    """Add the per-edge blocks of ``J^T W Omega J`` (``(E, 2, 2, k, k)`` or ``(E, 4, k, k)``: ii, ij, ji, jj) and
+    of ``J^T W Omega r`` (``g_edges (E, 2, k)``) into the sparse system: ``values (nb k k,)`` of ``H`` (block-major)
+    and the gradient ``g (n k,)``. ``out``: optional ``(H (nb + 1, k, k), g (n + 1, k))`` buffers to sum into
+    (zeroed first; the returned values are views of them)."""
     k, E = pattern.k, blocks.shape[0]
     if out is None:
         H = torch.zeros(pattern.num_blocks + 1, k, k, dtype=blocks.dtype, device=blocks.device)

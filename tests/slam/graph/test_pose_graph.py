@@ -15,7 +15,7 @@ from slam.graph import (
     graph_chi2,
     make_kernel,
 )
-from slam.graph.linear import assemble, build_pattern, to_dense
+from slam.graph.linear import assemble_blocks, build_pattern, to_dense
 from slam.lie import se3_between, se3_compose, se3_exp, se3_identity, se3_log
 
 F64 = torch.float64
@@ -162,7 +162,7 @@ def test_sparse_assembly_matches_dense_normal_equations():
     J = torch.cat([Ji, Jj], -1)
     Hb = J.mT @ g.information @ J
     gb = (J.mT @ g.information @ r[..., None])[..., 0]
-    vals, grad = assemble(pat, Hb, gb)
+    vals, grad = assemble_blocks(pat, Hb.view(-1, 2, 6, 2, 6).transpose(2, 3), gb.view(-1, 2, 6))
     # dense reference: stack the full Jacobian (E*6, N*6), drop pose 0
     Jfull = torch.zeros(g.num_edges * 6, 36, dtype=F64)
     for e in range(g.num_edges):
@@ -191,7 +191,8 @@ def test_sparse_cholesky_matches_dense_solve(k):
     free[0] = False
     pat = build_pattern(ii, jj, free, k)
     J = torch.randn(ii.shape[0], k, 2 * k, generator=g, dtype=F64)
-    vals, _ = assemble(pat, J.mT @ J, torch.zeros(ii.shape[0], 2 * k, dtype=F64))
+    vals, _ = assemble_blocks(pat, (J.mT @ J).view(-1, 2, k, 2, k).transpose(2, 3),
+                              torch.zeros(ii.shape[0], 2, k, dtype=F64))
     vals = vals.clone()
     vals[pat.diag_pos] += 1e-3  # H = sum J^T J + damping: SPD
     b = torch.randn(pat.size, generator=g, dtype=F64)
