@@ -1,5 +1,5 @@
-"""Pose graphs: the :class:`PoseGraph` record, g2o I/O, residuals with robust kernels, sparse linear
-solvers and the Gauss-Newton / Levenberg-Marquardt optimiser.
+"""Pose graphs: the :class:`PoseGraph` record, g2o I/O, residuals with robust kernels and the Gauss-Newton /
+Levenberg-Marquardt optimiser over sparse normal equations.
 
 Example:
     >>> import io
@@ -17,7 +17,6 @@ from slam.graph.costs import (
     GemanMcClure,
     Huber,
     RobustKernel,
-    TrivialKernel,
     Tukey,
     edge_chi2,
     edge_jacobians,
@@ -26,42 +25,28 @@ from slam.graph.costs import (
     make_kernel,
 )
 from slam.graph.g2o import G2OFormatError, G2OWarning, read_g2o, write_g2o
-from slam.graph.linear import (
-    DenseCholeskySolver,
-    LinearSolver,
-    LinearSolverError,
-    SparseCholeskySolver,
-    make_solver,
-)
-from slam.graph.optimizer import PoseGraphOptimizer, optimize
+from slam.graph.optimizer import optimize
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.result import OptimizationResult, Status
 
 __all__ = [
     "CHI2_95_6DOF",
     "Cauchy",
-    "DenseCholeskySolver",
     "G2OFormatError",
     "G2OWarning",
     "GemanMcClure",
     "Huber",
-    "LinearSolver",
-    "LinearSolverError",
     "OptimizationResult",
     "OptimizerConfig",
     "PoseGraph",
-    "PoseGraphOptimizer",
     "RobustKernel",
-    "SparseCholeskySolver",
     "Status",
-    "TrivialKernel",
     "Tukey",
     "edge_chi2",
     "edge_jacobians",
     "edge_residuals",
     "graph_chi2",
     "make_kernel",
-    "make_solver",
     "optimize",
     "read_g2o",
     "write_g2o",

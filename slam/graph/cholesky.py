@@ -1,39 +1,11 @@
 """Supernodal sparse Cholesky for block-sparse SPD matrices (numpy + LAPACK via scipy).
 
-Why: torch has no CPU sparse Cholesky, and scipy's SuperLU (an LU) is 5-10x slower than a Cholesky on
-pose-graph normal equations. The pattern of ``H`` is fixed during an optimisation, so the symbolic work
-(ordering, elimination tree, supernodes, index maps) is done once per pattern at the level of pose
-blocks, and each numeric factorisation is a loop over supernodes doing dense LAPACK/BLAS work.
-
-Steps of the symbolic analysis (all on the ``n``-node block graph, not on the ``n k`` scalars):
-
-1. fill-reducing ordering: multiple minimum degree on the block graph (SuperLU's ``MMD_AT_PLUS_A``
-   applied to the tiny ``n x n`` block matrix, ~ms);
-2. elimination tree (Liu's algorithm with path compression), then a postorder so that every
-   supernode is a run of consecutive columns;
-3. column structures and relaxed supernode amalgamation (as CHOLMOD: merge a column into its child
-   supernode when the merged block has few columns or few explicit zeros);
-4. per supernode: where its entries of ``H`` come from and where each entry of its update goes.
-
-The numeric phase is right-looking and works in place in the factor's panels ``[L11; L21]``: supernodes
-in order of their height in the elimination tree (those of one height and one shape as one batch), each
-factoring its pivot block with ``potrf``, its rows with ``trsm``, and adding its update ``-L21 L21^T``
-(lower triangle, packed) straight into the panels of the supernodes that own its columns. Nothing but the
-factor is stored: a multifrontal scheme keeps every update matrix until its parent is done, which took
-4x the factor's memory on a 20000-pose graph. On the CPU, groups of a few supernodes (most of them
-near the root) are factored front by front with direct LAPACK calls of a few microseconds each.
-
-Example:
-    >>> import torch
-    >>> from slam.graph.linear import build_pattern
-    >>> ii, jj = torch.tensor([0, 1, 2]), torch.tensor([1, 2, 0])
-    >>> pat = build_pattern(ii, jj, torch.ones(3, dtype=torch.bool), 2)
-    >>> sym = SymbolicCholesky(pat)
-    >>> A = torch.eye(6, dtype=torch.float64) * 4 + 1
-    >>> vals = A.view(3, 2, 3, 2).transpose(1, 2)[pat.block_rows, pat.block_cols].reshape(-1)  # block-major
-    >>> x = sym.factor(vals.numpy()).solve(torch.ones(6, dtype=torch.float64).numpy())
-    >>> bool(abs(A.numpy() @ x - 1).max() < 1e-12)
-    True
+Torch has no CPU sparse Cholesky. The pattern of ``H`` is fixed during an optimisation, so the symbolic
+work (minimum-degree ordering, elimination tree, relaxed supernodes, index maps) is done once per pattern on
+the ``n``-node block graph. The numeric phase is right-looking and in place in the factor's panels
+``[L11; L21]``: supernodes of one height and shape form one batch; each factors its pivot block, solves its
+rows and adds its packed update ``-L21 L21^T`` straight into the panels that own its columns (nothing but
+the factor is stored). On the CPU, small groups go front by front through direct LAPACK calls.
 """
 from __future__ import annotations
 
@@ -68,12 +40,9 @@ def _mmd_order(n: int, bptr: np.ndarray, bcol: np.ndarray) -> np.ndarray:
     rng = np.random.default_rng(0)  # values only steer SuperLU's pivots; the ordering uses the pattern
     rows = np.repeat(np.arange(n), np.diff(bptr))
     vals = np.where(rows == bcol, float(n + 1), rng.uniform(0.1, 0.5, size=rows.shape[0]))
-    # the block pattern is symmetric with its diagonal (build_pattern stores (i, j) and (j, i)), so this
-    # CSR-as-CSC matrix is the transpose of the same pattern: MMD_AT_PLUS_A orders A^T + A alike
-    B = sp.csc_matrix((vals, bcol, bptr), shape=(n, n))
-    # SuperLU orders the columns from the pattern alone, before it factors; its incomplete LU with every
-    # entry dropped gives the same ordering as its LU without the factorisation, which on a 50000-pose
-    # graph took 4.7 s of the 4.7 s (0.08 s now; tests/slam/graph/test_cholesky.py compares the two orderings)
+    B = sp.csc_matrix((vals, bcol, bptr), shape=(n, n))  # the pattern is symmetric: CSR read as CSC
+    # SuperLU orders from the pattern alone: its incomplete LU with every entry dropped gives the ordering
+    # without the cost of the factorisation
     ilu = sla.spilu(B, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, drop_tol=1e300, fill_factor=1.0,
                     options={"SymmetricMode": True})
     return np.argsort(ilu.perm_c)
@@ -83,8 +52,6 @@ def _etree(n: int, ptr: np.ndarray, col: np.ndarray) -> list[int]:
     """Elimination tree of a symmetric pattern (CSR ``ptr, col``, any numbering); ``-1`` for roots."""
     parent = [-1] * n
     ancestor = [-1] * n
-    # only the entries left of the diagonal matter: select them once (vectorised) instead of testing
-    # every entry in the Python loop
     rows = np.repeat(np.arange(n), np.diff(ptr))
     low = rows > col
     lptr = np.zeros(n + 1, dtype=np.int64)
@@ -105,11 +72,8 @@ def _etree(n: int, ptr: np.ndarray, col: np.ndarray) -> list[int]:
 
 
 def _postorder(parent: list[int]) -> np.ndarray:
-    """A postorder of the forest ``parent`` (``-1`` for roots): children in increasing order, roots too.
-
-    The reverse of a preorder that visits children in decreasing order, found by scipy's depth-first search
-    (in C) from a virtual root above the roots: 4x faster than a Python stack on 3500 nodes.
-    """
+    """A postorder of the forest ``parent`` (``-1`` for roots): children in increasing order, roots too
+    (the reverse of scipy's preorder from a virtual root, children visited in decreasing order)."""
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import depth_first_order
 
@@ -155,7 +119,7 @@ def _permuted(bptr: np.ndarray, bcol: np.ndarray, order: np.ndarray):
     iperm[order] = np.arange(n)
     rows = iperm[np.repeat(np.arange(n), np.diff(bptr))]
     cols = iperm[bcol]
-    srt = np.argsort(rows * n + cols)  # the entries are distinct: one key sorts as (row, col) (3x lexsort's speed)
+    srt = np.argsort(rows * n + cols)  # the entries are distinct: one key sorts as (row, col)
     pr, pc = rows[srt], cols[srt]
     return pr, pc, np.searchsorted(pr, np.arange(n + 1))
 
@@ -179,7 +143,6 @@ def _column_structures(n: int, parent: list, pr: np.ndarray, pc: np.ndarray) -> 
     for j in range(n):
         if parent[j] >= 0:
             children[parent[j]].append(j)
-    # the entries right of the diagonal, selected once (vectorised) rather than tested in the loop
     up = pc > pr
     uptr = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(pr[up], minlength=n), out=uptr[1:])
@@ -194,9 +157,15 @@ def _column_structures(n: int, parent: list, pr: np.ndarray, pc: np.ndarray) -> 
     return struct
 
 
-def _relaxed_supernodes(n: int, parent: list, struct: list, relax) -> list:
-    """First columns of the relaxed supernodes, runs of consecutive columns along etree chains (then ``n``);
-    ``relax`` as in :class:`SymbolicCholesky`."""
+# CHOLMOD-style amalgamation ``(max_cols, max_zero_fraction)`` in block columns: a column joins its child
+# supernode when the merged one has at most ``max_cols`` block columns and at most that fraction of explicit
+# zeros (first rule that applies); more than CHOLMOD merges, as every front costs calls of fixed overhead
+_RELAX = ((2, 1.0), (6, 0.8), (16, 0.2), (10 ** 9, 0.05))
+
+
+def _relaxed_supernodes(n: int, parent: list, struct: list) -> list:
+    """First columns of the relaxed supernodes (:data:`_RELAX`), runs of consecutive columns along etree
+    chains (then ``n``)."""
     first = [0] if n else []  # no variables (every pose fixed): no supernode
     zeros = 0  # explicit zeros (in blocks) of the current supernode
     for j in range(1, n):
@@ -208,12 +177,7 @@ def _relaxed_supernodes(n: int, parent: list, struct: list, relax) -> list:
             nz = zeros + extra
             total = nc * (nc + 1) // 2 + nc * r_new
             frac = nz / total
-            merge = False
-            for mc, mz in relax:  # a plain loop: a generator per column cost more than the test
-                if nc <= mc and frac <= mz:
-                    merge = True
-                    break
-            if merge:
+            if any(nc <= mc and frac <= mz for mc, mz in _RELAX):
                 zeros = nz
                 continue
         first.append(j)
@@ -222,7 +186,7 @@ def _relaxed_supernodes(n: int, parent: list, struct: list, relax) -> list:
     return first
 
 
-def _supernode_tree(pattern, relax) -> _Tree:
+def _supernode_tree(pattern) -> _Tree:
     """Ordering, elimination tree, column structures, relaxed supernodes and their level schedule, and the
     final group-major numbering of the columns."""
     n = pattern.num_vars
@@ -230,15 +194,14 @@ def _supernode_tree(pattern, relax) -> _Tree:
     order, parent = _postordered_etree(n, bptr, bcol, _mmd_order(n, bptr, bcol))
     pr, pc, _ = _permuted(bptr, bcol, order)
     struct = _column_structures(n, parent, pr, pc)
-    first = _relaxed_supernodes(n, parent, struct, relax)
+    first = _relaxed_supernodes(n, parent, struct)
     ns = len(first) - 1
     sn_of = np.repeat(np.arange(ns), np.diff(first))
     sn_parent = [int(sn_of[parent[first[s + 1] - 1]]) if parent[first[s + 1] - 1] >= 0 else -1
                  for s in range(ns)]
     ncols = [first[s + 1] - first[s] for s in range(ns)]
     nrows = [len(struct[first[s + 1] - 1]) for s in range(ns)]
-    # level schedule: a supernode's height is 1 + the largest height of its children; supernodes of one
-    # height are independent, and those of one front shape are factored as one batch ("group")
+    # supernodes of one height are independent; those of one front shape are one batch ("group")
     height = [0] * ns
     for s in range(ns):  # children come before parents (postorder)
         if sn_parent[s] >= 0:
@@ -247,9 +210,8 @@ def _supernode_tree(pattern, relax) -> _Tree:
     for s in range(ns):
         groups.setdefault((height[s], ncols[s], nrows[s]), []).append(s)
     group_list = sorted(groups.items())
-    # relabel the columns so that every group is one contiguous run: a height-major order is a
-    # topological order of the elimination tree, so the fill is unchanged, and the solves can take
-    # each group's unknowns as a slice
+    # relabel the columns so that every group is one contiguous run (a height-major order is topological:
+    # the fill is unchanged)
     gorder = np.fromiter(itertools.chain.from_iterable(sns for _, sns in group_list), dtype=np.int64, count=ns)
     nc = np.asarray(ncols, dtype=np.int64)
     nf = np.empty(ns, dtype=np.int64)  # new first column of each supernode
@@ -279,12 +241,8 @@ class _Layout:
                                     dtype=np.int64, count=int(self.roff[-1]))]
         self.rcat = rcat[np.lexsort((rcat, seg))]
         self.rkeys = seg * n + self.rcat  # sorted: (supernode, row)
-        # panel storage: the panels of a group one after the other (m * p values each, row-major: the
-        # pivot block F11 (p x p) above F21 (d x p)), so a group is a (B, m, p) view. The factor is computed
-        # in place in the panels. There are no frontal update matrices (F22): every supernode's update
-        # -L21 L21^T goes straight to the panels of the supernodes that own its columns (right-looking),
-        # which keeps the memory at the size of the factor (multifrontal storage of the F22 blocks took
-        # 4x the factor on a 20000-pose graph).
+        # the panels of a group one after the other (m * p values each, row-major: F11 (p x p) above
+        # F21 (d x p)), so a group is a (B, m, p) view
         self.off = np.zeros(ns, dtype=np.int64)
         pos = 0
         for (_, c, r), sns in tree.groups:
@@ -303,10 +261,9 @@ class _Layout:
 
 
 def _gather_map(pattern, tree: _Tree, lay: _Layout):
-    """``(src, dst)``: H's block-major values go to the panels in runs of ``k`` (row ``a`` of a ``k x k``
-    block, contiguous in both; every panel offset and row stride is a multiple of ``k``): run indices, ``k``
-    times fewer than scalar ones (and copying rows of k values: parking-garage fill 1.2 -> 0.6 ms). Entry
-    ``(row, col)``, ``row >= col`` (new labels), belongs to the panel of col's supernode at local ``(row, col)``."""
+    """``(src, dst)``: run indices (runs of ``k`` values, one row of a ``k x k`` block) moving H's block-major
+    values to the panels. Entry ``(row, col)``, ``row >= col`` (new labels), belongs to the panel of col's
+    supernode at local ``(row, col)``."""
     k, nb = lay.k, pattern.num_blocks
     iperm = np.empty(lay.n, dtype=np.int64)
     iperm[tree.order] = np.arange(lay.n)
@@ -335,10 +292,8 @@ def _factor_groups(tree: _Tree, lay: _Layout) -> list:
     at = np.repeat(lay.roff[gorder] - gstart[:-1], glen) + np.arange(int(gstart[-1]))
     rows_all = (lay.rcat[at][:, None] * k + ar).reshape(-1)  # block rows -> scalar rows
     gstart *= k
-    # where each update goes (see _update_positions), at the level of block pairs: pair (alpha >= beta) of
-    # supernode s is rows (alpha, beta) of R_s; its entry (alpha k, beta k) lands in the panel of the owner
-    # of column block beta at ``base``, and its rows are ``pt`` apart (the owner's panel width). The first
-    # r (r + 1) / 2 row-major lower pairs of any larger triangle are those of an r x r one.
+    # per block pair (alpha >= beta) of R_s: where its entry (alpha k, beta k) lands (``base``, in the panel
+    # of the owner of column block beta) and that panel's row stride ``pt`` (see _update_positions)
     npair = glen * (glen + 1) // 2
     pstart = np.zeros(ns + 1, dtype=np.int64)
     pstart[1:] = np.cumsum(npair)
@@ -350,8 +305,7 @@ def _factor_groups(tree: _Tree, lay: _Layout) -> list:
     own = lay.owner[b_blk]
     pair_pt = k * lay.ncols[own]
     pair_base = lay.off[own] + lay.local(own, a_blk) * k * pair_pt + (b_blk - lay.nf[own]) * k
-    # the update positions of all the groups with the same number of rows r in one call (their
-    # supernodes' pairs gathered), then split per group: ~30 distinct r against ~170 groups
+    # the update positions of all the groups with the same number of rows r in one call, then split per group
     sizes = np.array([len(sns) for _, sns in tree.groups], dtype=np.int64)
     i0s = np.zeros(len(sizes) + 1, dtype=np.int64)
     i0s[1:] = np.cumsum(sizes)
@@ -380,27 +334,16 @@ def _factor_groups(tree: _Tree, lay: _Layout) -> list:
 
 
 class SymbolicCholesky:
-    """Symbolic analysis of a :class:`~slam.graph.linear.BlockPattern` (done once per pattern).
-
-    The stages (each its own function): the supernodal elimination tree (:func:`_supernode_tree`: ordering,
-    etree, column structures, relaxed supernodes, level groups), the panel layout (:class:`_Layout`), the
-    gather map of ``H`` into the panels (:func:`_gather_map`) and the per-group solve rows and update
-    positions (:func:`_factor_groups`).
+    """Symbolic analysis of a :class:`~slam.graph.linear.BlockPattern`.
 
     Args:
         pattern: the block pattern of the SPD matrix.
-        relax: CHOLMOD-style amalgamation as ``((max_cols, max_zero_fraction), ...)`` in block columns:
-            a column joins its child supernode if the merged supernode has at most ``max_cols`` block
-            columns and at most that fraction of explicit zeros (first rule that applies). The
-            default merges more than CHOLMOD's: every front costs a few batched calls of fixed
-            overhead, and fewer, larger fronts were 5-20% faster per factorisation on the benchmark
-            graphs (smallGrid3D, parking-garage, M3500) and neutral on sphere2500.
     """
 
-    def __init__(self, pattern, relax=((2, 1.0), (6, 0.8), (16, 0.2), (10 ** 9, 0.05))):
+    def __init__(self, pattern):
         n, k = pattern.num_vars, pattern.k
         self.n, self.k, self.size = n, k, n * k
-        tree = _supernode_tree(pattern, relax)
+        tree = _supernode_tree(pattern)
         lay = _Layout(tree, k)
         if lay.buffer_size >= 2 ** 31:
             raise ValueError(f"the factor has {lay.buffer_size} entries: more than int32 positions address")
@@ -420,8 +363,7 @@ class SymbolicCholesky:
         self._torch_cache = {}
 
     def workspace(self, device) -> _Workspace:
-        """Index tensors, the panel buffer and the solve vector on ``device``, with every per-group view
-        made once (cached): a factorisation then only launches the numeric kernels."""
+        """The :class:`_Workspace` on ``device`` (made once)."""
         key = str(device)
         if key not in self._torch_cache:
             self._torch_cache[key] = _Workspace(self, device)
@@ -435,11 +377,8 @@ class SymbolicCholesky:
 
 def _rfp_rows_cols(d: int):
     """Rows ``a`` and columns ``b`` (``a >= b``) of the ``d (d + 1) / 2`` entries of the lower triangle of a
-    row-major ``d x d`` matrix in LAPACK's rectangular full packed order for ``transr='N'``, ``uplo='U'``
-    (of the Fortran view, whose upper triangle is that lower one): the order ``dsfrk`` writes an update
-    in. With ``h = d // 2``: a ``(d + 1 - d % 2) x (d - h)`` Fortran array whose column ``c`` holds row
-    ``h + c`` (entries 0 to ``h + c``) and, below it, column ``c`` of the leading ``h x h`` triangle
-    (LAPACK Working Note 199; the tests check it against ``dtrttf``)."""
+    row-major ``d x d`` matrix in LAPACK's rectangular full packed order (``transr='N'``, ``uplo='U'`` of the
+    Fortran view): the order ``dsfrk`` writes an update in (LAPACK Working Note 199)."""
     h = d // 2
     r = np.arange(d + 1 - d % 2)[:, None]
     c = np.arange(d - h)[None, :]
@@ -458,8 +397,7 @@ def _rfp_order(d: int) -> np.ndarray:
 @functools.lru_cache(maxsize=512)
 def _packed_pairs(d: int, k: int):
     """Per entry of the packed lower triangle of a ``d x d`` update (:func:`_rfp_rows_cols`) its block pair
-    (row-major lower: ``alpha (alpha + 1) / 2 + beta``) and its row and column inside the ``k x k`` block
-    (read-only; made once per size)."""
+    (row-major lower: ``alpha (alpha + 1) / 2 + beta``) and its row and column inside the ``k x k`` block."""
     a, b = _rfp_rows_cols(d)
     pair, ia, ib = (a // k) * (a // k + 1) // 2 + b // k, (a % k).astype(np.int32), (b % k).astype(np.int32)
     for x in (pair, ia, ib):
@@ -471,12 +409,9 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
     """Where the update ``L21 L21^T`` of each supernode of a group lands in the panel buffer: ``(B d (d + 1)
     / 2,)`` int32 positions, per supernode in the packed order of :func:`_rfp_rows_cols`.
 
-    Update entry ``(a, b)``, ``a >= b`` (rows ``a, b`` of the supernode's structure ``R_s``) belongs to the
-    panel of the supernode owning column ``b``, at its row ``a``: the structure of that column holds every
-    such row (the fill of the elimination). ``base, pt (B, npairs)`` give, per lower block pair (row-major),
-    the position of its first entry and the owner's row stride. The upper halves of diagonal blocks are not
-    in the packed triangle; the lower triangle of a pivot block is all LAPACK reads. Only the packed
-    entries are computed (building the full ``d x d`` map and selecting half took 3x the work).
+    Update entry ``(a, b)``, ``a >= b`` (rows of the supernode's structure ``R_s``) belongs to the panel of
+    the supernode owning column ``b``, at its row ``a``. ``base, pt (B, npairs)`` give, per lower block pair
+    (row-major), the position of its first entry and the owner's row stride.
     """
     pair, ia, ib = _packed_pairs(d, k)
     out = base.astype(np.int32)[:, pair]  # int32 throughout (the layout checks the buffer fits)
@@ -486,18 +421,14 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
 
 
 # On the CPU, groups of at most this many fronts are factored front by front with direct LAPACK/BLAS
-# calls (a few us each) instead of batched torch calls (10-20 us each whatever the batch size). Four
-# factorisations and solves, interleaved on a loaded 2-core machine, ms at 3 / 10 / 16 / 20 / all:
-# parking-garage 46.8 / 42.9 / - / 40.4 / 39.3, M3500 45.7 / 40.8 / 41.9 / 43.4 / 63.6, sphere2500 153 / 142 / - /
-# 143 / 166, smallGrid3D 6.5 / 6.2 / - / 5.5 / 5.4
+# calls (a few us each) instead of batched torch calls (10-20 us each whatever the batch size)
 _NUMPY_MAX_BATCH = 16
-
 
 
 def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, index=None):
     """Per-group views of the panel buffer ``buf`` (torch, flat): :class:`_NumpyGroup` objects for the
-    groups factored front by front (``cpu``), tuples for the batched ones. ``index`` holds the index
-    tensors already made for another buffer of the same pattern (they do not depend on the buffer)."""
+    groups factored front by front (``cpu``), tuples for the batched ones. ``index``: the index tensors
+    already made for another buffer of the same pattern."""
     import torch
 
     def t(a):
@@ -514,7 +445,6 @@ def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, in
                 o = g.offset + b * m * p
                 panel = bufnp[o:o + m * p].reshape(m, p)
                 if index is None:
-                    # rows stay numpy (fancy indexing of the numpy solve vector), the scatter is torch's
                     idx.append((g.rows[b * d:(b + 1) * d], None, t(g.upd[b * nl:(b + 1) * nl])) if d
                                else (None, None, None))
                 rows, _, dst = (index or idx)[len(out)]
@@ -532,12 +462,7 @@ def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, in
 
 class _Workspace:
     """Per-device state of a :class:`SymbolicCholesky`: index tensors, the panel buffer the factor is
-    computed in, the permuted right-hand side, and views into both for every group.
-
-    On the CPU, groups of a few supernodes (most groups near the root) run through numpy views of the
-    same memory and direct LAPACK/BLAS calls (scipy), whose call overhead is a few microseconds against
-    ten or more for a batched torch call.
-    """
+    computed in, the permuted right-hand side, and views into both for every group."""
 
     def __init__(self, sym: SymbolicCholesky, device):
         import torch
@@ -556,8 +481,7 @@ class _Workspace:
         # the packed update of a front-by-front supernode: one scratch vector, as large as the largest one
         d_max = max([g.m - g.p for g in sym.groups if g.size <= _NUMPY_MAX_BATCH] + [0])
         self.scratch = np.zeros(d_max * (d_max + 1) // 2) if self.cpu else None
-        # H's rows on their way to the panels (kept: a fresh array of H's size per factorisation costs its
-        # page faults each time)
+        # H's rows on their way to the panels (kept: a fresh array costs its page faults each time)
         self.rows = np.empty(sym.src.shape[0], dtype=np.dtype((np.void, 8 * sym.k))) if self.cpu else None
         self.groups, self.index = _group_views(sym, self.buf, device, self.cpu, self.scratch)
 
@@ -565,13 +489,13 @@ class _Workspace:
 _IN_PLACE = {}
 
 
-def _lapack_in_place() -> bool:
-    """Whether scipy's ``dpotrf``, ``dtrsm``, ``dsfrk`` and ``dtrsv`` with ``overwrite_*=1`` write into their
-    (Fortran-contiguous) argument (f2py does, for an array of the right type and order; checked once)."""
-    if "all" not in _IN_PLACE:
-        from scipy.linalg.blas import dtrsm, dtrsv
-        from scipy.linalg.lapack import dpotrf, dsfrk
+def _lapack():
+    """scipy's ``(dpotrf, dtrsm, dsfrk, dtrsv)`` (imported here: scipy.linalg takes ~0.4 s to import) and whether
+    they write into their Fortran-contiguous argument with ``overwrite_*=1`` (f2py does; checked once)."""
+    from scipy.linalg.blas import dtrsm, dtrsv
+    from scipy.linalg.lapack import dpotrf, dsfrk
 
+    if "all" not in _IN_PLACE:
         a = np.array([[4.0, 0.0], [2.0, 5.0]]).T  # Fortran, upper triangle [[4, 2], [., 5]]
         dpotrf(a, lower=0, clean=0, overwrite_a=1)
         b = np.ones((2, 1), order="F")
@@ -581,7 +505,7 @@ def _lapack_in_place() -> bool:
         x = np.ones(1)
         dtrsv(np.full((1, 1), 2.0, order="F"), x, overwrite_x=1)
         _IN_PLACE["all"] = bool(a[0, 0] == 2.0 and b[0, 0] == 0.5 and c[0] == 1.0 and x[0] == 0.5)
-    return _IN_PLACE["all"]
+    return (dpotrf, dtrsm, dsfrk, dtrsv), _IN_PLACE["all"]
 
 
 class _NumpyGroup:
@@ -593,36 +517,25 @@ class _NumpyGroup:
     def __init__(self, p, d, F11, F21, c0, rows, dst, S, S_t):
         self.p, self.d, self.F11, self.F21 = p, d, F11, F21
         self.c0, self.c1, self.rows, self.dst = c0, c0 + p, rows, dst
-        # the scratch as numpy and as a torch view of the same memory (made once: torch.from_numpy costs
-        # ~1 us per call)
+        # the scratch as numpy and as a torch view of the same memory
         self.S, self.S_t = S, S_t
-
-
-def _lapack_functions():
-    """``(dpotrf, dtrsm, dsfrk)`` of scipy (imported here: scipy.linalg takes ~0.4 s to import)."""
-    from scipy.linalg.blas import dtrsm
-    from scipy.linalg.lapack import dpotrf, dsfrk
-
-    return dpotrf, dtrsm, dsfrk
 
 
 def _factor_numpy_group(grp: _NumpyGroup, buf, in_place: bool, dpotrf, dtrsm, dsfrk) -> int:
     """Factor one supernode in place in its panel (LAPACK on the Fortran views: a row-major ``F11`` is
-    the Fortran ``F11^T``, whose upper triangle is F11's lower one) and add its update to the panels of
-    the supernodes that own its columns; returns LAPACK's ``info``."""
-    # positional arguments: f2py parses keywords at ~0.4 us each, and this runs for hundreds of fronts
+    the Fortran ``F11^T``) and add its update to the panels that own its columns; returns LAPACK's ``info``.
+    """
+    # positional arguments: f2py parses keywords at ~0.4 us each
     X = grp.F11.T  # upper: U = L^T
     U, info = dpotrf(X, 0, 0, 1)  # lower=0, clean=0, overwrite_a=1
     if not in_place:
         X[...] = U
-    # OpenBLAS's dpotrf does not test for NaN: NumericCholesky checks every pivot once after the loop
     if grp.d and not info:
         Y = grp.F21.T  # (p, d) Fortran: F21^T, becomes L21^T = L^-1 F21^T
         Z = dtrsm(1.0, X, Y, 0, 0, 1, 0, 1)  # side=0, lower=0, trans_a=1, diag=0, overwrite_b=1
         if not in_place:
             Y[...] = Z
-        # -L21 L21^T, its lower triangle only and packed (dsfrk: half the flops of a product and half the
-        # values to scatter), then into the panels
+        # -L21 L21^T, its lower triangle only and packed, then into the panels
         V = dsfrk(grp.d, grp.p, -1.0, Y, 0.0, grp.S, "N", "U", "T", 1)  # transr, uplo, trans, overwrite_c
         if not in_place:
             grp.S[...] = V
@@ -633,11 +546,9 @@ def _factor_numpy_group(grp: _NumpyGroup, buf, in_place: bool, dpotrf, dtrsm, ds
 class NumericCholesky:
     """``P H P^T = L L^T`` stored per group as batched dense panels; :meth:`solve` applies ``H^-1``.
 
-    Works on torch tensors (float64) on the device of ``values``; numpy arrays are accepted too. The
-    factor lives in the workspace buffer of its pattern, which the next factorisation of the same pattern
-    reuses: if this object is still referenced then, it first moves to a copy of the buffer (so both
-    factors stay valid). ``sym.factor(v).solve(b)`` in a loop never copies; ``f = sym.factor(v)`` in a loop
-    copies at every call (the old ``f`` is alive while the new one is made: ``del f`` first).
+    Works on float64 torch tensors on the device of ``values`` (numpy arrays too). The factor lives in
+    its pattern's workspace buffer, which the next factorisation reuses: if this object is still referenced
+    then, it first moves to a copy of the buffer (so both factors stay valid).
     """
 
     def __init__(self, sym: SymbolicCholesky, values):
@@ -657,33 +568,24 @@ class NumericCholesky:
             prev = ws.owner() if ws.owner is not None else None
             if prev is not None:
                 prev._detach()
-            # no factor lives in the buffer until this one has succeeded: an exception below (bad input,
-            # KeyboardInterrupt) or a failed pivot must not leave the moved factor, or this failed one, as
-            # the owner that the next factorisation would "move" (copy the half-done buffer into)
+            # no owner until this factor has succeeded (an exception or a failed pivot leaves none to move)
             ws.owner = None
             buf = ws.buf
             k = sym.k
-            in_place = _lapack_in_place()
-            lapack = _lapack_functions()
+            lapack, in_place = _lapack()
             buf.zero_()
             if ws.cpu:
-                # rows of k values as k * 8-byte records: numpy's take and put copy them whole (parking-garage:
-                # 0.3 ms against 2.1 for torch's index_select + index_copy_ of (k,) rows)
+                # rows of k values as k * 8-byte records: numpy's take and put copy them whole
                 rows = np.take(v.contiguous().numpy().view(ws.rows.dtype), sym.src, out=ws.rows)
                 np.put(ws.bufnp.view(ws.rows.dtype), sym.dst, rows)
             else:
                 buf.view(-1, k).index_copy_(0, ws.dst, torch.index_select(v.reshape(-1, k), 0, ws.src))
             failed = self._factor_groups(ws.groups, buf, infos, in_place, lapack)
             failed = failed or bool(infos and bool(torch.cat(infos).any()))
-            # OpenBLAS's dpotrf does not test for NaN (reference LAPACK, and torch's cholesky_ex, report it). A
-            # NaN in a pivot block's lower triangle reaches its last diagonal entry (every later row divides by
-            # the NaN pivot), a NaN in F21 reaches an ancestor's diagonal through the update (a, a), and an
-            # infinite pivot stays on the diagonal (later rows divide by it and stay finite): one test of
-            # every pivot after the loop catches all three
+            # OpenBLAS's dpotrf does not test for NaN: a NaN or an infinity in the input reaches a pivot
             if not failed and ws.cpu and not np.isfinite(np.take(ws.bufnp, sym.diag)).all():
                 failed = True
-            # set before the lock is released: a factorisation in another thread may detach this factor as
-            # soon as it is the owner, and must find its views to replace
+            # set before the lock is released: another thread may detach this factor once it is the owner
             self.buf, self.groups = buf, ws.groups
             if not failed:
                 ws.owner = weakref.ref(self)
@@ -698,7 +600,7 @@ class NumericCholesky:
 
         for grp in groups:
             if type(grp) is _NumpyGroup:
-                if _factor_numpy_group(grp, buf, in_place, *lapack) != 0:
+                if _factor_numpy_group(grp, buf, in_place, *lapack[:3]) != 0:
                     return True
                 continue
             B, _, d, F11, F21, _, _, packed, dst = grp
@@ -722,12 +624,10 @@ class NumericCholesky:
     def solve(self, b):
         """``x = H^-1 b`` for ``b (n k,)`` (numpy array or torch tensor; returns the same kind)."""
         import torch
-        from scipy.linalg.blas import dtrsv
-
         is_np = isinstance(b, np.ndarray)
         bt = torch.from_numpy(b) if is_np else b
         ws = self.ws
-        in_place = _lapack_in_place()
+        (_, _, _, dtrsv), in_place = _lapack()
         with ws.lock:
             y, ynp = ws.y, ws.ynp
             torch.index_select(bt.detach().to(torch.float64), 0, ws.perm, out=y)

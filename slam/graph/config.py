@@ -1,14 +1,4 @@
-"""The settings of the pose-graph optimiser (:func:`slam.graph.optimize`).
-
-Example:
-    >>> cfg = OptimizerConfig(max_iterations=20, kernel_width=2.0)
-    >>> cfg.validate().max_iterations
-    20
-    >>> OptimizerConfig(damping="marquardt").validate()
-    Traceback (most recent call last):
-    ...
-    ValueError: damping must be 'identity' or 'diagonal', got 'marquardt'
-"""
+"""The settings of the pose-graph optimiser (:func:`slam.graph.optimize`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -31,9 +21,8 @@ class OptimizerConfig:
     lambda_factor: float = 10.0  # lambda /= factor after a good step, *= factor after a bad one
     lambda_max: float = 1e10  # LM gives up (status lambda_limit) beyond this damping
     damping: str = "identity"  # "identity": H + lambda I (GTSAM's default); "diagonal": H + lambda diag(H)
-    # how lambda moves (LM only): "gtsam" (/= lambda_factor after a good step, *= after a bad one: GTSAM's
-    # default); "nielsen" (the gain-ratio rule of g2o and Ceres: after a good step with gain ratio rho =
-    # actual / predicted decrease, lambda *= max(1/3, 1 - (2 rho - 1)^3); after a bad one *= nu, nu doubling)
+    # how lambda moves (LM only): "gtsam" (/= lambda_factor after a good step, *= after a bad one) or
+    # "nielsen" (the gain-ratio rule of g2o and Ceres)
     lambda_update: str = "gtsam"
     # "free": LM damping, then re-anchored on pose 0; "first": hold pose 0; "prior": a prior on pose 0
     gauge: str = "free"
@@ -43,10 +32,7 @@ class OptimizerConfig:
     planar: Optional[bool] = None  # solve only (x, y, yaw); None: auto-detect with PoseGraph.is_planar()
     check_information: bool = True  # check every information matrix is SPD before optimising
     # the optimised poses carry a grad_fn when the measurements, information matrices or held poses require
-    # grad: implicit differentiation at the optimum (slam.graph.implicit; one sparse factorisation and solve
-    # of the cost's Hessian per backward). Exact at a stationary point: tighten rel_tol for precise gradients.
-    # They are the optimum's: a run stopped before it (max_iterations, solver_failed) warns that they do not
-    # describe the poses it returned. First order only (a second derivative raises).
+    # grad (implicit differentiation at the optimum: slam.graph.implicit; first order only)
     differentiable: bool = False
     verbose: bool = False  # print one line per iteration
 

@@ -1,23 +1,10 @@
-"""Pose-graph residuals, their analytic Jacobians, and robust kernels, vectorised over edges.
+"""Pose-graph residuals, their analytic Jacobians (checked wrappers of :mod:`slam.graph.fused`), and robust
+kernels, vectorised over edges.
 
-The residuals and Jacobians here are the public, checked entry points to the torch reference of
-:mod:`slam.graph.fused` (one implementation of the maths); the robust kernels are defined here.
-
-For an edge ``(i, j)`` with measurement ``z`` let ``D = z^-1 T_i^-1 T_j`` (the identity when the
-measurement is met exactly). The residual ``r (6,)`` in the ``[rho, phi]`` order is
-
-* chart ``"se3"``: ``r = Log(D)``, GTSAM's ``BetweenFactor<Pose3>`` error (so ``chi2 = 2 x`` GTSAM's error);
-  for planar poses it is the SE(2) logarithm GTSAM's ``BetweenFactor<Pose2>`` uses;
-* chart ``"r3so3"``: ``r = [t(D), Log_SO3(R(D))]``; for planar poses this is exactly the
-  ``(dx, dy, dtheta)`` error of g2o's ``EDGE_SE2``.
-
-Jacobians are taken w.r.t. right perturbations ``T <- T exp(delta)``. With ``C = dr/d(right perturbation
-of D)`` (``J_r^-1(r)`` for ``"se3"``, ``blockdiag(R(D), J_r^-1(r_phi))`` for ``"r3so3"``):
-``dr/d delta_j = C`` and ``dr/d delta_i = -C Ad(T_j^-1 T_i)`` because
-``z^-1 exp(-delta_i) T_i^-1 T_j = D exp(-Ad(T_j^-1 T_i) delta_i)``.
-
-The cost of an edge is ``rho(s)`` with ``s = r^T Omega r`` (``rho(s) = s`` without a kernel), so a
-robust cost is in the same units as chi2. Kernels give ``rho`` and the IRLS weight ``w = rho'(s)``.
+With ``D = z^-1 T_i^-1 T_j`` the residual ``r (6,)`` of an edge, in the ``[rho, phi]`` order, is ``Log(D)`` (chart
+``"se3"``: GTSAM's ``BetweenFactor`` error, chi2 twice GTSAM's error) or ``[t(D), Log_SO3(R(D))]`` (chart
+``"r3so3"``: g2o's ``EDGE_SE2`` error on planar poses). Jacobians are w.r.t. right perturbations
+``T <- T exp(delta)``. A kernel maps ``s = r^T Omega r`` to the cost ``rho(s)`` and the IRLS weight ``rho'(s)``.
 
 Example:
     >>> import torch
@@ -48,7 +35,6 @@ __all__ = [
     "GemanMcClure",
     "Huber",
     "RobustKernel",
-    "TrivialKernel",
     "Tukey",
     "edge_chi2",
     "edge_jacobians",
@@ -59,8 +45,7 @@ __all__ = [
 
 Tensor = torch.Tensor
 
-# 95% quantile of the chi-square distribution with 6 degrees of freedom: an inlier edge has
-# s = r^T Omega r below this with probability 0.95, so kernels of this width leave inliers quadratic.
+# 95% quantile of the chi-square distribution with 6 degrees of freedom (of s = r^T Omega r on an inlier edge)
 CHI2_95_6DOF = 12.591587243743977
 
 
@@ -76,12 +61,11 @@ def _check_edges(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor) ->
 
 def edge_residuals(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor,
                    chart: str = "se3") -> Tuple[Tensor, Tensor]:
-    """Residuals of all edges (:func:`slam.graph.fused.se3_residuals`; differentiable).
+    """Residuals of all edges (differentiable).
 
     Args:
         poses: ``(N, 7)`` poses.
-        ii: ``(E,)`` long, first pose of each edge.
-        jj: ``(E,)`` long, second pose of each edge.
+        ii, jj: ``(E,)`` long, the first and second pose of each edge.
         measurements: ``(E, 7)`` measured ``z_ij ~= T_i^-1 T_j``.
         chart: ``"se3"`` or ``"r3so3"`` (see the module docstring).
 
@@ -90,34 +74,27 @@ def edge_residuals(poses: Tensor, ii: Tensor, jj: Tensor, measurements: Tensor,
         (reused by :func:`edge_jacobians`).
     """
     _check_edges(poses, ii, jj, measurements)
-    if chart not in ("se3", "r3so3"):
-        raise ValueError(f"chart must be 'se3' or 'r3so3', got {chart!r}")
     r, aux = fused.se3_residuals(poses, ii, jj, se3_inv(measurements), chart)
     return r, torch.cat([aux[2], aux[3]], dim=-1)
 
 
 def edge_jacobians(poses: Tensor, ii: Tensor, jj: Tensor, D: Tensor, r: Tensor,
-                   chart: str = "se3", measurements: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
-    """Analytic Jacobians of the residuals w.r.t. right perturbations of ``T_i`` and ``T_j``
-    (:func:`slam.graph.fused.se3_jacobians_t`).
+                   chart: str = "se3") -> Tuple[Tensor, Tensor]:
+    """Analytic Jacobians of the residuals w.r.t. right perturbations of ``T_i`` and ``T_j``.
 
     Args:
         poses: ``(N, 7)`` poses.
-        ii: ``(E,)`` first pose of each edge.
-        jj: ``(E,)`` second pose of each edge.
+        ii, jj: ``(E,)`` long, the first and second pose of each edge.
         D: ``(E, 7)`` error poses from :func:`edge_residuals`.
         r: ``(E, 6)`` residuals from :func:`edge_residuals`.
         chart: the chart ``r`` was computed in.
-        measurements: ``(E, 7)``, optional: for the ``"se3"`` chart, ``z^-1`` from them instead of from
-            ``D (T_i^-1 T_j)^-1``.
 
     Returns:
         ``J_i (E, 6, 6)`` and ``J_j (E, 6, 6)`` with
         ``r(T_i exp(d_i), T_j exp(d_j)) ~= r + J_i d_i + J_j d_j``.
     """
     if chart == "se3":
-        zinv = se3_inv(measurements) if measurements is not None else \
-            se3_compose(D, se3_between(poses[jj], poses[ii]))
+        zinv = se3_compose(D, se3_between(poses[jj], poses[ii]))
         _, theta2, c = fused._log_terms(D[:, 3:])
         JT = fused.se3_jacobians_t(r, (theta2, c), -fused.se3_adjoint_t(zinv))
         return JT[:, :6].transpose(1, 2), JT[:, 6:12].transpose(1, 2)
@@ -132,27 +109,17 @@ def edge_chi2(r: Tensor, information: Tensor) -> Tensor:
 
 
 def graph_chi2(graph) -> float:
-    """``sum_e r_e^T Omega_e r_e`` of a :class:`~slam.graph.pose_graph.PoseGraph` at its poses.
-
-    GTSAM reports half of this (its error is ``0.5 * chi2``).
-    """
+    """``sum_e r_e^T Omega_e r_e`` of a :class:`~slam.graph.pose_graph.PoseGraph` at its poses (GTSAM's error
+    is half of it)."""
     if graph.num_edges == 0:
         return 0.0
     r, _ = edge_residuals(graph.poses, graph.ii, graph.jj, graph.measurements, graph.chart)
     return float(edge_chi2(r, graph.information).sum())
 
 
-# ----------------------------------------------------------------------------------------------
-# Robust kernels on s = r^T Omega r (rho(s) ~= s for small s, so robust costs read like chi2)
-# ----------------------------------------------------------------------------------------------
 class RobustKernel:
-    """Base class: ``kernel(s) -> (rho(s), w(s) = rho'(s))`` for squared Mahalanobis norms ``s (E,)``.
-
-    Subclasses implement :meth:`rho_and_weight`; the optimiser uses ``w`` as the IRLS weight of the edge
-    (its information becomes ``w * Omega`` in the normal equations) and ``rho`` as its cost.
-    """
-
-    name = "trivial"
+    """Base class: ``kernel(s) -> (rho(s), w(s) = rho'(s))`` for squared Mahalanobis norms ``s (E,)``;
+    subclasses implement :meth:`rho_and_weight`."""
 
     def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -161,13 +128,6 @@ class RobustKernel:
         if not isinstance(s, Tensor) or s.dim() != 1:
             raise ValueError(f"s must be a tensor of shape (E,), got {getattr(s, 'shape', type(s))}")
         return self.rho_and_weight(s)
-
-
-class TrivialKernel(RobustKernel):
-    """No robustness: ``rho(s) = s``, ``w = 1``."""
-
-    def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
-        return s, torch.ones_like(s)
 
 
 @dataclass
@@ -183,8 +143,6 @@ class _Width(RobustKernel):
 class Huber(_Width):
     """Huber: quadratic up to ``sqrt(s) = width``, linear beyond (``rho = 2 d sqrt(s) - d^2``)."""
 
-    name = "huber"
-
     def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
         d2 = self.width ** 2
         e = torch.sqrt(s.clamp_min(d2))  # >= width: no 0 division on the quadratic branch
@@ -198,8 +156,6 @@ class Huber(_Width):
 class Cauchy(_Width):
     """Cauchy (Lorentzian): ``rho = c^2 log(1 + s / c^2)``, ``w = 1 / (1 + s / c^2)``."""
 
-    name = "cauchy"
-
     def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
         c2 = self.width ** 2
         return c2 * torch.log1p(s / c2), 1.0 / (1.0 + s / c2)
@@ -208,8 +164,6 @@ class Cauchy(_Width):
 @dataclass
 class Tukey(_Width):
     """Tukey biweight: ``rho = c^2/3 (1 - (1 - s/c^2)^3)`` inside ``s < c^2``, constant outside (w = 0)."""
-
-    name = "tukey"
 
     def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
         c2 = self.width ** 2
@@ -220,8 +174,6 @@ class Tukey(_Width):
 @dataclass
 class GemanMcClure(_Width):
     """Geman-McClure: ``rho = c^2 s / (c^2 + s)``, ``w = c^4 / (c^2 + s)^2``."""
-
-    name = "geman_mcclure"
 
     def rho_and_weight(self, s: Tensor) -> Tuple[Tensor, Tensor]:
         c2 = self.width ** 2
@@ -236,13 +188,9 @@ _KERNELS = {"huber": Huber, "cauchy": Cauchy, "tukey": Tukey, "geman_mcclure": G
 def make_kernel(kernel: Union[None, str, RobustKernel],
                 width: Optional[float] = None) -> Optional[RobustKernel]:
     """A kernel object from a name (``"huber"``, ``"cauchy"``, ``"tukey"``, ``"geman_mcclure"``), an
-    object (returned as is) or ``None``/``"none"`` (no kernel, returns ``None``).
-
-    Args:
-        kernel: the name or object.
-        width: width on ``sqrt(s)`` for a kernel made from a name (default ``sqrt(chi2_0.95(6)) = 3.55``).
-    """
-    if kernel is None or isinstance(kernel, TrivialKernel):
+    object (returned as is) or ``None``/``"none"`` (returns ``None``); ``width`` on ``sqrt(s)`` for a kernel
+    made from a name (default ``sqrt(chi2_0.95(6)) = 3.55``)."""
+    if kernel is None:
         return None
     if isinstance(kernel, RobustKernel):
         return kernel

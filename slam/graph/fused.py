@@ -1,39 +1,15 @@
 """The pose-graph maths in torch: residuals, their Jacobians, normal-equation blocks and the retraction,
 vectorised over edges, on any device, differentiable.
 
-The public residuals and Jacobians of :mod:`slam.graph.costs` are thin wrappers of these functions, which
-are tested against :mod:`slam.lie` (the group operations composed one by one), finite differences and
-float64 gradcheck (``tests/slam/graph/test_graph_fused.py``, ``tests/slam/graph/test_pose_graph.py``).
-
-Why closed forms instead of composing :mod:`slam.lie`: one Levenberg-Marquardt iteration is a few dozen
-element-wise operations over all edges plus batched products of tiny matrices. A pose composition in
-:mod:`slam.lie` is about 15 torch calls (~4 us of dispatch each on the CPU); here the error pose
-``z^-1 T_i^-1 T_j``, its logarithm, the Jacobians and the per-edge blocks of ``J^T Omega J`` are closed
-forms with as few calls as possible, and the logarithm hands its intermediate terms to the Jacobians
-instead of recomputing them. The series branches are written so that autograd is exact through them,
-also at the identity and to second order (``slam.graph.implicit`` differentiates the optimum with them).
-
-Batched products of tiny matrices go through :func:`bmm`: on the CPU it calls numpy's ``matmul`` on
-views of the same memory, which measured 6-9x faster than torch's CPU ``bmm`` for 6x6 float64 matrices
-(0.25 ms against 2.2 ms for 6275 products, torch 2.13: its CPU kernel loops over the batch with a
-generic routine); on any other device it is ``torch.matmul``.
+The public residuals and Jacobians of :mod:`slam.graph.costs` wrap these functions. They are closed forms
+with as few torch calls as possible (a composition in :mod:`slam.lie` is about 15 calls), the logarithm
+handing its terms to the Jacobians; the series branches keep autograd exact at the identity, to second
+order (:mod:`slam.graph.implicit` differentiates through them).
 
 Notation: ``D = z^-1 T_i^-1 T_j``, ``r = Log(D) = [rho, phi]``,
 ``J_j = J_r^-1(r)``, ``J_i = -J_l^-1(r) Ad(z^-1)``, ``Omega = L L^T`` (Cholesky, constant per call).
 With the whitened rows ``[A_i, A_j, u] = L^T [J_i, J_j, r]`` the blocks of an edge are ``A_a^T A_b`` and
 its gradient ``A_a^T u``: one product of a ``(2k+1, k)`` matrix with its transpose gives all of them.
-
-Example:
-    >>> import torch
-    >>> from slam.lie import se3_exp, se3_inv
-    >>> poses = se3_exp(torch.randn(4, 6, dtype=torch.float64) * 0.1)
-    >>> ii, jj = torch.tensor([0, 1, 2]), torch.tensor([1, 2, 3])
-    >>> zinv = se3_inv(se3_exp(torch.randn(3, 6, dtype=torch.float64) * 0.1))
-    >>> r, aux = se3_residuals(poses, ii, jj, zinv)
-    >>> JT = se3_jacobians_t(r, aux, -se3_adjoint_t(zinv))
-    >>> blocks, g = normal_blocks(JT, torch.eye(6, dtype=torch.float64).expand(3, 6, 6).contiguous())
-    >>> r.shape, JT.shape, blocks.shape, g.shape
-    (torch.Size([3, 6]), torch.Size([3, 13, 6]), torch.Size([3, 4, 6, 6]), torch.Size([3, 2, 6]))
 """
 from __future__ import annotations
 
@@ -64,9 +40,8 @@ def _numpy_ok(*ts: Tensor) -> bool:
 def bmm(a: Tensor, b: Tensor, out: Optional[Tensor] = None) -> Tensor:
     """Batched matrix product ``a @ b`` (broadcasting), optionally written into ``out``.
 
-    On the CPU (no autograd) numpy's ``matmul`` runs on views of the same memory (see the module
-    docstring for why); elsewhere ``torch.matmul``. Best with operands whose last two dimensions are
-    contiguous (row slices are fine, column slices take numpy's slow path).
+    On the CPU without autograd numpy's ``matmul`` on views of the same memory (several times faster than
+    torch's CPU ``bmm`` for 6x6 float64 matrices); elsewhere ``torch.matmul``.
     """
     if _numpy_ok(a, b) and (out is None or _numpy_ok(out)):
         if out is None:
@@ -122,8 +97,7 @@ def error_poses(poses: Tensor, ii: Tensor, jj: Tensor, zinv: Tensor) -> Tuple[Te
 
     Args:
         poses: ``(N, 7)`` poses.
-        ii: ``(E,)`` long first pose of each edge.
-        jj: ``(E,)`` long second pose of each edge.
+        ii, jj: ``(E,)`` long, the first and second pose of each edge.
         zinv: ``(E, 7)`` inverted measurements.
     """
     Pi, Pj = poses[ii], poses[jj]
@@ -135,22 +109,18 @@ def _log_terms(q: Tensor):
     """Rotation vector ``phi (E, 3)``, ``theta^2 (E, 1)`` and ``c = (1 - (t/2) cot(t/2)) / t^2 (E, 1)``
     (the coefficient of ``hat(phi)^2`` in ``J_l^-1(phi)``) from unit quaternions ``q (E, 4)``.
 
-    With ``h = atan2(|v|, |w|)`` (half the angle, the sign of ``q`` chosen so that ``w >= 0``):
-    ``phi = 2 h v / |v|`` and ``(t/2) cot(t/2) = h |w| / |v|``, so no trigonometric call besides one atan.
-    Below the angle ``_SMALL`` the series in ``x = |v|^2 / w^2`` (``atan(sqrt x) / sqrt x = 1 - x/3 + ...``,
-    the next term under round-off there): smooth, so autograd (and its second order) is exact at the
-    identity, where ``|v|`` has no derivative. Each branch of a ``where`` is finite everywhere, so the
-    unselected one passes no NaN to the gradients.
+    With ``h = atan2(|v|, |w|)``: ``phi = 2 h v / |v|`` and ``(t/2) cot(t/2) = h |w| / |v|``. Below the angle
+    ``_SMALL`` the series in ``x = |v|^2 / w^2``, smooth at the identity (where ``|v|`` has no derivative);
+    each branch of a ``where`` is finite everywhere, so the unselected one passes no NaN to the gradients.
     """
     v, w = q[:, :3], q[:, 3:]
     n2 = _dot(v, v)
-    # |w| (abs's second derivative, like atan2's, is a python decomposition in torch 2.13 whose first call
-    # imports torch._dynamo: seconds)
+    # |w| without abs or atan2 (their second derivatives import torch._dynamo on first use: seconds)
     aw = torch.where(w < 0, -w, w)
     # angle 2 h below _SMALL, i.e. |v| / |w| = tan(h) below tan(_SMALL / 2)
     small = n2 < _TAN2_HALF_SMALL.get(q.dtype, 2.5e-5) * (w * w)
     n = torch.where(small, 1.0, n2).sqrt()
-    # h = atan2(n, |w|) in [0, pi/2], through atan of a ratio <= 1 (atan2: as abs above)
+    # h = atan2(n, |w|) in [0, pi/2], through atan of a ratio <= 1
     big = n > aw
     h = torch.where(big, 0.5 * math.pi - torch.atan(aw / torch.where(big, n, 1.0)),
                     torch.atan(n / torch.where(big, 1.0, aw)))
@@ -168,8 +138,7 @@ def se3_residuals(poses: Tensor, ii: Tensor, jj: Tensor, zinv: Tensor, chart: st
 
     Args:
         poses: ``(N, 7)`` poses.
-        ii: ``(E,)`` first pose of each edge.
-        jj: ``(E,)`` second pose of each edge.
+        ii, jj: ``(E,)`` long, the first and second pose of each edge.
         zinv: ``(E, 7)`` inverted measurements.
         chart: ``"se3"`` (``r = Log(D)``) or ``"r3so3"`` (``r = [t(D), Log_SO3(q(D))]``).
 
@@ -220,18 +189,16 @@ def _const(name: str, like: Tensor) -> Tensor:
 
 def _jl_inv_and_q(r: Tensor, theta2: Tensor, c: Tensor) -> Tuple[Tensor, Tensor]:
     """``A = J_l^-1(phi)`` and ``Q = -A Q_B(r) A`` ``(E, 3, 3)``, the blocks of the SE(3)
-    ``J_l^-1(r) = [[A, Q], [0, A]]`` (``Q_B``: Barfoot's ``Q``, written as in
-    :func:`slam.lie._se3_q_parts`: ``Q_B = hat(v) + S`` with ``S`` symmetric).
+    ``J_l^-1(r) = [[A, Q], [0, A]]`` (``Q_B``: Barfoot's ``Q``, ``hat(v) + S`` with ``S`` symmetric).
 
-    ``A = (1 - c t^2) I - hat(phi) / 2 + c phi phi^T``; ``theta2`` and ``c`` come from the logarithm.
-    The 3x3 matrices are built as flat ``(E, 9)`` rows from gathered components (broadcast outer
-    products with a trailing dimension of 3 ran ~10x slower per element).
+    ``A = (1 - c t^2) I - hat(phi) / 2 + c phi phi^T``; ``theta2 (E, 1)`` and ``c (E, 1)`` come from the
+    logarithm. The 3x3 matrices are built as flat ``(E, 9)`` rows (faster than broadcast outer products).
     """
     E = r.shape[0]
     Hx, sg, eye = (_const(n, r) for n in ("hat", "sign", "eye"))
     rho, phi = r[:, :3], r[:, 3:]
 
-    def rows(a):  # a[i] and a[j] of the flat entry (i, j) (expand + copy: faster than a gather)
+    def rows(a):  # a[i] and a[j] of the flat entry (i, j)
         return a[:, :, None].expand(E, 3, 3).reshape(E, 9), a[:, None, :].expand(E, 3, 3).reshape(E, 9)
 
     phi_i, phi_j = rows(phi)
@@ -329,9 +296,8 @@ def se3_retract(poses: Tensor, xi: Tensor) -> Tensor:
     """``T exp(xi)`` for poses ``(N, 7)`` and tangent steps ``xi = [rho, phi] (N, 6)`` (right perturbation).
 
     ``exp(xi) = (J_l(phi) rho, [sin(t/2) phi / t, cos(t/2)])`` with
-    ``J_l(phi) rho = rho + a phi x rho + b phi x (phi x rho)``, ``a = 2 sin^2(t/2) / t^2``,
-    ``b = (t - sin t) / t^3``: their series below ``_SMALL`` (where the difference cancels, and where ``t``
-    has no derivative at 0: autograd through a step of zero is exact, to second order).
+    ``J_l(phi) rho = rho + a phi x rho + b phi x (phi x rho)``; ``a, b`` take their series below ``_SMALL``
+    (autograd through a step of zero stays exact, to second order).
     """
     rho, phi = xi[:, :3], xi[:, 3:]
     theta2 = _dot(phi, phi)
@@ -349,8 +315,7 @@ def se3_retract(poses: Tensor, xi: Tensor) -> Tensor:
 
 def workspace_buffer(ws: Optional[dict], name: str, shape, like: Tensor) -> Tensor:
     """A contiguous tensor of ``shape`` in storage kept in the dict ``ws`` between calls (fresh when ``ws`` is
-    None; a larger one kept there serves a smaller shape): freshly allocated megabyte arrays cost their page
-    faults on every iteration (~0.15 ms per MB here)."""
+    None; a larger one kept there serves a smaller shape): fresh megabyte arrays cost their page faults."""
     if ws is None:
         return like.new_empty(shape)
     need = math.prod(shape)
@@ -379,7 +344,7 @@ def normal_blocks(JT: Tensor, L: Tensor, weights: Optional[Tensor] = None,
     if weights is not None:
         AT.mul_(weights.sqrt()[:, None, None])
     # one product gives every block, the gradient and chi2: F = [A_i, A_j, u]^T [A_i, A_j, u]
-    A = copy_(workspace_buffer(ws, "A", (E, k, m), JT), AT.transpose(1, 2))  # contiguous operands: numpy's fast loop
+    A = copy_(workspace_buffer(ws, "A", (E, k, m), JT), AT.transpose(1, 2))  # contiguous operands
     F = bmm(AT, A, out=workspace_buffer(ws, "F", (E, m, m), JT))
     blocks = copy_(workspace_buffer(ws, "blocks", (E, 2, 2, k, k), JT),
                    F[:, :2 * k, :2 * k].view(E, 2, k, 2, k).permute(0, 1, 3, 2, 4))

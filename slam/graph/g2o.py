@@ -6,39 +6,17 @@ Supported lines (one element per line, fields separated by white space):
 * ``EDGE_SE3:QUAT i j x y z qx qy qz qw`` + the 21 upper-triangular entries of the 6x6 information
   matrix, row by row, translation first (the ``[rho, phi]`` order used here);
 * ``VERTEX_SE2 id x y theta`` and ``EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33``, lifted to SE(3)
-  (z = 0, rotation about z). With the default residual chart ``"se3"`` the residual of a planar edge is
-  exactly the SE(2) logarithm that GTSAM's ``BetweenFactor<Pose2>`` uses, so chi2 is 2x GTSAM's error
-  on the 2D problem; ``chart_2d="r3so3"`` gives g2o's own ``EDGE_SE2`` error ``(dx, dy, dtheta)``;
-* ``FIX id [id ...]``: those vertices are held constant by :func:`~slam.graph.optimize` (``graph.fixed``),
-  as g2o does; they then anchor the gauge (the result is not moved back onto pose 0);
-* blank lines and ``#`` comments, also after the fields of a line (``EDGE_SE2 0 1 ... # odometry``).
+  (z = 0, rotation about z; chart ``"se3"``: GTSAM's ``Pose2`` error, ``chart_2d="r3so3"``: g2o's). The 3x3
+  information goes to rows/columns ``(0, 1, 5)``, with ``z: (I11 + I22) / 2`` and ``roll, pitch: I33``
+  (zero residuals on a planar graph: they only keep the 6x6 matrix positive definite);
+* ``FIX id [id ...]``: those vertices are held constant by :func:`~slam.graph.optimize` (``graph.fixed``);
+* blank lines and ``#`` comments, also after the fields of a line.
 
-Lifting the 3x3 information ``(x, y, theta)`` to 6x6 ``[x, y, z, roll, pitch, yaw]``: the 3x3 block goes
-to rows/columns ``(0, 1, 5)``; the out-of-plane dimensions get ``z: (I11 + I22) / 2`` and
-``roll, pitch: I33`` with no cross terms. On a planar graph those residuals and their gradient are
-exactly zero, so these weights never change the solution or chi2; they only keep the 6x6 matrix
-positive definite with the same scale as the in-plane part.
-
-Files from the wild: what GTSAM or g2o accept is read, and what had to be changed is said.
-
-* **Edges only** (no ``VERTEX`` line): the vertices are the ids the edges name, and their poses are
-  composed along the breadth-first spanning tree of the edges from the lowest id (or the first ``FIX``
-  vertex), placed at the identity (:func:`slam.graph.initialization.spanning_tree_poses`).
-* **An information matrix that is not positive definite** (GTSAM reads it into a NaN or meaningless noise
-  model): it is replaced by the nearest matrix whose eigenvalues are at least ``1e-6`` times its largest
-  (Higham's projection in the Frobenius norm: the eigenvalues clipped, the eigenvectors kept), with a
-  :class:`G2OWarning` naming the file, the lines and the eigenvalues. A matrix without a positive
-  eigenvalue carries no information and is an error.
-* **A repeated line**: an edge whose ids and values repeat an earlier edge is kept (as g2o and GTSAM do:
-  its information counts twice) with a warning; a vertex line repeated exactly is read once, with a
-  warning (two different poses for one id are an error).
-
-``read_g2o(path, strict=True)`` raises :class:`G2OFormatError` instead of each warning. Anything else (an
-unknown element, a wrong number of fields, a token that is not a number, a vertex id that is not a 64-bit
-integer, a non-finite value, a translation beyond :data:`~slam.input_checks.MAX_COORDINATE`, a zero
-quaternion, an edge to an undefined vertex, ``FIX`` of an undefined vertex, a file mixing 2D and 3D
-elements, a byte that is not UTF-8) raises :class:`G2OFormatError` naming the file, the 1-based line
-number and what was expected.
+Files from the wild: a file with edges only gets its poses composed along a spanning tree of the edges; an
+information matrix that is not positive definite is replaced by the nearest one with eigenvalues at least
+``1e-6`` times its largest; a repeated edge is kept (its information counts twice) and a vertex line repeated
+exactly is read once. Each repair gives a :class:`G2OWarning` (``strict=True``: a :class:`G2OFormatError`).
+Anything else malformed raises :class:`G2OFormatError` naming the file, the 1-based line and what was expected.
 
 Example:
     >>> import io
@@ -80,8 +58,9 @@ _LAYOUT = {
 }
 _IU6 = np.triu_indices(6)
 _IU3 = np.triu_indices(3)
+_PLANAR = np.array([0, 1, 5])  # x, y, yaw in [x, y, z, roll, pitch, yaw]
 # an information matrix that is not positive definite gets its eigenvalues clipped to at least this
-# fraction of its largest: a condition number <= 1e6, which the optimiser's Cholesky takes in float64
+# fraction of its largest
 _PD_FLOOR = 1e-6
 
 
@@ -96,12 +75,6 @@ class G2OFormatError(ValueError):
 
 class G2OWarning(UserWarning):
     """Something in a g2o file was repaired or is suspicious; ``read_g2o(..., strict=True)`` raises instead."""
-
-
-def _open(f: PathOrFile, mode: str):
-    if isinstance(f, (str, os.PathLike)):
-        return open(f, mode), str(f), True
-    return f, getattr(f, "name", "<stream>"), False
 
 
 def _report(notes: List[str], src: str, lines: List[int], problem: str, action: str, strict: bool) -> None:
@@ -193,8 +166,7 @@ def _positive_definite(info: np.ndarray, lines: List[int], tag: str, src: str, s
             f"{tag} information matrix is not positive definite (eigenvalues {w[0, 0]:.3g} .. {top[0]:.3g}"
             f"{' on the first' if bad.size > 1 else ''})", "replaced by the nearest positive-definite matrix "
             f"(eigenvalues clipped to >= {_PD_FLOOR:g} x the largest, eigenvectors kept)", strict)
-    # A + sum over the clipped eigenvalues of (floor - w) v v^T: the same matrix as V max(w, floor) V^T,
-    # with the part of A in the kept eigenvectors left exactly as the file gave it
+    # A + sum over the clipped eigenvalues of (floor - w) v v^T (= V max(w, floor) V^T, the rest of A exact)
     lift = np.maximum(_PD_FLOOR * top[:, None] - w, 0.0)
     out = info.copy()
     corr = (V * lift[:, None, :]) @ V.transpose(0, 2, 1)
@@ -225,13 +197,11 @@ def _lookup(sorted_ids: np.ndarray, ids: np.ndarray):
     return pos, sorted_ids[np.clip(pos, 0, sorted_ids.size - 1)] == ids
 
 
-def read_g2o(f: PathOrFile, dtype: torch.dtype = torch.float64, allow_no_edges: bool = False,
-             chart_2d: str = "se3", strict: bool = False) -> PoseGraph:
+def read_g2o(f: PathOrFile, allow_no_edges: bool = False, chart_2d: str = "se3", strict: bool = False) -> PoseGraph:
     """Read a g2o file into a :class:`PoseGraph`.
 
     Args:
         f: a path or an open file (text or binary).
-        dtype: floating dtype of the returned tensors.
         allow_no_edges: return a graph without edges instead of raising.
         chart_2d: residual chart of a 2D file: ``"se3"`` (GTSAM's ``Pose2`` error, the default) or
             ``"r3so3"`` (g2o's ``EDGE_SE2`` error).
@@ -239,10 +209,8 @@ def read_g2o(f: PathOrFile, dtype: torch.dtype = torch.float64, allow_no_edges: 
             :class:`G2OWarning` (an information matrix that is not positive definite, a repeated line).
 
     Returns:
-        The graph; poses are sorted by vertex id (``graph.vertex_ids``), edges are in file order,
-        ``graph.fixed`` holds the ``FIX`` vertices, and the poses are the file's VERTEX values (for the
-        benchmark files: the odometry initial guess, i.e. the chain of odometry measurements composed
-        from the first pose), or composed along a spanning tree of the edges when the file has none.
+        The float64 graph; poses ``(N, 7)`` sorted by vertex id (``graph.vertex_ids``), edges in file order,
+        ``graph.fixed`` the ``FIX`` vertices.
 
     Raises:
         G2OFormatError: naming the file, the line and what was expected.
@@ -354,13 +322,7 @@ def read_g2o(f: PathOrFile, dtype: torch.dtype = torch.float64, allow_no_edges: 
         i3 = np.zeros((len(erows), 3, 3))
         i3[:, _IU3[0], _IU3[1]] = evals[:, 3:]
         i3[:, _IU3[1], _IU3[0]] = evals[:, 3:]
-        i3 = _positive_definite(i3, elines, etag, src, strict, notes)
-        info = np.zeros((len(erows), 6, 6))
-        d = np.array([0, 1, 5])
-        info[:, d[:, None], d[None, :]] = i3
-        info[:, 2, 2] = 0.5 * (i3[:, 0, 0] + i3[:, 1, 1])
-        info[:, 3, 3] = i3[:, 2, 2]
-        info[:, 4, 4] = i3[:, 2, 2]
+        info = _lift_information(_positive_definite(i3, elines, etag, src, strict, notes))
         if vval is not None:
             poses = _lift_se2(vval)
         chart = chart_2d
@@ -371,11 +333,11 @@ def read_g2o(f: PathOrFile, dtype: torch.dtype = torch.float64, allow_no_edges: 
         poses = np.zeros((len(vid_sorted), 7))
         poses[:, 6] = 1.0
     graph = PoseGraph(
-        poses=torch.from_numpy(poses).to(dtype),
+        poses=torch.from_numpy(poses),
         ii=torch.from_numpy(pos[:, 0].copy()),
         jj=torch.from_numpy(pos[:, 1].copy()),
-        measurements=torch.from_numpy(np.ascontiguousarray(meas)).to(dtype),
-        information=torch.from_numpy(info).to(dtype),
+        measurements=torch.from_numpy(np.ascontiguousarray(meas)),
+        information=torch.from_numpy(info),
         chart=chart,
         vertex_ids=torch.from_numpy(vid_sorted.copy()),
         fixed=torch.from_numpy(fixed),
@@ -391,6 +353,16 @@ def read_g2o(f: PathOrFile, dtype: torch.dtype = torch.float64, allow_no_edges: 
     return graph
 
 
+def _lift_information(i3: np.ndarray) -> np.ndarray:
+    """``(M, 3, 3)`` information of ``(x, y, theta)`` -> ``(M, 6, 6)`` (see the module docstring)."""
+    info = np.zeros((i3.shape[0], 6, 6))
+    info[:, _PLANAR[:, None], _PLANAR] = i3
+    info[:, 2, 2] = 0.5 * (i3[:, 0, 0] + i3[:, 1, 1])
+    info[:, 3, 3] = i3[:, 2, 2]
+    info[:, 4, 4] = i3[:, 2, 2]
+    return info
+
+
 def _lift_se2(xyt: np.ndarray) -> np.ndarray:
     """``(M, 3) (x, y, theta)`` -> ``(M, 7)`` planar SE(3) poses."""
     out = np.zeros((xyt.shape[0], 7))
@@ -402,12 +374,11 @@ def _lift_se2(xyt: np.ndarray) -> np.ndarray:
     return out
 
 
-def _fmt(rows: np.ndarray, digits: int) -> List[str]:
-    f = f"%.{digits}g"
-    return [" ".join(f % v for v in r) for r in rows]
+def _fmt(rows: np.ndarray) -> List[str]:
+    return [" ".join("%.17g" % v for v in r) for r in rows]  # 17 digits round-trip float64
 
 
-def write_g2o(f: PathOrFile, graph: PoseGraph, planar: Optional[bool] = None, digits: int = 17) -> None:
+def write_g2o(f: PathOrFile, graph: PoseGraph, planar: Optional[bool] = None) -> None:
     """Write a :class:`PoseGraph` in the g2o format.
 
     Args:
@@ -417,7 +388,6 @@ def write_g2o(f: PathOrFile, graph: PoseGraph, planar: Optional[bool] = None, di
         planar: write ``VERTEX_SE2`` / ``EDGE_SE2``. Default: when that loses nothing, i.e. the graph is
             planar and its out-of-plane information is exactly what :func:`read_g2o` puts there (so a 2D
             file round-trips as 2D); otherwise ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``.
-        digits: significant digits (17 round-trips float64 exactly).
     """
     if planar is None:
         planar = _lossless_2d(graph)
@@ -432,39 +402,31 @@ def write_g2o(f: PathOrFile, graph: PoseGraph, planar: Optional[bool] = None, di
     out: List[str] = []
     fix = [f"FIX {' '.join(map(str, vid[graph.fixed.cpu().numpy()]))}"] if graph.fixed.numel() else []
     if planar:
-        d = np.array([0, 1, 5])
         for tag, ids, vals in (
             ("VERTEX_SE2", vid[:, None], _planar(P)),
             ("EDGE_SE2", np.stack([ei, ej], 1),
-             np.concatenate([_planar(Z), Om[:, d[:, None], d[None, :]][:, _IU3[0], _IU3[1]]], 1)),
+             np.concatenate([_planar(Z), Om[:, _PLANAR[:, None], _PLANAR][:, _IU3[0], _IU3[1]]], 1)),
         ):
-            out += [f"{tag} {' '.join(map(str, i))} {v}" for i, v in zip(ids, _fmt(vals, digits))]
+            out += [f"{tag} {' '.join(map(str, i))} {v}" for i, v in zip(ids, _fmt(vals))]
             if tag == "VERTEX_SE2":
                 out += fix
     else:
-        out += [f"VERTEX_SE3:QUAT {i} {v}" for i, v in zip(vid, _fmt(P, digits))] + fix
+        out += [f"VERTEX_SE3:QUAT {i} {v}" for i, v in zip(vid, _fmt(P))] + fix
         vals = np.concatenate([Z, Om[:, _IU6[0], _IU6[1]]], 1)
-        out += [f"EDGE_SE3:QUAT {i} {j} {v}" for i, j, v in zip(ei, ej, _fmt(vals, digits))]
-    fh, _, close = _open(f, "w")
-    try:
-        fh.write("\n".join(out) + "\n")
-    finally:
-        if close:
-            fh.close()
+        out += [f"EDGE_SE3:QUAT {i} {j} {v}" for i, j, v in zip(ei, ej, _fmt(vals))]
+    if isinstance(f, (str, os.PathLike)):
+        with open(f, "w") as fh:
+            fh.write("\n".join(out) + "\n")
+    else:
+        f.write("\n".join(out) + "\n")
 
 
 def _lossless_2d(graph: PoseGraph) -> bool:
     """True when writing the graph as 2D and reading it back gives the same graph."""
     if graph.num_poses == 0 or not graph.is_planar(tol=0.0):
         return False
-    Om = graph.information.detach().cpu().double()
-    lift = torch.zeros_like(Om)
-    d = torch.tensor([0, 1, 5])
-    lift[:, d[:, None], d[None, :]] = Om[:, d[:, None], d[None, :]]
-    lift[:, 2, 2] = 0.5 * (Om[:, 0, 0] + Om[:, 1, 1])
-    lift[:, 3, 3] = Om[:, 5, 5]
-    lift[:, 4, 4] = Om[:, 5, 5]
-    return bool((lift == Om).all())
+    Om = graph.information.detach().cpu().double().numpy()
+    return bool((_lift_information(Om[:, _PLANAR[:, None], _PLANAR]) == Om).all())
 
 
 def _planar(p: np.ndarray) -> np.ndarray:

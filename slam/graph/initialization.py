@@ -1,32 +1,16 @@
 """Initial guesses for pose-graph optimisation: a spanning tree of the edges, and the chordal relaxation.
 
-Levenberg-Marquardt only finds the optimum nearest its starting point. The benchmark files start from
-the odometry composed from the first pose, which on a long or noisy graph is far from the optimum
-(sphere2500 with large noise: LM from it stops in a worse minimum). Two guesses that need nothing but
-the edges:
+* ``"spanning_tree"``: every pose composed from its component's root along the breadth-first tree of the
+  edges (among parallel edges the one with the most information), as g2o's ``computeInitialGuess``.
+* ``"chordal"``: GTSAM's ``InitializePose3``: rotations by the chordal relaxation (minimise
+  ``sum_e kappa_e |R_i Z_ij - R_j|_F^2`` over 3x3 matrices, ``kappa_e = 3 / (2 tr(Omega_rr^-1))``, then the
+  nearest rotations), then translations by least squares weighted by ``R_i Omega_tt R_i^T``.
+* ``"auto"``: the graph's own poses when their chi2 per edge is at most :data:`AUTO_CHI2_PER_EDGE`, else
+  ``"spanning_tree"``.
 
-* ``"spanning_tree"``: every pose composed from its component's root along the breadth-first tree of
-  the edges (fewest hops from the root, so the least accumulated drift; among parallel edges the one
-  with the most information). This is how a file with edges only gets its poses (:func:`read_g2o`)
-  and what g2o's ``computeInitialGuess`` does with its default unit edge costs.
-* ``"chordal"``: GTSAM's ``InitializePose3``. Rotations first, by the chordal relaxation: minimise
-  ``sum_e kappa_e |R_i Z_ij - R_j|_F^2`` over unconstrained 3x3 matrices (a sparse linear least-squares
-  problem, the rotations of the anchors held), then round each matrix to the nearest rotation
-  (:func:`slam.lie.rotmat_project`). Then translations with those rotations held, by linear least
-  squares: ``sum_e |t_j - t_i - R_i t_ij|^2`` weighted by ``R_i Omega_tt R_i^T`` (the translation block
-  of the edge's information, in the world frame). ``kappa_e = 3 / (2 tr(Omega_rr^-1))`` is the isotropic
-  rotation weight SE-Sync derives from the rotation block of the information. Outliers are not
-  rejected (a least-squares method): with false loop closures use a robust kernel in ``optimize``.
-* ``"auto"``: the graph's own poses when they already fit the edges (chi2 per edge at most
-  :data:`AUTO_CHI2_PER_EDGE`), else ``"spanning_tree"``: a file's vertices that are raw odometry over a long
-  trajectory are replaced, a refined solution is kept (and the tree's cost is not paid).
-
-Anchors (the gauge): the graph's ``fixed`` poses and any passed in ``fixed`` keep their values; every
-connected component without one keeps the pose of its lowest index (so pose 0 keeps its value, as
-``optimize``'s free gauge does). Both guesses are vectorised: the tree composition is a pointer-jumping
-prefix product (``ceil(log2(depth))`` batched compositions), the least-squares problems are assembled
-as ``scipy.sparse`` matrices from the edge index arrays and solved by one sparse factorisation
-each (SuperLU). The work runs on the CPU in float64; the result has the graph's dtype and device.
+Anchors: the graph's ``fixed`` poses and any passed in ``fixed`` keep their values; every connected
+component without one keeps the pose of its lowest index. The work runs on the CPU in float64; the result
+has the graph's dtype and device.
 
 Example:
     >>> import torch
@@ -59,15 +43,11 @@ __all__ = ["AUTO_CHI2_PER_EDGE", "INITIALIZATIONS", "SpanningTree", "chordal_pos
 
 Tensor = torch.Tensor
 
-# the initial guesses optimize(graph, initialization=...) accepts ("none": the graph's own poses; "auto": those
-# or the spanning tree, by AUTO_CHI2_PER_EDGE)
+# the initial guesses optimize(graph, initialization=...) accepts ("none": the graph's own poses)
 INITIALIZATIONS = ("none", "spanning_tree", "chordal", "auto")
 
 #: ``"auto"`` keeps a graph's poses when their chi2 (``sum r^T Omega r``) is at most this per edge, else composes
-#: the spanning tree. Measured on the shared g2o files from their vertices: 2.7 (parking-garage) and 26 (tinyGrid3D),
-#: where LM from the vertices takes one iteration more and one fewer than from the tree, against 480-4500
-#: (M3500, sphere2500, smallGrid3D: one iteration more; INTEL: stalls at 100), where the tree saves them. The
-#: chi2 of one 6-DoF edge at the optimum averages ~6 (its 95% quantile is 12.6).
+#: the spanning tree (the chi2 of one 6-DoF edge at the optimum averages ~6)
 AUTO_CHI2_PER_EDGE = 100.0
 
 
@@ -95,13 +75,11 @@ def _anchors(graph: PoseGraph, fixed: Iterable[int] = ()) -> np.ndarray:
     """``(N,)`` bool: the poses that keep their value (see the module docstring)."""
     n = graph.num_poses
     held = np.zeros(n, dtype=bool)
+    held[graph.fixed.cpu().numpy()] = True  # in range: checked by PoseGraph
     extra = np.asarray(list(fixed), dtype=np.int64).reshape(-1)
-    own = graph.fixed.cpu().numpy() if graph.fixed is not None else np.zeros(0, np.int64)
-    for idx in (own, extra):
-        if idx.size and (idx.min() < 0 or idx.max() >= n):
-            bad = int(idx[(idx < 0) | (idx >= n)][0])
-            raise ValueError(f"fixed pose index {bad} is out of range [0, {n})")
-        held[idx] = True
+    if extra.size and (extra.min() < 0 or extra.max() >= n):
+        raise ValueError(f"fixed pose index {int(extra[(extra < 0) | (extra >= n)][0])} is out of range [0, {n})")
+    held[extra] = True
     ncomp, label = _components(graph)
     has = np.zeros(ncomp, dtype=bool)
     has[label[held]] = True
@@ -172,11 +150,8 @@ def spanning_tree(graph: PoseGraph, roots: Optional[np.ndarray] = None) -> Spann
 
 
 def _compose_tree(tree: SpanningTree, root_poses: Tensor, rel: Tensor) -> Tensor:
-    """Poses ``(N, 7)`` from the roots' poses and each pose's pose in its parent's frame ``rel (N, 7)``.
-
-    Pointer jumping: ``A[v] <- A[anc[v]] * A[v]``, ``anc[v] <- anc[anc[v]]`` until every ancestor is a
-    root, so ``A[v] = T_root^-1 T_v`` after ``ceil(log2(depth))`` batched compositions.
-    """
+    """Poses ``(N, 7)`` from the roots' poses and each pose's pose in its parent's frame ``rel (N, 7)``, by
+    pointer jumping: ``A[v] <- A[anc[v]] * A[v]``, ``anc[v] <- anc[anc[v]]`` until every ancestor is a root."""
     n = rel.shape[0]
     ar = np.arange(n)
     anc = np.where(tree.parent < 0, ar, tree.parent)
@@ -225,8 +200,7 @@ def _solve_anchored(A: sp.csr_matrix, rhs: np.ndarray, free_cols: np.ndarray, he
     Af, Ah = A[:, free_cols], A[:, held_cols]
     b = rhs - Ah @ x_held
     H = (Af.T @ Af).tocsc()
-    # symmetric mode without pivoting (H is SPD: every component has an anchor), minimum degree on H:
-    # 4x faster than SuperLU's default on sphere2500's rotation system
+    # symmetric mode without pivoting: H is SPD (every component has an anchor)
     lu = spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     return lu.solve(np.asarray(Af.T @ b))
 

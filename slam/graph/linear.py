@@ -1,36 +1,17 @@
 """Sparse normal equations of a pose graph and pluggable solvers for them.
 
-The Gauss-Newton system ``H dx = -g`` has one ``k x k`` block per pair of connected free poses
-(``k = 6``, or ``3`` for planar graphs). Its sparsity pattern depends only on the edges, so it is built
-once (:func:`build_pattern`, vectorised, no Python loop over edges) as a list of blocks sorted by
-(row, column); ``H`` is then stored block-major, ``values (nb * k * k,)`` = the ``nb`` blocks one after
-the other, and every iteration only adds the four ``k x k`` blocks of each edge's
-``[J_i, J_j]^T W Omega [J_i, J_j]`` into it with one ``index_add_`` over block ids.
-
-Solvers (``solver.solve(pattern, values, b) -> x``), both torch on any device:
-
-* :class:`SparseCholeskySolver` — sparse direct: a right-looking supernodal Cholesky computed in place in
-  the factor's panels (:mod:`slam.graph.cholesky`; symbolic analysis cached per pattern, numeric work in
-  batched torch calls plus direct LAPACK calls for single fronts on the CPU). One factorisation and solve
-  took 9-31 ms on parking-garage and sphere2500, where scipy's SuperLU (minimum degree, symmetric mode) took
-  34-97 ms and CHOLMOD (scikit-sparse 0.4.16, SuiteSparse 5.12, OpenBLAS) 18-56 ms (one core, loaded;
-  ``python -m benchmarks.posegraph --solvers``).
-* :class:`DenseCholeskySolver` — ``torch.linalg.cholesky`` on the dense matrix, for small systems (it
-  skips the symbolic analysis).
-
-Example:
-    >>> import torch
-    >>> ii, jj = torch.tensor([0, 1, 0]), torch.tensor([1, 2, 2])
-    >>> pat = build_pattern(ii, jj, torch.tensor([False, True, True]), k=6)
-    >>> pat.num_vars, pat.num_blocks, pat.edge_blocks.shape
-    (2, 4, torch.Size([3, 4]))
+The Gauss-Newton system ``H dx = -g`` has one ``k x k`` block per pair of connected free poses (``k = 6``, or
+``3`` for planar graphs). Its pattern depends only on the edges and is built once (:func:`build_pattern`) as
+blocks sorted by (row, column); ``H`` is stored block-major, ``values (nb * k * k,)``, and every iteration adds
+each edge's four blocks into it with one ``index_add_``. Solvers: :class:`SparseCholeskySolver`
+(:mod:`slam.graph.cholesky`) and :class:`DenseCholeskySolver` (small systems).
 """
 from __future__ import annotations
 
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 import torch
@@ -39,10 +20,8 @@ __all__ = [
     "DENSE_MAX",
     "BlockPattern",
     "DenseCholeskySolver",
-    "LinearSolver",
     "LinearSolverError",
     "SparseCholeskySolver",
-    "assemble",
     "assemble_blocks",
     "build_pattern",
     "make_solver",
@@ -101,8 +80,7 @@ def build_pattern(ii: Tensor, jj: Tensor, free: Tensor, k: int = 6) -> BlockPatt
     """Build the symmetric block pattern of ``H`` for edges ``(ii, jj)``.
 
     Args:
-        ii: ``(E,)`` long first pose of each edge.
-        jj: ``(E,)`` long second pose of each edge.
+        ii, jj: ``(E,)`` long, the first and second pose of each edge.
         free: ``(N,)`` bool, the poses that are optimised (the others are held fixed).
         k: unknowns per pose.
 
@@ -113,8 +91,7 @@ def build_pattern(ii: Tensor, jj: Tensor, free: Tensor, k: int = 6) -> BlockPatt
         raise ValueError(f"ii and jj must have shape (E,), got {tuple(ii.shape)} and {tuple(jj.shape)}")
     if free.dim() != 1 or free.dtype != torch.bool:
         raise ValueError(f"free must be a bool tensor of shape (N,), got {free.dtype} {tuple(free.shape)}")
-    # index bookkeeping, done once per call: numpy on the host (a dozen calls, ~10x cheaper than torch's
-    # dispatch for small graphs), the results moved to the indices' device
+    # index bookkeeping on the host in numpy, the results moved to the indices' device
     dev = ii.device
     ii_, jj_, free_ = ii.cpu().numpy(), jj.cpu().numpy(), free.cpu().numpy()
     n = int(free_.sum())
@@ -124,7 +101,7 @@ def build_pattern(ii: Tensor, jj: Tensor, free: Tensor, k: int = 6) -> BlockPatt
     both = (vi >= 0) & (vj >= 0)
     ar = np.arange(n)
     keys = np.sort(np.concatenate([ar * nn + ar, vi[both] * nn + vj[both], vj[both] * nn + vi[both]]))
-    keys = keys[np.concatenate([keys[:1] == keys[:1], keys[1:] != keys[:-1]])]  # np.unique (hashing) took 2x
+    keys = keys[np.concatenate([keys[:1] == keys[:1], keys[1:] != keys[:-1]])]  # unique
     nb = keys.shape[0]
     # block id of (r, c) by binary search in the sorted keys; the dump block nb where a pose is fixed
     r = np.stack([vi, vi, vj, vj], -1).reshape(-1, 4)
@@ -143,37 +120,17 @@ def build_pattern(ii: Tensor, jj: Tensor, free: Tensor, k: int = 6) -> BlockPatt
                         t(edge_vars))
 
 
-def assemble(pattern: BlockPattern, H_edges: Tensor, g_edges: Tensor):
-    """Add the per-edge blocks into the sparse system.
-
-    Args:
-        pattern: from :func:`build_pattern`.
-        H_edges: ``(E, 2k, 2k)`` per-edge ``[J_i, J_j]^T W Omega [J_i, J_j]``.
-        g_edges: ``(E, 2k)`` per-edge ``[J_i, J_j]^T W Omega r``.
-
-    Returns:
-        ``values (nb k k,)`` of ``H`` (block-major) and the gradient ``g (n k,)``.
-    """
-    k, E = pattern.k, H_edges.shape[0]
-    blocks = H_edges.view(E, 2, k, 2, k).transpose(2, 3)  # (ii, ij, ji, jj)
-    return assemble_blocks(pattern, blocks, g_edges.view(E, 2, k))
-
-
 def assemble_blocks(pattern: BlockPattern, blocks: Tensor, g_edges: Tensor, out=None):
-    """:func:`assemble` from the blocks ``(E, 2, 2, k, k)`` (or ``(E, 4, k, k)``: ii, ij, ji, jj) and
-    ``g_edges (E, 2, k)``.
-
-    ``out``: optionally ``(H (nb + 1, k, k), g (n + 1, k))`` buffers to sum into (zeroed first; the
-    returned values are views of them), so that an optimiser re-assembling every iteration does not
-    allocate megabytes each time.
-    """
+    """Add the per-edge blocks of ``J^T W Omega J`` (``(E, 2, 2, k, k)`` or ``(E, 4, k, k)``: ii, ij, ji, jj) and
+    of ``J^T W Omega r`` (``g_edges (E, 2, k)``) into the sparse system: ``values (nb k k,)`` of ``H`` (block-major)
+    and the gradient ``g (n k,)``. ``out``: optional ``(H (nb + 1, k, k), g (n + 1, k))`` buffers to sum into
+    (zeroed first; the returned values are views of them)."""
     k, E = pattern.k, blocks.shape[0]
     if out is None:
         H = torch.zeros(pattern.num_blocks + 1, k, k, dtype=blocks.dtype, device=blocks.device)
         g = torch.zeros(pattern.num_vars + 1, k, dtype=g_edges.dtype, device=g_edges.device)
     else:
         H, g = out[0].zero_(), out[1].zero_()
-    # rows of k * k values: torch's index_add_ took 2x as long over (k, k) slices
     H.view(-1, k * k).index_add_(0, pattern.edge_blocks.view(-1), blocks.reshape(E * 4, k * k))
     g.index_add_(0, pattern.edge_vars.view(-1), g_edges.reshape(E * 2, k))
     return H[:-1].view(-1), g[:-1].view(-1)
@@ -187,35 +144,17 @@ def to_dense(pattern: BlockPattern, values: Tensor) -> Tensor:
     return A.permute(0, 2, 1, 3).reshape(n * k, n * k)
 
 
-# ----------------------------------------------------------------------------------------------
-class LinearSolver:
-    """Interface: ``solve(pattern, values (nnz,), b (n k,)) -> x (n k,)`` for the SPD system ``H x = b``."""
-
-    name = "base"
-
-    def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:  # pragma: no cover
-        raise NotImplementedError
-
-
 #: Symbolic analyses kept between calls (each holds its factor's workspace, the size of the factor).
 SYMBOLIC_CACHE_SIZE = 2
 _SYMBOLIC: OrderedDict = OrderedDict()  # pattern key -> SymbolicCholesky, least recently used first
 _SYMBOLIC_LOCK = threading.Lock()
 
 
-class SparseCholeskySolver(LinearSolver):
-    """Supernodal sparse Cholesky (:class:`slam.graph.cholesky.SymbolicCholesky`), float64.
-
-    The symbolic analysis is stored on the pattern, so every further factorisation of the same pattern
-    (LM retries, later iterations) only does numeric work.
-    """
-
-    name = "sparse"
+class SparseCholeskySolver:
+    """Supernodal sparse Cholesky (:class:`slam.graph.cholesky.SymbolicCholesky`), float64."""
 
     def symbolic(self, pattern: BlockPattern):
-        """The analysis of ``pattern``: made once per distinct pattern and kept for the last
-        :data:`SYMBOLIC_CACHE_SIZE` patterns (a graph optimised again, or a problem of the same edges, skips it;
-        parking-garage: 15 ms of a 110 ms optimisation)."""
+        """The analysis of ``pattern``, kept on it and for the last :data:`SYMBOLIC_CACHE_SIZE` patterns."""
         from slam.graph.cholesky import SymbolicCholesky
 
         sym = pattern._cache.get("symbolic")
@@ -235,8 +174,6 @@ class SparseCholeskySolver(LinearSolver):
     def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
         from slam.graph.cholesky import NotPositiveDefiniteError
 
-        if pattern.size == 0:
-            return b.clone()
         sym = self.symbolic(pattern)
         try:
             fac = sym.factor(values.detach().to(torch.float64))
@@ -248,15 +185,10 @@ class SparseCholeskySolver(LinearSolver):
         return x.to(b.dtype)
 
 
-class DenseCholeskySolver(LinearSolver):
+class DenseCholeskySolver:
     """Dense ``torch.linalg.cholesky_ex`` + triangular solves (pure torch, follows the device)."""
 
-    name = "dense"
-
     def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
-        m = pattern.size
-        if m == 0:
-            return b.clone()
         A = to_dense(pattern, values)
         L, info = torch.linalg.cholesky_ex(A)
         if int(info) != 0:
@@ -265,16 +197,14 @@ class DenseCholeskySolver(LinearSolver):
         return torch.cholesky_solve(b[:, None], L)[:, 0]
 
 
-#: ``"auto"`` takes the dense Cholesky up to this many unknowns (40 poses), the sparse one above: the crossover
-#: measured on sphere2500 subgraphs (dense wins at 240 unknowns, loses at 360)
+#: ``"auto"`` takes the dense Cholesky up to this many unknowns (40 poses), the sparse one above
 DENSE_MAX = 240
 
 
-def make_solver(solver: Union[None, str, LinearSolver], size: int = 0) -> LinearSolver:
-    """A solver from a name (``"auto"``, ``"sparse"``, ``"dense"``) or a :class:`LinearSolver` object;
-    ``"auto"`` (or None) is the dense Cholesky up to :data:`DENSE_MAX` unknowns, else the sparse one."""
-    if isinstance(solver, LinearSolver):
-        return solver
+def make_solver(solver: Optional[str], size: int = 0) -> Union[SparseCholeskySolver, DenseCholeskySolver]:
+    """A solver by name (``"auto"``, ``"sparse"``, ``"dense"``): ``solver.solve(pattern, values (nnz,), b (n k,))
+    -> x (n k,)`` for the SPD system ``H x = b``; ``"auto"`` (or None) is the dense Cholesky up to
+    :data:`DENSE_MAX` unknowns, else the sparse one."""
     name = "auto" if solver is None else str(solver).lower()
     if name == "auto":
         name = "dense" if size <= DENSE_MAX else "sparse"
@@ -282,4 +212,4 @@ def make_solver(solver: Union[None, str, LinearSolver], size: int = 0) -> Linear
         return SparseCholeskySolver()
     if name == "dense":
         return DenseCholeskySolver()
-    raise ValueError(f"unknown linear solver {solver!r}; expected 'auto', 'sparse', 'dense' or a LinearSolver")
+    raise ValueError(f"unknown linear solver {solver!r}; expected 'auto', 'sparse' or 'dense'")

@@ -1,29 +1,13 @@
 """Gauss-Newton and Levenberg-Marquardt for pose graphs over sparse normal equations.
 
-Each iteration linearises every edge at once (the closed forms of :mod:`slam.graph.fused`), scatters the
-per-edge blocks into a fixed sparse pattern (:mod:`slam.graph.linear`), solves ``(H + lambda D) dx = -g``
-and retracts ``T <- T exp(dx)`` (right perturbation). The pieces are separate: the per-edge maths behind
-:class:`~slam.graph.problem.TorchProblem`, the robust kernel (:mod:`slam.graph.costs`), the linear
-solver (:mod:`slam.graph.linear`) and here the outer loop with its step rules (Gauss-Newton, LM with GTSAM's
-schedule or Nielsen's gain-ratio rule).
+Each iteration linearises every edge at once (:class:`~slam.graph.problem.TorchProblem`), solves
+``(H + lambda D) dx = -g`` on a fixed sparse pattern and retracts ``T <- T exp(dx)`` (right perturbation);
+here is the outer loop with its step rules (Gauss-Newton, LM with GTSAM's schedule or Nielsen's rule).
 
-Gauge (a pose graph is invariant to moving all poses rigidly): ``"free"`` (default for LM) leaves the
-gauge to the LM damping, as GTSAM does without a prior: the damped step is then the smallest of the
-equally good Gauss-Newton steps, which from an odometry guess converges in fewer iterations than holding
-pose 0 (parking-garage: 4 instead of 6, the same costs per iteration as GTSAM); the result is then moved
-rigidly so that pose 0 keeps its initial value. ``"first"`` holds pose 0 constant (its unknowns are
-removed; GN always does this), ``"prior"`` adds a strong prior on pose 0. Poses listed in ``fixed`` are
-held constant too (and then anchor the result themselves).
-
-Costs: ``chi2 = sum_e r_e^T Omega_e r_e`` (GTSAM's ``graph.error`` is ``0.5 * chi2``); with a robust
-kernel the optimiser minimises ``sum_e rho(s_e)`` (reported as ``robust_cost``), ``chi2`` is still the
-plain sum. For a planar graph (z = roll = pitch = 0 everywhere, as read from a 2D g2o file) the
-problem splits exactly into (x, y, yaw) and (z, roll, pitch) parts with a zero gradient in the latter,
-so only the 3-DoF part is solved (a 4x smaller system, identical result).
-
-Gradients: with ``differentiable=True`` the optimised poses carry a ``grad_fn`` towards the measurements,
-the information matrices and the held poses (implicit differentiation at the optimum,
-:mod:`slam.graph.implicit`).
+Gauge: ``"free"`` (LM's default) leaves it to the LM damping, as GTSAM does without a prior, then moves the
+result rigidly so that pose 0 keeps its initial value; ``"first"`` holds pose 0 (GN always does);
+``"prior"`` adds a strong prior on pose 0. Poses in ``fixed`` are held too (and then anchor the result).
+A planar graph (z = roll = pitch = 0) is solved in (x, y, yaw) only: the problem splits exactly.
 
 Example:
     >>> import torch
@@ -51,13 +35,13 @@ import torch
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.initialization import fits_edges, initial_poses, initialize
-from slam.graph.linear import LinearSolver, LinearSolverError
+from slam.graph.linear import LinearSolverError
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.problem import TorchProblem
 from slam.graph.result import OptimizationResult, Status
 from slam.lie import se3_normalize
 
-__all__ = ["METHODS", "OptimizationResult", "OptimizerConfig", "PoseGraphOptimizer", "Status", "optimize"]
+__all__ = ["METHODS", "OptimizationResult", "OptimizerConfig", "Status", "optimize"]
 
 #: The outer loops :func:`optimize` runs (case-insensitive): Levenberg-Marquardt, Gauss-Newton.
 METHODS = ("lm", "gn")
@@ -67,7 +51,7 @@ Tensor = torch.Tensor
 
 
 def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, RobustKernel] = None,
-             solver: Union[None, str, LinearSolver] = "auto", config: Optional[OptimizerConfig] = None,
+             solver: Optional[str] = "auto", config: Optional[OptimizerConfig] = None,
              initialization: str = "none", **overrides) -> OptimizationResult:
     """Optimise the poses of a pose graph.
 
@@ -76,24 +60,15 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
         method: ``"lm"`` (Levenberg-Marquardt) or ``"gn"`` (Gauss-Newton).
         kernel: ``None``, a name (``"huber"``, ``"cauchy"``, ``"tukey"``, ``"geman_mcclure"``) or a
             :class:`~slam.graph.costs.RobustKernel` object.
-        solver: ``"auto"`` (dense Cholesky for small systems, else sparse), ``"sparse"``, ``"dense"`` or a
-            :class:`~slam.graph.linear.LinearSolver`.
+        solver: ``"auto"`` (dense Cholesky for small systems, else sparse), ``"sparse"`` or ``"dense"``.
         config: an :class:`OptimizerConfig`; keyword ``overrides`` replace its fields
             (e.g. ``optimize(g, max_iterations=10, gauge="prior")``).
-        initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"`` (rotations by
-            chordal relaxation, then translations by least squares, as GTSAM's ``InitializePose3``) or
-            ``"spanning_tree"`` (composed along a breadth-first tree of the edges) or ``"auto"`` (the graph's
-            poses when their chi2 per edge is at most ``AUTO_CHI2_PER_EDGE``, else the spanning tree); see
-            :mod:`slam.graph.initialization`. ``initial_chi2`` is then the chi2 of that guess. The default
-            keeps the caller's poses (a warm start, as the SLAM back end's); from raw odometry over a long
-            trajectory (input_INTEL_g2o.g2o) LM crawls, and a run that stops at ``max_iterations`` says so in
-            ``result.message`` with what to try.
+        initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"``, ``"spanning_tree"``
+            or ``"auto"`` (see :mod:`slam.graph.initialization`); ``initial_chi2`` is that guess's chi2.
 
     Returns:
-        An :class:`OptimizationResult` (``result.graph``, ``result.chi2``, ``result.status``,
-        ``result.iterations``, ``result.cost_history``, ``result.timings``). With ``differentiable=True``,
-        ``result.graph.poses`` carries a ``grad_fn`` when the graph's measurements, information or held
-        poses require grad.
+        An :class:`OptimizationResult`. With ``differentiable=True``, ``result.graph.poses`` carries a
+        ``grad_fn`` when the graph's measurements, information or held poses require grad.
 
     Raises:
         ValueError: no edges, bad settings, or a non-positive-definite information matrix.
@@ -105,9 +80,7 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
     if initialization not in ("none", "auto"):  # (its time counts in timings["setup"]; "auto" in _optimize)
         given = graph.poses
         graph = initialize(graph, initialization, fixed=cfg.fixed)
-        if given.requires_grad:
-            # the initial guess keeps the anchor and the held poses as given: their rows stay the
-            # caller's tensor, so the optimum's gradient towards them (its gauge) is not lost
+        if given.requires_grad:  # the anchors' rows stay the caller's tensor (their gradient is kept)
             same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
             graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
     res = _optimize(graph, method, kernel, solver, cfg, t_start, initialization == "auto")
@@ -164,7 +137,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     result_graph = graph.with_poses(x.to(dtype=graph.poses.dtype, device=graph.poses.device),
                                     check=False)  # finite: only finite costs are accepted
     tm["total"] = time.perf_counter() - t_start
-    w = prob.weights(run.best.cache)
+    w = run.best.cache[2]  # the kernel weights (None without a kernel)
     return OptimizationResult(
         graph=result_graph, chi2=run.best.chi2, initial_chi2=run.initial_chi2, status=run.status,
         iterations=run.iterations, robust_cost=run.best.cost if kern is not None else None,
@@ -172,7 +145,6 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
         weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message)
 
 
-# -- the outer loop ---------------------------------------------------------------------------------
 @dataclass
 class _Iterate:
     """Poses ``x`` with their cost, chi2 and the problem's cache (and the step ``dx`` that led there)."""
@@ -198,34 +170,26 @@ class _Run:
     times: List[float]
 
 
-class _GtsamDamping:
-    """LM's lambda on GTSAM's schedule: ``/= lambda_factor`` after an accepted step, ``*=`` after a rejected one."""
+class _Damping:
+    """LM's lambda: GTSAM's schedule (``/= lambda_factor`` after an accepted step, ``*=`` after a rejected one) or
+    Nielsen's gain-ratio rule (g2o, Ceres: after a step with gain ratio ``rho`` (actual / predicted decrease)
+    ``lambda *= max(1/3, 1 - (2 rho - 1)^3)``; after a rejected one ``lambda *= nu``, ``nu`` doubling)."""
 
     def __init__(self, cfg: OptimizerConfig):
-        self.cfg, self.lam = cfg, cfg.lambda_init
+        self.cfg, self.lam, self.nu = cfg, cfg.lambda_init, 2.0
 
     def reject(self) -> bool:
         """Grow lambda after a rejected step; False once it passes ``lambda_max``."""
-        self.lam *= self.cfg.lambda_factor
+        if self.cfg.lambda_update == "nielsen":
+            self.lam, self.nu = self.lam * self.nu, self.nu * 2.0
+        else:
+            self.lam *= self.cfg.lambda_factor
         return self.lam <= self.cfg.lambda_max
 
     def accept(self, prob: TorchProblem, dx, g, decrease: float) -> None:
-        self.lam = max(self.lam / self.cfg.lambda_factor, LAMBDA_MIN)
-
-
-class _NielsenDamping(_GtsamDamping):
-    """Nielsen's gain-ratio rule (g2o, Ceres): after a step with gain ratio ``rho`` (actual / predicted
-    decrease) ``lambda *= max(1/3, 1 - (2 rho - 1)^3)``; after a rejected one ``lambda *= nu``, ``nu`` doubling."""
-
-    def __init__(self, cfg: OptimizerConfig):
-        super().__init__(cfg)
-        self.nu = 2.0
-
-    def reject(self) -> bool:
-        self.lam, self.nu = self.lam * self.nu, self.nu * 2.0
-        return self.lam <= self.cfg.lambda_max
-
-    def accept(self, prob: TorchProblem, dx, g, decrease: float) -> None:
+        if self.cfg.lambda_update != "nielsen":
+            self.lam = max(self.lam / self.cfg.lambda_factor, LAMBDA_MIN)
+            return
         pred = prob.predicted_decrease(dx, g, self.lam)
         # gain ratio; clipped where the formula saturates anyway (and a broken model counts as poor)
         rho = min(max(decrease / pred, -1.0), 2.0) if pred > 0 else 0.0
@@ -252,7 +216,7 @@ def _trial(prob: TorchProblem, x, H, g, lam: float, tm: Dict[str, float]) -> Tup
     return _Iterate(cost, chi2, x_new, cache, dx), ""
 
 
-def _lm_step(prob: TorchProblem, cur: _Iterate, H, g, damping: _GtsamDamping, cfg: OptimizerConfig,
+def _lm_step(prob: TorchProblem, cur: _Iterate, H, g, damping: _Damping, cfg: OptimizerConfig,
              tm: Dict[str, float]) -> Tuple[Optional[_Iterate], str]:
     """Damped steps from ``cur``, lambda growing, until one lowers the cost; None (and why) when lambda
     passes ``lambda_max`` first."""
@@ -276,9 +240,7 @@ def _minimize(prob: TorchProblem, method: str, cfg: OptimizerConfig, tm: Dict[st
         raise ValueError(f"the initial cost is {cost}: a pose, measurement or information matrix holds a "
                          "non-finite value")
     run = _Run(cur, chi2, Status.MAX_ITERATIONS, 0, "", [cost], [], [time.perf_counter() - t_start])
-    damping = None  # Gauss-Newton
-    if method == "lm":
-        damping = _NielsenDamping(cfg) if cfg.lambda_update == "nielsen" else _GtsamDamping(cfg)
+    damping = _Damping(cfg) if method == "lm" else None  # None: Gauss-Newton
     if prob.size == 0:
         run.status, run.message = Status.CONVERGED, "every pose is fixed"
     while run.status == Status.MAX_ITERATIONS and run.iterations < cfg.max_iterations:
@@ -316,24 +278,3 @@ def _minimize(prob: TorchProblem, method: str, cfg: OptimizerConfig, tm: Dict[st
         if decrease < cfg.abs_tol or decrease < cfg.rel_tol * (cur.cost + decrease):
             run.status = Status.CONVERGED
     return run
-
-
-class PoseGraphOptimizer:
-    """A reusable optimiser holding its settings: ``PoseGraphOptimizer(method, kernel, **cfg)(graph)``.
-
-    Example:
-        >>> opt = PoseGraphOptimizer("lm", kernel="huber", max_iterations=20)
-        >>> opt.config.max_iterations
-        20
-    """
-
-    def __init__(self, method: str = "lm", kernel: Union[None, str, RobustKernel] = None,
-                 solver: Union[None, str, LinearSolver] = "auto", config: Optional[OptimizerConfig] = None,
-                 **overrides):
-        self.method = method
-        self.kernel = kernel
-        self.solver = solver
-        self.config = dataclasses.replace(config or OptimizerConfig(), **overrides)
-
-    def __call__(self, graph: PoseGraph) -> OptimizationResult:
-        return optimize(graph, self.method, self.kernel, self.solver, self.config)

@@ -25,15 +25,13 @@ import torch
 
 from slam.lie import se3_normalize
 
-__all__ = ["CHARTS", "SYMMETRY_RTOL", "PoseGraph", "first_bad_information", "require_spd_information"]
+__all__ = ["CHARTS", "SYMMETRY_RTOL", "PoseGraph", "require_spd_information"]
 
 SYMMETRY_RTOL = 1e-6  # an information matrix is symmetric when |A - A^T| <= this * its largest diagonal entry
 
 Tensor = torch.Tensor
 
-# Residual charts (see slam.graph.costs): "se3" is r = Log(z^-1 T_i^-1 T_j) (GTSAM's Pose3 error, and on
-# planar poses GTSAM's Pose2 error); "r3so3" is r = [t(D), Log_SO3(R(D))] for D = z^-1 T_i^-1 T_j, which on
-# planar poses is exactly the (dx, dy, dtheta) error of g2o's EDGE_SE2.
+# the residual charts of slam.graph.costs
 CHARTS = ("se3", "r3so3")
 
 
@@ -48,7 +46,8 @@ def _as_tensor(x, dtype, device, name: str) -> Tensor:
 
 @dataclass
 class PoseGraph:
-    """A graph of ``N`` poses and ``E`` relative-pose edges.
+    """A graph of ``N`` poses and ``E`` relative-pose edges, checked on construction (a ``ValueError`` names the
+    field, the edge and what was expected).
 
     Attributes:
         poses: ``(N, 7)`` ``[t, q_xyzw]`` current estimate (the optimiser's initial guess).
@@ -61,9 +60,6 @@ class PoseGraph:
             ``poses`` is vertex ``vertex_ids[k]``); ``arange(N)`` for graphs built in code.
         fixed: ``(K,)`` long, sorted indices of the poses held constant by :func:`~slam.graph.optimize`
             (g2o ``FIX`` lines); empty by default.
-
-    Shapes and values are checked on construction (and by :meth:`validate`) with a ``ValueError`` naming
-    the field, the edge and what was expected.
     """
 
     poses: Tensor
@@ -93,7 +89,6 @@ class PoseGraph:
                       else torch.unique(_as_tensor(self.fixed, torch.long, dev, "fixed").reshape(-1)))
         self.validate(check_information=False)
 
-    # ------------------------------------------------------------------------------------------
     @property
     def num_poses(self) -> int:
         return int(self.poses.shape[0])
@@ -114,17 +109,9 @@ class PoseGraph:
         return (f"PoseGraph(num_poses={self.num_poses}, num_edges={self.num_edges}, chart={self.chart!r}, "
                 f"dtype={self.dtype})")
 
-    # ------------------------------------------------------------------------------------------
     def validate(self, check_information: bool = True) -> PoseGraph:
-        """Check shapes, indices and values; raise ``ValueError`` naming the first problem.
-
-        Args:
-            check_information: also check that every information matrix is symmetric positive
-                definite (one batched Cholesky, ``O(E)``).
-
-        Returns:
-            ``self``, so that ``graph.validate().poses`` chains.
-        """
+        """Check shapes, indices and values (``check_information``: also that every information matrix is
+        symmetric positive definite); a ``ValueError`` names the first problem. Returns ``self``."""
         P, E = self.poses, self.ii
         if P.dim() != 2 or P.shape[-1] != 7:
             raise ValueError(f"poses must have shape (N, 7), got {tuple(P.shape)}")
@@ -174,7 +161,6 @@ class PoseGraph:
             require_spd_information(self.information, self.ii, self.jj)
         return self
 
-    # ------------------------------------------------------------------------------------------
     def add_edge(self, i: int, j: int, measurement: Tensor, information: Optional[Tensor] = None) -> None:
         """Append an edge ``z_ij ~= T_i^-1 T_j``: ``measurement (7,)``, ``information (6, 6)`` (default I)."""
         meas = torch.as_tensor(measurement, dtype=self.dtype, device=self.device).reshape(1, 7)
@@ -203,14 +189,6 @@ class PoseGraph:
         self.measurements = torch.cat([self.measurements, new.measurements])
         self.information = torch.cat([self.information, new.information])
 
-    def add_pose(self, pose: Tensor) -> int:
-        """Append one pose ``(7,)``; returns its index."""
-        pose = torch.as_tensor(pose, dtype=self.dtype, device=self.device).reshape(1, 7)
-        self.poses = torch.cat([self.poses, se3_normalize(pose)])
-        nxt = int(self.vertex_ids.max()) + 1 if self.vertex_ids.numel() else 0
-        self.vertex_ids = torch.cat([self.vertex_ids, torch.tensor([nxt], device=self.device)])
-        return self.num_poses - 1
-
     def with_poses(self, poses: Tensor, check: bool = True) -> PoseGraph:
         """A copy sharing the (already validated) edges, with other poses ``(N, 7)`` (checked to be finite
         unless ``check`` is False)."""
@@ -237,70 +215,50 @@ class PoseGraph:
 
     def is_planar(self, tol: float = 1e-9) -> bool:
         """True when every pose and measurement lies in the plane ``z = 0`` with a yaw-only rotation and
-        no information couples (x, y, yaw) with (z, roll, pitch): then the problem splits exactly and the
-        optimiser may solve the 3-DoF part only."""
-        return planar_arrays(*(t.detach().cpu().double().numpy() for t in
-                               (self.poses, self.measurements, self.information)), tol=tol)
+        no information couples (x, y, yaw) with (z, roll, pitch): then the problem splits exactly."""
+        poses, meas, info = (t.detach().cpu().double().numpy() for t in
+                             (self.poses, self.measurements, self.information))
+        # z, qx, qy: columns 2:5 of the poses and measurements (a NaN is not planar)
+        if not all((np.abs(p[:, 2:5]) <= tol).all() for p in (poses, meas)):
+            return False
+        scale = np.abs(info).max(axis=(1, 2))
+        cross = np.abs(info[:, [0, 1, 5], 2:5])  # (x, y, yaw) coupled with (z, roll, pitch)
+        return bool((cross <= tol * scale[:, None, None]).all())
 
-    # ------------------------------------------------------------------------------------------
     @staticmethod
-    def from_lists(poses: Sequence, edges: Iterable[Tuple], dtype: torch.dtype = torch.float64,
-                   device=None) -> PoseGraph:
-        """Build a graph from a list of poses ``(7,)`` and a list of edges.
-
-        Args:
-            poses: ``N`` poses ``(7,)`` (tensors or sequences), or one ``(N, 7)`` tensor.
-            edges: tuples ``(i, j, measurement (7,))`` or ``(i, j, measurement, information (6, 6))``.
-            dtype: floating dtype of the graph.
-            device: device of the graph.
-
-        Returns:
-            The validated :class:`PoseGraph` (quaternions normalised).
-        """
+    def from_lists(poses: Sequence, edges: Iterable[Tuple]) -> PoseGraph:
+        """A float64 graph from ``N`` poses ``(7,)`` (tensors or sequences, or one ``(N, 7)`` tensor) and edges
+        ``(i, j, measurement (7,))`` or ``(i, j, measurement, information (6, 6))``; quaternions normalised."""
+        f64 = torch.float64
         if isinstance(poses, Tensor):
-            P = poses.to(dtype=dtype, device=device).reshape(-1, 7)
+            P = poses.to(f64).reshape(-1, 7)
         else:
-            P = (torch.stack([torch.as_tensor(p, dtype=dtype, device=device).reshape(7) for p in poses])
-                 if len(poses) else torch.zeros(0, 7, dtype=dtype, device=device))
+            P = (torch.stack([torch.as_tensor(p, dtype=f64).reshape(7) for p in poses]) if len(poses)
+                 else torch.zeros(0, 7, dtype=f64))
         ii, jj, meas, info = [], [], [], []
-        eye = torch.eye(6, dtype=dtype, device=device)
         for k, e in enumerate(edges):
             if len(e) not in (3, 4):
                 raise ValueError(f"edge {k} must be (i, j, measurement) or (i, j, measurement, information), "
                                  f"got a tuple of length {len(e)}")
             ii.append(int(e[0]))
             jj.append(int(e[1]))
-            meas.append(torch.as_tensor(e[2], dtype=dtype, device=device).reshape(7))
-            info.append(eye if len(e) == 3
-                        else torch.as_tensor(e[3], dtype=dtype, device=device).reshape(6, 6))
-        Z = torch.stack(meas) if meas else torch.zeros(0, 7, dtype=dtype, device=device)
-        Om = torch.stack(info) if info else torch.zeros(0, 6, 6, dtype=dtype, device=device)
-        g = PoseGraph(se3_normalize(P), torch.tensor(ii, dtype=torch.long, device=device),
-                      torch.tensor(jj, dtype=torch.long, device=device), se3_normalize(Z), Om)
-        return g.validate()
+            meas.append(torch.as_tensor(e[2], dtype=f64).reshape(7))
+            info.append(torch.eye(6, dtype=f64) if len(e) == 3
+                        else torch.as_tensor(e[3], dtype=f64).reshape(6, 6))
+        Z = torch.stack(meas) if meas else torch.zeros(0, 7, dtype=f64)
+        Om = torch.stack(info) if info else torch.zeros(0, 6, 6, dtype=f64)
+        return PoseGraph(se3_normalize(P), torch.tensor(ii, dtype=torch.long), torch.tensor(jj, dtype=torch.long),
+                         se3_normalize(Z), Om).validate()
 
 
-def planar_arrays(poses: np.ndarray, measurements: np.ndarray, information: np.ndarray, tol: float = 1e-9) -> bool:
-    """The rule of :meth:`PoseGraph.is_planar` on float64 arrays ``poses (N, 7)``, ``measurements (E, 7)``,
-    ``information (E, 6, 6)``."""
-    # z, qx, qy: columns 2:5 of the poses and measurements (a NaN is not planar)
-    if not all((np.abs(p[:, 2:5]) <= tol).all() for p in (poses, measurements)):
-        return False
+def require_spd_information(information: Tensor, ii: Tensor, jj: Tensor, fail: Optional[Tensor] = None,
+                            symmetry: bool = True) -> None:
+    """A ``ValueError`` naming the first edge (of ``ii, jj (E,)``) whose information matrix ``(E, 6, 6)`` is not
+    symmetric positive definite. ``fail``: the ``info`` of a ``torch.linalg.cholesky_ex`` of these matrices
+    already made; ``symmetry=False`` skips the symmetry test (|A - A^T| <= :data:`SYMMETRY_RTOL` times the
+    largest diagonal entry)."""
     if information.shape[0] == 0:
-        return True
-    scale = np.abs(information).max(axis=(1, 2))
-    cross = np.abs(information[:, [0, 1, 5], 2:5])  # (x, y, yaw) coupled with (z, roll, pitch)
-    return bool((cross <= tol * scale[:, None, None]).all())
-
-
-def first_bad_information(information: Tensor, fail: Optional[Tensor] = None, symmetry: bool = True) -> Optional[int]:
-    """Index of the first information matrix ``(E, 6, 6)`` that is not symmetric positive definite, or None.
-
-    ``fail``: the ``info`` of a ``torch.linalg.cholesky_ex`` of these matrices already made (else made here);
-    ``symmetry=False`` skips the symmetry test (|A - A^T| <= :data:`SYMMETRY_RTOL` times the largest diagonal entry).
-    """
-    if information.shape[0] == 0:
-        return None
+        return
     if fail is None:
         _, fail = torch.linalg.cholesky_ex(information.to(torch.float64))
     bad = fail != 0
@@ -308,13 +266,6 @@ def first_bad_information(information: Tensor, fail: Optional[Tensor] = None, sy
         # the largest entry of an SPD matrix is on its diagonal (any other matrix fails the Cholesky)
         scale = information.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(information.dtype).tiny)
         bad = bad | ((information - information.mT).abs().amax(dim=(-2, -1)) > SYMMETRY_RTOL * scale)
-    return int(bad.nonzero()[0, 0]) if bool(bad.any()) else None
-
-
-def require_spd_information(information: Tensor, ii: Tensor, jj: Tensor, fail: Optional[Tensor] = None,
-                      symmetry: bool = True) -> None:
-    """A ``ValueError`` naming the first edge (of ``ii, jj (E,)``) whose information matrix is not symmetric
-    positive definite (:func:`first_bad_information`)."""
-    k = first_bad_information(information, fail, symmetry)
-    if k is not None:
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0, 0])
         raise ValueError(f"information[{k}] (edge {int(ii[k])} -> {int(jj[k])}) is not symmetric positive definite")

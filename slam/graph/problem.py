@@ -1,26 +1,6 @@
-"""The least-squares problem the optimiser's outer loop drives.
-
-:class:`TorchProblem` stands between the outer loop (Gauss-Newton / Levenberg-Marquardt in
-:mod:`slam.graph.optimizer`) and the per-edge maths of :mod:`slam.graph.fused`: evaluate the cost at some
-poses, linearise there into ``(H, g)``, solve the damped system, retract a step, and hand back the result,
-on any device.
-
-Everything that does not change during a call is made once: the pattern and the symbolic Cholesky
-analysis, the inverted measurements and ``Ad(z^-1)``, the Cholesky factors of the information matrices,
-and the buffers the per-iteration work writes into.
-
-Example:
-    >>> import torch
-    >>> from slam.lie import se3_exp
-    >>> from slam.graph.config import OptimizerConfig
-    >>> g = PoseGraph.from_lists([se3_exp(torch.zeros(6, dtype=torch.float64))] * 2,
-    ...                          [(0, 1, se3_exp(torch.tensor([1.0, 0, 0, 0, 0, 0], dtype=torch.float64)))])
-    >>> prob = TorchProblem(g, OptimizerConfig(), None, "first", "auto")
-    >>> cost, chi2, cache = prob.evaluate(prob.poses)
-    >>> H, grad = prob.linearize(prob.poses, cache)
-    >>> x = prob.retract(prob.poses, prob.solve(H, grad, 0.0))
-    >>> round(cost, 6), round(prob.evaluate(x)[0], 12)
-    (1.0, 0.0)
+"""The least-squares problem the optimiser's outer loop drives: evaluate the cost at some poses, linearise
+there into ``(H, g)``, solve the damped system, retract a step (the per-edge maths of :mod:`slam.graph.fused`).
+What does not change during a call (pattern, inverted measurements, information factors, buffers) is made once.
 """
 from __future__ import annotations
 
@@ -37,14 +17,13 @@ from slam.graph.linear import BlockPattern, LinearSolverError, assemble_blocks, 
 from slam.graph.pose_graph import PoseGraph, require_spd_information
 from slam.lie import se3_compose, se3_inv, se3_log, se3_normalize, se3_right_jacobian_inv
 
-__all__ = ["PLANAR_DIMS", "TorchProblem", "held_poses", "information_factor"]
+__all__ = ["PLANAR_DIMS", "TorchProblem", "held_poses"]
 
 Tensor = torch.Tensor
 
 PLANAR_DIMS = (0, 1, 5)  # x, y, yaw in the [rho, phi] tangent order
 
 
-# -- setup shared by every problem ------------------------------------------------------------------
 def held_poses(cfg: OptimizerConfig, gauge: str, num_poses: int) -> List[int]:
     """Indices of the poses held constant: ``cfg.fixed`` (any sequence, array or tensor of ints), plus pose 0
     for the ``"first"`` gauge; a ``ValueError`` names an index out of range."""
@@ -55,16 +34,6 @@ def held_poses(cfg: OptimizerConfig, gauge: str, num_poses: int) -> List[int]:
     return fixed
 
 
-def information_factor(graph: PoseGraph, info: Tensor, check: bool) -> Tensor:
-    """Lower Cholesky factors ``(E, 6, 6)`` of the information matrices ``info (E, 6, 6)`` (float64);
-    a ``ValueError`` names the first edge whose matrix is not symmetric positive definite (the symmetry
-    is only checked when ``check``)."""
-    L, fail = torch.linalg.cholesky_ex(info)
-    require_spd_information(info, graph.ii, graph.jj, fail, symmetry=check)
-    return L.contiguous()  # LAPACK's factors are column-major: row-major ones multiply ~3x faster
-
-
-# -- buffers kept between problems -----------------------------------------------------------------
 #: Most bytes of per-edge buffers kept for the next problem after an optimisation ends (parking-garage: 33 MB).
 WORKSPACE_MAX_BYTES = 2 ** 28
 _WORKSPACES: List[dict] = []  # at most one, taken by one problem at a time
@@ -72,9 +41,7 @@ _WORKSPACE_LOCK = threading.Lock()
 
 
 def _checkout_workspace() -> dict:
-    """The buffers an earlier problem handed back (or a new dict): reused, their pages are already mapped,
-    where fresh ones cost their page faults again (~10% of an optimisation of parking-garage, measured with
-    glibc's allocator)."""
+    """The buffers an earlier problem handed back (or a new dict): their pages are already mapped."""
     with _WORKSPACE_LOCK:
         return _WORKSPACES.pop() if _WORKSPACES else {}
 
@@ -86,10 +53,8 @@ def _return_workspace(ws: dict) -> None:
             _WORKSPACES.append(ws)
 
 
-# -- the torch problem --------------------------------------------------------------------------------
 class TorchProblem:
-    """One optimisation's state in torch (float64 on the graph's device): the fused kernels of
-    :mod:`slam.graph.fused`, the block-sparse system of :mod:`slam.graph.linear` and its solvers.
+    """One optimisation's state in torch (float64 on the graph's device).
 
     Args:
         graph: the :class:`PoseGraph` (its tensors are detached: the optimisation itself is not
@@ -97,14 +62,13 @@ class TorchProblem:
         cfg: the :class:`OptimizerConfig`.
         kernel: an optional robust kernel.
         gauge: ``"free"``, ``"first"`` or ``"prior"`` (as resolved by the optimiser: GN holds pose 0).
-        solver: a linear solver or its name (see :func:`slam.graph.linear.make_solver`).
+        solver: a linear solver name (see :func:`slam.graph.linear.make_solver`).
     """
 
     def __init__(self, graph: PoseGraph, cfg: OptimizerConfig, kernel: Optional[RobustKernel], gauge: str,
                  solver):
         dt = torch.float64
-        # unit quaternions (validated to 1e-3) made exact, in the poses and in the measurements; the sign
-        # is kept so that untouched poses come back as they went in
+        # unit quaternions made exact; the sign is kept so that untouched poses come back as they went in
         self.poses = se3_normalize(graph.poses.detach().to(dt), positive_w=False)
         self.ii, self.jj = graph.ii, graph.jj
         self.meas = se3_normalize(graph.measurements.detach().to(dt), positive_w=False)
@@ -114,7 +78,9 @@ class TorchProblem:
         self.neg_adz_t = se3_adjoint_t(self.zinv).neg_() if graph.chart == "se3" else None
         self.info = graph.information.detach().to(dt)
         # Omega = L L^T: whitens the Jacobians (J^T Omega J = (L^T J)^T (L^T J)) and gives chi2 = |L^T r|^2
-        self.L = information_factor(graph, self.info, cfg.check_information)
+        L, fail = torch.linalg.cholesky_ex(self.info)
+        require_spd_information(self.info, graph.ii, graph.jj, fail, symmetry=cfg.check_information)
+        self.L = L.contiguous()  # LAPACK's factors are column-major: row-major ones multiply faster
         self.kernel = kernel
         N, E = self.poses.shape[0], self.ii.shape[0]
         dev = self.poses.device
@@ -150,7 +116,6 @@ class TorchProblem:
         self.damping = cfg.damping
         self._dscale: Optional[Tensor] = None
 
-    # -- costs ----------------------------------------------------------------------------------
     def evaluate(self, poses: Tensor):
         """Cost, chi2 and ``(r, aux, w)`` (residuals, terms reused by the Jacobians, kernel weights)."""
         r, aux = se3_residuals(poses, self.ii, self.jj, self.zinv, self.chart)
@@ -225,16 +190,9 @@ class TorchProblem:
             x0 = self.poses[0]
             x = se3_compose(se3_compose(x0, se3_inv(x[0]))[None], x)
             x[0] = x0
-        if not bool(torch.isfinite(x).all()):  # the LM loop only accepts finite costs: a NaN here is a bug
-            raise FloatingPointError("the optimised poses have a non-finite value")
         return x
 
     def release(self) -> None:
         """Hand the per-edge buffers to the next problem (this one no longer linearises)."""
-        ws, self.ws = self.ws, None
-        if ws is not None:
-            _return_workspace(ws)
-
-    def weights(self, cache) -> Optional[Tensor]:
-        """``(E,)`` robust-kernel weights at the cached poses, or None without a kernel."""
-        return cache[2]
+        _return_workspace(self.ws)
+        self.ws = None

@@ -1,9 +1,4 @@
-"""What the pose-graph optimiser returns: :class:`OptimizationResult` and its :class:`Status`.
-
-Example:
-    >>> Status.CONVERGED == "converged", str(Status.LAMBDA_LIMIT)
-    (True, 'lambda_limit')
-"""
+"""What the pose-graph optimiser returns: :class:`OptimizationResult` and its :class:`Status`."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -43,16 +38,12 @@ class OptimizationResult:
         robust_cost: final ``sum rho(s)`` when a kernel was used, else ``None``.
         status: a :class:`Status`.
         iterations: outer iterations done (accepted LM steps / GN steps).
-        cost_history: the optimised cost after each iteration, starting with the initial one
-            (chi2, or the robust cost with a kernel, plus the prior of a ``"prior"`` gauge).
+        cost_history: the optimised cost after each iteration, starting with the initial one.
         lambda_history: LM damping used for each accepted step.
-        time_history: seconds since the call started at which each entry of ``cost_history`` was known
-            (setup included), e.g. to time when a given cost was first reached.
-        timings: seconds spent in ``setup``, ``linearize`` (residuals, Jacobians, assembly), ``solve``,
-            ``evaluate`` (costs of trial steps) and ``total``.
+        time_history: seconds since the call started at which each entry of ``cost_history`` was known.
+        timings: seconds spent in ``setup``, ``linearize``, ``solve``, ``evaluate`` and ``total``.
         weights: ``(E,)`` final kernel weights (all ones without a kernel): near 0 marks a rejected edge.
-        message: why the optimiser stopped, where a status alone does not say (a solver failure, a GN step
-            that increased the cost).
+        message: why the optimiser stopped, where a status alone does not say.
     """
 
     graph: PoseGraph

@@ -9,7 +9,6 @@ from slam.graph import (
     Cauchy,
     OptimizerConfig,
     PoseGraph,
-    PoseGraphOptimizer,
     Status,
     edge_chi2,
     edge_residuals,
@@ -195,8 +194,7 @@ def test_status_results_and_errors():
     assert one.status == Status.MAX_ITERATIONS and one.iterations == 1
     half = optimize(g.to(dtype=torch.float32))
     assert half.graph.poses.dtype == torch.float32 and half.status == "converged"
-    opt = PoseGraphOptimizer("lm", kernel="huber", config=OptimizerConfig(max_iterations=50))
-    assert opt(g).status == "converged"
+    assert optimize(g, "lm", kernel="huber", config=OptimizerConfig(max_iterations=50)).status == "converged"
     with pytest.raises(ValueError, match="no edges"):
         optimize(PoseGraph(g.poses, g.ii[:0], g.jj[:0], g.measurements[:0], g.information[:0]))
     bad = g.information.clone()
