@@ -25,6 +25,7 @@ from slam.graph.costs import (
     make_kernel,
 )
 from slam.graph.g2o import G2OFormatError, G2OWarning, read_g2o, write_g2o
+from slam.graph.linear import DenseCholeskySolver, LinearSolver, SparseCholeskySolver
 from slam.graph.optimizer import optimize
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.result import OptimizationResult, Status
@@ -32,14 +33,17 @@ from slam.graph.result import OptimizationResult, Status
 __all__ = [
     "CHI2_95_6DOF",
     "Cauchy",
+    "DenseCholeskySolver",
     "G2OFormatError",
     "G2OWarning",
     "GemanMcClure",
     "Huber",
+    "LinearSolver",
     "OptimizationResult",
     "OptimizerConfig",
     "PoseGraph",
     "RobustKernel",
+    "SparseCholeskySolver",
     "Status",
     "Tukey",
     "edge_chi2",

@@ -8,6 +8,7 @@ each edge's four blocks into it with one ``index_add_``. Solvers: :class:`Sparse
 """
 from __future__ import annotations
 
+import abc
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -20,6 +21,7 @@ __all__ = [
     "DENSE_MAX",
     "BlockPattern",
     "DenseCholeskySolver",
+    "LinearSolver",
     "LinearSolverError",
     "SparseCholeskySolver",
     "assemble_blocks",
@@ -150,7 +152,16 @@ _SYMBOLIC: OrderedDict = OrderedDict()  # pattern key -> SymbolicCholesky, least
 _SYMBOLIC_LOCK = threading.Lock()
 
 
-class SparseCholeskySolver:
+class LinearSolver(abc.ABC):
+    """A solver of the SPD system ``H x = b`` held as a block pattern (subclass it to plug in another
+    factorisation, e.g. CHOLMOD through scikit-sparse, and pass the object as ``optimize(..., solver=obj)``)."""
+
+    @abc.abstractmethod
+    def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
+        """``x (n k,)`` for the block values ``values (nnz,)`` of ``H`` on ``pattern`` and ``b (n k,)``."""
+
+
+class SparseCholeskySolver(LinearSolver):
     """Supernodal sparse Cholesky (:class:`slam.graph.cholesky.SymbolicCholesky`), float64."""
 
     def symbolic(self, pattern: BlockPattern):
@@ -185,7 +196,7 @@ class SparseCholeskySolver:
         return x.to(b.dtype)
 
 
-class DenseCholeskySolver:
+class DenseCholeskySolver(LinearSolver):
     """Dense ``torch.linalg.cholesky_ex`` + triangular solves (pure torch, follows the device)."""
 
     def solve(self, pattern: BlockPattern, values: Tensor, b: Tensor) -> Tensor:
@@ -201,10 +212,11 @@ class DenseCholeskySolver:
 DENSE_MAX = 240
 
 
-def make_solver(solver: Optional[str], size: int = 0) -> Union[SparseCholeskySolver, DenseCholeskySolver]:
-    """A solver by name (``"auto"``, ``"sparse"``, ``"dense"``): ``solver.solve(pattern, values (nnz,), b (n k,))
-    -> x (n k,)`` for the SPD system ``H x = b``; ``"auto"`` (or None) is the dense Cholesky up to
-    :data:`DENSE_MAX` unknowns, else the sparse one."""
+def make_solver(solver: Union[None, str, LinearSolver], size: int = 0) -> LinearSolver:
+    """A :class:`LinearSolver` object as given, or one by name (``"auto"``, ``"sparse"``, ``"dense"``);
+    ``"auto"`` (or None) is the dense Cholesky up to :data:`DENSE_MAX` unknowns, else the sparse one."""
+    if isinstance(solver, LinearSolver):
+        return solver
     name = "auto" if solver is None else str(solver).lower()
     if name == "auto":
         name = "dense" if size <= DENSE_MAX else "sparse"
@@ -212,4 +224,4 @@ def make_solver(solver: Optional[str], size: int = 0) -> Union[SparseCholeskySol
         return SparseCholeskySolver()
     if name == "dense":
         return DenseCholeskySolver()
-    raise ValueError(f"unknown linear solver {solver!r}; expected 'auto', 'sparse' or 'dense'")
+    raise ValueError(f"unknown linear solver {solver!r}; expected 'auto', 'sparse', 'dense' or a LinearSolver")

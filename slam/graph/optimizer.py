@@ -35,7 +35,7 @@ import torch
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, make_kernel
 from slam.graph.initialization import fits_edges, initial_poses, initialize
-from slam.graph.linear import LinearSolverError
+from slam.graph.linear import LinearSolver, LinearSolverError
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.problem import TorchProblem
 from slam.graph.result import OptimizationResult, Status
@@ -51,7 +51,7 @@ Tensor = torch.Tensor
 
 
 def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, RobustKernel] = None,
-             solver: Optional[str] = "auto", config: Optional[OptimizerConfig] = None,
+             solver: Union[None, str, LinearSolver] = "auto", config: Optional[OptimizerConfig] = None,
              initialization: str = "none", **overrides) -> OptimizationResult:
     """Optimise the poses of a pose graph.
 
@@ -60,7 +60,8 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
         method: ``"lm"`` (Levenberg-Marquardt) or ``"gn"`` (Gauss-Newton).
         kernel: ``None``, a name (``"huber"``, ``"cauchy"``, ``"tukey"``, ``"geman_mcclure"``) or a
             :class:`~slam.graph.costs.RobustKernel` object.
-        solver: ``"auto"`` (dense Cholesky for small systems, else sparse), ``"sparse"`` or ``"dense"``.
+        solver: ``"auto"`` (dense Cholesky for small systems, else sparse), ``"sparse"``, ``"dense"`` or a
+            :class:`~slam.graph.linear.LinearSolver` object.
         config: an :class:`OptimizerConfig`; keyword ``overrides`` replace its fields
             (e.g. ``optimize(g, max_iterations=10, gauge="prior")``).
         initialization: the initial guess: ``"none"`` (the graph's poses), ``"chordal"``, ``"spanning_tree"``
@@ -170,31 +171,43 @@ class _Run:
     times: List[float]
 
 
-class _Damping:
-    """LM's lambda: GTSAM's schedule (``/= lambda_factor`` after an accepted step, ``*=`` after a rejected one) or
-    Nielsen's gain-ratio rule (g2o, Ceres: after a step with gain ratio ``rho`` (actual / predicted decrease)
-    ``lambda *= max(1/3, 1 - (2 rho - 1)^3)``; after a rejected one ``lambda *= nu``, ``nu`` doubling)."""
+class _GtsamDamping:
+    """LM's lambda on GTSAM's schedule: ``/= lambda_factor`` after an accepted step, ``*=`` after a rejected one."""
 
     def __init__(self, cfg: OptimizerConfig):
-        self.cfg, self.lam, self.nu = cfg, cfg.lambda_init, 2.0
+        self.cfg, self.lam = cfg, cfg.lambda_init
 
     def reject(self) -> bool:
         """Grow lambda after a rejected step; False once it passes ``lambda_max``."""
-        if self.cfg.lambda_update == "nielsen":
-            self.lam, self.nu = self.lam * self.nu, self.nu * 2.0
-        else:
-            self.lam *= self.cfg.lambda_factor
+        self.lam *= self.cfg.lambda_factor
         return self.lam <= self.cfg.lambda_max
 
     def accept(self, prob: TorchProblem, dx, g, decrease: float) -> None:
-        if self.cfg.lambda_update != "nielsen":
-            self.lam = max(self.lam / self.cfg.lambda_factor, LAMBDA_MIN)
-            return
+        self.lam = max(self.lam / self.cfg.lambda_factor, LAMBDA_MIN)
+
+
+class _NielsenDamping(_GtsamDamping):
+    """Nielsen's gain-ratio rule (g2o, Ceres): after a step with gain ratio ``rho`` (actual / predicted
+    decrease) ``lambda *= max(1/3, 1 - (2 rho - 1)^3)``; after a rejected one ``lambda *= nu``, ``nu`` doubling."""
+
+    def __init__(self, cfg: OptimizerConfig):
+        super().__init__(cfg)
+        self.nu = 2.0
+
+    def reject(self) -> bool:
+        self.lam, self.nu = self.lam * self.nu, self.nu * 2.0
+        return self.lam <= self.cfg.lambda_max
+
+    def accept(self, prob: TorchProblem, dx, g, decrease: float) -> None:
         pred = prob.predicted_decrease(dx, g, self.lam)
         # gain ratio; clipped where the formula saturates anyway (and a broken model counts as poor)
         rho = min(max(decrease / pred, -1.0), 2.0) if pred > 0 else 0.0
         self.lam = max(self.lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAMBDA_MIN)
         self.nu = 2.0
+
+
+#: LM's damping strategies by ``OptimizerConfig.lambda_update``
+DAMPING = {"gtsam": _GtsamDamping, "nielsen": _NielsenDamping}
 
 
 def _trial(prob: TorchProblem, x, H, g, lam: float, tm: Dict[str, float]) -> Tuple[Optional[_Iterate], str]:
@@ -216,7 +229,7 @@ def _trial(prob: TorchProblem, x, H, g, lam: float, tm: Dict[str, float]) -> Tup
     return _Iterate(cost, chi2, x_new, cache, dx), ""
 
 
-def _lm_step(prob: TorchProblem, cur: _Iterate, H, g, damping: _Damping, cfg: OptimizerConfig,
+def _lm_step(prob: TorchProblem, cur: _Iterate, H, g, damping: _GtsamDamping, cfg: OptimizerConfig,
              tm: Dict[str, float]) -> Tuple[Optional[_Iterate], str]:
     """Damped steps from ``cur``, lambda growing, until one lowers the cost; None (and why) when lambda
     passes ``lambda_max`` first."""
@@ -240,7 +253,7 @@ def _minimize(prob: TorchProblem, method: str, cfg: OptimizerConfig, tm: Dict[st
         raise ValueError(f"the initial cost is {cost}: a pose, measurement or information matrix holds a "
                          "non-finite value")
     run = _Run(cur, chi2, Status.MAX_ITERATIONS, 0, "", [cost], [], [time.perf_counter() - t_start])
-    damping = _Damping(cfg) if method == "lm" else None  # None: Gauss-Newton
+    damping = DAMPING[cfg.lambda_update](cfg) if method == "lm" else None  # None: Gauss-Newton
     if prob.size == 0:
         run.status, run.message = Status.CONVERGED, "every pose is fixed"
     while run.status == Status.MAX_ITERATIONS and run.iterations < cfg.max_iterations:

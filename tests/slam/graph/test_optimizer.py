@@ -106,6 +106,33 @@ def test_linear_solvers_agree(solver):
     assert torch.allclose(res.graph.poses, ref.graph.poses, atol=1e-6)
 
 
+def test_a_user_solver_object_plugs_in():
+    """A factorisation of the user's own (scipy's sparse LU here) plugs in as a LinearSolver object and
+    reaches the built-in sparse Cholesky's optimum; the block pattern it is handed is the whole system."""
+    scipy_sparse = pytest.importorskip("scipy.sparse")
+    from scipy.sparse.linalg import spsolve
+
+    from slam.graph import LinearSolver
+    from slam.graph.linear import to_dense
+
+    class ScipySolver(LinearSolver):
+        calls = 0
+
+        def solve(self, pattern, values, b):
+            ScipySolver.calls += 1
+            A = scipy_sparse.csc_matrix(to_dense(pattern, values).numpy())
+            return torch.from_numpy(spsolve(A, b.numpy())).to(b.dtype)
+
+    g, _ = _loop_graph(n=20, sigma=0.05, seed=3, extra=[(3, 12)])
+    ref = optimize(g, solver="sparse")
+    res = optimize(g, solver=ScipySolver())
+    assert ScipySolver.calls >= res.iterations > 0
+    assert res.chi2 == pytest.approx(ref.chi2, rel=1e-8)
+    assert torch.allclose(res.graph.poses, ref.graph.poses, atol=1e-6)
+    with pytest.raises(ValueError, match="LinearSolver"):
+        optimize(g, solver="cholmod")
+
+
 def test_nielsen_lambda_update_reaches_the_same_optimum():
     g, _ = _loop_graph(n=20, sigma=0.05, seed=9, extra=[(2, 14), (6, 17)])
     ref = optimize(g)
