@@ -60,14 +60,7 @@ def _check_pool_scale(pool_scale: float | None) -> None:
 
 @dataclass(frozen=True)
 class DescriptorRecipe:
-    """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seed.
-
-    Example:
-        >>> DescriptorRecipe(fusion="gaf", num_rnn=16).out_dim
-        1024
-        >>> DescriptorRecipe(fusion="gaf").out_dim is None  # no RNNs: the pooled code's size, set by the tap
-        True
-    """
+    """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seed."""
 
     fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega"
     num_rnn: int = 0  # random RNNs after the pooling (the paper's 16); 0: the descriptor is the pooled code
@@ -183,16 +176,6 @@ def descriptor_from_attention(
     Returns:
         (fused :math:`(B, C, h, w)`, descriptor :math:`(B, R \\cdot O)`, or without RNNs
         :math:`(B, \\text{regional\\_code\\_dim})`).
-
-    Example:
-        >>> from attnloop.rnn_pool import random_rnn_weights
-        >>> L, G = torch.rand(2, 512, 7, 7), torch.randn(2, 512, 7, 7)
-        >>> w = random_rnn_weights(16, 256 * 49, 64)
-        >>> fused, d = descriptor_from_attention(L, G, w, "gaf", pooling="flat")
-        >>> fused.shape, d.shape
-        (torch.Size([2, 512, 7, 7]), torch.Size([2, 1024]))
-        >>> descriptor_from_attention(L, G, None, "dam", groups=(192, 320))[1].shape  # no RNNs
-        torch.Size([2, 2560])
     """
     if pooling not in POOLINGS:
         raise ValueError(f"unknown pooling {pooling!r}; choose one of {POOLINGS}")
@@ -468,15 +451,14 @@ class AttentionDescriptor(nn.Module):
         param = next(self.backbone.parameters(), None)
         return param.dtype if param is not None else torch.get_default_dtype()
 
-    def _check_device(self, images: torch.Tensor) -> None:
+    def _check_images(self, images: torch.Tensor) -> None:
+        check_images(images)
         param = next(self.backbone.parameters(), None)
         if param is not None and images.device != param.device:
             raise ValueError(
                 f"images are on {images.device} but the descriptor is on {param.device}; move one of them "
                 "(e.g. descriptor.to(images.device))"
             )
-
-    def _check_grad(self, images: torch.Tensor) -> None:
         if images.requires_grad and not self.differentiable and torch.is_grad_enabled():
             raise ValueError("images require grad, but this descriptor was built with differentiable=False: its "
                              "output is detached from them; build it with differentiable=True to backpropagate "
@@ -492,9 +474,7 @@ class AttentionDescriptor(nn.Module):
             ValueError: images that require grad (under autograd) given to a descriptor built with
                 ``differentiable=False``, whose output would silently be detached from them.
         """
-        check_images(images)
-        self._check_device(images)
-        self._check_grad(images)
+        self._check_images(images)
         if images.shape[0] == 0:
             shape = (0, *self.backbone.tap_shape)
             dtype = self._dtype()
@@ -508,22 +488,18 @@ class AttentionDescriptor(nn.Module):
                     empty, desc = empty + zero, desc + zero
             return DescriptorParts(empty, empty, empty, desc)
         tap, grad = guided_backprop(self.backbone, images, create_graph=self.differentiable)
+        return DescriptorParts(tap, grad, *self._encode(tap, grad, self.recipe.fusion))
+
+    def _encode(self, tap: torch.Tensor, grad: torch.Tensor, fusion: str) -> tuple[torch.Tensor, torch.Tensor]:
         r = self.recipe
-        fused, desc = descriptor_from_attention(tap, grad, self.rnn_weights, r.fusion, r.normalize, r.pool_scale,
-                                                r.merges, pooling=r.pooling,
-                                                groups=self.tap_groups, attended=self.attended_groups)
-        return DescriptorParts(tap, grad, fused, desc)
+        return descriptor_from_attention(tap, grad, self.rnn_weights, fusion, r.normalize, r.pool_scale, r.merges,
+                                         pooling=r.pooling, groups=self.tap_groups, attended=self.attended_groups)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        if self.recipe.fusion == "none" and not self.differentiable:
-            return self._descriptor_without_attention(images)
-        return self.parts(images).descriptor
-
-    def _descriptor_without_attention(self, images: torch.Tensor) -> torch.Tensor:
+        if self.recipe.fusion != "none" or self.differentiable:
+            return self.parts(images).descriptor
         # "none" never reads G: the network runs to the tap only
-        check_images(images)
-        self._check_device(images)
-        self._check_grad(images)
+        self._check_images(images)
         if images.shape[0] == 0:
             return self.parts(images).descriptor
         with eval_mode(self.backbone), torch.no_grad():
@@ -544,11 +520,7 @@ class AttentionDescriptor(nn.Module):
         if tap.ndim != 4 or tuple(tap.shape[1:]) != tuple(self.backbone.tap_shape):
             raise ValueError(f"tap must have shape (B, {', '.join(map(str, self.backbone.tap_shape))}), "
                              f"got {tuple(tap.shape)}")
-        mode = self.recipe.fusion if fusion is None else fusion
-        r = self.recipe
-        return descriptor_from_attention(tap, grad, self.rnn_weights, mode, r.normalize, r.pool_scale, r.merges,
-                                         pooling=r.pooling,
-                                         groups=self.tap_groups, attended=self.attended_groups)[1]
+        return self._encode(tap, grad, self.recipe.fusion if fusion is None else fusion)[1]
 
     def extra_repr(self) -> str:
         r = self.recipe

@@ -59,11 +59,6 @@ def minmax_normalize(x: Tensor, dims: int | Sequence[int]) -> Tensor:
 
     Returns:
         tensor of the shape ``(*)``, dtype and device of ``x``, with values in ``[0, 1]``.
-
-    Example:
-        >>> minmax_normalize(torch.tensor([[1.0, 2.0, 3.0], [5.0, 5.0, 5.0]]), dims=1)
-        tensor([[0.0000, 0.5000, 1.0000],
-                [0.0000, 0.0000, 0.0000]])
     """
     if not x.is_floating_point():
         raise TypeError(f"x must be a floating-point tensor, got {x.dtype}")
@@ -112,12 +107,7 @@ def no_attention(L: Tensor, G: Tensor) -> Tensor:
 
 
 def dam(L: Tensor, G: Tensor) -> Tensor:
-    """Direct attention map ``L * N(G)``: activations ``L`` and attention ``G`` ``(B, C, H, W)`` -> ``(B, C, H, W)``.
-
-    Example:
-        >>> dam(torch.ones(1, 1, 1, 3), torch.tensor([[[[0.0, 1.0, 4.0]]]]))
-        tensor([[[[0.0000, 0.2500, 1.0000]]]])
-    """
+    """Direct attention map ``L * N(G)``: activations ``L`` and attention ``G`` ``(B, C, H, W)`` -> ``(B, C, H, W)``."""
     _check_pair(L, G)
     return L * minmax_normalize(G, dims=(1, 2, 3))
 
@@ -152,12 +142,7 @@ def check_fusion_mode(mode: str) -> str:
 
 
 def fuse(L: Tensor, G: Tensor, mode: str) -> Tensor:
-    """The fusion named ``mode`` (case-insensitive): ``L``, ``G`` ``(B, C, H, W)`` -> ``(B, C, H, W)``.
-
-    Example:
-        >>> fuse(torch.rand(2, 8, 7, 7), torch.randn(2, 8, 7, 7), "ega").shape
-        torch.Size([2, 8, 7, 7])
-    """
+    """The fusion named ``mode`` (case-insensitive): ``L``, ``G`` ``(B, C, H, W)`` -> ``(B, C, H, W)``."""
     return _OPS[check_fusion_mode(mode)](L, G)
 
 

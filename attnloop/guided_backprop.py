@@ -140,11 +140,6 @@ def softmax_seeded_gradient(
 
     Returns:
         G with the shape of ``tap``; detached unless ``create_graph``. Batched samples do not mix.
-
-    Example:
-        >>> head = nn.Sequential(nn.Flatten(), nn.Linear(8 * 2 * 2, 5))
-        >>> softmax_seeded_gradient(torch.rand(3, 8, 2, 2), head).shape
-        torch.Size([3, 8, 2, 2])
     """
     if not isinstance(tap, Tensor):
         raise TypeError(f"tap must be a torch.Tensor, got {type(tap).__name__}")
@@ -188,13 +183,6 @@ def guided_backprop(backbone: nn.Module, images: Tensor, create_graph: bool = Fa
 
     Returns:
         (L, G), both :math:`(B, C, h, w)` (the backbone's ``tap_shape``); detached unless ``create_graph``.
-
-    Example:
-        >>> from attnloop.backbones import efficientnet_lite0
-        >>> net = efficientnet_lite0(pretrained=False)
-        >>> L, G = guided_backprop(net, torch.rand(2, 3, 120, 160))
-        >>> L.shape, G.shape
-        (torch.Size([2, 320, 7, 7]), torch.Size([2, 320, 7, 7]))
     """
     if not isinstance(images, Tensor):
         raise TypeError(f"images must be a torch.Tensor, got {type(images).__name__}")

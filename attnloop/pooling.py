@@ -88,11 +88,6 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
 
     Returns:
         the fused map :math:`(B, C, H, W)`.
-
-    Example:
-        >>> L, G = torch.rand(1, 10, 3, 3), torch.randn(1, 10, 3, 3)
-        >>> torch.equal(fuse_groups(L, G, "dam", (4, 6), (False, True))[:, :4], L[:, :4])
-        True
     """
     _check_map(tap, "tap")
     _check_map(grad, "grad")
@@ -152,12 +147,7 @@ def gem_regions(x: Tensor, p: float = 2.0, levels: Sequence[int] = (1, 2)) -> Te
 
 
 def regional_code_dim(groups: Sequence[int], levels: Sequence[int] = (1, 2)) -> int:
-    """Length of :func:`regional_code`'s output: ``sum_l l^2 * sum_g C_g``.
-
-    Example:
-        >>> regional_code_dim((192, 320))
-        2560
-    """
+    """Length of :func:`regional_code`'s output: ``sum_l l^2 * sum_g C_g``."""
     g = tuple(groups)
     if not g or any(isinstance(c, bool) or int(c) != c or c < 1 for c in g):
         raise ValueError(f"groups must be positive channel counts such as (192, 320), got {groups!r}")

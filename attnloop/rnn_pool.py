@@ -99,11 +99,6 @@ def random_rnn_pool(x: Tensor, weights: Tensor, merge: bool = True) -> Tensor:
     Returns:
         descriptor ``(B, R * O)`` in ``x``'s dtype; entries ``[r * O, (r + 1) * O)`` are the output of RNN
         ``r``; an empty batch gives ``(0, R * O)``.
-
-    Example:
-        >>> w = random_rnn_weights(16, 256 * 7 * 7, 64)
-        >>> random_rnn_pool(torch.rand(3, 512, 7, 7), w).shape
-        torch.Size([3, 1024])
     """
     check_bchw(x)
     if weights.dim() != 3:

@@ -67,12 +67,6 @@ def adaptive_threshold(similarities: Tensor, config: ThresholdConfig | None = No
 
     Raises:
         ValueError: NaN or infinite similarities (naming the first positions), a shape other than ``(N,)``.
-
-    Example:
-        >>> adaptive_threshold(torch.full((50,), 0.7), ThresholdConfig(min_margin=0.05))
-        tensor(0.7500)
-        >>> adaptive_threshold(torch.rand(3))
-        tensor(inf)
     """
     cfg = config or ThresholdConfig()
     if not isinstance(similarities, Tensor):

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from torch import nn
 
-from .efficientnet_lite import EFFICIENTNET_LITE0_TAPS, EfficientNetLite0, efficientnet_lite0
+from .efficientnet_lite import EfficientNetLite0, efficientnet_lite0
 from .hooked import MAX_POOL_TYPES, HookedBackbone
 from .preprocess import FLOAT_RANGE_TOLERANCE, check_images, prepare_images
 from .vgg16 import VGG16, VGG16_TAPS, vgg16
@@ -28,7 +28,6 @@ from .weights import VGG16_FILE, WeightsNotFoundError, hub_checkpoint_dir
 
 __all__ = [
     "BACKBONES",
-    "EFFICIENTNET_LITE0_TAPS",
     "FLOAT_RANGE_TOLERANCE",
     "MAX_POOL_TYPES",
     "VGG16",

@@ -23,7 +23,7 @@ from torch import nn
 from .preprocess import prepare_images
 from .weights import EFFICIENTNET_LITE0_FILE, load_state_dict, resolve_efficientnet_lite0_weights
 
-__all__ = ["EFFICIENTNET_LITE0_TAPS", "EfficientNetLite0", "efficientnet_lite0", "efficientnet_lite_taps"]
+__all__ = ["EfficientNetLite0", "efficientnet_lite0", "efficientnet_lite_taps"]
 
 # Stages of EfficientNet-Lite0 (B0's): (repeats, kernel, first stride, expand ratio, in, out).
 _STAGES = (
@@ -56,12 +56,7 @@ def _input_hw(input_size: int | Sequence[int] | None) -> tuple[int, int]:
 
 def efficientnet_lite_taps(input_size: int | tuple[int, int] | None = None
                            ) -> dict[str, tuple[int, int, tuple[int, int]]]:
-    """Tap name -> (index of its last block, -1 for the head; channels; (h, w) at ``input_size`` (H, W), default 224).
-
-    Example:
-        >>> efficientnet_lite_taps((240, 320))["stage7"]
-        (15, 320, (8, 10))
-    """
+    """Tap name -> (index of its last block, -1 for the head; channels; (h, w) at ``input_size``, default 224)."""
     h, w = _input_hw(input_size)
     taps, last = {}, -1
     for k, (repeats, *_, out_ch) in enumerate(_STAGES):
@@ -71,10 +66,6 @@ def efficientnet_lite_taps(input_size: int | tuple[int, int] | None = None
         taps[name] = (last, out_ch, (math.ceil(h / s), math.ceil(w / s)))
     taps["head"] = (-1, 1280, (math.ceil(h / 32), math.ceil(w / 32)))
     return taps
-
-
-#: Tap name -> (index of the last block it includes, or -1 for the head; channels; spatial size at 224).
-EFFICIENTNET_LITE0_TAPS = {name: (b, c, hw[0]) for name, (b, c, hw) in efficientnet_lite_taps().items()}
 
 
 class SameConv2d(nn.Conv2d):

@@ -77,14 +77,6 @@ class HookedBackbone(nn.Module):
         - images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1]
         - tap L: :math:`(B, *\\text{tap\\_shape})`
         - logits: :math:`(B, K)`
-
-    Example:
-        >>> net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
-        ...                     nn.Conv2d(8, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
-        ...                     nn.Flatten(), nn.Linear(8 * 8 * 8, 10))
-        >>> hooked = HookedBackbone(net, tap="2", input_size=(32, 32))
-        >>> hooked.tap_shape, hooked.clamp_at_tap, hooked.transitions
-        ((8, 16, 16), True, ('5',))
     """
 
     def __init__(

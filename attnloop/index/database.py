@@ -484,14 +484,8 @@ class KeyframeIndex:
         supported = ", ".join(map(str, SUPPORTED_VERSIONS))
         if "version" not in meta:
             raise ValueError(f"the record has no format version (this library reads version {supported})")
-        if not isinstance(version, int) or isinstance(version, bool):
-            raise ValueError(f"keyframe index format version {version!r} is not an integer version "
-                             f"(this library reads version {supported})")
-        if version > INDEX_FORMAT_VERSION:
-            raise ValueError(f"keyframe index format version {version} is newer than this library reads "
-                             f"({supported})")
-        if version not in SUPPORTED_VERSIONS:
-            raise ValueError(f"keyframe index format version {version} is not supported (this library reads "
+        if type(version) is not int or version not in SUPPORTED_VERSIONS:
+            raise ValueError(f"keyframe index format version {version!r} is not supported (this library reads "
                              f"version {supported})")
         for key in ("config", "dim", "n", "num_builds", "structure"):
             if key not in meta:

@@ -66,18 +66,6 @@ class LoopCandidateDetector:
 
     Args:
         config: :class:`LoopDetectorConfig`.
-
-    Example:
-        >>> det = LoopCandidateDetector(LoopDetectorConfig(window=5))
-        >>> gen = torch.Generator().manual_seed(0)
-        >>> places = torch.randn(40, 64, generator=gen)
-        >>> for i in range(40):
-        ...     out = det.add_and_query(places[i] + 0.1 * torch.randn(64, generator=gen), keyframe_id=i)
-        >>> out = det.add_and_query(places[3] + 0.1 * torch.randn(64, generator=gen), keyframe_id=40)
-        >>> out.ids[:1].tolist(), out.scores.shape == out.ids.shape
-        ([3], True)
-        >>> det.similarities(40)[0].shape
-        torch.Size([36])
     """
 
     def __init__(self, config: LoopDetectorConfig | None = None) -> None:

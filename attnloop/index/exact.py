@@ -33,13 +33,6 @@ def exact_search(database: Tensor, queries: Tensor, k: int) -> tuple[Tensor, Ten
     Returns:
         row indices ``(Q, min(k, N))`` (long) and similarities ``(Q, min(k, N))``, most similar first;
         equal similarities in increasing row order (the lower row wins a tie at the ``k``-th place).
-
-    Example:
-        >>> rows, sims = exact_search(torch.eye(3), torch.tensor([[0.1, 0.9, 0.0]]), k=2)
-        >>> rows.tolist()
-        [[1, 0]]
-        >>> exact_search(torch.ones(5, 2), torch.ones(1, 2), k=3)[0].tolist()  # ties: lower rows first
-        [[0, 1, 2]]
     """
     if database.dim() != 2 or queries.dim() != 2 or database.shape[1] != queries.shape[1]:
         raise ValueError(f"need database (N, D) and queries (Q, D), got {tuple(database.shape)} and "
@@ -85,10 +78,6 @@ def topk_rows(sims: np.ndarray, k: int, tol: float = 0.0) -> np.ndarray:
 
     Every position at least the ``k``-th largest less ``tol`` (all when ``M <= k``), so that the exact
     re-scoring can give ties to the lower row.
-
-    Example:
-        >>> topk_rows(np.array([0.5, 0.9, 0.5, 0.1, 0.5], dtype=np.float32), 2).tolist()
-        [0, 1, 2, 4]
     """
     if sims.size <= k:
         return np.arange(sims.size)

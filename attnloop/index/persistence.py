@@ -3,15 +3,6 @@
 An uncompressed numpy ``.npz``: ``meta`` a JSON string (format, version, config, backend, sizes, the
 structure's record), ``descriptors (N, D)``, ``ids (N,)``, ``timestamps (N,)`` and ``structure.*`` (the
 serialised graph or tree, its PCA code). No pickles: loading runs no code.
-
-Example:
-    >>> import io, torch
-    >>> from attnloop.index import IndexConfig, KeyframeIndex
-    >>> index = KeyframeIndex(IndexConfig(backend="exact"))
-    >>> index.add(torch.eye(4), ids=[2, 3, 5, 8])
-    >>> buf = io.BytesIO(); index.save(buf); _ = buf.seek(0)
-    >>> KeyframeIndex.load(buf).search(torch.eye(4)[2], k=1)[0].tolist()
-    [5]
 """
 from __future__ import annotations
 

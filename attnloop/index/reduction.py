@@ -3,12 +3,6 @@
 For unit descriptors ``|x - q|^2 = 2 - 2 x.q`` ranks like the cosine, and ``|P^T (x - q)|^2`` is that
 distance less the energy outside the code's span: the structure ranks by L2 between the codes
 ``z = P^T (x - mean)``, and the index re-scores the candidates with the full descriptors.
-
-Example:
-    >>> x = np.random.default_rng(0).standard_normal((500, 32)).astype(np.float32)
-    >>> code = fit_pca(x, dim=8)
-    >>> code.encode(x[:3]).shape, code.dim, 0 < code.kept < 1
-    ((3, 8), 8, True)
 """
 from __future__ import annotations
 

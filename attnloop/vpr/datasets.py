@@ -1,10 +1,4 @@
-"""Place-recognition sets as image paths and a ground truth.
-
-Example:
-    >>> s = aligned_set([f"q{i}.png" for i in range(4)], [f"r{i}.png" for i in range(4)], tolerance=1)
-    >>> s.ground_truth.int().tolist()[0]
-    [1, 1, 0, 0]
-"""
+"""Place-recognition sets as image paths and a ground truth."""
 from __future__ import annotations
 
 import csv

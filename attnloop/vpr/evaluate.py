@@ -389,10 +389,6 @@ def sequence_similarity(similarity: torch.Tensor | np.ndarray, length: int) -> t
 
     Returns:
         ``(Q, R)`` float64 on the input's device.
-
-    Example:
-        >>> sequence_similarity(torch.tensor([[1.0, 0.0], [0.0, 1.0]]), 2).tolist()
-        [[1.0, 0.5], [0.5, 1.0]]
     """
     sim = similarity if isinstance(similarity, torch.Tensor) else torch.from_numpy(np.asarray(similarity))
     if sim.dim() != 2:
