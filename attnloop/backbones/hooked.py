@@ -112,7 +112,7 @@ class HookedBackbone(nn.Module):
             for n in names:
                 self._submodule(n)
             self.clamp_at_tap = tap in names
-            self._transition_names = tuple(n for n in names if n != tap)
+            self.transitions = tuple(n for n in names if n != tap)
         self._dry_run(explicit=transitions is not None)
 
     # ------------------------------------------------------------------------------------ set-up
@@ -185,12 +185,7 @@ class HookedBackbone(nn.Module):
             for name, m, _ in events[at + 1:]:
                 if isinstance(m, MAX_POOL_TYPES) and name not in after:
                     after.append(name)
-            self._transition_names = tuple(after)
-
-    @property
-    def transitions(self) -> tuple[str, ...]:
-        """Names of the submodules whose outputs are clamped when they run after the tap."""
-        return self._transition_names
+            self.transitions = tuple(after)
 
     # ------------------------------------------------------------------------------------ protocol
     def preprocess(self, images: Tensor) -> Tensor:
@@ -260,7 +255,7 @@ class HookedBackbone(nn.Module):
 
         handles = [self._tap_module.register_forward_hook(tap_hook)]
         if transition is not None:
-            for name in self._transition_names:
+            for name in self.transitions:
                 handles.append(self.module.get_submodule(name).register_forward_hook(transition_hook))
         try:
             return self.module(x)

@@ -13,16 +13,6 @@ only approximation is whether the structure proposes the true neighbours; FLANN 
 full descriptors is exact. ``search(..., max_id=m)`` returns only ids ``<= m`` (the temporal exclusion
 window); ids increase with every ``add``, so the eligible rows are a prefix. :meth:`KeyframeIndex.save` /
 :meth:`KeyframeIndex.load` keep the rows and the built structure: a reloaded index answers as the saved one.
-
-Example:
-    >>> index = KeyframeIndex(IndexConfig(backend="flann", exact_below=64, background=False))
-    >>> data = torch.randn(200, 32)
-    >>> index.add(data, ids=torch.arange(200))
-    >>> ids, sims = index.search(data[150], k=3, max_id=140)
-    >>> ids.shape, sims.shape, bool((ids <= 140).all())
-    (torch.Size([3]), torch.Size([3]), True)
-    >>> index.search(data[0], k=3, max_id=-1)[0].shape
-    torch.Size([0])
 """
 from __future__ import annotations
 
@@ -61,13 +51,13 @@ def _to_numpy_2d(x, name: str) -> tuple[np.ndarray, bool]:
     return np.ascontiguousarray(arr), False
 
 
-def _as_array(x, dtype) -> np.ndarray:
+def _as_array(x, dtype=None) -> np.ndarray:
     return np.asarray(x.detach().cpu().numpy() if isinstance(x, Tensor) else x, dtype=dtype)
 
 
 def _as_int_array(x, name: str) -> np.ndarray:
     """``x`` (tensor, array, sequence or scalar) as int64; ValueError on a non-integral or out-of-range value."""
-    arr = np.asarray(x.detach().cpu().numpy() if isinstance(x, Tensor) else x)
+    arr = _as_array(x)
     if arr.dtype.kind == "f":
         bad = ~np.isfinite(arr) | (arr != np.round(arr)) | (np.abs(arr) >= 2.0 ** 63)
         if np.any(bad):
