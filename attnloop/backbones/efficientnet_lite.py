@@ -380,9 +380,6 @@ def efficientnet_lite0(
         seed: seed of the random weights when ``pretrained`` is False.
         input_size: the network input (H, W); default 224 x 224.
         attend: the stages of a joined tap where G is computed (see :class:`EfficientNetLite0`).
-
-    Returns:
-        the network in eval mode.
     """
     with torch.device("meta"):  # no default initialisation: the weights are set just below
         net = EfficientNetLite0(tap=tap, input_size=input_size, attend=attend)

@@ -115,7 +115,6 @@ class HookedBackbone(nn.Module):
             self.transitions = tuple(n for n in names if n != tap)
         self._dry_run(explicit=transitions is not None)
 
-    # ------------------------------------------------------------------------------------ set-up
     def _submodule(self, name: str) -> nn.Module:
         try:
             sub = self.module.get_submodule(name)
@@ -187,7 +186,6 @@ class HookedBackbone(nn.Module):
                     after.append(name)
             self.transitions = tuple(after)
 
-    # ------------------------------------------------------------------------------------ protocol
     def preprocess(self, images: Tensor) -> Tensor:
         """(B, 3, H, W) uint8 or [0, 1] float -> the network input: resized to ``input_size`` (when set),
         normalised with ``mean``/``std`` (when set), in the module's dtype."""

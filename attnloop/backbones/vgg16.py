@@ -131,9 +131,6 @@ def vgg16(
         weights: an explicit checkpoint path (torchvision keys); implies ``pretrained``.
         tap: the tap layer L (``pool5`` gives (B, 512, 7, 7)).
         seed: seed of the random weights when ``pretrained`` is False.
-
-    Returns:
-        the network in eval mode.
     """
     # on the meta device: the default initialisation (~1 s) would be overwritten anyway
     with torch.device("meta"):

@@ -56,13 +56,7 @@ def _explicit(path: str | Path) -> Path:
 
 
 def resolve_vgg16_weights(weights: str | Path | None = None) -> Path:
-    """Find (or download) the torchvision VGG16 ImageNet checkpoint.
-
-    Args:
-        weights: an explicit path; when given it must exist.
-
-    Returns:
-        the path of the checkpoint file.
+    """The path of the torchvision VGG16 ImageNet checkpoint: ``weights`` (must exist), cached or downloaded.
 
     Raises:
         WeightsNotFoundError: with the file name, the folder to put it in and the offline alternative.
@@ -94,13 +88,7 @@ def resolve_vgg16_weights(weights: str | Path | None = None) -> Path:
 
 
 def resolve_efficientnet_lite0_weights(weights: str | Path | None = None) -> Path:
-    """Find the EfficientNet-Lite0 ImageNet checkpoint (never downloads).
-
-    Args:
-        weights: an explicit path; when given it must exist.
-
-    Returns:
-        the path of the checkpoint file.
+    """The path of the EfficientNet-Lite0 ImageNet checkpoint: ``weights`` (must exist), packaged or cached.
 
     Raises:
         WeightsNotFoundError: naming the package to install and the cache folder.
@@ -127,12 +115,7 @@ def resolve_efficientnet_lite0_weights(weights: str | Path | None = None) -> Pat
 
 
 def load_state_dict(path: str | Path, expected: str = "") -> dict:
-    """Load a checkpoint's state dict on the CPU (tensors only: ``weights_only=True``).
-
-    Args:
-        path: the checkpoint file.
-        expected: the expected file name, quoted in the error when the file is unreadable.
-    """
+    """A checkpoint's state dict on the CPU (``weights_only``); an unreadable file's error quotes ``expected``."""
     try:
         state = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as exc:

@@ -104,7 +104,6 @@ class KeyframeIndex:
         self._result: list = []  # the worker's (structure | exception), read by _poll
         self.num_builds = 0
 
-    # ------------------------------------------------------------------ properties
     def __len__(self) -> int:
         return 0 if self._store is None else self._store.n
 
@@ -177,7 +176,6 @@ class KeyframeIndex:
     def _ids(self) -> np.ndarray:
         return np.zeros(0, dtype=np.int64) if self._store is None else self._store.ids
 
-    # ------------------------------------------------------------------ growth
     def add(self, descriptors, ids=None, timestamps=None) -> None:
         """Append keyframes.
 
@@ -286,7 +284,6 @@ class KeyframeIndex:
             return
         self._start_build(background=False)
 
-    # ------------------------------------------------------------------ queries
     def _eligible(self, max_ids: np.ndarray | None, nq: int) -> np.ndarray:
         if max_ids is None:
             return np.full(nq, len(self), dtype=np.int64)
@@ -429,7 +426,6 @@ class KeyframeIndex:
         return (torch.from_numpy(self._ids()[rows].copy()).to(device),
                 torch.from_numpy(np.ascontiguousarray(sims, dtype=np.float32)).to(device))
 
-    # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict:
         """Everything needed to rebuild this index with identical answers.
 

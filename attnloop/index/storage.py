@@ -33,7 +33,6 @@ class KeyframeStore:
         self._ids = np.zeros(0, dtype=np.int64)
         self._ts = np.zeros(0, dtype=np.float64)
 
-    # ------------------------------------------------------------------ growth
     def append(self, x: np.ndarray, ids: np.ndarray, timestamps: np.ndarray) -> None:
         """Append rows ``x (M, D)`` (float32) with their ids and timestamps ``(M,)``."""
         m = x.shape[0]
@@ -56,7 +55,6 @@ class KeyframeStore:
         ts[: self.n] = self._ts[: self.n]
         self._desc, self._ids, self._ts = desc, ids, ts
 
-    # ------------------------------------------------------------------ reading
     @property
     def ids(self) -> np.ndarray:
         """Ids of rows ``[0, N)`` (a view)."""

@@ -80,7 +80,6 @@ _FLANN_HEADER = struct.Struct("=16s16siiQQ")
 _FLANN_FLOAT32 = 8
 
 
-# ----------------------------------------------------------------------------------------------
 class FlannTree:
     """FLANN priority-search k-means tree over rows ``[0, n)`` (not extendable: rows after it are a tail).
 
@@ -157,7 +156,6 @@ class FlannTree:
         return cls(flann, data, code, config)
 
 
-# ----------------------------------------------------------------------------------------------
 class FaissHNSW:
     """faiss HNSW graph over rows ``[0, n)``, extended by every add (rows are its sequential ids)."""
 

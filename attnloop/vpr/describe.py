@@ -31,7 +31,6 @@ class VPRInputError(ValueError):
     """Input that cannot be used: the message names the file, flag or folder, and what was expected."""
 
 
-# ------------------------------------------------------------------------------------------ images
 def load_rgb(path) -> np.ndarray:
     """``(H, W, 3)`` uint8 RGB as OpenCV's colour mode decodes it; a missing, corrupt or truncated file is a
     :class:`slam.io.images.FrameReadError` naming it."""
@@ -189,7 +188,6 @@ def ray_engine(settings: dict, items, batch_size: int = 16, actors: int = 1, cpu
             yield int(index), (None if error else row.astype(np.float32)), (error or None)
 
 
-# ------------------------------------------------------------------------------------------ shards
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()  # a shard is tens of MB
 

@@ -73,10 +73,6 @@ class ShapeMismatchError(ValueError):
     """Similarity, ground truth and candidate mask of different shapes (the message gives them)."""
 
 
-# ---------------------------------------------------------------------------------------------------
-# Readers
-
-
 def _name_of(source) -> str:
     if isinstance(source, (str, os.PathLike)):
         return os.fspath(source)
@@ -402,10 +398,6 @@ def sequence_similarity(similarity: torch.Tensor | np.ndarray, length: int) -> t
     for k in range(int(length)):  # length is a handful of frames: one gather of the (Q, R) matrix each
         out += sim[(rows - k).clamp_min(0)][:, (cols - k).clamp_min(0)]
     return out / int(length)
-
-
-# ---------------------------------------------------------------------------------------------------
-# Evaluation
 
 
 @dataclass
