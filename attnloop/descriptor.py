@@ -48,7 +48,8 @@ _RNN_DEFAULTS = {"out_features": 64, "pool_scale": 10.0}
 
 
 def _unused_rnn_settings(out_features: int = _RNN_DEFAULTS["out_features"],
-                         pool_scale: float | None = _RNN_DEFAULTS["pool_scale"], merge: bool | None = None) -> list[str]:
+                         pool_scale: float | None = _RNN_DEFAULTS["pool_scale"],
+                         merge: bool | None = None) -> list[str]:
     given = {"out_features": out_features, "pool_scale": pool_scale}
     return [k for k, v in given.items() if v != _RNN_DEFAULTS[k]] + (["merge"] if merge else [])
 

@@ -92,7 +92,8 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
     _check_map(tap, "tap")
     _check_map(grad, "grad")
     if tap.shape != grad.shape:
-        raise ValueError(f"tap and grad must have one shape (B, C, H, W), got {tuple(tap.shape)} and {tuple(grad.shape)}")
+        raise ValueError(f"tap and grad must have one shape (B, C, H, W), got {tuple(tap.shape)} and "
+                         f"{tuple(grad.shape)}")
     g = _check_groups(tap.shape[1], groups)
     att = (True,) * len(g) if attended is None else tuple(bool(a) for a in attended)
     if len(att) != len(g):

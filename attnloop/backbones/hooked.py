@@ -121,7 +121,8 @@ class HookedBackbone(nn.Module):
         except AttributeError:
             names = [n for n, _ in self.module.named_modules() if n]
             shown = ", ".join(repr(n) for n in names[:24]) + (", ..." if len(names) > 24 else "")
-            raise ValueError(f"{type(self.module).__name__} has no submodule {name!r}; its submodules: {shown}") from None
+            raise ValueError(f"{type(self.module).__name__} has no submodule {name!r}; its submodules: "
+                             f"{shown}") from None
         if sub is self.module:
             raise ValueError(f"tap must be a submodule of {type(self.module).__name__}, not the module itself")
         return sub
