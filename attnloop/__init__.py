@@ -1,14 +1,8 @@
 """attnloop: object-aware attention guided frame association (loop closure) for RGB-D SLAM.
 
-The paper's modules as drop-in PyTorch pieces:
-
-- :mod:`attnloop.backbones`: VGG16 and EfficientNet-Lite0 split at a tap layer, with preprocessing, and
-  :class:`~attnloop.backbones.HookedBackbone`: any classifier tapped at a named submodule;
-- :mod:`attnloop.guided_backprop`: the softmax-seeded partial guided backprop, (L, G = dS/dL);
-- :mod:`attnloop.fusion`: the attention fusions DAM, EAM, GAF, EGA and the ``none`` baseline;
-- :mod:`attnloop.pooling`: the regional GeM code (the default descriptor's pooling, 2560-d at its tap);
-- :mod:`attnloop.rnn_pool`: the paper's random recursive-NN pooling to a 1024-d vector (``num_rnn=16``);
-- :mod:`attnloop.descriptor`: :class:`AttentionDescriptor`, the whole chain, images -> (B, D).
+The paper's modules as drop-in PyTorch pieces: :mod:`attnloop.backbones` (VGG16, EfficientNet-Lite0, any
+classifier tapped at a submodule), :mod:`attnloop.guided_backprop` (L, G = dS/dL), :mod:`attnloop.fusion`,
+:mod:`attnloop.pooling`, :mod:`attnloop.rnn_pool` and :class:`AttentionDescriptor`, images -> (B, D).
 
 Example:
     >>> import torch

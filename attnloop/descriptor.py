@@ -2,31 +2,18 @@
 
 For a batch of images:
 
-1. L, G = the tap activations and the softmax-seeded partial guided gradient
-   (:func:`attnloop.guided_backprop.guided_backprop`);
-2. F = fusion(L, G), one of ``none``, ``dam``, ``eam``, ``gaf``, ``ega`` (:mod:`attnloop.fusion`), with
-   G scaled to max |G| = 1 per sample first (the fusions are invariant to that scale; it keeps a tiny G,
-   e.g. from a flat softmax, above the constant-map threshold of the min-max normalisation);
-3. ``pooling="regional"`` (the default, ours): F becomes its regional GeM code (:mod:`attnloop.pooling`:
-   per tap group, the whole map and a 2 x 2 grid, each region L2-normalised); ``pooling="flat"`` (the
-   paper's): F itself, flattened;
-4. with ``num_rnn > 0`` (the paper's 16): that input is L2-normalised per sample and scaled to norm
-   ``pool_scale`` (10 by default; None skips it), and d = random RNN pooling of it
-   (:mod:`attnloop.rnn_pool`), (B, num_rnn * out_features); with ``num_rnn=0`` (the default, ours) d is
-   the pooled code itself (regional: (B, 5 * C), 2560 dims at EfficientNet-Lite0's default tap);
-5. d is L2-normalised (``normalize=True``), so the dot product of two descriptors is their cosine.
+1. L, G = the tap activations and the softmax-seeded partial guided gradient (:mod:`attnloop.guided_backprop`);
+2. F = fusion(L, G / max|G|) (:mod:`attnloop.fusion`; the fusions are invariant to G's scale, which keeps a
+   tiny G above the constant-map threshold of the min-max normalisation);
+3. ``pooling="regional"`` (default): F's regional GeM code (:mod:`attnloop.pooling`); ``"flat"`` (the
+   paper's): F itself;
+4. with ``num_rnn > 0`` (the paper's 16): that input, scaled to L2 norm ``pool_scale`` (None: raw), goes
+   through the random RNNs (:mod:`attnloop.rnn_pool`), (B, num_rnn * out_features); with ``num_rnn=0`` the
+   descriptor is the pooled code (2560 dims at EfficientNet-Lite0's default tap);
+5. L2 normalisation (``normalize=True``): the dot product of two descriptors is their cosine.
 
-``preset="paper"`` gives the paper's configuration exactly (:mod:`attnloop.presets`); the default is
-the one measured best for place recognition (docs/results.md, "Place recognition").
-
-The recipe of steps 2-5 (fusion, pooling, RNN count and size, seed, scaling, merge, L2) is one
-:class:`DescriptorRecipe`. ``AttentionDescriptor(..., differentiable=True)`` keeps the whole chain in
-autograd (:func:`attnloop.guided_backprop.guided_backprop` with ``create_graph``): the descriptor is then
-a differentiable function of the images and of the backbone's weights, for training through it.
-
-No RNNs by default: on the regional code they are a random projection (2560 -> 1024 dims) that loses
-place evidence (docs/method.md). The scaling of step 4 is ours: it makes the descriptor independent of the
-fused map's scale and keeps the RNNs' tanh out of saturation.
+``preset="paper"`` is the paper's configuration exactly (:mod:`attnloop.presets`); steps 2-5 are one
+:class:`DescriptorRecipe`. ``differentiable=True`` keeps the whole chain in autograd, for training through it.
 """
 from __future__ import annotations
 
@@ -61,8 +48,8 @@ _RNN_DEFAULTS = {"out_features": 64, "pool_scale": 10.0}
 
 
 def _unused_rnn_settings(out_features: int = _RNN_DEFAULTS["out_features"],
-                         pool_scale: float | None = _RNN_DEFAULTS["pool_scale"], merge: bool | None = None) -> list[str]:
-    # the RNN settings given away from their defaults (merge: True; False merges nothing, as without RNNs)
+                         pool_scale: float | None = _RNN_DEFAULTS["pool_scale"],
+                         merge: bool | None = None) -> list[str]:
     given = {"out_features": out_features, "pool_scale": pool_scale}
     return [k for k, v in given.items() if v != _RNN_DEFAULTS[k]] + (["merge"] if merge else [])
 
@@ -74,28 +61,16 @@ def _check_pool_scale(pool_scale: float | None) -> None:
 
 @dataclass(frozen=True)
 class DescriptorRecipe:
-    """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seeds.
+    """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seed."""
 
-    Vary one setting with :func:`dataclasses.replace` (``replace(recipe, fusion="gaf")``).
-
-    Example:
-        >>> DescriptorRecipe(fusion="gaf", num_rnn=16).out_dim
-        1024
-        >>> DescriptorRecipe(fusion="gaf").out_dim is None  # no RNNs: the pooled code's size, set by the tap
-        True
-    """
-
-    fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega" (the paper's default: DAM)
-    # Random RNNs after the pooling; the descriptor then has num_rnn * out_features dims (the paper: 16,
-    # 1024 dims). 0 (ours): no RNNs, the descriptor is the pooled code itself (docs/method.md).
-    num_rnn: int = 0
-    out_features: int = _RNN_DEFAULTS["out_features"]  # output size of each RNN (the paper's 64); an RNN setting
+    fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega"
+    num_rnn: int = 0  # random RNNs after the pooling (the paper's 16); 0: the descriptor is the pooled code
+    out_features: int = _RNN_DEFAULTS["out_features"]  # output size of each RNN (the paper's 64)
     seed: int = 0  # seed of the RNN weights (and of a name-built backbone's random weights when not pretrained)
-    normalize: bool = True  # L2-normalise the descriptor: a dot product is then the cosine
-    # L2 norm of the RNNs' input (ours); None: raw (the paper); an RNN setting
-    pool_scale: float | None = _RNN_DEFAULTS["pool_scale"]
+    normalize: bool = True  # L2-normalise the descriptor
+    pool_scale: float | None = _RNN_DEFAULTS["pool_scale"]  # L2 norm of the RNNs' input; None: raw (the paper)
     merge: bool | None = None  # average element c with c + C/2 of the RNNs' input; None: for "flat" only
-    pooling: str = "regional"  # "regional": regional GeM code first (ours); "flat": the whole map (the paper)
+    pooling: str = "regional"  # "regional": regional GeM code; "flat": the whole map (the paper)
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_MODES:
@@ -104,8 +79,7 @@ class DescriptorRecipe:
             raise ValueError(f"unknown pooling {self.pooling!r}; choose one of {POOLINGS}")
         for name, least in (("num_rnn", 0), ("out_features", 1), ("seed", 0)):
             v = getattr(self, name)
-            # a whole float (16.0) is fine for the counts; a seed must be an integer (1.5 would be truncated
-            # to 1's weights while the two recipes compared unequal)
+            # a whole float (16.0) is fine for the counts, not for the seed
             whole = isinstance(v, Integral) or (name != "seed" and isinstance(v, float) and v.is_integer())
             if isinstance(v, bool) or not whole or v < least:
                 kind = "a non-negative" if least == 0 else "a positive"
@@ -114,7 +88,6 @@ class DescriptorRecipe:
             raise TypeError(f"normalize must be True or False, got {self.normalize!r}")
         _check_pool_scale(self.pool_scale)
         if self.num_rnn == 0:
-            # the RNNs' settings would do nothing without RNNs: refuse them rather than ignore them
             unused = _unused_rnn_settings(self.out_features, self.pool_scale, self.merge)
             if unused:
                 raise ValueError(f"{', '.join(unused)} set the random RNNs, and num_rnn=0 has none; "
@@ -125,14 +98,12 @@ class DescriptorRecipe:
 
     @property
     def out_dim(self) -> int | None:
-        """Size of a descriptor, ``num_rnn * out_features``; None without RNNs (the pooled code's size,
-        which the backbone's tap sets: :attr:`AttentionDescriptor.out_dim`)."""
+        """Size of a descriptor, ``num_rnn * out_features``; None without RNNs (set by the tap)."""
         return int(self.num_rnn) * int(self.out_features) if self.num_rnn else None
 
     @property
     def merges(self) -> bool:
-        """Whether the RNNs' input is merged (``merge``, or for None: True with ``flat`` pooling only);
-        always False without RNNs."""
+        """Whether the RNNs' input is merged (``merge``; None: with ``flat`` pooling); False without RNNs."""
         if not self.num_rnn:
             return False
         return (self.pooling == "flat") if self.merge is None else bool(self.merge)
@@ -142,8 +113,7 @@ _DEFAULT = DescriptorRecipe()
 
 
 class _Default:
-    """The default of an :class:`AttentionDescriptor` recipe argument not given (the recipe's own default),
-    told apart from the same value given explicitly (which ``preset=`` may refuse)."""
+    """A recipe argument not given, told apart from its default given explicitly (which ``preset=`` may refuse)."""
 
     def __repr__(self) -> str:
         return "<the recipe's default>"
@@ -157,10 +127,8 @@ class DescriptorParts(NamedTuple):
 
     Attributes:
         tap: the tap activations L, :math:`(B, C, h, w)`.
-        grad: the guided gradient G = dS/dL, :math:`(B, C, h, w)` (zero on the channels of a joined
-            tap's stages where it is not computed: the backbone's ``attended_groups``).
-        fused: fusion(L, G / max|G|), :math:`(B, C, h, w)` (before the scaling of the pooling input; L
-            itself on the stages not attended).
+        grad: the guided gradient G = dS/dL, :math:`(B, C, h, w)` (zero on stages not attended).
+        fused: fusion(L, G / max|G|), :math:`(B, C, h, w)` (L itself on stages not attended).
         descriptor: the descriptor, :math:`(B, D)`.
     """
 
@@ -191,42 +159,24 @@ def descriptor_from_attention(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Steps 2-5 of the descriptor: fuse (L, G), pool, (scale and random RNN pooling), L2.
 
-    Useful to try several fusion modes on one (L, G) without running the backbone again.
-
     Args:
         tap: the tap activations L, :math:`(B, C, h, w)`.
         grad: the guided gradient G, :math:`(B, C, h, w)`.
         rnn_weights: :math:`(R, O, I)` random RNN weights: for ``flat`` pooling ``I = C/2 * h * w``
             (``C * h * w`` without merge); for ``regional`` ``I = regional_code_dim(groups)``
-            (halved with merge). None: no RNNs, the descriptor is the regional code itself (``pooling``
-            regional; ``pool_scale`` and ``merge`` left at their defaults).
+            (halved with merge). None: no RNNs, the descriptor is the regional code (``pool_scale`` and
+            ``merge`` at their defaults).
         fusion: ``none``, ``dam``, ``eam``, ``gaf`` or ``ega``.
         normalize: L2-normalise the descriptor.
         pool_scale: L2 norm the RNNs' input is scaled to; None feeds it raw (the paper).
-        merge: average element c with c + C/2 of the RNNs' input (the paper's merge); None: True for
-            ``flat``, False for ``regional`` pooling.
-        pooling: ``"regional"`` (regional GeM code, :mod:`attnloop.pooling`) or ``"flat"`` (the paper).
-        groups: channel counts of a joined tap's stages (the backbone's ``tap_groups``): each group is
-            fused and pooled on its own; None: one group.
-        attended: per group, whether it is fused (the backbone's ``attended_groups``); a group not
-            attended enters the pooling as L, unfused. None: every group.
+        merge: average element c with c + C/2 of the RNNs' input; None: for ``flat`` pooling only.
+        pooling: ``"regional"`` or ``"flat"``.
+        groups: channel counts of a joined tap's stages, each fused and pooled on its own; None: one group.
+        attended: per group, whether it is fused (else pooled as L); None: every group.
 
     Returns:
         (fused :math:`(B, C, h, w)`, descriptor :math:`(B, R \\cdot O)`, or without RNNs
         :math:`(B, \\text{regional\\_code\\_dim})`).
-
-    Example:
-        >>> from attnloop.rnn_pool import random_rnn_weights
-        >>> L, G = torch.rand(2, 512, 7, 7), torch.randn(2, 512, 7, 7)
-        >>> w = random_rnn_weights(16, 256 * 49, 64)
-        >>> fused, d = descriptor_from_attention(L, G, w, "gaf", pooling="flat")
-        >>> fused.shape, d.shape
-        (torch.Size([2, 512, 7, 7]), torch.Size([2, 1024]))
-        >>> w = random_rnn_weights(16, 5 * 512, 64)
-        >>> descriptor_from_attention(L, G, w, "dam", groups=(192, 320))[1].shape
-        torch.Size([2, 1024])
-        >>> descriptor_from_attention(L, G, None, "dam", groups=(192, 320))[1].shape  # no RNNs
-        torch.Size([2, 2560])
     """
     if pooling not in POOLINGS:
         raise ValueError(f"unknown pooling {pooling!r}; choose one of {POOLINGS}")
@@ -264,69 +214,41 @@ def _is_backbone(module: nn.Module) -> bool:
 class AttentionDescriptor(nn.Module):
     """Images -> attention-guided CNN descriptors, as a drop-in ``nn.Module``.
 
-    The backbone can be
+    The backbone can be a name (``"auto"``: VGG16 when its weights are at hand, else EfficientNet-Lite0;
+    ``"vgg16"``; ``"efficientnet_lite0"``), which the descriptor owns: frozen unless ``differentiable`` and
+    always in eval mode; a backbone module of :mod:`attnloop.backbones`, used as given; or any classifier
+    ``nn.Module`` with ``tap="name.of.submodule"`` (:class:`attnloop.backbones.HookedBackbone`). A module
+    passed in is never frozen; it runs in eval mode during a computation only, so that a descriptor never
+    depends on the rest of its batch.
 
-    - a name: ``"auto"`` (VGG16 when its ImageNet weights are found without a download, else
-      EfficientNet-Lite0 with a one-line notice; :func:`attnloop.backbones.resolve_backbone_name`),
-      ``"vgg16"`` (the paper's) or ``"efficientnet_lite0"`` (weights from a pip package, works offline).
-      The descriptor owns that network: frozen (no parameter requires grad, unless ``differentiable``)
-      and always in eval mode, even after ``.train()``;
-    - a backbone module of :mod:`attnloop.backbones` (or one following its protocol), used as given;
-    - any classifier ``nn.Module`` (``forward`` returns logits ``(B, K)``) with ``tap="name.of.submodule"``:
-      L is taken at that submodule by a forward hook (:class:`attnloop.backbones.HookedBackbone`;
-      ``input_size``, ``mean`` and ``std`` are its preprocessing).
-
-    A module you pass is never frozen nor switched to eval behind your back: its ``requires_grad``
-    flags are left alone, and its training flags are set to eval only during a descriptor computation
-    and restored after it (so that a descriptor never depends on the rest of its batch: batch-norm uses
-    its running statistics, dropout is off). ``.train()``/``.eval()`` on the descriptor reach it as on
-    any submodule.
-
-    By default the descriptor is a fixed feature extractor: it computes its own gradients internally,
-    works under ``torch.no_grad()`` or ``torch.inference_mode()``, and its output is detached. With
-    ``differentiable=True`` the whole chain stays in autograd (the seeded backward with
-    ``create_graph``): the output is differentiable w.r.t. the images and every backbone weight that
-    requires grad (a name-built backbone is then not frozen), so one can train through it.
+    By default the output is detached (it works under ``torch.no_grad()`` and ``torch.inference_mode()``);
+    ``differentiable=True`` keeps it differentiable w.r.t. the images and the backbone's weights.
 
     Args:
         backbone: a name, a backbone module or a classifier module (see above).
         fusion: ``"none"``, ``"dam"``, ``"eam"``, ``"gaf"`` or ``"ega"``.
-        num_rnn: number of random RNNs (the descriptor then has ``num_rnn * out_features`` dims; the
-            paper's 16); 0 (the default): none, the descriptor is the pooled code itself (2560 dims at
-            EfficientNet-Lite0's default tap and VGG16's pool5).
+        num_rnn: number of random RNNs (the paper's 16); 0 (default): the descriptor is the pooled code.
         seed: seed of the RNN weights, and of a name-built backbone's weights when not pretrained.
-        pretrained: load ImageNet weights into a name-built backbone (default True); False gives seeded
-            random weights without any file.
+        pretrained: load ImageNet weights into a name-built backbone (default True); False: seeded random
+            weights without any file.
         weights: explicit checkpoint path for a name-built backbone.
-        normalize: L2-normalise the descriptors. (Without RNNs every region of the regional code is already
-            unit-norm, so ``normalize=False`` leaves the descriptor at norm sqrt(regions x tap groups).)
-        tap: a name-built backbone's tap layer (default: ``pool5`` for VGG16, ``stage6+stage7`` at a
-            224 x 288 input with G at stage7 for EfficientNet-Lite0, :mod:`attnloop.presets`; an explicit
-            tap has G at every stage of it), or the submodule of a classifier module where L is taken.
+        normalize: L2-normalise the descriptors.
+        tap: a name-built backbone's tap layer (default: the preset's, :mod:`attnloop.presets`; G at every
+            stage of an explicit tap), or the submodule of a classifier module where L is taken.
         out_features: output size of each RNN (with ``num_rnn > 0``).
         pool_scale: L2 norm of the RNNs' input (None: raw, as in the paper; with ``num_rnn > 0``).
         merge: average element c with c + C/2 of the RNNs' input (None: only with ``flat`` pooling).
         input_size: a classifier module's input ``(height, width)``; None: images at their own size.
         mean: a classifier module's per-channel input mean on [0, 1] RGB; None: none.
         std: a classifier module's per-channel input std on [0, 1] RGB; None: none.
-        differentiable: keep the computation in autograd (see above). Costs a graph of the backbone
-            and a second-order backward through the head (docs/results.md, "The descriptor's cost").
-        recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` (leave those at
-            their defaults then); it also sets ``pooling``.
-        preset: a name of :data:`attnloop.presets.PRESETS`: ``"paper"``, the paper's exact configuration
-            (the paper's tap at 224 x 224, flat RNN pooling of the raw fused map, the merge, 16 RNNs; only
-            ``fusion``, ``seed`` and the backbone choice stay free), ``"guclu2019"``, the paper's baseline
-            (the same without attention and without the merge; only ``seed`` and the backbone stay free).
-            With either, ``backbone="auto"`` is VGG16 and its weights must be found
-            (:class:`attnloop.backbones.weights.WeightsNotFoundError` otherwise, naming
-            ``vgg16-397923af.pth``); EfficientNet-Lite0 only when named. None or ``"default"``: the
-            measured default.
-        pooling: ``"regional"`` (default: the regional GeM code, which is the descriptor itself; with
-            ``num_rnn > 0`` the RNNs encode it) or ``"flat"`` (the paper's RNNs over the whole fused map);
-            see :mod:`attnloop.pooling`.
+        differentiable: keep the computation in autograd (see above).
+        recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` and ``pooling``.
+        preset: a name of :data:`attnloop.presets.PRESETS`: ``"paper"`` or ``"guclu2019"`` fix the recipe
+            and the tap (only ``seed``, the backbone and the paper's ``fusion`` stay free) and make
+            ``backbone="auto"`` VGG16, whose weights must be found; None or ``"default"``: the default.
+        pooling: ``"regional"`` (default) or ``"flat"`` (the paper's RNNs over the whole fused map).
         attend: a name-built EfficientNet-Lite0's stages of a joined tap where G is computed and fused
-            (the default: ``stage7`` of ``stage6+stage7``; ``"stage6+stage7"`` attends both); None: the
-            configuration's, or every stage of an explicit ``tap``.
+            (default ``stage7`` of ``stage6+stage7``); None: the preset's, or every stage of an explicit tap.
 
     Attributes:
         pretrained: whether a name-built backbone loaded ImageNet weights (None for a module passed in:
@@ -336,10 +258,9 @@ class AttentionDescriptor(nn.Module):
         recipe: the :class:`DescriptorRecipe`.
 
     Shape:
-        - images: :math:`(B, 3, H, W)`, uint8 in [0, 255] or finite float in [0, 1] (cast to the model's
-          dtype), any H and W
-        - output: :math:`(B, D)`: :attr:`out_dim`, ``num_rnn * out_features`` with RNNs, else the pooled
-          code's size (regional: 5 regions x the tap's channels)
+        - images: :math:`(B, 3, H, W)`, uint8 in [0, 255] or finite float in [0, 1], any H and W
+        - output: :math:`(B, D)`, :attr:`out_dim`: ``num_rnn * out_features`` with RNNs, else the pooled
+          code's size (5 regions x the tap's channels)
 
     Example:
         >>> desc = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False)
@@ -347,8 +268,6 @@ class AttentionDescriptor(nn.Module):
         ...     d = desc(torch.randint(0, 256, (2, 3, 240, 320), dtype=torch.uint8))
         >>> d.shape
         torch.Size([2, 2560])
-        >>> AttentionDescriptor("efficientnet_lite0", pretrained=False, num_rnn=16).out_dim  # the paper's RNNs
-        1024
         >>> net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
         ...                     nn.Flatten(), nn.Linear(8 * 16 * 16, 10))
         >>> AttentionDescriptor(net, tap="2", input_size=(32, 32))(torch.rand(2, 3, 48, 64)).shape
@@ -379,8 +298,7 @@ class AttentionDescriptor(nn.Module):
         attend: str | None = None,
     ) -> None:
         super().__init__()
-        # The recipe's settings as given; the recipe is built once it is known which of them apply (a
-        # preset or a recipe replaces them, and their checks must not speak for settings that were not given).
+        # the recipe is built once it is known which settings apply (a preset or a recipe replaces them)
         passed = {"fusion": fusion, "num_rnn": num_rnn, "out_features": out_features, "seed": seed,
                   "normalize": normalize, "pool_scale": pool_scale, "merge": merge, "pooling": pooling}
         settings = {k: getattr(_DEFAULT, k) if v is _UNSET else v for k, v in passed.items()}
@@ -410,7 +328,6 @@ class AttentionDescriptor(nn.Module):
         #: The preset's name (``"default"`` unless ``preset=`` named another).
         self.preset = chosen.name
         for name, value in (("differentiable", differentiable), ("pretrained", pretrained)):
-            # bool("no") is True: a string or a number here is a mistake, not a flag
             if not isinstance(value, bool) and not (name == "pretrained" and value is None):
                 raise TypeError(f"{name} must be True or False, got {value!r}")
         self.differentiable = differentiable
@@ -427,14 +344,11 @@ class AttentionDescriptor(nn.Module):
             if backbone == "auto" and chosen.auto_backbone != "auto":
                 backbone = chosen.auto_backbone  # the paper's network, its weights required: never another
             self.backbone_name = resolve_backbone_name(backbone, use_pretrained, weights)
-            # tap=None: the configuration's tap and input size; an explicit tap: at the backbone's own input.
             settings = chosen.backbone_settings.get(self.backbone_name, {})
             settings = {"tap": tap} if tap is not None else dict(settings)
             if attend is not None:
                 settings["attend"] = attend
-            # the name as given: "auto" names both checkpoints it looked for when neither is found
-            # Built outside inference mode whatever the caller's: weights made under torch.inference_mode()
-            # are inference tensors, which the seeded backward (where there is no closed form) cannot use.
+            # outside inference mode: the seeded backward cannot use inference tensors as weights
             with torch.inference_mode(False):
                 net = build_backbone(backbone, pretrained=use_pretrained, weights=weights, seed=given.seed,
                                      **settings)
@@ -515,11 +429,9 @@ class AttentionDescriptor(nn.Module):
         return self
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """As :meth:`torch.nn.Module.load_state_dict`; with ``strict``, a state dict of a descriptor with the
-        paper's RNNs loaded into one without them, or the reverse, is refused
-        with the setting that differs named (``num_rnn``) rather than torch's bare key lists."""
+        """As :meth:`torch.nn.Module.load_state_dict`; a ``strict`` load across ``num_rnn=0`` and RNNs names
+        ``num_rnn`` rather than torch's bare key lists."""
         has = "pool.weights" in state_dict
-        # only a state dict of this descriptor's own keys otherwise (not a wrapper's prefixed ones)
         own = {k for k in self.state_dict() if k != "pool.weights"} == {k for k in state_dict if k != "pool.weights"}
         if strict and own and has != (self.pool is not None):
             if self.pool is None:
@@ -540,17 +452,14 @@ class AttentionDescriptor(nn.Module):
         param = next(self.backbone.parameters(), None)
         return param.dtype if param is not None else torch.get_default_dtype()
 
-    def _check_device(self, images: torch.Tensor) -> None:
+    def _check_images(self, images: torch.Tensor) -> None:
+        check_images(images)
         param = next(self.backbone.parameters(), None)
         if param is not None and images.device != param.device:
             raise ValueError(
                 f"images are on {images.device} but the descriptor is on {param.device}; move one of them "
                 "(e.g. descriptor.to(images.device))"
             )
-
-    def _check_grad(self, images: torch.Tensor) -> None:
-        # without differentiable the output is detached: a backward() would fail with torch's bare "element
-        # 0 of tensors does not require grad", far from the cause
         if images.requires_grad and not self.differentiable and torch.is_grad_enabled():
             raise ValueError("images require grad, but this descriptor was built with differentiable=False: its "
                              "output is detached from them; build it with differentiable=True to backpropagate "
@@ -566,39 +475,32 @@ class AttentionDescriptor(nn.Module):
             ValueError: images that require grad (under autograd) given to a descriptor built with
                 ``differentiable=False``, whose output would silently be detached from them.
         """
-        check_images(images)
-        self._check_device(images)
-        self._check_grad(images)
+        self._check_images(images)
         if images.shape[0] == 0:
             shape = (0, *self.backbone.tap_shape)
             dtype = self._dtype()
             empty = images.new_zeros(shape, dtype=dtype)
             desc = images.new_zeros((0, self.out_dim), dtype=dtype)
             if self.differentiable and torch.is_grad_enabled() and not torch.is_inference_mode_enabled():
-                # the empty last chunk of a split batch stays in the graph, as an nn.Conv2d's empty output does
+                # an empty batch stays in the graph, as an nn.Conv2d's empty output does
                 tied = [t for t in (*self.parameters(), images) if t.requires_grad]
                 if tied:
                     zero = (sum(t.sum() for t in tied) * 0).to(dtype)
                     empty, desc = empty + zero, desc + zero
             return DescriptorParts(empty, empty, empty, desc)
         tap, grad = guided_backprop(self.backbone, images, create_graph=self.differentiable)
+        return DescriptorParts(tap, grad, *self._encode(tap, grad, self.recipe.fusion))
+
+    def _encode(self, tap: torch.Tensor, grad: torch.Tensor, fusion: str) -> tuple[torch.Tensor, torch.Tensor]:
         r = self.recipe
-        fused, desc = descriptor_from_attention(tap, grad, self.rnn_weights, r.fusion, r.normalize, r.pool_scale,
-                                                r.merges, pooling=r.pooling,
-                                                groups=self.tap_groups, attended=self.attended_groups)
-        return DescriptorParts(tap, grad, fused, desc)
+        return descriptor_from_attention(tap, grad, self.rnn_weights, fusion, r.normalize, r.pool_scale, r.merges,
+                                         pooling=r.pooling, groups=self.tap_groups, attended=self.attended_groups)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        if self.recipe.fusion == "none" and not self.differentiable:
-            return self._descriptor_without_attention(images)
-        return self.parts(images).descriptor
-
-    def _descriptor_without_attention(self, images: torch.Tensor) -> torch.Tensor:
-        # "none" never reads G: the network runs to the tap only (no head, no backward), and the
-        # descriptor is the one parts() gives.
-        check_images(images)
-        self._check_device(images)
-        self._check_grad(images)
+        if self.recipe.fusion != "none" or self.differentiable:
+            return self.parts(images).descriptor
+        # "none" never reads G: the network runs to the tap only
+        self._check_images(images)
         if images.shape[0] == 0:
             return self.parts(images).descriptor
         with eval_mode(self.backbone), torch.no_grad():
@@ -619,11 +521,7 @@ class AttentionDescriptor(nn.Module):
         if tap.ndim != 4 or tuple(tap.shape[1:]) != tuple(self.backbone.tap_shape):
             raise ValueError(f"tap must have shape (B, {', '.join(map(str, self.backbone.tap_shape))}), "
                              f"got {tuple(tap.shape)}")
-        mode = self.recipe.fusion if fusion is None else fusion
-        r = self.recipe
-        return descriptor_from_attention(tap, grad, self.rnn_weights, mode, r.normalize, r.pool_scale, r.merges,
-                                         pooling=r.pooling,
-                                         groups=self.tap_groups, attended=self.attended_groups)[1]
+        return self._encode(tap, grad, self.recipe.fusion if fusion is None else fusion)[1]
 
     def extra_repr(self) -> str:
         r = self.recipe

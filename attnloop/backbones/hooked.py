@@ -3,24 +3,15 @@
 :class:`HookedBackbone` turns a module whose ``forward(x)`` returns class logits ``(B, K)`` into an
 :mod:`attnloop.backbones` backbone without touching its code:
 
-- the tap L is the output of the submodule named ``tap`` (``module.get_submodule(tap)``), caught by a
-  forward hook; the rest of the network runs on from there in the same forward pass, so skip
-  connections that go around the tap keep their real values (G = dS/dL holds them fixed);
-- the partial guided backprop's clamps sit at the outputs of the max-pool modules that run after the
-  tap (``nn.MaxPool1d/2d/3d``, ``nn.AdaptiveMaxPool1d/2d/3d``, ``nn.FractionalMaxPool2d/3d``), and at L
-  itself when L is a max-pool's output (the tap is a max-pool, or a block whose output is its last
-  max-pool's). Max-pools called as functions (``F.max_pool2d`` inside a ``forward``) are invisible to
-  hooks: name the modules to clamp at with ``transitions=`` instead;
-- a dry run at construction (one image of ``input_size``, or of ``probe_size`` when ``input_size`` is
-  None; no grad, eval mode) finds ``tap_shape``, the clamps, and checks that the tap runs once and that
-  the output is logits, each with a clear error.
+- the tap L is the output of the submodule named ``tap``, caught by a forward hook; the network runs on
+  in the same pass (:meth:`HookedBackbone.forward_split`: a generic network cannot be resumed from L alone);
+- the guided backprop's clamps sit at the outputs of the max-pool modules (:data:`MAX_POOL_TYPES`) that run
+  after the tap, and at L itself when L is a max-pool's output; functional max-pools are invisible to hooks
+  (name the modules with ``transitions=``);
+- a dry run at construction finds ``tap_shape`` and the clamps, and checks that the tap runs once and that
+  the output is logits.
 
-The user's module is never frozen or switched to eval behind their back: its ``requires_grad`` flags
-are never touched, and its submodules' training flags are set to eval only inside a descriptor
-computation (:func:`attnloop.guided_backprop.eval_mode`) and restored right after. Only
-:func:`forward_split` runs the network (plus :meth:`forward_to_tap`, which stops at the tap);
-there is no ``forward_from_tap``: a generic network cannot be resumed from L alone (a residual path
-around the tap needs the activations below it).
+The module is never frozen nor left in eval mode (docs/your_own_cnn.md).
 """
 from __future__ import annotations
 
@@ -50,7 +41,7 @@ class _StopForward(Exception):
 
 
 def _main_output(out: object) -> Tensor | None:
-    # A max-pool with return_indices=True returns (values, indices).
+    # a max-pool with return_indices=True returns (values, indices)
     if isinstance(out, Tensor):
         return out
     if isinstance(out, tuple) and out and isinstance(out[0], Tensor):
@@ -67,13 +58,10 @@ class HookedBackbone(nn.Module):
 
     Args:
         module: any ``nn.Module`` whose ``forward(x)`` takes ``(B, 3, H, W)`` float images and returns
-            class logits ``(B, K)``. Registered as a submodule (moves with ``.to()``, saved in the
-            state dict), never frozen nor switched to eval.
-        tap: the dotted name of the submodule whose output is L (``"layer3"``, ``"features.23"``,
-            ``"4"`` for the fifth layer of an ``nn.Sequential``); it must run once per forward and
-            return a ``(B, C, h, w)`` tensor.
-        input_size: ``(height, width)`` every image is resized to (bilinear, antialiased); None uses
-            images at their own size (then every image must give the dry run's ``tap_shape``).
+            class logits ``(B, K)``.
+        tap: the dotted name of the submodule whose output is L (``"layer3"``, ``"4"``); it must run once
+            per forward and return a ``(B, C, h, w)`` tensor.
+        input_size: ``(height, width)`` every image is resized to; None: images at their own size.
         mean: per-channel mean of [0, 1] RGB values subtracted before the network; None: none.
         std: per-channel standard deviation of [0, 1] RGB values divided by; None: none.
         transitions: names of the submodules at whose outputs (after the tap) negative gradients are
@@ -89,14 +77,6 @@ class HookedBackbone(nn.Module):
         - images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1]
         - tap L: :math:`(B, *\\text{tap\\_shape})`
         - logits: :math:`(B, K)`
-
-    Example:
-        >>> net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
-        ...                     nn.Conv2d(8, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
-        ...                     nn.Flatten(), nn.Linear(8 * 8 * 8, 10))
-        >>> hooked = HookedBackbone(net, tap="2", input_size=(32, 32))
-        >>> hooked.tap_shape, hooked.clamp_at_tap, hooked.transitions
-        ((8, 16, 16), True, ('5',))
     """
 
     def __init__(
@@ -132,17 +112,17 @@ class HookedBackbone(nn.Module):
             for n in names:
                 self._submodule(n)
             self.clamp_at_tap = tap in names
-            self._transition_names = tuple(n for n in names if n != tap)
+            self.transitions = tuple(n for n in names if n != tap)
         self._dry_run(explicit=transitions is not None)
 
-    # ------------------------------------------------------------------------------------ set-up
     def _submodule(self, name: str) -> nn.Module:
         try:
             sub = self.module.get_submodule(name)
         except AttributeError:
             names = [n for n, _ in self.module.named_modules() if n]
             shown = ", ".join(repr(n) for n in names[:24]) + (", ..." if len(names) > 24 else "")
-            raise ValueError(f"{type(self.module).__name__} has no submodule {name!r}; its submodules: {shown}") from None
+            raise ValueError(f"{type(self.module).__name__} has no submodule {name!r}; its submodules: "
+                             f"{shown}") from None
         if sub is self.module:
             raise ValueError(f"tap must be a submodule of {type(self.module).__name__}, not the module itself")
         return sub
@@ -198,7 +178,6 @@ class HookedBackbone(nn.Module):
             shape = tuple(tap_out.shape) if tap_out is not None else type(events[at][2]).__name__
             raise ValueError(f"the tap {self.tap!r} returns {shape}; it must return a (B, C, h, w) feature map")
         self.tap_shape = tuple(int(s) for s in tap_out.shape[1:])
-        self.logit_count = int(logits.shape[1])
         if not explicit:
             before = [_main_output(out) for _, m, out in events[:at] if isinstance(m, MAX_POOL_TYPES)]
             self.clamp_at_tap = isinstance(self._tap_module, MAX_POOL_TYPES) or any(t is tap_out for t in before)
@@ -206,14 +185,8 @@ class HookedBackbone(nn.Module):
             for name, m, _ in events[at + 1:]:
                 if isinstance(m, MAX_POOL_TYPES) and name not in after:
                     after.append(name)
-            self._transition_names = tuple(after)
+            self.transitions = tuple(after)
 
-    @property
-    def transitions(self) -> tuple[str, ...]:
-        """Names of the submodules whose outputs are clamped when they run after the tap."""
-        return self._transition_names
-
-    # ------------------------------------------------------------------------------------ protocol
     def preprocess(self, images: Tensor) -> Tensor:
         """(B, 3, H, W) uint8 or [0, 1] float -> the network input: resized to ``input_size`` (when set),
         normalised with ``mean``/``std`` (when set), in the module's dtype."""
@@ -256,10 +229,9 @@ class HookedBackbone(nn.Module):
 
         Args:
             x: the preprocessed images :math:`(B, 3, H', W')`.
-            at_tap: called with L once, when the tap runs; its result replaces L for the rest of the
-                network (a copy of it, so later in-place layers cannot change it).
-            transition: applied at L (when :attr:`clamp_at_tap`) and to the outputs of
-                :attr:`transitions` that run after the tap; identity when None.
+            at_tap: called with L once; (a copy of) its result replaces L for the rest of the network.
+            transition: applied at L (when :attr:`clamp_at_tap`) and to the outputs of :attr:`transitions`
+                after the tap; identity when None.
 
         Returns:
             the logits :math:`(B, K)`.
@@ -282,7 +254,7 @@ class HookedBackbone(nn.Module):
 
         handles = [self._tap_module.register_forward_hook(tap_hook)]
         if transition is not None:
-            for name in self._transition_names:
+            for name in self.transitions:
                 handles.append(self.module.get_submodule(name).register_forward_hook(transition_hook))
         try:
             return self.module(x)

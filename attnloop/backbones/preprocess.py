@@ -1,9 +1,7 @@
 """Image preprocessing shared by the backbones: check, resize to the network's input size, normalise.
 
-Every backbone owns its preprocessing so that callers pass camera images as they come: ``uint8`` in
-[0, 255] or floating point in [0, 1], any height and width. Float images are checked for their range
-(a float image in [0, 255] would otherwise be accepted and give a wrong descriptor) and for non-finite
-pixels (one NaN pixel makes the whole descriptor NaN), then cast to the network's dtype.
+Callers pass camera images as they come: ``uint8`` in [0, 255] or floating point in [0, 1] (checked: a
+float image in [0, 255] or a NaN pixel would give a wrong descriptor), any height and width.
 """
 from __future__ import annotations
 
@@ -15,30 +13,21 @@ import torch.nn.functional as F
 
 __all__ = ["FLOAT_RANGE_TOLERANCE", "check_images", "prepare_images"]
 
-#: Float images may leave [0, 1] by this much (a resampled or colour-converted image overshoots a
-#: little); 2.5 grey levels, far below what a [0, 255] or a mean/std-normalised image shows.
+#: Float images may leave [0, 1] by this much (a resampled image overshoots a little): 2.5 grey levels.
 FLOAT_RANGE_TOLERANCE = 0.01
 
 
-def check_images(images: torch.Tensor, values: bool = True) -> None:
+def check_images(images: torch.Tensor) -> None:
     """Raise unless ``images`` is a (B, 3, H, W) uint8 tensor or a finite float tensor in [0, 1].
 
     Args:
-        images: the tensor to check, expected shape :math:`(B, 3, H, W)`.
-        values: also check the pixel values of float images: finite and within [0, 1] up to
-            :data:`FLOAT_RANGE_TOLERANCE` (one pass over the data; skipped on the meta device).
+        images: the tensor to check, expected shape :math:`(B, 3, H, W)`; float values within [0, 1] up
+            to :data:`FLOAT_RANGE_TOLERANCE`.
 
     Raises:
         TypeError: ``images`` is not a tensor.
         ValueError: wrong shape or dtype, non-finite pixels, or float values outside [0, 1], each
             message naming what was expected.
-
-    Example:
-        >>> check_images(torch.rand(2, 3, 8, 8))
-        >>> check_images(torch.full((1, 3, 8, 8), 255.0))
-        Traceback (most recent call last):
-        ...
-        ValueError: float images must have values in [0, 1] (uint8 images in [0, 255]); got values in [255, 255]...
     """
     if not isinstance(images, torch.Tensor):
         raise TypeError(f"images must be a torch.Tensor, got {type(images).__name__}")
@@ -48,7 +37,7 @@ def check_images(images: torch.Tensor, values: bool = True) -> None:
         raise ValueError(f"images must be uint8 in [0, 255] or float in [0, 1], got dtype {images.dtype}")
     if images.shape[0] > 0 and (images.shape[2] < 1 or images.shape[3] < 1):
         raise ValueError(f"images must have a positive height and width, got {tuple(images.shape)}")
-    if not values or not images.is_floating_point() or images.numel() == 0 or images.device.type == "meta":
+    if not images.is_floating_point() or images.numel() == 0 or images.device.type == "meta":
         return
     lo, hi = torch.aminmax(images.detach())  # NaN propagates into both
     lo_f, hi_f = float(lo), float(hi)
@@ -79,28 +68,18 @@ def prepare_images(
 ) -> torch.Tensor:
     """Check images, resize them to ``size`` and normalise them with ``mean`` and ``std`` (given for [0, 1] values).
 
-    The resize is bilinear with antialiasing (a direct resize: the whole view is kept, the aspect ratio
-    is not). ``uint8`` images are resized before the conversion to float: PyTorch's uint8 antialiased
-    path on CPU is about 4x faster than the float one for a 640x480 frame (0.8 ms vs 3.7 ms), and it
-    rounds to the nearest integer (at most 1 grey level from the float result).
+    The resize is bilinear with antialiasing (the whole view is kept, the aspect ratio is not); ``uint8``
+    images are resized as uint8 on the CPU (PyTorch's fast path, within 1 grey level of the float one).
 
     Args:
         images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1] (see :func:`check_images`).
         size: the output (height, width); None keeps each batch at its own size.
         mean: per-channel mean of [0, 1] RGB values, length 3; None subtracts nothing.
         std: per-channel standard deviation of [0, 1] RGB values, length 3; None divides by nothing.
-        dtype: the floating dtype of the result (a network's weights' dtype): float images are cast to
-            it, uint8 converted to it. None: float images keep their dtype, uint8 becomes float32.
+        dtype: the floating dtype of the result (the network's); None: a float image's own, else float32.
 
     Returns:
         :math:`(B, 3, size[0], size[1])` normalised floating point tensor on the input's device.
-
-    Example:
-        >>> x = torch.randint(0, 256, (2, 3, 480, 640), dtype=torch.uint8)
-        >>> prepare_images(x, (224, 224), (0.5, 0.5, 0.5), (0.5, 0.5, 0.5)).shape
-        torch.Size([2, 3, 224, 224])
-        >>> prepare_images(torch.rand(1, 3, 60, 80, dtype=torch.float64), None, None, None, torch.float32).dtype
-        torch.float32
     """
     check_images(images)
     for name, v in (("mean", mean), ("std", std)):
@@ -122,8 +101,7 @@ def prepare_images(
     is_uint8 = images.dtype == torch.uint8
     x = images
     if not is_uint8 or x.device.type != "cpu":
-        # Float images: cast first (a float64 frame into a float32 network resizes in float32).
-        # uint8 interpolation exists only on CPU: convert first elsewhere.
+        # float images resize in the network's dtype; uint8 interpolation exists only on the CPU
         x = x.to(out_dtype)
     if tuple(x.shape[-2:]) != (height, width):
         x = F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False, antialias=True)
@@ -132,7 +110,7 @@ def prepare_images(
     scale = 255.0 if is_uint8 else 1.0
     mean_t = torch.tensor(mean if mean is not None else (0.0,) * 3, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
     std_t = torch.tensor(std if std is not None else (1.0,) * 3, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
-    # (x / scale - mean) / std as one fused multiply-add: x * a + b.
+    # (x / scale - mean) / std as one fused multiply-add
     a = 1.0 / (scale * std_t)
     b = -mean_t / std_t
     return torch.addcmul(b, x, a).contiguous()

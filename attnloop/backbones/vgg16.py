@@ -1,12 +1,7 @@
 """VGG16 with torchvision-compatible state-dict keys, tapped at a max-pool output (pool5 by default).
 
-The layer indices are torchvision's (``features.0`` ... ``features.30``, ``classifier.0/3/6``), so the
-ImageNet checkpoint ``vgg16-397923af.pth`` loads with ``strict=True``. The network is split at the tap
-L: :meth:`VGG16.forward_to_tap` runs the convolutional blocks up to L, :meth:`VGG16.forward_from_tap`
-runs the rest (later blocks, the adaptive average pool and the classifier) to the logits. The
-``transition`` callable passed to :meth:`VGG16.forward_from_tap` is applied at L and after every later
-max-pool: the softmax-seeded guided backprop uses it to zero negative gradients at exactly those
-block transitions.
+The layer indices are torchvision's, so the ImageNet checkpoint ``vgg16-397923af.pth`` loads with
+``strict=True``. ``transition`` (the guided backprop's clamp) is applied at L and after every later max-pool.
 """
 from __future__ import annotations
 
@@ -49,19 +44,18 @@ class VGG16(nn.Module):
 
     Args:
         tap: the tap layer L, one of ``pool1`` ... ``pool5``.
-        num_classes: size of the classifier output.
 
     Shape:
         - images: :math:`(B, 3, H, W)` uint8 in [0, 255] or float in [0, 1]
         - tap L: :math:`(B, 512, 7, 7)` for pool5 (see :attr:`tap_shape`)
-        - logits: :math:`(B, \\text{num\\_classes})`
+        - logits: :math:`(B, 1000)`
     """
 
     input_size = (224, 224)
     mean = IMAGENET_MEAN
     std = IMAGENET_STD
 
-    def __init__(self, tap: str = "pool5", num_classes: int = 1000) -> None:
+    def __init__(self, tap: str = "pool5") -> None:
         super().__init__()
         if tap not in VGG16_TAPS:
             raise ValueError(f"unknown VGG16 tap {tap!r}; choose one of {sorted(VGG16_TAPS)}")
@@ -77,15 +71,11 @@ class VGG16(nn.Module):
             nn.Linear(4096, 4096),
             nn.ReLU(inplace=True),
             nn.Dropout(0.5),
-            nn.Linear(4096, num_classes),
+            nn.Linear(4096, 1000),
         )
 
     def reset_parameters(self, seed: int = 0) -> VGG16:
-        """Seeded random weights with torchvision's scheme (Kaiming-normal convolutions, N(0, 0.01) linears).
-
-        Args:
-            seed: the seed of a private generator; the global RNG is untouched.
-        """
+        """Seeded random weights (a private generator), torchvision's scheme."""
         gen = torch.Generator(device="cpu").manual_seed(int(seed))
         with torch.no_grad():
             for m in self.modules():
@@ -110,13 +100,7 @@ class VGG16(nn.Module):
     def forward_from_tap(
         self, tap: torch.Tensor, transition: Callable[[torch.Tensor], torch.Tensor] | None = None
     ) -> torch.Tensor:
-        """Tap L (B, C, h, w) -> logits (B, num_classes).
-
-        Args:
-            tap: the tap activations L.
-            transition: applied to L and to the output of every later max-pool (the block transitions);
-                identity when None.
-        """
+        """Tap L (B, C, h, w) -> logits (B, 1000), ``transition`` applied to L and after every later max-pool."""
         x = transition(tap) if transition is not None else tap
         for index in range(self.tap_index + 1, len(self.features)):
             x = self.features[index](x)
@@ -126,7 +110,7 @@ class VGG16(nn.Module):
         return self.classifier(torch.flatten(x, 1))
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        """Images (B, 3, H, W) -> logits (B, num_classes): the plain classifier."""
+        """Images (B, 3, H, W) -> logits (B, 1000): the plain classifier."""
         return self.forward_from_tap(self.forward_to_tap(self.preprocess(images)))
 
     def _dtype(self) -> torch.dtype:
@@ -138,33 +122,21 @@ def vgg16(
     weights: str | Path | None = None,
     tap: str = "pool5",
     seed: int = 0,
-    progress: bool = True,
 ) -> VGG16:
     """Build VGG16 (eval mode) tapped at ``tap``.
 
     Args:
-        pretrained: load the ImageNet weights (``vgg16-397923af.pth``): from ``weights`` if given, else the
-            torch hub cache, else a download (never with ``ATTNLOOP_OFFLINE=1``). When False, seeded
-            random weights are built without touching any file.
+        pretrained: load the ImageNet weights (``weights``, else the torch hub cache, else a download unless
+            ``ATTNLOOP_OFFLINE=1``); False: seeded random weights.
         weights: an explicit checkpoint path (torchvision keys); implies ``pretrained``.
         tap: the tap layer L (``pool5`` gives (B, 512, 7, 7)).
         seed: seed of the random weights when ``pretrained`` is False.
-        progress: show the download progress bar.
-
-    Returns:
-        the network in eval mode.
-
-    Example:
-        >>> net = vgg16(pretrained=False)
-        >>> net.tap_shape
-        (512, 7, 7)
     """
-    # Built on the meta device: the default initialisation of 138 M parameters (~1 s) would be
-    # overwritten anyway, by the checkpoint or by the seeded initialisation.
+    # on the meta device: the default initialisation (~1 s) would be overwritten anyway
     with torch.device("meta"):
         net = VGG16(tap=tap)
     if pretrained or weights is not None:
-        path = resolve_vgg16_weights(weights, progress=progress)
+        path = resolve_vgg16_weights(weights)
         net.load_state_dict(load_state_dict(path, VGG16_FILE), strict=True, assign=True)
     else:
         net = net.to_empty(device="cpu").reset_parameters(seed)

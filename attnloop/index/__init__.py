@@ -1,17 +1,10 @@
 """Keyframe index for loop closure: which earlier keyframes look like this one, from one to a million.
 
-- :class:`KeyframeIndex`: the database. ``KeyframeIndex(IndexConfig(backend=...)).add(descriptors, ids=...)``,
-  ``.search(query, k=..., max_id=...)`` (the temporal exclusion window), ``.similarities(...)``,
-  ``.save(path)`` / ``KeyframeIndex.load(path)``. Backends (:data:`BACKENDS`): ``"exact"`` (a scan),
-  ``"flann"`` (the paper's FLANN priority-search k-means tree), ``"faiss"`` (an HNSW graph, optional
-  ``pip install attnloop[faiss]``), and ``"auto"`` (the default: exact below ``exact_below`` keyframes,
-  then faiss where installed, else flann). Candidates are always re-scored exactly; the structures can
-  be built on a PCA code of the descriptors (``reduce_dim``).
-- :class:`LoopCandidateDetector`: per new keyframe, search + adaptive threshold + temporal consistency.
+- :class:`KeyframeIndex`: ``add``, ``search(query, k, max_id)`` (the temporal exclusion window), ``save`` /
+  ``load``; backends ``"exact"``, ``"flann"`` (the paper's k-means tree), ``"faiss"`` (HNSW,
+  ``pip install attnloop[faiss]``) and ``"auto"``; candidates are always re-scored exactly.
+- :class:`LoopCandidateDetector`: per new keyframe, search and adaptive threshold.
 - :func:`exact_search`: the brute-force reference.
-
-Figures (recall, time per query, build time, memory from 10^4 to 10^6 keyframes): docs/results.md,
-"Keyframe index"; beyond one machine: docs/scale.md.
 """
 from __future__ import annotations
 

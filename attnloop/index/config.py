@@ -1,8 +1,4 @@
-"""Configuration of the keyframe index: :class:`IndexConfig` and the settings of each backend.
-
-The backend names live in :data:`BACKENDS` (the one list of them); :func:`resolve_backend` turns
-``"auto"`` into the best backend installed here.
-"""
+"""Configuration of the keyframe index: :class:`IndexConfig` and the settings of each backend."""
 from __future__ import annotations
 
 import dataclasses
@@ -22,18 +18,11 @@ STORAGE_DTYPES = ("float32", "float16")
 
 @dataclass(frozen=True)
 class FlannConfig:
-    """The paper's FLANN priority-search k-means tree (OpenCV's ``cv2.flann_Index``, algorithm 2).
-
-    FLANN cannot add points to a built tree: rows added after a build form a *tail* that is scanned
-    exactly until the tree is rebuilt over every row (in a worker thread, see ``IndexConfig.background``).
-    OpenCV's Python binding cannot pass FLANN's ``centers_init`` (a C++ enum), so the k-means centres are
-    always initialised at random (FLANN's default), from OpenCV's RNG seeded with ``IndexConfig.seed`` in
-    the build thread (the caller's RNG is untouched).
-    """
+    """The paper's FLANN priority-search k-means tree (OpenCV's ``cv2.flann_Index``), rebuilt as rows are added."""
 
     branching: int = 32  # k-means tree branching factor (FLANN's default)
-    iterations: int = 5  # k-means iterations per node (FLANN default 11; 5 builds ~2x faster, same recall)
-    checks: int = 512  # points examined per query; -1 = exhaustive tree search (exact); docs/benchmarks
+    iterations: int = 5  # k-means iterations per node
+    checks: int = 512  # points examined per query; -1 = exhaustive tree search (exact)
     rebuild_every: int = 256  # rebuild the tree once the unindexed tail holds this many rows ...
     rebuild_fraction: float = 0.25  # ... and at least this fraction of the indexed rows
 
@@ -50,25 +39,14 @@ class FlannConfig:
 
 @dataclass(frozen=True)
 class FaissConfig:
-    """A faiss HNSW graph (``faiss.IndexHNSWFlat``, L2 on the unit descriptors or on their PCA codes).
+    """A faiss HNSW graph (``faiss.IndexHNSWFlat``, L2 on the unit descriptors or their PCA codes), grown by
+    every ``add`` and rebuilt only to refit its PCA code. Settings measured: docs/results.md, "Keyframe index"."""
 
-    The graph grows one keyframe at a time (every ``add`` inserts into it), so it never needs a rebuild
-    for growth. Only its trained part, the PCA code of ``IndexConfig.reduce_dim``, goes stale as the robot
-    reaches places unlike those it was fitted on; the graph is rebuilt with a new code, in a worker
-    thread, once the rows have grown by ``retrain_growth`` since the fit.
-    """
-
-    # Links per node (2 m on the bottom layer): the graph's degree, more than the code or ef_search, holds
-    # recall as the collection grows (m = 32 fell to 0.69 recall@10 at 10^6 rows, m = 64 kept 0.98), for
-    # 1.5-2x the build time (docs/results.md, "Keyframe index").
-    m: int = 64
-    # Candidate list while inserting: faiss's default 40 lost recall on the real kitchen descriptors (a thin
-    # manifold), 80 lost none.
-    ef_construction: int = 80
+    m: int = 64  # links per node (2 m on the bottom layer)
+    ef_construction: int = 80  # candidate list while inserting
     ef_search: int = 64  # candidate list while searching (raised to the number of rows asked for)
-    # Refit the PCA code and rebuild once the rows added since the fit reach this fraction of the rows it
-    # was fitted on (1.0: at every doubling, so all the rebuilds together cost about one final build;
-    # inf: never). Between refits, new places are coded by the old fit.
+    # refit the PCA code and rebuild once the rows added since the fit reach this fraction of the rows it was
+    # fitted on (1.0: at every doubling; inf: never)
     retrain_growth: float = 1.0
 
     def __post_init__(self) -> None:
@@ -81,23 +59,13 @@ class FaissConfig:
 
 @dataclass(frozen=True)
 class IndexConfig:
-    """Parameters of :class:`attnloop.index.KeyframeIndex`.
-
-    Every backend gives the same interface (ids, exclusion window, exact re-scoring): ``"exact"`` scans
-    every eligible descriptor; ``"flann"`` and ``"faiss"`` scan exactly below ``exact_below`` keyframes and
-    above it ask their structure for ``rerank * k`` candidate rows, which are re-scored exactly from the
-    stored descriptors; ``"auto"`` is ``"faiss"`` where faiss is installed, else ``"flann"``.
-    """
+    """Parameters of :class:`attnloop.index.KeyframeIndex` (``"auto"``: ``"faiss"`` where installed, else
+    ``"flann"``)."""
 
     backend: str = "auto"  # "auto" | "exact" | "flann" | "faiss" (BACKENDS)
-    # Below this many eligible keyframes a plain scan answers (exact, and faster than a structure there:
-    # docs/results.md, "Keyframe index"); no structure is built below it.
-    exact_below: int = 4096
-    # PCA code the approximate structure is built on (None: the full descriptors). Candidates are re-scored
-    # on the full stored descriptors, so the code only has to keep the true neighbours among the rerank * k
-    # candidates (docs/results.md, "Keyframe index").
-    reduce_dim: int | None = 128
-    rerank: int = 8  # the structure proposes rerank * k rows per query, all re-scored exactly (4: kitchen 0.93)
+    exact_below: int = 4096  # below this many eligible keyframes a plain scan answers; no structure is built
+    reduce_dim: int | None = 128  # PCA code the structure is built on (None: the full descriptors)
+    rerank: int = 8  # the structure proposes rerank * k rows per query, all re-scored exactly
     storage: str = "float32"  # dtype of the stored descriptors: "float32" | "float16" (half the memory)
     background: bool = True  # build structures in a worker thread; queries use the old one meanwhile
     seed: int = 0  # seed of the k-means centres (flann) and of the PCA's fitting sample
@@ -146,8 +114,7 @@ def config_to_dict(config: IndexConfig) -> dict:
     return out
 
 
-#: Settings that files saved by earlier versions hold, with the one value still meant (PCA-whitening and
-#: the raw dot product are gone: descriptors are L2-normalised and coded by plain PCA).
+#: Settings of files saved by earlier versions, with the one value still meant.
 _RETIRED = {"whiten": False, "normalize": True}
 
 

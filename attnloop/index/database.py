@@ -1,54 +1,18 @@
 """The keyframe database: stored descriptors, an approximate structure over them, exact re-scoring.
 
-Descriptors are L2-normalised, so the cosine similarity is a dot product and the Euclidean distance that the
-structures rank by is ``|a - b|^2 = 2 - 2 a.b``: the nearest neighbours in L2 are the most similar keyframes.
+Descriptors are L2-normalised, so the structures' L2 ranking is the cosine's. All rows live in one growing
+buffer (:class:`~attnloop.index.storage.KeyframeStore`). Below ``exact_below`` keyframes (and for the
+``"exact"`` backend always) a query is one exact scan. Above it, a structure covers rows ``[0, n_indexed)``:
+the faiss HNSW graph grows with every ``add`` (rebuilt only to refit its PCA code); a FLANN tree cannot
+grow, so rows after it are scanned exactly until the tail holds ``max(rebuild_every, rebuild_fraction *
+n_indexed)`` rows and a new tree is built. Builds run in a background thread by default and are swapped in
+by the next ``add``/``search``.
 
-**Rows.** All descriptors live in one growing buffer (:class:`~attnloop.index.storage.KeyframeStore`,
-float32 or float16; rows are never modified). Below ``exact_below`` keyframes (and for the ``"exact"``
-backend always) a query is one exact scan. Above it a structure covers rows ``[0, n_indexed)``:
-
-* ``"faiss"``: an HNSW graph that every ``add`` extends, so it covers every row; it is rebuilt only to
-  refit its PCA code, once the rows have grown by ``FaissConfig.retrain_growth`` since the fit;
-* ``"flann"``: a k-means tree, which cannot grow: rows after it (the *tail*) are scanned exactly, and when
-  the tail holds ``max(rebuild_every, rebuild_fraction * n_indexed)`` rows a new tree over every row is
-  built. With the fraction, the number of rebuilds grows only logarithmically with the database size.
-
-Builds run in a background thread by default (OpenCV and faiss release the GIL while building, so tracking
-goes on); until one is ready, queries keep using the old structure plus the exact tail, and the new one is
-swapped in (one attribute assignment) by the next ``add``/``search``.
-
-**Exactness.** Every answer is re-scored exactly (dot products of the candidate rows with the full stored
-descriptors) and merged with the exact tail; the structure proposes ``rerank * k`` candidate rows, so the
-only approximation is whether it finds the true neighbours among them. FLANN with ``checks=-1`` (exhaustive
-tree search) on the full descriptors (``reduce_dim=None``) finds them: the answer equals a brute-force
-search. The HNSW graph, and any structure on a PCA code, claims no exactness (recall is measured:
-docs/results.md). Re-scoring is in float64 and ties (duplicate frames) go to the lower id, so every
-backend orders equal answers alike: an exact scan keeps every row that can reach the top ``k`` (all copies
-of the ``k``-th value, within float32 rounding), and when every proposal of a structure ties with or beats
-the ``k``-th answer, at least two of them tied, its list may end inside a group of copies: the eligible
-rows are then scanned (only such queries pay for it). With ``rerank=1`` a group of which the structure
-proposed only the ``k``-th answer goes unseen.
-
-**Exclusion window.** Keyframe ids must increase with every ``add``; ``search(..., max_id=m)`` only returns
-keyframes with ``id <= m`` (for a query keyframe ``q`` and a window ``w``: ``m = q - w`` excludes the ``w``
-most recent ids). Because ids increase, the eligible keyframes are a prefix of the rows: the HNSW graph
-searches the id range of that prefix (faiss's ``IDSelectorRange``); the tree is asked for as many extra
-neighbours as it holds rows past the prefix, which are then filtered out (a scan answers when that is
-more than a few); a prefix below ``exact_below`` rows is scanned.
-
-**Persistence.** :meth:`KeyframeIndex.state_dict` / :meth:`KeyframeIndex.from_state` (arrays and a JSON-able
-record) and :meth:`KeyframeIndex.save` / :meth:`KeyframeIndex.load` (one ``.npz`` file) keep the rows and
-the built structure itself, so a reloaded index answers exactly as the saved one.
-
-Example:
-    >>> index = KeyframeIndex(IndexConfig(backend="flann", exact_below=64, background=False))
-    >>> data = torch.randn(200, 32)
-    >>> index.add(data, ids=torch.arange(200))
-    >>> ids, sims = index.search(data[150], k=3, max_id=140)
-    >>> ids.shape, sims.shape, bool((ids <= 140).all())
-    (torch.Size([3]), torch.Size([3]), True)
-    >>> index.search(data[0], k=3, max_id=-1)[0].shape
-    torch.Size([0])
+Every answer is re-scored exactly (float64) from ``rerank * k`` proposed rows, ties to the lower id, so the
+only approximation is whether the structure proposes the true neighbours; FLANN with ``checks=-1`` on the
+full descriptors is exact. ``search(..., max_id=m)`` returns only ids ``<= m`` (the temporal exclusion
+window); ids increase with every ``add``, so the eligible rows are a prefix. :meth:`KeyframeIndex.save` /
+:meth:`KeyframeIndex.load` keep the rows and the built structure: a reloaded index answers as the saved one.
 """
 from __future__ import annotations
 
@@ -87,13 +51,13 @@ def _to_numpy_2d(x, name: str) -> tuple[np.ndarray, bool]:
     return np.ascontiguousarray(arr), False
 
 
-def _as_array(x, dtype) -> np.ndarray:
+def _as_array(x, dtype=None) -> np.ndarray:
     return np.asarray(x.detach().cpu().numpy() if isinstance(x, Tensor) else x, dtype=dtype)
 
 
 def _as_int_array(x, name: str) -> np.ndarray:
     """``x`` (tensor, array, sequence or scalar) as int64; ValueError on a non-integral or out-of-range value."""
-    arr = np.asarray(x.detach().cpu().numpy() if isinstance(x, Tensor) else x)
+    arr = _as_array(x)
     if arr.dtype.kind == "f":
         bad = ~np.isfinite(arr) | (arr != np.round(arr)) | (np.abs(arr) >= 2.0 ** 63)
         if np.any(bad):
@@ -121,8 +85,7 @@ def _l2_normalize(x: np.ndarray) -> np.ndarray:
 class KeyframeIndex:
     """Growing keyframe database with an exact scan, a FLANN tree or a faiss HNSW graph behind one interface.
 
-    Not safe for concurrent ``add``/``search`` calls from several threads (the SLAM loop calls it from
-    one); the only concurrency is its own background build.
+    Not safe for concurrent ``add``/``search`` calls (its only concurrency is its own background build).
 
     Args:
         config: :class:`~attnloop.index.config.IndexConfig` (default: ``backend="auto"``).
@@ -141,7 +104,6 @@ class KeyframeIndex:
         self._result: list = []  # the worker's (structure | exception), read by _poll
         self.num_builds = 0
 
-    # ------------------------------------------------------------------ properties
     def __len__(self) -> int:
         return 0 if self._store is None else self._store.n
 
@@ -151,8 +113,7 @@ class KeyframeIndex:
         return None if self._store is None else self._store.dim
 
     def use_config(self, config: IndexConfig) -> None:
-        """Replace the settings read at query time (``flann.checks``, ``faiss.ef_search``, ``exact_below``,
-        ``rerank``) here and in the built structure: a config is frozen, so a new one takes its place."""
+        """Replace the settings read at query time (``checks``, ``ef_search``, ``exact_below``, ``rerank``)."""
         if not isinstance(config, IndexConfig):
             raise TypeError(f"config must be an IndexConfig, got {type(config).__name__}")
         self.config = config
@@ -195,8 +156,8 @@ class KeyframeIndex:
 
     def descriptors_of(self, ids) -> Tensor:
         """Stored descriptors ``(M, D)`` (float32) of keyframe ids ``(M,)``; ValueError naming an unknown id."""
-        rows = self.rows_of(ids).numpy()  # first: it names an unknown id, also in an empty index
-        if self._store is None:  # an empty index and no id asked for
+        rows = self.rows_of(ids).numpy()  # names an unknown id, also in an empty index
+        if self._store is None:
             return torch.zeros((0, self.dim or 0), dtype=torch.float32)
         return torch.from_numpy(self._store.rows(rows))
 
@@ -215,7 +176,6 @@ class KeyframeIndex:
     def _ids(self) -> np.ndarray:
         return np.zeros(0, dtype=np.int64) if self._store is None else self._store.ids
 
-    # ------------------------------------------------------------------ growth
     def add(self, descriptors, ids=None, timestamps=None) -> None:
         """Append keyframes.
 
@@ -316,11 +276,7 @@ class KeyframeIndex:
         self._poll()
 
     def rebuild(self) -> None:
-        """Build a structure over every stored row now (synchronously), refitting its code.
-
-        No-op for the ``"exact"`` backend, below ``exact_below`` rows, and for a FLANN tree that covers
-        every row already.
-        """
+        """Build a structure over every stored row now (synchronously), refitting its code, where one is due."""
         self.wait()
         if self.backend == "exact" or len(self) < self.config.exact_below:
             return
@@ -328,7 +284,6 @@ class KeyframeIndex:
             return
         self._start_build(background=False)
 
-    # ------------------------------------------------------------------ queries
     def _eligible(self, max_ids: np.ndarray | None, nq: int) -> np.ndarray:
         if max_ids is None:
             return np.full(nq, len(self), dtype=np.int64)
@@ -365,11 +320,9 @@ class KeyframeIndex:
                 ``max_id = query_id - window``); a scalar or ``(Q,)``; ``None``: all keyframes.
 
         Returns:
-            ids (long) and cosine similarities (float32), on the query's device, most similar first:
-            ``(K,)`` each for a ``(D,)`` query, ``(Q, K)`` each for ``(Q, D)``, where
-            ``K = min(k, most eligible keyframes of any query)``; rows of a batch with fewer eligible
-            keyframes are padded with id ``-1`` and similarity ``-inf``. ``K = 0`` (empty tensors) when
-            nothing is eligible. Equal similarities are ordered by id (the lower id wins a tie).
+            ids (long) and cosine similarities (float32), on the query's device, most similar first, ties by
+            id: ``(K,)`` each for a ``(D,)`` query, ``(Q, K)`` for ``(Q, D)``, ``K = min(k, most eligible
+            keyframes of any query)``; shorter rows padded with id ``-1`` and similarity ``-inf``.
 
         Raises:
             ValueError: a query with NaN or inf (naming the rows), a wrong dimension, ``k < 1``, a
@@ -396,10 +349,8 @@ class KeyframeIndex:
         sim_t = torch.from_numpy(out_sim).to(device)
         return (ids_t[0], sim_t[0]) if single else (ids_t, sim_t)
 
-    # Every answer is re-scored in float64 (then rounded to float32): a similarity must not depend on which
-    # other rows were re-scored with it (float32 products of different sizes round differently), and ties
-    # (duplicate frames) go to the lower row (= id), whichever path found the rows, so every backend orders
-    # alike.
+    # Re-scored in float64: a similarity must not depend on which other rows were re-scored with it, and ties
+    # go to the lower row whichever path found the rows.
     def _top(self, q: np.ndarray, m: int, k: int, structure) -> tuple[np.ndarray, np.ndarray]:
         """Rows and similarities of the ``k`` best of the eligible prefix ``[0, m)``, best first, ties by row."""
         q64, tol = q.astype(np.float64), self._tolerance(q)
@@ -416,9 +367,7 @@ class KeyframeIndex:
             rows, sims = np.concatenate([prop, t_rows]), np.concatenate([p_sims, t_sims])
         order = np.argsort(-sims, kind="stable")[:k]
         rows, sims = rows[order], sims[order]
-        # Duplicate frames: when every proposal ties with (or beats) the k-th answer and at least two tie
-        # with it, the structure's list may end inside a group of equal rows whose lower ids it left out:
-        # the prefix is scanned (only such degenerate queries pay for it).
+        # duplicate frames: the proposals may end inside a group of equal rows whose lower ids were left out
         if (sims.size == k and prop.size >= 2 and p_sims.min() >= sims[-1]
                 and np.count_nonzero(p_sims == sims[-1]) >= 2):
             return self._scan(q, q64, 0, m, k, tol)
@@ -429,8 +378,7 @@ class KeyframeIndex:
         return scan_tolerance(self._store.dim, float(np.linalg.norm(q.astype(np.float64))), _UNIT_ROW_NORM)
 
     def _scan(self, q, q64, start: int, stop: int, k: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
-        """The ``k`` best of rows ``[start, stop)``: a float32 scan keeps every row that can be among them
-        (duplicates of the k-th included), which are re-scored exactly."""
+        """The ``k`` best of rows ``[start, stop)``: every row a float32 scan cannot rule out, re-scored exactly."""
         rows = start + topk_rows(self._store.matvec(q, start, stop), k, tol)
         return self._select(rows, q64, k)
 
@@ -438,8 +386,7 @@ class KeyframeIndex:
         return (self._store.rows(rows, np.float64) @ q64).astype(np.float32)
 
     def _select(self, rows: np.ndarray, q64: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """The ``k`` best of the increasing ``rows`` by exact similarity, ties by row (a chunk at a time: many
-        duplicates of the k-th value must not make one huge float64 copy)."""
+        """The ``k`` best of the increasing ``rows`` by exact similarity, ties by row (a chunk at a time)."""
         chunk = GATHER_BYTES // (8 * max(1, self._store.dim)) + 1
         best_r, best_s = rows[:0], np.zeros(0, dtype=np.float32)
         for lo in range(0, rows.size, chunk):
@@ -455,9 +402,8 @@ class KeyframeIndex:
         Args:
             query: ``(D,)`` descriptor.
             max_id: only keyframes with ``id <= max_id`` (see :meth:`search`); ``None``: all.
-            max_samples: an integer ``>= 1``: when more keyframes are eligible, exactly ``max_samples`` of
-                them, evenly spread from the first eligible row to the last (rows ``round(i (M - 1) /
-                (max_samples - 1))``, deterministic); ``None``: all.
+            max_samples: when more keyframes are eligible, exactly this many of them, evenly spread from the
+                first eligible row to the last; ``None``: all.
 
         Returns:
             ids ``(M,)`` (long) and similarities ``(M,)`` (float32) in id order, on the query's device.
@@ -480,16 +426,12 @@ class KeyframeIndex:
         return (torch.from_numpy(self._ids()[rows].copy()).to(device),
                 torch.from_numpy(np.ascontiguousarray(sims, dtype=np.float32)).to(device))
 
-    # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict:
         """Everything needed to rebuild this index with identical answers.
 
         Returns:
-            ``{"meta": dict, name: np.ndarray, ...}``: ``meta`` is JSON-able (format, version, config,
-            backend, dimension, sizes, the structure's record); the arrays are ``descriptors (N, D)`` (in
-            the storage dtype), ``ids (N,)``, ``timestamps (N,)`` and the structure's (``structure.*``:
-            the serialised graph or tree, the PCA code). A build still running is not waited for: the
-            installed structure is saved, and the rows past it are the tail.
+            ``{"meta": dict, name: np.ndarray, ...}`` as :mod:`attnloop.index.persistence` describes; a build
+            still running is not waited for.
         """
         self._poll()
         n, dim = len(self), self.dim
@@ -512,16 +454,13 @@ class KeyframeIndex:
 
         Args:
             state: from :meth:`state_dict` (or :func:`attnloop.index.load_index`'s reading of a file).
-            config: ``None`` (or the saved config): the saved structure is restored as it was (identical
-                answers). Another config (another backend, ``reduce_dim``, ...): the rows are re-added
-                under it and its structure is built anew. A saved ``"auto"`` index whose structure this
-                machine cannot load (faiss missing) is rebuilt with the backend ``"auto"`` picks here.
+            config: ``None`` (or the saved config): the saved structure as it was (identical answers); another
+                config: the rows re-added under it. A saved ``"auto"`` structure this machine cannot load is
+                rebuilt with the backend ``"auto"`` picks here.
 
         Raises:
-            ValueError: a malformed state (an unsupported or missing format version, a missing or ill-typed
-                record entry, arrays inconsistent with the record, non-integral ids, rows of a normalising
-                index that are not unit length, a structure blob that is corrupt or disagrees with the
-                record's rows and dimension, a PCA code of the wrong shape), naming what is wrong.
+            ValueError: a malformed state (format version, record entries, arrays, rows not unit length, a
+                corrupt structure), naming what is wrong.
             ImportError: a saved faiss graph restored where faiss is not installed.
         """
         meta = state.get("meta") if isinstance(state, dict) else None
@@ -531,14 +470,8 @@ class KeyframeIndex:
         supported = ", ".join(map(str, SUPPORTED_VERSIONS))
         if "version" not in meta:
             raise ValueError(f"the record has no format version (this library reads version {supported})")
-        if not isinstance(version, int) or isinstance(version, bool):
-            raise ValueError(f"keyframe index format version {version!r} is not an integer version "
-                             f"(this library reads version {supported})")
-        if version > INDEX_FORMAT_VERSION:
-            raise ValueError(f"keyframe index format version {version} is newer than this library reads "
-                             f"({supported})")
-        if version not in SUPPORTED_VERSIONS:
-            raise ValueError(f"keyframe index format version {version} is not supported (this library reads "
+        if type(version) is not int or version not in SUPPORTED_VERSIONS:
+            raise ValueError(f"keyframe index format version {version!r} is not supported (this library reads "
                              f"version {supported})")
         for key in ("config", "dim", "n", "num_builds", "structure"):
             if key not in meta:
@@ -613,11 +546,7 @@ class KeyframeIndex:
         return out
 
     def save(self, file) -> None:
-        """Write :meth:`state_dict` to one ``.npz`` file (a path or a binary file object).
-
-        The format is open: ``meta`` is a JSON string (format, version, config, ...), every other entry a
-        plain array (no pickles); see :func:`attnloop.index.save_index`.
-        """
+        """Write :meth:`state_dict` to one ``.npz`` file (a path or a binary file object; no pickles)."""
         save_index(self, file)
 
     @classmethod
@@ -631,9 +560,8 @@ class KeyframeIndex:
 
         Raises:
             FileNotFoundError: no such file.
-            IndexFileError: not a keyframe-index file, a missing, newer or otherwise unsupported format
-                version, or inconsistent or corrupt contents (a record entry, the arrays, the FLANN tree or
-                faiss graph, the PCA code), naming the file and what is wrong.
+            IndexFileError: not a keyframe-index file, an unsupported format version, or inconsistent or
+                corrupt contents, naming the file and what is wrong.
             ImportError: the file holds a faiss graph and faiss is not installed here.
         """
         state = read_index_file(file)

@@ -18,14 +18,8 @@ __all__ = ["LoopCandidateDetector", "LoopCandidates", "LoopDetectorConfig"]
 
 @dataclass(frozen=True)
 class LoopDetectorConfig:
-    """Parameters of :class:`LoopCandidateDetector`.
-
-    Per query keyframe ``q``: the eligible keyframes are those with ``id <= q - window``; the ``top_k``
-    most similar are taken from the index; a candidate is accepted when its similarity exceeds the
-    adaptive threshold of the query's similarity distribution (:mod:`attnloop.threshold`, estimated on every
-    eligible keyframe, or on exactly ``threshold_samples`` of them spread evenly over the eligible ones when
-    there are more).
-    """
+    """Parameters of :class:`LoopCandidateDetector`: of the keyframes with ``id <= q - window``, the ``top_k``
+    most similar above the adaptive threshold (:mod:`attnloop.threshold`) of their similarities."""
 
     top_k: int = 5  # neighbours taken from the index per query
     window: int = 30  # exclusion window in keyframe ids: ids > query_id - window are never candidates
@@ -68,25 +62,10 @@ class LoopCandidates:
 
 
 class LoopCandidateDetector:
-    """Per-keyframe loop-candidate selection: index search and adaptive threshold.
-
-    The SLAM system calls :meth:`add_and_query` once per new keyframe; each call first queries the
-    database of earlier keyframes (outside the exclusion window), then adds the new keyframe.
+    """Per-keyframe loop-candidate selection (:meth:`add_and_query` once per new keyframe).
 
     Args:
         config: :class:`LoopDetectorConfig`.
-
-    Example:
-        >>> det = LoopCandidateDetector(LoopDetectorConfig(window=5))
-        >>> gen = torch.Generator().manual_seed(0)
-        >>> places = torch.randn(40, 64, generator=gen)
-        >>> for i in range(40):
-        ...     out = det.add_and_query(places[i] + 0.1 * torch.randn(64, generator=gen), keyframe_id=i)
-        >>> out = det.add_and_query(places[3] + 0.1 * torch.randn(64, generator=gen), keyframe_id=40)
-        >>> out.ids[:1].tolist(), out.scores.shape == out.ids.shape
-        ([3], True)
-        >>> det.similarities(40)[0].shape
-        torch.Size([36])
     """
 
     def __init__(self, config: LoopDetectorConfig | None = None) -> None:
@@ -132,8 +111,6 @@ class LoopCandidateDetector:
 
     def similarities(self, query_id: int, window: int | None = None) -> tuple[Tensor, Tensor]:
         """Exact similarities of a stored keyframe to every keyframe with ``id <= query_id - window``.
-
-        For the loop-closure evaluation (precision/recall over all pairs).
 
         Args:
             query_id: id of a stored keyframe.

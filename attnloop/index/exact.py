@@ -27,20 +27,12 @@ def exact_search(database: Tensor, queries: Tensor, k: int) -> tuple[Tensor, Ten
 
     Args:
         database: ``(N, D)``.
-        queries: ``(Q, D)``; a dtype other than the database's is promoted with it (float64 queries
-            against a float32 database are compared in float64).
+        queries: ``(Q, D)``; the two dtypes are promoted together.
         k: neighbours per query, an integer ``>= 0`` (clipped to ``N``).
 
     Returns:
         row indices ``(Q, min(k, N))`` (long) and similarities ``(Q, min(k, N))``, most similar first;
         equal similarities in increasing row order (the lower row wins a tie at the ``k``-th place).
-
-    Example:
-        >>> rows, sims = exact_search(torch.eye(3), torch.tensor([[0.1, 0.9, 0.0]]), k=2)
-        >>> rows.tolist()
-        [[1, 0]]
-        >>> exact_search(torch.ones(5, 2), torch.ones(1, 2), k=3)[0].tolist()  # ties: lower rows first
-        [[0, 1, 2]]
     """
     if database.dim() != 2 or queries.dim() != 2 or database.shape[1] != queries.shape[1]:
         raise ValueError(f"need database (N, D) and queries (Q, D), got {tuple(database.shape)} and "
@@ -52,8 +44,7 @@ def exact_search(database: Tensor, queries: Tensor, k: int) -> tuple[Tensor, Ten
     vals, rows = torch.topk(sims, kk, dim=1)
     if kk == 0:
         return rows, vals
-    # torch.topk orders ties arbitrarily: where the k-th value is shared by rows it did not return, take the
-    # lowest of them, then order equal values by row.
+    # torch.topk orders ties arbitrarily: the lowest rows tied at the k-th value, equal values by row
     kth = vals[:, -1:]
     cut = ((sims >= kth).sum(1) > kk).nonzero().flatten().tolist()
     for i in cut:
@@ -68,10 +59,7 @@ def exact_search(database: Tensor, queries: Tensor, k: int) -> tuple[Tensor, Ten
 
 
 def matvec(a: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``a @ q`` in float32 for ``a (M, D)`` (a view, possibly row-strided) and ``q (D,)``.
-
-    Through torch: numpy's gemv was up to 10x slower and erratic on a busy 2-core machine.
-    """
+    """``a @ q`` in float32 for ``a (M, D)`` (a view, possibly row-strided) and ``q (D,)``, through torch."""
     if a.shape[0] == 0:
         return np.zeros(0, dtype=np.float32)
     return (torch.from_numpy(a) @ torch.from_numpy(q)).numpy()
@@ -80,9 +68,7 @@ def matvec(a: np.ndarray, q: np.ndarray) -> np.ndarray:
 def scan_tolerance(dim: int, query_norm: float, row_norm: float) -> float:
     """How far below the ``k``-th float32 scan value a row of the true top ``k`` can score.
 
-    A float32 dot product of length ``D`` is off by at most ``~D 2^-24 |x| |q|`` (any summation order), so
-    the true top ``k`` (re-scored in float64, rounded to float32, ties to the lower row) all score at least
-    the ``k``-th largest scan value less twice that bound and one float32 spacing.
+    A float32 dot product of length ``D`` is off by at most ``~D 2^-24 |x| |q|``: twice that, plus a spacing.
     """
     return (2.0 * dim + 8.0) * 2.0 ** -24 * float(query_norm) * float(row_norm)
 
@@ -90,13 +76,8 @@ def scan_tolerance(dim: int, query_norm: float, row_norm: float) -> float:
 def topk_rows(sims: np.ndarray, k: int, tol: float = 0.0) -> np.ndarray:
     """Positions (increasing) of the ``k`` largest values of ``sims (M,)`` and of every value tied with them.
 
-    Every position whose value is at least the ``k``-th largest less ``tol`` is returned (all of them when
-    ``M <= k``): duplicates of the ``k``-th value are all kept, never an arbitrary few, so the exact
-    re-scoring that follows can give ties to the lower row (``tol``: :func:`scan_tolerance`).
-
-    Example:
-        >>> topk_rows(np.array([0.5, 0.9, 0.5, 0.1, 0.5], dtype=np.float32), 2).tolist()
-        [0, 1, 2, 4]
+    Every position at least the ``k``-th largest less ``tol`` (all when ``M <= k``), so that the exact
+    re-scoring can give ties to the lower row.
     """
     if sims.size <= k:
         return np.arange(sims.size)

@@ -1,19 +1,8 @@
 """Saving and loading a :class:`~attnloop.index.KeyframeIndex` as one ``.npz`` file.
 
-The file is an uncompressed numpy ``.npz`` (a zip of ``.npy`` arrays, readable without this library):
-``meta`` holds a JSON string (``format``, ``version``, the ``IndexConfig`` as a dict, the resolved backend,
-the dimension and size, the structure's record), ``descriptors (N, D)``, ``ids (N,)`` and
-``timestamps (N,)`` the rows, and ``structure.*`` the built structure (``structure.blob``: the serialised
-faiss graph or FLANN tree as bytes; ``structure.pca.*``: its PCA code). No pickles: loading runs no code.
-
-Example:
-    >>> import io, torch
-    >>> from attnloop.index import IndexConfig, KeyframeIndex
-    >>> index = KeyframeIndex(IndexConfig(backend="exact"))
-    >>> index.add(torch.eye(4), ids=[2, 3, 5, 8])
-    >>> buf = io.BytesIO(); index.save(buf); _ = buf.seek(0)
-    >>> KeyframeIndex.load(buf).search(torch.eye(4)[2], k=1)[0].tolist()
-    [5]
+An uncompressed numpy ``.npz``: ``meta`` a JSON string (format, version, config, backend, sizes, the
+structure's record), ``descriptors (N, D)``, ``ids (N,)``, ``timestamps (N,)`` and ``structure.*`` (the
+serialised graph or tree, its PCA code). No pickles: loading runs no code.
 """
 from __future__ import annotations
 
@@ -39,13 +28,7 @@ def file_name(file) -> str:
 
 
 def save_index(index, file) -> None:
-    """Write ``index`` (a :class:`~attnloop.index.KeyframeIndex`) to ``file`` (a path or a binary file object)
-    as described in the module docstring.
-
-    A path is written exactly as named (numpy would append ``.npz`` to another name) and atomically: into
-    a temporary file beside it, renamed over it once complete, so a failed or interrupted save leaves the
-    previous file as it was.
-    """
+    """Write ``index`` to ``file`` (a path, written as named and atomically, or a binary file object)."""
     state = index.state_dict()
     meta = state.pop("meta")
     if not isinstance(file, (str, os.PathLike)):

@@ -1,15 +1,8 @@
 """PCA codes of descriptors: what an approximate structure is built on when ``IndexConfig.reduce_dim`` is set.
 
-For unit descriptors ``x, q`` the squared distance ``|x - q|^2 = 2 - 2 x.q`` ranks like the cosine, and
-``|P^T (x - q)|^2`` (``P`` the top principal directions) is that distance less the energy outside the
-code's span. So the structure ranks by L2 between the codes ``z = P^T (x - mean)``, and the index re-scores
-the candidates with the full descriptors.
-
-Example:
-    >>> x = np.random.default_rng(0).standard_normal((500, 32)).astype(np.float32)
-    >>> code = fit_pca(x, dim=8)
-    >>> code.encode(x[:3]).shape, code.dim, 0 < code.kept < 1
-    ((3, 8), 8, True)
+For unit descriptors ``|x - q|^2 = 2 - 2 x.q`` ranks like the cosine, and ``|P^T (x - q)|^2`` is that
+distance less the energy outside the code's span: the structure ranks by L2 between the codes
+``z = P^T (x - mean)``, and the index re-scores the candidates with the full descriptors.
 """
 from __future__ import annotations
 
@@ -45,31 +38,19 @@ class PCACode:
         """Code size ``d``."""
         return int(self.components.shape[1])
 
-    def encode(self, x: np.ndarray, energy: bool = False):
-        """Codes ``(M, d)`` (float32) of descriptors ``x (M, D)`` (float32 or float16).
-
-        Args:
-            x: descriptors.
-            energy: also return ``(kept, total)``, each ``(M,)`` float64: the squared norm of each row's
-                centred projection and of the centred row (how much of each row the code represents).
-        """
+    def encode(self, x: np.ndarray) -> np.ndarray:
+        """Codes ``(M, d)`` (float32) of descriptors ``x (M, D)`` (float32 or float16)."""
         if x.ndim != 2 or x.shape[1] != self.mean.shape[0]:
             raise ValueError(f"PCA code of dimension {self.mean.shape[0]} got descriptors {tuple(x.shape)}")
-        if x.shape[0] <= _FEW and not energy:  # a query: numpy directly (torch's conversions cost more here)
+        if x.shape[0] <= _FEW:  # a query: numpy directly (torch's conversions cost more here)
             z = (np.asarray(x, dtype=np.float32) - self.mean) @ self.components
             return z.astype(np.float32, copy=False)
         out = np.empty((x.shape[0], self.dim), dtype=np.float32)
-        kept, total = np.empty(x.shape[0]), np.empty(x.shape[0])
         mean, comp = torch.from_numpy(self.mean), torch.from_numpy(self.components)
         for lo in range(0, x.shape[0], _CHUNK):
-            xc = torch.from_numpy(np.asarray(x[lo: lo + _CHUNK], dtype=np.float32)) - mean
-            z = xc @ comp
-            hi = lo + z.shape[0]
-            if energy:
-                kept[lo:hi] = (z * z).sum(1).double().numpy()
-                total[lo:hi] = (xc * xc).sum(1).double().numpy()
-            out[lo:hi] = z.numpy()
-        return (out, (kept, total)) if energy else out
+            z = (torch.from_numpy(np.asarray(x[lo: lo + _CHUNK], dtype=np.float32)) - mean) @ comp
+            out[lo: lo + z.shape[0]] = z.numpy()
+        return out
 
     def state(self) -> dict:
         """Arrays and numbers that :meth:`from_state` restores."""

@@ -1,7 +1,7 @@
 """The rows of a keyframe index: descriptors (float32 or float16), ids and timestamps, growing by doubling.
 
-Rows are never modified once written, and a grown buffer is a fresh array, so a view taken earlier (by a
-structure being built in a worker thread) stays valid while keyframes are added.
+Rows are never modified once written and a grown buffer is a fresh array, so a view taken earlier (by a
+build in a worker thread) stays valid.
 """
 from __future__ import annotations
 
@@ -12,9 +12,7 @@ from attnloop.index.exact import matvec
 
 __all__ = ["KeyframeStore"]
 
-# float16 rows are widened to float32 this many at a time before a product (bounds the temporary copy:
-# 16384 x D x 4 bytes, 160 MB for the default 2560-d descriptor), since a float16 product on the CPU rounds
-# its result to float16.
+# float16 rows are widened to float32 this many at a time before a product (a float16 product rounds to float16)
 _CHUNK = 16384
 GATHER_BYTES = 1 << 22  # rows gathered (copied) at a time by matvec_rows and the re-scoring: ~4 MB
 
@@ -35,7 +33,6 @@ class KeyframeStore:
         self._ids = np.zeros(0, dtype=np.int64)
         self._ts = np.zeros(0, dtype=np.float64)
 
-    # ------------------------------------------------------------------ growth
     def append(self, x: np.ndarray, ids: np.ndarray, timestamps: np.ndarray) -> None:
         """Append rows ``x (M, D)`` (float32) with their ids and timestamps ``(M,)``."""
         m = x.shape[0]
@@ -58,7 +55,6 @@ class KeyframeStore:
         ts[: self.n] = self._ts[: self.n]
         self._desc, self._ids, self._ts = desc, ids, ts
 
-    # ------------------------------------------------------------------ reading
     @property
     def ids(self) -> np.ndarray:
         """Ids of rows ``[0, N)`` (a view)."""
@@ -77,11 +73,6 @@ class KeyframeStore:
     def view(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Stored descriptors of rows ``[start, stop)``, in the storage dtype (a view, never written again)."""
         return self._desc[start: self.n if stop is None else stop]
-
-    def float32(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        """Descriptors of rows ``[start, stop)`` as float32 (a view for float32 storage, else a copy)."""
-        v = self.view(start, stop)
-        return v if v.dtype == np.float32 else v.astype(np.float32)
 
     def rows(self, rows: np.ndarray, dtype=np.float32) -> np.ndarray:
         """Descriptors of the given rows ``(M,)`` as ``(M, D)`` of ``dtype`` (float32 by default)."""
@@ -106,15 +97,14 @@ class KeyframeStore:
             out[lo: lo + chunk] = matvec(block.astype(np.float32, copy=False), q)
         return out
 
-    def matvec(self, q: np.ndarray, start: int = 0, stop: int | None = None, step: int = 1) -> np.ndarray:
-        """Similarities ``(M,)`` (float32) of ``q (D,)`` to rows ``start, start + step, ...`` below ``stop``."""
+    def matvec(self, q: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Similarities ``(M,)`` (float32) of ``q (D,)`` to rows ``[start, stop)``."""
         stop = self.n if stop is None else stop
         if self.dtype == np.float32:
-            return matvec(self._desc[start:stop:step], q)
-        out = np.empty(len(range(start, stop, step)), dtype=np.float32)
+            return matvec(self._desc[start:stop], q)
+        out = np.empty(max(0, stop - start), dtype=np.float32)
         qt = torch.from_numpy(q)
-        span = _CHUNK * step
-        for i, lo in enumerate(range(start, stop, span)):
-            chunk = torch.from_numpy(self._desc[lo: min(lo + span, stop): step]).float()
-            out[i * _CHUNK: i * _CHUNK + chunk.shape[0]] = (chunk @ qt).numpy()
+        for lo in range(start, stop, _CHUNK):
+            chunk = torch.from_numpy(self._desc[lo: min(lo + _CHUNK, stop)]).float()
+            out[lo - start: lo - start + chunk.shape[0]] = (chunk @ qt).numpy()
         return out

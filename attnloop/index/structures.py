@@ -1,16 +1,9 @@
 """The approximate structures behind :class:`attnloop.index.KeyframeIndex`: a FLANN tree and a faiss HNSW graph.
 
-A structure covers rows ``[0, n)`` of the index's store and proposes *candidate rows* for a query; the
-index re-scores them exactly. Both follow one small interface:
-
-* ``build(x, config)`` (classmethod): a structure over descriptors ``x (n, D)`` (rows ``0..n-1``);
-* ``candidates(q, k, m)``: up to ``k`` rows ``< m`` near the unit query ``q (D,)``, or ``None`` when the
-  structure cannot restrict itself to the prefix ``[0, m)`` cheaply (the index then scans it exactly);
-* ``extendable`` / ``extend(x)``: whether rows can be appended (HNSW) or need a rebuild (FLANN);
-* ``stale()``: whether its trained part (the PCA code) calls for a rebuild;
-* ``state()`` / ``from_state(meta, arrays, x, config)``: a faithful copy for saving (identical answers).
-
-Both rank by L2 (on unit descriptors, or on their PCA codes: :mod:`attnloop.index.reduction`).
+A structure covers rows ``[0, n)`` of the index's store and proposes candidate rows, which the index
+re-scores exactly: ``build(x, config)``; ``candidates(q, k, m)``: up to ``k`` rows ``< m`` near the unit query
+``q (D,)``, or None where a scan of the prefix is cheaper; ``extendable`` / ``extend(x)``; ``stale()``: the
+PCA code calls for a rebuild; ``state()`` / ``from_state(meta, arrays, x, config)``: a faithful copy.
 """
 from __future__ import annotations
 
@@ -87,11 +80,10 @@ _FLANN_HEADER = struct.Struct("=16s16siiQQ")
 _FLANN_FLOAT32 = 8
 
 
-# ----------------------------------------------------------------------------------------------
 class FlannTree:
     """FLANN priority-search k-means tree over rows ``[0, n)`` (not extendable: rows after it are a tail).
 
-    FLANN does not copy the data it indexes: the array (``_data``) is kept alive with the tree.
+    FLANN does not copy the data it indexes: ``_data`` is kept alive with the tree.
     """
 
     kind = "flann"
@@ -108,16 +100,14 @@ class FlannTree:
     def build(cls, x: np.ndarray, config: IndexConfig) -> FlannTree:
         code = _fit_code(x, config)
         data = _codes(x, code)
-        # Runs in a worker thread: OpenCV's RNG is thread-local, so seeding here is reproducible and leaves
-        # the caller's RNG alone.
+        # OpenCV's RNG is thread-local: seeding in the worker thread leaves the caller's alone
         cv2.setRNGSeed(int(config.seed))
         f = config.flann
         params = {"algorithm": _FLANN_INDEX_KMEANS, "branching": int(f.branching), "iterations": int(f.iterations)}
         return cls(cv2.flann_Index(data, params), data, code, config)
 
     def candidates(self, q: np.ndarray, k: int, m: int) -> np.ndarray | None:
-        # Rows past the prefix are filtered out after asking for that many more; when the window cuts so
-        # deep that this would cost more than a scan of the prefix, the index scans it.
+        # rows past the prefix are asked for and filtered out, unless a scan of the prefix is cheaper
         excess = max(0, self.n - m)
         if excess > max(4 * k, 64):
             return None
@@ -126,9 +116,6 @@ class FlannTree:
         idx, _ = self.flann.knnSearch(qc, kq, params={"checks": int(self.config.flann.checks)})
         idx = idx[0].astype(np.int64)
         return idx[(idx >= 0) & (idx < min(m, self.n))]
-
-    def extend(self, x: np.ndarray) -> None:  # pragma: no cover - the index never calls it (extendable False)
-        raise NotImplementedError("a FLANN tree cannot grow; the index rebuilds it")
 
     def stale(self) -> bool:
         return False  # the index's tail rule rebuilds it (and refits its code)
@@ -143,9 +130,8 @@ class FlannTree:
 
     @classmethod
     def from_state(cls, meta: dict, arrays: dict, x: np.ndarray, config: IndexConfig) -> FlannTree:
-        """The saved tree over rows ``[0, meta["n"])`` of ``x``; ValueError when the blob, its header (rows,
-        dimension, data type) or the PCA code disagree with the record (OpenCV's own errors on a corrupt tree
-        propagate: :meth:`KeyframeIndex.from_state` wraps them)."""
+        """The saved tree over rows ``[0, meta["n"])`` of ``x``; ValueError when the blob's header or the PCA
+        code disagree with the record."""
         n = int(meta["n"])
         code = _code_from_state(arrays, x.shape[1], config)
         blob = _blob(arrays)
@@ -170,7 +156,6 @@ class FlannTree:
         return cls(flann, data, code, config)
 
 
-# ----------------------------------------------------------------------------------------------
 class FaissHNSW:
     """faiss HNSW graph over rows ``[0, n)``, extended by every add (rows are its sequential ids)."""
 
@@ -206,9 +191,7 @@ class FaissHNSW:
             _, idx = self.index.search(qc, min(k, self.n), params=params)
         else:  # the exclusion window: rows are ids 0..n-1, so the eligible prefix is an id range
             sel = faiss.IDSelectorRange(0, int(m))
-            # The excluded rows are the most recent keyframes, the ones nearest to a query taken there:
-            # the list must hold them all on top of ef eligible ones. A deep cut (beyond a few ef) instead
-            # leaves ~m/n of the rows eligible wherever the search goes.
+            # the excluded (most recent, nearest) rows on top of ef eligible ones; a deep cut leaves ~m/n eligible
             excess = self.n - int(m)
             ef = ef + excess if excess <= 4 * ef else -(-ef * self.n // int(m))
             ef = min(self.n, ef)
@@ -231,9 +214,7 @@ class FaissHNSW:
 
     @classmethod
     def from_state(cls, meta: dict, arrays: dict, x: np.ndarray, config: IndexConfig) -> FaissHNSW:
-        """The saved graph; ValueError when it is not an L2 HNSW graph over the record's rows and dimension
-        or the PCA code disagrees (faiss's own errors on a corrupt blob propagate: :meth:`KeyframeIndex.
-        from_state` wraps them)."""
+        """The saved graph; ValueError unless an L2 HNSW graph over the record's rows and dimension."""
         faiss = import_faiss()
         n, n_trained = int(meta["n"]), meta.get("n_trained")
         if not isinstance(n_trained, int) or isinstance(n_trained, bool) or not 1 <= n_trained <= n:

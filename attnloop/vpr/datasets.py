@@ -1,10 +1,4 @@
-"""Place-recognition sets as image paths and a ground truth.
-
-Example:
-    >>> s = aligned_set([f"q{i}.png" for i in range(4)], [f"r{i}.png" for i in range(4)], tolerance=1)
-    >>> s.ground_truth.int().tolist()[0]
-    [1, 1, 0, 0]
-"""
+"""Place-recognition sets as image paths and a ground truth."""
 from __future__ import annotations
 
 import csv
@@ -41,19 +35,6 @@ def aligned_ground_truth(query_index, reference_index, tolerance: int) -> torch.
     return (q[:, None] - r[None, :]).abs() <= int(tolerance)
 
 
-def aligned_set(query: list, reference: list, tolerance: int = 1, step: int = 1) -> VPRSet:
-    """Two frame-synchronised sequences (image i of both shows one place), every ``step``-th image of each;
-    ``tolerance`` counts frames of the full sequences (so it means the same at any ``step``)."""
-    if len(query) != len(reference):
-        raise VPRInputError(f"index-aligned sets need as many queries as references, got {len(query)} and "
-                            f"{len(reference)}")
-    if isinstance(step, bool) or int(step) != step or step < 1:
-        raise VPRInputError(f"step must be a positive integer, got {step!r}")
-    keep = list(range(0, len(query), int(step)))
-    gt = aligned_ground_truth(keep, keep, tolerance)
-    return VPRSet([query[i] for i in keep], [reference[i] for i in keep], gt)
-
-
 def nordland(root, step: int = 1, tolerance: int = 1) -> VPRSet:
     """Nordland (the SeqSLAM trim, ``nordland-64x32``): winter queries against summer references.
 
@@ -78,8 +59,11 @@ def nordland(root, step: int = 1, tolerance: int = 1) -> VPRSet:
     rows.sort(key=lambda r: int(r["query_idx"]))
     if any(int(r["query_idx"]) != int(r["ref_idx"]) or int(r["query_idx"]) != i for i, r in enumerate(rows)):
         raise VPRInputError(f"{root / 'gt_index_aligned.csv'}: not index-aligned pairs 0, 1, 2, ...")
-    return aligned_set([str(root / r["query_file"]) for r in rows], [str(root / r["ref_file"]) for r in rows],
-                       tolerance, step)
+    if isinstance(step, bool) or int(step) != step or step < 1:
+        raise VPRInputError(f"step must be a positive integer, got {step!r}")
+    keep = list(range(0, len(rows), int(step)))  # tolerance counts frames of the full sequence
+    return VPRSet([str(root / rows[i]["query_file"]) for i in keep], [str(root / rows[i]["ref_file"]) for i in keep],
+                  aligned_ground_truth(keep, keep, tolerance))
 
 
 def rtabmap(root, min_gap: int = 10) -> VPRSet:

@@ -1,14 +1,9 @@
 """Descriptors of an image collection, written as resumable shards.
 
-``DIR/manifest.json`` lists the images in order, the descriptor's settings and recipe, the model's identity
-(backbone and a SHA-256 of its weights), the library's version and, per finished shard, its row range, its
-file's SHA-256 and the images skipped in it (unreadable: named, never a zero row). ``DIR/shard-NNNNN.npy``
-holds the float32 ``(rows, D)`` descriptors of the shard's readable images, in order. An interrupted run
-goes on where it stopped: a finished shard whose checksum matches is kept, not recomputed.
-
-Two engines produce the same rows: ``"local"`` (a torch DataLoader whose workers decode, the model in this
-process) and ``"ray"`` (Ray Data: the paths, then ``map_batches`` on an actor pool, each actor holding one
-model; ``pip install attnloop[ray]``).
+``DIR/manifest.json`` lists the images, the descriptor's settings, the model's identity and, per finished
+shard, its row range, SHA-256 and skipped (unreadable) images; ``DIR/shard-NNNNN.npy`` holds the float32
+``(rows, D)`` descriptors of its readable images. An interrupted run goes on where it stopped. Engines:
+``"local"`` (a torch DataLoader) and ``"ray"`` (Ray Data on an actor pool; ``pip install attnloop[ray]``).
 """
 from __future__ import annotations
 
@@ -36,22 +31,17 @@ class VPRInputError(ValueError):
     """Input that cannot be used: the message names the file, flag or folder, and what was expected."""
 
 
-# ------------------------------------------------------------------------------------------ images
 def load_rgb(path) -> np.ndarray:
-    """``(H, W, 3)`` uint8 RGB as OpenCV's colour mode decodes it (grey replicated, 16-bit scaled, EXIF
-    rotation applied), from the file's bytes: a missing, corrupt or truncated file is a
-    :class:`slam.io.images.FrameReadError` naming it (cv2.imread decodes half a JPEG and fills the rest)."""
+    """``(H, W, 3)`` uint8 RGB as OpenCV's colour mode decodes it; a missing, corrupt or truncated file is a
+    :class:`slam.io.images.FrameReadError` naming it."""
     from slam.io.images import decode_image
 
     return np.ascontiguousarray(decode_image(str(path), cv2.IMREAD_COLOR)[:, :, ::-1])
 
 
 def natural_key(path) -> tuple:
-    """Sort key of a file name with its digit runs compared as numbers: ``2.jpg`` before ``10.jpg``.
-
-    VPR-Bench numbers a dataset's images by the integer in their name and its ``ground_truth_new.npy``
-    indexes them in that order; the name itself breaks ties, so the order never depends on the file system.
-    """
+    """Sort key of a file name with its digit runs compared as numbers (``2.jpg`` before ``10.jpg``, as
+    VPR-Bench orders images); the name breaks ties."""
     name = Path(path).name
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)], name, str(path)
 
@@ -66,9 +56,8 @@ def folder_images(folder) -> list[Path]:
 
 
 def image_paths(inputs: Sequence) -> list[str]:
-    """The images named by ``inputs``, in order: each is a folder (its images in natural order), a glob
-    pattern (natural order), an image file, or a text file of paths (``.txt``, ``.lst``, ``.list``: one a line,
-    ``#`` comments; relative paths are relative to the list's folder).
+    """The images named by ``inputs``, in order: folders and glob patterns (natural order), image files, or
+    text files of paths (``.txt``, ``.lst``, ``.list``: one a line, ``#`` comments, relative to the list).
 
     Raises:
         VPRInputError: an input that exists as none of these, or matches no image.
@@ -123,8 +112,7 @@ def _collate(batch):
 def describe_batch(model: torch.nn.Module, decoded: Sequence[tuple[int, np.ndarray | None, str | None]]):
     """Describe decoded images: yields ``(index, (D,) float32 row or None, error or None)`` in input order.
 
-    Consecutive images of one size form one batch (a descriptor does not depend on its batch); a row that
-    is not finite or has zero norm is an error, never a row.
+    Consecutive images of one size form one batch; a row that is not finite or zero is an error, never a row.
     """
     run: list[tuple[int, np.ndarray]] = []
     device = next(model.parameters(), torch.empty(0)).device  # the model's (a GPU actor's): the batch goes there
@@ -179,9 +167,8 @@ class RayDescribe:
 
 def ray_engine(settings: dict, items, batch_size: int = 16, actors: int = 1, cpus_per_actor: float = 1,
                gpus_per_actor: float = 0, address: str | None = None) -> Iterator:
-    """``(index, row, error)`` of every ``(index, path)`` of ``items`` from Ray Data (in any order): the paths,
-    then ``map_batches`` on a pool of ``actors`` :class:`RayDescribe` actors. ``ray.init()`` starts a local
-    Ray unless ``address`` names a cluster (``"auto"``, ``"ray://host:10001"``)."""
+    """``(index, row, error)`` of every ``(index, path)`` of ``items`` from Ray Data (in any order), on
+    ``actors`` :class:`RayDescribe` actors; a local Ray unless ``address`` names a cluster."""
     import logging
 
     import ray
@@ -201,7 +188,6 @@ def ray_engine(settings: dict, items, batch_size: int = 16, actors: int = 1, cpu
             yield int(index), (None if error else row.astype(np.float32)), (error or None)
 
 
-# ------------------------------------------------------------------------------------------ shards
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()  # a shard is tens of MB
 

@@ -1,35 +1,20 @@
 """Place-recognition evaluation: recall@k, the best-match precision/recall curve, AUC-PR, R@P100.
 
-Input: a query x database similarity matrix ``(Q, R)`` (higher = more alike; a non-finite entry, or a
-pair outside ``candidates``, is not a candidate) and a boolean ground truth ``(Q, R)`` (True: database
-image ``r`` shows the place of query ``q``). Ground truth that is not a candidate (e.g. a neighbour
-inside the minimum frame gap) is ignored: no method could return it.
+Input: a query x database similarity ``(Q, R)`` (higher = more alike; a non-finite entry, or a pair outside
+``candidates``, is not a candidate) and a boolean ground truth ``(Q, R)``; ground truth that is not a
+candidate is ignored. Each query ranks its candidates by similarity, ties in database order:
 
-Definitions (each query ranks its candidates by similarity, ties in database order, as a stable sort):
+* **recall@k**: the fraction of the queries with a true match whose k best candidates include one;
+* **best-match PR curve**: every query proposes its best candidate, accepted at or above a threshold; an
+  accepted query without a true match is a false positive. Recall is relative to the queries with a
+  match (:mod:`slam.eval.loops`' convention): :attr:`PlaceRecognitionResult.curve`;
+* **recall at 100 % precision**: that curve's largest recall without a false positive, and its threshold;
+* **AUC-PR** as VPR-Bench computes it (recall relative to the correct best matches, trapezoidal from
+  (0, 1)): :attr:`PlaceRecognitionResult.vpr_bench_curve`; 0 when no best match is correct.
 
-* **recall@k**: the fraction of the queries *with at least one true match* whose k best candidates
-  include one (VPR-Bench's RecallRate@N; there every query has a match).
-* **best-match precision/recall curve**: every query proposes its best candidate with that similarity
-  as its confidence; at a threshold, the queries with a confidence at or above it are accepted. A
-  query without any true match that is accepted is a false positive (it says "I have been here" and
-  has not), so such queries count against precision, never for recall. Precision = correct accepted /
-  accepted; recall = correct accepted / queries with a true match (the loop-closure convention of
-  :mod:`slam.eval.loops`, ``best_per_query``). :attr:`PlaceRecognitionResult.curve`.
-* **recall at 100 % precision**: the largest recall of that curve with no false positive, and its
-  threshold (the operating point of a loop-closure detector that must never be wrong).
-* **AUC-PR** as VPR-Bench computes it (``performance_comparison.py``: scikit-learn's
-  ``precision_recall_curve(matches, scores)`` of the best matches, then ``auc(recall, precision)``):
-  the same ranking, but recall is relative to the *correct best matches* (so the curve always ends
-  at recall 1 with precision = the top-1 accuracy over all queries), the area by the trapezoidal
-  rule including the point (recall 0, precision 1). :attr:`PlaceRecognitionResult.vpr_bench_curve`.
-  It is 0 when no best match is correct.
-
-Ground truth comes from a binary matrix (an image such as RTAB-Map's ``samples_GT.bmp``, or ``.npy``:
-values 0 and one of 1, 255 or 65535, or bool), a VPR-Bench ``ground_truth_new.npy`` (object array of
-``[query, [matching references]]``), or poses (:func:`ground_truth_from_poses`, the thresholds of
-:class:`slam.eval.loops.LoopGroundTruthConfig`). :func:`read_ground_truth` reads every numeric ``.npy`` as a
-matrix and an object ``.npy`` as VPR-Bench rows; a numeric ``(Q, 2)`` array of ``[query, reference]`` rows
-is read with :func:`read_vpr_bench_ground_truth` only.
+Ground truth comes from a binary matrix (an image such as RTAB-Map's ``samples_GT.bmp``, or ``.npy``), a
+VPR-Bench ``ground_truth_new.npy`` (object rows ``[query, [references]]``), or poses
+(:func:`ground_truth_from_poses`).
 
 Example:
     >>> sim = torch.tensor([[0.9, 0.1, 0.2], [0.3, 0.8, 0.1], [0.2, 0.7, 0.4]])
@@ -68,7 +53,6 @@ __all__ = [
 ]
 
 PathOrFile = Union[str, os.PathLike, IO[bytes]]
-_IMAGE_SUFFIXES = (".bmp", ".png", ".pgm", ".pbm", ".tif", ".tiff", ".jpg", ".jpeg")
 
 
 class GroundTruthFormatError(ValueError):
@@ -87,10 +71,6 @@ class GroundTruthFormatError(ValueError):
 
 class ShapeMismatchError(ValueError):
     """Similarity, ground truth and candidate mask of different shapes (the message gives them)."""
-
-
-# ---------------------------------------------------------------------------------------------------
-# Readers
 
 
 def _name_of(source) -> str:
@@ -182,12 +162,7 @@ def _check_binary(arr: np.ndarray, name: str) -> None:
 def read_ground_truth_matrix(source: PathOrFile) -> torch.Tensor:
     """Read a binary ground-truth matrix: an image (non-zero pixel = match) or a 2-D ``.npy`` array.
 
-    The values must be binary: bool, or 0 and one of 1, 255 (an 8-bit image) or 65535 (a 16-bit one), in
-    any integer or float dtype; anything else (a grey level, a JPEG's artefacts, -1, 0.5) is refused
-    rather than guessed, naming the first offending entry.
-
-    RTAB-Map's ``samples_GT.bmp`` is such an image: 255 at (row i, column j) when image i + 1 revisits
-    the place of image j + 1.
+    The values must be bool, or 0 and one of 1, 255 or 65535 (anything else is refused, not guessed).
 
     Args:
         source: a path or a binary file object (the format is told from the content, not the name).
@@ -196,8 +171,8 @@ def read_ground_truth_matrix(source: PathOrFile) -> torch.Tensor:
         ``(Q, R)`` bool; entry (q, r) is True when reference r shows the place of query q.
 
     Raises:
-        GroundTruthFormatError: missing, undecodable, not 2-D, non-numeric, complex, non-finite or not
-            binary (the message names the file and the first bad (row, column) and its value).
+        GroundTruthFormatError: missing, undecodable, not 2-D, not real, non-finite or not binary (naming
+            the file and the first bad entry).
     """
     name = _name_of(source)
     data = _read_bytes(source)
@@ -211,8 +186,7 @@ def read_ground_truth_matrix(source: PathOrFile) -> torch.Tensor:
     return _matrix_from_array(image, name)
 
 
-# Without num_references, the reference count is the largest index + 1: a (Q, R) bool matrix of at most
-# this many entries (1 GiB); a larger one needs num_references (a corrupt or foreign index is refused).
+# Without num_references, a (Q, R) matrix implied by the largest index has at most this many entries (1 GiB).
 _MAX_IMPLIED_ENTRIES = 2 ** 30
 
 
@@ -252,30 +226,20 @@ def _reference_indices(refs, name: str, q: int) -> list[int]:
 def read_vpr_bench_ground_truth(source: PathOrFile, num_references: int | None = None) -> torch.Tensor:
     """Read a VPR-Bench ``ground_truth_new.npy``: row q is ``[q, matching reference indices]``.
 
-    Accepted layouts: an object array of shape ``(Q, 2)`` (VPR-Bench's) or ``(Q,)`` of 2-item sequences,
-    whose matches are a list, tuple, range or 1-D array of indices, or a single index (an empty list:
-    the query has no true match); and a numeric (integer or float) array of shape ``(Q, 2)`` of
-    ``[query, reference]`` rows, one match per query. Every index must be a non-negative integer (an int,
-    a numpy integer or an integral float; a bool or a string is not an index). VPR-Bench looks a query's
-    matches up by row position (``ground_truth_info[query][1]``), so the first entry of every row must
-    equal its row index. The file is a pickled object array: load only files you trust.
-
-    A numeric ``(Q, 2)`` array is ambiguous: :func:`read_ground_truth` and :func:`read_ground_truth_matrix`
-    read it as a binary (Q, 2) matrix, this function as ``[query, reference]`` rows.
+    An object array ``(Q, 2)`` or ``(Q,)`` of ``[q, matches]`` (a list, range or array of indices, or one
+    index), or a numeric ``(Q, 2)`` array of ``[query, reference]`` rows. Row q must hold query q (VPR-Bench
+    looks matches up by position). The file is a pickled object array: load only files you trust.
 
     Args:
         source: a path or a binary file object.
-        num_references: the size R of the reference set, a non-negative int (default: the largest index
-            + 1, refused when the (Q, R) matrix would exceed 2^30 entries; give it when the last
-            references match no query).
+        num_references: the size R of the reference set (default: the largest index + 1, at most a 2^30
+            entry matrix).
 
     Returns:
         ``(Q, R)`` bool matrix.
 
     Raises:
-        GroundTruthFormatError: unreadable file, a row that is not ``[index, matches]``, a row whose
-            index is not its position, or an index that is not a non-negative integer, or not below
-            ``num_references`` (or the bound above); the message names the file and the row.
+        GroundTruthFormatError: unreadable file, a malformed row or index (naming the file and the row).
         TypeError, ValueError: ``num_references`` is not a non-negative int.
     """
     num_references = _check_num_references(num_references)
@@ -326,15 +290,12 @@ def read_vpr_bench_ground_truth(source: PathOrFile, num_references: int | None =
 def read_ground_truth(source: PathOrFile, num_references: int | None = None) -> torch.Tensor:
     """Read any supported ground truth: a VPR-Bench object ``.npy``, a numeric ``.npy`` or an image.
 
-    The dtype decides: an object ``.npy`` is read by :func:`read_vpr_bench_ground_truth`; every numeric or
-    bool ``.npy`` and every image is a binary matrix (:func:`read_ground_truth_matrix`), whatever its shape,
-    so a numeric ``(Q, 2)`` array of ``[query, reference]`` rows must be read with
-    :func:`read_vpr_bench_ground_truth` (here it is refused unless its values happen to be binary).
+    An object ``.npy`` is VPR-Bench's (:func:`read_vpr_bench_ground_truth`); every numeric ``.npy`` and image
+    is a binary matrix (:func:`read_ground_truth_matrix`), whatever its shape.
 
     Args:
         source: a path or a binary file object.
-        num_references: a non-negative int: for a VPR-Bench file, the size of the reference set (see
-            :func:`read_vpr_bench_ground_truth`); a matrix must then have that many columns.
+        num_references: the size of the reference set; a matrix must then have that many columns.
 
     Returns:
         ``(Q, R)`` bool matrix.
@@ -370,11 +331,8 @@ def ground_truth_from_poses(
 ) -> torch.Tensor:
     """Ground truth from camera poses: closer than ``config.max_distance`` and ``config.max_angle_deg``.
 
-    With one sequence (``reference_poses`` None) the database of frame i is the frames at least
-    ``config.min_frame_gap`` earlier (a SLAM system's loop-closure protocol): entry (i, j) is True
-    when ``j <= i - min_frame_gap`` and the two poses are close. With two sets no gap applies. Frames
-    without ground truth (NaN rows) match nothing. The closeness test is
-    :func:`slam.eval.loops.is_true_loop`'s.
+    With one sequence (``reference_poses`` None) frame i's database is the frames at least
+    ``config.min_frame_gap`` earlier; NaN rows match nothing.
 
     Args:
         query_poses: ``(Q, 7)`` ``[tx, ty, tz, qx, qy, qz, qw]`` (a :class:`slam.io.Trajectory`'s poses).
@@ -418,11 +376,8 @@ def sequence_candidates(n: int, min_gap: int) -> torch.Tensor:
 def sequence_similarity(similarity: torch.Tensor | np.ndarray, length: int) -> torch.Tensor:
     """Similarity of short sequences: each pair scored with the ``length - 1`` pairs before it.
 
-    SeqSLAM's straight diagonal at speed 1, causal (a query uses only the frames before it, as an online
-    loop detector can): entry (i, j) is the mean of ``similarity[i - k, j - k]`` for ``k = 0 ..
-    length - 1``, an index below 0 clamped to 0 (the first frames repeat rather than leave the mean
-    shorter, which would favour the sequence's start). Both the queries and the database must be in
-    capture order at about the same frame rate.
+    SeqSLAM's causal diagonal at speed 1: entry (i, j) is the mean of ``similarity[i - k, j - k]`` for
+    ``k = 0 .. length - 1``, an index below 0 clamped to 0.
 
     Args:
         similarity: ``(Q, R)``; a non-finite entry makes every sequence through it non-finite.
@@ -430,10 +385,6 @@ def sequence_similarity(similarity: torch.Tensor | np.ndarray, length: int) -> t
 
     Returns:
         ``(Q, R)`` float64 on the input's device.
-
-    Example:
-        >>> sequence_similarity(torch.tensor([[1.0, 0.0], [0.0, 1.0]]), 2).tolist()
-        [[1.0, 0.5], [0.5, 1.0]]
     """
     sim = similarity if isinstance(similarity, torch.Tensor) else torch.from_numpy(np.asarray(similarity))
     if sim.dim() != 2:
@@ -447,10 +398,6 @@ def sequence_similarity(similarity: torch.Tensor | np.ndarray, length: int) -> t
     for k in range(int(length)):  # length is a handful of frames: one gather of the (Q, R) matrix each
         out += sim[(rows - k).clamp_min(0)][:, (cols - k).clamp_min(0)]
     return out / int(length)
-
-
-# ---------------------------------------------------------------------------------------------------
-# Evaluation
 
 
 @dataclass
@@ -579,8 +526,7 @@ def evaluate(
         raise TypeError(f"similarity must be numeric, got dtype {sim.dtype}")
     sim = sim.to(torch.float64)
     if isinstance(ground_truth, (str, os.PathLike)):
-        # the similarity's columns are the reference set: a VPR-Bench file's trailing references that match
-        # no query (distractors) exist only there
+        # the similarity's columns are the reference set (a VPR-Bench file omits unmatched trailing ones)
         ground_truth = read_ground_truth(ground_truth, num_references=sim.shape[1])
     gt = _as_matrix(ground_truth, "ground_truth") != 0
     if gt.shape != sim.shape:
@@ -621,9 +567,6 @@ def plot_place_recognition(
     size: tuple[int, int] = (640, 520),
 ) -> np.ndarray:
     """Draw the best-match PR curves (:attr:`PlaceRecognitionResult.curve`) of several methods to a PNG.
-
-    The figure is :func:`slam.eval.plot.plot_pr_curves`'s (matplotlib): a step line per
-    method, a dot at its recall at 100 % precision, the legend giving R@P100 and the average precision.
 
     Args:
         path: PNG to write, or None.

@@ -1,11 +1,5 @@
 """The keyframe index over a descriptor folder: one :class:`attnloop.index.KeyframeIndex`, or one per shard
 searched and merged when one would not fit in memory.
-
-Example:
-    >>> x = np.eye(6, 4, dtype=np.float32)[[0, 1, 2, 3, 0, 1]] + 0.01 * np.arange(6)[:, None]
-    >>> ids, sims = ShardedIndex.build(x, IndexConfig(backend="exact"), max_rows=4).search(x[:1], k=2)
-    >>> ids.tolist()
-    [[0, 4]]
 """
 from __future__ import annotations
 
