@@ -289,7 +289,8 @@ class RGBDSLAM:
         self._failure: Optional[LoopWorkerError] = None  # the worker failed: every later call raises it
         self._broken = False  # set by the worker thread when a job raised: the jobs queued after it do nothing
         self._lag = array("q")  # per frame: keyframes waiting for the worker when track() returned
-        self._shown: List[Tensor] = []  # per keyframe: [estimate, odometry pose] as reported
+        # (2, M, 7) per keyframe: its estimate and odometry pose as reported (one block: replaced at every hand-over)
+        self._shown = torch.zeros(2, 0, 7, dtype=torch.float64)
         self._shown_corrected = False  # the shown estimates include loop corrections
         # The front end tracks the camera whose pixels the keypoints live in: the colour camera when the
         # frames are unregistered (``odometry.features.rgb_intrinsics``). Poses are reported for the
@@ -376,7 +377,7 @@ class RGBDSLAM:
         T_kf = res.T_kf_frame.detach().to(torch.float64).cpu()
         self._frames.append(_FrameRecord(int(frame.index), float(frame.timestamp), res.keyframe_id, T_kf, status))
         # every keyframe the front end created during this call (a promoted previous frame included)
-        kfs = self.odometry.keyframes[len(self._shown) if self._worker is not None else self.graph.num_keyframes:]
+        kfs = self.odometry.keyframes[self._shown.shape[1] if self._worker is not None else self.graph.num_keyframes:]
         new_keyframes = [kf.id for kf in kfs]
         if self._worker is None:
             new_loops, correction = self._keyframe_work(kfs)
@@ -490,7 +491,7 @@ class RGBDSLAM:
         new_loops, correction, snapshot = self._collect(keep=self.config.backend.loop_backlog)
         if snapshot is not None:
             est, odo, self._shown_corrected = snapshot
-            self._shown = [[e, o] for e, o in zip(est, odo)]
+            self._shown = torch.stack([est, odo])
         self._chain_shown(self.odometry.keyframes[: kfs[-1].id + 1])
         ids = [kf.id for kf in kfs]
         self._jobs.append((self._worker.submit(self._background_work, list(kfs)), ids))
@@ -498,13 +499,17 @@ class RGBDSLAM:
 
     def _chain_shown(self, keyframes: List[Keyframe]) -> None:
         """Reported poses for ``keyframes`` beyond those shown: chained on their parent's by the odometry edge."""
-        for kf in keyframes[len(self._shown):]:
+        n = self._shown.shape[1]
+        new: List[Tensor] = []  # (2, 7) each
+        for kf in keyframes[n:]:
             if kf.id == 0:
-                self._shown.append([kf.pose.clone(), kf.pose.clone()])
+                new.append(torch.stack([kf.pose, kf.pose]).to(torch.float64))
             else:
                 edge = self.odometry.edges[kf.id - 1]
-                est, odo = self._shown[edge.i]
-                self._shown.append([se3_compose(est, edge.T_ij), se3_compose(odo, edge.T_ij)])
+                parent = self._shown[:, edge.i] if edge.i < n else new[edge.i - n]
+                new.append(se3_compose(parent, edge.T_ij.to(torch.float64).expand(2, 7)))
+        if new:
+            self._shown = torch.cat([self._shown, torch.stack(new, 1)], 1)
 
     def _background_work(self, kfs: List[Keyframe]):
         if self._broken:  # an earlier job failed: the graph is half-updated, nothing more is done on it
@@ -530,13 +535,12 @@ class RGBDSLAM:
     def keyframe_poses(self) -> Tensor:
         """``(M, 7)`` float64 the keyframes' poses (the depth camera's) as :meth:`track`'s reports place them now:
         corrected by the loops optimised so far, later keyframes chained by odometry (what a viewer draws)."""
-        est = [e for e, _ in self._shown] if self._worker is not None else list(self.graph.estimates())
-        return self._output_frame(torch.stack(est)) if est else torch.zeros(0, 7, dtype=torch.float64)
+        return self._output_frame(self._shown[0] if self._worker is not None else self.graph.estimates())
 
     def _keyframe_poses(self, kf_id: int):
         """(estimate, odometry pose) of a keyframe, as the reports show them."""
         if self._worker is not None:
-            return self._shown[kf_id][0], self._shown[kf_id][1]
+            return self._shown[0, kf_id], self._shown[1, kf_id]
         return self.graph.estimate(kf_id), self.graph.odometry_pose(kf_id)
 
     def _add_to_graph(self, kf: Keyframe) -> None:
@@ -758,11 +762,7 @@ class RGBDSLAM:
             self._worker.shutdown(wait=True, cancel_futures=True)
             self._jobs.clear()
         self._chain_shown(self.odometry.keyframes)
-        if self._shown:
-            est = torch.stack([e for e, _ in self._shown])
-            odo = torch.stack([o for _, o in self._shown])
-        else:
-            est = odo = torch.zeros(0, 7, dtype=torch.float64)
+        est, odo = self._shown
         kfs = self.odometry.keyframes
         kf_ts = torch.tensor([kf.timestamp for kf in kfs], dtype=torch.float64)
         return SLAMResult(
