@@ -276,8 +276,6 @@ class KeyframeGraph:
     def has_active_loop(self) -> bool:
         """Whether any loop edge is active: from the newest loop back, stopping at the first active one (the
         loops are found in one vectorised pass, not a Python loop over every edge)."""
-        if not self._rows_in_step():
-            return bool(self.loop_edges(active_only=True))
         return any(self.edges[k].active for k in np.flatnonzero(self._edge_kind.view == int(EdgeKind.LOOP))[::-1])
 
     def pose_graph(self, information_scale: Dict[EdgeKind, float], poses: Optional[Tensor] = None,
@@ -302,12 +300,8 @@ class KeyframeGraph:
                              torch.zeros(0, 7, dtype=torch.float64), torch.zeros(0, 6, 6, dtype=torch.float64))
         edges = [self.edges[k] for k in sel]
         scale = torch.tensor([float(information_scale[e.kind]) for e in edges], dtype=torch.float64)
-        if self._rows_in_step():  # the measurements as rows: one index instead of stacking E tensors
-            T = torch.from_numpy(self._edge_T.view[sel])
-            info = torch.from_numpy(self._edge_info.view[sel])
-        else:
-            T = torch.stack([e.T_ij for e in edges])
-            info = torch.stack([e.information for e in edges])
+        T = torch.from_numpy(self._edge_T.view[sel])  # the measurements as rows: indexed, not E tensors stacked
+        info = torch.from_numpy(self._edge_info.view[sel])
         info = 0.5 * (info + info.transpose(-1, -2)) * scale[:, None, None]
         return PoseGraph(P, torch.tensor([e.i for e in edges], dtype=torch.long),
                          torch.tensor([e.j for e in edges], dtype=torch.long), T, info)
@@ -330,7 +324,7 @@ class KeyframeGraph:
         Returns:
             ``(pose graph, keyframe ids of its poses (n,) int64, indices into :attr:`edges` of its edges (e,)
             int64)``, or None when nothing is held (the window is a whole connected part of the graph: it has
-            no anchor of its own) or :attr:`edges` was changed by hand (the per-edge rows do not match it).
+            no anchor of its own).
 
         Raises:
             ValueError: a keyframe of ``free`` is out of range.
@@ -339,8 +333,6 @@ class KeyframeGraph:
         idx = np.unique(np.asarray(list(free), dtype=np.int64))
         if idx.size and (idx[0] < 0 or idx[-1] >= n):
             raise ValueError(f"free keyframe {int(idx[(idx < 0) | (idx >= n)][0])} is not one of the {n} keyframes")
-        if not self._rows_in_step():
-            return None
         is_free = np.zeros(n, dtype=bool)
         is_free[idx] = True
         if fixed is not None:
@@ -377,10 +369,6 @@ class KeyframeGraph:
         """``(e,)`` int64 :class:`EdgeKind` codes of the edges ``rows`` (indices into :attr:`edges`)."""
         return torch.from_numpy(self._edge_kind.view[rows.numpy()].copy())
 
-    def _rows_in_step(self) -> bool:
-        """The per-edge rows match :attr:`edges` (a caller may have cut the public list short)."""
-        return len(self._edge_T) == len(self.edges)
-
     # ------------------------------------------------------------------------------------------
     def chain_positions(self, ids) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Where keyframes lie along the odometry chain: (metres travelled from keyframe 0 ``(k,)`` float64,
@@ -415,8 +403,6 @@ class KeyframeGraph:
         if not through_loops and self._chain:
             c, weak = self._travelled.view, self._weak_before.view
             return np.where(weak[tg] == weak[source], np.abs(c[tg] - c[source]), np.inf)
-        if not self._rows_in_step():
-            return self.path_lengths(source, through_loops=through_loops, min_loop_weight=min_loop_weight)[tg]
         import heapq
 
         left = set(tg.tolist())
