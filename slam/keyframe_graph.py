@@ -80,6 +80,11 @@ class GrowingArray:
         return self._buf[: self._n]
 
 
+def _f64(t: Tensor) -> Tensor:
+    """``t`` as a float64 CPU tensor without grad: itself when it is one already (no new tensor)."""
+    return (t.detach() if t.requires_grad else t).to(torch.float64).cpu()
+
+
 class EdgeKind(IntEnum):
     """What an edge of the keyframe graph measures (the integer is its code in :meth:`KeyframeGraph.edge_kinds`)."""
 
@@ -128,7 +133,9 @@ class KeyframeGraph:
     """Keyframe poses (odometry and estimate) and typed edges; builds the :class:`~slam.graph.PoseGraph`.
 
     Keyframe ids are ``0 .. num_keyframes - 1`` in creation order. A keyframe other than the first enters
-    with its odometry edge (:meth:`add_odometry`), which sets its odometry pose by composition.
+    with its odometry edge (:meth:`add_odometry`), which sets its odometry pose by composition. An edge keeps
+    the measurement and information tensors it is given (float64 CPU ones are not copied: a loop's edge and
+    its :class:`slam.loop.LoopClosure` hold one pair, not two): they must not be changed in place afterwards.
     """
 
     def __init__(self) -> None:
@@ -193,11 +200,11 @@ class KeyframeGraph:
         """
         if not 0 <= i < self.num_keyframes:
             raise ValueError(f"odometry edge from keyframe {i}: only {self.num_keyframes} keyframes exist")
-        T = T_ij.detach().to(torch.float64).cpu()
+        T = _f64(T_ij)
         self._odometry.append(se3_compose(self.odometry_pose(i), T).numpy())
         self._estimate.append(estimate.detach().to(torch.float64).cpu().numpy())
         j = len(self._odometry) - 1
-        self.edges.append(GraphEdge(i, j, T.clone(), information.detach().to(torch.float64).cpu().clone(),
+        self.edges.append(GraphEdge(i, j, T, _f64(information),
                                     EdgeKind.ODOMETRY, weak=weak))
         self._chain = self._chain and i == j - 1
         self._travelled.append(self._travelled.view[i] + self.edges[-1].length)
@@ -216,8 +223,7 @@ class KeyframeGraph:
         n = self.num_keyframes
         if not (0 <= i < n and 0 <= j < n) or i == j:
             raise ValueError(f"loop edge {i} -> {j}: need two distinct keyframes of {n}")
-        self.edges.append(GraphEdge(i, j, T_ij.detach().to(torch.float64).cpu().clone(),
-                                    information.detach().to(torch.float64).cpu().clone(), EdgeKind.LOOP))
+        self.edges.append(GraphEdge(i, j, _f64(T_ij), _f64(information), EdgeKind.LOOP))
         self._new_edge()
         self._joined[i].add(j)
         self._joined[j].add(i)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from slam.keyframe_graph import GrowingArray, KeyframeGraph
+from slam.keyframe_graph import EdgeKind, GrowingArray, KeyframeGraph
 from slam.lie import se3_compose, se3_exp, se3_identity
 
 D = torch.float64
@@ -122,3 +122,19 @@ def test_has_active_loop_is_any_active_loop_edge(seed):
         else:
             assert not g.has_active_loop()
             break
+
+
+def test_an_edge_keeps_its_measurement_without_a_copy():
+    """A loop's edge holds the loop's own (float64) tensors: a long run keeps one pair per loop, not two; the
+    rows the pose graph is built from are copies all the same."""
+    g = KeyframeGraph()
+    g.add_keyframe(se3_identity(dtype=D))
+    T = se3_exp(torch.tensor([0.5, 0, 0, 0, 0, 0], dtype=D))
+    info = 2.0 * torch.eye(6, dtype=D)
+    g.add_odometry(0, T, info, T)
+    e = g.add_loop(0, 1, T, info)
+    assert g.edges[e].T_ij is T and g.edges[e].information is info and g.edges[0].T_ij is T
+    pg = g.pose_graph({EdgeKind.ODOMETRY: 1.0, EdgeKind.LOOP: 1.0})
+    assert torch.equal(pg.measurements[1], T) and torch.equal(pg.information[1], info)
+    f = g.add_loop(0, 1, T.float(), info.float())  # another dtype: converted, so a new tensor
+    assert g.edges[f].T_ij.dtype == D and g.edges[f].T_ij is not T
