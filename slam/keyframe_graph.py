@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from slam.graph import PoseGraph
-from slam.lie import quat_angle, se3_compose
+from slam.lie import se3_compose
 
 Tensor = torch.Tensor
 
@@ -122,11 +122,6 @@ class GraphEdge:
     def length(self) -> float:
         """Translation of the measurement (metres)."""
         return float(self.T_ij[:3].norm())
-
-    @property
-    def rotation(self) -> float:
-        """Rotation angle of the measurement (radians)."""
-        return float(quat_angle(self.T_ij[3:]))
 
 
 class KeyframeGraph:
@@ -387,12 +382,6 @@ class KeyframeGraph:
             return None
         idx = np.asarray(ids, dtype=np.int64)
         return self._travelled.view[idx], self._weak_before.view[idx]
-
-    @property
-    def num_weak(self) -> int:
-        """Weak odometry edges so far (forced after tracking losses)."""
-        return sum(e.weak for e in self.edges if e.kind is EdgeKind.ODOMETRY) if not self._chain \
-            else int(self._weak_before.view[-1]) if len(self._weak_before) else 0
 
     def path_lengths_to(self, source: int, targets, through_loops: bool = True, min_loop_weight: float = 0.0
                         ) -> np.ndarray:
