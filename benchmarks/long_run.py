@@ -12,7 +12,7 @@ no new rendering), and run through :func:`slam.pipeline.run_slam` as ``attnloop-
   the keyframe in flight counts), the maximum and the mean over the fifth;
 * loop work per keyframe by stage (``descriptor``, ``loop_detection``, ``verification``,
   ``loop_consistency``, ``online_correction``: milliseconds in the fifth over the keyframes made in it), and
-  its total per frame of the fifth;
+  its total per frame of the fifth; the candidates verified per keyframe;
 * resident memory at the end of the fifth (MB, read every 10 frames while tracking: the last fifth's does not
   include :meth:`~slam.system.RGBDSLAM.finish`, the map's merge and the evaluation, which the maximum does);
 
@@ -63,7 +63,8 @@ class Recorder:
     """Per frame: the wall time of ``track``, the odometry's share, the loop worker's lag, the stage totals."""
 
     def __init__(self):
-        self.rows: list[tuple] = []  # (seconds, odometry seconds, keyframes, lag, stage totals, rss MB)
+        # (seconds, odometry seconds, keyframes, lag, stage totals, rss MB, verifications)
+        self.rows: list[tuple] = []
         self.system = None
 
     def system_class(self):
@@ -85,7 +86,8 @@ class Recorder:
                 queried = len(self.loop_closer.queries) if self.loop_closer is not None else kfs
                 stages = tuple(self.timer.seconds.get(s, 0.0) for s in LOOP_STAGES)
                 rss = _rss_mb() if len(recorder.rows) % 10 == 0 else recorder.rows[-1][5]
-                recorder.rows.append((dt, self.timer.seconds["odometry"] - odo, kfs, kfs - queried, stages, rss))
+                recorder.rows.append((dt, self.timer.seconds["odometry"] - odo, kfs, kfs - queried, stages, rss,
+                                      self.timer.calls.get("verification", 0)))
                 return state
 
         return RecordedSLAM
@@ -93,7 +95,7 @@ class Recorder:
     def fifths(self, parts: int = 5) -> list[dict]:
         n = len(self.rows)
         out = []
-        prev_kf, prev_stages = 0, (0.0,) * len(LOOP_STAGES)
+        prev_kf, prev_stages, prev_verified = 0, (0.0,) * len(LOOP_STAGES), 0
         for p in range(parts):
             lo, hi = p * n // parts, (p + 1) * n // parts
             rows = self.rows[lo:hi]
@@ -112,9 +114,10 @@ class Recorder:
                 "loop_ms_per_keyframe": sum(by_stage.values()),
                 "loop_ms_per_frame": sum(by_stage.values()) * new_kf / len(rows),
                 "loop_ms_per_keyframe_by_stage": by_stage,
+                "verified_per_keyframe": (rows[-1][6] - prev_verified) / new_kf,
                 "rss_mb": rows[-1][5],
             })
-            prev_kf, prev_stages = kf, stages
+            prev_kf, prev_stages, prev_verified = kf, stages, rows[-1][6]
         return out
 
 
@@ -201,12 +204,13 @@ def main(argv=None) -> int:
     }
     print(f"{len(source)} frames x {args.laps} laps = {len(rec.rows)} frames, {wall:.1f} s")
     print(f"{'fifth':>5} {'frames':>13} {'track ms/f':>10} {'odo ms/f':>8} {'kf':>5} {'lag max':>7} {'lag mean':>8} "
-          f"{'loop ms/kf':>10} {'loop ms/f':>9}  {'by stage (ms/kf)':<60} {'RSS MB':>7}")
+          f"{'loop ms/kf':>10} {'loop ms/f':>9}  {'by stage (ms/kf)':<60} {'verif/kf':>8} {'RSS MB':>7}")
     for k, f in enumerate(fifths):
         st = " ".join(f"{s[:6]}={v:.1f}" for s, v in f["loop_ms_per_keyframe_by_stage"].items())
         print(f"{k + 1:>5} {f['frames'][0]:>6}-{f['frames'][1]:<6} {f['track_ms_per_frame']:>10.2f} "
               f"{f['odometry_ms_per_frame']:>8.2f} {f['keyframes']:>5} {f['lag_max']:>7} {f['lag_mean']:>8.2f} "
-              f"{f['loop_ms_per_keyframe']:>10.1f} {f['loop_ms_per_frame']:>9.1f}  {st:<60} {f['rss_mb']:>7.0f}")
+              f"{f['loop_ms_per_keyframe']:>10.1f} {f['loop_ms_per_frame']:>9.1f}  {st:<60} "
+              f"{f['verified_per_keyframe']:>8.2f} {f['rss_mb']:>7.0f}")
     r = report["ratios_last_over_first"]
     print(f"last / first fifth: tracking {r['track_ms_per_frame']:.2f}x, loop work per keyframe "
           f"{r['loop_ms_per_keyframe']:.2f}x (per frame {r['loop_ms_per_frame']:.2f}x); lag at most "

@@ -4,9 +4,7 @@ Odometry edges and loop edges fail differently. An odometry edge is rarely wrong
 either right or wrong altogether (an aliased place that passed verification). So each kind gets its own
 robust kernel (:class:`EdgeKindKernel`): by default Cauchy on the odometry edges and dynamic covariance
 scaling (:class:`DCS`, the closed form of switchable constraints) on the loops, which leaves a loop that
-agrees with the rest untouched and switches off, smoothly, one that does not. Graduated non-convexity
-(``loop_kernel="gnc"``: Geman-McClure on the loops, its width shrunk from wide to the final one over a few
-warm-started solves) is the alternative.
+agrees with the rest untouched and switches off, smoothly, one that does not.
 
 :meth:`PoseGraphBackend.optimize` calls :func:`slam.graph.optimize` (its public API only) and returns a
 :class:`BackendResult` with the poses, each loop edge's final weight, status and timing.
@@ -38,7 +36,6 @@ from typing import Dict, List, Optional, Sequence
 import torch
 
 from slam.graph import CHI2_95_6DOF, RobustKernel, make_kernel, optimize
-from slam.graph.costs import GemanMcClure
 from slam.graph.optimizer import METHODS as OPTIMIZER_METHODS  # BackendConfig.method must be one of them
 from slam.graph.optimizer import OptimizationResult
 from slam.keyframe_graph import EdgeKind, KeyframeGraph
@@ -111,8 +108,6 @@ def make_loop_kernel(name: Optional[str], width: Optional[float]) -> Optional[Ro
     """The loop edges' kernel by name: ``"dcs"``, a kernel of :func:`slam.graph.make_kernel`, or None."""
     if name is not None and name.lower() == "dcs":
         return DCS() if width is None else DCS(width)
-    if name is not None and name.lower() == "gnc":
-        return GemanMcClure() if width is None else GemanMcClure(width)
     return make_kernel(name, width)
 
 
@@ -142,10 +137,8 @@ def check_backend_config(config) -> None:
                 raise TypeError(f"a name, not {type(config.loop_kernel).__name__}")
             make_loop_kernel(config.loop_kernel, config.loop_kernel_width)
         except (ValueError, TypeError) as exc:
-            raise ValueError(f"{n}.loop_kernel: unknown loop kernel {config.loop_kernel!r}; expected 'dcs', 'gnc', "
+            raise ValueError(f"{n}.loop_kernel: unknown loop kernel {config.loop_kernel!r}; expected 'dcs', "
                              f"a kernel name of slam.graph.make_kernel, 'none' or None ({exc})") from None
-    check_int(n, "gnc_steps", config.gnc_steps, 1)
-    check_number(n, "gnc_factor", config.gnc_factor, 1, finite=True)  # the width shrinks (1: stays) per solve
     check_int(n, "max_iterations", config.max_iterations, 1)
     check_int(n, "loop_backlog", config.loop_backlog, 0)
     check_int(n, "online_max_iterations", config.online_max_iterations, 1)
@@ -165,12 +158,12 @@ class BackendResult:
         poses: ``(M, 7)`` float64 optimised keyframe poses.
         loop_weights: index into ``KeyframeGraph.edges`` -> final kernel weight of that (active) loop
             edge (1 = fully trusted, near 0 = switched off).
-        status: the (last) optimiser's status.
-        iterations: LM iterations over all solves.
+        status: the optimiser's status.
+        iterations: LM iterations.
         seconds: wall time.
         initial_chi2, chi2: of the graph (plain sums, before and after).
-        optimization: the last :class:`~slam.graph.optimizer.OptimizationResult`.
-        solves: optimiser calls (more than 1 for GNC).
+        optimization: the :class:`~slam.graph.optimizer.OptimizationResult`.
+        history: the cost after each iteration.
     """
 
     poses: Tensor
@@ -181,7 +174,6 @@ class BackendResult:
     initial_chi2: float
     chi2: float
     optimization: Optional[OptimizationResult] = None
-    solves: int = 1
     history: List[float] = field(default_factory=list)
 
 
@@ -254,28 +246,9 @@ class PoseGraphBackend:
         loop_rows = [r for r, k in enumerate(active) if graph.edges[k].kind is EdgeKind.LOOP]
         iters = cfg.online_max_iterations if online else cfg.max_iterations
         name = None if cfg.loop_kernel is None else str(cfg.loop_kernel).lower()
-        solves, total_iters, history = 0, 0, []
-        initial_chi2 = None
-        if name == "gnc" and loop_rows:
-            # graduated non-convexity: Geman-McClure on the loops, from nearly quadratic to the final width
-            final = cfg.loop_kernel_width or math.sqrt(CHI2_95_6DOF)
-            widths = [final * cfg.gnc_factor ** k for k in range(cfg.gnc_steps - 1, -1, -1)]
-            poses = pg.poses
-            for w in widths:
-                res = optimize(pg.with_poses(poses, check=False), method=cfg.method,
-                               kernel=self._kernel(kinds, GemanMcClure(w)),
-                               max_iterations=max(1, iters // len(widths)) if online else iters)
-                initial_chi2 = res.initial_chi2 if initial_chi2 is None else initial_chi2
-                poses = res.graph.poses
-                solves += 1
-                total_iters += res.iterations
-                history.extend(res.cost_history)
-        else:
-            loop_kernel = (make_kernel(cfg.kernel, cfg.kernel_width) if name is None  # None: as the odometry's
-                           else make_loop_kernel(name, cfg.loop_kernel_width))
-            res = optimize(pg, method=cfg.method, kernel=self._kernel(kinds, loop_kernel), max_iterations=iters)
-            initial_chi2 = res.initial_chi2
-            solves, total_iters, history = 1, res.iterations, list(res.cost_history)
+        loop_kernel = (make_kernel(cfg.kernel, cfg.kernel_width) if name is None  # None: as the odometry's
+                       else make_loop_kernel(name, cfg.loop_kernel_width))
+        res = optimize(pg, method=cfg.method, kernel=self._kernel(kinds, loop_kernel), max_iterations=iters)
         w = res.weights
         loop_weights = {active[r]: (float(w[r]) if w is not None else 1.0) for r in loop_rows}
         poses = res.graph.poses.detach().to(torch.float64).cpu()
@@ -283,6 +256,5 @@ class PoseGraphBackend:
             moved = torch.ones(used.numel(), dtype=torch.bool)
             moved[pg.fixed.cpu()] = False
             poses = full_poses.detach().to(torch.float64).cpu().clone().index_copy_(0, used[moved], poses[moved])
-        return BackendResult(poses, loop_weights, str(res.status),
-                             total_iters, time.perf_counter() - t0, float(initial_chi2), float(res.chi2), res, solves,
-                             history)
+        return BackendResult(poses, loop_weights, str(res.status), res.iterations, time.perf_counter() - t0,
+                             float(res.initial_chi2), float(res.chi2), res, list(res.cost_history))

@@ -239,13 +239,10 @@ class BackendConfig:
     method: str = "lm"  # "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton): slam.backend.OPTIMIZER_METHODS
     kernel: Optional[str] = "cauchy"  # robust kernel on the odometry edges (a slam.graph.make_kernel name or None)
     kernel_width: Optional[float] = None  # None: sqrt(chi2_0.95(6)) = 3.55
-    # Robust kernel on the loop edges: "dcs" (dynamic covariance scaling: switches a wrong loop off), "gnc"
-    # (graduated non-convexity over Geman-McClure), any name of slam.graph.make_kernel, "none" (quadratic),
-    # or None (the same as ``kernel``).
+    # Robust kernel on the loop edges: "dcs" (dynamic covariance scaling: switches a wrong loop off), any name
+    # of slam.graph.make_kernel, "none" (quadratic), or None (the same as ``kernel``).
     loop_kernel: Optional[str] = "dcs"
     loop_kernel_width: Optional[float] = None  # None: sqrt(chi2_0.95(6)) = 3.55
-    gnc_steps: int = 4  # "gnc": solves (>= 1), the kernel width divided by gnc_factor from one to the next
-    gnc_factor: float = 4.0  # >= 1
     max_iterations: int = 50  # LM iterations of the final optimisation (>= 1)
     odometry_information_scale: float = 0.01  # multiplies the odometry edges' information (see loop.information_scale)
     # Online correction: after a keyframe whose loops changed the graph, optimise it (over online_window), move

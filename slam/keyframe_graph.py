@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from slam.graph import PoseGraph
-from slam.lie import quat_angle, se3_compose
+from slam.lie import se3_compose
 
 Tensor = torch.Tensor
 
@@ -78,6 +78,11 @@ class GrowingArray:
     def view(self) -> np.ndarray:
         """The rows so far (a view: it changes with the next append that does not reallocate)."""
         return self._buf[: self._n]
+
+
+def _f64(t: Tensor) -> Tensor:
+    """``t`` as a float64 CPU tensor without grad: itself when it is one already (no new tensor)."""
+    return (t.detach() if t.requires_grad else t).to(torch.float64).cpu()
 
 
 class EdgeKind(IntEnum):
@@ -118,17 +123,14 @@ class GraphEdge:
         """Translation of the measurement (metres)."""
         return float(self.T_ij[:3].norm())
 
-    @property
-    def rotation(self) -> float:
-        """Rotation angle of the measurement (radians)."""
-        return float(quat_angle(self.T_ij[3:]))
-
 
 class KeyframeGraph:
     """Keyframe poses (odometry and estimate) and typed edges; builds the :class:`~slam.graph.PoseGraph`.
 
     Keyframe ids are ``0 .. num_keyframes - 1`` in creation order. A keyframe other than the first enters
-    with its odometry edge (:meth:`add_odometry`), which sets its odometry pose by composition.
+    with its odometry edge (:meth:`add_odometry`), which sets its odometry pose by composition. An edge keeps
+    the measurement and information tensors it is given (float64 CPU ones are not copied: a loop's edge and
+    its :class:`slam.loop.LoopClosure` hold one pair, not two): they must not be changed in place afterwards.
     """
 
     def __init__(self) -> None:
@@ -193,11 +195,11 @@ class KeyframeGraph:
         """
         if not 0 <= i < self.num_keyframes:
             raise ValueError(f"odometry edge from keyframe {i}: only {self.num_keyframes} keyframes exist")
-        T = T_ij.detach().to(torch.float64).cpu()
+        T = _f64(T_ij)
         self._odometry.append(se3_compose(self.odometry_pose(i), T).numpy())
         self._estimate.append(estimate.detach().to(torch.float64).cpu().numpy())
         j = len(self._odometry) - 1
-        self.edges.append(GraphEdge(i, j, T.clone(), information.detach().to(torch.float64).cpu().clone(),
+        self.edges.append(GraphEdge(i, j, T, _f64(information),
                                     EdgeKind.ODOMETRY, weak=weak))
         self._chain = self._chain and i == j - 1
         self._travelled.append(self._travelled.view[i] + self.edges[-1].length)
@@ -216,8 +218,7 @@ class KeyframeGraph:
         n = self.num_keyframes
         if not (0 <= i < n and 0 <= j < n) or i == j:
             raise ValueError(f"loop edge {i} -> {j}: need two distinct keyframes of {n}")
-        self.edges.append(GraphEdge(i, j, T_ij.detach().to(torch.float64).cpu().clone(),
-                                    information.detach().to(torch.float64).cpu().clone(), EdgeKind.LOOP))
+        self.edges.append(GraphEdge(i, j, _f64(T_ij), _f64(information), EdgeKind.LOOP))
         self._new_edge()
         self._joined[i].add(j)
         self._joined[j].add(i)
@@ -276,8 +277,6 @@ class KeyframeGraph:
     def has_active_loop(self) -> bool:
         """Whether any loop edge is active: from the newest loop back, stopping at the first active one (the
         loops are found in one vectorised pass, not a Python loop over every edge)."""
-        if not self._rows_in_step():
-            return bool(self.loop_edges(active_only=True))
         return any(self.edges[k].active for k in np.flatnonzero(self._edge_kind.view == int(EdgeKind.LOOP))[::-1])
 
     def pose_graph(self, information_scale: Dict[EdgeKind, float], poses: Optional[Tensor] = None,
@@ -302,12 +301,8 @@ class KeyframeGraph:
                              torch.zeros(0, 7, dtype=torch.float64), torch.zeros(0, 6, 6, dtype=torch.float64))
         edges = [self.edges[k] for k in sel]
         scale = torch.tensor([float(information_scale[e.kind]) for e in edges], dtype=torch.float64)
-        if self._rows_in_step():  # the measurements as rows: one index instead of stacking E tensors
-            T = torch.from_numpy(self._edge_T.view[sel])
-            info = torch.from_numpy(self._edge_info.view[sel])
-        else:
-            T = torch.stack([e.T_ij for e in edges])
-            info = torch.stack([e.information for e in edges])
+        T = torch.from_numpy(self._edge_T.view[sel])  # the measurements as rows: indexed, not E tensors stacked
+        info = torch.from_numpy(self._edge_info.view[sel])
         info = 0.5 * (info + info.transpose(-1, -2)) * scale[:, None, None]
         return PoseGraph(P, torch.tensor([e.i for e in edges], dtype=torch.long),
                          torch.tensor([e.j for e in edges], dtype=torch.long), T, info)
@@ -330,7 +325,7 @@ class KeyframeGraph:
         Returns:
             ``(pose graph, keyframe ids of its poses (n,) int64, indices into :attr:`edges` of its edges (e,)
             int64)``, or None when nothing is held (the window is a whole connected part of the graph: it has
-            no anchor of its own) or :attr:`edges` was changed by hand (the per-edge rows do not match it).
+            no anchor of its own).
 
         Raises:
             ValueError: a keyframe of ``free`` is out of range.
@@ -339,8 +334,6 @@ class KeyframeGraph:
         idx = np.unique(np.asarray(list(free), dtype=np.int64))
         if idx.size and (idx[0] < 0 or idx[-1] >= n):
             raise ValueError(f"free keyframe {int(idx[(idx < 0) | (idx >= n)][0])} is not one of the {n} keyframes")
-        if not self._rows_in_step():
-            return None
         is_free = np.zeros(n, dtype=bool)
         is_free[idx] = True
         if fixed is not None:
@@ -377,10 +370,6 @@ class KeyframeGraph:
         """``(e,)`` int64 :class:`EdgeKind` codes of the edges ``rows`` (indices into :attr:`edges`)."""
         return torch.from_numpy(self._edge_kind.view[rows.numpy()].copy())
 
-    def _rows_in_step(self) -> bool:
-        """The per-edge rows match :attr:`edges` (a caller may have cut the public list short)."""
-        return len(self._edge_T) == len(self.edges)
-
     # ------------------------------------------------------------------------------------------
     def chain_positions(self, ids) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Where keyframes lie along the odometry chain: (metres travelled from keyframe 0 ``(k,)`` float64,
@@ -393,12 +382,6 @@ class KeyframeGraph:
             return None
         idx = np.asarray(ids, dtype=np.int64)
         return self._travelled.view[idx], self._weak_before.view[idx]
-
-    @property
-    def num_weak(self) -> int:
-        """Weak odometry edges so far (forced after tracking losses)."""
-        return sum(e.weak for e in self.edges if e.kind is EdgeKind.ODOMETRY) if not self._chain \
-            else int(self._weak_before.view[-1]) if len(self._weak_before) else 0
 
     def path_lengths_to(self, source: int, targets, through_loops: bool = True, min_loop_weight: float = 0.0
                         ) -> np.ndarray:
@@ -415,8 +398,6 @@ class KeyframeGraph:
         if not through_loops and self._chain:
             c, weak = self._travelled.view, self._weak_before.view
             return np.where(weak[tg] == weak[source], np.abs(c[tg] - c[source]), np.inf)
-        if not self._rows_in_step():
-            return self.path_lengths(source, through_loops=through_loops, min_loop_weight=min_loop_weight)[tg]
         import heapq
 
         left = set(tg.tolist())

@@ -48,6 +48,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
+import numpy as np
 import torch
 
 from slam.backend import BackendResult, PoseGraphBackend
@@ -56,7 +57,7 @@ from slam.graph import PoseGraph
 from slam.graph.optimizer import OptimizationResult
 from slam.io.frame import RGBDFrame, check_frame
 from slam.io.trajectory import Trajectory
-from slam.keyframe_graph import EdgeKind, KeyframeGraph
+from slam.keyframe_graph import EdgeKind, GrowingArray, KeyframeGraph
 from slam.lie import se3_between, se3_compose, se3_exp, se3_identity, se3_log
 from slam.loop import LoopCloser, LoopClosure, LoopQuery, LoopUpdate
 from slam.odometry import RGBDOdometry
@@ -217,15 +218,6 @@ def interpolate_gaps(timestamps: Tensor, poses: Tensor, placed: Tensor) -> Tenso
     return out
 
 
-@dataclass
-class _FrameRecord:
-    index: int
-    timestamp: float
-    keyframe_id: int
-    T_kf_frame: Tensor
-    status: str
-
-
 class RGBDSLAM:
     """Attention-guided loop-closing RGB-D SLAM.
 
@@ -267,7 +259,10 @@ class RGBDSLAM:
         self.loop_closer: Optional[LoopCloser] = None
         if self.config.loop.enabled:
             self.loop_closer = LoopCloser(self.config.loop, descriptor=descriptor, timer=self.timer)
-        self._frames: List[_FrameRecord] = []
+        # per frame, in input order: its timestamp, the keyframe it is placed in (-1: none yet), its pose there,
+        # whether tracking placed it (not lost nor skipped): rows, not an object per frame
+        self._frame_ts, self._frame_kf, self._frame_placed = array("d"), array("q"), array("b")
+        self._frame_T = GrowingArray(np.float64, (7,))
         # revisiting keyframes that add nothing (LoopClosureConfig.release_revisits), released once a later
         # keyframe has replaced them as tracking's reference; a map to save keeps every keyframe
         self._release = (self.loop_closer is not None and not self.localize and not keep_images
@@ -289,7 +284,8 @@ class RGBDSLAM:
         self._failure: Optional[LoopWorkerError] = None  # the worker failed: every later call raises it
         self._broken = False  # set by the worker thread when a job raised: the jobs queued after it do nothing
         self._lag = array("q")  # per frame: keyframes waiting for the worker when track() returned
-        self._shown: List[Tensor] = []  # per keyframe: [estimate, odometry pose] as reported
+        # (2, M, 7) per keyframe: its estimate and odometry pose as reported (one block: replaced at every hand-over)
+        self._shown = torch.zeros(2, 0, 7, dtype=torch.float64)
         self._shown_corrected = False  # the shown estimates include loop corrections
         # The front end tracks the camera whose pixels the keypoints live in: the colour camera when the
         # frames are unregistered (``odometry.features.rgb_intrinsics``). Poses are reported for the
@@ -374,9 +370,9 @@ class RGBDSLAM:
         if res.status is TrackStatus.LOST:
             self._num_lost += 1
         T_kf = res.T_kf_frame.detach().to(torch.float64).cpu()
-        self._frames.append(_FrameRecord(int(frame.index), float(frame.timestamp), res.keyframe_id, T_kf, status))
+        self._record(float(frame.timestamp), res.keyframe_id, T_kf, res.status is not TrackStatus.LOST)
         # every keyframe the front end created during this call (a promoted previous frame included)
-        kfs = self.odometry.keyframes[len(self._shown) if self._worker is not None else self.graph.num_keyframes:]
+        kfs = self.odometry.keyframes[self._shown.shape[1] if self._worker is not None else self.graph.num_keyframes:]
         new_keyframes = [kf.id for kf in kfs]
         if self._worker is None:
             new_loops, correction = self._keyframe_work(kfs)
@@ -490,7 +486,7 @@ class RGBDSLAM:
         new_loops, correction, snapshot = self._collect(keep=self.config.backend.loop_backlog)
         if snapshot is not None:
             est, odo, self._shown_corrected = snapshot
-            self._shown = [[e, o] for e, o in zip(est, odo)]
+            self._shown = torch.stack([est, odo])
         self._chain_shown(self.odometry.keyframes[: kfs[-1].id + 1])
         ids = [kf.id for kf in kfs]
         self._jobs.append((self._worker.submit(self._background_work, list(kfs)), ids))
@@ -498,13 +494,17 @@ class RGBDSLAM:
 
     def _chain_shown(self, keyframes: List[Keyframe]) -> None:
         """Reported poses for ``keyframes`` beyond those shown: chained on their parent's by the odometry edge."""
-        for kf in keyframes[len(self._shown):]:
+        n = self._shown.shape[1]
+        new: List[Tensor] = []  # (2, 7) each
+        for kf in keyframes[n:]:
             if kf.id == 0:
-                self._shown.append([kf.pose.clone(), kf.pose.clone()])
+                new.append(torch.stack([kf.pose, kf.pose]).to(torch.float64))
             else:
                 edge = self.odometry.edges[kf.id - 1]
-                est, odo = self._shown[edge.i]
-                self._shown.append([se3_compose(est, edge.T_ij), se3_compose(odo, edge.T_ij)])
+                parent = self._shown[:, edge.i] if edge.i < n else new[edge.i - n]
+                new.append(se3_compose(parent, edge.T_ij.to(torch.float64).expand(2, 7)))
+        if new:
+            self._shown = torch.cat([self._shown, torch.stack(new, 1)], 1)
 
     def _background_work(self, kfs: List[Keyframe]):
         if self._broken:  # an earlier job failed: the graph is half-updated, nothing more is done on it
@@ -530,13 +530,12 @@ class RGBDSLAM:
     def keyframe_poses(self) -> Tensor:
         """``(M, 7)`` float64 the keyframes' poses (the depth camera's) as :meth:`track`'s reports place them now:
         corrected by the loops optimised so far, later keyframes chained by odometry (what a viewer draws)."""
-        est = [e for e, _ in self._shown] if self._worker is not None else list(self.graph.estimates())
-        return self._output_frame(torch.stack(est)) if est else torch.zeros(0, 7, dtype=torch.float64)
+        return self._output_frame(self._shown[0] if self._worker is not None else self.graph.estimates())
 
     def _keyframe_poses(self, kf_id: int):
         """(estimate, odometry pose) of a keyframe, as the reports show them."""
         if self._worker is not None:
-            return self._shown[kf_id][0], self._shown[kf_id][1]
+            return self._shown[0, kf_id], self._shown[1, kf_id]
         return self.graph.estimate(kf_id), self.graph.odometry_pose(kf_id)
 
     def _add_to_graph(self, kf: Keyframe) -> None:
@@ -646,12 +645,11 @@ class RGBDSLAM:
                            " (further unreadable frames are not listed; metrics.json counts them)")
         else:
             logger.debug("frame %d skipped: %s", index, reason)
-        if self._frames:
-            prev = self._frames[-1]
-            kf_id, T = prev.keyframe_id, prev.T_kf_frame
+        if self._frame_kf:
+            kf_id, T = self._frame_kf[-1], torch.from_numpy(self._frame_T.view[-1].copy())
         else:
             kf_id, T = -1, se3_identity(dtype=torch.float64)
-        self._frames.append(_FrameRecord(int(index), float(timestamp), kf_id, T.clone(), "skipped"))
+        self._record(float(timestamp), kf_id, T, False)
         self._lag.append(self.loop_lag)
         if kf_id >= 0:
             est, odo_kf = self._keyframe_poses(kf_id)
@@ -675,18 +673,23 @@ class RGBDSLAM:
         for registered frames)."""
         return self._output_frame(poses)
 
+    def _record(self, timestamp: float, kf_id: int, T_kf_frame: Tensor, placed: bool) -> None:
+        self._frame_ts.append(timestamp)
+        self._frame_kf.append(kf_id)
+        self._frame_T.append(T_kf_frame.numpy())
+        self._frame_placed.append(placed)
+
     def _placed(self) -> Tensor:
         """``(N,)`` bool: the frames placed by tracking (not lost, not skipped)."""
-        return torch.tensor([f.status not in (TrackStatus.LOST.value, "skipped") for f in self._frames],
-                            dtype=torch.bool)
+        return torch.tensor(self._frame_placed.tolist(), dtype=torch.bool)
 
     def _frames_trajectory(self, kf_poses: Tensor, interpolate_lost: bool = False) -> Trajectory:
-        n = len(self._frames)
-        ts = torch.tensor([f.timestamp for f in self._frames], dtype=torch.float64)
+        n = len(self._frame_ts)
+        ts = torch.tensor(self._frame_ts.tolist(), dtype=torch.float64)
         if n == 0:
             return Trajectory(ts, torch.zeros(0, 7, dtype=torch.float64))
-        kf = torch.tensor([max(f.keyframe_id, 0) for f in self._frames], dtype=torch.long)
-        T = torch.stack([f.T_kf_frame for f in self._frames])
+        kf = torch.tensor(self._frame_kf.tolist(), dtype=torch.long).clamp_min(0)
+        T = torch.from_numpy(self._frame_T.view.copy())
         base = kf_poses[kf] if kf_poses.shape[0] else se3_identity(n, dtype=torch.float64)
         poses = se3_compose(base, T)
         if interpolate_lost:
@@ -735,15 +738,15 @@ class RGBDSLAM:
             keyframe_trajectory=Trajectory(kf_ts, self._output_frame(kf_final.clone())),
             keyframe_frames=torch.tensor([kf.frame_index for kf in self.odometry.keyframes], dtype=torch.long),
             loops=self.loops, queries=queries, graph=graph, optimization=opt,
-            num_frames=len(self._frames), num_keyframes=self.graph.num_keyframes, num_lost=self._num_lost,
+            num_frames=len(self._frame_ts), num_keyframes=self.graph.num_keyframes, num_lost=self._num_lost,
             num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
             corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame(),
             released=list(self.released))
 
     def _lag_per_frame(self) -> Tensor:
         lag = torch.tensor(self._lag.tolist(), dtype=torch.int64)
-        if lag.numel() < len(self._frames):  # skip() and the tracking thread's keyframe work: nothing waits
-            lag = torch.cat([lag, torch.zeros(len(self._frames) - lag.numel(), dtype=torch.int64)])
+        if lag.numel() < len(self._frame_ts):  # skip() and the tracking thread's keyframe work: nothing waits
+            lag = torch.cat([lag, torch.zeros(len(self._frame_ts) - lag.numel(), dtype=torch.int64)])
         return lag
 
     def result_so_far(self) -> SLAMResult:
@@ -758,11 +761,7 @@ class RGBDSLAM:
             self._worker.shutdown(wait=True, cancel_futures=True)
             self._jobs.clear()
         self._chain_shown(self.odometry.keyframes)
-        if self._shown:
-            est = torch.stack([e for e, _ in self._shown])
-            odo = torch.stack([o for _, o in self._shown])
-        else:
-            est = odo = torch.zeros(0, 7, dtype=torch.float64)
+        est, odo = self._shown
         kfs = self.odometry.keyframes
         kf_ts = torch.tensor([kf.timestamp for kf in kfs], dtype=torch.float64)
         return SLAMResult(
@@ -771,7 +770,7 @@ class RGBDSLAM:
             keyframe_trajectory=Trajectory(kf_ts, self._output_frame(est.clone())),
             keyframe_frames=torch.tensor([kf.frame_index for kf in kfs], dtype=torch.long),
             loops=[lp for lp in self._hypotheses() if lp.status == "kept"], queries=[], graph=None,
-            optimization=None, num_frames=len(self._frames), num_keyframes=len(kfs), num_lost=self._num_lost,
+            optimization=None, num_frames=len(self._frame_ts), num_keyframes=len(kfs), num_lost=self._num_lost,
             num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
             corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame(),
             released=list(self.released), error=None if self._failure is None else str(self._failure))

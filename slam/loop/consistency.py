@@ -28,16 +28,11 @@ the loops it can disagree with. While there are at most ``max_exact`` hypotheses
 (the group is their exact maximum clique). Beyond, the group grows greedily (a new loop joins it when it
 agrees with it) and only the group's loops whose two ends both lie within the *capped length* of the new
 loop's along the odometry chain are compared (:func:`slam.loop.acceptance.capped_length`, 27 m with the
-defaults: from there on the bound is its caps, the aliasing limit, whatever the distance; a wrong loop
-that agrees with every loop of its neighbourhood agrees with the drift, and the local-support rule keeps
-out the lone ones). Comparing farther loops measured the odometry's drift rather than the loop: on the
-building tour played twice, true loops 56-59 m of path apart disagreed by 1.51-1.52 m, just past the
-1.5 m cap, and a true loop was refused for it (tests/slam/loop/test_consistency_vectorised.py). The loops compared
-are a suffix of the group (ordered by their newer end, which only moves forward), found by bisection;
-loops joined across a tracking loss (their ends on different sides of a weak edge) are compared through
-the guess as before. Pairwise results are kept sparse (the pairs that disagree, the pairs near enough to
-support each other): no matrix grows with the run (the exact phase's clique search reads at most
-``max_exact`` x ``max_exact``).
+defaults: from there on the bound is its caps, and comparing farther loops measures the odometry's drift
+rather than the loop: tests/slam/loop/test_consistency_vectorised.py). The loops compared are a suffix of
+the group (ordered by their newer end, which only moves forward), found by bisection; loops joined across a
+tracking loss are compared through the guess as before. Pairwise results are kept sparse (the pairs that
+disagree, the pairs near enough to support each other): no matrix grows with the run.
 
 Example:
     >>> import torch

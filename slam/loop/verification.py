@@ -52,7 +52,8 @@ class Verification:
     Attributes:
         accepted: every check passed.
         reason: why not ("" when accepted).
-        T_ab: ``(7,)`` float64 measured pose of b in a (identity when the registration failed).
+        T_ab: ``(7,)`` float64 measured pose of b in a (identity when the registration failed or was
+            not tried).
         information: ``(6, 6)`` float64 information of ``T_ab`` from the registration (unscaled).
         num_matches, num_inliers: of the registration.
         distance, rotation_deg: size of the measured relative pose.
@@ -84,7 +85,9 @@ def verify_candidate(a: FrameFeatures, b: FrameFeatures, estimate_ab: Tensor, li
 
     Checks, in order: the registration succeeds; enough inliers (``config.min_inliers``) and inlier ratio
     (``config.min_inlier_ratio``); the views are close (``config.max_translation`` /
-    ``config.max_rotation_deg``); the measurement agrees with ``estimate_ab`` within ``limits``.
+    ``config.max_rotation_deg``); the measurement agrees with ``estimate_ab`` within ``limits``. A candidate
+    whose estimate lies farther than the last two allow together (by the triangle inequality no measurement
+    could pass both) is rejected before registering: on a revisited place most candidates are other passes.
 
     Args:
         a: features of the older keyframe.
@@ -98,6 +101,14 @@ def verify_candidate(a: FrameFeatures, b: FrameFeatures, estimate_ab: Tensor, li
     """
     if estimate_ab.shape != (7,):
         raise ValueError(f"estimate_ab must have shape (7,), got {tuple(estimate_ab.shape)}")
+    est = estimate_ab.to(torch.float64).cpu()
+    reach, reach_deg = config.max_translation + limits.translation, config.max_rotation_deg + limits.rotation_deg
+    dist, turn = float(est[:3].norm()), _rotation_deg(est[3:])
+    if dist > reach + 1e-6 or turn > reach_deg + 1e-6:  # the margin: rounding never refuses what would pass
+        reason = (f"contradicts the estimate: it puts the views {dist:.2f} m / {turn:.0f} deg apart, beyond "
+                  f"{reach:.2f} m / {reach_deg:.0f} deg (views too far apart plus the bound)")
+        return Verification(False, reason, torch.tensor([0.0, 0, 0, 0, 0, 0, 1], dtype=torch.float64),
+                            torch.zeros(6, 6, dtype=torch.float64), limits=limits)
     res = register(a, b, config.registration)
     T_ab = res.T_ab.detach().to(torch.float64).cpu()
     info = res.information.detach().to(torch.float64).cpu()
@@ -116,7 +127,7 @@ def verify_candidate(a: FrameFeatures, b: FrameFeatures, estimate_ab: Tensor, li
     if out.distance > config.max_translation or out.rotation_deg > config.max_rotation_deg:
         out.reason = f"views too far apart ({out.distance:.2f} m, {out.rotation_deg:.0f} deg)"
         return out
-    diff = se3_between(estimate_ab.to(torch.float64).cpu(), T_ab)
+    diff = se3_between(est, T_ab)
     out.disagreement, out.disagreement_deg = float(diff[:3].norm()), _rotation_deg(diff[3:])
     if out.disagreement > limits.translation or out.disagreement_deg > limits.rotation_deg:
         out.reason = (f"contradicts the estimate by {out.disagreement:.2f} m / {out.disagreement_deg:.0f} deg "

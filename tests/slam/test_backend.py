@@ -1,6 +1,7 @@
 """The SLAM back end: per-kind kernels, DCS against its closed form, a false loop switched off."""
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
@@ -98,15 +99,14 @@ def test_loops_correct_the_drift():
     assert all(w > 0.9 for w in res.loop_weights.values())
 
 
-@pytest.mark.parametrize("loop_kernel", ["dcs", "gnc"])
-def test_robust_loop_kernel_switches_a_false_loop_off(loop_kernel):
+def test_robust_loop_kernel_switches_a_false_loop_off():
     g, truth, loops, bad = _square_walk(True)
-    cfg = dataclasses.replace(BackendConfig(), loop_kernel=loop_kernel)
+    cfg = BackendConfig()
+    assert cfg.loop_kernel == "dcs"
     res = PoseGraphBackend(cfg, SCALE).optimize(g)
     assert res.loop_weights[bad] < cfg.switch_off_weight
     assert all(res.loop_weights[e] > 0.5 for e in loops)
     assert _error(res.poses, truth) < 0.1
-    assert res.solves == (cfg.gnc_steps if loop_kernel == "gnc" else 1)
     # a quadratic loop term is pulled by the false loop
     plain = PoseGraphBackend(dataclasses.replace(BackendConfig(), loop_kernel="none"), SCALE).optimize(g)
     assert _error(plain.poses, truth) > 3 * _error(res.poses, truth)
@@ -208,6 +208,7 @@ def test_planted_false_loops_are_switched_off_in_a_real_graph(kitchen_graph):
     at 1.0, worst keyframe error 0.081 m with and without the false loops (odometry 0.154 m), 0.79 m with
     a quadratic loop term."""
     g, truth, loops, cfg = kitchen_graph
+    g = copy.deepcopy(g)  # the fixture's graph stays as it was
     n = g.num_keyframes
     info = g.edges[loops[len(loops) // 2]].information
     planted = []
@@ -215,17 +216,14 @@ def test_planted_false_loops_are_switched_off_in_a_real_graph(kitchen_graph):
         Z = se3_compose(se3_between(truth[a], truth[b]), se3_exp(torch.tensor([err, 0.2, 0, 0, 0, math.radians(6)], dtype=D)))
         planted.append(g.add_loop(a, b, Z, info))
     scales = {EdgeKind.ODOMETRY: cfg.backend.odometry_information_scale, EdgeKind.LOOP: cfg.loop.information_scale}
-    try:
-        g.set_estimates(g.odometry_poses())
-        res = PoseGraphBackend(cfg.backend, scales).optimize(g)
-        for k in planted:
-            g.edges[k].active = False
-        clean = PoseGraphBackend(cfg.backend, scales).optimize(g)
-        for k in planted:
-            g.edges[k].active = True
-        plain = PoseGraphBackend(dataclasses.replace(cfg.backend, loop_kernel="none"), scales).optimize(g)
-    finally:
-        del g.edges[len(g.edges) - len(planted):]
+    g.set_estimates(g.odometry_poses())
+    res = PoseGraphBackend(cfg.backend, scales).optimize(g)
+    for k in planted:
+        g.edges[k].active = False
+    clean = PoseGraphBackend(cfg.backend, scales).optimize(g)
+    for k in planted:
+        g.edges[k].active = True
+    plain = PoseGraphBackend(dataclasses.replace(cfg.backend, loop_kernel="none"), scales).optimize(g)
     assert all(res.loop_weights[k] < cfg.backend.switch_off_weight for k in planted), [res.loop_weights[k] for k in planted]
     assert min(res.loop_weights[k] for k in loops) > 0.5
     e_res, e_clean, e_plain = _error(res.poses, truth), _error(clean.poses, truth), _error(plain.poses, truth)

@@ -36,7 +36,7 @@ def room_runs():
         feats = extract_features(frame.rgb, frame.depth, frame.K, cfg.odometry.features)
         states["plain"].append(plain.track(frame))
         states["worker"].append(worker.track(frame, features=feats))
-    return states, {"plain": plain.finish(), "worker": worker.finish()}
+    return states, {"plain": plain.finish(), "worker": worker.finish()}, worker
 
 
 def _same_result(a, b):
@@ -51,7 +51,7 @@ def _same_result(a, b):
 
 
 def test_loop_worker_and_features_ahead_give_the_same_result(room_runs):
-    states, res = room_runs
+    states, res, _ = room_runs
     assert res["plain"].loops and res["plain"].corrections  # there is something to compare
     _same_result(res["plain"], res["worker"])
     # tracking itself is unchanged: every frame's status, keyframe and pose in its keyframe
@@ -60,8 +60,19 @@ def test_loop_worker_and_features_ahead_give_the_same_result(room_runs):
     assert all(torch.equal(a.odometry_pose, b.odometry_pose) for a, b in zip(states["worker"], states["plain"]))
 
 
+def test_the_reported_keyframe_poses_are_one_block(room_runs):
+    """A hand-over takes the worker's estimates as one ``(2, M, 7)`` block (estimate, odometry pose), not a pair
+    of tensors per keyframe made again at every keyframe: its cost and objects do not grow with the run."""
+    _, res, worker = room_runs
+    shown = worker._shown
+    assert isinstance(shown, torch.Tensor) and shown.shape == (2, res["worker"].num_keyframes, 7)
+    # the odometry poses as reported: the chain of odometry edges, as the graph has them
+    assert torch.allclose(shown[1], worker.graph.odometry_poses(), rtol=0, atol=1e-12)
+    assert torch.equal(worker.keyframe_poses(), shown[0])
+
+
 def test_loop_worker_reports_loops_at_the_next_keyframe(room_runs):
-    states, _ = room_runs
+    states, _, _ = room_runs
     plain, worker = states["plain"], states["worker"]
     kf_frames = [k for k, s in enumerate(plain) if s.new_keyframes]
     first = next(k for k, s in enumerate(plain) if s.correction is not None)
