@@ -87,6 +87,18 @@ class RunResult:
     first_untracked: str | None = None
 
 
+def _running(jobs: list) -> list:
+    """The jobs not yet done; a finished job's error is raised here (the map's error is the run's), so that the
+    list stays as long as the worker's backlog, not the run."""
+    running = []
+    for job in jobs:
+        if job.done():
+            job.result()
+        else:
+            running.append(job)
+    return running
+
+
 def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frames: int | None = None,
              progress: bool | None = None, descriptor: torch.nn.Module | None = None, frame_step: int = 1,
              frames: tuple[int, int] | None = None, save_map: str | os.PathLike | None = None, map_dir=None,
@@ -218,6 +230,7 @@ def _run(sequence: RGBDSequence, config: SLAMConfig, max_frames: int | None, pro
             if first_untracked is None and state.status in ("lost", "skipped"):
                 first_untracked = f"frame {i} {state.status}: {state.reason}"
             if i % 10 == 0:
+                map_jobs = _running(map_jobs)
                 bar.set_postfix_str(f"kf={len(slam.keyframes)} loops={len(slam.loops)}"
                                     + ("" if reloc is None else f" in_map={'yes' if reloc.relocalised else 'no'}"),
                                     refresh=False)

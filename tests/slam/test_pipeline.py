@@ -53,3 +53,26 @@ def test_an_error_of_the_observer_stops_the_run(sequence_with_a_missing_frame):
 
     with pytest.raises(RuntimeError, match="viewer went away"):
         run_slam(sequence_with_a_missing_frame, CONFIG, progress=False, observer=Recorder(fail_at=1))
+
+
+def test_finished_map_jobs_are_let_go_and_their_errors_raised():
+    """The run keeps only the map worker's pending jobs (not one per keyframe of the whole run); a finished
+    job that failed raises its error."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from slam.pipeline import _running
+
+    gate = threading.Event()
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        done = [pool.submit(int, k) for k in range(5)]
+        for job in done:
+            job.result()
+        pending = pool.submit(gate.wait)
+        kept = _running(done + [pending])
+        assert kept == [pending]
+        gate.set()
+        failed = pool.submit(int, "not a number")
+        failed.exception()
+        with pytest.raises(ValueError, match="not a number"):
+            _running([failed])
