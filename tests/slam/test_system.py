@@ -65,6 +65,7 @@ def _kitchen_slice(redkitchen_dir, start, stop):
     return open_sequence(redkitchen_dir)[start:stop]
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_odometry_only_on_real_frames(redkitchen_dir):
     """120 real frames, no loop closure: the front end alone stays within 5 cm ATE."""
@@ -78,6 +79,7 @@ def test_odometry_only_on_real_frames(redkitchen_dir):
     assert m["num_loops"] == 0
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_unregistered_kinect_rig_on_real_frames(redkitchen_dir):
     """The same 120 frames with 7-Scenes' colour camera modelled (f = 525, depth camera 2.5 cm aside):
@@ -124,12 +126,14 @@ def test_loop_found_and_true_on_real_slice(kitchen_loop_run):
         assert lp.frame_b - lp.frame_a >= 100  # a revisit, not a neighbour in time
 
 
+@pytest.mark.slow
 def test_loop_closure_reduces_ate_on_real_slice(kitchen_loop_run):
     m = kitchen_loop_run.report.as_dict()
     assert m["ate_rmse"] < 0.05, m["ate_rmse"]
     assert m["ate_rmse"] <= m["odometry_ate_rmse"] + 1e-3, (m["ate_rmse"], m["odometry_ate_rmse"])
 
 
+@pytest.mark.slow
 def test_only_the_last_online_correction_keeps_its_poses(kitchen_loop_run):
     """Every correction's figures are kept, the poses (M, 7), loop weights and optimiser result only by the
     last: the earlier ones' poses are in the graph, and keeping them all grows with the square of the run."""
@@ -157,6 +161,7 @@ def test_the_online_window_keeps_within_its_budget():
     assert slam._online_window([10]) == list(range(1, 61))  # keyframe 0 holds the world frame
 
 
+@pytest.mark.slow
 def test_outputs_written(kitchen_loop_run, tmp_path):
     from slam.io import read_tum_trajectory
     from slam.outputs import write_outputs

@@ -94,6 +94,7 @@ def _rel(a, b):
     return abs(a - b) / max(abs(b), 1e-12)
 
 
+@pytest.mark.slow
 def test_gradient_wrt_measurement_translations_matches_finite_differences_on_smallgrid3d(posegraph_dir):
     """smallGrid3D, float64, d(optimised poses)/d(measurements' translations) against
     central differences of re-optimised poses (Richardson-extrapolated), pose 0 held by the free gauge's

