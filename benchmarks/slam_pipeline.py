@@ -137,17 +137,10 @@ def _code_ab(seq_dir, args) -> list:
     ref = Path(args.fps_ref).resolve()
     if not (ref / "slam" / "cli.py").is_file():
         raise SystemExit(f"--fps-ref {ref}: not a checkout of this project (no slam/cli.py)")
-    # the pose graph's C kernels (compiled by pip install, ignored by git): a checkout without them runs the
-    # numpy path, slower and a few ulps apart; copy the .so over for a like-for-like A/B
-    accel = {name: sorted(p.name for p in (code / "slam" / "graph" / "accel").glob("*.so"))
-             for name, code in (("new", here), ("ref", ref))}
-    if accel["new"] != accel["ref"]:
-        print(f"warning: compiled kernels differ (this checkout {accel['new']}, reference {accel['ref']}): "
-              "copy slam/graph/accel/*.so across for a like-for-like A/B", flush=True)
     runs = {"new": [], "ref": []}
     for r in range(args.fps_ab):
         for name, code in (("new", here), ("ref", ref)) if r % 2 == 0 else (("ref", ref), ("new", here)):
-            out = Path(args.out) / "fps_ab" / name
+            out = (Path(args.out) / "fps_ab" / name).resolve()  # each run works in its own checkout
             cmd = [sys.executable, "-m", "slam.cli", str(seq_dir), "--out", str(out), "--quiet",
                    "--fusion", args.modes[0], "--frame-step", str(args.frame_step)]
             if args.max_frames:
