@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import torch
 
-from slam.lie import quat_angle, se3_between
+from slam.lie import quat_angle, se3_between, se3_identity
 from slam.odometry.features import FrameFeatures
 from slam.odometry.registration import register
 
@@ -107,7 +107,7 @@ def verify_candidate(a: FrameFeatures, b: FrameFeatures, estimate_ab: Tensor, li
     if dist > reach + 1e-6 or turn > reach_deg + 1e-6:  # the margin: rounding never refuses what would pass
         reason = (f"contradicts the estimate: it puts the views {dist:.2f} m / {turn:.0f} deg apart, beyond "
                   f"{reach:.2f} m / {reach_deg:.0f} deg (views too far apart plus the bound)")
-        return Verification(False, reason, torch.tensor([0.0, 0, 0, 0, 0, 0, 1], dtype=torch.float64),
+        return Verification(False, reason, se3_identity(dtype=torch.float64),
                             torch.zeros(6, 6, dtype=torch.float64), limits=limits)
     res = register(a, b, config.registration)
     T_ab = res.T_ab.detach().to(torch.float64).cpu()
