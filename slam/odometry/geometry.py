@@ -1,4 +1,4 @@
-"""Geometry of sparse RGB-D registration: back-projection, rigid fits and information matrices.
+"""Geometry of sparse RGB-D registration: back-projection, rigid fits, projection and covariances.
 
 Conventions: a pose ``(..., 7) = [t, q_xyzw]`` maps *source* points into the *destination* frame,
 ``p_dst = R p_src + t``. Tangent vectors are ``[rho, phi]`` with the **right** perturbation used by
@@ -24,7 +24,6 @@ __all__ = [
     "kabsch",
     "point_covariance",
     "project",
-    "registration_information",
     "rigid_jacobian",
     "transform_points",
 ]
@@ -239,36 +238,3 @@ def rigid_jacobian(points: Tensor) -> Tensor:
     _check(points, (None, 3), "points")
     eye = torch.eye(3, dtype=points.dtype, device=points.device).expand(points.shape[0], 3, 3)
     return torch.cat([eye, -so3_hat(points)], dim=-1)
-
-
-def registration_information(points_src: Tensor, point_information: Tensor) -> Tensor:
-    """Information (inverse covariance) of a rigid fit, in the tangent of the right perturbation.
-
-    For a pose ``T`` fitted to ``dst_i ~ T src_i`` with residuals ``r_i = T src_i - dst_i`` of information
-    ``W_i`` (3x3, expressed in the *source* frame, i.e. ``R^T Sigma_i^-1 R``), the Gauss-Newton Hessian at
-    the optimum is ``H = sum_i J_i^T W_i J_i`` with ``J_i = [I, -[src_i]x]`` because
-    ``T exp(xi) src = T (src + rho + phi x src)``. With isotropic noise ``W_i = I / sigma_i^2`` this is the
-    textbook ``H = sum_i J_i^T J_i / sigma_i^2``. This is the information of ``T`` under ``T exp(xi)``,
-    the convention of g2o / GTSAM ``BetweenFactor`` edges. It ignores correlations between points, so it
-    is optimistic; the pose graph may rescale it.
-
-    Args:
-        points_src: ``(N, 3)`` inlier source points (frame of the pose's right-hand side).
-        point_information: ``(N, 3, 3)`` residual information matrices, or ``(N,)`` isotropic
-            ``1 / sigma_i^2``.
-
-    Returns:
-        ``(6, 6)`` symmetric positive semi-definite matrix (positive definite for >= 3 non-collinear points).
-
-    Example:
-        >>> H = registration_information(torch.randn(10, 3, dtype=torch.float64), torch.ones(10))
-        >>> H.shape
-        torch.Size([6, 6])
-    """
-    _check(points_src, (None, 3), "points_src")
-    J = rigid_jacobian(points_src)
-    if point_information.dim() == 1:
-        H = (J.transpose(-1, -2) @ J * point_information[:, None, None]).sum(dim=0)
-    else:
-        H = (J.transpose(-1, -2) @ point_information @ J).sum(dim=0)
-    return 0.5 * (H + H.transpose(0, 1))

@@ -26,9 +26,9 @@ from dataclasses import dataclass
 
 import torch
 
-from slam.lie import quat_to_rotmat, se3_compose, se3_exp, se3_identity, so3_hat
+from slam.lie import quat_to_rotmat, se3_compose, se3_exp, se3_identity
 from slam.odometry.config import RansacConfig
-from slam.odometry.geometry import kabsch, transform_points
+from slam.odometry.geometry import kabsch, rigid_jacobian, transform_points
 
 Tensor = torch.Tensor
 
@@ -105,8 +105,7 @@ def refine_rigid(pose: Tensor, src: Tensor, dst: Tensor, cov_src: Tensor, cov_ds
                          f"{tuple(dst.shape)}")
     _check_cov(cov_src, src.shape[0], "cov_src")
     _check_cov(cov_dst, src.shape[0], "cov_dst")
-    eye = torch.eye(3, dtype=src.dtype, device=src.device)
-    J = torch.cat([eye.expand(src.shape[0], 3, 3), -so3_hat(src)], dim=-1)  # (N, 3, 6), d(T exp(xi) p)
+    J = rigid_jacobian(src)  # (N, 3, 6), d(T exp(xi) p)
     R0 = quat_to_rotmat(pose[3:])
     # Residual covariance in the *source* frame: R^T (R S_src R^T + S_dst) R = S_src + R^T S_dst R. It is
     # evaluated once at the initial rotation (the refinement moves it by a fraction of a degree), so the
