@@ -126,14 +126,12 @@ def loop_ground_truth_for_step(frame_step: int = 1):
     return dataclasses.replace(base, min_frame_gap=max(1, math.ceil(base.min_frame_gap / int(frame_step))))
 
 
-def evaluate_run(run, loop_gt=None) -> RunReport:
+def evaluate_run(run) -> RunReport:
     """The report of a run: what ``metrics.json`` holds (:class:`RunReport`); also sets ``run.report``,
     ``run.map_cloud`` and ``run.loop_curves``. Without usable ground truth ``ate_unavailable`` says why.
 
     Args:
-        run: a :class:`slam.pipeline.RunResult`.
-        loop_gt: :class:`slam.eval.LoopGroundTruthConfig` for judging loops (default: its thresholds, the
-            frame gap in the run's frames, :func:`loop_ground_truth_for_step`).
+        run: a :class:`slam.pipeline.RunResult`; its loops are judged by :func:`loop_ground_truth_for_step`.
     """
     from slam.eval import ate, is_true_loop, rpe
 
@@ -232,7 +230,7 @@ def evaluate_run(run, loop_gt=None) -> RunReport:
                           "num_pairs": int(r.pairs.shape[0])}
             except ValueError as e:  # too short for the delta
                 m[key] = {"error": str(e)}
-        cfg = loop_gt or loop_ground_truth_for_step(run.frame_step)
+        cfg = loop_ground_truth_for_step(run.frame_step)
         m["loop_ground_truth"] = dataclasses.asdict(cfg)
         def judge(loops):  # an accepted loop is judged by closeness alone (the frame gap counts revisits)
             pairs = torch.tensor([[lp.frame_b, lp.frame_a] for lp in loops], dtype=torch.long).reshape(-1, 2)

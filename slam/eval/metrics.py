@@ -301,18 +301,17 @@ def _pairs_frames(n: int, delta: int, all_pairs: bool) -> torch.Tensor:
     return torch.stack([ids[:-1], ids[1:]], dim=-1)
 
 
-def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool, tol: float | None) -> torch.Tensor:
-    # j = the stamp closest to t_i + delta, kept when later than i and within tol of the target. The
-    # associated stamps need not be sorted: pairs are found in time order and mapped back.
+def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool) -> torch.Tensor:
+    # j = the stamp closest to t_i + delta, kept when later than i and within half a frame of the target (close
+    # enough for the nearest stamp of a gap-free stream, not for one past a gap). The associated stamps need not
+    # be sorted: pairs are found in time order and mapped back.
     t_in = stamps.detach().to("cpu", torch.float64)
     n = t_in.numel()
     if n < 2:
         return torch.zeros(0, 2, dtype=torch.long)
     order = torch.argsort(t_in, stable=True)
     t = t_in[order]
-    if tol is None:
-        # half a frame: close enough for the nearest stamp of a gap-free stream, not for one past a gap
-        tol = 0.5 * float(torch.median(t[1:] - t[:-1]))
+    tol = 0.5 * float(torch.median(t[1:] - t[:-1]))
     target = t + delta
     k = torch.searchsorted(t, target).clamp(1, max(n - 1, 1))
     closer_left = (target - t[k - 1]).abs() <= (t[k] - target).abs()
@@ -340,7 +339,6 @@ def rpe(
     delta: float = 1,
     delta_unit: str = "frames",
     all_pairs: bool = False,
-    time_tolerance: float | None = None,
     alignment: str = "none",
     max_difference: float = TUM_MAX_DIFFERENCE,
     offset: float = 0.0,
@@ -354,8 +352,6 @@ def rpe(
         delta: pair distance: an integer number of associated poses (``"frames"``) or seconds.
         delta_unit: ``"frames"`` or ``"seconds"``.
         all_pairs: use every start pose; otherwise consecutive non-overlapping pairs (evo's default).
-        time_tolerance: seconds mode only: a pair ``(i, j)`` is used when ``|t_j - (t_i + delta)|`` is at
-            most this; default half the median interval between the associated stamps.
         alignment: ``"none"`` (default; a rigid alignment does not change the RPE), ``"se3"`` or ``"sim3"``.
         max_difference: association tolerance in seconds.
         offset: seconds added to the estimate's stamps before association.
@@ -378,7 +374,7 @@ def rpe(
     if delta_unit == "frames":
         pairs = _pairs_frames(len(est), int(delta), all_pairs)
     else:
-        pairs = _pairs_seconds(est.timestamps, float(delta), all_pairs, time_tolerance)
+        pairs = _pairs_seconds(est.timestamps, float(delta), all_pairs)
     if pairs.shape[0] == 0:
         raise ValueError(
             f"no pose pairs {delta} {delta_unit} apart among the {len(est)} associated poses; use a smaller delta"
