@@ -29,7 +29,7 @@ Tensor = torch.Tensor
 __all__ = [
     "quat_angle", "quat_conj", "quat_mul", "quat_normalize", "quat_rotate", "quat_to_rotmat", "rotmat_project",
     "rotmat_to_quat", "se3_act", "se3_ad", "se3_adjoint", "se3_between", "se3_compose", "se3_exp", "se3_from_kornia",
-    "se3_from_matrix", "se3_hat", "se3_identity", "se3_inv", "se3_left_jacobian_inv", "se3_log", "se3_normalize",
+    "se3_from_matrix", "se3_identity", "se3_inv", "se3_left_jacobian_inv", "se3_log", "se3_normalize",
     "se3_right_jacobian_inv", "se3_to_kornia", "se3_to_matrix", "so3_exp", "so3_hat", "so3_left_jacobian",
     "so3_left_jacobian_inv", "so3_log", "so3_right_jacobian_inv",
 ]
@@ -47,9 +47,7 @@ def _check_last(x: Tensor, n: int, name: str) -> None:
         raise ValueError(f"{name} must have shape (..., {n}), got {tuple(x.shape)}")
 
 
-# ----------------------------------------------------------------------------------------------
 # Quaternions [qx, qy, qz, qw]
-# ----------------------------------------------------------------------------------------------
 def quat_normalize(q: Tensor, positive_w: bool = True) -> Tensor:
     """Unit quaternion ``(..., 4)``, sign chosen so that ``qw >= 0`` (kept as given when not ``positive_w``)."""
     _check_last(q, 4, "q")
@@ -159,9 +157,7 @@ def rotmat_project(M: Tensor) -> Tensor:
     return (U * torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1)[..., None, :]) @ Vh
 
 
-# ----------------------------------------------------------------------------------------------
 # SO(3)
-# ----------------------------------------------------------------------------------------------
 def so3_hat(phi: Tensor) -> Tensor:
     """Skew-symmetric matrices ``(..., 3, 3)`` with ``hat(a) @ b = a x b``."""
     _check_last(phi, 3, "phi")
@@ -237,9 +233,7 @@ def so3_right_jacobian_inv(phi: Tensor) -> Tensor:
     return so3_left_jacobian_inv(-phi)
 
 
-# ----------------------------------------------------------------------------------------------
 # SE(3) on (..., 7) = [t, q_xyzw]
-# ----------------------------------------------------------------------------------------------
 def se3_identity(*shape: int, dtype=None, device=None) -> Tensor:
     """Identity poses ``(*shape, 7)``."""
     p = torch.zeros(*shape, 7, dtype=dtype, device=device)
@@ -299,14 +293,6 @@ def se3_act(pose: Tensor, points: Tensor) -> Tensor:
     _check_last(pose, 7, "pose")
     _check_last(points, 3, "points")
     return quat_rotate(pose[..., 3:], points) + pose[..., :3]
-
-
-def se3_hat(xi: Tensor) -> Tensor:
-    """4x4 Lie-algebra matrices ``(..., 4, 4)`` of tangent vectors ``[rho, phi] (..., 6)``."""
-    _check_last(xi, 6, "xi")
-    top = torch.cat([so3_hat(xi[..., 3:]), xi[..., :3, None]], dim=-1)
-    bottom = torch.zeros(xi.shape[:-1] + (1, 4), dtype=xi.dtype, device=xi.device)
-    return torch.cat([top, bottom], dim=-2)
 
 
 def se3_adjoint(pose: Tensor) -> Tensor:

@@ -111,7 +111,6 @@ class RelocalisationReport:
                 "T_map_recording": None if self.T_map_recording is None else self.T_map_recording.tolist()}
 
 
-# ---------------------------------------------------------------------------------------------------
 def _rig(config) -> dict:
     f = config.odometry.features
     return {"rgb_intrinsics": None if f.rgb_intrinsics is None else [float(v) for v in f.rgb_intrinsics],
@@ -238,7 +237,6 @@ def _out_of_reach(estimate: Tensor, limits: DriftLimits, config) -> bool:
     return t > config.max_translation + limits.translation or r > config.max_rotation_deg + limits.rotation_deg
 
 
-# ---------------------------------------------------------------------------------------------------
 class MapRelocaliser:
     """Relocalises a recording in a saved map while it is tracked, and merges it into the map's world.
 
@@ -352,7 +350,6 @@ class MapRelocaliser:
         """``(7,)`` the current placement of the recording's (tracked-camera) world in the map's, or None."""
         return None if self._alignment is None else self._alignment.clone()
 
-    # ------------------------------------------------------------------------------------------
     def observe(self, state) -> None:
         """Record a frame's :class:`~slam.system.FrameState`; query the map with its new keyframes."""
         self._frame_kf.append(int(state.keyframe_id))
@@ -441,7 +438,6 @@ class MapRelocaliser:
         self._alignment = se3_compose(se3_compose(self.map.poses[lb.map_kf], lb.T_ab), se3_inv(estimates[lb.kf]))
         self._anchors = sorted({self.links[k].kf for k in group})
 
-    # ------------------------------------------------------------------------------------------
     def finish(self, result):
         """Merge the finished recording into the map's world.
 

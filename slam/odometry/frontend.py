@@ -169,7 +169,6 @@ class RGBDOdometry:
         self._last: _LastFrame | None = None
         self._lost_count = 0
 
-    # ------------------------------------------------------------------------------------------
     @property
     def keyframe(self) -> Keyframe | None:
         """The current reference keyframe (None before the first one)."""
@@ -197,7 +196,6 @@ class RGBDOdometry:
         self._T_kf_last = se3_identity(dtype=torch.float64)
         return edge
 
-    # ------------------------------------------------------------------------------------------
     def _extract(self, frame: RGBDFrame, features: FrameFeatures | None = None):
         if features is not None:
             feats = features

@@ -18,7 +18,6 @@ from slam.lie import (
     se3_compose,
     se3_exp,
     se3_from_matrix,
-    se3_hat,
     se3_identity,
     se3_inv,
     se3_left_jacobian_inv,
@@ -34,6 +33,12 @@ from slam.lie import (
 )
 
 F64 = torch.float64
+
+
+def se3_hat(xi):
+    """4x4 Lie-algebra matrices ``(..., 4, 4)`` of tangent vectors ``[rho, phi] (..., 6)``."""
+    top = torch.cat([so3_hat(xi[..., 3:]), xi[..., :3, None]], dim=-1)
+    return torch.cat([top, torch.zeros(xi.shape[:-1] + (1, 4), dtype=xi.dtype)], dim=-2)
 
 
 def _tangents(n=64, seed=0, dtype=F64):
