@@ -240,7 +240,6 @@ def evaluate_loop_candidates(
     poses: torch.Tensor,
     config: LoopGroundTruthConfig = LoopGroundTruthConfig(),
     indices: torch.Tensor | None = None,
-    num_positives: int | None = None,
 ) -> LoopEvaluation:
     """Precision/recall of scored loop candidates against the ground truth.
 
@@ -252,7 +251,6 @@ def evaluate_loop_candidates(
         poses: ``(N, 7)`` ground truth per frame (NaN rows: unknown).
         config: the true-loop thresholds.
         indices: frames taking part as queries/database (e.g. keyframes), for the recall denominator.
-        num_positives: overrides the recall denominator.
 
     Returns:
         a :class:`LoopEvaluation` with the curve and the labelled predictions.
@@ -265,7 +263,6 @@ def evaluate_loop_candidates(
     if pairs.shape[0]:
         pairs, scores = _best_per_query(pairs, scores)
     labels = is_true_loop(poses, pairs, config).cpu()
-    if num_positives is None:
-        num_positives = int(torch.unique(ground_truth_loops(poses, config, indices)[:, 0]).numel())
+    num_positives = int(torch.unique(ground_truth_loops(poses, config, indices)[:, 0]).numel())
     curve = precision_recall_curve(scores, labels, num_positives)
     return LoopEvaluation(curve, pairs, scores, labels)

@@ -20,13 +20,13 @@ DETECTORS = ("orb", "sift")  # FeatureConfig.detector (slam.odometry.features)
 MATCH_METHODS = ("smnn", "snn", "mnn")  # MatchConfig.method (slam.odometry.matching, Kornia's match_*)
 
 
-def _range_text(lo, hi, lo_open: bool, hi_open: bool) -> str:
+def _range_text(lo, hi, lo_open: bool) -> str:
     if lo is not None and hi is not None:
-        return f"in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+        return f"in {'(' if lo_open else '['}{lo}, {hi}]"
     if lo is not None:
         return f"{'>' if lo_open else '>='} {lo}"
     if hi is not None:
-        return f"{'<' if hi_open else '<='} {hi}"
+        return f"<= {hi}"
     return ""
 
 
@@ -34,24 +34,24 @@ def check_int(owner: str, name: str, value, lo: int | None = None, hi: int | Non
     """ValueError naming ``owner.name`` unless ``value`` is an integer (not a bool) in ``[lo, hi]``."""
     if (isinstance(value, bool) or not isinstance(value, numbers.Integral) or (lo is not None and value < lo)
             or (hi is not None and value > hi)):
-        rng = _range_text(lo, hi, False, False)
+        rng = _range_text(lo, hi, False)
         raise ValueError(f"{owner}.{name} must be an integer{' ' + rng if rng else ''}, got {value!r}")
 
 
 def check_number(owner: str, name: str, value, lo: float | None = None, hi: float | None = None, *,
-                 lo_open: bool = False, hi_open: bool = False, finite: bool = False) -> None:
-    """ValueError naming ``owner.name`` unless ``value`` is a real number (not NaN, not a bool) within the
-    bounds (``lo_open`` / ``hi_open``: strict). ``finite=False`` lets ``inf`` pass where the bounds do
-    (an infinite threshold switches a bound off)."""
+                 lo_open: bool = False, finite: bool = False) -> None:
+    """ValueError naming ``owner.name`` unless ``value`` is a real number (not NaN, not a bool) within
+    ``[lo, hi]`` (``lo_open``: ``(lo, hi]``). ``finite=False`` lets ``inf`` pass where the bounds do (an
+    infinite threshold switches a bound off)."""
     ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and not math.isnan(value)
     if ok and finite:
         ok = math.isfinite(value)
     if ok and lo is not None:
         ok = value > lo if lo_open else value >= lo
     if ok and hi is not None:
-        ok = value < hi if hi_open else value <= hi
+        ok = value <= hi
     if not ok:
-        what = (_range_text(lo, hi, lo_open, hi_open) or "a number") + (" and finite" if finite else "")
+        what = (_range_text(lo, hi, lo_open) or "a number") + (" and finite" if finite else "")
         raise ValueError(f"{owner}.{name} must be {what}, got {value!r}")
 
 

@@ -231,8 +231,7 @@ def building_trajectory(layout: BuildingLayout, num_frames: int = 2400, seed: in
 
 
 def building_sequence(num_frames: int = 2400, seed: int = 0, width: int = 320, height: int = 240,
-                      building: BuildingConfig | None = None, tour=DEFAULT_TOUR, config: TourConfig | None = None,
-                      **kwargs) -> SyntheticSequence:
+                      building: BuildingConfig | None = None, **kwargs) -> SyntheticSequence:
     """The building tour as a :class:`~slam.synthetic.sequence.SyntheticSequence` (rendered when read).
 
     Args:
@@ -242,12 +241,11 @@ def building_sequence(num_frames: int = 2400, seed: int = 0, width: int = 320, h
         width, height: image size (320 x 240 by default: a quarter of the room demo's pixels, so the
             2400 frames render in minutes; the odometry tracks at this size).
         building: :class:`~slam.synthetic.building.BuildingConfig`.
-        tour, config: the :class:`Visit` s and the :class:`TourConfig`.
         **kwargs: passed to :class:`~slam.synthetic.sequence.SyntheticSequence` (noise settings; the noise
             models default to :data:`BUILDING_DEPTH_NOISE` and :data:`BUILDING_IMAGE_NOISE`).
     """
     cfg = building or BuildingConfig()
-    traj = building_trajectory(building_layout(cfg), num_frames=num_frames, seed=seed, tour=tour, config=config)
+    traj = building_trajectory(building_layout(cfg), num_frames=num_frames, seed=seed)
     kwargs.setdefault("depth_noise_config", BUILDING_DEPTH_NOISE)
     kwargs.setdefault("image_noise_config", BUILDING_IMAGE_NOISE)
     return SyntheticSequence(traj, width=width, height=height, seed=seed, scene=default_building_scene(cfg),
