@@ -18,7 +18,7 @@ from slam.synthetic.sequence import (
                                      read_calibration,
                                      synthetic_intrinsics,
 )
-from slam.synthetic.trajectories import TRAJECTORIES, TrajectoryConfig, make_trajectory, trajectory_rates
+from slam.synthetic.trajectories import TRAJECTORIES, make_trajectory, trajectory_rates
 
 __all__ = [
                                      "DEFAULT_DEMO_SCENE",
@@ -33,7 +33,6 @@ __all__ = [
                                      "RoomConfig",
                                      "Scene",
                                      "SyntheticSequence",
-                                     "TrajectoryConfig",
                                      "build_building_scene",
                                      "build_room_scene",
                                      "building_layout",

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from slam.synthetic.trajectories import TRAJECTORIES
+
 __all__ = ["DEFAULT_DEMO_SCENE", "DEMO_SCENES", "DemoScene", "generate_demo"]
 
 
@@ -50,12 +52,6 @@ def _room(out_dir, trajectory: str, num_frames: int, seed: int, width: int, heig
                              height=height, progress=progress)
 
 
-def _room_trajectories() -> tuple[str, ...]:
-    from slam.synthetic.trajectories import TRAJECTORIES
-
-    return tuple(TRAJECTORIES)
-
-
 def _building(out_dir, trajectory: str, num_frames: int, seed: int, width: int, height: int,
               progress: bool = False) -> Path:
     from slam.synthetic.building_tour import generate_building_sequence
@@ -66,7 +62,7 @@ def _building(out_dir, trajectory: str, num_frames: int, seed: int, width: int, 
 
 DEMO_SCENES: dict[str, DemoScene] = {
     "room": DemoScene("one photo-textured 7 x 6 m room, a loop back to the first views",
-                      _room, _room_trajectories(), "loop", 300),
+                      _room, tuple(TRAJECTORIES), "loop", 300),
     # 320 x 240 by default: a quarter of the room's pixels, for 8 times its frames
     "building": DemoScene("four rooms around a corridor, two of them furnished identically (perceptual "
                           "aliasing); a 53 m tour back into the first room through its other door",

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -35,7 +34,6 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "TRAJECTORIES",
-    "TrajectoryConfig",
     "look_rotation",
     "make_trajectory",
     "trajectory_rates",
@@ -44,31 +42,16 @@ __all__ = [
 ROOM_CENTER = (3.5, 3.0)  # centre of the default 7 x 6 m room
 
 
-@dataclass(frozen=True)
-class TrajectoryConfig:
-    """Timing and hand-shake settings shared by all trajectories (the defaults are used).
-
-    Attributes:
-        fps: frame rate (TUM and 7-Scenes: 30 Hz).
-        t0: first timestamp in seconds (a Unix time, like TUM's files).
-        ref_speed: linear speed (m/s) weighing translation against rotation when spacing the frames.
-        ref_angular_speed: angular speed (deg/s) weighing rotation against translation.
-        max_speed: peak linear speed (m/s) above which a warning is logged (too fast for 30 Hz).
-        max_angular_speed: peak angular speed (deg/s) above which a warning is logged.
-        ramp: fraction of the duration spent accelerating from rest (and again stopping).
-        shake_translation: amplitude (m) of the smooth hand shake of the position.
-        shake_rotation_deg: amplitude (deg) of the smooth hand shake of the orientation.
-    """
-
-    fps: float = 30.0
-    t0: float = 1_700_000_000.0
-    ref_speed: float = 0.8
-    ref_angular_speed: float = 50.0
-    max_speed: float = 1.0
-    max_angular_speed: float = 60.0
-    ramp: float = 0.06
-    shake_translation: float = 0.006
-    shake_rotation_deg: float = 0.4
+# Timing and hand shake of every trajectory
+_FPS = 30.0  # frame rate (TUM and 7-Scenes: 30 Hz)
+_T0 = 1_700_000_000.0  # first timestamp in seconds (a Unix time, like TUM's files)
+_REF_SPEED = 0.8  # m/s weighing translation against rotation when spacing the frames
+_REF_ANGULAR_SPEED = 50.0  # deg/s weighing rotation against translation
+_MAX_SPEED = 1.0  # m/s: a faster peak linear speed logs a warning (too fast for 30 Hz)
+_MAX_ANGULAR_SPEED = 60.0  # deg/s: a faster peak angular speed logs a warning
+_RAMP = 0.06  # fraction of the duration spent accelerating from rest (and again stopping)
+_SHAKE_TRANSLATION = 0.006  # amplitude (m) of the smooth hand shake of the position
+_SHAKE_ROTATION_DEG = 0.4  # amplitude (deg) of the smooth hand shake of the orientation
 
 
 def look_rotation(forward: np.ndarray, roll: np.ndarray | None = None) -> np.ndarray:
@@ -148,8 +131,7 @@ def _shake(rng: np.random.Generator, times: np.ndarray, dims: int) -> np.ndarray
 
 
 def sample_path(path: PathFn, num_frames: int, seed: int) -> Trajectory:
-    """Frames along ``path`` timed by :class:`TrajectoryConfig`'s defaults (see the module docstring)."""
-    cfg = TrajectoryConfig()
+    """Frames along ``path``, timed as the module docstring says."""
     if num_frames < 2:
         raise ValueError(f"num_frames must be >= 2, got {num_frames}")
     # Effort along a dense sampling of the path.
@@ -158,31 +140,31 @@ def sample_path(path: PathFn, num_frames: int, seed: int) -> Trajectory:
     R = torch.from_numpy(look_rotation(fwd, roll))
     dl = np.linalg.norm(np.diff(pos, axis=0), axis=-1)
     dth = so3_log(rotmat_to_quat(R[:-1].transpose(-1, -2) @ R[1:])).norm(dim=-1).numpy()
-    effort = np.sqrt((dl / cfg.ref_speed) ** 2 + (dth / math.radians(cfg.ref_angular_speed)) ** 2)
+    effort = np.sqrt((dl / _REF_SPEED) ** 2 + (dth / math.radians(_REF_ANGULAR_SPEED)) ** 2)
     cum = np.concatenate([[0.0], np.cumsum(effort)])
     cum /= cum[-1]
     # Frames: effort progress follows the integral of the speed profile.
     tau_fine = np.linspace(0.0, 1.0, 20001)
-    prog = np.concatenate([[0.0], np.cumsum(_speed_profile(0.5 * (tau_fine[1:] + tau_fine[:-1]), cfg.ramp))])
+    prog = np.concatenate([[0.0], np.cumsum(_speed_profile(0.5 * (tau_fine[1:] + tau_fine[:-1]), _RAMP))])
     prog /= prog[-1]
     tau = np.linspace(0.0, 1.0, num_frames)
     s_frames = np.interp(np.interp(tau, tau_fine, prog), cum, s)
     pos, fwd, roll = path(s_frames)
     Rf = look_rotation(fwd, roll)
     # Hand shake: a smooth body-frame rotation and a world-frame translation, seeded.
-    times = np.arange(num_frames) / cfg.fps
+    times = np.arange(num_frames) / _FPS
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 314159]))
-    pos = pos + cfg.shake_translation * _shake(rng, times, 3)
-    dphi = torch.from_numpy(math.radians(cfg.shake_rotation_deg) * _shake(rng, times, 3))
+    pos = pos + _SHAKE_TRANSLATION * _shake(rng, times, 3)
+    dphi = torch.from_numpy(math.radians(_SHAKE_ROTATION_DEG) * _shake(rng, times, 3))
     q = quat_mul(rotmat_to_quat(torch.from_numpy(Rf)), so3_exp(dphi))
     poses = torch.cat([torch.from_numpy(pos), q], -1)
-    timestamps = torch.from_numpy(np.round(cfg.t0 + times, 6))
+    timestamps = torch.from_numpy(np.round(_T0 + times, 6))
     traj = Trajectory(timestamps=timestamps, poses=poses)
     lin, ang = trajectory_rates(traj)
-    if len(lin) and (float(lin.max()) > cfg.max_speed or float(ang.max()) > cfg.max_angular_speed):
+    if len(lin) and (float(lin.max()) > _MAX_SPEED or float(ang.max()) > _MAX_ANGULAR_SPEED):
         logger.warning("trajectory too fast for %.0f Hz with %d frames: peak %.2f m/s, %.1f deg/s "
-                       "(limits %.2f m/s, %.1f deg/s); use more frames", cfg.fps, num_frames,
-                       float(lin.max()), float(ang.max()), cfg.max_speed, cfg.max_angular_speed)
+                       "(limits %.2f m/s, %.1f deg/s); use more frames", _FPS, num_frames,
+                       float(lin.max()), float(ang.max()), _MAX_SPEED, _MAX_ANGULAR_SPEED)
     return traj
 
 
