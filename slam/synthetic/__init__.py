@@ -15,7 +15,6 @@ from slam.synthetic.sequence import (
                                      DEPTH_FACTOR,
                                      SyntheticSequence,
                                      generate_sequence,
-                                     read_calibration,
                                      synthetic_intrinsics,
 )
 from slam.synthetic.trajectories import TRAJECTORIES, make_trajectory, trajectory_rates
@@ -42,7 +41,6 @@ __all__ = [
                                      "generate_demo",
                                      "generate_sequence",
                                      "make_trajectory",
-                                     "read_calibration",
                                      "render_frames",
                                      "synthetic_intrinsics",
                                      "trajectory_rates",

@@ -52,7 +52,6 @@ __all__ = [
     "DEPTH_FACTOR",
     "SyntheticSequence",
     "generate_sequence",
-    "read_calibration",
     "synthetic_intrinsics",
 ]
 
@@ -70,21 +69,6 @@ def synthetic_intrinsics(width: int = 640, height: int = 480) -> np.ndarray:
     return np.array([[525.0 * width / 640.0, 0.0, (width - 1) / 2.0],
                      [0.0, 525.0 * height / 480.0, (height - 1) / 2.0],
                      [0.0, 0.0, 1.0]])
-
-
-def read_calibration(folder: str | os.PathLike) -> np.ndarray | None:
-    """``K (3, 3)`` from ``folder/calibration.txt`` (first non-comment line: ``fx fy cx cy``), or None
-    when the file does not exist.
-
-    Raises:
-        ValueError: a malformed file (naming the file and line).
-    """
-    from slam.io.tum import read_calibration_file  # the TUM reader's parser: one format, one parser
-
-    path = Path(folder) / "calibration.txt"
-    if not path.is_file():
-        return None
-    return read_calibration_file(path).K
 
 
 def _tiny_scene() -> Scene:

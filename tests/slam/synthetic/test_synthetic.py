@@ -11,6 +11,7 @@ import torch
 from helpers import free_space_distance
 
 from slam.io.trajectory import read_tum_trajectory
+from slam.io.tum import read_calibration_file
 from slam.lie import se3_act, se3_between, se3_inv, so3_log
 from slam.synthetic import scene as scene_mod
 from slam.synthetic.render import (
@@ -25,7 +26,6 @@ from slam.synthetic.scene import BoxSpec, RoomConfig, build_room_scene, tensoriz
 from slam.synthetic.sequence import (
     SyntheticSequence,
     generate_sequence,
-    read_calibration,
     synthetic_intrinsics,
 )
 from slam.synthetic.trajectories import TRAJECTORIES, make_trajectory, trajectory_rates
@@ -147,7 +147,7 @@ def test_tum_layout_and_depth_round_trip(scene, tmp_path):
     gt = read_tum_trajectory(folder / "groundtruth.txt")
     assert torch.allclose(gt.poses, seq.trajectory.poses, atol=2e-9)
     assert np.allclose(gt.timestamps.numpy(), [float(e[0]) for e in entries], atol=0, rtol=0)
-    assert np.allclose(read_calibration(folder), synthetic_intrinsics(W, H))
+    assert np.allclose(read_calibration_file(folder / "calibration.txt").K, synthetic_intrinsics(W, H))
     for (stamp, rgb_name), (_, depth_name), frame in zip(entries, depth_entries, seq):
         raw = cv2.imread(str(folder / depth_name), cv2.IMREAD_UNCHANGED)
         assert raw.dtype == np.uint16 and raw.shape == (H, W)
@@ -159,7 +159,7 @@ def test_tum_layout_and_depth_round_trip(scene, tmp_path):
         assert float(stamp) == pytest.approx(frame.timestamp, abs=1e-9)
     # The TUM reader (if present) sees the same frames.
     tum = pytest.importorskip("slam.io.tum")
-    reader = tum.TUMSequence(folder, K=read_calibration(folder))
+    reader = tum.TUMSequence(folder, K=read_calibration_file(folder / "calibration.txt").K)
     assert len(reader) == 6
     f0, s0 = reader[0], seq[0]
     assert np.array_equal(f0.depth, s0.depth) and np.array_equal(f0.rgb, s0.rgb)
