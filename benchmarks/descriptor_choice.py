@@ -36,16 +36,19 @@ import json
 import os
 import statistics
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from attnloop import AttentionDescriptor, descriptor_from_attention
+from attnloop import AttentionDescriptor
 from attnloop.backbones import build_backbone
+from attnloop.backbones.efficientnet_lite import efficientnet_lite_taps
 from attnloop.fusion import FUSION_MODES
+from attnloop.pooling import fuse_groups, regional_code
 from attnloop.vpr.evaluate import evaluate
 from benchmarks._common import add_data_argument, table
 from benchmarks.place_recognition import (
@@ -59,7 +62,13 @@ from benchmarks.place_recognition import (
 
 @dataclass(frozen=True)
 class Candidate:
-    """A tap of EfficientNet-Lite0: ``tap`` (stages joined by '+'), ``attend`` (None: every stage), input (H, W)."""
+    """A tap of EfficientNet-Lite0: ``tap`` (stages joined by '+'), ``attend`` (None: every stage), input (H, W).
+
+    Stages of different resolutions (``stage5+stage6+stage7``) are joined here as the backbone joins stages of
+    one resolution, which it refuses to do across resolutions: each resolution's stages are tapped on their own
+    (:meth:`parts`) and their regional codes concatenated; a stage's (L, G) do not depend on the other stages
+    tapped with it (G is the score's full derivative at each attended stage), so the code is the joined tap's.
+    """
 
     tap: str
     input_size: tuple[int, int]
@@ -69,14 +78,32 @@ class Candidate:
         return build_backbone("efficientnet_lite0", pretrained=True, tap=self.tap, input_size=self.input_size,
                               attend=self.attend)
 
+    def parts(self) -> list[tuple[Candidate, bool]]:
+        """(Candidate of one resolution, whether any of its stages is fused), shallowest first."""
+        res = efficientnet_lite_taps(self.input_size)
+        stages = self.tap.split("+")
+        wanted = stages if self.attend is None else self.attend.split("+")
+        if not set(wanted) <= set(stages):
+            raise ValueError(f"attend={self.attend!r} must name stages of the tap {self.tap!r}")
+        out = []
+        for size in dict.fromkeys(res[n][2] for n in stages):
+            names = [n for n in stages if res[n][2] == size]
+            att = [n for n in names if n in wanted]
+            out.append((Candidate("+".join(names), self.input_size,
+                                  None if len(att) in (0, len(names)) else "+".join(att)), bool(att)))
+        return out
 
-#: Name -> candidate; ``default`` is the default's (:data:`attnloop.presets.DEFAULT_BACKBONE_SETTINGS`).
+
+#: Name -> candidate; ``default`` is the default's (:data:`attnloop.presets.DEFAULT_BACKBONE_SETTINGS`); a
+#: ``stage5+stage6+stage7`` name without "-all" (G at every stage) or "-5+7" computes G at stage7 only.
 CANDIDATES = {
     "default": Candidate("stage6+stage7", (224, 288), "stage7"),
     "stage5-224": Candidate("stage5", (224, 224)),
     "stage5-288": Candidate("stage5", (224, 288)),
     "stage4+stage5-224": Candidate("stage4+stage5", (224, 224)),
     "stage4+stage5-288": Candidate("stage4+stage5", (224, 288)),
+    **{f"stage5+stage6+stage7{a}-{w}": Candidate("stage5+stage6+stage7", (224, w), attend)
+       for w in (288, 224) for a, attend in (("", "stage7"), ("-all", None), ("-5+7", "stage5+stage7"))},
 }
 
 #: Pooling name -> (GeM exponent, grids) of the regional code (:mod:`attnloop.pooling`).
@@ -149,15 +176,16 @@ def tap_and_grad(cand: Candidate, images: list[np.ndarray], batch: int = 8) -> t
     return torch.cat(taps), torch.cat(grads)
 
 
-def codes_of(cand: Candidate, sets: dict, cache: Path | None) -> dict:
-    """{set: {(pooling, fusion): (N, D) codes}} of one candidate (read from / written to ``cache``)."""
+def region_codes(cand: Candidate, sets: dict, cache: Path | None) -> dict:
+    """{set: {(pooling, fusion): (N, D) regional codes}} of one tap of one resolution, not yet L2-normalised: each
+    group's and region's unit vectors concatenated (read from / written to ``cache``)."""
     out = {}
     for set_name, (images, _, _) in sets.items():
         h, w = cand.input_size
         # a user's folders are not cached: another pair would read this one's codes
         file = None
         if cache is not None and set_name != "folders":
-            file = cache / f"{cand.tap}_{h}x{w}_{cand.attend}_{set_name}.pt"
+            file = cache / f"{cand.tap}_{h}x{w}_{cand.attend}_{set_name}_regions.pt"
         if file is not None and file.is_file():
             out[set_name] = torch.load(file)
             continue
@@ -165,8 +193,7 @@ def codes_of(cand: Candidate, sets: dict, cache: Path | None) -> dict:
         tap, grad = tap_and_grad(cand, images)
         net = cand.backbone()
         groups, attended = net.tap_groups, net.attended_groups
-        codes = {(pname, mode): descriptor_from_attention(tap, grad, None, mode, gem_p=p, levels=levels, groups=groups,
-                                                          attended=attended)[1]
+        codes = {(pname, mode): regional_code(fuse_groups(tap, grad, mode, groups, attended), groups, p, levels)
                  for pname, (p, levels) in POOLINGS.items() for mode in FUSION_MODES}
         print(f"  {cand}: {set_name}, {len(images)} images, {time.perf_counter() - t0:.0f} s", flush=True)
         out[set_name] = codes
@@ -174,6 +201,14 @@ def codes_of(cand: Candidate, sets: dict, cache: Path | None) -> dict:
             file.parent.mkdir(parents=True, exist_ok=True)
             torch.save(codes, file)
     return out
+
+
+def codes_of(cand: Candidate, sets: dict, cache: Path | None) -> dict:
+    """{set: {(pooling, fusion): (N, D) L2-normalised codes}} of one candidate: its parts' regional codes joined
+    (a part with no attended stage pooled unfused in every mode), as the descriptor joins a tap's stages."""
+    parts = [(region_codes(part, sets, cache), fused) for part, fused in cand.parts()]
+    return {s: {key: F.normalize(torch.cat([c[s][key if fused else (key[0], "none")] for c, fused in parts], 1), dim=1)
+                for key in parts[0][0][s]} for s in sets}
 
 
 def halves(n: int, block: int = 5) -> dict[str, torch.Tensor]:
@@ -198,10 +233,18 @@ def scores(codes: dict, sets: dict) -> dict:
 
 def ms_per_keyframe(cands: dict[str, Candidate], rounds: int, data: Path) -> dict[str, dict[str, float]]:
     """Median ms of one descriptor call on a 320 x 240 kitchen frame, batch 1, per candidate and for dam / none,
-    interleaved rounds of 10 calls."""
+    interleaved rounds of 10 calls. A tap joined across resolutions is timed by the part that costs what the joined
+    tap would: for ``dam`` its first fused part (the backward reaches its stages; G at stage7 alone is the head's
+    closed form), for ``none`` its last (the forward ends there); the other parts' pooling is not counted."""
     frame = load_rgb(data / "7scenes-redkitchen" / "frame-000250.color.jpg")
     x = torch.from_numpy(cv2.resize(frame, (320, 240), interpolation=cv2.INTER_AREA)).permute(2, 0, 1)[None]
-    models = {(n, m): AttentionDescriptor(c.backbone(), fusion=m) for n, c in cands.items() for m in ("dam", "none")}
+    timed = {}
+    for n, c in cands.items():
+        parts = c.parts()
+        # G is not computed for none: the tap's attend does not change its cost
+        timed[n] = {"dam": next(part for part, fused in parts if fused), "none": replace(parts[-1][0], attend=None)}
+    models = {(c, m): AttentionDescriptor(c.backbone(), fusion=m)
+              for t in timed.values() for m, c in t.items()}
     times = {k: [] for k in models}
     with torch.no_grad():
         for k, model in models.items():
@@ -212,10 +255,7 @@ def ms_per_keyframe(cands: dict[str, Candidate], rounds: int, data: Path) -> dic
                 for _ in range(10):
                     model(x)
                 times[k].append(100 * (time.perf_counter() - t0))
-    out = {}
-    for (n, m), v in times.items():
-        out.setdefault(n, {})[m] = statistics.median(v)
-    return out
+    return {n: {m: statistics.median(times[(c, m)]) for m, c in t.items()} for n, t in timed.items()}
 
 
 def failed_bounds(cell: dict, margins: list[float] | None, half: str) -> list[str]:
