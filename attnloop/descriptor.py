@@ -1,19 +1,10 @@
 """The attention-guided CNN descriptor: backbone -> guided attention -> fusion -> pooling (-> random RNNs) -> L2.
 
-For a batch of images:
-
-1. L, G = the tap activations and the softmax-seeded partial guided gradient (:mod:`attnloop.guided_backprop`);
-2. F = fusion(L, G / max|G|) (:mod:`attnloop.fusion`; the fusions are invariant to G's scale, which keeps a
-   tiny G above the constant-map threshold of the min-max normalisation);
-3. ``pooling="regional"`` (default): F's regional GeM code (:mod:`attnloop.pooling`); ``"flat"`` (the
-   paper's): F itself;
-4. with ``num_rnn > 0`` (the paper's 16): that input, scaled to L2 norm ``pool_scale`` (None: raw), goes
-   through the random RNNs (:mod:`attnloop.rnn_pool`), (B, num_rnn * out_features); with ``num_rnn=0`` the
-   descriptor is the pooled code (2560 dims at EfficientNet-Lite0's default tap);
-5. L2 normalisation (``normalize=True``): the dot product of two descriptors is their cosine.
-
-``preset="paper"`` is the paper's configuration exactly (:mod:`attnloop.presets`); steps 2-5 are one
-:class:`DescriptorRecipe`. ``differentiable=True`` keeps the whole chain in autograd, for training through it.
+1. L, G: the tap activations and the guided gradient (:mod:`attnloop.guided_backprop`);
+2. F = fusion(L, G / max|G|) (:mod:`attnloop.fusion`);
+3. ``pooling="regional"``: F's regional GeM code (:mod:`attnloop.pooling`); ``"flat"`` (the paper's): F;
+4. with ``num_rnn > 0``: random RNNs (:mod:`attnloop.rnn_pool`) on that input scaled to L2 norm ``pool_scale``;
+5. L2 normalisation. Steps 2-5 are one :class:`DescriptorRecipe`.
 """
 from __future__ import annotations
 

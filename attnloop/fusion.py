@@ -1,18 +1,7 @@
-"""Fusion of a CNN layer ``L`` with its attention map ``G`` (the paper's DAM, EAM, GAF, EGA).
+"""Fusion of a CNN layer ``L`` with its attention map ``G`` (the paper's DAM, EAM, GAF, EGA; docs/method.md).
 
-``G`` is the guided gradient of the softmax output with respect to ``L`` (same shape as ``L``):
-
-* ``none``: ``L``, no attention;
-* ``dam`` (direct attention map): ``L * N(G)``, ``N`` over ``(C, H, W)`` of each sample;
-* ``eam`` (exponential attention map): ``L * exp(N(G))``;
-* ``gaf`` (global attention fusion): ``L * N(sum_c N(G_c))``, the inner ``N`` per channel map over
-  ``(H, W)``, the outer ``N`` over ``(H, W)`` of the channel sum, broadcast over the channels;
-* ``ega`` (exponential global attention): ``L * exp(N(sum_c N(G_c)))``.
-
-The inner ``N`` per channel is our reading of the paper's ``N(sum_i N(G_ij))`` (docs/method.md). ``N`` is a
-per-sample min-max normalisation to ``[0, 1]`` (:func:`minmax_normalize`): a constant map gives zeros, a NaN
-in ``G`` makes its slice NaN. All operators take two ``(B, C, H, W)`` tensors of one floating dtype and
-device and are differentiable in both.
+``N`` is the per-sample min-max normalisation :func:`minmax_normalize`. Every operator takes two ``(B, C, H, W)``
+tensors of one floating dtype and device and is differentiable in both.
 
 Example:
     >>> L = torch.rand(2, 512, 7, 7)
@@ -119,7 +108,10 @@ def eam(L: Tensor, G: Tensor) -> Tensor:
 
 
 def gaf(L: Tensor, G: Tensor) -> Tensor:
-    """Global attention fusion ``L * N(sum_c N(G_c))``: ``L``, ``G`` ``(B, C, H, W)`` -> ``(B, C, H, W)``."""
+    """Global attention fusion ``L * N(sum_c N(G_c))``: ``L``, ``G`` ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+
+    The inner ``N`` over ``(H, W)`` of each channel map, the outer over ``(H, W)`` of their sum.
+    """
     _check_pair(L, G)
     return L * _global_attention(G)
 

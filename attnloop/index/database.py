@@ -1,18 +1,9 @@
-"""The keyframe database: stored descriptors, an approximate structure over them, exact re-scoring.
+"""The keyframe database: stored descriptors, an approximate structure over them, exact re-scoring (docs/scale.md).
 
-Descriptors are L2-normalised, so the structures' L2 ranking is the cosine's. All rows live in one growing
-buffer (:class:`~attnloop.index.storage.KeyframeStore`). Below ``exact_below`` keyframes (and for the
-``"exact"`` backend always) a query is one exact scan. Above it, a structure covers rows ``[0, n_indexed)``:
-the faiss HNSW graph grows with every ``add`` (rebuilt only to refit its PCA code); a FLANN tree cannot
-grow, so rows after it are scanned exactly until the tail holds ``max(rebuild_every, rebuild_fraction *
-n_indexed)`` rows and a new tree is built. Builds run in a background thread by default and are swapped in
-by the next ``add``/``search``.
-
-Every answer is re-scored exactly (float64) from ``rerank * k`` proposed rows, ties to the lower id, so the
-only approximation is whether the structure proposes the true neighbours; FLANN with ``checks=-1`` on the
-full descriptors is exact. ``search(..., max_id=m)`` returns only ids ``<= m`` (the temporal exclusion
-window); ids increase with every ``add``, so the eligible rows are a prefix. :meth:`KeyframeIndex.save` /
-:meth:`KeyframeIndex.load` keep the rows and the built structure: a reloaded index answers as the saved one.
+A structure covers rows ``[0, n_indexed)``; a FLANN tree cannot grow, so rows after it are scanned exactly
+until the tail holds ``max(rebuild_every, rebuild_fraction * n_indexed)`` rows. Builds run in a background
+thread and are swapped in by the next ``add``/``search``. Ids increase with every ``add``, so the rows
+eligible under ``max_id`` are a prefix.
 """
 from __future__ import annotations
 

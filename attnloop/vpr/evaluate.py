@@ -1,20 +1,9 @@
 """Place-recognition evaluation: recall@k, the best-match precision/recall curve, AUC-PR, R@P100.
 
-Input: a query x database similarity ``(Q, R)`` (higher = more alike; a non-finite entry, or a pair outside
-``candidates``, is not a candidate) and a boolean ground truth ``(Q, R)``; ground truth that is not a
-candidate is ignored. Each query ranks its candidates by similarity, ties in database order:
-
-* **recall@k**: the fraction of the queries with a true match whose k best candidates include one;
-* **best-match PR curve**: every query proposes its best candidate, accepted at or above a threshold; an
-  accepted query without a true match is a false positive. Recall is relative to the queries with a
-  match (:mod:`slam.eval.loops`' convention): :attr:`PlaceRecognitionResult.curve`;
-* **recall at 100 % precision**: that curve's largest recall without a false positive, and its threshold;
-* **AUC-PR** as VPR-Bench computes it (recall relative to the correct best matches, trapezoidal from
-  (0, 1)): :attr:`PlaceRecognitionResult.vpr_bench_curve`; 0 when no best match is correct.
-
-Ground truth comes from a binary matrix (an image such as RTAB-Map's ``samples_GT.bmp``, or ``.npy``), a
-VPR-Bench ``ground_truth_new.npy`` (object rows ``[query, [references]]``), or poses
-(:func:`ground_truth_from_poses`).
+Each query ranks its candidates by similarity, ties in database order; in the best-match PR curve every query
+proposes its best candidate, and an accepted query without a true match is a false positive. Ground truth: a
+binary matrix (an image such as RTAB-Map's ``samples_GT.bmp``, or ``.npy``), a VPR-Bench
+``ground_truth_new.npy`` or poses (:func:`ground_truth_from_poses`).
 
 Example:
     >>> sim = torch.tensor([[0.9, 0.1, 0.2], [0.3, 0.8, 0.1], [0.2, 0.7, 0.4]])
@@ -503,7 +492,7 @@ def evaluate(
     ground_truth: torch.Tensor | np.ndarray | str | os.PathLike,
     candidates: torch.Tensor | np.ndarray | None = None,
 ) -> PlaceRecognitionResult:
-    """Evaluate a query x database similarity against the ground truth (definitions in the module doc).
+    """Evaluate a query x database similarity against the ground truth (:class:`PlaceRecognitionResult`).
 
     Args:
         similarity: ``(Q, R)`` higher = more alike (e.g. the cosine of unit descriptors). Non-finite
