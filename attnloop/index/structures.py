@@ -2,8 +2,8 @@
 
 A structure covers rows ``[0, n)`` of the index's store and proposes candidate rows, which the index
 re-scores exactly: ``build(x, config)``; ``candidates(q, k, m)``: up to ``k`` rows ``< m`` near the unit query
-``q (D,)``, or None where a scan of the prefix is cheaper; ``extendable`` / ``extend(x)``; ``stale()``: the
-PCA code calls for a rebuild; ``state()`` / ``from_state(meta, arrays, x, config)``: a faithful copy.
+``q (D,)``, or None where a scan of the prefix is cheaper; ``extendable``: then ``extend(x)`` and ``stale()``
+(the PCA code calls for a rebuild); ``state()`` / ``from_state(meta, arrays, x, config)``: a faithful copy.
 """
 from __future__ import annotations
 
@@ -94,7 +94,7 @@ class FlannTree:
         self._data = data
         self.code = code
         self.config = config  # read at query time: a caller may change checks between queries
-        self.n = self.n_trained = int(data.shape[0])
+        self.n = int(data.shape[0])
 
     @classmethod
     def build(cls, x: np.ndarray, config: IndexConfig) -> FlannTree:
@@ -116,9 +116,6 @@ class FlannTree:
         idx, _ = self.flann.knnSearch(qc, kq, params={"checks": int(self.config.flann.checks)})
         idx = idx[0].astype(np.int64)
         return idx[(idx >= 0) & (idx < min(m, self.n))]
-
-    def stale(self) -> bool:
-        return False  # the index's tail rule rebuilds it (and refits its code)
 
     def state(self) -> tuple[dict, dict]:
         with tempfile.TemporaryDirectory() as tmp:

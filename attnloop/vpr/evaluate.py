@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from slam.eval.loops import LoopGroundTruthConfig, PRCurve, plot_pr_curves, poses_close, precision_recall_curve
+from slam.input_checks import source_name
 
 __all__ = [
     "GroundTruthFormatError",
@@ -62,12 +63,6 @@ class ShapeMismatchError(ValueError):
     """Similarity, ground truth and candidate mask of different shapes (the message gives them)."""
 
 
-def _name_of(source) -> str:
-    if isinstance(source, (str, os.PathLike)):
-        return os.fspath(source)
-    return str(getattr(source, "name", "<stream>"))
-
-
 def _read_bytes(source: PathOrFile) -> bytes:
     if isinstance(source, (str, os.PathLike)):
         path = os.fspath(source)
@@ -81,7 +76,7 @@ def _read_bytes(source: PathOrFile) -> bytes:
     if hasattr(source, "read"):
         data = source.read()
         if isinstance(data, str):
-            raise TypeError(f"{_name_of(source)}: open the ground-truth file in binary mode ('rb'), not text")
+            raise TypeError(f"{source_name(source)}: open the ground-truth file in binary mode ('rb'), not text")
         return bytes(data)
     raise TypeError(f"expected a path or a binary file object, got {type(source).__name__}")
 
@@ -163,7 +158,7 @@ def read_ground_truth_matrix(source: PathOrFile) -> torch.Tensor:
         GroundTruthFormatError: missing, undecodable, not 2-D, not real, non-finite or not binary (naming
             the file and the first bad entry).
     """
-    name = _name_of(source)
+    name = source_name(source)
     data = _read_bytes(source)
     if not data:
         raise GroundTruthFormatError(name, "empty file")
@@ -232,7 +227,7 @@ def read_vpr_bench_ground_truth(source: PathOrFile, num_references: int | None =
         TypeError, ValueError: ``num_references`` is not a non-negative int.
     """
     num_references = _check_num_references(num_references)
-    name = _name_of(source)
+    name = source_name(source)
     data = _read_bytes(source)
     if not _is_npy(data):
         raise GroundTruthFormatError(name, "not a .npy file")
@@ -290,7 +285,7 @@ def read_ground_truth(source: PathOrFile, num_references: int | None = None) -> 
         ``(Q, R)`` bool matrix.
     """
     num_references = _check_num_references(num_references)
-    name = _name_of(source)
+    name = source_name(source)
     data = _read_bytes(source)
     buf = io.BytesIO(data)
     buf.name = name
