@@ -252,13 +252,12 @@ class KeyframeIndex:
         if self._worker is None or self._worker.is_alive():
             return
         self._worker = None
-        out = self._result.pop() if self._result else None
+        out = self._result.pop()  # the worker leaves its structure or its exception
         if isinstance(out, BaseException):
             raise RuntimeError(f"building the {self.backend} index structure failed") from out
-        if out is not None:
-            self._structure = out
-            self.num_builds += 1
-            self._extend()
+        self._structure = out
+        self.num_builds += 1
+        self._extend()
 
     def wait(self) -> None:
         """Block until a running background build has finished and is installed."""
