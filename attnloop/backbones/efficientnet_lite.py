@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .preprocess import prepare_images
+from .preprocess import check_size, prepare_images
 from .weights import EFFICIENTNET_LITE0_FILE, load_state_dict, resolve_efficientnet_lite0_weights
 
 __all__ = ["EfficientNetLite0", "efficientnet_lite0", "efficientnet_lite_taps"]
@@ -39,14 +39,7 @@ _INPUT_SIZE = 224  # the training resolution
 
 def _input_hw(input_size: int | Sequence[int] | None) -> tuple[int, int]:
     res = _INPUT_SIZE if input_size is None else input_size
-    size = (res, res) if isinstance(res, int) and not isinstance(res, bool) else res
-    try:
-        ok = len(size) == 2 and all(not isinstance(v, bool) and int(v) == v and v >= 1 for v in size)
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise ValueError(f"input_size must be a positive integer or (H, W) in positive integers, got {input_size!r}")
-    return int(size[0]), int(size[1])
+    return check_size((res, res) if isinstance(res, int) and not isinstance(res, bool) else res, "input_size")
 
 
 def efficientnet_lite_taps(input_size: int | tuple[int, int] | None = None

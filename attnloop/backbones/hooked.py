@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from ..guided_backprop import eval_mode
-from .preprocess import prepare_images
+from .preprocess import check_size, prepare_images
 
 __all__ = ["MAX_POOL_TYPES", "HookedBackbone"]
 
@@ -87,8 +87,8 @@ class HookedBackbone(nn.Module):
         self.module = module
         self.tap = tap
         self._tap_module = self._submodule(tap)
-        self.input_size = self._size(input_size, "input_size")
-        self.probe_size = self._size(probe_size, "probe_size")
+        self.input_size = check_size(input_size, "input_size")
+        self.probe_size = check_size(probe_size, "probe_size")
         for name, v in (("mean", mean), ("std", std)):
             if v is not None and (len(v) != 3 or not all(torch.isfinite(torch.tensor(v, dtype=torch.float64)))):
                 raise ValueError(f"{name} must be 3 finite values (one per RGB channel) or None, got {v!r}")
@@ -116,14 +116,6 @@ class HookedBackbone(nn.Module):
         if sub is self.module:
             raise ValueError(f"tap must be a submodule of {type(self.module).__name__}, not the module itself")
         return sub
-
-    @staticmethod
-    def _size(size: Sequence[int] | None, what: str) -> tuple[int, int] | None:
-        if size is None:
-            return None
-        if len(size) != 2 or any(int(s) != s or s < 1 for s in size):
-            raise ValueError(f"{what} must be (height, width) in positive integers or None, got {size!r}")
-        return int(size[0]), int(size[1])
 
     def _dtype_device(self) -> tuple[torch.dtype, torch.device]:
         for t in (*self.module.parameters(), *self.module.buffers()):
