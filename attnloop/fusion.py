@@ -67,12 +67,18 @@ def minmax_normalize(x: Tensor, dims: int | Sequence[int]) -> Tensor:
     return torch.where(finite, out, torch.full_like(x, float("nan")))
 
 
+def check_bchw(x: Tensor, name: str = "x") -> None:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.dim() != 4:
+        raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(x.shape)}")
+    if not x.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
+
+
 def _check_pair(L: Tensor, G: Tensor) -> None:
-    for name, t in (("L", L), ("G", G)):
-        if t.dim() != 4:
-            raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(t.shape)}")
-        if not t.is_floating_point():
-            raise TypeError(f"{name} must be a floating-point tensor, got {t.dtype}")
+    check_bchw(L, "L")
+    check_bchw(G, "G")
     if L.shape != G.shape:
         raise ValueError(f"L and G must have the same shape (B, C, H, W), got {tuple(L.shape)} and "
                          f"{tuple(G.shape)}")

@@ -18,18 +18,11 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from .fusion import check_bchw
+
 Tensor = torch.Tensor
 
 __all__ = ["RandomRNNPool", "merge_channels", "random_rnn_pool", "random_rnn_weights"]
-
-
-def check_bchw(x: Tensor, name: str = "x") -> None:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if x.dim() != 4:
-        raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(x.shape)}")
-    if not x.is_floating_point():
-        raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
 
 
 def merge_channels(x: Tensor) -> Tensor:
