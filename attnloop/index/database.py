@@ -230,7 +230,7 @@ class KeyframeIndex:
             self._start_build(background=self.config.background)
 
     def _start_build(self, background: bool) -> None:
-        snapshot = self._store.view(0, self._store.n)  # rows never written again
+        snapshot = self._store.view()  # rows never written again
         cls, config = STRUCTURES[self.backend], self.config
         result: list = []
 
