@@ -94,7 +94,7 @@ def eval_mode(module: nn.Module) -> Iterator[nn.Module]:
 
 def _seeded_backward(logits: Tensor, wrt: Tensor, create_graph: bool) -> Tensor:
     """G = (dS/d wrt)^T S with S = softmax(logits); the one place the seeded backward is written."""
-    if logits.ndim != 2 or logits.shape[0] != wrt.shape[0]:
+    if not isinstance(logits, Tensor) or logits.ndim != 2 or logits.shape[0] != wrt.shape[0]:
         raise ValueError(
             f"the network after the tap must return logits (B, K) with B={wrt.shape[0]}, got "
             f"{tuple(logits.shape) if isinstance(logits, Tensor) else type(logits).__name__}"

@@ -343,7 +343,9 @@ class KeyframeIndex:
     # go to the lower row whichever path found the rows.
     def _top(self, q: np.ndarray, m: int, k: int, structure) -> tuple[np.ndarray, np.ndarray]:
         """Rows and similarities of the ``k`` best of the eligible prefix ``[0, m)``, best first, ties by row."""
-        q64, tol = q.astype(np.float64), self._tolerance(q)
+        q64 = q.astype(np.float64)
+        # how far below the k-th value of a float32 scan a row of the exact top k can score
+        tol = scan_tolerance(self._store.dim, float(np.linalg.norm(q64)), _UNIT_ROW_NORM)
         if structure is None or m < self.config.exact_below:
             return self._scan(q, q64, 0, m, k, tol)
         prop = structure.candidates(q, k * self.config.rerank, m)
@@ -362,10 +364,6 @@ class KeyframeIndex:
                 and np.count_nonzero(p_sims == sims[-1]) >= 2):
             return self._scan(q, q64, 0, m, k, tol)
         return rows, sims
-
-    def _tolerance(self, q: np.ndarray) -> float:
-        """How far below the k-th value of a float32 scan a row of the exact top k can score."""
-        return scan_tolerance(self._store.dim, float(np.linalg.norm(q.astype(np.float64))), _UNIT_ROW_NORM)
 
     def _scan(self, q, q64, start: int, stop: int, k: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` best of rows ``[start, stop)``: every row a float32 scan cannot rule out, re-scored exactly."""
