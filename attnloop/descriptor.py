@@ -188,12 +188,9 @@ def descriptor_from_attention(
     return fused, desc
 
 
-_PROTOCOL = ("preprocess", "forward_to_tap", "tap_shape")
-
-
 def _is_backbone(module: nn.Module) -> bool:
     """Whether ``module`` follows the backbone protocol of :mod:`attnloop.backbones`."""
-    return all(hasattr(module, a) for a in _PROTOCOL) and (
+    return all(hasattr(module, a) for a in ("preprocess", "forward_to_tap", "tap_shape")) and (
         hasattr(module, "forward_from_tap") or hasattr(module, "forward_split"))
 
 
