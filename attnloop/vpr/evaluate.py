@@ -519,19 +519,18 @@ def evaluate(
                                      f"{tuple(sim.shape)}")
         valid &= cand != 0
     gt = gt & valid
-    q, r = sim.shape
+    q = sim.shape[0]
     none = torch.full((q,), -1, dtype=torch.long)
     # One ordering for everything: by similarity, descending, ties in database order; non-candidates last.
     key = torch.where(valid, sim, torch.full_like(sim, -math.inf))
     order = torch.argsort(key, dim=1, descending=True, stable=True)
-    padded = torch.cat([order, none[:, None]], dim=1)  # column 0 exists even when r == 0
+    padded = torch.cat([order, none[:, None]], dim=1)  # column 0 exists even without references
     any_valid = valid.any(dim=1)
     has_match = gt.any(dim=1)
     gt_sorted = torch.cat([torch.gather(gt, 1, order), has_match[:, None]], dim=1)
     first = torch.where(has_match, gt_sorted.to(torch.int8).argmax(dim=1), none)
     best = torch.where(any_valid, padded[:, 0], none)
-    best_score = torch.gather(torch.cat([key, key.new_full((q, 1), -math.inf)], dim=1), 1,
-                              torch.where(any_valid, best, torch.full_like(best, r))[:, None])[:, 0]
+    best_score = torch.cat([key, key.new_full((q, 1), -math.inf)], dim=1).amax(dim=1)  # the best's, -inf: none
     correct = any_valid & (first == 0)
     # Queries without a candidate propose nothing: a -inf score is never accepted (loops' convention).
     curve = precision_recall_curve(best_score, correct, num_positives=int(has_match.sum()))
