@@ -181,16 +181,14 @@ class EfficientNetLite0(nn.Module):
         self.tap_shape = (sum(self.tap_groups), h, w)
         self._conv_stem = SameConv2d(3, 32, 3, stride=2)
         self._bn0 = _bn(32)
-        blocks = []
-        for repeats, kernel, stride, expand, in_ch, out_ch in _STAGES:
-            for r in range(repeats):
-                blocks.append(MBConv(kernel, stride if r == 0 else 1, expand, in_ch if r == 0 else out_ch, out_ch))
-        self._blocks = nn.ModuleList(blocks)
+        self._blocks = nn.ModuleList(
+            MBConv(kernel, stride if r == 0 else 1, expand, in_ch if r == 0 else out_ch, out_ch)
+            for repeats, kernel, stride, expand, in_ch, out_ch in _STAGES for r in range(repeats))
         self._conv_head = SameConv2d(_STAGES[-1][-1], 1280, 1)
         self._bn1 = _bn(1280)
         self._dropout = nn.Dropout(0.2)
         self._fc = nn.Linear(1280, 1000)
-        self.tap_block = len(blocks) - 1 if last_block < 0 else last_block
+        self.tap_block = len(self._blocks) - 1 if last_block < 0 else last_block
 
     def reset_parameters(self, seed: int = 0) -> EfficientNetLite0:
         """Seeded random weights (a private generator): Kaiming-normal convolutions, unit batch-norm."""

@@ -163,11 +163,9 @@ class HookedBackbone(nn.Module):
         if not explicit:
             before = [_main_output(out) for _, m, out in events[:at] if isinstance(m, MAX_POOL_TYPES)]
             self.clamp_at_tap = isinstance(self._tap_module, MAX_POOL_TYPES) or any(t is tap_out for t in before)
-            after: list[str] = []
-            for name, m, _ in events[at + 1:]:
-                if isinstance(m, MAX_POOL_TYPES) and name not in after:
-                    after.append(name)
-            self.transitions = tuple(after)
+            # each max-pool after the tap once, in the order they first ran
+            self.transitions = tuple(dict.fromkeys(
+                name for name, m, _ in events[at + 1:] if isinstance(m, MAX_POOL_TYPES)))
 
     def preprocess(self, images: Tensor) -> Tensor:
         """(B, 3, H, W) uint8 or [0, 1] float -> the network input: resized to ``input_size`` (when set),

@@ -14,8 +14,8 @@ import torch
 
 from attnloop.index.config import IndexConfig, config_from_dict, config_to_dict, resolve_backend
 from attnloop.index.exact import check_count, scan_tolerance, topk_rows
-from attnloop.index.storage import GATHER_BYTES, KeyframeStore
 from attnloop.index.persistence import IndexFileError, file_name, read_index_file, save_index
+from attnloop.index.storage import GATHER_BYTES, KeyframeStore
 from attnloop.index.structures import STRUCTURES
 
 Tensor = torch.Tensor
@@ -31,10 +31,8 @@ _UNIT_ROW_NORM = 1.01
 
 def _to_numpy_2d(x, name: str) -> tuple[np.ndarray, bool]:
     """(N, D) or (D,) tensor/array -> contiguous float32 (N, D) numpy array, and whether it was 1-D."""
-    if isinstance(x, Tensor):
-        arr = x.detach().to(device="cpu", dtype=torch.float32).numpy()
-    else:
-        arr = np.asarray(x, dtype=np.float32)
+    arr = (x.detach().to(device="cpu", dtype=torch.float32).numpy() if isinstance(x, Tensor)
+           else np.asarray(x, dtype=np.float32))
     if arr.ndim == 1:
         return np.ascontiguousarray(arr[None]), True
     if arr.ndim != 2:
