@@ -33,16 +33,12 @@ def import_faiss():
 
 
 def _fit_code(x: np.ndarray, config: IndexConfig) -> PCACode | None:
-    if config.reduce_dim is None:
-        return None
-    return fit_pca(x, config.reduce_dim, seed=config.seed)
+    return None if config.reduce_dim is None else fit_pca(x, config.reduce_dim, seed=config.seed)
 
 
 def _codes(x: np.ndarray, code: PCACode | None) -> np.ndarray:
     """What the structure indexes: contiguous float32 codes (or descriptors, without a code)."""
-    if code is not None:
-        return code.encode(x)
-    return np.ascontiguousarray(x, dtype=np.float32)
+    return np.ascontiguousarray(x, dtype=np.float32) if code is None else code.encode(x)
 
 
 def _code_state(code: PCACode | None) -> dict:
