@@ -230,16 +230,11 @@ def read_vpr_bench_ground_truth(source: PathOrFile, num_references: int | None =
     if arr.dtype != object and not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
         what = "a boolean matrix: read it with read_ground_truth_matrix" if arr.dtype == bool else "not indices"
         raise GroundTruthFormatError(name, f"dtype {arr.dtype} is {what}")
-    if arr.dtype == object and arr.ndim == 1 and arr.size and all(
-            isinstance(x, (list, tuple, np.ndarray)) for x in arr):
-        rows = list(arr)
-    elif arr.ndim == 2 and arr.shape[1] == 2:
-        rows = [arr[i] for i in range(arr.shape[0])]
-    elif arr.size == 0:
-        rows = []
-    else:
+    lists = arr.dtype == object and arr.ndim == 1 and all(isinstance(x, (list, tuple, np.ndarray)) for x in arr)
+    if not (lists or (arr.ndim == 2 and arr.shape[1] == 2) or arr.size == 0):
         raise GroundTruthFormatError(name, f"expected rows [query, [references]] (shape (Q, 2)), got shape "
                                            f"{arr.shape} dtype {arr.dtype}")
+    rows = list(arr) if arr.size else []
     matches: list[list[int]] = []
     for q, row in enumerate(rows):
         if len(row) != 2:
