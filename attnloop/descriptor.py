@@ -1,19 +1,10 @@
 """The attention-guided CNN descriptor: backbone -> guided attention -> fusion -> pooling (-> random RNNs) -> L2.
 
-For a batch of images:
-
-1. L, G = the tap activations and the softmax-seeded partial guided gradient (:mod:`attnloop.guided_backprop`);
-2. F = fusion(L, G / max|G|) (:mod:`attnloop.fusion`; the fusions are invariant to G's scale, which keeps a
-   tiny G above the constant-map threshold of the min-max normalisation);
-3. ``pooling="regional"`` (default): F's regional GeM code (:mod:`attnloop.pooling`); ``"flat"`` (the
-   paper's): F itself;
-4. with ``num_rnn > 0`` (the paper's 16): that input, scaled to L2 norm ``pool_scale`` (None: raw), goes
-   through the random RNNs (:mod:`attnloop.rnn_pool`), (B, num_rnn * out_features); with ``num_rnn=0`` the
-   descriptor is the pooled code (2560 dims at EfficientNet-Lite0's default tap);
-5. L2 normalisation (``normalize=True``): the dot product of two descriptors is their cosine.
-
-``preset="paper"`` is the paper's configuration exactly (:mod:`attnloop.presets`); steps 2-5 are one
-:class:`DescriptorRecipe`. ``differentiable=True`` keeps the whole chain in autograd, for training through it.
+1. L, G: the tap activations and the guided gradient (:mod:`attnloop.guided_backprop`);
+2. F = fusion(L, G / max|G|) (:mod:`attnloop.fusion`);
+3. ``pooling="regional"``: F's regional GeM code (:mod:`attnloop.pooling`); ``"flat"`` (the paper's): F;
+4. with ``num_rnn > 0``: random RNNs (:mod:`attnloop.rnn_pool`) on that input scaled to L2 norm ``pool_scale``;
+5. L2 normalisation. Steps 2-5 are one :class:`DescriptorRecipe`.
 """
 from __future__ import annotations
 
@@ -123,7 +114,7 @@ _UNSET: Any = _Default()
 
 
 class DescriptorParts(NamedTuple):
-    """Every intermediate of one descriptor computation, for inspection.
+    """Every intermediate of one descriptor computation.
 
     Attributes:
         tap: the tap activations L, :math:`(B, C, h, w)`.
@@ -138,19 +129,13 @@ class DescriptorParts(NamedTuple):
     descriptor: torch.Tensor
 
 
-def _scale_to_norm(x: torch.Tensor, norm: float) -> torch.Tensor:
-    # Per-sample L2 normalisation to `norm`; an all-zero sample stays zero (no NaN).
-    flat = x.reshape(x.shape[0], -1)
-    return (F.normalize(flat, dim=1) * norm).reshape(x.shape)
-
-
 def descriptor_from_attention(
     tap: torch.Tensor,
     grad: torch.Tensor,
     rnn_weights: torch.Tensor | None,
     fusion: str = "dam",
     normalize: bool = True,
-    pool_scale: float | None = 10.0,
+    pool_scale: float | None = _RNN_DEFAULTS["pool_scale"],
     merge: bool | None = None,
     *,
     pooling: str = "regional",
@@ -195,19 +180,17 @@ def descriptor_from_attention(
         if merge is None:
             merge = pooling == "flat"
         pool_in = fused if pooling == "flat" else regional_code(fused, groups)[:, :, None, None]
-        pool_in = pool_in if pool_scale is None else _scale_to_norm(pool_in, float(pool_scale))
+        if pool_scale is not None:  # per-sample L2 norm pool_scale; an all-zero sample stays zero
+            pool_in = (F.normalize(pool_in.flatten(1), dim=1) * float(pool_scale)).reshape(pool_in.shape)
         desc = random_rnn_pool(pool_in, rnn_weights, merge=merge)
     if normalize:
         desc = F.normalize(desc, dim=1)
     return fused, desc
 
 
-_PROTOCOL = ("preprocess", "forward_to_tap", "tap_shape")
-
-
 def _is_backbone(module: nn.Module) -> bool:
     """Whether ``module`` follows the backbone protocol of :mod:`attnloop.backbones`."""
-    return all(hasattr(module, a) for a in _PROTOCOL) and (
+    return all(hasattr(module, a) for a in ("preprocess", "forward_to_tap", "tap_shape")) and (
         hasattr(module, "forward_from_tap") or hasattr(module, "forward_split"))
 
 
@@ -220,9 +203,6 @@ class AttentionDescriptor(nn.Module):
     ``nn.Module`` with ``tap="name.of.submodule"`` (:class:`attnloop.backbones.HookedBackbone`). A module
     passed in is never frozen; it runs in eval mode during a computation only, so that a descriptor never
     depends on the rest of its batch.
-
-    By default the output is detached (it works under ``torch.no_grad()`` and ``torch.inference_mode()``);
-    ``differentiable=True`` keeps it differentiable w.r.t. the images and the backbone's weights.
 
     Args:
         backbone: a name, a backbone module or a classifier module (see above).
@@ -241,7 +221,8 @@ class AttentionDescriptor(nn.Module):
         input_size: a classifier module's input ``(height, width)``; None: images at their own size.
         mean: a classifier module's per-channel input mean on [0, 1] RGB; None: none.
         std: a classifier module's per-channel input std on [0, 1] RGB; None: none.
-        differentiable: keep the computation in autograd (see above).
+        differentiable: keep the output differentiable w.r.t. the images and the backbone's weights (default:
+            detached, usable under ``torch.no_grad()`` and ``torch.inference_mode()``).
         recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` and ``pooling``.
         preset: a name of :data:`attnloop.presets.PRESETS`: ``"paper"`` or ``"guclu2019"`` fix the recipe
             and the tap (only ``seed``, the backbone and the paper's ``fusion`` stay free) and make
@@ -477,9 +458,8 @@ class AttentionDescriptor(nn.Module):
         """
         self._check_images(images)
         if images.shape[0] == 0:
-            shape = (0, *self.backbone.tap_shape)
             dtype = self._dtype()
-            empty = images.new_zeros(shape, dtype=dtype)
+            empty = images.new_zeros((0, *self.backbone.tap_shape), dtype=dtype)
             desc = images.new_zeros((0, self.out_dim), dtype=dtype)
             if self.differentiable and torch.is_grad_enabled() and not torch.is_inference_mode_enabled():
                 # an empty batch stays in the graph, as an nn.Conv2d's empty output does

@@ -1,18 +1,7 @@
-"""Fusion of a CNN layer ``L`` with its attention map ``G`` (the paper's DAM, EAM, GAF, EGA).
+"""Fusion of a CNN layer ``L`` with its attention map ``G`` (the paper's DAM, EAM, GAF, EGA; docs/method.md).
 
-``G`` is the guided gradient of the softmax output with respect to ``L`` (same shape as ``L``):
-
-* ``none``: ``L``, no attention;
-* ``dam`` (direct attention map): ``L * N(G)``, ``N`` over ``(C, H, W)`` of each sample;
-* ``eam`` (exponential attention map): ``L * exp(N(G))``;
-* ``gaf`` (global attention fusion): ``L * N(sum_c N(G_c))``, the inner ``N`` per channel map over
-  ``(H, W)``, the outer ``N`` over ``(H, W)`` of the channel sum, broadcast over the channels;
-* ``ega`` (exponential global attention): ``L * exp(N(sum_c N(G_c)))``.
-
-The inner ``N`` per channel is our reading of the paper's ``N(sum_i N(G_ij))`` (docs/method.md). ``N`` is a
-per-sample min-max normalisation to ``[0, 1]`` (:func:`minmax_normalize`): a constant map gives zeros, a NaN
-in ``G`` makes its slice NaN. All operators take two ``(B, C, H, W)`` tensors of one floating dtype and
-device and are differentiable in both.
+``N`` is the per-sample min-max normalisation :func:`minmax_normalize`. Every operator takes two ``(B, C, H, W)``
+tensors of one floating dtype and device and is differentiable in both.
 
 Example:
     >>> L = torch.rand(2, 512, 7, 7)
@@ -78,12 +67,18 @@ def minmax_normalize(x: Tensor, dims: int | Sequence[int]) -> Tensor:
     return torch.where(finite, out, torch.full_like(x, float("nan")))
 
 
+def check_bchw(x: Tensor, name: str = "x") -> None:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.dim() != 4:
+        raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(x.shape)}")
+    if not x.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
+
+
 def _check_pair(L: Tensor, G: Tensor) -> None:
-    for name, t in (("L", L), ("G", G)):
-        if t.dim() != 4:
-            raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(t.shape)}")
-        if not t.is_floating_point():
-            raise TypeError(f"{name} must be a floating-point tensor, got {t.dtype}")
+    check_bchw(L, "L")
+    check_bchw(G, "G")
     if L.shape != G.shape:
         raise ValueError(f"L and G must have the same shape (B, C, H, W), got {tuple(L.shape)} and "
                          f"{tuple(G.shape)}")
@@ -119,7 +114,10 @@ def eam(L: Tensor, G: Tensor) -> Tensor:
 
 
 def gaf(L: Tensor, G: Tensor) -> Tensor:
-    """Global attention fusion ``L * N(sum_c N(G_c))``: ``L``, ``G`` ``(B, C, H, W)`` -> ``(B, C, H, W)``."""
+    """Global attention fusion ``L * N(sum_c N(G_c))``: ``L``, ``G`` ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+
+    The inner ``N`` over ``(H, W)`` of each channel map, the outer over ``(H, W)`` of their sum.
+    """
     _check_pair(L, G)
     return L * _global_attention(G)
 

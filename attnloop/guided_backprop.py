@@ -1,17 +1,8 @@
-"""Softmax-seeded partial guided backprop: the attention gradient G = dS/dL at a tap layer L.
+"""Softmax-seeded partial guided backprop: the attention gradient G = dS/dL at a tap layer L (docs/method.md).
 
-1. forward the image to the tap L and on through the rest of the network to the logits z;
-2. S = softmax(z); the backward pass is seeded with S itself (``grad_outputs = S``): G = sum_k S_k dS_k/dL;
-3. the gradient's negative entries are zeroed only at the max-pool transitions between blocks (VGG16 at
-   pool5: at pool5 itself), plain backprop elsewhere; EfficientNet has no max-pool.
-
-``create_graph=False`` (default): (L, G) come back detached; a backbone whose head has a closed-form seeded
-backward gives them without autograd (``tap_and_seeded_gradient``). ``create_graph=True``: L and G are
-differentiable functions of the images and the weights (a second-order backward through the head); the
-clamps of the forward pass are then switched to identities once the seeded backward is done, since
-autograd differentiates through them as the identity they are in the forward.
-
-Nothing is left on the model, and it runs in eval mode during the computation (flags restored after).
+S = softmax(logits) seeds the backward (``grad_outputs = S``); negative gradients are zeroed only at the
+max-pool transitions after L. With ``create_graph=True`` the clamps are switched to identities once the seeded
+backward is done: autograd differentiates through them as the identity they are in the forward.
 """
 from __future__ import annotations
 
@@ -103,7 +94,7 @@ def eval_mode(module: nn.Module) -> Iterator[nn.Module]:
 
 def _seeded_backward(logits: Tensor, wrt: Tensor, create_graph: bool) -> Tensor:
     """G = (dS/d wrt)^T S with S = softmax(logits); the one place the seeded backward is written."""
-    if logits.ndim != 2 or logits.shape[0] != wrt.shape[0]:
+    if not isinstance(logits, Tensor) or logits.ndim != 2 or logits.shape[0] != wrt.shape[0]:
         raise ValueError(
             f"the network after the tap must return logits (B, K) with B={wrt.shape[0]}, got "
             f"{tuple(logits.shape) if isinstance(logits, Tensor) else type(logits).__name__}"

@@ -18,8 +18,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-from .fusion import check_fusion_mode, fuse
-from .rnn_pool import check_bchw
+from .fusion import check_bchw, check_fusion_mode, fuse
 
 Tensor = torch.Tensor
 

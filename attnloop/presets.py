@@ -1,15 +1,7 @@
-"""The descriptor's named configurations: ``default`` (ours, measured), ``paper`` and ``guclu2019``.
+"""The descriptor's named configurations: ``default`` (ours), ``paper`` and ``guclu2019`` (its baseline).
 
 One source of truth for what ``AttentionDescriptor(backbone, preset=NAME)`` and
-``slam.config.DescriptorConfig(preset=NAME)`` build; docs/method.md explains the choices.
-
-* **default**: EfficientNet-Lite0 tapped at stage6+stage7 (192 + 320 channels, 7 x 9 at a 224 x 288
-  input), G fused at stage7 only, regional GeM pooling, 2560-d, no random RNNs; VGG16 at pool5 with the
-  same pooling. ``backbone="auto"``: VGG16 when its weights are at hand, else EfficientNet-Lite0.
-* **paper**: VGG16 pool5 at 224 x 224, the fusion (DAM by default), the merge of channel c with c + C/2,
-  16 random RNNs of 64 over the raw flattened fused map, 1024-d. ``backbone="auto"`` means VGG16, whose
-  weights must be found; EfficientNet-Lite0 (tap stage7) only when named.
-* **guclu2019**: the paper's baseline: the same without attention (fusion ``none``) and without the merge.
+``slam.config.DescriptorConfig(preset=NAME)`` build; docs/method.md compares them.
 """
 from __future__ import annotations
 

@@ -1,15 +1,8 @@
 """Random recursive neural network (RNN) pooling of a CNN feature map (CNN-randRNN, Caglayan et al.).
 
-The paper's recipe on VGG16's pool5 ``(512, 7, 7)``:
-
-1. merge every two maps by averaging, channel ``c`` with channel ``c + C/2`` (512 -> 256 channels);
-2. reshape ``(256, 7, 7)`` to ``(64, 14, 14)``;
-3. 16 one-level random RNNs, each a fixed matrix ``W_r ~ U[-0.1, 0.1]`` of shape ``64 x 12544``,
-   ``out_r = tanh(W_r x)`` with ``x`` the whole flattened input and no bias;
-4. concatenate the 16 outputs: ``16 * 64 = 1024`` dims.
-
-Step 2 changes nothing (a one-level RNN multiplies the whole row-major flattened vector) and is not
-performed, so any input shape works: ``in_features = C/2 * H * W``.
+``concat_r tanh(W_r x)``, ``W_r ~ U[-0.1, 0.1]``, ``x`` the flattened map after merging channel ``c`` with
+``c + C/2`` (docs/method.md). The paper's reshape to ``(64, 14, 14)`` changes nothing for a one-level RNN
+and is not performed, so any input shape works: ``in_features = C/2 * H * W``.
 
 Example:
     >>> pool = RandomRNNPool(512, in_size=(7, 7), num_rnn=16, out_features=64, seed=0)
@@ -25,18 +18,11 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from .fusion import check_bchw
+
 Tensor = torch.Tensor
 
 __all__ = ["RandomRNNPool", "merge_channels", "random_rnn_pool", "random_rnn_weights"]
-
-
-def check_bchw(x: Tensor, name: str = "x") -> None:
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if x.dim() != 4:
-        raise ValueError(f"{name} must have shape (B, C, H, W), got {tuple(x.shape)}")
-    if not x.is_floating_point():
-        raise TypeError(f"{name} must be a floating-point tensor, got {x.dtype}")
 
 
 def merge_channels(x: Tensor) -> Tensor:

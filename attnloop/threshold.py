@@ -89,13 +89,5 @@ def adaptive_threshold(similarities: Tensor, config: ThresholdConfig | None = No
 
 
 def accept_mask(similarities: Tensor, config: ThresholdConfig | None = None) -> Tensor:
-    """Which similarities exceed the query's adaptive threshold (strictly).
-
-    Args:
-        similarities: ``(N,)``, as for :func:`adaptive_threshold`.
-        config: the rule's parameters.
-
-    Returns:
-        boolean mask ``(N,)``.
-    """
+    """Boolean mask ``(N,)``: which ``similarities (N,)`` exceed their adaptive threshold (strictly)."""
     return similarities > adaptive_threshold(similarities, config)

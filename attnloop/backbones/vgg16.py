@@ -89,7 +89,7 @@ class VGG16(nn.Module):
 
     def preprocess(self, images: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) uint8 or [0, 1] float -> (B, 3, 224, 224) ImageNet-normalised, in the weights' dtype."""
-        return prepare_images(images, self.input_size, self.mean, self.std, dtype=self._dtype())
+        return prepare_images(images, self.input_size, self.mean, self.std, dtype=self.features[0].weight.dtype)
 
     def forward_to_tap(self, x: torch.Tensor) -> torch.Tensor:
         """Preprocessed (B, 3, 224, 224) -> tap L (B, C, h, w)."""
@@ -112,9 +112,6 @@ class VGG16(nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """Images (B, 3, H, W) -> logits (B, 1000): the plain classifier."""
         return self.forward_from_tap(self.forward_to_tap(self.preprocess(images)))
-
-    def _dtype(self) -> torch.dtype:
-        return self.features[0].weight.dtype
 
 
 def vgg16(

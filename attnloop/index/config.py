@@ -110,7 +110,8 @@ def resolve_backend(backend: str) -> str:
 def config_to_dict(config: IndexConfig) -> dict:
     """A JSON-friendly dict of ``config`` (nested backend settings as dicts; ``inf`` as the string "inf")."""
     out = dataclasses.asdict(config)
-    out["faiss"]["retrain_growth"] = _float_out(out["faiss"]["retrain_growth"])
+    growth = out["faiss"]["retrain_growth"]
+    out["faiss"]["retrain_growth"] = "inf" if math.isinf(growth) else growth
     return out
 
 
@@ -141,7 +142,3 @@ def _check_keys(data: dict, cls, what: str) -> None:
     unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
     if unknown:
         raise ValueError(f"{what} has no setting(s) {sorted(unknown)}")
-
-
-def _float_out(x: float):
-    return "inf" if math.isinf(x) else x

@@ -1,18 +1,9 @@
-"""The keyframe database: stored descriptors, an approximate structure over them, exact re-scoring.
+"""The keyframe database: stored descriptors, an approximate structure over them, exact re-scoring (docs/scale.md).
 
-Descriptors are L2-normalised, so the structures' L2 ranking is the cosine's. All rows live in one growing
-buffer (:class:`~attnloop.index.storage.KeyframeStore`). Below ``exact_below`` keyframes (and for the
-``"exact"`` backend always) a query is one exact scan. Above it, a structure covers rows ``[0, n_indexed)``:
-the faiss HNSW graph grows with every ``add`` (rebuilt only to refit its PCA code); a FLANN tree cannot
-grow, so rows after it are scanned exactly until the tail holds ``max(rebuild_every, rebuild_fraction *
-n_indexed)`` rows and a new tree is built. Builds run in a background thread by default and are swapped in
-by the next ``add``/``search``.
-
-Every answer is re-scored exactly (float64) from ``rerank * k`` proposed rows, ties to the lower id, so the
-only approximation is whether the structure proposes the true neighbours; FLANN with ``checks=-1`` on the
-full descriptors is exact. ``search(..., max_id=m)`` returns only ids ``<= m`` (the temporal exclusion
-window); ids increase with every ``add``, so the eligible rows are a prefix. :meth:`KeyframeIndex.save` /
-:meth:`KeyframeIndex.load` keep the rows and the built structure: a reloaded index answers as the saved one.
+A structure covers rows ``[0, n_indexed)``; a FLANN tree cannot grow, so rows after it are scanned exactly
+until the tail holds ``max(rebuild_every, rebuild_fraction * n_indexed)`` rows. Builds run in a background
+thread and are swapped in by the next ``add``/``search``. Ids increase with every ``add``, so the rows
+eligible under ``max_id`` are a prefix.
 """
 from __future__ import annotations
 
@@ -23,8 +14,8 @@ import torch
 
 from attnloop.index.config import IndexConfig, config_from_dict, config_to_dict, resolve_backend
 from attnloop.index.exact import check_count, scan_tolerance, topk_rows
-from attnloop.index.storage import GATHER_BYTES, KeyframeStore
 from attnloop.index.persistence import IndexFileError, file_name, read_index_file, save_index
+from attnloop.index.storage import GATHER_BYTES, KeyframeStore
 from attnloop.index.structures import STRUCTURES
 
 Tensor = torch.Tensor
@@ -40,10 +31,8 @@ _UNIT_ROW_NORM = 1.01
 
 def _to_numpy_2d(x, name: str) -> tuple[np.ndarray, bool]:
     """(N, D) or (D,) tensor/array -> contiguous float32 (N, D) numpy array, and whether it was 1-D."""
-    if isinstance(x, Tensor):
-        arr = x.detach().to(device="cpu", dtype=torch.float32).numpy()
-    else:
-        arr = np.asarray(x, dtype=np.float32)
+    arr = (x.detach().to(device="cpu", dtype=torch.float32).numpy() if isinstance(x, Tensor)
+           else np.asarray(x, dtype=np.float32))
     if arr.ndim == 1:
         return np.ascontiguousarray(arr[None]), True
     if arr.ndim != 2:
@@ -239,7 +228,7 @@ class KeyframeIndex:
             self._start_build(background=self.config.background)
 
     def _start_build(self, background: bool) -> None:
-        snapshot = self._store.view(0, self._store.n)  # rows never written again
+        snapshot = self._store.view()  # rows never written again
         cls, config = STRUCTURES[self.backend], self.config
         result: list = []
 
@@ -261,13 +250,12 @@ class KeyframeIndex:
         if self._worker is None or self._worker.is_alive():
             return
         self._worker = None
-        out = self._result.pop() if self._result else None
+        out = self._result.pop()  # the worker leaves its structure or its exception
         if isinstance(out, BaseException):
             raise RuntimeError(f"building the {self.backend} index structure failed") from out
-        if out is not None:
-            self._structure = out
-            self.num_builds += 1
-            self._extend()
+        self._structure = out
+        self.num_builds += 1
+        self._extend()
 
     def wait(self) -> None:
         """Block until a running background build has finished and is installed."""
@@ -353,7 +341,9 @@ class KeyframeIndex:
     # go to the lower row whichever path found the rows.
     def _top(self, q: np.ndarray, m: int, k: int, structure) -> tuple[np.ndarray, np.ndarray]:
         """Rows and similarities of the ``k`` best of the eligible prefix ``[0, m)``, best first, ties by row."""
-        q64, tol = q.astype(np.float64), self._tolerance(q)
+        q64 = q.astype(np.float64)
+        # how far below the k-th value of a float32 scan a row of the exact top k can score
+        tol = scan_tolerance(self._store.dim, float(np.linalg.norm(q64)), _UNIT_ROW_NORM)
         if structure is None or m < self.config.exact_below:
             return self._scan(q, q64, 0, m, k, tol)
         prop = structure.candidates(q, k * self.config.rerank, m)
@@ -372,10 +362,6 @@ class KeyframeIndex:
                 and np.count_nonzero(p_sims == sims[-1]) >= 2):
             return self._scan(q, q64, 0, m, k, tol)
         return rows, sims
-
-    def _tolerance(self, q: np.ndarray) -> float:
-        """How far below the k-th value of a float32 scan a row of the exact top k can score."""
-        return scan_tolerance(self._store.dim, float(np.linalg.norm(q.astype(np.float64))), _UNIT_ROW_NORM)
 
     def _scan(self, q, q64, start: int, stop: int, k: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` best of rows ``[start, stop)``: every row a float32 scan cannot rule out, re-scored exactly."""

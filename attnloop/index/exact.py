@@ -60,8 +60,6 @@ def exact_search(database: Tensor, queries: Tensor, k: int) -> tuple[Tensor, Ten
 
 def matvec(a: np.ndarray, q: np.ndarray) -> np.ndarray:
     """``a @ q`` in float32 for ``a (M, D)`` (a view, possibly row-strided) and ``q (D,)``, through torch."""
-    if a.shape[0] == 0:
-        return np.zeros(0, dtype=np.float32)
     return (torch.from_numpy(a) @ torch.from_numpy(q)).numpy()
 
 

@@ -22,9 +22,7 @@ class IndexFileError(ValueError):
 
 def file_name(file) -> str:
     """How a path or file object is named in messages."""
-    if isinstance(file, (str, os.PathLike)):
-        return os.fspath(file)
-    return str(getattr(file, "name", "<file object>"))
+    return os.fspath(file) if isinstance(file, (str, os.PathLike)) else str(getattr(file, "name", "<file object>"))
 
 
 def save_index(index, file) -> None:

@@ -70,22 +70,21 @@ class KeyframeStore:
         """Bytes of the valid rows (descriptors, ids, timestamps)."""
         return self.n * (self.dim * self.dtype.itemsize + 16)
 
-    def view(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        """Stored descriptors of rows ``[start, stop)``, in the storage dtype (a view, never written again)."""
-        return self._desc[start: self.n if stop is None else stop]
+    def view(self, start: int = 0) -> np.ndarray:
+        """Stored descriptors of rows ``[start, N)``, in the storage dtype (a view, never written again)."""
+        return self._desc[start: self.n]
 
     def rows(self, rows: np.ndarray, dtype=np.float32) -> np.ndarray:
         """Descriptors of the given rows ``(M,)`` as ``(M, D)`` of ``dtype`` (float32 by default)."""
         return self._desc[rows].astype(dtype, copy=False)
 
-    def row_norms(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        """L2 norms ``(M,)`` (float64) of rows ``[start, stop)``, computed a chunk at a time."""
-        stop = self.n if stop is None else stop
-        out = np.empty(max(0, stop - start), dtype=np.float64)
+    def row_norms(self) -> np.ndarray:
+        """L2 norms ``(N,)`` (float64) of the rows, computed a chunk at a time."""
+        out = np.empty(self.n, dtype=np.float64)
         step = 4 * GATHER_BYTES // (8 * max(1, self.dim)) + 1  # float64 temporaries of ~16 MB
-        for lo in range(start, stop, step):
-            chunk = torch.from_numpy(self._desc[lo: min(lo + step, stop)]).double()
-            out[lo - start: lo - start + chunk.shape[0]] = torch.linalg.vector_norm(chunk, dim=1).numpy()
+        for lo in range(0, self.n, step):
+            chunk = torch.from_numpy(self._desc[lo: min(lo + step, self.n)]).double()
+            out[lo: lo + chunk.shape[0]] = torch.linalg.vector_norm(chunk, dim=1).numpy()
         return out
 
     def matvec_rows(self, q: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -97,9 +96,8 @@ class KeyframeStore:
             out[lo: lo + chunk] = matvec(block.astype(np.float32, copy=False), q)
         return out
 
-    def matvec(self, q: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
+    def matvec(self, q: np.ndarray, start: int, stop: int) -> np.ndarray:
         """Similarities ``(M,)`` (float32) of ``q (D,)`` to rows ``[start, stop)``."""
-        stop = self.n if stop is None else stop
         if self.dtype == np.float32:
             return matvec(self._desc[start:stop], q)
         out = np.empty(max(0, stop - start), dtype=np.float32)

@@ -2,8 +2,8 @@
 
 A structure covers rows ``[0, n)`` of the index's store and proposes candidate rows, which the index
 re-scores exactly: ``build(x, config)``; ``candidates(q, k, m)``: up to ``k`` rows ``< m`` near the unit query
-``q (D,)``, or None where a scan of the prefix is cheaper; ``extendable`` / ``extend(x)``; ``stale()``: the
-PCA code calls for a rebuild; ``state()`` / ``from_state(meta, arrays, x, config)``: a faithful copy.
+``q (D,)``, or None where a scan of the prefix is cheaper; ``extendable``: then ``extend(x)`` and ``stale()``
+(the PCA code calls for a rebuild); ``state()`` / ``from_state(meta, arrays, x, config)``: a faithful copy.
 """
 from __future__ import annotations
 
@@ -33,16 +33,12 @@ def import_faiss():
 
 
 def _fit_code(x: np.ndarray, config: IndexConfig) -> PCACode | None:
-    if config.reduce_dim is None:
-        return None
-    return fit_pca(x, config.reduce_dim, seed=config.seed)
+    return None if config.reduce_dim is None else fit_pca(x, config.reduce_dim, seed=config.seed)
 
 
 def _codes(x: np.ndarray, code: PCACode | None) -> np.ndarray:
     """What the structure indexes: contiguous float32 codes (or descriptors, without a code)."""
-    if code is not None:
-        return code.encode(x)
-    return np.ascontiguousarray(x, dtype=np.float32)
+    return np.ascontiguousarray(x, dtype=np.float32) if code is None else code.encode(x)
 
 
 def _code_state(code: PCACode | None) -> dict:
@@ -94,7 +90,7 @@ class FlannTree:
         self._data = data
         self.code = code
         self.config = config  # read at query time: a caller may change checks between queries
-        self.n = self.n_trained = int(data.shape[0])
+        self.n = int(data.shape[0])
 
     @classmethod
     def build(cls, x: np.ndarray, config: IndexConfig) -> FlannTree:
@@ -116,9 +112,6 @@ class FlannTree:
         idx, _ = self.flann.knnSearch(qc, kq, params={"checks": int(self.config.flann.checks)})
         idx = idx[0].astype(np.int64)
         return idx[(idx >= 0) & (idx < min(m, self.n))]
-
-    def stale(self) -> bool:
-        return False  # the index's tail rule rebuilds it (and refits its code)
 
     def state(self) -> tuple[dict, dict]:
         with tempfile.TemporaryDirectory() as tmp:

@@ -105,10 +105,6 @@ class _Decode(torch.utils.data.Dataset):
             return index, None, getattr(e, "reason", None) or f"{type(e).__name__}: {e}"
 
 
-def _collate(batch):
-    return batch
-
-
 def describe_batch(model: torch.nn.Module, decoded: Sequence[tuple[int, np.ndarray | None, str | None]]):
     """Describe decoded images: yields ``(index, (D,) float32 row or None, error or None)`` in input order.
 
@@ -141,7 +137,7 @@ def local_engine(model, items, batch_size: int = 16, workers: int = 2) -> Iterat
     """``(index, row, error)`` of every ``(index, path)`` of ``items``, in order: a DataLoader decodes in
     ``workers`` processes (0: in this one), the model runs here."""
     loader = torch.utils.data.DataLoader(_Decode(items), batch_size=batch_size, num_workers=workers,
-                                         collate_fn=_collate)
+                                         collate_fn=list)
     for batch in loader:
         yield from describe_batch(model, batch)
 
@@ -205,10 +201,6 @@ def _write_atomic(path: Path, write) -> None:
     tmp = path.with_name(path.name + ".tmp")
     write(tmp)
     os.replace(tmp, path)
-
-
-def _save_manifest(out: Path, manifest: dict) -> None:
-    _write_atomic(out / MANIFEST, lambda p: p.write_text(json.dumps(manifest, indent=1)))
 
 
 def read_manifest(out) -> dict:
@@ -318,7 +310,7 @@ def _finish_shard(out: Path, manifest: dict, start: int, stop: int, results: lis
     manifest["shards"].append({"file": name, "start": start, "stop": stop, "rows": len(rows),
                                "sha256": _sha256(out / name), "skipped": skipped})
     manifest["shards"].sort(key=lambda s: s["start"])
-    _save_manifest(out, manifest)
+    _write_atomic(out / MANIFEST, lambda p: p.write_text(json.dumps(manifest, indent=1)))
 
 
 def load_descriptors(out) -> tuple[list[str], np.ndarray]:
