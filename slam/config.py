@@ -263,6 +263,12 @@ class BackendConfig:
     # revisited lap after lap gathers loops on every pass, so the window's edges (and a correction's cost) would
     # grow with the run; the newest say where the place is now. finish() uses every loop.
     online_loops_per_keyframe: Optional[int] = 4
+    # ... and skipped when the keyframes' new loops all agree with the current estimate within this many metres
+    # and degrees (and no earlier loop entered or left the group): a correction would move the keyframes by
+    # less than that, and a place revisited lap after lap, whose loops the estimate already satisfies, then
+    # costs no optimisation per keyframe. 0: correct after every kept loop.
+    online_tolerance_m: float = 0.02
+    online_tolerance_deg: float = 1.0
     # A loop edge whose final kernel weight falls below this is reported switched off by the back end (0..1).
     switch_off_weight: float = 0.1
     # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU; the

@@ -393,7 +393,7 @@ class RGBDSLAM:
     def _keyframe_work(self, kfs: List[Keyframe]):
         """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
         online correction or None)."""
-        new_loops, changed = [], False
+        new_loops, changed, settled = [], False, True
         self._release_revisits(kfs[-1].id if kfs else None)
         touched = [kf.id for kf in kfs]  # where the graph changed, in order: the online correction's window
         for kf in kfs:
@@ -405,15 +405,28 @@ class RGBDSLAM:
                 self._apply(update)
                 new_loops.extend(lp for lp in update.new if lp.consistent)
                 changed = changed or bool(update)
+                settled = settled and self._settled(update)
                 touched += [k for lp in update.new + update.changed for k in (lp.kf_a, lp.kf_b)]
                 if self._release and self._adds_nothing(kf, update):
                     self._to_release.append(kf.id)
             if not self.keep_images:  # described (or never to be): nothing reads it again
                 kf.rgb = None
         correction = None
-        if changed and self.config.backend.optimize_on_loop:
+        if changed and self.config.backend.optimize_on_loop and not settled:
             correction = self._correct(touched)
         return new_loops, correction
+
+    def _settled(self, update: LoopUpdate) -> bool:
+        """Whether the estimate already satisfies ``update``: only new loops, each consistent one within
+        ``BackendConfig.online_tolerance_m`` / ``online_tolerance_deg`` of the current estimate (its
+        verification's disagreement), and the estimate corrected by loops before (so an online correction
+        would move the keyframes by less than the tolerance)."""
+        cfg = self.config.backend
+        if update.changed or not self._corrected:
+            return not update
+        return all(lp.verification.disagreement <= cfg.online_tolerance_m
+                   and lp.verification.disagreement_deg <= cfg.online_tolerance_deg
+                   for lp in update.new if lp.consistent)
 
     def _adds_nothing(self, kf: Keyframe, update: LoopUpdate) -> bool:
         """A kept loop of ``kf`` joins it to an earlier keyframe within the odometry's keyframe thresholds
