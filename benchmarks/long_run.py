@@ -60,12 +60,24 @@ def building_folder(cache: Path, frames: int, quiet: bool) -> Path:
 
 
 class Recorder:
-    """Per frame: the wall time of ``track``, the odometry's share, the loop worker's lag, the stage totals."""
+    """Per frame: the wall time of ``track``, the odometry's share, the loop worker's lag, the stage totals.
 
-    def __init__(self):
-        # (seconds, odometry seconds, keyframes, lag, stage totals, rss MB, verifications)
-        self.rows: list[tuple] = []
+    The rows are one array allocated before the run, so that the benchmark's own bookkeeping does not grow
+    the resident memory it reports."""
+
+    # columns of a row: seconds, odometry seconds, keyframes, lag, rss MB, verifications, then LOOP_STAGES
+    SECONDS, ODOMETRY, KEYFRAMES, LAG, RSS, VERIFIED = range(6)
+
+    def __init__(self, frames: int):
+        import numpy as np
+
+        self.table = np.zeros((frames, 6 + len(LOOP_STAGES)))
+        self.count = 0
         self.system = None
+
+    @property
+    def rows(self):
+        return self.table[: self.count]
 
     def system_class(self):
         from slam.system import RGBDSLAM
@@ -84,40 +96,44 @@ class Recorder:
                 dt = time.perf_counter() - t0
                 kfs = len(self.keyframes)
                 queried = len(self.loop_closer.queries) if self.loop_closer is not None else kfs
-                stages = tuple(self.timer.seconds.get(s, 0.0) for s in LOOP_STAGES)
-                rss = _rss_mb() if len(recorder.rows) % 10 == 0 else recorder.rows[-1][5]
-                recorder.rows.append((dt, self.timer.seconds["odometry"] - odo, kfs, kfs - queried, stages, rss,
-                                      self.timer.calls.get("verification", 0)))
+                n = recorder.count
+                row = recorder.table[n]
+                row[6:] = [self.timer.seconds.get(s, 0.0) for s in LOOP_STAGES]
+                row[Recorder.RSS] = _rss_mb() if n % 10 == 0 else recorder.table[n - 1, Recorder.RSS]
+                row[:4] = dt, self.timer.seconds["odometry"] - odo, kfs, kfs - queried
+                row[Recorder.VERIFIED] = self.timer.calls.get("verification", 0)
+                recorder.count = n + 1
                 return state
 
         return RecordedSLAM
 
     def fifths(self, parts: int = 5) -> list[dict]:
-        n = len(self.rows)
+        rows_all = self.rows
+        n = len(rows_all)
         out = []
-        prev_kf, prev_stages, prev_verified = 0, (0.0,) * len(LOOP_STAGES), 0
+        prev_kf, prev_stages, prev_verified = 0, [0.0] * len(LOOP_STAGES), 0
         for p in range(parts):
             lo, hi = p * n // parts, (p + 1) * n // parts
-            rows = self.rows[lo:hi]
-            if not rows:
+            rows = rows_all[lo:hi]
+            if not len(rows):
                 continue
-            kf, stages = rows[-1][2], rows[-1][4]
+            kf, stages = int(rows[-1, self.KEYFRAMES]), rows[-1, 6:].tolist()
             new_kf = max(kf - prev_kf, 1)
             by_stage = {s: 1000.0 * (stages[k] - prev_stages[k]) / new_kf for k, s in enumerate(LOOP_STAGES)}
             out.append({
                 "frames": [lo, hi],
-                "track_ms_per_frame": 1000.0 * sum(r[0] for r in rows) / len(rows),
-                "odometry_ms_per_frame": 1000.0 * sum(r[1] for r in rows) / len(rows),
+                "track_ms_per_frame": 1000.0 * float(rows[:, self.SECONDS].mean()),
+                "odometry_ms_per_frame": 1000.0 * float(rows[:, self.ODOMETRY].mean()),
                 "keyframes": kf - prev_kf,
-                "lag_max": max(r[3] for r in rows),
-                "lag_mean": sum(r[3] for r in rows) / len(rows),
+                "lag_max": int(rows[:, self.LAG].max()),
+                "lag_mean": float(rows[:, self.LAG].mean()),
                 "loop_ms_per_keyframe": sum(by_stage.values()),
                 "loop_ms_per_frame": sum(by_stage.values()) * new_kf / len(rows),
                 "loop_ms_per_keyframe_by_stage": by_stage,
-                "verified_per_keyframe": (rows[-1][6] - prev_verified) / new_kf,
-                "rss_mb": rows[-1][5],
+                "verified_per_keyframe": (rows[-1, self.VERIFIED] - prev_verified) / new_kf,
+                "rss_mb": float(rows[-1, self.RSS]),
             })
-            prev_kf, prev_stages, prev_verified = kf, stages, rows[-1][6]
+            prev_kf, prev_stages, prev_verified = kf, stages, rows[-1, self.VERIFIED]
         return out
 
 
@@ -177,7 +193,7 @@ def main(argv=None) -> int:
     if args.threads is not None:
         settings["threads"] = args.threads
     cfg = resolve_settings(settings, None, seq).config
-    rec = Recorder()
+    rec = Recorder(-(-len(seq) // args.frame_step))
     pipeline.RGBDSLAM = rec.system_class()  # the run's own system, timed per frame
     t0 = time.perf_counter()
     run = pipeline.run_slam(seq, cfg, frame_step=args.frame_step, progress=False if args.quiet else None)
