@@ -146,8 +146,6 @@ def check_backend_config(config) -> None:
         check_int(n, "online_window", config.online_window, 1)
     if config.online_loops_per_keyframe is not None:
         check_int(n, "online_loops_per_keyframe", config.online_loops_per_keyframe, 1)
-    check_number(n, "online_tolerance_m", config.online_tolerance_m, 0, finite=True)
-    check_number(n, "online_tolerance_deg", config.online_tolerance_deg, 0, finite=True)
     check_number(n, "odometry_information_scale", config.odometry_information_scale, 0, lo_open=True, finite=True)
     check_number(n, "switch_off_weight", config.switch_off_weight, 0, 1)
 

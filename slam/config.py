@@ -203,6 +203,13 @@ class LoopClosureConfig:
     # and a place seen on every lap keeps one keyframe's data, not one per lap; its pose and edges stay in
     # the graph (its frames are placed on it). Off while a map is saved (the map keeps every keyframe).
     release_revisits: bool = True
+    # A loop is settled when its measurement agrees with the current estimate within this many metres and
+    # degrees (the registration's own noise): the estimate already satisfies it. A keyframe whose new kept
+    # loops are all settled triggers no online correction (RGBDSLAM), so a place revisited lap after lap,
+    # whose loops the corrected estimate already agrees with, costs no optimisation per keyframe; finish()
+    # still optimises every loop. 0: every kept loop corrects the estimate online.
+    settled_translation: float = 0.02  # m
+    settled_rotation_deg: float = 1.0  # degrees
 
     def __post_init__(self) -> None:
         n = "LoopClosureConfig"
@@ -216,6 +223,8 @@ class LoopClosureConfig:
         check_number(n, "max_translation", self.max_translation, 0, lo_open=True)  # inf: no bound
         check_number(n, "max_rotation_deg", self.max_rotation_deg, 0, lo_open=True)
         check_number(n, "information_scale", self.information_scale, 0, lo_open=True, finite=True)
+        check_number(n, "settled_translation", self.settled_translation, 0, finite=True)
+        check_number(n, "settled_rotation_deg", self.settled_rotation_deg, 0, finite=True)
         for flag in ("recover_after_loss", "release_revisits"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"LoopClosureConfig.{flag} must be True or False, got {getattr(self, flag)!r}")
@@ -263,12 +272,6 @@ class BackendConfig:
     # revisited lap after lap gathers loops on every pass, so the window's edges (and a correction's cost) would
     # grow with the run; the newest say where the place is now. finish() uses every loop.
     online_loops_per_keyframe: Optional[int] = 4
-    # ... and skipped when the keyframes' new loops all agree with the current estimate within this many metres
-    # and degrees (and no earlier loop entered or left the group): a correction would move the keyframes by
-    # less than that, and a place revisited lap after lap, whose loops the estimate already satisfies, then
-    # costs no optimisation per keyframe. 0: correct after every kept loop.
-    online_tolerance_m: float = 0.02
-    online_tolerance_deg: float = 1.0
     # A loop edge whose final kernel weight falls below this is reported switched off by the back end (0..1).
     switch_off_weight: float = 0.1
     # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU; the

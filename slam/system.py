@@ -417,16 +417,11 @@ class RGBDSLAM:
         return new_loops, correction
 
     def _settled(self, update: LoopUpdate) -> bool:
-        """Whether the estimate already satisfies ``update``: only new loops, each consistent one within
-        ``BackendConfig.online_tolerance_m`` / ``online_tolerance_deg`` of the current estimate (its
-        verification's disagreement), and the estimate corrected by loops before (so an online correction
-        would move the keyframes by less than the tolerance)."""
-        cfg = self.config.backend
+        """Whether the estimate already satisfies ``update``: only new loops, each kept one settled
+        (:attr:`LoopClosure.settled`), and the estimate corrected by loops before."""
         if update.changed or not self._corrected:
             return not update
-        return all(lp.verification.disagreement <= cfg.online_tolerance_m
-                   and lp.verification.disagreement_deg <= cfg.online_tolerance_deg
-                   for lp in update.new if lp.consistent)
+        return all(lp.settled for lp in update.new if lp.consistent)
 
     def _adds_nothing(self, kf: Keyframe, update: LoopUpdate) -> bool:
         """A kept loop of ``kf`` joins it to an earlier keyframe within the odometry's keyframe thresholds

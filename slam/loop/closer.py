@@ -58,6 +58,9 @@ class LoopClosure:
         verification: the full :class:`~slam.loop.verification.Verification` (disagreement, bound).
         id: the hypothesis number (order of verification).
         path_length: metres travelled between the two keyframes along the graph when it was verified.
+        settled: its measurement agrees with the estimate it was verified against within
+            ``LoopClosureConfig.settled_translation`` / ``settled_rotation_deg``: the estimate already
+            satisfies it.
         consistent: kept by the group check (set by the loop closer): in the largest group of mutually
             consistent loops, with local support (:mod:`slam.loop.consistency`); only those are edges of
             the graph. Its ``status`` is ``"inconsistent"`` otherwise.
@@ -80,6 +83,7 @@ class LoopClosure:
     verification: Optional[Verification] = None
     id: int = -1
     path_length: float = float("nan")
+    settled: bool = False
     consistent: bool = True
     switched_off: bool = False
     weight: float = 1.0
@@ -302,7 +306,9 @@ class LoopCloser:
             query.verified.append(cand_id)
             loop = LoopClosure(a.id, kf.id, a.frame_index, kf.frame_index, a.timestamp, kf.timestamp, float(score),
                                v.num_inliers, v.T_ab, v.information, v, id=len(self._loops),
-                               path_length=float(lengths[a.id]))
+                               path_length=float(lengths[a.id]),
+                               settled=(v.disagreement <= cfg.settled_translation
+                                        and v.disagreement_deg <= cfg.settled_rotation_deg))
             self._loops.append(loop)
             update.new.append(loop)
             logger.info("loop verified: keyframe %d (frame %d) <-> keyframe %d (frame %d), %d inliers, %.2f m "

