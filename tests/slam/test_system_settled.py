@@ -54,7 +54,7 @@ def test_revisits_the_estimate_agrees_with_skip_their_corrections_and_end_alike(
     from slam.loop.closer import build_descriptor
     from slam.synthetic import SyntheticSequence
 
-    seq = LapSequence(SyntheticSequence("loop", num_frames=200, width=320, height=240, seed=0), 2)
+    seq = LapSequence(SyntheticSequence("loop", num_frames=150, width=320, height=240, seed=0), 2)
     base = override(SLAMConfig(), {"loop.descriptor.backbone": "efficientnet_lite0"})
     desc = build_descriptor(base.loop.descriptor)
     runs = {}
