@@ -74,9 +74,9 @@ def hamming_distance(desc_a: Tensor, desc_b: Tensor, pairs: Tensor | None = None
         [0.0]
     """
     if pairs is None:
-        # dense: a matmul of the {0, 1} bits (exact in float32; runs on any device)
-        a, b = unpack_bits(desc_a), unpack_bits(desc_b)
-        return a.sum(1, keepdim=True) + b.sum(1)[None] - 2.0 * (a @ b.transpose(0, 1))
+        # dense: one matmul of the bits as +-1, whose dot product is D - 2 h (exact in float32, any device)
+        a, b = unpack_bits(desc_a).mul_(2).sub_(1), unpack_bits(desc_b).mul_(2).sub_(1)
+        return torch.addmm(a.new_tensor(a.shape[1] / 2), a, b.transpose(0, 1), alpha=-0.5)
     if desc_a.shape[1] % 8 == 0:
         xa = desc_a.contiguous().view(torch.int64)[pairs[:, 0]]
         xb = desc_b.contiguous().view(torch.int64)[pairs[:, 1]]

@@ -140,6 +140,11 @@ def test_hamming_distance_dense_sparse_and_bits():
     assert torch.equal(hamming_distance(a, b, pairs), ref[pairs[:, 0], pairs[:, 1]])
     # squared L2 of the unpacked bits equals the Hamming distance
     assert torch.allclose(torch.cdist(unpack_bits(a), unpack_bits(b)) ** 2, ref, atol=1e-3)
+    # a keyframe's size (the matmul's blocked kernels), against numpy's bit unpacking
+    a, b = (torch.randint(0, 256, (n, 32), generator=g, dtype=torch.uint8) for n in (1000, 900))
+    bits_a, bits_b = (np.unpackbits(x.numpy(), axis=1).astype(np.int64) for x in (a, b))
+    ref = (bits_a[:, None, :] != bits_b[None, :, :]).sum(-1)
+    assert np.array_equal(hamming_distance(a, b).numpy(), ref.astype(np.float32))
 
 
 @pytest.mark.parametrize("method", ["smnn", "snn", "mnn"])
