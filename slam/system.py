@@ -393,7 +393,7 @@ class RGBDSLAM:
     def _keyframe_work(self, kfs: List[Keyframe]):
         """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
         online correction or None)."""
-        new_loops, changed, settled = [], False, True
+        new_loops, settled = [], True
         self._release_revisits(kfs[-1].id if kfs else None)
         touched = [kf.id for kf in kfs]  # where the graph changed, in order: the online correction's window
         for kf in kfs:
@@ -404,7 +404,6 @@ class RGBDSLAM:
                                                 min_loop_weight=self.config.backend.switch_off_weight)
                 self._apply(update)
                 new_loops.extend(lp for lp in update.new if lp.consistent)
-                changed = changed or bool(update)
                 settled = settled and self._settled(update)
                 touched += [k for lp in update.new + update.changed for k in (lp.kf_a, lp.kf_b)]
                 if self._release and self._adds_nothing(kf, update):
@@ -412,7 +411,7 @@ class RGBDSLAM:
             if not self.keep_images:  # described (or never to be): nothing reads it again
                 kf.rgb = None
         correction = None
-        if changed and self.config.backend.optimize_on_loop and not settled:
+        if self.config.backend.optimize_on_loop and not settled:  # not settled: some update changed the graph
             correction = self._correct(touched)
         return new_loops, correction
 
