@@ -198,10 +198,12 @@ class LoopClosureConfig:
     information_scale: float = 0.001  # multiplies the loop edges' information
     # A keyframe made in a mapped place that adds nothing there: one of its loops, kept by the group check,
     # joins it to an earlier keyframe within the odometry's keyframe thresholds (OdometryConfig.keyframe_*:
-    # tracking against that keyframe would not have made a new one). True: once it is no longer tracking's
-    # reference its features and image are released (RGBDSLAM.released), so it is no loop candidate again
-    # and a place seen on every lap keeps one keyframe's data, not one per lap; its pose and edges stay in
-    # the graph (its frames are placed on it). Off while a map is saved (the map keeps every keyframe).
+    # tracking against that keyframe would not have made a new one). True: it is not added to the loop
+    # detector's database, and once it is no longer tracking's reference its features and image are released
+    # (RGBDSLAM.released); its pose and edges stay in the graph (its frames are placed on it). Its less similar
+    # candidates are not verified: that keyframe's own loops already join the place to the rest. A place seen
+    # on every lap then keeps one keyframe's data and costs about one registration per keyframe, not one per
+    # lap. Off while a map is saved (the map keeps every keyframe).
     release_revisits: bool = True
     # A loop is settled when its measurement agrees with the current estimate within this many metres and
     # degrees (the registration's own noise): the estimate already satisfies it. A keyframe whose new kept

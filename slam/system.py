@@ -401,12 +401,13 @@ class RGBDSLAM:
             if self.loop_closer is not None and not self.localize:
                 update = self.loop_closer.close(kf, self.odometry.keyframes, self.graph,
                                                 through_loops=self._corrected,
-                                                min_loop_weight=self.config.backend.switch_off_weight)
+                                                min_loop_weight=self.config.backend.switch_off_weight,
+                                                repeats=self._repeats if self._release else None)
                 self._apply(update)
                 new_loops.extend(lp for lp in update.new if lp.consistent)
                 settled = settled and self._settled(update)
                 touched += [k for lp in update.new + update.changed for k in (lp.kf_a, lp.kf_b)]
-                if self._release and self._adds_nothing(kf, update):
+                if update.revisit:
                     self._to_release.append(kf.id)
             if not self.keep_images:  # described (or never to be): nothing reads it again
                 kf.rgb = None
@@ -422,25 +423,19 @@ class RGBDSLAM:
             return not update
         return all(lp.settled for lp in update.new if lp.consistent)
 
-    def _adds_nothing(self, kf: Keyframe, update: LoopUpdate) -> bool:
-        """A kept loop of ``kf`` joins it to an earlier keyframe within the odometry's keyframe thresholds
-        (distance, turn, inliers and their share of that keyframe's valid points): tracking against that
-        keyframe would have made no new one here (LoopClosureConfig.release_revisits)."""
+    def _repeats(self, lp: LoopClosure) -> bool:
+        """The loop joins its query to an earlier keyframe within the odometry's keyframe thresholds (distance,
+        turn, inliers and their share of that keyframe's valid points): tracking against that keyframe would
+        have made no new one here (LoopClosureConfig.release_revisits)."""
         oc = self.config.odometry
-        for lp in update.new:
-            a = self.odometry.keyframes[lp.kf_a]
-            v = lp.verification
-            if (lp.consistent and lp.kf_b == kf.id and a.features is not None and v is not None
-                    and v.distance <= oc.keyframe_translation and v.rotation_deg <= oc.keyframe_rotation_deg
-                    and v.num_inliers >= oc.keyframe_min_inliers
-                    and v.num_inliers / max(a.features.num_valid, 1) >= oc.keyframe_min_inlier_ratio):
-                return True
-        return False
+        a, v = self.odometry.keyframes[lp.kf_a], lp.verification
+        return (v is not None and v.distance <= oc.keyframe_translation and v.rotation_deg <= oc.keyframe_rotation_deg
+                and v.num_inliers >= oc.keyframe_min_inliers
+                and v.num_inliers / max(a.features.num_valid, 1) >= oc.keyframe_min_inlier_ratio)
 
     def _release_revisits(self, newest: Optional[int]) -> None:
-        """Release the keyframes marked by :meth:`_adds_nothing` that are older than ``newest`` (tracking's
-        reference is then a later one: nothing registers against them again, and the loop closer skips
-        keyframes without features as candidates)."""
+        """Release the revisits (:attr:`LoopUpdate.revisit`: never in the loop closer's database) older than
+        ``newest``: tracking's reference is then a later one, so nothing registers against them again."""
         if newest is None:
             return
         keep = []

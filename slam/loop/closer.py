@@ -22,7 +22,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
@@ -104,10 +104,13 @@ class LoopUpdate:
     Attributes:
         new: the loops verified during the call (each with its ``status``).
         changed: earlier loops that entered or left the consistent group.
+        revisit: a kept new loop repeats an earlier keyframe (the ``repeats`` given to :meth:`LoopCloser.close`):
+            the query keyframe was not added to the database, and the caller may release it.
     """
 
     new: List[LoopClosure] = field(default_factory=list)
     changed: List[LoopClosure] = field(default_factory=list)
+    revisit: bool = False
 
     def __bool__(self) -> bool:
         return bool(self.new or self.changed)
@@ -127,7 +130,8 @@ class LoopQuery:
         threshold: the query's adaptive threshold.
         candidates: eligible ids that passed the threshold (and consistency) and were sent to verification.
         verified: ids accepted by geometric verification.
-        rejections: ``{candidate id: reason}`` for candidates that failed verification.
+        rejections: ``{candidate id: reason}`` for candidates that failed verification or were not verified
+            (the query repeats an earlier one: :meth:`LoopCloser.close`).
     """
 
     kf: int
@@ -251,9 +255,10 @@ class LoopCloser:
         return drift_limits(path_length, self.config.drift)
 
     def close(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph,
-              through_loops: bool = False, min_loop_weight: float = 0.0) -> LoopUpdate:
+              through_loops: bool = False, min_loop_weight: float = 0.0,
+              repeats: Optional[Callable[[LoopClosure], bool]] = None) -> LoopUpdate:
         """Query the database with a new keyframe, verify its candidates, check the group, add it to the
-        database.
+        database unless it repeats an earlier keyframe.
 
         Args:
             kf: the new keyframe (already in ``graph``).
@@ -262,17 +267,30 @@ class LoopCloser:
             through_loops: the graph's estimates have been corrected by its loops, so the distance that
                 bounds the disagreement may take the shortcuts they offer (else: the odometry chain).
             min_loop_weight: loops the back end trusts less than this are no shortcut.
+            repeats: whether a loop joins the query to an earlier keyframe that stands for it (None: no loop
+                does). A kept loop that repeats makes the update a ``revisit``: the query is not added to the
+                database (it would only stand beside the keyframe it repeats), and the less similar
+                candidates are not verified (that keyframe's own loops already join the place to the rest).
 
         Returns:
             :class:`LoopUpdate` (the caller applies it to the graph).
         """
-        cfg = self.config
         with self.timer("descriptor"):
             desc = self.describe(kf)
         did = self._detector_id(kf)
         with self.timer("loop_detection"):
-            cands = self.detector.add_and_query(desc, keyframe_id=did, timestamp=kf.timestamp)
-        self._kf_of_id[did] = kf.id
+            cands = self.detector.query(desc, keyframe_id=did)
+        update = self._verify(kf, keyframes, graph, cands, through_loops, min_loop_weight, repeats)
+        update.revisit = repeats is not None and any(lp.consistent and repeats(lp) for lp in update.new)
+        if not update.revisit:
+            self.detector.index.add(desc, ids=[did], timestamps=None if kf.timestamp is None else [kf.timestamp])
+            self._kf_of_id[did] = kf.id
+        return update
+
+    def _verify(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph, cands, through_loops: bool,
+                min_loop_weight: float, repeats: Optional[Callable[[LoopClosure], bool]]) -> LoopUpdate:
+        """Verify the candidates of :meth:`close` in order, most similar first; the loops in a :class:`LoopUpdate`."""
+        cfg = self.config
         joined = graph.joined(kf.id)  # already measured by an edge: not a loop (LoopQuery.top_kf)
 
         def eligible_of(ids: Tensor, scores: Tensor) -> list[tuple[int, float]]:
@@ -280,10 +298,7 @@ class LoopCloser:
             return [(k, s) for k, s in pairs if k not in joined]
 
         top = eligible_of(cands.top_ids, cands.top_scores)
-        # a keyframe whose features were released (a revisit that added nothing) is represented by the one it
-        # matched: it is no candidate
-        eligible = [(k, s) for k, s in eligible_of(cands.ids, cands.scores)
-                    if keyframes[k].features is not None][: cfg.max_candidates]
+        eligible = eligible_of(cands.ids, cands.scores)[: cfg.max_candidates]
         top_kf, top_score = top[0] if top else (-1, float("-inf"))
         query = LoopQuery(kf.id, top_kf, top_score, float(cands.threshold), [c for c, _ in eligible], [])
         self._queries.append(query)
@@ -325,4 +340,8 @@ class LoopCloser:
             if not loop.consistent:
                 logger.info("loop %d (keyframes %d <-> %d) is outside the largest consistent group", loop.id,
                             loop.kf_a, loop.kf_b)
+            elif repeats is not None and repeats(loop):
+                for c, _ in eligible[eligible.index((cand_id, score)) + 1:]:
+                    query.rejections[c] = f"not verified: the query repeats keyframe {cand_id}"
+                break
         return update
