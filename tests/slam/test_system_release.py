@@ -85,7 +85,7 @@ def test_a_settled_revisit_verifies_no_further_candidate(lap_runs):
         return sum(len(q.candidates) - sum(w.startswith(("not verified", "contradicts the estimate: it puts"))
                                            for w in q.rejections.values()) for q in r.queries)
 
-    assert registered(res) < 0.8 * registered(res_off), (registered(res), registered(res_off))
+    assert registered(res) < 0.5 * registered(res_off), (registered(res), registered(res_off))
 
 def test_releasing_revisits_keeps_the_trajectory(lap_runs):
     from slam.eval import ate
