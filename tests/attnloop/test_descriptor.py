@@ -317,3 +317,36 @@ def test_a_wrappers_state_dict_gets_torchs_own_message():
     wrapped = {f"module.{k}": v for k, v in AttentionDescriptor("efficientnet_lite0", pretrained=False).state_dict().items()}
     with pytest.raises(RuntimeError, match="Missing key"):
         rnns.load_state_dict(wrapped)
+
+
+def test_the_recipes_gem_exponent_is_the_regional_poolings():
+    # L: 2 channels on a 2 x 2 map, G unused (fusion none). GeM with p = 3 by hand: the whole map
+    # (mean x^3)^(1/3) per channel, each cell of the 2 x 2 grid its one value; each region L2-normalised.
+    L = torch.tensor([[[1.0, 2.0], [3.0, 4.0]], [[2.0, 2.0], [2.0, 2.0]]])[None]
+    whole = torch.tensor([((1 + 8 + 27 + 64) / 4) ** (1 / 3), 2.0])
+    cells = L[0].flatten(1).T  # (4 cells row-major, 2 channels)
+    ref = F.normalize(torch.cat([F.normalize(whole, dim=0)[None], F.normalize(cells, dim=1)]).flatten(), dim=0)
+    net = nn.Sequential(nn.Conv2d(3, 2, 1), nn.AdaptiveAvgPool2d(2), nn.Flatten(), nn.Linear(8, 3))
+    desc = AttentionDescriptor(net, tap="1", input_size=(8, 8), recipe=DescriptorRecipe(fusion="none", gem_p=3))
+    assert torch.allclose(desc.from_attention(L, torch.zeros_like(L))[0], ref, atol=1e-6)
+    assert torch.allclose(descriptor_from_attention(L, torch.zeros_like(L), None, "none", gem_p=3.0)[1][0], ref,
+                          atol=1e-6)
+    # p = 2 weighs the large values less: another whole-map direction
+    p2 = descriptor_from_attention(L, torch.zeros_like(L), None, "none", gem_p=2.0)[1][0]
+    whole2 = F.normalize(torch.tensor([((1 + 4 + 9 + 16) / 4) ** 0.5, 2.0]), dim=0)
+    assert torch.allclose(p2[:2] * 5 ** 0.5, whole2, atol=1e-6) and not torch.allclose(p2, ref, atol=1e-3)
+
+
+@pytest.mark.parametrize("gem_p", [0, -1.0, float("inf"), float("nan"), True, "3"])
+def test_the_gem_exponent_must_be_a_positive_finite_number(gem_p):
+    with pytest.raises(ValueError, match="gem_p must be a positive finite number"):
+        DescriptorRecipe(gem_p=gem_p)
+    with pytest.raises(ValueError, match="gem_p must be a positive finite number"):
+        descriptor_from_attention(torch.rand(1, 4, 2, 2), torch.rand(1, 4, 2, 2), None, "none", gem_p=gem_p)
+
+
+def test_the_gem_exponent_without_regional_pooling_is_refused():
+    # the flat map has no GeM: an exponent other than the default would do nothing
+    with pytest.raises(ValueError, match="gem_p=3.0 sets the regional GeM pooling, and pooling='flat' has none"):
+        DescriptorRecipe(pooling="flat", num_rnn=16, gem_p=3.0)
+    assert DescriptorRecipe(pooling="flat", num_rnn=16, gem_p=DescriptorRecipe.gem_p).pooling == "flat"
