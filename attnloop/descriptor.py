@@ -64,7 +64,7 @@ def _check_gem_p(gem_p: float, pooling: str) -> None:
 class DescriptorRecipe:
     """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seed."""
 
-    fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega"
+    fusion: str = "none"  # "none" | "dam" | "eam" | "gaf" | "ega"
     num_rnn: int = 0  # random RNNs after the pooling (the paper's 16); 0: the descriptor is the pooled code
     out_features: int = _RNN_DEFAULTS["out_features"]  # output size of each RNN (the paper's 64)
     seed: int = 0  # seed of the RNN weights (and of a name-built backbone's random weights when not pretrained)
@@ -72,7 +72,7 @@ class DescriptorRecipe:
     pool_scale: float | None = _RNN_DEFAULTS["pool_scale"]  # L2 norm of the RNNs' input; None: raw (the paper)
     merge: bool | None = None  # average element c with c + C/2 of the RNNs' input; None: for "flat" only
     pooling: str = "regional"  # "regional": regional GeM code; "flat": the whole map (the paper)
-    gem_p: float = 2.0  # GeM exponent of the regional pooling (1: average, large: max); "flat" has none
+    gem_p: float = 3.0  # GeM exponent of the regional pooling (1: average, large: max); "flat" has none
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_MODES:
@@ -145,7 +145,7 @@ def descriptor_from_attention(
     tap: torch.Tensor,
     grad: torch.Tensor,
     rnn_weights: torch.Tensor | None,
-    fusion: str = "dam",
+    fusion: str = _DEFAULT.fusion,
     normalize: bool = True,
     pool_scale: float | None = _RNN_DEFAULTS["pool_scale"],
     merge: bool | None = None,
@@ -245,7 +245,7 @@ class AttentionDescriptor(nn.Module):
             ``backbone="auto"`` VGG16, whose weights must be found; None or ``"default"``: the default.
         pooling: ``"regional"`` (default) or ``"flat"`` (the paper's RNNs over the whole fused map).
         attend: a name-built EfficientNet-Lite0's stages of a joined tap where G is computed and fused
-            (default ``stage7`` of ``stage6+stage7``); None: the preset's, or every stage of an explicit tap.
+            (e.g. ``stage7`` of ``stage6+stage7``); None: the preset's, or every stage of an explicit tap.
 
     Attributes:
         pretrained: whether a name-built backbone loaded ImageNet weights (None for a module passed in:
@@ -264,7 +264,7 @@ class AttentionDescriptor(nn.Module):
         >>> with torch.no_grad():
         ...     d = desc(torch.randint(0, 256, (2, 3, 240, 320), dtype=torch.uint8))
         >>> d.shape
-        torch.Size([2, 2560])
+        torch.Size([2, 560])
         >>> net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
         ...                     nn.Flatten(), nn.Linear(8 * 16 * 16, 10))
         >>> AttentionDescriptor(net, tap="2", input_size=(32, 32))(torch.rand(2, 3, 48, 64)).shape
@@ -311,7 +311,7 @@ class AttentionDescriptor(nn.Module):
                 extra = (["recipe"] if recipe is not None else []) + (["tap"] if tap else []) + (
                     ["attend"] if attend is not None else [])
                 raise ValueError(f"preset={chosen.name!r} fixes the recipe and the tap; also given: {fixed + extra}")
-            given = DescriptorRecipe(**{**settings, **own})
+            given = DescriptorRecipe(**{**settings, **own, **{k: v for k, v in passed.items() if k in free}})
         elif recipe is not None:
             if not isinstance(recipe, DescriptorRecipe):
                 raise TypeError(f"recipe must be a DescriptorRecipe, got {type(recipe).__name__}")
