@@ -9,7 +9,7 @@ Example:
     >>> from attnloop import AttentionDescriptor
     >>> desc = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False)
     >>> desc(torch.rand(1, 3, 480, 640)).shape
-    torch.Size([1, 2560])
+    torch.Size([1, 560])
 """
 from __future__ import annotations
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from numbers import Integral
+from numbers import Integral, Real
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -50,11 +50,21 @@ def _check_pool_scale(pool_scale: float | None) -> None:
         raise ValueError(f"pool_scale must be positive and finite, or None, got {pool_scale}")
 
 
+def _check_gem_p(gem_p: float, pooling: str) -> None:
+    if isinstance(gem_p, bool) or not isinstance(gem_p, Real) or not 0 < gem_p < float("inf"):
+        raise ValueError(f"gem_p must be a positive finite number (the regional pooling's GeM exponent), "
+                         f"got {gem_p!r}")
+    default = DescriptorRecipe.gem_p
+    if pooling == "flat" and gem_p != default:
+        raise ValueError(f"gem_p={gem_p!r} sets the regional GeM pooling, and pooling='flat' has none; leave it at "
+                         f"{default!r} or pass pooling='regional'")
+
+
 @dataclass(frozen=True)
 class DescriptorRecipe:
     """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seed."""
 
-    fusion: str = "dam"  # "none" | "dam" | "eam" | "gaf" | "ega"
+    fusion: str = "none"  # "none" | "dam" | "eam" | "gaf" | "ega"
     num_rnn: int = 0  # random RNNs after the pooling (the paper's 16); 0: the descriptor is the pooled code
     out_features: int = _RNN_DEFAULTS["out_features"]  # output size of each RNN (the paper's 64)
     seed: int = 0  # seed of the RNN weights (and of a name-built backbone's random weights when not pretrained)
@@ -62,12 +72,14 @@ class DescriptorRecipe:
     pool_scale: float | None = _RNN_DEFAULTS["pool_scale"]  # L2 norm of the RNNs' input; None: raw (the paper)
     merge: bool | None = None  # average element c with c + C/2 of the RNNs' input; None: for "flat" only
     pooling: str = "regional"  # "regional": regional GeM code; "flat": the whole map (the paper)
+    gem_p: float = 3.0  # GeM exponent of the regional pooling (1: average, large: max); "flat" has none
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_MODES:
             raise ValueError(f"unknown fusion {self.fusion!r}; choose one of {FUSION_MODES}")
         if self.pooling not in POOLINGS:
             raise ValueError(f"unknown pooling {self.pooling!r}; choose one of {POOLINGS}")
+        _check_gem_p(self.gem_p, self.pooling)
         for name, least in (("num_rnn", 0), ("out_features", 1), ("seed", 0)):
             v = getattr(self, name)
             # a whole float (16.0) is fine for the counts, not for the seed
@@ -133,7 +145,7 @@ def descriptor_from_attention(
     tap: torch.Tensor,
     grad: torch.Tensor,
     rnn_weights: torch.Tensor | None,
-    fusion: str = "dam",
+    fusion: str = _DEFAULT.fusion,
     normalize: bool = True,
     pool_scale: float | None = _RNN_DEFAULTS["pool_scale"],
     merge: bool | None = None,
@@ -141,6 +153,7 @@ def descriptor_from_attention(
     pooling: str = "regional",
     groups: Sequence[int] | None = None,
     attended: Sequence[bool] | None = None,
+    gem_p: float = _DEFAULT.gem_p,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Steps 2-5 of the descriptor: fuse (L, G), pool, (scale and random RNN pooling), L2.
 
@@ -158,6 +171,7 @@ def descriptor_from_attention(
         pooling: ``"regional"`` or ``"flat"``.
         groups: channel counts of a joined tap's stages, each fused and pooled on its own; None: one group.
         attended: per group, whether it is fused (else pooled as L); None: every group.
+        gem_p: the GeM exponent of ``regional`` pooling (``flat``: at its default).
 
     Returns:
         (fused :math:`(B, C, h, w)`, descriptor :math:`(B, R \\cdot O)`, or without RNNs
@@ -166,6 +180,7 @@ def descriptor_from_attention(
     if pooling not in POOLINGS:
         raise ValueError(f"unknown pooling {pooling!r}; choose one of {POOLINGS}")
     _check_pool_scale(pool_scale)
+    _check_gem_p(gem_p, pooling)
     fused = fuse_groups(tap, grad, fusion, groups, attended)
     if rnn_weights is None:
         unused = _unused_rnn_settings(pool_scale=pool_scale, merge=merge)
@@ -175,11 +190,11 @@ def descriptor_from_attention(
         if pooling == "flat":
             raise ValueError("pooling='flat' is the paper's input of the random RNNs, and rnn_weights=None has none; "
                              "pass RNN weights, or pooling='regional'")
-        desc = regional_code(fused, groups)
+        desc = regional_code(fused, groups, gem_p)
     else:
         if merge is None:
             merge = pooling == "flat"
-        pool_in = fused if pooling == "flat" else regional_code(fused, groups)[:, :, None, None]
+        pool_in = fused if pooling == "flat" else regional_code(fused, groups, gem_p)[:, :, None, None]
         if pool_scale is not None:  # per-sample L2 norm pool_scale; an all-zero sample stays zero
             pool_in = (F.normalize(pool_in.flatten(1), dim=1) * float(pool_scale)).reshape(pool_in.shape)
         desc = random_rnn_pool(pool_in, rnn_weights, merge=merge)
@@ -223,13 +238,14 @@ class AttentionDescriptor(nn.Module):
         std: a classifier module's per-channel input std on [0, 1] RGB; None: none.
         differentiable: keep the output differentiable w.r.t. the images and the backbone's weights (default:
             detached, usable under ``torch.no_grad()`` and ``torch.inference_mode()``).
-        recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` and ``pooling``.
+        recipe: a :class:`DescriptorRecipe` in place of ``fusion`` ... ``merge`` and ``pooling`` (and the
+            GeM exponent ``gem_p``, set through a recipe only).
         preset: a name of :data:`attnloop.presets.PRESETS`: ``"paper"`` or ``"guclu2019"`` fix the recipe
             and the tap (only ``seed``, the backbone and the paper's ``fusion`` stay free) and make
             ``backbone="auto"`` VGG16, whose weights must be found; None or ``"default"``: the default.
         pooling: ``"regional"`` (default) or ``"flat"`` (the paper's RNNs over the whole fused map).
         attend: a name-built EfficientNet-Lite0's stages of a joined tap where G is computed and fused
-            (default ``stage7`` of ``stage6+stage7``); None: the preset's, or every stage of an explicit tap.
+            (e.g. ``stage7`` of ``stage6+stage7``); None: the preset's, or every stage of an explicit tap.
 
     Attributes:
         pretrained: whether a name-built backbone loaded ImageNet weights (None for a module passed in:
@@ -248,7 +264,7 @@ class AttentionDescriptor(nn.Module):
         >>> with torch.no_grad():
         ...     d = desc(torch.randint(0, 256, (2, 3, 240, 320), dtype=torch.uint8))
         >>> d.shape
-        torch.Size([2, 2560])
+        torch.Size([2, 560])
         >>> net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
         ...                     nn.Flatten(), nn.Linear(8 * 16 * 16, 10))
         >>> AttentionDescriptor(net, tap="2", input_size=(32, 32))(torch.rand(2, 3, 48, 64)).shape
@@ -295,7 +311,7 @@ class AttentionDescriptor(nn.Module):
                 extra = (["recipe"] if recipe is not None else []) + (["tap"] if tap else []) + (
                     ["attend"] if attend is not None else [])
                 raise ValueError(f"preset={chosen.name!r} fixes the recipe and the tap; also given: {fixed + extra}")
-            given = DescriptorRecipe(**{**settings, **own})
+            given = DescriptorRecipe(**{**settings, **own, **{k: v for k, v in passed.items() if k in free}})
         elif recipe is not None:
             if not isinstance(recipe, DescriptorRecipe):
                 raise TypeError(f"recipe must be a DescriptorRecipe, got {type(recipe).__name__}")
@@ -474,7 +490,8 @@ class AttentionDescriptor(nn.Module):
     def _encode(self, tap: torch.Tensor, grad: torch.Tensor, fusion: str) -> tuple[torch.Tensor, torch.Tensor]:
         r = self.recipe
         return descriptor_from_attention(tap, grad, self.rnn_weights, fusion, r.normalize, r.pool_scale, r.merges,
-                                         pooling=r.pooling, groups=self.tap_groups, attended=self.attended_groups)
+                                         pooling=r.pooling, groups=self.tap_groups, attended=self.attended_groups,
+                                         gem_p=r.gem_p)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         if self.recipe.fusion != "none" or self.differentiable:

@@ -12,7 +12,7 @@ __all__ = ["DEFAULT_BACKBONE_SETTINGS", "PAPER_BACKBONE_SETTINGS", "PAPER_RECIPE
 
 #: Backbone name -> the tap and input size of the default descriptor.
 DEFAULT_BACKBONE_SETTINGS: dict[str, dict[str, object]] = {
-    "efficientnet_lite0": {"tap": "stage6+stage7", "attend": "stage7", "input_size": (224, 288)},
+    "efficientnet_lite0": {"tap": "stage5", "input_size": (256, 320)},
     "vgg16": {"tap": "pool5"},
 }
 
@@ -22,9 +22,10 @@ PAPER_BACKBONE_SETTINGS: dict[str, dict[str, object]] = {
     "vgg16": {"tap": "pool5"},
 }
 
-#: The paper's steps 2-5 (fusion is the caller's choice): see :class:`attnloop.descriptor.DescriptorRecipe`.
+#: The paper's steps 2-5 (its fusion DAM unless the caller chooses another): see
+#: :class:`attnloop.descriptor.DescriptorRecipe`.
 PAPER_RECIPE_SETTINGS: dict[str, object] = {
-    "pooling": "flat", "num_rnn": 16, "out_features": 64, "pool_scale": None, "merge": True,
+    "fusion": "dam", "pooling": "flat", "num_rnn": 16, "out_features": 64, "pool_scale": None, "merge": True,
 }
 
 

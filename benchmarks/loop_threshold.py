@@ -34,6 +34,7 @@ from pathlib import Path
 import torch
 
 from attnloop import AttentionDescriptor
+from attnloop.descriptor import DescriptorRecipe
 from attnloop.index import LoopCandidateDetector, LoopDetectorConfig
 from attnloop.threshold import ThresholdConfig
 from attnloop.vpr.describe import load_rgb
@@ -52,6 +53,8 @@ SETTINGS = ([("mad", k, 0.02, 0.0) for k in (1.5, 2.0, 3.0, 4.0)]
 # (k_sigma, min_margin, min_similarity) of the MAD rule, for the streams
 STREAM_SETTINGS = ([(1.5, 0.02, 0.0), (1.0, 0.005, 0.0), (2.0, 0.02, 0.0), (3.0, 0.02, 0.0)]
                    + [(k, 0.005, f) for k in (0.5, 1.0, 1.5) for f in (0.85, 0.88, 0.90, 0.92, 0.94)]
+                   # the floors of a lower tap, whose unrelated keyframes are more alike (cosine ~0.97)
+                   + [(k, 0.005, f) for k in (0.5, 1.0, 1.5) for f in (0.96, 0.97, 0.975, 0.98, 0.985, 0.99)]
                    + [(k, 0.02, f) for k in (1.0, 1.5, 2.0) for f in (0.85, 0.90)])
 
 
@@ -214,7 +217,8 @@ def main() -> None:
     parser.add_argument("--kitchen-steps", type=int, nargs="*", default=[1, 3, 6], help="--streams: kitchen frame steps")
     parser.add_argument("--room", type=Path, default=None, help="--streams: the room demo's sequence folder")
     parser.add_argument("--building", type=Path, default=None, help="--streams: the building's sequence folder")
-    parser.add_argument("--fusion", default="dam", help="--streams: fusion mode of the descriptor")
+    parser.add_argument("--fusion", default=DescriptorRecipe.fusion,
+                        help="--streams: fusion mode of the descriptor (default: the default's)")
     parser.add_argument("--cache", type=Path, default=None, help="--streams: folder caching the described streams")
     args = parser.parse_args()
     torch.set_num_threads(1)

@@ -1,7 +1,8 @@
 """Fine-tune the attention descriptor on a sequence's revisits, then measure retrieval elsewhere.
 
-Trains *through* the library's default descriptor (EfficientNet-Lite0 tapped at stage6 and stage7
-joined, regional pooling; the ``differentiable=True`` machinery: the seeded backward recorded with
+Trains *through* the attention descriptor tapped at EfficientNet-Lite0's stage6 and stage7 joined (224 x 288,
+G at stage7, regional GeM p = 2: :func:`build_descriptor`; the default's tap, stage5, lies below the trained
+layers; the ``differentiable=True`` machinery: the seeded backward recorded with
 ``create_graph``): the last MBConv block (stage7, the tap's second half) and the classifier head after
 the tap (head conv, batch-norm affine, linear layer), which shape G, with a triplet loss on the DAM
 descriptor. The rest of the network stays frozen, so the input of the last block (stage6, the tap's
@@ -42,8 +43,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from attnloop import AttentionDescriptor, WeightsNotFoundError, softmax_seeded_gradient
+from attnloop import AttentionDescriptor, WeightsNotFoundError, efficientnet_lite0, softmax_seeded_gradient
 from attnloop.backbones.efficientnet_lite import EfficientNetLite0
+from attnloop.descriptor import DescriptorRecipe
 from attnloop.fusion import FUSION_MODES
 from attnloop.vpr.evaluate import evaluate, ground_truth_from_poses, read_ground_truth, sequence_candidates
 from slam.eval.loops import LoopGroundTruthConfig
@@ -85,6 +87,12 @@ def trained_parameters(net: EfficientNetLite0) -> list[torch.nn.Parameter]:
     return [*net._blocks[-1].parameters(), *net._conv_head.parameters(), *net._bn1.parameters(), *net._fc.parameters()]
 
 
+def build_descriptor(fusion: str, seed: int) -> AttentionDescriptor:
+    """The descriptor trained: ImageNet weights tapped at stage6+stage7 (224 x 288), G at stage7, GeM p = 2."""
+    net = efficientnet_lite0(pretrained=True, seed=seed, tap="stage6+stage7", attend="stage7", input_size=(224, 288))
+    return AttentionDescriptor(net, recipe=DescriptorRecipe(fusion=fusion, seed=seed, gem_p=2.0))
+
+
 def block_input(net: EfficientNetLite0, images: torch.Tensor) -> torch.Tensor:
     """Images -> the input of the last MBConv block = the stage6 output (frozen part, no autograd)."""
     with torch.no_grad():
@@ -96,7 +104,7 @@ def block_input(net: EfficientNetLite0, images: torch.Tensor) -> torch.Tensor:
 
 
 def tap_from_block_input(net: EfficientNetLite0, x: torch.Tensor) -> torch.Tensor:
-    """L from the cached stage6 output: stage7 alone, or stage6 and stage7 joined (the default tap)."""
+    """L from the cached stage6 output: stage7 alone, or stage6 and stage7 joined (:func:`build_descriptor`'s)."""
     if net.tap not in ("stage7", "stage6+stage7"):
         raise ValueError(f"the fine-tuning caches the input of the last block; it needs the tap stage7 or "
                          f"stage6+stage7, got {net.tap!r}")
@@ -230,7 +238,7 @@ def run(cfg: FinetuneConfig) -> dict:
 def _run(cfg: FinetuneConfig) -> dict:
     torch.manual_seed(cfg.seed)
     t0 = time.perf_counter()
-    desc = AttentionDescriptor("efficientnet_lite0", fusion=cfg.fusion, seed=cfg.seed)  # the library's default
+    desc = build_descriptor(cfg.fusion, cfg.seed)
     net = desc.backbone
     rtab_gt = read_ground_truth(cfg.rtabmap / "samples_GT.bmp")
     rtab_images = read_images([cfg.rtabmap / f"{i}.jpg" for i in range(1, rtab_gt.shape[0] + 1)])

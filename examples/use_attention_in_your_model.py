@@ -103,8 +103,8 @@ def main(argv: list[str] | None = None) -> None:
 
     # 4. A frozen descriptor in front of a trainable head. Built by name, the descriptor owns its
     #    backbone and freezes it (a module you pass in is left as it is: freeze it yourself then).
-    model = nn.Sequential(AttentionDescriptor("efficientnet_lite0", fusion="ega", pretrained=pretrained),
-                          nn.Linear(2560, 5))  # 2560: the default descriptor's size
+    frozen = AttentionDescriptor("efficientnet_lite0", fusion="ega", pretrained=pretrained)
+    model = nn.Sequential(frozen, nn.Linear(frozen.out_dim, 5))  # out_dim: the descriptor's size
     opt = torch.optim.SGD([p for p in model.parameters() if p.requires_grad], lr=0.1)
     loss = nn.functional.cross_entropy(model(frame.expand(2, -1, -1, -1)), torch.tensor([1, 3]))
     loss.backward()
@@ -112,7 +112,8 @@ def main(argv: list[str] | None = None) -> None:
     print("4. trainable parameters:", [n for n, p in model.named_parameters() if p.requires_grad])
 
     # 5. Training through the descriptor: gradients reach your network's weights.
-    trainable = AttentionDescriptor(net, tap="5", input_size=(64, 64), differentiable=True)
+    # (with the attention: G, which the layers after the tap shape, is in the descriptor)
+    trainable = AttentionDescriptor(net, tap="5", input_size=(64, 64), fusion="dam", differentiable=True)
     pair = trainable(torch.cat([frame, frame.flip(-1)]).float() / 255.0)
     (1.0 - pair[0] @ pair[1]).backward()  # pull a frame and its mirror image together
     print("5. gradient on the layer after the tap:", net[6].weight.grad is not None)

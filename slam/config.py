@@ -96,7 +96,8 @@ class DescriptorConfig:
     preset: str = "default"  # attnloop.presets.PRESETS: the measured default, the paper's, its baseline's
     # "auto": "vgg16" when its weights are found (always with the paper's presets), else "efficientnet_lite0"
     backbone: str = "auto"
-    fusion: Optional[str] = None  # "none" | "dam" | "eam" | "gaf" | "ega"; None: the preset's (DAM; guclu2019 none)
+    # "none" | "dam" | "eam" | "gaf" | "ega"; None: the preset's (default and guclu2019: none; paper: DAM)
+    fusion: Optional[str] = None
     # random RNNs after the pooling (num_rnn * 64 dims); None: the preset's (0 for the default, 16 for the others)
     num_rnn: Optional[int] = None
     seed: int = 0  # seed of the random RNN weights when there are RNNs (same seed, same descriptor)
@@ -165,10 +166,10 @@ class LoopClosureConfig:
         window=3000, threshold=ThresholdConfig(k_sigma=1.5, min_samples=16)))
     # The threshold calibrated for a backbone's default descriptor replaces ``detector.threshold`` when the
     # loop closer builds that descriptor: an absolute floor is a property of the descriptor (the Lite0 default's
-    # similarities sit near 0.85, the paper preset's near 0.55; docs/results.md, "Loop candidates"). Backbones
+    # similarities sit near 0.97, the paper preset's near 0.55; docs/results.md, "Loop candidates"). Backbones
     # not listed (VGG16, a custom descriptor) keep ``detector.threshold``.
     threshold_by_backbone: dict = field(default_factory=lambda: {
-        "efficientnet_lite0": ThresholdConfig(k_sigma=1.5, min_margin=0.005, min_similarity=0.85, min_samples=16)},
+        "efficientnet_lite0": ThresholdConfig(k_sigma=0.5, min_margin=0.005, min_similarity=0.975, min_samples=16)},
         metadata={"values": ThresholdConfig})
     # verification re-uses the odometry's matching + RANSAC, with stricter acceptance:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)

@@ -257,8 +257,8 @@ OPTIONS: tuple[Option, ...] = (
            "paper (Caglayan et al.: VGG16 pool5, attention, channel merge, 16 random RNNs, 1024-d; VGG16's weights "
            "required) or guclu2019 (the paper's baseline: the same without attention and without the merge); "
            "attnloop.presets", choices=tuple(PRESETS)),
-    Option("--fusion", "loop.descriptor.fusion", "loop closure", "attention fusion (default: the preset's, dam; "
-           "guclu2019 has none)", choices=FUSION_MODES),
+    Option("--fusion", "loop.descriptor.fusion", "loop closure", "attention fusion (default: the preset's: none; "
+           "the paper's dam)", choices=FUSION_MODES),
     Option("--backbone", "loop.descriptor.backbone", "loop closure",
            "ImageNet CNN: vgg16 (its weights are downloaded if not cached), efficientnet_lite0 (offline, "
            "attnloop[pretrained]) or auto (default): with --preset default vgg16 when its weights are found without "

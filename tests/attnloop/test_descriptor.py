@@ -111,7 +111,7 @@ def test_composes_in_a_users_sequential(images):
     torch.manual_seed(0)
     model = nn.Sequential(
         AttentionDescriptor("efficientnet_lite0", fusion="ega", pretrained=False, seed=0),
-        nn.Linear(2560, 10),
+        nn.Linear(5 * 112, 10),  # 5 regions of Lite0's stage5, 112 channels
     )
     out = model(images)
     assert out.shape == (3, 10)
@@ -217,15 +217,15 @@ def test_none_runs_the_network_to_the_tap_only(images, monkeypatch, build):
 
 def test_default_has_no_rnns_the_regional_code_is_the_descriptor(lite, images):
     # num_rnn=0 (the default): the descriptor is the fused map's regional code, L2-normalised, computed
-    # here by hand (GeM p = 2 over the whole map and a 2 x 2 grid, each region L2-normalised)
+    # here by hand (GeM p = 3 over the whole map and a 2 x 2 grid, each region L2-normalised)
     desc = AttentionDescriptor(lite.backbone, fusion="gaf")
     parts = desc.parts(images)
     x = parts.fused / parts.fused.abs().amax((1, 2, 3), keepdim=True)
-    x = x.clamp_min(1e-6) ** 2
+    x = x.clamp_min(1e-6) ** 3
     h, w = x.shape[2:]
     cells = [(slice(0, h), slice(0, w))] + [(slice(a, b), slice(c, d)) for a, b in ((0, (h + 1) // 2), (h // 2, h))
                                             for c, d in ((0, (w + 1) // 2), (w // 2, w))]
-    regions = [F.normalize(x[:, :, r, c].mean((2, 3)).sqrt(), dim=1) for r, c in cells]
+    regions = [F.normalize(x[:, :, r, c].mean((2, 3)) ** (1 / 3), dim=1) for r, c in cells]
     ref = F.normalize(torch.cat(regions, 1), dim=1)
     assert parts.descriptor.shape == (3, 5 * 320)
     assert torch.allclose(parts.descriptor, ref, atol=1e-6)
@@ -294,9 +294,9 @@ def test_what_applies_without_rnns(lite, images):
     d64 = AttentionDescriptor("efficientnet_lite0", pretrained=False).double()
     assert d64(torch.zeros(0, 3, 32, 32, dtype=torch.uint8)).dtype == torch.float64
     assert d64(images[:1]).dtype == torch.float64
-    # normalize=False: every region is unit-norm already, 2 tap groups x 5 regions
+    # normalize=False: every region is unit-norm already, 1 tap group (stage5) x 5 regions
     raw = AttentionDescriptor("efficientnet_lite0", pretrained=False, normalize=False)(images[:2])
-    assert torch.allclose(raw.norm(dim=1), torch.full((2,), 10.0 ** 0.5), atol=1e-5)
+    assert torch.allclose(raw.norm(dim=1), torch.full((2,), 5.0 ** 0.5), atol=1e-5)
 
 
 def test_a_state_dict_of_the_other_encoding_names_num_rnn():
@@ -317,3 +317,37 @@ def test_a_wrappers_state_dict_gets_torchs_own_message():
     wrapped = {f"module.{k}": v for k, v in AttentionDescriptor("efficientnet_lite0", pretrained=False).state_dict().items()}
     with pytest.raises(RuntimeError, match="Missing key"):
         rnns.load_state_dict(wrapped)
+
+
+def test_the_recipes_gem_exponent_is_the_regional_poolings():
+    # L: 2 channels on a 2 x 2 map, G unused (fusion none). GeM with p = 3 by hand: the whole map
+    # (mean x^3)^(1/3) per channel, each cell of the 2 x 2 grid its one value; each region L2-normalised.
+    L = torch.tensor([[[1.0, 2.0], [3.0, 4.0]], [[2.0, 2.0], [2.0, 2.0]]])[None]
+    whole = torch.tensor([((1 + 8 + 27 + 64) / 4) ** (1 / 3), 2.0])
+    cells = L[0].flatten(1).T  # (4 cells row-major, 2 channels)
+    ref = F.normalize(torch.cat([F.normalize(whole, dim=0)[None], F.normalize(cells, dim=1)]).flatten(), dim=0)
+    net = nn.Sequential(nn.Conv2d(3, 2, 1), nn.AdaptiveAvgPool2d(2), nn.Flatten(), nn.Linear(8, 3))
+    desc = AttentionDescriptor(net, tap="1", input_size=(8, 8), recipe=DescriptorRecipe(fusion="none", gem_p=3))
+    assert torch.allclose(desc.from_attention(L, torch.zeros_like(L))[0], ref, atol=1e-6)
+    assert torch.allclose(descriptor_from_attention(L, torch.zeros_like(L), None, "none", gem_p=3.0)[1][0], ref,
+                          atol=1e-6)
+    # p = 2 weighs the large values less: another whole-map direction
+    p2 = descriptor_from_attention(L, torch.zeros_like(L), None, "none", gem_p=2.0)[1][0]
+    whole2 = F.normalize(torch.tensor([((1 + 4 + 9 + 16) / 4) ** 0.5, 2.0]), dim=0)
+    assert torch.allclose(p2[:2] * 5 ** 0.5, whole2, atol=1e-6) and not torch.allclose(p2, ref, atol=1e-3)
+
+
+@pytest.mark.parametrize("gem_p", [0, -1.0, float("inf"), float("nan"), True, "3"])
+def test_the_gem_exponent_must_be_a_positive_finite_number(gem_p):
+    with pytest.raises(ValueError, match="gem_p must be a positive finite number"):
+        DescriptorRecipe(gem_p=gem_p)
+    with pytest.raises(ValueError, match="gem_p must be a positive finite number"):
+        descriptor_from_attention(torch.rand(1, 4, 2, 2), torch.rand(1, 4, 2, 2), None, "none", gem_p=gem_p)
+
+
+def test_the_gem_exponent_without_regional_pooling_is_refused():
+    # the flat map has no GeM: an exponent other than the default would do nothing
+    other = DescriptorRecipe.gem_p + 1.0
+    with pytest.raises(ValueError, match=f"gem_p={other} sets the regional GeM pooling, and pooling='flat' has none"):
+        DescriptorRecipe(pooling="flat", num_rnn=16, gem_p=other)
+    assert DescriptorRecipe(pooling="flat", num_rnn=16, gem_p=DescriptorRecipe.gem_p).pooling == "flat"

@@ -177,8 +177,8 @@ def test_gradcheck_tiny_relu_cnn():
 @pytest.fixture(scope="module")
 def lite64_shared():
     # the paper's flat pooling at stage7: the regional GeM's floor is a kink that central differences straddle
-    desc = AttentionDescriptor("efficientnet_lite0", pretrained=False, seed=0, differentiable=True, tap="stage7",
-                               pooling="flat", num_rnn=16).double()
+    desc = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False, seed=0, differentiable=True,
+                               tap="stage7", pooling="flat", num_rnn=16).double()
     net = desc.backbone
     with torch.no_grad():
         # Random weights: the features fade to ~1e-9 by the head and the softmax is flat to 1e-10, so
@@ -234,7 +234,8 @@ def test_every_backbone_parameter_gets_a_gradient(lite64):
 
 
 def test_differentiable_values_equal_the_fast_path(lite64):
-    fast = AttentionDescriptor(lite64.backbone, seed=0, pooling="flat", num_rnn=16)  # the same float64 backbone, detached
+    # the same float64 backbone and recipe, detached
+    fast = AttentionDescriptor(lite64.backbone, recipe=lite64.recipe)
     x = torch.rand(2, 3, 64, 64, dtype=torch.float64)
     a, b = lite64.parts(x), fast.parts(x)
     assert torch.equal(a.tap.detach(), b.tap)

@@ -148,7 +148,9 @@ def test_fusion_is_the_recipes_and_read_only():
         d.fusion = "dam"
 
 
-@pytest.mark.parametrize("settings", [{}, {"attend": "stage6+stage7"}, {"num_rnn": 16}])
+@pytest.mark.parametrize("settings", [{}, {"fusion": "dam"}, {"fusion": "dam", "tap": "stage6+stage7",
+                                                                 "attend": "stage6+stage7"},
+                                      {"fusion": "dam", "num_rnn": 16}])
 def test_built_under_inference_mode_then_used_with_autograd(settings):
     # the weights were inference tensors, which the seeded backward (no closed form with attend on both
     # stages) cannot save: built under inference_mode, it must equal one built outside

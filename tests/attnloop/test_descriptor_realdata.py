@@ -99,10 +99,10 @@ def test_ground_truth_of_the_pairs(kitchen):
 def test_revisit_beats_every_far_view(kitchen, fusion):
     d = kitchen["desc"].from_attention(kitchen["tap"], kitchen["grad"], fusion=fusion)
     margins = _margins(kitchen, d)
-    # the default descriptor (regional code, no RNNs), every-5th-frame negatives:
-    # +0.009 (dam, 255/950) to +0.041 (gaf, 250/945). Its cosines are higher for every frame of the room
-    # (pooled codes), so the margins are smaller in absolute terms than the flat pipeline's; the ranking is the test.
-    assert min(margins) > 0.005, f"{fusion}: margins {margins}"
+    # the default descriptor (stage5, regional code, no RNNs), every-5th-frame negatives: +0.003 (gaf and dam,
+    # 255/950) to +0.007. Its cosines are high for every frame of the room (pooled codes of a lower tap, ~0.97),
+    # so the margins are small in absolute terms; the ranking is the test: the revisit first, in every mode.
+    assert min(margins) > 0, f"{fusion}: margins {margins}"
 
 
 @pytest.mark.parametrize("fusion", FUSION_MODES)

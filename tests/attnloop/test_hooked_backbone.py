@@ -202,7 +202,7 @@ def test_explicit_transitions_for_a_functional_max_pool(images):
 def test_differentiable_reaches_the_users_weights_without_touching_flags(images):
     net = vgg_like().train()
     net[0].requires_grad_(False)
-    desc = AttentionDescriptor(net, tap="2", input_size=(32, 32), differentiable=True).double()
+    desc = AttentionDescriptor(net, tap="2", input_size=(32, 32), fusion="dam", differentiable=True).double()
     desc(images).sum().backward()
     assert net[0].weight.grad is None and not net[0].weight.requires_grad
     for layer in (3, 6, 10):  # after the tap: reached through G (second order) and through L
@@ -302,7 +302,7 @@ def test_logits_that_do_not_use_the_tap():
             return self.fc(x[:, :1].expand(-1, 4, -1, -1).flatten(1))
 
     for cls in (Detached, Unused):
-        desc = AttentionDescriptor(cls(), tap="conv", input_size=(8, 8))
+        desc = AttentionDescriptor(cls(), tap="conv", input_size=(8, 8), fusion="dam")  # "none" reads no G
         with pytest.raises(ValueError, match="do not depend on the tap through autograd"):
             desc(torch.rand(1, 3, 8, 8))
 

@@ -73,7 +73,8 @@ def test_random_weight_descriptors_tell_images_apart():
             cos = e @ e.T
             assert float(cos[0, 3]) == pytest.approx(1.0, abs=1e-6), (kw, mode)
             off = cos[:3, :3][~torch.eye(3, dtype=torch.bool)]
-            assert float(off.max()) < 0.99, (kw, mode, cos)
+            # one constant code (the defect) gives 1; random stage5 features are alike, up to 0.993 here
+            assert float(off.max()) < 0.995, (kw, mode, cos)
 
 
 def test_regional_code_groups_are_unit_blocks():
@@ -251,12 +252,14 @@ def test_attend_on_a_three_stage_tap(attended):
 
 
 def test_descriptor_attend_argument():
-    both = AttentionDescriptor("efficientnet_lite0", pretrained=False, attend="stage6+stage7")
-    assert both.backbone.tap == "stage6+stage7" and both.backbone.input_size == (224, 288)
-    assert both.attended_groups == (True, True)
-    default = AttentionDescriptor("efficientnet_lite0", pretrained=False)
+    both = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False, tap="stage6+stage7",
+                               attend="stage6+stage7")
+    assert both.backbone.tap == "stage6+stage7" and both.attended_groups == (True, True)
+    last = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False, tap="stage6+stage7",
+                               attend="stage7")
+    assert last.attended_groups == (False, True)
     x = torch.randint(0, 256, (1, 3, 60, 80), dtype=torch.uint8)
-    a, b = both.parts(x), default.parts(x)
+    a, b = both.parts(x), last.parts(x)
     assert torch.equal(a.tap, b.tap) and not torch.allclose(a.descriptor, b.descriptor)
     assert torch.allclose(a.descriptor, descriptor_from_attention(a.tap, a.grad, None, "dam",
                                                                   groups=(192, 320))[1], atol=1e-6)
@@ -265,33 +268,30 @@ def test_descriptor_attend_argument():
     with pytest.raises(ValueError, match="fixes the recipe and the tap; also given: \\['attend'\\]"):
         AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper", attend="stage7")
     with pytest.raises(ValueError, match="attend= applies to a backbone name"):
-        AttentionDescriptor(default.backbone, attend="stage7")
-    with pytest.raises(ValueError, match="must name stages of the tap"):
-        AttentionDescriptor("efficientnet_lite0", pretrained=False, attend="stage5")
+        AttentionDescriptor(last.backbone, attend="stage7")
+    with pytest.raises(ValueError, match="must name stages of the tap"):  # the default's tap is stage5
+        AttentionDescriptor("efficientnet_lite0", pretrained=False, attend="stage7")
 
 
 def test_default_configuration():
     d = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False)
-    assert d.backbone.tap == "stage6+stage7" and d.backbone.input_size == (224, 288)
-    assert d.backbone.tap_shape == (512, 7, 9) and d.tap_groups == (192, 320)
-    # the attention at stage7 only; stage6 pooled unfused (docs/method.md)
-    assert d.backbone.attend == "stage7" and d.attended_groups == (False, True)
+    # stage5 (112 channels, stride 16) of a 256 x 320 input: one tap group, attended
+    assert d.backbone.tap == "stage5" and d.backbone.input_size == (256, 320)
+    assert d.backbone.tap_shape == (112, 16, 20) and d.tap_groups == (112,) and d.attended_groups == (True,)
     r = d.recipe
-    # no RNNs: the regional code, L2-normalised, is the descriptor
-    assert (r.pooling, r.num_rnn, r.merges) == ("regional", 0, False)
-    assert d.pool is None and d.out_dim == 2560
+    # no RNNs: the regional code (GeM p = 3), L2-normalised, is the descriptor
+    assert (r.pooling, r.num_rnn, r.merges, r.gem_p) == ("regional", 0, False, 3.0)
+    assert d.pool is None and d.out_dim == 5 * 112
     x = torch.randint(0, 256, (2, 3, 120, 160), dtype=torch.uint8)
     parts = d.parts(x)
-    assert float(parts.grad[:, :192].abs().max()) == 0 and torch.equal(parts.fused[:, :192], parts.tap[:, :192])
-    code = regional_code(fuse_groups(parts.tap, parts.grad, "dam", (192, 320), (False, True)), (192, 320), 2.0, (1, 2))
+    code = regional_code(fuse(parts.tap, unit_scale(parts.grad), "dam"), None, 3.0, (1, 2))
     assert torch.allclose(parts.descriptor, F.normalize(code, dim=1), atol=1e-6)
     assert torch.allclose(d.from_attention(parts.tap, parts.grad, "gaf"),
-                          descriptor_from_attention(parts.tap, parts.grad, None, "gaf",
-                                                    groups=(192, 320), attended=(False, True))[1])
-    assert d(x[:0]).shape == (0, 2560)
+                          descriptor_from_attention(parts.tap, parts.grad, None, "gaf", gem_p=3.0)[1])
+    assert d(x[:0]).shape == (0, 560)
     # num_rnn=16: the paper's RNNs on that code, input at norm 10
     rnns = AttentionDescriptor("efficientnet_lite0", fusion="dam", pretrained=False, num_rnn=16)
-    assert rnns.pool.weights.shape == (16, 64, 2560) and rnns.out_dim == 1024
+    assert rnns.pool.weights.shape == (16, 64, 560) and rnns.out_dim == 1024
     ref = F.normalize(random_rnn_pool(10.0 * F.normalize(code, dim=1)[:, :, None, None], rnns.pool.weights,
                                       merge=False), dim=1)
     assert torch.allclose(rnns.from_attention(parts.tap, parts.grad), ref, atol=1e-6)

@@ -69,15 +69,18 @@ def test_the_presets_are_the_papers_settings():
     assert PRESETS["paper"].auto_backbone == PRESETS["guclu2019"].auto_backbone == "vgg16"
 
 
-def test_the_default_taps_lite0_at_stage6_and_stage7_with_the_attention_at_stage7():
+def test_the_default_taps_lite0_at_stage5_of_a_256_x_320_input_with_gem_p3_and_no_attention():
     from attnloop import AttentionDescriptor
 
     d = AttentionDescriptor("efficientnet_lite0", pretrained=False)
     net = d.backbone
-    assert (net.tap, net.input_size, net.tap_groups, net.attended_groups) == (
-        "stage6+stage7", (224, 288), (192, 320), (False, True))
-    assert (d.preset, d.recipe.fusion, d.recipe.pooling, d.recipe.num_rnn) == ("default", "dam", "regional", 0)
-    assert d.out_dim == 5 * (192 + 320)  # the whole map and 2 x 2 regions, per stage
+    assert (net.tap, net.input_size, net.tap_groups) == ("stage5", (256, 320), (112,))
+    assert (d.preset, d.recipe.fusion, d.recipe.pooling, d.recipe.num_rnn, d.recipe.gem_p) == (
+        "default", "none", "regional", 0, 3.0)
+    assert d.out_dim == 5 * 112  # the whole map and 2 x 2 regions of stage5's 112 channels
+    # the paper's fusion stays DAM, whatever the default's
+    assert AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper").recipe.fusion == "dam"
+    assert AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper", fusion="gaf").fusion == "gaf"
 
 
 @pytest.mark.parametrize("kwargs, match", [

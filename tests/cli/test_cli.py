@@ -37,7 +37,7 @@ def test_flags_not_typed_leave_the_configs_defaults():
     assert given_settings(args) == {} and args.demo_scene is None and args.config_file is None
     spec = resolve_settings(given_settings(args))
     assert spec.config == SLAMConfig() and spec.run == RunOptions()
-    assert spec.config.loop.descriptor.recipe.fusion == "dam"  # the default preset's fusion
+    assert spec.config.loop.descriptor.recipe.fusion == "none"  # the default preset's fusion
     fusion = next(a for a in build_parser()._actions if a.dest == "loop.descriptor.fusion")
     assert tuple(fusion.choices) == FUSION_MODES  # one list of modes
 

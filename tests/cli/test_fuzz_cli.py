@@ -400,7 +400,7 @@ def test_a_run_with_loops_records_its_backbone(base, tmp_path, capsys, monkeypat
     assert notices == [] and "EfficientNet" not in err  # --quiet: warnings and errors only
     m = _check_run_outputs(out, [])
     assert m["backbone"] == "efficientnet_lite0" and m["descriptor"]["requested_backbone"] == "auto"
-    assert m["descriptor"]["fusion"] == "dam"
+    assert m["descriptor"]["fusion"] == "none"
 
 
 # seeded mutations of the sequence's own text files (tests/helpers.py)

