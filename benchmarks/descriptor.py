@@ -1,7 +1,7 @@
 """Cost of the attention descriptor vs the plain forward pass of its backbone, side by side.
 
-For each backbone (the default descriptor: VGG16 at pool5, EfficientNet-Lite0 at stage6+stage7 on a 224 x 288
-input with G at stage7; and preset="paper") and batch size (1, 8), one round
+For each backbone (the default descriptor: VGG16 at pool5, EfficientNet-Lite0 at stage5 on a 256 x 320
+input; and preset="paper") and batch size (1, 8), one round
 times, in turn, the plain classifier forward ``net(images)`` (preprocessing included) and the full
 ``AttentionDescriptor(...)(images)`` for every fusion mode, all on the same 640 x 480 uint8 frames
 under ``torch.no_grad()`` (as the SLAM system calls it). Rounds are interleaved so that load from
@@ -44,7 +44,7 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
         AttentionDescriptor(name, pretrained=pretrained)
     except FileNotFoundError:
         pretrained = False
-    # The default descriptor builds its own backbone (Lite0: stage6+stage7 at 224 x 288); the plain
+    # The default descriptor builds its own backbone (Lite0: stage5 at 256 x 320); the plain
     # forward is that same network's classifier pass at that input size.
     descs = {m: AttentionDescriptor(name, fusion=m, pretrained=pretrained) for m in FUSION_MODES}
     net = descs["dam"].backbone
@@ -91,7 +91,7 @@ def stage_breakdown(name: str, rounds: int) -> list[str]:
         desc = AttentionDescriptor(name, fusion="dam", pretrained=name == "efficientnet_lite0")
     except FileNotFoundError:
         desc = AttentionDescriptor(name, fusion="dam", pretrained=False)
-    net = desc.backbone  # the default descriptor's network (Lite0: stage6+stage7 at 224 x 288)
+    net = desc.backbone  # the default descriptor's network (Lite0: stage5 at 256 x 320)
     img = frames(1)
     stages = {"plain forward (preprocess included)": [], "preprocess (resize + normalise)": [],
               "L and G: guided_backprop (preprocess, forward, seeded backward)": [],

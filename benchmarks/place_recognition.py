@@ -13,9 +13,10 @@ Sets (each skipped with a note when its data is absent):
 
 Methods (all L2-normalised, cosine similarity; ORB-BoW with its own score):
 
-* ``<mode>``: ``AttentionDescriptor("efficientnet_lite0", fusion=mode, pretrained=True)``, the default;
+* ``<mode>``: ``AttentionDescriptor("efficientnet_lite0", fusion=mode, pretrained=True)``, the default's tap
+  and pooling with each fusion (the default's own: ``none``);
 * ``paper <mode>``: the same with ``preset="paper"``;
-* ``GAP`` / ``GeM``: the default descriptor's tap L (Lite0 stage6+stage7, 512 x 7 x 9) globally
+* ``GAP`` / ``GeM``: the default descriptor's tap L (Lite0 stage5 of 256 x 320, 112 x 16 x 20) globally
   average-pooled / GeM-pooled (p = 3), no attention, no RNN;
 * ``ORB-BoW``: a bag of ORB words as ORB-SLAM2 / RTAB-Map detect loops: 1000 ORB features per image,
   a 1000-word vocabulary (DBoW2's k-means for binary codes: Hamming distance, words the bitwise majority;

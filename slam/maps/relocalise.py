@@ -285,10 +285,10 @@ class MapRelocaliser:
             raise MapMismatchError(f"{where}: the map's descriptors have {' or '.join(str(d) for d in sorted(dims))} "
                                    f"entries, this run's {run_dim}; its index cannot be searched with another "
                                    "descriptor")
-        if "probe" not in theirs and theirs.get("backbone") == "efficientnet_lite0" and theirs.get("fusion") != "none":
+        if "probe" not in theirs and theirs.get("backbone") == "efficientnet_lite0":
             raise MapMismatchError(
-                f"{where}: saved without a descriptor probe, by a version whose EfficientNet-Lite0 default attended "
-                "stage6 and stage7 (this version's attends stage7 only): its index cannot be searched with this "
+                f"{where}: saved without a descriptor probe, by a version whose EfficientNet-Lite0 default tapped "
+                "stage6 and stage7 (this version's taps stage5): its index cannot be searched with this "
                 "descriptor; record the map's session again with this version")
         if theirs.get("probe") is None or mine["probe"] is None:
             logger.warning("%s: no descriptor probe to compare (%s): the map's descriptor is assumed to be this "

@@ -288,11 +288,11 @@ def docs_workdir(tmp_path, monkeypatch):
 # what the snippets of a page must have computed (beyond running)
 PAGE_CHECKS = {
     "docs/your_own_cnn.md": lambda ns: ns["d"].shape == (4, 5 * 256) and ns["res_desc"].backbone.tap_shape == (256, 7, 7),
-    "docs/method.md": lambda ns: ns["vec"].shape == (1, 2560) and ns["rnn_vec"].shape == (1, 1024) and bool(torch.isfinite(ns["d_gaf"]).all()),
+    "docs/method.md": lambda ns: ns["vec"].shape == (1, 560) and ns["rnn_vec"].shape == (1, 1024) and bool(torch.isfinite(ns["d_gaf"]).all()),
     "docs/api.md": lambda ns: len(ns["states"]) == len(ns["result"].trajectory) == 60
     and ns["result"].num_keyframes > 0 and ns["error"].rmse < 0.1 and ns["kinect"]._T_rgb_depth is not None,
     "docs/pipeline.md": lambda ns: len(ns["result"].trajectory) == 30 and ns["report"].ate_rmse is not None,
-    "README.md": lambda ns: ns["desc"].shape == (4, 2560) and ns["code"].shape == (2, 1024)
+    "README.md": lambda ns: ns["desc"].shape == (4, 560) and ns["code"].shape == (2, 1024)
     and ns["paper"].shape == (4, 1024) and ns["mine"].shape == (4, 80) and ns["rnns"].shape == (4, 1024),
 }
 

@@ -313,11 +313,10 @@ def test_a_map_whose_first_frames_were_unreadable_has_its_first_keyframe_as_orig
     assert not torch.allclose(saved.groundtruth_origin, torch.from_numpy(seq.groundtruth_pose(0)), atol=1e-3)
 
 
-def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sessions, tmp_path, caplog):
+def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sessions, tmp_path):
     # The names match (backbone, fusion, seed), the descriptor does not: the map's descriptor of the probe
     # image tells them apart: here the default's tap with GeM p = 2 instead of 3.
     import copy
-    import logging
     import shutil
 
     from attnloop import AttentionDescriptor
@@ -335,7 +334,7 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     previous = AttentionDescriptor("efficientnet_lite0", recipe=DescriptorRecipe(gem_p=2.0)).eval()
     with pytest.raises(MapMismatchError, match="descriptor of the probe image differs from this run's by 0.0"):
         run_slam(seq, cfg, progress=False, descriptor=previous, frames=(0, 5), map_dir=room_sessions["folder"])
-    # a map saved before the probe existed: Lite0 with attention was the previous default, refused ...
+    # a map saved before the probe existed: Lite0's default then tapped stage6 and stage7, refused in every mode
     folder = tmp_path / "m"
     shutil.copytree(room_sessions["folder"], folder)
     manifest = json.loads((folder / "manifest.json").read_text())
@@ -345,14 +344,11 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     dam_cfg = override(copy.deepcopy(cfg), {"loop.descriptor.fusion": "dam"})
     with pytest.raises(MapMismatchError, match="saved without a descriptor probe, by a version whose EfficientNet-Lite0"):
         run_slam(seq, dam_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
-    # ... while `none`, which the change left alone, is accepted with a warning
-    manifest["descriptor"]["fusion"] = "none"
+    manifest["descriptor"]["fusion"] = "none"  # the same tap without attention: still another descriptor
     (folder / "manifest.json").write_text(json.dumps(manifest))
-    none_cfg = copy.deepcopy(cfg)
-    none_cfg = override(none_cfg, {"loop.descriptor.fusion": "none"})
-    with caplog.at_level(logging.WARNING, logger="slam.maps.relocalise"):
+    none_cfg = override(copy.deepcopy(cfg), {"loop.descriptor.fusion": "none"})
+    with pytest.raises(MapMismatchError, match=r"default tapped stage6 and stage7 \(this version's taps stage5\)"):
         run_slam(seq, none_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
-    assert "no descriptor probe to compare (none recorded in the map)" in caplog.text
     # without a probe to compare, the seed is checked by name even without RNNs
     manifest["descriptor"]["seed"] = 7
     (folder / "manifest.json").write_text(json.dumps(manifest))
