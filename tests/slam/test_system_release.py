@@ -64,7 +64,7 @@ def test_a_revisit_that_adds_nothing_is_released(lap_runs):
 
 
 
-def test_a_settled_revisit_verifies_no_further_candidate(lap_runs):
+def test_a_revisit_verifies_no_further_candidate(lap_runs):
     """Once a kept loop makes a keyframe a revisit to be released, its less similar candidates are not
     registered: a place seen on every lap costs about one registration per keyframe."""
     _, _, (slam, res), (_, res_off) = lap_runs
