@@ -90,8 +90,22 @@ class LoopCandidateDetector:
         return LoopCandidates(ids=top_ids.cpu()[above].to(device), scores=top_sims.cpu()[above].to(device),
                               threshold=thr, top_ids=top_ids, top_scores=top_sims)
 
+    def add(self, descriptor, keyframe_id: int, timestamp: float | None = None) -> None:
+        """Add a keyframe to the database (after :meth:`query`, when the caller decides to keep it).
+
+        Args:
+            descriptor: ``(D,)`` descriptor of the keyframe (tensor on any device, or array).
+            keyframe_id: its id, larger than every id added before.
+            timestamp: optional, stored with it.
+        """
+        kid = int(keyframe_id)
+        last = self.index.last_id
+        if last is not None and kid <= last:
+            raise ValueError(f"keyframe_id {kid} must be larger than the last added id {last}")
+        self.index.add(descriptor, ids=[kid], timestamps=None if timestamp is None else [timestamp])
+
     def add_and_query(self, descriptor, keyframe_id: int, timestamp: float | None = None) -> LoopCandidates:
-        """Query the database with a new keyframe, then add it.
+        """Query the database with a new keyframe, then add it (:meth:`query`, then :meth:`add`).
 
         Args:
             descriptor: ``(D,)`` descriptor of the new keyframe (tensor on any device, or array).
@@ -101,12 +115,8 @@ class LoopCandidateDetector:
         Returns:
             :class:`LoopCandidates` (tensors on the descriptor's device).
         """
-        kid = int(keyframe_id)
-        last = self.index.last_id
-        if last is not None and kid <= last:
-            raise ValueError(f"keyframe_id {kid} must be larger than the last added id {last}")
-        out = self.query(descriptor, kid)
-        self.index.add(descriptor, ids=[kid], timestamps=None if timestamp is None else [timestamp])
+        out = self.query(descriptor, keyframe_id)
+        self.add(descriptor, keyframe_id, timestamp)
         return out
 
     def similarities(self, query_id: int, window: int | None = None) -> tuple[Tensor, Tensor]:

@@ -283,7 +283,7 @@ class LoopCloser:
         update = self._verify(kf, keyframes, graph, cands, through_loops, min_loop_weight, repeats)
         update.revisit = repeats is not None and any(lp.consistent and repeats(lp) for lp in update.new)
         if not update.revisit:
-            self.detector.index.add(desc, ids=[did], timestamps=None if kf.timestamp is None else [kf.timestamp])
+            self.detector.add(desc, keyframe_id=did, timestamp=kf.timestamp)
             self._kf_of_id[did] = kf.id
         return update
 
@@ -309,7 +309,7 @@ class LoopCloser:
         ids = [c for c, _ in eligible]
         lengths = dict(zip(ids, graph.path_lengths_to(kf.id, ids, through_loops=through_loops,
                                                        min_loop_weight=min_loop_weight).tolist()))
-        for cand_id, score in eligible:
+        for rank, (cand_id, score) in enumerate(eligible):
             a = keyframes[cand_id]
             with self.timer("verification"):
                 estimate = se3_between(graph.estimate(a.id), graph.estimate(kf.id))
@@ -341,7 +341,7 @@ class LoopCloser:
                 logger.info("loop %d (keyframes %d <-> %d) is outside the largest consistent group", loop.id,
                             loop.kf_a, loop.kf_b)
             elif repeats is not None and repeats(loop):
-                for c, _ in eligible[eligible.index((cand_id, score)) + 1:]:
+                for c, _ in eligible[rank + 1:]:
                     query.rejections[c] = f"not verified: the query repeats keyframe {cand_id}"
                 break
         return update
