@@ -308,7 +308,7 @@ def loop_precision_recall(run, config=None) -> dict[str, object]:
     similarity = {(lp.kf_a, lp.kf_b): lp.similarity for lp in res.loop_hypotheses}
     before_pairs, before_scores, after_pairs, after_scores = [], [], [], []
     for q in res.queries:
-        if q.top_kf < 0:
+        if q.top_kf < 0 or q.followed:  # followed: no descriptor, nothing of the detector's to score
             continue
         before_pairs.append([int(frames[q.kf]), int(frames[q.top_kf])])
         before_scores.append(q.top_score)

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from slam.keyframe_graph import KeyframeGraph
-from slam.lie import se3_between
+from slam.lie import quat_angle, se3_between
 from slam.loop.acceptance import drift_limits
 from slam.loop.consistency import GroupConsistency
 from slam.loop.verification import DriftLimits, Verification, verify_candidate
@@ -132,6 +132,9 @@ class LoopQuery:
         verified: ids accepted by geometric verification.
         rejections: ``{candidate id: reason}`` for candidates that failed verification or were not verified
             (the query repeats an earlier one: :meth:`LoopCloser.close`).
+        followed: not a database query: the keyframe followed a revisit and repeats the keyframe nearest to it
+            around the one that revisit repeated (:meth:`LoopCloser.close`); ``top_kf`` is that keyframe,
+            ``top_score`` and ``threshold`` NaN (no descriptor was computed).
     """
 
     kf: int
@@ -141,6 +144,7 @@ class LoopQuery:
     candidates: List[int]
     verified: List[int]
     rejections: Dict[int, str] = field(default_factory=dict)
+    followed: bool = False
 
 
 def build_descriptor(config, timer: Optional[StageTimer] = None) -> torch.nn.Module:
@@ -202,6 +206,8 @@ class LoopCloser:
         self._queries: List[LoopQuery] = []
         self._loops: List[LoopClosure] = []  # every hypothesis, by id
         self._kf_of_id: Dict[int, int] = {}  # detector id -> keyframe id
+        self._id_of_kf: Dict[int, int] = {}  # keyframe id -> detector id, for the keyframes in the database
+        self._place: Optional[tuple[int, int]] = None  # the last keyframe, when a revisit: (it, the one it repeats)
         self._t0: Optional[float] = None
         self._last_id = -1
         self._warned_stamps = False
@@ -271,39 +277,87 @@ class LoopCloser:
                 does). A kept loop that repeats makes the update a ``revisit``: the query is not added to the
                 database (it would only stand beside the keyframe it repeats), and the less similar
                 candidates are not verified (that keyframe's own loops already join the place to the rest).
+                A keyframe whose odometry parent was a revisit is first verified against the keyframe of the
+                database nearest to its estimate around the one repeated (its neighbours in the graph, two
+                edges deep, as RTAB-Map's proximity detection): when that loop is kept and repeats too, the
+                keyframe is a revisit with no descriptor computed nor database queried (``LoopQuery.followed``).
+                The estimate there was just corrected by the revisit's loop, so a place walked again costs one
+                registration per keyframe.
 
         Returns:
             :class:`LoopUpdate` (the caller applies it to the graph).
         """
+        did = self._detector_id(kf)
+        update, tried = LoopUpdate(), None
+        follow = self._follow(kf, keyframes, graph, did) if repeats is not None else None
+        if follow is not None:
+            query = LoopQuery(kf.id, follow, math.nan, math.nan, [follow], [], followed=True)
+            update = self._verify(kf, keyframes, graph, query, [(follow, math.nan)], through_loops, min_loop_weight,
+                                  repeats)
+            repeated = [lp for lp in update.new if lp.consistent and repeats(lp)]
+            if repeated:
+                self._queries.append(query)
+                self._place, update.revisit = (kf.id, follow), True
+                return update
+            tried = (follow, query.rejections.get(follow, "verified, but it does not repeat that keyframe"))
         with self.timer("descriptor"):
             desc = self.describe(kf)
-        did = self._detector_id(kf)
         with self.timer("loop_detection"):
             cands = self.detector.query(desc, keyframe_id=did)
-        update = self._verify(kf, keyframes, graph, cands, through_loops, min_loop_weight, repeats)
-        update.revisit = repeats is not None and any(lp.consistent and repeats(lp) for lp in update.new)
-        if not update.revisit:
-            self.detector.add(desc, keyframe_id=did, timestamp=kf.timestamp)
-            self._kf_of_id[did] = kf.id
-        return update
-
-    def _verify(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph, cands, through_loops: bool,
-                min_loop_weight: float, repeats: Optional[Callable[[LoopClosure], bool]]) -> LoopUpdate:
-        """Verify the candidates of :meth:`close` in order, most similar first; the loops in a :class:`LoopUpdate`."""
-        cfg = self.config
         joined = graph.joined(kf.id)  # already measured by an edge: not a loop (LoopQuery.top_kf)
+        if tried is not None:
+            joined.add(tried[0])  # verified once already
 
         def eligible_of(ids: Tensor, scores: Tensor) -> list[tuple[int, float]]:
             pairs = ((self._kf_of_id[int(c)], float(s)) for c, s in zip(ids.tolist(), scores.tolist()))
             return [(k, s) for k, s in pairs if k not in joined]
 
         top = eligible_of(cands.top_ids, cands.top_scores)
-        eligible = eligible_of(cands.ids, cands.scores)[: cfg.max_candidates]
+        eligible = eligible_of(cands.ids, cands.scores)[: self.config.max_candidates]
         top_kf, top_score = top[0] if top else (-1, float("-inf"))
         query = LoopQuery(kf.id, top_kf, top_score, float(cands.threshold), [c for c, _ in eligible], [])
+        if tried is not None:
+            query.rejections[tried[0]] = f"followed from the revisit before it: {tried[1]}"
         self._queries.append(query)
+        more = self._verify(kf, keyframes, graph, query, eligible, through_loops, min_loop_weight, repeats)
+        update.new += more.new
+        update.changed += [lp for lp in more.changed if lp not in update.changed and lp not in update.new]
+        repeated = [lp for lp in update.new if lp.consistent and repeats(lp)] if repeats is not None else []
+        update.revisit = bool(repeated)
+        self._place = (kf.id, repeated[0].kf_a) if repeated else None
+        if not update.revisit:
+            self.detector.add(desc, keyframe_id=did, timestamp=kf.timestamp)
+            self._kf_of_id[did], self._id_of_kf[kf.id] = kf.id, did
+        return update
+
+    def _follow(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph, did: int) -> Optional[int]:
+        """The keyframe to verify ``kf`` against first when its odometry parent was a revisit (:meth:`close`):
+        of the database's keyframes within two edges of the one repeated, outside the detector's window and
+        not joined to ``kf``, the nearest to ``kf``'s estimate (its share of the views' separation a loop may
+        have, ``max_translation`` and ``max_rotation_deg``, in translation plus in turn); None when there is none,
+        or no revisit came before."""
+        if self._place is None or self._place[0] not in graph.joined(kf.id):
+            return None
+        near = {self._place[1]} | graph.joined(self._place[1])
+        near = near.union(*(graph.joined(k) for k in near))
+        joined, window = graph.joined(kf.id), self.detector.config.window
+        ids = sorted(k for k in near if k in self._id_of_kf and k not in joined and k != kf.id
+                     and did - self._id_of_kf[k] >= window and keyframes[k].features is not None)
+        if not ids:
+            return None
+        rel = se3_between(graph.estimates()[ids], graph.estimate(kf.id).expand(len(ids), 7))
+        cost = (rel[:, :3].norm(dim=1) / self.config.max_translation
+                + quat_angle(rel[:, 3:]) / math.radians(self.config.max_rotation_deg))
+        return ids[int(torch.argmin(cost))]
+
+    def _verify(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph, query: LoopQuery,
+                eligible: list[tuple[int, float]], through_loops: bool, min_loop_weight: float,
+                repeats: Optional[Callable[[LoopClosure], bool]]) -> LoopUpdate:
+        """Verify ``eligible`` (``(keyframe id, similarity)``, most similar first) in order for :meth:`close`,
+        recording the outcome in ``query``; the loops in a :class:`LoopUpdate`."""
+        cfg = self.config
         update = LoopUpdate()
-        if not query.candidates:
+        if not eligible:
             return update
         # the distances to the candidates only: a search that stops once they are reached
         ids = [c for c, _ in eligible]
