@@ -202,9 +202,12 @@ class LoopClosureConfig:
     # tracking against that keyframe would not have made a new one). True: it is not added to the loop
     # detector's database, and once it is no longer tracking's reference its features and image are released
     # (RGBDSLAM.released); its pose and edges stay in the graph (its frames are placed on it). Its less similar
-    # candidates are not verified: that keyframe's own loops already join the place to the rest. A place seen
-    # on every lap then keeps one keyframe's data and costs about one registration per keyframe, not one per
-    # lap. Off while a map is saved (the map keeps every keyframe).
+    # candidates are not verified: that keyframe's own loops already join the place to the rest. The keyframe
+    # after a revisit is verified first against the database's keyframe nearest to its estimate within two
+    # edges of the one repeated (RTAB-Map's proximity detection); when that loop repeats too, it is a revisit
+    # with no descriptor computed (LoopQuery.followed). A place seen on every lap then keeps one keyframe's data
+    # and costs one registration per keyframe, not a descriptor and one registration per lap. Off while a map is
+    # saved (the map keeps every keyframe).
     release_revisits: bool = True
     # A loop is settled when its measurement agrees with the current estimate within this many metres and
     # degrees (the registration's own noise): the estimate already satisfies it. A keyframe whose new kept

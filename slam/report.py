@@ -288,7 +288,8 @@ def _relocalisation_metrics(run) -> dict[str, object]:
 
 def loop_precision_recall(run, config=None) -> dict[str, object]:
     """Precision/recall of the loop detector over the keyframe queries, before and after verification: each
-    query's most similar candidate, then its most similar verified one (``-inf`` when none).
+    query's most similar candidate, then its most similar verified one (``-inf`` when none). A keyframe that
+    followed a revisit (``LoopQuery.followed``) was not a query: it counts in neither.
 
     Args:
         run: a :class:`slam.pipeline.RunResult`.
@@ -318,10 +319,12 @@ def loop_precision_recall(run, config=None) -> dict[str, object]:
     if not before_pairs:
         return {}
     out: dict[str, object] = {}
+    # a followed keyframe found its loop without the detector: not a query, nor a positive of the detector's
+    queried = torch.tensor([int(frames[q.kf]) for q in res.queries if not q.followed], dtype=torch.long)
     for name, pairs, scores in (("before_verification", before_pairs, before_scores),
                                 ("after_verification", after_pairs, after_scores)):
         ev = evaluate_loop_candidates(torch.tensor(pairs), torch.tensor(scores, dtype=torch.float64),
-                                      run.gt_poses_per_frame, cfg, indices=frames)
+                                      run.gt_poses_per_frame, cfg, indices=frames, queries=queried)
         out[name] = ev.curve.to_dict()
         run.loop_curves[name] = ev.curve
     return out

@@ -240,6 +240,7 @@ def evaluate_loop_candidates(
     poses: torch.Tensor,
     config: LoopGroundTruthConfig = LoopGroundTruthConfig(),
     indices: torch.Tensor | None = None,
+    queries: torch.Tensor | None = None,
 ) -> LoopEvaluation:
     """Precision/recall of scored loop candidates against the ground truth.
 
@@ -251,6 +252,8 @@ def evaluate_loop_candidates(
         poses: ``(N, 7)`` ground truth per frame (NaN rows: unknown).
         config: the true-loop thresholds.
         indices: frames taking part as queries/database (e.g. keyframes), for the recall denominator.
+        queries: ``(Q,)`` the frames that queried, when not all of ``indices`` did: only they count in the
+            recall denominator.
 
     Returns:
         a :class:`LoopEvaluation` with the curve and the labelled predictions.
@@ -263,6 +266,9 @@ def evaluate_loop_candidates(
     if pairs.shape[0]:
         pairs, scores = _best_per_query(pairs, scores)
     labels = is_true_loop(poses, pairs, config).cpu()
-    num_positives = int(torch.unique(ground_truth_loops(poses, config, indices)[:, 0]).numel())
+    positive = ground_truth_loops(poses, config, indices)[:, 0]
+    if queries is not None:
+        positive = positive[torch.isin(positive, torch.as_tensor(queries, dtype=torch.long).flatten().cpu())]
+    num_positives = int(torch.unique(positive).numel())
     curve = precision_recall_curve(scores, labels, num_positives)
     return LoopEvaluation(curve, pairs, scores, labels)

@@ -300,6 +300,22 @@ class LoopCloser:
                 self._place, update.revisit = (kf.id, follow), True
                 return update
             tried = (follow, query.rejections.get(follow, "verified, but it does not repeat that keyframe"))
+        desc, query, eligible = self._query_database(kf, graph, did, tried)
+        more = self._verify(kf, keyframes, graph, query, eligible, through_loops, min_loop_weight, repeats)
+        update.new += more.new
+        update.changed += [lp for lp in more.changed if lp not in update.changed and lp not in update.new]
+        repeated = [lp for lp in update.new if lp.consistent and repeats(lp)] if repeats is not None else []
+        update.revisit = bool(repeated)
+        self._place = (kf.id, repeated[0].kf_a) if repeated else None
+        if not update.revisit:
+            self.detector.add(desc, keyframe_id=did, timestamp=kf.timestamp)
+            self._kf_of_id[did], self._id_of_kf[kf.id] = kf.id, did
+        return update
+
+    def _query_database(self, kf: Keyframe, graph: KeyframeGraph, did: int, tried: Optional[tuple[int, str]]):
+        """Describe ``kf`` and query the database: its ``(D,)`` descriptor, its :class:`LoopQuery` (recorded) and
+        the eligible candidates ``(keyframe id, similarity)``, most similar first; ``tried``: a keyframe verified
+        already (the followed one) and why it made no revisit."""
         with self.timer("descriptor"):
             desc = self.describe(kf)
         with self.timer("loop_detection"):
@@ -319,16 +335,7 @@ class LoopCloser:
         if tried is not None:
             query.rejections[tried[0]] = f"followed from the revisit before it: {tried[1]}"
         self._queries.append(query)
-        more = self._verify(kf, keyframes, graph, query, eligible, through_loops, min_loop_weight, repeats)
-        update.new += more.new
-        update.changed += [lp for lp in more.changed if lp not in update.changed and lp not in update.new]
-        repeated = [lp for lp in update.new if lp.consistent and repeats(lp)] if repeats is not None else []
-        update.revisit = bool(repeated)
-        self._place = (kf.id, repeated[0].kf_a) if repeated else None
-        if not update.revisit:
-            self.detector.add(desc, keyframe_id=did, timestamp=kf.timestamp)
-            self._kf_of_id[did], self._id_of_kf[kf.id] = kf.id, did
-        return update
+        return desc, query, eligible
 
     def _follow(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph, did: int) -> Optional[int]:
         """The keyframe to verify ``kf`` against first when its odometry parent was a revisit (:meth:`close`):
@@ -345,7 +352,7 @@ class LoopCloser:
                      and did - self._id_of_kf[k] >= window and keyframes[k].features is not None)
         if not ids:
             return None
-        rel = se3_between(graph.estimates()[ids], graph.estimate(kf.id).expand(len(ids), 7))
+        rel = se3_between(torch.stack([graph.estimate(k) for k in ids]), graph.estimate(kf.id).expand(len(ids), 7))
         cost = (rel[:, :3].norm(dim=1) / self.config.max_translation
                 + quat_angle(rel[:, 3:]) / math.radians(self.config.max_rotation_deg))
         return ids[int(torch.argmin(cost))]

@@ -87,6 +87,33 @@ def test_a_revisit_verifies_no_further_candidate(lap_runs):
 
     assert registered(res) < 0.5 * registered(res_off), (registered(res), registered(res_off))
 
+
+def test_a_keyframe_that_follows_a_revisit_needs_no_descriptor(lap_runs):
+    """After a revisit, the next keyframe is verified against the keyframe nearest to it around the one repeated;
+    when that loop repeats too, no descriptor is computed: on the second lap most keyframes cost one registration."""
+    _, gt, (slam, res), (slam_off, _) = lap_runs
+    followed = [q for q in res.queries if q.followed]
+    assert len(res.queries) == res.num_keyframes  # one record a keyframe, followed or queried
+    assert len(followed) >= 0.3 * res.num_keyframes, (len(followed), res.num_keyframes)
+    assert slam.timer.calls["descriptor"] == res.num_keyframes - len(followed)
+    assert slam_off.timer.calls["descriptor"] == len(slam_off.keyframes)
+    hyps = {(lp.kf_a, lp.kf_b): lp for lp in res.loop_hypotheses}
+    frame_of, oc = res.keyframe_frames.tolist(), slam.config.odometry
+    released = set(slam.released) | {slam.keyframes[-1].id}
+    for q in followed:
+        assert q.candidates == q.verified == [q.top_kf] and math.isnan(q.top_score), q
+        assert hyps[(q.top_kf, q.kf)].consistent and q.kf in released and q.top_kf not in released
+        # a true repeat: within the keyframe thresholds by ground truth (plus the measurement's 5 cm, 3 degrees)
+        rel = se3_between(gt[frame_of[q.top_kf]], gt[frame_of[q.kf]])
+        assert float(rel[:3].norm()) <= oc.keyframe_translation + 0.05, (q.kf, q.top_kf)
+        assert math.degrees(float(quat_angle(rel[3:]))) <= oc.keyframe_rotation_deg + 3, (q.kf, q.top_kf)
+    # where the followed keyframe did not repeat, the database was queried as usual, without it
+    fell_back = [q for q in res.queries if any(w.startswith("followed from") for w in q.rejections.values())]
+    for q in fell_back:
+        assert not q.followed and math.isfinite(q.threshold)
+        assert not set(q.candidates) & {c for c, w in q.rejections.items() if w.startswith("followed from")}
+
+
 def test_releasing_revisits_keeps_the_trajectory(lap_runs):
     from slam.eval import ate
     from slam.io.trajectory import Trajectory

@@ -124,6 +124,9 @@ def test_evaluate_candidates_best_per_query(hand_poses):
                                                         [600, 200], [800, 600]]
     with pytest.raises(ValueError, match="disagree"):
         evaluate_loop_candidates(pairs, scores[:3], hand_poses)
+    # 800 did not query (a keyframe that found its loop otherwise): 3 positives, and 200 -> 50 is one of them
+    only = evaluate_loop_candidates(pairs[:5], scores[:5], hand_poses, queries=torch.tensor([200, 400, 600]))
+    assert only.curve.num_positives == 3 and abs(only.max_recall_at_full_precision - 1 / 3) < 1e-12
 
 
 def test_redkitchen_revisit_is_a_ground_truth_loop(redkitchen_dir):
