@@ -7,9 +7,10 @@ no new rendering), and run through :func:`slam.pipeline.run_slam` as ``attnloop-
 
 * tracking: wall milliseconds per frame of :meth:`slam.system.RGBDSLAM.track` (what the caller waits,
   the waits for the loop worker included) and of its odometry alone;
-* the loop worker's lag: keyframes the front end has made that the loop worker has not yet queried the
-  database with (read from the system after each frame: its keyframes minus the loop closer's queries;
-  the keyframe in flight counts), the maximum and the mean over the fifth;
+* the loop worker's lag: keyframes the front end has made that the loop worker has not yet closed (read
+  from the system after each frame: its keyframes minus the loop closer's records, one a keyframe, whether it
+  queried the database or followed a revisit; the keyframe in flight counts), the maximum and the mean over
+  the fifth;
 * loop work per keyframe by stage (``descriptor``, ``loop_detection``, ``verification``,
   ``loop_consistency``, ``online_correction``: milliseconds in the fifth over the keyframes made in it), and
   its total per frame of the fifth; the candidates verified per keyframe;
