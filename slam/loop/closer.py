@@ -288,20 +288,18 @@ class LoopCloser:
             :class:`LoopUpdate` (the caller applies it to the graph).
         """
         did = self._detector_id(kf)
-        update, tried = LoopUpdate(), None
+        update, seen = LoopUpdate(), {}
         follow = self._follow(kf, keyframes, graph, did) if repeats is not None else None
         if follow is not None:
             query = LoopQuery(kf.id, follow, math.nan, math.nan, [follow], [], followed=True)
             update = self._verify(kf, keyframes, graph, query, [(follow, math.nan)], through_loops, min_loop_weight,
-                                  repeats)
-            repeated = [lp for lp in update.new if lp.consistent and repeats(lp)]
-            if repeated:
+                                  repeats, seen, follow=True)
+            if update.new and update.new[0].consistent:
                 self._queries.append(query)
                 self._place, update.revisit = (kf.id, follow), True
                 return update
-            tried = (follow, query.rejections.get(follow, "verified, but it does not repeat that keyframe"))
-        desc, query, eligible = self._query_database(kf, graph, did, tried)
-        more = self._verify(kf, keyframes, graph, query, eligible, through_loops, min_loop_weight, repeats)
+        desc, query, eligible = self._query_database(kf, graph, did)
+        more = self._verify(kf, keyframes, graph, query, eligible, through_loops, min_loop_weight, repeats, seen)
         update.new += more.new
         update.changed += [lp for lp in more.changed if lp not in update.changed and lp not in update.new]
         repeated = [lp for lp in update.new if lp.consistent and repeats(lp)] if repeats is not None else []
@@ -312,17 +310,14 @@ class LoopCloser:
             self._kf_of_id[did], self._id_of_kf[kf.id] = kf.id, did
         return update
 
-    def _query_database(self, kf: Keyframe, graph: KeyframeGraph, did: int, tried: Optional[tuple[int, str]]):
+    def _query_database(self, kf: Keyframe, graph: KeyframeGraph, did: int):
         """Describe ``kf`` and query the database: its ``(D,)`` descriptor, its :class:`LoopQuery` (recorded) and
-        the eligible candidates ``(keyframe id, similarity)``, most similar first; ``tried``: a keyframe verified
-        already (the followed one) and why it made no revisit."""
+        the eligible candidates ``(keyframe id, similarity)``, most similar first."""
         with self.timer("descriptor"):
             desc = self.describe(kf)
         with self.timer("loop_detection"):
             cands = self.detector.query(desc, keyframe_id=did)
         joined = graph.joined(kf.id)  # already measured by an edge: not a loop (LoopQuery.top_kf)
-        if tried is not None:
-            joined.add(tried[0])  # verified once already
 
         def eligible_of(ids: Tensor, scores: Tensor) -> list[tuple[int, float]]:
             pairs = ((self._kf_of_id[int(c)], float(s)) for c, s in zip(ids.tolist(), scores.tolist()))
@@ -332,8 +327,6 @@ class LoopCloser:
         eligible = eligible_of(cands.ids, cands.scores)[: self.config.max_candidates]
         top_kf, top_score = top[0] if top else (-1, float("-inf"))
         query = LoopQuery(kf.id, top_kf, top_score, float(cands.threshold), [c for c, _ in eligible], [])
-        if tried is not None:
-            query.rejections[tried[0]] = f"followed from the revisit before it: {tried[1]}"
         self._queries.append(query)
         return desc, query, eligible
 
@@ -359,9 +352,15 @@ class LoopCloser:
 
     def _verify(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph, query: LoopQuery,
                 eligible: list[tuple[int, float]], through_loops: bool, min_loop_weight: float,
-                repeats: Optional[Callable[[LoopClosure], bool]]) -> LoopUpdate:
+                repeats: Optional[Callable[[LoopClosure], bool]], seen: Dict[int, Optional[Verification]],
+                follow: bool = False) -> LoopUpdate:
         """Verify ``eligible`` (``(keyframe id, similarity)``, most similar first) in order for :meth:`close`,
-        recording the outcome in ``query``; the loops in a :class:`LoopUpdate`."""
+        recording the outcome in ``query``; the loops in a :class:`LoopUpdate`.
+
+        ``seen``: this query keyframe's verifications so far, by candidate (None: already a hypothesis), reused
+        rather than registered again, and added to. ``follow``: only a loop that ``repeats`` becomes a hypothesis
+        (a followed keyframe that does not repeat is then queried as usual, and its verification reused).
+        """
         cfg = self.config
         update = LoopUpdate()
         if not eligible:
@@ -372,19 +371,30 @@ class LoopCloser:
                                                        min_loop_weight=min_loop_weight).tolist()))
         for rank, (cand_id, score) in enumerate(eligible):
             a = keyframes[cand_id]
-            with self.timer("verification"):
-                estimate = se3_between(graph.estimate(a.id), graph.estimate(kf.id))
-                v = verify_candidate(a.features, kf.features, estimate, self.limits(float(lengths[a.id])), cfg)
+            if cand_id in seen and seen[cand_id] is None:
+                query.rejections[cand_id] = "a hypothesis already, outside the consistent group (followed)"
+                continue
+            if cand_id in seen:
+                v = seen[cand_id]
+            else:
+                with self.timer("verification"):
+                    estimate = se3_between(graph.estimate(a.id), graph.estimate(kf.id))
+                    v = verify_candidate(a.features, kf.features, estimate, self.limits(float(lengths[a.id])), cfg)
+                seen[cand_id] = v
             if not v.accepted:
                 query.rejections[cand_id] = v.reason
                 logger.info("loop candidate %d -> %d rejected: %s", cand_id, kf.id, v.reason)
                 continue
-            query.verified.append(cand_id)
             loop = LoopClosure(a.id, kf.id, a.frame_index, kf.frame_index, a.timestamp, kf.timestamp, float(score),
                                v.num_inliers, v.T_ab, v.information, v, id=len(self._loops),
                                path_length=float(lengths[a.id]),
                                settled=(v.disagreement <= cfg.settled_translation
                                         and v.disagreement_deg <= cfg.settled_rotation_deg))
+            if follow and not repeats(loop):
+                query.rejections[cand_id] = "verified, but it does not repeat that keyframe"
+                continue
+            seen[cand_id] = None
+            query.verified.append(cand_id)
             self._loops.append(loop)
             update.new.append(loop)
             logger.info("loop verified: keyframe %d (frame %d) <-> keyframe %d (frame %d), %d inliers, %.2f m "
