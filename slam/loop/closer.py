@@ -5,8 +5,9 @@ keyframe database (:class:`attnloop.index.LoopCandidateDetector`) and the group-
 (:class:`slam.loop.consistency.GroupConsistency`). A candidate is verified geometrically and held to a
 disagreement bound that grows with the distance travelled between the two keyframes
 (:mod:`slam.loop.acceptance`); every verified loop becomes a hypothesis, and the largest mutually
-consistent group of hypotheses is kept. The closer reads the keyframe graph (the current estimates, the
-distances along it) but never changes it: :meth:`LoopCloser.close` returns a :class:`LoopUpdate` (the new
+consistent group of hypotheses is kept. On a place walked again, the keyframe after a revisit is verified
+by proximity first, against a keyframe near the one repeated, without a descriptor (:meth:`LoopCloser.close`).
+The closer reads the keyframe graph (the current estimates, the distances along it) but never changes it: :meth:`LoopCloser.close` returns a :class:`LoopUpdate` (the new
 loops, and which hypotheses are kept now) and the caller applies it to the graph.
 
 Example:
