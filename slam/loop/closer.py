@@ -224,6 +224,12 @@ class LoopCloser:
         """Every verified loop so far (kept or not), by id."""
         return list(self._loops)
 
+    def descriptor_of(self, kf_id: int) -> Optional[Tensor]:
+        """``(D,)`` float32 the descriptor of keyframe ``kf_id`` as the database holds it; None for a keyframe
+        that is not in it (a revisit, described or not: :meth:`close`)."""
+        did = self._id_of_kf.get(int(kf_id))
+        return None if did is None else self.detector.index.descriptors_of([did])[0]
+
     @torch.no_grad()
     def describe(self, kf: Keyframe) -> Tensor:
         """``(D,)`` descriptor of a keyframe's (downsized) RGB image."""

@@ -356,27 +356,26 @@ class MapRelocaliser:
         for kf_id in state.new_keyframes:
             t = time.perf_counter()
             with self.slam.timer("map_relocalisation"):
-                self._query(kf_id)
+                queried = self._query(kf_id)
             self._query_seconds += time.perf_counter() - t
-            self.report.queries += 1
+            self.report.queries += queried
         if self.slam.localize:  # queried, and no longer tracking's reference: nothing registers against them
             last = len(self.slam.keyframes) - 1
             for k in range(self._released, last):
                 self.slam.release_keyframe(k)
             self._released = max(self._released, last)
 
-    def _query(self, kf_id: int) -> None:
+    def _query(self, kf_id: int) -> bool:
+        """Query the map with a new keyframe (False: not queried, a revisit of the recording's own place)."""
         cfg, loop_cfg = self.config, self.slam.config.loop
         kf = self.slam.keyframes[kf_id]
         if self.slam.localize:  # no loop closing, no index of the recording: described here, once
             with self.slam.timer("descriptor"):
                 desc = self.slam.loop_closer.describe(kf).detach().to("cpu", torch.float32)
         else:
-            index = self.slam.keyframe_index()
-            if len(index) != self.slam.graph.num_keyframes:  # the loop closer describes every keyframe, in order
-                raise RuntimeError(f"the loop closer's index holds {len(index)} keyframes, the graph "
-                                   f"{self.slam.graph.num_keyframes}")
-            desc = index.descriptors_of(index.ids[kf_id:kf_id + 1])[0]  # the descriptor it just computed
+            desc = self.slam.loop_closer.descriptor_of(kf_id)  # the descriptor it just computed
+            if desc is None:  # a revisit (LoopClosureConfig.release_revisits): the keyframe it repeats has queried
+                return False
         ids, sims = self.map.index.search(desc, k=cfg.max_candidates)
         graph = self.slam.graph
         lengths = None
@@ -410,6 +409,7 @@ class MapRelocaliser:
                 self.report.seconds = time.perf_counter() - self._t0
                 logger.info("relocalised in %s at frame %d (keyframe %d): %d agreeing map links", self.report.map_path,
                             kf.frame_index, kf_id, len(group))
+        return True
 
     def _through_loops(self) -> bool:
         # the recording's estimates include its own loops once any is in effect (online correction)

@@ -92,6 +92,32 @@ def test_localisation_keeps_no_keyframe_data_beyond_trackings_reference(room_map
     assert held[10][1] < 2 * held[1][1] + 1  # ... and hold the features of one, as one lap does
 
 
+def test_a_relocalised_recording_that_revisits_its_own_places(room_map, monkeypatch):
+    """Relocalised (not localisation only) over four laps of the recording: its revisits stay out of its loop
+    database (LoopClosureConfig.release_revisits) and query the map no more; the keyframes they repeat have."""
+    from slam import pipeline
+    from slam.report import evaluate_run
+
+    captured = {}
+
+    class Spy(pipeline.RGBDSLAM):  # the run's system, kept for inspection
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            captured["slam"] = self
+
+    monkeypatch.setattr(pipeline, "RGBDSLAM", Spy)
+    session = room_map["seq"][SESSION_FRAMES[0]:SESSION_FRAMES[1]]
+    run = pipeline.run_slam(_laps(session, 4), room_map["cfg"], progress=False, descriptor=room_map["desc"],
+                            map_dir=room_map["folder"])
+    rel = evaluate_run(run).as_dict()["relocalisation"]
+    system = captured["slam"]
+    revisits = len(system.keyframes) - len(system.keyframe_index())
+    assert run.result.released and revisits >= len(run.result.released)
+    assert rel["relocalised"] and rel["frames_in_map"] == 4 * len(session), rel
+    assert rel["queries"] == len(system.keyframe_index())  # one a keyframe in its database
+    assert rel["map_world_errors"]["rmse"] < 0.05, rel["map_world_errors"]
+
+
 def test_cli_localize_needs_a_map_and_saves_none(tmp_path, capsys):
     from slam.cli import main
 
