@@ -7,8 +7,9 @@ disagreement bound that grows with the distance travelled between the two keyfra
 (:mod:`slam.loop.acceptance`); every verified loop becomes a hypothesis, and the largest mutually
 consistent group of hypotheses is kept. On a place walked again, the keyframe after a revisit is verified
 by proximity first, against a keyframe near the one repeated, without a descriptor (:meth:`LoopCloser.close`).
-The closer reads the keyframe graph (the current estimates, the distances along it) but never changes it: :meth:`LoopCloser.close` returns a :class:`LoopUpdate` (the new
-loops, and which hypotheses are kept now) and the caller applies it to the graph.
+The closer reads the keyframe graph (the current estimates, the distances along it) but never changes it:
+:meth:`LoopCloser.close` returns a :class:`LoopUpdate` (the new loops, and which hypotheses are kept now) and
+the caller applies it to the graph.
 
 Example:
     >>> import torch
@@ -296,7 +297,7 @@ class LoopCloser:
         """
         did = self._detector_id(kf)
         update, seen = LoopUpdate(), {}
-        follow = self._follow(kf, keyframes, graph, did) if repeats is not None else None
+        follow = self._follow(kf, graph, did) if repeats is not None else None
         if follow is not None:
             query = LoopQuery(kf.id, follow, math.nan, math.nan, [follow], [], followed=True)
             update = self._verify(kf, keyframes, graph, query, [(follow, math.nan)], through_loops, min_loop_weight,
@@ -337,7 +338,7 @@ class LoopCloser:
         self._queries.append(query)
         return desc, query, eligible
 
-    def _follow(self, kf: Keyframe, keyframes: Sequence[Keyframe], graph: KeyframeGraph, did: int) -> Optional[int]:
+    def _follow(self, kf: Keyframe, graph: KeyframeGraph, did: int) -> Optional[int]:
         """The keyframe to verify ``kf`` against first when its odometry parent was a revisit (:meth:`close`):
         of the database's keyframes within two edges of the one repeated, outside the detector's window and
         not joined to ``kf``, the nearest to ``kf``'s estimate (its share of the views' separation a loop may
@@ -348,8 +349,9 @@ class LoopCloser:
         near = {self._place[1]} | graph.joined(self._place[1])
         near = near.union(*(graph.joined(k) for k in near))
         joined, window = graph.joined(kf.id), self.detector.config.window
+        # the database holds no released keyframe (only revisits are released, and they never enter it)
         ids = sorted(k for k in near if k in self._id_of_kf and k not in joined and k != kf.id
-                     and did - self._id_of_kf[k] >= window and keyframes[k].features is not None)
+                     and did - self._id_of_kf[k] >= window)
         if not ids:
             return None
         rel = se3_between(torch.stack([graph.estimate(k) for k in ids]), graph.estimate(kf.id).expand(len(ids), 7))
