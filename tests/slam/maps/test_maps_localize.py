@@ -34,6 +34,22 @@ def room_map(room_sessions):
     return {**room_sessions, "relocalised": room_sessions["second"]}
 
 
+@pytest.fixture
+def captured(monkeypatch):
+    """``{"slam": the system}`` of the next :func:`slam.pipeline.run_slam` run, kept for inspection."""
+    from slam import pipeline
+
+    out = {}
+
+    class Spy(pipeline.RGBDSLAM):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            out["slam"] = self
+
+    monkeypatch.setattr(pipeline, "RGBDSLAM", Spy)
+    return out
+
+
 def _localize(room_map, sequence, frames=None):
     from slam.pipeline import run_slam
     from slam.report import evaluate_run
@@ -63,19 +79,11 @@ def test_localisation_places_the_recording_as_relocalisation_does_and_leaves_the
     assert run.map is None and run.saved_map is None and not run.result.loop_hypotheses
 
 
-def test_localisation_keeps_no_keyframe_data_beyond_trackings_reference(room_map, monkeypatch):
+def test_localisation_keeps_no_keyframe_data_beyond_trackings_reference(room_map, captured):
     """Ten laps of the recording (750 frames, forward and backward) hold the keyframe data of one keyframe,
     as one lap does; the run stays placed in the map throughout."""
     from slam import pipeline
 
-    captured = {}
-
-    class Spy(pipeline.RGBDSLAM):  # the run's system, kept for inspection
-        def __init__(self, *a, **k):
-            super().__init__(*a, **k)
-            captured["slam"] = self
-
-    monkeypatch.setattr(pipeline, "RGBDSLAM", Spy)
     session = room_map["seq"][SESSION_FRAMES[0]:SESSION_FRAMES[1]]
     cfg = override(room_map["cfg"], {"relocalisation.localize": True})
     held = {}
@@ -92,20 +100,12 @@ def test_localisation_keeps_no_keyframe_data_beyond_trackings_reference(room_map
     assert held[10][1] < 2 * held[1][1] + 1  # ... and hold the features of one, as one lap does
 
 
-def test_a_relocalised_recording_that_revisits_its_own_places(room_map, monkeypatch):
+def test_a_relocalised_recording_that_revisits_its_own_places(room_map, captured):
     """Relocalised (not localisation only) over four laps of the recording: its revisits stay out of its loop
     database (LoopClosureConfig.release_revisits) and query the map no more; the keyframes they repeat have."""
     from slam import pipeline
     from slam.report import evaluate_run
 
-    captured = {}
-
-    class Spy(pipeline.RGBDSLAM):  # the run's system, kept for inspection
-        def __init__(self, *a, **k):
-            super().__init__(*a, **k)
-            captured["slam"] = self
-
-    monkeypatch.setattr(pipeline, "RGBDSLAM", Spy)
     session = room_map["seq"][SESSION_FRAMES[0]:SESSION_FRAMES[1]]
     run = pipeline.run_slam(_laps(session, 4), room_map["cfg"], progress=False, descriptor=room_map["desc"],
                             map_dir=room_map["folder"])
