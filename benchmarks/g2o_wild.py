@@ -46,9 +46,9 @@ ROOT = Path(__file__).resolve().parents[1]
 import scipy.sparse as sp
 from scipy.sparse import csgraph
 
+from benchmarks.simulate import compose_chain
 from slam.graph import PoseGraph, graph_chi2, optimize, read_g2o, write_g2o
 from slam.graph import initialization as init_mod
-from slam.graph.simulate import compose_chain
 from slam.lie import se3_between, se3_compose, se3_exp, se3_identity, se3_inv
 
 FILES = ["tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "input_M3500_g2o", "input_INTEL_g2o"]

@@ -2,7 +2,7 @@
 thousands to tens of thousands of poses, side by side.
 
 The public g2o files stop at 3500 poses, so the graphs come from
-:func:`slam.graph.simulate.manhattan_world` (a 3D grid walk with loop closures where it revisits a cell,
+:func:`benchmarks.simulate.manhattan_world` (a 3D grid walk with loop closures where it revisits a cell,
 noisy measurements with information ``diag(sigma^-2)``, the odometry composed from pose 0 as the initial
 guess). Each graph is written to a temporary g2o file (17 significant digits) that both optimisers read:
 ``gtsam.readG2o`` + ``LevenbergMarquardtOptimizer`` with default parameters, and ``read_g2o`` +
@@ -52,9 +52,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
+from benchmarks.simulate import manhattan_world
 from slam.eval.align import umeyama_alignment
 from slam.graph import optimize, read_g2o, write_g2o
-from slam.graph.simulate import manhattan_world
 
 # Memory probes run as `python -c CODE PATH` in a fresh interpreter: the GTSAM one imports gtsam only
 # (not torch, which this script imports), so each figure is that of one library alone. VmHWM, unlike

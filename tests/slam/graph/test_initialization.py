@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmarks.simulate import compose_chain
 from slam.graph import PoseGraph, graph_chi2, optimize, read_g2o, write_g2o
 from slam.graph.initialization import (
     AUTO_CHI2_PER_EDGE,
@@ -18,7 +19,6 @@ from slam.graph.initialization import (
     spanning_tree,
     spanning_tree_poses,
 )
-from slam.graph.simulate import compose_chain
 from slam.lie import quat_to_rotmat, se3_between, se3_compose, se3_exp, se3_identity, se3_inv
 
 F64 = torch.float64

@@ -1,4 +1,4 @@
-"""The simulated Manhattan-world pose graphs (slam.graph.simulate): determinism, the parallel chain
+"""The simulated Manhattan-world pose graphs (benchmarks.simulate): determinism, the parallel chain
 composition against a sequential loop, the noise-free case, the noise law (chi-square statistics at the
 ground truth) and an end-to-end optimisation that must reach the expected minimum.
 
@@ -10,9 +10,9 @@ import math
 import pytest
 import torch
 
+from benchmarks.simulate import SimulatedGraph, compose_chain, manhattan_world
 from slam.eval.align import umeyama_alignment
 from slam.graph import CHI2_95_6DOF, edge_chi2, edge_residuals, graph_chi2, optimize
-from slam.graph.simulate import SimulatedGraph, compose_chain, manhattan_world
 from slam.lie import quat_to_rotmat, se3_between, se3_compose, se3_exp, se3_identity
 
 F64 = torch.float64
