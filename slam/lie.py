@@ -1,16 +1,9 @@
-"""SO(3) and SE(3) in plain torch.
+"""SO(3) and SE(3) in plain torch: poses ``(..., 7) = [tx, ty, tz, qx, qy, qz, qw]`` (TUM order, Hamilton unit
+quaternions, scalar last), rotations ``(..., 4) = [qx, qy, qz, qw]``, SE(3) tangents ``(..., 6) = [rho, phi]``
+(translation first), SO(3) tangents ``(..., 3)``; ``compose(X, exp(xi))`` is a right perturbation.
 
-One layout everywhere:
-
-* a pose is a tensor ``(..., 7) = [tx, ty, tz, qx, qy, qz, qw]`` (the TUM line order, quaternion
-  scalar-last, Hamilton convention, unit norm);
-* a rotation alone is a unit quaternion ``(..., 4) = [qx, qy, qz, qw]``;
-* a tangent vector of SE(3) is ``(..., 6) = [rho, phi]`` (translation part first), of SO(3) ``(..., 3)``.
-
-``exp`` / ``log`` are the group exponential and logarithm, so ``compose(X, exp(xi))`` is a right
-(body-frame) perturbation. All functions broadcast over any leading shape, work in float32 and float64,
-follow the device of their inputs, and are autograd-safe near the identity (no ``0/0`` in the forward
-*or* the backward pass) and near a rotation of pi.
+Every function broadcasts over leading shapes, works in float32 and float64 on its inputs' device, and is
+autograd-safe (no ``0/0``) near the identity and near a rotation of pi.
 
 Example:
     >>> xi = torch.tensor([[0.1, -0.2, 0.3, 0.4, 0.5, -0.6]], dtype=torch.float64)
@@ -36,7 +29,7 @@ __all__ = [
 
 
 def _small(dtype: torch.dtype) -> float:
-    # Below this angle the series expansions are used: their truncation error is far below eps there.
+    """The angle below which the series expansions are used (their truncation error is far below eps there)."""
     return 1e-4 if dtype in (torch.float64,) else 1e-2
 
 
@@ -94,11 +87,8 @@ def _rotmat_entries(x, y, z, w) -> list:
 
 
 def quat_to_rotmat(q: Tensor) -> Tensor:
-    """Rotation matrices ``(..., 3, 3)`` from unit quaternions ``(..., 4)`` (``[x, y, z, w]``).
-
-    A single float64 quaternion without gradient is computed from Python floats: the same operations in the
-    same order (the same bits), many times faster than twenty tensor operations.
-    """
+    """Rotation matrices ``(..., 3, 3)`` from unit quaternions ``(..., 4)`` (``[x, y, z, w]``); one float64
+    quaternion without gradient through Python floats (the same bits, many times faster)."""
     _check_last(q, 4, "q")
     if q.shape == (4,) and q.dtype == torch.float64 and not q.requires_grad:
         return torch.tensor(_rotmat_entries(*q.tolist()), dtype=q.dtype, device=q.device).view(3, 3)
@@ -106,20 +96,14 @@ def quat_to_rotmat(q: Tensor) -> Tensor:
 
 
 def quat_angle(q: Tensor) -> Tensor:
-    """Rotation angles in radians ``(...)``, in ``[0, pi]``, of quaternions ``(..., 4)`` ``[x, y, z, w]``.
-
-    ``2 atan2(|v|, |w|)``: accurate for tiny and for large angles (``acos`` is not near 0); the norm of the
-    quaternion does not matter.
-    """
+    """Rotation angles in radians ``(...)``, in ``[0, pi]``, of quaternions ``(..., 4)`` ``[x, y, z, w]`` of any
+    norm: ``2 atan2(|v|, |w|)``, accurate for tiny and for large angles."""
     return 2.0 * torch.atan2(q[..., :3].norm(dim=-1), q[..., 3].abs())
 
 
 def rotmat_to_quat(R: Tensor) -> Tensor:
-    """Unit quaternions ``(..., 4)`` (``[x, y, z, w]``, ``w >= 0``) from rotation matrices ``(..., 3, 3)``.
-
-    Branch-free and stable for every rotation: of the four algebraically equal formulas the one with
-    the largest denominator is selected (Shepperd's method, as in pytorch3d).
-    """
+    """Unit quaternions ``(..., 4)`` (``[x, y, z, w]``, ``w >= 0``) from rotation matrices ``(..., 3, 3)``
+    (Shepperd's method, branch-free: of four equal formulas the one with the largest denominator)."""
     if R.shape[-2:] != (3, 3):
         raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
     m = R.reshape(R.shape[:-2] + (9,))
@@ -144,11 +128,8 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
 
 
 def rotmat_project(M: Tensor) -> Tensor:
-    """The nearest rotation matrices ``(..., 3, 3)`` (Frobenius norm) to matrices ``M (..., 3, 3)``.
-
-    The orthogonal polar factor ``U diag(1, 1, det(U V^T)) V^T`` of the SVD ``M = U S V^T``. Any matrix has a
-    nearest rotation, so callers that must refuse "not a rotation" check ``M`` themselves.
-    """
+    """The nearest rotation matrices ``(..., 3, 3)`` (Frobenius norm) to matrices ``M (..., 3, 3)``:
+    ``U diag(1, 1, det(U V^T)) V^T`` of the SVD ``M = U S V^T`` (any ``M`` has one: callers check ``M``)."""
     if M.shape[-2:] != (3, 3):
         raise ValueError(f"M must have shape (..., 3, 3), got {tuple(M.shape)}")
     U, _, Vh = torch.linalg.svd(M)
@@ -201,10 +182,7 @@ def so3_log(q: Tensor) -> Tensor:
 
 def so3_left_jacobian(phi: Tensor) -> Tensor:
     """Left Jacobian ``J_l(phi)`` of SO(3), ``(..., 3, 3)``; ``se3_exp`` uses it as ``V``."""
-    theta, theta2, small = _theta(phi)
-    theta = theta[..., None]
-    theta2 = theta2[..., None]
-    small = small[..., None]
+    theta, theta2, small = (x[..., None] for x in _theta(phi))
     ts2 = theta * theta  # safe (1 where small) for the exact branch
     # (1 - cos t) / t^2 written as 2 sin^2(t/2) / t^2: no cancellation just above the series threshold
     a = torch.where(small, 0.5 - theta2 / 24.0, 2.0 * torch.sin(0.5 * theta) ** 2 / ts2)
@@ -216,10 +194,7 @@ def so3_left_jacobian(phi: Tensor) -> Tensor:
 
 def so3_left_jacobian_inv(phi: Tensor) -> Tensor:
     """Inverse of the left Jacobian of SO(3), ``(..., 3, 3)``."""
-    theta, theta2, small = _theta(phi)
-    theta = theta[..., None]
-    theta2 = theta2[..., None]
-    small = small[..., None]
+    theta, theta2, small = (x[..., None] for x in _theta(phi))
     half = 0.5 * theta
     c = torch.where(small, 1.0 / 12.0 + theta2 / 720.0,
                     (1.0 - half * torch.cos(half) / torch.sin(half)) / (theta * theta))
@@ -286,20 +261,16 @@ def se3_between(a: Tensor, b: Tensor) -> Tensor:
 
 
 def se3_act(pose: Tensor, points: Tensor) -> Tensor:
-    """Transform points: ``R p + t``. ``pose (..., 7)`` broadcasts with ``points (..., 3)``.
-
-    To apply one pose to a cloud ``(N, 3)``, pass ``pose[None]`` (shape ``(1, 7)``).
-    """
+    """Transform points: ``R p + t``; ``pose (..., 7)`` broadcasts with ``points (..., 3)`` (a cloud
+    ``(N, 3)`` takes ``pose[None]``)."""
     _check_last(pose, 7, "pose")
     _check_last(points, 3, "points")
     return quat_rotate(pose[..., 3:], points) + pose[..., :3]
 
 
 def se3_adjoint(pose: Tensor) -> Tensor:
-    """Adjoint matrices ``(..., 6, 6)`` for the ``[rho, phi]`` order: ``[[R, [t]x R], [0, R]]``.
-
-    ``X * exp(xi) = exp(Ad(X) xi) * X``.
-    """
+    """Adjoint matrices ``(..., 6, 6)`` for the ``[rho, phi]`` order: ``[[R, [t]x R], [0, R]]``, so that
+    ``X * exp(xi) = exp(Ad(X) xi) * X``."""
     _check_last(pose, 7, "pose")
     R = quat_to_rotmat(pose[..., 3:])
     tR = so3_hat(pose[..., :3]) @ R
@@ -310,10 +281,8 @@ def se3_adjoint(pose: Tensor) -> Tensor:
 
 
 def se3_ad(xi: Tensor) -> Tensor:
-    """Small adjoint ``ad(xi) = [[hat(phi), hat(rho)], [0, hat(phi)]] (..., 6, 6)`` of ``xi (..., 6)``.
-
-    ``ad(a) b`` is the Lie bracket ``[a, b]`` of the tangent vectors ``a`` and ``b``.
-    """
+    """Small adjoint ``ad(xi) = [[hat(phi), hat(rho)], [0, hat(phi)]] (..., 6, 6)`` of ``xi (..., 6)``: ``ad(a) b``
+    is the Lie bracket ``[a, b]``."""
     _check_last(xi, 6, "xi")
     P = so3_hat(xi[..., 3:])
     top = torch.cat([P, so3_hat(xi[..., :3])], dim=-1)
@@ -333,8 +302,7 @@ def _se3_q_parts(xi: Tensor):
     """
     rho, phi = xi[..., :3], xi[..., 3:]
     theta2 = (phi * phi).sum(-1, keepdim=True)
-    # The exact coefficients lose relative precision below this angle (the absolute error of Q would
-    # stay near eps * |rho|); the series is exact to round-off here and keeps the backward pass finite.
+    # below this angle the series (exact to round-off there) keeps the precision and the backward pass finite
     small = theta2 < (1e-2 if phi.dtype == torch.float64 else 1e-1) ** 2
     t2 = torch.where(small, torch.ones_like(theta2), theta2)
     t = torch.sqrt(t2)
@@ -356,27 +324,19 @@ def _se3_q_parts(xi: Tensor):
     return v, E
 
 
-def _se3_q(xi: Tensor) -> Tensor:
-    """Barfoot's ``Q(rho, phi)`` ``(..., 3, 3)``: the top-right block of the left Jacobian of SE(3)."""
-    v, E = _se3_q_parts(xi)
-    return so3_hat(v) + E
-
-
 def se3_left_jacobian_inv(xi: Tensor) -> Tensor:
     """Inverse left Jacobian of SE(3), ``(..., 6, 6)``: ``[[J_l^-1, -J_l^-1 Q J_l^-1], [0, J_l^-1]]``."""
     _check_last(xi, 6, "xi")
     Ji = so3_left_jacobian_inv(xi[..., 3:])
-    Q = _se3_q(xi)
+    v, E = _se3_q_parts(xi)
+    Q = so3_hat(v) + E
     top = torch.cat([Ji, -(Ji @ Q @ Ji)], dim=-1)
     bottom = torch.cat([torch.zeros_like(Ji), Ji], dim=-1)
     return torch.cat([top, bottom], dim=-2)
 
 
 def se3_right_jacobian_inv(xi: Tensor) -> Tensor:
-    """Inverse right Jacobian of SE(3), ``(..., 6, 6)``: ``log(exp(xi) exp(d)) ~= xi + J_r^-1(xi) d``.
-
-    The derivative of a pose-graph residual ``log(E)`` under a right perturbation of ``E``.
-    """
+    """Inverse right Jacobian of SE(3), ``(..., 6, 6)``: ``log(exp(xi) exp(d)) ~= xi + J_r^-1(xi) d``."""
     return se3_left_jacobian_inv(-xi)
 
 

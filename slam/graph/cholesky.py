@@ -1,11 +1,7 @@
-"""Supernodal sparse Cholesky for block-sparse SPD matrices (numpy + LAPACK via scipy).
+"""Supernodal sparse Cholesky for block-sparse SPD matrices (numpy + LAPACK via scipy; torch has no CPU one).
 
-Torch has no CPU sparse Cholesky. The pattern of ``H`` is fixed during an optimisation, so the symbolic
-work (minimum-degree ordering, elimination tree, relaxed supernodes, index maps) is done once per pattern on
-the ``n``-node block graph. The numeric phase is right-looking and in place in the factor's panels
-``[L11; L21]``: supernodes of one height and shape form one batch; each factors its pivot block, solves its
-rows and adds its packed update ``-L21 L21^T`` straight into the panels that own its columns (nothing but
-the factor is stored). On the CPU, small groups go front by front through direct LAPACK calls.
+The symbolic analysis is made once per pattern; the numeric phase is right-looking, in place in the factor's
+panels, batched per group of supernodes of one height and shape (small groups front by front through LAPACK).
 """
 from __future__ import annotations
 
@@ -19,6 +15,7 @@ import numpy as np
 _EMPTY = np.zeros(0, dtype=np.int64)
 
 __all__ = ["NotPositiveDefiniteError", "NumericCholesky", "SymbolicCholesky"]
+
 
 class NotPositiveDefiniteError(RuntimeError):
     """The matrix is not (numerically) positive definite."""
@@ -37,12 +34,11 @@ def _mmd_order(n: int, bptr: np.ndarray, bcol: np.ndarray) -> np.ndarray:
     import scipy.sparse as sp
     import scipy.sparse.linalg as sla
 
-    rng = np.random.default_rng(0)  # values only steer SuperLU's pivots; the ordering uses the pattern
+    rng = np.random.default_rng(0)  # values only steer SuperLU's pivots
     rows = np.repeat(np.arange(n), np.diff(bptr))
     vals = np.where(rows == bcol, float(n + 1), rng.uniform(0.1, 0.5, size=rows.shape[0]))
     B = sp.csc_matrix((vals, bcol, bptr), shape=(n, n))  # the pattern is symmetric: CSR read as CSC
-    # SuperLU orders from the pattern alone: its incomplete LU with every entry dropped gives the ordering
-    # without the cost of the factorisation
+    # an incomplete LU with every entry dropped: SuperLU's ordering without the factorisation
     ilu = sla.spilu(B, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, drop_tol=1e300, fill_factor=1.0,
                     options={"SymmetricMode": True})
     return np.argsort(ilu.perm_c)
@@ -157,9 +153,8 @@ def _column_structures(n: int, parent: list, pr: np.ndarray, pc: np.ndarray) -> 
     return struct
 
 
-# CHOLMOD-style amalgamation ``(max_cols, max_zero_fraction)`` in block columns: a column joins its child
-# supernode when the merged one has at most ``max_cols`` block columns and at most that fraction of explicit
-# zeros (first rule that applies); more than CHOLMOD merges, as every front costs calls of fixed overhead
+# CHOLMOD-style amalgamation ``(max_cols, max_zero_fraction)``: a column joins its child supernode when a rule
+# allows the merged size and fraction of explicit zeros (merging more than CHOLMOD: each front has a fixed cost)
 _RELAX = ((2, 1.0), (6, 0.8), (16, 0.2), (10 ** 9, 0.05))
 
 
@@ -210,8 +205,7 @@ def _supernode_tree(pattern) -> _Tree:
     for s in range(ns):
         groups.setdefault((height[s], ncols[s], nrows[s]), []).append(s)
     group_list = sorted(groups.items())
-    # relabel the columns so that every group is one contiguous run (a height-major order is topological:
-    # the fill is unchanged)
+    # relabel the columns so that every group is one contiguous run (height-major is topological: same fill)
     gorder = np.fromiter(itertools.chain.from_iterable(sns for _, sns in group_list), dtype=np.int64, count=ns)
     nc = np.asarray(ncols, dtype=np.int64)
     nf = np.empty(ns, dtype=np.int64)  # new first column of each supernode
@@ -241,8 +235,7 @@ class _Layout:
                                     dtype=np.int64, count=int(self.roff[-1]))]
         self.rcat = rcat[np.lexsort((rcat, seg))]
         self.rkeys = seg * n + self.rcat  # sorted: (supernode, row)
-        # the panels of a group one after the other (m * p values each, row-major: F11 (p x p) above
-        # F21 (d x p)), so a group is a (B, m, p) view
+        # a group's panels one after the other (m x p row-major each, F11 above F21): a (B, m, p) view
         self.off = np.zeros(ns, dtype=np.int64)
         pos = 0
         for (_, c, r), sns in tree.groups:
@@ -420,8 +413,8 @@ def _update_positions(base: np.ndarray, pt: np.ndarray, d: int, k: int) -> np.nd
     return out.reshape(-1)
 
 
-# On the CPU, groups of at most this many fronts are factored front by front with direct LAPACK/BLAS
-# calls (a few us each) instead of batched torch calls (10-20 us each whatever the batch size)
+# On the CPU, groups of at most this many fronts go front by front through LAPACK (a few us a call) rather
+# than batched torch calls (10-20 us each whatever the batch size)
 _NUMPY_MAX_BATCH = 16
 
 
@@ -563,7 +556,6 @@ class NumericCholesky:
         v = v.detach().to(torch.float64)
         ws = self.ws = sym.workspace(v.device)
         infos = []
-        failed = False
         with ws.lock:
             prev = ws.owner() if ws.owner is not None else None
             if prev is not None:

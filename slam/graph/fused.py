@@ -1,10 +1,5 @@
-"""The pose-graph maths in torch: residuals, their Jacobians, normal-equation blocks and the retraction,
-vectorised over edges, on any device, differentiable.
-
-The public residuals and Jacobians of :mod:`slam.graph.costs` wrap these functions. They are closed forms
-with as few torch calls as possible (a composition in :mod:`slam.lie` is about 15 calls), the logarithm
-handing its terms to the Jacobians; the series branches keep autograd exact at the identity, to second
-order (:mod:`slam.graph.implicit` differentiates through them).
+"""The pose-graph maths in torch (closed forms, few torch calls): residuals, their Jacobians, normal-equation
+blocks and the retraction, vectorised over edges, on any device, differentiable to second order at the identity.
 
 Notation: ``D = z^-1 T_i^-1 T_j``, ``r = Log(D) = [rho, phi]``,
 ``J_j = J_r^-1(r)``, ``J_i = -J_l^-1(r) Ad(z^-1)``, ``Omega = L L^T`` (Cholesky, constant per call).
@@ -38,11 +33,8 @@ def _numpy_ok(*ts: Tensor) -> bool:
 
 
 def bmm(a: Tensor, b: Tensor, out: Optional[Tensor] = None) -> Tensor:
-    """Batched matrix product ``a @ b`` (broadcasting), optionally written into ``out``.
-
-    On the CPU without autograd numpy's ``matmul`` on views of the same memory (several times faster than
-    torch's CPU ``bmm`` for 6x6 float64 matrices); elsewhere ``torch.matmul``.
-    """
+    """Batched matrix product ``a @ b`` (broadcasting), optionally written into ``out``; on the CPU without
+    autograd numpy's ``matmul`` (several times faster than torch's for 6x6 float64 matrices)."""
     if _numpy_ok(a, b) and (out is None or _numpy_ok(out)):
         if out is None:
             return torch.from_numpy(np.matmul(a.numpy(), b.numpy()))
@@ -92,8 +84,7 @@ def _rotate(q: Tensor, v: Tensor) -> Tensor:
 def error_poses(poses: Tensor, ii: Tensor, jj: Tensor, zinv: Tensor) -> Tuple[Tensor, Tensor]:
     """Translation ``(E, 3)`` and quaternion ``(E, 4)`` of ``D = z^-1 T_i^-1 T_j`` for every edge.
 
-    With ``a = q(z^-1) q_i^*``: ``t_D = t(z^-1) + R(a) (t_j - t_i)`` and ``q_D = a q_j`` (two quaternion
-    products and one rotation instead of an inversion and two compositions).
+    With ``a = q(z^-1) q_i^*``: ``t_D = t(z^-1) + R(a) (t_j - t_i)`` and ``q_D = a q_j``.
 
     Args:
         poses: ``(N, 7)`` poses.
@@ -192,7 +183,7 @@ def _jl_inv_and_q(r: Tensor, theta2: Tensor, c: Tensor) -> Tuple[Tensor, Tensor]
     ``J_l^-1(r) = [[A, Q], [0, A]]`` (``Q_B``: Barfoot's ``Q``, ``hat(v) + S`` with ``S`` symmetric).
 
     ``A = (1 - c t^2) I - hat(phi) / 2 + c phi phi^T``; ``theta2 (E, 1)`` and ``c (E, 1)`` come from the
-    logarithm. The 3x3 matrices are built as flat ``(E, 9)`` rows (faster than broadcast outer products).
+    logarithm. The 3x3 matrices are built as flat ``(E, 9)`` rows.
     """
     E = r.shape[0]
     Hx, sg, eye = (_const(n, r) for n in ("hat", "sign", "eye"))
@@ -315,7 +306,7 @@ def se3_retract(poses: Tensor, xi: Tensor) -> Tensor:
 
 def workspace_buffer(ws: Optional[dict], name: str, shape, like: Tensor) -> Tensor:
     """A contiguous tensor of ``shape`` in storage kept in the dict ``ws`` between calls (fresh when ``ws`` is
-    None; a larger one kept there serves a smaller shape): fresh megabyte arrays cost their page faults."""
+    None; a larger one kept there serves a smaller shape)."""
     if ws is None:
         return like.new_empty(shape)
     need = math.prod(shape)

@@ -129,8 +129,6 @@ def _row_ids(rows: List[List[str]], linenos: List[int], n: int, tag: str, src: s
 
 
 def _check_translations(t: np.ndarray, lines: List[int], tag: str, src: str) -> None:
-    if not t.size:
-        return
     bad = np.abs(t).max(axis=1) > MAX_COORDINATE
     if bad.any():
         k = int(np.nonzero(bad)[0][0])
@@ -402,14 +400,9 @@ def write_g2o(f: PathOrFile, graph: PoseGraph, planar: Optional[bool] = None) ->
     out: List[str] = []
     fix = [f"FIX {' '.join(map(str, vid[graph.fixed.cpu().numpy()]))}"] if graph.fixed.numel() else []
     if planar:
-        for tag, ids, vals in (
-            ("VERTEX_SE2", vid[:, None], _planar(P)),
-            ("EDGE_SE2", np.stack([ei, ej], 1),
-             np.concatenate([_planar(Z), Om[:, _PLANAR[:, None], _PLANAR][:, _IU3[0], _IU3[1]]], 1)),
-        ):
-            out += [f"{tag} {' '.join(map(str, i))} {v}" for i, v in zip(ids, _fmt(vals))]
-            if tag == "VERTEX_SE2":
-                out += fix
+        out += [f"VERTEX_SE2 {i} {v}" for i, v in zip(vid, _fmt(_planar(P)))] + fix
+        vals = np.concatenate([_planar(Z), Om[:, _PLANAR[:, None], _PLANAR][:, _IU3[0], _IU3[1]]], 1)
+        out += [f"EDGE_SE2 {i} {j} {v}" for i, j, v in zip(ei, ej, _fmt(vals))]
     else:
         out += [f"VERTEX_SE3:QUAT {i} {v}" for i, v in zip(vid, _fmt(P))] + fix
         vals = np.concatenate([Z, Om[:, _IU6[0], _IU6[1]]], 1)

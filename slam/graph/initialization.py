@@ -205,14 +205,14 @@ def _solve_anchored(A: sp.csr_matrix, rhs: np.ndarray, free_cols: np.ndarray, he
     return lu.solve(np.asarray(Af.T @ b))
 
 
-def _block_rows(num_edges: int) -> np.ndarray:
-    """``(E, 3, 3)`` row index of the entries of each edge's 3x3 blocks: ``3 e + r``."""
-    return (3 * np.arange(num_edges))[:, None, None] + np.arange(3)[None, :, None] + np.zeros((1, 1, 3), np.int64)
-
-
-def _block_cols(pose: np.ndarray) -> np.ndarray:
-    """``(E, 3, 3)`` column index ``3 pose + c`` of the entries of a 3x3 block at ``pose (E,)``."""
-    return (3 * pose)[:, None, None] + np.arange(3)[None, None, :] + np.zeros((1, 3, 1), np.int64)
+def _edge_matrix(left: np.ndarray, right: np.ndarray, ii: np.ndarray, jj: np.ndarray, n: int) -> sp.csr_matrix:
+    """``(3 E, 3 N)``: row block ``e`` holds the 3x3 blocks ``left[e]`` at pose ``ii[e]``, ``right[e]`` at ``jj[e]``."""
+    e = ii.shape[0]
+    rows = ((3 * np.arange(e))[:, None, None] + np.arange(3)[None, :, None] + np.zeros((1, 1, 3), np.int64)).ravel()
+    cols = [((3 * p)[:, None, None] + np.arange(3)[None, None, :] + np.zeros((1, 3, 1), np.int64)).ravel()
+            for p in (ii, jj)]
+    return sp.coo_matrix((np.concatenate([left.ravel(), right.ravel()]),
+                          (np.concatenate([rows, rows]), np.concatenate(cols))), shape=(3 * e, 3 * n)).tocsr()
 
 
 def _pose_columns(mask: np.ndarray) -> np.ndarray:
@@ -240,16 +240,12 @@ def chordal_poses(graph: PoseGraph, fixed: Iterable[int] = ()) -> Tensor:
     info = graph.information.detach().cpu().double().numpy()
     Rz = quat_to_rotmat(Z[:, 3:] / Z[:, 3:].norm(dim=-1, keepdim=True)).numpy()  # (E, 3, 3)
     free_cols, held_cols = _pose_columns(~held), _pose_columns(held)
-    rows = _block_rows(e)
 
     # rotations: Y_i = R_i^T stacked (3N, 3); residual sqrt(kappa) (Y_j - Z^T Y_i), one 3x3 block per pose
     kappa = 1.5 / np.trace(np.linalg.inv(info[:, 3:, 3:]), axis1=1, axis2=2)
     s = np.sqrt(kappa)[:, None, None]
     eye = np.broadcast_to(np.eye(3), (e, 3, 3))
-    A = sp.coo_matrix((np.concatenate([(-s * Rz.transpose(0, 2, 1)).ravel(), (s * eye).ravel()]),
-                       (np.concatenate([rows.ravel(), rows.ravel()]),
-                        np.concatenate([_block_cols(ii).ravel(), _block_cols(jj).ravel()]))),
-                      shape=(3 * e, 3 * n)).tocsr()
+    A = _edge_matrix(-s * Rz.transpose(0, 2, 1), s * eye, ii, jj, n)
     R_all = quat_to_rotmat(P[:, 3:] / P[:, 3:].norm(dim=-1, keepdim=True)).numpy()
     Y_held = R_all[held].transpose(0, 2, 1).reshape(-1, 3)
     Y_free = _solve_anchored(A, np.zeros((3 * e, 3)), free_cols, held_cols, Y_held)
@@ -259,10 +255,7 @@ def chordal_poses(graph: PoseGraph, fixed: Iterable[int] = ()) -> Tensor:
     # translations with the rotations held: residual L^T R_i^T (t_j - t_i) - L^T t_ij, Omega_tt = L L^T
     L = np.linalg.cholesky(info[:, :3, :3])
     B = L.transpose(0, 2, 1) @ R_all[ii].transpose(0, 2, 1)  # (E, 3, 3)
-    A = sp.coo_matrix((np.concatenate([(-B).ravel(), B.ravel()]),
-                       (np.concatenate([rows.ravel(), rows.ravel()]),
-                        np.concatenate([_block_cols(ii).ravel(), _block_cols(jj).ravel()]))),
-                      shape=(3 * e, 3 * n)).tocsr()
+    A = _edge_matrix(-B, B, ii, jj, n)
     rhs = (L.transpose(0, 2, 1) @ Z[:, :3].numpy()[:, :, None])[:, :, 0].reshape(-1)
     t_all = P[:, :3].numpy().copy()
     t_all[~held] = _solve_anchored(A, rhs, free_cols, held_cols, t_all[held].reshape(-1)).reshape(-1, 3)
