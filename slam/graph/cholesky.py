@@ -8,9 +8,11 @@ from __future__ import annotations
 import functools
 import itertools
 import threading
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 _EMPTY = np.zeros(0, dtype=np.int64)
 
@@ -422,8 +424,6 @@ def _group_views(sym: SymbolicCholesky, buf, device, cpu: bool, scratch=None, in
     """Per-group views of the panel buffer ``buf`` (torch, flat): :class:`_NumpyGroup` objects for the
     groups factored front by front (``cpu``), tuples for the batched ones. ``index``: the index tensors
     already made for another buffer of the same pattern."""
-    import torch
-
     def t(a):
         return torch.from_numpy(np.ascontiguousarray(a)).to(device)
 
@@ -458,8 +458,6 @@ class _Workspace:
     computed in, the permuted right-hand side, and views into both for every group."""
 
     def __init__(self, sym: SymbolicCholesky, device):
-        import torch
-
         self.lock = threading.Lock()  # the buffers are shared by the factorisations of this pattern
         self.owner = None  # weak reference to the NumericCholesky whose factor is in ``buf``
         self.src = torch.from_numpy(sym.src).to(device)  # H's values go to the panels in runs of k
@@ -545,10 +543,6 @@ class NumericCholesky:
     """
 
     def __init__(self, sym: SymbolicCholesky, values):
-        import weakref
-
-        import torch
-
         self.sym = sym
         v = torch.from_numpy(values) if isinstance(values, np.ndarray) else values
         # detached: the workspace buffer is shared by every factorisation of the pattern, and in-place ops
@@ -588,8 +582,6 @@ class NumericCholesky:
     def _factor_groups(groups, buf, infos, in_place: bool, lapack) -> bool:
         """Factor the groups through LAPACK (front by front) or torch (batched); True when a pivot failed
         on the LAPACK path (the torch path's infos are collected in ``infos``)."""
-        import torch
-
         for grp in groups:
             if type(grp) is _NumpyGroup:
                 if _factor_numpy_group(grp, buf, in_place, *lapack[:3]) != 0:
@@ -615,7 +607,6 @@ class NumericCholesky:
 
     def solve(self, b):
         """``x = H^-1 b`` for ``b (n k,)`` (numpy array or torch tensor; returns the same kind)."""
-        import torch
         is_np = isinstance(b, np.ndarray)
         bt = torch.from_numpy(b) if is_np else b
         ws = self.ws
@@ -632,8 +623,6 @@ class NumericCholesky:
     @staticmethod
     def _forward(groups, y, ynp, in_place: bool, dtrsv) -> None:
         """``L z = y`` on the groups' columns of ``y`` (LAPACK front by front, or torch batched)."""
-        import torch
-
         for grp in groups:
             if type(grp) is _NumpyGroup:
                 # L z = y as U^T z = y on the Fortran view (in place on the contiguous slice)
@@ -653,8 +642,6 @@ class NumericCholesky:
     @staticmethod
     def _backward(groups, y, ynp, in_place: bool, dtrsv) -> None:
         """``L^T x = z`` on the groups' columns of ``y``, the groups in reverse order."""
-        import torch
-
         for grp in reversed(groups):
             if type(grp) is _NumpyGroup:
                 yc = ynp[grp.c0:grp.c1]

@@ -1,10 +1,9 @@
 """Pose-graph residuals, their analytic Jacobians (checked wrappers of :mod:`slam.graph.fused`), and robust
 kernels, vectorised over edges.
 
-With ``D = z^-1 T_i^-1 T_j`` the residual ``r (6,)`` of an edge, in the ``[rho, phi]`` order, is ``Log(D)`` (chart
-``"se3"``: GTSAM's ``BetweenFactor`` error, chi2 twice GTSAM's error) or ``[t(D), Log_SO3(R(D))]`` (chart
-``"r3so3"``: g2o's ``EDGE_SE2`` error on planar poses). Jacobians are w.r.t. right perturbations
-``T <- T exp(delta)``. A kernel maps ``s = r^T Omega r`` to the cost ``rho(s)`` and the IRLS weight ``rho'(s)``.
+With ``D = z^-1 T_i^-1 T_j`` the residual ``r (6,)`` ``[rho, phi]`` is ``Log(D)`` (chart ``"se3"``: GTSAM's
+``BetweenFactor``) or ``[t(D), Log_SO3(R(D))]`` (``"r3so3"``: g2o's ``EDGE_SE2``), Jacobians w.r.t. right
+perturbations. A kernel maps ``s = r^T Omega r`` to the cost ``rho(s)`` and the IRLS weight ``rho'(s)``.
 
 Example:
     >>> import torch

@@ -1,10 +1,7 @@
 """Sparse normal equations of a pose graph and pluggable solvers for them.
 
-The Gauss-Newton system ``H dx = -g`` has one ``k x k`` block per pair of connected free poses (``k = 6``, or
-``3`` for planar graphs). Its pattern depends only on the edges and is built once (:func:`build_pattern`) as
-blocks sorted by (row, column); ``H`` is stored block-major, ``values (nb * k * k,)``, and every iteration adds
-each edge's four blocks into it with one ``index_add_``. Solvers: :class:`SparseCholeskySolver`
-(:mod:`slam.graph.cholesky`) and :class:`DenseCholeskySolver` (small systems).
+``H dx = -g`` has one ``k x k`` block (``k = 6``, or ``3`` when planar) per pair of connected free poses; the
+pattern is built once (:func:`build_pattern`), ``H`` stored block-major as ``values (nb * k * k,)``.
 """
 from __future__ import annotations
 
@@ -93,8 +90,7 @@ def build_pattern(ii: Tensor, jj: Tensor, free: Tensor, k: int = 6) -> BlockPatt
         raise ValueError(f"ii and jj must have shape (E,), got {tuple(ii.shape)} and {tuple(jj.shape)}")
     if free.dim() != 1 or free.dtype != torch.bool:
         raise ValueError(f"free must be a bool tensor of shape (N,), got {free.dtype} {tuple(free.shape)}")
-    # index bookkeeping on the host in numpy, the results moved to the indices' device
-    dev = ii.device
+    dev = ii.device  # index bookkeeping in numpy, the results moved to the indices' device
     ii_, jj_, free_ = ii.cpu().numpy(), jj.cpu().numpy(), free.cpu().numpy()
     n = int(free_.sum())
     nn = max(n, 1)

@@ -1,6 +1,5 @@
-"""The least-squares problem the optimiser's outer loop drives: evaluate the cost at some poses, linearise
-there into ``(H, g)``, solve the damped system, retract a step (the per-edge maths of :mod:`slam.graph.fused`).
-What does not change during a call (pattern, inverted measurements, information factors, buffers) is made once.
+"""The least-squares problem the optimiser's outer loop drives: evaluate the cost, linearise into ``(H, g)``,
+solve the damped system, retract a step; what does not change during a call is made once.
 """
 from __future__ import annotations
 
