@@ -9,7 +9,7 @@ import abc
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Optional, Union
+from typing import Union
 
 import numpy as np
 import torch
