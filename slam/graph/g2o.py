@@ -387,13 +387,14 @@ def write_g2o(f: PathOrFile, graph: PoseGraph, planar: Optional[bool] = None) ->
             planar and its out-of-plane information is exactly what :func:`read_g2o` puts there (so a 2D
             file round-trips as 2D); otherwise ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``.
     """
-    if planar is None:
-        planar = _lossless_2d(graph)
+    Om = graph.information.detach().cpu().double().numpy()
+    if planar is None:  # 2D when writing it so and reading it back gives the same graph
+        planar = (graph.num_poses > 0 and graph.is_planar(tol=0.0)
+                  and bool((_lift_information(Om[:, _PLANAR[:, None], _PLANAR]) == Om).all()))
     elif planar and not graph.is_planar(tol=1e-6):
         raise ValueError("planar=True but the graph is not planar (z, roll or pitch is non-zero)")
     P = graph.poses.detach().cpu().double().numpy()
     Z = graph.measurements.detach().cpu().double().numpy()
-    Om = graph.information.detach().cpu().double().numpy()
     vid = graph.vertex_ids.cpu().numpy()
     ei = vid[graph.ii.cpu().numpy()]
     ej = vid[graph.jj.cpu().numpy()]
@@ -412,14 +413,6 @@ def write_g2o(f: PathOrFile, graph: PoseGraph, planar: Optional[bool] = None) ->
             fh.write("\n".join(out) + "\n")
     else:
         f.write("\n".join(out) + "\n")
-
-
-def _lossless_2d(graph: PoseGraph) -> bool:
-    """True when writing the graph as 2D and reading it back gives the same graph."""
-    if graph.num_poses == 0 or not graph.is_planar(tol=0.0):
-        return False
-    Om = graph.information.detach().cpu().double().numpy()
-    return bool((_lift_information(Om[:, _PLANAR[:, None], _PLANAR]) == Om).all())
 
 
 def _planar(p: np.ndarray) -> np.ndarray:

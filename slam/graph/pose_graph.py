@@ -169,11 +169,8 @@ class PoseGraph:
 
     def add_edges(self, ii: Tensor, jj: Tensor, measurements: Tensor,
                   information: Optional[Tensor] = None) -> None:
-        """Append edges: ``ii, jj (K,)``, ``measurements (K, 7)``, ``information (K, 6, 6)`` (default ``I``).
-
-        The new edges are validated (indices, quaternions, positive-definite information) before the
-        graph changes.
-        """
+        """Append edges: ``ii, jj (K,)``, ``measurements (K, 7)``, ``information (K, 6, 6)`` (default ``I``),
+        validated (indices, quaternions, positive-definite information) before the graph changes."""
         ii = _as_tensor(ii, torch.long, self.device, "ii").reshape(-1)
         jj = _as_tensor(jj, torch.long, self.device, "jj").reshape(-1)
         k = ii.shape[0]
