@@ -1,13 +1,7 @@
-"""A ray-casting renderer in torch for :class:`~slam.synthetic.scene.Scene`, plus Kinect-like sensor noise.
-
-Every pixel's ray is intersected analytically with the boxes (the slab method, in each box's own frame);
-the nearest hit gives the z-depth, the face and its texture coordinates. Textures are sampled trilinearly
-from a mip pyramid at the pixel's footprint (no aliasing from frame to frame); shading is Lambertian from
-point lights fixed in the world, without shadows, so a surface point has the same colour in every view.
-
-Conventions: pinhole ``K (3, 3)``, pixel ``(u, v)`` = (column, row) at integer positions, camera x right,
-y down, z forward; poses ``(..., 7) = [t, q_xyzw]`` camera-to-world. Depth is the z-depth along the
-optical axis (not the ray length), 0 where nothing is hit.
+"""A ray caster in torch for :class:`~slam.synthetic.scene.Scene` (slab method per box, trilinear mip-mapped
+textures, Lambertian point lights without shadows: a surface point has one colour in every view), plus Kinect-like
+sensor noise and motion blur. Pinhole ``K (3, 3)``, pixel ``(u, v)`` = (column, row), camera x right, y down,
+z forward; poses ``(..., 7) = [t, q_xyzw]`` camera-to-world; depth is the z-depth, 0 where nothing is hit.
 
 Example:
     >>> from slam.synthetic.scene import RoomConfig, build_room_scene
@@ -29,7 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from slam.lie import quat_mul, quat_normalize, quat_to_rotmat, so3_exp, so3_log
+from slam.lie import quat_conj, quat_mul, quat_normalize, quat_to_rotmat, so3_exp, so3_log
 from slam.synthetic.scene import Scene
 
 Tensor = torch.Tensor
@@ -168,8 +162,8 @@ def _slab(o_l: Tensor, d_l: Tensor, half: Tensor, inside: bool):
 
 
 def _sample_texture(scene: Scene, tex: Tensor, u: Tensor, v: Tensor, level: Tensor) -> Tensor:
-    """Trilinear (bilinear within two adjacent mip levels) lookup ``(M, 3)`` float32 RGB in [0, 255] of texture
-    ids ``tex (M,)`` at coordinates ``u, v (M,)`` in [0, 1] (columns, rows) and continuous mip ``level (M,)``."""
+    """Trilinear lookup ``(M, 3)`` float32 RGB in [0, 255] of texture ids ``tex (M,)`` at ``u, v (M,)`` in [0, 1]
+    (columns, rows) and continuous mip ``level (M,)``."""
     M = tex.shape[0]
     num_levels = scene.tex_offset.shape[1]
     level = level.float().clamp(0.0, num_levels - 1)
@@ -216,12 +210,15 @@ _BOX_EDGES = np.array([(a, b) for a in range(8) for b in range(a + 1, 8)
                        if int(np.abs(_BOX_SIGNS[a] - _BOX_SIGNS[b]).sum()) == 2], np.int64)
 
 
+def _np64(x: Tensor) -> np.ndarray:
+    return x.detach().cpu().double().numpy()
+
+
 def _box_corners(scene: Scene) -> np.ndarray:
     """World corners ``(B, 8, 3)`` float64 of every box."""
-    R = scene.rotations.detach().cpu().double().numpy()
-    c = scene.centers.detach().cpu().double().numpy()
-    h = scene.half_sizes.detach().cpu().double().numpy()
-    return c[:, None, :] + np.einsum("bkj,bij->bki", _BOX_SIGNS[None] * h[:, None, :], R)
+    h = _np64(scene.half_sizes)
+    return _np64(scene.centers)[:, None, :] + np.einsum("bkj,bij->bki", _BOX_SIGNS[None] * h[:, None, :],
+                                                         _np64(scene.rotations))
 
 
 def _screen_rects(corners: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, height: int,
@@ -240,21 +237,12 @@ def _screen_rects(corners: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarr
     pts = np.concatenate([cam, cut], 1)  # (B, 20, 3)
     valid = np.concatenate([z > _NEAR, crossing], 1)
     zz = np.where(valid, np.maximum(pts[..., 2], _NEAR), 1.0)
-    u = K[0, 0] * pts[..., 0] / zz + K[0, 2]
-    v = K[1, 1] * pts[..., 1] / zz + K[1, 2]
-    big = 1e18
-    u_lo = np.where(valid, u, big).min(1)
-    u_hi = np.where(valid, u, -big).max(1)
-    v_lo = np.where(valid, v, big).min(1)
-    v_hi = np.where(valid, v, -big).max(1)
-    seen = valid.any(1)
-    rects = np.zeros((corners.shape[0], 4), np.int64)
-    rects[:, 0] = np.clip(np.floor(np.clip(u_lo, -1e9, 1e9)) - 1, 0, width)
-    rects[:, 1] = np.clip(np.ceil(np.clip(u_hi, -1e9, 1e9)) + 2, 0, width)
-    rects[:, 2] = np.clip(np.floor(np.clip(v_lo, -1e9, 1e9)) - 1, 0, height)
-    rects[:, 3] = np.clip(np.ceil(np.clip(v_hi, -1e9, 1e9)) + 2, 0, height)
-    seen &= (rects[:, 0] < rects[:, 1]) & (rects[:, 2] < rects[:, 3])
-    return rects, seen
+    uv = np.stack([K[0, 0] * pts[..., 0] / zz + K[0, 2], K[1, 1] * pts[..., 1] / zz + K[1, 2]], -1)  # (B, 20, 2)
+    lo = np.floor(np.clip(np.where(valid[..., None], uv, 1e18).min(1), -1e9, 1e9)) - 1  # (B, 2): u, v
+    hi = np.ceil(np.clip(np.where(valid[..., None], uv, -1e18).max(1), -1e9, 1e9)) + 2
+    rects = np.clip(np.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], 1), 0, [width, width, height, height])
+    rects = rects.astype(np.int64)
+    return rects, valid.any(1) & (rects[:, 0] < rects[:, 1]) & (rects[:, 2] < rects[:, 3])
 
 
 def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, height: int, width: int,
@@ -262,8 +250,7 @@ def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, 
     """Nearest hit (t, box, face) of every pixel ray ``rays_c (3, P)`` of one camera; a box is only tested
     inside its screen rectangle (:func:`_screen_rects` of ``corners``, :func:`_box_corners`)."""
     dirs = R @ rays_c  # (3, P) world directions
-    rects, seen = _screen_rects(corners, R.detach().cpu().double().numpy(), t.detach().cpu().double().numpy(),
-                                K.detach().cpu().double().numpy(), height, width)
+    rects, seen = _screen_rects(corners, _np64(R), _np64(t), _np64(K), height, width)
     P = dirs.shape[1]
     t_best = torch.full((P,), float("inf"), dtype=dirs.dtype, device=dirs.device)
     box = torch.zeros(P, dtype=torch.int64, device=dirs.device)
@@ -275,12 +262,9 @@ def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, 
         o_l = (RbT @ (t - scene.centers[b].to(dirs.dtype)))[:, None]
         half = scene.half_sizes[b].to(dirs.dtype)[:, None]
         inside = bool(scene.inside[b])
-        if inside:
-            u0, u1, v0, v1 = 0, width, 0, height
-        elif not seen[b]:
+        if not (inside or seen[b]):
             continue
-        else:
-            u0, u1, v0, v1 = (int(x) for x in rects[b])
+        u0, u1, v0, v1 = (0, width, 0, height) if inside else rects[b].tolist()
         sub = dirs_img[:, v0:v1, u0:u1].reshape(3, -1)
         tb, fb = _slab(o_l, RbT @ sub, half, inside)
         shape = (v1 - v0, u1 - u0)
@@ -405,11 +389,10 @@ def apply_depth_noise(depth: Tensor, cos_incidence: Tensor, config: DepthNoiseCo
     b = max(1, int(config.dropout_block))
     hb, wb = -(-H // b), -(-W // b)
     smooth = None
-    if config.noise_correlation_px > 0:  # a normalised Gaussian kernel whose output keeps unit variance
+    if config.noise_correlation_px > 0:  # separable Gaussian whose 2-D squares sum to 1: unit variance kept
         r = max(1, math.ceil(3 * config.noise_correlation_px))
-        k1 = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / config.noise_correlation_px) ** 2)
-        k1 = k1 / k1.square().sum().sqrt()  # separable: the 2-D kernel's squares sum to 1
-        smooth = k1
+        smooth = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / config.noise_correlation_px) ** 2)
+        smooth = (smooth / smooth.square().sum().sqrt()).to(depth.device)
     pattern = None
     if config.disparity_distortion != 0:
         v, u = torch.meshgrid(torch.linspace(-1.0, 1.0, H), torch.linspace(-1.0, 1.0, W), indexing="ij")
@@ -419,10 +402,8 @@ def apply_depth_noise(depth: Tensor, cos_incidence: Tensor, config: DepthNoiseCo
         g = frame_generator(seeds[i], 0, 1)
         gauss = torch.randn(H, W, generator=g).to(z.device)
         if smooth is not None:
-            k = smooth.to(z.device)
-            r = k.numel() // 2
-            x = F.conv2d(F.pad(gauss[None, None], (r, r, 0, 0), mode="reflect"), k.view(1, 1, 1, -1))
-            gauss = F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), k.view(1, 1, -1, 1))[0, 0]
+            x = F.conv2d(F.pad(gauss[None, None], (r, r, 0, 0), mode="reflect"), smooth.view(1, 1, 1, -1))
+            gauss = F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), smooth.view(1, 1, -1, 1))[0, 0]
         holes = (torch.rand(hb, wb, generator=g) < config.dropout).to(z.device)
         holes = holes.repeat_interleave(b, 0).repeat_interleave(b, 1)[:H, :W]
         valid = z > 0
@@ -476,18 +457,15 @@ def _toward(poses: Tensor, others: Tensor, f: float) -> Tensor:
     """Poses ``(N, 7)`` moved a fraction ``f`` of the way to ``others (N, 7)`` (translation linearly,
     rotation along the geodesic)."""
     q = quat_normalize(poses[:, 3:])
-    dq = so3_log(quat_mul(torch.cat([-q[:, :3], q[:, 3:]], -1), quat_normalize(others[:, 3:])))
+    dq = so3_log(quat_mul(quat_conj(q), quat_normalize(others[:, 3:])))
     return torch.cat([poses[:, :3] + f * (others[:, :3] - poses[:, :3]), quat_mul(q, so3_exp(f * dq))], -1)
 
 
 def apply_motion_blur(rgb: Tensor, depth: Tensor, K: Tensor, poses: Tensor, before: Tensor, after: Tensor,
                       fraction: float, samples: int = 9) -> Tensor:
-    """Motion blur of a moving camera in a static scene, from each sharp frame and its exact depth.
-
-    The exposure is centred on the frame's pose and lasts ``fraction`` of the frame interval, half on the way
-    from the previous pose, half to the next. Each pixel averages the sharp image at the mirrored positions of
-    its surface point's path over ``samples`` instants (screen-space motion blur); pixels without depth keep
-    their colour.
+    """Screen-space motion blur of a moving camera in a static scene, from each sharp frame and its exact depth:
+    each pixel averages the sharp image over ``samples`` instants of an exposure centred on the frame's pose, at
+    the mirror of its surface point's path; pixels without depth keep their colour.
 
     Args:
         rgb: ``(N, H, W, 3)`` uint8 sharp frames.
@@ -543,6 +521,7 @@ def apply_motion_blur(rgb: Tensor, depth: Tensor, K: Tensor, poses: Tensor, befo
             us = torch.where(ok, 2 * u0 - u, u0)
             vs = torch.where(ok, 2 * v0 - v, v0)
             grid = torch.stack([2 * us / (W - 1) - 1, 2 * vs / (H - 1) - 1], -1).float().view(1, H, W, 2)
-            acc += F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=True)[0].reshape(3, -1)
+            acc += F.grid_sample(img, grid, mode="bilinear", padding_mode="border",
+                                 align_corners=True)[0].reshape(3, -1)
         out[i] = (acc / samples).round().clamp(0, 255).to(torch.uint8).reshape(3, H, W).permute(1, 2, 0)
     return out
