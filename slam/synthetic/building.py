@@ -319,6 +319,19 @@ _HIDDEN = np.full((2, 2, 3), 128, np.uint8)
 _JAMB = np.full((4, 4, 3), (200, 190, 170), np.uint8)
 
 
+def _half_wall(name: str, wall: str, space_size: tuple[float, float], t: float, mid: float, length: float,
+               z0: float, height: float, tex: np.ndarray, bottom: np.ndarray) -> BoxSpec:
+    """A box of thickness ``t`` (m) along ``wall`` of a space (own frame), ``length`` m centred at ``mid`` along
+    it, from ``z0`` up ``height`` m, with ``tex`` on its inner face; its ends are door jambs (or hidden)."""
+    axis, sign = _WALLS[wall]
+    sx, sy = space_size
+    faces = [_JAMB] * 4 + [bottom, _HIDDEN]
+    faces[_INNER_FACE[wall]], faces[_INNER_FACE[wall] ^ 1] = tex, _HIDDEN
+    if axis == 1:  # a wall along x
+        return BoxSpec(name, (mid, sign * (sy / 2 - t / 2), z0 + height / 2), (length, t, height), 0.0, faces)
+    return BoxSpec(name, (sign * (sx / 2 - t / 2), mid, z0 + height / 2), (t, length, height), 0.0, faces)
+
+
 def _design_boxes(cfg: BuildingConfig, photos: dict[str, np.ndarray], space: Space, style: _Style,
                   rng: np.random.Generator, furniture, mirror: bool, jitter: float) -> list[BoxSpec]:
     """The textured boxes of one design in the space's own frame. Every wall is two half-thickness boxes back to
@@ -333,26 +346,18 @@ def _design_boxes(cfg: BuildingConfig, photos: dict[str, np.ndarray], space: Spa
                               0.35, [], (0.5, 0.6), (0.0, sy), grout_m=0.6)
     out = [BoxSpec("floor", (0.0, 0.0, -0.025), (sx, sy, 0.05), 0.0, [h, h, h, h, h, floor]),
            BoxSpec("ceiling", (0.0, 0.0, H + 0.025), (sx, sy, 0.05), 0.0, [h, h, h, h, ceiling, h])]
-    for (wall, (axis, sign)), (base, tint, posters) in zip(_WALLS.items(), style.walls):
-
-        def half_wall(name: str, mid: float, length: float, z0: float, height: float, tex: np.ndarray,
-                      bottom: np.ndarray) -> BoxSpec:
-            faces = [_JAMB] * 4 + [bottom, h]  # the ends are door jambs (or hidden in a corner)
-            faces[_INNER_FACE[wall]], faces[_INNER_FACE[wall] ^ 1] = tex, h
-            if axis == 1:  # a wall along x
-                return BoxSpec(name, (mid, sign * (sy / 2 - t / 2), z0 + height / 2), (length, t, height), 0.0, faces)
-            return BoxSpec(name, (sign * (sx / 2 - t / 2), mid, z0 + height / 2), (t, length, height), 0.0, faces)
-
+    for (wall, (axis, _)), (base, tint, posters) in zip(_WALLS.items(), style.walls):
         openings = space.openings.get(wall, [])
         spans = _wall_segments(sy if axis == 0 else sx, openings, cfg.door_width)
         for k, (lo, hi) in enumerate(spans):
             mine = posters[k::len(spans)] if hi - lo > 1.2 else []  # the wall's posters, in turn, where they fit
             tex = compose_surface(rng, photos, base, tint, hi - lo, H, d, 1.1, 0.55, mine, (0.5, 0.9), (0.85, H - 0.2))
-            out.append(half_wall(f"{wall}_wall_{k}", 0.5 * (lo + hi), hi - lo, 0.0, H, tex, h))
+            out.append(_half_wall(f"{wall}_wall_{k}", wall, space.size, t, 0.5 * (lo + hi), hi - lo, 0.0, H, tex, h))
         for k, o in enumerate(openings):  # lintels above the doors
             lint = compose_surface(rng, photos, base, tint, cfg.door_width, lh, d, 1.1, 0.55, [], (0.1, 0.2),
                                    (0.0, lh))
-            out.append(half_wall(f"{wall}_lintel_{k}", o, cfg.door_width, cfg.door_height, lh, lint, _JAMB))
+            out.append(_half_wall(f"{wall}_lintel_{k}", wall, space.size, t, o, cfg.door_width, cfg.door_height, lh,
+                                  lint, _JAMB))
     names = list(style.furniture)
     for m, (name, (fx, fy, z), size, yaw) in enumerate(furniture):
         x, y = fx * sx / 2, fy * sy / 2
@@ -408,7 +413,7 @@ def build_building_scene(config: BuildingConfig | None = None) -> Scene:
         boxes.extend(_place(b, s) for b in designs[s.design])
     lights = []
     for s in layout.spaces:
-        sx, sy = s.size
+        sx = s.size[0]
         local = ([(-sx / 4, 0.0), (sx / 4, 0.0)] if s.name != "corridor"
                  else [(-sx / 3, 0.0), (0.0, 0.0), (sx / 3, 0.0)])
         for p in local:  # symmetric in each space: the half turn maps the whole set of lights onto itself

@@ -1,11 +1,7 @@
-"""The camera's tour of the building (:mod:`slam.synthetic.building`): rooms, doors and the corridor.
-
-In each room the camera walks a circle around the room's centre looking outwards (as the room demo's
-``loop``); it crosses each room straight from door to circle, so its heading never jumps, and follows the
-corridor's centre line between rooms that are not neighbours. The default tour starts in ``S1``, visits its
-identically furnished twin ``N2`` (the false-loop bait), ``N1`` and ``S2``, and comes back into ``S1``
-through its other door, circling the other way: a loop around the whole building. The dense polyline is
-smoothed along its arc length, then timed by :func:`slam.synthetic.trajectories.sample_path`.
+"""The camera's tour of the building (:mod:`slam.synthetic.building`): a circle looking outwards in each room,
+straight lines from door to circle, the corridor's centre line between rooms that are not neighbours. The default
+tour starts in ``S1``, visits its twin ``N2`` (the false-loop bait), ``N1`` and ``S2``, and comes back into ``S1``
+through its other door.
 
 Example:
     >>> from slam.synthetic.building import building_layout
@@ -93,7 +89,7 @@ _STEP = 0.01  # metres between polyline samples
 def _line(p0: np.ndarray, p1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Samples of a straight walk from p0 to p1 (end excluded), heading along it."""
     d = p1 - p0
-    n = max(1, int(math.ceil(float(np.linalg.norm(d)) / _STEP)))
+    n = max(1, math.ceil(float(np.linalg.norm(d)) / _STEP))
     f = np.arange(n)[:, None] / n
     yaw = np.full(n, math.atan2(d[1], d[0]))
     return p0 + f * d, yaw
@@ -101,7 +97,7 @@ def _line(p0: np.ndarray, p1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _arc(center: np.ndarray, radius: float, phi0: float, sweep: float, lead: float) -> tuple[np.ndarray, np.ndarray]:
     """Samples of a circle from angle ``phi0`` over ``sweep`` radians (signed, end excluded), looking out."""
-    n = max(1, int(math.ceil(abs(sweep) * radius / _STEP)))
+    n = max(1, math.ceil(abs(sweep) * radius / _STEP))
     phi = phi0 + sweep * np.arange(n) / n
     pos = center + radius * np.stack([np.cos(phi), np.sin(phi)], -1)
     return pos, phi + math.copysign(lead, sweep)

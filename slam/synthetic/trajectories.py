@@ -1,16 +1,7 @@
-"""Camera trajectories through the default room (:func:`slam.synthetic.scene.build_room_scene`) with
-known revisits, timed for a 30 Hz hand-held RGB-D camera.
-
-Each path is a smooth curve ``s in [0, 1] -> (position, viewing direction, roll)``. The frames are placed
-along it so that a combined effort ``sqrt((dl / v_ref)^2 + (dtheta / w_ref)^2)`` grows evenly in time
-(slower where the camera turns fast), starting and stopping smoothly; small seeded hand shake is added.
-
-* ``loop``: 1.1 turns of a ~0.9 m circle around the room's centre, looking outwards: the last frames
-  revisit the first views from ~10 cm further out.
-* ``figure_eight``: a lemniscate facing south, panning with the lobes, back to its start.
-* ``out_and_back``: a 3 m sideways sweep facing the north wall and back along a slightly offset line.
-
-Poses are camera-to-world ``(N, 7) = [t, q_xyzw]`` float64 (camera x right, y down, z forward; world z up).
+"""Camera trajectories through the default room with known revisits, timed for a 30 Hz hand-held RGB-D camera:
+``loop`` (1.1 turns of a ~0.9 m circle looking outwards, revisiting its first views), ``figure_eight`` (a lemniscate
+facing south) and ``out_and_back`` (a 3 m sideways sweep facing north and back). Poses are camera-to-world
+``(N, 7) = [t, q_xyzw]`` float64 (camera x right, y down, z forward; world z up).
 
 Example:
     >>> traj = make_trajectory("loop", num_frames=50)
@@ -131,7 +122,9 @@ def _shake(rng: np.random.Generator, times: np.ndarray, dims: int) -> np.ndarray
 
 
 def sample_path(path: PathFn, num_frames: int, seed: int) -> Trajectory:
-    """Frames along ``path``, timed as the module docstring says."""
+    """``num_frames`` frames along ``path`` (``s in [0, 1] -> (position, viewing direction, roll)``), spaced so that
+    the effort ``sqrt((dl / v_ref)^2 + (dtheta / w_ref)^2)`` grows evenly in time, starting and stopping smoothly,
+    with a seeded hand shake."""
     if num_frames < 2:
         raise ValueError(f"num_frames must be >= 2, got {num_frames}")
     # Effort along a dense sampling of the path.
