@@ -60,8 +60,7 @@ class BuildingConfig:
         height: floor to ceiling.
         wall_thickness: of every wall (each side owns half of it).
         door_width, door_height: of every door.
-        twins: south rooms furnished identically to their image under the building's half turn
-            (``"S1"`` -> ``N(n)``): the perceptual aliasing.
+        twins: south rooms furnished identically to their image under the half turn (``"S1"`` -> ``N(n)``).
         texel_density: texels per metre of walls, floors and ceilings.
         object_texel_density: texels per metre on the furniture.
         seed: seed of the designs (texture composition, furniture jitter of the unique rooms).
@@ -122,8 +121,7 @@ class Space:
         center: ``(2,)`` world (x, y) of its centre.
         size: (x, y) between wall centre lines, in its own frame.
         yaw_deg: its frame's rotation about z (0 or 180).
-        openings: wall name (own frame) -> offsets of door centres along that wall (own-frame x for the
-            south/north walls, y for the west/east walls).
+        openings: wall name (own frame) -> own-frame offsets of door centres along that wall.
         design: the key of its design (twins share one).
     """
 
@@ -180,11 +178,7 @@ class BuildingLayout:
 
 
 def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
-    """The rooms, corridor and doors of a building (see the module docstring).
-
-    Returns:
-        :class:`BuildingLayout`.
-    """
+    """The rooms, corridor and doors (:class:`BuildingLayout`) of a building (see the module docstring)."""
     cfg = config or BuildingConfig()
     n = cfg.rooms_per_side
     rx, ry = cfg.room_size
@@ -288,16 +282,14 @@ _FURNITURE_BASES = (("brick", (0.62, 0.48, 0.40)), ("gravel", (0.70, 0.66, 0.58)
 
 def _furniture_faces(rng: np.random.Generator, photos: dict[str, np.ndarray], size, names, density: float):
     """Six face textures (-x, +x, -y, +y, -z, +z) of a piece of furniture: a tinted, tiled base with the
-    face's photograph framed on it."""
+    face's photograph framed on it (on the sides large enough; tops stay plain)."""
     sx, sy, sz = size
-    extents = [(sy, sz), (sy, sz), (sx, sz), (sx, sz), (sx, sy), (sx, sy)]
     faces = []
-    for k, (name, (w, h)) in enumerate(zip(names, extents)):
+    for k, (name, (w, h)) in enumerate(zip(names, [(sy, sz), (sy, sz), (sx, sz), (sx, sz), (sx, sy), (sx, sy)])):
         base, tint = _FURNITURE_BASES[int(rng.integers(len(_FURNITURE_BASES)))]
-        big = min(w, h) > 0.25 and k < 4  # sides large enough for a picture (tops stay plain)
-        ph = (0.45 * h, 0.75 * h)
-        faces.append(compose_surface(rng, photos, base, tint, w, h, density, 0.3, 0.6, [name] if big else [],
-                                      ph, (0.05 * h, 0.97 * h)))
+        posters = [name] if min(w, h) > 0.25 and k < 4 else []
+        faces.append(compose_surface(rng, photos, base, tint, w, h, density, 0.3, 0.6, posters, (0.45 * h, 0.75 * h),
+                                     (0.05 * h, 0.97 * h)))
     return faces
 
 
@@ -382,12 +374,8 @@ def _place(box: BoxSpec, space: Space) -> BoxSpec:
 
 
 def build_building_scene(config: BuildingConfig | None = None) -> Scene:
-    """The building of :func:`building_layout` as a renderable :class:`~slam.synthetic.scene.Scene` on the
-    CPU, deterministic by ``config.seed`` (one seeded generator per design, shared by twins).
-
-    Args:
-        config: :class:`BuildingConfig`.
-    """
+    """The building of :func:`building_layout` (``config``: :class:`BuildingConfig`) as a renderable
+    :class:`~slam.synthetic.scene.Scene` on the CPU, deterministic by ``config.seed``."""
     cfg = config or BuildingConfig()
     layout = building_layout(cfg)
     photos = load_photo_textures(cfg.seed)

@@ -232,13 +232,11 @@ def building_sequence(num_frames: int = 2400, seed: int = 0, width: int = 320, h
 
     Args:
         num_frames: frames of the tour.
-        seed: seeds the sensor noise and the hand shake (the building's designs have their own
-            ``building.seed``).
-        width, height: image size (320 x 240 by default: a quarter of the room demo's pixels, so the
-            2400 frames render in minutes; the odometry tracks at this size).
+        seed: seeds the sensor noise and the hand shake (the designs have their own ``building.seed``).
+        width, height: image size (a quarter of the room demo's pixels by default: 2400 frames render in minutes).
         building: :class:`~slam.synthetic.building.BuildingConfig`.
-        **kwargs: passed to :class:`~slam.synthetic.sequence.SyntheticSequence` (noise settings; the noise
-            models default to :data:`BUILDING_DEPTH_NOISE` and :data:`BUILDING_IMAGE_NOISE`).
+        **kwargs: passed to :class:`~slam.synthetic.sequence.SyntheticSequence` (the noise models default to
+            :data:`BUILDING_DEPTH_NOISE` and :data:`BUILDING_IMAGE_NOISE`).
     """
     cfg = building or BuildingConfig()
     traj = building_trajectory(building_layout(cfg), num_frames=num_frames, seed=seed)
@@ -250,15 +248,12 @@ def building_sequence(num_frames: int = 2400, seed: int = 0, width: int = 320, h
 
 def generate_building_sequence(out_dir: str | os.PathLike, trajectory: str = "tour", num_frames: int = 2400,
                                seed: int = 0, width: int = 320, height: int = 240, **kwargs) -> Path:
-    """Render the building tour and write it in the TUM RGB-D layout with its ``groundtruth.txt``
-    (:func:`slam.synthetic.sequence.generate_sequence`; same files, same determinism by ``seed``).
+    """Render the default building's tour into ``out_dir`` in the TUM RGB-D layout
+    (:func:`~slam.synthetic.sequence.generate_sequence`, to which ``**kwargs`` go).
 
     Args:
-        out_dir: the sequence folder.
         trajectory: ``"tour"`` (the only camera path of the building).
-        num_frames, seed, width, height: as for :func:`building_sequence`.
-        **kwargs: passed to :func:`~slam.synthetic.sequence.generate_sequence` (workers, progress, noise;
-            the noise models default to the building's, as for :func:`building_sequence`).
+        num_frames, seed, width, height: as for :func:`building_sequence` (the same noise models by default).
     """
     if trajectory != "tour":
         raise ValueError(f"the building has one camera path, 'tour'; got {trajectory!r}")

@@ -67,8 +67,7 @@ class DepthNoiseConfig:
         sigma_base: axial noise std (m) at ``sigma_ref`` (Nguyen et al. 2012).
         sigma_quad: growth of the std with ``(z - sigma_ref)^2`` (m per m^2).
         sigma_ref: depth (m) where the std is smallest.
-        focal_baseline: IR focal length (px) x projector baseline (m): the depth quantisation through the
-            disparity.
+        focal_baseline: IR focal length (px) x projector baseline (m), for the disparity quantisation.
         disparity_step: disparity resolution in pixels (Kinect v1: 1/8); 0 disables the quantisation.
         min_depth: nearer surfaces read as invalid (m).
         max_depth: farther surfaces read as invalid (m).
@@ -77,11 +76,10 @@ class DepthNoiseConfig:
         edge_jump: a pixel whose 3x3 neighbourhood spans more than ``edge_jump * z`` in depth is
             invalid (the sensor's missing readings at occluding edges).
         min_cos_incidence: surfaces seen more grazingly than this (|cos| below) read as invalid.
-        disparity_distortion: a fixed-pattern disparity error (pixels), the same in every frame, growing with
-            the squared distance from the image centre to this value at the corners (Herrera et al. 2012).
-            0: none.
-        noise_correlation_px: Gaussian sigma (pixels) of the spatial correlation of the axial noise; the
-            std stays ``sigma(z)``. 0: independent pixels.
+        disparity_distortion: a fixed-pattern disparity error (pixels), growing with the squared distance from
+            the image centre to this value at the corners (Herrera et al. 2012). 0: none.
+        noise_correlation_px: Gaussian sigma (pixels) of the spatial correlation of the axial noise (the std
+            stays ``sigma(z)``). 0: independent pixels.
     """
 
     sigma_base: float = 0.0012
@@ -107,8 +105,7 @@ class ImageNoiseConfig:
         exposure_sigma: std of the per-frame multiplicative gain (auto-exposure flicker).
         offset_sigma: std of the per-frame additive offset, grey levels.
         pixel_sigma: std of the per-pixel, per-channel Gaussian noise, grey levels.
-        exposure_time: the colour camera's exposure in seconds, blurring each pixel along its motion
-            (:func:`apply_motion_blur`). 0: sharp images.
+        exposure_time: the colour camera's exposure in seconds (:func:`apply_motion_blur`). 0: sharp images.
         blur_samples: instants averaged over the exposure.
     """
 
@@ -126,11 +123,7 @@ class ImageNoiseConfig:
 
 
 def pixel_rays(K: Tensor, height: int, width: int) -> Tensor:
-    """Camera-frame ray directions ``(H * W, 3)`` through every pixel centre, scaled to z = 1.
-
-    Args:
-        K: ``(3, 3)`` intrinsics.
-    """
+    """Camera-frame ray directions ``(H * W, 3)`` through every pixel centre of ``K (3, 3)``, scaled to z = 1."""
     if K.shape != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
     Kd = K.to(torch.float64)
@@ -142,11 +135,9 @@ def pixel_rays(K: Tensor, height: int, width: int) -> Tensor:
 
 
 def _slab(o_l: Tensor, d_l: Tensor, half: Tensor, inside: bool):
-    """Ray parameter ``(M,)`` (inf on a miss) and face ``(M,)`` of one box, rays in its local frame.
-
-    Component-major: ``o_l (3, 1) or (3, M)``, ``d_l (3, M)``, ``half (3, 1)``. Seen from outside the hit is
-    the entry face; seen from inside (the room) it is the exit face. A NaN (origin on a face's plane) misses.
-    """
+    """Ray parameter ``(M,)`` (inf on a miss) and face ``(M,)`` of one box for rays ``o_l (3, 1) or (3, M)``,
+    ``d_l (3, M)`` in its local frame, ``half (3, 1)``: the entry face, or the exit face seen from inside (the
+    room). A NaN (origin on a face's plane) misses."""
     inv = 1.0 / d_l
     t_lo = (-half - o_l) * inv
     t_hi = (half - o_l) * inv
@@ -317,16 +308,13 @@ def _shade(scene: Scene, table: Tensor, origin: Tensor, dirs: Tensor, t: Tensor,
 
 
 def render_frames(scene: Scene, K: Tensor, poses: Tensor, height: int, width: int) -> RenderOutput:
-    """Render N views of the scene.
-
-    Geometry runs in float32 on the scene's device (depth exact to ~1e-6 m at room scale).
+    """Render N views of the scene in float32 on the scene's device (depth exact to ~1e-6 m at room scale).
 
     Args:
         scene: the scene.
         K: ``(3, 3)`` pinhole intrinsics.
         poses: ``(N, 7)`` or ``(7,)`` camera-to-world ``[t, q_xyzw]``.
-        height: image rows H.
-        width: image columns W.
+        height, width: image rows H and columns W.
 
     Returns:
         :class:`RenderOutput` with ``(N, H, W, ...)`` tensors on the scene's device.

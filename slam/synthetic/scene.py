@@ -299,20 +299,16 @@ def compose_surface(rng: np.random.Generator, photos: dict[str, np.ndarray], bas
     return tex
 
 
-def _face_texture(rng: np.random.Generator, photos: dict[str, np.ndarray], name: str, width_m: float,
-                  height_m: float, density: float) -> np.ndarray:
-    """A photograph cropped to the face's aspect ratio and resized to ``density`` texels per metre."""
-    w, h = max(4, round(width_m * density)), max(4, round(height_m * density))
-    crop = _crop_to_aspect(rng, photos[name], w / h, 0.6)
-    return _resize(crop, w, h)
-
-
 def _box_faces(rng: np.random.Generator, photos: dict[str, np.ndarray], size: Sequence[float],
                names: Sequence[str], density: float) -> list[np.ndarray]:
-    """Six face textures (order -x, +x, -y, +y, -z, +z) for a box of ``size`` from photographs."""
+    """Six face textures (order -x, +x, -y, +y, -z, +z) for a box of ``size``: the photographs ``names`` cropped
+    to each face's aspect ratio at ``density`` texels per metre."""
     sx, sy, sz = size
-    extents = [(sy, sz), (sy, sz), (sx, sz), (sx, sz), (sx, sy), (sx, sy)]
-    return [_face_texture(rng, photos, n, a, b, density) for n, (a, b) in zip(names, extents)]
+    faces = []
+    for name, (a, b) in zip(names, [(sy, sz), (sy, sz), (sx, sz), (sx, sz), (sx, sy), (sx, sy)]):
+        w, h = max(4, round(a * density)), max(4, round(b * density))
+        faces.append(_resize(_crop_to_aspect(rng, photos[name], w / h, 0.6), w, h))
+    return faces
 
 
 def _default_boxes(cfg: RoomConfig, photos: dict[str, np.ndarray]) -> list[BoxSpec]:
@@ -379,10 +375,9 @@ def _face_frames(half: np.ndarray, inside: bool) -> tuple[np.ndarray, ...]:
 def _mip_chain(tex: np.ndarray, levels: int) -> list[np.ndarray]:
     chain = [np.ascontiguousarray(tex)]
     for _ in range(levels - 1):
-        prev = chain[-1]
-        h, w = prev.shape[:2]
-        chain.append(cv2.resize(prev, (max(1, w // 2), max(1, h // 2)), interpolation=cv2.INTER_AREA)
-                     if (w > 1 or h > 1) else prev)
+        h, w = chain[-1].shape[:2]
+        chain.append(cv2.resize(chain[-1], (max(1, w // 2), max(1, h // 2)), interpolation=cv2.INTER_AREA)
+                     if (w > 1 or h > 1) else chain[-1])
     return chain
 
 
@@ -439,7 +434,7 @@ def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig) -> Scene:
 
 def build_room_scene(config: RoomConfig | None = None) -> Scene:
     """The default demo room on the CPU: 7 x 6 x 2.8 m, four distinct walls with framed photographs, a tiled
-    floor, a ceiling and nine photo-textured objects (cabinets, crates, a stand, a shelf, a panel, a table).
+    floor, a ceiling and nine photo-textured objects.
 
     Args:
         config: room settings (default :class:`RoomConfig`).

@@ -103,13 +103,6 @@ def _out_and_back_path(s):
     return np.stack([x, y, z], -1), view_direction(yaw, pitch), np.zeros_like(s)
 
 
-def _speed_profile(tau: np.ndarray, ramp: float) -> np.ndarray:
-    """Relative speed over normalised time: cosine ramps up from rest and back down to rest."""
-    up = np.clip(tau / ramp, 0, 1)
-    down = np.clip((1 - tau) / ramp, 0, 1)
-    return 0.5 - 0.5 * np.cos(np.pi * np.minimum(up, down))
-
-
 def _shake(rng: np.random.Generator, times: np.ndarray, dims: int) -> np.ndarray:
     """Smooth zero-mean noise ``(N, dims)`` with unit-ish amplitude: a few random sinusoids per axis."""
     out = np.zeros((len(times), dims))
@@ -136,9 +129,11 @@ def sample_path(path: PathFn, num_frames: int, seed: int) -> Trajectory:
     effort = np.sqrt((dl / _REF_SPEED) ** 2 + (dth / math.radians(_REF_ANGULAR_SPEED)) ** 2)
     cum = np.concatenate([[0.0], np.cumsum(effort)])
     cum /= cum[-1]
-    # Frames: effort progress follows the integral of the speed profile.
+    # Frames: effort progress follows the integral of the speed, cosine ramps up from rest and back down to rest.
     tau_fine = np.linspace(0.0, 1.0, 20001)
-    prog = np.concatenate([[0.0], np.cumsum(_speed_profile(0.5 * (tau_fine[1:] + tau_fine[:-1]), _RAMP))])
+    mid = 0.5 * (tau_fine[1:] + tau_fine[:-1])
+    speed = 0.5 - 0.5 * np.cos(np.pi * np.minimum(np.clip(mid / _RAMP, 0, 1), np.clip((1 - mid) / _RAMP, 0, 1)))
+    prog = np.concatenate([[0.0], np.cumsum(speed)])
     prog /= prog[-1]
     tau = np.linspace(0.0, 1.0, num_frames)
     s_frames = np.interp(np.interp(tau, tau_fine, prog), cum, s)
