@@ -126,11 +126,10 @@ def pixel_rays(K: Tensor, height: int, width: int) -> Tensor:
     """Camera-frame ray directions ``(H * W, 3)`` through every pixel centre of ``K (3, 3)``, scaled to z = 1."""
     if K.shape != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
-    Kd = K.to(torch.float64)
     v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64, device=K.device),
                           torch.arange(width, dtype=torch.float64, device=K.device), indexing="ij")
     pix = torch.stack([u, v, torch.ones_like(u)], -1).reshape(-1, 3)
-    rays = torch.linalg.solve(Kd, pix.T).T
+    rays = torch.linalg.solve(K.to(torch.float64), pix.T).T
     return rays / rays[:, 2:3]
 
 
@@ -242,12 +241,10 @@ def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, 
     inside its screen rectangle (:func:`_screen_rects` of ``corners``, :func:`_box_corners`)."""
     dirs = R @ rays_c  # (3, P) world directions
     rects, seen = _screen_rects(corners, _np64(R), _np64(t), _np64(K), height, width)
-    P = dirs.shape[1]
-    t_best = torch.full((P,), float("inf"), dtype=dirs.dtype, device=dirs.device)
-    box = torch.zeros(P, dtype=torch.int64, device=dirs.device)
-    face = torch.zeros(P, dtype=torch.int64, device=dirs.device)
+    t_img = torch.full((height, width), float("inf"), dtype=dirs.dtype, device=dirs.device)
+    box_img = torch.zeros(height, width, dtype=torch.int64, device=dirs.device)
+    face_img = torch.zeros_like(box_img)
     dirs_img = dirs.view(3, height, width)
-    t_img, box_img, face_img = t_best.view(height, width), box.view(height, width), face.view(height, width)
     for b in range(scene.num_boxes):
         RbT = scene.rotations[b].to(dirs.dtype).T
         o_l = (RbT @ (t - scene.centers[b].to(dirs.dtype)))[:, None]
@@ -257,15 +254,13 @@ def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, 
             continue
         u0, u1, v0, v1 = (0, width, 0, height) if inside else rects[b].tolist()
         sub = dirs_img[:, v0:v1, u0:u1].reshape(3, -1)
-        tb, fb = _slab(o_l, RbT @ sub, half, inside)
-        shape = (v1 - v0, u1 - u0)
-        tb, fb = tb.view(shape), fb.view(shape)
+        tb, fb = (x.view(v1 - v0, u1 - u0) for x in _slab(o_l, RbT @ sub, half, inside))
         cur = t_img[v0:v1, u0:u1]
         better = tb < cur
         t_img[v0:v1, u0:u1] = torch.where(better, tb, cur)
         box_img[v0:v1, u0:u1] = torch.where(better, torch.full_like(fb, b), box_img[v0:v1, u0:u1])
         face_img[v0:v1, u0:u1] = torch.where(better, fb, face_img[v0:v1, u0:u1])
-    return dirs, t_best, box, face
+    return dirs, t_img.view(-1), box_img.view(-1), face_img.view(-1)
 
 
 def _norm0(x: Tensor) -> Tensor:
