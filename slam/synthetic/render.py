@@ -490,15 +490,14 @@ def apply_motion_blur(rgb: Tensor, depth: Tensor, K: Tensor, poses: Tensor, befo
         acc = torch.zeros(3, H * W, dtype=torch.float32, device=dev)
         u0 = rays[:, 0] * Kd[0, 0] + Kd[0, 2]
         v0 = rays[:, 1] * Kd[1, 1] + Kd[1, 2]
+        ok = z > 0
         for s in offsets:
             nb = after[i:i + 1] if s > 0 else before[i:i + 1]
             Ps = _toward(P[i:i + 1], nb.to(device=dev, dtype=torch.float64), abs(s))[0]
-            Rsub = quat_to_rotmat(Ps[3:])
-            cam = (world - Ps[:3]) @ Rsub  # R^T (X - t)
+            cam = (world - Ps[:3]) @ quat_to_rotmat(Ps[3:])  # R^T (X - t)
             zc = cam[:, 2].clamp_min(1e-6)
             u = Kd[0, 0] * cam[:, 0] / zc + Kd[0, 2]
             v = Kd[1, 1] * cam[:, 1] / zc + Kd[1, 2]
-            ok = z > 0
             # the colour that reaches pixel p at this instant left the point that is at p - (flow) in the
             # sharp frame: sample there (mirror of the point's own motion)
             us = torch.where(ok, 2 * u0 - u, u0)

@@ -228,11 +228,10 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
     seq = SyntheticSequence(trajectory, num_frames=num_frames, batch_size=batch_size, **kwargs)
     names = _frame_names(seq.timestamps)  # checked before anything is rendered or written
     out = Path(out_dir).expanduser()
-    (out / "rgb").mkdir(parents=True, exist_ok=True)
-    (out / "depth").mkdir(parents=True, exist_ok=True)
+    for sub in ("rgb", "depth"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
     n = len(seq)
     batches = [list(range(s, min(n, s + seq.batch_size))) for s in range(0, n, seq.batch_size)]
-    workers = max(1, int(workers))
 
     def task(idx: list[int]) -> None:
         rgb, raw = seq.render_raw(idx)
@@ -243,6 +242,7 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
                 raise OSError(f"could not write frame {i} into {out}")
 
     step = max(1, len(batches) // 10)
+    workers = max(1, int(workers))
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="synthetic") if workers > 1 else None
     with limit_threads(1 if pool else None), pool or nullcontext():  # the workers share the cores: one thread each
         for b, _ in enumerate(pool.map(task, batches) if pool else map(task, batches)):  # re-raises a task's error
@@ -250,17 +250,16 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
                 logger.info("synthetic sequence: %d / %d frames", batches[b][-1] + 1, n)
     stamps = seq.timestamps
     for sub, kind in (("rgb", "color images"), ("depth", "depth maps")):
-        with open(out / f"{sub}.txt", "w", encoding="utf-8") as f:
-            f.write("\n".join([f"# {kind}", f"# file: '{seq.name}'", "# timestamp filename"]
-                              + [f"{t:.6f} {sub}/{nm}" for t, nm in zip(stamps, names)]) + "\n")
+        (out / f"{sub}.txt").write_text("\n".join([f"# {kind}", f"# file: '{seq.name}'", "# timestamp filename"]
+                                                  + [f"{t:.6f} {sub}/{nm}" for t, nm in zip(stamps, names)]) + "\n",
+                                        encoding="utf-8")
     with open(out / "groundtruth.txt", "w", encoding="utf-8") as f:
         f.write("# ground truth trajectory\n")
         f.write(f"# file: '{seq.name}' (exact: the rendered camera-to-world poses)\n")
         write_tum_trajectory(f, Trajectory(torch.from_numpy(stamps), torch.from_numpy(seq._poses)), header=True)
     K = seq.K
-    with open(out / "calibration.txt", "w", encoding="utf-8") as f:
-        f.write("# pinhole intrinsics of the rendered images: fx fy cx cy (pixels), no distortion\n")
-        f.write(f"{K[0, 0]:.6f} {K[1, 1]:.6f} {K[0, 2]:.6f} {K[1, 2]:.6f}\n")
-    with open(out / "synthetic.json", "w", encoding="utf-8") as f:
-        json.dump(seq.settings(), f, indent=2)
+    (out / "calibration.txt").write_text("# pinhole intrinsics of the rendered images: fx fy cx cy (pixels), no "
+                                         f"distortion\n{K[0, 0]:.6f} {K[1, 1]:.6f} {K[0, 2]:.6f} {K[1, 2]:.6f}\n",
+                                         encoding="utf-8")
+    (out / "synthetic.json").write_text(json.dumps(seq.settings(), indent=2), encoding="utf-8")
     return out
