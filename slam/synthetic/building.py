@@ -185,9 +185,6 @@ def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
     cw = cfg.corridor_width
     width, depth = n * rx, 2 * ry + cw
     spaces: list[Space] = []
-    designs = {f"S{k}": f"S{k}" for k in range(1, n + 1)}
-    for k in range(1, n + 1):
-        designs[f"N{n + 1 - k}"] = f"S{k}" if f"S{k}" in cfg.twins else f"N{n + 1 - k}"
 
     def room_openings(k: int) -> dict[str, list[float]]:
         # own frame: the corridor is north; the neighbour with the smaller own-frame x is west
@@ -199,12 +196,11 @@ def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
         return out
 
     for k in range(1, n + 1):  # south rooms, own frame = world frame
-        spaces.append(Space(f"S{k}", np.array([(k - 0.5) * rx, ry / 2]), (rx, ry), 0.0, room_openings(k),
-                            designs[f"S{k}"]))
-    for j in range(1, n + 1):  # north rooms: the half turn of S(n+1-j)
+        spaces.append(Space(f"S{k}", np.array([(k - 0.5) * rx, ry / 2]), (rx, ry), 0.0, room_openings(k), f"S{k}"))
+    for j in range(1, n + 1):  # north rooms: the half turn of S(n+1-j), whose design a twin shares
         k = n + 1 - j
         spaces.append(Space(f"N{j}", np.array([width - (k - 0.5) * rx, depth - ry / 2]), (rx, ry), 180.0,
-                            room_openings(k), designs[f"N{j}"]))
+                            room_openings(k), f"S{k}" if f"S{k}" in cfg.twins else f"N{j}"))
     xs = [(k - 0.5) * rx - width / 2 for k in range(1, n + 1)]
     spaces.append(Space("corridor", np.array([width / 2, ry + cw / 2]), (width, cw), 0.0,
                         {"south": list(xs), "north": list(xs)}, "corridor"))

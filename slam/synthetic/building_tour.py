@@ -143,12 +143,8 @@ def tour_polyline(layout: BuildingLayout, tour=DEFAULT_TOUR, config: TourConfig 
             add(c[None] + r * np.array([[math.cos(end), math.sin(end)]]), np.array([end + math.copysign(lead, sweep)]))
             break
         nxt = layout.space(tour[k + 1].room)
-        try:
-            door = layout.door(room.name, nxt.name)
-            via_corridor = False
-        except KeyError:
-            door = layout.door(room.name, "corridor")
-            via_corridor = True
+        via_corridor = not any({d.a, d.b} == {room.name, nxt.name} for d in layout.doors)  # not neighbours
+        door = layout.door(room.name, "corridor" if via_corridor else nxt.name)
         m = door.normal
         doors.append(door.center)
         phi_out = math.atan2(m[1], m[0])
