@@ -1,6 +1,5 @@
-"""Built-in synthetic RGB-D sequences with exact ground truth: a photo-textured room (and a multi-room
-building with identically furnished rooms, :mod:`slam.synthetic.building`) rendered by a ray caster in
-torch, camera trajectories with known revisits, Kinect-like noise, and a writer of the TUM RGB-D layout.
+"""Synthetic RGB-D sequences with exact ground truth: a photo-textured room or a building with twin rooms, rendered
+by a ray caster in torch along trajectories with known revisits, with Kinect-like noise, written in the TUM layout.
 
 Example:
     >>> from slam.synthetic import generate_sequence  # doctest: +SKIP
@@ -11,37 +10,32 @@ from slam.synthetic.building_tour import building_sequence, building_trajectory,
 from slam.synthetic.demo import DEFAULT_DEMO_SCENE, DEMO_SCENES, DemoScene, generate_demo
 from slam.synthetic.render import DepthNoiseConfig, ImageNoiseConfig, RenderOutput, render_frames
 from slam.synthetic.scene import RoomConfig, Scene, build_room_scene
-from slam.synthetic.sequence import (
-                                     DEPTH_FACTOR,
-                                     SyntheticSequence,
-                                     generate_sequence,
-                                     synthetic_intrinsics,
-)
+from slam.synthetic.sequence import DEPTH_FACTOR, SyntheticSequence, generate_sequence, synthetic_intrinsics
 from slam.synthetic.trajectories import TRAJECTORIES, make_trajectory, trajectory_rates
 
 __all__ = [
-                                     "DEFAULT_DEMO_SCENE",
-                                     "DEMO_SCENES",
-                                     "DEPTH_FACTOR",
-                                     "BuildingConfig",
-                                     "TRAJECTORIES",
-                                     "DemoScene",
-                                     "DepthNoiseConfig",
-                                     "ImageNoiseConfig",
-                                     "RenderOutput",
-                                     "RoomConfig",
-                                     "Scene",
-                                     "SyntheticSequence",
-                                     "build_building_scene",
-                                     "build_room_scene",
-                                     "building_layout",
-                                     "building_sequence",
-                                     "building_trajectory",
-                                     "generate_building_sequence",
-                                     "generate_demo",
-                                     "generate_sequence",
-                                     "make_trajectory",
-                                     "render_frames",
-                                     "synthetic_intrinsics",
-                                     "trajectory_rates",
+    "DEFAULT_DEMO_SCENE",
+    "DEMO_SCENES",
+    "DEPTH_FACTOR",
+    "TRAJECTORIES",
+    "BuildingConfig",
+    "DemoScene",
+    "DepthNoiseConfig",
+    "ImageNoiseConfig",
+    "RenderOutput",
+    "RoomConfig",
+    "Scene",
+    "SyntheticSequence",
+    "build_building_scene",
+    "build_room_scene",
+    "building_layout",
+    "building_sequence",
+    "building_trajectory",
+    "generate_building_sequence",
+    "generate_demo",
+    "generate_sequence",
+    "make_trajectory",
+    "render_frames",
+    "synthetic_intrinsics",
+    "trajectory_rates",
 ]

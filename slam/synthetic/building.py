@@ -1,20 +1,11 @@
 """A multi-room building with identically furnished rooms: the scene of ``--demo-scene building``.
 
-Rooms line both sides of a corridor: ``S1 .. Sn`` on the south side and ``N1 .. Nn`` on the north side,
-numbered from the west. Every room has a door to the corridor in the middle of its corridor wall, and
-neighbouring rooms on the same side are joined by a door in the middle of their shared wall. A room is
-built in its own frame (origin at its centre, local +y towards the corridor); south rooms are placed
-unrotated, north rooms turned by 180 deg, so that the building is symmetric under the half turn about
-its centre except for the rooms' furnishing.
-
-Perceptual aliasing: each room named in ``BuildingConfig.twins`` (a south room ``Sk``) shares its
-design (textures, furniture, lights) with its image under that half turn, ``N(n+1-k)``: the two look and
-measure identically from corresponding viewpoints, so a verified loop between them puts the camera metres
-from where it is. Every wall is two half-thickness boxes back to back, each face carrying its own
-space's texture; a door is a gap in both with a lintel above.
-
-World frame: x east (along the corridor), y north, z up; the floor is ``z = 0``; the building spans
-``[0, n * room_x] x [0, 2 * room_y + corridor_width]``.
+Rooms ``S1 .. Sn`` (south) and ``N1 .. Nn`` (north), numbered from the west, line a corridor; each has a door to
+the corridor and one to each neighbour on its side. A room is built in its own frame (origin at its centre, +y
+towards the corridor); north rooms are turned by 180 deg, so the building is symmetric under that half turn but
+for the furnishing. Each room of ``BuildingConfig.twins`` (``Sk``) shares its design with its image ``N(n+1-k)``:
+the two look identical from corresponding viewpoints (perceptual aliasing). World frame: x east (along the
+corridor), y north, z up; the building spans ``[0, n * room_x] x [0, 2 * room_y + corridor_width]``.
 
 Example:
     >>> layout = building_layout(BuildingConfig())
@@ -69,8 +60,7 @@ class BuildingConfig:
         height: floor to ceiling.
         wall_thickness: of every wall (each side owns half of it).
         door_width, door_height: of every door.
-        twins: south rooms furnished identically to their image under the building's half turn
-            (``"S1"`` -> ``N(n)``): the perceptual aliasing.
+        twins: south rooms furnished identically to their image under the half turn (``"S1"`` -> ``N(n)``).
         texel_density: texels per metre of walls, floors and ceilings.
         object_texel_density: texels per metre on the furniture.
         seed: seed of the designs (texture composition, furniture jitter of the unique rooms).
@@ -131,8 +121,7 @@ class Space:
         center: ``(2,)`` world (x, y) of its centre.
         size: (x, y) between wall centre lines, in its own frame.
         yaw_deg: its frame's rotation about z (0 or 180).
-        openings: wall name (own frame) -> offsets of door centres along that wall (own-frame x for the
-            south/north walls, y for the west/east walls).
+        openings: wall name (own frame) -> own-frame offsets of door centres along that wall.
         design: the key of its design (twins share one).
     """
 
@@ -189,20 +178,13 @@ class BuildingLayout:
 
 
 def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
-    """The rooms, corridor and doors of a building (see the module docstring).
-
-    Returns:
-        :class:`BuildingLayout`.
-    """
+    """The rooms, corridor and doors (:class:`BuildingLayout`) of a building (see the module docstring)."""
     cfg = config or BuildingConfig()
     n = cfg.rooms_per_side
     rx, ry = cfg.room_size
     cw = cfg.corridor_width
     width, depth = n * rx, 2 * ry + cw
     spaces: list[Space] = []
-    designs = {f"S{k}": f"S{k}" for k in range(1, n + 1)}
-    for k in range(1, n + 1):
-        designs[f"N{n + 1 - k}"] = f"S{k}" if f"S{k}" in cfg.twins else f"N{n + 1 - k}"
 
     def room_openings(k: int) -> dict[str, list[float]]:
         # own frame: the corridor is north; the neighbour with the smaller own-frame x is west
@@ -214,12 +196,11 @@ def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
         return out
 
     for k in range(1, n + 1):  # south rooms, own frame = world frame
-        spaces.append(Space(f"S{k}", np.array([(k - 0.5) * rx, ry / 2]), (rx, ry), 0.0, room_openings(k),
-                            designs[f"S{k}"]))
-    for j in range(1, n + 1):  # north rooms: the half turn of S(n+1-j)
+        spaces.append(Space(f"S{k}", np.array([(k - 0.5) * rx, ry / 2]), (rx, ry), 0.0, room_openings(k), f"S{k}"))
+    for j in range(1, n + 1):  # north rooms: the half turn of S(n+1-j), whose design a twin shares
         k = n + 1 - j
         spaces.append(Space(f"N{j}", np.array([width - (k - 0.5) * rx, depth - ry / 2]), (rx, ry), 180.0,
-                            room_openings(k), designs[f"N{j}"]))
+                            room_openings(k), f"S{k}" if f"S{k}" in cfg.twins else f"N{j}"))
     xs = [(k - 0.5) * rx - width / 2 for k in range(1, n + 1)]
     spaces.append(Space("corridor", np.array([width / 2, ry + cw / 2]), (width, cw), 0.0,
                         {"south": list(xs), "north": list(xs)}, "corridor"))
@@ -297,16 +278,14 @@ _FURNITURE_BASES = (("brick", (0.62, 0.48, 0.40)), ("gravel", (0.70, 0.66, 0.58)
 
 def _furniture_faces(rng: np.random.Generator, photos: dict[str, np.ndarray], size, names, density: float):
     """Six face textures (-x, +x, -y, +y, -z, +z) of a piece of furniture: a tinted, tiled base with the
-    face's photograph framed on it."""
+    face's photograph framed on it (on the sides large enough; tops stay plain)."""
     sx, sy, sz = size
-    extents = [(sy, sz), (sy, sz), (sx, sz), (sx, sz), (sx, sy), (sx, sy)]
     faces = []
-    for k, (name, (w, h)) in enumerate(zip(names, extents)):
+    for k, (name, (w, h)) in enumerate(zip(names, [(sy, sz), (sy, sz), (sx, sz), (sx, sz), (sx, sy), (sx, sy)])):
         base, tint = _FURNITURE_BASES[int(rng.integers(len(_FURNITURE_BASES)))]
-        big = min(w, h) > 0.25 and k < 4  # sides large enough for a picture (tops stay plain)
-        ph = (0.45 * h, 0.75 * h)
-        faces.append(compose_surface(rng, photos, base, tint, w, h, density, 0.3, 0.6, [name] if big else [],
-                                      ph, (0.05 * h, 0.97 * h)))
+        posters = [name] if min(w, h) > 0.25 and k < 4 else []
+        faces.append(compose_surface(rng, photos, base, tint, w, h, density, 0.3, 0.6, posters, (0.45 * h, 0.75 * h),
+                                     (0.05 * h, 0.97 * h)))
     return faces
 
 
@@ -323,79 +302,63 @@ def _wall_segments(length: float, openings: list[float], door_width: float) -> l
     return spans
 
 
-class _DesignBuilder:
-    """Composes the textured boxes of one design in its own frame (called once per design)."""
+# Faces nobody sees (wall backs, tops) and door jambs: one small texture each, shared by every design.
+_HIDDEN = np.full((2, 2, 3), 128, np.uint8)
+_JAMB = np.full((4, 4, 3), (200, 190, 170), np.uint8)
 
-    def __init__(self, cfg: BuildingConfig, photos: dict[str, np.ndarray]):
-        self.cfg = cfg
-        self.photos = photos
-        grey = np.full((2, 2, 3), 128, np.uint8)
-        self.hidden = grey  # faces nobody sees (wall backs, tops): one shared 2 x 2 texture
-        self.jamb = np.full((4, 4, 3), (200, 190, 170), np.uint8)
 
-    def boxes(self, space: Space, style: _Style, rng: np.random.Generator, furniture, mirror: bool,
-              jitter: float) -> list[BoxSpec]:
-        cfg = self.cfg
-        sx, sy = space.size
-        H, t, d = cfg.height, cfg.wall_thickness / 2, cfg.texel_density
-        band = (0.85, H - 0.2)
-        out: list[BoxSpec] = []
-        # floor and ceiling slabs (extending under the half walls)
-        floor = compose_surface(rng, self.photos, style.floor[0], style.floor[1], sx, sy, d, 0.6, 0.6,
-                                 [], (1.0, 1.6), (0.0, sy), grout_m=0.6)
-        ceiling = compose_surface(rng, self.photos, style.ceiling[0], style.ceiling[1], sx, sy, d * 0.5, 1.2,
-                                   0.35, [], (0.5, 0.6), (0.0, sy), grout_m=0.6)
-        h = self.hidden
-        out.append(BoxSpec("floor", (0.0, 0.0, -0.025), (sx, sy, 0.05), 0.0, [h, h, h, h, h, floor]))
-        out.append(BoxSpec("ceiling", (0.0, 0.0, H + 0.025), (sx, sy, 0.05), 0.0, [h, h, h, h, ceiling, h]))
-        for (wall, (axis, sign)), (base, tint, posters) in zip(_WALLS.items(), style.walls):
-            length = sy if axis == 0 else sx
-            spans = _wall_segments(length, space.openings.get(wall, []), cfg.door_width)
-            posters = list(posters)
-            for k, (lo, hi) in enumerate(spans):
-                seg_len = hi - lo
-                # the posters of the wall go to its spans in turn, as many as fit
-                mine = posters[k::len(spans)] if seg_len > 1.2 else []
-                tex = compose_surface(rng, self.photos, base, tint, seg_len, H, d, 1.1, 0.55, mine, (0.5, 0.9),
-                                       band)
-                mid = 0.5 * (lo + hi)
-                faces = [self.jamb] * 4 + [h, h]  # the span's ends are door jambs (or hidden in a corner)
-                faces[_INNER_FACE[wall]] = tex
-                faces[_INNER_FACE[wall] ^ 1] = h
-                if axis == 1:  # a wall along x
-                    center = (mid, sign * (sy / 2 - t / 2), H / 2)
-                    size = (seg_len, t, H)
-                else:
-                    center = (sign * (sx / 2 - t / 2), mid, H / 2)
-                    size = (t, seg_len, H)
-                out.append(BoxSpec(f"{wall}_wall_{k}", center, size, 0.0, faces))
-            for k, o in enumerate(space.openings.get(wall, [])):  # lintels above the doors
-                lh = H - cfg.door_height
-                lint = compose_surface(rng, self.photos, base, tint, cfg.door_width, lh, d, 1.1, 0.55, [],
-                                        (0.1, 0.2), (0.0, lh))
-                faces = [self.jamb] * 4 + [self.jamb, h]
-                faces[_INNER_FACE[wall]] = lint
-                faces[_INNER_FACE[wall] ^ 1] = h
-                if axis == 1:
-                    center = (o, sign * (sy / 2 - t / 2), cfg.door_height + lh / 2)
-                    size = (cfg.door_width, t, lh)
-                else:
-                    center = (sign * (sx / 2 - t / 2), o, cfg.door_height + lh / 2)
-                    size = (t, cfg.door_width, lh)
-                out.append(BoxSpec(f"{wall}_lintel_{k}", center, size, 0.0, faces))
-        names = list(style.furniture)
-        for m, (name, (fx, fy, z), size, yaw) in enumerate(furniture):
-            x, y = fx * sx / 2, fy * sy / 2
-            if jitter > 0:
-                x += float(rng.uniform(-jitter, jitter))
-                y += float(rng.uniform(-jitter, jitter))
-                yaw += float(rng.uniform(-15.0, 15.0))
-            if mirror:
-                x, yaw = -x, -yaw
-            tex_names = [names[(m + q) % len(names)] for q in range(6)]
-            out.append(BoxSpec(name, (x, y, z), size, yaw,
-                               _furniture_faces(rng, self.photos, size, tex_names, cfg.object_texel_density)))
-        return out
+def _half_wall(name: str, wall: str, space_size: tuple[float, float], t: float, mid: float, length: float,
+               z0: float, height: float, tex: np.ndarray, bottom: np.ndarray) -> BoxSpec:
+    """A box of thickness ``t`` (m) along ``wall`` of a space (own frame), ``length`` m centred at ``mid`` along
+    it, from ``z0`` up ``height`` m, with ``tex`` on its inner face; its ends are door jambs (or hidden)."""
+    axis, sign = _WALLS[wall]
+    sx, sy = space_size
+    faces = [_JAMB] * 4 + [bottom, _HIDDEN]
+    faces[_INNER_FACE[wall]], faces[_INNER_FACE[wall] ^ 1] = tex, _HIDDEN
+    if axis == 1:  # a wall along x
+        return BoxSpec(name, (mid, sign * (sy / 2 - t / 2), z0 + height / 2), (length, t, height), 0.0, faces)
+    return BoxSpec(name, (sign * (sx / 2 - t / 2), mid, z0 + height / 2), (t, length, height), 0.0, faces)
+
+
+def _design_boxes(cfg: BuildingConfig, photos: dict[str, np.ndarray], space: Space, style: _Style,
+                  rng: np.random.Generator, furniture, mirror: bool, jitter: float) -> list[BoxSpec]:
+    """The textured boxes of one design in the space's own frame. Every wall is two half-thickness boxes back to
+    back (one per space), a door a gap in both with a lintel above."""
+    sx, sy = space.size
+    H, t, d, h = cfg.height, cfg.wall_thickness / 2, cfg.texel_density, _HIDDEN
+    lh = H - cfg.door_height
+    # floor and ceiling slabs (extending under the half walls)
+    floor = compose_surface(rng, photos, style.floor[0], style.floor[1], sx, sy, d, 0.6, 0.6,
+                            [], (1.0, 1.6), (0.0, sy), grout_m=0.6)
+    ceiling = compose_surface(rng, photos, style.ceiling[0], style.ceiling[1], sx, sy, d * 0.5, 1.2,
+                              0.35, [], (0.5, 0.6), (0.0, sy), grout_m=0.6)
+    out = [BoxSpec("floor", (0.0, 0.0, -0.025), (sx, sy, 0.05), 0.0, [h, h, h, h, h, floor]),
+           BoxSpec("ceiling", (0.0, 0.0, H + 0.025), (sx, sy, 0.05), 0.0, [h, h, h, h, ceiling, h])]
+    for (wall, (axis, _)), (base, tint, posters) in zip(_WALLS.items(), style.walls):
+        openings = space.openings.get(wall, [])
+        spans = _wall_segments(sy if axis == 0 else sx, openings, cfg.door_width)
+        for k, (lo, hi) in enumerate(spans):
+            mine = posters[k::len(spans)] if hi - lo > 1.2 else []  # the wall's posters, in turn, where they fit
+            tex = compose_surface(rng, photos, base, tint, hi - lo, H, d, 1.1, 0.55, mine, (0.5, 0.9), (0.85, H - 0.2))
+            out.append(_half_wall(f"{wall}_wall_{k}", wall, space.size, t, 0.5 * (lo + hi), hi - lo, 0.0, H, tex, h))
+        for k, o in enumerate(openings):  # lintels above the doors
+            lint = compose_surface(rng, photos, base, tint, cfg.door_width, lh, d, 1.1, 0.55, [], (0.1, 0.2),
+                                   (0.0, lh))
+            out.append(_half_wall(f"{wall}_lintel_{k}", wall, space.size, t, o, cfg.door_width, cfg.door_height, lh,
+                                  lint, _JAMB))
+    names = list(style.furniture)
+    for m, (name, (fx, fy, z), size, yaw) in enumerate(furniture):
+        x, y = fx * sx / 2, fy * sy / 2
+        if jitter > 0:
+            x += float(rng.uniform(-jitter, jitter))
+            y += float(rng.uniform(-jitter, jitter))
+            yaw += float(rng.uniform(-15.0, 15.0))
+        if mirror:
+            x, yaw = -x, -yaw
+        tex_names = [names[(m + q) % len(names)] for q in range(6)]
+        out.append(BoxSpec(name, (x, y, z), size, yaw,
+                           _furniture_faces(rng, photos, size, tex_names, cfg.object_texel_density)))
+    return out
 
 
 def _place(box: BoxSpec, space: Space) -> BoxSpec:
@@ -407,27 +370,17 @@ def _place(box: BoxSpec, space: Space) -> BoxSpec:
 
 
 def build_building_scene(config: BuildingConfig | None = None) -> Scene:
-    """The building of :func:`building_layout` as a renderable :class:`~slam.synthetic.scene.Scene` on the
-    CPU, deterministic by ``config.seed`` (one seeded generator per design, shared by twins).
-
-    Args:
-        config: :class:`BuildingConfig`.
-    """
+    """The building of :func:`building_layout` (``config``: :class:`BuildingConfig`) as a renderable
+    :class:`~slam.synthetic.scene.Scene` on the CPU, deterministic by ``config.seed``."""
     cfg = config or BuildingConfig()
     layout = building_layout(cfg)
-    builder = _DesignBuilder(cfg, load_photo_textures(cfg.seed))
+    photos = load_photo_textures(cfg.seed)
     designs: dict[str, list[BoxSpec]] = {}
     boxes: list[BoxSpec] = []
-    style_of = {}
-    unique_styles = ["b", "c"]
-    for s in layout.spaces:
-        if s.name == "corridor":
-            style_of[s.design] = "corridor"
-        elif s.design in cfg.twins:
-            style_of[s.design] = "a"
-        elif s.design not in style_of:
-            style_of[s.design] = unique_styles[len([v for v in style_of.values() if v in unique_styles])
-                                               % len(unique_styles)]
+    # the twins share style "a"; the unique rooms take "b" and "c" in turn
+    unique = [d for d in dict.fromkeys(s.design for s in layout.spaces) if d != "corridor" and d not in cfg.twins]
+    style_of = {"corridor": "corridor", **dict.fromkeys(cfg.twins, "a"),
+                **{d: "bc"[k % 2] for k, d in enumerate(unique)}}
     for s in layout.spaces:
         if s.design not in designs:
             # one generator per design, seeded by its name: adding a room does not change the others
@@ -439,11 +392,12 @@ def build_building_scene(config: BuildingConfig | None = None) -> Scene:
                 furniture = _ROOM_FURNITURE
                 mirror = "east" not in s.openings  # the neighbour door is on the west
                 jitter = 0.0 if s.design in cfg.twins else 0.12
-            designs[s.design] = builder.boxes(s, _STYLES[style_of[s.design]], rng, furniture, mirror, jitter)
+            designs[s.design] = _design_boxes(cfg, photos, s, _STYLES[style_of[s.design]], rng, furniture, mirror,
+                                              jitter)
         boxes.extend(_place(b, s) for b in designs[s.design])
     lights = []
     for s in layout.spaces:
-        sx, sy = s.size
+        sx = s.size[0]
         local = ([(-sx / 4, 0.0), (sx / 4, 0.0)] if s.name != "corridor"
                  else [(-sx / 3, 0.0), (0.0, 0.0), (sx / 3, 0.0)])
         for p in local:  # symmetric in each space: the half turn maps the whole set of lights onto itself

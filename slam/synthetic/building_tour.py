@@ -1,11 +1,7 @@
-"""The camera's tour of the building (:mod:`slam.synthetic.building`): rooms, doors and the corridor.
-
-In each room the camera walks a circle around the room's centre looking outwards (as the room demo's
-``loop``); it crosses each room straight from door to circle, so its heading never jumps, and follows the
-corridor's centre line between rooms that are not neighbours. The default tour starts in ``S1``, visits its
-identically furnished twin ``N2`` (the false-loop bait), ``N1`` and ``S2``, and comes back into ``S1``
-through its other door, circling the other way: a loop around the whole building. The dense polyline is
-smoothed along its arc length, then timed by :func:`slam.synthetic.trajectories.sample_path`.
+"""The camera's tour of the building (:mod:`slam.synthetic.building`): a circle looking outwards in each room,
+straight lines from door to circle, the corridor's centre line between rooms that are not neighbours. The default
+tour starts in ``S1``, visits its twin ``N2`` (the false-loop bait), ``N1`` and ``S2``, and comes back into ``S1``
+through its other door.
 
 Example:
     >>> from slam.synthetic.building import building_layout
@@ -93,7 +89,7 @@ _STEP = 0.01  # metres between polyline samples
 def _line(p0: np.ndarray, p1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Samples of a straight walk from p0 to p1 (end excluded), heading along it."""
     d = p1 - p0
-    n = max(1, int(math.ceil(float(np.linalg.norm(d)) / _STEP)))
+    n = max(1, math.ceil(float(np.linalg.norm(d)) / _STEP))
     f = np.arange(n)[:, None] / n
     yaw = np.full(n, math.atan2(d[1], d[0]))
     return p0 + f * d, yaw
@@ -101,7 +97,7 @@ def _line(p0: np.ndarray, p1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _arc(center: np.ndarray, radius: float, phi0: float, sweep: float, lead: float) -> tuple[np.ndarray, np.ndarray]:
     """Samples of a circle from angle ``phi0`` over ``sweep`` radians (signed, end excluded), looking out."""
-    n = max(1, int(math.ceil(abs(sweep) * radius / _STEP)))
+    n = max(1, math.ceil(abs(sweep) * radius / _STEP))
     phi = phi0 + sweep * np.arange(n) / n
     pos = center + radius * np.stack([np.cos(phi), np.sin(phi)], -1)
     return pos, phi + math.copysign(lead, sweep)
@@ -147,12 +143,8 @@ def tour_polyline(layout: BuildingLayout, tour=DEFAULT_TOUR, config: TourConfig 
             add(c[None] + r * np.array([[math.cos(end), math.sin(end)]]), np.array([end + math.copysign(lead, sweep)]))
             break
         nxt = layout.space(tour[k + 1].room)
-        try:
-            door = layout.door(room.name, nxt.name)
-            via_corridor = False
-        except KeyError:
-            door = layout.door(room.name, "corridor")
-            via_corridor = True
+        via_corridor = not any({d.a, d.b} == {room.name, nxt.name} for d in layout.doors)  # not neighbours
+        door = layout.door(room.name, "corridor" if via_corridor else nxt.name)
         m = door.normal
         doors.append(door.center)
         phi_out = math.atan2(m[1], m[0])
@@ -236,13 +228,11 @@ def building_sequence(num_frames: int = 2400, seed: int = 0, width: int = 320, h
 
     Args:
         num_frames: frames of the tour.
-        seed: seeds the sensor noise and the hand shake (the building's designs have their own
-            ``building.seed``).
-        width, height: image size (320 x 240 by default: a quarter of the room demo's pixels, so the
-            2400 frames render in minutes; the odometry tracks at this size).
+        seed: seeds the sensor noise and the hand shake (the designs have their own ``building.seed``).
+        width, height: image size (a quarter of the room demo's pixels by default: 2400 frames render in minutes).
         building: :class:`~slam.synthetic.building.BuildingConfig`.
-        **kwargs: passed to :class:`~slam.synthetic.sequence.SyntheticSequence` (noise settings; the noise
-            models default to :data:`BUILDING_DEPTH_NOISE` and :data:`BUILDING_IMAGE_NOISE`).
+        **kwargs: passed to :class:`~slam.synthetic.sequence.SyntheticSequence` (the noise models default to
+            :data:`BUILDING_DEPTH_NOISE` and :data:`BUILDING_IMAGE_NOISE`).
     """
     cfg = building or BuildingConfig()
     traj = building_trajectory(building_layout(cfg), num_frames=num_frames, seed=seed)
@@ -254,15 +244,12 @@ def building_sequence(num_frames: int = 2400, seed: int = 0, width: int = 320, h
 
 def generate_building_sequence(out_dir: str | os.PathLike, trajectory: str = "tour", num_frames: int = 2400,
                                seed: int = 0, width: int = 320, height: int = 240, **kwargs) -> Path:
-    """Render the building tour and write it in the TUM RGB-D layout with its ``groundtruth.txt``
-    (:func:`slam.synthetic.sequence.generate_sequence`; same files, same determinism by ``seed``).
+    """Render the default building's tour into ``out_dir`` in the TUM RGB-D layout
+    (:func:`~slam.synthetic.sequence.generate_sequence`, to which ``**kwargs`` go).
 
     Args:
-        out_dir: the sequence folder.
         trajectory: ``"tour"`` (the only camera path of the building).
-        num_frames, seed, width, height: as for :func:`building_sequence`.
-        **kwargs: passed to :func:`~slam.synthetic.sequence.generate_sequence` (workers, progress, noise;
-            the noise models default to the building's, as for :func:`building_sequence`).
+        num_frames, seed, width, height: as for :func:`building_sequence` (the same noise models by default).
     """
     if trajectory != "tour":
         raise ValueError(f"the building has one camera path, 'tour'; got {trajectory!r}")

@@ -1,7 +1,5 @@
-"""The built-in demo scenes of ``attnloop-slam --demo``: name -> how to generate its sequence folder.
-
-``attnloop-slam --demo --demo-scene NAME`` takes its choices, default trajectory and frame count from
-:data:`DEMO_SCENES`; a new scene is one entry here.
+"""The built-in scenes of ``attnloop-slam --demo --demo-scene NAME`` (its choices and defaults); a new scene is one
+entry of :data:`DEMO_SCENES`.
 
 Example:
     >>> sorted(DEMO_SCENES), DEMO_SCENES["room"].default_trajectory, DEMO_SCENES["building"].default_size
@@ -25,9 +23,8 @@ class DemoScene:
 
     Attributes:
         description: one line for ``--help``.
-        generate: ``generate(out_dir, trajectory=..., num_frames=..., seed=..., width=..., height=...,
-            progress=...)`` writes the sequence (TUM layout with ``groundtruth.txt``) into ``out_dir`` and
-            returns it; ``progress`` logs its advance (logger ``slam.synthetic``).
+        generate: ``generate(out_dir, trajectory=, num_frames=, seed=, width=, height=, progress=)`` writes the
+            sequence (TUM layout with ``groundtruth.txt``) into ``out_dir`` and returns it.
         trajectories: the camera paths it offers.
         default_trajectory: the one used when none is asked for.
         default_frames: its default length.
@@ -44,20 +41,16 @@ class DemoScene:
     default_size: tuple[int, int] = (640, 480)
 
 
-def _room(out_dir, trajectory: str, num_frames: int, seed: int, width: int, height: int,
-          progress: bool = False) -> Path:
-    from slam.synthetic.sequence import generate_sequence
+def _room(out_dir, **kwargs) -> Path:
+    from slam.synthetic.sequence import generate_sequence  # imported when used: the CLI's --help stays light
 
-    return generate_sequence(out_dir, trajectory=trajectory, num_frames=num_frames, seed=seed, width=width,
-                             height=height, progress=progress)
+    return generate_sequence(out_dir, **kwargs)
 
 
-def _building(out_dir, trajectory: str, num_frames: int, seed: int, width: int, height: int,
-              progress: bool = False) -> Path:
+def _building(out_dir, **kwargs) -> Path:
     from slam.synthetic.building_tour import generate_building_sequence
 
-    return generate_building_sequence(out_dir, trajectory=trajectory, num_frames=num_frames, seed=seed,
-                                      width=width, height=height, progress=progress)
+    return generate_building_sequence(out_dir, **kwargs)
 
 
 DEMO_SCENES: dict[str, DemoScene] = {

@@ -1,13 +1,7 @@
-"""A ray-casting renderer in torch for :class:`~slam.synthetic.scene.Scene`, plus Kinect-like sensor noise.
-
-Every pixel's ray is intersected analytically with the boxes (the slab method, in each box's own frame);
-the nearest hit gives the z-depth, the face and its texture coordinates. Textures are sampled trilinearly
-from a mip pyramid at the pixel's footprint (no aliasing from frame to frame); shading is Lambertian from
-point lights fixed in the world, without shadows, so a surface point has the same colour in every view.
-
-Conventions: pinhole ``K (3, 3)``, pixel ``(u, v)`` = (column, row) at integer positions, camera x right,
-y down, z forward; poses ``(..., 7) = [t, q_xyzw]`` camera-to-world. Depth is the z-depth along the
-optical axis (not the ray length), 0 where nothing is hit.
+"""A ray caster in torch for :class:`~slam.synthetic.scene.Scene` (slab method per box, trilinear mip-mapped
+textures, Lambertian point lights without shadows: a surface point has one colour in every view), plus Kinect-like
+sensor noise and motion blur. Pinhole ``K (3, 3)``, pixel ``(u, v)`` = (column, row), camera x right, y down,
+z forward; poses ``(..., 7) = [t, q_xyzw]`` camera-to-world; depth is the z-depth, 0 where nothing is hit.
 
 Example:
     >>> from slam.synthetic.scene import RoomConfig, build_room_scene
@@ -29,7 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from slam.lie import quat_mul, quat_normalize, quat_to_rotmat, so3_exp, so3_log
+from slam.lie import quat_conj, quat_mul, quat_normalize, quat_to_rotmat, so3_exp, so3_log
 from slam.synthetic.scene import Scene
 
 Tensor = torch.Tensor
@@ -73,8 +67,7 @@ class DepthNoiseConfig:
         sigma_base: axial noise std (m) at ``sigma_ref`` (Nguyen et al. 2012).
         sigma_quad: growth of the std with ``(z - sigma_ref)^2`` (m per m^2).
         sigma_ref: depth (m) where the std is smallest.
-        focal_baseline: IR focal length (px) x projector baseline (m): the depth quantisation through the
-            disparity.
+        focal_baseline: IR focal length (px) x projector baseline (m), for the disparity quantisation.
         disparity_step: disparity resolution in pixels (Kinect v1: 1/8); 0 disables the quantisation.
         min_depth: nearer surfaces read as invalid (m).
         max_depth: farther surfaces read as invalid (m).
@@ -83,11 +76,10 @@ class DepthNoiseConfig:
         edge_jump: a pixel whose 3x3 neighbourhood spans more than ``edge_jump * z`` in depth is
             invalid (the sensor's missing readings at occluding edges).
         min_cos_incidence: surfaces seen more grazingly than this (|cos| below) read as invalid.
-        disparity_distortion: a fixed-pattern disparity error (pixels), the same in every frame, growing with
-            the squared distance from the image centre to this value at the corners (Herrera et al. 2012).
-            0: none.
-        noise_correlation_px: Gaussian sigma (pixels) of the spatial correlation of the axial noise; the
-            std stays ``sigma(z)``. 0: independent pixels.
+        disparity_distortion: a fixed-pattern disparity error (pixels), growing with the squared distance from
+            the image centre to this value at the corners (Herrera et al. 2012). 0: none.
+        noise_correlation_px: Gaussian sigma (pixels) of the spatial correlation of the axial noise (the std
+            stays ``sigma(z)``). 0: independent pixels.
     """
 
     sigma_base: float = 0.0012
@@ -113,8 +105,7 @@ class ImageNoiseConfig:
         exposure_sigma: std of the per-frame multiplicative gain (auto-exposure flicker).
         offset_sigma: std of the per-frame additive offset, grey levels.
         pixel_sigma: std of the per-pixel, per-channel Gaussian noise, grey levels.
-        exposure_time: the colour camera's exposure in seconds, blurring each pixel along its motion
-            (:func:`apply_motion_blur`). 0: sharp images.
+        exposure_time: the colour camera's exposure in seconds (:func:`apply_motion_blur`). 0: sharp images.
         blur_samples: instants averaged over the exposure.
     """
 
@@ -132,27 +123,20 @@ class ImageNoiseConfig:
 
 
 def pixel_rays(K: Tensor, height: int, width: int) -> Tensor:
-    """Camera-frame ray directions ``(H * W, 3)`` through every pixel centre, scaled to z = 1.
-
-    Args:
-        K: ``(3, 3)`` intrinsics.
-    """
+    """Camera-frame ray directions ``(H * W, 3)`` through every pixel centre of ``K (3, 3)``, scaled to z = 1."""
     if K.shape != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
-    Kd = K.to(torch.float64)
     v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64, device=K.device),
                           torch.arange(width, dtype=torch.float64, device=K.device), indexing="ij")
     pix = torch.stack([u, v, torch.ones_like(u)], -1).reshape(-1, 3)
-    rays = torch.linalg.solve(Kd, pix.T).T
+    rays = torch.linalg.solve(K.to(torch.float64), pix.T).T
     return rays / rays[:, 2:3]
 
 
 def _slab(o_l: Tensor, d_l: Tensor, half: Tensor, inside: bool):
-    """Ray parameter ``(M,)`` (inf on a miss) and face ``(M,)`` of one box, rays in its local frame.
-
-    Component-major: ``o_l (3, 1) or (3, M)``, ``d_l (3, M)``, ``half (3, 1)``. Seen from outside the hit is
-    the entry face; seen from inside (the room) it is the exit face. A NaN (origin on a face's plane) misses.
-    """
+    """Ray parameter ``(M,)`` (inf on a miss) and face ``(M,)`` of one box for rays ``o_l (3, 1) or (3, M)``,
+    ``d_l (3, M)`` in its local frame, ``half (3, 1)``: the entry face, or the exit face seen from inside (the
+    room). A NaN (origin on a face's plane) misses."""
     inv = 1.0 / d_l
     t_lo = (-half - o_l) * inv
     t_hi = (half - o_l) * inv
@@ -168,8 +152,8 @@ def _slab(o_l: Tensor, d_l: Tensor, half: Tensor, inside: bool):
 
 
 def _sample_texture(scene: Scene, tex: Tensor, u: Tensor, v: Tensor, level: Tensor) -> Tensor:
-    """Trilinear (bilinear within two adjacent mip levels) lookup ``(M, 3)`` float32 RGB in [0, 255] of texture
-    ids ``tex (M,)`` at coordinates ``u, v (M,)`` in [0, 1] (columns, rows) and continuous mip ``level (M,)``."""
+    """Trilinear lookup ``(M, 3)`` float32 RGB in [0, 255] of texture ids ``tex (M,)`` at ``u, v (M,)`` in [0, 1]
+    (columns, rows) and continuous mip ``level (M,)``."""
     M = tex.shape[0]
     num_levels = scene.tex_offset.shape[1]
     level = level.float().clamp(0.0, num_levels - 1)
@@ -216,12 +200,15 @@ _BOX_EDGES = np.array([(a, b) for a in range(8) for b in range(a + 1, 8)
                        if int(np.abs(_BOX_SIGNS[a] - _BOX_SIGNS[b]).sum()) == 2], np.int64)
 
 
+def _np64(x: Tensor) -> np.ndarray:
+    return x.detach().cpu().double().numpy()
+
+
 def _box_corners(scene: Scene) -> np.ndarray:
     """World corners ``(B, 8, 3)`` float64 of every box."""
-    R = scene.rotations.detach().cpu().double().numpy()
-    c = scene.centers.detach().cpu().double().numpy()
-    h = scene.half_sizes.detach().cpu().double().numpy()
-    return c[:, None, :] + np.einsum("bkj,bij->bki", _BOX_SIGNS[None] * h[:, None, :], R)
+    h = _np64(scene.half_sizes)
+    return _np64(scene.centers)[:, None, :] + np.einsum("bkj,bij->bki", _BOX_SIGNS[None] * h[:, None, :],
+                                                         _np64(scene.rotations))
 
 
 def _screen_rects(corners: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, height: int,
@@ -240,21 +227,12 @@ def _screen_rects(corners: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarr
     pts = np.concatenate([cam, cut], 1)  # (B, 20, 3)
     valid = np.concatenate([z > _NEAR, crossing], 1)
     zz = np.where(valid, np.maximum(pts[..., 2], _NEAR), 1.0)
-    u = K[0, 0] * pts[..., 0] / zz + K[0, 2]
-    v = K[1, 1] * pts[..., 1] / zz + K[1, 2]
-    big = 1e18
-    u_lo = np.where(valid, u, big).min(1)
-    u_hi = np.where(valid, u, -big).max(1)
-    v_lo = np.where(valid, v, big).min(1)
-    v_hi = np.where(valid, v, -big).max(1)
-    seen = valid.any(1)
-    rects = np.zeros((corners.shape[0], 4), np.int64)
-    rects[:, 0] = np.clip(np.floor(np.clip(u_lo, -1e9, 1e9)) - 1, 0, width)
-    rects[:, 1] = np.clip(np.ceil(np.clip(u_hi, -1e9, 1e9)) + 2, 0, width)
-    rects[:, 2] = np.clip(np.floor(np.clip(v_lo, -1e9, 1e9)) - 1, 0, height)
-    rects[:, 3] = np.clip(np.ceil(np.clip(v_hi, -1e9, 1e9)) + 2, 0, height)
-    seen &= (rects[:, 0] < rects[:, 1]) & (rects[:, 2] < rects[:, 3])
-    return rects, seen
+    uv = np.stack([K[0, 0] * pts[..., 0] / zz + K[0, 2], K[1, 1] * pts[..., 1] / zz + K[1, 2]], -1)  # (B, 20, 2)
+    lo = np.floor(np.clip(np.where(valid[..., None], uv, 1e18).min(1), -1e9, 1e9)) - 1  # (B, 2): u, v
+    hi = np.ceil(np.clip(np.where(valid[..., None], uv, -1e18).max(1), -1e9, 1e9)) + 2
+    rects = np.clip(np.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], 1), 0, [width, width, height, height])
+    rects = rects.astype(np.int64)
+    return rects, valid.any(1) & (rects[:, 0] < rects[:, 1]) & (rects[:, 2] < rects[:, 3])
 
 
 def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, height: int, width: int,
@@ -262,35 +240,27 @@ def _trace_frame(scene: Scene, R: Tensor, t: Tensor, rays_c: Tensor, K: Tensor, 
     """Nearest hit (t, box, face) of every pixel ray ``rays_c (3, P)`` of one camera; a box is only tested
     inside its screen rectangle (:func:`_screen_rects` of ``corners``, :func:`_box_corners`)."""
     dirs = R @ rays_c  # (3, P) world directions
-    rects, seen = _screen_rects(corners, R.detach().cpu().double().numpy(), t.detach().cpu().double().numpy(),
-                                K.detach().cpu().double().numpy(), height, width)
-    P = dirs.shape[1]
-    t_best = torch.full((P,), float("inf"), dtype=dirs.dtype, device=dirs.device)
-    box = torch.zeros(P, dtype=torch.int64, device=dirs.device)
-    face = torch.zeros(P, dtype=torch.int64, device=dirs.device)
+    rects, seen = _screen_rects(corners, _np64(R), _np64(t), _np64(K), height, width)
+    t_img = torch.full((height, width), float("inf"), dtype=dirs.dtype, device=dirs.device)
+    box_img = torch.zeros(height, width, dtype=torch.int64, device=dirs.device)
+    face_img = torch.zeros_like(box_img)
     dirs_img = dirs.view(3, height, width)
-    t_img, box_img, face_img = t_best.view(height, width), box.view(height, width), face.view(height, width)
     for b in range(scene.num_boxes):
         RbT = scene.rotations[b].to(dirs.dtype).T
         o_l = (RbT @ (t - scene.centers[b].to(dirs.dtype)))[:, None]
         half = scene.half_sizes[b].to(dirs.dtype)[:, None]
         inside = bool(scene.inside[b])
-        if inside:
-            u0, u1, v0, v1 = 0, width, 0, height
-        elif not seen[b]:
+        if not (inside or seen[b]):
             continue
-        else:
-            u0, u1, v0, v1 = (int(x) for x in rects[b])
+        u0, u1, v0, v1 = (0, width, 0, height) if inside else rects[b].tolist()
         sub = dirs_img[:, v0:v1, u0:u1].reshape(3, -1)
-        tb, fb = _slab(o_l, RbT @ sub, half, inside)
-        shape = (v1 - v0, u1 - u0)
-        tb, fb = tb.view(shape), fb.view(shape)
+        tb, fb = (x.view(v1 - v0, u1 - u0) for x in _slab(o_l, RbT @ sub, half, inside))
         cur = t_img[v0:v1, u0:u1]
         better = tb < cur
         t_img[v0:v1, u0:u1] = torch.where(better, tb, cur)
         box_img[v0:v1, u0:u1] = torch.where(better, torch.full_like(fb, b), box_img[v0:v1, u0:u1])
         face_img[v0:v1, u0:u1] = torch.where(better, fb, face_img[v0:v1, u0:u1])
-    return dirs, t_best, box, face
+    return dirs, t_img.view(-1), box_img.view(-1), face_img.view(-1)
 
 
 def _norm0(x: Tensor) -> Tensor:
@@ -333,16 +303,13 @@ def _shade(scene: Scene, table: Tensor, origin: Tensor, dirs: Tensor, t: Tensor,
 
 
 def render_frames(scene: Scene, K: Tensor, poses: Tensor, height: int, width: int) -> RenderOutput:
-    """Render N views of the scene.
-
-    Geometry runs in float32 on the scene's device (depth exact to ~1e-6 m at room scale).
+    """Render N views of the scene in float32 on the scene's device (depth exact to ~1e-6 m at room scale).
 
     Args:
         scene: the scene.
         K: ``(3, 3)`` pinhole intrinsics.
         poses: ``(N, 7)`` or ``(7,)`` camera-to-world ``[t, q_xyzw]``.
-        height: image rows H.
-        width: image columns W.
+        height, width: image rows H and columns W.
 
     Returns:
         :class:`RenderOutput` with ``(N, H, W, ...)`` tensors on the scene's device.
@@ -405,11 +372,10 @@ def apply_depth_noise(depth: Tensor, cos_incidence: Tensor, config: DepthNoiseCo
     b = max(1, int(config.dropout_block))
     hb, wb = -(-H // b), -(-W // b)
     smooth = None
-    if config.noise_correlation_px > 0:  # a normalised Gaussian kernel whose output keeps unit variance
+    if config.noise_correlation_px > 0:  # separable Gaussian whose 2-D squares sum to 1: unit variance kept
         r = max(1, math.ceil(3 * config.noise_correlation_px))
-        k1 = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / config.noise_correlation_px) ** 2)
-        k1 = k1 / k1.square().sum().sqrt()  # separable: the 2-D kernel's squares sum to 1
-        smooth = k1
+        smooth = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / config.noise_correlation_px) ** 2)
+        smooth = (smooth / smooth.square().sum().sqrt()).to(depth.device)
     pattern = None
     if config.disparity_distortion != 0:
         v, u = torch.meshgrid(torch.linspace(-1.0, 1.0, H), torch.linspace(-1.0, 1.0, W), indexing="ij")
@@ -419,10 +385,8 @@ def apply_depth_noise(depth: Tensor, cos_incidence: Tensor, config: DepthNoiseCo
         g = frame_generator(seeds[i], 0, 1)
         gauss = torch.randn(H, W, generator=g).to(z.device)
         if smooth is not None:
-            k = smooth.to(z.device)
-            r = k.numel() // 2
-            x = F.conv2d(F.pad(gauss[None, None], (r, r, 0, 0), mode="reflect"), k.view(1, 1, 1, -1))
-            gauss = F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), k.view(1, 1, -1, 1))[0, 0]
+            x = F.conv2d(F.pad(gauss[None, None], (r, r, 0, 0), mode="reflect"), smooth.view(1, 1, 1, -1))
+            gauss = F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), smooth.view(1, 1, -1, 1))[0, 0]
         holes = (torch.rand(hb, wb, generator=g) < config.dropout).to(z.device)
         holes = holes.repeat_interleave(b, 0).repeat_interleave(b, 1)[:H, :W]
         valid = z > 0
@@ -476,18 +440,15 @@ def _toward(poses: Tensor, others: Tensor, f: float) -> Tensor:
     """Poses ``(N, 7)`` moved a fraction ``f`` of the way to ``others (N, 7)`` (translation linearly,
     rotation along the geodesic)."""
     q = quat_normalize(poses[:, 3:])
-    dq = so3_log(quat_mul(torch.cat([-q[:, :3], q[:, 3:]], -1), quat_normalize(others[:, 3:])))
+    dq = so3_log(quat_mul(quat_conj(q), quat_normalize(others[:, 3:])))
     return torch.cat([poses[:, :3] + f * (others[:, :3] - poses[:, :3]), quat_mul(q, so3_exp(f * dq))], -1)
 
 
 def apply_motion_blur(rgb: Tensor, depth: Tensor, K: Tensor, poses: Tensor, before: Tensor, after: Tensor,
                       fraction: float, samples: int = 9) -> Tensor:
-    """Motion blur of a moving camera in a static scene, from each sharp frame and its exact depth.
-
-    The exposure is centred on the frame's pose and lasts ``fraction`` of the frame interval, half on the way
-    from the previous pose, half to the next. Each pixel averages the sharp image at the mirrored positions of
-    its surface point's path over ``samples`` instants (screen-space motion blur); pixels without depth keep
-    their colour.
+    """Screen-space motion blur of a moving camera in a static scene, from each sharp frame and its exact depth:
+    each pixel averages the sharp image over ``samples`` instants of an exposure centred on the frame's pose, at
+    the mirror of its surface point's path; pixels without depth keep their colour.
 
     Args:
         rgb: ``(N, H, W, 3)`` uint8 sharp frames.
@@ -529,20 +490,20 @@ def apply_motion_blur(rgb: Tensor, depth: Tensor, K: Tensor, poses: Tensor, befo
         acc = torch.zeros(3, H * W, dtype=torch.float32, device=dev)
         u0 = rays[:, 0] * Kd[0, 0] + Kd[0, 2]
         v0 = rays[:, 1] * Kd[1, 1] + Kd[1, 2]
+        ok = z > 0
         for s in offsets:
             nb = after[i:i + 1] if s > 0 else before[i:i + 1]
             Ps = _toward(P[i:i + 1], nb.to(device=dev, dtype=torch.float64), abs(s))[0]
-            Rsub = quat_to_rotmat(Ps[3:])
-            cam = (world - Ps[:3]) @ Rsub  # R^T (X - t)
+            cam = (world - Ps[:3]) @ quat_to_rotmat(Ps[3:])  # R^T (X - t)
             zc = cam[:, 2].clamp_min(1e-6)
             u = Kd[0, 0] * cam[:, 0] / zc + Kd[0, 2]
             v = Kd[1, 1] * cam[:, 1] / zc + Kd[1, 2]
-            ok = z > 0
             # the colour that reaches pixel p at this instant left the point that is at p - (flow) in the
             # sharp frame: sample there (mirror of the point's own motion)
             us = torch.where(ok, 2 * u0 - u, u0)
             vs = torch.where(ok, 2 * v0 - v, v0)
             grid = torch.stack([2 * us / (W - 1) - 1, 2 * vs / (H - 1) - 1], -1).float().view(1, H, W, 2)
-            acc += F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=True)[0].reshape(3, -1)
+            acc += F.grid_sample(img, grid, mode="bilinear", padding_mode="border",
+                                 align_corners=True)[0].reshape(3, -1)
         out[i] = (acc / samples).round().clamp(0, 255).to(torch.uint8).reshape(3, H, W).permute(1, 2, 0)
     return out

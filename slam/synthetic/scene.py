@@ -1,12 +1,6 @@
-"""The synthetic indoor scene: a textured room holding a handful of textured boxes and panels.
-
-Every primitive is a box (a panel is a thin box) with a yaw about the world z axis (up); the room is a
-box seen from the inside. Each face carries its own texture, composed from the photographs bundled in
-scikit-image's wheel (read with OpenCV, nothing downloaded); without scikit-image, seeded procedural
-patterns replace them with a warning.
-
-The scene's world frame: x east, y north, z up, metres; the floor is ``z = 0`` and the room spans
-``[0, size_x] x [0, size_y] x [0, size_z]``.
+"""The synthetic indoor scene: boxes with a yaw about world z (a panel is a thin box, the room a box seen from
+inside), each face textured from the photographs in scikit-image's wheel (seeded procedural patterns without it).
+World frame: x east, y north, z up, metres; the room spans ``[0, size_x] x [0, size_y] x [0, size_z]``.
 
 Example:
     >>> scene = build_room_scene(RoomConfig(texel_density=32.0))
@@ -52,10 +46,6 @@ PHOTO_FILES: dict[str, str] = {
     "clock": "clock_motion.png", "brick": "brick.png", "gravel": "gravel.png", "grass": "grass.png",
     "cell": "cell.png", "horse": "horse.png", "logo": "logo.png",
 }
-
-# Face order of every box, in the box's local frame: -x, +x, -y, +y, -z, +z.
-FACE_AXES = (0, 0, 1, 1, 2, 2)
-FACE_SIGNS = (-1.0, 1.0, -1.0, 1.0, -1.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -267,13 +257,6 @@ def _tinted_tiling(base: np.ndarray, width: int, height: int, tile_px: int, tint
     return np.clip(shade * np.asarray(tint, np.float32)[None, None] * 255.0, 0, 255).astype(np.uint8)
 
 
-def _paste(dst: np.ndarray, img: np.ndarray, x0: int, y0: int, border: int, border_color) -> None:
-    h, w = img.shape[:2]
-    if border > 0:
-        dst[max(0, y0 - border):y0 + h + border, max(0, x0 - border):x0 + w + border] = border_color
-    dst[y0:y0 + h, x0:x0 + w] = img
-
-
 def compose_surface(rng: np.random.Generator, photos: dict[str, np.ndarray], base: str,
                      tint: Sequence[float], width_m: float, height_m: float, density: float,
                      tile_m: float, contrast: float, posters: Sequence[str], poster_height: tuple[float, float],
@@ -307,57 +290,49 @@ def compose_surface(rng: np.random.Generator, photos: dict[str, np.ndarray], bas
             box = (x0 - gap, y0 - gap, x0 + pw + gap, y0 + ph + gap)
             if any(not (box[2] <= b[0] or b[2] <= box[0] or box[3] <= b[1] or b[3] <= box[1]) for b in placed):
                 continue
-            crop = _crop_to_aspect(rng, img, pw / ph, 0.75)
-            frame_color = tuple(int(c) for c in rng.integers(20, 90, 3))
-            _paste(tex, _resize(crop, pw, ph), x0, max(border, y0), border, frame_color)
+            crop = _resize(_crop_to_aspect(rng, img, pw / ph, 0.75), pw, ph)
+            y0, (ch, cw) = max(border, y0), crop.shape[:2]  # framed by ``border`` texels of a dark colour
+            tex[y0 - border:y0 + ch + border, x0 - border:x0 + cw + border] = rng.integers(20, 90, 3)
+            tex[y0:y0 + ch, x0:x0 + cw] = crop
             placed.append(box)
             break
     return tex
 
 
-def _face_texture(rng: np.random.Generator, photos: dict[str, np.ndarray], name: str, width_m: float,
-                  height_m: float, density: float) -> np.ndarray:
-    """A photograph cropped to the face's aspect ratio and resized to ``density`` texels per metre."""
-    w, h = max(4, round(width_m * density)), max(4, round(height_m * density))
-    crop = _crop_to_aspect(rng, photos[name], w / h, 0.6)
-    return _resize(crop, w, h)
-
-
 def _box_faces(rng: np.random.Generator, photos: dict[str, np.ndarray], size: Sequence[float],
                names: Sequence[str], density: float) -> list[np.ndarray]:
-    """Six face textures (order -x, +x, -y, +y, -z, +z) for a box of ``size`` from photographs."""
+    """Six face textures (order -x, +x, -y, +y, -z, +z) for a box of ``size``: the photographs ``names`` cropped
+    to each face's aspect ratio at ``density`` texels per metre."""
     sx, sy, sz = size
-    extents = [(sy, sz), (sy, sz), (sx, sz), (sx, sz), (sx, sy), (sx, sy)]
-    return [_face_texture(rng, photos, n, a, b, density) for n, (a, b) in zip(names, extents)]
+    faces = []
+    for name, (a, b) in zip(names, [(sy, sz), (sy, sz), (sx, sz), (sx, sz), (sx, sy), (sx, sy)]):
+        w, h = max(4, round(a * density)), max(4, round(b * density))
+        faces.append(_resize(_crop_to_aspect(rng, photos[name], w / h, 0.6), w, h))
+    return faces
 
 
 def _default_boxes(cfg: RoomConfig, photos: dict[str, np.ndarray]) -> list[BoxSpec]:
     rng = np.random.default_rng(cfg.seed)
     X, Y, Z = cfg.size
     d = cfg.texel_density
-    wall_band = (0.85, Z - 0.2)
-    # every wall in its own colour with its own photographs: each direction looks unique
-    west = compose_surface(rng, photos, "brick", (0.72, 0.42, 0.33), Y, Z, d, 1.2, 0.55,
-                            ["astronaut", "clock", "coffee", "ihc", "text"], (0.55, 0.95), wall_band)
-    east = compose_surface(rng, photos, "gravel", (0.88, 0.82, 0.66), Y, Z, d, 1.0, 0.5,
-                            ["hubble", "chelsea", "page", "camera", "color"], (0.55, 0.95), wall_band)
-    south = compose_surface(rng, photos, "cell", (0.62, 0.72, 0.82), X, Z, d, 0.9, 0.6,
-                             ["rocket", "camera", "motorcycle", "retina", "coins", "chelsea"], (0.55, 0.95),
-                             wall_band)
-    north = compose_surface(rng, photos, "grass", (0.60, 0.74, 0.52), X, Z, d, 1.0, 0.55,
-                             ["moon", "ihc", "horse", "coins", "astronaut", "logo"], (0.55, 0.95), wall_band)
+    # west, east, south, north: every wall in its own colour with its own photographs (each direction unique)
+    walls = [compose_surface(rng, photos, base, tint, length, Z, d, tile, contrast, posters, (0.55, 0.95),
+                             (0.85, Z - 0.2)) for base, tint, length, tile, contrast, posters in (
+        ("brick", (0.72, 0.42, 0.33), Y, 1.2, 0.55, ["astronaut", "clock", "coffee", "ihc", "text"]),
+        ("gravel", (0.88, 0.82, 0.66), Y, 1.0, 0.5, ["hubble", "chelsea", "page", "camera", "color"]),
+        ("cell", (0.62, 0.72, 0.82), X, 0.9, 0.6, ["rocket", "camera", "motorcycle", "retina", "coins", "chelsea"]),
+        ("grass", (0.60, 0.74, 0.52), X, 1.0, 0.55, ["moon", "ihc", "horse", "coins", "astronaut", "logo"]))]
     floor = compose_surface(rng, photos, "gravel", (0.58, 0.55, 0.52), X, Y, d, 0.6, 0.6,
                              ["hubble", "logo", "ihc"], (1.0, 1.6), (0.4, Y - 0.4), grout_m=0.6)
     ceiling = compose_surface(rng, photos, "moon", (0.92, 0.92, 0.90), X, Y, d * 0.5, 1.2, 0.35,
                                [], (0.5, 0.6), (0.0, Y), grout_m=0.6)
-    room = BoxSpec("room", (X / 2, Y / 2, Z / 2), (X, Y, Z), 0.0,
-                   [west, east, south, north, floor, ceiling], inside=True)
+    room = BoxSpec("room", (X / 2, Y / 2, Z / 2), (X, Y, Z), 0.0, walls + [floor, ceiling], inside=True)
     od = cfg.object_texel_density
 
     def box(name, center, size, yaw, textures):
         return BoxSpec(name, center, size, yaw, _box_faces(rng, photos, size, textures, od))
 
-    boxes = [
+    return [
         room,
         box("cabinet", (X - 0.3, Y / 2 + 0.7, 0.45), (0.5, 1.2, 0.9), 0.0,
             ["coffee", "brick", "chelsea", "motorcycle", "gravel", "page"]),
@@ -378,49 +353,38 @@ def _default_boxes(cfg: RoomConfig, photos: dict[str, np.ndarray]) -> list[BoxSp
         box("crate", (X - 2.0, 1.2, 0.3), (0.6, 0.6, 0.6), 25.0,
             ["astronaut", "rocket", "camera", "coffee", "gravel", "coins"]),
     ]
-    return boxes
 
 
-def _face_frames(half: np.ndarray, inside: bool):
-    """Per face: local corner, u axis, v axis, extent (u, v), visible-side normal (numpy)."""
-    origins, us, vs, extents, normals = [], [], [], [], []
+def _face_frames(half: np.ndarray, inside: bool) -> tuple[np.ndarray, ...]:
+    """Per face (order -x, +x, -y, +y, -z, +z): local corner ``(6, 3)``, u axis ``(6, 3)``, v axis ``(6, 3)``,
+    extent (u, v) ``(6, 2)``, visible-side normal ``(6, 3)``."""
+    frames = []
     ez = np.array([0.0, 0.0, 1.0])
-    for axis, sign in zip(FACE_AXES, FACE_SIGNS):
-        e = np.zeros(3)
-        e[axis] = 1.0
+    for axis, sign in ((0, -1.0), (0, 1.0), (1, -1.0), (1, 1.0), (2, -1.0), (2, 1.0)):
+        e = np.eye(3)[axis]
         n = sign * e * (-1.0 if inside else 1.0)  # the side the face is seen from
-        if axis < 2:
-            u = np.cross(ez, n)  # viewer's right when facing the face upright
-            v = -ez  # texture rows go down
+        if axis < 2:  # u: the viewer's right facing the face upright; texture rows go down
+            u, v = np.cross(ez, n), -ez
         else:
-            u = np.array([1.0, 0.0, 0.0])
-            v = np.array([0.0, -1.0, 0.0]) if n[2] > 0 else np.array([0.0, 1.0, 0.0])
-        ext_u = 2.0 * float(np.abs(u) @ half)
-        ext_v = 2.0 * float(np.abs(v) @ half)
-        center = sign * half[axis] * e
-        origins.append(center - 0.5 * ext_u * u - 0.5 * ext_v * v)
-        us.append(u)
-        vs.append(v)
-        extents.append((ext_u, ext_v))
-        normals.append(n)
-    return (np.array(origins), np.array(us), np.array(vs), np.array(extents), np.array(normals))
+            u, v = np.array([1.0, 0.0, 0.0]), np.array([0.0, -1.0 if n[2] > 0 else 1.0, 0.0])
+        ext_u, ext_v = 2.0 * float(np.abs(u) @ half), 2.0 * float(np.abs(v) @ half)
+        frames.append((sign * half[axis] * e - 0.5 * ext_u * u - 0.5 * ext_v * v, u, v, (ext_u, ext_v), n))
+    return tuple(np.array(x) for x in zip(*frames))
 
 
 def _mip_chain(tex: np.ndarray, levels: int) -> list[np.ndarray]:
     chain = [np.ascontiguousarray(tex)]
     for _ in range(levels - 1):
-        prev = chain[-1]
-        h, w = prev.shape[:2]
-        chain.append(cv2.resize(prev, (max(1, w // 2), max(1, h // 2)), interpolation=cv2.INTER_AREA)
-                     if (w > 1 or h > 1) else prev)
+        h, w = chain[-1].shape[:2]
+        chain.append(cv2.resize(chain[-1], (max(1, w // 2), max(1, h // 2)), interpolation=cv2.INTER_AREA)
+                     if (w > 1 or h > 1) else chain[-1])
     return chain
 
 
 def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig) -> Scene:
     """Turn box specifications into a :class:`Scene` (float32 geometry, uint8 texture pyramid of 8 levels);
     a texture array shared by several faces is stored once."""
-    centers, rots, halves, inside = [], [], [], []
-    fo, fu, fv, fe, fn, ft, fd = [], [], [], [], [], [], []
+    centers, rots, halves, inside, frames, ft, fd = [], [], [], [], [], [], []
     textures: list[np.ndarray] = []
     tex_ids: dict[int, int] = {}  # id() of a texture array -> its texture id
     for b in boxes:
@@ -433,8 +397,8 @@ def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig) -> Scene:
         centers.append(np.asarray(b.center, np.float64))
         halves.append(half)
         inside.append(b.inside)
-        o, u, v, e, n = _face_frames(half, b.inside)
-        fo.append(o), fu.append(u), fv.append(v), fe.append(e), fn.append(n)
+        frames.append(_face_frames(half, b.inside))
+        e = frames[-1][3]
         ids, dens = [], []
         for k, tex in enumerate(b.faces):
             if tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8:
@@ -447,17 +411,11 @@ def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig) -> Scene:
             dens.append(max(tex.shape[1] / e[k][0], tex.shape[0] / e[k][1]))
         ft.append(ids)
         fd.append(dens)
-    chunks, offsets, sizes = [], [], []
-    cursor = 0
-    for tex in textures:
-        offs, szs = [], []
-        for lvl in _mip_chain(tex, 8):
-            offs.append(cursor)
-            szs.append((lvl.shape[1], lvl.shape[0]))
-            chunks.append(lvl.reshape(-1, 3))
-            cursor += lvl.shape[0] * lvl.shape[1]
-        offsets.append(offs)
-        sizes.append(szs)
+    chains = [_mip_chain(tex, 8) for tex in textures]
+    chunks = [lvl.reshape(-1, 3) for chain in chains for lvl in chain]
+    offsets = np.cumsum([0] + [len(c) for c in chunks[:-1]]).reshape(len(chains), 8)
+    sizes = [[(lvl.shape[1], lvl.shape[0]) for lvl in chain] for chain in chains]
+    fo, fu, fv, fe, fn = (np.stack(x) for x in zip(*frames))
     f32 = torch.float32
 
     def t(x, dtype=f32):
@@ -476,7 +434,7 @@ def tensorize(boxes: Sequence[BoxSpec], cfg: RoomConfig) -> Scene:
 
 def build_room_scene(config: RoomConfig | None = None) -> Scene:
     """The default demo room on the CPU: 7 x 6 x 2.8 m, four distinct walls with framed photographs, a tiled
-    floor, a ceiling and nine photo-textured objects (cabinets, crates, a stand, a shelf, a panel, a table).
+    floor, a ceiling and nine photo-textured objects.
 
     Args:
         config: room settings (default :class:`RoomConfig`).

@@ -1,7 +1,5 @@
-"""Synthetic RGB-D sequences: rendered in memory (:class:`SyntheticSequence`) or written to disk in the
-TUM RGB-D layout (:func:`generate_sequence`), with exact ground truth.
-
-The folder written by :func:`generate_sequence` is read by the same code as a real TUM download::
+"""Synthetic RGB-D sequences with exact ground truth, deterministic by ``seed`` and independent of batching:
+rendered in memory (:class:`SyntheticSequence`) or written by :func:`generate_sequence` in the TUM layout::
 
     out/
       rgb/<timestamp>.png       8-bit RGB
@@ -10,8 +8,6 @@ The folder written by :func:`generate_sequence` is read by the same code as a re
       groundtruth.txt           "timestamp tx ty tz qx qy qz qw" (camera-to-world), one line per frame
       calibration.txt           "fx fy cx cy" of the pinhole camera (no distortion)
       synthetic.json            the generator's settings (trajectory, frames, seed, noise)
-
-Frames are deterministic by ``seed`` (noise and hand shake) and do not depend on batching.
 
 Example:
     >>> seq = SyntheticSequence("loop", num_frames=4, width=32, height=24, scene=_tiny_scene())
@@ -26,6 +22,7 @@ import logging
 import os
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from pathlib import Path
 
 import cv2
@@ -77,19 +74,18 @@ def _tiny_scene() -> Scene:
 
 
 class SyntheticSequence(RGBDSequence):
-    """A rendered RGB-D sequence held as a trajectory; frames are rendered when read.
-
-    ``seq[i]`` / ``for frame in seq`` give :class:`~slam.io.frame.RGBDFrame` s (rgb ``(H, W, 3)`` uint8,
-    depth ``(H, W)`` float32 metres quantised to 1/5000 m exactly as the written 16-bit PNG reads back,
-    ``K (3, 3)``, ``pose_gt (7,)``), identical to what :func:`generate_sequence` writes.
+    """A rendered RGB-D sequence held as a trajectory: ``seq[i]`` / ``for frame in seq`` render
+    :class:`~slam.io.frame.RGBDFrame` s (rgb ``(H, W, 3)`` uint8, depth ``(H, W)`` float32 metres quantised to
+    1/5000 m, ``K (3, 3)``, ``pose_gt (7,)``) identical to what :func:`generate_sequence` writes.
 
     Args:
-        trajectory: a name from :data:`slam.synthetic.trajectories.TRAJECTORIES` or a
+        trajectory: ``"loop"``, ``"figure_eight"``, ``"out_and_back"`` or a
             :class:`~slam.io.trajectory.Trajectory` (camera-to-world poses in the scene's frame).
-        num_frames: frames of a named trajectory (ignored for a given Trajectory).
+        num_frames: frames of a named trajectory at 30 Hz (ignored for a given Trajectory).
         width: image columns W.
         height: image rows H.
-        seed: seeds the depth/image noise of every frame and the trajectory's hand shake.
+        seed: seeds the depth/image noise of every frame and the trajectory's hand shake (equal seeds give
+            byte-identical frames).
         depth_noise: Kinect-like depth noise, quantisation and holes (``depth_noise_config``).
         image_noise: exposure and pixel noise (``image_noise_config``).
         scene: the scene (default: the shared :func:`default_room_scene`).
@@ -199,14 +195,8 @@ def _frame_names(stamps: np.ndarray) -> list[str]:
         more = f" (and {len(bad) - 3} more)" if len(bad) > 3 else ""
         raise ValueError(f"non-finite trajectory timestamps cannot name frame files: {shown}{more}")
     names = [f"{t:.6f}.png" for t in stamps]
-    first: dict[float, int] = {}
-    clashes = []
-    for i, name in enumerate(names):
-        key = float(name[:-4])  # "-0.000000" and "0.000000" are one stamp in rgb.txt
-        if key in first:
-            clashes.append((first[key], i))
-        else:
-            first[key] = i
+    first: dict[float, int] = {}  # keyed by value: "-0.000000" and "0.000000" are one stamp in rgb.txt
+    clashes = [(a, i) for i, name in enumerate(names) if (a := first.setdefault(float(name[:-4]), i)) != i]
     if clashes:
         shown = "; ".join(f"frames {a} and {b} ({float(stamps[a])!r} s and {float(stamps[b])!r} s) both give "
                           f"{names[b][:-4]}" for a, b in clashes[:3])
@@ -216,28 +206,17 @@ def _frame_names(stamps: np.ndarray) -> list[str]:
     return names
 
 
-def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory = "loop",
-                      num_frames: int = 300, width: int = 640, height: int = 480, seed: int = 0,
-                      depth_noise: bool = True, image_noise: bool = True, scene: Scene | None = None,
+def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory = "loop", num_frames: int = 300,
                       batch_size: int = 2, workers: int = 2, progress: bool = False, **kwargs) -> Path:
     """Render a synthetic sequence and write it in the TUM RGB-D layout (see the module docstring).
 
     Args:
         out_dir: the sequence folder (created; files of the same names are overwritten).
-        trajectory: ``"loop"`` (default), ``"figure_eight"``, ``"out_and_back"``, or a
-            :class:`~slam.io.trajectory.Trajectory`.
-        num_frames: frames (30 Hz; 300 = 10 s).
-        width: image columns.
-        height: image rows.
-        seed: noise and hand-shake seed; equal seeds give byte-identical files.
-        depth_noise: Kinect-like depth noise, quantisation and holes.
-        image_noise: exposure and pixel noise.
-        scene: the scene (default: the standard room).
-        batch_size: frames per rendering task.
+        trajectory, num_frames, batch_size: as for :class:`SyntheticSequence`.
         workers: rendering threads, each rendering whole frames with one torch thread (restored afterwards);
             1 renders in the caller with torch's settings untouched.
         progress: log a line every ~10 % of the frames.
-        **kwargs: passed to :class:`SyntheticSequence` (noise and trajectory configs).
+        **kwargs: passed to :class:`SyntheticSequence` (width, height, seed, noise, scene).
 
     Returns:
         The folder's path.
@@ -246,16 +225,13 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
         ValueError: a trajectory timestamp that is not finite, or two that give the same file name (equal
             at 1 microsecond); nothing is written then.
     """
-    seq = SyntheticSequence(trajectory, num_frames=num_frames, width=width, height=height, seed=seed,
-                            depth_noise=depth_noise, image_noise=image_noise, scene=scene, batch_size=batch_size,
-                            **kwargs)
+    seq = SyntheticSequence(trajectory, num_frames=num_frames, batch_size=batch_size, **kwargs)
     names = _frame_names(seq.timestamps)  # checked before anything is rendered or written
     out = Path(out_dir).expanduser()
-    (out / "rgb").mkdir(parents=True, exist_ok=True)
-    (out / "depth").mkdir(parents=True, exist_ok=True)
+    for sub in ("rgb", "depth"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
     n = len(seq)
     batches = [list(range(s, min(n, s + seq.batch_size))) for s in range(0, n, seq.batch_size)]
-    workers = max(1, int(workers))
 
     def task(idx: list[int]) -> None:
         rgb, raw = seq.render_raw(idx)
@@ -266,31 +242,24 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
                 raise OSError(f"could not write frame {i} into {out}")
 
     step = max(1, len(batches) // 10)
-    with limit_threads(1 if workers > 1 else None):  # the workers share the cores: one thread each
-        if workers == 1:
-            for b, idx in enumerate(batches):
-                task(idx)
-                if progress and b % step == 0:
-                    logger.info("synthetic sequence: %d / %d frames", idx[-1] + 1, n)
-        else:
-            with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="synthetic") as pool:
-                for b, fut in enumerate([pool.submit(task, idx) for idx in batches]):
-                    fut.result()  # re-raises a worker's error
-                    if progress and b % step == 0:
-                        logger.info("synthetic sequence: %d / %d frames", batches[b][-1] + 1, n)
+    workers = max(1, int(workers))
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="synthetic") if workers > 1 else None
+    with limit_threads(1 if pool else None), pool or nullcontext():  # the workers share the cores: one thread each
+        for b, _ in enumerate(pool.map(task, batches) if pool else map(task, batches)):  # re-raises a task's error
+            if progress and b % step == 0:
+                logger.info("synthetic sequence: %d / %d frames", batches[b][-1] + 1, n)
     stamps = seq.timestamps
     for sub, kind in (("rgb", "color images"), ("depth", "depth maps")):
-        with open(out / f"{sub}.txt", "w", encoding="utf-8") as f:
-            f.write("\n".join([f"# {kind}", f"# file: '{seq.name}'", "# timestamp filename"]
-                              + [f"{t:.6f} {sub}/{nm}" for t, nm in zip(stamps, names)]) + "\n")
+        (out / f"{sub}.txt").write_text("\n".join([f"# {kind}", f"# file: '{seq.name}'", "# timestamp filename"]
+                                                  + [f"{t:.6f} {sub}/{nm}" for t, nm in zip(stamps, names)]) + "\n",
+                                        encoding="utf-8")
     with open(out / "groundtruth.txt", "w", encoding="utf-8") as f:
         f.write("# ground truth trajectory\n")
         f.write(f"# file: '{seq.name}' (exact: the rendered camera-to-world poses)\n")
         write_tum_trajectory(f, Trajectory(torch.from_numpy(stamps), torch.from_numpy(seq._poses)), header=True)
     K = seq.K
-    with open(out / "calibration.txt", "w", encoding="utf-8") as f:
-        f.write("# pinhole intrinsics of the rendered images: fx fy cx cy (pixels), no distortion\n")
-        f.write(f"{K[0, 0]:.6f} {K[1, 1]:.6f} {K[0, 2]:.6f} {K[1, 2]:.6f}\n")
-    with open(out / "synthetic.json", "w", encoding="utf-8") as f:
-        json.dump(seq.settings(), f, indent=2)
+    (out / "calibration.txt").write_text("# pinhole intrinsics of the rendered images: fx fy cx cy (pixels), no "
+                                         f"distortion\n{K[0, 0]:.6f} {K[1, 1]:.6f} {K[0, 2]:.6f} {K[1, 2]:.6f}\n",
+                                         encoding="utf-8")
+    (out / "synthetic.json").write_text(json.dumps(seq.settings(), indent=2), encoding="utf-8")
     return out

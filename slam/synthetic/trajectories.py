@@ -1,16 +1,7 @@
-"""Camera trajectories through the default room (:func:`slam.synthetic.scene.build_room_scene`) with
-known revisits, timed for a 30 Hz hand-held RGB-D camera.
-
-Each path is a smooth curve ``s in [0, 1] -> (position, viewing direction, roll)``. The frames are placed
-along it so that a combined effort ``sqrt((dl / v_ref)^2 + (dtheta / w_ref)^2)`` grows evenly in time
-(slower where the camera turns fast), starting and stopping smoothly; small seeded hand shake is added.
-
-* ``loop``: 1.1 turns of a ~0.9 m circle around the room's centre, looking outwards: the last frames
-  revisit the first views from ~10 cm further out.
-* ``figure_eight``: a lemniscate facing south, panning with the lobes, back to its start.
-* ``out_and_back``: a 3 m sideways sweep facing the north wall and back along a slightly offset line.
-
-Poses are camera-to-world ``(N, 7) = [t, q_xyzw]`` float64 (camera x right, y down, z forward; world z up).
+"""Camera trajectories through the default room with known revisits, timed for a 30 Hz hand-held RGB-D camera:
+``loop`` (1.1 turns of a ~0.9 m circle looking outwards, revisiting its first views), ``figure_eight`` (a lemniscate
+facing south) and ``out_and_back`` (a 3 m sideways sweep facing north and back). Poses are camera-to-world
+``(N, 7) = [t, q_xyzw]`` float64 (camera x right, y down, z forward; world z up).
 
 Example:
     >>> traj = make_trajectory("loop", num_frames=50)
@@ -112,13 +103,6 @@ def _out_and_back_path(s):
     return np.stack([x, y, z], -1), view_direction(yaw, pitch), np.zeros_like(s)
 
 
-def _speed_profile(tau: np.ndarray, ramp: float) -> np.ndarray:
-    """Relative speed over normalised time: cosine ramps up from rest and back down to rest."""
-    up = np.clip(tau / ramp, 0, 1)
-    down = np.clip((1 - tau) / ramp, 0, 1)
-    return 0.5 - 0.5 * np.cos(np.pi * np.minimum(up, down))
-
-
 def _shake(rng: np.random.Generator, times: np.ndarray, dims: int) -> np.ndarray:
     """Smooth zero-mean noise ``(N, dims)`` with unit-ish amplitude: a few random sinusoids per axis."""
     out = np.zeros((len(times), dims))
@@ -131,7 +115,9 @@ def _shake(rng: np.random.Generator, times: np.ndarray, dims: int) -> np.ndarray
 
 
 def sample_path(path: PathFn, num_frames: int, seed: int) -> Trajectory:
-    """Frames along ``path``, timed as the module docstring says."""
+    """``num_frames`` frames along ``path`` (``s in [0, 1] -> (position, viewing direction, roll)``), spaced so that
+    the effort ``sqrt((dl / v_ref)^2 + (dtheta / w_ref)^2)`` grows evenly in time, starting and stopping smoothly,
+    with a seeded hand shake."""
     if num_frames < 2:
         raise ValueError(f"num_frames must be >= 2, got {num_frames}")
     # Effort along a dense sampling of the path.
@@ -143,9 +129,11 @@ def sample_path(path: PathFn, num_frames: int, seed: int) -> Trajectory:
     effort = np.sqrt((dl / _REF_SPEED) ** 2 + (dth / math.radians(_REF_ANGULAR_SPEED)) ** 2)
     cum = np.concatenate([[0.0], np.cumsum(effort)])
     cum /= cum[-1]
-    # Frames: effort progress follows the integral of the speed profile.
+    # Frames: effort progress follows the integral of the speed, cosine ramps up from rest and back down to rest.
     tau_fine = np.linspace(0.0, 1.0, 20001)
-    prog = np.concatenate([[0.0], np.cumsum(_speed_profile(0.5 * (tau_fine[1:] + tau_fine[:-1]), _RAMP))])
+    mid = 0.5 * (tau_fine[1:] + tau_fine[:-1])
+    speed = 0.5 - 0.5 * np.cos(np.pi * np.minimum(np.clip(mid / _RAMP, 0, 1), np.clip((1 - mid) / _RAMP, 0, 1)))
+    prog = np.concatenate([[0.0], np.cumsum(speed)])
     prog /= prog[-1]
     tau = np.linspace(0.0, 1.0, num_frames)
     s_frames = np.interp(np.interp(tau, tau_fine, prog), cum, s)
