@@ -94,12 +94,9 @@ class DescriptorConfig:
     """
 
     preset: str = "default"  # attnloop.presets.PRESETS: the measured default, the paper's, its baseline's
-    # "auto": "vgg16" when its weights are found (always with the paper's presets), else "efficientnet_lite0"
-    backbone: str = "auto"
-    # "none" | "dam" | "eam" | "gaf" | "ega"; None: the preset's (default and guclu2019: none; paper: DAM)
-    fusion: Optional[str] = None
-    # random RNNs after the pooling (num_rnn * 64 dims); None: the preset's (0 for the default, 16 for the others)
-    num_rnn: Optional[int] = None
+    backbone: str = "auto"  # "auto": vgg16 when its weights are found (always for the paper's presets), else Lite0
+    fusion: Optional[str] = None  # "none" | "dam" | "eam" | "gaf" | "ega"; None: the preset's (paper: DAM)
+    num_rnn: Optional[int] = None  # random RNNs after the pooling (num_rnn * 64 dims); None: the preset's
     seed: int = 0  # seed of the random RNN weights when there are RNNs (same seed, same descriptor)
     pretrained: bool = True  # ImageNet weights; False = seeded random weights (plumbing tests only)
     weights: Optional[str] = None  # explicit checkpoint path (else torch hub cache, else download)

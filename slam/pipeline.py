@@ -92,30 +92,25 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
              progress: bool | None = None, descriptor: torch.nn.Module | None = None, frame_step: int = 1,
              frames: tuple[int, int] | None = None, save_map: str | os.PathLike | None = None, map_dir=None,
              observer=None) -> RunResult:
-    """Track every frame of ``sequence`` (or every ``frame_step``-th) and optimise.
-
-    A frame that cannot be read is skipped with a warning and placed by constant velocity. torch, BLAS and
-    OpenCV compute with ``config.threads`` threads during the run (:func:`slam.threads.limit_threads`).
+    """Track every frame of ``sequence`` (or every ``frame_step``-th) and optimise, with ``config.threads``
+    threads (:func:`slam.threads.limit_threads`). A frame that cannot be read is skipped with a warning and placed
+    by constant velocity.
 
     Args:
         sequence: an opened sequence (:func:`slam.io.open_sequence`).
         config: :class:`slam.config.SLAMConfig` (frozen, checked when built).
         max_frames: use only the first ``max_frames`` input frames.
-        progress: show a progress bar on stderr, with frames/s and the time left (tqdm; None: when stderr is a
-            terminal).
+        progress: a tqdm progress bar on stderr (None: when stderr is a terminal).
         descriptor: a prebuilt descriptor model (else built from the config).
         frame_step: use input frames ``0, N, 2N, ...`` of those (the trajectory and metrics are on them).
         frames: ``(start, end)``: the recording is input frames ``start .. end - 1`` only, re-numbered from
             0 (``max_frames`` and ``frame_step`` then apply to them).
         save_map: a folder to save the run's map in (:mod:`slam.maps`); with ``map_dir``, the saved map grown
             by this recording when it relocalised, else its own map.
-        map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording in:
-            every pose is then in the map's world, or in its own when it never relocalises
-            (``run.relocalisation`` says which). With ``config.relocalisation.localize`` the recording is only
-            localised in it: no loops of its own, no map.ply, nothing saved.
-        observer: called as ``observer.frame(frame, state, slam)`` after each frame (``frame`` None when it could
-            not be read; ``state`` its :class:`slam.system.FrameState`) and ``observer.finish(result)`` with the
-            final :class:`slam.system.SLAMResult`: :class:`slam.viewer.RunViewer` draws the run.
+        map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording in
+            (``run.relocalisation`` says whether it did); with ``config.relocalisation.localize`` only localised.
+        observer: called as ``observer.frame(frame, state, slam)`` after each frame (``frame`` None when unreadable)
+            and ``observer.finish(result)`` at the end (:class:`slam.viewer.RunViewer`).
 
     Returns:
         :class:`RunResult`.

@@ -133,8 +133,7 @@ def evaluate_run(run) -> RunReport:
         "wall_seconds": round(run.wall_seconds, 3),
         "time_per_stage": res.timings,
         "backbone": run.backbone,
-        "loop_hypotheses": {s: sum(lp.status == s for lp in res.loop_hypotheses)
-                            for s in ("kept", "inconsistent", "switched_off")},
+        "loop_hypotheses": _by_status(res.loop_hypotheses),
         "online_corrections": {"count": len(res.corrections),
                                "total_ms": round(1000 * sum(c.seconds for c in res.corrections), 3),
                                "max_ms": round(1000 * max((c.seconds for c in res.corrections), default=0.0), 3)},
@@ -224,14 +223,16 @@ def evaluate_run(run) -> RunReport:
         m["loops_true"] = int(judged.sum())
         m["loops_false"] = int((~judged).sum())
         hyp = res.loop_hypotheses
-        true_hyp = judge(hyp).tolist()
-        m["loop_hypotheses_false"] = {s: sum(lp.status == s and not t for lp, t in zip(hyp, true_hyp))
-                                      for s in ("kept", "inconsistent", "switched_off")}
+        m["loop_hypotheses_false"] = _by_status([lp for lp, t in zip(hyp, judge(hyp).tolist()) if not t])
         m["loop_detection"] = loop_precision_recall(run, cfg)
     if run.relocalisation is not None:
         m["relocalisation"] = _relocalisation_metrics(run)
     run.report = RunReport(**m)
     return run.report
+
+
+def _by_status(loops) -> dict[str, int]:
+    return {s: sum(lp.status == s for lp in loops) for s in ("kept", "inconsistent", "switched_off")}
 
 
 def loop_worker_metrics(result: SLAMResult, config: SLAMConfig | None = None) -> dict[str, object]:

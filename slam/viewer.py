@@ -90,11 +90,10 @@ def _transform(rr, pose: list):
 
 
 class RunViewer:
-    """Logs a run to a rerun recording: :func:`slam.pipeline.run_slam` calls :meth:`frame` after each frame and
-    :meth:`finish` with the final result (its ``observer``); :meth:`close` when done.
+    """Logs a run to a rerun recording, as :func:`slam.pipeline.run_slam`'s ``observer``; :meth:`close` when done.
 
-    The logging runs in a thread of its own, in order (rerun calls made from the tracking thread waited on the
-    interpreter's lock); at most 8 frames wait for it, the tracking thread waits beyond that.
+    The logging runs in a thread of its own (rerun calls from the tracking thread waited on the interpreter's
+    lock); at most 8 frames wait for it, the tracking thread waits beyond that.
 
     Args:
         recording: a ``rerun.RecordingStream`` with its sinks set.
