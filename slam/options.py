@@ -253,8 +253,8 @@ _VIEWER = "viewer (pip install 'attnloop[viewer]')"
 #: Every flag of a run, in help order. One line adds one (see the module docstring).
 OPTIONS: tuple[Option, ...] = (
     Option("--preset", "loop.descriptor.preset", _LOOP, "the loop descriptor (attnloop.presets): default (ours, "
-           "measured), paper (Caglayan et al.: VGG16 pool5, attention, 16 random RNNs, 1024-d; VGG16's weights "
-           "required) or guclu2019 (the paper's baseline: no attention)", choices=tuple(PRESETS)),
+           "measured), paper (Caglayan et al.: VGG16 pool5, attention, channel merge, 16 random RNNs, 1024-d; VGG16's "
+           "weights required) or guclu2019 (the paper's baseline: no attention, no merge)", choices=tuple(PRESETS)),
     Option("--fusion", "loop.descriptor.fusion", _LOOP, "attention fusion (default: the preset's: none; the "
            "paper's dam)", choices=FUSION_MODES),
     Option("--backbone", "loop.descriptor.backbone", _LOOP, "ImageNet CNN: vgg16 (downloaded if not cached), "
