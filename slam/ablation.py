@@ -1,10 +1,6 @@
-"""Table 1 of the paper: the SLAM system with each descriptor column on one or more sequences.
-
-Used by ``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``; each sequence's settings are resolved by
-the caller as ``attnloop-slam`` resolves them (:func:`slam.options.resolve_settings`). The columns are baseline
-(the ``guclu2019`` preset), GAF, EAM, EGA and DAM (the ``paper`` preset with each fusion), or our fusion modes
-with the ``default`` preset; :func:`markdown_table` adds an average row per camera group and the paper's figure
-beside ours where :data:`PAPER_TABLE1` holds it (``0.0213 (paper 0.020)``).
+"""Table 1 of the paper: the SLAM system with each descriptor column (:data:`COLUMNS`) on one or more sequences,
+each resolved by the caller as ``attnloop-slam`` resolves it (:func:`slam.options.resolve_settings`); used by
+``examples/ablation.py`` and ``benchmarks/slam_pipeline.py``.
 """
 from __future__ import annotations
 
@@ -16,9 +12,8 @@ from pathlib import Path
 from typing import Any, Optional
 
 from attnloop.fusion import FUSION_MODES
-from slam.config import override
+from slam.config import UsageError, override
 from slam.eval import plot_pr_curves
-from slam.config import UsageError
 from slam.outputs import prepare_output_dir, write_outputs
 from slam.pipeline import run_slam
 from slam.report import evaluate_run

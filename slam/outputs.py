@@ -1,14 +1,6 @@
-"""The files of a run, written into its output folder by :func:`write_outputs`:
-
-* ``trajectory.txt``: TUM format, one pose per input frame, in input order;
-* ``loops.txt``: one accepted loop per line, ``timestamp_a timestamp_b`` (the two keyframes' own stamps);
-* ``metrics.json``: the run's :class:`slam.report.RunReport`, valid JSON (a value that is not finite is written
-  as null and named in ``non_finite``);
-* ``trajectory.png``: the estimate (and ground truth) seen from above with the loop edges;
-* ``map.ply``: the keyframes' coloured points placed with the optimised poses (:mod:`slam.mapping`).
-
-Each file is written under a temporary name and renamed into place (:func:`replace_atomically`);
-:func:`prepare_output_dir` checks the folder before a run and removes the previous run's outputs.
+"""The files of a run (``trajectory.txt``, ``loops.txt``, ``metrics.json``, ``trajectory.png``, ``map.ply``;
+docs/pipeline.md says what each holds), each written under a temporary name and renamed into place
+(:func:`write_outputs`); :func:`prepare_output_dir` checks the folder before a run and clears the previous outputs.
 """
 from __future__ import annotations
 

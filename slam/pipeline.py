@@ -1,9 +1,5 @@
-"""The run loop: every frame of a sequence read (decoded ahead in threads), tracked, its new keyframes'
+"""The run loop (:func:`run_slam`): every frame read (decoded ahead in threads) and tracked, the new keyframes'
 points computed in a map worker, the loop work in the system's loop worker, then the final optimisation.
-
-:func:`run_slam` returns a :class:`RunResult`; :func:`slam.report.evaluate_run` makes its report
-(``metrics.json``) and :func:`slam.outputs.write_outputs` writes the files. The command line
-(:mod:`slam.cli`) and the examples only parse arguments and call these functions.
 """
 from __future__ import annotations
 
@@ -41,28 +37,21 @@ class RunResult:
     """A finished run: the system's result plus wall-clock figures.
 
     Attributes:
-        result: :class:`slam.system.SLAMResult`.
-        sequence_name: name of the sequence.
-        wall_seconds: time of the whole run (reading, tracking, loops, final optimisation).
-        fps: input frames per second over ``wall_seconds``.
+        result, sequence_name, config, frame_step: :class:`slam.system.SLAMResult`, the sequence's name, the
+            config used, the step between the input frames used.
+        wall_seconds, fps: time of the whole run (reading, tracking, loops, final optimisation), frames per second.
         groundtruth: per-frame ground truth (input order) or None.
         gt_poses_per_frame: ``(N, 7)`` ground truth of each processed frame (NaN where unknown).
-        report: its :class:`slam.report.RunReport` (``metrics.json``), set by :func:`slam.report.evaluate_run`.
-        loop_curves: ``{"before_verification": PRCurve, "after_verification": PRCurve}`` (with ground truth,
-            filled by :func:`slam.report.evaluate_run`).
-        config: the config the run used.
-        frame_step: every ``frame_step``-th input frame was used.
+        report, loop_curves, map_cloud: set by :func:`slam.report.evaluate_run`: the :class:`slam.report.RunReport`,
+            ``{"before_verification": PRCurve, "after_verification": PRCurve}`` (with ground truth), and the merged
+            map ``(points (N, 3) float32, colours (N, 3) uint8)`` placed with the final keyframe poses.
         map: the keyframes' points (:class:`slam.mapping.PointCloudMap`), None when the map is off.
-        map_cloud: the merged map ``(points (N, 3) float32, colours (N, 3) uint8)`` placed with the final
-            keyframe poses (filled by :func:`slam.report.evaluate_run`).
-        backbone: the descriptor's backbone as built (None without loop closure).
-        descriptor_dim: the size of its descriptors (None without loop closure).
-        relocalisation: the :class:`slam.maps.RelocalisationReport` of a run in a saved map (``map_dir``).
-        map_origin: ``(7,)`` ground truth of the saved map's origin, if known.
-        saved_map: where ``save_map`` wrote the run's map.
+        backbone, descriptor_dim: the descriptor's backbone as built and its size (None without loop closure).
+        relocalisation, map_origin, saved_map: the :class:`slam.maps.RelocalisationReport` of a run in a saved map,
+            ``(7,)`` ground truth of that map's origin if known, where ``save_map`` wrote the run's map.
         camera: ``{"name": "fr2" / "calibration.txt" / None, "intrinsics": [fx, fy, cx, cy]}``.
-        groundtruth_note: why no frame has ground truth when the sequence has a file of it.
-        first_untracked: why the first frame that was lost or unreadable was.
+        groundtruth_note, first_untracked: why no frame has ground truth when the sequence has a file of it; why the
+            first untracked frame was lost or unreadable.
     """
 
     result: SLAMResult
@@ -103,30 +92,25 @@ def run_slam(sequence: RGBDSequence, config: SLAMConfig | None = None, max_frame
              progress: bool | None = None, descriptor: torch.nn.Module | None = None, frame_step: int = 1,
              frames: tuple[int, int] | None = None, save_map: str | os.PathLike | None = None, map_dir=None,
              observer=None) -> RunResult:
-    """Track every frame of ``sequence`` (or every ``frame_step``-th) and optimise.
-
-    A frame that cannot be read is skipped with a warning and placed by constant velocity. torch, BLAS and
-    OpenCV compute with ``config.threads`` threads during the run (:func:`slam.threads.limit_threads`).
+    """Track every frame of ``sequence`` (or every ``frame_step``-th) and optimise, with ``config.threads``
+    threads (:func:`slam.threads.limit_threads`). A frame that cannot be read is skipped with a warning and placed
+    by constant velocity.
 
     Args:
         sequence: an opened sequence (:func:`slam.io.open_sequence`).
         config: :class:`slam.config.SLAMConfig` (frozen, checked when built).
         max_frames: use only the first ``max_frames`` input frames.
-        progress: show a progress bar on stderr, with frames/s and the time left (tqdm; None: when stderr is a
-            terminal).
+        progress: a tqdm progress bar on stderr (None: when stderr is a terminal).
         descriptor: a prebuilt descriptor model (else built from the config).
         frame_step: use input frames ``0, N, 2N, ...`` of those (the trajectory and metrics are on them).
         frames: ``(start, end)``: the recording is input frames ``start .. end - 1`` only, re-numbered from
             0 (``max_frames`` and ``frame_step`` then apply to them).
         save_map: a folder to save the run's map in (:mod:`slam.maps`); with ``map_dir``, the saved map grown
             by this recording when it relocalised, else its own map.
-        map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording in:
-            every pose is then in the map's world, or in its own when it never relocalises
-            (``run.relocalisation`` says which). With ``config.relocalisation.localize`` the recording is only
-            localised in it: no loops of its own, no map.ply, nothing saved.
-        observer: called as ``observer.frame(frame, state, slam)`` after each frame (``frame`` None when it could
-            not be read; ``state`` its :class:`slam.system.FrameState`) and ``observer.finish(result)`` with the
-            final :class:`slam.system.SLAMResult`: :class:`slam.viewer.RunViewer` draws the run.
+        map_dir: a saved map (its folder, or a :class:`slam.maps.SavedMap`) to relocalise this recording in
+            (``run.relocalisation`` says whether it did); with ``config.relocalisation.localize`` only localised.
+        observer: called as ``observer.frame(frame, state, slam)`` after each frame (``frame`` None when unreadable)
+            and ``observer.finish(result)`` at the end (:class:`slam.viewer.RunViewer`).
 
     Returns:
         :class:`RunResult`.

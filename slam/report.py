@@ -1,7 +1,4 @@
-"""The report of a run: :class:`RunReport`, what ``metrics.json`` holds, computed from a
-:class:`slam.pipeline.RunResult` by :func:`evaluate_run` (the ATE and RPE against the ground truth, the loops
-judged by it, the loop detector's precision and recall, the loop worker's lag, the stages' times).
-"""
+"""The report of a run (:class:`RunReport`, ``metrics.json``), computed by :func:`evaluate_run`."""
 from __future__ import annotations
 
 import dataclasses
@@ -26,40 +23,27 @@ class RunReport:
     frames were tracked). Units: seconds, metres, degrees; ``time_per_stage`` in ms (:class:`slam.timing.StageTimer`).
 
     Attributes:
-        sequence: the sequence's name.
-        num_frames: frames processed (every ``frame_step``-th input frame).
-        frame_step: the step between processed input frames.
-        num_keyframes, num_loops, num_lost, num_skipped: keyframes, accepted loops, frames lost by tracking,
-            frames that could not be read.
-        released_keyframes: revisits that added nothing, their features, image and map points dropped
-            (``LoopClosureConfig.release_revisits``).
-        fps: frames per second over ``wall_seconds`` (reading, tracking, loops, final optimisation).
-        wall_seconds: the run's wall time.
-        time_per_stage: the system's stage timings (:attr:`slam.system.SLAMResult.timings`).
-        backbone: the descriptor's backbone as built (None without loop closure).
-        loop_hypotheses: every verified loop by its final status (kept / inconsistent / switched_off).
+        sequence, num_frames, frame_step: the sequence's name, the frames processed, the step between them.
+        num_keyframes, released_keyframes, num_loops, num_lost, num_skipped: keyframes, those released as revisits
+            (``LoopClosureConfig.release_revisits``), accepted loops, frames lost, frames that could not be read.
+        fps, wall_seconds, time_per_stage: the run's speed and time, the system's stage timings.
+        backbone, descriptor: the descriptor's backbone as built and its settings (None without loop closure).
+        loop_hypotheses, loop_hypotheses_false: verified loops (the false ones) by final status.
         online_corrections: ``count``, ``total_ms``, ``max_ms`` of the online pose-graph corrections.
         loop_worker: the loop worker's lag (:func:`loop_worker_metrics`).
         error: why the run stopped early (a :class:`slam.system.LoopWorkerError`).
-        descriptor: the descriptor's settings (preset, backbone, dim, fusion, seed, weights, recipe).
-        rig: the camera rig the run tracked with, in words.
-        camera: the sequence's camera (:func:`slam.pipeline.camera_of`).
+        rig, camera: the rig tracked with, in words; the sequence's camera (:func:`slam.pipeline.camera_of`).
         map: points of the merged map, keyframes, points and MB kept during the run, voxel size (m).
         pose_graph: keyframes, edges, initial and final chi2, status and iterations of the final optimisation.
-        ate_rmse: the ATE's RMSE (m; rigid SE(3) alignment, TUM association), None with ``ate_unavailable``.
-        num_tracked: the frames placed by tracking (the first one included).
-        status: ``"ok"``, or ``"failed"`` below ``SLAMConfig.min_tracked_fraction`` (``failure`` says why).
-        failure: why the run failed.
-        ate_unavailable: why there is no ATE (no ground truth, fewer than 3 frames with it, ...).
-        ate: the ATE's rmse, mean, median, std, max (m) and num_pairs.
-        odometry_ate_rmse: the ATE of the odometry before the pose graph (m).
-        ate_tracked: the ATE over the tracked frames alone (rmse, num_pairs), or why not.
+        num_tracked, status, failure: frames placed by tracking (the first included); ``"ok"``, or ``"failed"``
+            below ``SLAMConfig.min_tracked_fraction`` and why.
+        ate_rmse, ate, ate_unavailable: the ATE's RMSE (m; rigid SE(3) alignment), its statistics (m) and
+            ``num_pairs``, or why there is none.
+        odometry_ate_rmse, ate_tracked: the ATE of the odometry alone; over the tracked frames alone.
         rpe_1frame, rpe_1s: the RPE over 1 frame and 1 s (translation m, rotation deg, num_pairs), or why not.
-        loop_ground_truth: the :class:`slam.eval.LoopGroundTruthConfig` the loops were judged with.
-        loops_true, loops_false: accepted loops judged by ground-truth distance and angle.
-        loop_hypotheses_false: the false ones among the verified loops, by final status.
-        loop_detection: the detector's precision/recall before and after verification
-            (:func:`loop_precision_recall`).
+        loop_ground_truth, loops_true, loops_false: the :class:`slam.eval.LoopGroundTruthConfig` the accepted
+            loops were judged with, and the verdicts.
+        loop_detection: the detector's precision/recall before and after verification (:func:`loop_precision_recall`).
         relocalisation: the relocalisation in a saved map (:class:`slam.maps.RelocalisationReport`'s dict).
     """
 
@@ -149,8 +133,7 @@ def evaluate_run(run) -> RunReport:
         "wall_seconds": round(run.wall_seconds, 3),
         "time_per_stage": res.timings,
         "backbone": run.backbone,
-        "loop_hypotheses": {s: sum(lp.status == s for lp in res.loop_hypotheses)
-                            for s in ("kept", "inconsistent", "switched_off")},
+        "loop_hypotheses": _by_status(res.loop_hypotheses),
         "online_corrections": {"count": len(res.corrections),
                                "total_ms": round(1000 * sum(c.seconds for c in res.corrections), 3),
                                "max_ms": round(1000 * max((c.seconds for c in res.corrections), default=0.0), 3)},
@@ -240,14 +223,16 @@ def evaluate_run(run) -> RunReport:
         m["loops_true"] = int(judged.sum())
         m["loops_false"] = int((~judged).sum())
         hyp = res.loop_hypotheses
-        true_hyp = judge(hyp).tolist()
-        m["loop_hypotheses_false"] = {s: sum(lp.status == s and not t for lp, t in zip(hyp, true_hyp))
-                                      for s in ("kept", "inconsistent", "switched_off")}
+        m["loop_hypotheses_false"] = _by_status([lp for lp, t in zip(hyp, judge(hyp).tolist()) if not t])
         m["loop_detection"] = loop_precision_recall(run, cfg)
     if run.relocalisation is not None:
         m["relocalisation"] = _relocalisation_metrics(run)
     run.report = RunReport(**m)
     return run.report
+
+
+def _by_status(loops) -> dict[str, int]:
+    return {s: sum(lp.status == s for lp in loops) for s in ("kept", "inconsistent", "switched_off")}
 
 
 def loop_worker_metrics(result: SLAMResult, config: SLAMConfig | None = None) -> dict[str, object]:

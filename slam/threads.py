@@ -1,8 +1,7 @@
 """The thread counts a run computes with: torch's intra-op pool, the BLAS and OpenMP libraries' and OpenCV's.
 
-The work is many small per-frame operations: a pool larger than the free cores waits at every barrier for a
-descheduled thread, so a run takes ``SLAMConfig.threads = 1`` by default (figures: docs/results.md, "Threads").
-:func:`limit_threads` is the one place that sets the counts, entered once where a run starts, and restores the
+:func:`limit_threads` is the one place that sets them (``SLAMConfig.threads``, 1 by default: a pool larger than
+the free cores waits for a descheduled thread at every barrier; docs/results.md, "Threads"), and restores the
 caller's afterwards. torch's inter-op pool is left alone (it can only be sized before its first use).
 
 Example:

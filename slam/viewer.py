@@ -1,17 +1,6 @@
-"""Watch a run in the rerun viewer (https://rerun.io): live, or recorded to a ``.rrd`` file to open later.
-
-``attnloop-slam ... --viewer`` spawns the viewer, ``--connect ADDR`` streams to one already running,
-``--rrd FILE`` records to a file (``rerun FILE`` opens it); rerun comes with ``pip install 'attnloop[viewer]'``.
-On the ``frame`` timeline (the run's frame index):
-
-* ``world/camera``: the frame's pose (the depth camera's, as ``trajectory.txt``), its pinhole and colour image;
-* ``world/trajectory``: the keyframe path, redrawn at each keyframe and each loop correction;
-* ``world/map/<frame>``: each keyframe's subsampled depth points, placed (and moved again) by its pose;
-* ``world/loops``: one strip per accepted loop, between its two keyframes;
-* ``stats/fps`` (over the last 30 frames) and ``stats/inliers``.
-
-When the run ends, every frame's final pose is logged again, and the path, the map and the loops as the final
-optimisation placed them. Rerun's viewer collects anonymous usage data until ``rerun analytics disable``.
+"""Watch a run in the rerun viewer (https://rerun.io), live or recorded to a ``.rrd`` file: ``--viewer``,
+``--connect ADDR``, ``--rrd FILE`` (``pip install 'attnloop[viewer]'``; the entities logged: docs/pipeline.md,
+"Watching a run"). When the run ends, the final poses, path, map and loops are logged again.
 """
 from __future__ import annotations
 
@@ -101,11 +90,10 @@ def _transform(rr, pose: list):
 
 
 class RunViewer:
-    """Logs a run to a rerun recording: :func:`slam.pipeline.run_slam` calls :meth:`frame` after each frame and
-    :meth:`finish` with the final result (its ``observer``); :meth:`close` when done.
+    """Logs a run to a rerun recording, as :func:`slam.pipeline.run_slam`'s ``observer``; :meth:`close` when done.
 
-    The logging runs in a thread of its own, in order (rerun calls made from the tracking thread waited on the
-    interpreter's lock); at most 8 frames wait for it, the tracking thread waits beyond that.
+    The logging runs in a thread of its own (rerun calls from the tracking thread waited on the interpreter's
+    lock); at most 8 frames wait for it, the tracking thread waits beyond that.
 
     Args:
         recording: a ``rerun.RecordingStream`` with its sinks set.

@@ -1,15 +1,5 @@
-"""``attnloop-eval``: evaluate a trajectory file against ground truth, as ``evo_ape`` / ``evo_rpe`` do.
-
-The figures come from :func:`slam.eval.ate` and :func:`slam.eval.rpe` (equal to evo's to round-off) and the
-plot from :func:`slam.eval.plot_trajectory`.
-
-Examples::
-
-    attnloop-eval ate groundtruth.txt trajectory.txt                 # prints the RMSE in metres (rigid alignment)
-    attnloop-eval groundtruth.txt trajectory.txt                     # the same: ate is the default
-    attnloop-eval ate groundtruth.txt trajectory.txt --align sim3 --plot ate.png --labels "mocap" "ours"
-    attnloop-eval rpe groundtruth.txt trajectory.txt --delta 1 --delta-unit seconds --all-pairs
-    attnloop-eval ate groundtruth.txt trajectory.txt --json ate.json  # every statistic, machine-readable
+"""``attnloop-eval``: evaluate a trajectory file against ground truth, as ``evo_ape`` / ``evo_rpe`` do
+(:func:`slam.eval.ate`, :func:`slam.eval.rpe`, :func:`slam.eval.plot_trajectory`; examples in ``--help``).
 
 ``ate GT EST`` is ``evo_ape tum GT EST -a --t_max_diff 0.02`` (TUM's association tolerance; evo's own
 default is 0.01 s, give ``--t-max-diff 0.01`` to match a bare ``evo_ape``); ``rpe GT EST`` is
@@ -97,10 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _stats_lines(title: str, stats: dict, unit: str) -> list[str]:
-    lines = [title]
-    lines += [f"{key:>8s}  {stats[key]:.6f} {unit}" if key != "sse" else f"{key:>8s}  {stats[key]:.6f} {unit}^2"
-              for key in _STAT_KEYS]
-    return lines
+    return [title] + [f"{key:>8s}  {stats[key]:.6f} {unit}{'^2' if key == 'sse' else ''}" for key in _STAT_KEYS]
 
 
 def _run(args: argparse.Namespace) -> dict:
@@ -124,8 +111,7 @@ def _run(args: argparse.Namespace) -> dict:
                             title=f"ATE {res.rmse:.4f} m ({what})")
             print(f"wrote {args.plot}")
     else:
-        # a whole frame count as an int; any other value goes to rpe() as given, which refuses a fraction of a
-        # frame (int() here truncated 2.5 to 2)
+        # a whole frame count as an int; any other value as given, for rpe() to refuse a fraction of a frame
         whole = args.delta_unit == "frames" and float(args.delta).is_integer()
         delta = int(args.delta) if whole else args.delta
         res = rpe(args.reference, args.estimate, delta=delta, delta_unit=args.delta_unit,

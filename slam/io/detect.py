@@ -18,14 +18,9 @@ def _has_7scenes_frames(folder: Path) -> bool:
 
 
 def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **kwargs) -> RGBDSequence:
-    """Open a TUM RGB-D or 7-Scenes sequence folder or a ROS bag, detecting the layout.
-
-    * TUM RGB-D: the folder holds ``rgb.txt`` and ``depth.txt`` (-> :class:`slam.io.tum.TUMSequence`).
-    * 7-Scenes: the folder holds ``frame-XXXXXX.color.(png|jpg)`` files
-      (-> :class:`slam.io.sevenscenes.SevenScenesSequence`).
-    * ROS bag: a ROS1 ``.bag`` file or a ROS2 bag folder (``metadata.yaml``)
-      (-> :class:`slam.io.rosbag.RosbagSequence`; it alone takes ``rgb_topic``, ``depth_topic``,
-      ``camera_info_topic`` and ``groundtruth``).
+    """Open a TUM RGB-D folder (``rgb.txt``, ``depth.txt``), a 7-Scenes folder (``frame-XXXXXX.color.*``) or a ROS
+    bag (a ROS1 ``.bag`` file or a ROS2 folder; it alone takes ``rgb_topic``, ``depth_topic``, ``camera_info_topic``
+    and ``groundtruth``) as its reader (:class:`~slam.io.tum.TUMSequence`, ...), detecting the layout.
 
     Args:
         path: the sequence folder.

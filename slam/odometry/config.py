@@ -82,36 +82,26 @@ class FeatureConfig:
     """Keypoint detection, description and back-projection."""
 
     detector: str = "orb"  # "orb" (OpenCV ORB, 256-bit binary) or "sift" (OpenCV SIFT, 128-d float, ~10x slower)
-    # Detection runs on the grey image resized by this factor; keypoints are returned in full-size pixels.
-    image_scale: float = 1.0
-    # Candidates asked from the detector before bucketing (ORB keeps the strongest FAST corners).
-    detect_features: int = 2000
-    # Cap after bucketing: the strongest keypoints of each grid cell are kept so that the features spread
-    # over the image (a RANSAC fit from one textured corner is poorly conditioned).
+    image_scale: float = 1.0  # detection on the grey image resized by this; keypoints in full-size pixels
+    detect_features: int = 2000  # candidates asked from the detector before bucketing
+    # cap after bucketing: the strongest of each grid cell, so that a RANSAC fit is not from one textured corner
     max_features: int = 1000
     grid_rows: int = 6
     grid_cols: int = 8
-    # ORB pyramid: scale step and number of levels (OpenCV defaults).
-    orb_scale_factor: float = 1.2
+    orb_scale_factor: float = 1.2  # ORB pyramid step and levels (OpenCV's defaults)
     orb_levels: int = 8
-    # FAST threshold of ORB; 12 instead of OpenCV's 20 so low-texture kitchen walls still get corners.
-    fast_threshold: int = 12
-    # Valid depth range in metres: Kinect v1 measures from ~0.4 m; beyond ~4 m its noise exceeds 3 cm.
-    min_depth: float = 0.3
-    max_depth: float = 4.0
-    # Depth-discontinuity check: every pixel of the (2r+1)^2 window around the keypoint must be valid and
-    # within max_depth_jump * z of the centre depth, otherwise the keypoint (typically on an object
-    # silhouette, where colour and depth cameras disagree) gets no 3D point.
+    fast_threshold: int = 12  # OpenCV's is 20: low-texture walls still get corners
+    min_depth: float = 0.3  # m; Kinect v1 measures from ~0.4 m
+    max_depth: float = 4.0  # m; beyond, its noise exceeds 3 cm
+    # a keypoint gets a 3D point only when its (2r+1)^2 window is valid and within max_depth_jump * z of the
+    # centre (not on a silhouette, where colour and depth disagree)
     depth_window_radius: int = 1
     max_depth_jump: float = 0.05
-    # Pixel noise (std) of a keypoint detected at pyramid level 0; level l gets sigma * scale_factor^l.
-    keypoint_sigma_px: float = 1.0
-    # Intrinsics (fx, fy, cx, cy) of the colour camera when the frame's K is the depth camera's (unregistered):
-    # the depth map is warped into the colour camera (slam.odometry.depth_registration), the tracked frame is the
-    # colour camera's. None: registered (colour pixel = depth pixel, one K).
+    keypoint_sigma_px: float = 1.0  # pixel noise at pyramid level 0; level l: sigma * scale_factor^l
+    # (fx, fy, cx, cy) of the colour camera when K is the depth camera's: depth is warped into the colour camera
+    # (slam.odometry.depth_registration); None: registered (colour pixel = depth pixel)
     rgb_intrinsics: tuple[float, float, float, float] | None = None
-    # With rgb_intrinsics: position (metres) of the depth camera's optical centre in the colour camera's
-    # frame, the axes taken as parallel (p_rgb = p_depth + t).
+    # the depth camera's centre in the colour camera's frame (m), parallel axes: p_rgb = p_depth + t
     rgb_from_depth_translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
@@ -148,15 +138,12 @@ class FeatureConfig:
 class MatchConfig:
     """Descriptor matching (always Kornia's matchers, ``kornia.feature.match_*``)."""
 
-    # "smnn" (mutual nearest neighbour + ratio test both ways), "snn" (ratio test), "mnn" (mutual NN).
-    method: str = "smnn"
-    # Ratio between the best and the second-best descriptor distance for snn / smnn.
-    ratio: float = 0.9
-    # Absolute distance cap: Hamming bits for binary descriptors (64 of 256 = 25 %), L2 for unit float ones.
-    max_hamming: float = 64.0
-    max_l2: float = 0.7
-    # Guided matching around a motion prior: a keypoint may only match keypoints whose predicted
-    # position (prior pose + depth) lies within this many pixels (at 640x480). 0 disables it.
+    method: str = "smnn"  # "smnn" (mutual NN + ratio test both ways), "snn" (ratio test), "mnn" (mutual NN)
+    ratio: float = 0.9  # best / second-best descriptor distance (snn, smnn)
+    max_hamming: float = 64.0  # distance cap, bits of 256 (binary descriptors)
+    max_l2: float = 0.7  # distance cap of unit float descriptors
+    # a keypoint matches only those within this many pixels (at 640x480) of its position predicted by the motion
+    # prior; 0: unguided
     guided_radius_px: float = 40.0
 
     def __post_init__(self) -> None:
@@ -172,28 +159,20 @@ class MatchConfig:
 class RansacConfig:
     """3D-3D RANSAC over 3-point hypotheses, then a refinement on the inliers."""
 
-    # Hypotheses drawn per batch (scored at once, vectorised); stop once the adaptive count is reached.
-    batch_size: int = 64
+    batch_size: int = 64  # hypotheses scored at once, until the adaptive count is reached
     min_iterations: int = 64
     max_iterations: int = 1024
-    # Probability that at least one all-inlier sample was drawn (adaptive number of iterations).
-    confidence: float = 0.999
-    # A correspondence is an inlier when |T p_src - p_dst| < max(inlier_threshold,
-    # inlier_sigmas * sigma), sigma = the combined Kinect depth std of the two points.
-    inlier_threshold: float = 0.03
+    confidence: float = 0.999  # that one all-inlier sample was drawn (the adaptive count)
+    # inlier: |T p_src - p_dst| < max(inlier_threshold, inlier_sigmas * the two points' combined depth std)
+    inlier_threshold: float = 0.03  # m
     inlier_sigmas: float = 3.0
-    # A 3-point sample whose triangle is smaller than this (m^2) is degenerate and skipped.
-    min_sample_area: float = 1e-4
-    # Fewer inliers than this -> failure ("too few inliers").
-    min_inliers: int = 12
-    # Second singular value (m) of the centred inlier cloud below which it is called collinear.
-    min_spread: float = 0.01
-    # Gauss-Newton steps minimising the anisotropic (depth-along-the-ray) Mahalanobis 3D error with a
-    # Huber kernel on the inliers; 0 keeps the weighted Kabsch fit.
+    min_sample_area: float = 1e-4  # m^2: a smaller sample triangle is degenerate
+    min_inliers: int = 12  # fewer: "too few inliers"
+    min_spread: float = 0.01  # m: second singular value of the inliers below which they are collinear
+    # Gauss-Newton steps on the depth-along-the-ray Mahalanobis error, Huber kernel; 0: the weighted Kabsch fit
     refine_iterations: int = 5
     huber_delta: float = 2.0
-    # Seed of the hypothesis sampler (a fresh torch.Generator per call: results are reproducible).
-    seed: int = 0
+    seed: int = 0  # of the hypothesis sampler (a fresh torch.Generator per call)
 
     def __post_init__(self) -> None:
         n = "RansacConfig"
@@ -217,13 +196,10 @@ class RegistrationConfig:
 
     matching: MatchConfig = field(default_factory=MatchConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
-    # Fewer matches than this -> failure before RANSAC ("too few matches").
-    min_matches: int = 20
-    # Success needs at least this many inliers after refinement...
-    min_inliers: int = 20
-    # ...and an inlier RMSE (m) below this.
-    max_rmse: float = 0.05
-    # Kinect v1 depth noise sigma(z) = a + b (z - c)^2 (Nguyen et al. 2012), metres.
+    min_matches: int = 20  # fewer: "too few matches", before RANSAC
+    min_inliers: int = 20  # success needs this many inliers after refinement ...
+    max_rmse: float = 0.05  # ... and an inlier RMSE (m) below this
+    # Kinect v1 depth noise sigma(z) = a + b (z - c)^2 (Nguyen et al. 2012), metres
     depth_sigma_a: float = 0.0012
     depth_sigma_b: float = 0.0019
     depth_sigma_c: float = 0.4
@@ -244,22 +220,19 @@ class OdometryConfig:
 
     features: FeatureConfig = field(default_factory=FeatureConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
-    # A frame needs this many keypoints with valid depth to be tracked or to become a keyframe.
-    min_valid_points: int = 30
-    # New keyframe when the frame moved more than this from its keyframe (metres / degrees)...
+    min_valid_points: int = 30  # keypoints with depth a frame needs to be tracked or to become a keyframe
+    # a new keyframe when the frame moved more than this from its keyframe (m / degrees) ...
     keyframe_translation: float = 0.15
     keyframe_rotation_deg: float = 12.0
-    # ...or when tracking is getting weak: fewer inliers than this, or than this fraction of the
-    # keyframe's valid keypoints (overlap proxy): a registration across a small overlap costs more than the
-    # extra keyframe-to-keyframe steps.
+    # ... or has fewer inliers than this, or than this fraction of the keyframe's valid keypoints (a small
+    # overlap costs more than an extra keyframe)
     keyframe_min_inliers: int = 180
     keyframe_min_inlier_ratio: float = 0.15
-    # After this many consecutive lost frames a keyframe is forced at the constant-velocity pose, linked
-    # by a weak edge (weak_edge_information * I) so tracking can restart.
+    # after this many lost frames a keyframe is forced at the constant-velocity pose, by a weak edge
+    # (weak_edge_information * I), so that tracking can restart
     max_lost_frames: int = 3
     weak_edge_information: float = 1e-2
-    # Keyframe images are stored resized by this factor to bound memory (the descriptor resizes to 224 px anyway).
-    keyframe_rgb_scale: float = 0.5
+    keyframe_rgb_scale: float = 0.5  # keyframe images kept at this scale (the descriptor resizes to 224 px)
 
     def __post_init__(self) -> None:
         n = "OdometryConfig"
