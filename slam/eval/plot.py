@@ -1,9 +1,6 @@
-"""Figures, drawn with matplotlib's Agg backend (no display): the trajectory seen from above with the ground truth
-and each pose coloured by its error, the error over time (as evo's ``evo_ape --plot`` draws them), and
-precision/recall curves of loop detection and place recognition.
-
-Each function returns the figure as an ``(H, W, 3)`` uint8 **BGR** image of exactly ``size = (W, H)`` pixels (what
-``cv2.imwrite`` / ``cv2.imencode`` take) and writes it as a PNG when given a path.
+"""Figures, drawn with matplotlib's Agg backend (no display): trajectories with their error (as ``evo_ape --plot``)
+and precision/recall curves. Each returns an ``(H, W, 3)`` uint8 **BGR** image of exactly ``size = (W, H)`` pixels
+(what ``cv2.imwrite`` takes) and writes it as a PNG when given a path.
 
 Example:
     >>> import torch

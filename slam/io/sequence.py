@@ -1,14 +1,8 @@
-"""The common RGB-D sequence interface (:func:`slam.io.open_sequence` opens a folder as one).
+"""The common RGB-D sequence interface (:func:`slam.io.open_sequence` opens a folder as one) and its errors.
 
-Errors: at **open time** (:func:`slam.io.open_sequence` / the reader's constructor) a missing folder or list
-file is a :class:`DatasetNotFoundError` (also a ``FileNotFoundError``); an unknown layout, a malformed line
-(named by file and line, a byte that is not UTF-8 included) or an unknown camera a :class:`DatasetError` (a
-``ValueError``). At **read time** (``sequence[i]``) a missing or undecodable image is a
-:class:`slam.io.images.FrameReadError` carrying the path, which a run skips with a warning. What a reader
-leaves out without an error (a 7-Scenes pose file that is not a pose) it reports with a
-:class:`DatasetWarning` naming the files.
-
-Depth is float32 metres with **0.0 marking invalid pixels** (never NaN), as :class:`RGBDFrame` says.
+Open-time errors are :class:`DatasetError` (a ``ValueError``; :class:`DatasetNotFoundError` also a
+``FileNotFoundError``) naming the file and line; read-time ones :class:`slam.io.images.FrameReadError`, which a run
+skips with a warning. Depth is float32 metres, 0.0 marking invalid pixels (never NaN).
 """
 from __future__ import annotations
 
@@ -22,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from slam.input_checks import TextDecodeError, read_text_lines
 from slam.io.frame import DEPTH_MEDIAN_RANGE, RGBDFrame, median_valid_depth
 from slam.io.images import FrameReadError, depth_to_metres, read_depth_raw
 from slam.io.trajectory import Trajectory
@@ -49,6 +44,14 @@ class DatasetError(ValueError):
 
 class DatasetNotFoundError(DatasetError, FileNotFoundError):
     """The sequence folder or one of its required list files does not exist."""
+
+
+def read_dataset_lines(path: Path) -> list[str]:
+    """The lines of a dataset's text file; a byte that is not UTF-8 is a :class:`DatasetError` naming the line."""
+    try:
+        return read_text_lines(path)[1]
+    except TextDecodeError as e:
+        raise DatasetError(path, e.reason, e.line) from None
 
 
 def check_depth_scale(depth_scale, root) -> float:
