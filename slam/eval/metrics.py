@@ -27,7 +27,7 @@ import torch
 
 from slam.eval.align import transform_poses, umeyama_alignment
 from slam.io.associate import TUM_MAX_DIFFERENCE, association_indices
-from slam.input_checks import MAX_COORDINATE, unit_quaternions
+from slam.input_checks import MAX_COORDINATE, timestamp_unit, unit_quaternions
 from slam.io.trajectory import Trajectory, read_tum_trajectory
 from slam.lie import quat_angle, se3_between
 
@@ -196,8 +196,6 @@ class RPEResult:
 
 def _no_pairs_hint(ref_t: torch.Tensor, est_t: torch.Tensor, offset: float, max_difference: float) -> str:
     """What to try when no stamps pair: other units, a clock offset (--t-offset), or a larger tolerance."""
-    from slam.input_checks import timestamp_unit
-
     units = [timestamp_unit(t.detach().cpu().numpy())[0] for t in (ref_t, est_t)]
     if units[0] != units[1]:
         return (f"; the reference's stamps look like {units[0]} and the estimate's like {units[1]}: write both in "
@@ -289,9 +287,8 @@ def _pairs_frames(n: int, delta: int, all_pairs: bool) -> torch.Tensor:
 
 
 def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool) -> torch.Tensor:
-    # j = the stamp closest to t_i + delta, kept when later than i and within half a frame of the target (close
-    # enough for the nearest stamp of a gap-free stream, not for one past a gap). The associated stamps need not
-    # be sorted: pairs are found in time order and mapped back.
+    # half a frame: close enough for the nearest stamp of a gap-free stream, not for one past a gap. The
+    # associated stamps need not be sorted: pairs are found in time order and mapped back.
     t_in = stamps.detach().to("cpu", torch.float64)
     n = t_in.numel()
     if n < 2:

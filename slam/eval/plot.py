@@ -224,11 +224,8 @@ def plot_pr_curves(
     title: str = "Loop closure: precision / recall",
     size: tuple[int, int] = (640, 520),
 ) -> np.ndarray:
-    """Precision/recall curves (e.g. loop detection before/after verification, per fusion mode, place recognition).
-
-    Each curve (a :class:`slam.eval.loops.PRCurve`) is a step line (recall on x, precision on y, both 0..1: the
-    precision holds until the next recall value); a dot marks its maximum recall at 100 % precision, which the
-    legend gives with the average precision (``R@P100``, ``AP``).
+    """Precision/recall curves as step lines (recall on x, precision on y), a dot at each one's maximum recall at
+    100 % precision; the legend gives it (``R@P100``) with the average precision (``AP``).
 
     Args:
         path: PNG to write, or None.

@@ -22,7 +22,7 @@ __all__ = ["ASSOCIATIONS", "TUM_MAX_DIFFERENCE", "associate", "associate_nearest
 # TUM's associate.py / evaluate_ate.py default: 20 ms, i.e. less than a frame at 30 Hz.
 TUM_MAX_DIFFERENCE = 0.02
 
-# the association rules of associate_trajectories / ate / rpe: evo's (default) and TUM's
+# the association rules of ate / rpe: evo's (default) and TUM's
 ASSOCIATIONS = ("evo", "tum")
 
 ArrayLike = Union[torch.Tensor, np.ndarray, list]

@@ -225,9 +225,7 @@ class RosbagSequence(TimeAssociatedSequence):
             rgb = np.ascontiguousarray(rgb[..., ::-1]) if msg.encoding == "bgr8" else rgb
         raw = self._raw_depth(i)
         depth = raw.astype(np.float32) if raw.dtype == np.float32 else depth_to_metres(raw, self.depth_scale)
-        pose = self._gt[i]
-        return RGBDFrame(index=i, timestamp=float(self._timestamps[i]), rgb=rgb, depth=depth, K=self.K.copy(),
-                         pose_gt=None if np.isnan(pose).any() else pose.copy())
+        return self._frame(i, rgb, depth, self._gt[i])
 
     def close(self) -> None:
         """Close the bag (also when the sequence is garbage-collected)."""

@@ -75,9 +75,8 @@ _TYPICAL_DEPTH = 2.0  # metres: an indoor RGB-D view's median depth, to order th
 
 def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values: tuple[int, ...] = (0,),
                       read: Callable[[object], np.ndarray] = read_depth_raw) -> None:
-    """Refuse depth whose scale is wrong (millimetres read as TUM's 1/5000 m, or the reverse): the median
-    valid depth of the first readable frames (up to 3 of the first 10) outside
-    :data:`~slam.io.frame.DEPTH_MEDIAN_RANGE` metres at ``scale``.
+    """Refuse depth whose median over the first readable frames (up to 3 of the first 10) is outside
+    :data:`~slam.io.frame.DEPTH_MEDIAN_RANGE` metres at ``scale`` (millimetres read as TUM's 1/5000 m, ...).
 
     Args:
         root: the sequence folder (named by the error).
@@ -119,21 +118,22 @@ def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values:
                              "(--no-depth-check if the scene really is that near or far)")
 
 
+def _known(pose: np.ndarray) -> np.ndarray | None:
+    """A copy of ``pose (7,)`` float64, None where it holds a NaN (unknown)."""
+    return None if np.isnan(pose).any() else np.array(pose, dtype=np.float64)
+
+
 class DatasetWarning(UserWarning):
     """Something in a dataset was unusable and left out (e.g. a pose file that is not a pose); the message
     names the files."""
 
 
 class RGBDSequence(ABC):
-    """A lazily read RGB-D sequence: nothing but file names and timestamps is held in memory.
+    """A lazily read RGB-D sequence: ``seq[i]`` decodes frame ``i`` (an :class:`RGBDFrame`), ``seq[a:b]`` is a
+    :class:`SequenceView`; nothing but file names and timestamps is held in memory.
 
     Subclasses set ``root`` (Path), ``name`` (str), ``K`` ``(3, 3)`` float64 and implement
     ``__len__``, ``timestamps``, :meth:`_load` and :meth:`_groundtruth_array`.
-
-    ``len(seq)``, ``seq[i]`` (an :class:`RGBDFrame`, images decoded now), ``for frame in seq``,
-    ``seq[a:b]`` (a :class:`SequenceView`), ``seq.timestamps`` ``(N,)`` float64 numpy,
-    ``seq.groundtruth`` (a :class:`Trajectory` of the frames that have ground truth, in input order,
-    stamped with the frames' own timestamps, or None).
     """
 
     root: Path
@@ -227,12 +227,17 @@ class RGBDSequence(ABC):
 
     def groundtruth_pose(self, i: int) -> np.ndarray | None:
         """``(7,)`` ground truth of frame ``i`` or None."""
-        pose = self._groundtruth_array()[i]
-        return None if np.isnan(pose).any() else pose.copy()
+        return _known(self._groundtruth_array()[i])
+
+    def _frame(self, i: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray, paths=("", "")) -> RGBDFrame:
+        """Frame ``i`` of decoded images ``rgb (H, W, 3)``, ``depth (H, W)`` metres and ground truth ``pose (7,)``
+        (NaN: unknown); ``paths``: the colour and depth files."""
+        return RGBDFrame(index=i, timestamp=float(self.timestamps[i]), rgb=rgb, depth=depth, K=self.K.copy(),
+                         pose_gt=_known(pose), rgb_path=str(paths[0]), depth_path=str(paths[1]))
 
     @property
     def groundtruth(self) -> Trajectory | None:
-        """Per-frame ground truth of the frames that have it (input order), or None if none has."""
+        """Ground truth of the frames that have it (input order, the frames' stamps), or None if none has."""
         gt = self._groundtruth_array()
         has = ~np.isnan(gt).any(axis=1)
         if not has.any():
@@ -261,8 +266,7 @@ class SequenceView(RGBDSequence):
     def _load(self, i: int) -> RGBDFrame:
         frame = self.parent._load(int(self.indices[i]))
         frame.index = i
-        pose = self._groundtruth_array()[i]
-        frame.pose_gt = None if np.isnan(pose).any() else pose.copy()
+        frame.pose_gt = self.groundtruth_pose(i)
         return frame
 
     def _groundtruth_array(self) -> np.ndarray:

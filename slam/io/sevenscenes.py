@@ -218,9 +218,5 @@ class SevenScenesSequence(RGBDSequence):
         raw = read_depth_raw(str(depth_path), rgb.shape[:2])
         # a pose file that is not a pose leaves the frame without ground truth (warned), never without images
         pose = self._gt[i] if self._gt is not None else self._pose_of(i)
-        return RGBDFrame(
-            index=i, timestamp=float(self._timestamps[i]), rgb=rgb,
-            depth=depth_to_metres(raw, self.depth_scale, SEVENSCENES_INVALID_DEPTH), K=self.K.copy(),
-            pose_gt=None if np.isnan(pose).any() else np.array(pose, dtype=np.float64),
-            rgb_path=str(rgb_path), depth_path=str(depth_path),
-        )
+        depth = depth_to_metres(raw, self.depth_scale, SEVENSCENES_INVALID_DEPTH)
+        return self._frame(i, rgb, depth, pose, (rgb_path, depth_path))

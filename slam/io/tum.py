@@ -322,13 +322,7 @@ class TUMSequence(TimeAssociatedSequence):
         raw = read_depth_raw(str(depth_path), rgb.shape[:2])
         if self.undistort:
             rgb, raw = self._remap(rgb, raw)
-        pose = self._gt[i]
-        return RGBDFrame(
-            index=i, timestamp=float(self._timestamps[i]), rgb=rgb,
-            depth=depth_to_metres(raw, self.depth_scale), K=self.K.copy(),
-            pose_gt=None if np.isnan(pose).any() else pose.copy(),
-            rgb_path=str(rgb_path), depth_path=str(depth_path),
-        )
+        return self._frame(i, rgb, depth_to_metres(raw, self.depth_scale), self._gt[i], (rgb_path, depth_path))
 
     def _remap(self, rgb: np.ndarray, raw: np.ndarray):
         h, w = raw.shape
