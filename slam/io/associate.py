@@ -55,7 +55,6 @@ def _matching_time_indices(s1: np.ndarray, s2: np.ndarray, max_diff: float,
     search, first minimum, when ``s2`` is not sorted)."""
     s2 = s2 + offset_2
     if not np.all(np.diff(s2) >= 0):
-        # evo's linear search: argmin |s2 - s1| (first minimum), kept when <= max_diff
         idx_1, idx_2 = [], []
         chunk = max(1, 4_000_000 // s2.size)
         for start in range(0, s1.size, chunk):
