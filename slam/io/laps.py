@@ -62,13 +62,6 @@ class LapSequence(RGBDSequence):
         self._timestamps = src[idx[0]] + np.concatenate([[0.0], np.cumsum(gaps)])
         self._gt = None
 
-    def __len__(self) -> int:
-        return int(self.source_indices.size)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._timestamps
-
     def _load(self, i: int) -> RGBDFrame:
         frame = self.source[int(self.source_indices[i])]
         frame.index, frame.timestamp = int(i), float(self._timestamps[i])
@@ -78,11 +71,6 @@ class LapSequence(RGBDSequence):
         if self._gt is None:
             self._gt = np.asarray(self.source._groundtruth_array(), dtype=np.float64)[self.source_indices]
         return self._gt
-
-    def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
-        # the source frame's own pose (a reader that pairs ground truth by time would pair the repeated
-        # frames among themselves: every lap shows the same frames)
-        return self._groundtruth_array()[np.asarray(indices, dtype=np.int64)]
 
     def __repr__(self) -> str:
         return f"LapSequence({self.source!r}, laps={self.laps})"

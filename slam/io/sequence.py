@@ -132,21 +132,22 @@ class RGBDSequence(ABC):
     """A lazily read RGB-D sequence: ``seq[i]`` decodes frame ``i`` (an :class:`RGBDFrame`), ``seq[a:b]`` is a
     :class:`SequenceView`; nothing but file names and timestamps is held in memory.
 
-    Subclasses set ``root`` (Path), ``name`` (str), ``K`` ``(3, 3)`` float64 and implement
-    ``__len__``, ``timestamps``, :meth:`_load` and :meth:`_groundtruth_array`.
+    Subclasses set ``root`` (Path), ``name`` (str), ``K`` ``(3, 3)`` float64 and ``_timestamps`` (or override
+    ``__len__`` and ``timestamps``), and implement :meth:`_load` and :meth:`_groundtruth_array`.
     """
 
     root: Path
     name: str
     K: np.ndarray
+    _timestamps: np.ndarray
 
-    @abstractmethod
-    def __len__(self) -> int: ...
+    def __len__(self) -> int:
+        return len(self._timestamps)
 
     @property
-    @abstractmethod
     def timestamps(self) -> np.ndarray:
         """``(N,)`` float64 seconds, one per frame, in input order."""
+        return self._timestamps
 
     @abstractmethod
     def _load(self, i: int) -> RGBDFrame:

@@ -188,13 +188,6 @@ class SevenScenesSequence(RGBDSequence):
             check_depth_units(self.root, [self.root / name for name in self._depth[:10]], self.depth_scale,
                               SEVENSCENES_INVALID_DEPTH)
 
-    def __len__(self) -> int:
-        return len(self._color)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._timestamps
-
     def paths(self, i: int) -> tuple[Path, Path]:
         """The colour and depth files of frame ``i``."""
         return self.root / self._color[i], self.root / self._depth[i]

@@ -187,7 +187,6 @@ class TimeAssociatedSequence(RGBDSequence):
     ``_gt = self._associate_groundtruth(self._timestamps)``.
     """
 
-    _timestamps: np.ndarray
     _gt: np.ndarray
     _gt_trajectory: Trajectory | None = None
     max_difference: float = TUM_MAX_DIFFERENCE
@@ -208,13 +207,6 @@ class TimeAssociatedSequence(RGBDSequence):
     def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
         # the association is one-to-one: the subset's frames are paired among themselves
         return self._associate_groundtruth(self._timestamps[indices])
-
-    def __len__(self) -> int:
-        return len(self._timestamps)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._timestamps
 
     def _groundtruth_array(self) -> np.ndarray:
         return self._gt
