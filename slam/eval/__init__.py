@@ -1,9 +1,4 @@
-"""Trajectory and loop-closure evaluation with TUM / evo semantics.
-
-Place recognition (query x database similarity against a ground truth) is :mod:`attnloop.vpr.evaluate`.
-
-``ate(reference, estimate)`` and ``rpe(...)`` take :class:`slam.io.Trajectory` objects or TUM file paths,
-e.g. ``ate("groundtruth.txt", "trajectory.txt").rmse`` (metres, rigid alignment, 0.02 s association).
+"""Trajectory (ATE / RPE, as evo) and loop-closure evaluation; place recognition is :mod:`attnloop.vpr.evaluate`.
 
 Example:
     >>> import torch
@@ -16,7 +11,7 @@ Example:
     (10, 0.0049)
 """
 from slam.eval.align import transform_poses, umeyama_alignment
-from slam.io.associate import TUM_MAX_DIFFERENCE, associate, associate_nearest, associate_trajectories
+from slam.io.associate import TUM_MAX_DIFFERENCE, associate, associate_nearest
 from slam.eval.loops import (
     LoopEvaluation,
     LoopGroundTruthConfig,
@@ -27,7 +22,7 @@ from slam.eval.loops import (
     plot_pr_curves,
     precision_recall_curve,
 )
-from slam.eval.metrics import ATEResult, ErrorStats, RPEResult, as_trajectory, ate, rotation_angle, rpe
+from slam.eval.metrics import ATEResult, ErrorStats, RPEResult, as_trajectory, ate, rpe
 from slam.eval.plot import choose_plane, plot_trajectory
 
 __all__ = [
@@ -41,7 +36,6 @@ __all__ = [
     "as_trajectory",
     "associate",
     "associate_nearest",
-    "associate_trajectories",
     "ate",
     "choose_plane",
     "evaluate_loop_candidates",
@@ -50,7 +44,6 @@ __all__ = [
     "plot_pr_curves",
     "plot_trajectory",
     "precision_recall_curve",
-    "rotation_angle",
     "rpe",
     "transform_poses",
     "umeyama_alignment",

@@ -1,6 +1,5 @@
-"""Closed-form least-squares alignment of two point sets (Umeyama 1991, as evo's ``geometry.umeyama_alignment``)
-in the device and dtype of the inputs: ``target ~ s * R @ source + t``, rigid SE(3) with ``s = 1`` by default,
-Sim(3) with ``with_scale``.
+"""Closed-form least-squares alignment of two point sets (Umeyama 1991, as evo's ``geometry.umeyama_alignment``):
+``target ~ s * R @ source + t``, rigid by default, Sim(3) with ``with_scale``.
 
 Example:
     >>> src = torch.randn(10, 3, dtype=torch.float64)

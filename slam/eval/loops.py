@@ -1,18 +1,9 @@
 """Loop-closure evaluation: ground-truth loop pairs, precision/recall, and the PR-curve figure.
 
-A pair of frames ``(i, j)`` is a **true loop** when, by ground truth, the camera centres are less than
-``max_distance`` apart, the orientations less than ``max_angle_deg`` apart, and the frames at least
-``min_frame_gap`` indices apart (nearer frames are what odometry already links). Frames without ground
-truth (NaN poses) are never part of a true loop. Indices are frame indices of the sequence; a detector
-that works on keyframes maps its keyframe ids to frame indices first.
-
-A detector is scored per query: each query frame proposes its single best candidate with a score; at a
-threshold, a query with score >= threshold is a detection, true if its candidate is a true loop. Recall =
-true detections / queries that have at least one true loop partner *earlier* in the sequence (among
-``indices``), the usual place-recognition protocol.
-
-Non-finite scores (e.g. ``-inf`` for candidates rejected by geometric verification) are never
-detections, at any threshold.
+Frames ``(i, j)`` are a **true loop** when, by ground truth, the camera centres are less than ``max_distance``
+apart, the orientations less than ``max_angle_deg``, and the indices at least ``min_frame_gap`` (NaN poses: never).
+A detector is scored per query (its best candidate, a detection when its score >= the threshold; non-finite scores
+never are); recall counts the queries that have a true partner *earlier* among ``indices``.
 
 Example:
     >>> scores = torch.tensor([0.9, 0.8, 0.7, 0.6])

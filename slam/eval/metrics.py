@@ -1,19 +1,8 @@
-"""Absolute trajectory error (ATE) and relative pose error (RPE) with TUM / evo semantics.
+"""Absolute trajectory error (ATE) and relative pose error (RPE), equal to evo's ``evo_ape`` / ``evo_rpe``.
 
-* Both trajectories are associated by timestamp first: ``association="evo"`` (default,
-  :func:`slam.io.associate.associate_nearest`) pairs as evo's ``sync.associate_trajectories(ref, est,
-  max_diff=0.02)``; ``association="tum"`` uses the greedy one-to-one rule of TUM's ``evaluate_ate.py``
-  (:func:`slam.io.associate.associate`).
-* ATE: the estimate's positions are aligned to the reference's by Umeyama (rigid SE(3) by default,
-  ``alignment="sim3"`` adds a scale, ``"none"`` compares raw), then the per-pair error is the distance
-  between camera centres: ``evo_ape tum REF EST -a --t_max_diff 0.02``.
-* RPE: for index pairs ``(i, j)`` of the associated poses, ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` (``Q``
-  reference, ``P`` estimate, evo's convention); the translation error is ``|t(E)|`` in metres, the
-  rotation error the angle of ``E`` in degrees. ``delta_unit="frames"`` reproduces ``evo_rpe`` (pairs
-  ``(0, d), (d, 2d), ...``, or every ``(i, i + d)`` with ``all_pairs``); ``delta_unit="seconds"`` pairs
-  each start with the stamp nearest to ``t_i + delta`` when it is within half a frame of it (as TUM's
-  ``evaluate_rpe.py --fixed_delta``, 1 s by default). Consecutive pairs chain: the next start is the
-  partner, and a start without a later partner (before a gap in the stamps) hands over to the next pose.
+Trajectories are associated by timestamp first (:mod:`slam.io.associate`: evo's rule by default, TUM's with
+``association="tum"``). The ATE aligns the estimate's positions by Umeyama and measures camera-centre distances;
+the RPE compares ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` (``Q`` reference, ``P`` estimate) over pairs ``delta`` apart.
 
 Example:
     >>> import torch
@@ -30,7 +19,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Union
 
 import numpy as np
@@ -38,12 +27,11 @@ import torch
 
 from slam.eval.align import transform_poses, umeyama_alignment
 from slam.io.associate import TUM_MAX_DIFFERENCE, association_indices
-from slam.input_checks import MAX_COORDINATE, unit_quaternions
+from slam.input_checks import MAX_COORDINATE, timestamp_unit, unit_quaternions
 from slam.io.trajectory import Trajectory, read_tum_trajectory
-from slam.lie import quat_angle as rotation_angle
-from slam.lie import se3_between
+from slam.lie import quat_angle, se3_between
 
-__all__ = ["ATEResult", "ErrorStats", "RPEResult", "as_trajectory", "ate", "rotation_angle", "rpe"]
+__all__ = ["ATEResult", "ErrorStats", "RPEResult", "as_trajectory", "ate", "rpe"]
 
 TrajectoryLike = Union[str, "os.PathLike[str]", Trajectory]
 _ALIGNMENTS = ("se3", "sim3", "none")
@@ -124,8 +112,7 @@ class ErrorStats:
         )
 
     def to_dict(self) -> dict[str, float]:
-        return {"rmse": self.rmse, "mean": self.mean, "median": self.median, "std": self.std,
-                "min": self.min, "max": self.max, "sse": self.sse, "num": self.num}
+        return asdict(self)
 
 
 @dataclass
@@ -209,8 +196,6 @@ class RPEResult:
 
 def _no_pairs_hint(ref_t: torch.Tensor, est_t: torch.Tensor, offset: float, max_difference: float) -> str:
     """What to try when no stamps pair: other units, a clock offset (--t-offset), or a larger tolerance."""
-    from slam.input_checks import timestamp_unit
-
     units = [timestamp_unit(t.detach().cpu().numpy())[0] for t in (ref_t, est_t)]
     if units[0] != units[1]:
         return (f"; the reference's stamps look like {units[0]} and the estimate's like {units[1]}: write both in "
@@ -302,9 +287,8 @@ def _pairs_frames(n: int, delta: int, all_pairs: bool) -> torch.Tensor:
 
 
 def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool) -> torch.Tensor:
-    # j = the stamp closest to t_i + delta, kept when later than i and within half a frame of the target (close
-    # enough for the nearest stamp of a gap-free stream, not for one past a gap). The associated stamps need not
-    # be sorted: pairs are found in time order and mapped back.
+    # half a frame: close enough for the nearest stamp of a gap-free stream, not for one past a gap. The
+    # associated stamps need not be sorted: pairs are found in time order and mapped back.
     t_in = stamps.detach().to("cpu", torch.float64)
     n = t_in.numel()
     if n < 2:
@@ -350,7 +334,9 @@ def rpe(
         reference: ground truth: a :class:`Trajectory` or a TUM file path.
         estimate: a :class:`Trajectory` or a TUM file path.
         delta: pair distance: an integer number of associated poses (``"frames"``) or seconds.
-        delta_unit: ``"frames"`` or ``"seconds"``.
+        delta_unit: ``"frames"`` (evo's pairs ``(0, d), (d, 2d), ...``) or ``"seconds"`` (each start with the
+            stamp nearest ``t_i + delta`` when within half a frame of it, as TUM's ``evaluate_rpe.py
+            --fixed_delta``; a start without a later partner hands over to the next pose).
         all_pairs: use every start pose; otherwise consecutive non-overlapping pairs (evo's default).
         alignment: ``"none"`` (default; a rigid alignment does not change the RPE), ``"se3"`` or ``"sim3"``.
         max_difference: association tolerance in seconds.
@@ -358,7 +344,8 @@ def rpe(
         association: ``"evo"`` (default) or ``"tum"``, as for :func:`ate`.
 
     Returns:
-        an :class:`RPEResult` (``.rmse`` = translation RMSE in metres).
+        an :class:`RPEResult`: translation errors ``|t(E)|`` in metres (``.rmse``), rotation errors (the angle of
+        ``E``) in degrees.
 
     Raises:
         ValueError: bad ``delta``/``delta_unit``, no associated pairs, or no pose pair ``delta`` apart.
@@ -383,7 +370,7 @@ def rpe(
     Q, P = ref.poses, est.poses
     E = se3_between(se3_between(Q[pairs[:, 0]], Q[pairs[:, 1]]), se3_between(P[pairs[:, 0]], P[pairs[:, 1]]))
     trans = E[:, :3].norm(dim=-1)
-    rot = torch.rad2deg(rotation_angle(E[:, 3:]))
+    rot = torch.rad2deg(quat_angle(E[:, 3:]))
     return RPEResult(
         translation=ErrorStats.from_errors(trans), rotation=ErrorStats.from_errors(rot), delta=delta,
         delta_unit=delta_unit, all_pairs=all_pairs, pairs=pairs, timestamps=est.timestamps[pairs],

@@ -1,9 +1,6 @@
-"""Figures, drawn with matplotlib's Agg backend (no display): the trajectory seen from above with the ground truth
-and each pose coloured by its error, the error over time (as evo's ``evo_ape --plot`` draws them), and
-precision/recall curves of loop detection and place recognition.
-
-Each function returns the figure as an ``(H, W, 3)`` uint8 **BGR** image of exactly ``size = (W, H)`` pixels (what
-``cv2.imwrite`` / ``cv2.imencode`` take) and writes it as a PNG when given a path.
+"""Figures, drawn with matplotlib's Agg backend (no display): trajectories with their error (as ``evo_ape --plot``)
+and precision/recall curves. Each returns an ``(H, W, 3)`` uint8 **BGR** image of exactly ``size = (W, H)`` pixels
+(what ``cv2.imwrite`` takes) and writes it as a PNG when given a path.
 
 Example:
     >>> import torch
@@ -227,11 +224,8 @@ def plot_pr_curves(
     title: str = "Loop closure: precision / recall",
     size: tuple[int, int] = (640, 520),
 ) -> np.ndarray:
-    """Precision/recall curves (e.g. loop detection before/after verification, per fusion mode, place recognition).
-
-    Each curve (a :class:`slam.eval.loops.PRCurve`) is a step line (recall on x, precision on y, both 0..1: the
-    precision holds until the next recall value); a dot marks its maximum recall at 100 % precision, which the
-    legend gives with the average precision (``R@P100``, ``AP``).
+    """Precision/recall curves as step lines (recall on x, precision on y), a dot at each one's maximum recall at
+    100 % precision; the legend gives it (``R@P100``) with the average precision (``AP``).
 
     Args:
         path: PNG to write, or None.

@@ -1,12 +1,5 @@
-"""Timestamp association: evo's nearest-neighbour rule (the default of ``ate``/``rpe``) and TUM's.
-
-:func:`associate_nearest` is evo's ``sync.associate_trajectories``: every stamp of the list with fewer stamps
-(the second when both have as many) is matched to the nearest stamp of the other when ``|dt| <= max_difference``
-(not one-to-one), in the short list's order, with evo's exact expressions and tie rules.
-
-:func:`associate` is TUM's ``associate.py``: pairs with ``|a - (b + offset)| < max_difference`` are visited by
-increasing difference (ties by ``a``, then ``b``) and accepted when neither stamp is taken yet (greedy,
-one-to-one), returned sorted by ``a``; candidates come from a binary search, ``O((N + M) log M)``.
+"""Timestamp association: evo's nearest-neighbour rule (:func:`associate_nearest`, the default of ``ate`` / ``rpe``)
+and TUM's greedy one-to-one rule (:func:`associate`, as ``associate.py``), each with its reference's exact tests.
 
 Example:
     >>> import torch
@@ -24,31 +17,32 @@ from typing import Union
 import numpy as np
 import torch
 
-__all__ = ["ASSOCIATIONS", "TUM_MAX_DIFFERENCE", "associate", "associate_nearest", "associate_trajectories"]
+__all__ = ["ASSOCIATIONS", "TUM_MAX_DIFFERENCE", "associate", "associate_nearest"]
 
 # TUM's associate.py / evaluate_ate.py default: 20 ms, i.e. less than a frame at 30 Hz.
 TUM_MAX_DIFFERENCE = 0.02
 
-# the association rules of associate_trajectories / ate / rpe: evo's (default) and TUM's
+# the association rules of ate / rpe: evo's (default) and TUM's
 ASSOCIATIONS = ("evo", "tum")
 
 ArrayLike = Union[torch.Tensor, np.ndarray, list]
 
 
-def _stamps(x: ArrayLike, name: str) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        x = x.detach().to("cpu", torch.float64).numpy()
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.ndim != 1:
-        raise ValueError(f"{name} must have shape (N,), got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name} contains non-finite timestamps")
-    return arr
-
-
-def _check_max_difference(max_difference: float) -> None:
+def _stamps(first: ArrayLike, second: ArrayLike, max_difference: float) -> tuple[np.ndarray, np.ndarray]:
+    """``first`` and ``second`` as float64 arrays ``(N,)`` and ``(M,)``, checked with ``max_difference``."""
+    out = []
+    for name, x in (("first", first), ("second", second)):
+        if isinstance(x, torch.Tensor):
+            x = x.detach().to("cpu", torch.float64).numpy()
+        arr = np.asarray(x, dtype=np.float64)
+        if arr.ndim != 1:
+            raise ValueError(f"{name} must have shape (N,), got {arr.shape}")
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{name} contains non-finite timestamps")
+        out.append(arr)
     if not max_difference > 0:  # also refuses NaN
         raise ValueError(f"max_difference must be positive, got {max_difference}")
+    return out[0], out[1]
 
 
 def _empty() -> tuple[torch.Tensor, torch.Tensor]:
@@ -61,7 +55,6 @@ def _matching_time_indices(s1: np.ndarray, s2: np.ndarray, max_diff: float,
     search, first minimum, when ``s2`` is not sorted)."""
     s2 = s2 + offset_2
     if not np.all(np.diff(s2) >= 0):
-        # evo's linear search: argmin |s2 - s1| (first minimum), kept when <= max_diff
         idx_1, idx_2 = [], []
         chunk = max(1, 4_000_000 // s2.size)
         for start in range(0, s1.size, chunk):
@@ -101,9 +94,7 @@ def associate_nearest(
         ``(K,)`` int64 indices into ``first`` and ``(K,)`` int64 indices into ``second``, in the order of
         the short list's stamps (evo's order); ``K = 0`` (empty tensors) when nothing matches.
     """
-    a = _stamps(first, "first")
-    b = _stamps(second, "second")
-    _check_max_difference(max_difference)
+    a, b = _stamps(first, second, max_difference)
     if a.size == 0 or b.size == 0:
         return _empty()
     if b.size > a.size:  # evo: second_longer -> the first is the short one
@@ -131,9 +122,7 @@ def associate(
         ``(K,)`` int64 indices into ``first`` and ``(K,)`` int64 indices into ``second``, sorted by the
         matched ``first`` stamp; ``K = 0`` (empty tensors) when nothing matches.
     """
-    a = _stamps(first, "first")
-    b = _stamps(second, "second")
-    _check_max_difference(max_difference)
+    a, b = _stamps(first, second, max_difference)
     empty = _empty()
     if a.size == 0 or b.size == 0:
         return empty
@@ -179,24 +168,3 @@ def association_indices(reference_stamps: ArrayLike, estimate_stamps: ArrayLike,
         return associate(reference_stamps, estimate_stamps, max_difference, offset)
     raise ValueError(f"association must be one of {ASSOCIATIONS}, got {association!r}")
 
-
-def associate_trajectories(reference, estimate, max_difference: float = TUM_MAX_DIFFERENCE, offset: float = 0.0,
-                           association: str = "evo"):
-    """The associated parts of two trajectories, pair by pair.
-
-    Args:
-        reference: a :class:`slam.io.trajectory.Trajectory` (``N`` poses).
-        estimate: a :class:`slam.io.trajectory.Trajectory` (``M`` poses); ``offset`` is added to its stamps.
-        max_difference: seconds, see :func:`associate_nearest` / :func:`associate`.
-        offset: seconds added to the estimate's stamps.
-        association: ``"evo"`` (default, :func:`associate_nearest`, evo's ``sync.associate_trajectories``)
-            or ``"tum"`` (:func:`associate`, TUM's greedy one-to-one rule).
-
-    Returns:
-        ``(reference_part, estimate_part)``, two trajectories of ``K`` poses each, where pose ``k`` of
-        one corresponds to pose ``k`` of the other (in evo's order, or sorted by reference time for
-        ``"tum"``).
-    """
-    i, j = association_indices(reference.timestamps, estimate.timestamps, max_difference, offset, association)
-    i, j = i.to(reference.timestamps.device), j.to(estimate.timestamps.device)
-    return reference.subset(i), estimate.subset(j)

@@ -1,12 +1,6 @@
-"""A sequence played as laps: forward, backward, forward, ... so that the motion stays continuous.
-
-A robot that patrols a building revisits the same places for hours. :class:`LapSequence` makes such a long
-run out of any recorded or generated sequence without new data: lap 0 plays frames ``0 .. n-1``, lap 1 plays
-them back ``n-1 .. 0``, lap 2 forward again, and so on (``laps * n`` frames; the frame at each turn is shown
-twice, the camera standing still for one frame). Timestamps keep increasing: each frame is later than the
-previous one by the source's spacing between the two source frames (by the source's median spacing at a
-turn), so a time window (the loop detector's) spans the same time on every lap. Ground truth is the source
-frame's.
+"""A sequence played as laps, forward, backward, forward, ... (docs/pipeline.md, "Long runs"): the motion stays
+continuous (a turn shows its frame twice) and timestamps keep increasing by the source's spacing (its median at a
+turn), so a time window spans the same time on every lap. Ground truth is the source frame's.
 
 Example:
     >>> import numpy as np
@@ -39,7 +33,7 @@ def lap_indices(num_frames: int, laps: int) -> np.ndarray:
 
 
 class LapSequence(RGBDSequence):
-    """``source`` played ``laps`` times, alternately forward and backward (see the module docstring).
+    """``source`` played ``laps`` times, alternately forward and backward.
 
     Args:
         source: any :class:`~slam.io.sequence.RGBDSequence` (a folder's, a view of one, a generated one).
@@ -68,13 +62,6 @@ class LapSequence(RGBDSequence):
         self._timestamps = src[idx[0]] + np.concatenate([[0.0], np.cumsum(gaps)])
         self._gt = None
 
-    def __len__(self) -> int:
-        return int(self.source_indices.size)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._timestamps
-
     def _load(self, i: int) -> RGBDFrame:
         frame = self.source[int(self.source_indices[i])]
         frame.index, frame.timestamp = int(i), float(self._timestamps[i])
@@ -84,11 +71,6 @@ class LapSequence(RGBDSequence):
         if self._gt is None:
             self._gt = np.asarray(self.source._groundtruth_array(), dtype=np.float64)[self.source_indices]
         return self._gt
-
-    def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
-        # the source frame's own pose (a reader that pairs ground truth by time would pair the repeated
-        # frames among themselves: every lap shows the same frames)
-        return self._groundtruth_array()[np.asarray(indices, dtype=np.int64)]
 
     def __repr__(self) -> str:
         return f"LapSequence({self.source!r}, laps={self.laps})"

@@ -1,14 +1,6 @@
-"""RGB-D sequences recorded as ROS bags (a ROS1 ``.bag`` file, as TUM RGB-D ships them, or a ROS2 bag folder).
-
-Read with rosbags (``pip install attnloop[rosbag]``). Opening scans the colour and depth topics once, keeping
-only each message's stamps; a frame's images are decoded when it is requested. Colour and depth are paired by
-their header stamps with TUM's association (:func:`slam.io.associate.associate`); the first message of the
-camera-info topic gives ``K``.
-
-Encodings: colour ``rgb8``, ``bgr8``, ``mono8``; depth ``32FC1`` (metres, NaN = no depth) or ``16UC1``
-(millimetres unless ``depth_scale`` says otherwise, 0 = no depth). A missing topic, another encoding, or a bag
-that cannot be read (truncated, not a bag) is a :class:`~slam.io.sequence.DatasetError` naming the topic, the
-encoding or the file.
+"""RGB-D sequences recorded as ROS bags (a ROS1 ``.bag`` file or a ROS2 bag folder), read with rosbags
+(``pip install attnloop[rosbag]``): topics, encodings and errors as docs/pipeline.md ("ROS bags") describes them.
+Opening keeps each message's stamps only; a frame's images are decoded when it is requested.
 """
 from __future__ import annotations
 
@@ -79,7 +71,7 @@ def _stamp(msg) -> float:
 
 
 class RosbagSequence(TimeAssociatedSequence):
-    """An RGB-D sequence in a ROS bag, read lazily (see the module docstring).
+    """An RGB-D sequence in a ROS bag, read lazily; colour and depth paired by header stamp as TUM's association.
 
     Args:
         path: a ROS1 ``.bag`` file or a ROS2 bag folder.
@@ -87,7 +79,8 @@ class RosbagSequence(TimeAssociatedSequence):
         camera: a TUM camera (``fr1``, ``fr2``, ``fr3``, ``ros``) whose intrinsics replace the camera info's
             (TUM's bags carry the ROS defaults there).
         K: ``(3, 3)`` intrinsics replacing the camera info's; the camera-info topic is then not read.
-        depth_scale: ``16UC1`` depth units per metre (default millimetres, 1000); refused for ``32FC1``.
+        depth_scale: ``16UC1`` depth units per metre (default millimetres, 1000); refused for ``32FC1`` (metres,
+            NaN = no depth).
         check_units: check the first frames' median ``16UC1`` depth at ``depth_scale``
             (:func:`~slam.io.sequence.check_depth_units`).
         groundtruth: a TUM trajectory file associated with the frames as a TUM folder's ``groundtruth.txt``.
@@ -232,9 +225,7 @@ class RosbagSequence(TimeAssociatedSequence):
             rgb = np.ascontiguousarray(rgb[..., ::-1]) if msg.encoding == "bgr8" else rgb
         raw = self._raw_depth(i)
         depth = raw.astype(np.float32) if raw.dtype == np.float32 else depth_to_metres(raw, self.depth_scale)
-        pose = self._gt[i]
-        return RGBDFrame(index=i, timestamp=float(self._timestamps[i]), rgb=rgb, depth=depth, K=self.K.copy(),
-                         pose_gt=None if np.isnan(pose).any() else pose.copy())
+        return self._frame(i, rgb, depth, self._gt[i])
 
     def close(self) -> None:
         """Close the bag (also when the sequence is garbage-collected)."""

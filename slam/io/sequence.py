@@ -1,14 +1,8 @@
-"""The common RGB-D sequence interface (:func:`slam.io.open_sequence` opens a folder as one).
+"""The common RGB-D sequence interface (:func:`slam.io.open_sequence` opens a folder as one) and its errors.
 
-Errors: at **open time** (:func:`slam.io.open_sequence` / the reader's constructor) a missing folder or list
-file is a :class:`DatasetNotFoundError` (also a ``FileNotFoundError``); an unknown layout, a malformed line
-(named by file and line, a byte that is not UTF-8 included) or an unknown camera a :class:`DatasetError` (a
-``ValueError``). At **read time** (``sequence[i]``) a missing or undecodable image is a
-:class:`slam.io.images.FrameReadError` carrying the path, which a run skips with a warning. What a reader
-leaves out without an error (a 7-Scenes pose file that is not a pose) it reports with a
-:class:`DatasetWarning` naming the files.
-
-Depth is float32 metres with **0.0 marking invalid pixels** (never NaN), as :class:`RGBDFrame` says.
+Open-time errors are :class:`DatasetError` (a ``ValueError``; :class:`DatasetNotFoundError` also a
+``FileNotFoundError``) naming the file and line; read-time ones :class:`slam.io.images.FrameReadError`, which a run
+skips with a warning. Depth is float32 metres, 0.0 marking invalid pixels (never NaN).
 """
 from __future__ import annotations
 
@@ -22,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from slam.input_checks import TextDecodeError, read_text_lines
 from slam.io.frame import DEPTH_MEDIAN_RANGE, RGBDFrame, median_valid_depth
 from slam.io.images import FrameReadError, depth_to_metres, read_depth_raw
 from slam.io.trajectory import Trajectory
@@ -51,6 +46,14 @@ class DatasetNotFoundError(DatasetError, FileNotFoundError):
     """The sequence folder or one of its required list files does not exist."""
 
 
+def read_dataset_lines(path: Path) -> list[str]:
+    """The lines of a dataset's text file; a byte that is not UTF-8 is a :class:`DatasetError` naming the line."""
+    try:
+        return read_text_lines(path)[1]
+    except TextDecodeError as e:
+        raise DatasetError(path, e.reason, e.line) from None
+
+
 def check_depth_scale(depth_scale, root) -> float:
     """``depth_scale`` (depth units per metre) as a float, or a :class:`DatasetError` naming ``root``."""
     try:
@@ -72,9 +75,8 @@ _TYPICAL_DEPTH = 2.0  # metres: an indoor RGB-D view's median depth, to order th
 
 def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values: tuple[int, ...] = (0,),
                       read: Callable[[object], np.ndarray] = read_depth_raw) -> None:
-    """Refuse depth whose scale is wrong (millimetres read as TUM's 1/5000 m, or the reverse): the median
-    valid depth of the first readable frames (up to 3 of the first 10) outside
-    :data:`~slam.io.frame.DEPTH_MEDIAN_RANGE` metres at ``scale``.
+    """Refuse depth whose median over the first readable frames (up to 3 of the first 10) is outside
+    :data:`~slam.io.frame.DEPTH_MEDIAN_RANGE` metres at ``scale`` (millimetres read as TUM's 1/5000 m, ...).
 
     Args:
         root: the sequence folder (named by the error).
@@ -116,34 +118,36 @@ def check_depth_units(root, depth_paths: Sequence, scale: float, invalid_values:
                              "(--no-depth-check if the scene really is that near or far)")
 
 
+def _known(pose: np.ndarray) -> np.ndarray | None:
+    """A copy of ``pose (7,)`` float64, None where it holds a NaN (unknown)."""
+    return None if np.isnan(pose).any() else np.array(pose, dtype=np.float64)
+
+
 class DatasetWarning(UserWarning):
     """Something in a dataset was unusable and left out (e.g. a pose file that is not a pose); the message
     names the files."""
 
 
 class RGBDSequence(ABC):
-    """A lazily read RGB-D sequence: nothing but file names and timestamps is held in memory.
+    """A lazily read RGB-D sequence: ``seq[i]`` decodes frame ``i`` (an :class:`RGBDFrame`), ``seq[a:b]`` is a
+    :class:`SequenceView`; nothing but file names and timestamps is held in memory.
 
-    Subclasses set ``root`` (Path), ``name`` (str), ``K`` ``(3, 3)`` float64 and implement
-    ``__len__``, ``timestamps``, :meth:`_load` and :meth:`_groundtruth_array`.
-
-    ``len(seq)``, ``seq[i]`` (an :class:`RGBDFrame`, images decoded now), ``for frame in seq``,
-    ``seq[a:b]`` (a :class:`SequenceView`), ``seq.timestamps`` ``(N,)`` float64 numpy,
-    ``seq.groundtruth`` (a :class:`Trajectory` of the frames that have ground truth, in input order,
-    stamped with the frames' own timestamps, or None).
+    Subclasses set ``root`` (Path), ``name`` (str), ``K`` ``(3, 3)`` float64 and ``_timestamps`` (or override
+    ``__len__`` and ``timestamps``), and implement :meth:`_load` and :meth:`_groundtruth_array`.
     """
 
     root: Path
     name: str
     K: np.ndarray
+    _timestamps: np.ndarray
 
-    @abstractmethod
-    def __len__(self) -> int: ...
+    def __len__(self) -> int:
+        return len(self._timestamps)
 
     @property
-    @abstractmethod
     def timestamps(self) -> np.ndarray:
         """``(N,)`` float64 seconds, one per frame, in input order."""
+        return self._timestamps
 
     @abstractmethod
     def _load(self, i: int) -> RGBDFrame:
@@ -224,12 +228,17 @@ class RGBDSequence(ABC):
 
     def groundtruth_pose(self, i: int) -> np.ndarray | None:
         """``(7,)`` ground truth of frame ``i`` or None."""
-        pose = self._groundtruth_array()[i]
-        return None if np.isnan(pose).any() else pose.copy()
+        return _known(self._groundtruth_array()[i])
+
+    def _frame(self, i: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray, paths=("", "")) -> RGBDFrame:
+        """Frame ``i`` of decoded images ``rgb (H, W, 3)``, ``depth (H, W)`` metres and ground truth ``pose (7,)``
+        (NaN: unknown); ``paths``: the colour and depth files."""
+        return RGBDFrame(index=i, timestamp=float(self.timestamps[i]), rgb=rgb, depth=depth, K=self.K.copy(),
+                         pose_gt=_known(pose), rgb_path=str(paths[0]), depth_path=str(paths[1]))
 
     @property
     def groundtruth(self) -> Trajectory | None:
-        """Per-frame ground truth of the frames that have it (input order), or None if none has."""
+        """Ground truth of the frames that have it (input order, the frames' stamps), or None if none has."""
         gt = self._groundtruth_array()
         has = ~np.isnan(gt).any(axis=1)
         if not has.any():
@@ -258,8 +267,7 @@ class SequenceView(RGBDSequence):
     def _load(self, i: int) -> RGBDFrame:
         frame = self.parent._load(int(self.indices[i]))
         frame.index = i
-        pose = self._groundtruth_array()[i]
-        frame.pose_gt = None if np.isnan(pose).any() else pose.copy()
+        frame.pose_gt = self.groundtruth_pose(i)
         return frame
 
     def _groundtruth_array(self) -> np.ndarray:

@@ -1,17 +1,10 @@
-"""Microsoft 7-Scenes sequences (one ``seq-XX`` folder), read lazily.
+"""Microsoft 7-Scenes sequences (one ``seq-XX`` folder), read lazily; layout and intrinsics in docs/pipeline.md.
 
-Layout: ``frame-%06d.color.(png|jpg)``, ``frame-%06d.depth.png`` (16-bit millimetres, 0 and 65535
-invalid), ``frame-%06d.pose.txt`` (4x4 camera-to-world, optional; rotations projected onto the nearest
-rotation), optional ``camera-intrinsics.txt`` (3x3; default fx = fy = 585, cx = 320, cy = 240). Frame ``k``
-is at ``k / 30`` s. Colour and depth come from two unregistered cameras: the images are given as they are
-with ``K`` of the depth camera (the frame of the depth images and of the ground truth); ``attnloop-slam``
-applies the Kinect v1 rig by default (:data:`slam.options.KINECT_V1_RIG`).
-
-A pose file with non-finite entries (lost tracking) means "no ground truth" for that frame; so does one that
-cannot be a pose (text, not UTF-8, not 16 numbers, a last row other than ``0 0 0 1``, a rotation block with
-singular values outside ``1 +- 0.01`` or a reflection, a translation beyond
-:data:`~slam.input_checks.MAX_COORDINATE`), with a :class:`~slam.io.sequence.DatasetWarning` naming the file.
-``camera-intrinsics.txt`` must hold a pinhole matrix, else :class:`~slam.io.sequence.DatasetError`.
+Frame ``k`` is at ``k / 30`` s; ``K`` is the depth camera's (the frame of the depth images and of the ground truth).
+A pose file that cannot be a pose (not 16 numbers, a last row other than ``0 0 0 1``, a rotation block with singular
+values outside ``1 +- 0.01`` or a reflection, a translation beyond :data:`~slam.input_checks.MAX_COORDINATE`) leaves
+its frame without ground truth, with a :class:`~slam.io.sequence.DatasetWarning` naming the file; non-finite entries
+(lost tracking) do so silently.
 """
 from __future__ import annotations
 
@@ -25,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from slam.input_checks import MAX_COORDINATE, TextDecodeError, read_text_lines
+from slam.input_checks import MAX_COORDINATE
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
 from slam.io.sequence import (DatasetError, DatasetNotFoundError, DatasetWarning, RGBDSequence, check_depth_scale,
-                               check_depth_units)
+                               check_depth_units, read_dataset_lines)
 from slam.lie import rotmat_project, se3_from_matrix
 
 __all__ = [
@@ -56,12 +49,8 @@ _ROTATION_TOLERANCE = 0.01
 
 def _read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
     """The ``shape`` matrix a text file holds; :class:`DatasetError` naming the file (and line) otherwise."""
-    try:
-        _, lines = read_text_lines(path)
-    except TextDecodeError as e:
-        raise DatasetError(path, e.reason, e.line) from None
     values = []
-    for number, line in enumerate(lines, start=1):
+    for number, line in enumerate(read_dataset_lines(path), start=1):
         try:
             values += [float(v) for v in line.replace(",", " ").split()]
         except ValueError:
@@ -89,27 +78,28 @@ def _pose_problems(T: np.ndarray) -> list:
     return out
 
 
-def _matrices_to_poses(T: np.ndarray) -> np.ndarray:
-    """``(N, 4, 4)`` camera-to-world matrices (checked by :func:`_pose_problems`) -> ``(N, 7)`` poses, each
-    rotation block replaced by the nearest rotation (KinectFusion's are not exactly orthonormal)."""
-    Tt = torch.from_numpy(np.ascontiguousarray(T, dtype=np.float64))
-    R = rotmat_project(Tt[:, :3, :3])
-    return se3_from_matrix(torch.cat([R, Tt[:, :3, 3:]], dim=-1)).numpy()
-
-
-def _read_pose(path: Path) -> tuple[np.ndarray, str | None]:
-    """``(7,)`` pose of a pose file (NaN when unknown) and, for a file that cannot be a pose, why not."""
-    unknown = np.full(7, np.nan)
-    try:
-        T = _read_matrix(path, (4, 4))
-    except DatasetError as e:
-        return unknown, str(e)
-    if not np.isfinite(T).all():  # 7-Scenes' mark of a frame where tracking was lost
-        return unknown, None
-    problem = _pose_problems(T[None])[0]
-    if problem is not None:
-        return unknown, f"{path}: {problem}"
-    return _matrices_to_poses(T[None])[0], None
+def _read_poses(root: Path, names: list) -> tuple[np.ndarray, list]:
+    """``(N, 7)`` camera-to-world poses of the pose files ``names`` (None: no file), NaN rows where unknown, and
+    the ``(name, why)`` of each file that is not a pose. Rotation blocks are replaced by the nearest rotation
+    (KinectFusion's are not exactly orthonormal)."""
+    Ts = np.full((len(names), 4, 4), np.nan)
+    problems = []
+    for i, name in enumerate(names):
+        if name is not None:
+            try:
+                Ts[i] = _read_matrix(root / name, (4, 4))
+            except DatasetError as e:
+                problems.append((name, str(e)))
+    ok = np.isfinite(Ts).all(axis=(1, 2))  # non-finite entries: 7-Scenes' mark of lost tracking
+    for k, problem in zip(np.nonzero(ok)[0], _pose_problems(Ts[ok]) if ok.any() else []):
+        if problem is not None:
+            ok[k] = False
+            problems.append((names[k], f"{root / names[k]}: {problem}"))
+    poses = np.full((len(names), 7), np.nan)
+    if ok.any():
+        Tt = torch.from_numpy(np.ascontiguousarray(Ts[ok], dtype=np.float64))
+        poses[ok] = se3_from_matrix(torch.cat([rotmat_project(Tt[:, :3, :3]), Tt[:, :3, 3:]], dim=-1)).numpy()
+    return poses, problems
 
 
 def _warn_unknown(problems: list, warned: set) -> None:
@@ -198,44 +188,19 @@ class SevenScenesSequence(RGBDSequence):
             check_depth_units(self.root, [self.root / name for name in self._depth[:10]], self.depth_scale,
                               SEVENSCENES_INVALID_DEPTH)
 
-    def __len__(self) -> int:
-        return len(self._color)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._timestamps
-
     def paths(self, i: int) -> tuple[Path, Path]:
         """The colour and depth files of frame ``i``."""
         return self.root / self._color[i], self.root / self._depth[i]
 
     def _pose_of(self, i: int) -> np.ndarray:
-        """``(7,)`` ground truth of frame ``i``, NaN if it has none (no file, non-finite entries, or a file
-        that is not a pose: then with a warning)."""
-        if self._pose[i] is None:
-            return np.full(7, np.nan)
-        pose, problem = _read_pose(self.root / self._pose[i])
-        _warn_unknown([(self._pose[i], problem)] if problem else [], self._warned)
-        return pose
+        """``(7,)`` ground truth of frame ``i``, NaN if it has none (a file that is not a pose: with a warning)."""
+        pose, problems = _read_poses(self.root, [self._pose[i]])
+        _warn_unknown(problems, self._warned)
+        return pose[0]
 
     def _groundtruth_array(self) -> np.ndarray:
-        if self._gt is None:  # read once, on first use (~0.1 ms per pose file)
-            Ts = np.full((len(self), 4, 4), np.nan)
-            problems = []
-            for i, name in enumerate(self._pose):
-                if name is not None:
-                    try:
-                        Ts[i] = _read_matrix(self.root / name, (4, 4))
-                    except DatasetError as e:
-                        problems.append((name, str(e)))
-            ok = np.isfinite(Ts).all(axis=(1, 2))
-            for k, problem in zip(np.nonzero(ok)[0], _pose_problems(Ts[ok]) if ok.any() else []):
-                if problem is not None:
-                    ok[k] = False
-                    problems.append((self._pose[k], f"{self.root / self._pose[k]}: {problem}"))
-            gt = np.full((len(self), 7), np.nan)
-            if ok.any():
-                gt[ok] = _matrices_to_poses(Ts[ok])
+        if self._gt is None:  # read once, on first use
+            gt, problems = _read_poses(self.root, self._pose)
             _warn_unknown(problems, self._warned)
             self._gt = gt
         return self._gt
@@ -246,9 +211,5 @@ class SevenScenesSequence(RGBDSequence):
         raw = read_depth_raw(str(depth_path), rgb.shape[:2])
         # a pose file that is not a pose leaves the frame without ground truth (warned), never without images
         pose = self._gt[i] if self._gt is not None else self._pose_of(i)
-        return RGBDFrame(
-            index=i, timestamp=float(self._timestamps[i]), rgb=rgb,
-            depth=depth_to_metres(raw, self.depth_scale, SEVENSCENES_INVALID_DEPTH), K=self.K.copy(),
-            pose_gt=None if np.isnan(pose).any() else np.array(pose, dtype=np.float64),
-            rgb_path=str(rgb_path), depth_path=str(depth_path),
-        )
+        depth = depth_to_metres(raw, self.depth_scale, SEVENSCENES_INVALID_DEPTH)
+        return self._frame(i, rgb, depth, pose, (rgb_path, depth_path))

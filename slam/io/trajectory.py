@@ -1,11 +1,5 @@
-"""TUM-format trajectories: ``timestamp tx ty tz qx qy qz qw`` per line.
-
-The reader is strict: every non-comment line must hold exactly eight finite numbers (separated by spaces,
-tabs or commas; an empty comma-separated cell is refused), a translation within
-:data:`~slam.input_checks.MAX_COORDINATE` and a non-zero quaternion (normalised without overflow);
-anything else, and a byte that is not UTF-8, raises :class:`TrajectoryFormatError` naming the file and the
-1-based line number. :func:`write_tum_trajectory` writes the shortest decimals that read back to the same
-float64, so a written trajectory reads back exactly.
+"""TUM-format trajectories: ``timestamp tx ty tz qx qy qz qw`` per line, read strictly (every error names the file
+and the 1-based line) and written with the shortest decimals that read back to the same float64.
 
 Example:
     >>> import io, torch
@@ -21,6 +15,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import IO, Optional, Union
 
@@ -120,6 +115,24 @@ def split_fields(line: str) -> tuple[list[str], int | None]:
     return [f for cell in cells for f in cell.split()], empty
 
 
+def data_lines(lines: list[str], error: Callable[[int, str], Exception]) -> Iterator[tuple[int, str, list[str]]]:
+    """``(line number, stripped line, fields)`` of each data line: ``#`` comments, blank lines and an uncommented
+    ``timestamp ...`` header before the data are skipped; an empty comma-separated cell raises
+    ``error(line number, message)``."""
+    first = True
+    for number, raw in enumerate(lines, start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields, empty = split_fields(line)
+        if first and fields and fields[0].lower() == "timestamp":
+            continue  # an uncommented column header before the data
+        if empty is not None:
+            raise error(number, f"comma-separated cell {empty} is empty in {line!r}")
+        first = False
+        yield number, line, fields
+
+
 def _read_lines(source: PathOrFile) -> list[str]:
     if isinstance(source, (str, os.PathLike)) and not os.path.isfile(os.fspath(source)):
         if os.path.isdir(os.fspath(source)):
@@ -155,15 +168,7 @@ def read_tum_trajectory(source: PathOrFile) -> Trajectory:
     name = source_name(source)
     rows: list[list[float]] = []
     line_numbers: list[int] = []
-    for number, raw in enumerate(_read_lines(source), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        fields, empty = split_fields(line)
-        if not rows and fields and fields[0].lower() == "timestamp":
-            continue  # an uncommented column header before the data
-        if empty is not None:
-            raise TrajectoryFormatError(name, number, f"comma-separated cell {empty} is empty in {line!r}")
+    for number, line, fields in data_lines(_read_lines(source), lambda n, m: TrajectoryFormatError(name, n, m)):
         if len(fields) != 8:
             raise TrajectoryFormatError(
                 name, number, f"expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(fields)}: {line!r}"

@@ -1,24 +1,6 @@
-"""TUM RGB-D sequences (Sturm et al. 2012): ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``.
+"""TUM RGB-D sequence folders (Sturm et al. 2012): ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``.
 
-* Frames are the rgb/depth pairs associated as TUM's ``associate.py`` does (nearest timestamps less than
-  0.02 s apart, greedy one-to-one), in rgb-time order; a frame's timestamp is its rgb stamp. rgb entries
-  without a depth entry are not frames (logged at INFO).
-* Ground truth of a frame: a ``groundtruth.txt`` pose less than 0.02 s from its rgb stamp, by the same greedy
-  one-to-one association as TUM's ``evaluate_ate.py`` (no interpolation); a subset of the frames
-  (``seq[::2]``) is paired among itself. Ground truth that matches no frame is kept as read
-  (:attr:`TUMSequence.groundtruth_trajectory`).
-* Timestamps are seconds; milli-, micro- or nanoseconds (:func:`slam.input_checks.timestamp_unit`) are
-  converted with one warning; frame numbers are a :class:`DatasetError`.
-* Depth: 16-bit PNG, ``depth_scale`` (5000) units per metre, 0 = invalid -> float32 metres; the first frames'
-  depth is checked against the scale (:func:`slam.io.sequence.check_depth_units`).
-* Intrinsics: ``K`` if given, else ``camera`` (``fr1``/``fr2``/``fr3``/``ros``), else a ``calibration.txt``
-  in the folder (``fx fy cx cy`` [+ 5 distortion coefficients]), else inferred from the folder name (a
-  symlink's own name first, then its target's), else the ROS default with a warning. ``undistort=True``
-  remaps both images with the fr1/fr2 distortion (depth by nearest neighbour).
-
-List files: ``# comments``, blank lines, ``timestamp filename`` per line, exactly these two fields (separated
-by spaces, tabs or a comma); an uncommented ``timestamp filename`` header is skipped; a repeated timestamp
-keeps its last line, as TUM's scripts do.
+Association, timestamps, depth units and intrinsics as docs/pipeline.md ("Running it") describes them.
 """
 from __future__ import annotations
 
@@ -32,11 +14,12 @@ import numpy as np
 import torch
 
 from slam.io.associate import TUM_MAX_DIFFERENCE, associate
-from slam.input_checks import TIME_UNITS, TextDecodeError, read_text_lines, timestamp_unit
+from slam.input_checks import TIME_UNITS, timestamp_unit
 from slam.io.frame import RGBDFrame, check_intrinsics
 from slam.io.images import depth_to_metres, read_depth_raw, read_rgb
-from slam.io.sequence import DatasetError, DatasetNotFoundError, RGBDSequence, check_depth_scale, check_depth_units
-from slam.io.trajectory import Trajectory, split_fields, read_tum_trajectory
+from slam.io.sequence import (DatasetError, DatasetNotFoundError, RGBDSequence, check_depth_scale, check_depth_units,
+                              read_dataset_lines)
+from slam.io.trajectory import Trajectory, data_lines, read_tum_trajectory
 
 __all__ = [
     "TUM_CAMERAS",
@@ -112,21 +95,13 @@ def camera_from_name(folder_name: str) -> str | None:
     return f"fr{m.group(1)}" if m else None
 
 
-def _lines(path: Path) -> list[str]:
-    """The lines of a list or calibration file; a byte that is not UTF-8 is a :class:`DatasetError`."""
-    try:
-        return read_text_lines(path)[1]
-    except TextDecodeError as e:
-        raise DatasetError(path, e.reason, e.line) from None
-
-
 def read_calibration_file(path: Path) -> TUMCamera:
     """A camera from ``calibration.txt``: the first non-comment line ``fx fy cx cy [k1 k2 p1 p2 k3]``.
 
     Raises:
         DatasetError: a malformed file (with the line number), non-finite values or a focal length <= 0.
     """
-    for number, raw in enumerate(_lines(path), start=1):
+    for number, raw in enumerate(read_dataset_lines(path), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
@@ -182,15 +157,7 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
     if not path.is_file():
         raise DatasetNotFoundError(path, "list file does not exist")
     entries: dict[float, tuple[int, str]] = {}
-    for number, raw in enumerate(_lines(path), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        fields, empty = split_fields(line)
-        if not entries and fields and fields[0].lower() == "timestamp":
-            continue  # an uncommented column header before the data
-        if empty is not None:
-            raise DatasetError(path, f"comma-separated cell {empty} is empty in {line!r}", number)
+    for number, line, fields in data_lines(read_dataset_lines(path), lambda n, m: DatasetError(path, m, n)):
         if len(fields) != 2:
             raise DatasetError(path, f"expected 2 fields 'timestamp filename', got {len(fields)} in {line!r} "
                                      "(a file name cannot hold spaces or commas)", number)
@@ -220,7 +187,6 @@ class TimeAssociatedSequence(RGBDSequence):
     ``_gt = self._associate_groundtruth(self._timestamps)``.
     """
 
-    _timestamps: np.ndarray
     _gt: np.ndarray
     _gt_trajectory: Trajectory | None = None
     max_difference: float = TUM_MAX_DIFFERENCE
@@ -241,13 +207,6 @@ class TimeAssociatedSequence(RGBDSequence):
     def _groundtruth_of(self, indices: np.ndarray) -> np.ndarray:
         # the association is one-to-one: the subset's frames are paired among themselves
         return self._associate_groundtruth(self._timestamps[indices])
-
-    def __len__(self) -> int:
-        return len(self._timestamps)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._timestamps
 
     def _groundtruth_array(self) -> np.ndarray:
         return self._gt
@@ -355,13 +314,7 @@ class TUMSequence(TimeAssociatedSequence):
         raw = read_depth_raw(str(depth_path), rgb.shape[:2])
         if self.undistort:
             rgb, raw = self._remap(rgb, raw)
-        pose = self._gt[i]
-        return RGBDFrame(
-            index=i, timestamp=float(self._timestamps[i]), rgb=rgb,
-            depth=depth_to_metres(raw, self.depth_scale), K=self.K.copy(),
-            pose_gt=None if np.isnan(pose).any() else pose.copy(),
-            rgb_path=str(rgb_path), depth_path=str(depth_path),
-        )
+        return self._frame(i, rgb, depth_to_metres(raw, self.depth_scale), self._gt[i], (rgb_path, depth_path))
 
     def _remap(self, rgb: np.ndarray, raw: np.ndarray):
         h, w = raw.shape
