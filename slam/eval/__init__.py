@@ -11,7 +11,7 @@ Example:
     (10, 0.0049)
 """
 from slam.eval.align import transform_poses, umeyama_alignment
-from slam.io.associate import TUM_MAX_DIFFERENCE, associate, associate_nearest
+from slam.io.associate import TUM_MAX_DIFFERENCE, associate, associate_nearest, associate_trajectories
 from slam.eval.loops import (
     LoopEvaluation,
     LoopGroundTruthConfig,
@@ -36,6 +36,7 @@ __all__ = [
     "as_trajectory",
     "associate",
     "associate_nearest",
+    "associate_trajectories",
     "ate",
     "choose_plane",
     "evaluate_loop_candidates",

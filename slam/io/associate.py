@@ -17,7 +17,7 @@ from typing import Union
 import numpy as np
 import torch
 
-__all__ = ["ASSOCIATIONS", "TUM_MAX_DIFFERENCE", "associate", "associate_nearest"]
+__all__ = ["ASSOCIATIONS", "TUM_MAX_DIFFERENCE", "associate", "associate_nearest", "associate_trajectories"]
 
 # TUM's associate.py / evaluate_ate.py default: 20 ms, i.e. less than a frame at 30 Hz.
 TUM_MAX_DIFFERENCE = 0.02
@@ -168,3 +168,24 @@ def association_indices(reference_stamps: ArrayLike, estimate_stamps: ArrayLike,
         return associate(reference_stamps, estimate_stamps, max_difference, offset)
     raise ValueError(f"association must be one of {ASSOCIATIONS}, got {association!r}")
 
+
+def associate_trajectories(reference, estimate, max_difference: float = TUM_MAX_DIFFERENCE, offset: float = 0.0,
+                           association: str = "evo"):
+    """The associated parts of two trajectories, pair by pair.
+
+    Args:
+        reference: a :class:`slam.io.trajectory.Trajectory` (``N`` poses).
+        estimate: a :class:`slam.io.trajectory.Trajectory` (``M`` poses); ``offset`` is added to its stamps.
+        max_difference: seconds, see :func:`associate_nearest` / :func:`associate`.
+        offset: seconds added to the estimate's stamps.
+        association: ``"evo"`` (default, :func:`associate_nearest`, evo's ``sync.associate_trajectories``)
+            or ``"tum"`` (:func:`associate`, TUM's greedy one-to-one rule).
+
+    Returns:
+        ``(reference_part, estimate_part)``, two trajectories of ``K`` poses each, where pose ``k`` of
+        one corresponds to pose ``k`` of the other (in evo's order, or sorted by reference time for
+        ``"tum"``).
+    """
+    i, j = association_indices(reference.timestamps, estimate.timestamps, max_difference, offset, association)
+    i, j = i.to(reference.timestamps.device), j.to(estimate.timestamps.device)
+    return reference.subset(i), estimate.subset(j)

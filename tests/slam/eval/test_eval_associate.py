@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from slam.eval import associate, associate_nearest, ate, rpe
+from slam.eval import associate, associate_nearest, associate_trajectories, ate, rpe
 from slam.io.trajectory import Trajectory
 
 
@@ -64,8 +64,12 @@ def test_nearest_rule_ties_order_and_offset():
         associate_nearest([0.0], [0.0], max_difference=float("nan"))
 
 
-def test_association_option_of_ate_rpe():
+def test_association_option_of_ate_rpe_and_trajectories():
     ref, est = _traj([0.0, 0.010, 1.0, 2.0, 3.0]), _traj([0.009, 0.015, 1.0, 2.0, 3.0])
+    r, e = associate_trajectories(ref, est)
+    assert r.timestamps.tolist() == [0.010, 0.010, 1.0, 2.0, 3.0] and e.timestamps.tolist() == est.timestamps.tolist()
+    r, e = associate_trajectories(ref, est, association="tum")
+    assert r.timestamps.tolist() == ref.timestamps.tolist() and e.timestamps.tolist() == [0.015, 0.009, 1.0, 2.0, 3.0]
     r = ate(ref, est, alignment="none")
     assert r.timestamps.tolist() == [0.010, 0.010, 1.0, 2.0, 3.0]
     assert r.estimate_aligned.timestamps.tolist() == est.timestamps.tolist()
