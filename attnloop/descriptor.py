@@ -1,10 +1,7 @@
 """The attention-guided CNN descriptor: backbone -> guided attention -> fusion -> pooling (-> random RNNs) -> L2.
 
-1. L, G: the tap activations and the guided gradient (:mod:`attnloop.guided_backprop`);
-2. F = fusion(L, G / max|G|) (:mod:`attnloop.fusion`);
-3. ``pooling="regional"``: F's regional GeM code (:mod:`attnloop.pooling`); ``"flat"`` (the paper's): F;
-4. with ``num_rnn > 0``: random RNNs (:mod:`attnloop.rnn_pool`) on that input scaled to L2 norm ``pool_scale``;
-5. L2 normalisation. Steps 2-5 are one :class:`DescriptorRecipe`.
+Steps 2-5 (fusion of (L, G / max|G|), pooling, the random RNNs, L2) are one :class:`DescriptorRecipe`; the
+method: docs/method.md.
 """
 from __future__ import annotations
 
@@ -62,7 +59,7 @@ def _check_gem_p(gem_p: float, pooling: str) -> None:
 
 @dataclass(frozen=True)
 class DescriptorRecipe:
-    """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seed."""
+    """What the descriptor does with (L, G): fusion, pooling, random RNNs, L2 (steps 2-5), and the seed."""
 
     fusion: str = "none"  # "none" | "dam" | "eam" | "gaf" | "ega"
     num_rnn: int = 0  # random RNNs after the pooling (the paper's 16); 0: the descriptor is the pooled code

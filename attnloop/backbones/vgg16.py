@@ -1,8 +1,4 @@
-"""VGG16 with torchvision-compatible state-dict keys, tapped at a max-pool output (pool5 by default).
-
-The layer indices are torchvision's, so the ImageNet checkpoint ``vgg16-397923af.pth`` loads with
-``strict=True``. ``transition`` (the guided backprop's clamp) is applied at L and after every later max-pool.
-"""
+"""VGG16 with torchvision's state-dict keys (``vgg16-397923af.pth`` loads strictly), tapped at a max-pool output."""
 from __future__ import annotations
 
 from pathlib import Path

