@@ -19,6 +19,8 @@ import cv2
 import numpy as np
 import torch
 
+from attnloop import __version__
+
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp")
 LIST_SUFFIXES = (".txt", ".lst", ".list")
 MANIFEST = "manifest.json"
@@ -238,8 +240,6 @@ def describe(inputs: Sequence, out, model: torch.nn.Module, settings: dict | Non
     Raises:
         VPRInputError: bad inputs, or ``out`` holding descriptors of other images, settings or model.
     """
-    from attnloop import __version__
-
     out = Path(out)
     old = read_manifest(out) if (out / MANIFEST).is_file() else None
     shard_size = shard_size or (old["shard_size"] if old else 4096)
