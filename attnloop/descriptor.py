@@ -200,12 +200,6 @@ def descriptor_from_attention(
     return fused, desc
 
 
-def _is_backbone(module: nn.Module) -> bool:
-    """Whether ``module`` follows the backbone protocol of :mod:`attnloop.backbones`."""
-    return all(hasattr(module, a) for a in ("preprocess", "forward_to_tap", "tap_shape")) and (
-        hasattr(module, "forward_from_tap") or hasattr(module, "forward_split"))
-
-
 class AttentionDescriptor(nn.Module):
     """Images -> attention-guided CNN descriptors, as a drop-in ``nn.Module``.
 
@@ -360,7 +354,9 @@ class AttentionDescriptor(nn.Module):
             if attend is not None:
                 raise ValueError("attend= applies to a backbone name; build the module with it (e.g. "
                                  "efficientnet_lite0(tap='stage6+stage7', attend='stage7'))")
-            if _is_backbone(backbone):
+            # the backbone protocol of attnloop.backbones
+            if all(hasattr(backbone, a) for a in ("preprocess", "forward_to_tap", "tap_shape")) and (
+                    hasattr(backbone, "forward_from_tap") or hasattr(backbone, "forward_split")):
                 extra = [k for k, v in {"tap": tap, **preprocessing}.items() if v is not None]
                 if extra:
                     raise ValueError(f"{type(backbone).__name__} is a backbone with its own tap and preprocessing; "

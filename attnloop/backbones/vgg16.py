@@ -24,17 +24,6 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
-def _make_features() -> nn.Sequential:
-    layers: list[nn.Module] = []
-    in_ch = 3
-    for n_conv, ch in _CFG:
-        for _ in range(n_conv):
-            layers += [nn.Conv2d(in_ch, ch, kernel_size=3, padding=1), nn.ReLU(inplace=True)]
-            in_ch = ch
-        layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
-    return nn.Sequential(*layers)
-
-
 class VGG16(nn.Module):
     """VGG16 split at a max-pool tap, with its own preprocessing.
 
@@ -58,7 +47,14 @@ class VGG16(nn.Module):
         self.tap = tap
         self.tap_index = VGG16_TAPS[tap]
         self.tap_shape = (_TAP_CHANNELS[tap], _TAP_SIZE[tap], _TAP_SIZE[tap])
-        self.features = _make_features()
+        layers: list[nn.Module] = []
+        in_ch = 3
+        for n_conv, ch in _CFG:
+            for _ in range(n_conv):
+                layers += [nn.Conv2d(in_ch, ch, kernel_size=3, padding=1), nn.ReLU(inplace=True)]
+                in_ch = ch
+            layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
+        self.features = nn.Sequential(*layers)
         self.avgpool = nn.AdaptiveAvgPool2d((7, 7))
         self.classifier = nn.Sequential(
             nn.Linear(512 * 7 * 7, 4096),
