@@ -19,10 +19,6 @@ VGG16_TAPS = {"pool1": 4, "pool2": 9, "pool3": 16, "pool4": 23, "pool5": 30}
 _TAP_CHANNELS = {"pool1": 64, "pool2": 128, "pool3": 256, "pool4": 512, "pool5": 512}
 _TAP_SIZE = {"pool1": 112, "pool2": 56, "pool3": 28, "pool4": 14, "pool5": 7}
 
-# torchvision's VGG preprocessing: RGB in [0, 1], ImageNet mean and std, 224 x 224 input.
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
-
 
 class VGG16(nn.Module):
     """VGG16 split at a max-pool tap, with its own preprocessing.
@@ -36,9 +32,10 @@ class VGG16(nn.Module):
         - logits: :math:`(B, 1000)`
     """
 
+    # torchvision's VGG preprocessing: RGB in [0, 1], ImageNet mean and std, 224 x 224 input
     input_size = (224, 224)
-    mean = IMAGENET_MEAN
-    std = IMAGENET_STD
+    mean = (0.485, 0.456, 0.406)
+    std = (0.229, 0.224, 0.225)
 
     def __init__(self, tap: str = "pool5") -> None:
         super().__init__()

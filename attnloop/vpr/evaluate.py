@@ -81,7 +81,7 @@ def _read_bytes(source: PathOrFile) -> bytes:
 
 def _load_npy(data: bytes, name: str, allow_pickle: bool) -> np.ndarray:
     try:
-        arr = np.load(io.BytesIO(data), allow_pickle=allow_pickle)
+        return np.load(io.BytesIO(data), allow_pickle=allow_pickle)
     except ValueError as e:
         if not allow_pickle and "allow_pickle" in str(e):
             raise GroundTruthFormatError(name, "holds Python objects (a VPR-Bench list?): read it with "
@@ -89,7 +89,6 @@ def _load_npy(data: bytes, name: str, allow_pickle: bool) -> np.ndarray:
         raise GroundTruthFormatError(name, f"not a readable .npy file ({e})") from None
     except Exception as e:  # noqa: BLE001  (truncated or foreign data: numpy raises several kinds)
         raise GroundTruthFormatError(name, f"not a readable .npy file ({type(e).__name__}: {e})") from None
-    return arr
 
 
 def _is_npy(data: bytes) -> bool:
