@@ -1,8 +1,6 @@
 """attnloop: object-aware attention guided frame association (loop closure) for RGB-D SLAM.
 
-The paper's modules as drop-in PyTorch pieces: :mod:`attnloop.backbones` (VGG16, EfficientNet-Lite0, any
-classifier tapped at a submodule), :mod:`attnloop.guided_backprop` (L, G = dS/dL), :mod:`attnloop.fusion`,
-:mod:`attnloop.pooling`, :mod:`attnloop.rnn_pool` and :class:`AttentionDescriptor`, images -> (B, D).
+The paper's modules as drop-in PyTorch pieces, images -> (B, D) (:class:`AttentionDescriptor`); docs/method.md.
 
 Example:
     >>> import torch

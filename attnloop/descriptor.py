@@ -1,10 +1,7 @@
 """The attention-guided CNN descriptor: backbone -> guided attention -> fusion -> pooling (-> random RNNs) -> L2.
 
-1. L, G: the tap activations and the guided gradient (:mod:`attnloop.guided_backprop`);
-2. F = fusion(L, G / max|G|) (:mod:`attnloop.fusion`);
-3. ``pooling="regional"``: F's regional GeM code (:mod:`attnloop.pooling`); ``"flat"`` (the paper's): F;
-4. with ``num_rnn > 0``: random RNNs (:mod:`attnloop.rnn_pool`) on that input scaled to L2 norm ``pool_scale``;
-5. L2 normalisation. Steps 2-5 are one :class:`DescriptorRecipe`.
+Steps 2-5 (fusion of (L, G / max|G|), pooling, the random RNNs, L2) are one :class:`DescriptorRecipe`; the
+method: docs/method.md.
 """
 from __future__ import annotations
 
@@ -62,7 +59,7 @@ def _check_gem_p(gem_p: float, pooling: str) -> None:
 
 @dataclass(frozen=True)
 class DescriptorRecipe:
-    """What the descriptor does with (L, G): steps 2-5 of the module docstring, and the seed."""
+    """What the descriptor does with (L, G): fusion, pooling, random RNNs, L2 (steps 2-5), and the seed."""
 
     fusion: str = "none"  # "none" | "dam" | "eam" | "gaf" | "ega"
     num_rnn: int = 0  # random RNNs after the pooling (the paper's 16); 0: the descriptor is the pooled code
@@ -201,12 +198,6 @@ def descriptor_from_attention(
     if normalize:
         desc = F.normalize(desc, dim=1)
     return fused, desc
-
-
-def _is_backbone(module: nn.Module) -> bool:
-    """Whether ``module`` follows the backbone protocol of :mod:`attnloop.backbones`."""
-    return all(hasattr(module, a) for a in ("preprocess", "forward_to_tap", "tap_shape")) and (
-        hasattr(module, "forward_from_tap") or hasattr(module, "forward_split"))
 
 
 class AttentionDescriptor(nn.Module):
@@ -363,7 +354,9 @@ class AttentionDescriptor(nn.Module):
             if attend is not None:
                 raise ValueError("attend= applies to a backbone name; build the module with it (e.g. "
                                  "efficientnet_lite0(tap='stage6+stage7', attend='stage7'))")
-            if _is_backbone(backbone):
+            # the backbone protocol of attnloop.backbones
+            if all(hasattr(backbone, a) for a in ("preprocess", "forward_to_tap", "tap_shape")) and (
+                    hasattr(backbone, "forward_from_tap") or hasattr(backbone, "forward_split")):
                 extra = [k for k, v in {"tap": tap, **preprocessing}.items() if v is not None]
                 if extra:
                     raise ValueError(f"{type(backbone).__name__} is a backbone with its own tap and preprocessing; "

@@ -1,7 +1,6 @@
 """Fusion of a CNN layer ``L`` with its attention map ``G`` (the paper's DAM, EAM, GAF, EGA; docs/method.md).
 
-``N`` is the per-sample min-max normalisation :func:`minmax_normalize`. Every operator takes two ``(B, C, H, W)``
-tensors of one floating dtype and device and is differentiable in both.
+``N`` is the per-sample min-max normalisation :func:`minmax_normalize`; every operator is differentiable in both.
 
 Example:
     >>> L = torch.rand(2, 512, 7, 7)

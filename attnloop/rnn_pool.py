@@ -1,8 +1,7 @@
 """Random recursive neural network (RNN) pooling of a CNN feature map (CNN-randRNN, Caglayan et al.).
 
-``concat_r tanh(W_r x)``, ``W_r ~ U[-0.1, 0.1]``, ``x`` the flattened map after merging channel ``c`` with
-``c + C/2`` (docs/method.md). The paper's reshape to ``(64, 14, 14)`` changes nothing for a one-level RNN
-and is not performed, so any input shape works: ``in_features = C/2 * H * W``.
+``concat_r tanh(W_r x)``, ``W_r ~ U[-0.1, 0.1]``, ``x`` the flattened map, channel ``c`` merged with ``c + C/2``
+(docs/method.md); any input shape works: ``in_features = C/2 * H * W``.
 
 Example:
     >>> pool = RandomRNNPool(512, in_size=(7, 7), num_rnn=16, out_features=64, seed=0)

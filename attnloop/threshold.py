@@ -1,12 +1,8 @@
-"""Adaptive acceptance threshold for loop-closure candidates, relative to the query's own similarities.
+"""Adaptive acceptance threshold for loop-closure candidates, relative to the query's own similarities ``s``.
 
-Rule (``s`` = the query's similarities to the eligible keyframes, outside the exclusion window):
-
-* centre = ``median(s)``, spread = ``1.4826 * median(|s - median(s)|)`` (the MAD scaled to a Gaussian
-  standard deviation; medians interpolated);
-* ``threshold = max(min_similarity, centre + max(k_sigma * spread, min_margin))``;
-* a candidate is accepted when its similarity is strictly greater than the threshold;
-* with fewer than ``min_samples`` similarities the threshold is ``+inf`` (nothing accepted).
+``max(min_similarity, median(s) + max(k_sigma * 1.4826 * MAD(s), min_margin))`` (interpolated medians, the MAD
+scaled to a Gaussian standard deviation), ``+inf`` below ``min_samples`` similarities; a candidate strictly
+above it is accepted.
 
 Example:
     >>> s = torch.cat([torch.linspace(0.40, 0.60, 200), torch.tensor([0.95])])

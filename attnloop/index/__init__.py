@@ -1,10 +1,7 @@
 """Keyframe index for loop closure: which earlier keyframes look like this one, from one to a million.
 
-- :class:`KeyframeIndex`: ``add``, ``search(query, k, max_id)`` (the temporal exclusion window), ``save`` /
-  ``load``; backends ``"exact"``, ``"flann"`` (the paper's k-means tree), ``"faiss"`` (HNSW,
-  ``pip install attnloop[faiss]``) and ``"auto"``; candidates are always re-scored exactly.
-- :class:`LoopCandidateDetector`: per new keyframe, search and adaptive threshold.
-- :func:`exact_search`: the brute-force reference.
+:class:`KeyframeIndex` (backends, persistence: docs/scale.md), :class:`LoopCandidateDetector` (search and
+adaptive threshold) and :func:`exact_search`, the brute-force reference.
 """
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
 """The keyframe database: stored descriptors, an approximate structure over them, exact re-scoring (docs/scale.md).
 
-A structure covers rows ``[0, n_indexed)``; a FLANN tree cannot grow, so rows after it are scanned exactly
-until the tail holds ``max(rebuild_every, rebuild_fraction * n_indexed)`` rows. Builds run in a background
-thread and are swapped in by the next ``add``/``search``. Ids increase with every ``add``, so the rows
-eligible under ``max_id`` are a prefix.
+Ids increase with every ``add``, so the rows eligible under ``max_id`` are a prefix.
 """
 from __future__ import annotations
 
@@ -212,19 +209,12 @@ class KeyframeIndex:
         if s is not None and s.extendable and s.n < self._store.n:
             s.extend(self._store.view(s.n))
 
-    def _needs_rebuild(self) -> bool:
-        if self.backend == "exact" or len(self) < self.config.exact_below:
-            return False
-        s = self._structure
-        if s is None:
-            return True
-        if s.extendable:
-            return s.stale()
-        f = self.config.flann
-        return len(self) - s.n >= max(f.rebuild_every, f.rebuild_fraction * s.n)
-
     def _maybe_rebuild(self) -> None:
-        if self._needs_rebuild() and not self.building:
+        s, f = self._structure, self.config.flann
+        if self.backend == "exact" or len(self) < self.config.exact_below or self.building:
+            return
+        if s is None or (s.stale() if s.extendable
+                         else len(self) - s.n >= max(f.rebuild_every, f.rebuild_fraction * s.n)):
             self._start_build(background=self.config.background)
 
     def _start_build(self, background: bool) -> None:
@@ -364,15 +354,9 @@ class KeyframeIndex:
         return rows, sims
 
     def _scan(self, q, q64, start: int, stop: int, k: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
-        """The ``k`` best of rows ``[start, stop)``: every row a float32 scan cannot rule out, re-scored exactly."""
+        """The ``k`` best of rows ``[start, stop)``: every row a float32 scan cannot rule out, re-scored exactly (a
+        chunk at a time), ties by row."""
         rows = start + topk_rows(self._store.matvec(q, start, stop), k, tol)
-        return self._select(rows, q64, k)
-
-    def _rescore(self, rows: np.ndarray, q64: np.ndarray) -> np.ndarray:
-        return (self._store.rows(rows, np.float64) @ q64).astype(np.float32)
-
-    def _select(self, rows: np.ndarray, q64: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """The ``k`` best of the increasing ``rows`` by exact similarity, ties by row (a chunk at a time)."""
         chunk = GATHER_BYTES // (8 * max(1, self._store.dim)) + 1
         best_r, best_s = rows[:0], np.zeros(0, dtype=np.float32)
         for lo in range(0, rows.size, chunk):
@@ -381,6 +365,9 @@ class KeyframeIndex:
             order = np.argsort(-s, kind="stable")[:k]
             best_r, best_s = r[order], s[order]
         return best_r, best_s
+
+    def _rescore(self, rows: np.ndarray, q64: np.ndarray) -> np.ndarray:
+        return (self._store.rows(rows, np.float64) @ q64).astype(np.float32)
 
     def similarities(self, query, max_id=None, max_samples: int | None = None) -> tuple[Tensor, Tensor]:
         """Exact similarities of one query to every eligible keyframe (or an even sample of them).

@@ -78,8 +78,7 @@ class LoopCandidateDetector:
     def query(self, descriptor, keyframe_id: int) -> LoopCandidates:
         """Candidates for a query keyframe without adding it."""
         cfg = self.config
-        if isinstance(descriptor, Tensor) and descriptor.dim() != 1 or (
-                not isinstance(descriptor, Tensor) and np.ndim(descriptor) != 1):
+        if np.ndim(descriptor) != 1:
             raise ValueError(f"descriptor must have shape (D,), got {tuple(np.shape(descriptor))}")
         device = descriptor.device if isinstance(descriptor, Tensor) else torch.device("cpu")
         max_id = int(keyframe_id) - cfg.window
@@ -98,11 +97,7 @@ class LoopCandidateDetector:
             keyframe_id: its id, larger than every id added before.
             timestamp: optional, stored with it.
         """
-        kid = int(keyframe_id)
-        last = self.index.last_id
-        if last is not None and kid <= last:
-            raise ValueError(f"keyframe_id {kid} must be larger than the last added id {last}")
-        self.index.add(descriptor, ids=[kid], timestamps=None if timestamp is None else [timestamp])
+        self.index.add(descriptor, ids=[int(keyframe_id)], timestamps=None if timestamp is None else [timestamp])
 
     def add_and_query(self, descriptor, keyframe_id: int, timestamp: float | None = None) -> LoopCandidates:
         """Query the database with a new keyframe, then add it (:meth:`query`, then :meth:`add`).
@@ -118,16 +113,3 @@ class LoopCandidateDetector:
         out = self.query(descriptor, keyframe_id)
         self.add(descriptor, keyframe_id, timestamp)
         return out
-
-    def similarities(self, query_id: int, window: int | None = None) -> tuple[Tensor, Tensor]:
-        """Exact similarities of a stored keyframe to every keyframe with ``id <= query_id - window``.
-
-        Args:
-            query_id: id of a stored keyframe.
-            window: exclusion window (default ``config.window``; ``1`` = all earlier keyframes).
-
-        Returns:
-            ids ``(M,)`` (long) and similarities ``(M,)`` (float32), in id order.
-        """
-        w = self.config.window if window is None else int(window)
-        return self.index.similarities(self.index.descriptors_of([query_id])[0], max_id=int(query_id) - w)

@@ -1,8 +1,6 @@
 """PCA codes of descriptors: what an approximate structure is built on when ``IndexConfig.reduce_dim`` is set.
 
-For unit descriptors ``|x - q|^2 = 2 - 2 x.q`` ranks like the cosine, and ``|P^T (x - q)|^2`` is that
-distance less the energy outside the code's span: the structure ranks by L2 between the codes
-``z = P^T (x - mean)``, and the index re-scores the candidates with the full descriptors.
+The structure ranks by L2 between the codes ``z = P^T (x - mean)``; the index re-scores with the full descriptors.
 """
 from __future__ import annotations
 

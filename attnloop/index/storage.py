@@ -1,7 +1,6 @@
 """The rows of a keyframe index: descriptors (float32 or float16), ids and timestamps, growing by doubling.
 
-Rows are never modified once written and a grown buffer is a fresh array, so a view taken earlier (by a
-build in a worker thread) stays valid.
+A grown buffer is a fresh array and rows are never rewritten, so a view a background build holds stays valid.
 """
 from __future__ import annotations
 
@@ -36,24 +35,17 @@ class KeyframeStore:
     def append(self, x: np.ndarray, ids: np.ndarray, timestamps: np.ndarray) -> None:
         """Append rows ``x (M, D)`` (float32) with their ids and timestamps ``(M,)``."""
         m = x.shape[0]
-        self._reserve(self.n + m)
+        if self.n + m > self._desc.shape[0]:  # grown into fresh arrays: earlier views stay valid
+            new_cap = max(self.n + m, 2 * self._desc.shape[0], 1024)
+            grown = (np.empty((new_cap, self.dim), dtype=self.dtype), np.empty(new_cap, dtype=np.int64),
+                     np.empty(new_cap, dtype=np.float64))
+            for new, old in zip(grown, (self._desc, self._ids, self._ts)):
+                new[: self.n] = old[: self.n]
+            self._desc, self._ids, self._ts = grown
         self._desc[self.n: self.n + m] = x
         self._ids[self.n: self.n + m] = ids
         self._ts[self.n: self.n + m] = timestamps
         self.n += m
-
-    def _reserve(self, n: int) -> None:
-        cap = self._desc.shape[0]
-        if n <= cap:
-            return
-        new_cap = max(n, 2 * cap, 1024)
-        desc = np.empty((new_cap, self.dim), dtype=self.dtype)
-        desc[: self.n] = self._desc[: self.n]
-        ids = np.empty(new_cap, dtype=np.int64)
-        ids[: self.n] = self._ids[: self.n]
-        ts = np.empty(new_cap, dtype=np.float64)
-        ts[: self.n] = self._ts[: self.n]
-        self._desc, self._ids, self._ts = desc, ids, ts
 
     @property
     def ids(self) -> np.ndarray:

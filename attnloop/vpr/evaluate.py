@@ -1,9 +1,7 @@
 """Place-recognition evaluation: recall@k, the best-match precision/recall curve, AUC-PR, R@P100.
 
 Each query ranks its candidates by similarity, ties in database order; in the best-match PR curve every query
-proposes its best candidate, and an accepted query without a true match is a false positive. Ground truth: a
-binary matrix (an image such as RTAB-Map's ``samples_GT.bmp``, or ``.npy``), a VPR-Bench
-``ground_truth_new.npy`` or poses (:func:`ground_truth_from_poses`).
+proposes its best candidate, and an accepted query without a true match is a false positive.
 
 Example:
     >>> sim = torch.tensor([[0.9, 0.1, 0.2], [0.3, 0.8, 0.1], [0.2, 0.7, 0.4]])
@@ -83,7 +81,7 @@ def _read_bytes(source: PathOrFile) -> bytes:
 
 def _load_npy(data: bytes, name: str, allow_pickle: bool) -> np.ndarray:
     try:
-        arr = np.load(io.BytesIO(data), allow_pickle=allow_pickle)
+        return np.load(io.BytesIO(data), allow_pickle=allow_pickle)
     except ValueError as e:
         if not allow_pickle and "allow_pickle" in str(e):
             raise GroundTruthFormatError(name, "holds Python objects (a VPR-Bench list?): read it with "
@@ -91,7 +89,6 @@ def _load_npy(data: bytes, name: str, allow_pickle: bool) -> np.ndarray:
         raise GroundTruthFormatError(name, f"not a readable .npy file ({e})") from None
     except Exception as e:  # noqa: BLE001  (truncated or foreign data: numpy raises several kinds)
         raise GroundTruthFormatError(name, f"not a readable .npy file ({type(e).__name__}: {e})") from None
-    return arr
 
 
 def _is_npy(data: bytes) -> bool:
@@ -141,8 +138,6 @@ def _check_binary(arr: np.ndarray, name: str) -> None:
 def read_ground_truth_matrix(source: PathOrFile) -> torch.Tensor:
     """Read a binary ground-truth matrix: an image (non-zero pixel = match) or a 2-D ``.npy`` array.
 
-    The values must be bool, or 0 and one of 1, 255 or 65535 (anything else is refused, not guessed).
-
     Args:
         source: a path or a binary file object (the format is told from the content, not the name).
 
@@ -150,8 +145,8 @@ def read_ground_truth_matrix(source: PathOrFile) -> torch.Tensor:
         ``(Q, R)`` bool; entry (q, r) is True when reference r shows the place of query q.
 
     Raises:
-        GroundTruthFormatError: missing, undecodable, not 2-D, not real, non-finite or not binary (naming
-            the file and the first bad entry).
+        GroundTruthFormatError: missing, undecodable, not 2-D, not real, non-finite or not binary (bool, or 0
+            and one of 1, 255, 65535), naming the file and the first bad entry.
     """
     name = source_name(source)
     data = _read_bytes(source)
@@ -262,10 +257,7 @@ def read_vpr_bench_ground_truth(source: PathOrFile, num_references: int | None =
 
 
 def read_ground_truth(source: PathOrFile, num_references: int | None = None) -> torch.Tensor:
-    """Read any supported ground truth: a VPR-Bench object ``.npy``, a numeric ``.npy`` or an image.
-
-    An object ``.npy`` is VPR-Bench's (:func:`read_vpr_bench_ground_truth`); every numeric ``.npy`` and image
-    is a binary matrix (:func:`read_ground_truth_matrix`), whatever its shape.
+    """Read a VPR-Bench object ``.npy`` (:func:`read_vpr_bench_ground_truth`), else a binary matrix, whatever its shape.
 
     Args:
         source: a path or a binary file object.

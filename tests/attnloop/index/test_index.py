@@ -325,11 +325,6 @@ def test_detector_finds_revisit_outside_window_only():
     out = det.add_and_query(view(20), keyframe_id=61)
     assert 60 not in out.ids.tolist() and out.ids.tolist() == [20]
     assert det.index.timestamps[5].item() == pytest.approx(0.5)
-    # Evaluation hook: exact similarities against all earlier keyframes.
-    ids, sims = det.similarities(61, window=1)
-    assert torch.equal(ids, torch.arange(61))
-    torch.testing.assert_close(sims, det.index.descriptors[:61] @ det.index.descriptors[61])
-    assert det.similarities(61)[0].shape == (52,)  # default window 10: ids <= 51
 
 
 def test_detector_few_keyframes_give_nothing():
@@ -353,14 +348,12 @@ def test_detector_accepts_a_revisit_above_the_threshold():
 def test_detector_errors():
     det = LoopCandidateDetector()
     det.add_and_query(torch.rand(8), keyframe_id=5)
-    with pytest.raises(ValueError, match="larger than the last"):
+    with pytest.raises(ValueError, match=r"strictly increasing; got \[5\]\.\.\. after last id 5"):
         det.add_and_query(torch.rand(8), keyframe_id=5)
     with pytest.raises(ValueError, match=r"\(D,\)"):
         det.add_and_query(torch.rand(2, 8), keyframe_id=6)
     with pytest.raises(ValueError, match="dimension"):
         det.add_and_query(torch.rand(9), keyframe_id=6)
-    with pytest.raises(ValueError, match="unknown keyframe id"):
-        det.similarities(3)
     with pytest.raises(ValueError):
         LoopDetectorConfig(top_k=0)
 

@@ -300,11 +300,9 @@ def test_save_writes_the_name_given_atomically(tmp_path, monkeypatch):
 
 
 def test_descriptors_of_an_empty_index_names_the_id():
-    from attnloop.index import IndexConfig, KeyframeIndex, LoopCandidateDetector
+    from attnloop.index import IndexConfig, KeyframeIndex
 
     index = KeyframeIndex(IndexConfig(backend="exact"))
     with pytest.raises(ValueError, match=r"unknown keyframe id\(s\) \[0\]"):
         index.descriptors_of([0])
     assert index.descriptors_of([]).shape[0] == 0
-    with pytest.raises(ValueError, match="unknown keyframe id"):
-        LoopCandidateDetector().similarities(0)
