@@ -1,25 +1,14 @@
 """The saved-map format: a folder with a JSON manifest and three ``.npz`` files (open, versioned, no pickles).
 
-A map folder written by :func:`save_map` holds:
+docs/pipeline.md, "Maps that persist", says what is saved. The arrays (``M`` keyframes, ``N`` keypoints, ``E`` edges):
 
-* ``manifest.json``: ``format`` (``"attnloop.map"``), ``version`` (:data:`MAP_FORMAT_VERSION`), when and
-  from what it was made, the descriptor that made the index (with its descriptor of a fixed probe image,
-  :func:`slam.maps.relocalise.descriptor_probe`), the camera rig the poses are in, the ground-truth pose of
-  the recording's first tracked frame (the world's origin; null without ground truth), and per data file its
-  name and SHA-256;
-* ``keyframes.npz``: per keyframe ``pose (M, 7)`` float64 (world-from-camera of the *tracked* camera,
-  the colour camera on an unregistered rig; the world is the first tracked frame's depth camera as in
-  every output), ``frame_index (M,)``, ``timestamp (M,)``, ``index_id (M,)`` (its id in ``index.npz``),
-  ``descriptor (M, D)`` float32, the verification features concatenated over keyframes with
-  ``feature_offsets (M + 1,)``: ``keypoints (N, 2)`` float32, ``orb (N, B)`` uint8 (or float32 for
-  non-binary descriptors), ``points (N, 3)`` float32 (metres, in the keyframe's tracked camera),
-  ``valid (N,)`` bool, ``sigma_px (N,)`` float32, and ``K (M, 3, 3)`` float64, ``image_size (M, 2)``,
-  ``rgb (M, h, w, 3)`` uint8 (the downsized keyframe images);
-* ``graph.npz``: the keyframe pose graph, ``ii, jj (E,)`` int64, ``T_ij (E, 7)``, ``information
-  (E, 6, 6)`` float64 (unscaled), ``kind (E,)`` (:class:`slam.keyframe_graph.EdgeKind`), ``weak``,
-  ``active (E,)`` bool and ``weight (E,)`` float64;
-* ``index.npz``: the keyframe index itself (:func:`attnloop.index.save_index`), so that a reloaded
-  map answers queries exactly as the saved one.
+* ``keyframes.npz``: ``pose (M, 7)`` float64 (tracked camera), ``frame_index``, ``timestamp``, ``index_id (M,)``,
+  ``descriptor (M, D)`` float32, ``feature_offsets (M + 1,)``, ``keypoints (N, 2)`` float32, ``orb (N, B)``
+  uint8 (float32 for float descriptors), ``points (N, 3)`` float32 metres, ``valid (N,)`` bool, ``sigma_px
+  (N,)`` float32, ``K (M, 3, 3)`` float64, ``image_size (M, 2)``, ``rgb (M, h, w, 3)`` uint8;
+* ``graph.npz``: ``ii, jj (E,)`` int64, ``T_ij (E, 7)``, ``information (E, 6, 6)`` float64 (unscaled),
+  ``kind (E,)`` (:class:`slam.keyframe_graph.EdgeKind`), ``weak, active (E,)`` bool, ``weight (E,)`` float64;
+* ``index.npz``: the keyframe index (:func:`attnloop.index.save_index`).
 
 Every reading error is a :class:`MapFormatError` (or its :class:`MapVersionError`) naming the file.
 
@@ -128,9 +117,6 @@ class SavedMap:
 def prepare_map_dir(path) -> Path:
     """Check that ``path`` can take a map (absent, an empty folder or a previous map) before the work.
 
-    A previous map qualifies only when its ``manifest.json`` is an ``attnloop.map`` one (or unreadable: a damaged
-    map) and the folder holds nothing but the map's files (it is replaced whole).
-
     Raises:
         MapFormatError: a file, a non-empty folder that is not a saved map, or a saved map with other files
             in its folder (they would be deleted with it); nothing is removed.
@@ -149,7 +135,6 @@ def prepare_map_dir(path) -> Path:
         if fmt != MAP_FORMAT:
             raise MapFormatError(f"{p / MANIFEST}: 'format' is {fmt!r}, not {MAP_FORMAT!r}: a non-empty folder that "
                                  "is not a saved map; choose an empty or new folder")
-        # replacing a map replaces the whole folder: anything else in it would be deleted with the old map
         foreign = sorted(q.name for q in p.iterdir() if q.name not in (MANIFEST, *MAP_FILES.values()))
         if foreign:
             raise MapFormatError(f"{p}: a saved map with other files in it ({', '.join(foreign[:5])}"
@@ -194,8 +179,7 @@ def _features_arrays(features: list) -> dict:
 def save_map(path, saved: SavedMap) -> Path:
     """Write ``saved`` into the folder ``path`` (the format of the module docstring).
 
-    The files are written into a temporary folder beside ``path`` and renamed into place: a previous map is
-    replaced only once the new one is complete.
+    Written into a temporary folder beside ``path`` and renamed into place once complete.
 
     Raises:
         MapFormatError: ``path`` cannot take a map (:func:`prepare_map_dir`).
@@ -281,8 +265,7 @@ def _check_rows(path: Path, arrays: dict, rows: dict) -> None:
 def _read_manifest(folder: Path) -> dict:
     mpath = folder / MANIFEST
     if not folder.is_dir():
-        # save_map replaces a map by two renames (old aside, new in): a process killed between them leaves
-        # the map only in the hidden folders beside it, both complete
+        # a process killed between save_map's two renames leaves the map only in the hidden folders beside it
         left = sorted(p for p in folder.parent.glob(f".{folder.name}.*.old") if (p / MANIFEST).is_file()) + \
             sorted(p for p in folder.parent.glob(f".{folder.name}.*.tmp") if (p / MANIFEST).is_file())
         if left:
@@ -318,7 +301,6 @@ def _read_manifest(folder: Path) -> dict:
             raise MapFormatError(f"{fpath}: missing (the manifest lists it as the {role} file)")
         digest = entry.get("sha256")
         if not isinstance(digest, str) or len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
-            # save_map always writes one: a manifest without it would let any file pass unchecked
             raise MapFormatError(f"{mpath}: files.{role}.sha256 must be the 64 hex digits of the file's SHA-256, "
                                  f"got {digest!r}")
         if _sha256(fpath) != digest:

@@ -1,11 +1,6 @@
 """Relocalisation of a new recording in a saved map, and the merge of the two into the map's world.
 
-Each new keyframe of the recording queries the map's index; the loop closer's verification
-(:func:`slam.loop.verify_candidate`) turns a candidate into a *map link*, which places the recording in the map
-(``T_map_rec = P_map[a] T_ab P_rec[b]^-1``). The recording is relocalised once links from ``min_agreeing``
-keyframes agree on that placement (:func:`slam.loop.pairwise_consistent`). :meth:`MapRelocaliser.finish`
-optimises the recording's graph with its links, the map's keyframes fixed, and reports every frame in the map's
-world; a recording never relocalised keeps its own frame (``relocalised: false``).
+docs/pipeline.md, "Maps that persist", describes the map links, the placement and the merge.
 
 Example:
     >>> cfg = RelocalisationConfig()
@@ -130,16 +125,14 @@ def _probe_image() -> torch.Tensor:
 
 
 def descriptor_probe(model: torch.nn.Module) -> list[float] | None:
-    """The descriptor of a fixed probe image: a fingerprint of everything that makes the descriptor (a run
-    whose own differs from the map's by more than :data:`PROBE_TOLERANCE` cannot search the map's index).
+    """The descriptor of a fixed probe image: a fingerprint of everything that makes the descriptor.
 
     Args:
         model: maps ``(1, 3, H, W)`` uint8 images to ``(1, D)`` descriptors, on the device of its
             parameters or buffers (CPU when it has neither).
 
     Returns:
-        the ``D`` entries, rounded to 1e-7; None (with a warning) when the model cannot describe the
-        96 x 128 probe image: a map is then saved without a probe rather than lost.
+        the ``D`` entries, rounded to 1e-7; None (with a warning) when the model cannot describe the probe.
     """
     tensor = next(model.parameters(), None)
     tensor = next(model.buffers(), None) if tensor is None else tensor
@@ -163,8 +156,8 @@ def _descriptor_info(slam) -> dict:
 
 
 def _run_dim(slam, info: dict) -> int | None:
-    """The length of this run's descriptors, known before its first keyframe (the model's ``out_dim``, else
-    its probe's length, else the index's once it holds one)."""
+    """The length of this run's descriptors before its first keyframe (the index's, the model's ``out_dim``
+    or its probe's), or None."""
     for d in (info.get("dim"), getattr(slam.loop_closer.descriptor, "out_dim", None),
               None if info.get("probe") is None else len(info["probe"])):
         if isinstance(d, (int, np.integer)) and not isinstance(d, bool) and d > 0:
@@ -207,8 +200,7 @@ def capture_map(slam, sequence=None) -> SavedMap:
 
 
 def map_world_errors(trajectory: Tensor, groundtruth: Tensor, origin: Tensor) -> dict | None:
-    """Position errors, without any alignment, of a trajectory reported in a map's world: the ground truth
-    ``origin^-1 G_i`` against it (both recordings' ground truth must share one world).
+    """Position errors, without any alignment, of a trajectory in a map's world against ``origin^-1 G_i``.
 
     Args:
         trajectory: ``(N, 7)`` estimated poses in the map's world.
@@ -230,8 +222,7 @@ def map_world_errors(trajectory: Tensor, groundtruth: Tensor, origin: Tensor) ->
 
 
 def _out_of_reach(estimate: Tensor, limits: DriftLimits, config) -> bool:
-    """No measurement can pass verification: one within the view distance that agrees with ``estimate``
-    within ``limits`` puts the estimate within their sums (triangle inequalities)."""
+    """No measurement can pass verification (the estimate is beyond the view distance plus ``limits``)."""
     t = float(estimate[:3].norm())
     r = math.degrees(float(so3_log(estimate[3:]).norm()))
     return t > config.max_translation + limits.translation or r > config.max_rotation_deg + limits.rotation_deg
@@ -412,7 +403,6 @@ class MapRelocaliser:
         return True
 
     def _through_loops(self) -> bool:
-        # the recording's estimates include its own loops once any is in effect (online correction)
         return bool(self.slam.graph.loop_edges(active_only=True))
 
     def _consistent_group(self, estimates: Tensor) -> list[int]:

@@ -1,10 +1,7 @@
-"""Depth-to-colour registration of an unregistered RGB-D camera (z-buffered forward warp) in torch.
+"""Depth-to-colour registration of an unregistered RGB-D camera: a z-buffered forward warp.
 
-A Kinect v1's depth (IR) and colour cameras sit a few centimetres apart: reading the depth at a colour pixel
-reads another surface point (a parallax of ``f * baseline / z`` pixels). Every valid depth pixel is
-back-projected with the depth intrinsics, moved into the colour camera by ``T_rgb_depth`` and projected with
-the colour intrinsics; the nearest wins (z-buffer), splatted to the 2x2 colour pixels around its projection so
-that the slight magnification between the cameras leaves no holes.
+Every valid depth pixel is moved into the colour camera and splatted to the 2x2 colour pixels around its
+projection (no holes from the slight magnification); the nearest wins (docs/api.md, "An unregistered camera").
 
 Example:
     >>> K = torch.tensor([[525., 0., 319.5], [0., 525., 239.5], [0., 0., 1.]], dtype=torch.float64)
@@ -57,7 +54,6 @@ def register_depth_to_color(depth: Tensor, K_depth: Tensor, K_rgb: Tensor, T_rgb
     dtype = depth.dtype if depth.is_floating_point() else torch.float32
     if h <= 0 or w <= 0:
         return torch.zeros(max(h, 0), max(w, 0), dtype=dtype, device=depth.device)
-    # the camera parameters in the depth's dtype, as the warp computes
     Kd, Kc = K_depth.to(device=depth.device, dtype=dtype), K_rgb.to(device=depth.device, dtype=dtype)
     T = T_rgb_depth.to(device=depth.device, dtype=dtype)
     R = quat_to_rotmat(T[3:])
@@ -67,11 +63,8 @@ def register_depth_to_color(depth: Tensor, K_depth: Tensor, K_rgb: Tensor, T_rgb
     return _warp_torch(torch.nan_to_num(depth.to(dtype), nan=0.0), Kd, Kc, R, T[:3], h, w, min_depth)
 
 
-# Both warps are bitwise equal to the reference warp of tests/slam/odometry/test_depth_registration.py:
-# * the z-buffer is a minimum over a grid of splat origins (each point's top-left pixel in [-1, w) x [-1, h)),
-#   then a 2x2 minimum filter: one scatter of N points instead of 4N;
-# * terms of the ray R K^-1 [u, v, 1] with a zero coefficient are left out and unit factors not applied
-#   (exact: for the usual rig, R = I, the ray is a row or a column, and the colour depth is the depth).
+# Both warps are bitwise equal to the four-way scatter of tests/slam/odometry/test_depth_registration.py: the
+# z-buffer is a minimum over a grid of splat origins (top-left pixels in [-1, w) x [-1, h)), then a 2x2 minimum.
 
 
 def _ray_times_depth(row, u, v, d, t):
@@ -97,8 +90,7 @@ def _warp_numpy(d, Kd, Kc, R, t, h: int, w: int, min_depth: float):
     H, W = d.shape
     u = ((np.arange(W, dtype=d.dtype) - Kd[0, 2]) / Kd[0, 0])[None, :]
     v = ((np.arange(H, dtype=d.dtype) - Kd[1, 2]) / Kd[1, 1])[:, None]
-    # overflow (a depth of +inf became the largest float) and 1 / 0 where not ok are masked out below, as
-    # the torch warp's results there are
+    # overflow (from a depth of +inf) and 1 / 0 where not ok are masked out below, as in the torch warp
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         qx = _ray_times_depth(R[0], u, v, d, t[0])
         qy = _ray_times_depth(R[1], u, v, d, t[1])
@@ -116,8 +108,7 @@ def _warp_numpy(d, Kd, Kc, R, t, h: int, w: int, min_depth: float):
     grid = np.full((h + 1) * (w + 1), big, dtype=d.dtype)
     origin = (y0.ravel()[sel].astype(np.intp) + 1) * (w + 1) + x0.ravel()[sel].astype(np.intp) + 1
     np.minimum.at(grid, origin, zc.ravel()[sel])  # zc is (H, W): the ray times the (H, W) depth
-    # out[y, x] = min(grid[y:y + 2, x:x + 2]) (grid row/column 0 is origin -1): a 2x2 erosion anchored at
-    # its top-left cell; the replicated border only reaches row/column h/w, which is cut off
+    # out[y, x] = min(grid[y:y + 2, x:x + 2]) (grid row/column 0 is origin -1); the border row/column h/w is cut
     z = cv2.erode(grid.reshape(h + 1, w + 1), _ONES_2X2, anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)[:h, :w]
     z = np.ascontiguousarray(z)
     z[z == big] = 0

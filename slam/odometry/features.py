@@ -1,7 +1,4 @@
-"""Keypoints with descriptors and 3D points: the self-contained record stored with every keyframe.
-
-OpenCV detects and describes (ORB, or SIFT) on the grey image, a grid bucketing spreads the features over the
-image, and the depth gives each keypoint a camera-frame 3D point (:func:`slam.odometry.geometry.backproject`).
+"""Keypoints with descriptors and 3D points (OpenCV ORB or SIFT, bucketed, back-projected with the depth).
 
 Example:
     >>> rgb = np.zeros((48, 64, 3), np.uint8)
@@ -13,7 +10,7 @@ Example:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Union
 
 import cv2
@@ -65,19 +62,12 @@ class FrameFeatures:
         """Number of keypoints with a 3D point."""
         return int(self.valid.sum())
 
-    def to(self, device) -> FrameFeatures:
-        """A copy on ``device``."""
-        return replace(self, keypoints=self.keypoints.to(device), descriptors=self.descriptors.to(device),
-                       points=self.points.to(device), valid=self.valid.to(device),
-                       sigma_px=self.sigma_px.to(device), K=self.K.to(device))
-
 
 def bucket_keypoints(xy: np.ndarray, response: np.ndarray, image_size: tuple[int, int], rows: int,
                      cols: int, max_keep: int) -> np.ndarray:
     """Indices of at most ``max_keep`` keypoints spread over a ``rows x cols`` grid.
 
-    Keypoints are ranked inside their cell by response; all cells' best come first, then all second-best,
-    and so on, so rich cells only fill the budget that poor cells leave.
+    All cells' best (by response) come first, then all second-best, and so on.
 
     Args:
         xy: ``(N, 2)`` pixel coordinates.
@@ -119,7 +109,6 @@ def _detect(gray: np.ndarray, config: FeatureConfig):
     """OpenCV keypoints and descriptors of a grey image, bucketed."""
     h, w = gray.shape
     if config.detector == "orb":
-        # edgeThreshold must not exceed patchSize (31); FAST corners closer to the border get no descriptor
         orb = cv2.ORB_create(nfeatures=config.detect_features, scaleFactor=config.orb_scale_factor,
                              nlevels=config.orb_levels, fastThreshold=config.fast_threshold)
         kps = orb.detect(gray, None)
@@ -204,8 +193,7 @@ def extract_features(rgb: ArrayLike, depth: ArrayLike, K: ArrayLike,
         sigma = sigma / s
     depth_t = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))
     if config.rgb_intrinsics is not None:
-        # unregistered colour camera: warp the depth into it, so that each keypoint reads the depth of its
-        # own surface point, and lift in the colour camera (its frame is the one tracked)
+        # unregistered colour camera: warp the depth into it and lift there (its frame is the one tracked)
         fx, fy, cx, cy = config.rgb_intrinsics
         K_rgb = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
         depth_t = register_depth_to_color(depth_t, K_t, K_rgb, rig_pose(config.rgb_from_depth_translation),

@@ -1,10 +1,7 @@
 """RGB-D odometry front end: frame-to-keyframe tracking, keyframe selection, tracking-loss handling.
 
-Every frame is registered against the current keyframe with a constant-velocity prior for guided matching; it
-becomes a keyframe when it has moved far enough or the overlap gets small. When that registration fails, the
-last tracked frame is promoted to a keyframe and the frame tracked again against it; if that fails too the frame
-is LOST (constant-velocity pose), and after ``max_lost_frames`` lost frames in a row a keyframe is forced at the
-predicted pose with a weak edge. ``track`` never raises for a bad frame. The world is the first keyframe's camera.
+docs/pipeline.md, "What each stage does" (1, 2), describes the policy. ``track`` never raises for a bad frame;
+the world is the first keyframe's camera.
 
 Example:
     >>> import numpy as np
@@ -87,8 +84,7 @@ class Keyframe:
         timestamp: that frame's timestamp.
         pose: ``(7,)`` float64 world-from-camera odometry pose.
         features: its :class:`~slam.odometry.features.FrameFeatures` (what loop verification needs).
-        rgb: ``(h, w, 3)`` uint8 RGB image, resized by ``OdometryConfig.keyframe_rgb_scale`` (0.5 by
-            default: 320x240 for 640x480 input) to bound memory.
+        rgb: ``(h, w, 3)`` uint8 RGB image, resized by ``OdometryConfig.keyframe_rgb_scale`` to bound memory.
     """
 
     id: int
@@ -113,10 +109,8 @@ class TrackResult:
         status: :class:`TrackStatus`.
         reason: why the frame is LOST / RECOVERED or a keyframe was made ("" when plainly OK).
         num_inliers: RANSAC inliers of the registration (0 when LOST).
-        edge: the last odometry edge created by this call, if any: it ends at this frame's keyframe when
-            ``is_keyframe``, else at the previous frame promoted to a keyframe (``keyframe_id == edge.j``).
-        inlier_rmse: 3D RMSE (metres) of the inliers of the registration that placed the frame (NaN when
-            none did: LOST, or the first frame).
+        edge: the last odometry edge this call created, if any (``edge.j == keyframe_id``).
+        inlier_rmse: 3D RMSE (metres) of the inliers of the registration that placed the frame (NaN if none).
     """
 
     index: int
@@ -134,7 +128,7 @@ class TrackResult:
 
 @dataclass
 class _LastFrame:
-    """The previous frame, kept so it can be promoted to a keyframe."""
+    """The previous tracked frame, kept so it can be promoted to a keyframe."""
 
     index: int
     timestamp: float
@@ -142,7 +136,6 @@ class _LastFrame:
     features: FrameFeatures
     T_kf: Tensor
     information: Tensor
-    tracked: bool
 
 
 class RGBDOdometry:
@@ -154,9 +147,8 @@ class RGBDOdometry:
     Attributes:
         keyframes: every keyframe created so far (features + downsized RGB).
         edges: every odometry edge between consecutive keyframes.
-        stage_seconds: accumulated wall seconds per stage: ``features`` (detection, description,
-            back-projection), ``matching``, ``ransac`` (RANSAC + refinement) and ``tracking_other``
-            (the rest of :meth:`track`: keyframe bookkeeping, image downsizing).
+        stage_seconds: accumulated wall seconds per stage: ``features``, ``matching``, ``ransac`` and
+            ``tracking_other`` (the rest of :meth:`track`).
     """
 
     def __init__(self, config: OdometryConfig | None = None):
@@ -232,9 +224,8 @@ class RGBDOdometry:
                        f"constant-velocity pose (weak edge)")
         self._last = None  # an untracked frame must not be promoted
         logger.warning("%s lost: %s", where, reason)
-        kf_now = self.keyframe
         T_out = se3_identity(dtype=torch.float64) if edge is not None else T_kf
-        return TrackResult(index, ts, pose, kf_now.id, T_out, edge is not None, TrackStatus.LOST, reason, 0,
+        return TrackResult(index, ts, pose, self.keyframe.id, T_out, edge is not None, TrackStatus.LOST, reason, 0,
                            edge)
 
     def _add_seconds(self, res: RegistrationResult) -> None:
@@ -247,9 +238,8 @@ class RGBDOdometry:
         Args:
             frame: the next :class:`~slam.io.frame.RGBDFrame` (RGB ``(H, W, 3)`` uint8, depth ``(H, W)``
                 metres with 0 = invalid, ``K (3, 3)``).
-            features: the frame's features if they were extracted already (e.g. ahead, in the thread that
-                reads the frames): :func:`~slam.odometry.features.extract_features` of this frame with this
-                odometry's ``config.features``. None: extracted here.
+            features: the frame's :func:`~slam.odometry.features.extract_features` with ``config.features``
+                if already extracted (e.g. by the reading thread); None: extracted here.
 
         Returns:
             :class:`TrackResult`; bad frames give ``status=LOST`` with a reason, never an exception.
@@ -270,8 +260,7 @@ class RGBDOdometry:
     def _track(self, frame: RGBDFrame, features: FrameFeatures | None) -> TrackResult:
         t0 = time.perf_counter()
         feats, reason = self._extract(frame, features)
-        t1 = time.perf_counter()
-        self.stage_seconds["features"] += t1 - t0
+        self.stage_seconds["features"] += time.perf_counter() - t0
         index, ts = int(frame.index), float(frame.timestamp)
         if reason:
             return self._lost(frame, feats, reason)
@@ -279,8 +268,7 @@ class RGBDOdometry:
         if self.keyframe is None:
             pose = se3_identity(dtype=torch.float64)
             kf = self._add_keyframe(index, ts, pose, feats, frame.rgb)
-            self._last = _LastFrame(index, ts, frame.rgb, feats, pose, torch.zeros(6, 6, dtype=torch.float64),
-                                    tracked=True)
+            self._last = _LastFrame(index, ts, frame.rgb, feats, pose, torch.zeros(6, 6, dtype=torch.float64))
             logger.info("frame %d: initialised keyframe 0 with %d points", index, feats.num_valid)
             return TrackResult(index, ts, pose, kf.id, pose.clone(), True, TrackStatus.INITIALIZED,
                                "first keyframe", 0)
@@ -291,7 +279,7 @@ class RGBDOdometry:
         edge = None
         notes = []
         last = self._last
-        if not res.success and last is not None and last.tracked and last.index != self.keyframe.frame_index:
+        if not res.success and last is not None and last.index != self.keyframe.frame_index:
             # the keyframe is out of reach: promote the last tracked frame and re-track against it
             first_reason = res.reason
             edge = self._new_keyframe_with_edge(last.index, last.timestamp, last.T_kf, last.information,
@@ -334,12 +322,10 @@ class RGBDOdometry:
                 notes.append("new keyframe: " + ", ".join(why))
         if not is_kf:
             self._T_kf_last = T_kf
-        self._last = _LastFrame(index, ts, frame.rgb, feats, T_kf if not is_kf else self._T_kf_last,
-                                res.information, tracked=True)
+        self._last = _LastFrame(index, ts, frame.rgb, feats, self._T_kf_last, res.information)
         reason_out = "; ".join(notes)
         if status is TrackStatus.RECOVERED or edge is not None:  # every keyframe decision (--verbose shows them)
             logger.info("frame %d: %s", index, reason_out)
-        kf_id = self.keyframe.id
         T_out = se3_identity(dtype=torch.float64) if is_kf else T_kf
-        return TrackResult(index, ts, pose, kf_id, T_out, is_kf, status, reason_out, res.num_inliers, edge,
+        return TrackResult(index, ts, pose, self.keyframe.id, T_out, is_kf, status, reason_out, res.num_inliers, edge,
                            res.inlier_rmse)

@@ -1,8 +1,7 @@
 """Geometry of sparse RGB-D registration: back-projection, rigid fits, projection and covariances.
 
-Conventions: a pose ``(..., 7) = [t, q_xyzw]`` maps *source* points into the *destination* frame,
-``p_dst = R p_src + t``. Tangent vectors are ``[rho, phi]`` with the **right** perturbation used by
-:mod:`slam.lie`: ``T exp(xi)``.
+A pose ``(..., 7) = [t, q_xyzw]`` maps source points into the destination frame, ``p_dst = R p_src + t``;
+tangent vectors are ``[rho, phi]``, right perturbation ``T exp(xi)`` as in :mod:`slam.lie`.
 
 Example:
     >>> src = torch.tensor([[0., 0., 1.], [1., 0., 1.], [0., 1., 2.], [1., 1., 3.]], dtype=torch.float64)
@@ -50,10 +49,9 @@ def backproject(
 ) -> tuple[Tensor, Tensor]:
     """Camera-frame 3D points of keypoints from a depth image.
 
-    The depth is read at the rounded pixel. A keypoint is valid when that depth lies in
-    ``[min_depth, max_depth]`` and every pixel of the ``(2r+1) x (2r+1)`` window around it is valid and
-    within ``max_depth_jump * z`` of it (no depth discontinuity: keypoints on silhouettes, where the
-    unregistered colour and depth cameras disagree most, are dropped). ``window_radius=0`` disables it.
+    A keypoint is valid when the depth at its rounded pixel lies in ``[min_depth, max_depth]`` and every
+    pixel of the ``(2r+1) x (2r+1)`` window around it is valid and within ``max_depth_jump * z`` of it (no
+    depth discontinuity). ``window_radius=0`` disables the window.
 
     Args:
         keypoints: ``(N, 2)`` pixel coordinates ``(x, y)``.
@@ -81,16 +79,14 @@ def backproject(
         return depth.new_zeros(0, 3), torch.zeros(0, dtype=torch.bool, device=depth.device)
     kp = keypoints.to(dtype)
     kp_ok = torch.isfinite(kp).all(dim=1)
-    # a NaN / inf keypoint has no pixel (casting it to an integer is undefined): it reads pixel (0, 0)
-    # and is marked invalid below
+    # a NaN / inf keypoint reads pixel (0, 0) (casting it to an integer is undefined) and is invalid
     uv = torch.round(torch.where(kp_ok[:, None], kp, torch.zeros_like(kp))).long()
     x, y = uv[:, 0], uv[:, 1]
     r = int(window_radius)
     # keypoints whose window leaves the image get no point (also covers out-of-image keypoints)
     inside = kp_ok & (x >= r) & (x < W - r) & (y >= r) & (y < H - r)
     xc, yc = x.clamp(r, W - 1 - r), y.clamp(r, H - 1 - r)
-    # NaN and +-inf depths are invalid (0): with max_depth = inf or max_depth_jump = inf an inf pixel
-    # would otherwise become a point at ~3e38 m
+    # NaN and +-inf depths are invalid (0), also with max_depth = inf or max_depth_jump = inf
     flat = torch.where(torch.isfinite(depth), depth, torch.zeros_like(depth)).reshape(-1)
     z = flat[yc * W + xc]
     # z > 0 as well: with min_depth = 0 a zero (invalid) depth must still give no point
@@ -130,8 +126,7 @@ def depth_sigma(z: Tensor, a: float = 0.0012, b: float = 0.0019, c: float = 0.4)
 def point_covariance(points: Tensor, sigma_z: Tensor, sigma_px: Tensor, fx: float, fy: float) -> Tensor:
     """Anisotropic covariance of back-projected points: depth noise along the ray, pixel noise across it.
 
-    For ``p = z K^-1 [u, v, 1]``: ``Sigma = sigma_z^2 (p/z)(p/z)^T + (sigma_px z / fx)^2 e_x e_x^T +
-    (sigma_px z / fy)^2 e_y e_y^T`` (first-order propagation of independent ``u, v, z`` noise).
+    ``Sigma = sigma_z^2 (p/z)(p/z)^T + (sigma_px z / fx)^2 e_x e_x^T + (sigma_px z / fy)^2 e_y e_y^T``.
 
     Args:
         points: ``(N, 3)`` camera-frame points with ``z > 0``.
@@ -158,17 +153,13 @@ def point_covariance(points: Tensor, sigma_z: Tensor, sigma_px: Tensor, fx: floa
 def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> Tensor:
     """Weighted least-squares rigid transform (Kabsch / Umeyama without scale), batched.
 
-    Minimises ``sum_i w_i |R src_i + t - dst_i|^2``; the reflection case is fixed by the sign of
-    ``det(U V^T)``.
-
     Args:
         src: ``(..., N, 3)`` source points.
         dst: ``(..., N, 3)`` destination points.
         weights: ``(..., N)`` non-negative weights (default: all ones).
 
     Returns:
-        ``(..., 7)`` poses mapping ``src`` onto ``dst``. Degenerate input (fewer than 3 non-collinear
-        points) still returns a valid rotation (one of the minimisers); callers check the spread.
+        ``(..., 7)`` poses mapping ``src`` onto ``dst`` (a valid rotation also for degenerate input).
 
     Example:
         >>> kabsch(torch.randn(8, 5, 3), torch.randn(8, 5, 3)).shape

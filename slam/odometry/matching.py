@@ -1,8 +1,5 @@
-"""Descriptor matching with Kornia's matchers, optionally guided by a motion prior.
-
-Binary (ORB) descriptors are compared by Hamming distance, handed to ``kornia.feature.match_*`` through its
-``dm=`` argument; float descriptors use L2. A motion prior makes the matcher *guided*: pairs whose predicted
-position disagrees by more than a radius get a prohibitive distance before the nearest-neighbour search.
+"""Descriptor matching with Kornia's ``match_*`` (Hamming distances of binary descriptors passed as ``dm=``,
+L2 for float ones), optionally guided by a motion prior (pairs farther than a radius apart are forbidden).
 
 Example:
     >>> a = torch.randint(0, 256, (6, 32), dtype=torch.uint8)
@@ -96,9 +93,7 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
         config: matcher settings.
         allowed: optional ``(N, M)`` bool, False where a pair is ruled out (guided matching).
         allowed_pairs: optional ``(P, 2)`` int64 ``(i_a, i_b)``, the same as an ``allowed`` that is True at
-            exactly these pairs (no duplicates); not with ``allowed``. Binary descriptors matched by
-            ``smnn`` / ``snn`` with a ratio < 1 are then matched on the pairs alone (the result is Kornia's
-            on the full matrix, see :func:`_ratio_nn_of_pairs`).
+            exactly these pairs (no duplicates); not with ``allowed``.
 
     Returns:
         ``(K, 2)`` int64 index pairs ``(i_a, i_b)`` and ``(K,)`` descriptor distances (Hamming bits or L2).
@@ -110,8 +105,7 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
     empty = (torch.zeros(0, 2, dtype=torch.long, device=desc_a.device),
              torch.zeros(0, device=desc_a.device))
     n_a, n_b = desc_a.shape[0], desc_b.shape[0]
-    # A single descriptor still has a (mutual) nearest neighbour; only the ratio test needs a second
-    # column (snn: per row of a; smnn: both ways), where Kornia itself returns nothing.
+    # only the ratio test needs a second column (snn: per row of a; smnn: both ways); Kornia returns nothing
     if (n_a == 0 or n_b == 0 or (config.method == "snn" and n_b < 2)
             or (config.method == "smnn" and min(n_a, n_b) < 2)):
         return empty
@@ -162,11 +156,8 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
 def _ratio_nn_of_pairs(rows: Tensor, cols: Tensor, dist: Tensor, n_rows: int, ratio: float):
     """Kornia's ``match_snn`` on a distance matrix that is ``_FORBIDDEN`` except at the given pairs.
 
-    Per row: the smallest distance ``v1`` and the second smallest ``v2`` (``v1`` again when it occurs
-    twice, ``_FORBIDDEN`` when the row has one pair or none: the matrix has >= 2 columns). The row
-    passes when ``v1 / v2 <= ratio`` (float32, as Kornia computes it). With ``ratio < 1`` a passing row's
-    nearest column is unique (``v1 < v2``), so it is the one ``torch.topk`` returns, whatever its order
-    among ties.
+    Per row ``v1 / v2 <= ratio`` (float32, as Kornia) with the two smallest distances (``v2 = v1`` when it
+    occurs twice); with ``ratio < 1`` a passing row's nearest column is unique, so it is Kornia's.
 
     Returns:
         ``(n_rows,)`` bool: passes, ``(n_rows,)`` int64: the nearest column (-1 for a row without pairs),
@@ -203,11 +194,8 @@ def _match_pairs(desc_a: Tensor, desc_b: Tensor, pairs: Tensor, config: MatchCon
 
 
 def guided_pairs(kp: Tensor, uv: Tensor, radius: float) -> Tensor:
-    """Every pair ``(i, j)`` with ``|kp_i - uv_j|^2 <= radius^2``, computed in float32 as the dense mask
-    ``(kp[:, None] - uv[None]) ** 2`` summed over x, y would be, without forming it.
-
-    Candidates come from the 3 x 3 grid cells (slightly larger than ``radius``) around ``kp_i``'s; the exact
-    float32 test then keeps the dense mask's pairs. NaN or huge ``uv`` (points behind the camera) pair with nothing.
+    """Every pair ``(i, j)`` with ``|kp_i - uv_j|^2 <= radius^2`` (float32, as the dense mask would test it),
+    from the 3 x 3 grid cells around ``kp_i``'s. NaN or huge ``uv`` (points behind the camera) pair with nothing.
 
     Args:
         kp: ``(N, 2)`` float32 keypoints (finite).
@@ -274,7 +262,6 @@ def match_features(fa: FrameFeatures, fb: FrameFeatures, config: MatchConfig | N
     config = config or MatchConfig()
     if fa.binary != fb.binary:
         raise ValueError("cannot match binary descriptors with float ones (different detectors)")
-    # the indices live with the descriptors (they index the matcher's output, on that device)
     ia = (torch.nonzero(fa.valid).squeeze(1) if only_valid
           else torch.arange(len(fa), device=fa.descriptors.device))
     ib = (torch.nonzero(fb.valid).squeeze(1) if only_valid
@@ -284,7 +271,6 @@ def match_features(fa: FrameFeatures, fb: FrameFeatures, config: MatchConfig | N
         pts_b = fb.points[ib].to(torch.float64)
         uv = project(transform_points(prior_ab.to(torch.float64), pts_b), fa.K.to(torch.float64))
         radius = config.guided_radius_px * fa.image_size[1] / 640.0
-        # the pairs within the radius (a few percent of all), found without the dense (Na, Nb) mask
         allowed = guided_pairs(fa.keypoints[ia].to(torch.float32), uv.to(torch.float32), radius)
     idx, dist = match_descriptors(fa.descriptors[ia], fb.descriptors[ib], fa.binary, config,
                                   allowed_pairs=allowed)

@@ -1,15 +1,8 @@
 """3D-3D RANSAC for a rigid transform, vectorised over hypotheses, with a refinement on the inliers.
 
-1. Hypotheses: batches of random 3-point samples (seeded ``torch.Generator``), samples with a tiny
-   triangle or whose pairwise distances are not preserved (a rigid motion keeps them) are discarded,
-   each remaining one is fitted with :func:`~slam.odometry.geometry.kabsch` (batched SVD) and scored on
-   all correspondences at once with the MSAC truncated quadratic cost. The number of batches adapts to
-   the best inlier ratio ``w``: ``log(1 - confidence) / log(1 - w^3)`` hypotheses.
-2. Local optimisation: weighted Kabsch on the inliers, inliers re-selected, fitted again.
-3. Refinement: Gauss-Newton with a Huber kernel on the Mahalanobis 3D error
-   ``r_i = T src_i - dst_i``, ``Sigma_i = R Sigma_src,i R^T + Sigma_dst,i`` (depth noise along the ray,
-   pixel noise across: see :func:`~slam.odometry.geometry.point_covariance`), right perturbation
-   ``T exp(xi)``. Its Hessian at the optimum is the returned information matrix.
+Seeded batches of 3-point samples scored by MSAC (adaptive count ``log(1 - confidence) / log(1 - w^3)``), a
+weighted Kabsch refit on the inliers, then Gauss-Newton on the Mahalanobis 3D error whose Hessian is the
+returned information (right perturbation ``T exp(xi)``).
 
 Example:
     >>> g = torch.Generator().manual_seed(0)
@@ -40,8 +33,7 @@ class RansacResult:
     """Outcome of :func:`ransac_rigid`.
 
     Attributes:
-        pose: ``(7,)`` float64 transform mapping source points into the destination frame (identity on
-            failure).
+        pose: ``(7,)`` float64 transform mapping source points into the destination frame (identity on failure).
         inliers: ``(N,)`` bool.
         num_inliers: number of inliers.
         rmse: root-mean-square 3D error of the inliers (metres; ``inf`` on failure).
@@ -107,9 +99,8 @@ def refine_rigid(pose: Tensor, src: Tensor, dst: Tensor, cov_src: Tensor, cov_ds
     _check_cov(cov_dst, src.shape[0], "cov_dst")
     J = rigid_jacobian(src)  # (N, 3, 6), d(T exp(xi) p)
     R0 = quat_to_rotmat(pose[3:])
-    # Residual covariance in the *source* frame: R^T (R S_src R^T + S_dst) R = S_src + R^T S_dst R. It is
-    # evaluated once at the initial rotation (the refinement moves it by a fraction of a degree), so the
-    # per-point blocks J^T W J and J^T W are computed once.
+    # residual covariance in the source frame, S_src + R^T S_dst R, at the initial rotation only (the
+    # refinement turns by a fraction of a degree): J^T W J and J^T W are computed once
     W = torch.linalg.inv(cov_src + R0.transpose(0, 1) @ cov_dst @ R0)  # (N, 3, 3)
     JtW = J.transpose(1, 2) @ W  # (N, 6, 3)
     JtWJ = JtW @ J  # (N, 6, 6)
@@ -165,8 +156,7 @@ def ransac_rigid(src: Tensor, dst: Tensor, config: RansacConfig | None = None,
         raise ValueError(f"thresholds must have shape ({n},), got {tuple(thresholds.shape)}")
     thresholds = thresholds.to(torch.float64)
     if n and not bool((thresholds > 0).all()):
-        # 0 divides the MSAC cost by zero; NaN or negative ones reject everything (reported as
-        # "degenerate"); inf is allowed, as RansacConfig.inlier_threshold = inf is (everything an inlier)
+        # 0 divides the MSAC cost by zero, NaN or negative ones reject everything; inf is allowed
         raise ValueError("thresholds must be > 0 (metres, not NaN), got min "
                          f"{float(thresholds.min())} and max {float(thresholds.max())}")
     _check_cov(cov_src, n, "cov_src")
