@@ -10,7 +10,7 @@ Example:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Union
 
 import cv2
@@ -61,6 +61,12 @@ class FrameFeatures:
     def num_valid(self) -> int:
         """Number of keypoints with a 3D point."""
         return int(self.valid.sum())
+
+    def to(self, device) -> FrameFeatures:
+        """A copy on ``device``."""
+        return replace(self, keypoints=self.keypoints.to(device), descriptors=self.descriptors.to(device),
+                       points=self.points.to(device), valid=self.valid.to(device),
+                       sigma_px=self.sigma_px.to(device), K=self.K.to(device))
 
 
 def bucket_keypoints(xy: np.ndarray, response: np.ndarray, image_size: tuple[int, int], rows: int,

@@ -62,8 +62,7 @@ class KeyframeEdge:
         i: id of the older keyframe.
         j: id of the new keyframe.
         T_ij: ``(7,)`` float64 pose of keyframe j in keyframe i.
-        information: ``(6, 6)`` float64 information of ``T_ij`` for the right perturbation
-            ``T_ij exp(xi)``, ``xi = [rho, phi]`` (what a g2o / GTSAM between-edge expects).
+        information: ``(6, 6)`` float64 information of ``T_ij`` (right perturbation ``T_ij exp(xi)``, ``[rho, phi]``).
         weak: True for an edge forced after a tracking loss (constant-velocity guess, tiny information).
     """
 

@@ -83,7 +83,7 @@ def hamming_distance(desc_a: Tensor, desc_b: Tensor, pairs: Tensor | None = None
 
 
 def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: MatchConfig | None = None,
-                      allowed: Tensor | None = None, allowed_pairs: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                      allowed_pairs: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Match two descriptor sets with Kornia's ``match_{mnn,snn,smnn}``.
 
     Args:
@@ -91,9 +91,8 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
         desc_b: ``(M, D)``.
         binary: Hamming distance on packed bits instead of L2.
         config: matcher settings.
-        allowed: optional ``(N, M)`` bool, False where a pair is ruled out (guided matching).
-        allowed_pairs: optional ``(P, 2)`` int64 ``(i_a, i_b)``, the same as an ``allowed`` that is True at
-            exactly these pairs (no duplicates); not with ``allowed``.
+        allowed_pairs: optional ``(P, 2)`` int64 ``(i_a, i_b)``, the only pairs that may match (guided matching;
+            no duplicates).
 
     Returns:
         ``(K, 2)`` int64 index pairs ``(i_a, i_b)`` and ``(K,)`` descriptor distances (Hamming bits or L2).
@@ -102,25 +101,19 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
     if desc_a.dim() != 2 or desc_b.dim() != 2 or desc_a.shape[1] != desc_b.shape[1]:
         raise ValueError(f"descriptors must be (N, D) and (M, D), got {tuple(desc_a.shape)} and "
                          f"{tuple(desc_b.shape)}")
-    empty = (torch.zeros(0, 2, dtype=torch.long, device=desc_a.device),
-             torch.zeros(0, device=desc_a.device))
-    n_a, n_b = desc_a.shape[0], desc_b.shape[0]
+    shape = n_a, n_b = desc_a.shape[0], desc_b.shape[0]
     # only the ratio test needs a second column (snn: per row of a; smnn: both ways); Kornia returns nothing
     if (n_a == 0 or n_b == 0 or (config.method == "snn" and n_b < 2)
             or (config.method == "smnn" and min(n_a, n_b) < 2)):
-        return empty
-    shape = (desc_a.shape[0], desc_b.shape[0])
-    if allowed is not None and allowed.shape != shape:
-        raise ValueError(f"allowed must have shape {shape}, got {tuple(allowed.shape)}")
+        return torch.zeros(0, 2, dtype=torch.long, device=desc_a.device), torch.zeros(0, device=desc_a.device)
+    allowed = None  # (N, M) bool, False where a pair is ruled out
     if allowed_pairs is not None:
-        if allowed is not None:
-            raise ValueError("give allowed or allowed_pairs, not both")
         if allowed_pairs.dim() != 2 or allowed_pairs.shape[1] != 2:
             raise ValueError(f"allowed_pairs must have shape (P, 2), got {tuple(allowed_pairs.shape)}")
         sparse = (binary and config.method in ("smnn", "snn") and config.ratio < 1.0
                   and allowed_pairs.shape[0] < 0.25 * shape[0] * shape[1])
         if sparse:
-            return _match_pairs(desc_a, desc_b, allowed_pairs, config, empty)
+            return _match_pairs(desc_a, desc_b, allowed_pairs, config)
         allowed = torch.zeros(shape, dtype=torch.bool, device=desc_a.device)
         allowed[allowed_pairs[:, 0], allowed_pairs[:, 1]] = True
     if binary:
@@ -146,8 +139,6 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
         _, idx = KF.match_snn(fa, fb, config.ratio, dm=dm)
     else:  # "mnn" (MatchConfig checks the name)
         _, idx = KF.match_mnn(fa, fb, dm=dm)
-    if idx.shape[0] == 0:
-        return empty
     dist = dm[idx[:, 0], idx[:, 1]]
     keep = dist <= max_dist
     return idx[keep], dist[keep]
@@ -174,12 +165,10 @@ def _ratio_nn_of_pairs(rows: Tensor, cols: Tensor, dist: Tensor, n_rows: int, ra
     return v1 / v2 <= ratio, nearest, v1
 
 
-def _match_pairs(desc_a: Tensor, desc_b: Tensor, pairs: Tensor, config: MatchConfig, empty):
+def _match_pairs(desc_a: Tensor, desc_b: Tensor, pairs: Tensor, config: MatchConfig):
     """``smnn`` / ``snn`` of binary descriptors on the allowed pairs only (the result of the dense
     matrix with ``_FORBIDDEN`` elsewhere, in Kornia's order: by ``i_a``)."""
     n, m = desc_a.shape[0], desc_b.shape[0]
-    if pairs.shape[0] == 0:
-        return empty
     rows, cols = pairs[:, 0], pairs[:, 1]
     dist = hamming_distance(desc_a, desc_b, pairs)
     ok_a, nn_a, d_a = _ratio_nn_of_pairs(rows, cols, dist, n, config.ratio)
@@ -234,8 +223,6 @@ def guided_pairs(kp: Tensor, uv: Tensor, radius: float) -> Tensor:
     start = torch.searchsorted(sorted_key, query)
     count = torch.searchsorted(sorted_key, query, right=True) - start
     total = int(count.sum())
-    if total == 0:
-        return torch.zeros(0, 2, dtype=torch.long, device=dev)
     i = torch.arange(n, device=dev).repeat_interleave(9).repeat_interleave(count)
     shift = (start - (torch.cumsum(count, 0) - count)).repeat_interleave(count)
     j = order[torch.arange(total, device=dev) + shift]
@@ -245,8 +232,8 @@ def guided_pairs(kp: Tensor, uv: Tensor, radius: float) -> Tensor:
     return torch.stack([i[near], j[near]], dim=1)
 
 def match_features(fa: FrameFeatures, fb: FrameFeatures, config: MatchConfig | None = None,
-                   prior_ab: Tensor | None = None, only_valid: bool = True) -> tuple[Tensor, Tensor]:
-    """Match the keypoints of two frames.
+                   prior_ab: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Match the keypoints of two frames that have a 3D point (what 3D-3D RANSAC needs).
 
     Args:
         fa: features of frame a.
@@ -254,7 +241,6 @@ def match_features(fa: FrameFeatures, fb: FrameFeatures, config: MatchConfig | N
         config: matcher settings.
         prior_ab: optional ``(7,)`` predicted pose of frame b in frame a (``p_a = T_ab p_b``): b's 3D points
             are projected into a and may only match a's keypoints within ``config.guided_radius_px``.
-        only_valid: match only keypoints that have a 3D point in both frames (what 3D-3D RANSAC needs).
 
     Returns:
         ``(K, 2)`` int64 indices into ``fa`` and ``fb`` and ``(K,)`` descriptor distances.
@@ -262,10 +248,8 @@ def match_features(fa: FrameFeatures, fb: FrameFeatures, config: MatchConfig | N
     config = config or MatchConfig()
     if fa.binary != fb.binary:
         raise ValueError("cannot match binary descriptors with float ones (different detectors)")
-    ia = (torch.nonzero(fa.valid).squeeze(1) if only_valid
-          else torch.arange(len(fa), device=fa.descriptors.device))
-    ib = (torch.nonzero(fb.valid).squeeze(1) if only_valid
-          else torch.arange(len(fb), device=fb.descriptors.device))
+    ia = torch.nonzero(fa.valid).squeeze(1)
+    ib = torch.nonzero(fb.valid).squeeze(1)
     allowed = None
     if prior_ab is not None and config.guided_radius_px > 0 and ia.numel() and ib.numel():
         pts_b = fb.points[ib].to(torch.float64)
@@ -274,6 +258,4 @@ def match_features(fa: FrameFeatures, fb: FrameFeatures, config: MatchConfig | N
         allowed = guided_pairs(fa.keypoints[ia].to(torch.float32), uv.to(torch.float32), radius)
     idx, dist = match_descriptors(fa.descriptors[ia], fb.descriptors[ib], fa.binary, config,
                                   allowed_pairs=allowed)
-    if idx.shape[0] == 0:
-        return idx, dist
     return torch.stack([ia[idx[:, 0]], ib[idx[:, 1]]], dim=1), dist

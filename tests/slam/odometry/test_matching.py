@@ -29,7 +29,8 @@ def _kornia_reference(desc_a, desc_b, allowed, config):
     """Kornia's matcher on the full distance matrix, forbidden pairs at _FORBIDDEN (the first implementation)."""
     dm = torch.where(allowed, hamming_distance(desc_a, desc_b), torch.full(allowed.shape, _FORBIDDEN))
     match = {"smnn": lambda: KF.match_smnn(desc_a, desc_b, config.ratio, dm=dm),
-             "snn": lambda: KF.match_snn(desc_a, desc_b, config.ratio, dm=dm)}[config.method]
+             "snn": lambda: KF.match_snn(desc_a, desc_b, config.ratio, dm=dm),
+             "mnn": lambda: KF.match_mnn(desc_a, desc_b, dm=dm)}[config.method]
     _, idx = match()
     dist = dm[idx[:, 0], idx[:, 1]]
     keep = dist <= config.max_hamming
@@ -110,12 +111,9 @@ def test_pair_matching_falls_back_to_the_dense_path():
     for density, config in ((0.5, MatchConfig()), (0.05, MatchConfig(method="mnn")),
                             (0.05, MatchConfig(ratio=1.0))):
         allowed = torch.rand(30, 25, generator=g) < density
-        ref = match_descriptors(desc_a, desc_b, True, config, allowed=allowed)
+        ref = _kornia_reference(desc_a, desc_b, allowed, config)
         got = match_descriptors(desc_a, desc_b, True, config, allowed_pairs=_pairs_of(allowed))
         assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1])
-    with pytest.raises(ValueError, match="not both"):
-        match_descriptors(desc_a, desc_b, True, allowed=torch.ones(30, 25, dtype=torch.bool),
-                          allowed_pairs=torch.zeros(0, 2, dtype=torch.long))
     with pytest.raises(ValueError, match=r"allowed_pairs must have shape \(P, 2\)"):
         match_descriptors(desc_a, desc_b, True, allowed_pairs=torch.zeros(4, dtype=torch.long))
     none = match_descriptors(desc_a, desc_b, True, allowed_pairs=torch.zeros(0, 2, dtype=torch.long))

@@ -160,18 +160,18 @@ def test_zero_descriptors_give_empty_matches(method):
 
 def _features(desc, device):
     n = desc.shape[0]
-    return FrameFeatures(torch.zeros(n, 2), desc, torch.zeros(n, 3), torch.zeros(n, dtype=torch.bool),
+    return FrameFeatures(torch.zeros(n, 2), desc, torch.zeros(n, 3), torch.ones(n, dtype=torch.bool),
                          torch.ones(n), torch.eye(3, dtype=torch.float64), (48, 64)).to(device)
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs CUDA"))])
 def test_match_features_all_keypoints_on_device(device):
-    """``only_valid=False`` built its index with ``torch.arange`` on the CPU (a hard-coded device)."""
+    """The matches' indices live on the features' device (no hard-coded device)."""
     g = torch.Generator().manual_seed(1)
     desc = torch.randint(0, 256, (8, 32), generator=g, dtype=torch.uint8)
     fa, fb = _features(desc, device), _features(desc[[3, 1, 7, 0]].clone(), device)
-    idx, dist = match_features(fa, fb, MatchConfig(method="mnn"), only_valid=False)
+    idx, dist = match_features(fa, fb, MatchConfig(method="mnn"))
     assert idx.device.type == device
     assert sorted(idx.tolist()) == [[0, 3], [1, 1], [3, 0], [7, 2]]
     assert dist.tolist() == [0.0] * 4
