@@ -113,7 +113,6 @@ class SavedMap:
         return None if g is None else torch.tensor(g, dtype=torch.float64)
 
 
-# ----------------------------------------------------------------------------------------------- saving
 def prepare_map_dir(path) -> Path:
     """Check that ``path`` can take a map (absent, an empty folder or a previous map) before the work.
 
@@ -239,7 +238,6 @@ def save_map(path, saved: SavedMap) -> Path:
     return target
 
 
-# ---------------------------------------------------------------------------------------------- loading
 def _read_npz(path: Path, names: tuple) -> dict:
     try:
         with np.load(path, allow_pickle=False) as data:

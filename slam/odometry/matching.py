@@ -20,8 +20,7 @@ Tensor = torch.Tensor
 
 __all__ = ["guided_pairs", "hamming_distance", "match_descriptors", "match_features", "unpack_bits"]
 
-# Distance given to pairs the motion prior forbids: larger than any Hamming (256) or unit-L2 (2) distance
-# but finite, so Kornia's ratio test stays well defined.
+# Distance of pairs the motion prior forbids: above any Hamming (256) or unit-L2 (2) one, finite for the ratio test
 _FORBIDDEN = 1.0e4
 
 _NP_POPCOUNT = getattr(np, "bitwise_count", None)  # numpy >= 2.0

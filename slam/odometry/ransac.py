@@ -226,7 +226,6 @@ def ransac_rigid(src: Tensor, dst: Tensor, config: RansacConfig | None = None,
         return _failure(n, f"degenerate: inliers (nearly) collinear (2nd spread {float(spread[1]):.4f} m "
                         f"< {config.min_spread} m)", device, drawn, inliers=inl, pose=pose)
 
-    # Mahalanobis Gauss-Newton on the inliers
     if cov_src is None or cov_dst is None:
         iso = (thr2 / 9.0)[:, None, None] * torch.eye(3, dtype=torch.float64, device=device)
         cov_src = 0.5 * iso if cov_src is None else cov_src
