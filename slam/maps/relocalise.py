@@ -169,8 +169,7 @@ def capture_map(slam, sequence=None) -> SavedMap:
     """The :class:`SavedMap` of a finished run (its final keyframe poses, features, graph and index).
 
     Args:
-        slam: a :class:`slam.system.RGBDSLAM` after :meth:`~slam.system.RGBDSLAM.finish`, run with loop
-            closure (the index and the descriptors are the loop closer's).
+        slam: a :class:`slam.system.RGBDSLAM` after :meth:`~slam.system.RGBDSLAM.finish`, with loop closure.
         sequence: the recording (for its name and the ground truth of its first keyframe's frame), or None.
 
     Raises:
@@ -240,8 +239,7 @@ class MapRelocaliser:
         MapMismatchError: the run has no loop closure, or its descriptor, feature detector or camera rig
             differ from the map's.
 
-    Call :meth:`observe` after every :meth:`RGBDSLAM.track` (or ``skip``), then :meth:`finish` with the
-    system's result.
+    Call :meth:`observe` after every :meth:`RGBDSLAM.track` (or ``skip``), then :meth:`finish`.
     """
 
     def __init__(self, saved: SavedMap, slam, config: RelocalisationConfig | None = None):
@@ -423,8 +421,7 @@ class MapRelocaliser:
         return maximum_clique(A) if n else []
 
     def _place(self, group: list[int], estimates: Tensor) -> None:
-        best = max(group, key=lambda k: self.links[k].num_inliers)
-        lb = self.links[best]
+        lb = max((self.links[k] for k in group), key=lambda link: link.num_inliers)
         self._alignment = se3_compose(se3_compose(self.map.poses[lb.map_kf], lb.T_ab), se3_inv(estimates[lb.kf]))
         self._anchors = sorted({self.links[k].kf for k in group})
 

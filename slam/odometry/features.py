@@ -35,12 +35,10 @@ class FrameFeatures:
         keypoints: ``(N, 2)`` float32 pixel coordinates ``(x, y)`` in the full-size colour image.
         descriptors: ``(N, D)``: uint8 packed bits for binary descriptors (ORB: ``D = 32``), float32
             unit vectors otherwise (RootSIFT: ``D = 128``).
-        points: ``(N, 3)`` float32 points in metres in the colour camera's frame (the depth camera's when
-            the frames are registered; zeros where ``valid`` is False).
+        points: ``(N, 3)`` float32 metres in the tracked camera's frame (zeros where ``valid`` is False).
         valid: ``(N,)`` bool, the keypoint has a trustworthy depth.
         sigma_px: ``(N,)`` float32 keypoint position std in pixels (grows with the pyramid level).
-        K: ``(3, 3)`` float64 intrinsics of the image the keypoints live in (``FeatureConfig.rgb_intrinsics``
-            when set, else the frame's ``K``).
+        K: ``(3, 3)`` float64 intrinsics of the keypoints' image (``FeatureConfig.rgb_intrinsics`` or the frame's).
         image_size: ``(H, W)``.
         binary: True when ``descriptors`` are packed bits (matched by Hamming distance).
     """
@@ -150,8 +148,7 @@ def extract_features(rgb: ArrayLike, depth: ArrayLike, K: ArrayLike,
         config: detection settings (default :class:`FeatureConfig`).
 
     Returns:
-        :class:`FrameFeatures` on the CPU; ``N = 0`` (empty tensors of the right shape) for a textureless
-        image.
+        :class:`FrameFeatures` on the CPU; ``N = 0`` for a textureless image.
 
     Raises:
         ValueError: for an image, depth or K of the wrong shape or type.

@@ -21,7 +21,7 @@ import torch
 
 from slam.lie import quat_to_rotmat, se3_compose, se3_exp, se3_identity
 from slam.odometry.config import RansacConfig
-from slam.odometry.geometry import kabsch, rigid_jacobian, transform_points
+from slam.odometry.geometry import _check, kabsch, rigid_jacobian, transform_points
 
 Tensor = torch.Tensor
 
@@ -37,8 +37,7 @@ class RansacResult:
         inliers: ``(N,)`` bool.
         num_inliers: number of inliers.
         rmse: root-mean-square 3D error of the inliers (metres; ``inf`` on failure).
-        information: ``(6, 6)`` float64 information of ``pose`` for the right perturbation
-            ``pose * exp(xi)``, ``xi = [rho, phi]`` (zeros on failure).
+        information: ``(6, 6)`` float64 information of ``pose`` (right perturbation, ``[rho, phi]``; zeros on failure).
         success: whether a trustworthy transform was found.
         reason: why it failed ("" on success).
         iterations: hypotheses drawn.
@@ -69,12 +68,6 @@ def _errors(pose: Tensor, src: Tensor, dst: Tensor) -> Tensor:
     return (transform_points(pose, src) - dst).norm(dim=-1)
 
 
-def _check_cov(cov: Tensor | None, n: int, name: str) -> None:
-    """ValueError naming ``name`` unless ``cov`` is None or ``(n, 3, 3)``."""
-    if cov is not None and tuple(cov.shape) != (n, 3, 3):
-        raise ValueError(f"{name} must have shape ({n}, 3, 3), got {tuple(cov.shape)}")
-
-
 def refine_rigid(pose: Tensor, src: Tensor, dst: Tensor, cov_src: Tensor, cov_dst: Tensor,
                  iterations: int = 5, huber_delta: float = 2.0):
     """Gauss-Newton refinement of a rigid transform on the Mahalanobis 3D error (Huber kernel).
@@ -90,13 +83,12 @@ def refine_rigid(pose: Tensor, src: Tensor, dst: Tensor, cov_src: Tensor, cov_ds
         the refined ``(7,)`` pose and the ``(6, 6)`` information (Gauss-Newton Hessian without the robust
         weights) at it, for the right perturbation ``pose * exp(xi)``.
     """
-    if pose.shape != (7,):
-        raise ValueError(f"pose must have shape (7,), got {tuple(pose.shape)}")
+    _check(pose, (7,), "pose")
     if src.dim() != 2 or src.shape[-1] != 3 or src.shape != dst.shape:
         raise ValueError(f"src and dst must both have shape (N, 3), got {tuple(src.shape)} and "
                          f"{tuple(dst.shape)}")
-    _check_cov(cov_src, src.shape[0], "cov_src")
-    _check_cov(cov_dst, src.shape[0], "cov_dst")
+    _check(cov_src, (src.shape[0], 3, 3), "cov_src")
+    _check(cov_dst, (src.shape[0], 3, 3), "cov_dst")
     J = rigid_jacobian(src)  # (N, 3, 6), d(T exp(xi) p)
     R0 = quat_to_rotmat(pose[3:])
     # residual covariance in the source frame, S_src + R^T S_dst R, at the initial rotation only (the
@@ -130,14 +122,13 @@ def ransac_rigid(src: Tensor, dst: Tensor, config: RansacConfig | None = None,
         src: ``(N, 3)`` source points.
         dst: ``(N, 3)`` destination points (``dst_i ~ T src_i`` for inliers).
         config: RANSAC settings (default :class:`~slam.odometry.config.RansacConfig`).
-        thresholds: optional ``(N,)`` per-correspondence inlier thresholds in metres (default
-            ``config.inlier_threshold`` for all).
+        thresholds: optional ``(N,)`` inlier thresholds in metres (default ``config.inlier_threshold``).
         cov_src: optional ``(N, 3, 3)`` point covariances for the refinement (default isotropic with
             ``sigma = threshold / 3``); ``cov_dst`` likewise.
 
     Returns:
-        :class:`RansacResult` computed in float64; a failure (``success=False`` with a reason) for too few
-        correspondences, too few inliers or (nearly) collinear inliers -- never an exception for such data.
+        :class:`RansacResult` in float64; ``success=False`` with a reason (never an exception) for too few
+        correspondences or inliers, or (nearly) collinear inliers.
 
     Raises:
         ValueError: when the shapes are wrong, or a threshold is not > 0 (or NaN).
@@ -159,8 +150,9 @@ def ransac_rigid(src: Tensor, dst: Tensor, config: RansacConfig | None = None,
         # 0 divides the MSAC cost by zero, NaN or negative ones reject everything; inf is allowed
         raise ValueError("thresholds must be > 0 (metres, not NaN), got min "
                          f"{float(thresholds.min())} and max {float(thresholds.max())}")
-    _check_cov(cov_src, n, "cov_src")
-    _check_cov(cov_dst, n, "cov_dst")
+    for name, cov in (("cov_src", cov_src), ("cov_dst", cov_dst)):
+        if cov is not None:
+            _check(cov, (n, 3, 3), name)
     if n < max(3, config.min_inliers):
         return _failure(n, f"too few correspondences ({n} < {max(3, config.min_inliers)})", device)
     if not (torch.isfinite(src).all() and torch.isfinite(dst).all()):
