@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from slam.lie import quat_to_rotmat, se3_compose, se3_inv
-from slam.odometry.geometry import _check
+from slam.odometry.geometry import check_shape
 
 Tensor = torch.Tensor
 
@@ -46,9 +46,9 @@ def register_depth_to_color(depth: Tensor, K_depth: Tensor, K_rgb: Tensor, T_rgb
     """
     if depth.dim() != 2:
         raise ValueError(f"depth must have shape (H, W), got {tuple(depth.shape)}")
-    _check(K_depth, (3, 3), "K_depth")
-    _check(K_rgb, (3, 3), "K_rgb")
-    _check(T_rgb_depth, (7,), "T_rgb_depth")
+    check_shape(K_depth, (3, 3), "K_depth")
+    check_shape(K_rgb, (3, 3), "K_rgb")
+    check_shape(T_rgb_depth, (7,), "T_rgb_depth")
     h, w = int(rgb_size[0]), int(rgb_size[1])
     dtype = depth.dtype if depth.is_floating_point() else torch.float32
     if h <= 0 or w <= 0:
@@ -171,6 +171,6 @@ def depth_camera_poses(rgb_poses: Tensor, T_rgb_depth: Tensor) -> Tensor:
         >>> depth_camera_poses(torch.tensor([[0., 0., 0., 0., 0., 0., 1.]]), T)
         tensor([[0., 0., 0., 0., 0., 0., 1.]])
     """
-    _check(T_rgb_depth, (7,), "T_rgb_depth")
+    check_shape(T_rgb_depth, (7,), "T_rgb_depth")
     T = T_rgb_depth.to(rgb_poses)
     return se3_compose(se3_compose(se3_inv(T), rgb_poses), T)

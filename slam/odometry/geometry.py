@@ -19,6 +19,7 @@ Tensor = torch.Tensor
 
 __all__ = [
     "backproject",
+    "check_shape",
     "depth_sigma",
     "kabsch",
     "point_covariance",
@@ -28,8 +29,8 @@ __all__ = [
 ]
 
 
-def _check(x: Tensor, shape: tuple, name: str) -> None:
-    """Raise a ValueError naming ``name`` unless ``x`` matches ``shape`` (None = any size)."""
+def check_shape(x: Tensor, shape: tuple, name: str) -> None:
+    """ValueError naming ``name`` unless the tensor ``x`` has ``shape`` (None: any size); TypeError for a non-tensor."""
     if not isinstance(x, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     ok = x.dim() == len(shape) and all(s is None or s == d for s, d in zip(shape, x.shape))
@@ -68,9 +69,9 @@ def backproject(
         >>> pts.shape, ok.tolist()
         (torch.Size([2, 3]), [True, False])
     """
-    _check(keypoints, (None, 2), "keypoints")
-    _check(depth, (None, None), "depth")
-    _check(K, (3, 3), "K")
+    check_shape(keypoints, (None, 2), "keypoints")
+    check_shape(depth, (None, None), "depth")
+    check_shape(K, (3, 3), "K")
     H, W = depth.shape
     n = keypoints.shape[0]
     dtype = depth.dtype if depth.is_floating_point() else torch.float32
@@ -140,7 +141,7 @@ def point_covariance(points: Tensor, sigma_z: Tensor, sigma_px: Tensor, fx: floa
         >>> point_covariance(torch.ones(5, 3), torch.ones(5), torch.ones(5), 500.0, 500.0).shape
         torch.Size([5, 3, 3])
     """
-    _check(points, (None, 3), "points")
+    check_shape(points, (None, 3), "points")
     ray = points / points[:, 2:3].clamp_min(1e-6)
     cov = (sigma_z ** 2)[:, None, None] * ray[:, :, None] * ray[:, None, :]
     sx = (sigma_px * points[:, 2] / fx) ** 2
@@ -226,6 +227,6 @@ def rigid_jacobian(points: Tensor) -> Tensor:
         >>> rigid_jacobian(torch.zeros(2, 3)).shape
         torch.Size([2, 3, 6])
     """
-    _check(points, (None, 3), "points")
+    check_shape(points, (None, 3), "points")
     eye = torch.eye(3, dtype=points.dtype, device=points.device).expand(points.shape[0], 3, 3)
     return torch.cat([eye, -so3_hat(points)], dim=-1)

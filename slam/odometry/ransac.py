@@ -21,7 +21,7 @@ import torch
 
 from slam.lie import quat_to_rotmat, se3_compose, se3_exp, se3_identity
 from slam.odometry.config import RansacConfig
-from slam.odometry.geometry import _check, kabsch, rigid_jacobian, transform_points
+from slam.odometry.geometry import check_shape, kabsch, rigid_jacobian, transform_points
 
 Tensor = torch.Tensor
 
@@ -83,12 +83,12 @@ def refine_rigid(pose: Tensor, src: Tensor, dst: Tensor, cov_src: Tensor, cov_ds
         the refined ``(7,)`` pose and the ``(6, 6)`` information (Gauss-Newton Hessian without the robust
         weights) at it, for the right perturbation ``pose * exp(xi)``.
     """
-    _check(pose, (7,), "pose")
+    check_shape(pose, (7,), "pose")
     if src.dim() != 2 or src.shape[-1] != 3 or src.shape != dst.shape:
         raise ValueError(f"src and dst must both have shape (N, 3), got {tuple(src.shape)} and "
                          f"{tuple(dst.shape)}")
-    _check(cov_src, (src.shape[0], 3, 3), "cov_src")
-    _check(cov_dst, (src.shape[0], 3, 3), "cov_dst")
+    check_shape(cov_src, (src.shape[0], 3, 3), "cov_src")
+    check_shape(cov_dst, (src.shape[0], 3, 3), "cov_dst")
     J = rigid_jacobian(src)  # (N, 3, 6), d(T exp(xi) p)
     R0 = quat_to_rotmat(pose[3:])
     # residual covariance in the source frame, S_src + R^T S_dst R, at the initial rotation only (the
@@ -152,7 +152,7 @@ def ransac_rigid(src: Tensor, dst: Tensor, config: RansacConfig | None = None,
                          f"{float(thresholds.min())} and max {float(thresholds.max())}")
     for name, cov in (("cov_src", cov_src), ("cov_dst", cov_dst)):
         if cov is not None:
-            _check(cov, (n, 3, 3), name)
+            check_shape(cov, (n, 3, 3), name)
     if n < max(3, config.min_inliers):
         return _failure(n, f"too few correspondences ({n} < {max(3, config.min_inliers)})", device)
     if not (torch.isfinite(src).all() and torch.isfinite(dst).all()):
