@@ -1,13 +1,8 @@
 """The SLAM back end: optimise the keyframe graph with a robust kernel per edge kind.
 
-Odometry edges and loop edges fail differently. An odometry edge is rarely wrong by much; a loop edge is
-either right or wrong altogether (an aliased place that passed verification). So each kind gets its own
-robust kernel (:class:`EdgeKindKernel`): by default Cauchy on the odometry edges and dynamic covariance
-scaling (:class:`DCS`, the closed form of switchable constraints) on the loops, which leaves a loop that
-agrees with the rest untouched and switches off, smoothly, one that does not.
-
-:meth:`PoseGraphBackend.optimize` calls :func:`slam.graph.optimize` (its public API only) and returns a
-:class:`BackendResult` with the poses, each loop edge's final weight, status and timing.
+An odometry edge is rarely wrong by much, a loop edge is right or wrong altogether: by default Cauchy on the
+odometry edges and dynamic covariance scaling (:class:`DCS`) on the loops, which switches off a wrong loop
+(docs/pipeline.md, "What each stage does").
 
 Example:
     >>> import torch
@@ -49,12 +44,9 @@ __all__ = ["DCS", "OPTIMIZER_METHODS", "BackendResult", "EdgeKindKernel", "PoseG
 
 @dataclass
 class DCS(RobustKernel):
-    """Dynamic covariance scaling (Agarwal et al. 2013) on ``s = r^T Omega r``: the closed form of a
-    switchable constraint with prior ``phi``.
+    """Dynamic covariance scaling (Agarwal et al. 2013) on ``s = r^T Omega r``, ``phi = width^2``.
 
-    ``rho(s) = s`` for ``s <= phi``, else ``phi (3 s - phi) / (phi + s)`` (bounded by ``3 phi``); the IRLS
-    weight is ``(2 phi / (phi + s))^2``. ``width`` is ``sqrt(phi)`` (the Mahalanobis norm where it starts
-    acting, as for the other kernels).
+    ``rho(s) = s`` for ``s <= phi``, else ``phi (3 s - phi) / (phi + s)``; the IRLS weight is ``(2 phi / (phi + s))^2``.
     """
 
     width: float = math.sqrt(CHI2_95_6DOF)
@@ -86,7 +78,7 @@ class EdgeKindKernel(RobustKernel):
     def __init__(self, kinds: Tensor, kernels: Dict[int, Optional[RobustKernel]]):
         self.kinds = kinds.to(torch.long)
         self.kernels = dict(kernels)
-        # the edges of each kind, as index tensors made once (the optimiser calls the kernel every step)
+        # the edges of each kind, made once (the optimiser calls the kernel every step)
         self._rows = {k: torch.nonzero(self.kinds == k)[:, 0] for k, kern in self.kernels.items()
                       if kern is not None and bool((self.kinds == k).any())}
 
@@ -112,9 +104,7 @@ def make_loop_kernel(name: Optional[str], width: Optional[float]) -> Optional[Ro
 
 
 def check_backend_config(config) -> None:
-    """Refuse a :class:`slam.config.BackendConfig` the back end could not run, when it is built rather than
-    when the first loop is accepted: the names are checked by the factories that dispatch on them
-    (:func:`slam.graph.make_kernel`, :func:`make_loop_kernel`).
+    """Refuse a :class:`slam.config.BackendConfig` the back end could not run, when it is built.
 
     Raises:
         ValueError: naming the field, the value and what is allowed.
@@ -178,7 +168,7 @@ class BackendResult:
 
 
 class PoseGraphBackend:
-    """Optimises a :class:`~slam.keyframe_graph.KeyframeGraph` (see the module docstring).
+    """Optimises a :class:`~slam.keyframe_graph.KeyframeGraph`.
 
     Args:
         config: :class:`slam.config.BackendConfig`.
@@ -190,27 +180,19 @@ class PoseGraphBackend:
         self.information_scale = dict(information_scale)
         check_backend_config(config)  # any object with these fields, not only a (frozen, checked) BackendConfig
 
-    def _kernel(self, kinds: Tensor, loop_kernel: Optional[RobustKernel]) -> RobustKernel:
-        odo = make_kernel(self.config.kernel, self.config.kernel_width)
-        return EdgeKindKernel(kinds, {int(EdgeKind.ODOMETRY): odo, int(EdgeKind.LOOP): loop_kernel})
-
-    def optimize(self, graph: KeyframeGraph, initial: Optional[Tensor] = None, online: bool = False,
-                 fixed: Optional[Sequence[int]] = None, free: Optional[Sequence[int]] = None) -> BackendResult:
-        """Optimise the active edges of ``graph`` from ``initial`` poses (default: its current estimates).
+    def optimize(self, graph: KeyframeGraph, online: bool = False, fixed: Optional[Sequence[int]] = None,
+                 free: Optional[Sequence[int]] = None) -> BackendResult:
+        """Optimise the active edges of ``graph`` from its current estimates.
 
         Args:
             graph: the keyframe graph (not modified).
-            initial: ``(M, 7)`` start poses.
-            online: a correction during tracking: at most ``config.online_max_iterations`` LM iterations
-                (the graph changes little between two loops and the start is the previous solution).
-            fixed: keyframes held at their start poses (a loaded map's, :mod:`slam.maps`); they then
-                anchor the result (else keyframe 0 does).
-            free: optimise only these keyframes (a window of the graph): the edges with an end among them,
-                the other keyframes those edges reach held at their start poses as a boundary (they anchor
-                the result), every other keyframe and edge left out and returned unchanged, and only the
-                loops among those edges in ``loop_weights``; an online one takes the newest
-                ``BackendConfig.online_loops_per_keyframe`` loops of each keyframe of the window
-                (:meth:`KeyframeGraph.window_graph`). None (or every keyframe): the whole graph.
+            online: a correction during tracking: at most ``config.online_max_iterations`` LM iterations.
+            fixed: keyframes held at their start poses (a loaded map's); they then anchor the result (else
+                keyframe 0 does).
+            free: optimise only these keyframes (:meth:`KeyframeGraph.window_graph`, an online one with the newest
+                ``BackendConfig.online_loops_per_keyframe`` loops of each): the keyframes the window's edges reach
+                are held, the others returned unchanged, and only the window's loops are in ``loop_weights``.
+                None (or every keyframe): the whole graph.
 
         Returns:
             :class:`BackendResult`.
@@ -221,16 +203,15 @@ class PoseGraphBackend:
         cfg = self.config
         t0 = time.perf_counter()
         window = None
-        if free is not None:  # gathered from the window's keyframes: its cost does not grow with the graph
-            window = graph.window_graph(self.information_scale, free, poses=initial,
+        if free is not None:
+            window = graph.window_graph(self.information_scale, free,
                                         loops_per_keyframe=cfg.online_loops_per_keyframe if online else None,
                                         fixed=fixed)
-        if window is not None:
+        if window is not None:  # its edges are never empty: a window without one holds nothing and is None
             pg, used, rows = window
-            full_poses = graph.estimates() if initial is None else initial.detach().to(torch.float64).cpu()
             kinds, active = graph.edge_kind_codes(rows), rows.tolist()
         else:
-            pg = graph.pose_graph(self.information_scale, poses=initial)
+            pg = graph.pose_graph(self.information_scale)
             if pg is None or pg.num_edges == 0:
                 raise ValueError("the keyframe graph has no edges to optimise")
             if fixed:
@@ -238,8 +219,6 @@ class PoseGraphBackend:
             used = None
             kinds = graph.edge_kinds(active_only=True)
             active = [k for k, e in enumerate(graph.edges) if e.active]
-        if pg.num_edges == 0:
-            raise ValueError("the keyframe graph has no edges to optimise")
         if cfg.device is not None:  # BackendConfig.device: solved there, returned on the CPU
             pg = pg.to(cfg.device)
         kinds = kinds.to(pg.device)
@@ -248,13 +227,15 @@ class PoseGraphBackend:
         name = None if cfg.loop_kernel is None else str(cfg.loop_kernel).lower()
         loop_kernel = (make_kernel(cfg.kernel, cfg.kernel_width) if name is None  # None: as the odometry's
                        else make_loop_kernel(name, cfg.loop_kernel_width))
-        res = optimize(pg, method=cfg.method, kernel=self._kernel(kinds, loop_kernel), max_iterations=iters)
+        kernel = EdgeKindKernel(kinds, {int(EdgeKind.ODOMETRY): make_kernel(cfg.kernel, cfg.kernel_width),
+                                        int(EdgeKind.LOOP): loop_kernel})
+        res = optimize(pg, method=cfg.method, kernel=kernel, max_iterations=iters)
         w = res.weights
         loop_weights = {active[r]: (float(w[r]) if w is not None else 1.0) for r in loop_rows}
         poses = res.graph.poses.detach().to(torch.float64).cpu()
         if used is not None:  # into the whole graph: the keyframes outside the window (held ones too) as they were
             moved = torch.ones(used.numel(), dtype=torch.bool)
             moved[pg.fixed.cpu()] = False
-            poses = full_poses.detach().to(torch.float64).cpu().clone().index_copy_(0, used[moved], poses[moved])
+            poses = graph.estimates().index_copy_(0, used[moved], poses[moved])
         return BackendResult(poses, loop_weights, str(res.status), res.iterations, time.perf_counter() - t0,
                              float(res.initial_chi2), float(res.chi2), res, list(res.cost_history))

@@ -1,22 +1,9 @@
 """A coloured point-cloud map of the keyframes' depth, placed with the optimised poses, and its PLY file.
 
-While a run goes, :class:`PointCloudMap` keeps, for every keyframe, its depth back-projected into the
-keyframe's own (depth) camera frame with the colours of its pixels, voxel-downsampled there, and only the
-points that the keyframes just before it (``MapConfig.overlap_keyframes``, placed by the odometry between
-them) do not already hold in the same voxel: consecutive keyframes see mostly the same surfaces, so a
-keyframe keeps what it adds. The points are kept compactly: coordinates as int16 multiples of a per-keyframe
-step (at most ``voxel_size / 16``: 1.25 mm at 2 cm voxels) and uint8 colours, 9 bytes a point.
-The points stay in their keyframe's frame because the keyframes move when loops correct the graph: at the
-end :meth:`PointCloudMap.points` places every keyframe's points with the final
-(optimised) keyframe poses, in the trajectory's frame, and merges them on one voxel grid; :func:`write_ply`
-writes them as a binary little-endian PLY (``x y z`` float32, ``red green blue`` uchar) that MeshLab,
-CloudCompare, Open3D and RTAB-Map open.
-
-Unregistered frames (7-Scenes' Kinect v1: :attr:`FeatureConfig.rgb_intrinsics`): the depth map is warped
-into the colour camera (:func:`slam.odometry.depth_registration.register_depth_to_color`, z-buffered),
-each colour pixel with a depth is back-projected with the colour intrinsics and takes its own colour,
-and the point is moved into the depth camera's frame (``p_depth = p_rgb - t``): the geometry is the
-depth camera's measurement, the colour the colour camera's, and the frame the reported poses'.
+Each keyframe keeps, in its own depth-camera frame, the voxel-downsampled coloured points of its depth that the
+keyframes just before it do not hold (int16 coordinates, uint8 colours: 9 bytes a point); at the end they are
+placed with the optimised keyframe poses and merged on one voxel grid, written as a binary PLY
+(docs/pipeline.md, "The map").
 
 Example:
     >>> import numpy as np, torch
@@ -39,7 +26,7 @@ from typing import BinaryIO, Union
 import numpy as np
 import torch
 
-from slam.odometry.config import check_int
+from slam.odometry.config import check_int, check_number
 
 __all__ = ["MapConfig", "PLYFormatError", "PointCloudMap", "keyframe_cloud", "read_ply", "voxel_downsample",
            "write_ply"]
@@ -53,26 +40,21 @@ class MapConfig:
 
     enabled: bool = True  # False: no map is kept or written (--no-map)
     # Voxel edge (m) of the downsampling, per keyframe and of the merged map: one point (the centroid,
-    # mean colour) per occupied voxel. 2 cm keeps a room at ~10^5 points (~1.5 MB) and is finer than the
-    # Kinect's depth noise at 2-3 m.
+    # mean colour) per occupied voxel.
     voxel_size: float = 0.02
-    # Pixels are sampled every k-th row and column, with k chosen so that neighbouring samples at this
-    # depth are one voxel apart (k = voxel * fx / depth): nearer surfaces are denser and merge in the
-    # voxels, and the per-keyframe cost does not grow with the image size.
+    # Pixels are sampled every k-th row and column, k = voxel * fx / sample_depth: neighbouring samples at
+    # this depth are one voxel apart.
     sample_depth: float = 2.0  # m
     # Depth range kept in the map (m); None: the odometry's (FeatureConfig.min_depth / max_depth).
     min_depth: float | None = None
     max_depth: float | None = None
-    # A keyframe keeps only its points in voxels (of its own frame) that none of this many keyframes before it
-    # holds, placed by the odometry between them (PointCloudMap.add's reference): consecutive keyframes see
-    # mostly the same surfaces. 0: every keyframe keeps all its points.
+    # A keyframe keeps only its points in voxels that none of this many keyframes before it holds (placed by
+    # the odometry between them). 0: every keyframe keeps all its points.
     overlap_keyframes: int = 3
 
     def __post_init__(self):
         for name in ("voxel_size", "sample_depth"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"MapConfig.{name} must be a positive finite number, got {v!r}")
+            check_number("MapConfig", name, getattr(self, name), 0, lo_open=True, finite=True)
         for name in ("min_depth", "max_depth"):
             v = getattr(self, name)
             if v is not None and not (isinstance(v, (int, float)) and v >= 0):  # inf: no far bound
@@ -227,9 +209,6 @@ def _matrix(pose) -> np.ndarray:
 class PointCloudMap:
     """The keyframes' coloured points, each kept in its keyframe's camera frame until it is placed.
 
-    Per keyframe: the points it adds to the keyframes just before it (``MapConfig.overlap_keyframes``), as
-    int16 coordinates times a step of its own and uint8 colours (9 bytes a point), plus the step.
-
     Args:
         config: :class:`MapConfig`.
         rgb_intrinsics: ``(fx, fy, cx, cy)`` of the colour camera for unregistered frames (else None).
@@ -291,9 +270,8 @@ class PointCloudMap:
         return int(kept.shape[0])
 
     def drop(self, keyframe_ids) -> None:
-        """Forget the points of keyframes ``keyframe_ids`` (ids without points are skipped): revisits whose
-        place an earlier keyframe's points already hold (:attr:`slam.system.RGBDSLAM.released`), so that a
-        place seen lap after lap keeps one keyframe's points, not one set per lap."""
+        """Forget the points of keyframes ``keyframe_ids`` (ids without points are skipped): the revisits of
+        :attr:`slam.system.RGBDSLAM.released`."""
         for k in keyframe_ids:
             self._clouds.pop(int(k), None)
 

@@ -1,8 +1,6 @@
 """Geometric verification of one loop candidate: register the two keyframes and decide, with the reasons.
 
-:func:`verify_candidate` is a pure function: it returns a :class:`Verification` (the measured relative
-pose, its information, the figures every check used and the verdict) and changes nothing else; the loop
-closer decides what to do with it.
+:func:`verify_candidate` is a pure function: it returns a :class:`Verification` and changes nothing else.
 
 Example:
     >>> import torch
@@ -86,8 +84,8 @@ def verify_candidate(a: FrameFeatures, b: FrameFeatures, estimate_ab: Tensor, li
     Checks, in order: the registration succeeds; enough inliers (``config.min_inliers``) and inlier ratio
     (``config.min_inlier_ratio``); the views are close (``config.max_translation`` /
     ``config.max_rotation_deg``); the measurement agrees with ``estimate_ab`` within ``limits``. A candidate
-    whose estimate lies farther than the last two allow together (by the triangle inequality no measurement
-    could pass both) is rejected before registering: on a revisited place most candidates are other passes.
+    whose estimate lies farther than the last two allow together is rejected before registering (no
+    measurement could pass both).
 
     Args:
         a: features of the older keyframe.
