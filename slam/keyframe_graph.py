@@ -86,27 +86,17 @@ class EdgeKind(IntEnum):
 
 @dataclass
 class GraphEdge:
-    """One edge ``i -> j`` of the keyframe graph.
-
-    Attributes:
-        i, j: keyframe ids.
-        T_ij: ``(7,)`` float64 measured pose of keyframe j in keyframe i.
-        information: ``(6, 6)`` float64 information of ``T_ij`` as the registration computed it (right
-            perturbation, ``[rho, phi]``), before the back end's per-kind scaling.
-        kind: :class:`EdgeKind`.
-        weak: an odometry edge forced after a tracking loss (constant-velocity guess).
-        active: False for a loop edge outside the consistent group (it stays in the list: indices are stable).
-        weight: the back end's last robust-kernel weight of the edge (1 before any optimisation).
-    """
+    """One edge ``i -> j`` between keyframe ids of the keyframe graph."""
 
     i: int
     j: int
-    T_ij: Tensor
+    T_ij: Tensor  # (7,) float64 measured pose of keyframe j in keyframe i
+    # (6, 6) float64 information of T_ij from the registration (right perturbation, [rho, phi]), unscaled
     information: Tensor
     kind: EdgeKind
-    weak: bool = False
-    active: bool = True
-    weight: float = 1.0
+    weak: bool = False  # an odometry edge forced after a tracking loss (constant-velocity guess)
+    active: bool = True  # False for a loop edge outside the consistent group (it stays: indices are stable)
+    weight: float = 1.0  # the back end's last robust-kernel weight of the edge (1 before any optimisation)
 
     @property
     def length(self) -> float:
