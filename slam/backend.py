@@ -129,13 +129,11 @@ def check_backend_config(config) -> None:
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{n}.loop_kernel: unknown loop kernel {config.loop_kernel!r}; expected 'dcs', "
                              f"a kernel name of slam.graph.make_kernel, 'none' or None ({exc})") from None
-    check_int(n, "max_iterations", config.max_iterations, 1)
-    check_int(n, "loop_backlog", config.loop_backlog, 0)
-    check_int(n, "online_max_iterations", config.online_max_iterations, 1)
-    if config.online_window is not None:
-        check_int(n, "online_window", config.online_window, 1)
-    if config.online_loops_per_keyframe is not None:
-        check_int(n, "online_loops_per_keyframe", config.online_loops_per_keyframe, 1)
+    for name, least in (("max_iterations", 1), ("loop_backlog", 0), ("online_max_iterations", 1)):
+        check_int(n, name, getattr(config, name), least)
+    for name in ("online_window", "online_loops_per_keyframe"):  # None: off
+        if getattr(config, name) is not None:
+            check_int(n, name, getattr(config, name), 1)
     check_number(n, "odometry_information_scale", config.odometry_information_scale, 0, lo_open=True, finite=True)
     check_number(n, "switch_off_weight", config.switch_off_weight, 0, 1)
 

@@ -122,10 +122,9 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel_size: float) 
             _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     m = counts.shape[0]
-    out_p = np.stack([np.bincount(inverse, weights=p[:, k], minlength=m) for k in range(3)], 1) / counts[:, None]
-    c = colors.astype(np.float64)
-    out_c = np.stack([np.bincount(inverse, weights=c[:, k], minlength=m) for k in range(3)], 1) / counts[:, None]
-    return out_p.astype(np.float32), np.clip(np.rint(out_c), 0, 255).astype(np.uint8)
+    pc = np.concatenate([p, colors.astype(np.float64)], axis=1)  # the means of the points and of the colours
+    out = np.stack([np.bincount(inverse, weights=pc[:, k], minlength=m) for k in range(6)], 1) / counts[:, None]
+    return out[:, :3].astype(np.float32), np.clip(np.rint(out[:, 3:]), 0, 255).astype(np.uint8)
 
 
 def keyframe_cloud(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, config: MapConfig | None = None,
@@ -357,10 +356,8 @@ def write_ply(target: PathOrFile, points: np.ndarray, colors: np.ndarray, commen
         raise ValueError(f"cannot write coordinates beyond float32's range (+-3.4e38) as PLY float: "
                          f"{int(big.any(axis=1).sum())} point(s), the first row {int(np.flatnonzero(big.any(axis=1))[0])}")
     vertex = np.empty(points.shape[0], dtype=_PLY_FIELDS)
-    for k, name in enumerate("xyz"):
-        vertex[name] = points[:, k]
-    for k, name in enumerate(("red", "green", "blue")):
-        vertex[name] = colors[:, k]
+    for k, (name, _) in enumerate(_PLY_FIELDS):
+        vertex[name] = points[:, k] if k < 3 else colors[:, k - 3]
     lines = ["ply", "format binary_little_endian 1.0"]
     lines += [f"comment {c}" for c in comment.replace("\r", "").split("\n") if c]
     lines += [f"element vertex {points.shape[0]}"]

@@ -298,15 +298,13 @@ class RGBDSLAM:
             new_loops, correction = self._submit(kfs)
         self._lag.append(self.loop_lag)
         if res.keyframe_id >= 0:
-            est, odo_kf = self._keyframe_poses(res.keyframe_id)
-            pose = se3_compose(est, T_kf)
-            odo = se3_compose(odo_kf, T_kf)
+            pose, odo = self._reported_poses(res.keyframe_id, T_kf)
         else:
             pose = odo = res.pose.detach().to(torch.float64).cpu()
-        return FrameState(int(frame.index), float(frame.timestamp), self.depth_camera_pose(pose), status, res.reason,
+            pose, odo = self.depth_camera_pose(pose), self.depth_camera_pose(odo)
+        return FrameState(int(frame.index), float(frame.timestamp), pose, status, res.reason,
                           res.keyframe_id, new_keyframes, [lp for lp in new_loops if lp.status == "kept"],
-                          res.num_inliers, res.inlier_rmse, self.depth_camera_pose(odo), self._reported_corrected(),
-                          correction)
+                          res.num_inliers, res.inlier_rmse, odo, self._reported_corrected(), correction)
 
     def _keyframe_work(self, kfs: List[Keyframe]):
         """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
@@ -314,8 +312,12 @@ class RGBDSLAM:
         new_loops, settled = [], True
         self._release_revisits(kfs[-1].id if kfs else None)
         touched = [kf.id for kf in kfs]  # where the graph changed, in order: the online correction's window
-        for kf in kfs:
-            self._add_to_graph(kf)
+        for kf in kfs:  # into the graph with its odometry edge (the front end's edges all end at a new keyframe)
+            if kf.id == 0:
+                self.graph.add_keyframe(kf.pose)
+            else:
+                edge = self.odometry.edges[kf.id - 1]
+                self.graph.add_odometry(edge.i, edge.T_ij, edge.information, estimate=kf.pose, weak=edge.weak)
             if self.loop_closer is not None and not self.localize:
                 update = self.loop_closer.close(kf, self.odometry.keyframes, self.graph,
                                                 through_loops=self._corrected,
@@ -440,19 +442,13 @@ class RGBDSLAM:
         corrected by the loops optimised so far, later keyframes chained by odometry (what a viewer draws)."""
         return self.depth_camera_pose(self._shown[0] if self._worker is not None else self.graph.estimates())
 
-    def _keyframe_poses(self, kf_id: int):
-        """(estimate, odometry pose) of a keyframe, as the reports show them."""
+    def _reported_poses(self, kf_id: int, T: Tensor):
+        """(pose, odometry pose) ``(7,)`` of the depth camera at ``T`` in keyframe ``kf_id``, as reports show them."""
         if self._worker is not None:
-            return self._shown[0, kf_id], self._shown[1, kf_id]
-        return self.graph.estimate(kf_id), self.graph.odometry_pose(kf_id)
-
-    def _add_to_graph(self, kf: Keyframe) -> None:
-        """Enter a new keyframe with its odometry edge (the front end's edges all end at a new keyframe)."""
-        if kf.id == 0:
-            self.graph.add_keyframe(kf.pose)
-            return
-        edge = self.odometry.edges[kf.id - 1]
-        self.graph.add_odometry(edge.i, edge.T_ij, edge.information, estimate=kf.pose, weak=edge.weak)
+            est, odo = self._shown[0, kf_id], self._shown[1, kf_id]
+        else:
+            est, odo = self.graph.estimate(kf_id), self.graph.odometry_pose(kf_id)
+        return self.depth_camera_pose(se3_compose(est, T)), self.depth_camera_pose(se3_compose(odo, T))
 
     def _apply(self, update: LoopUpdate) -> None:
         """Put the loop closer's decisions into the graph: new loop edges, and which loops are in effect."""
@@ -551,9 +547,7 @@ class RGBDSLAM:
         self._record(float(timestamp), kf_id, T, False)
         self._lag.append(self.loop_lag)
         if kf_id >= 0:
-            est, odo_kf = self._keyframe_poses(kf_id)
-            pose = self.depth_camera_pose(se3_compose(est, T))
-            odo = self.depth_camera_pose(se3_compose(odo_kf, T))
+            pose, odo = self._reported_poses(kf_id, T)
         else:
             pose, odo = T.clone(), T.clone()
         return FrameState(int(index), float(timestamp), pose, "skipped", reason, kf_id, odometry_pose=odo,
@@ -632,6 +626,9 @@ class RGBDSLAM:
         """A :class:`SLAMResult` with every frame placed on the keyframe poses ``kf_est`` / ``kf_odo`` ``(M, 7)``."""
         kfs = self.odometry.keyframes
         kf_ts = torch.tensor([kf.timestamp for kf in kfs], dtype=torch.float64)
+        lag = torch.tensor(self._lag.tolist(), dtype=torch.int64)
+        if lag.numel() < len(self._frame_ts):  # a track() that raised LoopWorkerError recorded no lag
+            lag = torch.cat([lag, torch.zeros(len(self._frame_ts) - lag.numel(), dtype=torch.int64)])
         return SLAMResult(
             trajectory=self._frames_trajectory(kf_est, interpolate_lost=True),
             odometry_trajectory=self._frames_trajectory(kf_odo),
@@ -639,13 +636,7 @@ class RGBDSLAM:
             keyframe_frames=torch.tensor([kf.frame_index for kf in kfs], dtype=torch.long),
             num_frames=len(self._frame_ts), num_lost=self._num_lost, num_skipped=self._num_skipped,
             timings=self.timer.summary(), loop_hypotheses=self._hypotheses(), corrections=list(self._corrections),
-            tracked=self._placed(), loop_lag=self._lag_per_frame(), released=list(self.released), **fields)
-
-    def _lag_per_frame(self) -> Tensor:
-        lag = torch.tensor(self._lag.tolist(), dtype=torch.int64)
-        if lag.numel() < len(self._frame_ts):  # skip() and the tracking thread's keyframe work: nothing waits
-            lag = torch.cat([lag, torch.zeros(len(self._frame_ts) - lag.numel(), dtype=torch.int64)])
-        return lag
+            tracked=self._placed(), loop_lag=lag, released=list(self.released), **fields)
 
     def result_so_far(self) -> SLAMResult:
         """The frames tracked so far, placed as :meth:`track` reported them (no final optimisation), after a
