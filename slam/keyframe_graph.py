@@ -25,6 +25,7 @@ Example:
 """
 from __future__ import annotations
 
+import heapq
 import math
 from dataclasses import dataclass
 from enum import IntEnum
@@ -107,8 +108,7 @@ class GraphEdge:
 class KeyframeGraph:
     """Keyframe poses (odometry and estimate) and typed edges; builds the :class:`~slam.graph.PoseGraph`.
 
-    Keyframe ids are ``0 .. num_keyframes - 1`` in creation order. An edge keeps the float64 CPU tensors it is
-    given (not copied): they must not be changed in place afterwards.
+    Keyframe ids are ``0 .. num_keyframes - 1`` in creation order. An edge keeps the float64 tensors it is given.
     """
 
     def __init__(self) -> None:
@@ -163,8 +163,7 @@ class KeyframeGraph:
             i: an existing keyframe (the front end's reference keyframe).
             T_ij: ``(7,)`` pose of the new keyframe in keyframe ``i``.
             information: ``(6, 6)`` its information.
-            estimate: ``(7,)`` the new keyframe's current world pose (the front end's, re-anchored on the
-                corrected estimate of ``i`` when loops were optimised online).
+            estimate: ``(7,)`` the new keyframe's current world pose.
             weak: forced after a tracking loss.
 
         Returns:
@@ -288,8 +287,7 @@ class KeyframeGraph:
 
         Returns:
             ``(pose graph, keyframe ids of its poses (n,) int64, indices into :attr:`edges` of its edges (e,)
-            int64)``, or None when nothing is held (the window is a whole connected part of the graph: it has
-            no anchor of its own).
+            int64)``, or None when nothing is held (the window has no anchor).
 
         Raises:
             ValueError: a keyframe of ``free`` is out of range.
@@ -305,13 +303,8 @@ class KeyframeGraph:
         rows = []
         for k in np.nonzero(is_free)[0].tolist():
             rows.extend(e for e in self._odometry_of[k] if self.edges[e].active)
-            kept = 0
-            for e in reversed(self._loops_of[k]):
-                if loops_per_keyframe is not None and kept >= loops_per_keyframe:
-                    break
-                if self.edges[e].active:
-                    rows.append(e)
-                    kept += 1
+            loops = [e for e in reversed(self._loops_of[k]) if self.edges[e].active]  # the newest first
+            rows.extend(loops if loops_per_keyframe is None else loops[:loops_per_keyframe])
         rows = np.unique(np.asarray(rows, dtype=np.int64))
         ij = self._edge_ij.view[rows]
         used = np.unique(np.concatenate([ij.reshape(-1), np.nonzero(is_free)[0]]))
@@ -337,10 +330,8 @@ class KeyframeGraph:
         """Where keyframes lie along the odometry chain: (metres travelled from keyframe 0 ``(k,)`` float64,
         weak edges passed since keyframe 0 ``(k,)`` int64), or None when the odometry edges are no chain; the
         odometry distance of two keyframes is the difference of their metres where their weak counts are equal."""
-        if not self._chain:
-            return None
         idx = np.asarray(ids, dtype=np.int64)
-        return self._travelled.view[idx], self._weak_before.view[idx]
+        return (self._travelled.view[idx], self._weak_before.view[idx]) if self._chain else None
 
     def path_lengths_to(self, source: int, targets, through_loops: bool = True, min_loop_weight: float = 0.0
                         ) -> np.ndarray:
@@ -355,8 +346,6 @@ class KeyframeGraph:
         if not through_loops and self._chain:
             c, weak = self._travelled.view, self._weak_before.view
             return np.where(weak[tg] == weak[source], np.abs(c[tg] - c[source]), np.inf)
-        import heapq
-
         left = set(tg.tolist())
         dist = {source: 0.0}
         done = set()

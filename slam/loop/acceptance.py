@@ -17,13 +17,14 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
 
 from slam.lie import se3_between, se3_compose, so3_log
 from slam.loop.verification import DriftLimits
+from slam.odometry.config import check_number
 
 Tensor = torch.Tensor
 
@@ -46,10 +47,8 @@ class DriftBoundConfig:
     max_rotation_deg: float = 45.0  # degrees
 
     def __post_init__(self) -> None:
-        values = (self.translation_base, self.rotation_base_deg, self.translation_per_metre,
-                  self.rotation_per_metre_deg, self.max_translation, self.max_rotation_deg)
-        if any(not (v >= 0 and math.isfinite(v)) for v in values):
-            raise ValueError(f"DriftBoundConfig values must be finite and >= 0, got {values}")
+        for f in fields(self):
+            check_number("DriftBoundConfig", f.name, getattr(self, f.name), 0, finite=True)
 
 
 def drift_limits_array(path_length, config: DriftBoundConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -35,7 +35,7 @@ import torch
 from slam.keyframe_graph import GrowingArray, KeyframeGraph
 from slam.lie import se3_between
 from slam.loop.acceptance import DriftBoundConfig, capped_length, drift_limits_array, pairwise_errors
-from slam.odometry.config import check_int  # the configs' shared range check
+from slam.odometry.config import check_int, check_number  # the configs' shared range checks
 
 Tensor = torch.Tensor
 
@@ -62,8 +62,7 @@ class ConsistencyConfig:
     def __post_init__(self) -> None:
         for name, least in (("min_group", 1), ("min_support", 0), ("max_exact", 0)):
             check_int("ConsistencyConfig", name, getattr(self, name), least)
-        if not (self.support_radius >= 0 and math.isfinite(self.support_radius)):
-            raise ValueError(f"ConsistencyConfig.support_radius must be finite and >= 0, got {self.support_radius!r}")
+        check_number("ConsistencyConfig", "support_radius", self.support_radius, 0, finite=True)
 
 
 def maximum_clique(adjacency: np.ndarray) -> list[int]:
@@ -265,18 +264,12 @@ class GroupConsistency:
         ok, L = self._compare(new, others, graph)
         self._disagree.append(others[~ok])
         self._supports.append(others[ok & (L <= cfg.support_radius)])
-        if n <= cfg.max_exact:
-            clique = maximum_clique(self._dense(0, n))
-            return self._set_group(clique if len(clique) >= cfg.min_group else [])
-        if self._group:  # greedy beyond the exact size: the newest joins the group if it agrees with all of it
-            if ok.all():
-                return self._join(new)
-            return []
-        start = max(0, n - window)
+        if self._group and n > cfg.max_exact:  # greedy: the newest joins the group if it agrees with all of it
+            return self._join(new) if ok.all() else []
+        start = 0 if n <= cfg.max_exact else max(0, n - window)
         clique = [start + k for k in maximum_clique(self._dense(start, n))]
         return self._set_group(clique if len(clique) >= cfg.min_group else [])
 
-    # -- the group and its local support ---------------------------------------------------------------
     def _set_group(self, group: list[int]) -> list[int]:
         """A new group (exact phase): the support counted again among its loops; returns the changes."""
         in_group = self._in_group.view
