@@ -26,6 +26,7 @@ from typing import BinaryIO, Union
 import numpy as np
 import torch
 
+from slam.input_checks import source_name
 from slam.odometry.config import check_int, check_number
 
 __all__ = ["MapConfig", "PLYFormatError", "PointCloudMap", "keyframe_cloud", "read_ply", "voxel_downsample",
@@ -353,16 +354,15 @@ def write_ply(target: PathOrFile, points: np.ndarray, colors: np.ndarray, commen
         raise ValueError("cannot write non-finite point coordinates")
     big = np.abs(points.astype(np.float64)) > np.finfo(np.float32).max if points.size else np.zeros(0, bool)
     if big.any():  # written as float32 they would be inf
+        rows = np.flatnonzero(big.any(axis=1))
         raise ValueError(f"cannot write coordinates beyond float32's range (+-3.4e38) as PLY float: "
-                         f"{int(big.any(axis=1).sum())} point(s), the first row {int(np.flatnonzero(big.any(axis=1))[0])}")
+                         f"{rows.size} point(s), the first row {int(rows[0])}")
     vertex = np.empty(points.shape[0], dtype=_PLY_FIELDS)
     for k, (name, _) in enumerate(_PLY_FIELDS):
         vertex[name] = points[:, k] if k < 3 else colors[:, k - 3]
-    lines = ["ply", "format binary_little_endian 1.0"]
-    lines += [f"comment {c}" for c in comment.replace("\r", "").split("\n") if c]
-    lines += [f"element vertex {points.shape[0]}"]
-    lines += [f"property {'float' if dt == '<f4' else 'uchar'} {name}" for name, dt in _PLY_FIELDS]
-    lines += ["end_header"]
+    lines = ["ply", "format binary_little_endian 1.0",
+             *(f"comment {c}" for c in comment.replace("\r", "").split("\n") if c), f"element vertex {points.shape[0]}",
+             *(f"property {'float' if dt == '<f4' else 'uchar'} {name}" for name, dt in _PLY_FIELDS), "end_header"]
     data = ("\n".join(lines) + "\n").encode("ascii", errors="replace") + vertex.tobytes()
     if isinstance(target, (str, os.PathLike)):
         with open(os.fspath(target), "wb") as f:
@@ -387,11 +387,8 @@ def read_ply(source: PathOrFile) -> tuple[np.ndarray, np.ndarray | None]:
             non-negative integer, a vertex line with too few values, or fewer bytes than the header
             announces (the message names the file, and the line where there is one).
     """
-    name = os.fspath(source) if isinstance(source, (str, os.PathLike)) else getattr(source, "name", "<file>")
-    if isinstance(source, (str, os.PathLike)):
-        data = Path(source).read_bytes()
-    else:
-        data = source.read()
+    name = source_name(source)
+    data = Path(source).read_bytes() if isinstance(source, (str, os.PathLike)) else source.read()
     # the header ends at the first line that is exactly "end_header" (a comment may contain the words)
     header, body_start, pos = [], None, 0
     while pos < len(data):
@@ -457,7 +454,5 @@ def read_ply(source: PathOrFile) -> tuple[np.ndarray, np.ndarray | None]:
         table = np.frombuffer(data, dtype=dt, count=count, offset=body_start)
         col = {p: table[p] for p in names}
     xyz = np.stack([col["x"], col["y"], col["z"]], 1).astype(np.float64)
-    rgb = None
-    if {"red", "green", "blue"} <= set(names):
-        rgb = np.stack([col["red"], col["green"], col["blue"]], 1).astype(np.uint8)
-    return xyz, rgb
+    has_rgb = {"red", "green", "blue"} <= set(names)
+    return xyz, np.stack([col["red"], col["green"], col["blue"]], 1).astype(np.uint8) if has_rgb else None
