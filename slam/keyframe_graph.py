@@ -214,7 +214,6 @@ class KeyframeGraph:
             raise ValueError(f"keyframe {k} out of range for {self.num_keyframes} keyframes")
         return set(self._joined[k])
 
-    # ------------------------------------------------------------------------------------------
     def odometry_poses(self) -> Tensor:
         """``(M, 7)`` float64 odometry-chained keyframe poses."""
         return torch.from_numpy(self._odometry.view.copy())

@@ -160,9 +160,8 @@ class RGBDSLAM:
 
     Args:
         config: :class:`slam.config.SLAMConfig`.
-        descriptor: an already built descriptor model mapping ``(1, 3, H, W)`` uint8 images to ``(1, D)``
-            L2-normalised descriptors (default: :class:`attnloop.AttentionDescriptor` built from
-            ``config.loop.descriptor``).
+        descriptor: a built model mapping ``(1, 3, H, W)`` uint8 images to ``(1, D)`` L2-normalised descriptors
+            (default: :class:`attnloop.AttentionDescriptor` built from ``config.loop.descriptor``).
         background_loops: run each keyframe's loop work in a worker thread: the same results, loops reported
             one keyframe later (or up to ``BackendConfig.loop_backlog`` keyframes); :meth:`finish` waits for
             all of it, and a failure of it is raised as :class:`LoopWorkerError`.
@@ -243,8 +242,7 @@ class RGBDSLAM:
         kfs[kf_id].rgb = None
 
     def keyframe_index(self):
-        """The loop closer's :class:`attnloop.index.KeyframeIndex`: one descriptor per keyframe that finished its
-        loop work, in keyframe order (empty when localising: nothing is entered); None without loop closure."""
+        """The loop closer's :class:`attnloop.index.KeyframeIndex` (one descriptor per keyframe in its database)."""
         return None if self.loop_closer is None else self.loop_closer.detector.index
 
     @property
@@ -368,9 +366,8 @@ class RGBDSLAM:
         self._to_release = keep
 
     def _collect(self, keep: int):
-        """Wait for the oldest jobs until at most ``keep`` keyframes' work is still waiting, and take the
-        results of every finished job at the head of the queue (in order): (kept loops, the last correction,
-        the graph's estimates after the last of them or None). A job that raised is a :class:`LoopWorkerError`."""
+        """Wait until at most ``keep`` keyframes' work is waiting and take the finished jobs' results, in order:
+        (kept loops, the last correction, the graph's estimates after them or None)."""
         loops, correction, snapshot = [], None, None
         while self._jobs:
             fut, ids = self._jobs[0]
@@ -471,8 +468,7 @@ class RGBDSLAM:
 
         Args:
             touched: the keyframes where the graph changed (the new ones, the ends of the loops added or
-                switched); with ``BackendConfig.online_window`` only the keyframes within that many of them
-                move.
+                switched): the window's centres (``BackendConfig.online_window``).
         """
         if not self.graph.has_active_loop():
             if self._corrected:  # every loop left the group: back to odometry
@@ -554,9 +550,8 @@ class RGBDSLAM:
                           corrected=self._reported_corrected())
 
     def depth_camera_pose(self, poses: Tensor) -> Tensor:
-        """Poses ``(..., 7)`` of the tracked camera (absolute, or one keyframe's in another: an odometry edge)
-        as the depth camera's, the frame every reported pose and the map's points are in (the same poses
-        for registered frames)."""
+        """Poses ``(..., 7)`` of the tracked camera (absolute, or relative: an odometry edge) as the depth
+        camera's, the frame of every reported pose and of the map (the same poses for registered frames)."""
         if self._T_rgb_depth is None:
             return poses
         return depth_camera_poses(poses, self._T_rgb_depth)
@@ -585,10 +580,7 @@ class RGBDSLAM:
         return Trajectory(ts, self.depth_camera_pose(poses))
 
     def finish(self) -> SLAMResult:
-        """Optimise the keyframe pose graph and return every frame's pose.
-
-        The final optimisation starts from the current estimates (the online corrections, or odometry when
-        they are off) and runs up to ``BackendConfig.max_iterations``.
+        """Optimise the whole keyframe pose graph from the current estimates and return every frame's pose.
 
         Returns:
             :class:`SLAMResult`.

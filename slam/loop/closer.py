@@ -224,8 +224,7 @@ class LoopCloser:
             kf: the new keyframe (already in ``graph``).
             keyframes: every keyframe so far, by id (their features).
             graph: the keyframe graph (read only: estimates and distances).
-            through_loops: the graph's estimates have been corrected by its loops, so the distance that
-                bounds the disagreement may take the shortcuts they offer (else: the odometry chain).
+            through_loops: the distance that bounds the disagreement may take the loops (else: the odometry chain).
             min_loop_weight: loops the back end trusts less than this are no shortcut.
             repeats: whether a loop joins the query to an earlier keyframe that stands for it (None: no loop
                 does). A kept loop that repeats makes the update a ``revisit``: the query is not added to the

@@ -68,9 +68,8 @@ class ConsistencyConfig:
 def maximum_clique(adjacency: np.ndarray) -> list[int]:
     """A maximum clique of an undirected graph (branch and bound over Bron-Kerbosch with pivoting).
 
-    Deterministic: vertices are tried in increasing order and the first largest clique found is kept. Vertex
-    sets are bit masks; a candidate set that is itself a clique ends its branch at once (mostly consistent
-    loops would otherwise cost a level per loop).
+    Deterministic: vertices are tried in increasing order and the first largest clique found is kept; a
+    candidate set that is itself a clique ends its branch at once.
 
     Args:
         adjacency: ``(n, n)`` bool, symmetric; the diagonal is ignored.
@@ -119,10 +118,7 @@ def maximum_clique(adjacency: np.ndarray) -> list[int]:
 
 
 class GroupConsistency:
-    """The loops kept so far by pairwise consistency maximisation (see the module docstring).
-
-    Hypotheses are numbered in the order they are added. Pairwise results are kept sparse (the pairs that
-    disagree, the pairs near enough to support each other).
+    """The loops kept so far by pairwise consistency maximisation; hypotheses are numbered as added.
 
     Args:
         config: :class:`ConsistencyConfig`.
