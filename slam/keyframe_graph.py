@@ -33,6 +33,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from slam.graph import PoseGraph
 from slam.lie import se3_compose
@@ -259,18 +261,16 @@ class KeyframeGraph:
         """
         if not len(self._odometry):
             return None
-        P = self.estimates()
         sel = np.fromiter((k for k, e in enumerate(self.edges) if e.active), np.int64)
-        if not sel.size:
-            return PoseGraph(P, torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long),
-                             torch.zeros(0, 7, dtype=torch.float64), torch.zeros(0, 6, 6, dtype=torch.float64))
-        edges = [self.edges[k] for k in sel]
-        scale = torch.tensor([float(information_scale[e.kind]) for e in edges], dtype=torch.float64)
-        T = torch.from_numpy(self._edge_T.view[sel])
-        info = torch.from_numpy(self._edge_info.view[sel])
-        info = 0.5 * (info + info.transpose(-1, -2)) * scale[:, None, None]
-        return PoseGraph(P, torch.tensor([e.i for e in edges], dtype=torch.long),
-                         torch.tensor([e.j for e in edges], dtype=torch.long), T, info)
+        ij = torch.from_numpy(self._edge_ij.view[sel].T.copy())
+        return PoseGraph(self.estimates(), ij[0], ij[1], torch.from_numpy(self._edge_T.view[sel]),
+                         self._information(sel, information_scale))
+
+    def _information(self, rows: np.ndarray, information_scale: Dict[EdgeKind, float]) -> Tensor:
+        """``(e, 6, 6)`` float64 the information of the edges ``rows``, scaled by kind and symmetrised."""
+        scale = np.array([float(information_scale[kind]) for kind in EdgeKind])[self._edge_kind.view[rows]]
+        info = torch.from_numpy(self._edge_info.view[rows])
+        return 0.5 * (info + info.transpose(-1, -2)) * torch.from_numpy(scale)[:, None, None]
 
     def window_graph(self, information_scale: Dict[EdgeKind, float], free,
                      loops_per_keyframe: Optional[int] = None, fixed=None):
@@ -313,12 +313,9 @@ class KeyframeGraph:
         local = np.full(n, -1, dtype=np.int64)
         local[used] = np.arange(used.size)
         P = torch.from_numpy(self._estimate.view[used])
-        scale = np.array([float(information_scale[kind]) for kind in EdgeKind])[self._edge_kind.view[rows]]
-        info = torch.from_numpy(self._edge_info.view[rows])
-        info = 0.5 * (info + info.transpose(-1, -2)) * torch.from_numpy(scale)[:, None, None]
         to = torch.from_numpy
-        pg = PoseGraph(P.clone(), to(local[ij[:, 0]]), to(local[ij[:, 1]]), to(self._edge_T.view[rows].copy()), info,
-                       fixed=to(local[held]))
+        pg = PoseGraph(P.clone(), to(local[ij[:, 0]]), to(local[ij[:, 1]]), to(self._edge_T.view[rows].copy()),
+                       self._information(rows, information_scale), fixed=to(local[held]))
         return pg, to(used), to(rows)
 
     def edge_kind_codes(self, rows: Tensor) -> Tensor:
@@ -380,9 +377,6 @@ class KeyframeGraph:
         Without ``through_loops`` only odometry edges are followed, with it also active loop edges whose back-end
         weight is at least ``min_loop_weight``; weak odometry edges never are. Unreachable keyframes get ``inf``.
         """
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import dijkstra
-
         n = self.num_keyframes
         if not 0 <= source < n:
             raise ValueError(f"source keyframe {source} out of range for {n} keyframes")

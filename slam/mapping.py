@@ -27,6 +27,8 @@ import numpy as np
 import torch
 
 from slam.input_checks import source_name
+from slam.lie import quat_to_rotmat
+from slam.odometry.depth_registration import register_depth_to_color, rig_pose
 from slam.odometry.config import check_int, check_number
 
 __all__ = ["MapConfig", "PLYFormatError", "PointCloudMap", "keyframe_cloud", "read_ply", "voxel_downsample",
@@ -162,8 +164,6 @@ def keyframe_cloud(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, config: Ma
     d = torch.from_numpy(np.nan_to_num(np.ascontiguousarray(depth, dtype=np.float32), nan=0.0, posinf=0.0))
     offset = np.zeros(3)
     if rgb_intrinsics is not None:
-        from slam.odometry.depth_registration import register_depth_to_color, rig_pose
-
         fx, fy, cx, cy = (float(v) for v in rgb_intrinsics)
         K_rgb = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         d = register_depth_to_color(d, torch.from_numpy(K), torch.from_numpy(K_rgb),
@@ -185,8 +185,6 @@ def keyframe_cloud(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, config: Ma
 
 
 def _rotation_matrices(q: np.ndarray) -> np.ndarray:
-    from slam.lie import quat_to_rotmat
-
     return quat_to_rotmat(torch.from_numpy(np.ascontiguousarray(q, dtype=np.float64))).numpy()
 
 

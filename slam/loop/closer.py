@@ -23,6 +23,9 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
+from attnloop import AttentionDescriptor
+from attnloop.index import LoopCandidateDetector
+from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
 from slam.keyframe_graph import KeyframeGraph
 from slam.lie import quat_angle, se3_between
 from slam.loop.acceptance import drift_limits
@@ -105,8 +108,6 @@ class LoopQuery:
 
 def build_descriptor(config, timer: Optional[StageTimer] = None) -> torch.nn.Module:
     """The :class:`attnloop.AttentionDescriptor` of a :class:`slam.config.DescriptorConfig`, in eval mode."""
-    from attnloop import AttentionDescriptor
-
     timer = timer or StageTimer()
     with timer("descriptor_init"):
         model = AttentionDescriptor(**config.settings())
@@ -128,15 +129,11 @@ class LoopCloser:
 
     def __init__(self, config, descriptor: Optional[torch.nn.Module] = None,
                  timer: Optional[StageTimer] = None):
-        from attnloop.index import LoopCandidateDetector
-
         self.config = config
         self.timer = timer or StageTimer()
         self.descriptor = descriptor if descriptor is not None else build_descriptor(config.descriptor, self.timer)
         # the threshold calibrated for this descriptor (LoopClosureConfig.threshold_by_backbone): a backbone's
         # default recipe, tap, stages and input size with its pretrained weights; anything else keeps its own
-        from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
-
         backbone = getattr(self.descriptor, "backbone_name", None)
         recipe = getattr(self.descriptor, "recipe", None)
         net = getattr(self.descriptor, "backbone", None)
