@@ -196,24 +196,21 @@ class PoseGraphBackend:
                                         fixed=fixed)
         if window is not None:  # its edges are never empty: a window without one holds nothing and is None
             pg, used, rows = window
-            kinds, active = graph.edge_kind_codes(rows), rows.tolist()
         else:
             pg = graph.pose_graph(self.information_scale)
             if pg is None or pg.num_edges == 0:
                 raise ValueError("the keyframe graph has no edges to optimise")
             if fixed:
                 pg = dataclasses.replace(pg, fixed=torch.as_tensor(list(fixed), dtype=torch.long))
-            used = None
-            kinds = graph.edge_kinds(active_only=True)
-            active = [k for k, e in enumerate(graph.edges) if e.active]
+            used, rows = None, torch.tensor([k for k, e in enumerate(graph.edges) if e.active], dtype=torch.long)
+        kinds, active = graph.edge_kind_codes(rows), rows.tolist()
         if cfg.device is not None:  # BackendConfig.device: solved there, returned on the CPU
             pg = pg.to(cfg.device)
         kinds = kinds.to(pg.device)
         loop_rows = [r for r, k in enumerate(active) if graph.edges[k].kind is EdgeKind.LOOP]
         iters = cfg.online_max_iterations if online else cfg.max_iterations
-        name = None if cfg.loop_kernel is None else str(cfg.loop_kernel).lower()
-        loop_kernel = (make_kernel(cfg.kernel, cfg.kernel_width) if name is None  # None: as the odometry's
-                       else make_loop_kernel(name, cfg.loop_kernel_width))
+        loop_kernel = (make_kernel(cfg.kernel, cfg.kernel_width) if cfg.loop_kernel is None  # as the odometry's
+                       else make_loop_kernel(cfg.loop_kernel, cfg.loop_kernel_width))
         kernel = EdgeKindKernel(kinds, {int(EdgeKind.ODOMETRY): make_kernel(cfg.kernel, cfg.kernel_width),
                                         int(EdgeKind.LOOP): loop_kernel})
         res = optimize(pg, method=cfg.method, kernel=kernel, max_iterations=iters)

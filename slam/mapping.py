@@ -42,11 +42,8 @@ class MapConfig:
     """The keyframe point-cloud map written as ``map.ply``."""
 
     enabled: bool = True  # False: no map is kept or written (--no-map)
-    # Voxel edge (m) of the downsampling, per keyframe and of the merged map: one point (the centroid,
-    # mean colour) per occupied voxel.
-    voxel_size: float = 0.02
-    # Pixels are sampled every k-th row and column, k = voxel * fx / sample_depth: neighbouring samples at
-    # this depth are one voxel apart.
+    voxel_size: float = 0.02  # m: one point (the centroid, mean colour) per occupied voxel, per keyframe and merged
+    # pixels are sampled every k-th row and column, k = voxel * fx / sample_depth (samples there a voxel apart)
     sample_depth: float = 2.0  # m
     # Depth range kept in the map (m); None: the odometry's (FeatureConfig.min_depth / max_depth).
     min_depth: float | None = None
@@ -71,7 +68,6 @@ class PLYFormatError(ValueError):
     """A PLY file this reader cannot read (the message names the file and what was expected)."""
 
 
-# ----------------------------------------------------------------------------------------------------
 def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
     """One point per occupied voxel: the centroid of its points and their mean colour.
 
@@ -323,7 +319,6 @@ class PointCloudMap:
         return voxel_downsample(world, colors, self.config.voxel_size)
 
 
-# ----------------------------------------------------------------------------------------------------
 _PLY_FIELDS = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1",
               "uint8": "u1", "char": "i1", "int8": "i1", "ushort": "<u2", "uint16": "<u2", "short": "<i2",

@@ -425,7 +425,6 @@ class RGBDSLAM:
                     edge = self.odometry.edges[kf.id - 1]
                     kf.pose = se3_compose(self.odometry.keyframes[edge.i].pose, edge.T_ij)
             loops, correction = self._keyframe_work(kfs)
-            # what the tracking thread shows once it takes this result (it never reads the graph meanwhile)
             return loops, correction, (self.graph.estimates(), self.graph.odometry_poses(), self._corrected)
         except BaseException:
             self._broken = True
