@@ -17,7 +17,7 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import torch
@@ -95,24 +95,18 @@ def verify_candidate(a: FrameFeatures, b: FrameFeatures, estimate_ab: Tensor, li
     info = res.information.detach().to(torch.float64).cpu()
     out = Verification(False, "", T_ab, info, res.num_matches, res.num_inliers, limits=limits)
     if not res.success:
-        out.reason = f"registration failed: {res.reason}"
-        return out
+        return replace(out, reason=f"registration failed: {res.reason}")
     if res.num_inliers < config.min_inliers:
-        out.reason = f"{res.num_inliers} inliers < {config.min_inliers}"
-        return out
+        return replace(out, reason=f"{res.num_inliers} inliers < {config.min_inliers}")
     ratio = res.num_inliers / max(res.num_matches, 1)
     if ratio < config.min_inlier_ratio:
-        out.reason = f"inlier ratio {ratio:.2f} < {config.min_inlier_ratio}"
-        return out
+        return replace(out, reason=f"inlier ratio {ratio:.2f} < {config.min_inlier_ratio}")
     out.distance, out.rotation_deg = float(T_ab[:3].norm()), _rotation_deg(T_ab[3:])
     if out.distance > config.max_translation or out.rotation_deg > config.max_rotation_deg:
-        out.reason = f"views too far apart ({out.distance:.2f} m, {out.rotation_deg:.0f} deg)"
-        return out
+        return replace(out, reason=f"views too far apart ({out.distance:.2f} m, {out.rotation_deg:.0f} deg)")
     diff = se3_between(est, T_ab)
     out.disagreement, out.disagreement_deg = float(diff[:3].norm()), _rotation_deg(diff[3:])
     if out.disagreement > limits.translation or out.disagreement_deg > limits.rotation_deg:
-        out.reason = (f"contradicts the estimate by {out.disagreement:.2f} m / {out.disagreement_deg:.0f} deg "
-                      f"(bound {limits.translation:.2f} m / {limits.rotation_deg:.0f} deg)")
-        return out
-    out.accepted = True
-    return out
+        return replace(out, reason=f"contradicts the estimate by {out.disagreement:.2f} m / {out.disagreement_deg:.0f} "
+                                   f"deg (bound {limits.translation:.2f} m / {limits.rotation_deg:.0f} deg)")
+    return replace(out, accepted=True)
