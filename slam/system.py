@@ -308,7 +308,7 @@ class RGBDSLAM:
         """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
         online correction or None)."""
         new_loops, settled = [], True
-        self._release_revisits(kfs[-1].id if kfs else None)
+        self._release_revisits(kfs[-1].id if kfs else -1)
         touched = [kf.id for kf in kfs]  # where the graph changed, in order: the online correction's window
         for kf in kfs:  # into the graph with its odometry edge (the front end's edges all end at a new keyframe)
             if kf.id == 0:
@@ -350,20 +350,14 @@ class RGBDSLAM:
                 and v.num_inliers >= oc.keyframe_min_inliers
                 and v.num_inliers / max(a.features.num_valid, 1) >= oc.keyframe_min_inlier_ratio)
 
-    def _release_revisits(self, newest: Optional[int]) -> None:
+    def _release_revisits(self, newest: int) -> None:
         """Release the revisits (:attr:`LoopUpdate.revisit`: never in the loop closer's database) older than
         ``newest``: tracking's reference is then a later one, so nothing registers against them again."""
-        if newest is None:
-            return
-        keep = []
-        for k in self._to_release:
-            if k < newest:
-                kf = self.odometry.keyframes[k]
-                kf.features, kf.rgb = None, None
-                self.released.append(k)
-            else:
-                keep.append(k)
-        self._to_release = keep
+        for k in [k for k in self._to_release if k < newest]:
+            kf = self.odometry.keyframes[k]
+            kf.features, kf.rgb = None, None
+            self.released.append(k)
+        self._to_release = [k for k in self._to_release if k >= newest]
 
     def _collect(self, keep: int):
         """Wait until at most ``keep`` keyframes' work is waiting and take the finished jobs' results, in order:
