@@ -69,7 +69,7 @@ class EdgeKindKernel(RobustKernel):
     """A robust kernel per edge: ``kernels[k]`` on the edges whose kind code is ``k`` (None: quadratic).
 
     Args:
-        kinds: ``(E,)`` int64 edge kinds in the graph's edge order (:meth:`KeyframeGraph.edge_kinds`).
+        kinds: ``(E,)`` int64 edge kinds in the graph's edge order (:meth:`KeyframeGraph.edge_kind_codes`).
         kernels: kind code -> :class:`~slam.graph.costs.RobustKernel` or None.
     """
 

@@ -16,7 +16,7 @@ Example:
     ...     _ = g.add_odometry(k - 1, step, info, estimate=se3_compose(g.estimate(k - 1), step))
     >>> g.add_loop(0, 3, se3_exp(torch.tensor([1.45, 0, 0, 0, 0, 0], dtype=torch.float64)), info)
     3
-    >>> g.num_keyframes, g.num_edges, g.edge_kinds().tolist()
+    >>> g.num_keyframes, g.num_edges, g.edge_kind_codes(torch.arange(4)).tolist()
     (4, 4, [0, 0, 0, 1])
     >>> [round(float(d), 2) for d in g.path_lengths(0, through_loops=False)]
     [0.0, 0.5, 1.0, 1.5]
@@ -81,7 +81,7 @@ def _f64(t: Tensor) -> Tensor:
 
 
 class EdgeKind(IntEnum):
-    """What an edge of the keyframe graph measures (the integer is its code in :meth:`KeyframeGraph.edge_kinds`)."""
+    """What an edge of the keyframe graph measures (the integer is its code: :meth:`KeyframeGraph.edge_kind_codes`)."""
 
     ODOMETRY = 0  # consecutive keyframes, from the front end's registration
     LOOP = 1  # a verified revisit between keyframes far apart in time
@@ -238,10 +238,6 @@ class KeyframeGraph:
             raise ValueError(f"poses must have shape (P <= {self.num_keyframes}, 7), got {tuple(poses.shape)}")
         self._estimate.view[: poses.shape[0]] = poses.detach().to(torch.float64).cpu().numpy()
 
-    def edge_kinds(self, active_only: bool = False) -> Tensor:
-        """``(E,)`` int64 :class:`EdgeKind` codes of the edges, in :meth:`pose_graph` order."""
-        return torch.tensor([int(e.kind) for e in self.edges if e.active or not active_only], dtype=torch.long)
-
     def loop_edges(self, active_only: bool = True) -> List[int]:
         """Indices into :attr:`edges` of the loop edges."""
         return [k for k, e in enumerate(self.edges) if e.kind is EdgeKind.LOOP and (e.active or not active_only)]
@@ -331,8 +327,7 @@ class KeyframeGraph:
 
     def path_lengths_to(self, source: int, targets, through_loops: bool = True, min_loop_weight: float = 0.0
                         ) -> np.ndarray:
-        """:meth:`path_lengths` from ``source`` to ``targets`` only ``(k,)``, by a search that stops once every
-        target is reached (or by chain positions without loops)."""
+        """:meth:`path_lengths` to ``targets`` only ``(k,)``: the search stops once every target is reached."""
         n = self.num_keyframes
         if not 0 <= source < n:
             raise ValueError(f"source keyframe {source} out of range for {n} keyframes")

@@ -264,8 +264,7 @@ class PointCloudMap:
         return int(kept.shape[0])
 
     def drop(self, keyframe_ids) -> None:
-        """Forget the points of keyframes ``keyframe_ids`` (ids without points are skipped): the revisits of
-        :attr:`slam.system.RGBDSLAM.released`."""
+        """Forget the points of keyframes ``keyframe_ids`` (released revisits; ids without points are skipped)."""
         for k in keyframe_ids:
             self._clouds.pop(int(k), None)
 

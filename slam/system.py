@@ -305,8 +305,7 @@ class RGBDSLAM:
                           res.num_inliers, res.inlier_rmse, odo, self._reported_corrected(), correction)
 
     def _keyframe_work(self, kfs: List[Keyframe]):
-        """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
-        online correction or None)."""
+        """New keyframes into the graph, loops closed, the graph corrected online: (kept loops, correction or None)."""
         new_loops, settled = [], True
         self._release_revisits(kfs[-1].id if kfs else -1)
         touched = [kf.id for kf in kfs]  # where the graph changed, in order: the online correction's window
@@ -335,8 +334,7 @@ class RGBDSLAM:
         return new_loops, correction
 
     def _settled(self, update: LoopUpdate) -> bool:
-        """Whether the estimate already satisfies ``update``: only new loops, each kept one settled
-        (:attr:`LoopClosure.settled`), and the estimate corrected by loops before."""
+        """Whether the estimate already satisfies ``update``: only new, settled kept loops on a corrected estimate."""
         if update.changed or not self._corrected:
             return not update
         return all(lp.settled for lp in update.new if lp.consistent)
@@ -351,8 +349,7 @@ class RGBDSLAM:
                 and v.num_inliers / max(a.features.num_valid, 1) >= oc.keyframe_min_inlier_ratio)
 
     def _release_revisits(self, newest: int) -> None:
-        """Release the revisits (:attr:`LoopUpdate.revisit`: never in the loop closer's database) older than
-        ``newest``: tracking's reference is then a later one, so nothing registers against them again."""
+        """Release the revisits older than ``newest``: tracking's reference is a later one, nothing uses them again."""
         for k in [k for k in self._to_release if k < newest]:
             kf = self.odometry.keyframes[k]
             kf.features, kf.rgb = None, None
@@ -382,8 +379,7 @@ class RGBDSLAM:
         return loops, correction, snapshot
 
     def _submit(self, kfs: List[Keyframe]):
-        """Take the finished work (waiting while more than ``BackendConfig.loop_backlog`` keyframes' work is
-        waiting) and hand the new keyframes' work to the worker."""
+        """Take the finished work (waiting beyond ``BackendConfig.loop_backlog``), hand ``kfs``' work to the worker."""
         if not kfs:
             return [], None
         new_loops, correction, snapshot = self._collect(keep=self.config.backend.loop_backlog)
@@ -508,8 +504,7 @@ class RGBDSLAM:
         return torch.nonzero(free)[:, 0].tolist()
 
     def _reanchor(self, ids: Optional[List[int]] = None) -> None:
-        """The front end's keyframes (or only ``ids``) take the graph's estimates: tracking continues from the
-        corrected pose of its reference keyframe."""
+        """The front end's keyframes (or only ``ids``) take the graph's estimates: tracking continues from them."""
         est = self.graph.estimates()
         kfs = self.odometry.keyframes
         for k in (range(min(len(kfs), est.shape[0])) if ids is None else ids):

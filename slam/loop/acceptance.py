@@ -84,8 +84,7 @@ def drift_limits(path_length: float, config: DriftBoundConfig) -> DriftLimits:
 
 
 def capped_length(config: DriftBoundConfig) -> float:
-    """The path length from which both bounds are at their caps (``inf`` when one never reaches its cap):
-    beyond it the bound no longer depends on the distance travelled."""
+    """The path length from which both bounds are at their caps (``inf`` when one never reaches its cap)."""
     def reach(base: float, rate: float, cap: float) -> float:
         if base >= cap:
             return 0.0
