@@ -290,10 +290,7 @@ class RGBDSLAM:
         # every keyframe the front end created during this call (a promoted previous frame included)
         kfs = self.odometry.keyframes[self._shown.shape[1] if self._worker is not None else self.graph.num_keyframes:]
         new_keyframes = [kf.id for kf in kfs]
-        if self._worker is None:
-            new_loops, correction = self._keyframe_work(kfs)
-        else:
-            new_loops, correction = self._submit(kfs)
+        new_loops, correction = self._keyframe_work(kfs) if self._worker is None else self._submit(kfs)
         self._lag.append(self.loop_lag)
         if res.keyframe_id >= 0:
             pose, odo = self._reported_poses(res.keyframe_id, T_kf)
