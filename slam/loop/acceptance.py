@@ -77,8 +77,6 @@ def drift_limits(path_length: float, config: DriftBoundConfig) -> DriftLimits:
         path_length: metres (``inf`` when no measured path joins the keyframes: the caps apply).
         config: :class:`DriftBoundConfig`.
     """
-    if not path_length >= 0:
-        raise ValueError(f"path_length must be >= 0, got {path_length}")
     t, r = drift_limits_array([float(path_length)], config)
     return DriftLimits(float(t[0]), float(r[0]))
 
