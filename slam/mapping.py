@@ -142,8 +142,7 @@ def keyframe_cloud(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, config: Ma
         depth_range: ``(min, max)`` metres used where ``config`` leaves them None (the odometry's).
 
     Returns:
-        ``(N, 3)`` float32 points (metres, depth-camera frame: x right, y down, z forward) and
-        ``(N, 3)`` uint8 colours.
+        ``(N, 3)`` float32 points (metres, depth-camera frame: x right, y down, z forward), ``(N, 3)`` uint8 colours.
     """
     cfg = config or MapConfig()
     rgb = np.asarray(rgb)
@@ -237,8 +236,7 @@ class PointCloudMap:
             keyframe_id: its id.
             rgb, depth, K: its frame (see :func:`keyframe_cloud`).
             reference: ``(id, T_ref_kf)``: a keyframe added before and this keyframe's ``(7,)`` pose in it (the
-                odometry edge). Keyframes joined to this one through such references are the ones compared;
-                None (or a reference not among the last ones): nothing is compared, every point is kept.
+                odometry edge); None (or a reference not among the last ones): every point is kept.
         """
         pts, cols = keyframe_cloud(rgb, depth, K, self.config, self.rgb_intrinsics, self.rgb_from_depth,
                                    self.depth_range)
@@ -291,9 +289,8 @@ class PointCloudMap:
         """Every keyframe's points placed with its pose, merged on the voxel grid.
 
         Args:
-            keyframe_poses: ``(M, 7)`` world-from-camera poses ``[t, q_xyzw]`` of keyframes ``0 .. M-1``
-                (the depth camera's: ``SLAMResult.keyframe_trajectory.poses``); keyframes beyond ``M`` or
-                with a non-finite pose are left out.
+            keyframe_poses: ``(M, 7)`` world-from-camera depth-camera poses ``[t, q_xyzw]`` of keyframes ``0 .. M-1``;
+                keyframes beyond ``M`` or with a non-finite pose are left out.
 
         Returns:
             ``(N, 3)`` float32 world points and ``(N, 3)`` uint8 colours (N = 0 when nothing was kept).

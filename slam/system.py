@@ -225,12 +225,11 @@ class RGBDSLAM:
         return self.odometry.keyframes
 
     def release_keyframe(self, kf_id: int) -> None:
-        """Drop a keyframe's features and image (they become None), keeping its pose, graph entry and odometry
-        edge: in localisation, for a keyframe nothing will register against again.
+        """Drop a keyframe's features and image in localisation (they become None), keeping its pose and edges.
 
         Raises:
-            ValueError: ``kf_id`` is tracking's current reference keyframe (it is registered against), or a
-                run that closes loops among its own keyframes (any of them can be a loop candidate later).
+            ValueError: ``kf_id`` is tracking's current reference keyframe, or the run closes loops among its
+                own keyframes (any of them can be a loop candidate later).
         """
         if not self.localize and self.loop_closer is not None:
             raise ValueError("release_keyframe() is for localisation (RGBDSLAM(localize=True)): a run that closes "

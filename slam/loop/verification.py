@@ -64,11 +64,9 @@ def verify_candidate(a: FrameFeatures, b: FrameFeatures, estimate_ab: Tensor, li
                      config) -> Verification:
     """Register keyframe b against keyframe a and check the result.
 
-    Checks, in order: the registration succeeds; enough inliers (``config.min_inliers``) and inlier ratio
-    (``config.min_inlier_ratio``); the views are close (``config.max_translation`` /
-    ``config.max_rotation_deg``); the measurement agrees with ``estimate_ab`` within ``limits``. A candidate
-    whose estimate lies farther than the last two allow together is rejected before registering (no
-    measurement could pass both).
+    Checks, in order: the registration succeeds; enough inliers and inlier ratio; the views are close
+    (``config.max_translation`` / ``max_rotation_deg``); the measurement agrees with ``estimate_ab`` within
+    ``limits``. An estimate farther than the last two allow together is refused before registering.
 
     Args:
         a: features of the older keyframe.
