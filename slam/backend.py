@@ -1,13 +1,8 @@
 """The SLAM back end: optimise the keyframe graph with a robust kernel per edge kind.
 
-Odometry edges and loop edges fail differently. An odometry edge is rarely wrong by much; a loop edge is
-either right or wrong altogether (an aliased place that passed verification). So each kind gets its own
-robust kernel (:class:`EdgeKindKernel`): by default Cauchy on the odometry edges and dynamic covariance
-scaling (:class:`DCS`, the closed form of switchable constraints) on the loops, which leaves a loop that
-agrees with the rest untouched and switches off, smoothly, one that does not.
-
-:meth:`PoseGraphBackend.optimize` calls :func:`slam.graph.optimize` (its public API only) and returns a
-:class:`BackendResult` with the poses, each loop edge's final weight, status and timing.
+An odometry edge is rarely wrong by much, a loop edge is right or wrong altogether: by default Cauchy on the
+odometry edges and dynamic covariance scaling (:class:`DCS`) on the loops, which switches off a wrong loop
+(docs/pipeline.md, "What each stage does").
 
 Example:
     >>> import torch
@@ -49,12 +44,9 @@ __all__ = ["DCS", "OPTIMIZER_METHODS", "BackendResult", "EdgeKindKernel", "PoseG
 
 @dataclass
 class DCS(RobustKernel):
-    """Dynamic covariance scaling (Agarwal et al. 2013) on ``s = r^T Omega r``: the closed form of a
-    switchable constraint with prior ``phi``.
+    """Dynamic covariance scaling (Agarwal et al. 2013) on ``s = r^T Omega r``, ``phi = width^2``.
 
-    ``rho(s) = s`` for ``s <= phi``, else ``phi (3 s - phi) / (phi + s)`` (bounded by ``3 phi``); the IRLS
-    weight is ``(2 phi / (phi + s))^2``. ``width`` is ``sqrt(phi)`` (the Mahalanobis norm where it starts
-    acting, as for the other kernels).
+    ``rho(s) = s`` for ``s <= phi``, else ``phi (3 s - phi) / (phi + s)``; the IRLS weight is ``(2 phi / (phi + s))^2``.
     """
 
     width: float = math.sqrt(CHI2_95_6DOF)
@@ -77,7 +69,7 @@ class EdgeKindKernel(RobustKernel):
     """A robust kernel per edge: ``kernels[k]`` on the edges whose kind code is ``k`` (None: quadratic).
 
     Args:
-        kinds: ``(E,)`` int64 edge kinds in the graph's edge order (:meth:`KeyframeGraph.edge_kinds`).
+        kinds: ``(E,)`` int64 edge kinds in the graph's edge order (:meth:`KeyframeGraph.edge_kind_codes`).
         kernels: kind code -> :class:`~slam.graph.costs.RobustKernel` or None.
     """
 
@@ -86,7 +78,7 @@ class EdgeKindKernel(RobustKernel):
     def __init__(self, kinds: Tensor, kernels: Dict[int, Optional[RobustKernel]]):
         self.kinds = kinds.to(torch.long)
         self.kernels = dict(kernels)
-        # the edges of each kind, as index tensors made once (the optimiser calls the kernel every step)
+        # the edges of each kind, made once (the optimiser calls the kernel every step)
         self._rows = {k: torch.nonzero(self.kinds == k)[:, 0] for k, kern in self.kernels.items()
                       if kern is not None and bool((self.kinds == k).any())}
 
@@ -112,9 +104,7 @@ def make_loop_kernel(name: Optional[str], width: Optional[float]) -> Optional[Ro
 
 
 def check_backend_config(config) -> None:
-    """Refuse a :class:`slam.config.BackendConfig` the back end could not run, when it is built rather than
-    when the first loop is accepted: the names are checked by the factories that dispatch on them
-    (:func:`slam.graph.make_kernel`, :func:`make_loop_kernel`).
+    """Refuse a :class:`slam.config.BackendConfig` the back end could not run, when it is built.
 
     Raises:
         ValueError: naming the field, the value and what is allowed.
@@ -139,46 +129,33 @@ def check_backend_config(config) -> None:
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{n}.loop_kernel: unknown loop kernel {config.loop_kernel!r}; expected 'dcs', "
                              f"a kernel name of slam.graph.make_kernel, 'none' or None ({exc})") from None
-    check_int(n, "max_iterations", config.max_iterations, 1)
-    check_int(n, "loop_backlog", config.loop_backlog, 0)
-    check_int(n, "online_max_iterations", config.online_max_iterations, 1)
-    if config.online_window is not None:
-        check_int(n, "online_window", config.online_window, 1)
-    if config.online_loops_per_keyframe is not None:
-        check_int(n, "online_loops_per_keyframe", config.online_loops_per_keyframe, 1)
+    for name, least in (("max_iterations", 1), ("loop_backlog", 0), ("online_max_iterations", 1)):
+        check_int(n, name, getattr(config, name), least)
+    for name in ("online_window", "online_loops_per_keyframe"):  # None: off
+        if getattr(config, name) is not None:
+            check_int(n, name, getattr(config, name), 1)
     check_number(n, "odometry_information_scale", config.odometry_information_scale, 0, lo_open=True, finite=True)
     check_number(n, "switch_off_weight", config.switch_off_weight, 0, 1)
 
 
 @dataclass
 class BackendResult:
-    """What :meth:`PoseGraphBackend.optimize` returns.
+    """What :meth:`PoseGraphBackend.optimize` returns."""
 
-    Attributes:
-        poses: ``(M, 7)`` float64 optimised keyframe poses.
-        loop_weights: index into ``KeyframeGraph.edges`` -> final kernel weight of that (active) loop
-            edge (1 = fully trusted, near 0 = switched off).
-        status: the optimiser's status.
-        iterations: LM iterations.
-        seconds: wall time.
-        initial_chi2, chi2: of the graph (plain sums, before and after).
-        optimization: the :class:`~slam.graph.optimizer.OptimizationResult`.
-        history: the cost after each iteration.
-    """
-
-    poses: Tensor
+    poses: Tensor  # (M, 7) float64 optimised keyframe poses
+    # index into KeyframeGraph.edges -> final kernel weight of that active loop edge (1: trusted, ~0: switched off)
     loop_weights: Dict[int, float]
-    status: str
-    iterations: int
-    seconds: float
-    initial_chi2: float
+    status: str  # the optimiser's
+    iterations: int  # LM iterations
+    seconds: float  # wall time
+    initial_chi2: float  # of the graph (plain sums, before and after)
     chi2: float
     optimization: Optional[OptimizationResult] = None
-    history: List[float] = field(default_factory=list)
+    history: List[float] = field(default_factory=list)  # the cost after each iteration
 
 
 class PoseGraphBackend:
-    """Optimises a :class:`~slam.keyframe_graph.KeyframeGraph` (see the module docstring).
+    """Optimises a :class:`~slam.keyframe_graph.KeyframeGraph`.
 
     Args:
         config: :class:`slam.config.BackendConfig`.
@@ -190,27 +167,19 @@ class PoseGraphBackend:
         self.information_scale = dict(information_scale)
         check_backend_config(config)  # any object with these fields, not only a (frozen, checked) BackendConfig
 
-    def _kernel(self, kinds: Tensor, loop_kernel: Optional[RobustKernel]) -> RobustKernel:
-        odo = make_kernel(self.config.kernel, self.config.kernel_width)
-        return EdgeKindKernel(kinds, {int(EdgeKind.ODOMETRY): odo, int(EdgeKind.LOOP): loop_kernel})
-
-    def optimize(self, graph: KeyframeGraph, initial: Optional[Tensor] = None, online: bool = False,
-                 fixed: Optional[Sequence[int]] = None, free: Optional[Sequence[int]] = None) -> BackendResult:
-        """Optimise the active edges of ``graph`` from ``initial`` poses (default: its current estimates).
+    def optimize(self, graph: KeyframeGraph, online: bool = False, fixed: Optional[Sequence[int]] = None,
+                 free: Optional[Sequence[int]] = None) -> BackendResult:
+        """Optimise the active edges of ``graph`` from its current estimates.
 
         Args:
             graph: the keyframe graph (not modified).
-            initial: ``(M, 7)`` start poses.
-            online: a correction during tracking: at most ``config.online_max_iterations`` LM iterations
-                (the graph changes little between two loops and the start is the previous solution).
-            fixed: keyframes held at their start poses (a loaded map's, :mod:`slam.maps`); they then
-                anchor the result (else keyframe 0 does).
-            free: optimise only these keyframes (a window of the graph): the edges with an end among them,
-                the other keyframes those edges reach held at their start poses as a boundary (they anchor
-                the result), every other keyframe and edge left out and returned unchanged, and only the
-                loops among those edges in ``loop_weights``; an online one takes the newest
-                ``BackendConfig.online_loops_per_keyframe`` loops of each keyframe of the window
-                (:meth:`KeyframeGraph.window_graph`). None (or every keyframe): the whole graph.
+            online: a correction during tracking: at most ``config.online_max_iterations`` LM iterations.
+            fixed: keyframes held at their start poses (a loaded map's); they then anchor the result (else
+                keyframe 0 does).
+            free: optimise only these keyframes (:meth:`KeyframeGraph.window_graph`, an online one with the newest
+                ``BackendConfig.online_loops_per_keyframe`` loops of each): the keyframes the window's edges reach
+                are held, the others returned unchanged, and only the window's loops are in ``loop_weights``.
+                None (or every keyframe): the whole graph.
 
         Returns:
             :class:`BackendResult`.
@@ -221,40 +190,36 @@ class PoseGraphBackend:
         cfg = self.config
         t0 = time.perf_counter()
         window = None
-        if free is not None:  # gathered from the window's keyframes: its cost does not grow with the graph
-            window = graph.window_graph(self.information_scale, free, poses=initial,
+        if free is not None:
+            window = graph.window_graph(self.information_scale, free,
                                         loops_per_keyframe=cfg.online_loops_per_keyframe if online else None,
                                         fixed=fixed)
-        if window is not None:
+        if window is not None:  # its edges are never empty: a window without one holds nothing and is None
             pg, used, rows = window
-            full_poses = graph.estimates() if initial is None else initial.detach().to(torch.float64).cpu()
-            kinds, active = graph.edge_kind_codes(rows), rows.tolist()
         else:
-            pg = graph.pose_graph(self.information_scale, poses=initial)
+            pg = graph.pose_graph(self.information_scale)
             if pg is None or pg.num_edges == 0:
                 raise ValueError("the keyframe graph has no edges to optimise")
             if fixed:
                 pg = dataclasses.replace(pg, fixed=torch.as_tensor(list(fixed), dtype=torch.long))
-            used = None
-            kinds = graph.edge_kinds(active_only=True)
-            active = [k for k, e in enumerate(graph.edges) if e.active]
-        if pg.num_edges == 0:
-            raise ValueError("the keyframe graph has no edges to optimise")
+            used, rows = None, torch.tensor([k for k, e in enumerate(graph.edges) if e.active], dtype=torch.long)
+        kinds, active = graph.edge_kind_codes(rows), rows.tolist()
         if cfg.device is not None:  # BackendConfig.device: solved there, returned on the CPU
             pg = pg.to(cfg.device)
         kinds = kinds.to(pg.device)
         loop_rows = [r for r, k in enumerate(active) if graph.edges[k].kind is EdgeKind.LOOP]
         iters = cfg.online_max_iterations if online else cfg.max_iterations
-        name = None if cfg.loop_kernel is None else str(cfg.loop_kernel).lower()
-        loop_kernel = (make_kernel(cfg.kernel, cfg.kernel_width) if name is None  # None: as the odometry's
-                       else make_loop_kernel(name, cfg.loop_kernel_width))
-        res = optimize(pg, method=cfg.method, kernel=self._kernel(kinds, loop_kernel), max_iterations=iters)
+        loop_kernel = (make_kernel(cfg.kernel, cfg.kernel_width) if cfg.loop_kernel is None  # as the odometry's
+                       else make_loop_kernel(cfg.loop_kernel, cfg.loop_kernel_width))
+        kernel = EdgeKindKernel(kinds, {int(EdgeKind.ODOMETRY): make_kernel(cfg.kernel, cfg.kernel_width),
+                                        int(EdgeKind.LOOP): loop_kernel})
+        res = optimize(pg, method=cfg.method, kernel=kernel, max_iterations=iters)
         w = res.weights
         loop_weights = {active[r]: (float(w[r]) if w is not None else 1.0) for r in loop_rows}
         poses = res.graph.poses.detach().to(torch.float64).cpu()
         if used is not None:  # into the whole graph: the keyframes outside the window (held ones too) as they were
             moved = torch.ones(used.numel(), dtype=torch.bool)
             moved[pg.fixed.cpu()] = False
-            poses = full_poses.detach().to(torch.float64).cpu().clone().index_copy_(0, used[moved], poses[moved])
+            poses = graph.estimates().index_copy_(0, used[moved], poses[moved])
         return BackendResult(poses, loop_weights, str(res.status), res.iterations, time.perf_counter() - t0,
                              float(res.initial_chi2), float(res.chi2), res, list(res.cost_history))

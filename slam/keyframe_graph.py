@@ -1,16 +1,8 @@
 """The keyframe pose graph the SLAM system builds: keyframe poses and typed edges (odometry / loop).
 
-Each edge carries its kind, so the back end weighs and robustifies odometry and loop edges differently
-without recovering them from a set of pairs, and a loop edge can be switched off by name. Two poses are
-kept per keyframe: the *odometry* pose (the chain of odometry edges from keyframe 0, what the front end
-alone would say) and the current *estimate* (corrected by the loop closures optimised so far).
-
-Distances along the graph bound what odometry can have drifted between two keyframes
-(:meth:`KeyframeGraph.path_lengths`): along the chain of odometry edges when no loop has corrected the
-estimate, or along the shortest path through the accepted loops when it has. A weak edge (forced after a
-tracking loss: a constant-velocity guess, not a measurement) bounds nothing, so a path across it is
-infinitely long: a loop across it is held to the drift bound's caps only, or to nothing with
-``LoopClosureConfig.recover_after_loss`` (:meth:`slam.loop.LoopCloser.limits`).
+Two poses per keyframe: the *odometry* pose (the chain of odometry edges from keyframe 0) and the current
+*estimate* (corrected by the loops optimised so far). Distances along the graph bound the drift between two
+keyframes (:meth:`KeyframeGraph.path_lengths`); a weak edge (forced after a tracking loss) bounds nothing.
 
 Example:
     >>> import torch
@@ -24,7 +16,7 @@ Example:
     ...     _ = g.add_odometry(k - 1, step, info, estimate=se3_compose(g.estimate(k - 1), step))
     >>> g.add_loop(0, 3, se3_exp(torch.tensor([1.45, 0, 0, 0, 0, 0], dtype=torch.float64)), info)
     3
-    >>> g.num_keyframes, g.num_edges, g.edge_kinds().tolist()
+    >>> g.num_keyframes, g.num_edges, g.edge_kind_codes(torch.arange(4)).tolist()
     (4, 4, [0, 0, 0, 1])
     >>> [round(float(d), 2) for d in g.path_lengths(0, through_loops=False)]
     [0.0, 0.5, 1.0, 1.5]
@@ -33,6 +25,7 @@ Example:
 """
 from __future__ import annotations
 
+import heapq
 import math
 from dataclasses import dataclass
 from enum import IntEnum
@@ -40,6 +33,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from slam.graph import PoseGraph
 from slam.lie import se3_compose
@@ -86,7 +81,7 @@ def _f64(t: Tensor) -> Tensor:
 
 
 class EdgeKind(IntEnum):
-    """What an edge of the keyframe graph measures (the integer is its code in :meth:`KeyframeGraph.edge_kinds`)."""
+    """What an edge of the keyframe graph measures (the integer is its code: :meth:`KeyframeGraph.edge_kind_codes`)."""
 
     ODOMETRY = 0  # consecutive keyframes, from the front end's registration
     LOOP = 1  # a verified revisit between keyframes far apart in time
@@ -94,29 +89,17 @@ class EdgeKind(IntEnum):
 
 @dataclass
 class GraphEdge:
-    """One edge ``i -> j`` of the keyframe graph.
-
-    Attributes:
-        i, j: keyframe ids.
-        T_ij: ``(7,)`` float64 measured pose of keyframe j in keyframe i.
-        information: ``(6, 6)`` float64 information of ``T_ij`` as the registration computed it (right
-            perturbation, ``[rho, phi]``), before the back end's per-kind scaling.
-        kind: :class:`EdgeKind`.
-        weak: an odometry edge forced after a tracking loss (constant-velocity guess).
-        active: False for a loop edge taken out of the graph (outside the consistent group of loops);
-            inactive edges stay in the list (and in :meth:`KeyframeGraph.pose_graph` only when asked for)
-            so that edge indices remain stable.
-        weight: the back end's last robust-kernel weight of the edge (1 before any optimisation).
-    """
+    """One edge ``i -> j`` between keyframe ids of the keyframe graph."""
 
     i: int
     j: int
-    T_ij: Tensor
+    T_ij: Tensor  # (7,) float64 measured pose of keyframe j in keyframe i
+    # (6, 6) float64 information of T_ij from the registration (right perturbation, [rho, phi]), unscaled
     information: Tensor
     kind: EdgeKind
-    weak: bool = False
-    active: bool = True
-    weight: float = 1.0
+    weak: bool = False  # an odometry edge forced after a tracking loss (constant-velocity guess)
+    active: bool = True  # False for a loop edge outside the consistent group (it stays: indices are stable)
+    weight: float = 1.0  # the back end's last robust-kernel weight of the edge (1 before any optimisation)
 
     @property
     def length(self) -> float:
@@ -127,35 +110,28 @@ class GraphEdge:
 class KeyframeGraph:
     """Keyframe poses (odometry and estimate) and typed edges; builds the :class:`~slam.graph.PoseGraph`.
 
-    Keyframe ids are ``0 .. num_keyframes - 1`` in creation order. A keyframe other than the first enters
-    with its odometry edge (:meth:`add_odometry`), which sets its odometry pose by composition. An edge keeps
-    the measurement and information tensors it is given (float64 CPU ones are not copied: a loop's edge and
-    its :class:`slam.loop.LoopClosure` hold one pair, not two): they must not be changed in place afterwards.
+    Keyframe ids are ``0 .. num_keyframes - 1`` in creation order. An edge keeps the float64 tensors it is given.
     """
 
     def __init__(self) -> None:
-        # (M, 7) float64 rows, grown in amortised O(1): the poses are read and replaced as a block (every
-        # online correction reads and sets them all) without stacking M tensors each time
+        # per keyframe its poses, per edge its measurement and information: rows, read and replaced as blocks
         self._odometry = GrowingArray(np.float64, (7,))
         self._estimate = GrowingArray(np.float64, (7,))
-        # per edge, its measurement and information as rows (the pose graph is built from them by indexing)
         self._edge_T = GrowingArray(np.float64, (7,))
         self._edge_info = GrowingArray(np.float64, (6, 6))
         self.edges: List[GraphEdge] = []
-        # distance travelled from keyframe 0 along the odometry edges, while they form a chain (each edge
-        # from the previous keyframe, as the front end makes them): chain distances are then differences
+        # metres from keyframe 0 along the odometry edges while they form a chain: distances are differences
         self._travelled = GrowingArray(np.float64)
-        self._weak_before = GrowingArray(np.int64)  # weak edges on the chain from keyframe 0 (distances across one: inf)
+        self._weak_before = GrowingArray(np.int64)  # weak edges on the chain from keyframe 0
         self._chain = True
         self._joined: list[set[int]] = []  # per keyframe, the keyframes an edge joins it to
-        self._incident: list[list[int]] = []  # per keyframe, the indices of its edges (for local searches)
-        self._edge_length = GrowingArray(np.float64)  # per edge, |t_ij| (its measurement never changes)
-        self._edge_ij = GrowingArray(np.int64, (2,))  # per edge, its ends (a window's subgraph is gathered by them)
+        self._incident: list[list[int]] = []  # per keyframe, the indices of its edges
+        self._edge_length = GrowingArray(np.float64)  # per edge, |t_ij|
+        self._edge_ij = GrowingArray(np.int64, (2,))  # per edge, its ends
         self._edge_kind = GrowingArray(np.int64)  # per edge, its EdgeKind code
         self._odometry_of: list[list[int]] = []  # per keyframe, its odometry edges
         self._loops_of: list[list[int]] = []  # per keyframe, its loop edges, oldest first
 
-    # ------------------------------------------------------------------------------------------
     @property
     def num_keyframes(self) -> int:
         return len(self._odometry)
@@ -168,14 +144,17 @@ class KeyframeGraph:
         """Add a keyframe with no edge (the first one; or a map's origin). Returns its id."""
         p = pose.detach().to(torch.float64).cpu().clone()
         self._chain = self._chain and not len(self._odometry)
-        self._odometry.append(p.numpy())
-        self._estimate.append(p.numpy())
-        self._travelled.append(0.0)
-        self._weak_before.append(0)
-        self._joined.append(set())
-        self._incident.append([])
-        self._odometry_of.append([])
-        self._loops_of.append([])
+        return self._append_keyframe(p.numpy(), p.numpy(), 0.0, 0, set())
+
+    def _append_keyframe(self, odometry: np.ndarray, estimate: np.ndarray, travelled: float, weak_before: int,
+                         joined: set[int]) -> int:
+        self._odometry.append(odometry)
+        self._estimate.append(estimate)
+        self._travelled.append(travelled)
+        self._weak_before.append(weak_before)
+        self._joined.append(joined)
+        for rows in (self._incident, self._odometry_of, self._loops_of):
+            rows.append([])
         return len(self._odometry) - 1
 
     def add_odometry(self, i: int, T_ij: Tensor, information: Tensor, estimate: Tensor,
@@ -186,8 +165,7 @@ class KeyframeGraph:
             i: an existing keyframe (the front end's reference keyframe).
             T_ij: ``(7,)`` pose of the new keyframe in keyframe ``i``.
             information: ``(6, 6)`` its information.
-            estimate: ``(7,)`` the new keyframe's current world pose (the front end's, re-anchored on the
-                corrected estimate of ``i`` when loops were optimised online).
+            estimate: ``(7,)`` the new keyframe's current world pose.
             weak: forced after a tracking loss.
 
         Returns:
@@ -196,18 +174,13 @@ class KeyframeGraph:
         if not 0 <= i < self.num_keyframes:
             raise ValueError(f"odometry edge from keyframe {i}: only {self.num_keyframes} keyframes exist")
         T = _f64(T_ij)
-        self._odometry.append(se3_compose(self.odometry_pose(i), T).numpy())
-        self._estimate.append(estimate.detach().to(torch.float64).cpu().numpy())
-        j = len(self._odometry) - 1
-        self.edges.append(GraphEdge(i, j, T, _f64(information),
-                                    EdgeKind.ODOMETRY, weak=weak))
+        edge = GraphEdge(i, self.num_keyframes, T, _f64(information), EdgeKind.ODOMETRY, weak=weak)
+        # a weak edge measured nothing: a loop may still join its ends
+        j = self._append_keyframe(se3_compose(self.odometry_pose(i), T).numpy(), _f64(estimate).numpy(),
+                                  self._travelled.view[i] + edge.length,
+                                  self._weak_before.view[i] + int(bool(weak)), set() if weak else {i})
+        self.edges.append(edge)
         self._chain = self._chain and i == j - 1
-        self._travelled.append(self._travelled.view[i] + self.edges[-1].length)
-        self._weak_before.append(self._weak_before.view[i] + int(bool(weak)))
-        self._joined.append(set() if weak else {i})  # a weak edge measured nothing: a loop may still join them
-        self._incident.append([])
-        self._odometry_of.append([])
-        self._loops_of.append([])
         self._new_edge()
         if not weak:
             self._joined[i].add(j)
@@ -243,7 +216,6 @@ class KeyframeGraph:
             raise ValueError(f"keyframe {k} out of range for {self.num_keyframes} keyframes")
         return set(self._joined[k])
 
-    # ------------------------------------------------------------------------------------------
     def odometry_poses(self) -> Tensor:
         """``(M, 7)`` float64 odometry-chained keyframe poses."""
         return torch.from_numpy(self._odometry.view.copy())
@@ -266,66 +238,51 @@ class KeyframeGraph:
             raise ValueError(f"poses must have shape (P <= {self.num_keyframes}, 7), got {tuple(poses.shape)}")
         self._estimate.view[: poses.shape[0]] = poses.detach().to(torch.float64).cpu().numpy()
 
-    def edge_kinds(self, active_only: bool = False) -> Tensor:
-        """``(E,)`` int64 :class:`EdgeKind` codes of the edges, in :meth:`pose_graph` order."""
-        return torch.tensor([int(e.kind) for e in self.edges if e.active or not active_only], dtype=torch.long)
-
     def loop_edges(self, active_only: bool = True) -> List[int]:
         """Indices into :attr:`edges` of the loop edges."""
         return [k for k, e in enumerate(self.edges) if e.kind is EdgeKind.LOOP and (e.active or not active_only)]
 
     def has_active_loop(self) -> bool:
-        """Whether any loop edge is active: from the newest loop back, stopping at the first active one (the
-        loops are found in one vectorised pass, not a Python loop over every edge)."""
+        """Whether any loop edge is active (searched from the newest loop back)."""
         return any(self.edges[k].active for k in np.flatnonzero(self._edge_kind.view == int(EdgeKind.LOOP))[::-1])
 
-    def pose_graph(self, information_scale: Dict[EdgeKind, float], poses: Optional[Tensor] = None,
-                   active_only: bool = True) -> Optional[PoseGraph]:
-        """The :class:`~slam.graph.PoseGraph` over the keyframes.
+    def pose_graph(self, information_scale: Dict[EdgeKind, float]) -> Optional[PoseGraph]:
+        """The :class:`~slam.graph.PoseGraph` over the keyframes at their current estimates.
 
         Args:
             information_scale: factor on the information of each edge kind (symmetrised after scaling).
-            poses: ``(M, 7)`` initial poses (default: the current estimates).
-            active_only: leave out the edges switched off.
 
         Returns:
-            the graph (None when there are no keyframes); its edges are in :attr:`edges` order (the
-            inactive ones left out when ``active_only``).
+            the graph (None when there are no keyframes); its edges are the active ones, in :attr:`edges` order.
         """
         if not len(self._odometry):
             return None
-        P = self.estimates() if poses is None else poses.to(torch.float64)
-        sel = np.fromiter((k for k, e in enumerate(self.edges) if e.active or not active_only), np.int64)
-        if not sel.size:
-            return PoseGraph(P, torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long),
-                             torch.zeros(0, 7, dtype=torch.float64), torch.zeros(0, 6, 6, dtype=torch.float64))
-        edges = [self.edges[k] for k in sel]
-        scale = torch.tensor([float(information_scale[e.kind]) for e in edges], dtype=torch.float64)
-        T = torch.from_numpy(self._edge_T.view[sel])  # the measurements as rows: indexed, not E tensors stacked
-        info = torch.from_numpy(self._edge_info.view[sel])
-        info = 0.5 * (info + info.transpose(-1, -2)) * scale[:, None, None]
-        return PoseGraph(P, torch.tensor([e.i for e in edges], dtype=torch.long),
-                         torch.tensor([e.j for e in edges], dtype=torch.long), T, info)
+        sel = np.fromiter((k for k, e in enumerate(self.edges) if e.active), np.int64)
+        ij = torch.from_numpy(self._edge_ij.view[sel].T.copy())
+        return PoseGraph(self.estimates(), ij[0], ij[1], torch.from_numpy(self._edge_T.view[sel]),
+                         self._information(sel, information_scale))
 
-    def window_graph(self, information_scale: Dict[EdgeKind, float], free, poses: Optional[Tensor] = None,
+    def _information(self, rows: np.ndarray, information_scale: Dict[EdgeKind, float]) -> Tensor:
+        """``(e, 6, 6)`` float64 the information of the edges ``rows``, scaled by kind and symmetrised."""
+        scale = np.array([float(information_scale[kind]) for kind in EdgeKind])[self._edge_kind.view[rows]]
+        info = torch.from_numpy(self._edge_info.view[rows])
+        return 0.5 * (info + info.transpose(-1, -2)) * torch.from_numpy(scale)[:, None, None]
+
+    def window_graph(self, information_scale: Dict[EdgeKind, float], free,
                      loops_per_keyframe: Optional[int] = None, fixed=None):
-        """The part of the graph that moves the keyframes ``free``, gathered from them alone (its cost grows
-        with the window, not with the graph): the active edges with an end in ``free`` (of each free keyframe's
-        loop edges, only the newest ``loops_per_keyframe`` active ones), the keyframes they reach outside
-        ``free`` (and those in ``fixed``) held as its boundary.
+        """The part of the graph that moves the keyframes ``free`` at their current estimates, gathered from them
+        alone: the active edges with an end in ``free``, the keyframes they reach outside ``free`` (and those in
+        ``fixed``) held as its boundary.
 
         Args:
             information_scale: as :meth:`pose_graph`.
             free: keyframe ids that may move.
-            poses: ``(M, 7)`` poses of every keyframe (default: the current estimates).
-            loops_per_keyframe: at most this many loop edges per free keyframe (None: all of them). A revisited
-                place gathers loops on every pass; the newest ones say where it is now.
+            loops_per_keyframe: at most this many loop edges per free keyframe, the newest (None: all of them).
             fixed: keyframes held even when in ``free``.
 
         Returns:
             ``(pose graph, keyframe ids of its poses (n,) int64, indices into :attr:`edges` of its edges (e,)
-            int64)``, or None when nothing is held (the window is a whole connected part of the graph: it has
-            no anchor of its own).
+            int64)``, or None when nothing is held (the window has no anchor).
 
         Raises:
             ValueError: a keyframe of ``free`` is out of range.
@@ -341,13 +298,8 @@ class KeyframeGraph:
         rows = []
         for k in np.nonzero(is_free)[0].tolist():
             rows.extend(e for e in self._odometry_of[k] if self.edges[e].active)
-            kept = 0
-            for e in reversed(self._loops_of[k]):
-                if loops_per_keyframe is not None and kept >= loops_per_keyframe:
-                    break
-                if self.edges[e].active:
-                    rows.append(e)
-                    kept += 1
+            loops = [e for e in reversed(self._loops_of[k]) if self.edges[e].active]  # the newest first
+            rows.extend(loops if loops_per_keyframe is None else loops[:loops_per_keyframe])
         rows = np.unique(np.asarray(rows, dtype=np.int64))
         ij = self._edge_ij.view[rows]
         used = np.unique(np.concatenate([ij.reshape(-1), np.nonzero(is_free)[0]]))
@@ -356,39 +308,26 @@ class KeyframeGraph:
             return None
         local = np.full(n, -1, dtype=np.int64)
         local[used] = np.arange(used.size)
-        P = (torch.from_numpy(self._estimate.view[used]) if poses is None
-             else poses.detach().to(torch.float64).cpu()[torch.from_numpy(used)])
-        scale = np.array([float(information_scale[kind]) for kind in EdgeKind])[self._edge_kind.view[rows]]
-        info = torch.from_numpy(self._edge_info.view[rows])
-        info = 0.5 * (info + info.transpose(-1, -2)) * torch.from_numpy(scale)[:, None, None]
+        P = torch.from_numpy(self._estimate.view[used])
         to = torch.from_numpy
-        pg = PoseGraph(P.clone(), to(local[ij[:, 0]]), to(local[ij[:, 1]]), to(self._edge_T.view[rows].copy()), info,
-                       fixed=to(local[held]))
+        pg = PoseGraph(P.clone(), to(local[ij[:, 0]]), to(local[ij[:, 1]]), to(self._edge_T.view[rows].copy()),
+                       self._information(rows, information_scale), fixed=to(local[held]))
         return pg, to(used), to(rows)
 
     def edge_kind_codes(self, rows: Tensor) -> Tensor:
         """``(e,)`` int64 :class:`EdgeKind` codes of the edges ``rows`` (indices into :attr:`edges`)."""
         return torch.from_numpy(self._edge_kind.view[rows.numpy()].copy())
 
-    # ------------------------------------------------------------------------------------------
     def chain_positions(self, ids) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Where keyframes lie along the odometry chain: (metres travelled from keyframe 0 ``(k,)`` float64,
-        weak edges passed since keyframe 0 ``(k,)`` int64), or None when the odometry edges are no chain.
-
-        The odometry distance of two keyframes (:meth:`path_lengths` without loops) is then the difference
-        of their metres where their weak-edge counts are equal, and ``inf`` otherwise: O(1) per pair.
-        """
-        if not self._chain:
-            return None
+        weak edges passed since keyframe 0 ``(k,)`` int64), or None when the odometry edges are no chain; the
+        odometry distance of two keyframes is the difference of their metres where their weak counts are equal."""
         idx = np.asarray(ids, dtype=np.int64)
-        return self._travelled.view[idx], self._weak_before.view[idx]
+        return (self._travelled.view[idx], self._weak_before.view[idx]) if self._chain else None
 
     def path_lengths_to(self, source: int, targets, through_loops: bool = True, min_loop_weight: float = 0.0
                         ) -> np.ndarray:
-        """:meth:`path_lengths` from ``source`` to ``targets`` only ``(k,)``: the same distances, found by a
-        search that stops once every target is reached (its cost is that of the graph around the source
-        out to the farthest target, not the whole graph's), or by chain positions without loops.
-        """
+        """:meth:`path_lengths` to ``targets`` only ``(k,)``: the search stops once every target is reached."""
         n = self.num_keyframes
         if not 0 <= source < n:
             raise ValueError(f"source keyframe {source} out of range for {n} keyframes")
@@ -398,8 +337,6 @@ class KeyframeGraph:
         if not through_loops and self._chain:
             c, weak = self._travelled.view, self._weak_before.view
             return np.where(weak[tg] == weak[source], np.abs(c[tg] - c[source]), np.inf)
-        import heapq
-
         left = set(tg.tolist())
         dist = {source: 0.0}
         done = set()
@@ -429,22 +366,16 @@ class KeyframeGraph:
                     heapq.heappush(heap, (nd, v))
         return np.array([dist.get(int(t), math.inf) for t in tg], dtype=np.float64)
 
-    def path_lengths(self, source: int, through_loops: bool = True, min_edge_length: float = 0.0,
-                     min_loop_weight: float = 0.0) -> np.ndarray:
+    def path_lengths(self, source: int, through_loops: bool = True, min_loop_weight: float = 0.0) -> np.ndarray:
         """Distance travelled ``(M,)`` (metres) from keyframe ``source`` to every keyframe along the graph.
 
-        An edge counts as ``max(|t_ij|, min_edge_length)``; without ``through_loops`` only odometry edges
-        are followed (the chain), with it the shortest path may take active loop edges whose back-end
-        weight is at least ``min_loop_weight``. A weak odometry edge (forced after a tracking loss) is
-        never followed: its pose is a guess, so it bounds no drift. Unreachable keyframes get ``inf``.
+        Without ``through_loops`` only odometry edges are followed, with it also active loop edges whose back-end
+        weight is at least ``min_loop_weight``; weak odometry edges never are. Unreachable keyframes get ``inf``.
         """
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import dijkstra
-
         n = self.num_keyframes
         if not 0 <= source < n:
             raise ValueError(f"source keyframe {source} out of range for {n} keyframes")
-        if not through_loops and self._chain and min_edge_length <= 0:
+        if not through_loops and self._chain:
             c, weak = self._travelled.view, self._weak_before.view
             return np.where(weak == weak[source], np.abs(c - c[source]), np.inf)
         use = [e for e in self.edges if e.active and ((e.kind is EdgeKind.ODOMETRY and not e.weak)
@@ -455,7 +386,7 @@ class KeyframeGraph:
             out[source] = 0.0
             return out
         # a zero-length edge would vanish from a sparse matrix: dijkstra needs explicit positive weights
-        w = np.array([max(e.length, min_edge_length, 1e-9) for e in use])
+        w = np.array([max(e.length, 1e-9) for e in use])
         ii = np.array([e.i for e in use])
         jj = np.array([e.j for e in use])
         # parallel edges: coo sums duplicates, so keep the shortest of each pair by hand

@@ -1,22 +1,9 @@
 """A coloured point-cloud map of the keyframes' depth, placed with the optimised poses, and its PLY file.
 
-While a run goes, :class:`PointCloudMap` keeps, for every keyframe, its depth back-projected into the
-keyframe's own (depth) camera frame with the colours of its pixels, voxel-downsampled there, and only the
-points that the keyframes just before it (``MapConfig.overlap_keyframes``, placed by the odometry between
-them) do not already hold in the same voxel: consecutive keyframes see mostly the same surfaces, so a
-keyframe keeps what it adds. The points are kept compactly: coordinates as int16 multiples of a per-keyframe
-step (at most ``voxel_size / 16``: 1.25 mm at 2 cm voxels) and uint8 colours, 9 bytes a point.
-The points stay in their keyframe's frame because the keyframes move when loops correct the graph: at the
-end :meth:`PointCloudMap.points` places every keyframe's points with the final
-(optimised) keyframe poses, in the trajectory's frame, and merges them on one voxel grid; :func:`write_ply`
-writes them as a binary little-endian PLY (``x y z`` float32, ``red green blue`` uchar) that MeshLab,
-CloudCompare, Open3D and RTAB-Map open.
-
-Unregistered frames (7-Scenes' Kinect v1: :attr:`FeatureConfig.rgb_intrinsics`): the depth map is warped
-into the colour camera (:func:`slam.odometry.depth_registration.register_depth_to_color`, z-buffered),
-each colour pixel with a depth is back-projected with the colour intrinsics and takes its own colour,
-and the point is moved into the depth camera's frame (``p_depth = p_rgb - t``): the geometry is the
-depth camera's measurement, the colour the colour camera's, and the frame the reported poses'.
+Each keyframe keeps, in its own depth-camera frame, the voxel-downsampled coloured points of its depth that the
+keyframes just before it do not hold (int16 coordinates, uint8 colours: 9 bytes a point); at the end they are
+placed with the optimised keyframe poses and merged on one voxel grid, written as a binary PLY
+(docs/pipeline.md, "The map").
 
 Example:
     >>> import numpy as np, torch
@@ -39,7 +26,10 @@ from typing import BinaryIO, Union
 import numpy as np
 import torch
 
-from slam.odometry.config import check_int
+from slam.input_checks import source_name
+from slam.lie import quat_to_rotmat
+from slam.odometry.depth_registration import register_depth_to_color, rig_pose
+from slam.odometry.config import check_int, check_number
 
 __all__ = ["MapConfig", "PLYFormatError", "PointCloudMap", "keyframe_cloud", "read_ply", "voxel_downsample",
            "write_ply"]
@@ -52,27 +42,19 @@ class MapConfig:
     """The keyframe point-cloud map written as ``map.ply``."""
 
     enabled: bool = True  # False: no map is kept or written (--no-map)
-    # Voxel edge (m) of the downsampling, per keyframe and of the merged map: one point (the centroid,
-    # mean colour) per occupied voxel. 2 cm keeps a room at ~10^5 points (~1.5 MB) and is finer than the
-    # Kinect's depth noise at 2-3 m.
-    voxel_size: float = 0.02
-    # Pixels are sampled every k-th row and column, with k chosen so that neighbouring samples at this
-    # depth are one voxel apart (k = voxel * fx / depth): nearer surfaces are denser and merge in the
-    # voxels, and the per-keyframe cost does not grow with the image size.
+    voxel_size: float = 0.02  # m: one point (the centroid, mean colour) per occupied voxel, per keyframe and merged
+    # pixels are sampled every k-th row and column, k = voxel * fx / sample_depth (samples there a voxel apart)
     sample_depth: float = 2.0  # m
     # Depth range kept in the map (m); None: the odometry's (FeatureConfig.min_depth / max_depth).
     min_depth: float | None = None
     max_depth: float | None = None
-    # A keyframe keeps only its points in voxels (of its own frame) that none of this many keyframes before it
-    # holds, placed by the odometry between them (PointCloudMap.add's reference): consecutive keyframes see
-    # mostly the same surfaces. 0: every keyframe keeps all its points.
+    # A keyframe keeps only its points in voxels that none of this many keyframes before it holds (placed by
+    # the odometry between them). 0: every keyframe keeps all its points.
     overlap_keyframes: int = 3
 
     def __post_init__(self):
         for name in ("voxel_size", "sample_depth"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"MapConfig.{name} must be a positive finite number, got {v!r}")
+            check_number("MapConfig", name, getattr(self, name), 0, lo_open=True, finite=True)
         for name in ("min_depth", "max_depth"):
             v = getattr(self, name)
             if v is not None and not (isinstance(v, (int, float)) and v >= 0):  # inf: no far bound
@@ -86,7 +68,6 @@ class PLYFormatError(ValueError):
     """A PLY file this reader cannot read (the message names the file and what was expected)."""
 
 
-# ----------------------------------------------------------------------------------------------------
 def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
     """One point per occupied voxel: the centroid of its points and their mean colour.
 
@@ -140,10 +121,9 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel_size: float) 
             _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     m = counts.shape[0]
-    out_p = np.stack([np.bincount(inverse, weights=p[:, k], minlength=m) for k in range(3)], 1) / counts[:, None]
-    c = colors.astype(np.float64)
-    out_c = np.stack([np.bincount(inverse, weights=c[:, k], minlength=m) for k in range(3)], 1) / counts[:, None]
-    return out_p.astype(np.float32), np.clip(np.rint(out_c), 0, 255).astype(np.uint8)
+    pc = np.concatenate([p, colors.astype(np.float64)], axis=1)  # the means of the points and of the colours
+    out = np.stack([np.bincount(inverse, weights=pc[:, k], minlength=m) for k in range(6)], 1) / counts[:, None]
+    return out[:, :3].astype(np.float32), np.clip(np.rint(out[:, 3:]), 0, 255).astype(np.uint8)
 
 
 def keyframe_cloud(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, config: MapConfig | None = None,
@@ -162,8 +142,7 @@ def keyframe_cloud(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, config: Ma
         depth_range: ``(min, max)`` metres used where ``config`` leaves them None (the odometry's).
 
     Returns:
-        ``(N, 3)`` float32 points (metres, depth-camera frame: x right, y down, z forward) and
-        ``(N, 3)`` uint8 colours.
+        ``(N, 3)`` float32 points (metres, depth-camera frame: x right, y down, z forward), ``(N, 3)`` uint8 colours.
     """
     cfg = config or MapConfig()
     rgb = np.asarray(rgb)
@@ -180,8 +159,6 @@ def keyframe_cloud(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, config: Ma
     d = torch.from_numpy(np.nan_to_num(np.ascontiguousarray(depth, dtype=np.float32), nan=0.0, posinf=0.0))
     offset = np.zeros(3)
     if rgb_intrinsics is not None:
-        from slam.odometry.depth_registration import register_depth_to_color, rig_pose
-
         fx, fy, cx, cy = (float(v) for v in rgb_intrinsics)
         K_rgb = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         d = register_depth_to_color(d, torch.from_numpy(K), torch.from_numpy(K_rgb),
@@ -203,8 +180,6 @@ def keyframe_cloud(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, config: Ma
 
 
 def _rotation_matrices(q: np.ndarray) -> np.ndarray:
-    from slam.lie import quat_to_rotmat
-
     return quat_to_rotmat(torch.from_numpy(np.ascontiguousarray(q, dtype=np.float64))).numpy()
 
 
@@ -226,9 +201,6 @@ def _matrix(pose) -> np.ndarray:
 
 class PointCloudMap:
     """The keyframes' coloured points, each kept in its keyframe's camera frame until it is placed.
-
-    Per keyframe: the points it adds to the keyframes just before it (``MapConfig.overlap_keyframes``), as
-    int16 coordinates times a step of its own and uint8 colours (9 bytes a point), plus the step.
 
     Args:
         config: :class:`MapConfig`.
@@ -264,8 +236,7 @@ class PointCloudMap:
             keyframe_id: its id.
             rgb, depth, K: its frame (see :func:`keyframe_cloud`).
             reference: ``(id, T_ref_kf)``: a keyframe added before and this keyframe's ``(7,)`` pose in it (the
-                odometry edge). Keyframes joined to this one through such references are the ones compared;
-                None (or a reference not among the last ones): nothing is compared, every point is kept.
+                odometry edge); None (or a reference not among the last ones): every point is kept.
         """
         pts, cols = keyframe_cloud(rgb, depth, K, self.config, self.rgb_intrinsics, self.rgb_from_depth,
                                    self.depth_range)
@@ -291,9 +262,7 @@ class PointCloudMap:
         return int(kept.shape[0])
 
     def drop(self, keyframe_ids) -> None:
-        """Forget the points of keyframes ``keyframe_ids`` (ids without points are skipped): revisits whose
-        place an earlier keyframe's points already hold (:attr:`slam.system.RGBDSLAM.released`), so that a
-        place seen lap after lap keeps one keyframe's points, not one set per lap."""
+        """Forget the points of keyframes ``keyframe_ids`` (released revisits; ids without points are skipped)."""
         for k in keyframe_ids:
             self._clouds.pop(int(k), None)
 
@@ -320,9 +289,8 @@ class PointCloudMap:
         """Every keyframe's points placed with its pose, merged on the voxel grid.
 
         Args:
-            keyframe_poses: ``(M, 7)`` world-from-camera poses ``[t, q_xyzw]`` of keyframes ``0 .. M-1``
-                (the depth camera's: ``SLAMResult.keyframe_trajectory.poses``); keyframes beyond ``M`` or
-                with a non-finite pose are left out.
+            keyframe_poses: ``(M, 7)`` world-from-camera depth-camera poses ``[t, q_xyzw]`` of keyframes ``0 .. M-1``;
+                keyframes beyond ``M`` or with a non-finite pose are left out.
 
         Returns:
             ``(N, 3)`` float32 world points and ``(N, 3)`` uint8 colours (N = 0 when nothing was kept).
@@ -347,7 +315,6 @@ class PointCloudMap:
         return voxel_downsample(world, colors, self.config.voxel_size)
 
 
-# ----------------------------------------------------------------------------------------------------
 _PLY_FIELDS = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1",
               "uint8": "u1", "char": "i1", "int8": "i1", "ushort": "<u2", "uint16": "<u2", "short": "<i2",
@@ -376,18 +343,15 @@ def write_ply(target: PathOrFile, points: np.ndarray, colors: np.ndarray, commen
         raise ValueError("cannot write non-finite point coordinates")
     big = np.abs(points.astype(np.float64)) > np.finfo(np.float32).max if points.size else np.zeros(0, bool)
     if big.any():  # written as float32 they would be inf
+        rows = np.flatnonzero(big.any(axis=1))
         raise ValueError(f"cannot write coordinates beyond float32's range (+-3.4e38) as PLY float: "
-                         f"{int(big.any(axis=1).sum())} point(s), the first row {int(np.flatnonzero(big.any(axis=1))[0])}")
+                         f"{rows.size} point(s), the first row {int(rows[0])}")
     vertex = np.empty(points.shape[0], dtype=_PLY_FIELDS)
-    for k, name in enumerate("xyz"):
-        vertex[name] = points[:, k]
-    for k, name in enumerate(("red", "green", "blue")):
-        vertex[name] = colors[:, k]
-    lines = ["ply", "format binary_little_endian 1.0"]
-    lines += [f"comment {c}" for c in comment.replace("\r", "").split("\n") if c]
-    lines += [f"element vertex {points.shape[0]}"]
-    lines += [f"property {'float' if dt == '<f4' else 'uchar'} {name}" for name, dt in _PLY_FIELDS]
-    lines += ["end_header"]
+    for k, (name, _) in enumerate(_PLY_FIELDS):
+        vertex[name] = points[:, k] if k < 3 else colors[:, k - 3]
+    lines = ["ply", "format binary_little_endian 1.0",
+             *(f"comment {c}" for c in comment.replace("\r", "").split("\n") if c), f"element vertex {points.shape[0]}",
+             *(f"property {'float' if dt == '<f4' else 'uchar'} {name}" for name, dt in _PLY_FIELDS), "end_header"]
     data = ("\n".join(lines) + "\n").encode("ascii", errors="replace") + vertex.tobytes()
     if isinstance(target, (str, os.PathLike)):
         with open(os.fspath(target), "wb") as f:
@@ -412,11 +376,8 @@ def read_ply(source: PathOrFile) -> tuple[np.ndarray, np.ndarray | None]:
             non-negative integer, a vertex line with too few values, or fewer bytes than the header
             announces (the message names the file, and the line where there is one).
     """
-    name = os.fspath(source) if isinstance(source, (str, os.PathLike)) else getattr(source, "name", "<file>")
-    if isinstance(source, (str, os.PathLike)):
-        data = Path(source).read_bytes()
-    else:
-        data = source.read()
+    name = source_name(source)
+    data = Path(source).read_bytes() if isinstance(source, (str, os.PathLike)) else source.read()
     # the header ends at the first line that is exactly "end_header" (a comment may contain the words)
     header, body_start, pos = [], None, 0
     while pos < len(data):
@@ -482,7 +443,5 @@ def read_ply(source: PathOrFile) -> tuple[np.ndarray, np.ndarray | None]:
         table = np.frombuffer(data, dtype=dt, count=count, offset=body_start)
         col = {p: table[p] for p in names}
     xyz = np.stack([col["x"], col["y"], col["z"]], 1).astype(np.float64)
-    rgb = None
-    if {"red", "green", "blue"} <= set(names):
-        rgb = np.stack([col["red"], col["green"], col["blue"]], 1).astype(np.uint8)
-    return xyz, rgb
+    has_rgb = {"red", "green", "blue"} <= set(names)
+    return xyz, np.stack([col["red"], col["green"], col["blue"]], 1).astype(np.uint8) if has_rgb else None

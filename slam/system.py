@@ -1,27 +1,9 @@
 """The RGB-D SLAM system: odometry front end + attention-guided loop closure + pose-graph back end.
 
-Data flows one way: frame -> odometry (:mod:`slam.odometry`) -> keyframe -> loop closer (:mod:`slam.loop`:
-descriptor, index, geometric verification, drift-aware acceptance, group consistency) -> keyframe graph
-(:mod:`slam.keyframe_graph`, typed odometry / loop edges) -> back end (:mod:`slam.backend`, a robust kernel
-per edge kind) -> trajectory.
-
-Online correction (``BackendConfig.optimize_on_loop``, on by default): after a keyframe whose loops changed
-the graph, the graph is optimised in the tracking thread (a bounded number of iterations from the previous
-solution), every keyframe moves to its corrected pose and the front end is re-anchored on it, so the pose
-:meth:`RGBDSLAM.track` reports from then on is the corrected one (``FrameState.corrected``); the pure
-odometry pose is reported beside it (``FrameState.odometry_pose``).
-
-Only keyframes enter the pose graph; every other frame is stored as a pose relative to its keyframe, so
-after the final optimisation each input frame gets ``T_world_kf (optimised) * T_kf_frame``.
-
-Loop work in a worker thread (``RGBDSLAM(..., background_loops=True)``, what :func:`slam.pipeline.run_slam`
-uses): a new keyframe's loop work (graph entry, description, verification, consistency, online correction)
-runs in one worker thread while tracking goes on, and is waited for when the next keyframe comes (or in
-:meth:`RGBDSLAM.finish`). The work and its order are those of the tracking thread, so the graph, the loops
-and :meth:`RGBDSLAM.finish`'s result are the same, bit for bit; what differs is *when* a frame's report
-shows them: a loop and its correction are reported by the frame that waits for them (the next keyframe;
-the last keyframe's loops are only in :meth:`RGBDSLAM.finish`'s result), and the poses reported in between
-are placed on the keyframe estimates as of the last wait.
+frame -> odometry -> keyframe -> loop closer -> keyframe graph -> back end -> trajectory; loops are optimised
+online and tracking re-anchored (``BackendConfig.optimize_on_loop``), and only keyframes enter the graph (a frame
+is its keyframe's pose times its pose in it). With ``background_loops`` a keyframe's loop work runs in a worker
+thread, with the same results, reported one keyframe later: docs/pipeline.md ("What each stage does", "Long runs").
 
 Example:
     >>> import numpy as np
@@ -75,16 +57,12 @@ __all__ = ["FrameState", "LoopClosure", "LoopQuery", "LoopWorkerError", "RGBDSLA
 
 
 class LoopWorkerError(RuntimeError):
-    """The loop worker failed on a keyframe's loop work: the run cannot go on (its graph is half-updated).
-
-    Raised by the :meth:`RGBDSLAM.track` (or :meth:`RGBDSLAM.finish`) that finds the failure, and by every
-    later call; the worker's own exception is its ``__cause__``. :meth:`RGBDSLAM.result_so_far` still gives
-    the frames tracked so far. ``run`` is set by :func:`slam.pipeline.run_slam` to the partial
-    :class:`slam.pipeline.RunResult`, whose outputs can still be written.
+    """The loop worker failed on a keyframe's loop work (the graph is half-updated): raised by the call that
+    finds it and by every later one, with the worker's exception as ``__cause__``.
 
     Attributes:
         keyframes: the ids of the keyframes whose work failed.
-        run: the partial run (set by :func:`slam.pipeline.run_slam`), else None.
+        run: the partial :class:`slam.pipeline.RunResult` (set by :func:`slam.pipeline.run_slam`), else None.
     """
 
     def __init__(self, message: str, keyframes=()):
@@ -95,101 +73,60 @@ class LoopWorkerError(RuntimeError):
 
 @dataclass
 class FrameState:
-    """What :meth:`RGBDSLAM.track` reports for one frame.
+    """What :meth:`RGBDSLAM.track` reports for one frame."""
 
-    Attributes:
-        index: input order of the frame.
-        timestamp: its timestamp.
-        pose: ``(7,)`` float64 the system's current world-from-camera estimate of the depth camera (the
-            frame of the input ``K``; see ``FeatureConfig.rgb_intrinsics`` for unregistered frames): its
-            keyframe's corrected pose composed with the frame's pose in it when loops have been optimised
-            online (``corrected``), else the odometry's.
-        status: ``"initialized" | "ok" | "lost" | "recovered" | "skipped"``.
-        reason: why it is lost / skipped / a keyframe ("" when plainly tracked).
-        keyframe_id: the keyframe it is expressed relative to (-1 before the first keyframe).
-        new_keyframes: ids of keyframes created by this call.
-        new_loops: loops verified during this call and kept (consistent with the others).
-        num_inliers: inliers of the registration that placed the frame (0 when none did).
-        inlier_rmse: their 3D RMSE in metres (NaN when no registration placed the frame).
-        odometry_pose: ``(7,)`` the same frame placed by odometry alone (the chain of odometry edges).
-        corrected: ``pose`` includes the corrections of the loops optimised so far (False: it is
-            ``odometry_pose``).
-        correction: the online optimisation run during this call, if any.
-    """
-
-    index: int
+    index: int  # input order of the frame
     timestamp: float
+    # (7,) float64 world-from-camera pose of the depth camera (the frame of the input K), corrected by the loops
+    # optimised so far when `corrected`
     pose: Tensor
-    status: str
-    reason: str
-    keyframe_id: int
-    new_keyframes: List[int] = field(default_factory=list)
-    new_loops: List[LoopClosure] = field(default_factory=list)
-    num_inliers: int = 0
-    inlier_rmse: float = math.nan
-    odometry_pose: Optional[Tensor] = None
-    corrected: bool = False
-    correction: Optional[BackendResult] = None
+    status: str  # "initialized" | "ok" | "lost" | "recovered" | "skipped"
+    reason: str  # why it is lost / skipped / a keyframe ("" when plainly tracked)
+    keyframe_id: int  # the keyframe it is expressed relative to (-1 before the first keyframe)
+    new_keyframes: List[int] = field(default_factory=list)  # ids of keyframes created by this call
+    new_loops: List[LoopClosure] = field(default_factory=list)  # loops verified during this call and kept
+    num_inliers: int = 0  # inliers of the registration that placed the frame (0 when none did)
+    inlier_rmse: float = math.nan  # their 3D RMSE in metres (NaN when no registration placed the frame)
+    odometry_pose: Optional[Tensor] = None  # (7,) the same frame placed by odometry alone
+    corrected: bool = False  # `pose` includes loop corrections (False: it is `odometry_pose`)
+    correction: Optional[BackendResult] = None  # the online optimisation run during this call, if any
 
 
 @dataclass
 class SLAMResult:
-    """What :meth:`RGBDSLAM.finish` returns.
+    """What :meth:`RGBDSLAM.finish` returns."""
 
-    Attributes:
-        trajectory: one optimised pose per input frame, in input order; a frame lost (or skipped) between two
-            tracked ones is interpolated between their optimised poses by time (during the run it was
-            placed by constant velocity, as ``odometry_trajectory`` keeps it).
-        odometry_trajectory: the same frames before pose-graph optimisation.
-        keyframe_trajectory: optimised keyframe poses (timestamps of the keyframes).
-        keyframe_frames: ``(M,)`` input index of each keyframe.
-        loops: the loops in effect at the end: verified, in the consistent group, and not switched off by
-            the back end's robust kernel.
-        queries: one entry per loop-database query.
-        graph: the optimised keyframe pose graph (None when there were no keyframes).
-        optimization: the optimiser's result (None when nothing was optimised).
-        num_frames, num_keyframes, num_lost, num_skipped: counts.
-        timings: seconds and calls per stage.
-        loop_hypotheses: every verified loop, with its final ``status`` (kept / inconsistent / switched_off).
-        corrections: the online optimisations, in order: each one's status, iterations, seconds and chi2;
-            only the last keeps its poses, loop weights and optimiser result (the earlier ones' are in the
-            graph: over a long run they would grow with the square of its length).
-        tracked: ``(N,)`` bool per frame: placed by tracking (not lost, not unreadable): the frames that a
-            system which outputs tracked frames only (ORB-SLAM's trajectory files) would report.
-        loop_lag: ``(N,)`` int64 per frame: the keyframes whose loop work was waiting (queued or running in
-            the loop worker) when the frame's :meth:`RGBDSLAM.track` returned (zeros without the worker).
-        released: the keyframes whose features and image were released (revisits that added nothing:
-            ``LoopClosureConfig.release_revisits``), in order; their poses stay in the trajectory.
-        error: why the run stopped early (:class:`LoopWorkerError`; :meth:`RGBDSLAM.result_so_far`), else
-            None. Such a result holds the poses as tracking reported them, not optimised.
-    """
-
+    # one optimised pose per input frame, in input order; a frame lost (or skipped) between two tracked ones is
+    # interpolated by time between their optimised poses
     trajectory: Trajectory
-    odometry_trajectory: Trajectory
-    keyframe_trajectory: Trajectory
-    keyframe_frames: Tensor
-    loops: List[LoopClosure]
-    queries: List[LoopQuery]
-    graph: Optional[PoseGraph]
-    optimization: Optional[OptimizationResult]
+    odometry_trajectory: Trajectory  # the same frames before pose-graph optimisation
+    keyframe_trajectory: Trajectory  # optimised keyframe poses (timestamps of the keyframes)
+    keyframe_frames: Tensor  # (M,) input index of each keyframe
+    loops: List[LoopClosure]  # the loops in effect at the end: verified, consistent, not switched off
+    queries: List[LoopQuery]  # one entry per loop-database query
+    graph: Optional[PoseGraph]  # the optimised keyframe pose graph (None when there were no keyframes)
+    optimization: Optional[OptimizationResult]  # the optimiser's result (None when nothing was optimised)
     num_frames: int
     num_keyframes: int
     num_lost: int
     num_skipped: int
-    timings: Dict[str, Dict[str, float]]
+    timings: Dict[str, Dict[str, float]]  # seconds and calls per stage
+    # every verified loop, with its final `status` (kept / inconsistent / switched_off)
     loop_hypotheses: List[LoopClosure] = field(default_factory=list)
+    # the online optimisations, in order; only the last keeps its poses, loop weights and optimiser result
     corrections: List[BackendResult] = field(default_factory=list)
-    tracked: Optional[Tensor] = None
+    tracked: Optional[Tensor] = None  # (N,) bool per frame: placed by tracking (not lost, not unreadable)
+    # (N,) int64 per frame: the keyframes whose loop work was waiting in the loop worker when its track() returned
     loop_lag: Optional[Tensor] = None
-    released: List[int] = field(default_factory=list)
+    released: List[int] = field(default_factory=list)  # keyframes released (LoopClosureConfig.release_revisits)
+    # why the run stopped early (RGBDSLAM.result_so_far: poses as tracking reported them), else None
     error: Optional[str] = None
 
 
 def interpolate_gaps(timestamps: Tensor, poses: Tensor, placed: Tensor) -> Tensor:
-    """Poses ``(N, 7)`` whose frames not ``placed`` (lost or skipped) are interpolated between the nearest
-    placed frames before and after them, by time along the screw motion between the two:
-    ``P_a exp(s log(P_a^-1 P_b))``, ``s = (t - t_a) / (t_b - t_a)``. Frames before the first or after the last
-    placed frame keep their poses (nothing to interpolate to).
+    """Poses ``(N, 7)`` whose frames not ``placed`` are interpolated by time between the nearest placed frames
+    before and after them: ``P_a exp(s log(P_a^-1 P_b))``, ``s = (t - t_a) / (t_b - t_a)``; frames outside the
+    first and last placed ones keep their poses.
 
     Args:
         timestamps: ``(N,)`` seconds, increasing.
@@ -223,23 +160,15 @@ class RGBDSLAM:
 
     Args:
         config: :class:`slam.config.SLAMConfig`.
-        descriptor: an already built descriptor model mapping ``(1, 3, H, W)`` uint8 images to ``(1, D)``
-            L2-normalised descriptors (default: :class:`attnloop.AttentionDescriptor` built from
-            ``config.loop.descriptor``).
-        background_loops: run each keyframe's loop work in a worker thread (see the module docstring): the
-            same results, loops reported one keyframe later (``BackendConfig.loop_backlog = 0``), or tracking
-            running ahead of the worker by up to ``loop_backlog`` keyframes. Every call computes with the
-            caller's thread counts (set once for the run: :func:`slam.threads.limit_threads`). Work handed to
-            the worker is never dropped: :meth:`finish` waits for all of it; a failure of it is raised as
-            :class:`LoopWorkerError`.
-        localize: localisation in a saved map (:class:`slam.maps.MapRelocaliser` with
-            ``RelocalisationConfig.localize``): keyframes serve tracking and the map queries only; they are
-            entered in the graph (the merge into the map's world needs it: a few hundred bytes each) but
-            not described nor searched for loops here, and :meth:`release_keyframe` drops their features
-            and image once used, so memory stays flat over any length.
-        keep_images: keep each keyframe's downsized image (``Keyframe.rgb``) after its loop work described it
-            (what a saved map stores: :func:`slam.maps.capture_map`); False drops it then (None), the
-            largest part of a keyframe (230 kB at 320 x 240) that nothing reads again.
+        descriptor: a built model mapping ``(1, 3, H, W)`` uint8 images to ``(1, D)`` L2-normalised descriptors
+            (default: :class:`attnloop.AttentionDescriptor` built from ``config.loop.descriptor``).
+        background_loops: run each keyframe's loop work in a worker thread: the same results, loops reported
+            one keyframe later (or up to ``BackendConfig.loop_backlog`` keyframes); :meth:`finish` waits for
+            all of it, and a failure of it is raised as :class:`LoopWorkerError`.
+        localize: localisation in a saved map (:class:`slam.maps.MapRelocaliser`): keyframes enter the graph
+            but are neither described nor searched for loops here (:meth:`release_keyframe`).
+        keep_images: keep each keyframe's downsized image (``Keyframe.rgb``) after its loop work (what a saved
+            map stores); False drops it then.
 
     Call :meth:`track` once per frame in input order (or :meth:`skip` for a frame that could not be read),
     then :meth:`finish`.
@@ -259,12 +188,10 @@ class RGBDSLAM:
         self.loop_closer: Optional[LoopCloser] = None
         if self.config.loop.enabled:
             self.loop_closer = LoopCloser(self.config.loop, descriptor=descriptor, timer=self.timer)
-        # per frame, in input order: its timestamp, the keyframe it is placed in (-1: none yet), its pose there,
-        # whether tracking placed it (not lost nor skipped): rows, not an object per frame
+        # per frame: timestamp, its keyframe (-1: none yet), its pose there, whether tracking placed it
         self._frame_ts, self._frame_kf, self._frame_placed = array("d"), array("q"), array("b")
         self._frame_T = GrowingArray(np.float64, (7,))
-        # revisiting keyframes that add nothing (LoopClosureConfig.release_revisits), released once a later
-        # keyframe has replaced them as tracking's reference; a map to save keeps every keyframe
+        # revisits (LoopClosureConfig.release_revisits), released once no longer tracking's reference
         self._release = (self.loop_closer is not None and not self.localize and not keep_images
                          and self.config.loop.release_revisits)
         self._to_release: List[int] = []
@@ -275,8 +202,7 @@ class RGBDSLAM:
         self._num_lost = 0
         self._num_skipped = 0
         self._finished = False
-        # the loop worker (background_loops): the keyframes' work in flight, and the keyframe estimates the
-        # reports use meanwhile (the tracking thread never reads the graph while the worker may write it)
+        # the loop worker: the tracking thread never reads the graph while the worker may write it
         self._worker: Optional[ThreadPoolExecutor] = None
         if background_loops and self.loop_closer is not None and not self.localize:
             self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-loops")
@@ -284,32 +210,26 @@ class RGBDSLAM:
         self._failure: Optional[LoopWorkerError] = None  # the worker failed: every later call raises it
         self._broken = False  # set by the worker thread when a job raised: the jobs queued after it do nothing
         self._lag = array("q")  # per frame: keyframes waiting for the worker when track() returned
-        # (2, M, 7) per keyframe: its estimate and odometry pose as reported (one block: replaced at every hand-over)
+        # (2, M, 7) per keyframe: its estimate and odometry pose as reported
         self._shown = torch.zeros(2, 0, 7, dtype=torch.float64)
         self._shown_corrected = False  # the shown estimates include loop corrections
-        # The front end tracks the camera whose pixels the keypoints live in: the colour camera when the
-        # frames are unregistered (``odometry.features.rgb_intrinsics``). Poses are reported for the
-        # depth camera, the frame of the input K and of depth-based ground truth (7-Scenes'), by the
-        # change of frame T_rgb_depth^-1 * P * T_rgb_depth (the world stays the first camera's).
+        # unregistered frames: the front end tracks the colour camera, poses are reported for the depth camera
         feats = self.config.odometry.features
         self._T_rgb_depth = None
         if feats.rgb_intrinsics is not None and any(float(x) != 0.0 for x in feats.rgb_from_depth_translation):
             self._T_rgb_depth = rig_pose(feats.rgb_from_depth_translation)
 
-    # ------------------------------------------------------------------------------------------
     @property
     def keyframes(self) -> List[Keyframe]:
         """The odometry's keyframes (features and downsized RGB; None once :meth:`release_keyframe` dropped them)."""
         return self.odometry.keyframes
 
     def release_keyframe(self, kf_id: int) -> None:
-        """Drop a keyframe's features and image (``Keyframe.features`` / ``rgb`` become None), keeping its
-        pose, graph entry and odometry edge: for a keyframe nothing will register against again (in
-        localisation, once it is no longer tracking's reference and has queried the map).
+        """Drop a keyframe's features and image in localisation (they become None), keeping its pose and edges.
 
         Raises:
-            ValueError: ``kf_id`` is tracking's current reference keyframe (it is registered against), or a
-                run that closes loops among its own keyframes (any of them can be a loop candidate later).
+            ValueError: ``kf_id`` is tracking's current reference keyframe, or the run closes loops among its
+                own keyframes (any of them can be a loop candidate later).
         """
         if not self.localize and self.loop_closer is not None:
             raise ValueError("release_keyframe() is for localisation (RGBDSLAM(localize=True)): a run that closes "
@@ -321,8 +241,7 @@ class RGBDSLAM:
         kfs[kf_id].rgb = None
 
     def keyframe_index(self):
-        """The loop closer's :class:`attnloop.index.KeyframeIndex`: one descriptor per keyframe that finished its
-        loop work, in keyframe order (empty when localising: nothing is entered); None without loop closure."""
+        """The loop closer's :class:`attnloop.index.KeyframeIndex` (one descriptor per keyframe in its database)."""
         return None if self.loop_closer is None else self.loop_closer.detector.index
 
     @property
@@ -335,20 +254,16 @@ class RGBDSLAM:
 
     @property
     def loop_lag(self) -> int:
-        """Keyframes whose loop work is waiting in the loop worker (queued or running); 0 without it. With
-        ``BackendConfig.loop_backlog = N`` it is at most N + the keyframes of one hand-over after a
-        :meth:`track`."""
+        """Keyframes whose loop work is waiting in the loop worker (queued or running); 0 without it."""
         return sum(len(ids) for fut, ids in self._jobs if not fut.done())
 
-    # ------------------------------------------------------------------------------------------
     def track(self, frame: RGBDFrame, features: Optional[FrameFeatures] = None) -> FrameState:
         """Process the next frame.
 
         Args:
             frame: :class:`~slam.io.frame.RGBDFrame` (RGB ``(H, W, 3)`` uint8, depth ``(H, W)`` metres).
-            features: the frame's odometry features if extracted ahead (in a reader thread, as
-                :func:`slam.pipeline.run_slam` does): ``extract_features(frame.rgb, frame.depth, frame.K,
-                config.odometry.features)``; None: extracted here.
+            features: the frame's odometry features if extracted ahead (``extract_features(frame.rgb,
+                frame.depth, frame.K, config.odometry.features)``, as :func:`slam.pipeline.run_slam` does).
 
         Returns:
             :class:`FrameState`. Bad frames (no depth, no texture) are a ``"lost"`` state, never an error.
@@ -374,30 +289,28 @@ class RGBDSLAM:
         # every keyframe the front end created during this call (a promoted previous frame included)
         kfs = self.odometry.keyframes[self._shown.shape[1] if self._worker is not None else self.graph.num_keyframes:]
         new_keyframes = [kf.id for kf in kfs]
-        if self._worker is None:
-            new_loops, correction = self._keyframe_work(kfs)
-        else:
-            new_loops, correction = self._submit(kfs)
+        new_loops, correction = self._keyframe_work(kfs) if self._worker is None else self._submit(kfs)
         self._lag.append(self.loop_lag)
         if res.keyframe_id >= 0:
-            est, odo_kf = self._keyframe_poses(res.keyframe_id)
-            pose = se3_compose(est, T_kf)
-            odo = se3_compose(odo_kf, T_kf)
+            pose, odo = self._reported_poses(res.keyframe_id, T_kf)
         else:
             pose = odo = res.pose.detach().to(torch.float64).cpu()
-        return FrameState(int(frame.index), float(frame.timestamp), self._output_frame(pose), status, res.reason,
+            pose, odo = self.depth_camera_pose(pose), self.depth_camera_pose(odo)
+        return FrameState(int(frame.index), float(frame.timestamp), pose, status, res.reason,
                           res.keyframe_id, new_keyframes, [lp for lp in new_loops if lp.status == "kept"],
-                          res.num_inliers, res.inlier_rmse, self._output_frame(odo), self._reported_corrected(),
-                          correction)
+                          res.num_inliers, res.inlier_rmse, odo, self._reported_corrected(), correction)
 
     def _keyframe_work(self, kfs: List[Keyframe]):
-        """New keyframes into the graph, their loops closed, the graph corrected online: (kept loops, the
-        online correction or None)."""
+        """New keyframes into the graph, loops closed, the graph corrected online: (kept loops, correction or None)."""
         new_loops, settled = [], True
-        self._release_revisits(kfs[-1].id if kfs else None)
+        self._release_revisits(kfs[-1].id if kfs else -1)
         touched = [kf.id for kf in kfs]  # where the graph changed, in order: the online correction's window
-        for kf in kfs:
-            self._add_to_graph(kf)
+        for kf in kfs:  # into the graph with its odometry edge (the front end's edges all end at a new keyframe)
+            if kf.id == 0:
+                self.graph.add_keyframe(kf.pose)
+            else:
+                edge = self.odometry.edges[kf.id - 1]
+                self.graph.add_odometry(edge.i, edge.T_ij, edge.information, estimate=kf.pose, weak=edge.weak)
             if self.loop_closer is not None and not self.localize:
                 update = self.loop_closer.close(kf, self.odometry.keyframes, self.graph,
                                                 through_loops=self._corrected,
@@ -417,42 +330,31 @@ class RGBDSLAM:
         return new_loops, correction
 
     def _settled(self, update: LoopUpdate) -> bool:
-        """Whether the estimate already satisfies ``update``: only new loops, each kept one settled
-        (:attr:`LoopClosure.settled`), and the estimate corrected by loops before."""
+        """Whether the estimate already satisfies ``update``: only new, settled kept loops on a corrected estimate."""
         if update.changed or not self._corrected:
             return not update
         return all(lp.settled for lp in update.new if lp.consistent)
 
     def _repeats(self, lp: LoopClosure) -> bool:
-        """The loop joins its query to an earlier keyframe within the odometry's keyframe thresholds (distance,
-        turn, inliers and their share of that keyframe's valid points): tracking against that keyframe would
-        have made no new one here (LoopClosureConfig.release_revisits)."""
+        """The loop joins its query to an earlier keyframe within the odometry's keyframe thresholds: tracking
+        against that keyframe would have made no new one here (LoopClosureConfig.release_revisits)."""
         oc = self.config.odometry
         a, v = self.odometry.keyframes[lp.kf_a], lp.verification
         return (v is not None and v.distance <= oc.keyframe_translation and v.rotation_deg <= oc.keyframe_rotation_deg
                 and v.num_inliers >= oc.keyframe_min_inliers
                 and v.num_inliers / max(a.features.num_valid, 1) >= oc.keyframe_min_inlier_ratio)
 
-    def _release_revisits(self, newest: Optional[int]) -> None:
-        """Release the revisits (:attr:`LoopUpdate.revisit`: never in the loop closer's database) older than
-        ``newest``: tracking's reference is then a later one, so nothing registers against them again."""
-        if newest is None:
-            return
-        keep = []
-        for k in self._to_release:
-            if k < newest:
-                kf = self.odometry.keyframes[k]
-                kf.features, kf.rgb = None, None
-                self.released.append(k)
-            else:
-                keep.append(k)
-        self._to_release = keep
+    def _release_revisits(self, newest: int) -> None:
+        """Release the revisits older than ``newest``: tracking's reference is a later one, nothing uses them again."""
+        for k in [k for k in self._to_release if k < newest]:
+            kf = self.odometry.keyframes[k]
+            kf.features, kf.rgb = None, None
+            self.released.append(k)
+        self._to_release = [k for k in self._to_release if k >= newest]
 
-    # -- the loop worker (background_loops) -------------------------------------------------------------
     def _collect(self, keep: int):
-        """Wait for the oldest jobs until at most ``keep`` keyframes' work is still waiting, and take the
-        results of every finished job at the head of the queue (in order): (kept loops, the last correction,
-        the graph's estimates after the last of them or None). A job that raised is a :class:`LoopWorkerError`."""
+        """Wait until at most ``keep`` keyframes' work is waiting and take the finished jobs' results, in order:
+        (kept loops, the last correction, the graph's estimates after them or None)."""
         loops, correction, snapshot = [], None, None
         while self._jobs:
             fut, ids = self._jobs[0]
@@ -462,27 +364,18 @@ class RGBDSLAM:
                 job_loops, job_correction, job_snapshot = fut.result()
             except Exception as exc:  # noqa: BLE001  (any error of the worker's; a Ctrl-C while waiting is not)
                 self._jobs.popleft()
-                self._fail(ids, exc)
+                self._failure = LoopWorkerError(f"the loop worker failed on keyframe{'s' if len(ids) > 1 else ''} "
+                                                f"{', '.join(map(str, ids))}: {type(exc).__name__}: {exc}", ids)
+                self._failure.__cause__ = exc
+                raise self._failure
             self._jobs.popleft()
             loops.extend(job_loops)
             correction = job_correction if job_correction is not None else correction
             snapshot = job_snapshot
         return loops, correction, snapshot
 
-    def _fail(self, ids, exc: BaseException):
-        self._failure = LoopWorkerError(f"the loop worker failed on keyframe{'s' if len(ids) > 1 else ''} "
-                                        f"{', '.join(map(str, ids))}: {type(exc).__name__}: {exc}", ids)
-        self._failure.__cause__ = exc
-        raise self._failure
-
-    def _wait(self):
-        """All the work handed to the worker, finished: (kept loops, correction, snapshot)."""
-        return self._collect(keep=0)
-
     def _submit(self, kfs: List[Keyframe]):
-        """Take the finished work (waiting while more than ``BackendConfig.loop_backlog`` keyframes' work is
-        waiting), hand the new keyframes' work to the worker; the reports then use the graph as the last
-        finished job left it (later keyframes chained on it by their odometry edges)."""
+        """Take the finished work (waiting beyond ``BackendConfig.loop_backlog``), hand ``kfs``' work to the worker."""
         if not kfs:
             return [], None
         new_loops, correction, snapshot = self._collect(keep=self.config.backend.loop_backlog)
@@ -512,15 +405,12 @@ class RGBDSLAM:
         if self._broken:  # an earlier job failed: the graph is half-updated, nothing more is done on it
             raise RuntimeError("not run: an earlier keyframe's loop work failed")
         try:
-            # The front end chained each keyframe's pose on its parent's as it stood then, which may have been
-            # before the last correction re-anchored it; in the tracking thread it would have been after. The
-            # graph must start from the same estimate: chain it again now (the same operation on the same values).
+            # chained again on the parent's pose as the last correction left it, as the tracking thread would
             for kf in kfs:
                 if kf.id > 0:
                     edge = self.odometry.edges[kf.id - 1]
                     kf.pose = se3_compose(self.odometry.keyframes[edge.i].pose, edge.T_ij)
             loops, correction = self._keyframe_work(kfs)
-            # what the tracking thread shows once it takes this result (it never reads the graph meanwhile)
             return loops, correction, (self.graph.estimates(), self.graph.odometry_poses(), self._corrected)
         except BaseException:
             self._broken = True
@@ -532,24 +422,15 @@ class RGBDSLAM:
     def keyframe_poses(self) -> Tensor:
         """``(M, 7)`` float64 the keyframes' poses (the depth camera's) as :meth:`track`'s reports place them now:
         corrected by the loops optimised so far, later keyframes chained by odometry (what a viewer draws)."""
-        return self._output_frame(self._shown[0] if self._worker is not None else self.graph.estimates())
+        return self.depth_camera_pose(self._shown[0] if self._worker is not None else self.graph.estimates())
 
-    def _keyframe_poses(self, kf_id: int):
-        """(estimate, odometry pose) of a keyframe, as the reports show them."""
+    def _reported_poses(self, kf_id: int, T: Tensor):
+        """(pose, odometry pose) ``(7,)`` of the depth camera at ``T`` in keyframe ``kf_id``, as reports show them."""
         if self._worker is not None:
-            return self._shown[0, kf_id], self._shown[1, kf_id]
-        return self.graph.estimate(kf_id), self.graph.odometry_pose(kf_id)
-
-    def _add_to_graph(self, kf: Keyframe) -> None:
-        """Enter a new keyframe with its odometry edge (the front end's edges all end at a new keyframe)."""
-        if kf.id == 0:
-            self.graph.add_keyframe(kf.pose)
-            return
-        edge = self.odometry.edges[kf.id - 1]
-        if edge.j != kf.id:
-            raise RuntimeError(f"odometry edge {edge.i} -> {edge.j} does not end at keyframe {kf.id}")
-        # the front end chains keyframe poses from the (re-anchored) reference keyframe: the estimate
-        self.graph.add_odometry(edge.i, edge.T_ij, edge.information, estimate=kf.pose, weak=edge.weak)
+            est, odo = self._shown[0, kf_id], self._shown[1, kf_id]
+        else:
+            est, odo = self.graph.estimate(kf_id), self.graph.odometry_pose(kf_id)
+        return self.depth_camera_pose(se3_compose(est, T)), self.depth_camera_pose(se3_compose(odo, T))
 
     def _apply(self, update: LoopUpdate) -> None:
         """Put the loop closer's decisions into the graph: new loop edges, and which loops are in effect."""
@@ -572,8 +453,7 @@ class RGBDSLAM:
 
         Args:
             touched: the keyframes where the graph changed (the new ones, the ends of the loops added or
-                switched); with ``BackendConfig.online_window`` only the keyframes within that many of them
-                move.
+                switched): the window's centres (``BackendConfig.online_window``).
         """
         if not self.graph.has_active_loop():
             if self._corrected:  # every loop left the group: back to odometry
@@ -600,13 +480,8 @@ class RGBDSLAM:
 
     def _online_window(self, touched) -> Optional[List[int]]:
         """The keyframes an online correction moves: those within ``BackendConfig.online_window`` of a
-        touched keyframe but keyframe 0, or None (the whole graph) when the window is off or covers every
-        keyframe. Keyframe 0 is held as the whole-graph optimisation holds it: it fixes the world frame, so
-        that the corrections and :meth:`finish` place the map alike.
-
-        ``touched`` is in order of priority (the new keyframes, then the ends of the loops each one added or
-        changed): the window takes their neighbourhoods while it stays within ``2 (2 w + 1)`` keyframes, so a
-        keyframe whose loops reach a place seen on many passes does not widen it pass after pass."""
+        ``touched`` keyframe (in order of priority, while the window stays within ``2 (2 w + 1)`` keyframes)
+        but keyframe 0, which fixes the world frame; None (the whole graph) when the window is off or full."""
         width, m = self.config.backend.online_window, self.graph.num_keyframes
         if width is None or not touched:
             return None
@@ -625,9 +500,7 @@ class RGBDSLAM:
         return torch.nonzero(free)[:, 0].tolist()
 
     def _reanchor(self, ids: Optional[List[int]] = None) -> None:
-        """The front end's keyframes take the graph's estimates: tracking continues from the corrected pose
-        of its reference keyframe (frames are tracked relative to it, so nothing else moves). ``ids``: only
-        these keyframes moved (default: any may have)."""
+        """The front end's keyframes (or only ``ids``) take the graph's estimates: tracking continues from them."""
         est = self.graph.estimates()
         kfs = self.odometry.keyframes
         for k in (range(min(len(kfs), est.shape[0])) if ids is None else ids):
@@ -654,26 +527,18 @@ class RGBDSLAM:
         self._record(float(timestamp), kf_id, T, False)
         self._lag.append(self.loop_lag)
         if kf_id >= 0:
-            est, odo_kf = self._keyframe_poses(kf_id)
-            pose = self._output_frame(se3_compose(est, T))
-            odo = self._output_frame(se3_compose(odo_kf, T))
+            pose, odo = self._reported_poses(kf_id, T)
         else:
             pose, odo = T.clone(), T.clone()
         return FrameState(int(index), float(timestamp), pose, "skipped", reason, kf_id, odometry_pose=odo,
                           corrected=self._reported_corrected())
 
-    # ------------------------------------------------------------------------------------------
-    def _output_frame(self, poses: Tensor) -> Tensor:
-        """Tracked-camera poses ``(..., 7)`` -> depth-camera poses (identity map for registered frames)."""
+    def depth_camera_pose(self, poses: Tensor) -> Tensor:
+        """Poses ``(..., 7)`` of the tracked camera (absolute, or relative: an odometry edge) as the depth
+        camera's, the frame of every reported pose and of the map (the same poses for registered frames)."""
         if self._T_rgb_depth is None:
             return poses
         return depth_camera_poses(poses, self._T_rgb_depth)
-
-    def depth_camera_pose(self, poses: Tensor) -> Tensor:
-        """Poses ``(..., 7)`` of the tracked camera (absolute, or one keyframe's in another: an odometry edge)
-        as the depth camera's, the frame every reported pose and the map's points are in (the same poses
-        for registered frames)."""
-        return self._output_frame(poses)
 
     def _record(self, timestamp: float, kf_id: int, T_kf_frame: Tensor, placed: bool) -> None:
         self._frame_ts.append(timestamp)
@@ -696,13 +561,10 @@ class RGBDSLAM:
         poses = se3_compose(base, T)
         if interpolate_lost:
             poses = interpolate_gaps(ts, poses, self._placed())
-        return Trajectory(ts, self._output_frame(poses))
+        return Trajectory(ts, self.depth_camera_pose(poses))
 
     def finish(self) -> SLAMResult:
-        """Optimise the keyframe pose graph and return every frame's pose.
-
-        The final optimisation starts from the current estimates (the online corrections, or odometry when
-        they are off) and runs up to ``BackendConfig.max_iterations``.
+        """Optimise the whole keyframe pose graph from the current estimates and return every frame's pose.
 
         Returns:
             :class:`SLAMResult`.
@@ -712,7 +574,7 @@ class RGBDSLAM:
         self._finished = True
         if self._worker is not None:
             try:
-                self._wait()
+                self._collect(keep=0)
             finally:
                 self._worker.shutdown(wait=True)
         graph, opt = None, None
@@ -732,47 +594,35 @@ class RGBDSLAM:
         elif self.graph.num_keyframes:
             self.graph.set_estimates(kf_odo)
             graph = self.graph.pose_graph(self.backend.information_scale)
-        kf_ts = torch.tensor([kf.timestamp for kf in self.odometry.keyframes], dtype=torch.float64)
         queries = self.loop_closer.queries if self.loop_closer is not None else []
-        return SLAMResult(
-            trajectory=self._frames_trajectory(kf_final, interpolate_lost=True),
-            odometry_trajectory=self._frames_trajectory(kf_odo),
-            keyframe_trajectory=Trajectory(kf_ts, self._output_frame(kf_final.clone())),
-            keyframe_frames=torch.tensor([kf.frame_index for kf in self.odometry.keyframes], dtype=torch.long),
-            loops=self.loops, queries=queries, graph=graph, optimization=opt,
-            num_frames=len(self._frame_ts), num_keyframes=self.graph.num_keyframes, num_lost=self._num_lost,
-            num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
-            corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame(),
-            released=list(self.released))
+        return self._result(kf_final, kf_odo, loops=self.loops, queries=queries, graph=graph, optimization=opt,
+                            num_keyframes=self.graph.num_keyframes)
 
-    def _lag_per_frame(self) -> Tensor:
+    def _result(self, kf_est: Tensor, kf_odo: Tensor, **fields) -> SLAMResult:
+        """A :class:`SLAMResult` with every frame placed on the keyframe poses ``kf_est`` / ``kf_odo`` ``(M, 7)``."""
+        kfs = self.odometry.keyframes
+        kf_ts = torch.tensor([kf.timestamp for kf in kfs], dtype=torch.float64)
         lag = torch.tensor(self._lag.tolist(), dtype=torch.int64)
-        if lag.numel() < len(self._frame_ts):  # skip() and the tracking thread's keyframe work: nothing waits
+        if lag.numel() < len(self._frame_ts):  # a track() that raised LoopWorkerError recorded no lag
             lag = torch.cat([lag, torch.zeros(len(self._frame_ts) - lag.numel(), dtype=torch.int64)])
-        return lag
+        return SLAMResult(
+            trajectory=self._frames_trajectory(kf_est, interpolate_lost=True),
+            odometry_trajectory=self._frames_trajectory(kf_odo),
+            keyframe_trajectory=Trajectory(kf_ts, self.depth_camera_pose(kf_est.clone())),
+            keyframe_frames=torch.tensor([kf.frame_index for kf in kfs], dtype=torch.long),
+            num_frames=len(self._frame_ts), num_lost=self._num_lost, num_skipped=self._num_skipped,
+            timings=self.timer.summary(), loop_hypotheses=self._hypotheses(), corrections=list(self._corrections),
+            tracked=self._placed(), loop_lag=lag, released=list(self.released), **fields)
 
     def result_so_far(self) -> SLAMResult:
         """The frames tracked so far, placed as :meth:`track` reported them (no final optimisation), after a
-        :class:`LoopWorkerError`: what a run that stopped on it can still write (``SLAMResult.error`` says why).
-
-        The worker is stopped first (the work queued behind the failure is not run). Keyframes are placed on
-        the estimates as the last finished loop work left them, later ones chained by their odometry edges.
-        """
+        :class:`LoopWorkerError` (``SLAMResult.error`` says why); the work queued behind the failure is not run."""
         self._finished = True
         if self._worker is not None:
             self._worker.shutdown(wait=True, cancel_futures=True)
             self._jobs.clear()
         self._chain_shown(self.odometry.keyframes)
         est, odo = self._shown
-        kfs = self.odometry.keyframes
-        kf_ts = torch.tensor([kf.timestamp for kf in kfs], dtype=torch.float64)
-        return SLAMResult(
-            trajectory=self._frames_trajectory(est, interpolate_lost=True),
-            odometry_trajectory=self._frames_trajectory(odo),
-            keyframe_trajectory=Trajectory(kf_ts, self._output_frame(est.clone())),
-            keyframe_frames=torch.tensor([kf.frame_index for kf in kfs], dtype=torch.long),
-            loops=[lp for lp in self._hypotheses() if lp.status == "kept"], queries=[], graph=None,
-            optimization=None, num_frames=len(self._frame_ts), num_keyframes=len(kfs), num_lost=self._num_lost,
-            num_skipped=self._num_skipped, timings=self.timer.summary(), loop_hypotheses=self._hypotheses(),
-            corrections=list(self._corrections), tracked=self._placed(), loop_lag=self._lag_per_frame(),
-            released=list(self.released), error=None if self._failure is None else str(self._failure))
+        return self._result(est, odo, loops=self.loops, queries=[], graph=None, optimization=None,
+                            num_keyframes=len(self.odometry.keyframes),
+                            error=None if self._failure is None else str(self._failure))

@@ -1,21 +1,12 @@
 """How far a loop may disagree with the current estimate: a bound that grows with the distance travelled.
 
-Odometry drifts with the path it integrates, so the estimate of the relative pose of two keyframes is only
-as good as the path between them: a fixed bound (say 0.3 m) accepts loops only where drift is already
-small, exactly where they are not needed, and rejects the long loops that would correct the most. Here
-the bound is affine in the distance ``L`` travelled between the two keyframes along the keyframe graph::
+The bound is affine in the distance ``L`` travelled between the two keyframes along the keyframe graph
+(:meth:`KeyframeGraph.path_lengths`; ``inf`` across a tracking loss: the caps apply)::
 
     translation <= translation_base + translation_per_metre * L
     rotation    <= rotation_base_deg + rotation_per_metre_deg * L      (both capped)
 
-``L`` follows the chain of odometry edges while no loop has corrected the estimate, and the shortest path
-through the accepted loops once they have been optimised into it (:meth:`KeyframeGraph.path_lengths`).
-A weak edge (forced after a tracking loss at a constant-velocity guess) bounds nothing: a path across it
-is infinitely long and the caps apply, so the loops that mend the gap are not refused for disagreeing
-with a guess less than the caps off (with ``LoopClosureConfig.recover_after_loss``, however far off;
-:meth:`slam.loop.LoopCloser.limits`).
-The same bound, on the sum of the two paths, decides whether two loops agree with each other
-(:func:`pairwise_consistent`, used by the group check of :mod:`slam.loop.consistency`).
+The same bound, on the sum of the two paths, decides whether two loops agree (:func:`pairwise_consistent`).
 
 Example:
     >>> cfg = DriftBoundConfig()
@@ -26,13 +17,14 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
 
 from slam.lie import se3_between, se3_compose, so3_log
 from slam.loop.verification import DriftLimits
+from slam.odometry.config import check_number
 
 Tensor = torch.Tensor
 
@@ -42,26 +34,21 @@ __all__ = ["DriftBoundConfig", "capped_length", "drift_limits", "drift_limits_ar
 
 @dataclass(frozen=True)
 class DriftBoundConfig:
-    """The affine drift bound (see the module docstring); rates measured on the kitchen's odometry."""
+    """The affine drift bound (see the module docstring)."""
 
-    # At L = 0 the two poses differ only by the loop's own error and the estimate's local error: a verified
-    # loop edge errs by a median ~25 mm / 1.1 deg on redkitchen (up to ~10 cm / 4 deg), so 0.15 m / 8 deg.
+    # At L = 0: the loop's own error and the estimate's local error
     translation_base: float = 0.15  # m
     rotation_base_deg: float = 8.0  # degrees
-    # Growth per metre travelled: above the worst odometry drift measured per metre of path between
-    # revisited keyframes (redkitchen at frame steps 1, 3, 6 and the building tour).
+    # Growth per metre travelled: above the worst odometry drift measured per metre of path
     translation_per_metre: float = 0.05  # m / m
     rotation_per_metre_deg: float = 1.5  # deg / m
-    # Caps: beyond these a "loop" says the camera is elsewhere altogether (an aliased place), whatever the
-    # distance travelled.
+    # Caps: beyond these a "loop" says the camera is elsewhere altogether (an aliased place)
     max_translation: float = 1.5  # m
     max_rotation_deg: float = 45.0  # degrees
 
     def __post_init__(self) -> None:
-        values = (self.translation_base, self.rotation_base_deg, self.translation_per_metre,
-                  self.rotation_per_metre_deg, self.max_translation, self.max_rotation_deg)
-        if any(not (v >= 0 and math.isfinite(v)) for v in values):
-            raise ValueError(f"DriftBoundConfig values must be finite and >= 0, got {values}")
+        for f in fields(self):
+            check_number("DriftBoundConfig", f.name, getattr(self, f.name), 0, finite=True)
 
 
 def drift_limits_array(path_length, config: DriftBoundConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -90,15 +77,12 @@ def drift_limits(path_length: float, config: DriftBoundConfig) -> DriftLimits:
         path_length: metres (``inf`` when no measured path joins the keyframes: the caps apply).
         config: :class:`DriftBoundConfig`.
     """
-    if not path_length >= 0:
-        raise ValueError(f"path_length must be >= 0, got {path_length}")
     t, r = drift_limits_array([float(path_length)], config)
     return DriftLimits(float(t[0]), float(r[0]))
 
 
 def capped_length(config: DriftBoundConfig) -> float:
-    """The path length from which both bounds are at their caps (``inf`` when one never reaches its cap):
-    beyond it the bound no longer depends on the distance travelled."""
+    """The path length from which both bounds are at their caps (``inf`` when one never reaches its cap)."""
     def reach(base: float, rate: float, cap: float) -> float:
         if base >= cap:
             return 0.0
@@ -112,10 +96,8 @@ def pairwise_consistent(T_a1b1: Tensor, T_a2b2: Tensor, T_a1a2: Tensor, T_b1b2: 
                         limits: DriftLimits) -> tuple[bool, float, float]:
     """Whether two loops ``a1 -> b1`` and ``a2 -> b2`` agree, given the estimate between their ends.
 
-    Going round the cycle ``a1 -> b1 -> b2 -> a2 -> a1`` (loop 1, the estimate from b1 to b2, loop 2
-    backwards, the estimate from a2 to a1) must come back to the start: the cycle's error is
-    ``(T_a1a2 T_a2b2)^-1 T_a1b1 T_b1b2``. Two true loops agree up to the drift of the estimate along the
-    two short paths a1..a2 and b1..b2; a false loop disagrees with the true ones by the size of its error.
+    The cycle ``a1 -> b1 -> b2 -> a2 -> a1`` must come back to the start: its error is
+    ``(T_a1a2 T_a2b2)^-1 T_a1b1 T_b1b2``.
 
     Args:
         T_a1b1, T_a2b2: ``(7,)`` the loops' measured relative poses.

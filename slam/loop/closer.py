@@ -1,15 +1,9 @@
 """The loop closer: for each new keyframe, describe -> candidates -> verify -> consistency.
 
-:class:`LoopCloser` owns the place-recognition descriptor (:class:`attnloop.AttentionDescriptor`), the
-keyframe database (:class:`attnloop.index.LoopCandidateDetector`) and the group-consistency check
-(:class:`slam.loop.consistency.GroupConsistency`). A candidate is verified geometrically and held to a
-disagreement bound that grows with the distance travelled between the two keyframes
-(:mod:`slam.loop.acceptance`); every verified loop becomes a hypothesis, and the largest mutually
-consistent group of hypotheses is kept. On a place walked again, the keyframe after a revisit is verified
-by proximity first, against a keyframe near the one repeated, without a descriptor (:meth:`LoopCloser.close`).
-The closer reads the keyframe graph (the current estimates, the distances along it) but never changes it:
-:meth:`LoopCloser.close` returns a :class:`LoopUpdate` (the new loops, and which hypotheses are kept now) and
-the caller applies it to the graph.
+:class:`LoopCloser` owns the place-recognition descriptor, the keyframe database
+(:class:`attnloop.index.LoopCandidateDetector`) and the group-consistency check; it reads the keyframe graph but
+never changes it: :meth:`LoopCloser.close` returns a :class:`LoopUpdate` that the caller applies
+(docs/pipeline.md, "What each stage does" and "Long runs").
 
 Example:
     >>> import torch
@@ -29,6 +23,9 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
+from attnloop import AttentionDescriptor
+from attnloop.index import LoopCandidateDetector
+from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
 from slam.keyframe_graph import KeyframeGraph
 from slam.lie import quat_angle, se3_between
 from slam.loop.acceptance import drift_limits
@@ -45,51 +42,28 @@ __all__ = ["LoopCloser", "LoopClosure", "LoopQuery", "LoopUpdate", "build_descri
 
 @dataclass
 class LoopClosure:
-    """An accepted, geometrically verified loop between keyframes ``kf_a < kf_b``.
-
-    Attributes:
-        kf_a, kf_b: keyframe ids; the edge measures ``T_ab`` (pose of b in a).
-        frame_a, frame_b: input indices of the two keyframes.
-        timestamp_a, timestamp_b: their timestamps.
-        similarity: descriptor cosine similarity of the pair.
-        num_inliers: RANSAC inliers of the verification.
-        T_ab: ``(7,)`` float64 measured relative pose, in the tracked camera's frame (the colour camera's
-            when the frames are unregistered).
-        information: ``(6, 6)`` float64 information of ``T_ab`` from the registration (unscaled; the back
-            end scales it by ``LoopClosureConfig.information_scale``).
-        verification: the full :class:`~slam.loop.verification.Verification` (disagreement, bound).
-        id: the hypothesis number (order of verification).
-        path_length: metres travelled between the two keyframes along the graph when it was verified.
-        settled: its measurement agrees with the estimate it was verified against within
-            ``LoopClosureConfig.settled_translation`` / ``settled_rotation_deg``: the estimate already
-            satisfies it.
-        consistent: kept by the group check (set by the loop closer): in the largest group of mutually
-            consistent loops, with local support (:mod:`slam.loop.consistency`); only those are edges of
-            the graph. Its ``status`` is ``"inconsistent"`` otherwise.
-        switched_off: the back end's robust kernel gave it a weight below
-            ``BackendConfig.switch_off_weight`` in its last optimisation (set by the system).
-        weight: its last kernel weight in the back end (1 before any optimisation).
-        edge: its index in ``KeyframeGraph.edges`` (-1 until the caller adds it).
-    """
+    """An accepted, geometrically verified loop between keyframes ``kf_a < kf_b``; the edge measures ``T_ab``."""
 
     kf_a: int
     kf_b: int
-    frame_a: int
+    frame_a: int  # input indices of the two keyframes
     frame_b: int
     timestamp_a: float
     timestamp_b: float
-    similarity: float
-    num_inliers: int
-    T_ab: Tensor
-    information: Optional[Tensor] = None
-    verification: Optional[Verification] = None
-    id: int = -1
-    path_length: float = float("nan")
+    similarity: float  # descriptor cosine similarity of the pair
+    num_inliers: int  # RANSAC inliers of the verification
+    T_ab: Tensor  # (7,) float64 measured pose of b in a, in the tracked camera's frame
+    information: Optional[Tensor] = None  # (6, 6) float64 information of T_ab from the registration (unscaled)
+    verification: Optional[Verification] = None  # the full verification (disagreement, bound)
+    id: int = -1  # the hypothesis number (order of verification)
+    path_length: float = float("nan")  # metres between the two keyframes along the graph when verified
+    # its measurement agrees with the estimate it was verified against within
+    # LoopClosureConfig.settled_translation / settled_rotation_deg
     settled: bool = False
-    consistent: bool = True
-    switched_off: bool = False
-    weight: float = 1.0
-    edge: int = -1
+    consistent: bool = True  # kept by the group check (slam.loop.consistency)
+    switched_off: bool = False  # its back-end weight fell below BackendConfig.switch_off_weight (set by the system)
+    weight: float = 1.0  # its last kernel weight in the back end (1 before any optimisation)
+    edge: int = -1  # its index in KeyframeGraph.edges (-1 until the caller adds it)
 
     @property
     def status(self) -> str:
@@ -101,17 +75,12 @@ class LoopClosure:
 
 @dataclass
 class LoopUpdate:
-    """What one :meth:`LoopCloser.close` call changed.
+    """What one :meth:`LoopCloser.close` call changed."""
 
-    Attributes:
-        new: the loops verified during the call (each with its ``status``).
-        changed: earlier loops that entered or left the consistent group.
-        revisit: a kept new loop repeats an earlier keyframe (the ``repeats`` given to :meth:`LoopCloser.close`):
-            the query keyframe was not added to the database, and the caller may release it.
-    """
-
-    new: List[LoopClosure] = field(default_factory=list)
-    changed: List[LoopClosure] = field(default_factory=list)
+    new: List[LoopClosure] = field(default_factory=list)  # the loops verified during the call
+    changed: List[LoopClosure] = field(default_factory=list)  # earlier loops that entered or left the group
+    # a kept new loop repeats an earlier keyframe (`repeats` of LoopCloser.close): the query keyframe was not
+    # added to the database, and the caller may release it
     revisit: bool = False
 
     def __bool__(self) -> bool:
@@ -120,39 +89,25 @@ class LoopUpdate:
 
 @dataclass
 class LoopQuery:
-    """One query of the keyframe database (for the loop-closure evaluation).
+    """One query of the keyframe database (for the loop-closure evaluation)."""
 
-    Attributes:
-        kf: query keyframe id.
-        top_kf: most similar eligible keyframe id (-1 when none was eligible). Eligible: outside the
-            detector's time window and not joined to the query by an edge of the keyframe graph (its
-            odometry parent: a loop to it would count that registration twice; a weak edge, forced after
-            a tracking loss, measured nothing and joins nothing).
-        top_score: its similarity (``-inf`` when none).
-        threshold: the query's adaptive threshold.
-        candidates: eligible ids that passed the threshold (and consistency) and were sent to verification.
-        verified: ids accepted by geometric verification.
-        rejections: ``{candidate id: reason}`` for candidates that failed verification or were not verified
-            (the query repeats an earlier one: :meth:`LoopCloser.close`).
-        followed: not a database query: the keyframe followed a revisit and repeats the keyframe nearest to it
-            around the one that revisit repeated (:meth:`LoopCloser.close`); ``top_kf`` is that keyframe,
-            ``top_score`` and ``threshold`` NaN (no descriptor was computed).
-    """
-
-    kf: int
+    kf: int  # query keyframe id
+    # most similar eligible keyframe id (-1 when none was eligible): outside the detector's time window and not
+    # joined to the query by a measured edge (KeyframeGraph.joined)
     top_kf: int
-    top_score: float
-    threshold: float
-    candidates: List[int]
-    verified: List[int]
+    top_score: float  # its similarity (-inf when none)
+    threshold: float  # the query's adaptive threshold
+    candidates: List[int]  # eligible ids that passed the threshold and were sent to verification
+    verified: List[int]  # ids accepted by geometric verification
+    # {candidate id: reason} for candidates that failed verification or were not verified
     rejections: Dict[int, str] = field(default_factory=dict)
+    # not a database query: the keyframe followed a revisit (LoopCloser.close); top_kf is the keyframe it
+    # repeats, top_score and threshold NaN
     followed: bool = False
 
 
 def build_descriptor(config, timer: Optional[StageTimer] = None) -> torch.nn.Module:
     """The :class:`attnloop.AttentionDescriptor` of a :class:`slam.config.DescriptorConfig`, in eval mode."""
-    from attnloop import AttentionDescriptor
-
     timer = timer or StageTimer()
     with timer("descriptor_init"):
         model = AttentionDescriptor(**config.settings())
@@ -163,7 +118,7 @@ def build_descriptor(config, timer: Optional[StageTimer] = None) -> torch.nn.Mod
 
 
 class LoopCloser:
-    """Loop detection and verification for each new keyframe (see the module docstring).
+    """Loop detection and verification for each new keyframe.
 
     Args:
         config: :class:`slam.config.LoopClosureConfig`.
@@ -174,25 +129,17 @@ class LoopCloser:
 
     def __init__(self, config, descriptor: Optional[torch.nn.Module] = None,
                  timer: Optional[StageTimer] = None):
-        from attnloop.index import LoopCandidateDetector
-
         self.config = config
         self.timer = timer or StageTimer()
         self.descriptor = descriptor if descriptor is not None else build_descriptor(config.descriptor, self.timer)
-        # the threshold calibrated for this descriptor, if any (LoopClosureConfig.threshold_by_backbone): a
-        # backbone's default recipe, tap, attention stages and input size with its pretrained weights (a
-        # preset, another recipe or tap, or random weights have other similarity scales and keep
-        # detector.threshold)
-        from attnloop.presets import DEFAULT_BACKBONE_SETTINGS
-
+        # the threshold calibrated for this descriptor (LoopClosureConfig.threshold_by_backbone): a backbone's
+        # default recipe, tap, stages and input size with its pretrained weights; anything else keeps its own
         backbone = getattr(self.descriptor, "backbone_name", None)
         recipe = getattr(self.descriptor, "recipe", None)
         net = getattr(self.descriptor, "backbone", None)
-        # the descriptor's own word on its weights when it has one (a module passed in may differ from the config)
         pretrained = getattr(self.descriptor, "pretrained", None)
         pretrained = bool(config.descriptor.pretrained) if pretrained is None else bool(pretrained)
-        # Any fusion mode (they share a scale), and any seed without RNNs: the seed then seeds nothing of a
-        # pretrained network, so the descriptor is the default's.
+        # any fusion mode (they share a scale), and any seed without RNNs (it then seeds nothing)
         ref = None if recipe is None else type(recipe)()
         default = (recipe is not None and pretrained
                    and dataclasses.replace(recipe, fusion=ref.fusion,
@@ -226,8 +173,7 @@ class LoopCloser:
         return list(self._loops)
 
     def descriptor_of(self, kf_id: int) -> Optional[Tensor]:
-        """``(D,)`` float32 the descriptor of keyframe ``kf_id`` as the database holds it; None for a keyframe
-        that is not in it (a revisit, described or not: :meth:`close`)."""
+        """``(D,)`` float32 the descriptor of keyframe ``kf_id`` as the database holds it, or None (a revisit)."""
         did = self._id_of_kf.get(int(kf_id))
         return None if did is None else self.detector.index.descriptors_of([did])[0]
 
@@ -235,7 +181,7 @@ class LoopCloser:
     def describe(self, kf: Keyframe) -> Tensor:
         """``(D,)`` descriptor of a keyframe's (downsized) RGB image."""
         img = torch.from_numpy(np.ascontiguousarray(kf.rgb)).permute(2, 0, 1)[None]
-        # where the module lives: its parameters, else its buffers (a custom descriptor may have either)
+        # where the module lives: its parameters, else its buffers
         held = next(iter(self.descriptor.parameters()), None)
         held = held if held is not None else next(iter(self.descriptor.buffers()), None)
         if held is not None:
@@ -243,8 +189,7 @@ class LoopCloser:
         return self.descriptor(img)[0]
 
     def _detector_id(self, kf: Keyframe) -> int:
-        # milliseconds since the first keyframe: the detector's exclusion window is then a time, whatever the
-        # frame rate or frame step (ids must increase: equal stamps get the next integer)
+        # milliseconds since the first keyframe: the detector's window is a time (equal stamps: the next integer)
         if self._t0 is None:
             self._t0 = float(kf.timestamp)
         ms = int(round((float(kf.timestamp) - self._t0) * 1000.0))
@@ -260,10 +205,8 @@ class LoopCloser:
 
     def limits(self, path_length: float) -> DriftLimits:
         """The bound on the disagreement between a loop and the current estimate of it, for keyframes
-        ``path_length`` metres apart along the graph (:func:`slam.loop.acceptance.drift_limits`). For
-        keyframes no measured path joins (``inf``: a tracking loss lies between them, and the estimate across
-        it is a guess) the bound's caps, or with ``LoopClosureConfig.recover_after_loss`` none: such a loop
-        then answers to the group check alone."""
+        ``path_length`` metres apart along the graph (:func:`slam.loop.acceptance.drift_limits`); none across a
+        tracking loss (``inf``) with ``LoopClosureConfig.recover_after_loss``."""
         if not math.isfinite(path_length) and self.config.recover_after_loss:
             return DriftLimits(math.inf, math.inf)
         return drift_limits(path_length, self.config.drift)
@@ -278,19 +221,14 @@ class LoopCloser:
             kf: the new keyframe (already in ``graph``).
             keyframes: every keyframe so far, by id (their features).
             graph: the keyframe graph (read only: estimates and distances).
-            through_loops: the graph's estimates have been corrected by its loops, so the distance that
-                bounds the disagreement may take the shortcuts they offer (else: the odometry chain).
+            through_loops: the distance that bounds the disagreement may take the loops (else: the odometry chain).
             min_loop_weight: loops the back end trusts less than this are no shortcut.
             repeats: whether a loop joins the query to an earlier keyframe that stands for it (None: no loop
                 does). A kept loop that repeats makes the update a ``revisit``: the query is not added to the
-                database (it would only stand beside the keyframe it repeats), and the less similar
-                candidates are not verified (that keyframe's own loops already join the place to the rest).
-                A keyframe whose odometry parent was a revisit is first verified against the keyframe of the
-                database nearest to its estimate around the one repeated (its neighbours in the graph, two
-                edges deep, as RTAB-Map's proximity detection): when that loop is kept and repeats too, the
-                keyframe is a revisit with no descriptor computed nor database queried (``LoopQuery.followed``).
-                The estimate there was just corrected by the revisit's loop, so a place walked again costs one
-                registration per keyframe.
+                database and the less similar candidates are not verified. A keyframe after a revisit is first
+                verified against the database's keyframe nearest to its estimate within two edges of the one
+                repeated; when that loop is kept and repeats too, no descriptor is computed
+                (``LoopQuery.followed``).
 
         Returns:
             :class:`LoopUpdate` (the caller applies it to the graph).
@@ -340,16 +278,13 @@ class LoopCloser:
 
     def _follow(self, kf: Keyframe, graph: KeyframeGraph, did: int) -> Optional[int]:
         """The keyframe to verify ``kf`` against first when its odometry parent was a revisit (:meth:`close`):
-        of the database's keyframes within two edges of the one repeated, outside the detector's window and
-        not joined to ``kf``, the nearest to ``kf``'s estimate (its share of the views' separation a loop may
-        have, ``max_translation`` and ``max_rotation_deg``, in translation plus in turn); None when there is none,
-        or no revisit came before."""
+        of the database's keyframes within two edges of the one repeated, outside the detector's window and not
+        joined to ``kf``, the nearest to ``kf``'s estimate (translation and turn, each over its view limit)."""
         if self._place is None or self._place[0] not in graph.joined(kf.id):
             return None
         near = {self._place[1]} | graph.joined(self._place[1])
         near = near.union(*(graph.joined(k) for k in near))
         joined, window = graph.joined(kf.id), self.detector.config.window
-        # the database holds no released keyframe (only revisits are released, and they never enter it)
         ids = sorted(k for k in near if k in self._id_of_kf and k not in joined and k != kf.id
                      and did - self._id_of_kf[k] >= window)
         if not ids:
@@ -367,14 +302,12 @@ class LoopCloser:
         recording the outcome in ``query``; the loops in a :class:`LoopUpdate`.
 
         ``seen``: this query keyframe's verifications so far, by candidate (None: already a hypothesis), reused
-        rather than registered again, and added to. ``follow``: only a loop that ``repeats`` becomes a hypothesis
-        (a followed keyframe that does not repeat is then queried as usual, and its verification reused).
+        and added to. ``follow``: only a loop that ``repeats`` becomes a hypothesis.
         """
         cfg = self.config
         update = LoopUpdate()
         if not eligible:
             return update
-        # the distances to the candidates only: a search that stops once they are reached
         ids = [c for c, _ in eligible]
         lengths = dict(zip(ids, graph.path_lengths_to(kf.id, ids, through_loops=through_loops,
                                                        min_loop_weight=min_loop_weight).tolist()))

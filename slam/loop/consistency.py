@@ -1,38 +1,11 @@
 """Group consistency of loops (pairwise consistency maximisation, as in Kimera-RPGO's PCM).
 
-Every verified loop is a hypothesis. Two hypotheses are *consistent* when going round the cycle they form
-with the odometry between their ends comes back to the start within the drift that odometry can have
-accumulated along those two paths (:func:`slam.loop.acceptance.pairwise_consistent`). True loops agree
-with each other; a false loop (an aliased place: an identically furnished room, a repeated texture)
-disagrees with the true ones by its own error. The loops kept are the largest set of mutually consistent
-hypotheses (a maximum clique of the consistency graph), once it holds at least ``min_group`` loops.
-
-Consistency between two loops far apart along the path says little: the bound on their cycle grows with
-the two paths and soon reaches its cap, so a lone wrong loop (a corridor whose repeated texture registers
-0.9 m off, seen on the building tour) agrees with every true loop across the building. So a loop is kept
-only with *local support* (as ORB-SLAM asks consecutive keyframes to agree): at least ``min_support``
-other loops of the group whose ends are both near its own (the two paths summing to at most
-``support_radius`` metres), where the pairwise bound is tight. A revisit produces such runs of loops,
-keyframe after keyframe; a wrong registration is a one-off.
-
-The checks use the odometry chain only (never the optimised estimate, which the loops themselves bend),
-so a wrong loop cannot make itself look consistent. Two loops joined only across a weak edge (a tracking
-loss: no measured odometry between their ends) are compared through its guess, within the bound's caps;
-with ``compare_across_losses=False`` (``LoopClosureConfig.recover_after_loss``) they are not compared and
-count as consistent, as PCM compares only loops that odometry joins. Loops across the same loss are
-compared either way (their ends lie on the same sides of it), so a run of true loops mending a loss still
-outvotes a wrong one.
-
-Cost per loop independent of the run's length: a new loop is compared, in one batched computation, with
-the loops it can disagree with. While there are at most ``max_exact`` hypotheses that is every earlier one
-(the group is their exact maximum clique). Beyond, the group grows greedily (a new loop joins it when it
-agrees with it) and only the group's loops whose two ends both lie within the *capped length* of the new
-loop's along the odometry chain are compared (:func:`slam.loop.acceptance.capped_length`, 27 m with the
-defaults: from there on the bound is its caps, and comparing farther loops measures the odometry's drift
-rather than the loop: tests/slam/loop/test_consistency_vectorised.py). The loops compared are a suffix of
-the group (ordered by their newer end, which only moves forward), found by bisection; loops joined across a
-tracking loss are compared through the guess as before. Pairwise results are kept sparse (the pairs that
-disagree, the pairs near enough to support each other): no matrix grows with the run.
+Two verified loops are consistent when the cycle they form with the odometry between their ends closes within
+the drift bound of the two paths (:func:`slam.loop.acceptance.pairwise_errors`); the loops kept are the largest
+mutually consistent group (a maximum clique), each with local support (``min_support`` loops of the group whose
+ends are within ``support_radius`` of its own), compared on the odometry chain only. Beyond ``max_exact``
+hypotheses the group grows greedily, comparing a new loop with the group's loops within the capped length of
+it: docs/pipeline.md ("What each stage does", "Long runs").
 
 Example:
     >>> import torch
@@ -62,7 +35,7 @@ import torch
 from slam.keyframe_graph import GrowingArray, KeyframeGraph
 from slam.lie import se3_between
 from slam.loop.acceptance import DriftBoundConfig, capped_length, drift_limits_array, pairwise_errors
-from slam.odometry.config import check_int  # the configs' shared range check
+from slam.odometry.config import check_int, check_number  # the configs' shared range checks
 
 Tensor = torch.Tensor
 
@@ -74,38 +47,29 @@ class ConsistencyConfig:
     """Settings of :class:`GroupConsistency`."""
 
     enabled: bool = True  # False: every verified loop is kept
-    # A group needs this many mutually consistent loops before any of them is kept (1: any group; each
-    # of its loops still needs local support, below).
+    # A group needs this many mutually consistent loops before any of them is kept.
     min_group: int = 1
-    # Local support (module docstring): a kept loop needs this many other loops of the group whose two ends
-    # are within support_radius metres (the sum of the two paths along the odometry chain) of its own. 0:
-    # off. The loops of a revisit come keyframe after keyframe (on the building tour: query keyframes
-    # 3-13 frames apart).
+    # Local support: a kept loop needs this many other loops of the group whose two ends are within
+    # support_radius metres (the sum of the two paths along the odometry chain) of its own. 0: off.
     min_support: int = 1
     support_radius: float = 2.0  # m
     # The pairwise bound: the drift bound of slam.loop.acceptance on the summed length of the two paths.
     bound: DriftBoundConfig = field(default_factory=DriftBoundConfig)
-    # Exact maximum clique up to this many hypotheses (every pair compared); beyond, each new one joins the
-    # group when it agrees with the group's loops within the capped length of it (the module docstring:
-    # the cost per loop stays bounded on very long runs), and while there is no group, the group is the
-    # exact clique of the newest max(max_exact, min_group) hypotheses.
+    # Exact maximum clique up to this many hypotheses; beyond, a new one joins the group when it agrees with
+    # the group's loops near it (while there is no group: the exact clique of the newest max_exact).
     max_exact: int = 400
 
     def __post_init__(self) -> None:
         for name, least in (("min_group", 1), ("min_support", 0), ("max_exact", 0)):
             check_int("ConsistencyConfig", name, getattr(self, name), least)
-        if not (self.support_radius >= 0 and math.isfinite(self.support_radius)):
-            raise ValueError(f"ConsistencyConfig.support_radius must be finite and >= 0, got {self.support_radius!r}")
+        check_number("ConsistencyConfig", "support_radius", self.support_radius, 0, finite=True)
 
 
 def maximum_clique(adjacency: np.ndarray) -> list[int]:
     """A maximum clique of an undirected graph (branch and bound over Bron-Kerbosch with pivoting).
 
-    Deterministic: vertices are tried in increasing order and the first largest clique found is kept. Vertex
-    sets are bit masks (Python integers); a candidate set that is itself a clique ends its branch at once
-    (Bron-Kerbosch would take its vertices one level at a time, down to the same clique), which keeps the
-    mostly consistent graphs of real loops (a few false loops among many true ones) from costing a level
-    per loop.
+    Deterministic: vertices are tried in increasing order and the first largest clique found is kept; a
+    candidate set that is itself a clique ends its branch at once.
 
     Args:
         adjacency: ``(n, n)`` bool, symmetric; the diagonal is ignored.
@@ -154,24 +118,19 @@ def maximum_clique(adjacency: np.ndarray) -> list[int]:
 
 
 class GroupConsistency:
-    """The loops kept so far by pairwise consistency maximisation (see the module docstring).
+    """The loops kept so far by pairwise consistency maximisation; hypotheses are numbered as added.
 
-    Hypotheses are numbered in the order they are added; :meth:`add` returns the kept ones. Each is
-    compared, in one batched computation, with the earlier ones it can disagree with (the module docstring);
-    the pairs found inconsistent and the pairs near enough to support each other are kept, sparse.
+    Args:
+        config: :class:`ConsistencyConfig`.
+        compare_across_losses: compare two loops joined only across a weak edge through its guess (within the
+            caps); False: they count as consistent (``LoopClosureConfig.recover_after_loss``).
     """
 
     def __init__(self, config: ConsistencyConfig, compare_across_losses: bool = True):
-        """
-        Args:
-            config: :class:`ConsistencyConfig`.
-            compare_across_losses: compare two loops joined only across a weak edge through its guess
-                (within the caps); False: they count as consistent (``LoopClosureConfig.recover_after_loss``).
-        """
         self.config = config
-        self.compare_across_losses = compare_across_losses  # False: loops a loss separates are not compared
-        # per hypothesis (amortised O(1) growth): its ends, measured pose, the ends' odometry poses and
-        # chain positions (metres travelled, weak edges passed: NaN / -1 where the graph is no chain)
+        self.compare_across_losses = compare_across_losses
+        # per hypothesis: its ends, measured pose, the ends' odometry poses and chain positions (metres
+        # travelled, weak edges passed: NaN / -1 where the graph is no chain)
         self._ends = GrowingArray(np.int64, (2,))
         self._Z = GrowingArray(np.float64, (7,))
         self._odo = GrowingArray(np.float64, (2, 7))
@@ -184,7 +143,6 @@ class GroupConsistency:
         self._support = GrowingArray(np.int64)  # per group member: the members near it that agree with it
         self._group: list[int] = []  # the largest mutually consistent set, sorted (ids, so newer ends last)
         self._group_b = GrowingArray(np.float64)  # the group's newer ends' chain positions, in group order
-        self._num_kept = 0
         self._reach = max(capped_length(config.bound), config.support_radius)
 
     def __len__(self) -> int:
@@ -198,11 +156,6 @@ class GroupConsistency:
     def is_kept(self, i: int) -> bool:
         """Whether hypothesis ``i`` is kept now."""
         return bool(self._is_kept.view[i])
-
-    @property
-    def group(self) -> list[int]:
-        """Indices of the largest mutually consistent set (sorted; its loops without local support included)."""
-        return list(self._group)
 
     @property
     def adjacency(self) -> np.ndarray:
@@ -267,7 +220,7 @@ class GroupConsistency:
         Args:
             a, b: keyframe ids (both in ``graph``).
             T_ab: ``(7,)`` the loop's measured relative pose.
-            graph: the keyframe graph (its odometry poses and odometry path lengths are used).
+            graph: the keyframe graph (its odometry poses and path lengths).
         """
         self.update(a, b, T_ab, graph)
         return self.kept
@@ -307,20 +260,12 @@ class GroupConsistency:
         ok, L = self._compare(new, others, graph)
         self._disagree.append(others[~ok])
         self._supports.append(others[ok & (L <= cfg.support_radius)])
-        if n <= cfg.max_exact:
-            clique = maximum_clique(self._dense(0, n))
-            return self._set_group(clique if len(clique) >= cfg.min_group else [])
-        if self._group:  # greedy beyond the exact size: the newest joins the group if it agrees with all of it
-            if ok.all():
-                return self._join(new)
-            return []
-        # no group yet: the exact clique of the newest hypotheses, as many as max_exact (at least
-        # min_group), so that min_group holds here too and the cost stays bounded
-        start = max(0, n - window)
+        if self._group and n > cfg.max_exact:  # greedy: the newest joins the group if it agrees with all of it
+            return self._join(new) if ok.all() else []
+        start = 0 if n <= cfg.max_exact else max(0, n - window)
         clique = [start + k for k in maximum_clique(self._dense(start, n))]
         return self._set_group(clique if len(clique) >= cfg.min_group else [])
 
-    # -- the group and its local support ---------------------------------------------------------------
     def _set_group(self, group: list[int]) -> list[int]:
         """A new group (exact phase): the support counted again among its loops; returns the changes."""
         in_group = self._in_group.view

@@ -1,8 +1,6 @@
 """Geometric verification of one loop candidate: register the two keyframes and decide, with the reasons.
 
-:func:`verify_candidate` is a pure function: it returns a :class:`Verification` (the measured relative
-pose, its information, the figures every check used and the verdict) and changes nothing else; the loop
-closer decides what to do with it.
+:func:`verify_candidate` is a pure function: it returns a :class:`Verification` and changes nothing else.
 
 Example:
     >>> import torch
@@ -19,7 +17,7 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import torch
@@ -34,45 +32,28 @@ __all__ = ["DriftLimits", "Verification", "verify_candidate"]
 
 
 class DriftLimits(NamedTuple):
-    """How far a loop's measured relative pose may disagree with the current estimate of it.
+    """How far a loop's measured relative pose may disagree with the current estimate of it."""
 
-    Attributes:
-        translation: metres.
-        rotation_deg: degrees.
-    """
-
-    translation: float
-    rotation_deg: float
+    translation: float  # m
+    rotation_deg: float  # degrees
 
 
 @dataclass
 class Verification:
-    """The outcome of :func:`verify_candidate` for keyframes ``a`` (older) and ``b`` (the query).
+    """The outcome of :func:`verify_candidate` for keyframes ``a`` (older) and ``b`` (the query)."""
 
-    Attributes:
-        accepted: every check passed.
-        reason: why not ("" when accepted).
-        T_ab: ``(7,)`` float64 measured pose of b in a (identity when the registration failed or was
-            not tried).
-        information: ``(6, 6)`` float64 information of ``T_ab`` from the registration (unscaled).
-        num_matches, num_inliers: of the registration.
-        distance, rotation_deg: size of the measured relative pose.
-        disagreement, disagreement_deg: between ``T_ab`` and the current estimate of it (NaN when not
-            reached).
-        limits: the :class:`DriftLimits` it was held to.
-    """
-
-    accepted: bool
-    reason: str
-    T_ab: Tensor
-    information: Tensor
-    num_matches: int = 0
+    accepted: bool  # every check passed
+    reason: str  # why not ("" when accepted)
+    T_ab: Tensor  # (7,) float64 measured pose of b in a (identity when the registration failed or was not tried)
+    information: Tensor  # (6, 6) float64 information of T_ab from the registration (unscaled)
+    num_matches: int = 0  # of the registration
     num_inliers: int = 0
-    distance: float = math.nan
+    distance: float = math.nan  # size of the measured relative pose (m, degrees)
     rotation_deg: float = math.nan
+    # between T_ab and the current estimate of it (m, degrees; NaN when not reached)
     disagreement: float = math.nan
     disagreement_deg: float = math.nan
-    limits: DriftLimits = DriftLimits(math.nan, math.nan)
+    limits: DriftLimits = DriftLimits(math.nan, math.nan)  # the bound it was held to
 
 
 def _rotation_deg(q: Tensor) -> float:
@@ -83,11 +64,9 @@ def verify_candidate(a: FrameFeatures, b: FrameFeatures, estimate_ab: Tensor, li
                      config) -> Verification:
     """Register keyframe b against keyframe a and check the result.
 
-    Checks, in order: the registration succeeds; enough inliers (``config.min_inliers``) and inlier ratio
-    (``config.min_inlier_ratio``); the views are close (``config.max_translation`` /
-    ``config.max_rotation_deg``); the measurement agrees with ``estimate_ab`` within ``limits``. A candidate
-    whose estimate lies farther than the last two allow together (by the triangle inequality no measurement
-    could pass both) is rejected before registering: on a revisited place most candidates are other passes.
+    Checks, in order: the registration succeeds; enough inliers and inlier ratio; the views are close
+    (``config.max_translation`` / ``max_rotation_deg``); the measurement agrees with ``estimate_ab`` within
+    ``limits``. An estimate farther than the last two allow together is refused before registering.
 
     Args:
         a: features of the older keyframe.
@@ -114,24 +93,18 @@ def verify_candidate(a: FrameFeatures, b: FrameFeatures, estimate_ab: Tensor, li
     info = res.information.detach().to(torch.float64).cpu()
     out = Verification(False, "", T_ab, info, res.num_matches, res.num_inliers, limits=limits)
     if not res.success:
-        out.reason = f"registration failed: {res.reason}"
-        return out
+        return replace(out, reason=f"registration failed: {res.reason}")
     if res.num_inliers < config.min_inliers:
-        out.reason = f"{res.num_inliers} inliers < {config.min_inliers}"
-        return out
+        return replace(out, reason=f"{res.num_inliers} inliers < {config.min_inliers}")
     ratio = res.num_inliers / max(res.num_matches, 1)
     if ratio < config.min_inlier_ratio:
-        out.reason = f"inlier ratio {ratio:.2f} < {config.min_inlier_ratio}"
-        return out
+        return replace(out, reason=f"inlier ratio {ratio:.2f} < {config.min_inlier_ratio}")
     out.distance, out.rotation_deg = float(T_ab[:3].norm()), _rotation_deg(T_ab[3:])
     if out.distance > config.max_translation or out.rotation_deg > config.max_rotation_deg:
-        out.reason = f"views too far apart ({out.distance:.2f} m, {out.rotation_deg:.0f} deg)"
-        return out
+        return replace(out, reason=f"views too far apart ({out.distance:.2f} m, {out.rotation_deg:.0f} deg)")
     diff = se3_between(est, T_ab)
     out.disagreement, out.disagreement_deg = float(diff[:3].norm()), _rotation_deg(diff[3:])
     if out.disagreement > limits.translation or out.disagreement_deg > limits.rotation_deg:
-        out.reason = (f"contradicts the estimate by {out.disagreement:.2f} m / {out.disagreement_deg:.0f} deg "
-                      f"(bound {limits.translation:.2f} m / {limits.rotation_deg:.0f} deg)")
-        return out
-    out.accepted = True
-    return out
+        return replace(out, reason=f"contradicts the estimate by {out.disagreement:.2f} m / {out.disagreement_deg:.0f} "
+                                   f"deg (bound {limits.translation:.2f} m / {limits.rotation_deg:.0f} deg)")
+    return replace(out, accepted=True)

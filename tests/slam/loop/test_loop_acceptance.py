@@ -163,7 +163,7 @@ def test_keyframe_graph_pose_graph_scales_by_kind():
     g = _corridor_graph(4)
     g.add_loop(0, 3, _T(0.9), 2.0 * torch.eye(6, dtype=D))
     pg = g.pose_graph({EdgeKind.ODOMETRY: 0.5, EdgeKind.LOOP: 0.01})
-    assert pg.num_edges == 4 and g.edge_kinds().tolist() == [0, 0, 0, 1]
+    assert pg.num_edges == 4 and g.edge_kind_codes(torch.arange(4)).tolist() == [0, 0, 0, 1]
     assert torch.allclose(pg.information[0], 0.5 * torch.eye(6, dtype=D))
     assert torch.allclose(pg.information[3], 0.02 * torch.eye(6, dtype=D))
     g.edges[3].active = False
