@@ -140,18 +140,29 @@ def check_backend_config(config) -> None:
 
 @dataclass
 class BackendResult:
-    """What :meth:`PoseGraphBackend.optimize` returns."""
+    """What :meth:`PoseGraphBackend.optimize` returns.
 
-    poses: Tensor  # (M, 7) float64 optimised keyframe poses
-    # index into KeyframeGraph.edges -> final kernel weight of that active loop edge (1: trusted, ~0: switched off)
+    Attributes:
+        poses: ``(M, 7)`` float64 optimised keyframe poses.
+        loop_weights: index into ``KeyframeGraph.edges`` -> final kernel weight of that (active) loop
+            edge (1 = fully trusted, near 0 = switched off).
+        status: the optimiser's status.
+        iterations: LM iterations.
+        seconds: wall time.
+        initial_chi2, chi2: of the graph (plain sums, before and after).
+        optimization: the :class:`~slam.graph.optimizer.OptimizationResult`.
+        history: the cost after each iteration.
+    """
+
+    poses: Tensor
     loop_weights: Dict[int, float]
-    status: str  # the optimiser's
-    iterations: int  # LM iterations
-    seconds: float  # wall time
-    initial_chi2: float  # of the graph (plain sums, before and after)
+    status: str
+    iterations: int
+    seconds: float
+    initial_chi2: float
     chi2: float
     optimization: Optional[OptimizationResult] = None
-    history: List[float] = field(default_factory=list)  # the cost after each iteration
+    history: List[float] = field(default_factory=list)
 
 
 class PoseGraphBackend:

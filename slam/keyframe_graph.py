@@ -89,17 +89,29 @@ class EdgeKind(IntEnum):
 
 @dataclass
 class GraphEdge:
-    """One edge ``i -> j`` between keyframe ids of the keyframe graph."""
+    """One edge ``i -> j`` of the keyframe graph.
+
+    Attributes:
+        i, j: keyframe ids.
+        T_ij: ``(7,)`` float64 measured pose of keyframe j in keyframe i.
+        information: ``(6, 6)`` float64 information of ``T_ij`` as the registration computed it (right
+            perturbation, ``[rho, phi]``), before the back end's per-kind scaling.
+        kind: :class:`EdgeKind`.
+        weak: an odometry edge forced after a tracking loss (constant-velocity guess).
+        active: False for a loop edge taken out of the graph (outside the consistent group of loops);
+            inactive edges stay in the list (and in :meth:`KeyframeGraph.pose_graph` only when asked for)
+            so that edge indices remain stable.
+        weight: the back end's last robust-kernel weight of the edge (1 before any optimisation).
+    """
 
     i: int
     j: int
-    T_ij: Tensor  # (7,) float64 measured pose of keyframe j in keyframe i
-    # (6, 6) float64 information of T_ij from the registration (right perturbation, [rho, phi]), unscaled
+    T_ij: Tensor
     information: Tensor
     kind: EdgeKind
-    weak: bool = False  # an odometry edge forced after a tracking loss (constant-velocity guess)
-    active: bool = True  # False for a loop edge outside the consistent group (it stays: indices are stable)
-    weight: float = 1.0  # the back end's last robust-kernel weight of the edge (1 before any optimisation)
+    weak: bool = False
+    active: bool = True
+    weight: float = 1.0
 
     @property
     def length(self) -> float:

@@ -73,53 +73,93 @@ class LoopWorkerError(RuntimeError):
 
 @dataclass
 class FrameState:
-    """What :meth:`RGBDSLAM.track` reports for one frame."""
+    """What :meth:`RGBDSLAM.track` reports for one frame.
 
-    index: int  # input order of the frame
+    Attributes:
+        index: input order of the frame.
+        timestamp: its timestamp.
+        pose: ``(7,)`` float64 the system's current world-from-camera estimate of the depth camera (the
+            frame of the input ``K``; see ``FeatureConfig.rgb_intrinsics`` for unregistered frames): its
+            keyframe's corrected pose composed with the frame's pose in it when loops have been optimised
+            online (``corrected``), else the odometry's.
+        status: ``"initialized" | "ok" | "lost" | "recovered" | "skipped"``.
+        reason: why it is lost / skipped / a keyframe ("" when plainly tracked).
+        keyframe_id: the keyframe it is expressed relative to (-1 before the first keyframe).
+        new_keyframes: ids of keyframes created by this call.
+        new_loops: loops verified during this call and kept (consistent with the others).
+        num_inliers: inliers of the registration that placed the frame (0 when none did).
+        inlier_rmse: their 3D RMSE in metres (NaN when no registration placed the frame).
+        odometry_pose: ``(7,)`` the same frame placed by odometry alone (the chain of odometry edges).
+        corrected: ``pose`` includes the corrections of the loops optimised so far (False: it is
+            ``odometry_pose``).
+        correction: the online optimisation run during this call, if any.
+    """
+
+    index: int
     timestamp: float
-    # (7,) float64 world-from-camera pose of the depth camera (the frame of the input K), corrected by the loops
-    # optimised so far when `corrected`
     pose: Tensor
-    status: str  # "initialized" | "ok" | "lost" | "recovered" | "skipped"
-    reason: str  # why it is lost / skipped / a keyframe ("" when plainly tracked)
-    keyframe_id: int  # the keyframe it is expressed relative to (-1 before the first keyframe)
-    new_keyframes: List[int] = field(default_factory=list)  # ids of keyframes created by this call
-    new_loops: List[LoopClosure] = field(default_factory=list)  # loops verified during this call and kept
-    num_inliers: int = 0  # inliers of the registration that placed the frame (0 when none did)
-    inlier_rmse: float = math.nan  # their 3D RMSE in metres (NaN when no registration placed the frame)
-    odometry_pose: Optional[Tensor] = None  # (7,) the same frame placed by odometry alone
-    corrected: bool = False  # `pose` includes loop corrections (False: it is `odometry_pose`)
-    correction: Optional[BackendResult] = None  # the online optimisation run during this call, if any
+    status: str
+    reason: str
+    keyframe_id: int
+    new_keyframes: List[int] = field(default_factory=list)
+    new_loops: List[LoopClosure] = field(default_factory=list)
+    num_inliers: int = 0
+    inlier_rmse: float = math.nan
+    odometry_pose: Optional[Tensor] = None
+    corrected: bool = False
+    correction: Optional[BackendResult] = None
 
 
 @dataclass
 class SLAMResult:
-    """What :meth:`RGBDSLAM.finish` returns."""
+    """What :meth:`RGBDSLAM.finish` returns.
 
-    # one optimised pose per input frame, in input order; a frame lost (or skipped) between two tracked ones is
-    # interpolated by time between their optimised poses
+    Attributes:
+        trajectory: one optimised pose per input frame, in input order; a frame lost (or skipped) between two
+            tracked ones is interpolated between their optimised poses by time (during the run it was
+            placed by constant velocity, as ``odometry_trajectory`` keeps it).
+        odometry_trajectory: the same frames before pose-graph optimisation.
+        keyframe_trajectory: optimised keyframe poses (timestamps of the keyframes).
+        keyframe_frames: ``(M,)`` input index of each keyframe.
+        loops: the loops in effect at the end: verified, in the consistent group, and not switched off by
+            the back end's robust kernel.
+        queries: one entry per loop-database query.
+        graph: the optimised keyframe pose graph (None when there were no keyframes).
+        optimization: the optimiser's result (None when nothing was optimised).
+        num_frames, num_keyframes, num_lost, num_skipped: counts.
+        timings: seconds and calls per stage.
+        loop_hypotheses: every verified loop, with its final ``status`` (kept / inconsistent / switched_off).
+        corrections: the online optimisations, in order: each one's status, iterations, seconds and chi2;
+            only the last keeps its poses, loop weights and optimiser result (the earlier ones' are in the
+            graph: over a long run they would grow with the square of its length).
+        tracked: ``(N,)`` bool per frame: placed by tracking (not lost, not unreadable): the frames that a
+            system which outputs tracked frames only (ORB-SLAM's trajectory files) would report.
+        loop_lag: ``(N,)`` int64 per frame: the keyframes whose loop work was waiting (queued or running in
+            the loop worker) when the frame's :meth:`RGBDSLAM.track` returned (zeros without the worker).
+        released: the keyframes whose features and image were released (revisits that added nothing:
+            ``LoopClosureConfig.release_revisits``), in order; their poses stay in the trajectory.
+        error: why the run stopped early (:class:`LoopWorkerError`; :meth:`RGBDSLAM.result_so_far`), else
+            None. Such a result holds the poses as tracking reported them, not optimised.
+    """
+
     trajectory: Trajectory
-    odometry_trajectory: Trajectory  # the same frames before pose-graph optimisation
-    keyframe_trajectory: Trajectory  # optimised keyframe poses (timestamps of the keyframes)
-    keyframe_frames: Tensor  # (M,) input index of each keyframe
-    loops: List[LoopClosure]  # the loops in effect at the end: verified, consistent, not switched off
-    queries: List[LoopQuery]  # one entry per loop-database query
-    graph: Optional[PoseGraph]  # the optimised keyframe pose graph (None when there were no keyframes)
-    optimization: Optional[OptimizationResult]  # the optimiser's result (None when nothing was optimised)
+    odometry_trajectory: Trajectory
+    keyframe_trajectory: Trajectory
+    keyframe_frames: Tensor
+    loops: List[LoopClosure]
+    queries: List[LoopQuery]
+    graph: Optional[PoseGraph]
+    optimization: Optional[OptimizationResult]
     num_frames: int
     num_keyframes: int
     num_lost: int
     num_skipped: int
-    timings: Dict[str, Dict[str, float]]  # seconds and calls per stage
-    # every verified loop, with its final `status` (kept / inconsistent / switched_off)
+    timings: Dict[str, Dict[str, float]]
     loop_hypotheses: List[LoopClosure] = field(default_factory=list)
-    # the online optimisations, in order; only the last keeps its poses, loop weights and optimiser result
     corrections: List[BackendResult] = field(default_factory=list)
-    tracked: Optional[Tensor] = None  # (N,) bool per frame: placed by tracking (not lost, not unreadable)
-    # (N,) int64 per frame: the keyframes whose loop work was waiting in the loop worker when its track() returned
+    tracked: Optional[Tensor] = None
     loop_lag: Optional[Tensor] = None
-    released: List[int] = field(default_factory=list)  # keyframes released (LoopClosureConfig.release_revisits)
-    # why the run stopped early (RGBDSLAM.result_so_far: poses as tracking reported them), else None
+    released: List[int] = field(default_factory=list)
     error: Optional[str] = None
 
 

@@ -42,28 +42,51 @@ __all__ = ["LoopCloser", "LoopClosure", "LoopQuery", "LoopUpdate", "build_descri
 
 @dataclass
 class LoopClosure:
-    """An accepted, geometrically verified loop between keyframes ``kf_a < kf_b``; the edge measures ``T_ab``."""
+    """An accepted, geometrically verified loop between keyframes ``kf_a < kf_b``.
+
+    Attributes:
+        kf_a, kf_b: keyframe ids; the edge measures ``T_ab`` (pose of b in a).
+        frame_a, frame_b: input indices of the two keyframes.
+        timestamp_a, timestamp_b: their timestamps.
+        similarity: descriptor cosine similarity of the pair.
+        num_inliers: RANSAC inliers of the verification.
+        T_ab: ``(7,)`` float64 measured relative pose, in the tracked camera's frame (the colour camera's
+            when the frames are unregistered).
+        information: ``(6, 6)`` float64 information of ``T_ab`` from the registration (unscaled; the back
+            end scales it by ``LoopClosureConfig.information_scale``).
+        verification: the full :class:`~slam.loop.verification.Verification` (disagreement, bound).
+        id: the hypothesis number (order of verification).
+        path_length: metres travelled between the two keyframes along the graph when it was verified.
+        settled: its measurement agrees with the estimate it was verified against within
+            ``LoopClosureConfig.settled_translation`` / ``settled_rotation_deg``: the estimate already
+            satisfies it.
+        consistent: kept by the group check (set by the loop closer): in the largest group of mutually
+            consistent loops, with local support (:mod:`slam.loop.consistency`); only those are edges of
+            the graph. Its ``status`` is ``"inconsistent"`` otherwise.
+        switched_off: the back end's robust kernel gave it a weight below
+            ``BackendConfig.switch_off_weight`` in its last optimisation (set by the system).
+        weight: its last kernel weight in the back end (1 before any optimisation).
+        edge: its index in ``KeyframeGraph.edges`` (-1 until the caller adds it).
+    """
 
     kf_a: int
     kf_b: int
-    frame_a: int  # input indices of the two keyframes
+    frame_a: int
     frame_b: int
     timestamp_a: float
     timestamp_b: float
-    similarity: float  # descriptor cosine similarity of the pair
-    num_inliers: int  # RANSAC inliers of the verification
-    T_ab: Tensor  # (7,) float64 measured pose of b in a, in the tracked camera's frame
-    information: Optional[Tensor] = None  # (6, 6) float64 information of T_ab from the registration (unscaled)
-    verification: Optional[Verification] = None  # the full verification (disagreement, bound)
-    id: int = -1  # the hypothesis number (order of verification)
-    path_length: float = float("nan")  # metres between the two keyframes along the graph when verified
-    # its measurement agrees with the estimate it was verified against within
-    # LoopClosureConfig.settled_translation / settled_rotation_deg
+    similarity: float
+    num_inliers: int
+    T_ab: Tensor
+    information: Optional[Tensor] = None
+    verification: Optional[Verification] = None
+    id: int = -1
+    path_length: float = float("nan")
     settled: bool = False
-    consistent: bool = True  # kept by the group check (slam.loop.consistency)
-    switched_off: bool = False  # its back-end weight fell below BackendConfig.switch_off_weight (set by the system)
-    weight: float = 1.0  # its last kernel weight in the back end (1 before any optimisation)
-    edge: int = -1  # its index in KeyframeGraph.edges (-1 until the caller adds it)
+    consistent: bool = True
+    switched_off: bool = False
+    weight: float = 1.0
+    edge: int = -1
 
     @property
     def status(self) -> str:
@@ -75,12 +98,17 @@ class LoopClosure:
 
 @dataclass
 class LoopUpdate:
-    """What one :meth:`LoopCloser.close` call changed."""
+    """What one :meth:`LoopCloser.close` call changed.
 
-    new: List[LoopClosure] = field(default_factory=list)  # the loops verified during the call
-    changed: List[LoopClosure] = field(default_factory=list)  # earlier loops that entered or left the group
-    # a kept new loop repeats an earlier keyframe (`repeats` of LoopCloser.close): the query keyframe was not
-    # added to the database, and the caller may release it
+    Attributes:
+        new: the loops verified during the call (each with its ``status``).
+        changed: earlier loops that entered or left the consistent group.
+        revisit: a kept new loop repeats an earlier keyframe (the ``repeats`` given to :meth:`LoopCloser.close`):
+            the query keyframe was not added to the database, and the caller may release it.
+    """
+
+    new: List[LoopClosure] = field(default_factory=list)
+    changed: List[LoopClosure] = field(default_factory=list)
     revisit: bool = False
 
     def __bool__(self) -> bool:
@@ -89,20 +117,32 @@ class LoopUpdate:
 
 @dataclass
 class LoopQuery:
-    """One query of the keyframe database (for the loop-closure evaluation)."""
+    """One query of the keyframe database (for the loop-closure evaluation).
 
-    kf: int  # query keyframe id
-    # most similar eligible keyframe id (-1 when none was eligible): outside the detector's time window and not
-    # joined to the query by a measured edge (KeyframeGraph.joined)
+    Attributes:
+        kf: query keyframe id.
+        top_kf: most similar eligible keyframe id (-1 when none was eligible). Eligible: outside the
+            detector's time window and not joined to the query by an edge of the keyframe graph (its
+            odometry parent: a loop to it would count that registration twice; a weak edge, forced after
+            a tracking loss, measured nothing and joins nothing).
+        top_score: its similarity (``-inf`` when none).
+        threshold: the query's adaptive threshold.
+        candidates: eligible ids that passed the threshold (and consistency) and were sent to verification.
+        verified: ids accepted by geometric verification.
+        rejections: ``{candidate id: reason}`` for candidates that failed verification or were not verified
+            (the query repeats an earlier one: :meth:`LoopCloser.close`).
+        followed: not a database query: the keyframe followed a revisit and repeats the keyframe nearest to it
+            around the one that revisit repeated (:meth:`LoopCloser.close`); ``top_kf`` is that keyframe,
+            ``top_score`` and ``threshold`` NaN (no descriptor was computed).
+    """
+
+    kf: int
     top_kf: int
-    top_score: float  # its similarity (-inf when none)
-    threshold: float  # the query's adaptive threshold
-    candidates: List[int]  # eligible ids that passed the threshold and were sent to verification
-    verified: List[int]  # ids accepted by geometric verification
-    # {candidate id: reason} for candidates that failed verification or were not verified
+    top_score: float
+    threshold: float
+    candidates: List[int]
+    verified: List[int]
     rejections: Dict[int, str] = field(default_factory=dict)
-    # not a database query: the keyframe followed a revisit (LoopCloser.close); top_kf is the keyframe it
-    # repeats, top_score and threshold NaN
     followed: bool = False
 
 

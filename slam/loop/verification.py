@@ -32,28 +32,45 @@ __all__ = ["DriftLimits", "Verification", "verify_candidate"]
 
 
 class DriftLimits(NamedTuple):
-    """How far a loop's measured relative pose may disagree with the current estimate of it."""
+    """How far a loop's measured relative pose may disagree with the current estimate of it.
 
-    translation: float  # m
-    rotation_deg: float  # degrees
+    Attributes:
+        translation: metres.
+        rotation_deg: degrees.
+    """
+
+    translation: float
+    rotation_deg: float
 
 
 @dataclass
 class Verification:
-    """The outcome of :func:`verify_candidate` for keyframes ``a`` (older) and ``b`` (the query)."""
+    """The outcome of :func:`verify_candidate` for keyframes ``a`` (older) and ``b`` (the query).
 
-    accepted: bool  # every check passed
-    reason: str  # why not ("" when accepted)
-    T_ab: Tensor  # (7,) float64 measured pose of b in a (identity when the registration failed or was not tried)
-    information: Tensor  # (6, 6) float64 information of T_ab from the registration (unscaled)
-    num_matches: int = 0  # of the registration
+    Attributes:
+        accepted: every check passed.
+        reason: why not ("" when accepted).
+        T_ab: ``(7,)`` float64 measured pose of b in a (identity when the registration failed or was
+            not tried).
+        information: ``(6, 6)`` float64 information of ``T_ab`` from the registration (unscaled).
+        num_matches, num_inliers: of the registration.
+        distance, rotation_deg: size of the measured relative pose.
+        disagreement, disagreement_deg: between ``T_ab`` and the current estimate of it (NaN when not
+            reached).
+        limits: the :class:`DriftLimits` it was held to.
+    """
+
+    accepted: bool
+    reason: str
+    T_ab: Tensor
+    information: Tensor
+    num_matches: int = 0
     num_inliers: int = 0
-    distance: float = math.nan  # size of the measured relative pose (m, degrees)
+    distance: float = math.nan
     rotation_deg: float = math.nan
-    # between T_ab and the current estimate of it (m, degrees; NaN when not reached)
     disagreement: float = math.nan
     disagreement_deg: float = math.nan
-    limits: DriftLimits = DriftLimits(math.nan, math.nan)  # the bound it was held to
+    limits: DriftLimits = DriftLimits(math.nan, math.nan)
 
 
 def _rotation_deg(q: Tensor) -> float:
