@@ -1,6 +1,6 @@
 """Regional GeM pooling of fused attention maps: the translation-tolerant code of the default descriptor.
 
-Per tap group, GeM over the whole map and a 2 x 2 grid, each region L2-normalised, concatenated
+Per tap group, GeM over the whole map and a 2 x 2 grid (by default), each region L2-normalised, concatenated
 ``[group][region][channel]``; why: docs/method.md.
 
 Example:
@@ -29,8 +29,13 @@ POOLINGS = ("flat", "regional")
 _REL_FLOOR = 1e-6
 # A region whose unit-scaled GeM is at most this is empty (all values at the floor, with rounding margin).
 _EMPTY_REGION = 2 * _REL_FLOOR
-_LEVELS = (1, 2)  # the whole map and a 2 x 2 grid
-_REGIONS = sum(v * v for v in _LEVELS)
+
+
+def _check_levels(levels: Sequence[int]) -> tuple[int, ...]:
+    lv = tuple(int(v) for v in levels)
+    if not lv or any(v < 1 for v in lv) or any(int(v) != v for v in levels):
+        raise ValueError(f"levels must be positive grid sizes such as (1, 2), got {levels!r}")
+    return lv
 
 
 def _check_groups(channels: int, groups: Sequence[int] | None) -> tuple[int, ...]:
@@ -98,7 +103,8 @@ def fuse_groups(tap: Tensor, grad: Tensor, mode: str, groups: Sequence[int] | No
                       for lt, gt, a in zip(tap.split(g, 1), grad.split(g, 1), att)], dim=1)
 
 
-def _unit_gem_regions(x: Tensor, p: float, groups: tuple[int, ...] | None = None) -> tuple[Tensor, Tensor]:
+def _unit_gem_regions(x: Tensor, p: float, levels: tuple[int, ...],
+                      groups: tuple[int, ...] | None = None) -> tuple[Tensor, Tensor]:
     # GeM of x / s, s = max |x| per sample and channel group, keeping x^p in float range: (B, R, C) and s
     # per channel (B, 1, C).
     g = groups or (x.shape[1],)
@@ -110,12 +116,12 @@ def _unit_gem_regions(x: Tensor, p: float, groups: tuple[int, ...] | None = None
         scales.append(torch.where(top > 0, top, torch.ones_like(top)).expand(-1, c))
     safe = torch.cat(scales, dim=1)
     xp = (x / safe[:, :, None, None]).clamp_min(_REL_FLOOR).pow(p)
-    cells = [F.adaptive_avg_pool2d(xp, v).flatten(2) for v in _LEVELS]  # (B, C, l*l) each
+    cells = [F.adaptive_avg_pool2d(xp, v).flatten(2) for v in levels]  # (B, C, l*l) each
     return torch.cat(cells, dim=2).pow(1.0 / p).transpose(1, 2), safe[:, None, :]
 
 
-def gem_regions(x: Tensor, p: float = 2.0) -> Tensor:
-    """GeM pooling over the whole map and the cells of a 2 x 2 grid.
+def gem_regions(x: Tensor, p: float = 2.0, levels: Sequence[int] = (1, 2)) -> Tensor:
+    """GeM pooling over the whole map and the cells of square grids.
 
     ``(mean_{cell} max(x, eps)^p)^(1/p)`` per channel, ``eps = 1e-6 max|x|`` per sample (so
     ``gem_regions(k x) = k gem_regions(x)``, k > 0); grids as :func:`torch.nn.functional.adaptive_avg_pool2d`.
@@ -123,45 +129,50 @@ def gem_regions(x: Tensor, p: float = 2.0) -> Tensor:
     Args:
         x: :math:`(B, C, H, W)`.
         p: the GeM exponent (finite, > 0).
+        levels: grid sizes; ``(1, 2)`` gives the whole map and a 2 x 2 grid, 5 regions.
 
     Returns:
-        :math:`(B, 5, C)`: the whole map, then the grid's cells row-major.
+        :math:`(B, R, C)` with ``R = sum_l l^2``, regions in the order of ``levels``, cells row-major.
     """
     _check_map(x)
     _check_p(p)
+    lv = _check_levels(levels)
     if x.shape[0] == 0:
-        return x.new_zeros((0, _REGIONS, x.shape[1]))
-    unit, scale = _unit_gem_regions(x, p)
+        return x.new_zeros((0, sum(v * v for v in lv), x.shape[1]))
+    unit, scale = _unit_gem_regions(x, p, lv)
     zero = x.abs().amax(dim=(1, 2, 3)) == 0
     return torch.where(zero.view(-1, 1, 1), torch.zeros_like(unit), unit * scale)
 
 
-def regional_code_dim(groups: Sequence[int]) -> int:
-    """Length of :func:`regional_code`'s output: ``5 * sum_g C_g``."""
+def regional_code_dim(groups: Sequence[int], levels: Sequence[int] = (1, 2)) -> int:
+    """Length of :func:`regional_code`'s output: ``sum_l l^2 * sum_g C_g``."""
     g = tuple(groups)
     if not g or any(isinstance(c, bool) or int(c) != c or c < 1 for c in g):
         raise ValueError(f"groups must be positive channel counts such as (192, 320), got {groups!r}")
-    return _REGIONS * sum(int(c) for c in g)
+    return sum(v * v for v in _check_levels(levels)) * sum(int(c) for c in g)
 
 
-def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0) -> Tensor:
+def regional_code(x: Tensor, groups: Sequence[int] | None = None, p: float = 2.0,
+                  levels: Sequence[int] = (1, 2)) -> Tensor:
     """Regional GeM code of a fused map: per group and region a unit vector, all concatenated.
 
     Args:
         x: the fused map :math:`(B, C, H, W)`.
         groups: channel counts of the tap groups (summing to C); None: one group.
         p: the GeM exponent.
+        levels: grid sizes (see :func:`gem_regions`).
 
     Returns:
-        :math:`(B, D)`, ``D = regional_code_dim(groups)``; a region with no value above the floor
+        :math:`(B, D)`, ``D = regional_code_dim(groups, levels)``; a region with no value above the floor
         gives zeros (no evidence), not the uniform vector its floor would normalise to.
     """
     _check_map(x)
     g = _check_groups(x.shape[1], groups)
     _check_p(p)
+    lv = _check_levels(levels)
     if x.shape[0] == 0:
-        return x.new_zeros((0, regional_code_dim(g)))
-    unit = _unit_gem_regions(x, p, g)[0]  # (B, R, C)
+        return x.new_zeros((0, regional_code_dim(g, lv)))
+    unit = _unit_gem_regions(x, p, lv, g)[0]  # (B, R, C)
     parts = [F.normalize(ug * (ug.amax(dim=2, keepdim=True) > _EMPTY_REGION), dim=2).flatten(1)
              for ug in unit.split(g, dim=2)]
     return torch.cat(parts, dim=1)

@@ -178,7 +178,7 @@ class PoseGraphBackend:
         self.information_scale = dict(information_scale)
         check_backend_config(config)  # any object with these fields, not only a (frozen, checked) BackendConfig
 
-    def optimize(self, graph: KeyframeGraph, online: bool = False, fixed: Optional[Sequence[int]] = None,
+    def optimize(self, graph: KeyframeGraph, *, online: bool = False, fixed: Optional[Sequence[int]] = None,
                  free: Optional[Sequence[int]] = None) -> BackendResult:
         """Optimise the active edges of ``graph`` from its current estimates.
 

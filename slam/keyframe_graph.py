@@ -122,7 +122,10 @@ class GraphEdge:
 class KeyframeGraph:
     """Keyframe poses (odometry and estimate) and typed edges; builds the :class:`~slam.graph.PoseGraph`.
 
-    Keyframe ids are ``0 .. num_keyframes - 1`` in creation order. An edge keeps the float64 tensors it is given.
+    Keyframe ids are ``0 .. num_keyframes - 1`` in creation order; a keyframe other than the first enters with its
+    odometry edge (:meth:`add_odometry`), which sets its odometry pose by composition. An edge keeps the float64
+    tensors it is given (a loop's edge and its :class:`slam.loop.LoopClosure` hold one pair): they must not be
+    changed in place afterwards.
     """
 
     def __init__(self) -> None:

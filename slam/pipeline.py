@@ -37,21 +37,28 @@ class RunResult:
     """A finished run: the system's result plus wall-clock figures.
 
     Attributes:
-        result, sequence_name, config, frame_step: :class:`slam.system.SLAMResult`, the sequence's name, the
-            config used, the step between the input frames used.
-        wall_seconds, fps: time of the whole run (reading, tracking, loops, final optimisation), frames per second.
+        result: :class:`slam.system.SLAMResult`.
+        sequence_name: name of the sequence.
+        wall_seconds: time of the whole run (reading, tracking, loops, final optimisation).
+        fps: input frames per second over ``wall_seconds``.
         groundtruth: per-frame ground truth (input order) or None.
         gt_poses_per_frame: ``(N, 7)`` ground truth of each processed frame (NaN where unknown).
-        report, loop_curves, map_cloud: set by :func:`slam.report.evaluate_run`: the :class:`slam.report.RunReport`,
-            ``{"before_verification": PRCurve, "after_verification": PRCurve}`` (with ground truth), and the merged
-            map ``(points (N, 3) float32, colours (N, 3) uint8)`` placed with the final keyframe poses.
+        report: its :class:`slam.report.RunReport` (``metrics.json``), set by :func:`slam.report.evaluate_run`.
+        loop_curves: ``{"before_verification": PRCurve, "after_verification": PRCurve}`` (with ground truth,
+            filled by :func:`slam.report.evaluate_run`).
+        config: the config the run used.
+        frame_step: every ``frame_step``-th input frame was used.
         map: the keyframes' points (:class:`slam.mapping.PointCloudMap`), None when the map is off.
-        backbone, descriptor_dim: the descriptor's backbone as built and its size (None without loop closure).
-        relocalisation, map_origin, saved_map: the :class:`slam.maps.RelocalisationReport` of a run in a saved map,
-            ``(7,)`` ground truth of that map's origin if known, where ``save_map`` wrote the run's map.
+        map_cloud: the merged map ``(points (N, 3) float32, colours (N, 3) uint8)`` placed with the final
+            keyframe poses (filled by :func:`slam.report.evaluate_run`).
+        backbone: the descriptor's backbone as built (None without loop closure).
+        descriptor_dim: the size of its descriptors (None without loop closure).
+        relocalisation: the :class:`slam.maps.RelocalisationReport` of a run in a saved map (``map_dir``).
+        map_origin: ``(7,)`` ground truth of the saved map's origin, if known.
+        saved_map: where ``save_map`` wrote the run's map.
         camera: ``{"name": "fr2" / "calibration.txt" / None, "intrinsics": [fx, fy, cx, cy]}``.
-        groundtruth_note, first_untracked: why no frame has ground truth when the sequence has a file of it; why the
-            first untracked frame was lost or unreadable.
+        groundtruth_note: why no frame has ground truth when the sequence has a file of it.
+        first_untracked: why the first frame that was lost or unreadable was.
     """
 
     result: SLAMResult

@@ -23,27 +23,40 @@ class RunReport:
     frames were tracked). Units: seconds, metres, degrees; ``time_per_stage`` in ms (:class:`slam.timing.StageTimer`).
 
     Attributes:
-        sequence, num_frames, frame_step: the sequence's name, the frames processed, the step between them.
-        num_keyframes, released_keyframes, num_loops, num_lost, num_skipped: keyframes, those released as revisits
-            (``LoopClosureConfig.release_revisits``), accepted loops, frames lost, frames that could not be read.
-        fps, wall_seconds, time_per_stage: the run's speed and time, the system's stage timings.
-        backbone, descriptor: the descriptor's backbone as built and its settings (None without loop closure).
-        loop_hypotheses, loop_hypotheses_false: verified loops (the false ones) by final status.
+        sequence: the sequence's name.
+        num_frames: frames processed (every ``frame_step``-th input frame).
+        frame_step: the step between processed input frames.
+        num_keyframes, num_loops, num_lost, num_skipped: keyframes, accepted loops, frames lost by tracking,
+            frames that could not be read.
+        released_keyframes: revisits that added nothing, their features, image and map points dropped
+            (``LoopClosureConfig.release_revisits``).
+        fps: frames per second over ``wall_seconds`` (reading, tracking, loops, final optimisation).
+        wall_seconds: the run's wall time.
+        time_per_stage: the system's stage timings (:attr:`slam.system.SLAMResult.timings`).
+        backbone: the descriptor's backbone as built (None without loop closure).
+        loop_hypotheses: every verified loop by its final status (kept / inconsistent / switched_off).
         online_corrections: ``count``, ``total_ms``, ``max_ms`` of the online pose-graph corrections.
         loop_worker: the loop worker's lag (:func:`loop_worker_metrics`).
         error: why the run stopped early (a :class:`slam.system.LoopWorkerError`).
-        rig, camera: the rig tracked with, in words; the sequence's camera (:func:`slam.pipeline.camera_of`).
+        descriptor: the descriptor's settings (preset, backbone, dim, fusion, seed, weights, recipe).
+        rig: the camera rig the run tracked with, in words.
+        camera: the sequence's camera (:func:`slam.pipeline.camera_of`).
         map: points of the merged map, keyframes, points and MB kept during the run, voxel size (m).
         pose_graph: keyframes, edges, initial and final chi2, status and iterations of the final optimisation.
-        num_tracked, status, failure: frames placed by tracking (the first included); ``"ok"``, or ``"failed"``
-            below ``SLAMConfig.min_tracked_fraction`` and why.
-        ate_rmse, ate, ate_unavailable: the ATE's RMSE (m; rigid SE(3) alignment), its statistics (m) and
-            ``num_pairs``, or why there is none.
-        odometry_ate_rmse, ate_tracked: the ATE of the odometry alone; over the tracked frames alone.
+        ate_rmse: the ATE's RMSE (m; rigid SE(3) alignment, TUM association), None with ``ate_unavailable``.
+        num_tracked: the frames placed by tracking (the first one included).
+        status: ``"ok"``, or ``"failed"`` below ``SLAMConfig.min_tracked_fraction`` (``failure`` says why).
+        failure: why the run failed.
+        ate_unavailable: why there is no ATE (no ground truth, fewer than 3 frames with it, ...).
+        ate: the ATE's rmse, mean, median, std, max (m) and num_pairs.
+        odometry_ate_rmse: the ATE of the odometry before the pose graph (m).
+        ate_tracked: the ATE over the tracked frames alone (rmse, num_pairs), or why not.
         rpe_1frame, rpe_1s: the RPE over 1 frame and 1 s (translation m, rotation deg, num_pairs), or why not.
-        loop_ground_truth, loops_true, loops_false: the :class:`slam.eval.LoopGroundTruthConfig` the accepted
-            loops were judged with, and the verdicts.
-        loop_detection: the detector's precision/recall before and after verification (:func:`loop_precision_recall`).
+        loop_ground_truth: the :class:`slam.eval.LoopGroundTruthConfig` the loops were judged with.
+        loops_true, loops_false: accepted loops judged by ground-truth distance and angle.
+        loop_hypotheses_false: the false ones among the verified loops, by final status.
+        loop_detection: the detector's precision/recall before and after verification
+            (:func:`loop_precision_recall`).
         relocalisation: the relocalisation in a saved map (:class:`slam.maps.RelocalisationReport`'s dict).
     """
 

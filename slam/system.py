@@ -58,7 +58,8 @@ __all__ = ["FrameState", "LoopClosure", "LoopQuery", "LoopWorkerError", "RGBDSLA
 
 class LoopWorkerError(RuntimeError):
     """The loop worker failed on a keyframe's loop work (the graph is half-updated): raised by the call that
-    finds it and by every later one, with the worker's exception as ``__cause__``.
+    finds it and by every later one, with the worker's exception as ``__cause__``. :meth:`RGBDSLAM.result_so_far`
+    still gives the frames tracked so far, and the partial run's outputs can still be written.
 
     Attributes:
         keyframes: the ids of the keyframes whose work failed.
@@ -281,7 +282,8 @@ class RGBDSLAM:
         kfs[kf_id].rgb = None
 
     def keyframe_index(self):
-        """The loop closer's :class:`attnloop.index.KeyframeIndex` (one descriptor per keyframe in its database)."""
+        """The loop closer's :class:`attnloop.index.KeyframeIndex`: one descriptor per keyframe in its database, in
+        keyframe order (empty when localising: nothing is entered); None without loop closure."""
         return None if self.loop_closer is None else self.loop_closer.detector.index
 
     @property
@@ -350,6 +352,8 @@ class RGBDSLAM:
                 self.graph.add_keyframe(kf.pose)
             else:
                 edge = self.odometry.edges[kf.id - 1]
+                if edge.j != kf.id:
+                    raise RuntimeError(f"odometry edge {edge.i} -> {edge.j} does not end at keyframe {kf.id}")
                 self.graph.add_odometry(edge.i, edge.T_ij, edge.information, estimate=kf.pose, weak=edge.weak)
             if self.loop_closer is not None and not self.localize:
                 update = self.loop_closer.close(kf, self.odometry.keyframes, self.graph,

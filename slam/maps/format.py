@@ -1,14 +1,25 @@
 """The saved-map format: a folder with a JSON manifest and three ``.npz`` files (open, versioned, no pickles).
 
-docs/pipeline.md, "Maps that persist", says what is saved. The arrays (``M`` keyframes, ``N`` keypoints, ``E`` edges):
+A map folder written by :func:`save_map` holds:
 
-* ``keyframes.npz``: ``pose (M, 7)`` float64 (tracked camera), ``frame_index``, ``timestamp``, ``index_id (M,)``,
-  ``descriptor (M, D)`` float32, ``feature_offsets (M + 1,)``, ``keypoints (N, 2)`` float32, ``orb (N, B)``
-  uint8 (float32 for float descriptors), ``points (N, 3)`` float32 metres, ``valid (N,)`` bool, ``sigma_px
-  (N,)`` float32, ``K (M, 3, 3)`` float64, ``image_size (M, 2)``, ``rgb (M, h, w, 3)`` uint8;
-* ``graph.npz``: ``ii, jj (E,)`` int64, ``T_ij (E, 7)``, ``information (E, 6, 6)`` float64 (unscaled),
-  ``kind (E,)`` (:class:`slam.keyframe_graph.EdgeKind`), ``weak, active (E,)`` bool, ``weight (E,)`` float64;
-* ``index.npz``: the keyframe index (:func:`attnloop.index.save_index`).
+* ``manifest.json``: ``format`` (``"attnloop.map"``), ``version`` (:data:`MAP_FORMAT_VERSION`), when and
+  from what it was made, the descriptor that made the index (with its descriptor of a fixed probe image,
+  :func:`slam.maps.relocalise.descriptor_probe`), the camera rig the poses are in, the ground-truth pose of
+  the recording's first tracked frame (the world's origin; null without ground truth), and per data file its
+  name and SHA-256;
+* ``keyframes.npz``: per keyframe ``pose (M, 7)`` float64 (world-from-camera of the *tracked* camera,
+  the colour camera on an unregistered rig; the world is the first tracked frame's depth camera as in
+  every output), ``frame_index (M,)``, ``timestamp (M,)``, ``index_id (M,)`` (its id in ``index.npz``),
+  ``descriptor (M, D)`` float32, the verification features concatenated over keyframes with
+  ``feature_offsets (M + 1,)``: ``keypoints (N, 2)`` float32, ``orb (N, B)`` uint8 (or float32 for
+  non-binary descriptors), ``points (N, 3)`` float32 (metres, in the keyframe's tracked camera),
+  ``valid (N,)`` bool, ``sigma_px (N,)`` float32, and ``K (M, 3, 3)`` float64, ``image_size (M, 2)``,
+  ``rgb (M, h, w, 3)`` uint8 (the downsized keyframe images);
+* ``graph.npz``: the keyframe pose graph, ``ii, jj (E,)`` int64, ``T_ij (E, 7)``, ``information
+  (E, 6, 6)`` float64 (unscaled), ``kind (E,)`` (:class:`slam.keyframe_graph.EdgeKind`), ``weak``,
+  ``active (E,)`` bool and ``weight (E,)`` float64;
+* ``index.npz``: the keyframe index itself (:func:`attnloop.index.save_index`), so that a reloaded
+  map answers queries exactly as the saved one.
 
 Every reading error is a :class:`MapFormatError` (or its :class:`MapVersionError`) naming the file.
 

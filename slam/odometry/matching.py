@@ -81,7 +81,7 @@ def hamming_distance(desc_a: Tensor, desc_b: Tensor, pairs: Tensor | None = None
     return x.abs().sum(-1)
 
 
-def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: MatchConfig | None = None,
+def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: MatchConfig | None = None, *,
                       allowed_pairs: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Match two descriptor sets with Kornia's ``match_{mnn,snn,smnn}``.
 

@@ -121,7 +121,8 @@ class Space:
         center: ``(2,)`` world (x, y) of its centre.
         size: (x, y) between wall centre lines, in its own frame.
         yaw_deg: its frame's rotation about z (0 or 180).
-        openings: wall name (own frame) -> own-frame offsets of door centres along that wall.
+        openings: wall name (own frame) -> offsets of door centres along that wall (own-frame x for the
+            south/north walls, y for the west/east walls).
         design: the key of its design (twins share one).
     """
 
@@ -178,7 +179,11 @@ class BuildingLayout:
 
 
 def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
-    """The rooms, corridor and doors (:class:`BuildingLayout`) of a building (see the module docstring)."""
+    """The rooms, corridor and doors of a building (see the module docstring).
+
+    Returns:
+        :class:`BuildingLayout`.
+    """
     cfg = config or BuildingConfig()
     n = cfg.rooms_per_side
     rx, ry = cfg.room_size
@@ -370,8 +375,12 @@ def _place(box: BoxSpec, space: Space) -> BoxSpec:
 
 
 def build_building_scene(config: BuildingConfig | None = None) -> Scene:
-    """The building of :func:`building_layout` (``config``: :class:`BuildingConfig`) as a renderable
-    :class:`~slam.synthetic.scene.Scene` on the CPU, deterministic by ``config.seed``."""
+    """The building of :func:`building_layout` as a renderable :class:`~slam.synthetic.scene.Scene` on the
+    CPU, deterministic by ``config.seed`` (one seeded generator per design, shared by twins).
+
+    Args:
+        config: :class:`BuildingConfig`.
+    """
     cfg = config or BuildingConfig()
     layout = building_layout(cfg)
     photos = load_photo_textures(cfg.seed)

@@ -244,12 +244,15 @@ def building_sequence(num_frames: int = 2400, seed: int = 0, width: int = 320, h
 
 def generate_building_sequence(out_dir: str | os.PathLike, trajectory: str = "tour", num_frames: int = 2400,
                                seed: int = 0, width: int = 320, height: int = 240, **kwargs) -> Path:
-    """Render the default building's tour into ``out_dir`` in the TUM RGB-D layout
-    (:func:`~slam.synthetic.sequence.generate_sequence`, to which ``**kwargs`` go).
+    """Render the building tour and write it in the TUM RGB-D layout with its ``groundtruth.txt``
+    (:func:`slam.synthetic.sequence.generate_sequence`; same files, same determinism by ``seed``).
 
     Args:
+        out_dir: the sequence folder.
         trajectory: ``"tour"`` (the only camera path of the building).
-        num_frames, seed, width, height: as for :func:`building_sequence` (the same noise models by default).
+        num_frames, seed, width, height: as for :func:`building_sequence`.
+        **kwargs: passed to :func:`~slam.synthetic.sequence.generate_sequence` (workers, progress, noise;
+            the noise models default to the building's, as for :func:`building_sequence`).
     """
     if trajectory != "tour":
         raise ValueError(f"the building has one camera path, 'tour'; got {trajectory!r}")

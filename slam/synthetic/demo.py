@@ -24,7 +24,8 @@ class DemoScene:
     Attributes:
         description: one line for ``--help``.
         generate: ``generate(out_dir, trajectory=, num_frames=, seed=, width=, height=, progress=)`` writes the
-            sequence (TUM layout with ``groundtruth.txt``) into ``out_dir`` and returns it.
+            sequence (TUM layout with ``groundtruth.txt``) into ``out_dir`` and returns it; ``progress`` logs its
+            advance (logger ``slam.synthetic``).
         trajectories: the camera paths it offers.
         default_trajectory: the one used when none is asked for.
         default_frames: its default length.

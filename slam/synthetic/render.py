@@ -123,7 +123,11 @@ class ImageNoiseConfig:
 
 
 def pixel_rays(K: Tensor, height: int, width: int) -> Tensor:
-    """Camera-frame ray directions ``(H * W, 3)`` through every pixel centre of ``K (3, 3)``, scaled to z = 1."""
+    """Camera-frame ray directions ``(H * W, 3)`` through every pixel centre, scaled to z = 1.
+
+    Args:
+        K: ``(3, 3)`` intrinsics.
+    """
     if K.shape != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {tuple(K.shape)}")
     v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64, device=K.device),

@@ -22,7 +22,6 @@ import logging
 import os
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
 from pathlib import Path
 
 import cv2
@@ -195,8 +194,14 @@ def _frame_names(stamps: np.ndarray) -> list[str]:
         more = f" (and {len(bad) - 3} more)" if len(bad) > 3 else ""
         raise ValueError(f"non-finite trajectory timestamps cannot name frame files: {shown}{more}")
     names = [f"{t:.6f}.png" for t in stamps]
-    first: dict[float, int] = {}  # keyed by value: "-0.000000" and "0.000000" are one stamp in rgb.txt
-    clashes = [(a, i) for i, name in enumerate(names) if (a := first.setdefault(float(name[:-4]), i)) != i]
+    first: dict[float, int] = {}
+    clashes = []
+    for i, name in enumerate(names):
+        key = float(name[:-4])  # "-0.000000" and "0.000000" are one stamp in rgb.txt
+        if key in first:
+            clashes.append((first[key], i))
+        else:
+            first[key] = i
     if clashes:
         shown = "; ".join(f"frames {a} and {b} ({float(stamps[a])!r} s and {float(stamps[b])!r} s) both give "
                           f"{names[b][:-4]}" for a, b in clashes[:3])
@@ -206,17 +211,28 @@ def _frame_names(stamps: np.ndarray) -> list[str]:
     return names
 
 
-def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory = "loop", num_frames: int = 300,
+def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory = "loop",
+                      num_frames: int = 300, width: int = 640, height: int = 480, seed: int = 0,
+                      depth_noise: bool = True, image_noise: bool = True, scene: Scene | None = None,
                       batch_size: int = 2, workers: int = 2, progress: bool = False, **kwargs) -> Path:
     """Render a synthetic sequence and write it in the TUM RGB-D layout (see the module docstring).
 
     Args:
         out_dir: the sequence folder (created; files of the same names are overwritten).
-        trajectory, num_frames, batch_size: as for :class:`SyntheticSequence`.
+        trajectory: ``"loop"`` (default), ``"figure_eight"``, ``"out_and_back"``, or a
+            :class:`~slam.io.trajectory.Trajectory`.
+        num_frames: frames (30 Hz; 300 = 10 s).
+        width: image columns.
+        height: image rows.
+        seed: noise and hand-shake seed; equal seeds give byte-identical files.
+        depth_noise: Kinect-like depth noise, quantisation and holes.
+        image_noise: exposure and pixel noise.
+        scene: the scene (default: the standard room).
+        batch_size: frames per rendering task.
         workers: rendering threads, each rendering whole frames with one torch thread (restored afterwards);
             1 renders in the caller with torch's settings untouched.
         progress: log a line every ~10 % of the frames.
-        **kwargs: passed to :class:`SyntheticSequence` (width, height, seed, noise, scene).
+        **kwargs: passed to :class:`SyntheticSequence` (noise and trajectory configs).
 
     Returns:
         The folder's path.
@@ -225,13 +241,16 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
         ValueError: a trajectory timestamp that is not finite, or two that give the same file name (equal
             at 1 microsecond); nothing is written then.
     """
-    seq = SyntheticSequence(trajectory, num_frames=num_frames, batch_size=batch_size, **kwargs)
+    seq = SyntheticSequence(trajectory, num_frames=num_frames, width=width, height=height, seed=seed,
+                            depth_noise=depth_noise, image_noise=image_noise, scene=scene, batch_size=batch_size,
+                            **kwargs)
     names = _frame_names(seq.timestamps)  # checked before anything is rendered or written
     out = Path(out_dir).expanduser()
-    for sub in ("rgb", "depth"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
     n = len(seq)
     batches = [list(range(s, min(n, s + seq.batch_size))) for s in range(0, n, seq.batch_size)]
+    workers = max(1, int(workers))
 
     def task(idx: list[int]) -> None:
         rgb, raw = seq.render_raw(idx)
@@ -242,24 +261,31 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
                 raise OSError(f"could not write frame {i} into {out}")
 
     step = max(1, len(batches) // 10)
-    workers = max(1, int(workers))
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="synthetic") if workers > 1 else None
-    with limit_threads(1 if pool else None), pool or nullcontext():  # the workers share the cores: one thread each
-        for b, _ in enumerate(pool.map(task, batches) if pool else map(task, batches)):  # re-raises a task's error
-            if progress and b % step == 0:
-                logger.info("synthetic sequence: %d / %d frames", batches[b][-1] + 1, n)
+    with limit_threads(1 if workers > 1 else None):  # the workers share the cores: one thread each
+        if workers == 1:
+            for b, idx in enumerate(batches):
+                task(idx)
+                if progress and b % step == 0:
+                    logger.info("synthetic sequence: %d / %d frames", idx[-1] + 1, n)
+        else:
+            with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="synthetic") as pool:
+                for b, fut in enumerate([pool.submit(task, idx) for idx in batches]):
+                    fut.result()  # re-raises a worker's error
+                    if progress and b % step == 0:
+                        logger.info("synthetic sequence: %d / %d frames", batches[b][-1] + 1, n)
     stamps = seq.timestamps
     for sub, kind in (("rgb", "color images"), ("depth", "depth maps")):
-        (out / f"{sub}.txt").write_text("\n".join([f"# {kind}", f"# file: '{seq.name}'", "# timestamp filename"]
-                                                  + [f"{t:.6f} {sub}/{nm}" for t, nm in zip(stamps, names)]) + "\n",
-                                        encoding="utf-8")
+        with open(out / f"{sub}.txt", "w", encoding="utf-8") as f:
+            f.write("\n".join([f"# {kind}", f"# file: '{seq.name}'", "# timestamp filename"]
+                              + [f"{t:.6f} {sub}/{nm}" for t, nm in zip(stamps, names)]) + "\n")
     with open(out / "groundtruth.txt", "w", encoding="utf-8") as f:
         f.write("# ground truth trajectory\n")
         f.write(f"# file: '{seq.name}' (exact: the rendered camera-to-world poses)\n")
         write_tum_trajectory(f, Trajectory(torch.from_numpy(stamps), torch.from_numpy(seq._poses)), header=True)
     K = seq.K
-    (out / "calibration.txt").write_text("# pinhole intrinsics of the rendered images: fx fy cx cy (pixels), no "
-                                         f"distortion\n{K[0, 0]:.6f} {K[1, 1]:.6f} {K[0, 2]:.6f} {K[1, 2]:.6f}\n",
-                                         encoding="utf-8")
-    (out / "synthetic.json").write_text(json.dumps(seq.settings(), indent=2), encoding="utf-8")
+    with open(out / "calibration.txt", "w", encoding="utf-8") as f:
+        f.write("# pinhole intrinsics of the rendered images: fx fy cx cy (pixels), no distortion\n")
+        f.write(f"{K[0, 0]:.6f} {K[1, 1]:.6f} {K[0, 2]:.6f} {K[1, 2]:.6f}\n")
+    with open(out / "synthetic.json", "w", encoding="utf-8") as f:
+        json.dump(seq.settings(), f, indent=2)
     return out

@@ -19,7 +19,7 @@ from attnloop.rnn_pool import random_rnn_pool
 def test_gem_regions_hand_computed():
     x = torch.tensor([[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0], [0.0, 0.0, -1.0, 0.0], [2.0, 2.0, 2.0, 2.0]])
     x = x[None, None]  # (1, 1, 4, 4)
-    r = gem_regions(x, p=2.0)
+    r = gem_regions(x, p=2.0, levels=(1, 2))
     assert r.shape == (1, 5, 1)
     floor = 1e-6 * 8.0  # relative to the map's max |x|
     vals = x.clamp_min(floor)
@@ -28,9 +28,11 @@ def test_gem_regions_hand_computed():
     assert r[0, 2, 0] == pytest.approx(((9 + 16 + 49 + 64) / 4) ** 0.5)  # top-right
     assert r[0, 4, 0] == pytest.approx(((2 * floor**2 + 4 + 4) / 4) ** 0.5, rel=1e-5)  # bottom-right: -1 -> floor
     # p = 1 is average pooling of the positive part; a large p tends to the max
-    assert gem_regions(x.clamp_min(0), p=1.0)[0, 0, 0] == pytest.approx(float(x.clamp_min(0).mean()),
+    assert gem_regions(x.clamp_min(0), p=1.0, levels=(1,))[0, 0, 0] == pytest.approx(float(x.clamp_min(0).mean()),
                                                                                      rel=1e-5)
-    assert gem_regions(x, p=30.0)[0, 0, 0] == pytest.approx(8.0, rel=0.1)
+    assert gem_regions(x, p=30.0, levels=(1,))[0, 0, 0] == pytest.approx(8.0, rel=0.1)
+    with pytest.raises(ValueError, match="levels"):
+        gem_regions(x, levels=(0,))
     with pytest.raises(ValueError, match="p must be positive"):
         gem_regions(x, p=0.0)
 
@@ -41,9 +43,9 @@ def test_gem_is_scale_equivariant_and_the_code_scale_invariant():
     g = torch.Generator().manual_seed(2)
     x = torch.randn(2, 6, 5, 7, generator=g)
     x[1] *= 3.0  # the two samples at different scales
-    r = gem_regions(x, 2.0)
+    r = gem_regions(x, 2.0, (1, 2))
     for k in (1e-9, 1e-3, 1e4):
-        assert torch.allclose(gem_regions(k * x, 2.0), k * r, rtol=1e-5, atol=0)
+        assert torch.allclose(gem_regions(k * x, 2.0, (1, 2)), k * r, rtol=1e-5, atol=0)
         assert torch.allclose(regional_code(k * x, (2, 4)), regional_code(x, (2, 4)), atol=1e-6)
     # an absolute floor of 1e-6 would have made every sample of 1e-8 x one constant code
     tiny = regional_code(1e-8 * x, (2, 4))
@@ -78,16 +80,16 @@ def test_random_weight_descriptors_tell_images_apart():
 def test_regional_code_groups_are_unit_blocks():
     g = torch.Generator().manual_seed(0)
     x = torch.randn(3, 12, 5, 6, generator=g)
-    code = regional_code(x, groups=(4, 8), p=3.0)
-    assert code.shape == (3, regional_code_dim((4, 8))) == (3, 60)
+    code = regional_code(x, groups=(4, 8), p=3.0, levels=(1, 2))
+    assert code.shape == (3, regional_code_dim((4, 8), (1, 2))) == (3, 60)
     blocks = torch.cat([code[:, :20].reshape(3, 5, 4), code[:, 20:].reshape(3, 5, 8)], dim=2)
     norms = torch.cat([blocks[..., :4].norm(dim=2), blocks[..., 4:].norm(dim=2)], dim=1)
     assert torch.allclose(norms, torch.ones(3, 10), atol=1e-6)  # one unit vector per (group, region)
-    ref = F.normalize(gem_regions(x[:, 4:], 3.0), dim=2).flatten(1)
+    ref = F.normalize(gem_regions(x[:, 4:], 3.0, (1, 2)), dim=2).flatten(1)
     assert torch.allclose(code[:, 20:], ref)
     # a translation by whole cells leaves the global region unchanged (the flat map would change entirely)
     rolled = torch.roll(x, shifts=3, dims=3)
-    assert torch.allclose(gem_regions(rolled, 3.0)[:, 0], gem_regions(x, 3.0)[:, 0], atol=1e-5)
+    assert torch.allclose(gem_regions(rolled, 3.0, (1,)), gem_regions(x, 3.0, (1,)), atol=1e-5)
     assert regional_code(x[:0], groups=(4, 8)).shape == (0, 60)
     with pytest.raises(ValueError, match="summing to the 12 channels"):
         regional_code(x, groups=(4, 4))
@@ -282,7 +284,7 @@ def test_default_configuration():
     assert d.pool is None and d.out_dim == 5 * 112
     x = torch.randint(0, 256, (2, 3, 120, 160), dtype=torch.uint8)
     parts = d.parts(x)
-    code = regional_code(fuse(parts.tap, unit_scale(parts.grad), "dam"), None, 3.0)
+    code = regional_code(fuse(parts.tap, unit_scale(parts.grad), "dam"), None, 3.0, (1, 2))
     assert torch.allclose(parts.descriptor, F.normalize(code, dim=1), atol=1e-6)
     assert torch.allclose(d.from_attention(parts.tap, parts.grad, "gaf"),
                           descriptor_from_attention(parts.tap, parts.grad, None, "gaf", gem_p=3.0)[1])
