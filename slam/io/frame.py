@@ -1,6 +1,20 @@
-"""The frame record every dataset reader yields, checked when it is built (:func:`check_frame`): a wrong type,
-shape or unit raises a ``TypeError`` / ``ValueError`` saying what was expected. Fields, units and what is converted
-silently: docs/api.md ("A frame: RGBDFrame").
+"""The frame record every dataset reader yields, and the checks that make a wrong frame an error.
+
+An :class:`RGBDFrame` is checked when it is built (:func:`check_frame`): a wrong type, shape or unit raises a
+``TypeError`` / ``ValueError`` saying what was expected. Types and units (what the readers produce, and what
+a caller streaming its own frames must give):
+
+* ``rgb``: numpy ``(H, W, 3)`` uint8, **RGB** channel order (OpenCV's ``imread`` gives BGR: use
+  ``cv2.cvtColor(img, cv2.COLOR_BGR2RGB)``; a greyscale image: ``cv2.cvtColor(g, cv2.COLOR_GRAY2RGB)``).
+* ``depth``: numpy ``(H, W)`` float32 **metres**, 0.0 where there is no measurement. Converted silently:
+  float64 (to float32) and NaN / +inf (to 0.0, the ROS convention for "no measurement"). Refused: integer
+  depth (divide by your sensor's depth scale first: TUM 5000, Kinect millimetres 1000), negative values,
+  and float depth whose median valid value is beyond :data:`MAX_DEPTH_MEDIAN` metres (millimetres or raw
+  units by mistake).
+* ``K``: ``(3, 3)`` float64 pinhole intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with finite
+  entries and ``fx, fy > 0``. A nested list or an integer array is converted silently.
+* ``pose_gt``: None or ``(7,)`` float64 ``[t, q_xyzw]`` camera-to-world; a quaternion of any non-zero
+  norm is normalised (:func:`slam.input_checks.unit_quaternions`).
 
 Example:
     >>> K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])

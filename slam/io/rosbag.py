@@ -1,6 +1,14 @@
-"""RGB-D sequences recorded as ROS bags (a ROS1 ``.bag`` file or a ROS2 bag folder), read with rosbags
-(``pip install attnloop[rosbag]``): topics, encodings and errors as docs/pipeline.md ("ROS bags") describes them.
-Opening keeps each message's stamps only; a frame's images are decoded when it is requested.
+"""RGB-D sequences recorded as ROS bags (a ROS1 ``.bag`` file, as TUM RGB-D ships them, or a ROS2 bag folder).
+
+Read with rosbags (``pip install attnloop[rosbag]``). Opening scans the colour and depth topics once, keeping
+only each message's stamps; a frame's images are decoded when it is requested. Colour and depth are paired by
+their header stamps with TUM's association (:func:`slam.io.associate.associate`); the first message of the
+camera-info topic gives ``K``.
+
+Encodings: colour ``rgb8``, ``bgr8``, ``mono8``; depth ``32FC1`` (metres, NaN = no depth) or ``16UC1``
+(millimetres unless ``depth_scale`` says otherwise, 0 = no depth). A missing topic, another encoding, or a bag
+that cannot be read (truncated, not a bag) is a :class:`~slam.io.sequence.DatasetError` naming the topic, the
+encoding or the file.
 """
 from __future__ import annotations
 

@@ -1,10 +1,17 @@
-"""Microsoft 7-Scenes sequences (one ``seq-XX`` folder), read lazily; layout and intrinsics in docs/pipeline.md.
+"""Microsoft 7-Scenes sequences (one ``seq-XX`` folder), read lazily.
 
-Frame ``k`` is at ``k / 30`` s; ``K`` is the depth camera's (the frame of the depth images and of the ground truth).
-A pose file that cannot be a pose (not 16 numbers, a last row other than ``0 0 0 1``, a rotation block with singular
-values outside ``1 +- 0.01`` or a reflection, a translation beyond :data:`~slam.input_checks.MAX_COORDINATE`) leaves
-its frame without ground truth, with a :class:`~slam.io.sequence.DatasetWarning` naming the file; non-finite entries
-(lost tracking) do so silently.
+Layout: ``frame-%06d.color.(png|jpg)``, ``frame-%06d.depth.png`` (16-bit millimetres, 0 and 65535
+invalid), ``frame-%06d.pose.txt`` (4x4 camera-to-world, optional; rotations projected onto the nearest
+rotation), optional ``camera-intrinsics.txt`` (3x3; default fx = fy = 585, cx = 320, cy = 240). Frame ``k``
+is at ``k / 30`` s. Colour and depth come from two unregistered cameras: the images are given as they are
+with ``K`` of the depth camera (the frame of the depth images and of the ground truth); ``attnloop-slam``
+applies the Kinect v1 rig by default (:data:`slam.options.KINECT_V1_RIG`).
+
+A pose file with non-finite entries (lost tracking) means "no ground truth" for that frame; so does one that
+cannot be a pose (text, not UTF-8, not 16 numbers, a last row other than ``0 0 0 1``, a rotation block with
+singular values outside ``1 +- 0.01`` or a reflection, a translation beyond
+:data:`~slam.input_checks.MAX_COORDINATE`), with a :class:`~slam.io.sequence.DatasetWarning` naming the file.
+``camera-intrinsics.txt`` must hold a pinhole matrix, else :class:`~slam.io.sequence.DatasetError`.
 """
 from __future__ import annotations
 

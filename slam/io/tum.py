@@ -1,6 +1,24 @@
-"""TUM RGB-D sequence folders (Sturm et al. 2012): ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``.
+"""TUM RGB-D sequences (Sturm et al. 2012): ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``.
 
-Association, timestamps, depth units and intrinsics as docs/pipeline.md ("Running it") describes them.
+* Frames are the rgb/depth pairs associated as TUM's ``associate.py`` does (nearest timestamps less than
+  0.02 s apart, greedy one-to-one), in rgb-time order; a frame's timestamp is its rgb stamp. rgb entries
+  without a depth entry are not frames (logged at INFO).
+* Ground truth of a frame: a ``groundtruth.txt`` pose less than 0.02 s from its rgb stamp, by the same greedy
+  one-to-one association as TUM's ``evaluate_ate.py`` (no interpolation); a subset of the frames
+  (``seq[::2]``) is paired among itself. Ground truth that matches no frame is kept as read
+  (:attr:`TUMSequence.groundtruth_trajectory`).
+* Timestamps are seconds; milli-, micro- or nanoseconds (:func:`slam.input_checks.timestamp_unit`) are
+  converted with one warning; frame numbers are a :class:`DatasetError`.
+* Depth: 16-bit PNG, ``depth_scale`` (5000) units per metre, 0 = invalid -> float32 metres; the first frames'
+  depth is checked against the scale (:func:`slam.io.sequence.check_depth_units`).
+* Intrinsics: ``K`` if given, else ``camera`` (``fr1``/``fr2``/``fr3``/``ros``), else a ``calibration.txt``
+  in the folder (``fx fy cx cy`` [+ 5 distortion coefficients]), else inferred from the folder name (a
+  symlink's own name first, then its target's), else the ROS default with a warning. ``undistort=True``
+  remaps both images with the fr1/fr2 distortion (depth by nearest neighbour).
+
+List files: ``# comments``, blank lines, ``timestamp filename`` per line, exactly these two fields (separated
+by spaces, tabs or a comma); an uncommented ``timestamp filename`` header is skipped; a repeated timestamp
+keeps its last line, as TUM's scripts do.
 """
 from __future__ import annotations
 

@@ -56,7 +56,7 @@ class ConsistencyConfig:
     # The pairwise bound: the drift bound of slam.loop.acceptance on the summed length of the two paths.
     bound: DriftBoundConfig = field(default_factory=DriftBoundConfig)
     # Exact maximum clique up to this many hypotheses; beyond, a new one joins the group when it agrees with
-    # the group's loops near it (while there is no group: the exact clique of the newest max_exact).
+    # the group's loops near it (while there is no group: the exact clique of the newest max(max_exact, min_group)).
     max_exact: int = 400
 
     def __post_init__(self) -> None:

@@ -154,13 +154,17 @@ def point_covariance(points: Tensor, sigma_z: Tensor, sigma_px: Tensor, fx: floa
 def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> Tensor:
     """Weighted least-squares rigid transform (Kabsch / Umeyama without scale), batched.
 
+    Minimises ``sum_i w_i |R src_i + t - dst_i|^2``; the reflection case is fixed by the sign of
+    ``det(U V^T)``.
+
     Args:
         src: ``(..., N, 3)`` source points.
         dst: ``(..., N, 3)`` destination points.
         weights: ``(..., N)`` non-negative weights (default: all ones).
 
     Returns:
-        ``(..., 7)`` poses mapping ``src`` onto ``dst`` (a valid rotation also for degenerate input).
+        ``(..., 7)`` poses mapping ``src`` onto ``dst``. Degenerate input (fewer than 3 non-collinear
+        points) still returns a valid rotation (one of the minimisers); callers check the spread.
 
     Example:
         >>> kabsch(torch.randn(8, 5, 3), torch.randn(8, 5, 3)).shape

@@ -1,8 +1,15 @@
 """3D-3D RANSAC for a rigid transform, vectorised over hypotheses, with a refinement on the inliers.
 
-Seeded batches of 3-point samples scored by MSAC (adaptive count ``log(1 - confidence) / log(1 - w^3)``), a
-weighted Kabsch refit on the inliers, then Gauss-Newton on the Mahalanobis 3D error whose Hessian is the
-returned information (right perturbation ``T exp(xi)``).
+1. Hypotheses: batches of random 3-point samples (seeded ``torch.Generator``), samples with a tiny
+   triangle or whose pairwise distances are not preserved (a rigid motion keeps them) are discarded,
+   each remaining one is fitted with :func:`~slam.odometry.geometry.kabsch` (batched SVD) and scored on
+   all correspondences at once with the MSAC truncated quadratic cost. The number of batches adapts to
+   the best inlier ratio ``w``: ``log(1 - confidence) / log(1 - w^3)`` hypotheses.
+2. Local optimisation: weighted Kabsch on the inliers, inliers re-selected, fitted again.
+3. Refinement: Gauss-Newton with a Huber kernel on the Mahalanobis 3D error
+   ``r_i = T src_i - dst_i``, ``Sigma_i = R Sigma_src,i R^T + Sigma_dst,i`` (depth noise along the ray,
+   pixel noise across: see :func:`~slam.odometry.geometry.point_covariance`), right perturbation
+   ``T exp(xi)``. Its Hessian at the optimum is the returned information matrix.
 
 Example:
     >>> g = torch.Generator().manual_seed(0)
