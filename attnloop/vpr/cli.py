@@ -15,22 +15,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from attnloop.backbones.weights import WeightsNotFoundError
-from attnloop.index import IndexConfig
-from attnloop.vpr import datasets
-from attnloop.vpr import evaluate as vpr_eval
 from attnloop.vpr.describe import MANIFEST, VPRInputError, describe, describe_images, load_descriptors, read_manifest
-from attnloop.vpr.search import ShardedIndex
-from slam.config import DescriptorConfig
-from slam.eval.loops import LoopGroundTruthConfig
-from slam.loop.closer import build_descriptor
-from slam.options import OPTIONS, UsageError, check_weights_file, non_negative_int, positive_int
+from slam.options import non_negative_int, positive_int
 
 _DESCRIPTOR_PREFIX = "loop.descriptor."
 
 
 def _add_descriptor_arguments(parser: argparse.ArgumentParser) -> None:
     """The descriptor flags of ``attnloop-slam`` (:data:`slam.options.OPTIONS`), with their help and checks."""
+    from slam.options import OPTIONS
+
     group = parser.add_argument_group("descriptor (as attnloop-slam)")
     for opt in OPTIONS:
         if opt.key.startswith(_DESCRIPTOR_PREFIX):
@@ -39,6 +33,9 @@ def _add_descriptor_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _descriptor_settings(args: argparse.Namespace) -> dict:
+    from slam.config import DescriptorConfig
+    from slam.options import check_weights_file
+
     typed = {k[len(_DESCRIPTOR_PREFIX):]: v for k, v in vars(args).items() if k.startswith(_DESCRIPTOR_PREFIX)}
     try:
         config = DescriptorConfig(**typed)
@@ -51,6 +48,9 @@ def _descriptor_settings(args: argparse.Namespace) -> dict:
 def build_model(settings: dict) -> tuple[torch.nn.Module, dict]:
     """The descriptor of :class:`slam.config.DescriptorConfig` fields, and the fields with ``backbone``
     resolved (``"auto"`` becomes the backbone that ran, so the manifest rebuilds the same model anywhere)."""
+    from slam.config import DescriptorConfig
+    from slam.loop.closer import build_descriptor
+
     model = build_descriptor(DescriptorConfig(**settings))
     return model, {**settings, "backbone": model.backbone_name, "weights": settings.get("weights")}
 
@@ -88,6 +88,9 @@ def cmd_describe(args) -> int:
 
 
 def cmd_index(args) -> int:
+    from attnloop.index import IndexConfig
+    from attnloop.vpr.search import ShardedIndex
+
     _, x = load_descriptors(args.dir)
     index = ShardedIndex.build(x, IndexConfig(backend=args.backend, background=False), args.max_rows)
     files = index.save(args.dir)
@@ -96,6 +99,9 @@ def cmd_index(args) -> int:
 
 
 def cmd_query(args) -> int:
+    from attnloop.index import IndexConfig
+    from attnloop.vpr.search import ShardedIndex
+
     refs, x = load_descriptors(args.dir)
     index = ShardedIndex.load(args.dir) or ShardedIndex.build(x, IndexConfig(backend="exact", background=False))
     model, _ = build_model(read_manifest(args.dir)["descriptor"])
@@ -124,6 +130,10 @@ def _poses(path: str) -> torch.Tensor:
 
 
 def _evaluation_set(args):
+    from attnloop.vpr import datasets
+    from attnloop.vpr.evaluate import ground_truth_from_poses, read_ground_truth, sequence_candidates
+    from slam.eval.loops import LoopGroundTruthConfig
+
     if args.nordland:
         return datasets.nordland(args.nordland, args.step, args.aligned if args.aligned is not None else 1)
     if args.rtabmap:
@@ -144,14 +154,17 @@ def _evaluation_set(args):
         if len(args.poses) != 1 + (args.reference is not None):
             raise VPRInputError("--poses takes one file per set: the queries' (and the references')")
         gt_config = LoopGroundTruthConfig(args.max_distance, args.max_angle, args.min_gap or 1)
-        gt = vpr_eval.ground_truth_from_poses(*map(_poses, args.poses), config=gt_config)
+        gt = ground_truth_from_poses(*map(_poses, args.poses), config=gt_config)
     else:
-        gt = vpr_eval.read_ground_truth(args.ground_truth)
-    cand = vpr_eval.sequence_candidates(gt.shape[0], args.min_gap) if args.reference is None else None
+        gt = read_ground_truth(args.ground_truth)
+    cand = sequence_candidates(gt.shape[0], args.min_gap) if args.reference is None else None
     return datasets.VPRSet(args.query, args.reference, gt, cand)
 
 
 def cmd_evaluate(args) -> int:
+    from attnloop.vpr.datasets import aligned_ground_truth
+    from attnloop.vpr.evaluate import evaluate, plot_place_recognition
+
     s = _evaluation_set(args)
     q_paths, q = _images_or_descriptors(s.query, args)
     r_paths, r = (q_paths, q) if s.reference is None else _images_or_descriptors(s.reference, args)
@@ -161,7 +174,7 @@ def cmd_evaluate(args) -> int:
                             "descriptor flags apply to images")
     gt, cand = s.ground_truth, s.candidates
     if gt is None:
-        gt = datasets.aligned_ground_truth(range(len(q_paths)), range(len(r_paths)), args.aligned)
+        gt = aligned_ground_truth(range(len(q_paths)), range(len(r_paths)), args.aligned)
     if gt.shape != (len(q_paths), len(r_paths)):
         raise VPRInputError(f"the ground truth is {tuple(gt.shape)}, the images {len(q_paths)} queries x "
                             f"{len(r_paths)} references")
@@ -170,7 +183,7 @@ def cmd_evaluate(args) -> int:
         q, r, gt = q[::step], r[::step], gt[::step, ::step]
         cand = None if cand is None else cand[::step, ::step]
     sim = torch.from_numpy(q).double() @ torch.from_numpy(r).double().T
-    res = vpr_eval.evaluate(sim, gt, candidates=cand)
+    res = evaluate(sim, gt, candidates=cand)
     print(f"{res.num_queries} queries, {res.num_with_match} with a true match\n")
     print("| R@1 | R@5 | R@10 | AUC-PR (VPR-Bench) | R@P100 | threshold at P100 |\n|---|---|---|---|---|---|")
     print(f"| {res.recall_at(1):.3f} | {res.recall_at(5):.3f} | {res.recall_at(10):.3f} | {res.auc_pr:.3f} | "
@@ -178,7 +191,7 @@ def cmd_evaluate(args) -> int:
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "metrics.json").write_text(json.dumps(res.to_dict(), indent=1))
-        vpr_eval.plot_place_recognition(args.out / "pr.png", {"attnloop": res})
+        plot_place_recognition(args.out / "pr.png", {"attnloop": res})
     return 0
 
 
@@ -259,14 +272,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from attnloop.backbones.weights import WeightsNotFoundError
+    from attnloop.vpr.evaluate import GroundTruthFormatError, ShapeMismatchError
+    from slam.options import UsageError
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "threads", None):
         torch.set_num_threads(args.threads)
     try:
         return args.func(args)
-    except (VPRInputError, UsageError, vpr_eval.GroundTruthFormatError, vpr_eval.ShapeMismatchError,
-            WeightsNotFoundError, ImportError) as e:  # ImportError: an index backend not installed (it names it)
+    except (VPRInputError, UsageError, GroundTruthFormatError, ShapeMismatchError, WeightsNotFoundError,
+            ImportError) as e:  # ImportError: an index backend whose package is not installed (it names it)
         print(f"attnloop-vpr {args.command}: {e}", file=sys.stderr)
         return 2
 

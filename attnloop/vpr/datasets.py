@@ -8,7 +8,6 @@ from typing import NamedTuple
 import torch
 
 from attnloop.vpr.describe import VPRInputError
-from attnloop.vpr.evaluate import read_ground_truth, sequence_candidates
 
 
 class VPRSet(NamedTuple):
@@ -70,6 +69,8 @@ def nordland(root, step: int = 1, tolerance: int = 1) -> VPRSet:
 def rtabmap(root, min_gap: int = 10) -> VPRSet:
     """RTAB-Map's samples: 84 corridor images against themselves, each against those at least ``min_gap``
     earlier, RTAB-Map's ``samples_GT.bmp`` as the ground truth."""
+    from attnloop.vpr.evaluate import read_ground_truth, sequence_candidates
+
     root = Path(root)
     return VPRSet([str(root / f"{i}.jpg") for i in range(1, 85)], None, read_ground_truth(root / "samples_GT.bmp"),
                   sequence_candidates(84, min_gap))

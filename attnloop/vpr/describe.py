@@ -1,14 +1,15 @@
-"""Descriptors of an image collection, written as resumable shards (format and engines: docs/scale.md).
+"""Descriptors of an image collection, written as resumable shards.
 
-``DIR/manifest.json`` lists the images, settings, model identity and finished shards; ``DIR/shard-NNNNN.npy``
-holds the float32 ``(rows, D)`` descriptors of a shard's readable images.
+``DIR/manifest.json`` lists the images, the descriptor's settings, the model's identity and, per finished
+shard, its row range, SHA-256 and skipped (unreadable) images; ``DIR/shard-NNNNN.npy`` holds the float32
+``(rows, D)`` descriptors of its readable images. An interrupted run goes on where it stopped. Engines:
+``"local"`` (a torch DataLoader) and ``"ray"`` (Ray Data on an actor pool; ``pip install attnloop[ray]``).
 """
 from __future__ import annotations
 
 import glob
 import hashlib
 import json
-import logging
 import os
 import re
 import sys
@@ -19,10 +20,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from tqdm import tqdm
-
-from attnloop import __version__
-from slam.io.images import decode_image
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp")
 LIST_SUFFIXES = (".txt", ".lst", ".list")
@@ -37,6 +34,8 @@ class VPRInputError(ValueError):
 def load_rgb(path) -> np.ndarray:
     """``(H, W, 3)`` uint8 RGB as OpenCV's colour mode decodes it; a missing, corrupt or truncated file is a
     :class:`slam.io.images.FrameReadError` naming it."""
+    from slam.io.images import decode_image
+
     return np.ascontiguousarray(decode_image(str(path), cv2.IMREAD_COLOR)[:, :, ::-1])
 
 
@@ -166,6 +165,8 @@ def ray_engine(settings: dict, items, batch_size: int = 16, actors: int = 1, cpu
                gpus_per_actor: float = 0, address: str | None = None) -> Iterator:
     """``(index, row, error)`` of every ``(index, path)`` of ``items`` from Ray Data (in any order), on
     ``actors`` :class:`RayDescribe` actors; a local Ray unless ``address`` names a cluster."""
+    import logging
+
     import ray
 
     if not ray.is_initialized():
@@ -239,6 +240,8 @@ def describe(inputs: Sequence, out, model: torch.nn.Module, settings: dict | Non
     Raises:
         VPRInputError: bad inputs, or ``out`` holding descriptors of other images, settings or model.
     """
+    from attnloop import __version__
+
     out = Path(out)
     old = read_manifest(out) if (out / MANIFEST).is_file() else None
     shard_size = shard_size or (old["shard_size"] if old else 4096)
@@ -270,6 +273,8 @@ def describe(inputs: Sequence, out, model: torch.nn.Module, settings: dict | Non
         rows = ray_engine(settings, items, **engine_options)
     else:
         raise VPRInputError(f"engine must be 'local' or 'ray', got {engine!r}")
+    from tqdm import tqdm
+
     bar = tqdm(total=len(paths), initial=len(paths) - len(items), unit="img", disable=not progress)
     shard_of = {i: k for k, (a, b) in enumerate(pending) for i in range(a, b)}
     buffers: dict[int, dict[int, tuple]] = {}
