@@ -296,7 +296,9 @@ class RGBDSLAM:
 
     @property
     def loop_lag(self) -> int:
-        """Keyframes whose loop work is waiting in the loop worker (queued or running); 0 without it."""
+        """Keyframes whose loop work is waiting in the loop worker (queued or running); 0 without it. With
+        ``BackendConfig.loop_backlog = N`` it is at most N + the keyframes of one hand-over after a
+        :meth:`track`."""
         return sum(len(ids) for fut, ids in self._jobs if not fut.done())
 
     def track(self, frame: RGBDFrame, features: Optional[FrameFeatures] = None) -> FrameState:
