@@ -349,9 +349,11 @@ def write_ply(target: PathOrFile, points: np.ndarray, colors: np.ndarray, commen
     vertex = np.empty(points.shape[0], dtype=_PLY_FIELDS)
     for k, (name, _) in enumerate(_PLY_FIELDS):
         vertex[name] = points[:, k] if k < 3 else colors[:, k - 3]
-    lines = ["ply", "format binary_little_endian 1.0",
-             *(f"comment {c}" for c in comment.replace("\r", "").split("\n") if c), f"element vertex {points.shape[0]}",
-             *(f"property {'float' if dt == '<f4' else 'uchar'} {name}" for name, dt in _PLY_FIELDS), "end_header"]
+    lines = ["ply", "format binary_little_endian 1.0"]
+    lines += [f"comment {c}" for c in comment.replace("\r", "").split("\n") if c]
+    lines += [f"element vertex {points.shape[0]}"]
+    lines += [f"property {'float' if dt == '<f4' else 'uchar'} {name}" for name, dt in _PLY_FIELDS]
+    lines += ["end_header"]
     data = ("\n".join(lines) + "\n").encode("ascii", errors="replace") + vertex.tobytes()
     if isinstance(target, (str, os.PathLike)):
         with open(os.fspath(target), "wb") as f:

@@ -338,8 +338,7 @@ class RGBDSLAM:
         if res.keyframe_id >= 0:
             pose, odo = self._reported_poses(res.keyframe_id, T_kf)
         else:
-            pose = odo = res.pose.detach().to(torch.float64).cpu()
-            pose, odo = self.depth_camera_pose(pose), self.depth_camera_pose(odo)
+            pose = odo = self.depth_camera_pose(res.pose.detach().to(torch.float64).cpu())
         return FrameState(int(frame.index), float(frame.timestamp), pose, status, res.reason,
                           res.keyframe_id, new_keyframes, [lp for lp in new_loops if lp.status == "kept"],
                           res.num_inliers, res.inlier_rmse, odo, self._reported_corrected(), correction)

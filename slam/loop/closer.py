@@ -320,11 +320,12 @@ class LoopCloser:
         """The keyframe to verify ``kf`` against first when its odometry parent was a revisit (:meth:`close`):
         of the database's keyframes within two edges of the one repeated, outside the detector's window and not
         joined to ``kf``, the nearest to ``kf``'s estimate (translation and turn, each over its view limit)."""
-        if self._place is None or self._place[0] not in graph.joined(kf.id):
+        joined = graph.joined(kf.id)
+        if self._place is None or self._place[0] not in joined:
             return None
         near = {self._place[1]} | graph.joined(self._place[1])
         near = near.union(*(graph.joined(k) for k in near))
-        joined, window = graph.joined(kf.id), self.detector.config.window
+        window = self.detector.config.window
         ids = sorted(k for k in near if k in self._id_of_kf and k not in joined and k != kf.id
                      and did - self._id_of_kf[k] >= window)
         if not ids:

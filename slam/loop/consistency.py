@@ -1,11 +1,38 @@
 """Group consistency of loops (pairwise consistency maximisation, as in Kimera-RPGO's PCM).
 
-Two verified loops are consistent when the cycle they form with the odometry between their ends closes within
-the drift bound of the two paths (:func:`slam.loop.acceptance.pairwise_errors`); the loops kept are the largest
-mutually consistent group (a maximum clique), each with local support (``min_support`` loops of the group whose
-ends are within ``support_radius`` of its own), compared on the odometry chain only. Beyond ``max_exact``
-hypotheses the group grows greedily, comparing a new loop with the group's loops within the capped length of
-it: docs/pipeline.md ("What each stage does", "Long runs").
+Every verified loop is a hypothesis. Two hypotheses are *consistent* when going round the cycle they form
+with the odometry between their ends comes back to the start within the drift that odometry can have
+accumulated along those two paths (:func:`slam.loop.acceptance.pairwise_consistent`). True loops agree
+with each other; a false loop (an aliased place: an identically furnished room, a repeated texture)
+disagrees with the true ones by its own error. The loops kept are the largest set of mutually consistent
+hypotheses (a maximum clique of the consistency graph), once it holds at least ``min_group`` loops.
+
+Consistency between two loops far apart along the path says little: the bound on their cycle grows with
+the two paths and soon reaches its cap, so a lone wrong loop (a corridor whose repeated texture registers
+0.9 m off, seen on the building tour) agrees with every true loop across the building. So a loop is kept
+only with *local support* (as ORB-SLAM asks consecutive keyframes to agree): at least ``min_support``
+other loops of the group whose ends are both near its own (the two paths summing to at most
+``support_radius`` metres), where the pairwise bound is tight. A revisit produces such runs of loops,
+keyframe after keyframe; a wrong registration is a one-off.
+
+The checks use the odometry chain only (never the optimised estimate, which the loops themselves bend),
+so a wrong loop cannot make itself look consistent. Two loops joined only across a weak edge (a tracking
+loss: no measured odometry between their ends) are compared through its guess, within the bound's caps;
+with ``compare_across_losses=False`` (``LoopClosureConfig.recover_after_loss``) they are not compared and
+count as consistent, as PCM compares only loops that odometry joins. Loops across the same loss are
+compared either way (their ends lie on the same sides of it), so a run of true loops mending a loss still
+outvotes a wrong one.
+
+Cost per loop independent of the run's length: a new loop is compared, in one batched computation, with
+the loops it can disagree with. While there are at most ``max_exact`` hypotheses that is every earlier one
+(the group is their exact maximum clique). Beyond, the group grows greedily (a new loop joins it when it
+agrees with it) and only the group's loops whose two ends both lie within the *capped length* of the new
+loop's along the odometry chain are compared (:func:`slam.loop.acceptance.capped_length`, 27 m with the
+defaults: from there on the bound is its caps, and comparing farther loops measures the odometry's drift
+rather than the loop: tests/slam/loop/test_consistency_vectorised.py). The loops compared are a suffix of
+the group (ordered by their newer end, which only moves forward), found by bisection; loops joined across a
+tracking loss are compared through the guess as before. Pairwise results are kept sparse (the pairs that
+disagree, the pairs near enough to support each other): no matrix grows with the run.
 
 Example:
     >>> import torch

@@ -100,7 +100,8 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
     if desc_a.dim() != 2 or desc_b.dim() != 2 or desc_a.shape[1] != desc_b.shape[1]:
         raise ValueError(f"descriptors must be (N, D) and (M, D), got {tuple(desc_a.shape)} and "
                          f"{tuple(desc_b.shape)}")
-    shape = n_a, n_b = desc_a.shape[0], desc_b.shape[0]
+    n_a, n_b = desc_a.shape[0], desc_b.shape[0]
+    shape = (n_a, n_b)
     # only the ratio test needs a second column (snn: per row of a; smnn: both ways); Kornia returns nothing
     if (n_a == 0 or n_b == 0 or (config.method == "snn" and n_b < 2)
             or (config.method == "smnn" and min(n_a, n_b) < 2)):

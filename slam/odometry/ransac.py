@@ -150,8 +150,8 @@ def ransac_rigid(src: Tensor, dst: Tensor, config: RansacConfig | None = None,
     dst = dst.to(torch.float64)
     if thresholds is None:
         thresholds = torch.full((n,), config.inlier_threshold, dtype=torch.float64, device=device)
-    elif thresholds.shape != (n,):
-        raise ValueError(f"thresholds must have shape ({n},), got {tuple(thresholds.shape)}")
+    else:
+        check_shape(thresholds, (n,), "thresholds")
     thresholds = thresholds.to(torch.float64)
     if n and not bool((thresholds > 0).all()):
         # 0 divides the MSAC cost by zero, NaN or negative ones reject everything; inf is allowed
