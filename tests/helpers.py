@@ -210,7 +210,8 @@ def perturb_trajectory(poses: torch.Tensor, stamps: torch.Tensor, seed: int, sca
 
 
 # ------------------------------------------------------------------------------------------ docs
-COMMAND_START = re.compile(r"^(attnloop-slam|attnloop-eval|attnloop-vpr|python3? (?:examples|benchmarks)/\w+\.py|python3? -m benchmarks\.\w+)\b")
+COMMAND_START = re.compile(r"^(attnloop-slam|attnloop-eval|attnloop-vpr"
+                           r"|python3? (?:examples|benchmarks)/\w+\.py|python3? -m benchmarks\.\w+)\b")
 
 
 def script_of(command: str) -> str:
@@ -276,7 +277,8 @@ def assert_same_map(a: SavedMap, b: SavedMap) -> None:
         assert tuple(fa.image_size) == tuple(fb.image_size) and fa.binary == fb.binary
     assert len(a.edges) == len(b.edges)
     for ea, eb in zip(a.edges, b.edges):
-        assert (ea.i, ea.j, ea.kind, ea.weak, ea.active, ea.weight) == (eb.i, eb.j, eb.kind, eb.weak, eb.active, eb.weight)
+        fields = ("i", "j", "kind", "weak", "active", "weight")
+        assert [getattr(ea, f) for f in fields] == [getattr(eb, f) for f in fields]
         assert torch.equal(ea.T_ij, eb.T_ij) and torch.equal(ea.information, eb.information)
     # the index answers every stored descriptor (and a perturbed one) identically
     queries = torch.cat([a.descriptors, a.descriptors + 0.01])

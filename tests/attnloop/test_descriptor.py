@@ -314,7 +314,8 @@ def test_a_state_dict_of_the_other_encoding_names_num_rnn():
 def test_a_wrappers_state_dict_gets_torchs_own_message():
     # keys with another prefix (a wrapper's) are not this descriptor's: torch's key lists, not a num_rnn diagnosis
     rnns = AttentionDescriptor("efficientnet_lite0", pretrained=False, num_rnn=16)
-    wrapped = {f"module.{k}": v for k, v in AttentionDescriptor("efficientnet_lite0", pretrained=False).state_dict().items()}
+    state = AttentionDescriptor("efficientnet_lite0", pretrained=False).state_dict()
+    wrapped = {f"module.{k}": v for k, v in state.items()}
     with pytest.raises(RuntimeError, match="Missing key"):
         rnns.load_state_dict(wrapped)
 

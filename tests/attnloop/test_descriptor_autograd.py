@@ -209,15 +209,16 @@ def test_efficientnet_head_second_order_every_fusion(lite64):
     tap, grad = guided_backprop(net, x, create_graph=True)
     ads = []
     for mode in modes:
-        (gw,) = torch.autograd.grad((u * descriptor_from_attention(tap, grad, w, mode, pooling="flat")[1]).sum(), weight,
-                                    retain_graph=True)
+        code = descriptor_from_attention(tap, grad, w, mode, pooling="flat")[1]
+        (gw,) = torch.autograd.grad((u * code).sum(), weight, retain_graph=True)
         ads.append(float((gw * v).sum()))
     del tap, grad  # the graph saved the weight; it is perturbed in place below
     (tp, gp), (tm, gm) = at_perturbed_weight(weight, v, lambda: guided_backprop(net, x))
     assert torch.equal(tp, tm)  # the forward below the tap does not depend on the head
     for mode, ad in zip(modes, ads):
-        fd = float((u * (descriptor_from_attention(tp, gp, w, mode, pooling="flat")[1] - descriptor_from_attention(tm, gm, w, mode, pooling="flat")[1]))
-                   .sum() / (2 * EPS))
+        plus = descriptor_from_attention(tp, gp, w, mode, pooling="flat")[1]
+        minus = descriptor_from_attention(tm, gm, w, mode, pooling="flat")[1]
+        fd = float((u * (plus - minus)).sum() / (2 * EPS))
         assert abs(fd) > 1e-4 and abs(ad - fd) <= RTOL * abs(fd), (mode, ad, fd)
 
 

@@ -305,7 +305,8 @@ def test_paper_preset_configuration(backbone, tap_shape, rnn_in):
     d = AttentionDescriptor(backbone, fusion="gaf", pretrained=False, preset="paper")
     assert d.backbone.tap_shape == tap_shape and d.backbone.input_size == (224, 224)
     r = d.recipe
-    assert (r.fusion, r.pooling, r.pool_scale, r.merges, r.num_rnn, r.out_features) == ("gaf", "flat", None, True, 16, 64)
+    got = (r.fusion, r.pooling, r.pool_scale, r.merges, r.num_rnn, r.out_features)
+    assert got == ("gaf", "flat", None, True, 16, 64)
     assert d.pool.weights.shape == (16, 64, rnn_in)  # VGG16: the paper's 16 RNNs of 64 x 12544
     if backbone == "efficientnet_lite0":
         x = torch.randint(0, 256, (1, 3, 90, 120), dtype=torch.uint8)

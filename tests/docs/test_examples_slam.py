@@ -20,7 +20,8 @@ def tiny_sequence(tmp_path_factory):
 
 
 @pytest.mark.parametrize("script, lines", [
-    ("examples/tum_slam.py", ["    python examples/tum_slam.py ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room"]),
+    ("examples/tum_slam.py",
+     ["    python examples/tum_slam.py ~/data/rgbd_dataset_freiburg1_room --out runs/fr1_room"]),
     ("examples/ablation.py", [("  python examples/ablation.py ~/data/rgbd_dataset_freiburg1_room "
                               "~/data/rgbd_dataset_freiburg2_desk \\"), ("      --preset paper --weights "
                               "vgg16-397923af.pth --out runs/table1     # the paper's descriptor and columns")]),

@@ -10,7 +10,8 @@ import torch
 
 from slam.config import SLAMConfig, override
 
-pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.slow]  # whole SLAM runs of over ~5 s (pytest -m "not slow" leaves them out)
+# whole SLAM runs of over ~5 s (pytest -m "not slow" leaves them out)
+pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.slow]
 
 W, H = 160, 120  # small: the room still closes its loop (40 loops, 9 online corrections)
 
@@ -148,6 +149,7 @@ def test_run_slam_equals_the_plain_streaming_api(tmp_path):
     res = plain.finish()
     assert run.result.num_keyframes == res.num_keyframes > 3
     assert torch.equal(run.result.trajectory.poses, res.trajectory.poses)
-    assert [(lp.kf_a, lp.kf_b) for lp in run.result.loop_hypotheses] == [(lp.kf_a, lp.kf_b) for lp in res.loop_hypotheses]
+    pairs = [(lp.kf_a, lp.kf_b) for lp in res.loop_hypotheses]
+    assert [(lp.kf_a, lp.kf_b) for lp in run.result.loop_hypotheses] == pairs
     mine, ref = run.map.points(run.result.keyframe_trajectory.poses), cloud.points(res.keyframe_trajectory.poses)
     assert mine[0].shape[0] > 1000 and (mine[0] == ref[0]).all() and (mine[1] == ref[1]).all()

@@ -18,7 +18,8 @@ import torch
 
 from slam.config import SLAMConfig, override
 
-pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.slow]  # whole SLAM runs of over ~5 s (pytest -m "not slow" leaves them out)
+# whole SLAM runs of over ~5 s (pytest -m "not slow" leaves them out)
+pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.slow]
 
 W, H = 160, 120
 

@@ -10,7 +10,8 @@ from slam.lie import se3_between, so3_log
 
 W, H = 320, 240
 
-pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.slow]  # whole SLAM runs of over ~5 s (pytest -m "not slow" leaves them out)
+# whole SLAM runs of over ~5 s (pytest -m "not slow" leaves them out)
+pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.slow]
 
 
 def _run(seq, desc, window):

@@ -27,7 +27,8 @@ def rerun_offline(tmp_path, monkeypatch):
     (config / "rerun").mkdir(parents=True)
     (config / "rerun" / "analytics.json").write_text(json.dumps({
         "analytics_enabled": False, "analytics_id": "attnloop-tests", "metadata": {},
-        "config_file_path": str(config / "rerun" / "analytics.json"), "data_dir_path": str(data / "rerun" / "analytics")}))
+        "config_file_path": str(config / "rerun" / "analytics.json"),
+        "data_dir_path": str(data / "rerun" / "analytics")}))
     monkeypatch.setenv("XDG_CONFIG_HOME", str(config))
     monkeypatch.setenv("XDG_DATA_HOME", str(data))
     yield rr

@@ -43,7 +43,8 @@ def test_is_true_loop_thresholds(hand_poses):
     got = is_true_loop(hand_poses, pairs).tolist()
     assert got == [True, False, True, False, False, False, False, True]
     assert is_true_loop(hand_poses, torch.tensor([[50, 0]]), LoopGroundTruthConfig(min_frame_gap=10)).tolist() == [True]
-    assert is_true_loop(hand_poses, torch.tensor([[800, 0]]), LoopGroundTruthConfig(max_angle_deg=50)).tolist() == [True]
+    wide = LoopGroundTruthConfig(max_angle_deg=50)
+    assert is_true_loop(hand_poses, torch.tensor([[800, 0]]), wide).tolist() == [True]
     assert is_true_loop(hand_poses, torch.zeros(0, 2, dtype=torch.long)).shape == (0,)
     with pytest.raises(ValueError, match=r"in \[0, 801\)"):
         is_true_loop(hand_poses, torch.tensor([[801, 0]]))

@@ -306,7 +306,8 @@ def test_association_equals_evo_on_jittered_equal_rate_streams():
     P[:, :3] = np.cumsum(rng.normal(size=(n, 3)) * 0.01, 0)
     Pe = P.copy()
     Pe[:, :3] += rng.normal(size=(n, 3)) * 0.01
-    ref, est = Trajectory(torch.from_numpy(tr), torch.from_numpy(P)), Trajectory(torch.from_numpy(te), torch.from_numpy(Pe))
+    ref = Trajectory(torch.from_numpy(tr), torch.from_numpy(P))
+    est = Trajectory(torch.from_numpy(te), torch.from_numpy(Pe))
     ref_s, est_s = sync.associate_trajectories(_evo_traj(tr, P), _evo_traj(te, Pe), max_diff=0.02)
     ours = ate(ref, est)
     assert np.array_equal(ours.timestamps.numpy(), ref_s.timestamps)

@@ -269,7 +269,8 @@ def test_recorded_loops_far_apart_are_not_compared():
         a1, b1, Z1 = hyp[k]
         L = ref.length(g, a1, a) + ref.length(g, b1, b)
         ok, dt, _ = pairwise_consistent(Z1, Z, se3_between(g.odometry_pose(a1), g.odometry_pose(a)),
-                                        se3_between(g.odometry_pose(b1), g.odometry_pose(b)), drift_limits(L, DriftBoundConfig()))
+                                        se3_between(g.odometry_pose(b1), g.odometry_pose(b)),
+                                        drift_limits(L, DriftBoundConfig()))
         assert not ok and 56.0 < L < 60.0 and 1.5 < dt < 1.53
     cfg = ConsistencyConfig(max_exact=80)
     ref, fast = ReferenceConsistency(cfg), GroupConsistency(cfg)

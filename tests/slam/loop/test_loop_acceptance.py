@@ -57,7 +57,8 @@ def test_bound_follows_the_graph_distance():
     assert g.path_lengths(10, through_loops=True)[0] == pytest.approx(5.0)
     # the Dijkstra path and the chain shortcut agree
     assert np.allclose(g.path_lengths(3, through_loops=True), g.path_lengths(3, through_loops=False))
-    assert drift_limits(chain[0], DriftBoundConfig()).translation > drift_limits(chain[8], DriftBoundConfig()).translation
+    bound = DriftBoundConfig()
+    assert drift_limits(chain[0], bound).translation > drift_limits(chain[8], bound).translation
 
 
 def test_pairwise_consistency_of_exact_and_wrong_loops():

@@ -238,7 +238,8 @@ def test_a_keyframe_keeps_only_what_the_keyframes_before_it_do_not_hold():
     depth = np.full((48, 64), 2.0, np.float32)  # the view spans 2 * 2.0 * 32 / 50 = 2.56 m of the wall
     step = torch.tensor([0.5, 0, 0, 0, 0, 0, 1], dtype=torch.float64)  # 0.5 m to the right, same orientation
     poses = torch.tensor([[0.5 * k, 0, 0, 0, 0, 0, 1] for k in range(3)], dtype=torch.float64)
-    full, compact = PointCloudMap(MapConfig(voxel_size=0.05, overlap_keyframes=0)), PointCloudMap(MapConfig(voxel_size=0.05))
+    full = PointCloudMap(MapConfig(voxel_size=0.05, overlap_keyframes=0))
+    compact = PointCloudMap(MapConfig(voxel_size=0.05))
     for k in range(3):
         ref = None if k == 0 else (k - 1, step)
         all_pts = full.add(k, rgb, depth, K, reference=ref)

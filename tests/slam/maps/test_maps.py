@@ -342,7 +342,8 @@ def test_a_map_made_by_another_descriptor_of_the_same_names_is_refused(room_sess
     manifest["descriptor"]["fusion"] = "dam"
     (folder / "manifest.json").write_text(json.dumps(manifest))
     dam_cfg = override(copy.deepcopy(cfg), {"loop.descriptor.fusion": "dam"})
-    with pytest.raises(MapMismatchError, match="saved without a descriptor probe, by a version whose EfficientNet-Lite0"):
+    with pytest.raises(MapMismatchError,
+                       match="saved without a descriptor probe, by a version whose EfficientNet-Lite0"):
         run_slam(seq, dam_cfg, progress=False, descriptor=desc, frames=(0, 5), map_dir=folder)
     manifest["descriptor"]["fusion"] = "none"  # the same tap without attention: still another descriptor
     (folder / "manifest.json").write_text(json.dumps(manifest))

@@ -119,7 +119,8 @@ def test_rgb_intrinsics_lift_keypoints_in_the_colour_camera():
     lifted = extract_features(f.rgb, f.depth, f.K, cfg)
     # keypoints stay colour pixels, K becomes the colour camera's
     assert torch.allclose(lifted.keypoints, base.keypoints)
-    assert torch.allclose(lifted.K, torch.tensor([[525.0, 0, 310.0], [0, 520.0, 250.0], [0, 0, 1]], dtype=torch.float64))
+    K = torch.tensor([[525.0, 0, 310.0], [0, 520.0, 250.0], [0, 0, 1]], dtype=torch.float64)
+    assert torch.allclose(lifted.K, K)
     # the plane z = 2 stays z = 2 after a sideways shift: points are z * K_rgb^-1 [u, v, 1]
     v = lifted.valid
     assert v.sum() > 0.8 * base.valid.sum()

@@ -273,7 +273,8 @@ def test_depth_distortion_and_correlated_noise():
     assert abs(float(e.std()) / sigma - 1.0) < 0.15
     lag1 = float((e[:, 1:] * e[:, :-1]).mean() / e.var())  # Gaussian sigma 2 px: exp(-1 / 16) = 0.94
     assert 0.85 < lag1 < 0.99, lag1
-    white = apply_depth_noise(big, torch.ones_like(big), DepthNoiseConfig(disparity_step=0.0, dropout=0.0), [7])[0] - 2.0
+    flat = DepthNoiseConfig(disparity_step=0.0, dropout=0.0)
+    white = apply_depth_noise(big, torch.ones_like(big), flat, [7])[0] - 2.0
     assert abs(float((white[:, 1:] * white[:, :-1]).mean() / white.var())) < 0.05
 
 
