@@ -5,9 +5,9 @@ input; and preset="paper") and batch size (1, 8), one round
 times, in turn, the plain classifier forward ``net(images)`` (preprocessing included) and the full
 ``AttentionDescriptor(...)(images)`` for every fusion mode, all on the same 640 x 480 uint8 frames
 under ``torch.no_grad()`` (as the SLAM system calls it). Rounds are interleaved so that load from
-other processes hits all variants alike (every other round in reverse order); the table gives the median ms per frame, the spread
-(25th-75th percentile) and the descriptor / plain ratio, both of the medians and as the median of the
-per-round ratios (paired, less sensitive to a busy machine).
+other processes hits all variants alike (every other round in reverse order); the table gives the median ms per
+frame, the spread (25th-75th percentile) and the descriptor / plain ratio, both of the medians and as the median of
+the per-round ratios (paired, less sensitive to a busy machine).
 
 A second table splits the batch-1 descriptor into its stages (interleaved with the plain forward), and a
 third compares ways to resize a 640 x 480 frame to 224 x 224.
@@ -81,7 +81,8 @@ def bench_backbone(name: str, batches: list[int], rounds: int, warmup: int) -> l
         for key in list(variants)[1:]:
             q25, q50, q75 = quartiles(times[key])
             paired = statistics.median(t / b for t, b in zip(times[key], plain))
-            rows.append(f"| {name} | {batch} | {key} | {q50:.1f} | {q25:.1f}-{q75:.1f} | {q50 / p50:.3f} | {paired:.3f} |")
+            rows.append(f"| {name} | {batch} | {key} | {q50:.1f} | {q25:.1f}-{q75:.1f} | {q50 / p50:.3f} | "
+                        f"{paired:.3f} |")
     return rows
 
 
@@ -122,7 +123,8 @@ def resize_options(rounds: int) -> list[str]:
     img = torch.from_numpy(hwc).permute(2, 0, 1)[None]  # what a caller builds from a cv2/numpy frame
     mean, std = (0.5,) * 3, (0.5,) * 3
     options = {
-        "library: uint8 antialiased bilinear (F.interpolate), then float": lambda: prepare_images(img, (224, 224), mean, std),
+        "library: uint8 antialiased bilinear (F.interpolate), then float": lambda: prepare_images(
+            img, (224, 224), mean, std),
         "float first, then antialiased bilinear": lambda: prepare_images(img.float() / 255.0, (224, 224), mean, std),
         "cv2.resize INTER_AREA beforehand, then the library": lambda: prepare_images(
             torch.from_numpy(cv2.resize(hwc, (224, 224), interpolation=cv2.INTER_AREA)).permute(2, 0, 1)[None],
@@ -139,7 +141,8 @@ def resize_options(rounds: int) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--backbones", nargs="+", default=["efficientnet_lite0", "vgg16"], help="backbones to time (vgg16 needs its weights)")
+    parser.add_argument("--backbones", nargs="+", default=["efficientnet_lite0", "vgg16"],
+                        help="backbones to time (vgg16 needs its weights)")
     parser.add_argument("--batches", nargs="+", type=int, default=[1, 8], help="batch sizes")
     parser.add_argument("--rounds", type=int, default=10, help="interleaved timing rounds (the median is reported)")
     parser.add_argument("--warmup", type=int, default=2, help="untimed calls first")

@@ -442,10 +442,12 @@ def crossover(args) -> None:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000], help="keyframes in the synthetic databases")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000],
+                    help="keyframes in the synthetic databases")
     ap.add_argument("--dim", type=int, default=1024, help="descriptor dimension")
     ap.add_argument("--data", nargs="+", choices=["clustered", "hard", "real", "random"],
-                    default=["clustered", "real"], help="descriptor sets: clustered, hard, random (synthetic) and real (the kitchen's)")
+                    default=["clustered", "real"],
+                    help="descriptor sets: clustered, hard, random (synthetic) and real (the kitchen's)")
     ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=None,
                     help=f"default: {' '.join(SYNTHETIC_VARIANTS)} (synthetic), all (--real-sets)")
     ap.add_argument("--storage", choices=["float32", "float16"], default="float32", help="index storage precision")
@@ -456,7 +458,8 @@ def main(argv=None) -> None:
     ap.add_argument("--keep-below", type=int, default=200_000,
                     help="sizes up to this keep every variant in memory and interleave their timings")
     ap.add_argument("--stream", type=int, default=1000, help="keyframes in the stream table (0: skip)")
-    ap.add_argument("--stream-variants", nargs="+", default=["flann-pca128", "faiss-pca128"], help="variants timed in the stream table")
+    ap.add_argument("--stream-variants", nargs="+", default=["flann-pca128", "faiss-pca128"],
+                    help="variants timed in the stream table")
     ap.add_argument("--build-threads", type=int, default=1, help="faiss OpenMP threads for builds")
     ap.add_argument("--real-sets", action="store_true", help="recall on the real descriptors themselves")
     ap.add_argument("--crossover", action="store_true", help="exact scan vs structure from 1k to 16k")

@@ -47,7 +47,8 @@ def _times(fn, items, repeat=1):
 def _row(name, ms):
     ms = sorted(ms)
     p90 = ms[min(len(ms) - 1, int(0.9 * len(ms)))]
-    return f"| {name} | {ms[0]:.2f} | {statistics.median(ms):.2f} | {statistics.fmean(ms):.2f} | {p90:.2f} | {len(ms)} |"
+    return (f"| {name} | {ms[0]:.2f} | {statistics.median(ms):.2f} | {statistics.fmean(ms):.2f} | {p90:.2f} | "
+            f"{len(ms)} |")
 
 
 def main():

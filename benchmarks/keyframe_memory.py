@@ -69,7 +69,8 @@ def main(argv=None) -> int:
     cloud = run.map
     graph = sum(_nbytes(t) for t in (slam.graph.estimates(), slam.graph.odometry_poses())) / M + \
         sum(_nbytes(e.T_ij) + _nbytes(e.information) for e in slam.graph.edges) / M
-    print(f"{seq.name}: {run.result.num_frames} frames, {M} keyframes, {len(run.result.loops)} loops; bytes per keyframe:")
+    print(f"{seq.name}: {run.result.num_frames} frames, {M} keyframes, {len(run.result.loops)} loops; "
+          "bytes per keyframe:")
     print(f"  features: {sum(feats.values()):,.0f} ({n_kp:.0f} keypoints: " +
           ", ".join(f"{k} {v:,.0f}" for k, v in feats.items()) + ")")
     print(f"  image (Keyframe.rgb): {rgb:,.0f}" + (" (kept for the saved map)" if args.save_map else ""))

@@ -127,7 +127,8 @@ def edge_calibration(slam, loop_config, gt: torch.Tensor, config, max_loops: int
         return torch.einsum("ei,eij,ej->e", r, torch.stack(info).to(torch.float64), r)
 
     odo = [e for e in slam.graph.edges if e.kind is EdgeKind.ODOMETRY and not e.weak]
-    out = {"odometry": chi2([e.i for e in odo], [e.j for e in odo], [e.T_ij for e in odo], [e.information for e in odo])}
+    out = {"odometry": chi2([e.i for e in odo], [e.j for e in odo], [e.T_ij for e in odo],
+                            [e.information for e in odo])}
     kfs = slam.keyframes
     stamps = torch.tensor([kf.timestamp for kf in kfs], dtype=torch.float64)
     n = len(kfs)
@@ -181,19 +182,21 @@ def replay(stream: dict, threshold: ThresholdConfig) -> dict:
 
 
 def streams_main(args) -> None:
-    streams = [keyframe_stream(args.data / "7scenes-redkitchen", s, args.fusion, args.cache) for s in args.kitchen_steps]
+    streams = [keyframe_stream(args.data / "7scenes-redkitchen", s, args.fusion, args.cache)
+               for s in args.kitchen_steps]
     if args.room:
         streams.append(keyframe_stream(args.room, 1, args.fusion, args.cache))
     if args.building:
         streams.append(keyframe_stream(args.building, 1, args.fusion, args.cache))
     print(f"# Loop-detector thresholds on the SLAM's keyframe streams ({time.strftime('%Y-%m-%d %H:%M')}), "
           f"default descriptor, fusion {args.fusion}\n")
-    print("| stream | keyframes | queries with a true match | unscaled chi2 vs truth, odometry edges: median / mean (n) "
-          "| loop edges: median / mean (n) |\n|---|---|---|---|---|")
+    print("| stream | keyframes | queries with a true match | unscaled chi2 vs truth, odometry edges: "
+          "median / mean (n) | loop edges: median / mean (n) |\n|---|---|---|---|---|")
     for st in streams:
         probe = replay(st, ThresholdConfig(min_similarity=2.0))  # nothing accepted: counts the positives
         c = {k: st[f"chi2_{k}"] for k in ("odometry", "loop")}
-        cells = [f"{float(v.median()):.1f} / {float(v.mean()):.1f} ({v.numel()})" if v.numel() else "-" for v in c.values()]
+        cells = [f"{float(v.median()):.1f} / {float(v.mean()):.1f} ({v.numel()})" if v.numel() else "-"
+                 for v in c.values()]
         print(f"| {st['name']} | {st['desc'].shape[0]} | {probe['positives']} | {cells[0]} | {cells[1]} |")
     names = [st["name"] for st in streams]
     print("\nPer stream: recall / candidates sent to verification (false among them) / best candidate's precision\n")
@@ -212,9 +215,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=data_root(), help=DATA_HELP)
     parser.add_argument("--step", type=int, default=5, help="every STEP-th kitchen frame is a keyframe")
-    parser.add_argument("--presets", nargs="+", default=["default", "paper"], choices=["default", "paper"], help="descriptor presets to compare")
+    parser.add_argument("--presets", nargs="+", default=["default", "paper"], choices=["default", "paper"],
+                        help="descriptor presets to compare")
     parser.add_argument("--streams", action="store_true", help="sweep on the SLAM's keyframe streams (see above)")
-    parser.add_argument("--kitchen-steps", type=int, nargs="*", default=[1, 3, 6], help="--streams: kitchen frame steps")
+    parser.add_argument("--kitchen-steps", type=int, nargs="*", default=[1, 3, 6],
+                        help="--streams: kitchen frame steps")
     parser.add_argument("--room", type=Path, default=None, help="--streams: the room demo's sequence folder")
     parser.add_argument("--building", type=Path, default=None, help="--streams: the building's sequence folder")
     parser.add_argument("--fusion", default=DescriptorRecipe.fusion,
@@ -253,8 +258,8 @@ def main() -> None:
                     j = int(out.ids[0])
                     tp, fp = tp + int(gt[i, j]), fp + int(not gt[i, j])
             acc = tp + fp
-            print(f"| {label} | {method} k={k:g} margin={margin:g} floor={floor:g} | {acc} | {tp / acc if acc else float('nan'):.3f} | "
-                  f"{tp / max(int(has.sum()), 1):.3f} | {fp} |", flush=True)
+            print(f"| {label} | {method} k={k:g} margin={margin:g} floor={floor:g} | {acc} | "
+                  f"{tp / acc if acc else float('nan'):.3f} | {tp / max(int(has.sum()), 1):.3f} | {fp} |", flush=True)
     print(f"\n(recall over the {int(has.sum())} keyframes with a true match; min_samples 16)")
 
 

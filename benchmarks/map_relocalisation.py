@@ -90,7 +90,8 @@ def kitchen(data: Path, map_frames, session_frames, other: bool) -> dict:
             run = run_slam(room, rcfg, progress=False, frames=(0, 80), map_dir=saved)
             r = evaluate_run(run).as_dict()["relocalisation"]
             out["other_place"] = {"recording": "synthetic room loop, frames 0-79", "relocalised": r["relocalised"],
-                                  "link_hypotheses": r["link_hypotheses"], "queries": r["queries"], "reason": r["reason"]}
+                                  "link_hypotheses": r["link_hypotheses"], "queries": r["queries"],
+                                  "reason": r["reason"]}
     return out
 
 

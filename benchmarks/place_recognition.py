@@ -9,7 +9,8 @@ Sets (each skipped with a note when its data is absent):
   45 degrees). ``fwd``: each frame against those at least 100 frames earlier; ``split``: the second
   half of the sequence (frames 500-995) against the first.
 * ``--query DIR --reference DIR --ground-truth FILE``: a VPR-Bench-style pair of folders (images in
-  natural order of their names, numbers compared as numbers: VPR-Bench's order) with a ``ground_truth_new.npy`` or a binary matrix (:mod:`attnloop.vpr.evaluate`).
+  natural order of their names, numbers compared as numbers: VPR-Bench's order) with a ``ground_truth_new.npy``
+  or a binary matrix (:mod:`attnloop.vpr.evaluate`).
 
 Methods (all L2-normalised, cosine similarity; ORB-BoW with its own score):
 
@@ -21,8 +22,8 @@ Methods (all L2-normalised, cosine similarity; ORB-BoW with its own score):
 * ``ORB-BoW``: a bag of ORB words as ORB-SLAM2 / RTAB-Map detect loops: 1000 ORB features per image,
   a 1000-word vocabulary (DBoW2's k-means for binary codes: Hamming distance, words the bitwise majority;
   deterministic at any thread count, without faiss), tf-idf weights and DBoW2's
-  L1 score ``1 - |v1 - v2|_1 / 2`` (0 for an image without features). The vocabulary and idf are learnt on images other than the
-  evaluated ones: the kitchen's frames for rtabmap and for user folders, rtabmap-samples plus
+  L1 score ``1 - |v1 - v2|_1 / 2`` (0 for an image without features). The vocabulary and idf are learnt on
+  images other than the evaluated ones: the kitchen's frames for rtabmap and for user folders, rtabmap-samples plus
   scikit-image's photographs for the kitchen.
 
 Usage:
@@ -128,8 +129,8 @@ def k_majority(bits: np.ndarray, k: int, seed: int = 0, iterations: int = 20,
     else:
         codes = np.unique(bits.astype(np.uint8), axis=0)  # sorted distinct codes: the draw ignores their order
         if codes.shape[0] < k:
-            raise VocabularyTooSmall(f"{codes.shape[0]} distinct ORB descriptors for a vocabulary of {k} words: train on "
-                             "more images or ask for fewer words")
+            raise VocabularyTooSmall(f"{codes.shape[0]} distinct ORB descriptors for a vocabulary of {k} words: "
+                                     "train on more images or ask for fewer words")
         words = codes[np.random.default_rng(seed).choice(codes.shape[0], k, replace=False)].astype(np.float32)
     ints = bits.astype(np.int32)
     assign = None
@@ -392,8 +393,8 @@ def report(set_name: str, sims: dict[str, torch.Tensor], protos: dict, out: Path
         if names is not None:
             rows = missed_queries(results, gt, *names)
             print(f"\nQueries some method misses ({len(rows)}): per method its best candidate (the rank of its "
-                  "best true match)\n\n| query | true matches | missed by | " + " | ".join(results) + " |\n|---|---|---|"
-                  + "---|" * len(results))
+                  "best true match)\n\n| query | true matches | missed by | " + " | ".join(results)
+                  + " |\n|---|---|---|" + "---|" * len(results))
             print("\n".join(rows))
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
@@ -419,10 +420,12 @@ def report_sequences(set_name: str, sims: dict[str, torch.Tensor], protos: dict,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=data_root(), help=DATA_HELP)
-    parser.add_argument("--sets", nargs="*", default=["rtabmap", "kitchen"], choices=["rtabmap", "kitchen"], help="the shared sets to run (none: only --query/--reference)")
+    parser.add_argument("--sets", nargs="*", default=["rtabmap", "kitchen"], choices=["rtabmap", "kitchen"],
+                        help="the shared sets to run (none: only --query/--reference)")
     parser.add_argument("--query", type=Path, help="a folder of query images (with --reference and --ground-truth)")
     parser.add_argument("--reference", type=Path, help="a folder of reference images")
-    parser.add_argument("--ground-truth", type=Path, help="the query x reference ground truth of --query (.npy or image)")
+    parser.add_argument("--ground-truth", type=Path,
+                        help="the query x reference ground truth of --query (.npy or image)")
     parser.add_argument("--out", type=Path, default=None, help="folder for the PR-curve PNGs")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS,

@@ -76,7 +76,8 @@ def directional(graph, u, w, hessians=None):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=None, help="folder holding posegraph/ (default $ATTNLOOP_DATA or ../shared/data)")
-    ap.add_argument("--files", nargs="+", default=["smallGrid3D", "sphere2500"], help="g2o files of the shared posegraph folder")
+    ap.add_argument("--files", nargs="+", default=["smallGrid3D", "sphere2500"],
+                    help="g2o files of the shared posegraph folder")
     ap.add_argument("--trials", type=int, default=3, help="random (u, w) pairs per file")
     ap.add_argument("--step", type=float, default=1e-3, help="central-difference step on the translations (m)")
     ap.add_argument("--repeats", type=int, default=5, help="timing repeats (the median is reported)")

@@ -135,7 +135,8 @@ def header(args) -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", nargs="+", type=int, default=[1000, 5000, 10000, 20000], help="poses of the simulated graphs")
+    ap.add_argument("--sizes", nargs="+", type=int, default=[1000, 5000, 10000, 20000],
+                    help="poses of the simulated graphs")
     ap.add_argument("--repeats", type=int, default=1, help="timing repeats (the median is reported)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated graphs")
     ap.add_argument("--sigma-t", type=float, default=0.05, help="translation noise, m (default 0.05)")

@@ -18,8 +18,8 @@ of 6 dof, median 5.35). ``--set FIELD=VALUE`` overrides config
 fields of every run (e.g. ``loop.information_scale=0.005``).
 
 ``--fps-ab R``: afterwards, R rounds on the first sequence of the first mode (as ``attnloop-slam`` runs it by
-default: with the map) alternating online correction on and off (same process, interleaved, so that the machine's load hits both alike): the median frames/s of
-each and the median of the per-round ratios.
+default: with the map) alternating online correction on and off (same process, interleaved, so that the machine's
+load hits both alike): the median frames/s of each and the median of the per-round ratios.
 
 ``--fps-ab R --fps-ref DIR``: instead, R rounds alternating this checkout's code and the code in DIR (another
 checkout, e.g. ``git worktree add DIR 07d01e5``), each the default ``attnloop-slam`` run of the first
@@ -62,7 +62,8 @@ def edge_chi2_against_truth(run) -> dict:
     if pg is None or run.gt_poses_per_frame is None or pg.num_edges == 0:
         return {}
     gt = run.gt_poses_per_frame[res.keyframe_frames].to(torch.float64)
-    t = tuple(run.config.odometry.features.rgb_from_depth_translation) if run.config.odometry.features.rgb_intrinsics else (0, 0, 0)
+    t = (tuple(run.config.odometry.features.rgb_from_depth_translation) if run.config.odometry.features.rgb_intrinsics
+         else (0, 0, 0))
     T_rd = torch.tensor([*t, 0.0, 0.0, 0.0, 1.0], dtype=torch.float64)  # the depth camera in the colour camera
     i, j = pg.ii, pg.jj
     n = gt.shape[0]
@@ -122,9 +123,10 @@ def _row(label, m, odo_ate):
     vs_truth = " / ".join(_fmt(chi.get(k, {}).get("median"), 2) for k in ("odometry", "loop"))
     final = (_fmt(m["final_chi2"] / m["num_edges"], 3) if m.get("final_chi2") is not None and m.get("num_edges")
              else "-")
-    return (f"| {label} | {_fmt(ate)} | {_fmt(amax, 3)} | {cut} | {loops} | {rejected} | {_fmt(b, 3)} -> {_fmt(a, 3)} | "
-            f"{final} | {vs_truth} | {m['fps']:.1f} | {corr} | {st['odometry']['ms_per_call']:.1f} | "
-            f"{st.get('descriptor', {}).get('ms_per_call', float('nan')):.1f} | {m['num_keyframes']} | {m['num_lost']} |")
+    return (f"| {label} | {_fmt(ate)} | {_fmt(amax, 3)} | {cut} | {loops} | {rejected} | "
+            f"{_fmt(b, 3)} -> {_fmt(a, 3)} | {final} | {vs_truth} | {m['fps']:.1f} | {corr} | "
+            f"{st['odometry']['ms_per_call']:.1f} | {st.get('descriptor', {}).get('ms_per_call', float('nan')):.1f} | "
+            f"{m['num_keyframes']} | {m['num_lost']} |")
 
 
 def _code_ab(seq_dir, args) -> list:
@@ -240,10 +242,10 @@ def main() -> None:
     table = run_ablation(specs, out, {m: COLUMNS["default"][m] for m in args.modes},
                          configure=lambda cfg: apply_overrides(cfg, args.set), measure=measure)
 
-    head = ("| run | ATE RMSE (m) | ATE max (m) | vs odometry | loops kept (true/false) | inconsistent / switched off (false) "
-            "| max recall @100% P before -> after verification | final chi2 / edge | median edge chi2 vs truth "
-            "odometry / loop | frames/s | online corrections | odometry ms/frame "
-            "| descriptor ms/keyframe | keyframes | lost |")
+    head = ("| run | ATE RMSE (m) | ATE max (m) | vs odometry | loops kept (true/false) "
+            "| inconsistent / switched off (false) | max recall @100% P before -> after verification "
+            "| final chi2 / edge | median edge chi2 vs truth odometry / loop | frames/s | online corrections "
+            "| odometry ms/frame | descriptor ms/keyframe | keyframes | lost |")
     text = [(f"{time.strftime('%Y-%m-%d %H:%M')}, frame step {args.frame_step}, backbone {args.backbone}, "
             f"torch threads {torch.get_num_threads()}, load {os.getloadavg()[0]:.1f}"
             + (f", overrides {' '.join(args.set)}" if args.set else "")), ""]

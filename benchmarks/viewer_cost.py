@@ -49,7 +49,8 @@ def main(argv=None) -> int:
     add_data_argument(p)
     p.add_argument("--rounds", type=int, default=2, help="pairs of runs, with and without --rrd (default: 2)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N", help="only the first N frames (default: all)")
-    p.add_argument("--out", type=Path, default=Path("runs/viewer_cost"), help="output folder (default: runs/viewer_cost)")
+    p.add_argument("--out", type=Path, default=Path("runs/viewer_cost"),
+                   help="output folder (default: runs/viewer_cost)")
     args = p.parse_args(argv)
     seq = (args.data / "7scenes-redkitchen").resolve()
     if not (seq / "frame-000000.color.jpg").is_file():

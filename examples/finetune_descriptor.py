@@ -244,7 +244,8 @@ def _run(cfg: FinetuneConfig) -> dict:
     rtab_images = read_images([cfg.rtabmap / f"{i}.jpg" for i in range(1, rtab_gt.shape[0] + 1)])
     data = kitchen_data(cfg, net)
     print(f"kitchen: {len(data['frames'])} frames cached ({int(data['train'].sum())} for training, "
-          f"{int(data['positive'].any(1).sum())} anchors with a revisit) in {time.perf_counter() - t0:.0f} s", flush=True)
+          f"{int(data['positive'].any(1).sum())} anchors with a revisit) in {time.perf_counter() - t0:.0f} s",
+          flush=True)
     default = evaluate_model(desc, data, rtab_images, rtab_gt)
     t1 = time.perf_counter()
     history = train(cfg, desc, data)
