@@ -259,7 +259,8 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
     # the workers share the cores (one thread each); one worker renders in the caller
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="synthetic") if workers > 1 else None
     with limit_threads(1 if pool else None), pool or nullcontext():
-        for b, _ in enumerate(pool.map(task, batches) if pool else map(task, batches)):  # re-raises a task's error
+        futures = [pool.submit(task, idx) for idx in batches] if pool else []
+        for b, _ in enumerate((f.result() for f in futures) if pool else map(task, batches)):  # re-raises an error
             if progress and b % step == 0:
                 logger.info("synthetic sequence: %d / %d frames", batches[b][-1] + 1, n)
     stamps = seq.timestamps
