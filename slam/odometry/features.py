@@ -111,25 +111,18 @@ def _to_numpy(x: ArrayLike, name: str) -> np.ndarray:
 
 def _detect(gray: np.ndarray, config: FeatureConfig):
     """OpenCV keypoints and descriptors of a grey image, bucketed."""
-    h, w = gray.shape
     if config.detector == "orb":
-        orb = cv2.ORB_create(nfeatures=config.detect_features, scaleFactor=config.orb_scale_factor,
-                             nlevels=config.orb_levels, fastThreshold=config.fast_threshold)
-        kps = orb.detect(gray, None)
-        describer = orb
+        describer = cv2.ORB_create(nfeatures=config.detect_features, scaleFactor=config.orb_scale_factor,
+                                   nlevels=config.orb_levels, fastThreshold=config.fast_threshold)
     else:  # "sift" (FeatureConfig checks the name)
         describer = cv2.SIFT_create(nfeatures=config.detect_features)
-        kps = describer.detect(gray, None)
-    if len(kps) == 0:
-        return [], None
+    kps = describer.detect(gray, None)
     xy = np.array([k.pt for k in kps], np.float32)
     resp = np.array([k.response for k in kps], np.float32)
-    keep = bucket_keypoints(xy, resp, (h, w), config.grid_rows, config.grid_cols, config.max_features)
+    keep = bucket_keypoints(xy, resp, gray.shape, config.grid_rows, config.grid_cols, config.max_features)
     kps = [kps[i] for i in keep]
     kps, desc = describer.compute(gray, kps)
-    if desc is None or len(kps) == 0:
-        return [], None
-    return kps, desc
+    return (kps, desc) if desc is not None and len(kps) else ([], None)
 
 
 def is_binary_detector(detector: str) -> bool:

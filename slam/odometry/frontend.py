@@ -188,9 +188,8 @@ class RGBDOdometry:
         return edge
 
     def _extract(self, frame: RGBDFrame, features: FrameFeatures | None = None):
-        if features is not None:
-            feats = features
-        else:
+        feats = features
+        if feats is None:
             try:
                 feats = extract_features(frame.rgb, frame.depth, frame.K, self.config.features)
             except (ValueError, TypeError, cv2.error) as exc:
@@ -216,7 +215,7 @@ class RGBDOdometry:
         edge = None
         usable = feats is not None and feats.num_valid >= self.config.min_valid_points
         # every max_lost_frames lost frames in a row (while the frame itself has usable features)
-        if self._lost_count % max(1, self.config.max_lost_frames) == 0 and usable:
+        if self._lost_count % self.config.max_lost_frames == 0 and usable:
             info = self.config.weak_edge_information * torch.eye(6, dtype=torch.float64)
             edge = self._new_keyframe_with_edge(index, ts, T_kf, info, feats, frame.rgb, weak=True)
             reason += (f"; lost for {self._lost_count} frames: new keyframe {edge.j} at the "

@@ -73,11 +73,8 @@ def backproject(
     check_shape(depth, (None, None), "depth")
     check_shape(K, (3, 3), "K")
     H, W = depth.shape
-    n = keypoints.shape[0]
     dtype = depth.dtype if depth.is_floating_point() else torch.float32
     depth = depth.to(dtype)
-    if n == 0:
-        return depth.new_zeros(0, 3), torch.zeros(0, dtype=torch.bool, device=depth.device)
     kp = keypoints.to(dtype)
     kp_ok = torch.isfinite(kp).all(dim=1)
     # a NaN / inf keypoint reads pixel (0, 0) (casting it to an integer is undefined) and is invalid
@@ -183,8 +180,7 @@ def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> Tensor:
     mu_d = (w * dst).sum(dim=-2, keepdim=True) / wsum
     cov = ((dst - mu_d) * w).transpose(-1, -2) @ (src - mu_s)  # (..., 3, 3) = sum w d s^T
     U, _, Vh = torch.linalg.svd(cov)
-    sign = torch.sign(torch.linalg.det(U @ Vh))
-    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    sign = torch.sign(torch.linalg.det(U @ Vh))  # +-1: U and Vh are orthogonal
     D = torch.ones(cov.shape[:-1], dtype=src.dtype, device=src.device)
     D[..., 2] = sign
     R = (U * D[..., None, :]) @ Vh

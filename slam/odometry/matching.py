@@ -101,7 +101,6 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
         raise ValueError(f"descriptors must be (N, D) and (M, D), got {tuple(desc_a.shape)} and "
                          f"{tuple(desc_b.shape)}")
     n_a, n_b = desc_a.shape[0], desc_b.shape[0]
-    shape = (n_a, n_b)
     # only the ratio test needs a second column (snn: per row of a; smnn: both ways); Kornia returns nothing
     if (n_a == 0 or n_b == 0 or (config.method == "snn" and n_b < 2)
             or (config.method == "smnn" and min(n_a, n_b) < 2)):
@@ -110,35 +109,20 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
     if allowed_pairs is not None:
         if allowed_pairs.dim() != 2 or allowed_pairs.shape[1] != 2:
             raise ValueError(f"allowed_pairs must have shape (P, 2), got {tuple(allowed_pairs.shape)}")
-        sparse = (binary and config.method in ("smnn", "snn") and config.ratio < 1.0
-                  and allowed_pairs.shape[0] < 0.25 * shape[0] * shape[1])
-        if sparse:
+        if (binary and config.method in ("smnn", "snn") and config.ratio < 1.0
+                and allowed_pairs.shape[0] < 0.25 * n_a * n_b):
             return _match_pairs(desc_a, desc_b, allowed_pairs, config)
-        allowed = torch.zeros(shape, dtype=torch.bool, device=desc_a.device)
+        allowed = torch.zeros(n_a, n_b, dtype=torch.bool, device=desc_a.device)
         allowed[allowed_pairs[:, 0], allowed_pairs[:, 1]] = True
-    if binary:
-        fa, fb = desc_a, desc_b  # Kornia only checks their shapes when dm is given
-        max_dist = config.max_hamming
-        if allowed is not None and int(allowed.sum()) < 0.25 * allowed.numel():
-            # guided: only the allowed pairs (a few percent) are worth a distance
-            pairs = allowed.nonzero()
-            dm = torch.full(shape, _FORBIDDEN, dtype=torch.float32, device=desc_a.device)
-            dm[pairs[:, 0], pairs[:, 1]] = hamming_distance(desc_a, desc_b, pairs)
-            allowed = None
-        else:
-            dm = hamming_distance(desc_a, desc_b)
-    else:
-        fa, fb = desc_a.float(), desc_b.float()
-        dm = torch.cdist(fa, fb)
-        max_dist = config.max_l2
+    fa, fb = (desc_a, desc_b) if binary else (desc_a.float(), desc_b.float())  # given dm, Kornia checks only shapes
+    dm = hamming_distance(fa, fb) if binary else torch.cdist(fa, fb)
+    max_dist = config.max_hamming if binary else config.max_l2
     if allowed is not None:
         dm = torch.where(allowed, dm, torch.full_like(dm, _FORBIDDEN))
-    if config.method == "smnn":
-        _, idx = KF.match_smnn(fa, fb, config.ratio, dm=dm)
-    elif config.method == "snn":
-        _, idx = KF.match_snn(fa, fb, config.ratio, dm=dm)
-    else:  # "mnn" (MatchConfig checks the name)
+    if config.method == "mnn":
         _, idx = KF.match_mnn(fa, fb, dm=dm)
+    else:  # "smnn" or "snn" (MatchConfig checks the name): KF.match_smnn / KF.match_snn
+        _, idx = getattr(KF, f"match_{config.method}")(fa, fb, config.ratio, dm=dm)
     dist = dm[idx[:, 0], idx[:, 1]]
     keep = dist <= max_dist
     return idx[keep], dist[keep]

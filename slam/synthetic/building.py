@@ -193,12 +193,7 @@ def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
 
     def room_openings(k: int) -> dict[str, list[float]]:
         # own frame: the corridor is north; the neighbour with the smaller own-frame x is west
-        out = {"north": [0.0]}
-        if k > 1:
-            out["west"] = [0.0]
-        if k < n:
-            out["east"] = [0.0]
-        return out
+        return {wall: [0.0] for wall, door in (("north", True), ("west", k > 1), ("east", k < n)) if door}
 
     for k in range(1, n + 1):  # south rooms, own frame = world frame
         spaces.append(Space(f"S{k}", np.array([(k - 0.5) * rx, ry / 2]), (rx, ry), 0.0, room_openings(k), f"S{k}"))
@@ -409,8 +404,7 @@ def build_building_scene(config: BuildingConfig | None = None) -> Scene:
         sx = s.size[0]
         local = ([(-sx / 4, 0.0), (sx / 4, 0.0)] if s.name != "corridor"
                  else [(-sx / 3, 0.0), (0.0, 0.0), (sx / 3, 0.0)])
-        for p in local:  # symmetric in each space: the half turn maps the whole set of lights onto itself
-            wx, wy = s.to_world(np.array(p))
+        for wx, wy in s.to_world(np.array(local)):  # symmetric in each space: the half turn maps them onto themselves
             lights.append((float(wx), float(wy), cfg.height - 0.1))
     room_cfg = RoomConfig(size=layout.extent, texel_density=cfg.texel_density,
                           object_texel_density=cfg.object_texel_density, seed=cfg.seed, ambient=cfg.ambient,

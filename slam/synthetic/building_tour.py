@@ -135,8 +135,7 @@ def tour_polyline(layout: BuildingLayout, tour=DEFAULT_TOUR, config: TourConfig 
     for k, visit in enumerate(tour):
         room = layout.space(visit.room)
         c = room.center
-        last = k == len(tour) - 1
-        if last:  # end on the circle after exactly ``turns``
+        if k == len(tour) - 1:  # end on the circle after exactly ``turns``
             sweep = visit.sense * 2 * math.pi * visit.turns
             add(*_arc(c, r, phi, sweep, lead))
             end = phi + sweep
@@ -157,14 +156,9 @@ def tour_polyline(layout: BuildingLayout, tour=DEFAULT_TOUR, config: TourConfig 
             corner = np.array([door_b.center[0], y_line[1]])
             add(*_line(start, y_line))
             add(*_line(y_line, corner), True)
-            n_in = door_b.normal
-            far = nxt.center + r * n_in
-            add(*_line(corner, far))
-        else:
-            n_in = m
-            far = nxt.center + r * n_in
-            add(*_line(start, far))
-        phi = math.atan2(n_in[1], n_in[0])
+            start, m = corner, door_b.normal
+        add(*_line(start, nxt.center + r * m))
+        phi = math.atan2(m[1], m[0])
     P = np.concatenate(pos)
     Y = np.unwrap(np.concatenate(yaw))
     return P, Y, np.concatenate(corr), np.array(doors).reshape(-1, 2)
@@ -196,12 +190,11 @@ def building_trajectory(layout: BuildingLayout, num_frames: int = 2400, seed: in
     weight = _smooth(corridor.astype(np.float64), cfg.yaw_smoothing / _STEP)
     Y = Y + pan * weight
     # a glance at the wall beside each door crossed (left, right, left, ...)
-    start = 0
+    i = 0
     for k, d in enumerate(doors):
-        i = start + int(np.argmin(np.linalg.norm(P[start:] - d, axis=1)))
-        start = i
-        sign = 1.0 if k % 2 == 0 else -1.0
-        Y = Y + sign * math.radians(cfg.door_glance_deg) * np.exp(-0.5 * ((arc - arc[i]) / cfg.door_glance_sigma) ** 2)
+        i += int(np.argmin(np.linalg.norm(P[i:] - d, axis=1)))
+        glance = math.radians(cfg.door_glance_deg) * np.exp(-0.5 * ((arc - arc[i]) / cfg.door_glance_sigma) ** 2)
+        Y = Y + (-1.0) ** k * glance
     P = _smooth(P, cfg.smoothing / _STEP)
     Y = _smooth(Y, cfg.yaw_smoothing / _STEP)
     # re-measure the arc length of the smoothed path: the sampler's parameter runs along it

@@ -158,19 +158,17 @@ def _slab(o_l: Tensor, d_l: Tensor, half: Tensor, inside: bool):
 def _sample_texture(scene: Scene, tex: Tensor, u: Tensor, v: Tensor, level: Tensor) -> Tensor:
     """Trilinear lookup ``(M, 3)`` float32 RGB in [0, 255] of texture ids ``tex (M,)`` at ``u, v (M,)`` in [0, 1]
     (columns, rows) and continuous mip ``level (M,)``."""
-    M = tex.shape[0]
     num_levels = scene.tex_offset.shape[1]
     level = level.float().clamp(0.0, num_levels - 1)
     l0 = level.floor()
     wl = level - l0
     row0 = tex * num_levels + l0.long()
-    out = torch.zeros(M, 3, dtype=torch.float32, device=tex.device)
+    out = torch.zeros(tex.shape[0], 3, dtype=torch.float32, device=tex.device)
     offsets, sizes = scene.tex_offset.reshape(-1), scene.tex_size.reshape(-1, 2)
     row1 = torch.where(l0 < num_levels - 1, row0 + 1, row0)  # the next level, clamped at the coarsest
     for row, w_level in ((row0, 1.0 - wl), (row1, wl)):
         off = offsets.index_select(0, row)
-        size = sizes.index_select(0, row)
-        Wd, Hd = size[:, 0], size[:, 1]
+        Wd, Hd = sizes.index_select(0, row).unbind(1)
         x = u * Wd - 0.5
         y = v * Hd - 0.5
         x0f, y0f = x.floor(), y.floor()

@@ -376,8 +376,7 @@ def _mip_chain(tex: np.ndarray, levels: int) -> list[np.ndarray]:
     chain = [np.ascontiguousarray(tex)]
     for _ in range(levels - 1):
         h, w = chain[-1].shape[:2]
-        chain.append(cv2.resize(chain[-1], (max(1, w // 2), max(1, h // 2)), interpolation=cv2.INTER_AREA)
-                     if (w > 1 or h > 1) else chain[-1])
+        chain.append(cv2.resize(chain[-1], (max(1, w // 2), max(1, h // 2)), interpolation=cv2.INTER_AREA))
     return chain
 
 
