@@ -5,6 +5,7 @@ panels, batched per group of supernodes of one height and shape (small groups fr
 """
 from __future__ import annotations
 
+import collections
 import functools
 import itertools
 import threading
@@ -122,18 +123,6 @@ def _permuted(bptr: np.ndarray, bcol: np.ndarray, order: np.ndarray):
     return pr, pc, np.searchsorted(pr, np.arange(n + 1))
 
 
-def _postordered_etree(n: int, bptr: np.ndarray, bcol: np.ndarray, order: np.ndarray):
-    """The elimination tree of the pattern in ``order``, postordered: ``(order, parent)`` with ``order`` the
-    postordered position -> variable and ``parent`` (list) in the same numbering."""
-    _, pc, ptr = _permuted(bptr, bcol, order)
-    parent0 = _etree(n, ptr, pc)
-    post = _postorder(parent0)  # post[q] = node (in the first numbering)
-    newpos = np.empty(n, dtype=np.int64)
-    newpos[post] = np.arange(n)
-    par0 = np.asarray(parent0, dtype=np.int64)[post]
-    return order[post], np.where(par0 >= 0, newpos[par0], -1).tolist()
-
-
 def _column_structures(n: int, parent: list, pr: np.ndarray, pc: np.ndarray) -> list:
     """Per column the set of rows strictly below the diagonal in the factor (its entries of the pattern and
     its children's structures: the fill)."""
@@ -188,7 +177,15 @@ def _supernode_tree(pattern) -> _Tree:
     final group-major numbering of the columns."""
     n = pattern.num_vars
     bptr, bcol = _block_graph(pattern)
-    order, parent = _postordered_etree(n, bptr, bcol, _mmd_order(n, bptr, bcol))
+    # the elimination tree in the minimum-degree order, then postordered (order: position -> variable)
+    order = _mmd_order(n, bptr, bcol)
+    _, pc, ptr = _permuted(bptr, bcol, order)
+    parent0 = _etree(n, ptr, pc)
+    post = _postorder(parent0)  # post[q] = node (in the first numbering)
+    newpos = np.empty(n, dtype=np.int64)
+    newpos[post] = np.arange(n)
+    par0 = np.asarray(parent0, dtype=np.int64)[post]
+    order, parent = order[post], np.where(par0 >= 0, newpos[par0], -1).tolist()
     pr, pc, _ = _permuted(bptr, bcol, order)
     struct = _column_structures(n, parent, pr, pc)
     first = _relaxed_supernodes(n, parent, struct)
@@ -273,6 +270,11 @@ def _gather_map(pattern, tree: _Tree, lay: _Layout):
     ar = np.arange(k)
     dst = lay.off[sn_blk][:, None] + (lr[:, None] * k + ar) * p_blk[:, None] + lc[:, None] * k
     return bpos[:, :, 0].reshape(-1) // k, dst.reshape(-1) // k
+
+
+# supernodes of one height and one front shape (p pivots, m rows), factored as one batch: B = size of them, their
+# scalar rows (B d,) and update positions (B d (d + 1) / 2,) int32
+_Group = collections.namedtuple("_Group", "size p m offset col0 rows upd")
 
 
 def _factor_groups(tree: _Tree, lay: _Layout) -> list:
@@ -657,13 +659,3 @@ class NumericCholesky:
             if d:
                 rhs = torch.baddbmm(yc, L21.mT, y[rows].view(B, d, 1), alpha=-1.0)
             yc.copy_(torch.linalg.solve_triangular(L11.mT, rhs, upper=True))
-
-
-class _Group:
-    """Supernodes of one height and one front shape ``(p pivots, m rows)``, factored as one batch."""
-
-    __slots__ = ("col0", "m", "offset", "p", "rows", "size", "upd")
-
-    def __init__(self, size, p, m, offset, col0, rows, upd):
-        self.size, self.p, self.m, self.offset, self.col0 = size, p, m, offset, col0
-        self.rows, self.upd = rows, upd  # scalar rows (B d,), update positions (B d (d + 1) / 2,) int32

@@ -158,12 +158,10 @@ def _unanchored_components(ii: Tensor, jj: Tensor, n: int, held, prior: bool) ->
     from scipy.sparse.csgraph import connected_components
 
     i, j = ii.cpu().numpy(), jj.cpu().numpy()
-    _, label = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)
+    count, label = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)
     anchored = {int(label[h]) for h in held} | ({int(label[0])} if prior else set())
-    first = {}
-    for p, c in enumerate(label.tolist()):
-        first.setdefault(c, p)
-    return len(first), sorted(p for c, p in first.items() if c not in anchored)
+    _, first = np.unique(label, return_index=True)  # the first pose of each component (labels 0 .. count - 1)
+    return count, sorted(p for c, p in enumerate(first.tolist()) if c not in anchored)
 
 
 def implicit_vjp(spec: _Spec, x: Tensor, meas: Tensor, info: Tensor, poses: Tensor, grad_x: Tensor,
