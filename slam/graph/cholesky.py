@@ -53,8 +53,7 @@ def _etree(n: int, ptr: np.ndarray, col: np.ndarray) -> list[int]:
     ancestor = [-1] * n
     rows = np.repeat(np.arange(n), np.diff(ptr))
     low = rows > col
-    lptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows[low], minlength=n), out=lptr[1:])
+    lptr = np.concatenate(([0], np.cumsum(np.bincount(rows[low], minlength=n))))
     colist, lp = col[low].tolist(), lptr.tolist()
     for j in range(n):
         for i in colist[lp[j]:lp[j + 1]]:
@@ -114,8 +113,7 @@ def _permuted(bptr: np.ndarray, bcol: np.ndarray, order: np.ndarray):
     """The pattern (CSR ``bptr, bcol``) with rows and columns renumbered by ``order`` (position -> variable):
     ``(rows, cols)`` sorted by row then column, and the row pointers."""
     n = order.shape[0]
-    iperm = np.empty(n, dtype=np.int64)
-    iperm[order] = np.arange(n)
+    iperm = np.argsort(order)  # variable -> position
     rows = iperm[np.repeat(np.arange(n), np.diff(bptr))]
     cols = iperm[bcol]
     srt = np.argsort(rows * n + cols)  # the entries are distinct: one key sorts as (row, col)
@@ -131,8 +129,7 @@ def _column_structures(n: int, parent: list, pr: np.ndarray, pc: np.ndarray) -> 
         if parent[j] >= 0:
             children[parent[j]].append(j)
     up = pc > pr
-    uptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(pr[up], minlength=n), out=uptr[1:])
+    uptr = np.concatenate(([0], np.cumsum(np.bincount(pr[up], minlength=n))))
     ucol, up_ = pc[up].tolist(), uptr.tolist()
     struct: list[set] = [None] * n  # type: ignore[list-item]
     for j in range(n):
@@ -182,8 +179,7 @@ def _supernode_tree(pattern) -> _Tree:
     _, pc, ptr = _permuted(bptr, bcol, order)
     parent0 = _etree(n, ptr, pc)
     post = _postorder(parent0)  # post[q] = node (in the first numbering)
-    newpos = np.empty(n, dtype=np.int64)
-    newpos[post] = np.arange(n)
+    newpos = np.argsort(post)
     par0 = np.asarray(parent0, dtype=np.int64)[post]
     order, parent = order[post], np.where(par0 >= 0, newpos[par0], -1).tolist()
     pr, pc, _ = _permuted(bptr, bcol, order)
@@ -226,8 +222,7 @@ class _Layout:
         self.ncols = np.asarray(tree.ncols, dtype=np.int64)
         self.nf = tree.nf
         # row structures R_s, concatenated
-        self.roff = np.zeros(ns + 1, dtype=np.int64)
-        self.roff[1:] = np.cumsum(self.nrows)
+        self.roff = np.concatenate(([0], np.cumsum(self.nrows)))
         seg = np.repeat(np.arange(ns), self.nrows)
         first = tree.first
         rcat = tree.lab[np.fromiter(itertools.chain.from_iterable(tree.struct[first[s + 1] - 1] for s in range(ns)),
@@ -257,8 +252,7 @@ def _gather_map(pattern, tree: _Tree, lay: _Layout):
     values to the panels. Entry ``(row, col)``, ``row >= col`` (new labels), belongs to the panel of col's
     supernode at local ``(row, col)``."""
     k, nb = lay.k, pattern.num_blocks
-    iperm = np.empty(lay.n, dtype=np.int64)
-    iperm[tree.order] = np.arange(lay.n)
+    iperm = np.argsort(tree.order)  # variable -> position
     bpos = np.arange(nb * k * k, dtype=np.int64).reshape(nb, k, k)  # block-major value positions
     prow, pcol = iperm[pattern.block_rows.cpu().numpy()], iperm[pattern.block_cols.cpu().numpy()]
     keep = np.nonzero(prow >= pcol)[0]
@@ -284,16 +278,14 @@ def _factor_groups(tree: _Tree, lay: _Layout) -> list:
     ar = np.arange(k)
     gorder = np.fromiter(itertools.chain.from_iterable(sns for _, sns in tree.groups), dtype=np.int64, count=ns)
     glen = lay.nrows[gorder]
-    gstart = np.zeros(ns + 1, dtype=np.int64)
-    gstart[1:] = np.cumsum(glen)
+    gstart = np.concatenate(([0], np.cumsum(glen)))
     at = np.repeat(lay.roff[gorder] - gstart[:-1], glen) + np.arange(int(gstart[-1]))
     rows_all = (lay.rcat[at][:, None] * k + ar).reshape(-1)  # block rows -> scalar rows
     gstart *= k
     # per block pair (alpha >= beta) of R_s: where its entry (alpha k, beta k) lands (``base``, in the panel
     # of the owner of column block beta) and that panel's row stride ``pt`` (see _update_positions)
     npair = glen * (glen + 1) // 2
-    pstart = np.zeros(ns + 1, dtype=np.int64)
-    pstart[1:] = np.cumsum(npair)
+    pstart = np.concatenate(([0], np.cumsum(npair)))
     AL, BE = np.tril_indices(int(glen.max()) if ns else 0)
     q = np.arange(int(pstart[-1])) - np.repeat(pstart[:-1], npair)
     s_pair = np.repeat(gorder, npair)
@@ -304,8 +296,7 @@ def _factor_groups(tree: _Tree, lay: _Layout) -> list:
     pair_base = lay.off[own] + lay.local(own, a_blk) * k * pair_pt + (b_blk - lay.nf[own]) * k
     # the update positions of all the groups with the same number of rows r in one call, then split per group
     sizes = np.array([len(sns) for _, sns in tree.groups], dtype=np.int64)
-    i0s = np.zeros(len(sizes) + 1, dtype=np.int64)
-    i0s[1:] = np.cumsum(sizes)
+    i0s = np.concatenate(([0], np.cumsum(sizes)))
     by_r: dict = {}
     for gi, ((_, _, r), _) in enumerate(tree.groups):
         if r:
