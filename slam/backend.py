@@ -23,14 +23,14 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence
 
 import torch
 
-from slam.graph import RobustKernel, make_kernel, optimize
-from slam.graph.costs import _Width  # a kernel of one width > 0
+from slam.graph import CHI2_95_6DOF, RobustKernel, make_kernel, optimize
 from slam.graph.optimizer import METHODS as OPTIMIZER_METHODS  # BackendConfig.method must be one of them
 from slam.graph.optimizer import OptimizationResult
 from slam.keyframe_graph import EdgeKind, KeyframeGraph
@@ -43,16 +43,21 @@ __all__ = ["DCS", "OPTIMIZER_METHODS", "BackendResult", "EdgeKindKernel", "PoseG
 
 
 @dataclass
-class DCS(_Width):
+class DCS(RobustKernel):
     """Dynamic covariance scaling (Agarwal et al. 2013) on ``s = r^T Omega r``: the closed form of a
     switchable constraint with prior ``phi``.
 
     ``rho(s) = s`` for ``s <= phi``, else ``phi (3 s - phi) / (phi + s)`` (bounded by ``3 phi``); the IRLS
-    weight is ``(2 phi / (phi + s))^2``. ``width`` (> 0, default ``sqrt(chi2_0.95(6))``) is ``sqrt(phi)`` (the
-    Mahalanobis norm where it starts acting, as for the other kernels).
+    weight is ``(2 phi / (phi + s))^2``. ``width`` is ``sqrt(phi)`` (the Mahalanobis norm where it starts
+    acting, as for the other kernels).
     """
 
+    width: float = math.sqrt(CHI2_95_6DOF)
     name = "dcs"
+
+    def __post_init__(self) -> None:
+        if not self.width > 0:
+            raise ValueError(f"DCS width must be > 0, got {self.width}")
 
     def rho_and_weight(self, s: Tensor):
         phi = self.width ** 2
