@@ -228,8 +228,7 @@ class PoseGraphBackend:
         kernel = EdgeKindKernel(kinds, {int(EdgeKind.ODOMETRY): make_kernel(cfg.kernel, cfg.kernel_width),
                                         int(EdgeKind.LOOP): loop_kernel})
         res = optimize(pg, method=cfg.method, kernel=kernel, max_iterations=iters)
-        w = res.weights
-        loop_weights = {active[r]: (float(w[r]) if w is not None else 1.0) for r in loop_rows}
+        loop_weights = {active[r]: float(res.weights[r]) for r in loop_rows}  # (E,) weights, ones without a kernel
         poses = res.graph.poses.detach().to(torch.float64).cpu()
         if used is not None:  # into the whole graph: the keyframes outside the window (held ones too) as they were
             moved = torch.ones(used.numel(), dtype=torch.bool)

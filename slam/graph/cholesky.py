@@ -5,6 +5,7 @@ panels, batched per group of supernodes of one height and shape (small groups fr
 """
 from __future__ import annotations
 
+import collections
 import functools
 import itertools
 import threading
@@ -52,8 +53,7 @@ def _etree(n: int, ptr: np.ndarray, col: np.ndarray) -> list[int]:
     ancestor = [-1] * n
     rows = np.repeat(np.arange(n), np.diff(ptr))
     low = rows > col
-    lptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows[low], minlength=n), out=lptr[1:])
+    lptr = np.concatenate(([0], np.cumsum(np.bincount(rows[low], minlength=n))))
     colist, lp = col[low].tolist(), lptr.tolist()
     for j in range(n):
         for i in colist[lp[j]:lp[j + 1]]:
@@ -113,25 +113,12 @@ def _permuted(bptr: np.ndarray, bcol: np.ndarray, order: np.ndarray):
     """The pattern (CSR ``bptr, bcol``) with rows and columns renumbered by ``order`` (position -> variable):
     ``(rows, cols)`` sorted by row then column, and the row pointers."""
     n = order.shape[0]
-    iperm = np.empty(n, dtype=np.int64)
-    iperm[order] = np.arange(n)
+    iperm = np.argsort(order)  # variable -> position
     rows = iperm[np.repeat(np.arange(n), np.diff(bptr))]
     cols = iperm[bcol]
     srt = np.argsort(rows * n + cols)  # the entries are distinct: one key sorts as (row, col)
     pr, pc = rows[srt], cols[srt]
     return pr, pc, np.searchsorted(pr, np.arange(n + 1))
-
-
-def _postordered_etree(n: int, bptr: np.ndarray, bcol: np.ndarray, order: np.ndarray):
-    """The elimination tree of the pattern in ``order``, postordered: ``(order, parent)`` with ``order`` the
-    postordered position -> variable and ``parent`` (list) in the same numbering."""
-    _, pc, ptr = _permuted(bptr, bcol, order)
-    parent0 = _etree(n, ptr, pc)
-    post = _postorder(parent0)  # post[q] = node (in the first numbering)
-    newpos = np.empty(n, dtype=np.int64)
-    newpos[post] = np.arange(n)
-    par0 = np.asarray(parent0, dtype=np.int64)[post]
-    return order[post], np.where(par0 >= 0, newpos[par0], -1).tolist()
 
 
 def _column_structures(n: int, parent: list, pr: np.ndarray, pc: np.ndarray) -> list:
@@ -142,8 +129,7 @@ def _column_structures(n: int, parent: list, pr: np.ndarray, pc: np.ndarray) -> 
         if parent[j] >= 0:
             children[parent[j]].append(j)
     up = pc > pr
-    uptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(pr[up], minlength=n), out=uptr[1:])
+    uptr = np.concatenate(([0], np.cumsum(np.bincount(pr[up], minlength=n))))
     ucol, up_ = pc[up].tolist(), uptr.tolist()
     struct: list[set] = [None] * n  # type: ignore[list-item]
     for j in range(n):
@@ -188,7 +174,14 @@ def _supernode_tree(pattern) -> _Tree:
     final group-major numbering of the columns."""
     n = pattern.num_vars
     bptr, bcol = _block_graph(pattern)
-    order, parent = _postordered_etree(n, bptr, bcol, _mmd_order(n, bptr, bcol))
+    # the elimination tree in the minimum-degree order, then postordered (order: position -> variable)
+    order = _mmd_order(n, bptr, bcol)
+    _, pc, ptr = _permuted(bptr, bcol, order)
+    parent0 = _etree(n, ptr, pc)
+    post = _postorder(parent0)  # post[q] = node (in the first numbering)
+    newpos = np.argsort(post)
+    par0 = np.asarray(parent0, dtype=np.int64)[post]
+    order, parent = order[post], np.where(par0 >= 0, newpos[par0], -1).tolist()
     pr, pc, _ = _permuted(bptr, bcol, order)
     struct = _column_structures(n, parent, pr, pc)
     first = _relaxed_supernodes(n, parent, struct)
@@ -229,8 +222,7 @@ class _Layout:
         self.ncols = np.asarray(tree.ncols, dtype=np.int64)
         self.nf = tree.nf
         # row structures R_s, concatenated
-        self.roff = np.zeros(ns + 1, dtype=np.int64)
-        self.roff[1:] = np.cumsum(self.nrows)
+        self.roff = np.concatenate(([0], np.cumsum(self.nrows)))
         seg = np.repeat(np.arange(ns), self.nrows)
         first = tree.first
         rcat = tree.lab[np.fromiter(itertools.chain.from_iterable(tree.struct[first[s + 1] - 1] for s in range(ns)),
@@ -260,8 +252,7 @@ def _gather_map(pattern, tree: _Tree, lay: _Layout):
     values to the panels. Entry ``(row, col)``, ``row >= col`` (new labels), belongs to the panel of col's
     supernode at local ``(row, col)``."""
     k, nb = lay.k, pattern.num_blocks
-    iperm = np.empty(lay.n, dtype=np.int64)
-    iperm[tree.order] = np.arange(lay.n)
+    iperm = np.argsort(tree.order)  # variable -> position
     bpos = np.arange(nb * k * k, dtype=np.int64).reshape(nb, k, k)  # block-major value positions
     prow, pcol = iperm[pattern.block_rows.cpu().numpy()], iperm[pattern.block_cols.cpu().numpy()]
     keep = np.nonzero(prow >= pcol)[0]
@@ -275,6 +266,11 @@ def _gather_map(pattern, tree: _Tree, lay: _Layout):
     return bpos[:, :, 0].reshape(-1) // k, dst.reshape(-1) // k
 
 
+# supernodes of one height and one front shape (p pivots, m rows), factored as one batch: B = size of them, their
+# scalar rows (B d,) and update positions (B d (d + 1) / 2,) int32
+_Group = collections.namedtuple("_Group", "size p m offset col0 rows upd")
+
+
 def _factor_groups(tree: _Tree, lay: _Layout) -> list:
     """The :class:`_Group` objects: per batch its scalar rows (for the solves) and the int32 positions its
     updates go to, made for all supernodes at once in group order."""
@@ -282,16 +278,14 @@ def _factor_groups(tree: _Tree, lay: _Layout) -> list:
     ar = np.arange(k)
     gorder = np.fromiter(itertools.chain.from_iterable(sns for _, sns in tree.groups), dtype=np.int64, count=ns)
     glen = lay.nrows[gorder]
-    gstart = np.zeros(ns + 1, dtype=np.int64)
-    gstart[1:] = np.cumsum(glen)
+    gstart = np.concatenate(([0], np.cumsum(glen)))
     at = np.repeat(lay.roff[gorder] - gstart[:-1], glen) + np.arange(int(gstart[-1]))
     rows_all = (lay.rcat[at][:, None] * k + ar).reshape(-1)  # block rows -> scalar rows
     gstart *= k
     # per block pair (alpha >= beta) of R_s: where its entry (alpha k, beta k) lands (``base``, in the panel
     # of the owner of column block beta) and that panel's row stride ``pt`` (see _update_positions)
     npair = glen * (glen + 1) // 2
-    pstart = np.zeros(ns + 1, dtype=np.int64)
-    pstart[1:] = np.cumsum(npair)
+    pstart = np.concatenate(([0], np.cumsum(npair)))
     AL, BE = np.tril_indices(int(glen.max()) if ns else 0)
     q = np.arange(int(pstart[-1])) - np.repeat(pstart[:-1], npair)
     s_pair = np.repeat(gorder, npair)
@@ -302,8 +296,7 @@ def _factor_groups(tree: _Tree, lay: _Layout) -> list:
     pair_base = lay.off[own] + lay.local(own, a_blk) * k * pair_pt + (b_blk - lay.nf[own]) * k
     # the update positions of all the groups with the same number of rows r in one call, then split per group
     sizes = np.array([len(sns) for _, sns in tree.groups], dtype=np.int64)
-    i0s = np.zeros(len(sizes) + 1, dtype=np.int64)
-    i0s[1:] = np.cumsum(sizes)
+    i0s = np.concatenate(([0], np.cumsum(sizes)))
     by_r: dict = {}
     for gi, ((_, _, r), _) in enumerate(tree.groups):
         if r:
@@ -657,13 +650,3 @@ class NumericCholesky:
             if d:
                 rhs = torch.baddbmm(yc, L21.mT, y[rows].view(B, d, 1), alpha=-1.0)
             yc.copy_(torch.linalg.solve_triangular(L11.mT, rhs, upper=True))
-
-
-class _Group:
-    """Supernodes of one height and one front shape ``(p pivots, m rows)``, factored as one batch."""
-
-    __slots__ = ("col0", "m", "offset", "p", "rows", "size", "upd")
-
-    def __init__(self, size, p, m, offset, col0, rows, upd):
-        self.size, self.p, self.m, self.offset, self.col0 = size, p, m, offset, col0
-        self.rows, self.upd = rows, upd  # scalar rows (B d,), update positions (B d (d + 1) / 2,) int32

@@ -31,6 +31,8 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, edge_chi2
@@ -151,21 +153,6 @@ def _prior_hessian(spec: _Spec, x: Tensor, poses: Tensor) -> Tensor:
     return 0.5 * (H + H.T)
 
 
-def _unanchored_components(ii: Tensor, jj: Tensor, n: int, held, prior: bool) -> Tuple[int, List[int]]:
-    """The number of connected components of the edges, and the first pose of each that holds no pose (the
-    gauge's prior, on pose 0, holds pose 0's component)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    i, j = ii.cpu().numpy(), jj.cpu().numpy()
-    _, label = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)
-    anchored = {int(label[h]) for h in held} | ({int(label[0])} if prior else set())
-    first = {}
-    for p, c in enumerate(label.tolist()):
-        first.setdefault(c, p)
-    return len(first), sorted(p for c, p in first.items() if c not in anchored)
-
-
 def implicit_vjp(spec: _Spec, x: Tensor, meas: Tensor, info: Tensor, poses: Tensor, grad_x: Tensor,
                  needs: Tuple[bool, bool, bool] = (True, True, True)):
     """The gradients of ``L`` w.r.t. the measurements ``(E, 7)``, the information ``(E, 6, 6)`` and the input
@@ -202,7 +189,12 @@ def implicit_vjp(spec: _Spec, x: Tensor, meas: Tensor, info: Tensor, poses: Tens
         try:
             v = make_solver(spec.solver, pattern.size).solve(pattern, H, rhs)
         except LinearSolverError as exc:
-            count, loose = _unanchored_components(spec.ii, spec.jj, N, spec.held, spec.prior_weight is not None)
+            # the first pose of each component of the edges that holds no pose (the prior holds pose 0's)
+            i, j = spec.ii.cpu().numpy(), spec.jj.cpu().numpy()
+            count, label = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(N, N)), directed=False)
+            anchored = {int(label[h]) for h in [*spec.held, *([0] if spec.prior_weight is not None else [])]}
+            _, first = np.unique(label, return_index=True)  # labels 0 .. count - 1
+            loose = sorted(p for c, p in enumerate(first.tolist()) if c not in anchored)
             if loose:  # each such component can move as a whole at the same cost: no minimum is strict
                 hold = sorted(set(int(h) for h in spec.held) | set(loose))
                 raise RuntimeError(

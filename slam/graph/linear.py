@@ -98,8 +98,7 @@ def build_pattern(ii: Tensor, jj: Tensor, free: Tensor, k: int = 6) -> BlockPatt
     vi, vj = var[ii_], var[jj_]
     both = (vi >= 0) & (vj >= 0)
     ar = np.arange(n)
-    keys = np.sort(np.concatenate([ar * nn + ar, vi[both] * nn + vj[both], vj[both] * nn + vi[both]]))
-    keys = keys[np.concatenate([keys[:1] == keys[:1], keys[1:] != keys[:-1]])]  # unique
+    keys = np.unique(np.concatenate([ar * nn + ar, vi[both] * nn + vj[both], vj[both] * nn + vi[both]]))
     nb = keys.shape[0]
     # block id of (r, c) by binary search in the sorted keys; the dump block nb where a pose is fixed
     r = np.stack([vi, vi, vj, vj], -1).reshape(-1, 4)

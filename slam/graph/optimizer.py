@@ -78,31 +78,12 @@ def optimize(graph: PoseGraph, method: str = "lm", kernel: Union[None, str, Robu
     cfg = dataclasses.replace(config or OptimizerConfig(), **overrides)
     if isinstance(graph, PoseGraph) and graph.fixed.numel():  # the graph's own held poses (g2o FIX lines)
         cfg = dataclasses.replace(cfg, fixed=tuple(int(f) for f in cfg.fixed) + tuple(graph.fixed.tolist()))
-    if initialization not in ("none", "auto"):  # (its time counts in timings["setup"]; "auto" in _optimize)
+    if initialization not in ("none", "auto"):  # (its time counts in timings["setup"]; "auto" below)
         given = graph.poses
         graph = initialize(graph, initialization, fixed=cfg.fixed)
         if given.requires_grad:  # the anchors' rows stay the caller's tensor (their gradient is kept)
             same = (graph.poses == given.detach()).all(dim=-1, keepdim=True)
             graph = graph.with_poses(torch.where(same, given, graph.poses), check=False)
-    res = _optimize(graph, method, kernel, solver, cfg, t_start, initialization == "auto")
-    if res.status == Status.MAX_ITERATIONS and res.iterations:
-        res.message = _stall_advice(res, cfg, initialization)
-    return res
-
-
-def _stall_advice(res: OptimizationResult, cfg: OptimizerConfig, initialization: str) -> str:
-    """Why a run stopped at ``max_iterations`` and what to try (``OptimizationResult.message``)."""
-    last = (res.cost_history[-2] - res.cost_history[-1]) / res.cost_history[-2]
-    text = (f"stopped at max_iterations={cfg.max_iterations} with the cost still falling ({last:.2g} of it in the "
-            f"last iteration; converged means < rel_tol={cfg.rel_tol:g})")
-    if initialization == "none":
-        return (text + "; if the initial guess is far from the optimum (raw odometry over a long trajectory), try "
-                "initialization='chordal' (or 'spanning_tree'), else more iterations")
-    return text + ": try more iterations, or damping='diagonal' with lambda_update='nielsen'"
-
-
-def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfig,
-              t_start: float, auto_start: bool = False) -> OptimizationResult:
     method = method.lower()
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -116,7 +97,7 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
     kern = make_kernel(kernel, cfg.kernel_width)
     prob = TorchProblem(graph, cfg, kern, gauge, solver)
     start = None
-    if auto_start:  # the graph's poses, evaluated once, unless they fit the edges too poorly
+    if initialization == "auto":  # the graph's poses, evaluated once, unless they fit the edges too poorly
         start = prob.evaluate(prob.poses)
         if not fits_edges(start[1], graph.num_edges):
             tree = initial_poses(graph, "spanning_tree", cfg.fixed).detach().to(prob.poses)
@@ -133,17 +114,31 @@ def _optimize(graph: PoseGraph, method: str, kernel, solver, cfg: OptimizerConfi
             warnings.warn(f"optimize(differentiable=True) stopped with status {run.status} after {run.iterations} "
                           "iteration(s): the implicit gradients are those of the optimum, not of the poses "
                           "returned; optimise to convergence (max_iterations, rel_tol) for gradients that "
-                          "match them", RuntimeWarning, stacklevel=3)
+                          "match them", RuntimeWarning, stacklevel=2)
         x = attach_gradients(graph, x, cfg, kern, gauge, solver)
     result_graph = graph.with_poses(x.to(dtype=graph.poses.dtype, device=graph.poses.device),
                                     check=False)  # finite: only finite costs are accepted
     tm["total"] = time.perf_counter() - t_start
     w = run.best.cache[2]  # the kernel weights (None without a kernel)
-    return OptimizationResult(
+    res = OptimizationResult(
         graph=result_graph, chi2=run.best.chi2, initial_chi2=run.initial_chi2, status=run.status,
         iterations=run.iterations, robust_cost=run.best.cost if kern is not None else None,
         cost_history=run.costs, lambda_history=run.lambdas, time_history=run.times, timings=tm,
         weights=torch.ones(graph.num_edges, dtype=torch.float64) if w is None else w, message=run.message)
+    if res.status == Status.MAX_ITERATIONS and res.iterations:
+        res.message = _stall_advice(res, cfg, initialization)
+    return res
+
+
+def _stall_advice(res: OptimizationResult, cfg: OptimizerConfig, initialization: str) -> str:
+    """Why a run stopped at ``max_iterations`` and what to try (``OptimizationResult.message``)."""
+    last = (res.cost_history[-2] - res.cost_history[-1]) / res.cost_history[-2]
+    text = (f"stopped at max_iterations={cfg.max_iterations} with the cost still falling ({last:.2g} of it in the "
+            f"last iteration; converged means < rel_tol={cfg.rel_tol:g})")
+    if initialization == "none":
+        return (text + "; if the initial guess is far from the optimum (raw odometry over a long trajectory), try "
+                "initialization='chordal' (or 'spanning_tree'), else more iterations")
+    return text + ": try more iterations, or damping='diagonal' with lambda_update='nielsen'"
 
 
 @dataclass
@@ -159,7 +154,7 @@ class _Iterate:
 
 @dataclass
 class _Run:
-    """What the outer loop hands back to :func:`_optimize`."""
+    """What the outer loop hands back to :func:`optimize`."""
 
     best: _Iterate
     initial_chi2: float

@@ -145,9 +145,7 @@ class PoseGraph:
                 k = int(loop.nonzero()[0, 0])
                 raise ValueError(f"edge {k} connects pose {int(self.ii[k])} to itself")
         for name, x in (("poses", P), ("measurements", self.measurements), ("information", self.information)):
-            if not x.shape[0]:
-                continue
-            bad = ~torch.isfinite(x).reshape(x.shape[0], -1).all(-1)
+            bad = ~torch.isfinite(x).flatten(1).all(-1)
             if bool(bad.any()):
                 raise ValueError(f"{name}[{int(bad.nonzero()[0, 0])}] has a non-finite value")
         for name, x in (("poses", P), ("measurements", self.measurements)):
@@ -164,8 +162,8 @@ class PoseGraph:
     def add_edge(self, i: int, j: int, measurement: Tensor, information: Optional[Tensor] = None) -> None:
         """Append an edge ``z_ij ~= T_i^-1 T_j``: ``measurement (7,)``, ``information (6, 6)`` (default I)."""
         meas = torch.as_tensor(measurement, dtype=self.dtype, device=self.device).reshape(1, 7)
-        info = torch.eye(6, dtype=self.dtype, device=self.device) if information is None else information
-        self.add_edges(torch.tensor([i]), torch.tensor([j]), meas, torch.as_tensor(info).reshape(1, 6, 6))
+        self.add_edges(torch.tensor([i]), torch.tensor([j]), meas,
+                       None if information is None else torch.as_tensor(information).reshape(1, 6, 6))
 
     def add_edges(self, ii: Tensor, jj: Tensor, measurements: Tensor,
                   information: Optional[Tensor] = None) -> None:
@@ -254,8 +252,6 @@ def require_spd_information(information: Tensor, ii: Tensor, jj: Tensor, fail: O
     symmetric positive definite. ``fail``: the ``info`` of a ``torch.linalg.cholesky_ex`` of these matrices
     already made; ``symmetry=False`` skips the symmetry test (|A - A^T| <= :data:`SYMMETRY_RTOL` times the
     largest diagonal entry)."""
-    if information.shape[0] == 0:
-        return
     if fail is None:
         _, fail = torch.linalg.cholesky_ex(information.to(torch.float64))
     bad = fail != 0

@@ -39,19 +39,6 @@ _WORKSPACES: List[dict] = []  # at most one, taken by one problem at a time
 _WORKSPACE_LOCK = threading.Lock()
 
 
-def _checkout_workspace() -> dict:
-    """The buffers an earlier problem handed back (or a new dict): their pages are already mapped."""
-    with _WORKSPACE_LOCK:
-        return _WORKSPACES.pop() if _WORKSPACES else {}
-
-
-def _return_workspace(ws: dict) -> None:
-    size = sum(t.numel() * t.element_size() for t in ws.values())
-    with _WORKSPACE_LOCK:
-        if size <= WORKSPACE_MAX_BYTES and not _WORKSPACES:
-            _WORKSPACES.append(ws)
-
-
 class TorchProblem:
     """One optimisation's state in torch (float64 on the graph's device).
 
@@ -90,8 +77,9 @@ class TorchProblem:
             d = self.dims
             self.rows = torch.cat([d, d + 6, torch.tensor([12], device=dev)])  # rows of [J_i^T; J_j^T; r^T]
             self.L_red = torch.linalg.cholesky(self.info[:, d][:, :, d]).contiguous()
-        # the per-edge buffers of the linearisation (slam.graph.fused), the workspace of an earlier problem
-        self.ws = _checkout_workspace()
+        # the per-edge buffers of the linearisation (slam.graph.fused): an earlier problem's (pages already mapped)
+        with _WORKSPACE_LOCK:
+            self.ws = _WORKSPACES.pop() if _WORKSPACES else {}
         self.JT = workspace_buffer(self.ws, "JT", (E, 13, 6), self.meas).zero_()  # its structural zeros stay zero
         fixed = held_poses(cfg, gauge, N)
         free = torch.ones(N, dtype=torch.bool, device=dev)
@@ -120,12 +108,8 @@ class TorchProblem:
         r, aux = se3_residuals(poses, self.ii, self.jj, self.zinv, self.chart)
         u = bmm(r[:, None, :], self.L)  # (E, 1, 6): (L^T r)^T
         s = u.square_().sum((1, 2))
-        if self.kernel is None:
-            chi2 = cost = float(s.sum())
-            w = None
-        else:
-            rho, w = self.kernel(s)
-            cost, chi2 = float(rho.sum()), float(s.sum())
+        rho, w = (s, None) if self.kernel is None else self.kernel(s)
+        cost, chi2 = float(rho.sum()), float(s.sum())
         if self.prior is not None:
             p0, wgt, _ = self.prior
             r0 = se3_log(se3_compose(se3_inv(p0), poses[0]))
@@ -193,5 +177,8 @@ class TorchProblem:
 
     def release(self) -> None:
         """Hand the per-edge buffers to the next problem (this one no longer linearises)."""
-        _return_workspace(self.ws)
+        size = sum(t.numel() * t.element_size() for t in self.ws.values())
+        with _WORKSPACE_LOCK:
+            if size <= WORKSPACE_MAX_BYTES and not _WORKSPACES:
+                _WORKSPACES.append(self.ws)
         self.ws = None
