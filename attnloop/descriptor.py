@@ -292,7 +292,6 @@ class AttentionDescriptor(nn.Module):
         # the recipe is built once it is known which settings apply (a preset or a recipe replaces them)
         passed = {"fusion": fusion, "num_rnn": num_rnn, "out_features": out_features, "seed": seed,
                   "normalize": normalize, "pool_scale": pool_scale, "merge": merge, "pooling": pooling}
-        settings = {k: getattr(_DEFAULT, k) if v is _UNSET else v for k, v in passed.items()}
         passed = {k: v for k, v in passed.items() if v is not _UNSET}  # given by the caller
         changed = [k for k, v in passed.items() if v != getattr(_DEFAULT, k)]
         chosen = preset_named(preset)  # None: the default
@@ -301,11 +300,10 @@ class AttentionDescriptor(nn.Module):
             free = ("seed",) if chosen.fusion is not None else ("fusion", "seed")
             own = {**chosen.recipe, **({"fusion": chosen.fusion} if chosen.fusion is not None else {})}
             fixed = [k for k, v in passed.items() if k not in free and v != own.get(k, getattr(_DEFAULT, k))]
-            if recipe is not None or fixed or tap is not None or attend is not None:
-                extra = (["recipe"] if recipe is not None else []) + (["tap"] if tap else []) + (
-                    ["attend"] if attend is not None else [])
-                raise ValueError(f"preset={chosen.name!r} fixes the recipe and the tap; also given: {fixed + extra}")
-            given = DescriptorRecipe(**{**settings, **own, **{k: v for k, v in passed.items() if k in free}})
+            fixed += [k for k, v in (("recipe", recipe), ("tap", tap), ("attend", attend)) if v is not None]
+            if fixed:
+                raise ValueError(f"preset={chosen.name!r} fixes the recipe and the tap; also given: {fixed}")
+            given = DescriptorRecipe(**{**own, **{k: v for k, v in passed.items() if k in free}})
         elif recipe is not None:
             if not isinstance(recipe, DescriptorRecipe):
                 raise TypeError(f"recipe must be a DescriptorRecipe, got {type(recipe).__name__}")
@@ -314,7 +312,7 @@ class AttentionDescriptor(nn.Module):
                                  "dataclasses.replace(recipe, ...) varies a recipe")
             given = recipe
         else:
-            given = DescriptorRecipe(**settings)
+            given = DescriptorRecipe(**passed)
         self.recipe = given
         #: The preset's name (``"default"`` unless ``preset=`` named another).
         self.preset = chosen.name
@@ -438,13 +436,6 @@ class AttentionDescriptor(nn.Module):
                                "default); build this one with num_rnn=0")
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
-    def _dtype(self) -> torch.dtype:
-        # the descriptor's dtype: the RNNs' (their weights are a buffer), else the backbone's
-        if self.pool is not None:
-            return self.pool.weights.dtype
-        param = next(self.backbone.parameters(), None)
-        return param.dtype if param is not None else torch.get_default_dtype()
-
     def _check_images(self, images: torch.Tensor) -> None:
         check_images(images)
         param = next(self.backbone.parameters(), None)
@@ -470,7 +461,10 @@ class AttentionDescriptor(nn.Module):
         """
         self._check_images(images)
         if images.shape[0] == 0:
-            dtype = self._dtype()
+            # the descriptor's dtype: the RNNs' (their weights are a buffer), else the backbone's
+            param = next(self.backbone.parameters(), None)
+            dtype = param.dtype if param is not None else torch.get_default_dtype()
+            dtype = self.pool.weights.dtype if self.pool is not None else dtype
             empty = images.new_zeros((0, *self.backbone.tap_shape), dtype=dtype)
             desc = images.new_zeros((0, self.out_dim), dtype=dtype)
             if self.differentiable and torch.is_grad_enabled() and not torch.is_inference_mode_enabled():

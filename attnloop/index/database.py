@@ -310,7 +310,7 @@ class KeyframeIndex:
         q, single, max_ids, device = self._prepare_queries(query, max_id)
         self._poll()
         nq = q.shape[0]
-        n_elig = self._eligible(max_ids, nq) if len(self) else np.zeros(nq, dtype=np.int64)
+        n_elig = self._eligible(max_ids, nq)
         kk = int(min(k, n_elig.max(initial=0)))
         out_ids = np.full((nq, kk), -1, dtype=np.int64)
         out_sim = np.full((nq, kk), -np.inf, dtype=np.float32)
@@ -386,7 +386,7 @@ class KeyframeIndex:
         q, single, max_ids, device = self._prepare_queries(query, max_id)
         if not single:
             raise ValueError(f"similarities takes one query of shape (D,), got {tuple(q.shape)}")
-        m = int(self._eligible(max_ids, 1)[0]) if len(self) else 0
+        m = int(self._eligible(max_ids, 1)[0])
         if m == 0:
             rows = np.zeros(0, dtype=np.int64)
             sims = np.zeros(0, dtype=np.float32)
@@ -493,8 +493,8 @@ class KeyframeIndex:
             if n:
                 out.add(desc, ids=ids, timestamps=ts)
             return out
-        backend = resolve_backend(use.backend)
         out = cls(use, dim=dim)
+        backend = out.backend
         if n:
             out._store.append(desc.astype(out._store.dtype, copy=False), ids, ts)
             norms = out._store.row_norms()
