@@ -107,9 +107,7 @@ class DescriptorRecipe:
     @property
     def merges(self) -> bool:
         """Whether the RNNs' input is merged (``merge``; None: with ``flat`` pooling); False without RNNs."""
-        if not self.num_rnn:
-            return False
-        return (self.pooling == "flat") if self.merge is None else bool(self.merge)
+        return bool(self.num_rnn) and ((self.pooling == "flat") if self.merge is None else bool(self.merge))
 
 
 _DEFAULT = DescriptorRecipe()
@@ -192,8 +190,7 @@ def descriptor_from_attention(
                              "pass RNN weights, or pooling='regional'")
         desc = regional_code(fused, groups, gem_p)
     else:
-        if merge is None:
-            merge = pooling == "flat"
+        merge = pooling == "flat" if merge is None else merge
         pool_in = fused if pooling == "flat" else regional_code(fused, groups, gem_p)[:, :, None, None]
         if pool_scale is not None:  # per-sample L2 norm pool_scale; an all-zero sample stays zero
             pool_in = (F.normalize(pool_in.flatten(1), dim=1) * float(pool_scale)).reshape(pool_in.shape)
@@ -333,8 +330,7 @@ class AttentionDescriptor(nn.Module):
             if backbone == "auto" and chosen.auto_backbone != "auto":
                 backbone = chosen.auto_backbone  # the paper's network, its weights required: never another
             self.backbone_name = resolve_backbone_name(backbone, use_pretrained, weights)
-            settings = chosen.backbone_settings.get(self.backbone_name, {})
-            settings = {"tap": tap} if tap is not None else dict(settings)
+            settings = {"tap": tap} if tap is not None else dict(chosen.backbone_settings.get(self.backbone_name, {}))
             if attend is not None:
                 settings["attend"] = attend
             # outside inference mode: the seeded backward cannot use inference tensors as weights
