@@ -118,8 +118,7 @@ class _ReplaySegment(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):  # type: ignore[override]
-        inner = torch.autograd.grad(ctx.outs[-1], [ctx.leaf, *ctx.outs[:-1]], grad, allow_unused=True)
-        inner = [torch.zeros_like(t) if g is None else g for g, t in zip(inner, [ctx.leaf, *ctx.outs[:-1]])]
+        inner = torch.autograd.grad(ctx.outs[-1], [ctx.leaf, *ctx.outs[:-1]], grad, materialize_grads=True)
         later = [g if keep else torch.zeros_like(g) for g, keep in zip([*inner[1:], grad], ctx.attended)]
         return (None, None, None, inner[0], *later)
 
