@@ -107,9 +107,7 @@ class DescriptorRecipe:
     @property
     def merges(self) -> bool:
         """Whether the RNNs' input is merged (``merge``; None: with ``flat`` pooling); False without RNNs."""
-        if not self.num_rnn:
-            return False
-        return (self.pooling == "flat") if self.merge is None else bool(self.merge)
+        return bool(self.num_rnn) and ((self.pooling == "flat") if self.merge is None else bool(self.merge))
 
 
 _DEFAULT = DescriptorRecipe()
@@ -192,8 +190,7 @@ def descriptor_from_attention(
                              "pass RNN weights, or pooling='regional'")
         desc = regional_code(fused, groups, gem_p)
     else:
-        if merge is None:
-            merge = pooling == "flat"
+        merge = pooling == "flat" if merge is None else merge
         pool_in = fused if pooling == "flat" else regional_code(fused, groups, gem_p)[:, :, None, None]
         if pool_scale is not None:  # per-sample L2 norm pool_scale; an all-zero sample stays zero
             pool_in = (F.normalize(pool_in.flatten(1), dim=1) * float(pool_scale)).reshape(pool_in.shape)
@@ -292,7 +289,6 @@ class AttentionDescriptor(nn.Module):
         # the recipe is built once it is known which settings apply (a preset or a recipe replaces them)
         passed = {"fusion": fusion, "num_rnn": num_rnn, "out_features": out_features, "seed": seed,
                   "normalize": normalize, "pool_scale": pool_scale, "merge": merge, "pooling": pooling}
-        settings = {k: getattr(_DEFAULT, k) if v is _UNSET else v for k, v in passed.items()}
         passed = {k: v for k, v in passed.items() if v is not _UNSET}  # given by the caller
         changed = [k for k, v in passed.items() if v != getattr(_DEFAULT, k)]
         chosen = preset_named(preset)  # None: the default
@@ -301,11 +297,10 @@ class AttentionDescriptor(nn.Module):
             free = ("seed",) if chosen.fusion is not None else ("fusion", "seed")
             own = {**chosen.recipe, **({"fusion": chosen.fusion} if chosen.fusion is not None else {})}
             fixed = [k for k, v in passed.items() if k not in free and v != own.get(k, getattr(_DEFAULT, k))]
-            if recipe is not None or fixed or tap is not None or attend is not None:
-                extra = (["recipe"] if recipe is not None else []) + (["tap"] if tap else []) + (
-                    ["attend"] if attend is not None else [])
-                raise ValueError(f"preset={chosen.name!r} fixes the recipe and the tap; also given: {fixed + extra}")
-            given = DescriptorRecipe(**{**settings, **own, **{k: v for k, v in passed.items() if k in free}})
+            fixed += [k for k, v in (("recipe", recipe), ("tap", tap), ("attend", attend)) if v is not None]
+            if fixed:
+                raise ValueError(f"preset={chosen.name!r} fixes the recipe and the tap; also given: {fixed}")
+            given = DescriptorRecipe(**{**own, **{k: v for k, v in passed.items() if k in free}})
         elif recipe is not None:
             if not isinstance(recipe, DescriptorRecipe):
                 raise TypeError(f"recipe must be a DescriptorRecipe, got {type(recipe).__name__}")
@@ -314,7 +309,7 @@ class AttentionDescriptor(nn.Module):
                                  "dataclasses.replace(recipe, ...) varies a recipe")
             given = recipe
         else:
-            given = DescriptorRecipe(**settings)
+            given = DescriptorRecipe(**passed)
         self.recipe = given
         #: The preset's name (``"default"`` unless ``preset=`` named another).
         self.preset = chosen.name
@@ -335,8 +330,7 @@ class AttentionDescriptor(nn.Module):
             if backbone == "auto" and chosen.auto_backbone != "auto":
                 backbone = chosen.auto_backbone  # the paper's network, its weights required: never another
             self.backbone_name = resolve_backbone_name(backbone, use_pretrained, weights)
-            settings = chosen.backbone_settings.get(self.backbone_name, {})
-            settings = {"tap": tap} if tap is not None else dict(settings)
+            settings = {"tap": tap} if tap is not None else dict(chosen.backbone_settings.get(self.backbone_name, {}))
             if attend is not None:
                 settings["attend"] = attend
             # outside inference mode: the seeded backward cannot use inference tensors as weights
@@ -438,13 +432,6 @@ class AttentionDescriptor(nn.Module):
                                "default); build this one with num_rnn=0")
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
-    def _dtype(self) -> torch.dtype:
-        # the descriptor's dtype: the RNNs' (their weights are a buffer), else the backbone's
-        if self.pool is not None:
-            return self.pool.weights.dtype
-        param = next(self.backbone.parameters(), None)
-        return param.dtype if param is not None else torch.get_default_dtype()
-
     def _check_images(self, images: torch.Tensor) -> None:
         check_images(images)
         param = next(self.backbone.parameters(), None)
@@ -470,7 +457,10 @@ class AttentionDescriptor(nn.Module):
         """
         self._check_images(images)
         if images.shape[0] == 0:
-            dtype = self._dtype()
+            # the descriptor's dtype: the RNNs' (their weights are a buffer), else the backbone's
+            param = next(self.backbone.parameters(), None)
+            dtype = param.dtype if param is not None else torch.get_default_dtype()
+            dtype = self.pool.weights.dtype if self.pool is not None else dtype
             empty = images.new_zeros((0, *self.backbone.tap_shape), dtype=dtype)
             desc = images.new_zeros((0, self.out_dim), dtype=dtype)
             if self.differentiable and torch.is_grad_enabled() and not torch.is_inference_mode_enabled():

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .preprocess import check_size, prepare_images
-from .weights import EFFICIENTNET_LITE0_FILE, load_state_dict, resolve_efficientnet_lite0_weights
+from .weights import EFFICIENTNET_LITE0_FILE, build_weighted, resolve_efficientnet_lite0_weights
 
 __all__ = ["EfficientNetLite0", "efficientnet_lite0", "efficientnet_lite_taps"]
 
@@ -29,8 +29,6 @@ _STAGES = (
     (4, 5, 2, 6, 112, 192),
     (1, 3, 1, 6, 192, 320),
 )
-_TAP_STRIDES = {"stage1": 2, "stage2": 4, "stage3": 8, "stage4": 16, "stage5": 16, "stage6": 32, "stage7": 32,
-                "head": 32}
 _BN_EPS = 1e-3
 _BN_MOMENTUM = 0.01  # TF's 0.99 decay
 _INPUT_SIZE = 224  # the training resolution
@@ -45,13 +43,12 @@ def efficientnet_lite_taps(input_size: int | tuple[int, int] | None = None
                            ) -> dict[str, tuple[int, int, tuple[int, int]]]:
     """Tap name -> (index of its last block, -1 for the head; channels; (h, w) at ``input_size``, default 224)."""
     h, w = _input_hw(input_size)
-    taps, last = {}, -1
-    for k, (repeats, *_, out_ch) in enumerate(_STAGES):
+    taps, last, s = {}, -1, 2  # s: the stride so far, the stem's 2 first
+    for k, (repeats, _, stride, *_, out_ch) in enumerate(_STAGES):
         last += repeats
-        name = f"stage{k + 1}"
-        s = _TAP_STRIDES[name]
-        taps[name] = (last, out_ch, (math.ceil(h / s), math.ceil(w / s)))
-    taps["head"] = (-1, 1280, (math.ceil(h / 32), math.ceil(w / 32)))
+        s *= stride
+        taps[f"stage{k + 1}"] = (last, out_ch, (math.ceil(h / s), math.ceil(w / s)))
+    taps["head"] = (-1, 1280, (math.ceil(h / s), math.ceil(w / s)))
     return taps
 
 
@@ -121,8 +118,7 @@ class _ReplaySegment(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):  # type: ignore[override]
-        inner = torch.autograd.grad(ctx.outs[-1], [ctx.leaf, *ctx.outs[:-1]], grad, allow_unused=True)
-        inner = [torch.zeros_like(t) if g is None else g for g, t in zip(inner, [ctx.leaf, *ctx.outs[:-1]])]
+        inner = torch.autograd.grad(ctx.outs[-1], [ctx.leaf, *ctx.outs[:-1]], grad, materialize_grads=True)
         later = [g if keep else torch.zeros_like(g) for g, keep in zip([*inner[1:], grad], ctx.attended)]
         return (None, None, None, inner[0], *later)
 
@@ -366,14 +362,5 @@ def efficientnet_lite0(
         input_size: the network input (H, W); default 224 x 224.
         attend: the stages of a joined tap where G is computed (see :class:`EfficientNetLite0`).
     """
-    with torch.device("meta"):  # no default initialisation: the weights are set just below
-        net = EfficientNetLite0(tap=tap, input_size=input_size, attend=attend)
-    if pretrained or weights is not None:
-        path = resolve_efficientnet_lite0_weights(weights)
-        state = load_state_dict(path, EFFICIENTNET_LITE0_FILE)
-        # the checkpoint's convolution weights are strided views (TF's layout): each call would copy them
-        state = {k: v.contiguous() for k, v in state.items()}
-        net.load_state_dict(state, strict=True, assign=True)
-    else:
-        net = net.to_empty(device="cpu").reset_parameters(seed)
-    return net.eval()
+    return build_weighted(lambda: EfficientNetLite0(tap=tap, input_size=input_size, attend=attend), pretrained,
+                          weights, resolve_efficientnet_lite0_weights, EFFICIENTNET_LITE0_FILE, seed)

@@ -128,12 +128,9 @@ class HookedBackbone(nn.Module):
         dtype, device = self._dtype_device()
         x = torch.full((1, 3, *size), 0.5, dtype=dtype, device=device)
         events: list[tuple[str, nn.Module, object]] = []  # (name, module, output) in completion order
-        handles = []
-        watched = {id(m) for m in self.module.modules() if isinstance(m, MAX_POOL_TYPES)} | {id(self._tap_module)}
-        for name, m in self.module.named_modules():
-            if id(m) in watched:
-                handles.append(m.register_forward_hook(
-                    lambda mod, inp, out, name=name: events.append((name, mod, out))))
+        handles = [m.register_forward_hook(lambda mod, inp, out, name=name: events.append((name, mod, out)))
+                   for name, m in self.module.named_modules()
+                   if isinstance(m, MAX_POOL_TYPES) or m is self._tap_module]
         what = f"the dry run of {type(self.module).__name__} on a (1, 3, {size[0]}, {size[1]}) image"
         try:
             with torch.no_grad(), eval_mode(self.module):

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from .preprocess import prepare_images
-from .weights import VGG16_FILE, load_state_dict, resolve_vgg16_weights
+from .weights import VGG16_FILE, build_weighted, resolve_vgg16_weights
 
 __all__ = ["VGG16", "VGG16_TAPS", "vgg16"]
 
@@ -118,12 +118,4 @@ def vgg16(
         tap: the tap layer L (``pool5`` gives (B, 512, 7, 7)).
         seed: seed of the random weights when ``pretrained`` is False.
     """
-    # on the meta device: the default initialisation (~1 s) would be overwritten anyway
-    with torch.device("meta"):
-        net = VGG16(tap=tap)
-    if pretrained or weights is not None:
-        path = resolve_vgg16_weights(weights)
-        net.load_state_dict(load_state_dict(path, VGG16_FILE), strict=True, assign=True)
-    else:
-        net = net.to_empty(device="cpu").reset_parameters(seed)
-    return net.eval()
+    return build_weighted(lambda: VGG16(tap=tap), pretrained, weights, resolve_vgg16_weights, VGG16_FILE, seed)

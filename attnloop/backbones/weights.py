@@ -7,14 +7,17 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Callable
 
 import torch
+from torch import nn
 
 __all__ = [
     "EFFICIENTNET_LITE0_FILE",
     "VGG16_FILE",
     "VGG16_URL",
     "WeightsNotFoundError",
+    "build_weighted",
     "hub_checkpoint_dir",
     "load_state_dict",
     "offline",
@@ -123,3 +126,18 @@ def load_state_dict(path: str | Path, expected: str = "") -> dict:
     if not isinstance(state, dict):
         raise WeightsNotFoundError(f"weights file {path} holds a {type(state).__name__}, not a state dict")
     return state
+
+
+def build_weighted(make: Callable[[], nn.Module], pretrained: bool, weights: str | Path | None,
+                   resolve: Callable[[str | Path | None], Path], file: str, seed: int) -> nn.Module:
+    """``make()`` (eval mode) with the checkpoint ``resolve(weights)`` (when ``pretrained`` or ``weights`` is
+    given), else with its ``reset_parameters(seed)``; the checkpoint's ``file`` name goes into read errors."""
+    with torch.device("meta"):  # no default initialisation: the weights are set just below
+        net = make()
+    if pretrained or weights is not None:
+        # a checkpoint's tensors may be strided views (TF's layout): each call would copy them
+        state = {k: v.contiguous() for k, v in load_state_dict(resolve(weights), file).items()}
+        net.load_state_dict(state, strict=True, assign=True)
+    else:
+        net = net.to_empty(device="cpu").reset_parameters(seed)
+    return net.eval()

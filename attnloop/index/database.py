@@ -30,11 +30,9 @@ def _to_numpy_2d(x, name: str) -> tuple[np.ndarray, bool]:
     """(N, D) or (D,) tensor/array -> contiguous float32 (N, D) numpy array, and whether it was 1-D."""
     arr = (x.detach().to(device="cpu", dtype=torch.float32).numpy() if isinstance(x, Tensor)
            else np.asarray(x, dtype=np.float32))
-    if arr.ndim == 1:
-        return np.ascontiguousarray(arr[None]), True
-    if arr.ndim != 2:
+    if arr.ndim not in (1, 2):
         raise ValueError(f"{name} must have shape (D,) or (N, D), got {tuple(arr.shape)}")
-    return np.ascontiguousarray(arr), False
+    return np.ascontiguousarray(np.atleast_2d(arr)), arr.ndim == 1
 
 
 def _as_array(x, dtype=None) -> np.ndarray:
@@ -123,11 +121,6 @@ class KeyframeIndex:
         return torch.from_numpy(self._ids().copy())
 
     @property
-    def last_id(self) -> int | None:
-        """The largest (= last added) keyframe id, ``None`` when empty."""
-        return int(self._store.ids[-1]) if len(self) else None
-
-    @property
     def timestamps(self) -> Tensor:
         """Timestamps ``(N,)`` (float64; NaN where none was given)."""
         ts = np.zeros(0) if self._store is None else self._store.timestamps
@@ -152,8 +145,7 @@ class KeyframeIndex:
         q = np.atleast_1d(_as_int_array(ids, "ids"))
         stored = self._ids()
         rows = np.searchsorted(stored, q)
-        ok = rows < stored.size
-        ok[ok] = stored[rows[ok]] == q[ok]
+        ok = np.isin(q, stored)
         if not np.all(ok):
             raise ValueError(f"unknown keyframe id(s) {q[~ok].tolist()[:5]} "
                              f"(the index holds {len(self)} keyframes)")
@@ -183,7 +175,7 @@ class KeyframeIndex:
             return
         if not np.all(np.isfinite(x)):
             raise ValueError("descriptors contain NaN or inf")
-        last = self.last_id
+        last = int(self._store.ids[-1]) if self._store.n else None  # the largest id: ids increase
         if ids is None:
             start = last + 1 if last is not None else 0
             new_ids = np.arange(start, start + m, dtype=np.int64)
@@ -310,7 +302,7 @@ class KeyframeIndex:
         q, single, max_ids, device = self._prepare_queries(query, max_id)
         self._poll()
         nq = q.shape[0]
-        n_elig = self._eligible(max_ids, nq) if len(self) else np.zeros(nq, dtype=np.int64)
+        n_elig = self._eligible(max_ids, nq)
         kk = int(min(k, n_elig.max(initial=0)))
         out_ids = np.full((nq, kk), -1, dtype=np.int64)
         out_sim = np.full((nq, kk), -np.inf, dtype=np.float32)
@@ -386,7 +378,7 @@ class KeyframeIndex:
         q, single, max_ids, device = self._prepare_queries(query, max_id)
         if not single:
             raise ValueError(f"similarities takes one query of shape (D,), got {tuple(q.shape)}")
-        m = int(self._eligible(max_ids, 1)[0]) if len(self) else 0
+        m = int(self._eligible(max_ids, 1)[0])
         if m == 0:
             rows = np.zeros(0, dtype=np.int64)
             sims = np.zeros(0, dtype=np.float32)
@@ -493,8 +485,8 @@ class KeyframeIndex:
             if n:
                 out.add(desc, ids=ids, timestamps=ts)
             return out
-        backend = resolve_backend(use.backend)
         out = cls(use, dim=dim)
+        backend = out.backend
         if n:
             out._store.append(desc.astype(out._store.dtype, copy=False), ids, ts)
             norms = out._store.row_norms()

@@ -57,17 +57,15 @@ def read_index_file(file) -> dict:
     name = file_name(file)
     try:
         data = np.load(file, allow_pickle=False)
+        if isinstance(data, np.lib.npyio.NpzFile):
+            with data:
+                arrays = {k: data[k] for k in data.files}
     except FileNotFoundError:
         raise
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise IndexFileError(f"{name}: not a keyframe-index .npz file ({exc})") from exc
     if not isinstance(data, np.lib.npyio.NpzFile):  # a single .npy array
         raise IndexFileError(f"{name}: a .npy array, not a keyframe-index .npz file")
-    try:
-        with data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise IndexFileError(f"{name}: not a keyframe-index .npz file ({exc})") from exc
     if "meta" not in arrays:
         raise IndexFileError(f"{name}: no 'meta' entry (not a keyframe-index file)")
     try:

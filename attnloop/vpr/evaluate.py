@@ -61,21 +61,22 @@ class ShapeMismatchError(ValueError):
     """Similarity, ground truth and candidate mask of different shapes (the message gives them)."""
 
 
-def _read_bytes(source: PathOrFile) -> bytes:
+def _read_bytes(source: PathOrFile) -> tuple[str, bytes]:
+    """The name of ``source`` in messages, and its bytes."""
+    name = source_name(source)
     if isinstance(source, (str, os.PathLike)):
-        path = os.fspath(source)
         try:
-            with open(path, "rb") as f:
-                return f.read()
+            with open(name, "rb") as f:
+                return name, f.read()
         except FileNotFoundError:
-            raise GroundTruthFormatError(path, "file does not exist") from None
+            raise GroundTruthFormatError(name, "file does not exist") from None
         except OSError as e:
-            raise GroundTruthFormatError(path, f"cannot read file ({type(e).__name__}: {e})") from None
+            raise GroundTruthFormatError(name, f"cannot read file ({type(e).__name__}: {e})") from None
     if hasattr(source, "read"):
         data = source.read()
         if isinstance(data, str):
-            raise TypeError(f"{source_name(source)}: open the ground-truth file in binary mode ('rb'), not text")
-        return bytes(data)
+            raise TypeError(f"{name}: open the ground-truth file in binary mode ('rb'), not text")
+        return name, bytes(data)
     raise TypeError(f"expected a path or a binary file object, got {type(source).__name__}")
 
 
@@ -148,8 +149,7 @@ def read_ground_truth_matrix(source: PathOrFile) -> torch.Tensor:
         GroundTruthFormatError: missing, undecodable, not 2-D, not real, non-finite or not binary (bool, or 0
             and one of 1, 255, 65535), naming the file and the first bad entry.
     """
-    name = source_name(source)
-    data = _read_bytes(source)
+    name, data = _read_bytes(source)
     if not data:
         raise GroundTruthFormatError(name, "empty file")
     if _is_npy(data):
@@ -217,8 +217,7 @@ def read_vpr_bench_ground_truth(source: PathOrFile, num_references: int | None =
         TypeError, ValueError: ``num_references`` is not a non-negative int.
     """
     num_references = _check_num_references(num_references)
-    name = source_name(source)
-    data = _read_bytes(source)
+    name, data = _read_bytes(source)
     if not _is_npy(data):
         raise GroundTruthFormatError(name, "not a .npy file")
     arr = _load_npy(data, name, allow_pickle=True)
@@ -251,8 +250,7 @@ def read_vpr_bench_ground_truth(source: PathOrFile, num_references: int | None =
         num_references = max((max(m) + 1 for m in matches if m), default=0)
     gt = torch.zeros(len(matches), num_references, dtype=torch.bool)
     for q, m in enumerate(matches):
-        if m:
-            gt[q, torch.tensor(m, dtype=torch.long)] = True
+        gt[q, torch.tensor(m, dtype=torch.long)] = True
     return gt
 
 
@@ -267,8 +265,7 @@ def read_ground_truth(source: PathOrFile, num_references: int | None = None) -> 
         ``(Q, R)`` bool matrix.
     """
     num_references = _check_num_references(num_references)
-    name = source_name(source)
-    data = _read_bytes(source)
+    name, data = _read_bytes(source)
     buf = io.BytesIO(data)
     buf.name = name
     if _is_npy(data) and _npy_dtype(data, name) == np.dtype(object):
