@@ -97,7 +97,7 @@ def read_text_lines(source: PathOrFile) -> Tuple[str, List[str]]:
         text = _decode(data, name) if isinstance(data, (bytes, bytearray)) else data
         if not isinstance(text, str):
             raise TypeError(f"{name}: read() returned {type(data).__name__}, expected str or bytes")
-        text = text[1:] if text.startswith("\ufeff") else text
+        text = text.removeprefix("\ufeff")
     else:
         raise TypeError(f"expected a path or a file object, got {type(source).__name__}")
     lines = _NEWLINE.split(text)

@@ -176,8 +176,7 @@ def precision_recall_curve(scores: torch.Tensor, labels: torch.Tensor, num_posit
     s, y = scores[order], labels[order].to(torch.float64)
     tp, fp = torch.cumsum(y, 0), torch.cumsum(1.0 - y, 0)
     last = torch.ones_like(s, dtype=torch.bool)  # last element of each group of equal scores
-    if s.numel() > 1:
-        last[:-1] = s[1:] != s[:-1]
+    last[:-1] = s[1:] != s[:-1]
     tp, fp, thr = tp[last], fp[last], s[last]
     one = torch.ones(1, dtype=torch.float64)
     precision = torch.cat([one, tp / (tp + fp)])
@@ -254,8 +253,7 @@ def evaluate_loop_candidates(
     scores = torch.as_tensor(scores, dtype=torch.float64).flatten().cpu()
     if scores.shape[0] != pairs.shape[0]:
         raise ValueError(f"pairs (M, 2) and scores (M,) disagree: {tuple(pairs.shape)} vs {tuple(scores.shape)}")
-    if pairs.shape[0]:
-        pairs, scores = _best_per_query(pairs, scores)
+    pairs, scores = _best_per_query(pairs, scores)
     labels = is_true_loop(poses, pairs, config).cpu()
     positive = ground_truth_loops(poses, config, indices)[:, 0]
     if queries is not None:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Union
 
 import numpy as np
@@ -149,10 +149,8 @@ class ATEResult:
     estimate_aligned: Trajectory = field(repr=False)
 
     def to_dict(self) -> dict[str, object]:
-        """The scalar results (JSON-serialisable)."""
-        return {"rmse": self.rmse, "mean": self.mean, "median": self.median, "std": self.std, "min": self.min,
-                "max": self.max, "sse": self.sse, "num_pairs": self.num_pairs, "alignment": self.alignment,
-                "scale": self.scale}
+        """The scalar results, the fields ``repr`` shows (JSON-serialisable)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.repr}
 
 
 @dataclass
@@ -297,7 +295,7 @@ def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool) -> torch
     t = t_in[order]
     tol = 0.5 * float(torch.median(t[1:] - t[:-1]))
     target = t + delta
-    k = torch.searchsorted(t, target).clamp(1, max(n - 1, 1))
+    k = torch.searchsorted(t, target).clamp(1, n - 1)
     closer_left = (target - t[k - 1]).abs() <= (t[k] - target).abs()
     j = torch.where(closer_left, k - 1, k)
     ok = (j > torch.arange(n)) & ((t[j] - target).abs() <= tol)

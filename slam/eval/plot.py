@@ -81,8 +81,7 @@ def choose_plane(positions: torch.Tensor) -> tuple[int, int]:
     if positions.shape[0] < 2:
         return (0, 1)
     drop = int(torch.argmin(positions.to(torch.float64).var(dim=0)))
-    a, b = [k for k in range(3) if k != drop]
-    return (a, b)
+    return tuple(k for k in range(3) if k != drop)
 
 
 def _nearest_indices(stamps: np.ndarray, queries: np.ndarray) -> np.ndarray:

@@ -74,10 +74,6 @@ class _Cursor:
                 return data
 
 
-def _stamp(msg) -> float:
-    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-
-
 class RosbagSequence(TimeAssociatedSequence):
     """An RGB-D sequence in a ROS bag, read lazily; colour and depth paired by header stamp as TUM's association.
 
@@ -149,7 +145,7 @@ class RosbagSequence(TimeAssociatedSequence):
                     raise DatasetError(self.root, f"{conn.topic}: a {msg.encoding} {msg.width}x{msg.height} image "
                                                   f"among {first[0]} {first[2]}x{first[1]} ones")
                 times.append(t)
-                stamps.append(_stamp(msg))
+                stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
         except DatasetError:
             raise
         except self._errors as e:
