@@ -192,7 +192,7 @@ class RPEResult:
                 "num_pairs": self.num_pairs}
 
 
-def _no_pairs_hint(ref_t: torch.Tensor, est_t: torch.Tensor, offset: float, max_difference: float) -> str:
+def _no_pairs_hint(ref_t: torch.Tensor, est_t: torch.Tensor, offset: float) -> str:
     """What to try when no stamps pair: other units, a clock offset (--t-offset), or a larger tolerance."""
     units = [timestamp_unit(t.detach().cpu().numpy())[0] for t in (ref_t, est_t)]
     if units[0] != units[1]:
@@ -223,7 +223,7 @@ def _associated(reference: TrajectoryLike, estimate: TrajectoryLike, max_differe
             f"no timestamps of the estimate ({len(est)} poses, {float(est.timestamps[0]):.3f}..."
             f"{float(est.timestamps[-1]):.3f} s) are within {max_difference} s of the reference "
             f"({len(ref)} poses, {float(ref.timestamps[0]):.3f}...{float(ref.timestamps[-1]):.3f} s)"
-            + _no_pairs_hint(ref.timestamps, est.timestamps, offset, max_difference)
+            + _no_pairs_hint(ref.timestamps, est.timestamps, offset)
         )
     return ref.subset(i.to(ref.poses.device)), est.subset(j.to(est.poses.device))
 

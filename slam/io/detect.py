@@ -44,9 +44,7 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
         raise DatasetError(root, "expected a sequence folder, a ROS1 .bag file or a ROS2 bag folder, got a file")
     if (root / "rgb.txt").is_file() or (root / "depth.txt").is_file():
         return TUMSequence(root, camera=camera, K=K, **kwargs)
-    with os.scandir(root) as it:
-        sevenscenes = any(e.name.startswith("frame-") and ".color." in e.name for e in it)
-    if sevenscenes:
+    if any(name.startswith("frame-") and ".color." in name for name in os.listdir(root)):
         if camera is not None:
             raise DatasetError(root, f"camera={camera!r} applies to TUM sequences only; give a 7-Scenes folder's "
                                      "intrinsics with --intrinsics FX FY CX CY (K= in Python)")

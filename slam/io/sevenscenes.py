@@ -150,8 +150,7 @@ class SevenScenesSequence(RGBDSequence):
             raise DatasetNotFoundError(self.root, "sequence folder does not exist")
         self.name = self.root.resolve().name
         found: dict[int, tuple[int, str, str]] = {}
-        with os.scandir(self.root) as it:
-            names = {e.name for e in it}
+        names = set(os.listdir(self.root))
         for fname in names:
             m = _COLOR_RE.match(fname)
             if m is None:
