@@ -97,7 +97,7 @@ def read_text_lines(source: PathOrFile) -> Tuple[str, List[str]]:
         text = _decode(data, name) if isinstance(data, (bytes, bytearray)) else data
         if not isinstance(text, str):
             raise TypeError(f"{name}: read() returned {type(data).__name__}, expected str or bytes")
-        text = text[1:] if text.startswith("\ufeff") else text
+        text = text.removeprefix("\ufeff")
     else:
         raise TypeError(f"expected a path or a file object, got {type(source).__name__}")
     lines = _NEWLINE.split(text)
@@ -128,7 +128,6 @@ def unit_quaternions(q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 TIME_UNITS = {"seconds": 1.0, "milliseconds": 1e3, "microseconds": 1e6, "nanoseconds": 1e9}
 # (unit, the smallest median spacing read as that unit): the boundaries split camera rates, 0.1-100 Hz, without overlap
 _STAMP_UNITS = (("nanoseconds", 1e7), ("microseconds", 1e4), ("milliseconds", 10.0))
-FRAME_NUMBERS = "frame numbers"
 
 
 def timestamp_unit(stamps) -> Tuple[str, Optional[float], float]:
@@ -154,7 +153,7 @@ def timestamp_unit(stamps) -> Tuple[str, Optional[float], float]:
         return "seconds", 1.0, 0.0
     d = float(np.median(np.diff(t)))
     if d == 1.0 and bool(np.all(t == np.round(t))):
-        return FRAME_NUMBERS, None, d
+        return "frame numbers", None, d
     for unit, least in _STAMP_UNITS:
         if d >= least:
             return unit, TIME_UNITS[unit], d

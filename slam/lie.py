@@ -30,7 +30,7 @@ __all__ = [
 
 def _small(dtype: torch.dtype) -> float:
     """The angle below which the series expansions are used (their truncation error is far below eps there)."""
-    return 1e-4 if dtype in (torch.float64,) else 1e-2
+    return 1e-4 if dtype == torch.float64 else 1e-2
 
 
 def _check_last(x: Tensor, n: int, name: str) -> None:
@@ -148,6 +148,7 @@ def so3_hat(phi: Tensor) -> Tensor:
 
 
 def _theta(phi: Tensor):
+    """``(theta, theta^2, small)`` of vectors ``phi (..., 3)``, each ``(..., 1)``; ``theta`` is 1 where small."""
     theta2 = (phi * phi).sum(-1, keepdim=True)
     small = theta2 < _small(phi.dtype) ** 2
     # a safe value where the exact formula is not used, so its gradient stays finite
@@ -170,9 +171,7 @@ def so3_log(q: Tensor) -> Tensor:
     _check_last(q, 4, "q")
     q = torch.where(q[..., 3:4] < 0, -q, q)  # shortest rotation
     v, w = q[..., :3], q[..., 3:]
-    n2 = (v * v).sum(-1, keepdim=True)
-    small = n2 < _small(q.dtype) ** 2
-    n = torch.sqrt(torch.where(small, torch.ones_like(n2), n2))
+    n, n2, small = _theta(v)
     w_safe = torch.where(small, w, torch.ones_like(w))
     # near the identity: 2 atan(n / w) / n = (2 / w) (1 - n^2 / (3 w^2) + ...)
     k_small = 2.0 / w_safe * (1.0 - n2 / (3.0 * w_safe * w_safe))
@@ -268,16 +267,17 @@ def se3_act(pose: Tensor, points: Tensor) -> Tensor:
     return quat_rotate(pose[..., 3:], points) + pose[..., :3]
 
 
+def _upper_blocks(a: Tensor, b: Tensor, d: Tensor) -> Tensor:
+    """The ``(..., 6, 6)`` block matrices ``[[a, b], [0, d]]`` of ``(..., 3, 3)`` blocks."""
+    return torch.cat([torch.cat([a, b], dim=-1), torch.cat([torch.zeros_like(a), d], dim=-1)], dim=-2)
+
+
 def se3_adjoint(pose: Tensor) -> Tensor:
     """Adjoint matrices ``(..., 6, 6)`` for the ``[rho, phi]`` order: ``[[R, [t]x R], [0, R]]``, so that
     ``X * exp(xi) = exp(Ad(X) xi) * X``."""
     _check_last(pose, 7, "pose")
     R = quat_to_rotmat(pose[..., 3:])
-    tR = so3_hat(pose[..., :3]) @ R
-    zero = torch.zeros_like(R)
-    top = torch.cat([R, tR], dim=-1)
-    bottom = torch.cat([zero, R], dim=-1)
-    return torch.cat([top, bottom], dim=-2)
+    return _upper_blocks(R, so3_hat(pose[..., :3]) @ R, R)
 
 
 def se3_ad(xi: Tensor) -> Tensor:
@@ -285,9 +285,7 @@ def se3_ad(xi: Tensor) -> Tensor:
     is the Lie bracket ``[a, b]``."""
     _check_last(xi, 6, "xi")
     P = so3_hat(xi[..., 3:])
-    top = torch.cat([P, so3_hat(xi[..., :3])], dim=-1)
-    bottom = torch.cat([torch.zeros_like(P), P], dim=-1)
-    return torch.cat([top, bottom], dim=-2)
+    return _upper_blocks(P, so3_hat(xi[..., :3]), P)
 
 
 def _se3_q_parts(xi: Tensor):
@@ -330,9 +328,7 @@ def se3_left_jacobian_inv(xi: Tensor) -> Tensor:
     Ji = so3_left_jacobian_inv(xi[..., 3:])
     v, E = _se3_q_parts(xi)
     Q = so3_hat(v) + E
-    top = torch.cat([Ji, -(Ji @ Q @ Ji)], dim=-1)
-    bottom = torch.cat([torch.zeros_like(Ji), Ji], dim=-1)
-    return torch.cat([top, bottom], dim=-2)
+    return _upper_blocks(Ji, -(Ji @ Q @ Ji), Ji)
 
 
 def se3_right_jacobian_inv(xi: Tensor) -> Tensor:

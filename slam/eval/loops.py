@@ -15,7 +15,7 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import torch
@@ -140,12 +140,11 @@ class PRCurve:
     average_precision: float
 
     def to_dict(self) -> dict[str, float]:
-        """The scalars, keyed by their attribute names (strict JSON: an infinite threshold becomes None)."""
-        thr = self.threshold_at_full_precision
-        return {"num_positives": self.num_positives,
-                "max_recall_at_full_precision": self.max_recall_at_full_precision,
-                "threshold_at_full_precision": thr if math.isfinite(thr) else None,
-                "average_precision": self.average_precision}
+        """The scalars (the fields ``repr`` shows), keyed by name (strict JSON: an infinite threshold becomes None)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.repr}
+        if not math.isfinite(self.threshold_at_full_precision):
+            out["threshold_at_full_precision"] = None
+        return out
 
 
 def precision_recall_curve(scores: torch.Tensor, labels: torch.Tensor, num_positives: int | None = None
@@ -176,8 +175,7 @@ def precision_recall_curve(scores: torch.Tensor, labels: torch.Tensor, num_posit
     s, y = scores[order], labels[order].to(torch.float64)
     tp, fp = torch.cumsum(y, 0), torch.cumsum(1.0 - y, 0)
     last = torch.ones_like(s, dtype=torch.bool)  # last element of each group of equal scores
-    if s.numel() > 1:
-        last[:-1] = s[1:] != s[:-1]
+    last[:-1] = s[1:] != s[:-1]
     tp, fp, thr = tp[last], fp[last], s[last]
     one = torch.ones(1, dtype=torch.float64)
     precision = torch.cat([one, tp / (tp + fp)])
@@ -254,8 +252,7 @@ def evaluate_loop_candidates(
     scores = torch.as_tensor(scores, dtype=torch.float64).flatten().cpu()
     if scores.shape[0] != pairs.shape[0]:
         raise ValueError(f"pairs (M, 2) and scores (M,) disagree: {tuple(pairs.shape)} vs {tuple(scores.shape)}")
-    if pairs.shape[0]:
-        pairs, scores = _best_per_query(pairs, scores)
+    pairs, scores = _best_per_query(pairs, scores)
     labels = is_true_loop(poses, pairs, config).cpu()
     positive = ground_truth_loops(poses, config, indices)[:, 0]
     if queries is not None:

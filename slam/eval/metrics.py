@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Union
 
 import numpy as np
@@ -149,10 +149,8 @@ class ATEResult:
     estimate_aligned: Trajectory = field(repr=False)
 
     def to_dict(self) -> dict[str, object]:
-        """The scalar results (JSON-serialisable)."""
-        return {"rmse": self.rmse, "mean": self.mean, "median": self.median, "std": self.std, "min": self.min,
-                "max": self.max, "sse": self.sse, "num_pairs": self.num_pairs, "alignment": self.alignment,
-                "scale": self.scale}
+        """The scalar results, the fields ``repr`` shows (JSON-serialisable)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.repr}
 
 
 @dataclass
@@ -194,7 +192,7 @@ class RPEResult:
                 "num_pairs": self.num_pairs}
 
 
-def _no_pairs_hint(ref_t: torch.Tensor, est_t: torch.Tensor, offset: float, max_difference: float) -> str:
+def _no_pairs_hint(ref_t: torch.Tensor, est_t: torch.Tensor, offset: float) -> str:
     """What to try when no stamps pair: other units, a clock offset (--t-offset), or a larger tolerance."""
     units = [timestamp_unit(t.detach().cpu().numpy())[0] for t in (ref_t, est_t)]
     if units[0] != units[1]:
@@ -225,7 +223,7 @@ def _associated(reference: TrajectoryLike, estimate: TrajectoryLike, max_differe
             f"no timestamps of the estimate ({len(est)} poses, {float(est.timestamps[0]):.3f}..."
             f"{float(est.timestamps[-1]):.3f} s) are within {max_difference} s of the reference "
             f"({len(ref)} poses, {float(ref.timestamps[0]):.3f}...{float(ref.timestamps[-1]):.3f} s)"
-            + _no_pairs_hint(ref.timestamps, est.timestamps, offset, max_difference)
+            + _no_pairs_hint(ref.timestamps, est.timestamps, offset)
         )
     return ref.subset(i.to(ref.poses.device)), est.subset(j.to(est.poses.device))
 
@@ -297,7 +295,7 @@ def _pairs_seconds(stamps: torch.Tensor, delta: float, all_pairs: bool) -> torch
     t = t_in[order]
     tol = 0.5 * float(torch.median(t[1:] - t[:-1]))
     target = t + delta
-    k = torch.searchsorted(t, target).clamp(1, max(n - 1, 1))
+    k = torch.searchsorted(t, target).clamp(1, n - 1)
     closer_left = (target - t[k - 1]).abs() <= (t[k] - target).abs()
     j = torch.where(closer_left, k - 1, k)
     ok = (j > torch.arange(n)) & ((t[j] - target).abs() <= tol)

@@ -81,8 +81,7 @@ def choose_plane(positions: torch.Tensor) -> tuple[int, int]:
     if positions.shape[0] < 2:
         return (0, 1)
     drop = int(torch.argmin(positions.to(torch.float64).var(dim=0)))
-    a, b = [k for k in range(3) if k != drop]
-    return (a, b)
+    return tuple(k for k in range(3) if k != drop)
 
 
 def _nearest_indices(stamps: np.ndarray, queries: np.ndarray) -> np.ndarray:
@@ -150,7 +149,7 @@ def plot_trajectory(
         est_pos = result.scale * est_pos @ R.T + t
     if plane == "auto":
         basis = ref_pos if ref_pos is not None and len(ref_pos) >= 2 else est_pos
-        a, b = choose_plane(basis) if len(basis) else (0, 1)
+        a, b = choose_plane(basis)  # (0, 1) for fewer than two positions
     else:
         a, b = AXIS_NAMES.index(plane[0]), AXIS_NAMES.index(plane[1])
     est2 = est_pos[:, [a, b]].numpy()

@@ -12,11 +12,6 @@ from slam.io.tum import TUMSequence
 __all__ = ["open_sequence"]
 
 
-def _has_7scenes_frames(folder: Path) -> bool:
-    with os.scandir(folder) as it:
-        return any(e.name.startswith("frame-") and ".color." in e.name for e in it)
-
-
 def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **kwargs) -> RGBDSequence:
     """Open a TUM RGB-D folder (``rgb.txt``, ``depth.txt``), a 7-Scenes folder (``frame-XXXXXX.color.*``) or a ROS
     bag (a ROS1 ``.bag`` file or a ROS2 folder; it alone takes ``rgb_topic``, ``depth_topic``, ``camera_info_topic``
@@ -47,10 +42,9 @@ def open_sequence(path: str | os.PathLike, camera: str | None = None, K=None, **
                                  "(a .bag file or a ROS2 bag folder); a sequence folder's ground truth is its own")
     if not root.is_dir():
         raise DatasetError(root, "expected a sequence folder, a ROS1 .bag file or a ROS2 bag folder, got a file")
-    has_rgb, has_depth = (root / "rgb.txt").is_file(), (root / "depth.txt").is_file()
-    if has_rgb or has_depth:
+    if (root / "rgb.txt").is_file() or (root / "depth.txt").is_file():
         return TUMSequence(root, camera=camera, K=K, **kwargs)
-    if _has_7scenes_frames(root):
+    if any(name.startswith("frame-") and ".color." in name for name in os.listdir(root)):
         if camera is not None:
             raise DatasetError(root, f"camera={camera!r} applies to TUM sequences only; give a 7-Scenes folder's "
                                      "intrinsics with --intrinsics FX FY CX CY (K= in Python)")

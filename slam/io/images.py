@@ -31,7 +31,7 @@ def decode_image(path: str, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
         buf = np.fromfile(path, dtype=np.uint8)
     except FileNotFoundError:
         raise FrameReadError(path, "file does not exist") from None
-    except (IsADirectoryError, PermissionError, OSError) as e:
+    except OSError as e:  # a folder, no permission, ...
         raise FrameReadError(path, f"cannot read file ({e.__class__.__name__}: {e})") from None
     except ValueError as e:  # a name no file can have (e.g. a NUL byte from a corrupted list file)
         raise FrameReadError(repr(path), f"not a valid file name ({e})") from None

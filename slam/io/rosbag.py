@@ -74,10 +74,6 @@ class _Cursor:
                 return data
 
 
-def _stamp(msg) -> float:
-    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-
-
 class RosbagSequence(TimeAssociatedSequence):
     """An RGB-D sequence in a ROS bag, read lazily; colour and depth paired by header stamp as TUM's association.
 
@@ -134,26 +130,28 @@ class RosbagSequence(TimeAssociatedSequence):
                                           f"{BAG_OPTIONS[key]}")
         return found[0]
 
+    def _messages(self, conn):
+        """The ``(time ns, message)`` of a connection in order; a reader error is a DatasetError naming the topic."""
+        try:
+            for _, t, raw in self._reader.messages(connections=[conn]):
+                yield t, self._reader.deserialize(raw, conn.msgtype)
+        except self._errors as e:
+            raise DatasetError(self.root, f"cannot read {conn.topic}: the bag is truncated or corrupt ({e})") from None
+
     def _scan(self, key: str, encodings: tuple[str, ...]):
         """Record time (ns) and header stamp (s) of every message of a topic; checks the encodings and sizes."""
         conn = self._connection(key)
         times, stamps, first = [], [], None
-        try:
-            for _, t, raw in self._reader.messages(connections=[conn]):
-                msg = self._reader.deserialize(raw, conn.msgtype)
-                if msg.encoding not in encodings:
-                    raise DatasetError(self.root, f"{conn.topic}: unsupported image encoding {msg.encoding!r} "
-                                                  f"(expected {', '.join(encodings)})")
-                first = first or (msg.encoding, msg.height, msg.width)
-                if (msg.encoding, msg.height, msg.width) != first:
-                    raise DatasetError(self.root, f"{conn.topic}: a {msg.encoding} {msg.width}x{msg.height} image "
-                                                  f"among {first[0]} {first[2]}x{first[1]} ones")
-                times.append(t)
-                stamps.append(_stamp(msg))
-        except DatasetError:
-            raise
-        except self._errors as e:
-            raise DatasetError(self.root, f"cannot read {conn.topic}: the bag is truncated or corrupt ({e})") from None
+        for t, msg in self._messages(conn):
+            if msg.encoding not in encodings:
+                raise DatasetError(self.root, f"{conn.topic}: unsupported image encoding {msg.encoding!r} "
+                                              f"(expected {', '.join(encodings)})")
+            first = first or (msg.encoding, msg.height, msg.width)
+            if (msg.encoding, msg.height, msg.width) != first:
+                raise DatasetError(self.root, f"{conn.topic}: a {msg.encoding} {msg.width}x{msg.height} image "
+                                              f"among {first[0]} {first[2]}x{first[1]} ones")
+            times.append(t)
+            stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
         if not times:
             raise DatasetError(self.root, f"the topic {conn.topic} has no messages")
         return conn, np.asarray(times, np.int64), np.asarray(stamps, np.float64), first
@@ -195,19 +193,13 @@ class RosbagSequence(TimeAssociatedSequence):
 
     def _camera_info(self) -> np.ndarray:
         conn = self._connection("camera_info_topic")
-        try:
-            for _, _, raw in self._reader.messages(connections=[conn]):
-                msg = self._reader.deserialize(raw, conn.msgtype)
-                k = getattr(msg, "k", None)
-                try:
-                    return check_intrinsics(np.asarray(msg.K if k is None else k, np.float64).reshape(3, 3),
-                                            f"{conn.topic}: K")
-                except ValueError as e:
-                    raise DatasetError(self.root, f"{e}; give the intrinsics with --intrinsics") from None
-        except DatasetError:
-            raise
-        except self._errors as e:
-            raise DatasetError(self.root, f"cannot read {conn.topic}: the bag is truncated or corrupt ({e})") from None
+        for _, msg in self._messages(conn):
+            k = getattr(msg, "k", None)
+            try:
+                return check_intrinsics(np.asarray(msg.K if k is None else k, np.float64).reshape(3, 3),
+                                        f"{conn.topic}: K")
+            except ValueError as e:
+                raise DatasetError(self.root, f"{e}; give the intrinsics with --intrinsics") from None
         raise DatasetError(self.root, f"the topic {conn.topic} has no messages; give the intrinsics with --intrinsics")
 
     def _message(self, which: str, k: int):

@@ -195,9 +195,7 @@ class RGBDSequence(ABC):
             return
         pool = ThreadPoolExecutor(max_workers=int(prefetch), thread_name_prefix="rgbd-prefetch")
         try:
-            pending: deque = deque()
-            for i in range(min(n, prefetch + 1)):
-                pending.append(pool.submit(self._try_load, i, on_error, then))
+            pending = deque(pool.submit(self._try_load, i, on_error, then) for i in range(min(n, prefetch + 1)))
             next_i = len(pending)
             while pending:
                 frame = pending.popleft().result()

@@ -85,10 +85,10 @@ def _pose_problems(T: np.ndarray) -> list:
     return out
 
 
-def _read_poses(root: Path, names: list) -> tuple[np.ndarray, list]:
-    """``(N, 7)`` camera-to-world poses of the pose files ``names`` (None: no file), NaN rows where unknown, and
-    the ``(name, why)`` of each file that is not a pose. Rotation blocks are replaced by the nearest rotation
-    (KinectFusion's are not exactly orthonormal)."""
+def _read_poses(root: Path, names: list, warned: set) -> np.ndarray:
+    """``(N, 7)`` camera-to-world poses of the pose files ``names`` (None: no file), NaN rows where unknown; one
+    warning names the files that are not a pose and are not yet in ``warned`` (added to it). Rotation blocks are
+    replaced by the nearest rotation (KinectFusion's are not exactly orthonormal)."""
     Ts = np.full((len(names), 4, 4), np.nan)
     problems = []
     for i, name in enumerate(names):
@@ -106,18 +106,13 @@ def _read_poses(root: Path, names: list) -> tuple[np.ndarray, list]:
     if ok.any():
         Tt = torch.from_numpy(np.ascontiguousarray(Ts[ok], dtype=np.float64))
         poses[ok] = se3_from_matrix(torch.cat([rotmat_project(Tt[:, :3, :3]), Tt[:, :3, 3:]], dim=-1)).numpy()
-    return poses, problems
-
-
-def _warn_unknown(problems: list, warned: set) -> None:
-    """One warning for the ``(file name, message)`` of ``problems`` whose file is not yet in ``warned``."""
-    fresh = [(name, msg) for name, msg in problems if name not in warned]
-    warned.update(name for name, _ in fresh)
-    problems = [msg for _, msg in fresh]
-    if problems:
-        more = f" (and {len(problems) - 3} more files)" if len(problems) > 3 else ""
-        warnings.warn(f"ground truth unknown for {len(problems)} frame(s), whose pose file is not a pose; their "
-                      f"images are still used: {'; '.join(problems[:3])}{more}", DatasetWarning, stacklevel=4)
+    fresh = [msg for name, msg in problems if name not in warned]
+    warned.update(name for name, _ in problems)
+    if fresh:
+        more = f" (and {len(fresh) - 3} more files)" if len(fresh) > 3 else ""
+        warnings.warn(f"ground truth unknown for {len(fresh)} frame(s), whose pose file is not a pose; their "
+                      f"images are still used: {'; '.join(fresh[:3])}{more}", DatasetWarning, stacklevel=4)
+    return poses
 
 
 class SevenScenesSequence(RGBDSequence):
@@ -155,8 +150,7 @@ class SevenScenesSequence(RGBDSequence):
             raise DatasetNotFoundError(self.root, "sequence folder does not exist")
         self.name = self.root.resolve().name
         found: dict[int, tuple[int, str, str]] = {}
-        with os.scandir(self.root) as it:
-            names = {e.name for e in it}
+        names = set(os.listdir(self.root))
         for fname in names:
             m = _COLOR_RE.match(fname)
             if m is None:
@@ -201,15 +195,11 @@ class SevenScenesSequence(RGBDSequence):
 
     def _pose_of(self, i: int) -> np.ndarray:
         """``(7,)`` ground truth of frame ``i``, NaN if it has none (a file that is not a pose: with a warning)."""
-        pose, problems = _read_poses(self.root, [self._pose[i]])
-        _warn_unknown(problems, self._warned)
-        return pose[0]
+        return _read_poses(self.root, [self._pose[i]], self._warned)[0]
 
     def _groundtruth_array(self) -> np.ndarray:
         if self._gt is None:  # read once, on first use
-            gt, problems = _read_poses(self.root, self._pose)
-            _warn_unknown(problems, self._warned)
-            self._gt = gt
+            self._gt = _read_poses(self.root, self._pose, self._warned)
         return self._gt
 
     def _load(self, i: int) -> RGBDFrame:

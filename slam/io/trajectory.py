@@ -56,12 +56,10 @@ class Trajectory:
                             f"times (~1e9 s), so such stamps have collapsed; build them with dtype=torch.float64")
         if ts.is_complex() or ts.dtype == torch.bool:
             raise TypeError(f"Trajectory.timestamps must be float64 seconds, got {ts.dtype}")
-        if not ts.is_floating_point():
-            self.timestamps = ts.to(torch.float64)
+        self.timestamps = ts.to(torch.float64)  # integers converted (a float64 tensor is kept as it is)
         if self.poses.is_complex() or self.poses.dtype == torch.bool:
             raise TypeError(f"Trajectory.poses must be float64, got {self.poses.dtype}")
-        if self.poses.dtype != torch.float64:
-            self.poses = self.poses.to(torch.float64)
+        self.poses = self.poses.to(torch.float64)
         if self.timestamps.dim() != 1:
             raise ValueError(f"timestamps must have shape (N,), got {tuple(self.timestamps.shape)}")
         if self.poses.shape != (self.timestamps.shape[0], 7):

@@ -174,7 +174,7 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
     """
     if not path.is_file():
         raise DatasetNotFoundError(path, "list file does not exist")
-    entries: dict[float, tuple[int, str]] = {}
+    entries: dict[float, str] = {}  # timestamp -> file name
     for number, line, fields in data_lines(read_dataset_lines(path), lambda n, m: DatasetError(path, m, n)):
         if len(fields) != 2:
             raise DatasetError(path, f"expected 2 fields 'timestamp filename', got {len(fields)} in {line!r} "
@@ -188,12 +188,10 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
         if stamp in entries:
             logger.warning("%s:%d: repeated timestamp %r, keeping this line", path, number, stamp)
             del entries[stamp]  # re-insert below so the file order follows the kept line
-        entries[stamp] = (number, fields[1])
+        entries[stamp] = fields[1]
     if not entries:
         raise DatasetError(path, "the list is empty (no 'timestamp filename' lines)")
-    stamps = np.fromiter(entries.keys(), dtype=np.float64, count=len(entries))
-    names = [name for _, name in entries.values()]
-    return stamps, names
+    return np.fromiter(entries.keys(), dtype=np.float64, count=len(entries)), list(entries.values())
 
 
 class TimeAssociatedSequence(RGBDSequence):

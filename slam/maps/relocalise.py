@@ -279,7 +279,7 @@ class MapRelocaliser:
                 f"{where}: saved without a descriptor probe, by a version whose EfficientNet-Lite0 default tapped "
                 "stage6 and stage7 (this version's taps stage5): its index cannot be searched with this "
                 "descriptor; record the map's session again with this version")
-        if theirs.get("probe") is None or mine["probe"] is None:
+        if not probes:
             logger.warning("%s: no descriptor probe to compare (%s): the map's descriptor is assumed to be this "
                            "run's (%s %s)", where, "none recorded in the map" if theirs.get("probe") is None
                            else "this run's descriptor gave none", mine["backbone"], mine["fusion"])
@@ -374,7 +374,7 @@ class MapRelocaliser:
                 estimate, limits = torch.tensor([0, 0, 0, 0, 0, 0, 1.0], dtype=torch.float64), _NO_BOUND
             else:
                 if lengths is None:
-                    L = graph.path_lengths(kf_id, through_loops=self._through_loops())
+                    L = graph.path_lengths(kf_id, through_loops=bool(graph.loop_edges(active_only=True)))
                     lengths = float(min(L[b] for b in self._anchors))
                 estimate = se3_between(self.map.poses[a], se3_compose(self._alignment, graph.estimate(kf_id)))
                 limits = drift_limits(lengths, loop_cfg.drift)
@@ -400,18 +400,16 @@ class MapRelocaliser:
                             kf.frame_index, kf_id, len(group))
         return True
 
-    def _through_loops(self) -> bool:
-        return bool(self.slam.graph.loop_edges(active_only=True))
-
     def _consistent_group(self, estimates: Tensor) -> list[int]:
         """The largest set of links that agree pairwise on where the recording lies in the map."""
         n = len(self.links)
         A = np.zeros((n, n), bool)
         lengths = {}
+        through_loops = bool(self.slam.graph.loop_edges(active_only=True))
         for i in range(n):
             li = self.links[i]
             if li.kf not in lengths:
-                lengths[li.kf] = self.slam.graph.path_lengths(li.kf, through_loops=self._through_loops())
+                lengths[li.kf] = self.slam.graph.path_lengths(li.kf, through_loops=through_loops)
             for j in range(i + 1, n):
                 lj = self.links[j]
                 T_a = se3_between(self.map.poses[li.map_kf], self.map.poses[lj.map_kf])
@@ -440,11 +438,12 @@ class MapRelocaliser:
         rep.hypotheses = len(self.links)
         rep.query_ms = 1000.0 * self._query_seconds / rep.queries if rep.queries else math.nan
         est = self.slam.graph.estimates()  # the recording's final keyframe poses, its own world
-        group = self._consistent_group(est) if self.links else []
-        if len({self.links[k].kf for k in group}) < self.config.min_agreeing:
+        group = self._consistent_group(est)
+        agreeing = len({self.links[k].kf for k in group})
+        if agreeing < self.config.min_agreeing:
             rep.relocalised, rep.frame, rep.keyframe, rep.seconds = False, -1, -1, math.nan
             rep.reason = (f"no place of the map was recognised: {len(self.links)} verified link(s), "
-                          f"{len({self.links[k].kf for k in group})} agreeing keyframe(s) of the "
+                          f"{agreeing} agreeing keyframe(s) of the "
                           f"{self.config.min_agreeing} needed, after {rep.queries} queries")
             self._alignment = None
             return result, rep
@@ -459,8 +458,7 @@ class MapRelocaliser:
         traj = result.trajectory
         if kf_of_frame.numel() != traj.poses.shape[0]:
             raise RuntimeError(f"{kf_of_frame.numel()} frames observed, the result has {traj.poses.shape[0]}")
-        moved = (se3_compose(correction[kf_of_frame], traj.poses) if kf_of_frame.numel() and correction.shape[0]
-                 else traj.poses)
+        moved = se3_compose(correction[kf_of_frame], traj.poses)  # relocalised: keyframes and frames exist
         align_out = self.slam.depth_camera_pose(self._alignment)
         odo = result.odometry_trajectory
         merged = dataclasses.replace(
@@ -523,10 +521,8 @@ class MapRelocaliser:
             g.add_keyframe(self.map.poses[a])
         g.add_keyframe(start[0])
         loops = []
-        for e in slam.graph.edges:
+        for e in slam.graph.edges:  # the odometry edges in creation order: edge j - 1 adds keyframe j
             if e.kind is EdgeKind.ODOMETRY:
-                if e.j != g.num_keyframes - U:
-                    raise RuntimeError(f"odometry edge {e.i} -> {e.j} out of creation order")
                 g.add_odometry(e.i + U, e.T_ij, e.information, estimate=start[e.j], weak=e.weak)
             elif e.active:
                 loops.append(e)
