@@ -168,8 +168,9 @@ def precision_recall_curve(scores: torch.Tensor, labels: torch.Tensor, num_posit
     finite = torch.isfinite(scores)
     if num_positives is None:
         num_positives = int(labels.sum())
-    if num_positives < int((labels & finite).sum()):
-        raise ValueError(f"num_positives={num_positives} is less than the {int((labels & finite).sum())} true predictions")
+    true_predictions = int((labels & finite).sum())
+    if num_positives < true_predictions:
+        raise ValueError(f"num_positives={num_positives} is less than the {true_predictions} true predictions")
     scores, labels = scores[finite], labels[finite]
     order = torch.argsort(scores, descending=True, stable=True)
     s, y = scores[order], labels[order].to(torch.float64)
