@@ -143,11 +143,7 @@ class DescriptorConfig:
         """The keyword arguments of :class:`attnloop.AttentionDescriptor` this config stands for."""
         kw = {"backbone": self.backbone, "preset": self.preset, "seed": self.seed, "pretrained": self.pretrained,
               "weights": None if self.weights is None else str(self.weights)}
-        if self.fusion is not None:
-            kw["fusion"] = self.fusion
-        if self.num_rnn is not None:
-            kw["num_rnn"] = self.num_rnn
-        return kw
+        return kw | {k: v for k, v in (("fusion", self.fusion), ("num_rnn", self.num_rnn)) if v is not None}
 
 
 @dataclass(frozen=True)
@@ -425,9 +421,7 @@ def read_toml(path) -> dict:
 
 def save_config(config: SLAMConfig, path, extra: Optional[Mapping] = None) -> Path:
     """Write ``config`` (plus ``extra`` tables, e.g. a command's run options) as TOML to ``path``."""
-    data = config_to_dict(config)
-    if extra:
-        data.update(extra)
+    data = config_to_dict(config) | dict(extra or {})
     p = Path(path)
     p.write_text(toml_text(data, "attnloop SLAM configuration (slam.config): every setting of the run"))
     return p
@@ -461,8 +455,7 @@ REGISTERED = CameraRig(None)
 
 def check_intrinsics(fx: float, fy: float, cx: float, cy: float, what: str) -> None:
     """Refuse pinhole intrinsics that cannot be a camera (non-finite, or a focal length <= 0)."""
-    values = (fx, fy, cx, cy)
-    if not all(math.isfinite(float(v)) for v in values):
+    if not all(math.isfinite(float(v)) for v in (fx, fy, cx, cy)):
         raise UsageError(f"{what}: intrinsics must be finite, got fx={fx}, fy={fy}, cx={cx}, cy={cy}")
     if not (float(fx) > 0 and float(fy) > 0):
         raise UsageError(f"{what}: focal lengths must be positive, got fx={fx}, fy={fy}")
