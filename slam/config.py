@@ -276,15 +276,6 @@ class SLAMConfig:
 NONE = "None"  # TOML has no null: how a None field is spelt in a file
 
 
-def _set_path(data: dict, key: str, value) -> None:
-    *tables, last = key.split(".")
-    for t in tables:
-        data = data.setdefault(t, {})
-        if not isinstance(data, dict):
-            raise ConfigError(f"{key}: {t} is a value, not a table")
-    data[last] = value
-
-
 def override(config, changes: Mapping[str, Any], prefix: str = ""):
     """``config`` with fields changed by dotted path (``{"loop.descriptor.fusion": "eam"}``), every
     config on the way rebuilt with :func:`dataclasses.replace` (and so checked); ``prefix``: the key of
@@ -295,7 +286,13 @@ def override(config, changes: Mapping[str, Any], prefix: str = ""):
     """
     nested: dict = {}
     for key, value in changes.items():
-        _set_path(nested, key, value)
+        *tables, last = key.split(".")
+        data = nested
+        for t in tables:
+            data = data.setdefault(t, {})
+            if not isinstance(data, dict):
+                raise ConfigError(f"{key}: {t} is a value, not a table")
+        data[last] = value
     return _merge(config, nested, prefix)
 
 

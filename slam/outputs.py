@@ -49,11 +49,9 @@ def json_safe(value, path: str = "", bad: list[str] | None = None):
         return {str(k): json_safe(v, f"{path}.{k}" if path else str(k), bad) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [json_safe(v, f"{path}[{i}]", bad) for i, v in enumerate(value)]
-    if isinstance(value, torch.Tensor) and value.numel() == 1:
+    if isinstance(value, np.generic) or (isinstance(value, torch.Tensor) and value.numel() == 1):
         value = value.item()
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, bool) or value is None or isinstance(value, (int, str)):
+    if value is None or isinstance(value, (int, str)):  # bool is an int
         return value
     if isinstance(value, float):
         if math.isfinite(value):
