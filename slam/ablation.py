@@ -51,10 +51,6 @@ def camera_group(name: str) -> str:
     return f"fr{m.group(1)}" if m else "other"
 
 
-def _paper_name(name: str) -> str:
-    return name.removeprefix("rgbd_dataset_")
-
-
 def run_ablation(specs, out_dir, columns: Optional[Mapping[str, Mapping[str, Any]]] = None, *, configure=None,
                  measure=None, quiet: bool = False):
     """Run every column on every sequence; returns ``{column: {sequence: metrics}}``.
@@ -135,9 +131,11 @@ def markdown_table(table, paper: Optional[Mapping[str, Mapping[str, float]]] = N
     cols = list(table)
     names = list(next(iter(table.values())))
 
-    def cell(value, sequence, col) -> str:
-        ref = paper.get(_paper_name(sequence), {}).get(col) if sequence is not None else None
-        return _number(value, 4) + ("" if ref is None else f" (paper {ref:.3f})")
+    def ref(sequence, col):
+        return paper.get(sequence.removeprefix("rgbd_dataset_"), {}).get(col)
+
+    def cell(value, paper_value) -> str:
+        return _number(value, 4) + ("" if paper_value is None else f" (paper {paper_value:.3f})")
 
     head = "| sequence | " + " | ".join(cols) + " |"
     rule = "|" + "---|" * (len(cols) + 1)
@@ -147,13 +145,12 @@ def markdown_table(table, paper: Optional[Mapping[str, Mapping[str, float]]] = N
         by_group.setdefault(camera_group(n), []).append(n)
     for group in ("fr1", "fr2", "fr3", "other"):
         for n in by_group.get(group, []):
-            lines.append(f"| {n} | " + " | ".join(cell(table[c][n].get("ate_rmse"), n, c) for c in cols) + " |")
+            lines.append(f"| {n} | " + " | ".join(cell(table[c][n].get("ate_rmse"), ref(n, c)) for c in cols) + " |")
     for group in ("fr1", "fr2", "fr3", "other"):
         if group in by_group:
             avgs = [_mean([table[c][n].get("ate_rmse") for n in by_group[group]]) for c in cols]
-            refs = [_mean([paper.get(_paper_name(n), {}).get(c) for n in by_group[group]]) for c in cols]
-            lines.append(f"| {group} average | " + " | ".join(
-                _number(a, 4) + ("" if r is None else f" (paper {r:.3f})") for a, r in zip(avgs, refs)) + " |")
+            refs = [_mean([ref(n, c) for n in by_group[group]]) for c in cols]
+            lines.append(f"| {group} average | " + " | ".join(cell(a, r) for a, r in zip(avgs, refs)) + " |")
     lines += ["", ("Loop closure (accepted true/false; max recall at 100% precision before -> after "
                    "verification):"), "", head, rule]
     for n in names:

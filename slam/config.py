@@ -143,11 +143,7 @@ class DescriptorConfig:
         """The keyword arguments of :class:`attnloop.AttentionDescriptor` this config stands for."""
         kw = {"backbone": self.backbone, "preset": self.preset, "seed": self.seed, "pretrained": self.pretrained,
               "weights": None if self.weights is None else str(self.weights)}
-        if self.fusion is not None:
-            kw["fusion"] = self.fusion
-        if self.num_rnn is not None:
-            kw["num_rnn"] = self.num_rnn
-        return kw
+        return kw | {k: v for k, v in (("fusion", self.fusion), ("num_rnn", self.num_rnn)) if v is not None}
 
 
 @dataclass(frozen=True)
@@ -280,15 +276,6 @@ class SLAMConfig:
 NONE = "None"  # TOML has no null: how a None field is spelt in a file
 
 
-def _set_path(data: dict, key: str, value) -> None:
-    *tables, last = key.split(".")
-    for t in tables:
-        data = data.setdefault(t, {})
-        if not isinstance(data, dict):
-            raise ConfigError(f"{key}: {t} is a value, not a table")
-    data[last] = value
-
-
 def override(config, changes: Mapping[str, Any], prefix: str = ""):
     """``config`` with fields changed by dotted path (``{"loop.descriptor.fusion": "eam"}``), every
     config on the way rebuilt with :func:`dataclasses.replace` (and so checked); ``prefix``: the key of
@@ -299,7 +286,13 @@ def override(config, changes: Mapping[str, Any], prefix: str = ""):
     """
     nested: dict = {}
     for key, value in changes.items():
-        _set_path(nested, key, value)
+        *tables, last = key.split(".")
+        data = nested
+        for t in tables:
+            data = data.setdefault(t, {})
+            if not isinstance(data, dict):
+                raise ConfigError(f"{key}: {t} is a value, not a table")
+        data[last] = value
     return _merge(config, nested, prefix)
 
 
@@ -425,9 +418,7 @@ def read_toml(path) -> dict:
 
 def save_config(config: SLAMConfig, path, extra: Optional[Mapping] = None) -> Path:
     """Write ``config`` (plus ``extra`` tables, e.g. a command's run options) as TOML to ``path``."""
-    data = config_to_dict(config)
-    if extra:
-        data.update(extra)
+    data = config_to_dict(config) | dict(extra or {})
     p = Path(path)
     p.write_text(toml_text(data, "attnloop SLAM configuration (slam.config): every setting of the run"))
     return p
@@ -461,8 +452,7 @@ REGISTERED = CameraRig(None)
 
 def check_intrinsics(fx: float, fy: float, cx: float, cy: float, what: str) -> None:
     """Refuse pinhole intrinsics that cannot be a camera (non-finite, or a focal length <= 0)."""
-    values = (fx, fy, cx, cy)
-    if not all(math.isfinite(float(v)) for v in values):
+    if not all(math.isfinite(float(v)) for v in (fx, fy, cx, cy)):
         raise UsageError(f"{what}: intrinsics must be finite, got fx={fx}, fy={fy}, cx={cx}, cy={cy}")
     if not (float(fx) > 0 and float(fy) > 0):
         raise UsageError(f"{what}: focal lengths must be positive, got fx={fx}, fy={fy}")

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from slam.input_checks import source_name
-from slam.lie import quat_to_rotmat
+from slam.lie import quat_to_rotmat, se3_to_matrix
 from slam.odometry.depth_registration import register_depth_to_color, rig_pose
 from slam.odometry.config import check_int, check_number
 
@@ -179,24 +179,11 @@ def keyframe_cloud(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, config: Ma
     return voxel_downsample(pts, cols, cfg.voxel_size)
 
 
-def _rotation_matrices(q: np.ndarray) -> np.ndarray:
-    return quat_to_rotmat(torch.from_numpy(np.ascontiguousarray(q, dtype=np.float64))).numpy()
-
-
 def _voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """One int64 per voxel of ``points`` ``(N, 3)`` (21 bits an axis: +-10^6 voxels, 20 km at 2 cm; farther
     points share keys, which only makes the overlap test keep fewer of them)."""
     c = np.clip(np.floor(points / voxel_size), -(1 << 20), (1 << 20) - 1).astype(np.int64) + (1 << 20)
     return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
-
-
-def _matrix(pose) -> np.ndarray:
-    """``(4, 4)`` of a ``(7,)`` ``[t, q_xyzw]`` pose."""
-    p = np.asarray(pose.detach().cpu().numpy() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
-    T = np.eye(4)
-    T[:3, :3] = _rotation_matrices(p[None, 3:])[0]
-    T[:3, 3] = p[:3]
-    return T
 
 
 class PointCloudMap:
@@ -244,7 +231,8 @@ class PointCloudMap:
         local = np.eye(4)
         by_id = {k: T for k, T, _ in self._recent}
         if reference is not None and int(reference[0]) in by_id and n_recent:
-            local = by_id[int(reference[0])] @ _matrix(reference[1])
+            T_ref_kf = se3_to_matrix(reference[1].detach().to("cpu", torch.float64)[None])[0].numpy()
+            local = by_id[int(reference[0])] @ T_ref_kf
         else:
             self._recent = []  # a new chain: nothing to compare with
         keep = np.ones(pts.shape[0], bool)
@@ -305,7 +293,7 @@ class PointCloudMap:
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
         counts = np.array([self._clouds[k][0].shape[0] for k in ids])
         ends = np.cumsum(counts)
-        R = _rotation_matrices(poses[ids, 3:])  # (m, 3, 3)
+        R = quat_to_rotmat(torch.from_numpy(poses[ids, 3:])).numpy()  # (m, 3, 3)
         t = poses[ids, :3]
         world = np.empty((int(ends[-1]), 3), np.float64)  # placed keyframe by keyframe: no (N, 3, 3) temporary
         for j, k in enumerate(ids):

@@ -371,15 +371,11 @@ _LOOP_ONLY = ("loop.descriptor.preset", "loop.descriptor.fusion", "loop.descript
 _K_KEY, _T_KEY = "odometry.features.rgb_intrinsics", "odometry.features.rgb_from_depth_translation"
 
 
-def _why(key: str) -> str:
-    return _FLAGS.get(key, key)
-
-
 def _refuse_idle(settings: Mapping[str, Any], config: SLAMConfig, demo: bool) -> None:
     """Refuse the given settings that other settings make idle (a setting that does nothing is an error)."""
     problems = []
     if settings.get("loop.enabled") is False:
-        idle = [_why(k) for k in _LOOP_ONLY if k in settings]
+        idle = [_FLAGS.get(k, k) for k in _LOOP_ONLY if k in settings]
         if "loop.descriptor.seed" in settings and not demo:
             idle.append("--seed (without --demo it seeds only the loop descriptor)")
         if idle:

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import torch
 
-from slam.io.trajectory import Trajectory, write_tum_trajectory
+from slam.io.trajectory import write_tum_trajectory
 from slam.mapping import write_ply
 from slam.pipeline import RunResult
 from slam.report import evaluate_run
@@ -49,11 +49,9 @@ def json_safe(value, path: str = "", bad: list[str] | None = None):
         return {str(k): json_safe(v, f"{path}.{k}" if path else str(k), bad) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [json_safe(v, f"{path}[{i}]", bad) for i, v in enumerate(value)]
-    if isinstance(value, torch.Tensor) and value.numel() == 1:
+    if isinstance(value, np.generic) or (isinstance(value, torch.Tensor) and value.numel() == 1):
         value = value.item()
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, bool) or value is None or isinstance(value, (int, str)):
+    if value is None or isinstance(value, (int, str)):  # bool is an int
         return value
     if isinstance(value, float):
         if math.isfinite(value):
@@ -140,7 +138,8 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike) -> Path:
         return out
     res = run.result
     # everything is computed before the first file is replaced
-    traj_text = _tum_text(res.trajectory)
+    traj_text = io.StringIO()
+    write_tum_trajectory(traj_text, res.trajectory)
     loops_text = "# timestamp_a timestamp_b  (accepted loop closures between keyframes)\n" + "".join(
         f"{lp.timestamp_a:.6f} {lp.timestamp_b:.6f}\n" for lp in res.loops)
     ply = None
@@ -167,16 +166,10 @@ def write_outputs(run: RunResult, out_dir: str | os.PathLike) -> Path:
     if bad:
         metrics["non_finite"] = {"keys": bad, "reason": "not finite, written as null"}
     metrics_text = json.dumps(metrics, indent=2, allow_nan=False)
-    replace_atomically(out / "trajectory.txt", traj_text.encode("utf-8"))
+    replace_atomically(out / "trajectory.txt", traj_text.getvalue().encode("utf-8"))
     replace_atomically(out / "loops.txt", loops_text.encode("utf-8"))
     if ply is not None:
         replace_atomically(out / "map.ply", ply)
     replace_atomically(out / "trajectory.png", png.tobytes())
     replace_atomically(out / "metrics.json", (metrics_text + "\n").encode("utf-8"))  # last: the run is complete
     return out
-
-
-def _tum_text(traj: Trajectory) -> str:
-    buf = io.StringIO()
-    write_tum_trajectory(buf, traj)
-    return buf.getvalue()

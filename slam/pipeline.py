@@ -4,6 +4,7 @@ points computed in a map worker, the loop work in the system's loop worker, then
 from __future__ import annotations
 
 import functools
+import itertools
 import logging
 import os
 import time
@@ -301,12 +302,10 @@ def _same_folder(a, b) -> bool:
 
 def _free_sibling(path: Path, suffix: str) -> Path:
     """``path`` + ``suffix`` (then ``-2``, ``-3`` ...): the first name beside ``path`` that does not exist."""
-    k = 1
-    while True:
+    for k in itertools.count(1):
         candidate = path.with_name(path.name + suffix + ("" if k == 1 else f"-{k}"))
         if not candidate.exists():
             return candidate
-        k += 1
 
 
 def _reader_of(sequence: RGBDSequence) -> RGBDSequence:

@@ -175,7 +175,6 @@ def evaluate_run(run) -> RunReport:
                            "initial_chi2": opt.initial_chi2, "chi2": opt.chi2, "status": str(opt.status),
                            "iterations": opt.iterations}
     m["ate_rmse"] = None
-    gt_len = 0 if run.groundtruth is None else len(run.groundtruth)
     tracked = res.num_frames - res.num_lost - res.num_skipped  # the first frame counts: it sets the origin
     m["num_tracked"] = tracked
     least = run.config.min_tracked_fraction if run.config is not None else SLAMConfig.min_tracked_fraction
@@ -186,8 +185,8 @@ def evaluate_run(run) -> RunReport:
                         + (f"; the first: {run.first_untracked}" if run.first_untracked else ""))
     if run.groundtruth is None:
         m["ate_unavailable"] = run.groundtruth_note or "the sequence has no ground truth"
-    elif gt_len < 3:
-        m["ate_unavailable"] = f"only {gt_len} frame(s) with ground truth (the alignment needs 3)"
+    elif len(run.groundtruth) < 3:
+        m["ate_unavailable"] = f"only {len(run.groundtruth)} frame(s) with ground truth (the alignment needs 3)"
     elif tracked <= 1:
         m["ate_unavailable"] = (f"no frame was tracked ({res.num_lost} lost, {res.num_skipped} unreadable of "
                                 f"{res.num_frames}): nothing to align")

@@ -353,8 +353,6 @@ class RGBDSLAM:
                 self.graph.add_keyframe(kf.pose)
             else:
                 edge = self.odometry.edges[kf.id - 1]
-                if edge.j != kf.id:
-                    raise RuntimeError(f"odometry edge {edge.i} -> {edge.j} does not end at keyframe {kf.id}")
                 self.graph.add_odometry(edge.i, edge.T_ij, edge.information, estimate=kf.pose, weak=edge.weak)
             if self.loop_closer is not None and not self.localize:
                 update = self.loop_closer.close(kf, self.odometry.keyframes, self.graph,
@@ -598,8 +596,6 @@ class RGBDSLAM:
     def _frames_trajectory(self, kf_poses: Tensor, interpolate_lost: bool = False) -> Trajectory:
         n = len(self._frame_ts)
         ts = torch.tensor(self._frame_ts.tolist(), dtype=torch.float64)
-        if n == 0:
-            return Trajectory(ts, torch.zeros(0, 7, dtype=torch.float64))
         kf = torch.tensor(self._frame_kf.tolist(), dtype=torch.long).clamp_min(0)
         T = torch.from_numpy(self._frame_T.view.copy())
         base = kf_poses[kf] if kf_poses.shape[0] else se3_identity(n, dtype=torch.float64)

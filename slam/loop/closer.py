@@ -357,9 +357,8 @@ class LoopCloser:
             if cand_id in seen and seen[cand_id] is None:
                 query.rejections[cand_id] = "a hypothesis already, outside the consistent group (followed)"
                 continue
-            if cand_id in seen:
-                v = seen[cand_id]
-            else:
+            v = seen.get(cand_id)
+            if v is None:
                 with self.timer("verification"):
                     estimate = se3_between(graph.estimate(a.id), graph.estimate(kf.id))
                     v = verify_candidate(a.features, kf.features, estimate, self.limits(float(lengths[a.id])), cfg)
