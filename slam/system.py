@@ -353,6 +353,8 @@ class RGBDSLAM:
                 self.graph.add_keyframe(kf.pose)
             else:
                 edge = self.odometry.edges[kf.id - 1]
+                if edge.j != kf.id:  # the graph's keyframe ids are the front end's: one edge per new keyframe
+                    raise RuntimeError(f"odometry edge {edge.i} -> {edge.j} does not end at keyframe {kf.id}")
                 self.graph.add_odometry(edge.i, edge.T_ij, edge.information, estimate=kf.pose, weak=edge.weak)
             if self.loop_closer is not None and not self.localize:
                 update = self.loop_closer.close(kf, self.odometry.keyframes, self.graph,
