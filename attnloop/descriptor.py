@@ -300,7 +300,8 @@ class AttentionDescriptor(nn.Module):
             fixed += [k for k, v in (("recipe", recipe), ("tap", tap), ("attend", attend)) if v is not None]
             if fixed:
                 raise ValueError(f"preset={chosen.name!r} fixes the recipe and the tap; also given: {fixed}")
-            given = DescriptorRecipe(**{**own, **{k: v for k, v in passed.items() if k in free}})
+            # the caller's other settings equal the preset's (else refused above) and are still type-checked
+            given = DescriptorRecipe(**{**passed, **own, **{k: v for k, v in passed.items() if k in free}})
         elif recipe is not None:
             if not isinstance(recipe, DescriptorRecipe):
                 raise TypeError(f"recipe must be a DescriptorRecipe, got {type(recipe).__name__}")
@@ -457,10 +458,11 @@ class AttentionDescriptor(nn.Module):
         """
         self._check_images(images)
         if images.shape[0] == 0:
-            # the descriptor's dtype: the RNNs' (their weights are a buffer), else the backbone's
-            param = next(self.backbone.parameters(), None)
-            dtype = param.dtype if param is not None else torch.get_default_dtype()
-            dtype = self.pool.weights.dtype if self.pool is not None else dtype
+            if self.pool is not None:  # the descriptor's dtype: the RNNs' (their weights are a buffer) ...
+                dtype = self.pool.weights.dtype
+            else:  # ... else the backbone's
+                param = next(self.backbone.parameters(), None)
+                dtype = param.dtype if param is not None else torch.get_default_dtype()
             empty = images.new_zeros((0, *self.backbone.tap_shape), dtype=dtype)
             desc = images.new_zeros((0, self.out_dim), dtype=dtype)
             if self.differentiable and torch.is_grad_enabled() and not torch.is_inference_mode_enabled():

@@ -231,7 +231,7 @@ class PointCloudMap:
         local = np.eye(4)
         by_id = {k: T for k, T, _ in self._recent}
         if reference is not None and int(reference[0]) in by_id and n_recent:
-            T_ref_kf = se3_to_matrix(reference[1].detach().to("cpu", torch.float64)[None])[0].numpy()
+            T_ref_kf = se3_to_matrix(torch.as_tensor(reference[1], dtype=torch.float64).detach().cpu()[None])[0].numpy()
             local = by_id[int(reference[0])] @ T_ref_kf
         else:
             self._recent = []  # a new chain: nothing to compare with

@@ -130,8 +130,24 @@ def load_state_dict(path: str | Path, expected: str = "") -> dict:
 
 def build_weighted(make: Callable[[], nn.Module], pretrained: bool, weights: str | Path | None,
                    resolve: Callable[[str | Path | None], Path], file: str, seed: int) -> nn.Module:
-    """``make()`` (eval mode) with the checkpoint ``resolve(weights)`` (when ``pretrained`` or ``weights`` is
-    given), else with its ``reset_parameters(seed)``; the checkpoint's ``file`` name goes into read errors."""
+    """A network built by ``make`` with a checkpoint's weights or seeded random ones, in eval mode.
+
+    Args:
+        make: builds the network (on the meta device: no default initialisation); the network has
+            ``reset_parameters(seed)``.
+        pretrained: load the checkpoint ``resolve(weights)``.
+        weights: a checkpoint path (loaded even without ``pretrained``), or None: ``resolve``'s default.
+        resolve: the checkpoint's path from ``weights`` (a cache lookup or a download).
+        file: the checkpoint's expected file name, for read errors.
+        seed: the seed of the random weights (neither ``pretrained`` nor ``weights``).
+
+    Returns:
+        the network on the CPU, in eval mode.
+
+    Raises:
+        WeightsNotFoundError: the checkpoint cannot be found, read, or is not a state dict.
+        RuntimeError: its keys or shapes are not the network's (``load_state_dict(strict=True)``).
+    """
     with torch.device("meta"):  # no default initialisation: the weights are set just below
         net = make()
     if pretrained or weights is not None:

@@ -121,6 +121,11 @@ class KeyframeIndex:
         return torch.from_numpy(self._ids().copy())
 
     @property
+    def last_id(self) -> int | None:
+        """The largest (= last added) keyframe id, ``None`` when empty."""
+        return int(self._store.ids[-1]) if len(self) else None
+
+    @property
     def timestamps(self) -> Tensor:
         """Timestamps ``(N,)`` (float64; NaN where none was given)."""
         ts = np.zeros(0) if self._store is None else self._store.timestamps
@@ -145,7 +150,8 @@ class KeyframeIndex:
         q = np.atleast_1d(_as_int_array(ids, "ids"))
         stored = self._ids()
         rows = np.searchsorted(stored, q)
-        ok = np.isin(q, stored)
+        ok = rows < stored.size  # a binary search per id: O(log N), the index holds every keyframe of a run
+        ok[ok] = stored[rows[ok]] == q[ok]
         if not np.all(ok):
             raise ValueError(f"unknown keyframe id(s) {q[~ok].tolist()[:5]} "
                              f"(the index holds {len(self)} keyframes)")
@@ -175,7 +181,7 @@ class KeyframeIndex:
             return
         if not np.all(np.isfinite(x)):
             raise ValueError("descriptors contain NaN or inf")
-        last = int(self._store.ids[-1]) if self._store.n else None  # the largest id: ids increase
+        last = self.last_id
         if ids is None:
             start = last + 1 if last is not None else 0
             new_ids = np.arange(start, start + m, dtype=np.int64)

@@ -374,7 +374,7 @@ class MapRelocaliser:
                 estimate, limits = torch.tensor([0, 0, 0, 0, 0, 0, 1.0], dtype=torch.float64), _NO_BOUND
             else:
                 if lengths is None:
-                    L = graph.path_lengths(kf_id, through_loops=bool(graph.loop_edges(active_only=True)))
+                    L = graph.path_lengths(kf_id, through_loops=self._through_loops())
                     lengths = float(min(L[b] for b in self._anchors))
                 estimate = se3_between(self.map.poses[a], se3_compose(self._alignment, graph.estimate(kf_id)))
                 limits = drift_limits(lengths, loop_cfg.drift)
@@ -400,12 +400,16 @@ class MapRelocaliser:
                             kf.frame_index, kf_id, len(group))
         return True
 
+    def _through_loops(self) -> bool:
+        """Whether the recording's drift bounds may follow its own loops (it has an active one)."""
+        return bool(self.slam.graph.loop_edges(active_only=True))
+
     def _consistent_group(self, estimates: Tensor) -> list[int]:
         """The largest set of links that agree pairwise on where the recording lies in the map."""
         n = len(self.links)
         A = np.zeros((n, n), bool)
         lengths = {}
-        through_loops = bool(self.slam.graph.loop_edges(active_only=True))
+        through_loops = self._through_loops()  # the graph does not change in this loop
         for i in range(n):
             li = self.links[i]
             if li.kf not in lengths:

@@ -43,9 +43,13 @@ def check_number(owner: str, name: str, value, lo: float | None = None, hi: floa
     """ValueError naming ``owner.name`` unless ``value`` is a real number (not NaN, not a bool) within
     ``[lo, hi]`` (``lo_open``: ``(lo, hi]``). ``finite=False`` lets ``inf`` pass where the bounds do (an
     infinite threshold switches a bound off)."""
-    ok = (isinstance(value, numbers.Real) and not isinstance(value, bool) and not math.isnan(value)
-          and (math.isfinite(value) or not finite) and (lo is None or (value > lo if lo_open else value >= lo))
-          and (hi is None or value <= hi))
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and not math.isnan(value)
+    if ok and finite:
+        ok = math.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if lo_open else value >= lo
+    if ok and hi is not None:
+        ok = value <= hi
     if not ok:
         what = (_range_text(lo, hi, lo_open) or "a number") + (" and finite" if finite else "")
         raise ValueError(f"{owner}.{name} must be {what}, got {value!r}")

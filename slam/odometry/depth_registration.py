@@ -66,6 +66,21 @@ def register_depth_to_color(depth: Tensor, K_depth: Tensor, K_rgb: Tensor, T_rgb
 # z-buffer is a minimum over a grid of splat origins (top-left pixels in [-1, w) x [-1, h)), then a 2x2 minimum.
 
 
+def _ray_times_depth(row, u, v, d, t):
+    """``(row[0] u + row[1] v + row[2]) d + t`` with zero terms and unit factors left out (numpy or torch)."""
+    ray = None
+    for c, x in ((row[0], u), (row[1], v)):
+        if c != 0:
+            term = x if c == 1 else c * x
+            ray = term if ray is None else ray + term
+    if ray is None:
+        ray = row[2]
+    elif row[2] != 0:
+        ray = ray + row[2]
+    q = d if (not hasattr(ray, "shape") or ray.shape == ()) and ray == 1 else ray * d
+    return q + t if t != 0 else q
+
+
 def _warp_numpy(d, Kd, Kc, R, t, h: int, w: int, min_depth: float):
     """The z-buffered warp on the CPU (numpy; ``d`` is not modified). Returns ``(h, w)`` of ``d.dtype``."""
     dt = d.dtype.type
@@ -76,11 +91,13 @@ def _warp_numpy(d, Kd, Kc, R, t, h: int, w: int, min_depth: float):
     v = ((np.arange(H, dtype=d.dtype) - Kd[1, 2]) / Kd[1, 1])[:, None]
     # overflow (from a depth of +inf) and 1 / 0 where not ok are masked out below, as in the torch warp
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        qx = (R[0, 0] * u + R[0, 1] * v + R[0, 2]) * d + t[0]
-        qy = (R[1, 0] * u + R[1, 1] * v + R[1, 2]) * d + t[1]
-        zc = (R[2, 0] * u + R[2, 1] * v + R[2, 2]) * d + t[2]
+        qx = _ray_times_depth(R[0], u, v, d, t[0])
+        qy = _ray_times_depth(R[1], u, v, d, t[1])
+        zc = _ray_times_depth(R[2], u, v, d, t[2])
         md = dt(min_depth)
-        ok = (d > md) & (zc > md)
+        ok = d > md
+        if zc is not d:
+            ok &= zc > md
         inv_z = dt(1.0) / zc  # only read where ok
         x0 = np.floor(qx * inv_z * Kc[0, 0] + Kc[0, 2])
         y0 = np.floor(qy * inv_z * Kc[1, 1] + Kc[1, 2])

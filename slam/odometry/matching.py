@@ -119,10 +119,12 @@ def match_descriptors(desc_a: Tensor, desc_b: Tensor, binary: bool, config: Matc
     max_dist = config.max_hamming if binary else config.max_l2
     if allowed is not None:
         dm = torch.where(allowed, dm, torch.full_like(dm, _FORBIDDEN))
-    if config.method == "mnn":
+    if config.method == "smnn":
+        _, idx = KF.match_smnn(fa, fb, config.ratio, dm=dm)
+    elif config.method == "snn":
+        _, idx = KF.match_snn(fa, fb, config.ratio, dm=dm)
+    else:  # "mnn" (MatchConfig checks the name)
         _, idx = KF.match_mnn(fa, fb, dm=dm)
-    else:  # "smnn" or "snn" (MatchConfig checks the name): KF.match_smnn / KF.match_snn
-        _, idx = getattr(KF, f"match_{config.method}")(fa, fb, config.ratio, dm=dm)
     dist = dm[idx[:, 0], idx[:, 1]]
     keep = dist <= max_dist
     return idx[keep], dist[keep]

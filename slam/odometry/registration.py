@@ -99,13 +99,14 @@ def _verify(fa: FrameFeatures, fb: FrameFeatures, matches: Tensor,
                              float(Kb[1, 1]))
     # p_a = T_ab p_b: b is the source, a the destination
     res = ransac_rigid(pb, pa, rc, thresholds=thresholds, cov_src=cov_b, cov_dst=cov_a)
-    reason = res.reason  # a failed RANSAC has rmse inf
-    if res.success and res.num_inliers < config.min_inliers:
-        reason = f"too few inliers ({res.num_inliers} < {config.min_inliers})"
-    elif res.success and res.rmse > config.max_rmse:
-        reason = f"inlier rmse too large ({res.rmse:.3f} m > {config.max_rmse} m)"
-    if reason:
-        return _fail(reason, device, matches, res.inliers, res.pose, res.num_inliers, res.rmse)
+    if not res.success:
+        return _fail(res.reason, device, matches, res.inliers, res.pose, res.num_inliers)
+    if res.num_inliers < config.min_inliers:
+        return _fail(f"too few inliers ({res.num_inliers} < {config.min_inliers})", device, matches,
+                     res.inliers, res.pose, res.num_inliers, res.rmse)
+    if res.rmse > config.max_rmse:
+        return _fail(f"inlier rmse too large ({res.rmse:.3f} m > {config.max_rmse} m)", device, matches,
+                     res.inliers, res.pose, res.num_inliers, res.rmse)
     return RegistrationResult(T_ab=res.pose, num_matches=int(matches.shape[0]), num_inliers=res.num_inliers,
                               inlier_rmse=res.rmse, information=res.information, success=True, reason="",
                               matches=matches, inliers=res.inliers)

@@ -7,7 +7,6 @@ Example:
 """
 from __future__ import annotations
 
-import importlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,19 +42,25 @@ class DemoScene:
     default_size: tuple[int, int] = (640, 480)
 
 
-def _lazy(module: str, name: str) -> Callable[..., Path]:
-    """``module.name``, imported when called: the CLI's --help stays light."""
-    return lambda out_dir, **kwargs: getattr(importlib.import_module(module), name)(out_dir, **kwargs)
+def _room(out_dir, **kwargs) -> Path:
+    from slam.synthetic.sequence import generate_sequence  # imported when used: the CLI's --help stays light
+
+    return generate_sequence(out_dir, **kwargs)
+
+
+def _building(out_dir, **kwargs) -> Path:
+    from slam.synthetic.building_tour import generate_building_sequence
+
+    return generate_building_sequence(out_dir, **kwargs)
 
 
 DEMO_SCENES: dict[str, DemoScene] = {
     "room": DemoScene("one photo-textured 7 x 6 m room, a loop back to the first views",
-                      _lazy("slam.synthetic.sequence", "generate_sequence"), tuple(TRAJECTORIES), "loop", 300),
+                      _room, tuple(TRAJECTORIES), "loop", 300),
     # 320 x 240 by default: a quarter of the room's pixels, for 8 times its frames
     "building": DemoScene("four rooms around a corridor, two of them furnished identically (perceptual "
                           "aliasing); a 53 m tour back into the first room through its other door",
-                          _lazy("slam.synthetic.building_tour", "generate_building_sequence"), ("tour",), "tour", 2400,
-                          min_frames=60, default_size=(320, 240)),
+                          _building, ("tour",), "tour", 2400, min_frames=60, default_size=(320, 240)),
 }
 DEFAULT_DEMO_SCENE = "room"
 

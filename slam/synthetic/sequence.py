@@ -22,7 +22,6 @@ import logging
 import os
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
 from pathlib import Path
 
 import cv2
@@ -195,8 +194,14 @@ def _frame_names(stamps: np.ndarray) -> list[str]:
         more = f" (and {len(bad) - 3} more)" if len(bad) > 3 else ""
         raise ValueError(f"non-finite trajectory timestamps cannot name frame files: {shown}{more}")
     names = [f"{t:.6f}.png" for t in stamps]
-    first: dict[float, int] = {}  # by value: "-0.000000" and "0.000000" are one stamp in rgb.txt
-    clashes = [(first[key], i) for i, key in enumerate(float(nm[:-4]) for nm in names) if first.setdefault(key, i) != i]
+    first: dict[float, int] = {}
+    clashes = []
+    for i, name in enumerate(names):
+        key = float(name[:-4])  # "-0.000000" and "0.000000" are one stamp in rgb.txt
+        if key in first:
+            clashes.append((first[key], i))
+        else:
+            first[key] = i
     if clashes:
         shown = "; ".join(f"frames {a} and {b} ({float(stamps[a])!r} s and {float(stamps[b])!r} s) both give "
                           f"{names[b][:-4]}" for a, b in clashes[:3])
@@ -256,13 +261,18 @@ def generate_sequence(out_dir: str | os.PathLike, trajectory: str | Trajectory =
                 raise OSError(f"could not write frame {i} into {out}")
 
     step = max(1, len(batches) // 10)
-    # the workers share the cores (one thread each); one worker renders in the caller
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="synthetic") if workers > 1 else None
-    with limit_threads(1 if pool else None), pool or nullcontext():
-        futures = [pool.submit(task, idx) for idx in batches] if pool else []
-        for b, _ in enumerate((f.result() for f in futures) if pool else map(task, batches)):  # re-raises an error
-            if progress and b % step == 0:
-                logger.info("synthetic sequence: %d / %d frames", batches[b][-1] + 1, n)
+    with limit_threads(1 if workers > 1 else None):  # the workers share the cores: one thread each
+        if workers == 1:
+            for b, idx in enumerate(batches):
+                task(idx)
+                if progress and b % step == 0:
+                    logger.info("synthetic sequence: %d / %d frames", idx[-1] + 1, n)
+        else:
+            with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="synthetic") as pool:
+                for b, fut in enumerate([pool.submit(task, idx) for idx in batches]):
+                    fut.result()  # re-raises a worker's error
+                    if progress and b % step == 0:
+                        logger.info("synthetic sequence: %d / %d frames", batches[b][-1] + 1, n)
     stamps = seq.timestamps
     for sub, kind in (("rgb", "color images"), ("depth", "depth maps")):
         with open(out / f"{sub}.txt", "w", encoding="utf-8") as f:

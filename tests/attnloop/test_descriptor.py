@@ -286,6 +286,9 @@ def test_what_applies_without_rnns(lite, images):
     assert paper.recipe == AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper").recipe
     with pytest.raises(ValueError, match=r"fixes the recipe and the tap; also given: \['num_rnn'\]"):
         AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper", num_rnn=8)
+    # a setting the preset leaves at the default is type-checked as a recipe's is
+    with pytest.raises(TypeError, match="normalize must be True or False, got 1"):
+        AttentionDescriptor("efficientnet_lite0", pretrained=False, preset="paper", normalize=1)
     # a setting given explicitly at the library's default, which the paper's differs from, is refused too
     for kw in ({"num_rnn": 0}, {"pooling": "regional"}, {"pool_scale": 10.0}):
         with pytest.raises(ValueError, match=f"also given: \\['{next(iter(kw))}'\\]"):

@@ -210,7 +210,10 @@ def test_empty_index():
     assert index.search(torch.rand(2, 8), k=5)[0].shape == (2, 0)
     s_ids, s = index.similarities(torch.rand(8))
     assert s_ids.shape == (0,) and s.shape == (0,)
-    assert len(index) == 0 and index.dim is None
+    assert len(index) == 0 and index.dim is None and index.last_id is None
+    index.add(torch.rand(2, 8), ids=[4, 9])
+    index.add(torch.rand(1, 8))  # the next id after the largest
+    assert index.last_id == 10 and index.ids.tolist() == [4, 9, 10]
 
 
 def test_errors():

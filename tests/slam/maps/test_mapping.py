@@ -241,7 +241,7 @@ def test_a_keyframe_keeps_only_what_the_keyframes_before_it_do_not_hold():
     full = PointCloudMap(MapConfig(voxel_size=0.05, overlap_keyframes=0))
     compact = PointCloudMap(MapConfig(voxel_size=0.05))
     for k in range(3):
-        ref = None if k == 0 else (k - 1, step)
+        ref = None if k == 0 else (k - 1, step if k == 1 else step.numpy())  # the pose as a tensor or an array
         all_pts = full.add(k, rgb, depth, K, reference=ref)
         kept = compact.add(k, rgb, depth, K, reference=ref)
         if k == 0:
