@@ -34,11 +34,15 @@ class ShardedIndex:
     """
 
     def __init__(self, indexes: list[KeyframeIndex]):
+        if not indexes:
+            raise ValueError("a sharded index needs at least one index (no rows were given)")
         self.indexes = indexes
 
     @classmethod
     def build(cls, x: np.ndarray, config: IndexConfig | None = None, max_rows: int | None = None) -> ShardedIndex:
         """Index ``(N, D)`` rows, at most ``max_rows`` per index (default: :func:`rows_that_fit`)."""
+        if x.ndim != 2 or x.shape[0] == 0:
+            raise ValueError(f"rows to index must have shape (N, D) with N >= 1, got {x.shape}")
         config = config or IndexConfig(background=False)
         max_rows = max_rows or rows_that_fit(x.shape[1], config)
         indexes = []

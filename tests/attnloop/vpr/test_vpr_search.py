@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from attnloop.index import IndexConfig
 from attnloop.vpr.search import ShardedIndex, rows_that_fit
@@ -30,3 +31,10 @@ def test_rows_that_fit_counts_rows_and_the_structure():
     # half of 8 GiB in 2560-d float32 rows (10 KiB each): 419430 rows; a 128-d code + links add 1 KiB a row
     assert rows_that_fit(2560, IndexConfig(backend="exact"), memory=8 * gib) == 4 * gib // 10240
     assert rows_that_fit(2560, IndexConfig(backend="faiss"), memory=8 * gib) == 4 * gib // (10240 + 1024)
+
+
+def test_nothing_to_index_is_refused():
+    with pytest.raises(ValueError, match=r"shape \(N, D\) with N >= 1, got \(0, 8\)"):
+        ShardedIndex.build(np.zeros((0, 8), np.float32))
+    with pytest.raises(ValueError, match="at least one index"):
+        ShardedIndex([])
