@@ -118,10 +118,19 @@ def _check_call(call: ast.Call, target, bound_method: bool) -> str | None:
     return None
 
 
+def _walk_scope(scope: ast.AST):
+    """The nodes of ``scope`` (a function or the module) outside the functions defined in it."""
+    todo = [scope]
+    while todo:
+        node = todo.pop(0)
+        yield node
+        todo.extend(c for c in ast.iter_child_nodes(node) if not isinstance(c, (ast.FunctionDef, ast.AsyncFunctionDef)))
+
+
 def _scope_problems(scope: ast.AST, names: dict[str, object]) -> list[str]:
-    built: dict[str, type] = {}  # local names assigned from an imported class's constructor
+    built: dict[str, type] = {}  # names of this scope assigned from an imported class's constructor
     problems = []
-    for node in ast.walk(scope):
+    for node in _walk_scope(scope):
         if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call):
             cls = _resolve_quietly(node.value.func, names, {})
             if inspect.isclass(cls):
@@ -156,13 +165,9 @@ def script_problems(path: Path) -> list[str]:
     """What in ``path`` does not match the library: missing names, calls that do not bind."""
     tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
     names, problems = _imported(tree, path)
-    scopes = [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
-    seen = set()
-    for scope in [*scopes, tree]:  # innermost first, so that a local constructor is known in its own function
-        for problem in _scope_problems(scope, names):
-            if problem not in seen:
-                seen.add(problem)
-                problems.append(problem)
+    scopes = [tree, *(n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)))]
+    for scope in scopes:  # each function on its own: a constructor's name is known in its own function only
+        problems += _scope_problems(scope, names)
     return problems
 
 
