@@ -31,12 +31,11 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 import torch
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from slam.graph.config import OptimizerConfig
 from slam.graph.costs import RobustKernel, edge_chi2
 from slam.graph.fused import error_poses, se3_residuals, se3_retract
+from slam.graph.initialization import edge_components
 from slam.graph.linear import LinearSolverError, assemble_blocks, build_pattern, make_solver
 from slam.graph.pose_graph import PoseGraph
 from slam.graph.problem import PLANAR_DIMS, held_poses
@@ -189,10 +188,11 @@ def implicit_vjp(spec: _Spec, x: Tensor, meas: Tensor, info: Tensor, poses: Tens
         try:
             v = make_solver(spec.solver, pattern.size).solve(pattern, H, rhs)
         except LinearSolverError as exc:
-            # the first pose of each component of the edges that holds no pose (the prior holds pose 0's)
-            i, j = spec.ii.cpu().numpy(), spec.jj.cpu().numpy()
-            count, label = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(N, N)), directed=False)
-            anchored = {int(label[h]) for h in [*spec.held, *([0] if spec.prior_weight is not None else [])]}
+            # the first pose of each component of the edges that holds no pose
+            count, label = edge_components(spec.ii, spec.jj, N)
+            anchored = {int(label[h]) for h in spec.held}
+            if spec.prior_weight is not None:  # the gauge's prior holds pose 0
+                anchored.add(int(label[0]))
             _, first = np.unique(label, return_index=True)  # labels 0 .. count - 1
             loose = sorted(p for c, p in enumerate(first.tolist()) if c not in anchored)
             if loose:  # each such component can move as a whole at the same cost: no minimum is strict

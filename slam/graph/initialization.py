@@ -38,8 +38,8 @@ from slam.graph.costs import graph_chi2
 from slam.graph.pose_graph import PoseGraph
 from slam.lie import quat_to_rotmat, rotmat_project, rotmat_to_quat, se3_compose, se3_identity, se3_inv
 
-__all__ = ["AUTO_CHI2_PER_EDGE", "INITIALIZATIONS", "SpanningTree", "chordal_poses", "fits_edges", "initial_poses",
-           "initialize", "spanning_tree", "spanning_tree_poses"]
+__all__ = ["AUTO_CHI2_PER_EDGE", "INITIALIZATIONS", "SpanningTree", "chordal_poses", "edge_components", "fits_edges",
+           "initial_poses", "initialize", "spanning_tree", "spanning_tree_poses"]
 
 Tensor = torch.Tensor
 
@@ -80,7 +80,7 @@ def _anchors(graph: PoseGraph, fixed: Iterable[int] = ()) -> np.ndarray:
     if extra.size and (extra.min() < 0 or extra.max() >= n):
         raise ValueError(f"fixed pose index {int(extra[(extra < 0) | (extra >= n)][0])} is out of range [0, {n})")
     held[extra] = True
-    ncomp, label = _components(graph)
+    ncomp, label = edge_components(graph.ii, graph.jj, graph.num_poses)
     has = np.zeros(ncomp, dtype=bool)
     has[label[held]] = True
     lowest = np.full(ncomp, n, dtype=np.int64)
@@ -89,10 +89,11 @@ def _anchors(graph: PoseGraph, fixed: Iterable[int] = ()) -> np.ndarray:
     return held
 
 
-def _components(graph: PoseGraph):
-    n = graph.num_poses
-    ii, jj = graph.ii.cpu().numpy(), graph.jj.cpu().numpy()
-    adj = sp.coo_matrix((np.ones(ii.size), (ii, jj)), shape=(n, n)).tocsr()
+def edge_components(ii: Tensor, jj: Tensor, num_poses: int) -> tuple[int, np.ndarray]:
+    """The connected components of the poses joined by the edges ``ii -> jj`` (``(E,)`` each): their number
+    and each pose's component ``(N,)`` (numbered in the order of each component's first pose)."""
+    i, j = ii.cpu().numpy(), jj.cpu().numpy()
+    adj = sp.coo_matrix((np.ones(i.size), (i, j)), shape=(num_poses, num_poses)).tocsr()
     return csgraph.connected_components(adj, directed=False)
 
 
@@ -117,7 +118,7 @@ def spanning_tree(graph: PoseGraph, roots: Optional[np.ndarray] = None) -> Spann
     n = graph.num_poses
     if roots is None:
         roots = _anchors(graph)
-    ncomp, label = _components(graph)
+    ncomp, label = edge_components(graph.ii, graph.jj, graph.num_poses)
     cand = np.where(roots, np.arange(n), n)
     root = np.full(ncomp, n, dtype=np.int64)
     np.minimum.at(root, label, cand)

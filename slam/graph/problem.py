@@ -108,8 +108,12 @@ class TorchProblem:
         r, aux = se3_residuals(poses, self.ii, self.jj, self.zinv, self.chart)
         u = bmm(r[:, None, :], self.L)  # (E, 1, 6): (L^T r)^T
         s = u.square_().sum((1, 2))
-        rho, w = (s, None) if self.kernel is None else self.kernel(s)
-        cost, chi2 = float(rho.sum()), float(s.sum())
+        chi2 = float(s.sum())
+        if self.kernel is None:
+            cost, w = chi2, None
+        else:
+            rho, w = self.kernel(s)
+            cost = float(rho.sum())
         if self.prior is not None:
             p0, wgt, _ = self.prior
             r0 = se3_log(se3_compose(se3_inv(p0), poses[0]))
