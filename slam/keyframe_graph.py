@@ -26,6 +26,7 @@ Example:
 from __future__ import annotations
 
 import heapq
+import itertools
 import math
 from dataclasses import dataclass
 from enum import IntEnum
@@ -313,8 +314,9 @@ class KeyframeGraph:
         rows = []
         for k in np.nonzero(is_free)[0].tolist():
             rows.extend(e for e in self._odometry_of[k] if self.edges[e].active)
-            loops = [e for e in reversed(self._loops_of[k]) if self.edges[e].active]  # the newest first
-            rows.extend(loops if loops_per_keyframe is None else loops[:loops_per_keyframe])
+            # the newest first, stopping at loops_per_keyframe: a place revisited lap after lap holds many
+            newest = (e for e in reversed(self._loops_of[k]) if self.edges[e].active)
+            rows.extend(itertools.islice(newest, loops_per_keyframe))
         rows = np.unique(np.asarray(rows, dtype=np.int64))
         ij = self._edge_ij.view[rows]
         used = np.unique(np.concatenate([ij.reshape(-1), np.nonzero(is_free)[0]]))
