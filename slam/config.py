@@ -143,7 +143,11 @@ class DescriptorConfig:
         """The keyword arguments of :class:`attnloop.AttentionDescriptor` this config stands for."""
         kw = {"backbone": self.backbone, "preset": self.preset, "seed": self.seed, "pretrained": self.pretrained,
               "weights": None if self.weights is None else str(self.weights)}
-        return kw | {k: v for k, v in (("fusion", self.fusion), ("num_rnn", self.num_rnn)) if v is not None}
+        if self.fusion is not None:
+            kw["fusion"] = self.fusion
+        if self.num_rnn is not None:
+            kw["num_rnn"] = self.num_rnn
+        return kw
 
 
 @dataclass(frozen=True)

@@ -56,8 +56,10 @@ class ShardedIndex:
     def search(self, query, k: int = 10) -> tuple[torch.Tensor, torch.Tensor]:
         """``(Q, D)`` queries -> ids ``(Q, K)`` long and similarities ``(Q, K)`` float32, most similar first."""
         found = [index.search(query, k=k) for index in self.indexes]
-        ids, sims = (torch.cat(parts, dim=1) for parts in zip(*found))  # (Q, K * indexes) each
-        order = torch.from_numpy(np.lexsort((ids.numpy(), -sims.numpy()))[:, :k])  # by similarity, then the lower id
+        ids = torch.cat([i for i, _ in found], dim=1)  # (Q, K * indexes)
+        sims = torch.cat([s for _, s in found], dim=1)
+        order = np.lexsort((ids.numpy(), -sims.numpy()))[:, :k]  # by similarity, then the lower id
+        order = torch.from_numpy(order)
         return ids.gather(1, order), sims.gather(1, order)
 
     def save(self, folder) -> list[Path]:

@@ -15,7 +15,7 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -140,11 +140,12 @@ class PRCurve:
     average_precision: float
 
     def to_dict(self) -> dict[str, float]:
-        """The scalars (the fields ``repr`` shows), keyed by name (strict JSON: an infinite threshold becomes None)."""
-        out = {f.name: getattr(self, f.name) for f in fields(self) if f.repr}
-        if not math.isfinite(self.threshold_at_full_precision):
-            out["threshold_at_full_precision"] = None
-        return out
+        """The scalars, keyed by their attribute names (strict JSON: an infinite threshold becomes None)."""
+        thr = self.threshold_at_full_precision
+        return {"num_positives": self.num_positives,
+                "max_recall_at_full_precision": self.max_recall_at_full_precision,
+                "threshold_at_full_precision": thr if math.isfinite(thr) else None,
+                "average_precision": self.average_precision}
 
 
 def precision_recall_curve(scores: torch.Tensor, labels: torch.Tensor, num_positives: int | None = None

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Union
 
 import numpy as np
@@ -149,8 +149,10 @@ class ATEResult:
     estimate_aligned: Trajectory = field(repr=False)
 
     def to_dict(self) -> dict[str, object]:
-        """The scalar results, the fields ``repr`` shows (JSON-serialisable)."""
-        return {f.name: getattr(self, f.name) for f in fields(self) if f.repr}
+        """The scalar results (JSON-serialisable)."""
+        return {"rmse": self.rmse, "mean": self.mean, "median": self.median, "std": self.std, "min": self.min,
+                "max": self.max, "sse": self.sse, "num_pairs": self.num_pairs, "alignment": self.alignment,
+                "scale": self.scale}
 
 
 @dataclass

@@ -193,7 +193,12 @@ def building_layout(config: BuildingConfig | None = None) -> BuildingLayout:
 
     def room_openings(k: int) -> dict[str, list[float]]:
         # own frame: the corridor is north; the neighbour with the smaller own-frame x is west
-        return {wall: [0.0] for wall, door in (("north", True), ("west", k > 1), ("east", k < n)) if door}
+        out = {"north": [0.0]}
+        if k > 1:
+            out["west"] = [0.0]
+        if k < n:
+            out["east"] = [0.0]
+        return out
 
     for k in range(1, n + 1):  # south rooms, own frame = world frame
         spaces.append(Space(f"S{k}", np.array([(k - 0.5) * rx, ry / 2]), (rx, ry), 0.0, room_openings(k), f"S{k}"))

@@ -142,8 +142,12 @@ def tour_polyline(layout: BuildingLayout, tour=DEFAULT_TOUR, config: TourConfig 
             add(c[None] + r * np.array([[math.cos(end), math.sin(end)]]), np.array([end + math.copysign(lead, sweep)]))
             break
         nxt = layout.space(tour[k + 1].room)
-        via_corridor = not any({d.a, d.b} == {room.name, nxt.name} for d in layout.doors)  # not neighbours
-        door = layout.door(room.name, "corridor" if via_corridor else nxt.name)
+        try:
+            door = layout.door(room.name, nxt.name)
+            via_corridor = False
+        except KeyError:  # not neighbours: through the corridor
+            door = layout.door(room.name, "corridor")
+            via_corridor = True
         m = door.normal
         doors.append(door.center)
         phi_out = math.atan2(m[1], m[0])
@@ -156,9 +160,14 @@ def tour_polyline(layout: BuildingLayout, tour=DEFAULT_TOUR, config: TourConfig 
             corner = np.array([door_b.center[0], y_line[1]])
             add(*_line(start, y_line))
             add(*_line(y_line, corner), True)
-            start, m = corner, door_b.normal
-        add(*_line(start, nxt.center + r * m))
-        phi = math.atan2(m[1], m[0])
+            n_in = door_b.normal
+            far = nxt.center + r * n_in
+            add(*_line(corner, far))
+        else:
+            n_in = m
+            far = nxt.center + r * n_in
+            add(*_line(start, far))
+        phi = math.atan2(n_in[1], n_in[0])
     P = np.concatenate(pos)
     Y = np.unwrap(np.concatenate(yaw))
     return P, Y, np.concatenate(corr), np.array(doors).reshape(-1, 2)
